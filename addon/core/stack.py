@@ -1,0 +1,303 @@
+"""The layer-stack data model: what an artist builds in the sidebar, as plain data.
+
+A stack is a base (``Diffuse``, ``Conductor`` or ``Dielectric``) under zero or more
+``Coating`` layers, listed bottom to top. Every roughness here is the GGX ``alpha``
+(not the artist's squared "roughness"; see :func:`alpha_from_artist_roughness`).
+
+Two ranges matter for each parameter:
+
+- the *valid* range: anything outside it is not a physical material, and constructing
+  the layer raises ``ValueError`` naming the field, the value and the range;
+- the *trained* range (``TRAINED_RANGES``): what the neural models saw in training.
+  Valid values outside it are still rendered exactly by the reference; the neural
+  runtime clamps them with :func:`clamp_to_trained` and says what it changed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Iterable, Union
+
+RGB = tuple[float, float, float]
+
+# Valid (physical) ranges, inclusive.
+VALID_RANGES: dict[str, tuple[float, float]] = {
+    "roughness": (0.0, 1.0),
+    "ior": (1.0, 4.0),
+    "eta": (0.01, 10.0),
+    "k": (0.0, 20.0),
+    "albedo": (0.0, 1.0),
+    "thickness": (0.0, 100.0),
+    "g": (-0.99, 0.99),
+}
+
+# Ranges the neural models were trained on (DESIGN section 3), inclusive.
+TRAINED_RANGES: dict[str, tuple[float, float]] = {
+    "roughness": (0.01, 1.0),
+    "ior": (1.05, 2.0),
+    "eta": (0.01, 10.0),
+    "k": (0.0, 20.0),
+    "albedo": (0.0, 1.0),
+    "thickness": (0.0, 5.0),
+    "g": (0.0, 0.0),
+}
+
+
+def _check_scalar(layer: str, name: str, value, valid_key: str | None = None) -> float:
+    lo, hi = VALID_RANGES[valid_key or name]
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{layer}.{name} must be a number, got {value!r}") from None
+    if not math.isfinite(v) or v < lo or v > hi:
+        raise ValueError(f"{layer}.{name} = {value!r} is outside the valid range [{lo}, {hi}]")
+    return v
+
+
+def _check_rgb(layer: str, name: str, value, valid_key: str | None = None) -> RGB:
+    if isinstance(value, (int, float)):
+        value = (value, value, value)
+    try:
+        items = list(value)
+    except TypeError:
+        raise ValueError(f"{layer}.{name} must be an RGB triple, got {value!r}") from None
+    if len(items) != 3:
+        raise ValueError(f"{layer}.{name} must have 3 channels (R, G, B), got {len(items)}: {value!r}")
+    return tuple(
+        _check_scalar(layer, f"{name}[{'RGB'[i]}]", x, valid_key or name) for i, x in enumerate(items)
+    )  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class Diffuse:
+    """Lambertian base with RGB albedo in [0, 1]."""
+
+    albedo: RGB = (0.8, 0.8, 0.8)
+
+    def __post_init__(self):
+        object.__setattr__(self, "albedo", _check_rgb("Diffuse", "albedo", self.albedo))
+
+
+@dataclass(frozen=True)
+class Conductor:
+    """Rough conductor base: GGX alpha and complex index eta + i k per channel."""
+
+    roughness: float = 0.1
+    eta: RGB = (0.2, 0.9, 1.1)
+    k: RGB = (3.9, 2.4, 2.2)
+
+    def __post_init__(self):
+        object.__setattr__(self, "roughness", _check_scalar("Conductor", "roughness", self.roughness))
+        object.__setattr__(self, "eta", _check_rgb("Conductor", "eta", self.eta))
+        object.__setattr__(self, "k", _check_rgb("Conductor", "k", self.k))
+
+    @classmethod
+    def from_f0(cls, f0: RGB, roughness: float = 0.1) -> "Conductor":
+        """A conductor whose normal-incidence reflectance is the artist colour ``f0``.
+
+        Uses eta = 1 (all colour carried by k): F0 = k^2 / (4 + k^2), so
+        k = 2 sqrt(F0 / (1 - F0)). This matches F0 exactly and keeps the Fresnel
+        curve's grazing rise; the edge tint of measured metals is not modelled.
+        """
+        f0 = _check_rgb("Conductor", "f0", f0)
+        f0c = tuple(min(max(c, 0.0), 0.999) for c in f0)
+        k = tuple(min(2.0 * math.sqrt(c / (1.0 - c)), VALID_RANGES["k"][1]) for c in f0c)
+        return cls(roughness=roughness, eta=(1.0, 1.0, 1.0), k=k)
+
+
+@dataclass(frozen=True)
+class Dielectric:
+    """Rough dielectric base: reflection from a GGX interface over black."""
+
+    roughness: float = 0.1
+    ior: float = 1.5
+
+    def __post_init__(self):
+        object.__setattr__(self, "roughness", _check_scalar("Dielectric", "roughness", self.roughness))
+        object.__setattr__(self, "ior", _check_scalar("Dielectric", "ior", self.ior))
+
+
+@dataclass(frozen=True)
+class Coating:
+    """A rough dielectric interface over a homogeneous slab.
+
+    ``albedo`` is the single-scattering albedo (RGB) of the slab's medium,
+    ``thickness`` its optical thickness sigma_t * depth (0 = no medium), ``g`` the
+    Henyey-Greenstein asymmetry of its phase function.
+    """
+
+    roughness: float = 0.05
+    ior: float = 1.5
+    albedo: RGB = (0.0, 0.0, 0.0)
+    thickness: float = 0.0
+    g: float = 0.0
+
+    def __post_init__(self):
+        object.__setattr__(self, "roughness", _check_scalar("Coating", "roughness", self.roughness))
+        object.__setattr__(self, "ior", _check_scalar("Coating", "ior", self.ior))
+        object.__setattr__(self, "albedo", _check_rgb("Coating", "albedo", self.albedo))
+        object.__setattr__(self, "thickness", _check_scalar("Coating", "thickness", self.thickness))
+        object.__setattr__(self, "g", _check_scalar("Coating", "g", self.g))
+
+
+Base = Union[Diffuse, Conductor, Dielectric]
+Layer = Union[Diffuse, Conductor, Dielectric, Coating]
+BASE_TYPES = (Diffuse, Conductor, Dielectric)
+
+
+@dataclass(frozen=True)
+class Stack:
+    """A base under ``coatings`` (bottom to top)."""
+
+    base: Base
+    coatings: tuple[Coating, ...] = field(default_factory=tuple)
+
+    def __post_init__(self):
+        if not isinstance(self.base, BASE_TYPES):
+            raise ValueError(
+                f"Stack.base must be Diffuse, Conductor or Dielectric, got {type(self.base).__name__}"
+            )
+        coatings = tuple(self.coatings)
+        for i, c in enumerate(coatings):
+            if not isinstance(c, Coating):
+                raise ValueError(f"Stack.coatings[{i}] must be a Coating, got {type(c).__name__}")
+        object.__setattr__(self, "coatings", coatings)
+
+    @property
+    def layers(self) -> tuple[Layer, ...]:
+        """All layers bottom to top: base first."""
+        return (self.base, *self.coatings)
+
+    def to_dict(self) -> dict:
+        return {"base": layer_to_dict(self.base), "coatings": [layer_to_dict(c) for c in self.coatings]}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "Stack":
+        if not isinstance(data, dict) or "base" not in data:
+            raise ValueError(f"a stack needs a 'base' entry, got {data!r}")
+        return cls(
+            base=layer_from_dict(data["base"]),
+            coatings=tuple(layer_from_dict(c) for c in data.get("coatings", [])),
+        )
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str) -> "Stack":
+        return cls.from_dict(json.loads(text))
+
+
+LAYER_TYPES = {t.__name__: t for t in (Diffuse, Conductor, Dielectric, Coating)}
+
+
+def layer_to_dict(layer: Layer) -> dict:
+    d = dataclasses.asdict(layer)
+    d = {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+    d["type"] = type(layer).__name__
+    return d
+
+
+def layer_from_dict(data: dict) -> Layer:
+    data = dict(data)
+    kind = data.pop("type", None)
+    if kind not in LAYER_TYPES:
+        raise ValueError(f"unknown layer type {kind!r}; expected one of {sorted(LAYER_TYPES)}")
+    names = {f.name for f in dataclasses.fields(LAYER_TYPES[kind])}
+    unknown = set(data) - names
+    if unknown:
+        raise ValueError(f"{kind} has no field(s) {sorted(unknown)}; fields are {sorted(names)}")
+    return LAYER_TYPES[kind](**data)
+
+
+def alpha_from_artist_roughness(r: float) -> float:
+    """Artist roughness (perceptual, as in Blender's Principled BSDF) -> GGX alpha = r^2."""
+    return float(r) ** 2
+
+
+def artist_roughness_from_alpha(alpha: float) -> float:
+    return math.sqrt(max(float(alpha), 0.0))
+
+
+def _clamp(v: float, key: str) -> float:
+    lo, hi = TRAINED_RANGES[key]
+    return min(max(v, lo), hi)
+
+
+def clamp_to_trained(stack: Stack) -> tuple[Stack, list[str]]:
+    """Clamp every parameter into the trained range; return the stack and what changed."""
+    notes: list[str] = []
+
+    def fix(layer_name: str, layer: Layer) -> Layer:
+        changes = {}
+        for f in dataclasses.fields(layer):
+            key = f.name if f.name in TRAINED_RANGES else None
+            if key is None:
+                continue
+            v = getattr(layer, f.name)
+            if isinstance(v, tuple):
+                nv = tuple(_clamp(x, key) for x in v)
+            else:
+                nv = _clamp(v, key)
+            if nv != v:
+                lo, hi = TRAINED_RANGES[key]
+                notes.append(f"{layer_name}.{f.name} = {v} clamped to {nv} (trained range [{lo}, {hi}])")
+                changes[f.name] = nv
+        return dataclasses.replace(layer, **changes) if changes else layer
+
+    base = fix(f"base({type(stack.base).__name__})", stack.base)
+    coatings = tuple(fix(f"coatings[{i}]", c) for i, c in enumerate(stack.coatings))
+    return Stack(base, coatings), notes
+
+
+def _presets() -> dict[str, Stack]:
+    gold = Conductor(roughness=0.08, eta=(0.143, 0.374, 1.442), k=(3.983, 2.385, 1.603))
+    copper = Conductor(roughness=0.2, eta=(0.200, 0.924, 1.102), k=(3.912, 2.452, 2.142))
+    aluminium = Conductor(roughness=0.3, eta=(1.657, 0.880, 0.521), k=(9.224, 6.270, 4.837))
+    return {
+        "coated_gold": Stack(gold, (Coating(roughness=0.02, ior=1.5),)),
+        "red_car_paint": Stack(
+            aluminium,
+            (
+                Coating(roughness=0.15, ior=1.5, albedo=(0.9, 0.05, 0.05), thickness=1.5),
+                Coating(roughness=0.01, ior=1.5),
+            ),
+        ),
+        "lacquered_plastic": Stack(Diffuse((0.05, 0.25, 0.6)), (Coating(roughness=0.03, ior=1.5),)),
+        "varnished_wood": Stack(
+            Diffuse((0.45, 0.22, 0.08)),
+            (Coating(roughness=0.1, ior=1.52, albedo=(0.95, 0.7, 0.3), thickness=0.6),),
+        ),
+        "frosted_copper": Stack(copper, (Coating(roughness=0.5, ior=1.45),)),
+        "three_layer": Stack(
+            Diffuse((0.8, 0.8, 0.8)),
+            (
+                Coating(roughness=0.3, ior=1.4, albedo=(0.2, 0.6, 0.9), thickness=1.0),
+                Coating(roughness=0.2, ior=1.6, albedo=(0.9, 0.9, 0.3), thickness=0.5),
+                Coating(roughness=0.05, ior=1.5),
+            ),
+        ),
+        "rough_dielectric": Stack(Dielectric(roughness=0.25, ior=1.5)),
+        "white_diffuse": Stack(Diffuse((0.8, 0.8, 0.8))),
+    }
+
+
+PRESETS: dict[str, Stack] = _presets()
+
+
+def preset(name: str) -> Stack:
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise ValueError(f"unknown preset {name!r}; presets are {sorted(PRESETS)}") from None
+
+
+def iter_params(stack: Stack) -> Iterable[tuple[str, str, object]]:
+    """(layer label, field name, value) for every parameter, bottom to top."""
+    for i, layer in enumerate(stack.layers):
+        label = "base" if i == 0 else f"coatings[{i - 1}]"
+        for f in dataclasses.fields(layer):
+            yield label, f.name, getattr(layer, f.name)
