@@ -102,7 +102,7 @@ class Conductor:
         k = 2 sqrt(F0 / (1 - F0)). This matches F0 exactly and keeps the Fresnel
         curve's grazing rise; the edge tint of measured metals is not modelled.
         """
-        f0 = _check_rgb("Conductor", "f0", f0)
+        f0 = _check_rgb("Conductor", "f0", f0, "albedo")
         f0c = tuple(min(max(c, 0.0), 0.999) for c in f0)
         k = tuple(min(2.0 * math.sqrt(c / (1.0 - c)), VALID_RANGES["k"][1]) for c in f0c)
         return cls(roughness=roughness, eta=(1.0, 1.0, 1.0), k=k)
