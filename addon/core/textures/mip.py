@@ -1,0 +1,92 @@
+"""Mip chains in latent space and their trilinear, footprint-driven lookup.
+
+Level sizes follow OpenEXR's round-down rule (``max(1, n // 2)`` per axis down to 1 x 1), so a
+chain maps one-to-one onto the levels of a mip-mapped EXR. Each level is the *area-weighted box
+filter* of the level below: for even sizes the mean of 2 x 2 blocks; for odd sizes each output
+texel averages the input texels it covers, with fractional weights at the borders.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def box_weights(n: int) -> np.ndarray:
+    """(m, n) matrix averaging n texels into m = max(1, n // 2) by area (rows sum to 1)."""
+    m = max(1, n // 2)
+    edges = np.arange(m + 1) * (n / m)
+    lo, hi = edges[:-1, None], edges[1:, None]
+    j = np.arange(n)[None, :]
+    overlap = np.clip(np.minimum(hi, j + 1) - np.maximum(lo, j), 0.0, None)
+    return overlap / (n / m)
+
+
+def downsample(level: np.ndarray) -> np.ndarray:
+    """Box-filter one (H, W, C) level to the next one."""
+    wy = box_weights(level.shape[0])
+    wx = box_weights(level.shape[1])
+    tmp = np.einsum("ij,jwc->iwc", wy, level.astype(np.float64, copy=False))
+    return np.einsum("kw,iwc->ikc", wx, tmp)
+
+
+def build_mip_chain(base: np.ndarray) -> list[np.ndarray]:
+    """All levels from ``base`` (H, W, C) down to 1 x 1, as float32 arrays."""
+    if base.ndim != 3 or base.shape[0] < 1 or base.shape[1] < 1:
+        raise ValueError(f"a mip chain needs an (H, W, C) array, got shape {base.shape}")
+    levels = [np.asarray(base, dtype=np.float32)]
+    cur = levels[0].astype(np.float64)
+    while cur.shape[0] > 1 or cur.shape[1] > 1:
+        cur = downsample(cur)
+        levels.append(cur.astype(np.float32))
+    return levels
+
+
+def _bilinear(level: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear lookup with repeat addressing; uv (N, 2) with v = 0 at the bottom row."""
+    h, w, _ = level.shape
+    x = uv[:, 0] * w - 0.5
+    y = (1.0 - uv[:, 1]) * h - 0.5  # row 0 is the top of the image
+    x0 = np.floor(x)
+    y0 = np.floor(y)
+    fx = (x - x0)[:, None]
+    fy = (y - y0)[:, None]
+    x0 = x0.astype(np.int64)
+    y0 = y0.astype(np.int64)
+    x1 = (x0 + 1) % w
+    y1 = (y0 + 1) % h
+    x0 %= w
+    y0 %= h
+    top = level[y0, x0] * (1 - fx) + level[y0, x1] * fx
+    bottom = level[y1, x0] * (1 - fx) + level[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def mip_level_for_footprint(footprint: np.ndarray, width: int, height: int, n_levels: int) -> np.ndarray:
+    """Continuous mip level for a footprint given in uv units (the ray cone's width on the surface)."""
+    texels = np.maximum(np.asarray(footprint, dtype=np.float64) * max(width, height), 1e-12)
+    return np.clip(np.log2(texels), 0.0, n_levels - 1)
+
+
+def trilinear_lookup(levels: list[np.ndarray], uv: np.ndarray, footprint: np.ndarray | float) -> np.ndarray:
+    """Trilinear lookup (N, C) at uv (N, 2) with footprint (N,) or scalar in uv units.
+
+    The level is log2 of the footprint in texels of level 0; the two nearest levels are looked
+    up bilinearly and blended. Non-finite uv or footprints raise ``ValueError``.
+    """
+    uv = np.asarray(uv, dtype=np.float64)
+    if uv.ndim != 2 or uv.shape[1] != 2:
+        raise ValueError(f"uv must have shape (N, 2), got {uv.shape}")
+    fp = np.broadcast_to(np.asarray(footprint, dtype=np.float64), (uv.shape[0],))
+    if not (np.isfinite(uv).all() and np.isfinite(fp).all()):
+        raise ValueError("uv and footprint must be finite")
+    h, w, c = levels[0].shape
+    lod = mip_level_for_footprint(fp, w, h, len(levels))
+    lo = np.floor(lod).astype(np.int64)
+    t = (lod - lo)[:, None]
+    out = np.zeros((uv.shape[0], c), dtype=np.float64)
+    for k in np.unique(lo):  # a loop over mip levels, not texels
+        sel = np.nonzero(lo == k)[0]
+        a = _bilinear(levels[k], uv[sel])
+        b = _bilinear(levels[min(k + 1, len(levels) - 1)], uv[sel])
+        out[sel] = a * (1 - t[sel]) + b * t[sel]
+    return out.astype(np.float32)

@@ -1,0 +1,97 @@
+"""Latent textures: mip chain = box filter, trilinear lookup, EXR round trip."""
+
+import numpy as np
+import pytest
+
+from addon.core.textures import CHANNEL_NAMES, LatentTexture, box_weights, build_mip_chain, trilinear_lookup
+from addon.core.textures.mip import downsample
+
+
+@pytest.mark.parametrize("n", [1, 2, 5, 8, 13])
+def test_box_weights_rows_sum_to_one_and_preserve_the_mean(n):
+    w = box_weights(n)
+    assert w.shape == (max(1, n // 2), n)
+    assert np.allclose(w.sum(axis=1), 1.0)
+    assert np.allclose(w.sum(axis=0).sum(), max(1, n // 2))
+    x = np.random.default_rng(n).random(n)
+    assert np.isclose((w @ x).mean(), x.mean())
+
+
+def test_even_levels_are_the_mean_of_two_by_two_blocks():
+    base = np.random.default_rng(0).random((8, 16, 3))
+    chain = build_mip_chain(base)
+    assert [lvl.shape[:2] for lvl in chain] == [(8, 16), (4, 8), (2, 4), (1, 2), (1, 1)]
+    blocks = base.reshape(4, 2, 8, 2, 3).mean(axis=(1, 3))
+    assert np.allclose(chain[1], blocks, atol=1e-6)
+    for fine, coarse in zip(chain, chain[1:]):
+        assert np.allclose(downsample(fine.astype(np.float64)), coarse, atol=1e-6)
+
+
+def test_odd_sizes_follow_openexr_round_down():
+    chain = build_mip_chain(np.ones((7, 5, 2)))
+    assert [lvl.shape[:2] for lvl in chain] == [(7, 5), (3, 2), (1, 1)]
+    assert all(np.allclose(lvl, 1.0) for lvl in chain)
+
+
+def test_lookup_at_texel_centres_and_level_selection():
+    rng = np.random.default_rng(1)
+    base = rng.random((16, 16, 4)).astype(np.float32)
+    chain = build_mip_chain(base)
+    # texel (row 3, col 5): uv of its centre, v = 0 at the bottom row
+    uv = np.array([[(5 + 0.5) / 16, 1 - (3 + 0.5) / 16]])
+    assert np.allclose(trilinear_lookup(chain, uv, 1.0 / 16), base[3, 5], atol=1e-6)
+    # a footprint covering the whole texture gives the 1x1 level
+    assert np.allclose(trilinear_lookup(chain, uv, 1.0), chain[-1][0, 0], atol=1e-6)
+    # half-way between levels 0 and 1 in log2 blends them
+    fp = np.sqrt(2.0) / 16
+    mid = trilinear_lookup(chain, np.array([[0.5, 0.5]]), fp)
+    a = trilinear_lookup(chain, np.array([[0.5, 0.5]]), 1 / 16)
+    b = trilinear_lookup(chain, np.array([[0.5, 0.5]]), 2 / 16)
+    assert np.allclose(mid, 0.5 * (a + b), atol=1e-6)
+
+
+def test_lookup_rejects_bad_input():
+    chain = build_mip_chain(np.zeros((4, 4, 1)))
+    with pytest.raises(ValueError, match="uv"):
+        trilinear_lookup(chain, np.zeros((3, 3)), 0.1)
+    with pytest.raises(ValueError, match="finite"):
+        trilinear_lookup(chain, np.array([[np.nan, 0.0]]), 0.1)
+
+
+@pytest.fixture(scope="module")
+def oiio():
+    bpy = pytest.importorskip("bpy")
+    bpy.utils.expose_bundled_modules()
+    return pytest.importorskip("OpenImageIO")
+
+
+def test_exr_round_trip_preserves_latents_within_half_precision(tmp_path, oiio):
+    rng = np.random.default_rng(2)
+    texels = rng.normal(size=(37, 70, len(CHANNEL_NAMES))).astype(np.float32)
+    tex = LatentTexture.from_texels(texels, metadata={"stack": "demo"})
+    path = tmp_path / "wood.exr"
+    tex.write_exr(path)
+    assert not list(tmp_path.glob("*.partial*"))
+    back = LatentTexture.read_exr(path)
+    assert len(back.levels) == len(tex.levels) == 7  # 70 -> 35 -> 17 -> 8 -> 4 -> 2 -> 1
+    for a, b in zip(tex.levels, back.levels):
+        assert a.shape == b.shape
+        assert np.allclose(a, b, rtol=1e-3, atol=1e-3)  # half: 11-bit mantissa
+    assert back.metadata.get("stack") == "demo"
+    spec = oiio.ImageInput.open(str(path)).spec()
+    assert sorted(spec.channelnames) == sorted(CHANNEL_NAMES)
+    assert spec.tile_width == 64 and spec.format == oiio.HALF
+
+
+def test_reading_a_non_latent_exr_is_a_clear_error(tmp_path, oiio):
+    p = tmp_path / "rgb.exr"
+    out = oiio.ImageOutput.create(str(p))
+    out.open(str(p), oiio.ImageSpec(4, 4, 3, "half"))
+    out.write_image(np.zeros((4, 4, 3), np.float32))
+    out.close()
+    with pytest.raises(ValueError, match="not a latent texture"):
+        LatentTexture.read_exr(p)
+    with pytest.raises(FileNotFoundError):
+        LatentTexture.read_exr(tmp_path / "missing.exr")
+    with pytest.raises(ValueError, match="shape"):
+        LatentTexture.from_texels(np.zeros((4, 4, 3)))
