@@ -1,0 +1,9 @@
+"""operators (in progress)."""
+
+
+def register() -> None:
+    pass
+
+
+def unregister() -> None:
+    pass
