@@ -21,6 +21,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Iterable, Union
 
+import numpy as np
+
 RGB = tuple[float, float, float]
 
 # Valid (physical) ranges, inclusive.
@@ -301,3 +303,108 @@ def iter_params(stack: Stack) -> Iterable[tuple[str, str, object]]:
         label = "base" if i == 0 else f"coatings[{i - 1}]"
         for f in dataclasses.fields(layer):
             yield label, f.name, getattr(layer, f.name)
+
+
+# ---------------------------------------------------------------------------------------------
+# Many stacks at once: a struct of arrays with one row per stack (texels, training data, hits).
+
+BASE_KINDS = ("Diffuse", "Conductor", "Dielectric")
+
+
+@dataclass
+class StackArrays:
+    """N stacks with the same number of coatings C, one row each (float64 arrays).
+
+    Base fields not used by a row's base kind hold the defaults of that field and are ignored.
+    ``coat_*`` arrays are (N, C) or (N, C, 3); coatings are ordered bottom to top.
+    """
+
+    base_kind: np.ndarray  # (N,) int: index into BASE_KINDS
+    base_albedo: np.ndarray  # (N, 3)  Diffuse
+    base_roughness: np.ndarray  # (N,)  Conductor, Dielectric
+    base_eta: np.ndarray  # (N, 3)  Conductor
+    base_k: np.ndarray  # (N, 3)  Conductor
+    base_ior: np.ndarray  # (N,)  Dielectric
+    coat_roughness: np.ndarray  # (N, C)
+    coat_ior: np.ndarray  # (N, C)
+    coat_albedo: np.ndarray  # (N, C, 3)
+    coat_thickness: np.ndarray  # (N, C)
+    coat_g: np.ndarray  # (N, C)
+
+    FIELDS = (
+        "base_kind", "base_albedo", "base_roughness", "base_eta", "base_k", "base_ior",
+        "coat_roughness", "coat_ior", "coat_albedo", "coat_thickness", "coat_g",
+    )
+
+    def __len__(self) -> int:
+        return int(self.base_kind.shape[0])
+
+    @property
+    def n_coatings(self) -> int:
+        return int(self.coat_roughness.shape[1])
+
+    @classmethod
+    def from_stacks(cls, stacks: "list[Stack]") -> "StackArrays":
+        if not stacks:
+            raise ValueError("StackArrays.from_stacks needs at least one stack")
+        n_coat = {len(s.coatings) for s in stacks}
+        if len(n_coat) != 1:
+            raise ValueError(f"all stacks in one batch need the same number of coatings, got {sorted(n_coat)}")
+        d_base = {"albedo": Diffuse().albedo, "roughness": Conductor().roughness, "eta": Conductor().eta,
+                  "k": Conductor().k, "ior": Dielectric().ior}
+
+        def base_field(s: Stack, name: str):
+            return getattr(s.base, name, d_base[name])
+
+        def coat(s: Stack, name: str):
+            return [getattr(c, name) for c in s.coatings]
+
+        c = n_coat.pop()
+        return cls(
+            base_kind=np.array([BASE_KINDS.index(type(s.base).__name__) for s in stacks], dtype=np.int64),
+            base_albedo=np.array([base_field(s, "albedo") for s in stacks], dtype=np.float64),
+            base_roughness=np.array([base_field(s, "roughness") for s in stacks], dtype=np.float64),
+            base_eta=np.array([base_field(s, "eta") for s in stacks], dtype=np.float64),
+            base_k=np.array([base_field(s, "k") for s in stacks], dtype=np.float64),
+            base_ior=np.array([base_field(s, "ior") for s in stacks], dtype=np.float64),
+            coat_roughness=np.array([coat(s, "roughness") for s in stacks], dtype=np.float64).reshape(-1, c),
+            coat_ior=np.array([coat(s, "ior") for s in stacks], dtype=np.float64).reshape(-1, c),
+            coat_albedo=np.array([coat(s, "albedo") for s in stacks], dtype=np.float64).reshape(-1, c, 3),
+            coat_thickness=np.array([coat(s, "thickness") for s in stacks], dtype=np.float64).reshape(-1, c),
+            coat_g=np.array([coat(s, "g") for s in stacks], dtype=np.float64).reshape(-1, c),
+        )
+
+    @classmethod
+    def repeat(cls, stack: Stack, n: int) -> "StackArrays":
+        """``n`` copies of one stack (the start of a spatially varying stack)."""
+        one = cls.from_stacks([stack])
+        return cls(**{f: np.repeat(getattr(one, f), n, axis=0) for f in cls.FIELDS})
+
+    def take(self, index) -> "StackArrays":
+        return StackArrays(**{f: getattr(self, f)[index] for f in self.FIELDS})
+
+    def to_matrix(self) -> np.ndarray:
+        """(N, P) float matrix of every field, for deduplication and hashing."""
+        n = len(self)
+        return np.concatenate([getattr(self, f).reshape(n, -1).astype(np.float64) for f in self.FIELDS], axis=1)
+
+    def unique(self) -> "tuple[StackArrays, np.ndarray]":
+        """Distinct rows and the inverse index (rows == unique.take(inverse))."""
+        _, first, inverse = np.unique(self.to_matrix(), axis=0, return_index=True, return_inverse=True)
+        return self.take(first), inverse.reshape(-1)
+
+    def stack(self, i: int) -> Stack:
+        """Row ``i`` as a validated Stack."""
+        kind = BASE_KINDS[int(self.base_kind[i])]
+        if kind == "Diffuse":
+            base: Base = Diffuse(tuple(self.base_albedo[i]))
+        elif kind == "Conductor":
+            base = Conductor(float(self.base_roughness[i]), tuple(self.base_eta[i]), tuple(self.base_k[i]))
+        else:
+            base = Dielectric(float(self.base_roughness[i]), float(self.base_ior[i]))
+        coats = tuple(
+            Coating(float(self.coat_roughness[i, j]), float(self.coat_ior[i, j]), tuple(self.coat_albedo[i, j]),
+                    float(self.coat_thickness[i, j]), float(self.coat_g[i, j]))
+            for j in range(self.n_coatings)
+        )
+        return Stack(base, coats)

@@ -11,9 +11,11 @@ from __future__ import annotations
 import numpy as np
 
 
-def box_weights(n: int) -> np.ndarray:
-    """(m, n) matrix averaging n texels into m = max(1, n // 2) by area (rows sum to 1)."""
-    m = max(1, n // 2)
+def box_weights(n: int, m: int | None = None) -> np.ndarray:
+    """(m, n) matrix averaging n texels into m (default max(1, n // 2)) by area (rows sum to 1)."""
+    m = max(1, n // 2) if m is None else m
+    if not 1 <= m <= n:
+        raise ValueError(f"box filter reduces {n} texels to between 1 and {n}, got {m}")
     edges = np.arange(m + 1) * (n / m)
     lo, hi = edges[:-1, None], edges[1:, None]
     j = np.arange(n)[None, :]
@@ -23,9 +25,14 @@ def box_weights(n: int) -> np.ndarray:
 
 def downsample(level: np.ndarray) -> np.ndarray:
     """Box-filter one (H, W, C) level to the next one."""
-    wy = box_weights(level.shape[0])
-    wx = box_weights(level.shape[1])
-    tmp = np.einsum("ij,jwc->iwc", wy, level.astype(np.float64, copy=False))
+    return resample_area(level, max(1, level.shape[0] // 2), max(1, level.shape[1] // 2))
+
+
+def resample_area(image: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Area-weighted box reduction of an (H, W, C) image to (height, width), each at most H, W."""
+    wy = box_weights(image.shape[0], height)
+    wx = box_weights(image.shape[1], width)
+    tmp = np.einsum("ij,jwc->iwc", wy, image.astype(np.float64, copy=False))
     return np.einsum("kw,iwc->ikc", wx, tmp)
 
 

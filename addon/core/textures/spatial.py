@@ -1,0 +1,126 @@
+"""Spatially varying stacks: a constant stack with some parameters driven by images.
+
+A parameter is named by its path in the stack, ``base.<field>`` or ``coatings[i].<field>``
+(coatings bottom to top), e.g. ``coatings[0].roughness`` for the clear coat's GGX alpha or
+``base.albedo`` for a colour map. Images are numpy arrays in the parameter's own units, rows top
+to bottom: (H, W) or (H, W, 1) for scalar fields; (H, W, 3) (or grey (H, W)) for RGB fields.
+All driving images of one stack share one resolution.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..stack import VALID_RANGES, StackArrays, Stack
+from .mip import resample_area
+
+_PATH = re.compile(r"^(base|coatings\[(\d+)\])\.(\w+)$")
+RGB_FIELDS = {"albedo", "eta", "k"}
+
+# StackArrays attribute for each (layer kind, field).
+_BASE_ATTR = {"albedo": "base_albedo", "roughness": "base_roughness", "eta": "base_eta", "k": "base_k", "ior": "base_ior"}
+_COAT_ATTR = {"roughness": "coat_roughness", "ior": "coat_ior", "albedo": "coat_albedo",
+              "thickness": "coat_thickness", "g": "coat_g"}
+
+
+def parse_parameter_path(stack: Stack, path: str) -> tuple[str, int | None, str]:
+    """('base' | 'coating', coating index or None, field) for a parameter path, or ValueError."""
+    m = _PATH.match(path.strip())
+    if not m:
+        raise ValueError(f"parameter path {path!r} must look like 'base.albedo' or 'coatings[0].roughness'")
+    name = m.group(3)
+    if m.group(1) == "base":
+        fields = [f for f in _BASE_ATTR if hasattr(stack.base, f)]
+        if name not in fields:
+            raise ValueError(f"{type(stack.base).__name__} base has no parameter {name!r}; it has {fields}")
+        return "base", None, name
+    i = int(m.group(2))
+    if i >= len(stack.coatings):
+        raise ValueError(f"{path!r}: the stack has {len(stack.coatings)} coating(s), so indices are 0..{len(stack.coatings) - 1}")
+    if name not in _COAT_ATTR:
+        raise ValueError(f"a coating has no parameter {name!r}; it has {sorted(_COAT_ATTR)}")
+    return "coating", i, name
+
+
+def _as_channels(path: str, name: str, image) -> np.ndarray:
+    img = np.asarray(image, dtype=np.float64)
+    if img.ndim == 2:
+        img = img[..., None]
+    if img.ndim != 3 or img.shape[0] < 1 or img.shape[1] < 1:
+        raise ValueError(f"image for {path} must be (H, W) or (H, W, C), got shape {np.shape(image)}")
+    want = 3 if name in RGB_FIELDS else 1
+    if img.shape[2] == want:
+        return img
+    if want == 3 and img.shape[2] == 1:
+        return np.repeat(img, 3, axis=2)
+    if want == 3 and img.shape[2] == 4:  # RGBA colour image: alpha does not drive anything
+        return img[..., :3]
+    raise ValueError(f"image for {path} has {img.shape[2]} channel(s); {name} needs {want}"
+                     + (" (or 1 grey / 4 RGBA)" if want == 3 else ""))
+
+
+@dataclass
+class SpatialStack:
+    """``stack`` with the parameters named in ``maps`` replaced per texel by images."""
+
+    stack: Stack
+    maps: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self):
+        checked: dict[str, np.ndarray] = {}
+        shape = None
+        for path, image in self.maps.items():
+            _, _, name = parse_parameter_path(self.stack, path)
+            img = _as_channels(path, name, image)
+            if shape is not None and img.shape[:2] != shape:
+                raise ValueError(
+                    f"image for {path} is {img.shape[1]}x{img.shape[0]} but the other driving images are "
+                    f"{shape[1]}x{shape[0]}: all images of one material must share a resolution"
+                )
+            shape = img.shape[:2]
+            lo, hi = VALID_RANGES[name]
+            bad = ~np.isfinite(img) | (img < lo) | (img > hi)
+            if bad.any():
+                y, x, _ = np.argwhere(bad)[0]
+                raise ValueError(
+                    f"image for {path}: {int(bad.any(axis=2).sum())} texel(s) outside the valid range "
+                    f"[{lo}, {hi}], first at (x={x}, y={y}) = {img[y, x].tolist()}"
+                )
+            checked[path] = img
+        self.maps = checked
+
+    @property
+    def resolution(self) -> tuple[int, int] | None:
+        """(height, width) of the driving images, or None for a constant stack."""
+        for img in self.maps.values():
+            return img.shape[0], img.shape[1]
+        return None
+
+    def texels(self, resolution: tuple[int, int] | None = None) -> tuple[StackArrays, tuple[int, int]]:
+        """One stack per texel (rows top to bottom) and the (height, width) used.
+
+        The resolution defaults to the images' and may be lower (parameters are box-filtered
+        down), never higher: a bake finer than its driving images only costs time.
+        """
+        native = self.resolution or (1, 1)
+        h, w = resolution or native
+        if h > native[0] or w > native[1] or h < 1 or w < 1:
+            raise ValueError(
+                f"bake resolution {w}x{h} must be between 1x1 and the driving images' {native[1]}x{native[0]}"
+            )
+        arrays = StackArrays.repeat(self.stack, h * w)
+        for path, img in self.maps.items():
+            kind, i, name = parse_parameter_path(self.stack, path)
+            if (h, w) != img.shape[:2]:
+                img = resample_area(img, h, w)
+            values = img.reshape(h * w, -1)
+            if name not in RGB_FIELDS:
+                values = values[:, 0]
+            if kind == "base":
+                getattr(arrays, _BASE_ATTR[name])[:] = values
+            else:
+                getattr(arrays, _COAT_ATTR[name])[:, i] = values
+        return arrays, (h, w)

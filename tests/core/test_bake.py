@@ -1,0 +1,108 @@
+"""Spatially varying stacks and the bake pipeline (with a stand-in encoder: a fixed random
+linear map of each texel's parameters, so every parameter change shows in the latents)."""
+
+import numpy as np
+import pytest
+
+from addon.core.stack import Coating, Diffuse, Stack, StackArrays, preset
+from addon.core.textures.bake import BakeCancelled, bake_stack, bake_texels
+from addon.core.textures.spatial import SpatialStack
+
+
+def linear_encoder():
+    rng = np.random.default_rng(7)
+    proj = {}
+
+    def encode(arrays: StackArrays):
+        m = arrays.to_matrix()
+        if m.shape[1] not in proj:
+            proj[m.shape[1]] = rng.normal(size=(m.shape[1], 98))
+        v = m @ proj[m.shape[1]]
+        return v[:, :96].reshape(-1, 3, 32), v[:, 96:]
+
+    return encode
+
+
+def wood():
+    return Stack(Diffuse((0.45, 0.22, 0.08)), (Coating(roughness=0.1, ior=1.5, albedo=(0.9, 0.7, 0.3), thickness=0.6),))
+
+
+def test_texels_take_the_image_values_rows_top_to_bottom():
+    rough = np.linspace(0.01, 0.5, 12).reshape(3, 4)
+    colour = np.random.default_rng(0).random((3, 4, 3))
+    s = SpatialStack(wood(), {"coatings[0].roughness": rough, "base.albedo": colour})
+    arrays, res = s.texels()
+    assert res == (3, 4)
+    assert np.allclose(arrays.coat_roughness[:, 0], rough.reshape(-1))
+    assert np.allclose(arrays.base_albedo, colour.reshape(-1, 3))
+    assert np.allclose(arrays.coat_thickness, 0.6)
+    assert arrays.stack(5).coatings[0].roughness == pytest.approx(rough.reshape(-1)[5])
+
+
+def test_lower_resolution_box_filters_the_parameters_and_higher_is_refused():
+    rough = np.random.default_rng(1).uniform(0.05, 0.9, (8, 8))
+    s = SpatialStack(wood(), {"coatings[0].roughness": rough})
+    arrays, res = s.texels((4, 4))
+    assert res == (4, 4)
+    assert np.allclose(arrays.coat_roughness[:, 0], rough.reshape(4, 2, 4, 2).mean(axis=(1, 3)).reshape(-1))
+    with pytest.raises(ValueError, match="between 1x1 and"):
+        s.texels((16, 16))
+    const, res = SpatialStack(wood()).texels()
+    assert res == (1, 1) and len(const) == 1
+
+
+@pytest.mark.parametrize(
+    "maps, message",
+    [
+        ({"coatings[1].roughness": np.zeros((2, 2))}, "has 1 coating"),
+        ({"base.roughness": np.zeros((2, 2))}, "Diffuse base has no parameter"),
+        ({"top.roughness": np.zeros((2, 2))}, "must look like"),
+        ({"base.albedo": np.zeros((2, 2, 2))}, "2 channel"),
+        ({"coatings[0].roughness": np.zeros((2, 2, 3))}, "3 channel"),
+        ({"coatings[0].roughness": np.full((2, 2), 1.5)}, "outside the valid range"),
+        ({"coatings[0].thickness": np.full((2, 2), np.nan)}, "outside the valid range"),
+        ({"coatings[0].roughness": np.zeros((2, 2)), "base.albedo": np.zeros((3, 2, 3))}, "share a resolution"),
+    ],
+)
+def test_bad_driving_images_are_clear_errors(maps, message):
+    with pytest.raises(ValueError, match=message):
+        SpatialStack(wood(), maps)
+
+
+def test_deduplication_gives_the_same_texels_with_fewer_encodes():
+    mask = np.zeros((16, 16))
+    mask[4:12, 4:12] = 0.4
+    s = SpatialStack(wood(), {"coatings[0].roughness": 0.05 + mask})
+    arrays, _ = s.texels()
+    enc = linear_encoder()
+    a, sa = bake_texels(arrays, enc, dedup=True)
+    b, sb = bake_texels(arrays, enc, dedup=False)
+    assert sa.unique == 2 and sb.unique == 256
+    assert np.allclose(a, b, atol=1e-5)
+
+
+def test_constant_images_bake_to_the_constant_stack_latent():
+    enc = linear_encoder()
+    s = SpatialStack(wood(), {"coatings[0].roughness": np.full((5, 7), 0.1), "base.albedo": np.tile((0.45, 0.22, 0.08), (5, 7, 1))})
+    tex, stats = bake_stack(s, enc)
+    z, proxy = enc(StackArrays.from_stacks([wood()]))
+    assert stats.unique == 1
+    for level in tex.levels:
+        assert np.allclose(level[..., :96], z.reshape(96), atol=1e-4)
+        assert np.allclose(level[..., 96:], proxy.reshape(2), atol=1e-4)
+
+
+def test_progress_and_cancel():
+    arrays = StackArrays.repeat(preset("three_layer"), 10)
+    arrays.coat_thickness[:, 0] = np.linspace(0, 1, 10)
+    seen = []
+    bake_texels(arrays, linear_encoder(), batch=3, progress=seen.append)
+    assert seen[-1] == 1.0 and len(seen) == 4
+    with pytest.raises(BakeCancelled):
+        bake_texels(arrays, linear_encoder(), batch=3, cancel=lambda: True)
+
+
+def test_an_encoder_returning_the_wrong_shape_is_reported():
+    arrays = StackArrays.repeat(wood(), 2)
+    with pytest.raises(ValueError, match="expected"):
+        bake_texels(arrays, lambda a: (np.zeros((len(a), 3, 16)), np.zeros((len(a), 2))))
