@@ -24,7 +24,7 @@ CHANNEL_NAMES = LATENT_CHANNELS + PROXY_CHANNELS
 TILE = 64
 
 
-def _oiio():
+def oiio_module():
     try:
         import OpenImageIO as oiio  # noqa: N813
     except ImportError as e:
@@ -33,6 +33,29 @@ def _oiio():
             "call bpy.utils.expose_bundled_modules() before using EXR latent textures"
         ) from e
     return oiio
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """Any image OpenImageIO reads (PNG, EXR, TIFF, JPEG, ...) as (H, W, C) float32, rows top to bottom.
+
+    Values are the file's raw values (8/16-bit integers normalised to [0, 1]); no colour
+    transform is applied, since a driving image holds parameter values, not colours to display.
+    """
+    oiio = oiio_module()
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image not found: {path}")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise ValueError(f"cannot read {path} as an image: {oiio.geterror()}")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        if pixels is None:
+            raise ValueError(f"cannot read pixels of {path}: {inp.geterror()}")
+        return np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    finally:
+        inp.close()
 
 
 @dataclass
@@ -70,7 +93,7 @@ class LatentTexture:
 
     def write_exr(self, path: str | os.PathLike) -> None:
         """Write a tiled, mip-mapped, half-float EXR; written to a temporary name, then renamed."""
-        oiio = _oiio()
+        oiio = oiio_module()
         path = Path(path)
         tmp = path.with_name(path.name + ".partial.exr")
         out = oiio.ImageOutput.create(str(tmp))
@@ -105,7 +128,7 @@ class LatentTexture:
     @classmethod
     def read_exr(cls, path: str | os.PathLike) -> "LatentTexture":
         """Read a latent texture EXR written by :meth:`write_exr` (all mip levels)."""
-        oiio = _oiio()
+        oiio = oiio_module()
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"latent texture not found: {path}")
