@@ -1,0 +1,78 @@
+"""Rough conductor: GGX microfacets, height-correlated Smith G2, complex Fresnel."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import ggx
+from .base import BSDF, RADIANCE, SMOOTH_ALPHA, BSDFSample, as_param, rows
+from .fresnel import fresnel_conductor
+
+
+class RoughConductor(BSDF):
+    """Microfacet conductor (Cook-Torrance with GGX; pbrt-v4 ``ConductorBxDF``).
+
+    f(wi, wo) = D(m) G2(wi, wo) F(|wo.m|) / (4 |cos wi| |cos wo|), m = normalize(wi + wo)
+    facing +z, for wi and wo on the same side (either side; a conductor is usually seen from
+    outside). Reciprocal in both modes. Sampling uses visible normals from wo, so the sample
+    weight is F G2 / G1(wo). ``alpha < SMOOTH_ALPHA`` is a delta mirror with weight F.
+    ``eta`` and ``k`` are RGB (complex index eta + i k relative to the outside medium).
+    """
+
+    _params = ("alpha", "eta", "k")
+
+    def __init__(self, alpha, eta, k):
+        self.alpha = as_param(alpha, "RoughConductor.alpha", lo=0.0)
+        self.eta = as_param(eta, "RoughConductor.eta", lo=0.0, lo_open=True, rgb=True)
+        self.k = as_param(k, "RoughConductor.k", lo=0.0, rgb=True)
+
+    def _rows(self, n):
+        return rows(self.alpha, n, "alpha"), rows(self.eta, n, "eta"), rows(self.k, n, "k")
+
+    def eval(self, wi, wo, mode=RADIANCE, check=True) -> np.ndarray:
+        wi, wo = self._inputs(wi, wo, mode, check)
+        n = wi.shape[0]
+        alpha, eta, k = self._rows(n)
+        ci, co = wi[:, 2], wo[:, 2]
+        h = wi + wo
+        h *= np.where(h[:, 2] < 0.0, -1.0, 1.0)[:, None]
+        hn = np.sqrt(np.einsum("ij,ij->i", h, h))
+        ok = (ci * co > 0.0) & (hn > 0.0) & (alpha >= SMOOTH_ALPHA)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            m = h / hn[:, None]
+            dwo = np.abs(np.einsum("ij,ij->i", wo, m))
+            f = (ggx.ndf(m, alpha) * ggx.smith_g2(wi, wo, alpha) / (4.0 * np.abs(ci * co)))[:, None]
+            f = f * fresnel_conductor(dwo, eta, k)
+        return np.where(ok[:, None] & np.isfinite(f), f, 0.0)
+
+    def pdf(self, wi, wo, mode=RADIANCE, check=True) -> np.ndarray:
+        wi, wo = self._inputs(wi, wo, mode, check)
+        n = wi.shape[0]
+        alpha = rows(self.alpha, n, "alpha")
+        h = wi + wo
+        h *= np.where(h[:, 2] < 0.0, -1.0, 1.0)[:, None]
+        hn = np.sqrt(np.einsum("ij,ij->i", h, h))
+        ok = (wi[:, 2] * wo[:, 2] > 0.0) & (hn > 0.0) & (alpha >= SMOOTH_ALPHA)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            m = h / hn[:, None]
+            p = ggx.pdf_visible_normal(wo, m, alpha) / (4.0 * np.abs(np.einsum("ij,ij->i", wo, m)))
+        return np.where(ok & np.isfinite(p), p, 0.0)
+
+    def sample(self, wo, u_lobe, u, mode=RADIANCE, check=True) -> BSDFSample:
+        wo, u_lobe, u = self._sample_inputs(wo, u_lobe, u, mode, check)
+        n = wo.shape[0]
+        alpha, eta, k = self._rows(n)
+        smooth = alpha < SMOOTH_ALPHA
+        m = ggx.sample_visible_normal(wo, alpha, u)
+        m = np.where(smooth[:, None], np.array([0.0, 0.0, 1.0]), m)
+        wi = 2.0 * np.einsum("ij,ij->i", wo, m)[:, None] * m - wo
+        dwo = np.abs(np.einsum("ij,ij->i", wo, m))
+        F = fresnel_conductor(dwo, eta, k)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rough_w = ggx.smith_g2(wi, wo, alpha) / ggx.smith_g1(wo, alpha)
+            rough_pdf = ggx.pdf_visible_normal(wo, m, alpha) / (4.0 * dwo)
+        weight = F * np.where(smooth, 1.0, rough_w)[:, None]
+        pdf = np.where(smooth, 1.0, rough_pdf)
+        valid = (wi[:, 2] * wo[:, 2] > 0.0)
+        false = np.zeros(n, dtype=bool)
+        return BSDFSample.build(wi, weight, pdf, smooth.copy(), false, valid)

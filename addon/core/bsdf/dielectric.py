@@ -1,0 +1,144 @@
+"""Rough dielectric interface: GGX reflection and transmission (Walter et al. 2007; pbrt-v4
+``DielectricBxDF``), with the height-correlated Smith G2."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import ggx
+from .base import BSDF, RADIANCE, SMOOTH_ALPHA, BSDFSample, as_param, rows
+from .frame import refract
+from .fresnel import fresnel_dielectric
+
+_UP = np.array([0.0, 0.0, 1.0])
+
+
+def _dot(a, b):
+    return np.einsum("ij,ij->i", a, b)
+
+
+class RoughDielectric(BSDF):
+    """The interface between the outside (index 1, +z side) and a medium of relative index
+    ``ior`` (-z side), lit and seen from either side.
+
+    ``ior`` is the relative index n_below / n_above; any positive finite value is allowed
+    (< 1 for an interface between two media where the lower one is optically thinner);
+    ``ior == 1`` is index-matched: a pure delta transmission with weight 1.
+
+    With m the generalised half vector facing +z (m ~ wi etap + wo, etap = ior when wo is
+    above, 1/ior below, 1 for reflection), F = Fresnel(wo.m):
+
+    - reflection:   f = D(m) G2 F / (4 |cos wi cos wo|)
+    - transmission: f = D(m) G2 (1 - F) |wi.m wo.m| / (|cos wi cos wo| (wi.m + wo.m / etap)^2),
+      divided by etap^2 in RADIANCE mode (radiance is compressed into the denser medium) and
+      not in IMPORTANCE mode.
+
+    Reciprocity: reflection is reciprocal; for transmission in RADIANCE mode
+    f(wi, wo) / n_i^2 = f(wo, wi) / n_o^2 with n_i, n_o the indices on wi's and wo's sides
+    (pbrt-v4 section 9.5.2); IMPORTANCE mode equals RADIANCE mode with the arguments swapped.
+    ``sample`` chooses reflection with probability F(wo.m) (Fresnel-weighted lobe choice),
+    so the weight of a rough sample is G2 / G1(wo) (times 1/etap^2 for radiance transmission).
+
+    ``reflection_only=True`` is a dielectric over black: the transmitted energy is lost,
+    ``eval``/``pdf`` of transmission are 0 and ``sample`` only reflects (weight F G2 / G1).
+
+    ``alpha < SMOOTH_ALPHA`` (or ``ior == 1``) gives delta lobes: eval/pdf are 0, ``sample``
+    returns the mirror (weight 1; F for ``reflection_only``) with pdf F, or the refracted
+    direction (weight 1/etap^2 in RADIANCE mode, 1 in IMPORTANCE) with pdf 1 - F.
+    """
+
+    _params = ("alpha", "ior")
+
+    def __init__(self, alpha, ior, reflection_only: bool = False):
+        self.alpha = as_param(alpha, "RoughDielectric.alpha", lo=0.0)
+        self.ior = as_param(ior, "RoughDielectric.ior", lo=0.0, lo_open=True)
+        self.reflection_only = bool(reflection_only)
+
+    def _rows(self, n):
+        alpha = rows(self.alpha, n, "alpha")
+        ior = rows(self.ior, n, "ior")
+        return alpha, ior, (alpha < SMOOTH_ALPHA) | (ior == 1.0)
+
+    def _half(self, wi, wo, ior):
+        """Generalised half vector m (facing +z), etap, reflect flag and the row mask where
+        the microfacet configuration is possible (pbrt-v4 DielectricBxDF::f)."""
+        ci, co = wi[:, 2], wo[:, 2]
+        refl = ci * co > 0.0
+        etap = np.where(refl, 1.0, np.where(co > 0.0, ior, 1.0 / ior))
+        h = wi * etap[:, None] + wo
+        h *= np.where(h[:, 2] < 0.0, -1.0, 1.0)[:, None]
+        hn = np.sqrt(_dot(h, h))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            m = h / hn[:, None]
+        dwi, dwo = _dot(wi, m), _dot(wo, m)
+        ok = (ci != 0.0) & (co != 0.0) & (hn > 0.0) & (dwi * ci > 0.0) & (dwo * co > 0.0)
+        return m, etap, refl, ok, dwi, dwo
+
+    def eval(self, wi, wo, mode=RADIANCE, check=True) -> np.ndarray:
+        wi, wo = self._inputs(wi, wo, mode, check)
+        n = wi.shape[0]
+        alpha, ior, smooth = self._rows(n)
+        m, etap, refl, ok, dwi, dwo = self._half(wi, wo, ior)
+        ci, co = wi[:, 2], wo[:, 2]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            F = fresnel_dielectric(dwo, ior)
+            dg = ggx.ndf(m, alpha) * ggx.smith_g2(wi, wo, alpha)
+            fr = dg * F / np.abs(4.0 * ci * co)
+            denom = (dwi + dwo / etap) ** 2 * ci * co
+            ft = dg * (1.0 - F) * np.abs(dwi * dwo / denom)
+            if mode == RADIANCE:
+                ft = ft / (etap * etap)
+        if self.reflection_only:
+            ft = np.zeros_like(ft)
+        f = np.where(refl, fr, ft)
+        f = np.where(ok & ~smooth & np.isfinite(f), f, 0.0)
+        return np.repeat(f[:, None], 3, axis=1)
+
+    def pdf(self, wi, wo, mode=RADIANCE, check=True) -> np.ndarray:
+        wi, wo = self._inputs(wi, wo, mode, check)
+        n = wi.shape[0]
+        alpha, ior, smooth = self._rows(n)
+        m, etap, refl, ok, dwi, dwo = self._half(wi, wo, ior)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            R = fresnel_dielectric(dwo, ior)
+            T = np.zeros_like(R) if self.reflection_only else 1.0 - R
+            pvis = ggx.pdf_visible_normal(wo, m, alpha)
+            pr = pvis / (4.0 * np.abs(dwo)) * R / (R + T)
+            pt = pvis * np.abs(dwi) / (dwi + dwo / etap) ** 2 * T / (R + T)
+        p = np.where(refl, pr, pt)
+        return np.where(ok & ~smooth & np.isfinite(p), p, 0.0)
+
+    def sample(self, wo, u_lobe, u, mode=RADIANCE, check=True) -> BSDFSample:
+        wo, u_lobe, u = self._sample_inputs(wo, u_lobe, u, mode, check)
+        n = wo.shape[0]
+        alpha, ior, smooth = self._rows(n)
+        # smooth rows use the geometric normal; rough rows a visible microfacet normal
+        m = ggx.sample_visible_normal(wo, alpha, u)
+        m = np.where(smooth[:, None], _UP, m)
+        dwo = _dot(wo, m)
+        R = fresnel_dielectric(dwo, ior)
+        T = np.zeros_like(R) if self.reflection_only else 1.0 - R
+        with np.errstate(invalid="ignore", divide="ignore"):
+            p_refl = R / (R + T)
+        choose_r = u_lobe < p_refl
+
+        wr = 2.0 * dwo[:, None] * m - wo
+        wt, tir_free = refract(wo, m, ior)
+        etap = np.where(dwo > 0.0, ior, 1.0 / ior)
+        wi = np.where(choose_r[:, None], wr, wt)
+        dwi = _dot(wi, m)
+        ci, co = wi[:, 2], wo[:, 2]
+        valid = np.where(choose_r, ci * co > 0.0, tir_free & (ci * co < 0.0)) & (co != 0.0)
+
+        scale_t = 1.0 / (etap * etap) if mode == RADIANCE else np.ones(n)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            pvis = ggx.pdf_visible_normal(wo, m, alpha)
+            pdf_r = pvis / (4.0 * np.abs(dwo)) * p_refl
+            pdf_t = pvis * np.abs(dwi) / (dwi + dwo / etap) ** 2 * (1.0 - p_refl)
+            g = ggx.smith_g2(wi, wo, alpha) / ggx.smith_g1(wo, alpha)
+        # both lobes have f |cos| / pdf = (R + T) g (times the radiance scale for transmission)
+        lobe_w = (R + T) * np.where(choose_r, 1.0, scale_t)
+        weight = lobe_w * np.where(smooth, 1.0, g)
+        pdf = np.where(smooth, np.where(choose_r, p_refl, 1.0 - p_refl), np.where(choose_r, pdf_r, pdf_t))
+        weight = np.repeat(weight[:, None], 3, axis=1)
+        return BSDFSample.build(wi, weight, pdf, smooth.copy(), ~choose_r, valid)

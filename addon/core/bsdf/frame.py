@@ -1,0 +1,87 @@
+"""Directions and shading frames.
+
+All functions take direction arrays of shape ``(N, 3)`` (a single ``(3,)`` vector also works
+where noted) and work row by row. The local shading frame has the normal at +z.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def cos_theta(w: np.ndarray) -> np.ndarray:
+    """Cosine to the local normal (+z): the z component, shape (N,)."""
+    return w[..., 2]
+
+
+def same_hemisphere(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """True where ``a`` and ``b`` lie strictly on the same side of the local surface."""
+    return a[..., 2] * b[..., 2] > 0.0
+
+
+def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot product, shape (N,)."""
+    return np.einsum("...i,...i->...", a, b)
+
+
+def normalize(v: np.ndarray) -> np.ndarray:
+    """Unit vectors along ``v``; zero-length rows stay zero (never NaN)."""
+    v = np.asarray(v, dtype=np.float64)
+    n = np.sqrt(dot(v, v))[..., None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = v / n
+    return np.where(n > 0.0, out, 0.0)
+
+
+def reflect(w: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Mirror ``w`` about ``n``: both point away from the surface, ``2 (w.n) n - w``."""
+    return 2.0 * dot(w, n)[..., None] * n - w
+
+
+def refract(w: np.ndarray, n: np.ndarray, eta) -> tuple[np.ndarray, np.ndarray]:
+    """Refract ``w`` (pointing away from the surface) through the interface with normal ``n``.
+
+    ``eta`` is the relative index n_t / n_i for light on the side ``n`` points to; where
+    ``w`` lies on the other side (w.n < 0) the interface is seen from below, so ``eta`` is
+    inverted and ``n`` flipped, as pbrt-v4's ``Refract``. Returns ``(wt, valid)``: the
+    transmitted direction (pointing away on the other side) and False under total internal
+    reflection (there ``wt`` is 0).
+    """
+    eta = np.asarray(eta, dtype=np.float64)
+    c = dot(w, n)
+    flip = c < 0.0
+    eta = np.where(flip, 1.0 / eta, eta)
+    c = np.abs(c)
+    n = np.where(flip[..., None], -n, n)
+    sin2_i = np.maximum(0.0, 1.0 - c * c)
+    sin2_t = sin2_i / (eta * eta)
+    valid = sin2_t < 1.0
+    cos_t = np.sqrt(np.maximum(0.0, 1.0 - sin2_t))
+    wt = -w / eta[..., None] + (c / eta - cos_t)[..., None] * n
+    wt = np.where(valid[..., None], wt, 0.0)
+    return wt, valid
+
+
+def coordinate_system(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Orthonormal tangents ``(s, t)`` with ``s x t = n`` for unit normals ``n``.
+
+    Branchless construction of Duff et al. 2017, "Building an Orthonormal Basis, Revisited".
+    """
+    n = np.asarray(n, dtype=np.float64)
+    x, y, z = n[..., 0], n[..., 1], n[..., 2]
+    sign = np.copysign(1.0, z)
+    a = -1.0 / (sign + z)
+    b = x * y * a
+    s = np.stack([1.0 + sign * x * x * a, sign * b, -sign * x], axis=-1)
+    t = np.stack([b, sign + y * y * a, -y], axis=-1)
+    return s, t
+
+
+def to_local(v: np.ndarray, s: np.ndarray, t: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """World vector ``v`` in the frame (s, t, n): components (v.s, v.t, v.n)."""
+    return np.stack([dot(v, s), dot(v, t), dot(v, n)], axis=-1)
+
+
+def to_world(v: np.ndarray, s: np.ndarray, t: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Local vector ``v`` of the frame (s, t, n) in world space: v.x s + v.y t + v.z n."""
+    return v[..., 0:1] * s + v[..., 1:2] * t + v[..., 2:3] * n

@@ -1,0 +1,44 @@
+"""Fresnel reflectance: exact unpolarised dielectric and complex conductor (pbrt-v4, section 9.3)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def fresnel_dielectric(cos_i, eta) -> np.ndarray:
+    """Unpolarised Fresnel reflectance of a dielectric interface (pbrt-v4 ``FrDielectric``).
+
+    ``eta`` = n_t / n_i is the relative index for light arriving on the side the normal points
+    to. ``cos_i < 0`` means arriving from the other side: then ``eta`` is inverted. Total
+    internal reflection gives 1. Shapes broadcast; returns float64.
+    """
+    cos_i = np.clip(np.asarray(cos_i, dtype=np.float64), -1.0, 1.0)
+    eta = np.asarray(eta, dtype=np.float64)
+    inside = cos_i < 0.0
+    eta = np.where(inside, 1.0 / eta, eta)
+    cos_i = np.abs(cos_i)
+    sin2_t = (1.0 - cos_i * cos_i) / (eta * eta)
+    tir = sin2_t >= 1.0
+    cos_t = np.sqrt(np.maximum(0.0, 1.0 - sin2_t))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r_parl = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
+        r_perp = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
+    r = 0.5 * (r_parl * r_parl + r_perp * r_perp)
+    return np.where(tir, 1.0, np.where(np.isfinite(r), r, 1.0))
+
+
+def fresnel_conductor(cos_i, eta, k) -> np.ndarray:
+    """Fresnel reflectance of a conductor with complex index ``eta + i k`` (pbrt-v4 ``FrComplex``).
+
+    ``cos_i`` of shape (N,) is clamped to [0, 1] (a conductor is seen from outside only);
+    ``eta`` and ``k`` are RGB ``(N, 3)`` or ``(3,)``. Returns ``(N, 3)`` float64.
+    """
+    cos_i = np.clip(np.asarray(cos_i, dtype=np.float64), 0.0, 1.0)[..., None]
+    n = np.asarray(eta, dtype=np.float64) + 1j * np.asarray(k, dtype=np.float64)
+    sin2_i = 1.0 - cos_i * cos_i
+    cos_t = np.sqrt(1.0 - sin2_i / (n * n))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r_parl = (n * cos_i - cos_t) / (n * cos_i + cos_t)
+        r_perp = (cos_i - n * cos_t) / (cos_i + n * cos_t)
+    r = 0.5 * (np.abs(r_parl) ** 2 + np.abs(r_perp) ** 2)
+    return np.where(np.isfinite(r), np.clip(r, 0.0, 1.0), 1.0)
