@@ -1,0 +1,87 @@
+"""The film: per-pixel running sums, so the mean and its standard error are always at hand."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+
+class Film:
+    """Accumulates one radiance sample per pixel per pass. Rows run top to bottom."""
+
+    def __init__(self, width: int, height: int):
+        self.width, self.height = int(width), int(height)
+        self.sum = np.zeros((self.height * self.width, 3))
+        self.sum_sq = np.zeros((self.height * self.width, 3))
+        self.count = np.zeros(self.height * self.width)
+        self.passes = 0
+
+    def add(self, pixels: np.ndarray, radiance: np.ndarray) -> None:
+        """Add radiance (N, 3) to ``pixels`` (N,) flat indices; each index at most once per call."""
+        self.sum[pixels] += radiance
+        self.sum_sq[pixels] += radiance * radiance
+        self.count[pixels] += 1
+
+    def mean(self) -> np.ndarray:
+        """(H, W, 3) float32 per-pixel mean (0 where no sample yet)."""
+        c = np.maximum(self.count, 1)[:, None]
+        return (self.sum / c).reshape(self.height, self.width, 3).astype(np.float32)
+
+    def stderr(self) -> np.ndarray:
+        """(H, W, 3) standard error of the per-pixel mean (inf with fewer than 2 samples)."""
+        c = self.count[:, None]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            var = (self.sum_sq - self.sum * self.sum / c) / (c - 1)
+            se = np.sqrt(np.maximum(var, 0.0) / c)
+        se = np.where(c >= 2, se, np.inf)
+        return se.reshape(self.height, self.width, 3)
+
+    def rgba(self) -> np.ndarray:
+        """(H, W, 4) float32 mean with alpha 1."""
+        img = self.mean()
+        return np.concatenate([img, np.ones(img.shape[:2] + (1,), np.float32)], axis=2)
+
+
+def to_srgb(linear: np.ndarray) -> np.ndarray:
+    """Linear RGB -> display sRGB in [0, 1] (the standard piecewise transfer curve, clipped)."""
+    x = np.clip(np.nan_to_num(linear, nan=0.0), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def write_png(path: str | os.PathLike, linear: np.ndarray, exposure: float = 1.0) -> None:
+    """8-bit sRGB PNG of a linear (H, W, 3) image; written to a temporary name, then renamed."""
+    from PIL import Image
+
+    path = Path(path)
+    img = (to_srgb(np.asarray(linear)[:, :, :3] * exposure) * 255 + 0.5).astype(np.uint8)
+    tmp = path.with_name(path.name + ".partial.png")
+    Image.fromarray(img).save(tmp, format="PNG")
+    tmp.replace(path)
+
+
+def write_exr(path: str | os.PathLike, linear: np.ndarray) -> None:
+    """Float RGB(A) OpenEXR through OpenImageIO (shipped with Blender and the bpy wheel)."""
+    try:
+        import OpenImageIO as oiio  # noqa: N813
+    except ImportError:
+        try:
+            import bpy  # noqa: F401  (only to expose OpenImageIO; no bpy API is used)
+
+            bpy.utils.expose_bundled_modules()
+            import OpenImageIO as oiio  # noqa: N813
+        except ImportError as e:
+            raise RuntimeError("writing EXR needs OpenImageIO, which ships with Blender and the bpy wheel") from e
+    path = Path(path)
+    img = np.ascontiguousarray(np.asarray(linear, dtype=np.float32))
+    tmp = path.with_name(path.name + ".partial.exr")
+    spec = oiio.ImageSpec(img.shape[1], img.shape[0], img.shape[2], oiio.FLOAT)
+    out = oiio.ImageOutput.create(str(tmp))
+    if out is None or not out.open(str(tmp), spec):
+        raise RuntimeError(f"cannot write {path}: {oiio.geterror()}")
+    try:
+        out.write_image(img)
+    finally:
+        out.close()
+    tmp.replace(path)

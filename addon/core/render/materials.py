@@ -1,0 +1,213 @@
+"""Renderer materials: what the integrator asks of a surface, in one small interface.
+
+A material is bound to a batch of hits (``bind(hits)``, once per bounce and material) and the
+bound object answers batched queries on local-frame directions (normal +z, ``wi`` toward the
+light, ``wo`` toward the viewer, DESIGN section 3):
+
+    eval(wi, wo) -> (N, 3)      f without the cosine
+    pdf(wi, wo) -> (N,)         solid-angle density of sample(); only if material.has_pdf
+    sample(wo, u_lobe, u) -> BSDFSample (addon.core.bsdf.base)
+
+``hits`` is a :class:`SurfaceHits` (uv, ray-cone footprint in uv units, a seed): everything a
+textured, latent-textured or stochastic material needs. The integrator never looks inside.
+
+``kind`` names the cost class for the render statistics ("analytic", "neural" or
+"reference"). A material without a pdf (``has_pdf = False``, the position-free reference,
+whose analog walk has no closed-form density) is rendered without MIS: next-event estimation
+for every light, BSDF-sampled emission only after delta (specular) events.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..bsdf import Lambertian, RoughConductor, RoughDielectric
+from ..bsdf.base import BSDFSample
+from ..stack import Conductor, Dielectric, Diffuse, Stack
+from ..textures.mip import build_mip_chain, trilinear_lookup
+
+
+@dataclass
+class SurfaceHits:
+    """Per-hit information a material may use: uv (N, 2), footprint (N,) in uv units (the ray
+    cone's width on the surface), and an integer seed for stochastic estimators."""
+
+    uv: np.ndarray
+    footprint: np.ndarray
+    seed: int = 0
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+
+class _BoundBSDF:
+    """An analytic BSDF (addon.core.bsdf) seen through the material interface."""
+
+    def __init__(self, bsdf):
+        self.bsdf = bsdf
+
+    def eval(self, wi, wo):
+        return self.bsdf.eval(wi, wo, check=False)
+
+    def pdf(self, wi, wo):
+        return self.bsdf.pdf(wi, wo, check=False)
+
+    def sample(self, wo, u_lobe, u):
+        return self.bsdf.sample(wo, u_lobe, u, check=False)
+
+
+class ImageTexture:
+    """An RGB image (H, W, 3), row 0 at the top, looked up trilinearly with the ray footprint.
+
+    Uses the same mip chain and lookup as latent textures (``addon.core.textures.mip``).
+    """
+
+    def __init__(self, image: np.ndarray):
+        img = np.asarray(image, dtype=np.float32)
+        if img.ndim != 3 or img.shape[2] < 3 or img.shape[0] < 1 or img.shape[1] < 1:
+            raise ValueError(f"an image texture must be (H, W, 3 or 4), got shape {img.shape}")
+        img = np.nan_to_num(img[:, :, :3], nan=0.0, posinf=0.0, neginf=0.0)
+        self.levels = build_mip_chain(img)
+
+    def lookup(self, uv: np.ndarray, footprint: np.ndarray) -> np.ndarray:
+        return trilinear_lookup(self.levels, uv, footprint)
+
+
+class LambertMaterial:
+    """Lambertian with a constant colour or an image texture (what unmanaged materials become)."""
+
+    kind = "analytic"
+    has_pdf = True
+
+    def __init__(self, color=(0.8, 0.8, 0.8), texture: ImageTexture | None = None):
+        self.color = np.clip(np.broadcast_to(np.asarray(color, dtype=np.float64), (3,)), 0.0, 1.0)
+        self.texture = texture
+        self._const = _BoundBSDF(Lambertian(self.color))
+
+    def bind(self, hits: SurfaceHits):
+        if self.texture is None:
+            return self._const
+        albedo = np.clip(self.texture.lookup(hits.uv, hits.footprint).astype(np.float64), 0.0, 1.0)
+        return _BoundBSDF(Lambertian(albedo * self.color))
+
+
+class BSDFMaterial:
+    """Any analytic BSDF from addon.core.bsdf with shared (not per-hit) parameters."""
+
+    kind = "analytic"
+    has_pdf = True
+
+    def __init__(self, bsdf):
+        self._bound = _BoundBSDF(bsdf)
+
+    def bind(self, hits: SurfaceHits):
+        return self._bound
+
+
+def conductor(alpha: float, eta, k) -> BSDFMaterial:
+    return BSDFMaterial(RoughConductor(alpha, eta, k))
+
+
+def analytic_for_stack(stack: Stack):
+    """The exact analytic material of a single-layer stack, or None if it has coatings."""
+    if stack.coatings:
+        return None
+    b = stack.base
+    if isinstance(b, Diffuse):
+        return LambertMaterial(b.albedo)
+    if isinstance(b, Conductor):
+        return conductor(b.roughness, b.eta, b.k)
+    if isinstance(b, Dielectric):
+        return BSDFMaterial(RoughDielectric(b.roughness, b.ior, reflection_only=True))
+    raise ValueError(f"unknown base layer {type(b).__name__}")
+
+
+class _BoundReference:
+    def __init__(self, stack: Stack, walks: int, seed: int):
+        self.stack, self.walks, self.seed = stack, walks, seed
+
+    def eval(self, wi, wo):
+        from .. import reference
+
+        f, _ = reference.eval_brdf(self.stack, wi, wo, walks=self.walks, seed=self.seed)
+        return np.nan_to_num(np.maximum(f, 0.0))
+
+    def pdf(self, wi, wo):  # pragma: no cover - the integrator checks has_pdf first
+        raise NotImplementedError("the position-free reference has no closed-form pdf")
+
+    def sample(self, wo, u_lobe, u):
+        from .. import reference
+
+        # The analog walk draws its own numbers: a stream keyed by the bounce's seed keeps the
+        # render deterministic (u_lobe and u are not used).
+        rng = np.random.default_rng([self.seed, 1])
+        wi, weight, specular = reference.sample(self.stack, wo, rng, with_flags=True)
+        n = len(wo)
+        wi = np.asarray(wi, dtype=np.float64)
+        weight = np.nan_to_num(np.maximum(np.asarray(weight, dtype=np.float64), 0.0))
+        specular = np.asarray(specular, dtype=bool)
+        valid = np.isfinite(wi).all(axis=1) & (np.abs(wi).sum(axis=1) > 0) & (weight.max(axis=1) > 0)
+        false = np.zeros(n, dtype=bool)
+        pdf = np.ones(n)  # not a density: only the delta flag is used for materials without pdf
+        return BSDFSample.build(wi, weight, pdf, specular, false, valid)
+
+
+class ReferenceLayered:
+    """A layered stack shaded by the position-free Monte Carlo estimator (reference mode).
+
+    ``eval`` is ``reference.eval_brdf`` with ``walks`` walks per query (an unbiased estimate of
+    f, so next-event estimation stays unbiased); ``sample`` is the unbiased analog walk.
+    """
+
+    kind = "reference"
+    has_pdf = False
+
+    def __init__(self, stack: Stack, walks: int = 16):
+        if walks < 1:
+            raise ValueError(f"reference walks must be >= 1, got {walks}")
+        self.stack, self.walks = stack, int(walks)
+
+    def bind(self, hits: SurfaceHits):
+        return _BoundReference(self.stack, self.walks, hits.seed)
+
+
+@dataclass
+class LayeredSpec:
+    """A managed material: its layer stack and, for spatially varying stacks, a latent texture."""
+
+    stack: Stack
+    latent_texture: object | None = None
+    name: str = ""
+
+
+def resolve(material, mode: str, reference_walks: int = 16):
+    """A renderer material for a scene entry (material object, Stack or LayeredSpec).
+
+    ``mode`` is "neural" or "reference". Single-layer stacks render exactly with their analytic
+    BSDF in both modes. Layered stacks use the neural runtime in "neural" mode when it is
+    available, else the reference (see :func:`neural_available`).
+    """
+    if mode not in ("neural", "reference"):
+        raise ValueError(f"render mode must be 'neural' or 'reference', got {mode!r}")
+    if material is None:
+        return LambertMaterial()
+    if hasattr(material, "bind"):
+        return material
+    spec = material if isinstance(material, LayeredSpec) else None
+    stack = spec.stack if spec else material
+    if not isinstance(stack, Stack):
+        raise ValueError(
+            f"a scene material must be a renderer material, a Stack or a LayeredSpec, got {type(material).__name__}"
+        )
+    exact = analytic_for_stack(stack)
+    if exact is not None and (spec is None or spec.latent_texture is None):
+        return exact
+    if mode == "neural":
+        from . import neural_material
+
+        made = neural_material.make(stack, spec.latent_texture if spec else None)
+        if made is not None:
+            return made
+    return ReferenceLayered(stack, reference_walks)
