@@ -1,9 +1,488 @@
-"""operators (in progress)."""
+"""Operators of the Layers sidebar. Each gathers its inputs from Blender and calls one core function.
+
+Every operator acts on the active object's active material, or on ``material`` (a material name)
+when given, so scripts need no selection. Problems are reported with ``self.report`` and the
+operator returns ``{'CANCELLED'}``; nothing escapes as a traceback. (When an operator is called
+from Python, Blender turns an ERROR report into a ``RuntimeError`` carrying the message.)
+
+Previews and the comparison are long: invoked from the UI they run on a worker thread with
+progress in the status bar and can be cancelled with Esc; executed (scripts, background mode)
+they run blocking.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import bpy
+from bpy.props import EnumProperty, StringProperty
+
+from addon.blender import images, jobs, stack_io
+from addon.blender.properties import BASE_LAYER_TYPES, LAYER_TYPES
+from addon.core import preview
+from addon.core.stack import PRESETS, Coating, Conductor, Dielectric, Diffuse
+
+
+class UserError(Exception):
+    """A problem the user can fix; its message is reported as is."""
+
+
+def _fail(op, message: str) -> set:
+    op.report({"ERROR"}, message)
+    return {"CANCELLED"}
+
+
+def _guarded(label: str, op, fn) -> set:
+    """Run ``fn()``; turn any failure into a report instead of a traceback."""
+    try:
+        return fn()
+    except preview.NeuralUnavailable as e:
+        return _fail(op, f"neural models not available: {e}")
+    except (UserError, ValueError) as e:
+        return _fail(op, str(e))
+    except Exception as e:  # unexpected: still a report, with enough to file a bug
+        return _fail(op, f"{label} failed: {type(e).__name__}: {e}")
+
+
+class _MaterialOperator:
+    material: StringProperty(
+        name="Material",
+        description="Name of the material to act on (default: the active object's active material)",
+        default="",
+        options={"SKIP_SAVE"},
+    )
+
+    @classmethod
+    def poll(cls, context):
+        # Always runnable: a missing object or material is reported by execute(), so scripts
+        # get a message instead of a poll failure. The panel greys buttons out itself.
+        return True
+
+    def target(self, context):
+        if self.material:
+            mat = bpy.data.materials.get(self.material)
+            if mat is None:
+                raise UserError(f"there is no material named {self.material!r}")
+            return mat
+        ob = getattr(context, "object", None) or getattr(context, "active_object", None)
+        if ob is None:
+            raise UserError("no active object: select an object with a material (or pass material=\"Name\")")
+        mat = ob.active_material
+        if mat is None:
+            raise UserError(f"object {ob.name!r} has no material: add one (Material Properties > New)")
+        return mat
+
+    def target_stack(self, context):
+        mat = self.target(context)
+        stack = stack_io.stack_from_material(mat)
+        if stack is None:
+            raise UserError(f"material {mat.name!r} has an empty layer stack: add a base layer or pick a preset")
+        return mat, stack
+
+    def report_notes(self, notes):
+        for note in notes:
+            self.report({"WARNING"}, note)
+
+
+# --------------------------------------------------------------------------------------------
+# Editing the stack
+
+_DEFAULTS = {
+    "DIFFUSE": Diffuse(),
+    "CONDUCTOR": Conductor(),
+    "DIELECTRIC": Dielectric(),
+    "COATING": Coating(),
+}
+
+
+class NLM_OT_layer_add(_MaterialOperator, bpy.types.Operator):
+    """Add a layer: a base (when the stack has none) or a coating above the active layer"""
+
+    bl_idname = "neural_layers.layer_add"
+    bl_label = "Add Layer"
+    bl_options = {"REGISTER", "UNDO"}
+
+    layer_type: EnumProperty(name="Type", items=LAYER_TYPES, default="COATING")
+
+    def execute(self, context):
+        return _guarded("adding a layer", self, lambda: self._run(context))
+
+    def _run(self, context):
+        mat = self.target(context)
+        with stack_io.bulk_edit(mat) as s:
+            layers = s.layers
+            has_base = len(layers) > 0 and layers[0].layer_type in BASE_LAYER_TYPES
+            if self.layer_type in BASE_LAYER_TYPES:
+                if has_base:
+                    raise UserError(
+                        f"material {mat.name!r} already has a base layer {layers[0].name!r}: "
+                        "change its type or remove it first (a stack has one base)"
+                    )
+                position = 0
+            else:
+                if not has_base:
+                    raise UserError("add a base layer first (Diffuse, Conductor or Dielectric); coatings go above it")
+                position = min(max(s.active_index, 0) + 1, len(layers))
+            item = layers.add()
+            stack_io.write_layer(item, _DEFAULTS[self.layer_type])
+            if self.layer_type == "CONDUCTOR":
+                item.conductor_mode = "F0"
+            item.name = stack_io.default_layer_name(self.layer_type, {x.name for x in layers})
+            layers.move(len(layers) - 1, position)
+            s.active_index = position
+        return {"FINISHED"}
+
+
+def _active_item(op, context):
+    mat = op.target(context)
+    s = mat.neural_layers
+    if len(s.layers) == 0:
+        raise UserError(f"material {mat.name!r} has no layers")
+    if not (0 <= s.active_index < len(s.layers)):
+        raise UserError(f"no active layer (index {s.active_index} of {len(s.layers)} layers): click a layer first")
+    return mat, s, s.active_index
+
+
+class NLM_OT_layer_remove(_MaterialOperator, bpy.types.Operator):
+    """Remove the active layer"""
+
+    bl_idname = "neural_layers.layer_remove"
+    bl_label = "Remove Layer"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        return _guarded("removing a layer", self, lambda: self._run(context))
+
+    def _run(self, context):
+        mat, s, i = _active_item(self, context)
+        with stack_io.bulk_edit(mat):
+            s.layers.remove(i)
+            s.active_index = min(i, len(s.layers) - 1) if len(s.layers) else 0
+        return {"FINISHED"}
+
+
+class NLM_OT_layer_move(_MaterialOperator, bpy.types.Operator):
+    """Move the active coating up (toward the top) or down (toward the base)"""
+
+    bl_idname = "neural_layers.layer_move"
+    bl_label = "Move Layer"
+    bl_options = {"REGISTER", "UNDO"}
+
+    direction: EnumProperty(
+        name="Direction",
+        items=[("UP", "Up", "Toward the top of the stack"), ("DOWN", "Down", "Toward the base")],
+        default="UP",
+    )
+
+    def execute(self, context):
+        return _guarded("moving a layer", self, lambda: self._run(context))
+
+    def _run(self, context):
+        mat, s, i = _active_item(self, context)
+        j = i + 1 if self.direction == "UP" else i - 1
+        if not (0 <= j < len(s.layers)):
+            where = "top" if self.direction == "UP" else "bottom"
+            raise UserError(f"layer {s.layers[i].name!r} is already at the {where} of the stack")
+        lower = s.layers[min(i, j)]
+        if min(i, j) == 0 and lower.layer_type in BASE_LAYER_TYPES:
+            raise UserError(f"the base layer {lower.name!r} stays at the bottom; only coatings move")
+        with stack_io.bulk_edit(mat):
+            s.layers.move(i, j)
+            s.active_index = j
+        return {"FINISHED"}
+
+
+class NLM_OT_layer_duplicate(_MaterialOperator, bpy.types.Operator):
+    """Duplicate the active coating (placed above it)"""
+
+    bl_idname = "neural_layers.layer_duplicate"
+    bl_label = "Duplicate Layer"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        return _guarded("duplicating a layer", self, lambda: self._run(context))
+
+    def _run(self, context):
+        mat, s, i = _active_item(self, context)
+        src = s.layers[i]
+        if src.layer_type in BASE_LAYER_TYPES:
+            raise UserError(f"{src.name!r} is the base and a stack has one base: duplicate a coating instead")
+        with stack_io.bulk_edit(mat):
+            item = s.layers.add()
+            for key in src.bl_rna.properties.keys():
+                if key not in {"rna_type", "name"}:
+                    setattr(item, key, getattr(src, key))
+            item.name = stack_io.default_layer_name(src.layer_type, {x.name for x in s.layers})
+            s.layers.move(len(s.layers) - 1, i + 1)
+            s.active_index = i + 1
+        return {"FINISHED"}
+
+
+class NLM_OT_layer_rename(_MaterialOperator, bpy.types.Operator):
+    """Rename the active layer"""
+
+    bl_idname = "neural_layers.layer_rename"
+    bl_label = "Rename Layer"
+    bl_options = {"REGISTER", "UNDO"}
+
+    name: StringProperty(name="Name", default="", options={"SKIP_SAVE"})
+
+    def invoke(self, context, event):
+        try:
+            _, s, i = _active_item(self, context)
+            self.name = s.layers[i].name
+        except UserError as e:
+            return _fail(self, str(e))
+        return context.window_manager.invoke_props_dialog(self)
+
+    def execute(self, context):
+        return _guarded("renaming a layer", self, lambda: self._run(context))
+
+    def _run(self, context):
+        _, s, i = _active_item(self, context)
+        if not self.name.strip():
+            raise UserError("a layer name cannot be empty")
+        s.layers[i].name = self.name.strip()
+        return {"FINISHED"}
+
+
+class NLM_OT_preset_apply(_MaterialOperator, bpy.types.Operator):
+    """Replace the stack with one of the bundled presets"""
+
+    bl_idname = "neural_layers.preset_apply"
+    bl_label = "Apply Preset"
+    bl_options = {"REGISTER", "UNDO"}
+
+    preset: EnumProperty(
+        name="Preset",
+        items=[(k, k.replace("_", " ").title(), f"Layer stack preset {k!r}") for k in sorted(PRESETS)],
+    )
+
+    def execute(self, context):
+        return _guarded("applying a preset", self, lambda: self._run(context))
+
+    def _run(self, context):
+        mat = self.target(context)
+        stack_io.stack_to_material(PRESETS[self.preset], mat)
+        return {"FINISHED"}
+
+
+# --------------------------------------------------------------------------------------------
+# Latent
+
+
+class NLM_OT_evaluate_latent(_MaterialOperator, bpy.types.Operator):
+    """Encode the stack into its latent code with the neural encoder and store it on the material"""
+
+    bl_idname = "neural_layers.evaluate_latent"
+    bl_label = "Evaluate Latent"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        return _guarded("evaluating the latent", self, lambda: self._run(context))
+
+    def _run(self, context):
+        mat, _ = self.target_stack(context)
+        notes = stack_io.compute_latent(mat)
+        self.report_notes(notes)
+        self.report({"INFO"}, f"latent of {mat.name!r} updated")
+        return {"FINISHED"}
+
+
+# --------------------------------------------------------------------------------------------
+# Long operations: previews and comparison
+
+
+class _LongOperator(_MaterialOperator):
+    """prepare() reads Blender and returns (work, finish): work(progress) is core-only."""
+
+    _job = None
+    _timer = None
+    _finish = None
+
+    def prepare(self, context):
+        raise NotImplementedError
+
+    def execute(self, context):
+        def run():
+            work, finish = self.prepare(context)
+            return finish(context, work(None))
+
+        return _guarded(self.bl_label, self, run)
+
+    def invoke(self, context, event):
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        try:
+            work, self._finish = self.prepare(context)
+        except Exception:
+            return _guarded(self.bl_label, self, lambda: self.prepare(context))
+        self._job = jobs.Job(work).start()
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.1, window=context.window)
+        wm.progress_begin(0, 100)
+        context.workspace.status_text_set(f"{self.bl_label}: Esc to cancel")
+        wm.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def _cleanup(self, context):
+        wm = context.window_manager
+        if self._timer is not None:
+            wm.event_timer_remove(self._timer)
+            self._timer = None
+        wm.progress_end()
+        context.workspace.status_text_set(None)
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == "ESC":
+            job.cancel()
+            return {"RUNNING_MODAL"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        context.window_manager.progress_update(int(100 * job.fraction))
+        if not job.done:
+            return {"RUNNING_MODAL"}
+        self._cleanup(context)
+        if job.cancelled:
+            self.report({"INFO"}, f"{self.bl_label} cancelled")
+            return {"CANCELLED"}
+        if job.error is not None:
+            err = job.error
+
+            def reraise():
+                raise err
+
+            return _guarded(self.bl_label, self, reraise)
+        return _guarded(self.bl_label, self, lambda: self._finish(context, job.result))
+
+    def cancel(self, context):
+        if self._job is not None:
+            self._job.cancel()
+        self._cleanup(context)
+
+    def show(self, context, name, rgba, metadata, notes, summary):
+        image = images.store_image(name, rgba, metadata)
+        images.show_in_image_editor(context, image)
+        self.report_notes(notes)
+        self.report({"INFO"}, f"{image.name}: {summary}")
+        return {"FINISHED"}
+
+
+def _stored_latent(mat):
+    return stack_io.latent_of(mat) if stack_io.latent_is_current(mat) else None
+
+
+class NLM_OT_preview_lobe(_LongOperator, bpy.types.Operator):
+    """Show the BRDF lobe (f cos over the projected outgoing hemisphere) for the incident angle in the Image Editor"""
+
+    bl_idname = "neural_layers.preview_lobe"
+    bl_label = "Preview Lobe"
+    bl_options = {"REGISTER"}
+
+    def prepare(self, context):
+        mat, stack = self.target_stack(context)
+        s = mat.neural_layers
+        theta, res, method, walks = math.degrees(s.theta_i), s.lobe_resolution, s.preview_method, s.walks
+        latent = _stored_latent(mat)
+
+        def work(progress):
+            t0 = time.perf_counter()
+            choice = preview.choose_brdf(stack, method, latent=latent, walks=walks)
+            img = preview.lobe_preview(choice.brdf, theta, res, progress)
+            return img, choice, time.perf_counter() - t0
+
+        def finish(context, result):
+            img, choice, seconds = result
+            img, bad = preview.sanitize(img)
+            notes = choice.notes + ([f"{bad} negative or non-finite values set to 0"] if bad else [])
+            meta = {"method": choice.method, "theta_i_deg": theta, "seconds": seconds}
+            summary = f"{choice.method.lower()} lobe at {theta:.0f} deg, {res}x{res}, {seconds:.2f} s"
+            return self.show(context, f"Lobe {mat.name}", img, meta, notes, summary)
+
+        return work, finish
+
+
+class NLM_OT_preview_sphere(_LongOperator, bpy.types.Operator):
+    """Show a sphere shaded with the stack under a default sky and sun in the Image Editor"""
+
+    bl_idname = "neural_layers.preview_sphere"
+    bl_label = "Preview Sphere"
+    bl_options = {"REGISTER"}
+
+    def prepare(self, context):
+        mat, stack = self.target_stack(context)
+        s = mat.neural_layers
+        res, method, walks, k = s.sphere_resolution, s.preview_method, s.walks, s.env_samples
+        latent = _stored_latent(mat)
+
+        def work(progress):
+            t0 = time.perf_counter()
+            choice = preview.choose_brdf(stack, method, latent=latent, walks=walks)
+            img = preview.sphere_preview(choice.brdf, res, env_samples=k, progress=progress)
+            return img, choice, time.perf_counter() - t0
+
+        def finish(context, result):
+            img, choice, seconds = result
+            img, bad = preview.sanitize(img)
+            notes = choice.notes + ([f"{bad} negative or non-finite values set to 0"] if bad else [])
+            meta = {"method": choice.method, "seconds": seconds}
+            summary = f"{choice.method.lower()} sphere, {res}x{res}, {seconds:.2f} s"
+            return self.show(context, f"Sphere {mat.name}", img, meta, notes, summary)
+
+        return work, finish
+
+
+class NLM_OT_compare_reference(_LongOperator, bpy.types.Operator):
+    """Neural and Monte Carlo reference lobes side by side with their error image and timings"""
+
+    bl_idname = "neural_layers.compare_reference"
+    bl_label = "Compare with Reference"
+    bl_options = {"REGISTER"}
+
+    def prepare(self, context):
+        mat, stack = self.target_stack(context)
+        s = mat.neural_layers
+        theta, res, walks = math.degrees(s.theta_i), s.lobe_resolution, s.walks
+        latent = _stored_latent(mat)
+
+        def work(progress):
+            return preview.compare_with_reference(stack, theta, res, walks=walks, latent=latent, progress=progress)
+
+        def finish(context, cmp):
+            meta = {
+                "seconds_neural": cmp.seconds_neural,
+                "seconds_reference": cmp.seconds_reference,
+                "relative_rmse": cmp.relative_rmse,
+                "theta_i_deg": theta,
+            }
+            summary = "neural | reference | error: " + cmp.summary()
+            return self.show(context, f"Compare {mat.name}", cmp.side_by_side(), meta, cmp.notes, summary)
+
+        return work, finish
+
+
+_CLASSES = (
+    NLM_OT_layer_add,
+    NLM_OT_layer_remove,
+    NLM_OT_layer_move,
+    NLM_OT_layer_duplicate,
+    NLM_OT_layer_rename,
+    NLM_OT_preset_apply,
+    NLM_OT_evaluate_latent,
+    NLM_OT_preview_lobe,
+    NLM_OT_preview_sphere,
+    NLM_OT_compare_reference,
+)
 
 
 def register() -> None:
-    pass
+    for cls in _CLASSES:
+        bpy.utils.register_class(cls)
 
 
 def unregister() -> None:
-    pass
+    for cls in reversed(_CLASSES):
+        if getattr(cls, "is_registered", False):
+            bpy.utils.unregister_class(cls)

@@ -1,9 +1,254 @@
-"""properties (in progress)."""
+"""The layer stack stored on a material (``Material.neural_layers``) and its latent cache.
+
+Layers are kept bottom to top in ``neural_layers.layers`` (index 0 = base); the sidebar shows
+them reversed so the base sits at the bottom. Each layer holds the fields of every layer type;
+the UI shows only those of its ``layer_type``. Soft limits are the ranges the neural models were
+trained on (``addon.core.stack.TRAINED_RANGES``); hard limits are the physically valid ranges
+(``VALID_RANGES``). Roughness is shown as the artist's roughness (as in the Principled BSDF);
+the core gets the GGX alpha = roughness^2.
+
+Conversion to and from ``addon.core.stack.Stack`` lives in ``stack_io``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import bpy
+from bpy.props import (
+    BoolProperty,
+    CollectionProperty,
+    EnumProperty,
+    FloatProperty,
+    FloatVectorProperty,
+    IntProperty,
+    PointerProperty,
+    StringProperty,
+)
+
+from addon.core.stack import TRAINED_RANGES, VALID_RANGES
+
+LAYER_TYPES = [
+    ("DIFFUSE", "Diffuse", "Base: Lambertian surface with an RGB albedo", "SHADING_SOLID", 0),
+    ("CONDUCTOR", "Conductor", "Base: rough metal (GGX), by F0 colour or by complex index eta + i k", "SHADING_RENDERED", 1),
+    ("DIELECTRIC", "Dielectric", "Base: rough dielectric reflection over black (GGX)", "SHADING_TEXTURE", 2),
+    ("COATING", "Coating", "A rough dielectric interface over a slab of scattering medium; goes above the base", "MOD_THICKNESS", 3),
+]
+BASE_LAYER_TYPES = {"DIFFUSE", "CONDUCTOR", "DIELECTRIC"}
+
+_ALPHA_LO, _ALPHA_HI = TRAINED_RANGES["roughness"]
+_ROUGH_SOFT = (math.sqrt(_ALPHA_LO), math.sqrt(_ALPHA_HI))
+
+
+def _on_layer_changed(layer, context) -> None:
+    material = layer.id_data
+    if isinstance(material, bpy.types.Material):
+        from addon.blender import stack_io
+
+        stack_io.on_stack_changed(material)
+
+
+def _on_auto_latent(settings, context) -> None:
+    _on_layer_changed(settings, context)
+
+
+def _range_text(key: str) -> str:
+    lo, hi = TRAINED_RANGES[key]
+    vlo, vhi = VALID_RANGES[key]
+    return f"Trained range {lo:g} to {hi:g} (valid {vlo:g} to {vhi:g}; outside the trained range the neural models clamp)"
+
+
+class NLM_Layer(bpy.types.PropertyGroup):
+    """One layer; ``name`` (built in) is the label shown in the list."""
+
+    layer_type: EnumProperty(
+        name="Type",
+        items=LAYER_TYPES,
+        default="DIFFUSE",
+        description="What this layer is: a base (Diffuse, Conductor, Dielectric) or a Coating above it",
+        update=_on_layer_changed,
+    )
+    roughness: FloatProperty(
+        name="Roughness",
+        description=(
+            "Artist roughness, as in the Principled BSDF: the GGX alpha is its square. "
+            f"Trained alpha {_ALPHA_LO:g} to {_ALPHA_HI:g}, i.e. roughness {_ROUGH_SOFT[0]:.1f} to {_ROUGH_SOFT[1]:.1f}; "
+            "smoother surfaces are clamped by the neural models"
+        ),
+        default=0.3,
+        min=0.0,
+        max=1.0,
+        soft_min=_ROUGH_SOFT[0],
+        soft_max=_ROUGH_SOFT[1],
+        subtype="FACTOR",
+        update=_on_layer_changed,
+    )
+    albedo: FloatVectorProperty(
+        name="Albedo",
+        description="Diffuse reflectance (linear RGB, 0 to 1)",
+        size=3,
+        default=(0.8, 0.8, 0.8),
+        min=0.0,
+        max=1.0,
+        subtype="COLOR",
+        update=_on_layer_changed,
+    )
+    conductor_mode: EnumProperty(
+        name="Specify",
+        items=[
+            ("F0", "Colour", "Normal-incidence reflectance colour F0 (mapped to eta = 1 and k)"),
+            ("ETA_K", "Complex IOR", "Measured complex index of refraction eta + i k per RGB channel"),
+        ],
+        default="F0",
+        description="How the metal is specified",
+        update=_on_layer_changed,
+    )
+    f0: FloatVectorProperty(
+        name="F0",
+        description="Reflectance at normal incidence (linear RGB, 0 to 1); converted to eta = 1 and k = 2 sqrt(F0 / (1 - F0))",
+        size=3,
+        default=(0.95, 0.64, 0.54),
+        min=0.0,
+        max=1.0,
+        subtype="COLOR",
+        update=_on_layer_changed,
+    )
+    eta: FloatVectorProperty(
+        name="Eta",
+        description="Real part of the metal's index of refraction per RGB channel. " + _range_text("eta"),
+        size=3,
+        default=(0.2, 0.9, 1.1),
+        min=VALID_RANGES["eta"][0],
+        max=VALID_RANGES["eta"][1],
+        soft_min=TRAINED_RANGES["eta"][0],
+        soft_max=TRAINED_RANGES["eta"][1],
+        update=_on_layer_changed,
+    )
+    k: FloatVectorProperty(
+        name="K",
+        description="Imaginary part (extinction) of the metal's index per RGB channel. " + _range_text("k"),
+        size=3,
+        default=(3.9, 2.4, 2.2),
+        min=VALID_RANGES["k"][0],
+        max=VALID_RANGES["k"][1],
+        soft_min=TRAINED_RANGES["k"][0],
+        soft_max=TRAINED_RANGES["k"][1],
+        update=_on_layer_changed,
+    )
+    ior: FloatProperty(
+        name="IOR",
+        description="Index of refraction of the dielectric (relative to the medium above). " + _range_text("ior"),
+        default=1.5,
+        min=VALID_RANGES["ior"][0],
+        max=VALID_RANGES["ior"][1],
+        soft_min=TRAINED_RANGES["ior"][0],
+        soft_max=TRAINED_RANGES["ior"][1],
+        update=_on_layer_changed,
+    )
+    medium_albedo: FloatVectorProperty(
+        name="Medium Albedo",
+        description="Single-scattering albedo of the coating's medium (linear RGB, 0 to 1): 0 absorbs, 1 only scatters",
+        size=3,
+        default=(0.0, 0.0, 0.0),
+        min=0.0,
+        max=1.0,
+        subtype="COLOR",
+        update=_on_layer_changed,
+    )
+    thickness: FloatProperty(
+        name="Thickness",
+        description="Optical thickness of the coating's medium (extinction x depth, no unit); 0 = clear coat. "
+        + _range_text("thickness"),
+        default=0.0,
+        min=VALID_RANGES["thickness"][0],
+        max=VALID_RANGES["thickness"][1],
+        soft_min=TRAINED_RANGES["thickness"][0],
+        soft_max=TRAINED_RANGES["thickness"][1],
+        update=_on_layer_changed,
+    )
+    g: FloatProperty(
+        name="Anisotropy g",
+        description="Henyey-Greenstein asymmetry of the medium's scattering (-1 back, 0 isotropic, 1 forward). "
+        "The neural models are trained at g = 0 only; other values are clamped to 0 by them",
+        default=0.0,
+        min=VALID_RANGES["g"][0],
+        max=VALID_RANGES["g"][1],
+        update=_on_layer_changed,
+    )
+
+
+class NLM_MaterialSettings(bpy.types.PropertyGroup):
+    layers: CollectionProperty(type=NLM_Layer, name="Layers", description="The stack, bottom (base) to top")
+    active_index: IntProperty(name="Active Layer", default=0, min=0)
+    latent: FloatVectorProperty(
+        name="Latent",
+        description="Latent code of the stack from the neural encoder: 32 floats per RGB channel",
+        size=(3, 32),
+        default=[[0.0] * 32] * 3,
+    )
+    latent_hash: StringProperty(
+        name="Latent Stack Hash",
+        description="Hash of the stack the latent was computed from; the latent is current when it matches",
+        default="",
+    )
+    auto_latent: BoolProperty(
+        name="Auto Update Latent",
+        description="Recompute the latent whenever the stack changes (when the neural models are available)",
+        default=True,
+        update=_on_auto_latent,
+    )
+    # preview settings
+    preview_method: EnumProperty(
+        name="Method",
+        items=[
+            ("AUTO", "Auto", "Neural runtime when its models are available, else the Monte Carlo reference"),
+            ("NEURAL", "Neural", "Neural runtime only; fail if its models are not available"),
+            ("REFERENCE", "Reference", "Position-free Monte Carlo reference (slow, noisy, exact on average)"),
+        ],
+        default="AUTO",
+    )
+    theta_i: FloatProperty(
+        name="Incident Angle",
+        description="Angle of the incident light from the normal, for the lobe preview and the comparison",
+        default=math.radians(30.0),
+        min=0.0,
+        max=math.radians(89.0),
+        subtype="ANGLE",
+    )
+    lobe_resolution: IntProperty(name="Lobe Size", description="Lobe image size in pixels", default=128, min=8, max=1024)
+    sphere_resolution: IntProperty(
+        name="Sphere Size", description="Sphere image size in pixels", default=128, min=8, max=1024
+    )
+    env_samples: IntProperty(
+        name="Environment Samples",
+        description="Fixed sky directions per pixel of the sphere preview (more = smoother sky lighting, slower)",
+        default=16,
+        min=1,
+        max=256,
+    )
+    walks: IntProperty(
+        name="Walks",
+        description="Monte Carlo walks per direction pair for the reference (more = less noise, slower)",
+        default=32,
+        min=1,
+        max=4096,
+    )
+
+
+_CLASSES = (NLM_Layer, NLM_MaterialSettings)
 
 
 def register() -> None:
-    pass
+    for cls in _CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.Material.neural_layers = PointerProperty(
+        type=NLM_MaterialSettings, name="Neural Layers", description="Layer stack of the neural layered material"
+    )
 
 
 def unregister() -> None:
-    pass
+    if hasattr(bpy.types.Material, "neural_layers"):
+        del bpy.types.Material.neural_layers
+    for cls in reversed(_CLASSES):
+        if getattr(cls, "is_registered", False):
+            bpy.utils.unregister_class(cls)

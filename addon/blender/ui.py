@@ -1,9 +1,211 @@
-"""ui (in progress)."""
+"""The "Layers" sidebar tab of the 3D Viewport and the Shader Editor."""
+
+from __future__ import annotations
+
+import bpy
+
+from addon.blender import stack_io
+from addon.blender.properties import BASE_LAYER_TYPES
+from addon.core.stack import PRESETS
+
+_ICONS = {"DIFFUSE": "SHADING_SOLID", "CONDUCTOR": "SHADING_RENDERED", "DIELECTRIC": "SHADING_TEXTURE", "COATING": "MOD_THICKNESS"}
+
+
+class NLM_UL_layers(bpy.types.UIList):
+    """The stack, drawn top layer first so the base sits at the bottom."""
+
+    bl_idname = "NLM_UL_layers"
+
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index):
+        row = layout.row(align=True)
+        row.prop(item, "name", text="", emboss=False, icon=_ICONS.get(item.layer_type, "DOT"))
+        row.label(text=item.bl_rna.properties["layer_type"].enum_items[item.layer_type].name)
+
+    def filter_items(self, context, data, propname):
+        items = getattr(data, propname)
+        n = len(items)
+        flags = [self.bitflag_filter_item] * n
+        if self.filter_name:
+            flags = bpy.types.UI_UL_list.filter_items_by_name(self.filter_name, self.bitflag_filter_item, items, "name")
+        order = list(range(n - 1, -1, -1))  # display position of item i: top layer first
+        return flags, order
+
+
+class NLM_MT_presets(bpy.types.Menu):
+    bl_idname = "NLM_MT_presets"
+    bl_label = "Layer Presets"
+
+    def draw(self, context):
+        for key in sorted(PRESETS):
+            op = self.layout.operator("neural_layers.preset_apply", text=key.replace("_", " ").title())
+            op.preset = key
+
+
+def _material(context):
+    ob = context.object
+    return (ob, ob.active_material) if ob is not None else (None, None)
+
+
+def _draw_stack(layout, context):
+    ob, mat = _material(context)
+    if ob is None:
+        layout.label(text="Select an object", icon="INFO")
+        return None
+    layout.template_ID(ob, "active_material", new="material.new")
+    if mat is None:
+        layout.label(text="The object has no material", icon="INFO")
+        return None
+    s = mat.neural_layers
+    row = layout.row()
+    row.template_list("NLM_UL_layers", "", s, "layers", s, "active_index", rows=4)
+    col = row.column(align=True)
+    col.operator_menu_enum("neural_layers.layer_add", "layer_type", text="", icon="ADD")
+    col.operator("neural_layers.layer_remove", text="", icon="REMOVE")
+    col.separator()
+    col.operator("neural_layers.layer_duplicate", text="", icon="DUPLICATE")
+    col.separator()
+    col.operator("neural_layers.layer_move", text="", icon="TRIA_UP").direction = "UP"
+    col.operator("neural_layers.layer_move", text="", icon="TRIA_DOWN").direction = "DOWN"
+    col.separator()
+    col.menu("NLM_MT_presets", text="", icon="PRESET")
+    try:
+        stack_io.stack_from_material(mat)
+    except ValueError as e:
+        box = layout.box()
+        box.alert = True
+        for line in _wrap(str(e), 48):
+            box.label(text=line)
+    return mat
+
+
+def _wrap(text, width):
+    words, lines, line = text.split(), [], ""
+    for w in words:
+        if len(line) + len(w) + 1 > width and line:
+            lines.append(line)
+            line = w
+        else:
+            line = f"{line} {w}".strip()
+    return lines + ([line] if line else [])
+
+
+def _draw_layer(layout, item):
+    layout.prop(item, "name")
+    layout.prop(item, "layer_type")
+    t = item.layer_type
+    if t == "DIFFUSE":
+        layout.prop(item, "albedo")
+        return
+    layout.prop(item, "roughness", slider=True)
+    if t == "CONDUCTOR":
+        layout.prop(item, "conductor_mode", expand=True)
+        if item.conductor_mode == "F0":
+            layout.prop(item, "f0")
+        else:
+            layout.prop(item, "eta")
+            layout.prop(item, "k")
+    elif t == "DIELECTRIC":
+        layout.prop(item, "ior")
+    else:
+        layout.prop(item, "ior")
+        layout.prop(item, "medium_albedo")
+        layout.prop(item, "thickness")
+        layout.prop(item, "g")
+
+
+class _LayersPanel:
+    bl_region_type = "UI"
+    bl_category = "Layers"
+
+    @classmethod
+    def poll(cls, context):
+        space = context.space_data
+        return space.type == "VIEW_3D" or getattr(space, "tree_type", "") == "ShaderNodeTree"
+
+
+class _StackPanel(_LayersPanel):
+    bl_label = "Layer Stack"
+
+    def draw(self, context):
+        layout = self.layout
+        mat = _draw_stack(layout, context)
+        if mat is None:
+            return
+        s = mat.neural_layers
+        if 0 <= s.active_index < len(s.layers):
+            box = layout.box()
+            _draw_layer(box, s.layers[s.active_index])
+        elif len(s.layers) == 0:
+            layout.label(text="Add a base layer or pick a preset", icon="INFO")
+
+
+class _PreviewPanel(_LayersPanel):
+    bl_label = "Latent and Previews"
+
+    def draw(self, context):
+        layout = self.layout
+        _, mat = _material(context)
+        if mat is None:
+            layout.label(text="No material")
+            return
+        s = mat.neural_layers
+        row = layout.row(align=True)
+        current = stack_io.latent_is_current(mat)
+        row.label(text="Latent: current" if current else "Latent: stale", icon="CHECKMARK" if current else "ERROR")
+        row.operator("neural_layers.evaluate_latent", text="Evaluate")
+        layout.prop(s, "auto_latent")
+        col = layout.column()
+        col.enabled = len(s.layers) > 0
+        col.prop(s, "preview_method")
+        col.prop(s, "theta_i")
+        col.prop(s, "lobe_resolution")
+        col.prop(s, "sphere_resolution")
+        col.prop(s, "env_samples")
+        col.prop(s, "walks")
+        row = col.row(align=True)
+        row.operator("neural_layers.preview_lobe", text="Lobe", icon="LIGHT_SPOT")
+        row.operator("neural_layers.preview_sphere", text="Sphere", icon="SHADING_RENDERED")
+        col.operator("neural_layers.compare_reference", icon="IMAGE_REFERENCE")
+
+
+class NLM_PT_view3d_stack(_StackPanel, bpy.types.Panel):
+    bl_idname = "NLM_PT_view3d_stack"
+    bl_space_type = "VIEW_3D"
+
+
+class NLM_PT_view3d_preview(_PreviewPanel, bpy.types.Panel):
+    bl_idname = "NLM_PT_view3d_preview"
+    bl_space_type = "VIEW_3D"
+    bl_options = {"DEFAULT_CLOSED"}
+
+
+class NLM_PT_shader_stack(_StackPanel, bpy.types.Panel):
+    bl_idname = "NLM_PT_shader_stack"
+    bl_space_type = "NODE_EDITOR"
+
+
+class NLM_PT_shader_preview(_PreviewPanel, bpy.types.Panel):
+    bl_idname = "NLM_PT_shader_preview"
+    bl_space_type = "NODE_EDITOR"
+    bl_options = {"DEFAULT_CLOSED"}
+
+
+_CLASSES = (
+    NLM_UL_layers,
+    NLM_MT_presets,
+    NLM_PT_view3d_stack,
+    NLM_PT_view3d_preview,
+    NLM_PT_shader_stack,
+    NLM_PT_shader_preview,
+)
 
 
 def register() -> None:
-    pass
+    for cls in _CLASSES:
+        bpy.utils.register_class(cls)
 
 
 def unregister() -> None:
-    pass
+    for cls in reversed(_CLASSES):
+        if getattr(cls, "is_registered", False):
+            bpy.utils.unregister_class(cls)

@@ -1,0 +1,71 @@
+"""Preview images in ``bpy.data.images`` and showing them in an Image Editor."""
+
+from __future__ import annotations
+
+import bpy
+import numpy as np
+
+
+def store_image(name: str, rgba: np.ndarray, metadata: dict | None = None):
+    """Write an (H, W, 4) float image (rows top to bottom) into ``bpy.data.images[name]``.
+
+    The image is float, linear, reused (and resized) if it exists. ``metadata`` goes into the
+    image's custom properties (e.g. the timings of a comparison).
+    """
+    rgba = np.asarray(rgba, dtype=np.float32)
+    if rgba.ndim != 3 or rgba.shape[2] != 4:
+        raise ValueError(f"preview image must be (H, W, 4), got {rgba.shape}")
+    h, w = rgba.shape[:2]
+    image = bpy.data.images.get(name)
+    if image is not None and (not image.is_float or image.source != "GENERATED"):
+        bpy.data.images.remove(image)
+        image = None
+    if image is None:
+        image = bpy.data.images.new(name, width=w, height=h, alpha=True, float_buffer=True)
+    elif tuple(image.size) != (w, h):
+        image.scale(w, h)
+    image.colorspace_settings.name = "Linear Rec.709"
+    image.alpha_mode = "STRAIGHT"
+    # Blender stores rows bottom to top
+    image.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).ravel())
+    image.update()
+    for key, value in (metadata or {}).items():
+        image[key] = value
+    return image
+
+
+def _largest(areas):
+    return max(areas, key=lambda a: a.width * a.height, default=None)
+
+
+def show_in_image_editor(context, image):
+    """Show ``image`` in an Image Editor of the current window; return the area or None.
+
+    Uses an existing Image Editor when the window has one. Otherwise, in the UI, opens a new
+    window for it (as F12 renders do); in background mode (no user), turns the window's largest
+    area into an Image Editor.
+    """
+    window = context.window or (context.window_manager.windows[0] if context.window_manager.windows else None)
+    if window is None:
+        return None
+    areas = [a for a in window.screen.areas if a.type == "IMAGE_EDITOR"]
+    if not areas and not bpy.app.background:
+        try:
+            with context.temp_override(window=window):
+                bpy.ops.wm.window_new()
+            window = context.window_manager.windows[-1]
+            area = _largest(window.screen.areas)
+            area.type = "IMAGE_EDITOR"
+            areas = [area]
+        except RuntimeError:
+            areas = []
+    if not areas:
+        area = _largest(window.screen.areas)
+        if area is None:
+            return None
+        area.type = "IMAGE_EDITOR"
+        areas = [area]
+    area = areas[0]
+    area.spaces.active.image = image
+    area.tag_redraw()
+    return area

@@ -1,0 +1,203 @@
+"""Material <-> ``addon.core.stack.Stack``, and the latent stored on the material.
+
+``stack_from_material(mat)`` is what every consumer (operators, the render engine's scene export)
+calls: it returns the material's ``Stack``, ``None`` when the material has no layer stack, and
+raises ``ValueError`` with a message for the user when the stack is not valid.
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+from typing import Optional
+
+import numpy as np
+
+from addon.core import preview
+from addon.core.stack import (
+    Coating,
+    Conductor,
+    Dielectric,
+    Diffuse,
+    Layer,
+    Stack,
+    alpha_from_artist_roughness,
+    artist_roughness_from_alpha,
+)
+
+_TYPE_LABEL = {"DIFFUSE": "Diffuse", "CONDUCTOR": "Conductor", "DIELECTRIC": "Dielectric", "COATING": "Coating"}
+_BASES = {"DIFFUSE", "CONDUCTOR", "DIELECTRIC"}
+
+# While True, property update callbacks do not react (bulk writes of a whole stack).
+_suspend_updates = False
+
+
+def settings(mat):
+    return mat.neural_layers
+
+
+def layer_from_item(item) -> Layer:
+    """The core layer of one ``NLM_Layer`` item; ``ValueError`` names the layer if a value is invalid."""
+    kind = item.layer_type
+    alpha = alpha_from_artist_roughness(item.roughness)
+    try:
+        if kind == "DIFFUSE":
+            return Diffuse(albedo=tuple(item.albedo))
+        if kind == "CONDUCTOR":
+            if item.conductor_mode == "F0":
+                return Conductor.from_f0(tuple(item.f0), roughness=alpha)
+            return Conductor(roughness=alpha, eta=tuple(item.eta), k=tuple(item.k))
+        if kind == "DIELECTRIC":
+            return Dielectric(roughness=alpha, ior=item.ior)
+        if kind == "COATING":
+            return Coating(
+                roughness=alpha,
+                ior=item.ior,
+                albedo=tuple(item.medium_albedo),
+                thickness=item.thickness,
+                g=item.g,
+            )
+    except ValueError as e:
+        raise ValueError(f"layer {item.name!r}: {e}") from None
+    raise ValueError(f"layer {item.name!r} has unknown type {kind!r}; expected one of {sorted(_TYPE_LABEL)}")
+
+
+def stack_from_material(mat) -> Optional[Stack]:
+    """The material's layer stack, or ``None`` if it has none (no material, or no layers).
+
+    Raises ``ValueError`` when the layers do not form a valid stack (a coating at the bottom, a
+    second base above the base, or a value outside its valid range).
+    """
+    if mat is None or not hasattr(mat, "neural_layers"):
+        return None
+    layers = list(mat.neural_layers.layers)
+    if not layers:
+        return None
+    bottom = layers[0]
+    if bottom.layer_type not in _BASES:
+        raise ValueError(
+            f"layer {bottom.name!r} ({_TYPE_LABEL.get(bottom.layer_type, bottom.layer_type)}) is at the bottom of "
+            f"the stack of material {mat.name!r}; the bottom layer must be a base: Diffuse, Conductor or Dielectric"
+        )
+    for item in layers[1:]:
+        if item.layer_type != "COATING":
+            raise ValueError(
+                f"layer {item.name!r} ({_TYPE_LABEL.get(item.layer_type, item.layer_type)}) is above the base of "
+                f"material {mat.name!r}; only Coating layers can go above the base (move it to the bottom or change its type)"
+            )
+    return Stack(base=layer_from_item(bottom), coatings=tuple(layer_from_item(i) for i in layers[1:]))
+
+
+def default_layer_name(kind: str, existing: set[str]) -> str:
+    base = _TYPE_LABEL[kind]
+    if base not in existing:
+        return base
+    n = 1
+    while f"{base}.{n:03d}" in existing:
+        n += 1
+    return f"{base}.{n:03d}"
+
+
+def write_layer(item, layer: Layer) -> None:
+    """Fill an ``NLM_Layer`` item from a core layer."""
+    if isinstance(layer, Diffuse):
+        item.layer_type = "DIFFUSE"
+        item.albedo = layer.albedo
+        return
+    item.roughness = artist_roughness_from_alpha(layer.roughness)
+    if isinstance(layer, Conductor):
+        item.layer_type = "CONDUCTOR"
+        item.conductor_mode = "ETA_K"
+        item.eta = layer.eta
+        item.k = layer.k
+    elif isinstance(layer, Dielectric):
+        item.layer_type = "DIELECTRIC"
+        item.ior = layer.ior
+    elif isinstance(layer, Coating):
+        item.layer_type = "COATING"
+        item.ior = layer.ior
+        item.medium_albedo = layer.albedo
+        item.thickness = layer.thickness
+        item.g = layer.g
+    else:
+        raise ValueError(f"cannot store a layer of type {type(layer).__name__}")
+
+
+@contextmanager
+def bulk_edit(mat):
+    """Edit several layer fields at once: the latent is refreshed once, at the end."""
+    global _suspend_updates
+    outer = _suspend_updates
+    _suspend_updates = True
+    try:
+        yield settings(mat)
+    finally:
+        _suspend_updates = outer
+    on_stack_changed(mat)
+
+
+def stack_to_material(stack: Stack, mat) -> None:
+    """Replace the material's layers with ``stack`` (bottom to top) and refresh its latent."""
+    with bulk_edit(mat) as s:
+        s.layers.clear()
+        names: set[str] = set()
+        for layer in stack.layers:
+            item = s.layers.add()
+            write_layer(item, layer)
+            item.name = default_layer_name(item.layer_type, names)
+            names.add(item.name)
+        s.active_index = len(s.layers) - 1
+
+
+# --------------------------------------------------------------------------------------------
+# Latent stored on the material
+
+
+def latent_of(mat) -> np.ndarray:
+    return np.array(settings(mat).latent, dtype=np.float32).reshape(3, 32)
+
+
+def latent_is_current(mat) -> bool:
+    """True when the stored latent was computed from the material's current stack."""
+    try:
+        stack = stack_from_material(mat)
+    except ValueError:
+        return False
+    if stack is None:
+        return False
+    return settings(mat).latent_hash == preview.stack_hash(stack)
+
+
+def compute_latent(mat, size: str = "small") -> list[str]:
+    """Encode the material's stack, store latent + hash on it, return notes for the user.
+
+    Raises ``ValueError`` (no or invalid stack) or ``preview.NeuralUnavailable``; on failure the
+    stored hash is cleared so the latent reads as stale.
+    """
+    stack = stack_from_material(mat)
+    if stack is None:
+        raise ValueError(f"material {mat.name!r} has no layer stack; add a base layer first")
+    s = settings(mat)
+    try:
+        z, notes = preview.encode_latent(stack, size)
+    except preview.NeuralUnavailable:
+        s.latent_hash = ""
+        raise
+    s.latent = z.tolist()
+    s.latent_hash = preview.stack_hash(stack)
+    return notes
+
+
+def on_stack_changed(mat) -> None:
+    """Called after every edit of the stack: recompute the latent when automatic and possible.
+
+    Failures leave the latent stale (its hash no longer matches); the evaluate operator reports why.
+    """
+    if _suspend_updates:
+        return
+    s = settings(mat)
+    if not s.auto_latent:
+        return
+    try:
+        compute_latent(mat)
+    except (ValueError, preview.NeuralUnavailable):
+        s.latent_hash = ""

@@ -1,0 +1,357 @@
+"""Previews of a layer stack: which BRDF to use, lobe and shaded-sphere images, reference comparison.
+
+Everything here is plain numpy on top of a ``brdf(wi, wo) -> (N, 3)`` callable (local frame,
+normal +z, no cosine, DESIGN section 3), so the same functions serve the Blender operators, scripts
+and tests. The BRDF is either the neural runtime (``addon.core.neural``) or the position-free Monte
+Carlo reference (``addon.core.reference``); this module holds no BRDF maths of its own.
+
+Long evaluations take a ``progress(fraction)`` callback, called between chunks; it may raise
+:class:`Cancelled` to stop the work (the Blender operators do so when the user presses Esc).
+Images are ``(H, W, 4)`` float32, linear RGB + alpha, rows top to bottom.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+import numpy as np
+
+from addon.core import lobe
+from addon.core.stack import Stack, clamp_to_trained
+
+BrdfFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+ProgressFn = Optional[Callable[[float], None]]
+
+DEFAULT_CHUNK = 32768
+METHODS = ("AUTO", "NEURAL", "REFERENCE")
+
+
+class Cancelled(Exception):
+    """Raised by a progress callback to stop a long evaluation."""
+
+
+class NeuralUnavailable(RuntimeError):
+    """The neural runtime cannot serve this stack (not importable, models missing, unsupported)."""
+
+
+def stack_hash(stack: Stack) -> str:
+    """Stable hash of a stack's parameters: a stored latent is current when the hashes match."""
+    return hashlib.sha1(stack.to_json().encode("utf-8")).hexdigest()
+
+
+def chunked(brdf: BrdfFn, chunk: int = DEFAULT_CHUNK, progress: ProgressFn = None) -> BrdfFn:
+    """Wrap ``brdf`` so that one call evaluates its rows in chunks and reports progress.
+
+    Chunks keep memory bounded (the reference holds per-walk state for every row) and give the
+    caller a place to cancel.
+    """
+    if chunk < 1:
+        raise ValueError(f"chunk must be >= 1 rows, got {chunk}")
+
+    def evaluate(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        n = len(wi)
+        out = np.zeros((n, 3), dtype=np.float32)
+        for start in range(0, n, chunk):
+            stop = min(start + chunk, n)
+            out[start:stop] = np.asarray(brdf(wi[start:stop], wo[start:stop]), dtype=np.float32)
+            if progress is not None:
+                progress(stop / n)
+        return out
+
+    return evaluate
+
+
+def _scaled(progress: ProgressFn, lo: float, hi: float) -> ProgressFn:
+    if progress is None:
+        return None
+    return lambda f: progress(lo + (hi - lo) * f)
+
+
+# --------------------------------------------------------------------------------------------
+# Which BRDF: neural runtime or reference
+
+
+def _neural_module():
+    try:
+        from addon.core import neural
+    except Exception as e:  # an import error anywhere inside the runtime
+        raise NeuralUnavailable(f"the neural runtime cannot be imported ({type(e).__name__}: {e})") from None
+    for name in ("load_models", "encode_stack", "eval_brdf"):
+        if not hasattr(neural, name):
+            raise NeuralUnavailable(f"the neural runtime has no {name}() yet")
+    return neural
+
+
+def encode_latent(stack: Stack, size: str = "small") -> tuple[np.ndarray, list[str]]:
+    """The stack's latent code ``(3, 32)`` float32 from the neural encoder, and notes for the user.
+
+    Parameters outside the trained range are clamped first (the notes say which). Raises
+    :class:`NeuralUnavailable` naming the reason when the runtime, its models or support for
+    this kind of stack are missing.
+    """
+    neural = _neural_module()
+    clamped, notes = clamp_to_trained(stack)
+    try:
+        neural.load_models(size=size)
+    except Exception as e:
+        raise NeuralUnavailable(f"models of size {size!r} cannot be loaded ({e})") from None
+    try:
+        z = np.asarray(neural.encode_stack(clamped), dtype=np.float32)
+    except Exception as e:
+        raise NeuralUnavailable(f"the encoder cannot encode this stack ({e})") from None
+    if z.shape != (3, 32):
+        raise NeuralUnavailable(f"the encoder returned a latent of shape {z.shape}, expected (3, 32)")
+    if not np.all(np.isfinite(z)):
+        raise NeuralUnavailable("the encoder returned a latent with non-finite values")
+    return z, notes
+
+
+def neural_brdf_from_latent(z: np.ndarray) -> BrdfFn:
+    """``brdf(wi, wo)`` of the neural decoder for a stored latent ``(3, 32)``."""
+    neural = _neural_module()
+    z = np.asarray(z, dtype=np.float32).reshape(3, 32)
+    return lambda wi, wo: neural.eval_brdf(z, wi, wo)
+
+
+def reference_brdf(stack: Stack, walks: int = 64, seed: int = 0) -> BrdfFn:
+    """``brdf(wi, wo)`` of the position-free Monte Carlo reference (estimate only).
+
+    Each call uses the next seed so that chunks are independent yet the whole preview is
+    deterministic for a given ``seed``.
+    """
+    if walks < 1:
+        raise ValueError(f"walks must be >= 1, got {walks}")
+    from addon.core import reference
+
+    calls = [0]
+
+    def evaluate(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        f, _stderr = reference.eval_brdf(stack, wi, wo, walks=walks, seed=seed + calls[0])
+        calls[0] += 1
+        return f
+
+    return evaluate
+
+
+@dataclass
+class BrdfChoice:
+    brdf: BrdfFn
+    method: str  # "NEURAL" or "REFERENCE"
+    notes: list[str] = field(default_factory=list)
+
+
+def choose_brdf(
+    stack: Stack,
+    method: str = "AUTO",
+    latent: Optional[np.ndarray] = None,
+    size: str = "small",
+    walks: int = 64,
+    seed: int = 0,
+) -> BrdfChoice:
+    """The BRDF a preview uses.
+
+    ``method``: "NEURAL" (fail with :class:`NeuralUnavailable` if it cannot), "REFERENCE", or
+    "AUTO" (neural when available, else the reference, with a note saying why). ``latent``, when
+    given, is a current latent of ``stack`` and saves an encoder call.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if method == "REFERENCE":
+        return BrdfChoice(reference_brdf(stack, walks, seed), "REFERENCE")
+    try:
+        notes: list[str] = []
+        if latent is None:
+            latent, notes = encode_latent(stack, size)
+        return BrdfChoice(neural_brdf_from_latent(latent), "NEURAL", notes)
+    except NeuralUnavailable as e:
+        if method == "NEURAL":
+            raise
+        note = f"neural models not available: {e}; showing the position-free Monte Carlo reference"
+        return BrdfChoice(reference_brdf(stack, walks, seed), "REFERENCE", [note])
+
+
+# --------------------------------------------------------------------------------------------
+# Images
+
+
+def sanitize(img: np.ndarray) -> tuple[np.ndarray, int]:
+    """Replace non-finite and negative values by 0; return the image and how many were replaced."""
+    bad = ~np.isfinite(img) | (img < 0)
+    n = int(bad.sum())
+    if n:
+        img = np.where(bad, 0.0, img)
+    return img, n
+
+
+def _rgba(rgb: np.ndarray, alpha: np.ndarray | float = 1.0) -> np.ndarray:
+    h, w = rgb.shape[:2]
+    out = np.empty((h, w, 4), dtype=np.float32)
+    out[..., :3] = rgb
+    out[..., 3] = alpha
+    return out
+
+
+def lobe_preview(brdf: BrdfFn, theta_i_deg: float, res: int = 128, progress: ProgressFn = None) -> np.ndarray:
+    """(res, res, 4) image of f cos(theta_o) over the projected outgoing hemisphere (see ``lobe``).
+
+    Alpha is 1 on the disk and 0 outside it.
+    """
+    if not (0.0 <= theta_i_deg < 90.0):
+        raise ValueError(f"incident angle must be in [0, 90) degrees, got {theta_i_deg}")
+    img = lobe.lobe_image(chunked(brdf, progress=progress), theta_i_deg, res)
+    _, mask = lobe.lobe_grid(res)
+    return _rgba(img, mask.reshape(res, res).astype(np.float32))
+
+
+@dataclass(frozen=True)
+class Environment:
+    """A deterministic preview environment: sky gradient over a flat ground colour plus a sun.
+
+    World frame of the sphere preview: x right, y up, z toward the (orthographic) viewer.
+    Radiances are linear RGB; ``sun_irradiance`` is the irradiance on a surface facing the sun.
+    """
+
+    zenith: tuple[float, float, float] = (0.25, 0.40, 0.80)
+    horizon: tuple[float, float, float] = (0.80, 0.85, 0.90)
+    ground: tuple[float, float, float] = (0.18, 0.16, 0.14)
+    sun_direction: tuple[float, float, float] = (-0.45, 0.70, 0.55)
+    sun_irradiance: tuple[float, float, float] = (3.0, 2.85, 2.6)
+
+    def radiance(self, d: np.ndarray) -> np.ndarray:
+        """Sky/ground radiance (N, 3) toward world directions ``d`` (N, 3), sun excluded."""
+        up = d[:, 1:2]
+        t = np.clip(up, 0.0, 1.0)
+        sky = np.asarray(self.horizon) * (1.0 - t) + np.asarray(self.zenith) * t
+        return np.where(up > 0.0, sky, np.asarray(self.ground))
+
+    def sun(self) -> np.ndarray:
+        d = np.asarray(self.sun_direction, dtype=np.float64)
+        return d / np.linalg.norm(d)
+
+
+DEFAULT_ENVIRONMENT = Environment()
+
+
+def cosine_directions(n: int) -> np.ndarray:
+    """``n`` fixed, well-spread cosine-distributed directions on the +z hemisphere (N, 3).
+
+    A Fibonacci spiral on the projected disk (uniform in the disk = cosine-weighted on the
+    hemisphere): deterministic, so previews do not flicker between runs.
+    """
+    if n < 1:
+        raise ValueError(f"need at least 1 environment sample, got {n}")
+    k = np.arange(n) + 0.5
+    r = np.sqrt(k / n)
+    phi = k * math.pi * (3.0 - math.sqrt(5.0))
+    x, y = r * np.cos(phi), r * np.sin(phi)
+    return np.stack([x, y, np.sqrt(np.clip(1.0 - r * r, 0.0, 1.0))], axis=-1)
+
+
+def sphere_preview(
+    brdf: BrdfFn,
+    res: int = 128,
+    env: Environment = DEFAULT_ENVIRONMENT,
+    env_samples: int = 16,
+    progress: ProgressFn = None,
+) -> np.ndarray:
+    """(res, res, 4) image of a unit sphere seen orthographically, shaded with ``brdf``.
+
+    Radiance per pixel = f(sun, wo) E_sun cos + the sky/ground term estimated with
+    ``env_samples`` fixed cosine-distributed directions (weight pi f L). Alpha is 1 on the
+    sphere, 0 elsewhere (RGB 0 there).
+    """
+    from addon.core.bsdf.frame import coordinate_system, to_local, to_world
+
+    if res < 2:
+        raise ValueError(f"sphere resolution must be >= 2, got {res}")
+    c = (np.arange(res) + 0.5) / res * 2.0 - 1.0
+    x, y = np.meshgrid(c, -c)  # rows top to bottom
+    r2 = (x * x + y * y).reshape(-1)
+    mask = r2 < 1.0
+    n = np.stack([x.reshape(-1)[mask], y.reshape(-1)[mask], np.sqrt(1.0 - r2[mask])], axis=-1)
+    m = len(n)
+    s, t = coordinate_system(n)
+
+    wo = to_local(np.broadcast_to(np.array([0.0, 0.0, 1.0]), n.shape), s, t, n)
+    wi_sun = to_local(np.broadcast_to(env.sun(), n.shape), s, t, n)
+    local = cosine_directions(env_samples)  # (K, 3), local frame
+    # world direction of sample k at pixel p: local[k] expressed in the pixel's frame
+    world = to_world(local[:, None, :], s[None], t[None], n[None]).reshape(-1, 3)
+    wi_env = np.repeat(local, m, axis=0)  # sample-major, like `world`
+
+    wi_all = np.concatenate([wi_sun, wi_env]).astype(np.float32)
+    wo_all = np.concatenate([wo, np.tile(wo, (env_samples, 1))]).astype(np.float32)
+    # only directions above the shading horizon carry light; the sun may be behind a pixel
+    f = chunked(brdf, progress=progress)(wi_all, wo_all).astype(np.float64)
+
+    cos_sun = np.clip(wi_sun[:, 2:3], 0.0, None)
+    radiance = f[:m] * cos_sun * np.asarray(env.sun_irradiance)
+    f_env = f[m:].reshape(env_samples, m, 3)
+    l_env = env.radiance(world).reshape(env_samples, m, 3)
+    radiance += math.pi * (f_env * l_env).mean(axis=0)
+
+    img = np.zeros((res * res, 3))
+    img[mask] = radiance
+    return _rgba(img.reshape(res, res, 3), mask.reshape(res, res).astype(np.float32))
+
+
+@dataclass
+class Comparison:
+    neural: np.ndarray  # (res, res, 4) lobe image
+    reference: np.ndarray  # (res, res, 4)
+    error: np.ndarray  # (res, res, 4): |neural - reference| per channel
+    seconds_neural: float
+    seconds_reference: float
+    relative_rmse: float
+    notes: list[str] = field(default_factory=list)
+
+    def side_by_side(self, gap: int = 2) -> np.ndarray:
+        """One (res, 3 res + 2 gap, 4) image: neural | reference | error."""
+        h = self.neural.shape[0]
+        sep = np.zeros((h, gap, 4), dtype=np.float32)
+        return np.concatenate([self.neural, sep, self.reference, sep, self.error], axis=1)
+
+    def summary(self) -> str:
+        return (
+            f"neural {self.seconds_neural * 1e3:.1f} ms, reference {self.seconds_reference * 1e3:.1f} ms, "
+            f"relative RMSE {self.relative_rmse:.3f}"
+        )
+
+
+def compare_with_reference(
+    stack: Stack,
+    theta_i_deg: float = 30.0,
+    res: int = 64,
+    walks: int = 64,
+    seed: int = 0,
+    latent: Optional[np.ndarray] = None,
+    size: str = "small",
+    progress: ProgressFn = None,
+) -> Comparison:
+    """Neural and reference lobe images of ``stack`` with their timings and the error between them.
+
+    Raises :class:`NeuralUnavailable` when the neural runtime cannot serve the stack. Timings
+    are wall-clock seconds of each method's evaluation alone (encoding excluded).
+    """
+    notes: list[str] = []
+    if latent is None:
+        latent, notes = encode_latent(stack, size)
+    neural = neural_brdf_from_latent(latent)
+    t0 = time.perf_counter()
+    img_n = lobe_preview(neural, theta_i_deg, res, _scaled(progress, 0.0, 0.1))
+    t1 = time.perf_counter()
+    img_r = lobe_preview(reference_brdf(stack, walks, seed), theta_i_deg, res, _scaled(progress, 0.1, 1.0))
+    t2 = time.perf_counter()
+    img_n, bad_n = sanitize(img_n)
+    img_r, bad_r = sanitize(img_r)
+    for label, bad in (("neural", bad_n), ("reference", bad_r)):
+        if bad:
+            notes.append(f"{label}: {bad} negative or non-finite values set to 0")
+    err = img_n.copy()
+    err[..., :3] = np.abs(img_n[..., :3] - img_r[..., :3])
+    rmse = lobe.relative_rmse(img_n[..., :3], img_r[..., :3])
+    return Comparison(img_n, img_r, err, t1 - t0, t2 - t1, rmse, notes)

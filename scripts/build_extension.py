@@ -1,0 +1,225 @@
+"""Build the Blender extension zip(s), with bundled wheels, using Blender's own extension builder.
+
+    python scripts/build_extension.py                          # every platform with wheels
+    python scripts/build_extension.py --platforms linux-x64    # one platform (faster)
+
+Steps:
+1. download (once; cached in ``cache/wheels/<platform>/``, git-ignored) the cp311 binary wheels
+   of onnxruntime, its runtime dependencies (flatbuffers, protobuf, packaging; never numpy,
+   which Blender ships) and embreex, with ``pip download --only-binary=:all: --no-deps``;
+2. assemble ``build/extension/``: the root ``__init__.py``, ``addon/`` (models included) and a
+   ``blender_manifest.toml`` that lists the wheels and platforms;
+3. run Blender's extension CLI (``blender_ext.py build --split-platforms``, shipped in the ``bpy``
+   wheel) into ``dist/``, then ``blender_ext.py validate`` on every zip.
+
+A platform is built when onnxruntime (the neural runtime) has a wheel for it; embreex (the
+path tracer's ray casting) is bundled where it has one, and the summary names what is missing.
+Exit status: 0 on success, 1 when nothing could be built or a zip does not validate, 3 when the
+package index cannot be reached and the cache does not hold the wheels.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import importlib.metadata
+import importlib.util
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+EXTENSION_ID = "neural_layered_materials"
+
+# Blender platform -> wheel platform tags pip may pick for it (cp311; Blender 4.2+ needs glibc 2.28
+# on Linux and macOS 11.2 on Mac).
+PLATFORM_TAGS: dict[str, list[str]] = {
+    "linux-x64": ["manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64"],
+    "linux-arm64": ["manylinux_2_28_aarch64", "manylinux_2_27_aarch64", "manylinux_2_17_aarch64", "manylinux2014_aarch64"],
+    "macos-arm64": [f"macosx_{v}_0_arm64" for v in (11, 12, 13, 14)] + [f"macosx_{v}_universal2" for v in ("10_9", "11_0")],
+    "macos-x64": [f"macosx_{v}_x86_64" for v in ("10_9", "10_15", "11_0", "12_0", "13_0")]
+    + [f"macosx_{v}_universal2" for v in ("10_9", "11_0")],
+    "windows-x64": ["win_amd64"],
+    "windows-arm64": ["win_arm64"],
+}
+
+# (distribution, required): a platform is built only when every required wheel exists.
+PACKAGES: list[tuple[str, bool]] = [
+    ("onnxruntime", True),
+    ("flatbuffers", True),
+    ("protobuf", True),
+    ("packaging", True),
+    ("embreex", False),
+]
+PINNED_FROM_ENV = ("onnxruntime", "embreex")  # ship the versions the tests run against
+NEVER_BUNDLE = ("numpy",)
+
+
+class RegistryUnreachable(RuntimeError):
+    pass
+
+
+def blender_ext_cli() -> Path:
+    """Path of Blender's extension CLI inside the installed ``bpy`` wheel."""
+    spec = importlib.util.find_spec("bpy")
+    if spec is None or not spec.origin:
+        raise FileNotFoundError("the bpy module is not installed (pip install bpy); it ships Blender's extension CLI")
+    hits = glob.glob(str(Path(spec.origin).parent / "*" / "scripts" / "addons_core" / "bl_pkg" / "cli" / "blender_ext.py"))
+    if not hits:
+        raise FileNotFoundError(f"blender_ext.py not found under {Path(spec.origin).parent}")
+    return Path(sorted(hits)[-1])
+
+
+def requirement(dist: str) -> str:
+    if dist in PINNED_FROM_ENV:
+        try:
+            return f"{dist}=={importlib.metadata.version(dist)}"
+        except importlib.metadata.PackageNotFoundError:
+            pass
+    return dist
+
+
+def _norm(name: str) -> str:
+    return re.sub(r"[-_.]+", "_", name).lower()
+
+
+def cached_wheel(folder: Path, dist: str) -> Path | None:
+    hits = sorted(p for p in folder.glob("*.whl") if _norm(p.name.split("-")[0]) == _norm(dist))
+    return hits[-1] if hits else None
+
+
+def download(dist: str, platform: str, folder: Path, log) -> Path | None:
+    """The cached or freshly downloaded wheel of ``dist`` for ``platform``, or None if none exists."""
+    folder.mkdir(parents=True, exist_ok=True)
+    hit = cached_wheel(folder, dist)
+    if hit is not None:
+        return hit
+    cmd = [sys.executable, "-m", "pip", "download", "--only-binary=:all:", "--no-deps", "--python-version", "3.11",
+           "--implementation", "cp", "--disable-pip-version-check", "-q", "-d", str(folder)]
+    for tag in PLATFORM_TAGS[platform]:
+        cmd += ["--platform", tag]
+    cmd.append(requirement(dist))
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        text = proc.stderr + proc.stdout
+        if re.search(r"(Connection|NewConnectionError|Max retries|Temporary failure in name resolution|Network is unreachable)", text):
+            raise RegistryUnreachable(f"pip cannot reach the package index: {text.strip().splitlines()[-1]}")
+        log(f"  {platform}: no cp311 wheel of {requirement(dist)}")
+        return None
+    return cached_wheel(folder, dist)
+
+
+def collect_wheels(platforms: list[str], cache: Path, log) -> tuple[dict[str, list[Path]], dict[str, list[str]]]:
+    """Wheels per buildable platform, and what is missing per platform."""
+    wheels: dict[str, list[Path]] = {}
+    missing: dict[str, list[str]] = {}
+    for platform in platforms:
+        got, lost = [], []
+        for dist, required in PACKAGES:
+            w = download(dist, platform, cache / platform, log)
+            if w is None:
+                lost.append(dist + ("" if not required else " (required)"))
+            else:
+                got.append(w)
+        missing[platform] = lost
+        if any(l.endswith("(required)") for l in lost):
+            log(f"  {platform}: skipped, missing {', '.join(lost)}")
+            continue
+        for w in got:
+            if _norm(w.name.split("-")[0]) in NEVER_BUNDLE:
+                raise RuntimeError(f"refusing to bundle {w.name}: Blender ships its own numpy")
+        wheels[platform] = got
+    return wheels, missing
+
+
+def manifest_with_wheels(source: str, wheel_names: list[str], platforms: list[str]) -> str:
+    """The source manifest with ``wheels`` and ``platforms`` added as top-level keys (before any table)."""
+    if re.search(r"^\s*(wheels|platforms)\s*=", source, re.M):
+        raise ValueError("the source blender_manifest.toml already lists wheels/platforms; the build script writes them")
+    keys = "platforms = {}\nwheels = [\n{}]\n\n".format(
+        json.dumps(platforms), "".join(f'  "./wheels/{n}",\n' for n in wheel_names)
+    )
+    m = re.search(r"^\[", source, re.M)
+    at = m.start() if m else len(source)
+    return source[:at] + keys + source[at:]
+
+
+def assemble(build: Path, wheels: dict[str, list[Path]]) -> None:
+    if build.exists():
+        shutil.rmtree(build)
+    build.mkdir(parents=True)
+    shutil.copy2(ROOT / "__init__.py", build / "__init__.py")
+    shutil.copytree(ROOT / "addon", build / "addon", ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    (build / "wheels").mkdir()
+    names = sorted({w.name for ws in wheels.values() for w in ws})
+    for ws in wheels.values():
+        for w in ws:
+            shutil.copy2(w, build / "wheels" / w.name)
+    source = (ROOT / "blender_manifest.toml").read_text()
+    (build / "blender_manifest.toml").write_text(manifest_with_wheels(source, names, sorted(wheels)))
+
+
+def run_cli(cli: Path, args: list[str]) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(cli), *args], capture_output=True, text=True)
+
+
+def build(platforms: list[str], out: Path, cache: Path, build_dir: Path, log=print) -> list[Path]:
+    """Build and validate the zips; return their paths. Raises on failure (see module docstring)."""
+    unknown = [p for p in platforms if p not in PLATFORM_TAGS]
+    if unknown:
+        raise ValueError(f"unknown platform(s) {unknown}; known: {sorted(PLATFORM_TAGS)}")
+    cli = blender_ext_cli()
+    log(f"wheels (cache {cache}):")
+    wheels, missing = collect_wheels(platforms, cache, log)
+    if not wheels:
+        raise RuntimeError(f"no platform has all required wheels; missing: {missing}")
+    for platform, ws in sorted(wheels.items()):
+        extra = f"; without {', '.join(missing[platform])}" if missing[platform] else ""
+        log(f"  {platform}: {', '.join(w.name for w in ws)}{extra}")
+    assemble(build_dir, wheels)
+    out.mkdir(parents=True, exist_ok=True)
+    version = tomllib.loads((build_dir / "blender_manifest.toml").read_text())["version"]
+    zips = [out / f"{EXTENSION_ID}-{version}-{pl.replace('-', '_')}.zip" for pl in sorted(wheels)]
+    for z in zips:
+        z.unlink(missing_ok=True)
+    proc = run_cli(cli, ["build", "--source-dir", str(build_dir), "--output-dir", str(out), "--split-platforms"])
+    if proc.returncode != 0:
+        raise RuntimeError(f"blender_ext.py build failed:\n{proc.stdout}{proc.stderr}")
+    for z in zips:
+        if not z.exists():
+            raise RuntimeError(f"blender_ext.py build did not write {z.name}:\n{proc.stdout}{proc.stderr}")
+        v = run_cli(cli, ["validate", str(z)])
+        if v.returncode != 0:
+            raise RuntimeError(f"{z.name} does not validate:\n{v.stdout}{v.stderr}")
+        log(f"built and validated {z} ({z.stat().st_size / 1e6:.1f} MB)")
+    return zips
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--platforms", default=",".join(PLATFORM_TAGS),
+                    help=f"comma-separated Blender platforms (default: all of {', '.join(PLATFORM_TAGS)})")
+    ap.add_argument("--out", type=Path, default=ROOT / "dist", help="folder for the zips (default: dist/)")
+    ap.add_argument("--cache", type=Path, default=ROOT / "cache" / "wheels", help="wheel cache (default: cache/wheels/)")
+    ap.add_argument("--build-dir", type=Path, default=ROOT / "build" / "extension",
+                    help="staging folder for the package source (default: build/extension/)")
+    args = ap.parse_args(argv)
+    platforms = [p.strip() for p in args.platforms.split(",") if p.strip()]
+    try:
+        build(platforms, args.out, args.cache, args.build_dir)
+    except RegistryUnreachable as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 3
+    except (RuntimeError, ValueError, FileNotFoundError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
