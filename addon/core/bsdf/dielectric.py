@@ -34,8 +34,9 @@ class RoughDielectric(BSDF):
       not in IMPORTANCE mode.
 
     Reciprocity: reflection is reciprocal; for transmission in RADIANCE mode
-    f(wi, wo) / n_i^2 = f(wo, wi) / n_o^2 with n_i, n_o the indices on wi's and wo's sides
-    (pbrt-v4 section 9.5.2); IMPORTANCE mode equals RADIANCE mode with the arguments swapped.
+    f(wi, wo) / n_o^2 = f(wo, wi) / n_i^2 with n_i, n_o the indices on wi's and wo's sides
+    (Veach 1997, section 5.2; pbrt-v4 section 9.5.2), and IMPORTANCE mode is RADIANCE mode
+    with the arguments swapped: f_importance(wi, wo) = f_radiance(wo, wi).
     ``sample`` chooses reflection with probability F(wo.m) (Fresnel-weighted lobe choice),
     so the weight of a rough sample is G2 / G1(wo) (times 1/etap^2 for radiance transmission).
 
