@@ -339,13 +339,14 @@ def _trace_paths(ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: i
             sel = np.nonzero(mat_index == mi)[0]
             material = ctx.materials[mi]
             bound = material.bind(mat.SurfaceHits(uv[sel], footprint[sel], int(seeds[mi])))
-            v = sel[visible[sel]]
+            rows = np.nonzero(visible[sel])[0]
+            v = sel[rows]
             if len(v):
                 wil, wol = wi_nee[v], wo[v]
-                f = _timed(ctx.stats, material, bound.eval, wil, wol)
+                f = _timed(ctx.stats, material, bound.eval, wil, wol, rows)
                 lw = np.ones(len(v))
                 if material.has_pdf and s.strategy == "mis":
-                    pb = _timed(ctx.stats, material, bound.pdf, wil, wol)
+                    pb = _timed(ctx.stats, material, bound.pdf, wil, wol, rows)
                     lw = np.where(nee_delta[v], 1.0, _power_heuristic(ctx.p_select * nee_pdf[v], pb))
                 contrib = f * (np.abs(wil[:, 2]) * lw / (ctx.p_select * nee_pdf[v]))[:, None] * nee_rad[v]
                 L[path[v]] += thr[v] * contrib

@@ -4,9 +4,12 @@ A material is bound to a batch of hits (``bind(hits)``, once per bounce and mate
 bound object answers batched queries on local-frame directions (normal +z, ``wi`` toward the
 light, ``wo`` toward the viewer, DESIGN section 3):
 
-    eval(wi, wo) -> (N, 3)      f without the cosine
-    pdf(wi, wo) -> (N,)         solid-angle density of sample(); only if material.has_pdf
-    sample(wo, u_lobe, u) -> BSDFSample (addon.core.bsdf.base)
+    eval(wi, wo, index=None) -> (M, 3)   f without the cosine
+    pdf(wi, wo, index=None) -> (M,)      solid-angle density of sample(); only if has_pdf
+    sample(wo, u_lobe, u) -> BSDFSample  for all N bound hits (addon.core.bsdf.base)
+
+``index`` (M,) selects rows of the bound batch (next-event estimation only evaluates the hits
+whose shadow ray reached the light); None means all rows.
 
 ``hits`` is a :class:`SurfaceHits` (uv, ray-cone footprint in uv units, a seed): everything a
 textured, latent-textured or stochastic material needs. The integrator never looks inside.
@@ -48,11 +51,16 @@ class _BoundBSDF:
     def __init__(self, bsdf):
         self.bsdf = bsdf
 
-    def eval(self, wi, wo):
-        return self.bsdf.eval(wi, wo, check=False)
+    def _rows(self, index):
+        if index is None or self.bsdf.batch_rows is None:
+            return self.bsdf
+        return self.bsdf.take(index)
 
-    def pdf(self, wi, wo):
-        return self.bsdf.pdf(wi, wo, check=False)
+    def eval(self, wi, wo, index=None):
+        return self._rows(index).eval(wi, wo, check=False)
+
+    def pdf(self, wi, wo, index=None):
+        return self._rows(index).pdf(wi, wo, check=False)
 
     def sample(self, wo, u_lobe, u):
         return self.bsdf.sample(wo, u_lobe, u, check=False)
@@ -128,13 +136,13 @@ class _BoundReference:
     def __init__(self, stack: Stack, walks: int, seed: int):
         self.stack, self.walks, self.seed = stack, walks, seed
 
-    def eval(self, wi, wo):
+    def eval(self, wi, wo, index=None):
         from .. import reference
 
         f, _ = reference.eval_brdf(self.stack, wi, wo, walks=self.walks, seed=self.seed)
         return np.nan_to_num(np.maximum(f, 0.0))
 
-    def pdf(self, wi, wo):  # pragma: no cover - the integrator checks has_pdf first
+    def pdf(self, wi, wo, index=None):  # pragma: no cover - the integrator checks has_pdf first
         raise NotImplementedError("the position-free reference has no closed-form pdf")
 
     def sample(self, wo, u_lobe, u):
