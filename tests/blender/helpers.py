@@ -1,0 +1,32 @@
+"""Helpers shared by the Blender tests."""
+
+from __future__ import annotations
+
+
+class OperatorReport:
+    """What an operator call gave: its result set, or the message of the ERROR it reported."""
+
+    def __init__(self, result=None, error=None):
+        self.result = result
+        self.error = error
+
+    @property
+    def finished(self):
+        return self.result == {"FINISHED"}
+
+
+def run_operator(op, *args, **kwargs) -> OperatorReport:
+    """Call ``bpy.ops...`` and return the outcome.
+
+    Blender turns an operator's ERROR report into a RuntimeError for Python callers; this
+    separates such clean reports from crashes. A Python exception escaping an operator shows as
+    "Traceback" in the message; an exception the operator caught but did not expect shows as
+    " failed: ExceptionType"; both fail the calling test.
+    """
+    try:
+        return OperatorReport(result=op(*args, **kwargs))
+    except RuntimeError as e:
+        text = str(e)
+        assert "Traceback" not in text, f"{op.idname()} raised an exception:\n{text}"
+        assert not any(f" failed: {t}" in text for t in ("AttributeError", "TypeError", "KeyError", "IndexError", "NameError")), text
+        return OperatorReport(error=text)

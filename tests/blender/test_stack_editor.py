@@ -1,0 +1,223 @@
+"""The layer-stack editor: registration, editing operators, save/reload, undo, edge cases."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from addon.core.stack import PRESETS, Coating, Diffuse, Stack, alpha_from_artist_roughness
+from tests.blender.helpers import run_operator
+
+pytest.importorskip("bpy")
+
+
+def _names(mat):
+    return [(l.name, l.layer_type) for l in mat.neural_layers.layers]
+
+
+def test_register_is_idempotent_and_unregister_leaves_no_trace(bpy_addon):
+    bpy = bpy_addon
+    from addon import blender
+
+    from addon.blender.properties import NLM_Layer, NLM_MaterialSettings
+
+    ours = ["NEURAL_LAYERS_OT_layer_add", "NEURAL_LAYERS_OT_preview_lobe", "NLM_UL_layers", "NLM_MT_presets",
+            "NLM_PT_view3d_stack", "NLM_PT_shader_stack"]
+    try:
+        blender.register()  # second registration: re-registers cleanly
+        assert hasattr(bpy.types.Material, "neural_layers")
+        blender.unregister()
+        assert not hasattr(bpy.types.Material, "neural_layers")
+        for name in ours:
+            assert not hasattr(bpy.types, name), f"{name} still registered"
+        blender.unregister()  # unregistering twice is harmless
+    finally:
+        blender.register()
+    for name in ours:
+        assert hasattr(bpy.types, name), f"{name} not registered again"
+    assert NLM_Layer.is_registered and hasattr(bpy.types.Material, "neural_layers")
+    assert bpy.types.NLM_PT_view3d_stack.bl_category == "Layers"
+    assert bpy.types.NLM_PT_shader_stack.bl_space_type == "NODE_EDITOR"
+
+
+def test_add_builds_base_then_coatings_and_refuses_invalid_orders(material, bpy_addon):
+    ops = bpy_addon.ops.neural_layers
+    r = run_operator(ops.layer_add, layer_type="COATING")
+    assert r.error and "add a base layer first" in r.error
+    assert run_operator(ops.layer_add, layer_type="CONDUCTOR").finished
+    r = run_operator(ops.layer_add, layer_type="DIFFUSE")
+    assert r.error and "already has a base" in r.error
+    assert run_operator(ops.layer_add, layer_type="COATING").finished
+    assert run_operator(ops.layer_add, layer_type="COATING").finished
+    assert _names(material) == [("Conductor", "CONDUCTOR"), ("Coating", "COATING"), ("Coating.001", "COATING")]
+    assert material.neural_layers.active_index == 2
+
+    from addon.blender.stack_io import stack_from_material
+
+    stack = stack_from_material(material)
+    assert len(stack.coatings) == 2
+    # the UI shows artist roughness; the core gets alpha = roughness^2
+    item = material.neural_layers.layers[1]
+    assert stack.coatings[0].roughness == pytest.approx(alpha_from_artist_roughness(item.roughness), rel=1e-6)
+
+
+def test_move_duplicate_rename_remove(material, bpy_addon):
+    ops = bpy_addon.ops.neural_layers
+    assert run_operator(ops.preset_apply, preset="red_car_paint").finished
+    s = material.neural_layers
+    assert _names(material) == [("Conductor", "CONDUCTOR"), ("Coating", "COATING"), ("Coating.001", "COATING")]
+    thick = s.layers[1].thickness
+    s.active_index = 1
+    assert run_operator(ops.layer_move, direction="UP").finished
+    assert s.layers[2].thickness == pytest.approx(thick) and s.active_index == 2
+    r = run_operator(ops.layer_move, direction="UP")
+    assert r.error and "already at the top" in r.error
+    s.active_index = 1
+    r = run_operator(ops.layer_move, direction="DOWN")
+    assert r.error and "stays at the bottom" in r.error
+
+    s.active_index = 2
+    assert run_operator(ops.layer_duplicate).finished
+    assert len(s.layers) == 4 and s.layers[3].thickness == pytest.approx(thick) and s.active_index == 3
+    s.active_index = 0
+    r = run_operator(ops.layer_duplicate)
+    assert r.error and "one base" in r.error
+
+    s.active_index = 3
+    assert run_operator(ops.layer_rename, name="Tinted coat").finished
+    assert s.layers[3].name == "Tinted coat"
+    r = run_operator(ops.layer_rename, name="   ")
+    assert r.error and "cannot be empty" in r.error
+
+    assert run_operator(ops.layer_remove).finished
+    assert len(s.layers) == 3 and s.active_index == 2
+
+
+def test_presets_match_core(material, bpy_addon):
+    from addon.blender.stack_io import stack_from_material
+
+    for name, stack in PRESETS.items():
+        assert run_operator(bpy_addon.ops.neural_layers.preset_apply, preset=name).finished
+        got = stack_from_material(material)
+        assert len(got.layers) == len(stack.layers)
+        for a, b in zip(got.layers, stack.layers):
+            assert type(a) is type(b)
+            for key, va in vars(a).items():
+                assert va == pytest.approx(getattr(b, key), rel=1e-5, abs=1e-6), (name, key)
+
+
+def test_stack_survives_save_and_reload(material, bpy_addon, tmp_path):
+    bpy = bpy_addon
+    from addon.blender.stack_io import stack_from_material
+
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="three_layer").finished
+    material.neural_layers.layers[2].name = "Yellow"
+    material.neural_layers.layers[2].thickness = 0.75
+    before = stack_from_material(material)
+    names = _names(material)
+    path = tmp_path / "stack.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    bpy.ops.wm.read_homefile(app_template="")
+    assert stack_from_material(bpy.data.materials["Material"]) is None
+    bpy.ops.wm.open_mainfile(filepath=str(path))
+    mat = bpy.data.materials["Material"]
+    assert _names(mat) == names
+    assert stack_from_material(mat) == before
+    assert stack_from_material(mat).coatings[1].thickness == pytest.approx(0.75)
+
+
+def test_undo_restores_a_removed_layer(material, bpy_addon):
+    bpy = bpy_addon
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="red_car_paint").finished
+    bpy.ops.ed.undo_push(message="three layers")
+    material.neural_layers.active_index = 1
+    # Python callers ask for the operator's undo push explicitly (second argument)
+    assert run_operator(bpy.ops.neural_layers.layer_remove, "EXEC_DEFAULT", True).finished
+    assert len(bpy.data.materials["Material"].neural_layers.layers) == 2
+    bpy.ops.ed.undo()
+    layers = bpy.data.materials["Material"].neural_layers.layers  # undo replaces the data blocks
+    assert [l.layer_type for l in layers] == ["CONDUCTOR", "COATING", "COATING"]
+    assert layers[1].thickness == pytest.approx(1.5)
+
+
+def test_stack_conversion_round_trip_and_validation(material, bpy_addon):
+    from addon.blender import stack_io
+
+    stack = Stack(Diffuse((0.1, 0.2, 0.3)), (Coating(roughness=0.04, ior=1.3, albedo=(0.5, 0.6, 0.7), thickness=2.0),))
+    stack_io.stack_to_material(stack, material)
+    got = stack_io.stack_from_material(material)
+    assert got.base.albedo == pytest.approx(stack.base.albedo)
+    assert got.coatings[0].roughness == pytest.approx(0.04, rel=1e-5)
+    assert got.coatings[0].ior == pytest.approx(1.3)
+
+    material.neural_layers.layers[0].layer_type = "COATING"
+    with pytest.raises(ValueError, match="bottom layer must be a base"):
+        stack_io.stack_from_material(material)
+    material.neural_layers.layers[0].layer_type = "DIFFUSE"
+    material.neural_layers.layers[1].layer_type = "DIELECTRIC"
+    with pytest.raises(ValueError, match="only Coating layers can go above the base"):
+        stack_io.stack_from_material(material)
+    assert stack_io.stack_from_material(None) is None
+
+
+def test_typed_values_are_held_to_the_valid_range(material, bpy_addon):
+    ops = bpy_addon.ops.neural_layers
+    assert run_operator(ops.preset_apply, preset="coated_gold").finished
+    coat = material.neural_layers.layers[1]
+    coat.ior = 10.0
+    coat.thickness = -3.0
+    coat.roughness = 7.0
+    assert coat.ior == pytest.approx(4.0) and coat.thickness == 0.0 and coat.roughness == 1.0
+    # valid but outside the trained range: kept, the runtime clamps and says so
+    coat.ior = 3.0
+    from addon.blender.stack_io import stack_from_material
+
+    assert stack_from_material(material).coatings[0].ior == pytest.approx(3.0)
+    # soft limits are the trained ranges
+    prop = coat.bl_rna.properties["ior"]
+    assert (prop.soft_min, prop.soft_max) == pytest.approx((1.05, 2.0))
+    assert prop.hard_max == pytest.approx(4.0)
+    assert coat.bl_rna.properties["roughness"].soft_min == pytest.approx(math.sqrt(0.01))
+
+
+@pytest.mark.parametrize(
+    "op, kwargs",
+    [
+        ("layer_add", {"layer_type": "DIFFUSE"}),
+        ("layer_remove", {}),
+        ("layer_move", {"direction": "UP"}),
+        ("layer_duplicate", {}),
+        ("layer_rename", {"name": "x"}),
+        ("preset_apply", {"preset": "coated_gold"}),
+        ("evaluate_latent", {}),
+        ("preview_lobe", {}),
+        ("preview_sphere", {}),
+        ("compare_reference", {}),
+    ],
+)
+def test_every_operator_reports_edge_cases(bpy_addon, fresh_scene, op, kwargs):
+    bpy = bpy_addon
+    fn = getattr(bpy.ops.neural_layers, op)
+    ob = fresh_scene.view_layer.objects.active
+
+    fresh_scene.view_layer.objects.active = None
+    r = run_operator(fn, **kwargs)
+    assert r.error and "no active object" in r.error
+
+    fresh_scene.view_layer.objects.active = ob
+    ob.data.materials.clear()
+    r = run_operator(fn, **kwargs)
+    assert r.error and f"object {ob.name!r} has no material" in r.error
+
+    r = run_operator(fn, material="Does not exist", **kwargs)
+    assert r.error and "no material named 'Does not exist'" in r.error
+
+    # empty stack: only adding a base or applying a preset can succeed
+    mat = bpy.data.materials["Material"]
+    ob.data.materials.append(mat)
+    r = run_operator(fn, **kwargs)
+    if op in ("layer_add", "preset_apply"):
+        assert r.finished
+    else:
+        assert r.error and ("empty layer stack" in r.error or "has no layers" in r.error or "no layer stack" in r.error)
