@@ -367,11 +367,11 @@ class StackArrays:
             base_eta=np.array([base_field(s, "eta") for s in stacks], dtype=np.float64),
             base_k=np.array([base_field(s, "k") for s in stacks], dtype=np.float64),
             base_ior=np.array([base_field(s, "ior") for s in stacks], dtype=np.float64),
-            coat_roughness=np.array([coat(s, "roughness") for s in stacks], dtype=np.float64).reshape(-1, c),
-            coat_ior=np.array([coat(s, "ior") for s in stacks], dtype=np.float64).reshape(-1, c),
-            coat_albedo=np.array([coat(s, "albedo") for s in stacks], dtype=np.float64).reshape(-1, c, 3),
-            coat_thickness=np.array([coat(s, "thickness") for s in stacks], dtype=np.float64).reshape(-1, c),
-            coat_g=np.array([coat(s, "g") for s in stacks], dtype=np.float64).reshape(-1, c),
+            coat_roughness=np.array([coat(s, "roughness") for s in stacks], dtype=np.float64).reshape(len(stacks), c),
+            coat_ior=np.array([coat(s, "ior") for s in stacks], dtype=np.float64).reshape(len(stacks), c),
+            coat_albedo=np.array([coat(s, "albedo") for s in stacks], dtype=np.float64).reshape(len(stacks), c, 3),
+            coat_thickness=np.array([coat(s, "thickness") for s in stacks], dtype=np.float64).reshape(len(stacks), c),
+            coat_g=np.array([coat(s, "g") for s in stacks], dtype=np.float64).reshape(len(stacks), c),
         )
 
     @classmethod
