@@ -100,7 +100,7 @@ def encode_latent(stack: Stack, size: str = "small") -> tuple[np.ndarray, list[s
     except Exception as e:
         raise NeuralUnavailable(f"models of size {size!r} cannot be loaded ({e})") from None
     try:
-        z = np.asarray(neural.encode_stack(clamped), dtype=np.float32)
+        z = np.asarray(neural.encode_stack(clamped, size=size), dtype=np.float32)
     except Exception as e:
         raise NeuralUnavailable(f"the encoder cannot encode this stack ({e})") from None
     if z.shape != (3, 32):
@@ -110,11 +110,11 @@ def encode_latent(stack: Stack, size: str = "small") -> tuple[np.ndarray, list[s
     return z, notes
 
 
-def neural_brdf_from_latent(z: np.ndarray) -> BrdfFn:
-    """``brdf(wi, wo)`` of the neural decoder for a stored latent ``(3, 32)``."""
+def neural_brdf_from_latent(z: np.ndarray, size: str = "small") -> BrdfFn:
+    """``brdf(wi, wo)`` of the neural decoder of ``size`` for a latent ``(3, 32)`` of that size."""
     neural = _neural_module()
     z = np.asarray(z, dtype=np.float32).reshape(3, 32)
-    return lambda wi, wo: neural.eval_brdf(z, wi, wo)
+    return lambda wi, wo: neural.eval_brdf(z, wi, wo, size=size)
 
 
 def reference_brdf(stack: Stack, walks: int = 64, seed: int = 0) -> BrdfFn:
@@ -166,7 +166,7 @@ def choose_brdf(
         notes: list[str] = []
         if latent is None:
             latent, notes = encode_latent(stack, size)
-        return BrdfChoice(neural_brdf_from_latent(latent), "NEURAL", notes)
+        return BrdfChoice(neural_brdf_from_latent(latent, size), "NEURAL", notes)
     except NeuralUnavailable as e:
         if method == "NEURAL":
             raise
@@ -340,7 +340,7 @@ def compare_with_reference(
     notes: list[str] = []
     if latent is None:
         latent, notes = encode_latent(stack, size)
-    neural = neural_brdf_from_latent(latent)
+    neural = neural_brdf_from_latent(latent, size)
     t0 = time.perf_counter()
     img_n = lobe_preview(neural, theta_i_deg, res, _scaled(progress, 0.0, 0.1))
     t1 = time.perf_counter()

@@ -1,0 +1,105 @@
+"""Preview images (sphere, lobe), BRDF choice and chunked evaluation, with analytic BRDFs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from addon.core import preview
+from addon.core.bsdf.lambert import Lambertian
+from addon.core.stack import PRESETS, Stack, Coating, Diffuse
+
+
+def lambert(albedo):
+    bsdf = Lambertian(np.asarray(albedo, dtype=np.float64))
+    return lambda wi, wo: bsdf.eval(wi, wo)
+
+
+def test_sphere_white_furnace_is_exactly_one():
+    env = preview.Environment(zenith=(1, 1, 1), horizon=(1, 1, 1), ground=(1, 1, 1), sun_irradiance=(0, 0, 0))
+    img = preview.sphere_preview(lambert((1, 1, 1)), res=48, env=env, env_samples=7)
+    assert img.shape == (48, 48, 4) and img.dtype == np.float32
+    on = img[..., 3] > 0
+    assert on.sum() == pytest.approx(np.pi * 24**2, rel=0.05)
+    np.testing.assert_allclose(img[on][:, :3], 1.0, rtol=1e-5)
+    assert np.all(img[~on] == 0.0)
+
+
+def test_sphere_sun_term_matches_lambert_cosine():
+    sun = np.array([-0.3, 0.5, 0.8])
+    env = preview.Environment(zenith=(0, 0, 0), horizon=(0, 0, 0), ground=(0, 0, 0), sun_direction=tuple(sun),
+                              sun_irradiance=(2.0, 1.0, 0.5))
+    res = 40
+    img = preview.sphere_preview(lambert((0.5, 0.5, 0.5)), res=res, env=env, env_samples=3)
+    c = (np.arange(res) + 0.5) / res * 2 - 1
+    x, y = np.meshgrid(c, -c)
+    z = np.sqrt(np.clip(1 - x * x - y * y, 0, 1))
+    cos = np.clip((x * sun[0] + y * sun[1] + z * sun[2]) / np.linalg.norm(sun), 0, None)
+    expect = 0.5 / np.pi * cos[..., None] * np.array([2.0, 1.0, 0.5])
+    on = img[..., 3] > 0
+    np.testing.assert_allclose(img[on][:, :3], expect[on], rtol=1e-4, atol=1e-6)
+    # rows run top to bottom: the sun is up, so the top half is brighter
+    assert img[: res // 2, :, 0].sum() > 2 * img[res // 2 :, :, 0].sum()
+
+
+def test_default_environment_is_finite_nonnegative_and_deterministic():
+    a = preview.sphere_preview(lambert((0.8, 0.4, 0.2)), res=32)
+    b = preview.sphere_preview(lambert((0.8, 0.4, 0.2)), res=32)
+    assert np.all(np.isfinite(a)) and np.all(a >= 0)
+    np.testing.assert_array_equal(a, b)
+
+
+def test_cosine_directions_are_unit_upper_and_cosine_distributed():
+    d = preview.cosine_directions(4096)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
+    assert np.all(d[:, 2] > 0)
+    # E[cos] under the cosine density is 2/3
+    assert d[:, 2].mean() == pytest.approx(2 / 3, abs=2e-3)
+
+
+def test_lobe_preview_alpha_marks_the_disk_and_matches_albedo():
+    img = preview.lobe_preview(lambert((0.6, 0.6, 0.6)), 30.0, res=64)
+    assert img.shape == (64, 64, 4)
+    from addon.core.lobe import albedo_from_lobe
+
+    np.testing.assert_allclose(albedo_from_lobe(img[..., :3]), 0.6, rtol=0.02)
+    assert img[0, 0, 3] == 0 and img[32, 32, 3] == 1
+    with pytest.raises(ValueError, match="incident angle"):
+        preview.lobe_preview(lambert((1, 1, 1)), 95.0)
+
+
+def test_chunked_calls_progress_and_can_cancel():
+    seen = []
+    f = preview.chunked(lambert((1, 1, 1)), chunk=10, progress=seen.append)
+    wi = np.tile([0.0, 0.0, 1.0], (35, 1))
+    out = f(wi, wi)
+    assert out.shape == (35, 3) and seen == pytest.approx([10 / 35, 20 / 35, 30 / 35, 1.0])
+
+    def stop(fraction):
+        if fraction > 0.5:
+            raise preview.Cancelled()
+
+    with pytest.raises(preview.Cancelled):
+        preview.chunked(lambert((1, 1, 1)), chunk=10, progress=stop)(wi, wi)
+
+
+def test_stack_hash_changes_with_any_parameter():
+    a = PRESETS["coated_gold"]
+    b = Stack(a.base, (Coating(roughness=0.021, ior=1.5),))
+    assert preview.stack_hash(a) == preview.stack_hash(Stack.from_json(a.to_json()))
+    assert preview.stack_hash(a) != preview.stack_hash(b)
+
+
+def test_choose_brdf_falls_back_with_a_note(monkeypatch):
+    def missing():
+        raise preview.NeuralUnavailable("decoder_small.onnx not found in addon/models")
+
+    monkeypatch.setattr(preview, "_neural_module", missing)
+    stack = Stack(Diffuse((0.5, 0.5, 0.5)))
+    choice = preview.choose_brdf(stack, "AUTO")
+    assert choice.method == "REFERENCE"
+    assert "neural models not available" in choice.notes[0] and "decoder_small.onnx" in choice.notes[0]
+    with pytest.raises(preview.NeuralUnavailable, match="decoder_small.onnx"):
+        preview.choose_brdf(stack, "NEURAL")
+    with pytest.raises(ValueError, match="method must be one of"):
+        preview.choose_brdf(stack, "FAST")
