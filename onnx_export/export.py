@@ -1,0 +1,157 @@
+"""ONNX export of a decoder size and its encoder, parity check against torch, and model cards.
+
+    python -m onnx_export.export --size small --decoder cache/runs/small/ckpt.pt \
+        --encoder cache/runs/small/encoder.pt --metrics cache/runs/small/metrics.json
+
+writes ``addon/models/decoder_<size>.onnx`` and ``encoder_<size>.onnx`` with a model card
+(``.json``) each. The card's held-out errors and speed come from ``--metrics`` (written by
+``benchmarks/bench_decoders.py``) when given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+
+from addon.core.neural.features import FEATURE_NAMES, N_FEATURES
+from onnx_export.evaluate import load_decoder
+from onnx_export.nets import Decoder, Encoder, macs_per_eval, n_params
+
+MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"
+OPSET = 17
+
+
+def export_decoder(dec: Decoder, path: Path) -> None:
+    dec.eval()
+    b = 8
+    args = (torch.zeros(b, 32), torch.tensor([[0.0, 0.0, 1.0]]).expand(b, 3).contiguous(),
+            torch.tensor([[0.0, 0.0, 1.0]]).expand(b, 3).contiguous())
+    torch.onnx.export(dec, args, str(path), input_names=["z", "wi", "wo"], output_names=["f"],
+                      dynamic_axes={"z": {0: "batch"}, "wi": {0: "batch"}, "wo": {0: "batch"}, "f": {0: "batch"}},
+                      opset_version=OPSET, dynamo=False)
+
+
+def export_encoder(enc: Encoder, path: Path) -> None:
+    enc.eval()
+    torch.onnx.export(enc, (torch.zeros(4, N_FEATURES),), str(path), input_names=["x"], output_names=["z"],
+                      dynamic_axes={"x": {0: "batch"}, "z": {0: "batch"}}, opset_version=OPSET, dynamo=False)
+
+
+def random_directions(rng, n, grazing=False):
+    u = rng.random((n, 2))
+    z = u[:, 0] * (0.02 if grazing else 1.0)
+    r = np.sqrt(1 - z * z)
+    phi = 2 * np.pi * u[:, 1]
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], 1).astype(np.float32)
+
+
+def max_relative_difference(a: np.ndarray, b: np.ndarray, floor: float = 1e-6) -> float:
+    """max |a - b| / max(|b|, floor) over all entries."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    return float(np.max(np.abs(a - b) / np.maximum(np.abs(b), floor)))
+
+
+def decoder_parity(dec: Decoder, path: Path, n: int = 4096, seed: int = 0) -> float:
+    """Max relative difference between ONNX Runtime and torch on random latents and directions
+    (half of them grazing)."""
+    import onnxruntime as ort
+
+    rng = np.random.default_rng(seed)
+    z = (rng.standard_normal((n, 32)) * 0.5).astype(np.float32)
+    wi = np.concatenate([random_directions(rng, n // 2), random_directions(rng, n - n // 2, grazing=True)])
+    wo = random_directions(rng, n)
+    with torch.no_grad():
+        ref = dec(torch.from_numpy(z), torch.from_numpy(wi), torch.from_numpy(wo)).numpy()
+    s = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    got = s.run(["f"], {"z": z, "wi": wi, "wo": wo})[0]
+    return max_relative_difference(got, ref)
+
+
+def encoder_parity(enc: Encoder, path: Path, x: np.ndarray) -> float:
+    import onnxruntime as ort
+
+    with torch.no_grad():
+        ref = enc(torch.from_numpy(x)).numpy()
+    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(["z"], {"x": x})[0]
+    return max_relative_difference(got, ref, floor=1e-3)
+
+
+def onnx_param_count(path: Path) -> int:
+    m = onnx.load(str(path))
+    return int(sum(int(np.prod(t.dims)) for t in m.graph.initializer if len(t.dims) > 0 and np.prod(t.dims) > 1))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--size", required=True)
+    ap.add_argument("--decoder", type=Path, required=True)
+    ap.add_argument("--encoder", type=Path, required=True)
+    ap.add_argument("--metrics", type=Path, default=None)
+    ap.add_argument("--out", type=Path, default=MODEL_DIR)
+    a = ap.parse_args(argv)
+    a.out.mkdir(parents=True, exist_ok=True)
+    dec, _ = load_decoder(a.decoder)
+    dck = torch.load(a.decoder, weights_only=False)
+    eck = torch.load(a.encoder, weights_only=False)
+    enc = Encoder(**eck["config"])
+    enc.load_state_dict(eck["encoder"])
+    dpath = a.out / f"decoder_{a.size}.onnx"
+    epath = a.out / f"encoder_{a.size}.onnx"
+    export_decoder(dec, dpath)
+    export_encoder(enc, epath)
+    dpar = decoder_parity(dec, dpath)
+    rng = np.random.default_rng(1)
+    epar = encoder_parity(enc, epath, rng.random((512, N_FEATURES)).astype(np.float32))
+    metrics = json.loads(a.metrics.read_text()) if a.metrics else {}
+    targs = dck["args"]
+    data_cmd = "python -m onnx_export.data --set single --materials 4096 --pairs 1024 --out cache/data/single"
+    dcard = {
+        "name": f"decoder_{a.size}",
+        "role": "neural BRDF decoder f(z_c, wi, wo) -> f_c >= 0 (1/sr, no cosine), one scalar network shared by R, G, B",
+        "inputs": {"z": "(B, 32) float32 latent of one colour channel", "wi": "(B, 3) float32 unit, toward the light",
+                   "wo": "(B, 3) float32 unit, toward the viewer"},
+        "outputs": {"f": "(B,) float32"},
+        "architecture": {**dec.config(), "hidden": f"{dec.depth} x Linear({dec.width}) + ReLU", "latent": 32,
+                         "output": "exp(min(y, 16)), 0 below the horizon"},
+        "parameters": n_params(dec),
+        "macs_per_rgb_eval": 3 * macs_per_eval(dec),
+        "training": {
+            "data": data_cmd,
+            "command": "python -m onnx_export.train_decoder " + " ".join(
+                f"--{k.replace('_', '-')} {' '.join(v) if isinstance(v, list) else v}" for k, v in targs.items()
+                if k not in ("every", "log_every")),
+            "steps": dck["step"], "final_loss": dck.get("loss"),
+            "seeds": {"data": 1, "training": targs.get("seed", 0)},
+            "loss": f"{targs.get('loss')} on log1p(f cos_i cos_o)",
+        },
+        "onnx_runtime_vs_torch_max_relative_difference": dpar,
+        "opset": OPSET,
+        **{k: v for k, v in metrics.items() if k.startswith(("heldout", "speed"))},
+    }
+    ecard = {
+        "name": f"encoder_{a.size}",
+        "role": f"single-layer parameters -> latent of decoder_{a.size}, per colour channel",
+        "inputs": {"x": f"(B, {N_FEATURES}) float32 features (addon.core.neural.features)", "features": list(FEATURE_NAMES)},
+        "outputs": {"z": "(B, 32) float32"},
+        "architecture": {**eck["config"], "hidden": f"{enc.depth} x Linear({enc.width}) + ReLU"},
+        "parameters": n_params(enc),
+        "macs_per_rgb_eval": 3 * macs_per_eval(enc),
+        "training": {"command": "python -m onnx_export.train_encoder " + " ".join(
+            f"--{k.replace('_', '-')} {v}" for k, v in eck["args"].items()), "history": eck.get("history")},
+        "onnx_runtime_vs_torch_max_relative_difference": epar,
+        "opset": OPSET,
+        **{k: v for k, v in metrics.items() if k.startswith("encoder")},
+    }
+    dpath.with_suffix(".json").write_text(json.dumps(dcard, indent=1) + "\n")
+    epath.with_suffix(".json").write_text(json.dumps(ecard, indent=1) + "\n")
+    print(json.dumps({"decoder": str(dpath), "parity": dpar, "encoder": str(epath), "encoder_parity": epar}))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,135 @@
+"""Network definitions (torch): the decoder zoo and the single-layer encoder.
+
+The decoder is one scalar network f(z_c, wi, wo) -> f_c >= 0 shared by the three colour
+channels (the paper's layout, 32 latent floats per channel). The direction encoding is part of
+the network, so the exported ONNX graph takes the raw directions ``wi``, ``wo`` (B, 3).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+LATENT = 32
+
+# name -> (hidden width, hidden layers); "paper" is the topology of Fan et al. 2022
+SIZES = {
+    "tiny": (32, 3),
+    "small": (64, 3),
+    "medium": (128, 4),
+    "paper": (256, 16),
+}
+
+# sharpness of the fixed half-vector bumps exp(-s (1 - cos theta_h)): a GGX lobe of roughness
+# alpha has width 1 - cos theta_h ~ alpha^2 / 2, so these cover alpha from about 0.01 to 1
+BUMP_SHARPNESS = (2.0, 20.0, 200.0, 2000.0, 20000.0)
+MAX_LOG_F = 16.0  # exp output clamp: f <= e^16 ~ 9e6 1/sr (a GGX peak at alpha 0.01 is ~3e3)
+
+
+def direction_features(wi: torch.Tensor, wo: torch.Tensor, kind: str) -> torch.Tensor:
+    """(B, F) features of the direction pairs. ``raw``: the paper's xyz of both directions.
+    ``iso``: rotation-invariant terms (cos theta_i, cos theta_o, wi.wo, cos theta_h, wi.h,
+    sin theta_h) and fixed bumps in theta_h that let a small network build sharp lobes."""
+    if kind == "raw":
+        return torch.cat([wi, wo], dim=-1)
+    ci = wi[:, 2:3]
+    co = wo[:, 2:3]
+    dio = (wi * wo).sum(-1, keepdim=True)
+    s = wi + wo
+    sn = torch.sqrt(torch.clamp((s * s).sum(-1, keepdim=True), min=1e-12))
+    hz = s[:, 2:3] / sn
+    dh = torch.sqrt(torch.clamp(0.5 * (1.0 + dio), min=0.0))  # wi.h = cos(theta_d)
+    one_minus = torch.clamp(1.0 - hz, min=0.0)
+    sin_h = torch.sqrt(torch.clamp(1.0 - hz * hz, min=0.0))
+    feats = [ci, co, dio, hz, dh, sin_h]
+    if kind == "iso_bumps":
+        feats += [torch.exp(-s_ * one_minus) for s_ in BUMP_SHARPNESS]
+    elif kind != "iso":
+        raise ValueError(f"unknown direction features {kind!r}; expected raw, iso or iso_bumps")
+    return torch.cat(feats, dim=-1)
+
+
+def n_direction_features(kind: str) -> int:
+    return {"raw": 6, "iso": 6, "iso_bumps": 6 + len(BUMP_SHARPNESS)}[kind]
+
+
+def mlp(n_in: int, width: int, depth: int, n_out: int) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    d = n_in
+    for _ in range(depth):
+        layers += [nn.Linear(d, width), nn.ReLU()]
+        d = width
+    layers.append(nn.Linear(d, n_out))
+    return nn.Sequential(*layers)
+
+
+class Decoder(nn.Module):
+    """f(z (B, 32), wi (B, 3), wo (B, 3)) -> f (B,) in 1/sr, without the cosine.
+
+    Output activation ``exp`` (clamped at MAX_LOG_F) or ``softplus``. Directions below the
+    horizon give 0 (the runtime also checks this; here it keeps the graph safe on its own).
+    """
+
+    def __init__(self, width: int, depth: int, features: str = "iso_bumps", activation: str = "exp"):
+        super().__init__()
+        self.width, self.depth, self.features, self.activation = width, depth, features, activation
+        self.net = mlp(LATENT + n_direction_features(features), width, depth, 1)
+
+    def forward(self, z: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([z, direction_features(wi, wo, self.features)], dim=-1)
+        y = self.net(x)[:, 0]
+        if self.activation == "exp":
+            f = torch.exp(torch.clamp(y, max=MAX_LOG_F))
+        else:
+            f = nn.functional.softplus(y)
+        above = (wi[:, 2] > 0.0) & (wo[:, 2] > 0.0)
+        return torch.where(above, f, torch.zeros_like(f))
+
+    def config(self) -> dict:
+        return {"width": self.width, "depth": self.depth, "features": self.features, "activation": self.activation}
+
+
+class Encoder(nn.Module):
+    """Per-channel single-layer features (B, N_FEATURES) -> latent z_c (B, 32)."""
+
+    def __init__(self, n_features: int, width: int = 128, depth: int = 3):
+        super().__init__()
+        self.n_features, self.width, self.depth = n_features, width, depth
+        self.net = mlp(n_features, width, depth, LATENT)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+    def config(self) -> dict:
+        return {"n_features": self.n_features, "width": self.width, "depth": self.depth}
+
+
+def n_params(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())
+
+
+def macs_per_eval(module: nn.Module) -> int:
+    """Multiply-adds of the linear layers for one scalar evaluation (one row)."""
+    return sum(m.in_features * m.out_features for m in module.modules() if isinstance(m, nn.Linear))
+
+
+def make_decoder(size: str, **kw) -> Decoder:
+    if size not in SIZES:
+        raise ValueError(f"unknown decoder size {size!r}; sizes are {sorted(SIZES)}")
+    w, d = SIZES[size]
+    return Decoder(w, d, **kw)
+
+
+def log_target(f: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+    """log1p(f cos_i cos_o): the compressed quantity the loss compares."""
+    cc = torch.clamp(wi[:, 2], min=0.0) * torch.clamp(wo[:, 2], min=0.0)
+    return torch.log1p(f * cc)
+
+
+def cosine_lr(step: int, steps: int, base: float, floor: float = 0.05, warmup: int = 100) -> float:
+    if step < warmup:
+        return base * (step + 1) / warmup
+    t = min(1.0, (step - warmup) / max(1, steps - warmup))
+    return base * (floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * t)))

@@ -1,0 +1,142 @@
+"""Auto-decoder training: one latent per training BRDF channel, optimised jointly with the decoder.
+
+    python -m onnx_export.train_decoder --size tiny --data cache/data/single --steps 6000 \
+        --out cache/runs/tiny
+
+Each step draws ``--batch`` BRDF channels and ``--pairs`` direction pairs of each. The loss
+compares log1p(f cos_i cos_o) of the prediction and the target (``l1``: the median under Monte
+Carlo noise, fine for exact targets; ``l2``: the mean, the right choice for noisy targets).
+Checkpoints (decoder, latents, optimiser, step) go to ``OUT/ckpt.pt`` every ``--every`` steps and
+at the end; rerunning the same command resumes from there. Progress goes to stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from onnx_export import data as datamod
+from onnx_export.nets import Decoder, cosine_lr, log_target, make_decoder, macs_per_eval, n_params
+
+
+def load_training_tensors(paths: list[Path], materials: int | None = None) -> dict:
+    parts = [datamod.load(p) for p in paths]
+    d = {k: np.concatenate([p[k] for p in parts]) for k in ("wi", "wo", "f") if all(k in p for p in parts)}
+    if "stderr" in parts[0] or any("stderr" in p for p in parts):
+        d["stderr"] = np.concatenate([p.get("stderr", np.zeros_like(p["f"])) for p in parts])
+    if materials:
+        d = {k: v[:materials] for k, v in d.items()}
+    return {k: torch.from_numpy(np.ascontiguousarray(v, dtype=np.float32)) for k, v in d.items()}
+
+
+def brdf_loss(pred, target, wi, wo, kind: str) -> torch.Tensor:
+    diff = log_target(pred, wi, wo) - log_target(target, wi, wo)
+    if kind == "l1":
+        return diff.abs().mean()
+    if kind == "l2":
+        return (diff * diff).mean()
+    raise ValueError(f"unknown loss {kind!r}; expected l1 or l2")
+
+
+def batch_of(t: dict, units: torch.Tensor, pairs: int, gen: torch.Generator):
+    """Rows for ``units`` (material * 3 + channel): (B*Q, 3) wi, wo and (B*Q,) targets."""
+    m, c = units // 3, units % 3
+    p_total = t["wi"].shape[1]
+    idx = torch.randint(0, p_total, (units.shape[0], pairs), generator=gen)
+    wi = t["wi"][m[:, None], idx].reshape(-1, 3)
+    wo = t["wo"][m[:, None], idx].reshape(-1, 3)
+    f = t["f"][m[:, None], idx, c[:, None]].reshape(-1)
+    return wi, wo, f
+
+
+def train(args, log=print) -> dict:
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    gen = torch.Generator().manual_seed(args.seed)
+    t = load_training_tensors(args.data, args.materials)
+    n_units = t["wi"].shape[0] * 3
+    dec = make_decoder(args.size, features=args.features, activation=args.activation)
+    if args.width:
+        dec = Decoder(args.width, args.depth, args.features, args.activation)
+    latents = torch.nn.Parameter(torch.randn(n_units, 32, generator=gen) * 0.01)
+    opt = torch.optim.Adam([{"params": dec.parameters(), "lr": args.lr},
+                            {"params": [latents], "lr": args.lr * args.latent_lr_scale}])
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt = out / "ckpt.pt"
+    step = 0
+    if ckpt.exists():
+        s = torch.load(ckpt, weights_only=False)
+        dec.load_state_dict(s["decoder"])
+        latents.data.copy_(s["latents"])
+        opt.load_state_dict(s["opt"])
+        step = s["step"]
+        log(f"resumed from {ckpt} at step {step}")
+    log(f"decoder {dec.config()} params {n_params(dec)} MACs/eval {macs_per_eval(dec)}; "
+        f"{n_units} BRDF channels")
+    t0 = time.perf_counter()
+    ema = None
+    while step < args.steps:
+        lr = cosine_lr(step, args.steps, args.lr)
+        opt.param_groups[0]["lr"] = lr
+        opt.param_groups[1]["lr"] = lr * args.latent_lr_scale
+        units = torch.randint(0, n_units, (args.batch,), generator=gen)
+        wi, wo, f = batch_of(t, units, args.pairs, gen)
+        z = latents[units].repeat_interleave(args.pairs, dim=0)
+        pred = dec(z, wi, wo)
+        loss = brdf_loss(pred, f, wi, wo, args.loss)
+        reg = args.latent_reg * (latents[units] ** 2).mean()
+        opt.zero_grad(set_to_none=True)
+        (loss + reg).backward()
+        opt.step()
+        step += 1
+        ema = loss.item() if ema is None else 0.98 * ema + 0.02 * loss.item()
+        if step % args.log_every == 0 or step == args.steps:
+            el = time.perf_counter() - t0
+            log(f"step {step}/{args.steps} loss {ema:.5f} lr {lr:.2e} {el:.0f} s")
+        if step % args.every == 0 or step == args.steps:
+            torch.save({"decoder": dec.state_dict(), "config": dec.config(), "latents": latents.data,
+                        "opt": opt.state_dict(), "step": step, "args": vars(args) | {"data": [str(p) for p in args.data]},
+                        "loss": ema}, ckpt.with_suffix(".tmp"))
+            ckpt.with_suffix(".tmp").replace(ckpt)
+    return {"loss": ema, "step": step}
+
+
+def parser():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--size", default="tiny")
+    ap.add_argument("--width", type=int, default=0, help="override the size's width (with --depth)")
+    ap.add_argument("--depth", type=int, default=0)
+    ap.add_argument("--data", type=Path, nargs="+", required=True)
+    ap.add_argument("--materials", type=int, default=0, help="use only the first N materials (0: all)")
+    ap.add_argument("--steps", type=int, default=6000)
+    ap.add_argument("--batch", type=int, default=64, help="BRDF channels per step")
+    ap.add_argument("--pairs", type=int, default=512, help="direction pairs per BRDF channel per step")
+    ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--latent-lr-scale", type=float, default=5.0)
+    ap.add_argument("--latent-reg", type=float, default=1e-4)
+    ap.add_argument("--features", default="iso_bumps", choices=("raw", "iso", "iso_bumps"))
+    ap.add_argument("--activation", default="exp", choices=("exp", "softplus"))
+    ap.add_argument("--loss", default="l1", choices=("l1", "l2"))
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--every", type=int, default=250, help="checkpoint every N steps")
+    ap.add_argument("--log-every", type=int, default=50)
+    ap.add_argument("--out", type=Path, required=True)
+    return ap
+
+
+def main(argv=None):
+    args = parser().parse_args(argv)
+    res = train(args, log=lambda s: print(s, file=sys.stderr, flush=True))
+    (Path(args.out) / "train.json").write_text(json.dumps({"args": vars(args) | {"data": [str(p) for p in args.data]}, **res}, default=str))
+
+
+if __name__ == "__main__":
+    main()
