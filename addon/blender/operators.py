@@ -286,7 +286,7 @@ class NLM_OT_evaluate_latent(_MaterialOperator, bpy.types.Operator):
         mat, _ = self.target_stack(context)
         notes = stack_io.compute_latent(mat)
         self.report_notes(notes)
-        self.report({"INFO"}, f"latent of {mat.name!r} updated")
+        self.report({"INFO"}, f"latent of {mat.name!r} updated ({mat.neural_layers.latent_size} decoder)")
         return {"FINISHED"}
 
 
@@ -370,10 +370,6 @@ class _LongOperator(_MaterialOperator):
         return {"FINISHED"}
 
 
-def _stored_latent(mat):
-    return stack_io.latent_of(mat) if stack_io.latent_is_current(mat) else None
-
-
 class NLM_OT_preview_lobe(_LongOperator, bpy.types.Operator):
     """Show the BRDF lobe (f cos over the projected outgoing hemisphere) for the incident angle in the Image Editor"""
 
@@ -385,11 +381,11 @@ class NLM_OT_preview_lobe(_LongOperator, bpy.types.Operator):
         mat, stack = self.target_stack(context)
         s = mat.neural_layers
         theta, res, method, walks = math.degrees(s.theta_i), s.lobe_resolution, s.preview_method, s.walks
-        latent = _stored_latent(mat)
+        latent, size = stack_io.current_latent(mat), stack_io.model_size(mat)
 
         def work(progress):
             t0 = time.perf_counter()
-            choice = preview.choose_brdf(stack, method, latent=latent, walks=walks)
+            choice = preview.choose_brdf(stack, method, latent=latent, size=size, walks=walks)
             img = preview.lobe_preview(choice.brdf, theta, res, progress)
             return img, choice, time.perf_counter() - t0
 
@@ -415,11 +411,11 @@ class NLM_OT_preview_sphere(_LongOperator, bpy.types.Operator):
         mat, stack = self.target_stack(context)
         s = mat.neural_layers
         res, method, walks, k = s.sphere_resolution, s.preview_method, s.walks, s.env_samples
-        latent = _stored_latent(mat)
+        latent, size = stack_io.current_latent(mat), stack_io.model_size(mat)
 
         def work(progress):
             t0 = time.perf_counter()
-            choice = preview.choose_brdf(stack, method, latent=latent, walks=walks)
+            choice = preview.choose_brdf(stack, method, latent=latent, size=size, walks=walks)
             img = preview.sphere_preview(choice.brdf, res, env_samples=k, progress=progress)
             return img, choice, time.perf_counter() - t0
 
@@ -445,10 +441,12 @@ class NLM_OT_compare_reference(_LongOperator, bpy.types.Operator):
         mat, stack = self.target_stack(context)
         s = mat.neural_layers
         theta, res, walks = math.degrees(s.theta_i), s.lobe_resolution, s.walks
-        latent = _stored_latent(mat)
+        latent, size = stack_io.current_latent(mat), stack_io.model_size(mat)
 
         def work(progress):
-            return preview.compare_with_reference(stack, theta, res, walks=walks, latent=latent, progress=progress)
+            return preview.compare_with_reference(
+                stack, theta, res, walks=walks, latent=latent, size=size, progress=progress
+            )
 
         def finish(context, cmp):
             meta = {

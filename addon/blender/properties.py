@@ -191,6 +191,24 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
         description="Hash of the stack the latent was computed from; the latent is current when it matches",
         default="",
     )
+    latent_size: StringProperty(
+        name="Latent Decoder Size",
+        description="Decoder size the stored latent belongs to (each size has its own latent space)",
+        default="",
+    )
+    model_size: EnumProperty(
+        name="Model Size",
+        items=[
+            ("AUTO", "Auto", "The first shipped decoder of: small, tiny, medium, paper"),
+            ("TINY", "Tiny", "Smallest, fastest decoder"),
+            ("SMALL", "Small", "The interactive default"),
+            ("MEDIUM", "Medium", "Larger decoder: more accurate, slower"),
+            ("PAPER", "Paper", "The paper's decoder (about 1 M parameters): slowest"),
+        ],
+        default="AUTO",
+        description="Neural decoder size used for the latent and the previews",
+        update=_on_auto_latent,
+    )
     auto_latent: BoolProperty(
         name="Auto Update Latent",
         description="Recompute the latent whenever the stack changes (when the neural models are available)",

@@ -167,8 +167,15 @@ def latent_is_current(mat) -> bool:
     return settings(mat).latent_hash == preview.stack_hash(stack)
 
 
-def compute_latent(mat, size: str = "small") -> list[str]:
-    """Encode the material's stack, store latent + hash on it, return notes for the user.
+def model_size(mat) -> str:
+    """The decoder size chosen on the material ("auto", "tiny", "small", ...)."""
+    return settings(mat).model_size.lower()
+
+
+def compute_latent(mat, size: str | None = None) -> list[str]:
+    """Encode the material's stack, store latent, decoder size and stack hash on it; return notes.
+
+    ``size`` defaults to the material's model size setting.
 
     Raises ``ValueError`` (no or invalid stack) or ``preview.NeuralUnavailable``; on failure the
     stored hash is cleared so the latent reads as stale.
@@ -178,13 +185,19 @@ def compute_latent(mat, size: str = "small") -> list[str]:
         raise ValueError(f"material {mat.name!r} has no layer stack; add a base layer first")
     s = settings(mat)
     try:
-        z, notes = preview.encode_latent(stack, size)
+        z, used, notes = preview.encode_latent(stack, size or model_size(mat))
     except preview.NeuralUnavailable:
         s.latent_hash = ""
         raise
     s.latent = z.tolist()
+    s.latent_size = used
     s.latent_hash = preview.stack_hash(stack)
     return notes
+
+
+def current_latent(mat):
+    """``(z (3, 32), decoder size)`` when the stored latent is current, else None."""
+    return (latent_of(mat), settings(mat).latent_size) if latent_is_current(mat) else None
 
 
 def on_stack_changed(mat) -> None:

@@ -151,8 +151,10 @@ class _PreviewPanel(_LayersPanel):
         s = mat.neural_layers
         row = layout.row(align=True)
         current = stack_io.latent_is_current(mat)
-        row.label(text="Latent: current" if current else "Latent: stale", icon="CHECKMARK" if current else "ERROR")
+        text = f"Latent: current ({s.latent_size})" if current else "Latent: stale"
+        row.label(text=text, icon="CHECKMARK" if current else "ERROR")
         row.operator("neural_layers.evaluate_latent", text="Evaluate")
+        layout.prop(s, "model_size")
         layout.prop(s, "auto_latent")
         col = layout.column()
         col.enabled = len(s.layers) > 0

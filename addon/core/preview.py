@@ -86,28 +86,46 @@ def _neural_module():
     return neural
 
 
-def encode_latent(stack: Stack, size: str = "small") -> tuple[np.ndarray, list[str]]:
-    """The stack's latent code ``(3, 32)`` float32 from the neural encoder, and notes for the user.
+# Decoder sizes tried, in order, when the size is "auto": the interactive default first.
+AUTO_SIZE_ORDER = ("small", "tiny", "medium", "paper")
+
+
+def resolve_size(size: str = "auto") -> str:
+    """The decoder size to use: ``size`` itself, or for "auto" the first of ``AUTO_SIZE_ORDER``
+    whose models load. Raises :class:`NeuralUnavailable` naming what is missing."""
+    neural = _neural_module()
+    candidates = AUTO_SIZE_ORDER if size == "auto" else (size,)
+    errors = []
+    for candidate in candidates:
+        try:
+            neural.load_models(size=candidate)
+            return candidate
+        except Exception as e:
+            errors.append(f"{candidate}: {e}")
+    if size == "auto":
+        raise NeuralUnavailable("no decoder size could be loaded (" + "; ".join(errors) + ")")
+    raise NeuralUnavailable(f"models of size {size!r} cannot be loaded ({errors[0].split(': ', 1)[1]})")
+
+
+def encode_latent(stack: Stack, size: str = "auto") -> tuple[np.ndarray, str, list[str]]:
+    """The stack's latent code ``(3, 32)`` float32, the decoder size it belongs to, and notes.
 
     Parameters outside the trained range are clamped first (the notes say which). Raises
     :class:`NeuralUnavailable` naming the reason when the runtime, its models or support for
     this kind of stack are missing.
     """
     neural = _neural_module()
+    size = resolve_size(size)
     clamped, notes = clamp_to_trained(stack)
-    try:
-        neural.load_models(size=size)
-    except Exception as e:
-        raise NeuralUnavailable(f"models of size {size!r} cannot be loaded ({e})") from None
     try:
         z = np.asarray(neural.encode_stack(clamped, size=size), dtype=np.float32)
     except Exception as e:
-        raise NeuralUnavailable(f"the encoder cannot encode this stack ({e})") from None
+        raise NeuralUnavailable(f"the {size} encoder cannot encode this stack ({e})") from None
     if z.shape != (3, 32):
         raise NeuralUnavailable(f"the encoder returned a latent of shape {z.shape}, expected (3, 32)")
     if not np.all(np.isfinite(z)):
         raise NeuralUnavailable("the encoder returned a latent with non-finite values")
-    return z, notes
+    return z, size, notes
 
 
 def neural_brdf_from_latent(z: np.ndarray, size: str = "small") -> BrdfFn:
@@ -137,6 +155,12 @@ def reference_brdf(stack: Stack, walks: int = 64, seed: int = 0) -> BrdfFn:
     return evaluate
 
 
+def _latent_for(stack, latent, size):
+    if latent is not None and latent[1] == (resolve_size(size) if size == "auto" else size):
+        return latent[0], latent[1], []
+    return encode_latent(stack, size)
+
+
 @dataclass
 class BrdfChoice:
     brdf: BrdfFn
@@ -147,8 +171,8 @@ class BrdfChoice:
 def choose_brdf(
     stack: Stack,
     method: str = "AUTO",
-    latent: Optional[np.ndarray] = None,
-    size: str = "small",
+    latent: Optional[tuple[np.ndarray, str]] = None,
+    size: str = "auto",
     walks: int = 64,
     seed: int = 0,
 ) -> BrdfChoice:
@@ -156,17 +180,16 @@ def choose_brdf(
 
     ``method``: "NEURAL" (fail with :class:`NeuralUnavailable` if it cannot), "REFERENCE", or
     "AUTO" (neural when available, else the reference, with a note saying why). ``latent``, when
-    given, is a current latent of ``stack`` and saves an encoder call.
+    given, is ``(z, size)``: a current latent of ``stack`` and the decoder size it belongs to; it
+    saves an encoder call when that size is the one ``size`` resolves to.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if method == "REFERENCE":
         return BrdfChoice(reference_brdf(stack, walks, seed), "REFERENCE")
     try:
-        notes: list[str] = []
-        if latent is None:
-            latent, notes = encode_latent(stack, size)
-        return BrdfChoice(neural_brdf_from_latent(latent, size), "NEURAL", notes)
+        z, used, notes = _latent_for(stack, latent, size)
+        return BrdfChoice(neural_brdf_from_latent(z, used), "NEURAL", notes)
     except NeuralUnavailable as e:
         if method == "NEURAL":
             raise
@@ -307,6 +330,7 @@ class Comparison:
     seconds_neural: float
     seconds_reference: float
     relative_rmse: float
+    size: str = ""
     notes: list[str] = field(default_factory=list)
 
     def side_by_side(self, gap: int = 2) -> np.ndarray:
@@ -317,7 +341,7 @@ class Comparison:
 
     def summary(self) -> str:
         return (
-            f"neural {self.seconds_neural * 1e3:.1f} ms, reference {self.seconds_reference * 1e3:.1f} ms, "
+            f"neural ({self.size}) {self.seconds_neural * 1e3:.1f} ms, reference {self.seconds_reference * 1e3:.1f} ms, "
             f"relative RMSE {self.relative_rmse:.3f}"
         )
 
@@ -328,8 +352,8 @@ def compare_with_reference(
     res: int = 64,
     walks: int = 64,
     seed: int = 0,
-    latent: Optional[np.ndarray] = None,
-    size: str = "small",
+    latent: Optional[tuple[np.ndarray, str]] = None,
+    size: str = "auto",
     progress: ProgressFn = None,
 ) -> Comparison:
     """Neural and reference lobe images of ``stack`` with their timings and the error between them.
@@ -337,10 +361,8 @@ def compare_with_reference(
     Raises :class:`NeuralUnavailable` when the neural runtime cannot serve the stack. Timings
     are wall-clock seconds of each method's evaluation alone (encoding excluded).
     """
-    notes: list[str] = []
-    if latent is None:
-        latent, notes = encode_latent(stack, size)
-    neural = neural_brdf_from_latent(latent, size)
+    z, used, notes = _latent_for(stack, latent, size)
+    neural = neural_brdf_from_latent(z, used)
     t0 = time.perf_counter()
     img_n = lobe_preview(neural, theta_i_deg, res, _scaled(progress, 0.0, 0.1))
     t1 = time.perf_counter()
@@ -354,4 +376,4 @@ def compare_with_reference(
     err = img_n.copy()
     err[..., :3] = np.abs(img_n[..., :3] - img_r[..., :3])
     rmse = lobe.relative_rmse(img_n[..., :3], img_r[..., :3])
-    return Comparison(img_n, img_r, err, t1 - t0, t2 - t1, rmse, notes)
+    return Comparison(img_n, img_r, err, t1 - t0, t2 - t1, rmse, used, notes)
