@@ -156,7 +156,7 @@ def as_param(value, name: str, *, lo: float = -np.inf, hi: float = np.inf, lo_op
 
 
 def _show(a: np.ndarray) -> str:
-    a = np.ravel(a)
+    a = np.unique(np.ravel(a))
     return repr(float(a[0])) if a.size == 1 else f"{a[:4].tolist()}{'...' if a.size > 4 else ''}"
 
 
