@@ -314,10 +314,15 @@ class _LongOperator(_MaterialOperator):
     def invoke(self, context, event):
         if bpy.app.background or context.window is None:
             return self.execute(context)
-        try:
-            work, self._finish = self.prepare(context)
-        except Exception:
-            return _guarded(self.bl_label, self, lambda: self.prepare(context))
+        prepared = []
+
+        def prepare():
+            prepared.append(self.prepare(context))
+            return {"FINISHED"}
+
+        if _guarded(self.bl_label, self, prepare) != {"FINISHED"}:
+            return {"CANCELLED"}
+        work, self._finish = prepared[0]
         self._job = jobs.Job(work).start()
         wm = context.window_manager
         self._timer = wm.event_timer_add(0.1, window=context.window)
@@ -386,7 +391,7 @@ class NLM_OT_preview_lobe(_LongOperator, bpy.types.Operator):
         def work(progress):
             t0 = time.perf_counter()
             choice = preview.choose_brdf(stack, method, latent=latent, size=size, walks=walks)
-            img = preview.lobe_preview(choice.brdf, theta, res, progress)
+            img = preview.lobe_preview(choice.brdf, theta, res, progress, choice.chunk)
             return img, choice, time.perf_counter() - t0
 
         def finish(context, result):
@@ -416,7 +421,7 @@ class NLM_OT_preview_sphere(_LongOperator, bpy.types.Operator):
         def work(progress):
             t0 = time.perf_counter()
             choice = preview.choose_brdf(stack, method, latent=latent, size=size, walks=walks)
-            img = preview.sphere_preview(choice.brdf, res, env_samples=k, progress=progress)
+            img = preview.sphere_preview(choice.brdf, res, env_samples=k, progress=progress, chunk=choice.chunk)
             return img, choice, time.perf_counter() - t0
 
         def finish(context, result):

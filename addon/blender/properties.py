@@ -240,14 +240,14 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
     env_samples: IntProperty(
         name="Environment Samples",
         description="Fixed sky directions per pixel of the sphere preview (more = smoother sky lighting, slower)",
-        default=16,
+        default=8,
         min=1,
         max=256,
     )
     walks: IntProperty(
         name="Walks",
         description="Monte Carlo walks per direction pair for the reference (more = less noise, slower)",
-        default=32,
+        default=16,
         min=1,
         max=4096,
     )

@@ -166,6 +166,12 @@ class BrdfChoice:
     brdf: BrdfFn
     method: str  # "NEURAL" or "REFERENCE"
     notes: list[str] = field(default_factory=list)
+    chunk: int = DEFAULT_CHUNK  # rows per call: small enough for prompt progress and cancel
+
+
+def reference_chunk(walks: int) -> int:
+    """Rows per reference call: about 16 k walks, a fraction of a second on one core."""
+    return max(64, 16384 // max(int(walks), 1))
 
 
 def choose_brdf(
@@ -186,7 +192,7 @@ def choose_brdf(
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if method == "REFERENCE":
-        return BrdfChoice(reference_brdf(stack, walks, seed), "REFERENCE")
+        return BrdfChoice(reference_brdf(stack, walks, seed), "REFERENCE", chunk=reference_chunk(walks))
     try:
         z, used, notes = _latent_for(stack, latent, size)
         return BrdfChoice(neural_brdf_from_latent(z, used), "NEURAL", notes)
@@ -194,7 +200,7 @@ def choose_brdf(
         if method == "NEURAL":
             raise
         note = f"neural models not available: {e}; showing the position-free Monte Carlo reference"
-        return BrdfChoice(reference_brdf(stack, walks, seed), "REFERENCE", [note])
+        return BrdfChoice(reference_brdf(stack, walks, seed), "REFERENCE", [note], reference_chunk(walks))
 
 
 # --------------------------------------------------------------------------------------------
@@ -218,14 +224,16 @@ def _rgba(rgb: np.ndarray, alpha: np.ndarray | float = 1.0) -> np.ndarray:
     return out
 
 
-def lobe_preview(brdf: BrdfFn, theta_i_deg: float, res: int = 128, progress: ProgressFn = None) -> np.ndarray:
+def lobe_preview(
+    brdf: BrdfFn, theta_i_deg: float, res: int = 128, progress: ProgressFn = None, chunk: int = DEFAULT_CHUNK
+) -> np.ndarray:
     """(res, res, 4) image of f cos(theta_o) over the projected outgoing hemisphere (see ``lobe``).
 
     Alpha is 1 on the disk and 0 outside it.
     """
     if not (0.0 <= theta_i_deg < 90.0):
         raise ValueError(f"incident angle must be in [0, 90) degrees, got {theta_i_deg}")
-    img = lobe.lobe_image(chunked(brdf, progress=progress), theta_i_deg, res)
+    img = lobe.lobe_image(chunked(brdf, chunk, progress), theta_i_deg, res)
     _, mask = lobe.lobe_grid(res)
     return _rgba(img, mask.reshape(res, res).astype(np.float32))
 
@@ -280,6 +288,7 @@ def sphere_preview(
     env: Environment = DEFAULT_ENVIRONMENT,
     env_samples: int = 16,
     progress: ProgressFn = None,
+    chunk: int = DEFAULT_CHUNK,
 ) -> np.ndarray:
     """(res, res, 4) image of a unit sphere seen orthographically, shaded with ``brdf``.
 
@@ -309,7 +318,7 @@ def sphere_preview(
     wi_all = np.concatenate([wi_sun, wi_env]).astype(np.float32)
     wo_all = np.concatenate([wo, np.tile(wo, (env_samples, 1))]).astype(np.float32)
     # only directions above the shading horizon carry light; the sun may be behind a pixel
-    f = chunked(brdf, progress=progress)(wi_all, wo_all).astype(np.float64)
+    f = chunked(brdf, chunk, progress)(wi_all, wo_all).astype(np.float64)
 
     cos_sun = np.clip(wi_sun[:, 2:3], 0.0, None)
     radiance = f[:m] * cos_sun * np.asarray(env.sun_irradiance)
@@ -366,7 +375,9 @@ def compare_with_reference(
     t0 = time.perf_counter()
     img_n = lobe_preview(neural, theta_i_deg, res, _scaled(progress, 0.0, 0.1))
     t1 = time.perf_counter()
-    img_r = lobe_preview(reference_brdf(stack, walks, seed), theta_i_deg, res, _scaled(progress, 0.1, 1.0))
+    img_r = lobe_preview(
+        reference_brdf(stack, walks, seed), theta_i_deg, res, _scaled(progress, 0.1, 1.0), reference_chunk(walks)
+    )
     t2 = time.perf_counter()
     img_n, bad_n = sanitize(img_n)
     img_r, bad_r = sanitize(img_r)

@@ -206,3 +206,31 @@ def test_real_models_preview_when_shipped(bpy_addon, fresh_scene, material):
     assert run_operator(bpy.ops.neural_layers.preview_lobe).finished
     px = _pixels(bpy.data.images[f"Lobe {material.name}"])
     assert np.all(np.isfinite(px)) and np.all(px >= 0) and px[..., :3].max() > 0
+
+
+def test_job_reports_progress_result_and_cancel():
+    """The worker-thread job behind the modal operators (timers never fire headless)."""
+    import threading
+
+    from addon.blender.jobs import Job
+
+    done = Job(lambda progress: [progress(f) for f in (0.5, 1.0)] and "image").start()
+    done.wait(10)
+    assert done.done and done.result == "image" and done.fraction == 1.0 and not done.cancelled
+
+    started = threading.Event()
+
+    def long_work(progress):
+        started.set()
+        while True:
+            progress(0.1)
+
+    job = Job(long_work).start()
+    assert started.wait(10)
+    job.cancel()
+    job.wait(10)
+    assert job.done and job.cancelled and job.result is None and job.error is None
+
+    failing = Job(lambda progress: 1 / 0).start()
+    failing.wait(10)
+    assert isinstance(failing.error, ZeroDivisionError)
