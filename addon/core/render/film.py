@@ -85,3 +85,9 @@ def write_exr(path: str | os.PathLike, linear: np.ndarray) -> None:
     finally:
         out.close()
     tmp.replace(path)
+
+
+def from_srgb(encoded: np.ndarray) -> np.ndarray:
+    """Display sRGB in [0, 1] -> linear RGB (the inverse of :func:`to_srgb`)."""
+    x = np.clip(np.asarray(encoded, dtype=np.float64), 0.0, 1.0)
+    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))

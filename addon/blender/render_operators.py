@@ -1,0 +1,189 @@
+"""Render Preview: render the current view with the core path tracer into an Image Editor image.
+
+From the 3D viewport it renders what the viewport shows (its view, unless it looks through the
+scene camera); elsewhere it renders the scene camera. Resolution and samples are operator
+options. Invoked from the UI it runs on a worker thread (progress in the status bar, Esc
+cancels); from scripts and in background mode it runs blocking. With ``filepath`` it also writes
+the image (OpenEXR for ``.exr``, PNG for ``.png``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import bpy
+from bpy.props import BoolProperty, IntProperty, StringProperty
+
+from addon.blender import images, jobs, scene_export
+from addon.core.render import Cancelled, render, write_exr, write_png
+
+IMAGE_NAME = "Neural Layered Render"
+
+
+def _view_camera(context, width: int, height: int):
+    region = getattr(context, "region_data", None)
+    space = getattr(context, "space_data", None)
+    if region is None or space is None or getattr(space, "type", "") != "VIEW_3D":
+        return None
+    if region.view_perspective == "CAMERA" or not region.is_perspective:
+        return None
+    return scene_export.view_camera(region, space.lens, width, height)
+
+
+def render_work(core_scene, settings):
+    """The core part: a function of ``progress(fraction)`` returning (film, stats)."""
+
+    def work(progress):
+        def on_pass(film, done, total):
+            if progress is not None:
+                progress(done / total)  # raises when the user cancels (jobs.Job)
+            return True
+
+        return render(core_scene, settings, progress=on_pass)
+
+    return work
+
+
+def save_image(path: str, rgba) -> None:
+    p = Path(bpy.path.abspath(path))
+    if p.suffix.lower() == ".exr":
+        write_exr(p, rgba)
+    elif p.suffix.lower() == ".png":
+        write_png(p, rgba[:, :, :3])
+    else:
+        raise ValueError(f"filepath {path!r} must end in .exr or .png")
+
+
+class NLM_OT_render_preview(bpy.types.Operator):
+    """Render the current view with the Neural Layered path tracer into the Image Editor"""
+
+    bl_idname = "neural_layers.render_preview"
+    bl_label = "Render Preview"
+    bl_options = {"REGISTER"}
+
+    width: IntProperty(name="Width", description="Image width (0: the scene's render resolution)", default=0,
+                       min=0, max=16384)
+    height: IntProperty(name="Height", description="Image height (0: the scene's render resolution)", default=0,
+                        min=0, max=16384)
+    samples: IntProperty(name="Samples", description="Paths per pixel (0: the scene's preview samples)", default=0,
+                         min=0, max=65536)
+    use_view: BoolProperty(name="Current View", description="Render the 3D viewport's view rather than the camera",
+                           default=True)
+    filepath: StringProperty(name="File Path", description="Also write the image here (.exr or .png)", default="",
+                             subtype="FILE_PATH")
+
+    _job = None
+    _timer = None
+
+    def _prepare(self, context):
+        if self.filepath and Path(self.filepath).suffix.lower() not in (".exr", ".png"):
+            raise ValueError(f"filepath {self.filepath!r} must end in .exr or .png")
+        scene = context.scene
+        w, h = scene_export.render_size(scene)
+        if self.width and self.height:
+            w, h = self.width, self.height
+        elif self.width:
+            w, h = self.width, max(1, round(self.width * h / w))
+        elif self.height:
+            w, h = max(1, round(self.height * w / h)), self.height
+        camera = _view_camera(context, w, h) if self.use_view else None
+        depsgraph = context.evaluated_depsgraph_get()
+        core_scene, warnings = scene_export.export_scene(depsgraph, w, h, camera)
+        for msg in warnings:
+            self.report({"WARNING"}, msg)
+        settings = scene.neural_render.to_core(self.samples or scene.neural_render.preview_samples)
+        return render_work(core_scene, settings)
+
+    def _finish(self, context, result):
+        film, stats = result
+        rgba = film.rgba()
+        old = bpy.data.images.get(IMAGE_NAME)
+        if old is not None and tuple(old.size) != (rgba.shape[1], rgba.shape[0]):
+            bpy.data.images.remove(old)  # a new size: start a new image rather than rescale
+        image = images.store_image(IMAGE_NAME, rgba, {"paths_per_second": stats.paths_per_second,
+                                                       "seconds": stats.seconds["total"]})
+        images.show_in_image_editor(context, image)
+        if self.filepath:
+            save_image(self.filepath, rgba)
+        self.report({"INFO"}, f"{image.name}: {stats.summary()}")
+        return {"FINISHED"}
+
+    def _fail(self, message):
+        self.report({"ERROR"}, message)
+        return {"CANCELLED"}
+
+    def execute(self, context):
+        try:
+            return self._finish(context, self._prepare(context)(None))
+        except (ValueError, RuntimeError) as e:
+            return self._fail(str(e))
+        except Cancelled:
+            return {"CANCELLED"}
+        except Exception as e:  # unexpected: still a report, with enough to file a bug
+            return self._fail(f"Render Preview failed: {type(e).__name__}: {e}")
+
+    def invoke(self, context, event):
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        try:
+            work = self._prepare(context)
+        except (ValueError, RuntimeError) as e:
+            return self._fail(str(e))
+        self._job = jobs.Job(work).start()
+        wm = context.window_manager
+        self._timer = wm.event_timer_add(0.2, window=context.window)
+        wm.progress_begin(0, 100)
+        context.workspace.status_text_set(f"{self.bl_label}: Esc to cancel")
+        wm.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def _cleanup(self, context):
+        wm = context.window_manager
+        if self._timer is not None:
+            wm.event_timer_remove(self._timer)
+            self._timer = None
+        wm.progress_end()
+        context.workspace.status_text_set(None)
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == "ESC":
+            job.cancel()
+            return {"RUNNING_MODAL"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        context.window_manager.progress_update(int(100 * job.fraction))
+        if not job.done:
+            return {"RUNNING_MODAL"}
+        self._cleanup(context)
+        if job.cancelled:
+            self.report({"INFO"}, "Render Preview cancelled")
+            return {"CANCELLED"}
+        if job.error is not None:
+            return self._fail(f"Render Preview failed: {type(job.error).__name__}: {job.error}")
+        try:
+            return self._finish(context, job.result)
+        except (ValueError, RuntimeError) as e:
+            return self._fail(str(e))
+
+    def cancel(self, context):
+        if self._job is not None:
+            self._job.cancel()
+        self._cleanup(context)
+
+
+_CLASSES = (NLM_OT_render_preview,)
+
+
+def register() -> None:
+    for cls in _CLASSES:
+        bpy.utils.register_class(cls)
+
+
+def unregister() -> None:
+    for cls in reversed(_CLASSES):
+        if getattr(cls, "is_registered", False):
+            bpy.utils.unregister_class(cls)
+
+
+

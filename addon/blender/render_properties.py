@@ -1,0 +1,49 @@
+"""Render settings of the Neural Layered engine, stored on the scene (``scene.neural_render``)."""
+
+from __future__ import annotations
+
+import bpy
+from bpy.props import EnumProperty, IntProperty, PointerProperty
+
+from addon.core.render import RenderSettings
+
+
+class NLM_RenderSettings(bpy.types.PropertyGroup):
+    samples: IntProperty(name="Samples", description="Paths per pixel", default=64, min=1, max=65536)
+    preview_samples: IntProperty(
+        name="Preview Samples", description="Paths per pixel of the Render Preview operator", default=16, min=1,
+        max=65536,
+    )
+    max_bounces: IntProperty(name="Max Bounces", description="Longest path, in surface bounces", default=6, min=0,
+                             max=1024)
+    seed: IntProperty(name="Seed", description="Random seed: the same seed gives the same image", default=0, min=0)
+    mode: EnumProperty(
+        name="Layered Materials",
+        items=[
+            ("neural", "Neural", "Evaluate layered materials with the neural decoder (the reference where its "
+                                 "models are not available)"),
+            ("reference", "Reference", "Evaluate layered materials with the position-free Monte Carlo estimator "
+                                       "(slow; ground truth on average)"),
+        ],
+        default="neural",
+    )
+    reference_walks: IntProperty(
+        name="Reference Walks", description="Walks per layered-BRDF evaluation in reference mode", default=8, min=1,
+        max=4096,
+    )
+
+    def to_core(self, samples: int | None = None) -> RenderSettings:
+        return RenderSettings(samples=samples or self.samples, max_bounces=self.max_bounces, seed=self.seed,
+                              mode=self.mode, reference_walks=self.reference_walks)
+
+
+def register() -> None:
+    bpy.utils.register_class(NLM_RenderSettings)
+    bpy.types.Scene.neural_render = PointerProperty(type=NLM_RenderSettings, name="Neural Layered Render")
+
+
+def unregister() -> None:
+    if hasattr(bpy.types.Scene, "neural_render"):
+        del bpy.types.Scene.neural_render
+    if getattr(NLM_RenderSettings, "is_registered", False):
+        bpy.utils.unregister_class(NLM_RenderSettings)

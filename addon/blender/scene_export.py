@@ -1,0 +1,294 @@
+"""Evaluated depsgraph -> ``addon.core.render.Scene`` (plain arrays; the core renders without bpy).
+
+Only what renders: object instances of the evaluated depsgraph (modifiers applied, instances
+expanded) that are not hidden from renders; triangles in world space with Blender's corner
+normals (smooth, flat, auto-smooth and custom normals as Blender shades them) and the active UV
+map; one material per triangle. Lights (point, spot, sun, area), the world (colour or
+equirectangular environment image through a Background node) and the camera.
+
+Materials with a layer stack (``stack_io.stack_from_material``) become ``LayeredSpec``; all others
+render as a Lambertian with their base colour (Principled "Base Color", or the colour of a
+Diffuse BSDF, or the viewport colour), textured when an Image Texture node drives it. Problems
+(missing images, invalid stacks, unsupported camera types) become warnings, never failures.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from addon.core.render import (
+    AreaLight,
+    Camera,
+    Environment,
+    ImageTexture,
+    LambertMaterial,
+    LayeredSpec,
+    Mesh,
+    PointLight,
+    Scene,
+    SpotLight,
+    SunLight,
+)
+from addon.core.render.film import from_srgb
+
+GEOMETRY_TYPES = {"MESH", "CURVE", "SURFACE", "META", "FONT", "CURVES"}
+VIEWPORT_SENSOR = 72.0  # mm: the 3D viewport's lens maps to this sensor width
+
+
+def render_size(scene) -> tuple[int, int]:
+    r = scene.render
+    pct = r.resolution_percentage / 100.0
+    return max(1, int(r.resolution_x * pct)), max(1, int(r.resolution_y * pct))
+
+
+def _image_pixels(image, warnings: list[str]) -> np.ndarray | None:
+    """(H, W, 4) linear float pixels, row 0 at the top; None (with a warning) if unavailable."""
+    if image is None:
+        return None
+    try:
+        w, h = image.size
+        has = image.has_data or (w > 0 and h > 0)
+    except (ReferenceError, RuntimeError):
+        has, w, h = False, 0, 0
+    if not has or w == 0 or h == 0:
+        warnings.append(f"image {image.name!r} has no pixels (missing file {image.filepath!r}?); using the colour")
+        return None
+    px = np.empty(w * h * 4, dtype=np.float32)
+    image.pixels.foreach_get(px)
+    px = px.reshape(h, w, 4)[::-1]
+    if not image.is_float and image.colorspace_settings.name in ("sRGB", "sRGB EOTF"):
+        px = np.concatenate([from_srgb(px[:, :, :3]), px[:, :, 3:]], axis=2).astype(np.float32)
+    return np.ascontiguousarray(px)
+
+
+def _linked_image(socket):
+    """The image of an Image/Environment Texture node feeding ``socket`` directly, else None."""
+    if socket is None or not socket.is_linked:
+        return None
+    node = socket.links[0].from_node
+    if node.type in ("TEX_IMAGE", "TEX_ENVIRONMENT"):
+        return node.image if node.image is not None else False
+    return None
+
+
+def _surface_node(mat):
+    tree = getattr(mat, "node_tree", None)
+    if tree is None:
+        return None
+    out = next((n for n in tree.nodes if n.type == "OUTPUT_MATERIAL" and n.is_active_output), None)
+    out = out or next((n for n in tree.nodes if n.type == "OUTPUT_MATERIAL"), None)
+    if out is not None and out.inputs["Surface"].is_linked:
+        return out.inputs["Surface"].links[0].from_node
+    return next((n for n in tree.nodes if n.type in ("BSDF_PRINCIPLED", "BSDF_DIFFUSE")), None)
+
+
+def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial:
+    """A Lambertian with the material's base colour (and base-colour texture)."""
+    if mat is None:
+        return LambertMaterial()
+    color = tuple(mat.diffuse_color[:3])
+    texture = None
+    node = _surface_node(mat)
+    if node is not None:
+        socket = node.inputs.get("Base Color") or node.inputs.get("Color")
+        if socket is not None:
+            image = _linked_image(socket)
+            if image is False:
+                warnings.append(f"material {mat.name!r}: image texture node has no image; using its colour")
+            elif image is not None:
+                px = _image_pixels(image, warnings)
+                if px is not None:
+                    texture = ImageTexture(px[:, :, :3])
+            if texture is not None:
+                color = (1.0, 1.0, 1.0)
+            elif not socket.is_linked or image is not None:
+                color = tuple(socket.default_value[:3])
+    return LambertMaterial(color, texture)
+
+
+def export_material(mat, warnings: list[str]):
+    """LayeredSpec for a material with a layer stack, else an unmanaged Lambertian."""
+    stack = None
+    try:
+        from addon.blender import stack_io
+
+        stack = stack_io.stack_from_material(mat)
+    except ImportError:
+        stack = None
+    except ValueError as e:
+        warnings.append(f"material {mat.name!r}: {e}; rendering it as a Lambertian")
+    if stack is not None:
+        return LayeredSpec(stack, None, mat.name)
+    return unmanaged_material(mat, warnings)
+
+
+def _mesh_arrays(ob):
+    """Object-space triangles of an evaluated object: positions, corner normals, uvs, slot index."""
+    mesh = ob.to_mesh()
+    try:
+        if mesh is None or len(mesh.polygons) == 0:
+            return None
+        mesh.calc_loop_triangles()
+        nt = len(mesh.loop_triangles)
+        if nt == 0:
+            return None
+        co = np.empty(len(mesh.vertices) * 3, np.float32)
+        mesh.vertices.foreach_get("co", co)
+        tri_v = np.empty(nt * 3, np.int32)
+        mesh.loop_triangles.foreach_get("vertices", tri_v)
+        tri_l = np.empty(nt * 3, np.int32)
+        mesh.loop_triangles.foreach_get("loops", tri_l)
+        mat_i = np.empty(nt, np.int32)
+        mesh.loop_triangles.foreach_get("material_index", mat_i)
+        cn = np.empty(len(mesh.loops) * 3, np.float32)
+        mesh.corner_normals.foreach_get("vector", cn)
+        positions = co.reshape(-1, 3)[tri_v].reshape(nt, 3, 3)
+        normals = cn.reshape(-1, 3)[tri_l].reshape(nt, 3, 3)
+        uvs = None
+        layer = mesh.uv_layers.active
+        if layer is not None and len(layer.data):
+            uv = np.empty(len(mesh.loops) * 2, np.float32)
+            layer.data.foreach_get("uv", uv)
+            uvs = uv.reshape(-1, 2)[tri_l].reshape(nt, 3, 2)
+        return positions, normals, uvs, mat_i
+    finally:
+        ob.to_mesh_clear()
+
+
+def _camera(cam_ob, width: int, height: int, warnings: list[str]) -> Camera:
+    cam = cam_ob.data
+    if cam.type != "PERSP":
+        warnings.append(f"camera {cam_ob.name!r} is {cam.type}; rendering it as a perspective camera")
+    fit = cam.sensor_fit
+    if fit == "AUTO":
+        fit = "HORIZONTAL" if width >= height else "VERTICAL"
+        sensor = cam.sensor_width
+    else:
+        sensor = cam.sensor_width if fit == "HORIZONTAL" else cam.sensor_height
+    if cam.lens_unit == "FOV":
+        tan_fit = math.tan(cam.angle / 2)
+    else:
+        tan_fit = sensor / (2.0 * cam.lens)
+    aspect = width / height
+    tan = (tan_fit, tan_fit / aspect) if fit == "HORIZONTAL" else (tan_fit * aspect, tan_fit)
+    return Camera(np.array(cam_ob.matrix_world), width, height, tan, (cam.shift_x, cam.shift_y))
+
+
+def view_camera(region_3d, lens: float, width: int, height: int) -> Camera:
+    """The camera of a 3D viewport (its view matrix and lens), for previews of the current view."""
+    m = np.array(region_3d.view_matrix.inverted())
+    t = VIEWPORT_SENSOR / (2.0 * lens)
+    tan = (t, t * height / width) if width >= height else (t * width / height, t)
+    return Camera(m, width, height, tan)
+
+
+def _light(ob, matrix: np.ndarray, warnings: list[str]):
+    light = ob.data
+    color = tuple(light.color)
+    z = -matrix[:3, 2]  # lights point along their local -z
+    if light.type == "POINT":
+        return PointLight(matrix[:3, 3], light.energy, color)
+    if light.type == "SPOT":
+        return SpotLight(matrix[:3, 3], light.energy, color, direction=z, spot_size=light.spot_size,
+                         blend=light.spot_blend)
+    if light.type == "SUN":
+        return SunLight(z, light.energy, color)
+    if light.type == "AREA":
+        shape = light.shape
+        size_y = light.size_y if shape in ("RECTANGLE", "ELLIPSE") else light.size
+        return AreaLight(matrix, light.energy, color, light.size, size_y, ellipse=shape in ("DISK", "ELLIPSE"))
+    warnings.append(f"light {ob.name!r} has unsupported type {light.type}; skipped")
+    return None
+
+
+def _world(world, warnings: list[str]) -> Environment | None:
+    if world is None:
+        return None
+    tree = getattr(world, "node_tree", None)
+    if tree is not None:
+        out = next((n for n in tree.nodes if n.type == "OUTPUT_WORLD" and n.is_active_output), None)
+        out = out or next((n for n in tree.nodes if n.type == "OUTPUT_WORLD"), None)
+        if out is not None and out.inputs["Surface"].is_linked:
+            bg = out.inputs["Surface"].links[0].from_node
+            if bg.type == "BACKGROUND":
+                strength = float(bg.inputs["Strength"].default_value)
+                socket = bg.inputs["Color"]
+                image = _linked_image(socket)
+                if image:
+                    px = _image_pixels(image, warnings)
+                    if px is not None:
+                        return Environment(image=px[:, :, :3], strength=strength)
+                elif image is False:
+                    warnings.append(f"world {world.name!r}: environment texture node has no image; using its colour")
+                return Environment(tuple(socket.default_value[:3]), strength=strength)
+            warnings.append(f"world {world.name!r}: surface is a {bg.type} node, not Background; using the world colour")
+        elif out is not None:
+            return None  # nothing connected: a black world
+    return Environment(tuple(world.color))
+
+
+def export_scene(depsgraph, width: int | None = None, height: int | None = None, camera: Camera | None = None):
+    """The depsgraph's scene as a core ``Scene``; returns ``(scene, warnings)``.
+
+    ``width``/``height`` default to the render resolution (with its percentage); ``camera``
+    replaces the scene camera (e.g. the viewport's). Raises ValueError if there is no camera.
+    """
+    scene = depsgraph.scene
+    warnings: list[str] = []
+    if width is None or height is None:
+        width, height = render_size(scene)
+    if camera is None:
+        if scene.camera is None:
+            raise ValueError(f"scene {scene.name!r} has no active camera; add one or set Scene > Camera")
+        camera = _camera(scene.camera.evaluated_get(depsgraph), width, height, warnings)
+
+    material_index: dict[str, int] = {}
+    materials: list = []
+    names: list[str] = []
+
+    def material_slot(mat) -> int:
+        key = mat.name if mat is not None else ""
+        if key not in material_index:
+            material_index[key] = len(materials)
+            materials.append(export_material(mat, warnings) if mat is not None else LambertMaterial())
+            names.append(key)
+        return material_index[key]
+
+    cache: dict = {}
+    meshes: list[Mesh] = []
+    lights: list = []
+    for inst in depsgraph.object_instances:
+        ob = inst.object
+        original = ob.original if not inst.is_instance else ob
+        if getattr(original, "hide_render", False):
+            continue
+        matrix = np.array(inst.matrix_world, dtype=np.float64)
+        if ob.type == "LIGHT":
+            light = _light(ob, matrix, warnings)
+            if light is not None:
+                lights.append(light)
+            continue
+        if ob.type not in GEOMETRY_TYPES:
+            continue
+        key = (ob.name, ob.data.name if ob.data is not None else "")
+        if key not in cache:
+            cache[key] = _mesh_arrays(ob)
+            if cache[key] is not None:
+                slots = [material_slot(s.material) for s in ob.material_slots] or [material_slot(None)]
+                cache[key] = cache[key] + (np.asarray(slots, np.int32),)
+        arrays = cache[key]
+        if arrays is None:
+            continue
+        pos, nrm, uvs, mat_i, slots = arrays
+        world_pos = pos @ matrix[:3, :3].T.astype(np.float32) + matrix[:3, 3].astype(np.float32)
+        normal_m = np.linalg.inv(matrix[:3, :3]).T if abs(np.linalg.det(matrix[:3, :3])) > 1e-30 else np.eye(3)
+        world_nrm = nrm @ normal_m.T.astype(np.float32)
+        global_mat = slots[np.clip(mat_i, 0, len(slots) - 1)]
+        meshes.append(Mesh(world_pos, world_nrm, uvs, global_mat))
+    mesh = Mesh.concatenate(meshes)
+    if mesh.uvs is None and any(isinstance(m, LambertMaterial) and m.texture is not None for m in materials):
+        warnings.append("textured materials on meshes without UV maps sample the texture at uv (0, 0)")
+    out = Scene(camera, mesh, materials, lights, _world(scene.world, warnings), names)
+    return out, warnings

@@ -1,0 +1,201 @@
+"""Scene export, the render engine (F12, EXR/PNG output) and the Render Preview operator."""
+
+import math
+
+import numpy as np
+import pytest
+
+from tests.blender.helpers import run_operator
+
+bpy = pytest.importorskip("bpy")
+
+
+def export(ctx, **kw):
+    from addon.blender import scene_export
+
+    return scene_export.export_scene(ctx.evaluated_depsgraph_get(), **kw)
+
+
+def small(scene, w=32, h=24, samples=2):
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = w, h, 100
+    scene.neural_render.samples = samples
+    scene.neural_render.preview_samples = samples
+    scene.neural_render.max_bounces = 3
+
+
+def read_image(path):
+    bpy.utils.expose_bundled_modules()
+    import OpenImageIO as oiio  # noqa: N813
+
+    buf = oiio.ImageBuf(str(path))
+    assert not buf.has_error, buf.geterror()
+    return buf.get_pixels(oiio.FLOAT)
+
+
+def test_startup_scene_exports_world_space_triangles_light_camera(fresh_scene):
+    ctx = fresh_scene
+    cube = ctx.scene.objects["Cube"]
+    cube.location = (1.0, 2.0, 3.0)
+    cube.scale = (2.0, 1.0, 1.0)
+    small(ctx.scene, 64, 32)
+    scene, warnings = export(ctx)
+    assert warnings == []
+    assert scene.mesh.triangle_count == 12
+    lo, hi = scene.mesh.positions.reshape(-1, 3).min(0), scene.mesh.positions.reshape(-1, 3).max(0)
+    assert np.allclose(lo, [-1, 1, 2], atol=1e-5) and np.allclose(hi, [3, 3, 4], atol=1e-5)
+    # Flat cube: every corner normal is its face normal, unit length, in world space.
+    assert np.allclose(scene.mesh.normals, scene.mesh.face_normals[:, None, :], atol=1e-5)
+    assert scene.mesh.uvs is not None
+    (light,) = scene.lights
+    assert type(light).__name__ == "PointLight" and light.power == 1000.0
+    assert np.allclose(light.position, ctx.scene.objects["Light"].matrix_world.translation)
+    # 50 mm lens on a 36 mm sensor across the wider side.
+    assert scene.camera.tan_half_fov == pytest.approx((0.36, 0.18))
+    assert scene.camera.width == 64 and scene.camera.height == 32
+
+
+def test_export_applies_modifiers_expands_instances_and_skips_what_does_not_render(fresh_scene):
+    ctx = fresh_scene
+    cube = ctx.scene.objects["Cube"]
+    mod = cube.modifiers.new("Array", "ARRAY")
+    mod.count = 3
+    assert export(ctx)[0].mesh.triangle_count == 36
+    # A collection instance of the cube adds its triangles again.
+    coll = bpy.data.collections.new("Inst")
+    coll.objects.link(cube)
+    empty = bpy.data.objects.new("Empty", None)
+    empty.instance_type = "COLLECTION"
+    empty.instance_collection = coll
+    empty.location = (10, 0, 0)
+    ctx.scene.collection.objects.link(empty)
+    mesh = export(ctx)[0].mesh
+    assert mesh.triangle_count == 72
+    assert mesh.positions[..., 0].max() > 9
+    # Objects disabled in renders are left out.
+    bpy.ops.mesh.primitive_cube_add(location=(0, 0, 10))
+    assert export(ctx)[0].mesh.triangle_count == 84
+    ctx.object.hide_render = True
+    ctx.view_layer.update()
+    assert export(ctx)[0].mesh.triangle_count == 72
+
+
+def test_smooth_shading_exports_interpolated_normals(fresh_scene):
+    ctx = fresh_scene
+    bpy.ops.mesh.primitive_uv_sphere_add(segments=16, ring_count=8, location=(0, 0, 5))
+    sphere = ctx.object
+    bpy.ops.object.shade_smooth()
+    mesh = export(ctx)[0].mesh
+    sel = mesh.positions[:, :, 2].mean(axis=1) > 3
+    n = mesh.normals[sel]
+    p = mesh.positions[sel] - np.array([0, 0, 5], np.float32)
+    # Smooth sphere normals point along the radius, not along the faces.
+    radial = p / np.linalg.norm(p, axis=2, keepdims=True)
+    assert (np.einsum("tci,tci->tc", n, radial) > 0.99).all()
+    assert not np.allclose(n, mesh.face_normals[sel][:, None, :], atol=1e-2)
+    del sphere
+
+
+def test_lights_world_and_layered_materials_export(fresh_scene):
+    ctx = fresh_scene
+    from addon.blender import stack_io
+    from addon.core.render import LayeredSpec
+    from addon.core.stack import PRESETS
+
+    for kind, energy in (("SUN", 4.0), ("SPOT", 300.0), ("AREA", 50.0)):
+        data = bpy.data.lights.new(kind, kind)
+        data.energy = energy
+        if kind == "AREA":
+            data.shape, data.size, data.size_y = "RECTANGLE", 2.0, 0.5
+        ob = bpy.data.objects.new(kind, data)
+        ob.rotation_euler = (math.radians(90), 0, 0)  # local -z now points along +y
+        ctx.scene.collection.objects.link(ob)
+    img = bpy.data.images.new("sky", 16, 8, float_buffer=True)
+    img.pixels.foreach_set(np.full(16 * 8 * 4, 0.5, np.float32))
+    world = ctx.scene.world
+    tex = world.node_tree.nodes.new("ShaderNodeTexEnvironment")
+    tex.image = img
+    world.node_tree.links.new(tex.outputs["Color"], world.node_tree.nodes["Background"].inputs["Color"])
+    world.node_tree.nodes["Background"].inputs["Strength"].default_value = 2.0
+    stack_io.stack_to_material(PRESETS["coated_gold"], ctx.scene.objects["Cube"].active_material)
+    scene, warnings = export(ctx)
+    kinds = {type(li).__name__: li for li in scene.lights}
+    assert set(kinds) == {"PointLight", "SunLight", "SpotLight", "AreaLight"}
+    assert np.allclose(kinds["SunLight"].direction, [0, 1, 0], atol=1e-6)
+    assert np.allclose(kinds["SpotLight"].direction, [0, 1, 0], atol=1e-6)
+    assert kinds["AreaLight"].area == pytest.approx(1.0)
+    assert np.allclose(kinds["AreaLight"].normal, [0, 1, 0], atol=1e-6)
+    assert scene.environment.image.shape == (8, 16, 3) and np.allclose(scene.environment.image, 1.0)
+    (spec,) = scene.materials
+    assert isinstance(spec, LayeredSpec)
+    assert spec.stack.base.roughness == pytest.approx(PRESETS["coated_gold"].base.roughness)
+    assert len(spec.stack.coatings) == 1
+
+
+def test_f12_render_writes_png_and_exr(fresh_scene, tmp_path):
+    ctx = fresh_scene
+    scene = ctx.scene
+    small(scene)
+    scene.render.engine = "NEURAL_LAYERED"
+    for fmt, ext in (("PNG", "png"), ("OPEN_EXR", "exr")):
+        scene.render.image_settings.file_format = fmt
+        scene.render.filepath = str(tmp_path / f"frame.{ext}")
+        bpy.ops.render.render(write_still=True)
+        px = read_image(tmp_path / f"frame.{ext}")
+        assert px.shape[:2] == (24, 32)
+        assert np.isfinite(px).all() and px[..., :3].max() > 0
+    # The EXR holds the linear render: the lit cube is brighter than the dim grey world.
+    px = read_image(tmp_path / "frame.exr")
+    assert px[..., :3].max() > 4 * np.median(px[..., :3])
+
+
+def test_render_preview_operator_fills_an_image(fresh_scene, tmp_path):
+    ctx = fresh_scene
+    small(ctx.scene)
+    out = tmp_path / "preview.png"
+    report = run_operator(bpy.ops.neural_layers.render_preview, width=20, height=10, samples=2,
+                          filepath=str(out))
+    assert report.finished, report.error
+    image = bpy.data.images["Neural Layered Render"]
+    assert tuple(image.size) == (20, 10)
+    px = np.empty(20 * 10 * 4, np.float32)
+    image.pixels.foreach_get(px)
+    assert np.isfinite(px).all() and px.max() > 0
+    assert out.exists()
+    bad = run_operator(bpy.ops.neural_layers.render_preview, width=8, height=8, filepath=str(tmp_path / "x.jpg"))
+    assert bad.error and ".exr or .png" in bad.error
+
+
+def test_awkward_blender_scenes_render_without_errors(fresh_scene, tmp_path):
+    ctx = fresh_scene
+    small(ctx.scene, 16, 12)
+    # A mesh without UVs, a material whose image file is missing, a zero-strength light.
+    bpy.ops.mesh.primitive_cube_add(size=1, location=(0, 0, 2), calc_uvs=False)
+    ob = ctx.object
+    assert len(ob.data.uv_layers) == 0
+    mat = bpy.data.materials.new("Missing")
+    if mat.node_tree is None:
+        mat.use_nodes = True
+    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
+    missing = bpy.data.images.new("gone", 4, 4)
+    missing.source = "FILE"
+    missing.filepath = str(tmp_path / "does_not_exist.png")
+    tex.image = missing
+    mat.node_tree.links.new(tex.outputs["Color"], mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
+    ob.data.materials.append(mat)
+    ctx.scene.objects["Light"].data.energy = 0.0
+    scene, warnings = export(ctx)
+    assert any("does_not_exist" in w for w in warnings)
+    from addon.core.render import RenderSettings, render
+
+    film, stats = render(scene, RenderSettings(samples=2))
+    assert stats.nonfinite == 0 and np.isfinite(film.mean()).all()
+    # An empty scene (only the camera) renders the world; no camera is a clear error.
+    for o in [o for o in ctx.scene.objects if o.type != "CAMERA"]:
+        bpy.data.objects.remove(o)
+    scene, _ = export(ctx)
+    assert scene.mesh.triangle_count == 0
+    film, _ = render(scene, RenderSettings(samples=1))
+    assert np.allclose(film.mean(), scene.environment.constant, atol=1e-6)
+    ctx.scene.camera = None
+    with pytest.raises(ValueError, match="no active camera"):
+        export(ctx)
