@@ -7,12 +7,13 @@ append it to ``_MODULES``. ``register()`` is idempotent: calling it twice re-reg
 
 from __future__ import annotations
 
-from . import operators, properties, ui
+from . import engine, operators, properties, ui
 
 _MODULES = [
     properties,
     operators,
     ui,
+    engine,
 ]
 
 _registered = False
