@@ -142,6 +142,22 @@ def test_fresnel_conductor_reduces_to_dielectric_and_is_bounded():
     np.testing.assert_allclose(f[0], 1.0, atol=1e-12)
 
 
+def test_fresnel_conductor_equals_the_complex_formula():
+    """The real-arithmetic form equals pbrt-v4's FrComplex written with complex numbers."""
+    rng = np.random.default_rng(13)
+    cos = np.concatenate([rng.random(3000), [0.0, 1.0]])
+    eta = rng.uniform(0.01, 10.0, (cos.size, 3))
+    k = rng.uniform(0.0, 20.0, (cos.size, 3))
+    k[:500] = 0.0  # dielectric-like, including eta < 1 (total reflection beyond the critical angle)
+    n = eta + 1j * k
+    c = cos[:, None]
+    cos_t = np.sqrt(1.0 - (1.0 - c * c) / (n * n))
+    r_parl = (n * c - cos_t) / (n * c + cos_t)
+    r_perp = (c - n * cos_t) / (c + n * cos_t)
+    ref = 0.5 * (np.abs(r_parl) ** 2 + np.abs(r_perp) ** 2)
+    np.testing.assert_allclose(fresnel_conductor(cos, eta, k), ref, rtol=1e-9, atol=1e-12)
+
+
 # ----------------------------------------------------------------------------- GGX
 
 

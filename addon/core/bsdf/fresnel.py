@@ -28,17 +28,29 @@ def fresnel_dielectric(cos_i, eta) -> np.ndarray:
 
 
 def fresnel_conductor(cos_i, eta, k) -> np.ndarray:
-    """Fresnel reflectance of a conductor with complex index ``eta + i k`` (pbrt-v4 ``FrComplex``).
+    """Fresnel reflectance of a conductor with complex index ``eta + i k``.
 
-    ``cos_i`` of shape (N,) is clamped to [0, 1] (a conductor is seen from outside only);
-    ``eta`` and ``k`` are RGB ``(N, 3)`` or ``(3,)``. Returns ``(N, 3)`` float64.
+    The exact unpolarised reflectance of pbrt-v4 ``FrComplex``, (|r_parl|^2 + |r_perp|^2) / 2,
+    written in real arithmetic (pbrt-v3 ``FrConductor``, Mitsuba's ``fresnel_conductor``) because
+    complex numpy is about ten times slower. ``cos_i`` of shape (N,) is clamped to [0, 1] (a
+    conductor is seen from outside only); ``eta`` and ``k`` are RGB ``(N, 3)`` or ``(3,)``.
+    Returns ``(N, 3)`` float64 in [0, 1].
     """
-    cos_i = np.clip(np.asarray(cos_i, dtype=np.float64), 0.0, 1.0)[..., None]
-    n = np.asarray(eta, dtype=np.float64) + 1j * np.asarray(k, dtype=np.float64)
-    sin2_i = 1.0 - cos_i * cos_i
-    cos_t = np.sqrt(1.0 - sin2_i / (n * n))
+    c = np.clip(np.asarray(cos_i, dtype=np.float64), 0.0, 1.0)[..., None]
+    eta = np.asarray(eta, dtype=np.float64)
+    k = np.asarray(k, dtype=np.float64)
+    cos2 = c * c
+    sin2 = 1.0 - cos2
+    eta2, k2 = eta * eta, k * k
+    t0 = eta2 - k2 - sin2
+    a2b2 = np.sqrt(t0 * t0 + 4.0 * eta2 * k2)  # a^2 + b^2 = |n^2 - sin^2|
+    t1 = a2b2 + cos2
+    a = np.sqrt(np.maximum(0.0, 0.5 * (a2b2 + t0)))
+    t2 = 2.0 * c * a
+    t3 = cos2 * a2b2 + sin2 * sin2
+    t4 = t2 * sin2
     with np.errstate(invalid="ignore", divide="ignore"):
-        r_parl = (n * cos_i - cos_t) / (n * cos_i + cos_t)
-        r_perp = (cos_i - n * cos_t) / (cos_i + n * cos_t)
-    r = 0.5 * (np.abs(r_parl) ** 2 + np.abs(r_perp) ** 2)
+        rs = (t1 - t2) / (t1 + t2)
+        rp = rs * (t3 - t4) / (t3 + t4)
+    r = 0.5 * (rs + rp)
     return np.where(np.isfinite(r), np.clip(r, 0.0, 1.0), 1.0)
