@@ -88,30 +88,54 @@ def _norm(name: str) -> str:
     return re.sub(r"[-_.]+", "_", name).lower()
 
 
-def cached_wheel(folder: Path, dist: str) -> Path | None:
-    hits = sorted(p for p in folder.glob("*.whl") if _norm(p.name.split("-")[0]) == _norm(dist))
+def cached_wheel(folder: Path, dist: str, version: str | None = None) -> Path | None:
+    hits = sorted(
+        p for p in folder.glob("*.whl")
+        if _norm(p.name.split("-")[0]) == _norm(dist) and (version is None or p.name.split("-")[1] == version)
+    )
     return hits[-1] if hits else None
 
 
-def download(dist: str, platform: str, folder: Path, log) -> Path | None:
-    """The cached or freshly downloaded wheel of ``dist`` for ``platform``, or None if none exists."""
-    folder.mkdir(parents=True, exist_ok=True)
-    hit = cached_wheel(folder, dist)
-    if hit is not None:
-        return hit
+def _pip_download(req: str, platform: str, folder: Path) -> bool:
     cmd = [sys.executable, "-m", "pip", "download", "--only-binary=:all:", "--no-deps", "--python-version", "3.11",
            "--implementation", "cp", "--disable-pip-version-check", "-q", "-d", str(folder)]
     for tag in PLATFORM_TAGS[platform]:
         cmd += ["--platform", tag]
-    cmd.append(requirement(dist))
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode != 0:
-        text = proc.stderr + proc.stdout
-        if re.search(r"(Connection|NewConnectionError|Max retries|Temporary failure in name resolution|Network is unreachable)", text):
-            raise RegistryUnreachable(f"pip cannot reach the package index: {text.strip().splitlines()[-1]}")
-        log(f"  {platform}: no cp311 wheel of {requirement(dist)}")
-        return None
-    return cached_wheel(folder, dist)
+    proc = subprocess.run(cmd + [req], capture_output=True, text=True)
+    if proc.returncode == 0:
+        return True
+    text = proc.stderr + proc.stdout
+    if re.search(r"(NewConnectionError|Max retries|Temporary failure in name resolution|Network is unreachable|"
+                 r"Connection refused|ConnectTimeout)", text):
+        raise RegistryUnreachable(f"pip cannot reach the package index: {text.strip().splitlines()[-1]}")
+    return False
+
+
+def download(dist: str, platform: str, folder: Path, log) -> Path | None:
+    """The cached or freshly downloaded wheel of ``dist`` for ``platform``, or None if none exists.
+
+    The version the tests run against is preferred; where it has no wheel for ``platform``, the
+    newest version that has one is used and the log says so.
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    req = requirement(dist)
+    pinned = req.split("==")[1] if "==" in req else None
+    hit = cached_wheel(folder, dist, pinned)
+    if hit is not None:
+        return hit
+    if _pip_download(req, platform, folder):
+        return cached_wheel(folder, dist, pinned)
+    if req != dist and _pip_download(dist, platform, folder):
+        w = cached_wheel(folder, dist)
+        log(f"  {platform}: {req} has no cp311 wheel; using {w.name} instead")
+        return w
+    log(f"  {platform}: no cp311 wheel of {dist}")
+    return None
+
+
+def _macos_minimum(wheels: list[Path]) -> str | None:
+    versions = [tuple(int(x) for x in m.groups()) for w in wheels for m in [re.search(r"macosx_(\d+)_(\d+)_", w.name)] if m]
+    return ".".join(map(str, max(versions))) if versions else None
 
 
 def collect_wheels(platforms: list[str], cache: Path, log) -> tuple[dict[str, list[Path]], dict[str, list[str]]]:
@@ -180,6 +204,8 @@ def build(platforms: list[str], out: Path, cache: Path, build_dir: Path, log=pri
         raise RuntimeError(f"no platform has all required wheels; missing: {missing}")
     for platform, ws in sorted(wheels.items()):
         extra = f"; without {', '.join(missing[platform])}" if missing[platform] else ""
+        if platform.startswith("macos") and (mac := _macos_minimum(ws)):
+            extra += f"; needs macOS {mac} or newer"
         log(f"  {platform}: {', '.join(w.name for w in ws)}{extra}")
     assemble(build_dir, wheels)
     out.mkdir(parents=True, exist_ok=True)

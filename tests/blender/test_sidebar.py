@@ -1,0 +1,125 @@
+"""The sidebar drawn headless: panels draw into a recording layout (no GPU or window needed),
+every property they show exists, and the list shows the base at the bottom."""
+
+from __future__ import annotations
+
+import types
+
+import pytest
+
+from tests.blender.helpers import run_operator
+
+pytest.importorskip("bpy")
+
+
+class RecordingLayout:
+    """Stands in for ``UILayout``: records what would be drawn and checks it refers to real data."""
+
+    def __init__(self, log):
+        self.log = log
+        self.enabled = True
+        self.alert = False
+
+    def _child(self, *args, **kwargs):
+        return RecordingLayout(self.log)
+
+    row = column = box = split = _child
+
+    def prop(self, data, name, **kwargs):
+        assert name in data.bl_rna.properties, f"{type(data).__name__} has no property {name!r}"
+        self.log.append(("prop", name))
+
+    def operator(self, idname, **kwargs):
+        module, op = idname.split(".")
+        assert hasattr(getattr(__import__("bpy").ops, module), op), idname
+        self.log.append(("operator", idname))
+        return types.SimpleNamespace()
+
+    def operator_menu_enum(self, idname, prop, **kwargs):
+        self.log.append(("operator_menu_enum", idname, prop))
+
+    def template_list(self, list_id, _list_name, data, prop, active_data, active_prop, **kwargs):
+        assert hasattr(__import__("bpy").types, list_id), list_id
+        assert prop in data.bl_rna.properties and active_prop in active_data.bl_rna.properties
+        self.log.append(("template_list", list_id))
+
+    def template_ID(self, data, prop, **kwargs):
+        self.log.append(("template_ID", prop))
+
+    def menu(self, menu_id, **kwargs):
+        assert hasattr(__import__("bpy").types, menu_id), menu_id
+        self.log.append(("menu", menu_id))
+
+    def label(self, text="", **kwargs):
+        self.log.append(("label", text))
+
+    def separator(self, **kwargs):
+        pass
+
+
+def draw(panel_cls, context):
+    log = []
+    panel_cls.draw(types.SimpleNamespace(layout=RecordingLayout(log)), context)
+    return log
+
+
+def _ctx(fresh_scene):
+    return types.SimpleNamespace(object=fresh_scene.view_layer.objects.active)
+
+
+@pytest.mark.parametrize("panel", ["NLM_PT_view3d_stack", "NLM_PT_shader_stack", "NLM_PT_view3d_preview",
+                                   "NLM_PT_shader_preview"])
+def test_panels_draw_in_every_state(bpy_addon, fresh_scene, panel):
+    bpy = bpy_addon
+    cls = getattr(bpy.types, panel)
+    assert cls.bl_category == "Layers" and cls.bl_region_type == "UI"
+    ob = fresh_scene.view_layer.objects.active
+
+    log = draw(cls, _ctx(fresh_scene))  # empty stack
+    if "stack" in panel:
+        assert ("template_list", "NLM_UL_layers") in log and ("menu", "NLM_MT_presets") in log
+        assert ("operator_menu_enum", "neural_layers.layer_add", "layer_type") in log
+        assert any(e[0] == "label" and "Add a base layer" in e[1] for e in log)
+
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="red_car_paint").finished
+    log = draw(cls, _ctx(fresh_scene))
+    if "stack" in panel:
+        # the active layer is the top coating: its fields, and no base-only fields
+        props = [e[1] for e in log if e[0] == "prop"]
+        assert {"ior", "medium_albedo", "thickness", "g", "roughness"} <= set(props)
+        assert "albedo" not in props and "eta" not in props
+        ob.active_material.neural_layers.active_index = 0
+        props = [e[1] for e in draw(cls, _ctx(fresh_scene)) if e[0] == "prop"]
+        assert "conductor_mode" in props and "eta" in props and "thickness" not in props
+    else:
+        assert ("operator", "neural_layers.preview_lobe") in log and ("operator", "neural_layers.compare_reference") in log
+
+    ob.active_material.neural_layers.layers[0].layer_type = "COATING"  # invalid: shows why
+    log = draw(cls, _ctx(fresh_scene))
+    if "stack" in panel:
+        assert any(e[0] == "label" and "bottom" in e[1] for e in log)
+
+    ob.data.materials.clear()
+    log = draw(cls, _ctx(fresh_scene))
+    assert any(e[0] == "label" and "material" in e[1].lower() for e in log)
+    log = draw(cls, types.SimpleNamespace(object=None))
+    assert any(e[0] == "label" for e in log)
+
+
+def test_panels_poll_for_3d_view_and_shader_editor_only(bpy_addon):
+    bpy = bpy_addon
+    view3d = types.SimpleNamespace(space_data=types.SimpleNamespace(type="VIEW_3D"))
+    shader = types.SimpleNamespace(space_data=types.SimpleNamespace(type="NODE_EDITOR", tree_type="ShaderNodeTree"))
+    geo = types.SimpleNamespace(space_data=types.SimpleNamespace(type="NODE_EDITOR", tree_type="GeometryNodeTree"))
+    assert bpy.types.NLM_PT_view3d_stack.poll(view3d)
+    assert bpy.types.NLM_PT_shader_stack.poll(shader)
+    assert not bpy.types.NLM_PT_shader_stack.poll(geo)
+
+
+def test_list_shows_base_at_the_bottom(bpy_addon, fresh_scene, material):
+    bpy = bpy_addon
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="three_layer").finished
+    ul = types.SimpleNamespace(filter_name="", bitflag_filter_item=1 << 30)
+    flags, order = bpy.types.NLM_UL_layers.filter_items(ul, None, material.neural_layers, "layers")
+    assert flags == [1 << 30] * 4
+    assert order == [3, 2, 1, 0]  # item 0 (the base) is drawn in the last row
