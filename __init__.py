@@ -39,3 +39,8 @@ def unregister() -> None:
     blender.unregister()
     if _HERE in sys.path:
         sys.path.remove(_HERE)
+    # Forget our modules so that enabling again (or an updated version) imports fresh code.
+    for name in [n for n in sys.modules if n == "addon" or n.startswith("addon.")]:
+        path = getattr(sys.modules[name], "__file__", None) or ""
+        if os.path.abspath(path).startswith(_HERE):
+            del sys.modules[name]

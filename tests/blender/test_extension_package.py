@@ -112,6 +112,7 @@ INSTALL_SCRIPT = textwrap.dedent(
 
     bpy.ops.preferences.addon_disable(module=module)
     out["after_disable"] = hasattr(bpy.types.Material, "neural_layers") or hasattr(bpy.types, "NLM_PT_view3d_stack")
+    out["modules_left"] = sorted(n for n in sys.modules if n == "addon" or n.startswith("addon."))
     bpy.ops.preferences.addon_enable(module=module)
     out["after_enable"] = hasattr(bpy.types.Material, "neural_layers") and hasattr(bpy.types, "NLM_PT_view3d_stack")
     print("RESULT " + json.dumps(out))
@@ -142,3 +143,4 @@ def test_zip_installs_enables_and_runs(built_zip, tmp_path):
         assert ops[name] == ["FINISHED"] or "neural models not available" in ops[name], (name, ops[name])
     assert {"Lobe Material", "Sphere Material"} <= set(out["images"])
     assert not out["after_disable"] and out["after_enable"]
+    assert out["modules_left"] == []  # disabling forgets the code: enabling an update imports it afresh
