@@ -326,6 +326,13 @@ def test_index_matched_interface_is_pure_transmission():
         np.testing.assert_allclose(s.weight, 1.0)
         wi = random_dirs(rng, 500)
         assert np.all(b.eval(wi, wo) == 0) and np.all(b.pdf(wi, wo) == 0)
+    # within round-off of 1 the interface is index-matched; just outside, sample and pdf agree
+    assert np.all(RoughDielectric(0.5, 1 + 1e-12).sample(wo, rng.random(500), rng.random((500, 2))).delta)
+    for ior in (1 + 2e-7, 1 - 2e-7):
+        b = RoughDielectric(0.01, ior)
+        s = b.sample(wo, rng.random(500), rng.random((500, 2)))
+        assert np.all(s.valid) and not np.any(s.delta)
+        np.testing.assert_allclose(b.pdf(s.wi, wo), s.pdf, rtol=1e-3)
 
 
 def test_reflection_only_base_loses_the_transmission():

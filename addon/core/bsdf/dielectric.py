@@ -12,6 +12,10 @@ from .fresnel import fresnel_dielectric
 
 _UP = np.array([0.0, 0.0, 1.0])
 
+# |ior - 1| below this is index-matched: Fresnel reflectance is < 1e-15 there, and the
+# generalised half vector of rough transmission loses all precision to cancellation.
+INDEX_MATCHED_TOL = 1e-7
+
 
 def _dot(a, b):
     return np.einsum("ij,ij->i", a, b)
@@ -23,7 +27,8 @@ class RoughDielectric(BSDF):
 
     ``ior`` is the relative index n_below / n_above; any positive finite value is allowed
     (< 1 for an interface between two media where the lower one is optically thinner);
-    ``ior == 1`` is index-matched: a pure delta transmission with weight 1.
+    ``ior == 1`` (to within ``INDEX_MATCHED_TOL``) is index-matched: a delta transmission
+    with weight ~1 whatever alpha.
 
     With m the generalised half vector facing +z (m ~ wi etap + wo, etap = ior when wo is
     above, 1/ior below, 1 for reflection), F = Fresnel(wo.m):
@@ -43,7 +48,7 @@ class RoughDielectric(BSDF):
     ``reflection_only=True`` is a dielectric over black: the transmitted energy is lost,
     ``eval``/``pdf`` of transmission are 0 and ``sample`` only reflects (weight F G2 / G1).
 
-    ``alpha < SMOOTH_ALPHA`` (or ``ior == 1``) gives delta lobes: eval/pdf are 0, ``sample``
+    ``alpha < SMOOTH_ALPHA`` (or an index-matched ``ior``) gives delta lobes: eval/pdf are 0, ``sample``
     returns the mirror (weight 1; F for ``reflection_only``) with pdf F, or the refracted
     direction (weight 1/etap^2 in RADIANCE mode, 1 in IMPORTANCE) with pdf 1 - F.
     """
@@ -58,7 +63,7 @@ class RoughDielectric(BSDF):
     def _rows(self, n):
         alpha = rows(self.alpha, n, "alpha")
         ior = rows(self.ior, n, "ior")
-        return alpha, ior, (alpha < SMOOTH_ALPHA) | (ior == 1.0)
+        return alpha, ior, (alpha < SMOOTH_ALPHA) | (np.abs(ior - 1.0) < INDEX_MATCHED_TOL)
 
     def _half(self, wi, wo, ior):
         """Generalised half vector m (facing +z), etap, reflect flag and the row mask where
