@@ -1,0 +1,155 @@
+"""Position-free Monte Carlo layered BSDF (Guo, Hasan, Zhao 2018): the ground truth.
+
+Public API (directions are (N, 3) unit vectors in the local frame, normal +z, both pointing
+away from the surface; results are float64):
+
+- ``eval_brdf(stack, wi, wo, walks=64, seed=0) -> (f, stderr)``, both (N, 3): f(wi, wo)
+  without the cosine, estimated by ``walks`` independent random walks per pair
+  (unidirectional, next-event estimation toward ``wi`` with MIS; see :mod:`.walk`), and the
+  standard error of that mean. Delta components (the mirror reflection of a smooth top
+  interface) are not part of f. Pairs with ``wi`` or ``wo`` below the horizon give 0.
+- ``sample(stack, wo, rng, with_flags=False) -> (wi, weight[, specular])``: one analog walk
+  per row; ``weight`` = f cos / pdf in expectation (0 for absorbed walks), ``specular`` True
+  where every event was a delta event (paths ``eval_brdf`` cannot represent).
+- ``albedo(stack, wo, samples=4096, seed=0) -> (albedo, stderr)``, both (N, 3): directional
+  albedo (all paths, delta ones included) as the mean of ``samples`` analog walks.
+
+``stack`` is a :class:`~addon.core.stack.Stack` (the same stack for every row) or a
+:class:`~addon.core.stack.StackArrays` with one row (shared) or N rows (one stack per
+direction pair: a batch of different stacks with the same number of coatings; build it with
+:func:`pack_stacks`).
+
+The model: coating j is a rough dielectric interface over a homogeneous slab; interface j has
+the relative index ``ior_j / ior_{j+1}`` (air above the top one); the base lies inside the
+lowest coating's medium and its optical constants are taken relative to that medium
+(``eta / n_0``, ``k / n_0``, ``ior / n_0``). Interfaces scatter once (single-scattering
+microfacet model): a rough interface loses the energy of multiple microfacet bounces, so a
+white base under an alpha = 0.3 coat has an albedo well below 1. That is the model.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from addon.core.bsdf.base import as_directions
+from addon.core.stack import Stack, StackArrays
+
+from .walk import CHUNK_WALKS, MAX_DEPTH, Layers, run_walks, validate_arrays
+
+__all__ = ["eval_brdf", "sample", "albedo", "pack_stacks", "MAX_DEPTH"]
+
+
+def pack_stacks(stacks) -> StackArrays:
+    """Many stacks with the same number of coatings as one struct of arrays (one row each)."""
+    if isinstance(stacks, Stack):
+        stacks = [stacks]
+    return StackArrays.from_stacks(list(stacks))
+
+
+def _layers_and_rows(stack, n: int) -> tuple[Layers, np.ndarray]:
+    if isinstance(stack, Stack):
+        sa = StackArrays.from_stacks([stack])
+    elif isinstance(stack, StackArrays):
+        sa = stack
+    else:
+        raise ValueError(f"stack must be a Stack or StackArrays, got {type(stack).__name__}")
+    validate_arrays(sa)
+    if len(sa) == 1:
+        return Layers.from_arrays(sa), np.zeros(n, dtype=np.int64)
+    if len(sa) != n:
+        raise ValueError(f"StackArrays has {len(sa)} rows but there are {n} directions; give 1 or {n} stacks")
+    return Layers.from_arrays(sa), np.arange(n)
+
+
+def _count(value, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
+
+
+def _rng(rng) -> np.random.Generator:
+    if isinstance(rng, np.random.Generator):
+        return rng
+    if isinstance(rng, (int, np.integer)) and not isinstance(rng, bool):
+        return np.random.default_rng(int(rng))
+    raise ValueError(f"rng must be a numpy Generator or an integer seed, got {type(rng).__name__}")
+
+
+def _mean_stderr(est: np.ndarray, pair: np.ndarray, n: int, k: int, sums: np.ndarray, sq: np.ndarray) -> None:
+    for c in range(3):
+        sums[:, c] += np.bincount(pair, weights=est[:, c], minlength=n)
+        sq[:, c] += np.bincount(pair, weights=est[:, c] ** 2, minlength=n)
+
+
+def _finish(sums: np.ndarray, sq: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    mean = sums / k
+    if k < 2:
+        return mean, np.full_like(mean, np.inf)
+    var = np.maximum(sq / k - mean * mean, 0.0) * (k / (k - 1))
+    return mean, np.sqrt(var / k)
+
+
+def eval_brdf(stack, wi, wo, walks: int = 64, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """f(wi, wo) (N, 3) without the cosine and its standard error (N, 3).
+
+    Each pair gets ``walks`` independent walks; with ``walks == 1`` the standard error is
+    infinite (unknown). Raises ValueError on malformed or non-finite directions, bad stack
+    parameters or a non-positive walk count.
+    """
+    wi = as_directions(wi, "wi")
+    wo = as_directions(wo, "wo")
+    if wi.shape[0] != wo.shape[0]:
+        raise ValueError(f"wi has {wi.shape[0]} rows but wo has {wo.shape[0]}")
+    k = _count(walks, "walks")
+    n = wi.shape[0]
+    lay, prow = _layers_and_rows(stack, n)
+    rng = _rng(seed)
+    sums = np.zeros((n, 3))
+    sq = np.zeros((n, 3))
+    total = n * k
+    for r0 in range(0, total, CHUNK_WALKS):
+        r = np.arange(r0, min(total, r0 + CHUNK_WALKS))
+        pair = r // k
+        est = run_walks(lay, prow[pair], wo[pair], wi[pair], rng, nee=True)
+        _mean_stderr(est, pair, n, k, sums, sq)
+    above = ((wi[:, 2] > 0.0) & (wo[:, 2] > 0.0))[:, None]
+    f, se = _finish(sums, sq, k)
+    return np.where(above, f, 0.0), np.where(above, se, 0.0)
+
+
+def sample(stack, wo, rng, with_flags: bool = False):
+    """One analog walk per row of ``wo``: ``(wi, weight)`` or ``(wi, weight, specular)``.
+
+    ``weight`` (N, 3) is an unbiased estimate of f(wi, wo) cos(wi) / pdf(wi); absorbed walks
+    and ``wo`` below the horizon give weight 0 (and wi = +z). ``rng`` is a numpy Generator or
+    an integer seed.
+    """
+    wo = as_directions(wo, "wo")
+    n = wo.shape[0]
+    lay, prow = _layers_and_rows(stack, n)
+    g = _rng(rng)
+    out_wi = np.zeros((n, 3))
+    out_w = np.zeros((n, 3))
+    out_s = np.zeros(n, dtype=bool)
+    for r0 in range(0, n, CHUNK_WALKS):
+        sl = slice(r0, min(n, r0 + CHUNK_WALKS))
+        out_wi[sl], out_w[sl], out_s[sl] = run_walks(lay, prow[sl], wo[sl], None, g, nee=False)
+    return (out_wi, out_w, out_s) if with_flags else (out_wi, out_w)
+
+
+def albedo(stack, wo, samples: int = 4096, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Directional albedo (N, 3) seen from ``wo`` (all paths) and its standard error (N, 3)."""
+    wo = as_directions(wo, "wo")
+    k = _count(samples, "samples")
+    n = wo.shape[0]
+    lay, prow = _layers_and_rows(stack, n)
+    rng = _rng(seed)
+    sums = np.zeros((n, 3))
+    sq = np.zeros((n, 3))
+    total = n * k
+    for r0 in range(0, total, CHUNK_WALKS):
+        r = np.arange(r0, min(total, r0 + CHUNK_WALKS))
+        pair = r // k
+        _, w, _ = run_walks(lay, prow[pair], wo[pair], None, rng, nee=False)
+        _mean_stderr(w, pair, n, k, sums, sq)
+    return _finish(sums, sq, k)

@@ -1,0 +1,443 @@
+"""The position-free random walk through a layer stack (Guo et al. 2018), vectorised.
+
+Geometry of the model (all in the local frame, normal +z, light and viewer above):
+
+- coatings are numbered bottom to top ``0 .. C-1``; coating ``j`` is a rough dielectric
+  *interface j* over *slab j*, a homogeneous medium of refractive index ``n_j = ior_j``,
+  optical thickness ``tau_j`` (extinction 1 per unit depth), single-scattering albedo
+  ``a_j`` (RGB) and a Henyey-Greenstein phase of asymmetry ``g_j``;
+- above the top interface is air: "slab C" with ``n_C = 1`` and no medium;
+- interface ``j`` separates slab ``j`` (below) from slab ``j + 1`` (above): its relative
+  index, the ``ior`` of :class:`~addon.core.bsdf.RoughDielectric`, is ``n_j / n_{j+1}``;
+- the base lies at the floor of slab 0, inside the medium of index ``n_0`` (1 without
+  coatings). **Convention:** the base's parameters are relative to vacuum (as measured
+  optical constants are) and the walk applies them relative to the medium around the base:
+  a conductor uses ``(eta + i k) / n_0``, a dielectric base ``ior / n_0``. A Lambertian base
+  has no index. (pbrt-v4 and Guo et al. use the base as given; for a conductor under a
+  lacquer the two differ, and ours is the physical one.)
+
+A walk starts above the top interface travelling along ``-wo``. Each iteration is one event:
+a free flight in the current slab (the depth is sampled with the exponential distribution
+of extinction 1 along ``|w.z|``; absorbing-only slabs attenuate deterministically) that ends
+either in a medium scattering (throughput times the RGB albedo, new direction from the phase
+function) or at a boundary, where the interface or base BSDF is sampled in RADIANCE mode.
+Crossing the top interface upward ends the walk. Russian roulette after 3 events keeps
+walks of any length unbiased; ``MAX_DEPTH`` only bounds pathological walks.
+
+**Estimator of f(wi, wo)** (``nee=True``): unidirectional with next-event estimation and MIS,
+as pbrt-v4's ``LayeredBxDF``, generalised to any number of coatings:
+
+- before the walk, a *chain* of directions is sampled from ``wi`` downward, in IMPORTANCE
+  mode, by transmission through the interfaces from the top: ``d_C = -wi``, and ``d_k`` is
+  sampled from interface ``k`` given ``-d_{k+1}``. Its weight is
+  ``W_k = W_{k+1} Tr(slab k+1 along d_{k+1}) * weight_k``. The chain passes any number of
+  smooth interfaces and the *highest rough interface* ``K``, and stops at the next rough one
+  below it (``K2``): a connection from below ``K2`` would need two rough vertices.
+- every non-delta vertex (medium scattering in slab s, or a surface at the floor of slab s:
+  the base is the floor of slab 0, interface k of slab k + 1) connects to the chain
+  direction ``d_s``: ``beta f(-d_s, -w) Tr(to the top of slab s) W_s`` (for a medium vertex
+  ``beta a p(-d_s, -w) Tr W_s / |d_s.z|``, as pbrt);
+- the same light paths (vertex in slabs ``K2+1 .. K`` -> straight up through smooth
+  interfaces -> rough interface ``K``) are also found by the walk itself: its sampled
+  direction arrives at ``K`` from below and the vertex at ``K`` connects to ``d_{K+1}``. The
+  two strategies share the power heuristic with **the same two densities in both places**:
+  ``p_nee = pdf_K(d_K | -d_{K+1}, IMPORTANCE)`` (the density of the chain's own sample; pbrt
+  uses the reverse density ``pdf_K(wi | -w)`` in the second place, which biases rough coats by
+  2.5-10%) and ``p_bsdf`` = the vertex's sampling density, carried to slab K's solid angle by
+  the etendue of the smooth refractions in between, ``n_K^2 |cos_K| / (n_s^2 |cos_s|)``.
+  Paths that the other strategy cannot make (a delta reflection since the last vertex, or
+  an interface hit from above) get weight 1.
+
+The per-walk estimate is the sum of the connections; ``f`` is its mean over walks and the
+standard error is the sample standard deviation over walks / sqrt(walks).
+
+**Analog walk** (``nee=False``): no connections; a walk that crosses the top interface
+upward is a sample ``wi = w`` with weight ``beta`` (its expectation is
+``f(wi, wo) cos(wi) / pdf``), with a flag telling whether every event was a delta event.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from addon.core.bsdf import (
+    IMPORTANCE,
+    RADIANCE,
+    SMOOTH_ALPHA,
+    HenyeyGreenstein,
+    Lambertian,
+    RoughConductor,
+    RoughDielectric,
+)
+from addon.core.stack import BASE_KINDS, VALID_RANGES, StackArrays
+
+MAX_DEPTH = 256
+RR_START = 3
+CHUNK_WALKS = 1 << 17
+_JUST_BELOW_ONE = float(np.nextafter(1.0, 0.0))
+
+_DIFFUSE, _CONDUCTOR, _DIELECTRIC = (BASE_KINDS.index(k) for k in ("Diffuse", "Conductor", "Dielectric"))
+
+
+# ------------------------------------------------------------------------------------ layers
+
+
+def validate_arrays(sa: StackArrays) -> None:
+    """Raise ValueError if any field of ``sa`` is malformed, not finite or outside VALID_RANGES."""
+    if not isinstance(sa, StackArrays):
+        raise ValueError(f"expected a Stack or StackArrays, got {type(sa).__name__}")
+    n = len(sa)
+    c = sa.n_coatings
+    shapes = {
+        "base_kind": (n,), "base_albedo": (n, 3), "base_roughness": (n,), "base_eta": (n, 3),
+        "base_k": (n, 3), "base_ior": (n,), "coat_roughness": (n, c), "coat_ior": (n, c),
+        "coat_albedo": (n, c, 3), "coat_thickness": (n, c), "coat_g": (n, c),
+    }
+    ranges = {
+        "base_albedo": "albedo", "base_roughness": "roughness", "base_eta": "eta", "base_k": "k",
+        "base_ior": "ior", "coat_roughness": "roughness", "coat_ior": "ior", "coat_albedo": "albedo",
+        "coat_thickness": "thickness", "coat_g": "g",
+    }
+    for name, shape in shapes.items():
+        a = np.asarray(getattr(sa, name))
+        if a.shape != shape:
+            raise ValueError(f"StackArrays.{name} must have shape {shape}, got {a.shape}")
+    kind = np.asarray(sa.base_kind)
+    if np.any((kind < 0) | (kind >= len(BASE_KINDS))):
+        raise ValueError(f"StackArrays.base_kind must index {BASE_KINDS}, got values {np.unique(kind).tolist()}")
+    for name, key in ranges.items():
+        a = np.asarray(getattr(sa, name), dtype=np.float64)
+        lo, hi = VALID_RANGES[key]
+        bad = ~np.isfinite(a) | (a < lo) | (a > hi)
+        if np.any(bad):
+            where = tuple(int(i[0]) for i in np.nonzero(bad))
+            raise ValueError(
+                f"StackArrays.{name}{list(where)} = {a[where]!r} is outside the valid range [{lo}, {hi}]"
+            )
+
+
+@dataclass
+class Layers:
+    """Per-stack (row) arrays the walk gathers from; built once by :meth:`from_arrays`."""
+
+    C: int
+    n: np.ndarray  # (P, C+1) refractive index of slab j; n[:, C] = 1 (air)
+    eta: np.ndarray  # (P, C) relative index of interface j: n_j / n_{j+1}
+    alpha: np.ndarray  # (P, C)
+    tau: np.ndarray  # (P, C+1) optical thickness; tau[:, C] = 0
+    albedo: np.ndarray  # (P, C, 3)
+    g: np.ndarray  # (P, C)
+    scatter: np.ndarray  # (P, C+1) bool: slab has a scattering medium
+    smooth: np.ndarray  # (P, C) bool: interface j is a delta interface
+    K: np.ndarray  # (P,) highest rough interface, -1 if none
+    K2: np.ndarray  # (P,) next rough interface below K, -1 if none
+    base_kind: np.ndarray  # (P,)
+    base_albedo: np.ndarray  # (P, 3)
+    base_alpha: np.ndarray  # (P,)
+    base_eta: np.ndarray  # (P, 3) relative to n_0
+    base_k: np.ndarray  # (P, 3) relative to n_0
+    base_ior: np.ndarray  # (P,) relative to n_0
+
+    @classmethod
+    def from_arrays(cls, sa: StackArrays) -> "Layers":
+        validate_arrays(sa)
+        P, C = len(sa), sa.n_coatings
+        n = np.ones((P, C + 1))
+        n[:, :C] = sa.coat_ior
+        eta = n[:, :C] / n[:, 1:]
+        alpha = np.asarray(sa.coat_roughness, dtype=np.float64)
+        tau = np.zeros((P, C + 1))
+        tau[:, :C] = sa.coat_thickness
+        albedo = np.asarray(sa.coat_albedo, dtype=np.float64).reshape(P, C, 3)
+        scatter = np.zeros((P, C + 1), dtype=bool)
+        scatter[:, :C] = (tau[:, :C] > 0.0) & (albedo.max(axis=2, initial=0.0) > 0.0)
+        # RoughDielectric treats an index-matched interface as a delta transmission too.
+        smooth = (alpha < SMOOTH_ALPHA) | (eta == 1.0)
+        rough = ~smooth
+        idx = np.arange(C)[None, :]
+        K = np.where(rough, idx, -1).max(axis=1, initial=-1)
+        K2 = np.where(rough & (idx < K[:, None]), idx, -1).max(axis=1, initial=-1)
+        n0 = n[:, 0]
+        return cls(
+            C=C, n=n, eta=eta, alpha=alpha, tau=tau, albedo=albedo, g=np.asarray(sa.coat_g, dtype=np.float64),
+            scatter=scatter, smooth=smooth, K=K, K2=K2,
+            base_kind=np.asarray(sa.base_kind, dtype=np.int64),
+            base_albedo=np.asarray(sa.base_albedo, dtype=np.float64),
+            base_alpha=np.asarray(sa.base_roughness, dtype=np.float64),
+            base_eta=np.asarray(sa.base_eta, dtype=np.float64) / n0[:, None],
+            base_k=np.asarray(sa.base_k, dtype=np.float64) / n0[:, None],
+            base_ior=np.asarray(sa.base_ior, dtype=np.float64) / n0,
+        )
+
+
+def _base_bsdf(lay: Layers, kind: int, pr: np.ndarray):
+    if kind == _DIFFUSE:
+        return Lambertian(lay.base_albedo[pr])
+    if kind == _CONDUCTOR:
+        return RoughConductor(lay.base_alpha[pr], lay.base_eta[pr], lay.base_k[pr])
+    return RoughDielectric(lay.base_alpha[pr], lay.base_ior[pr], reflection_only=True)
+
+
+def _base_smooth(lay: Layers, pr: np.ndarray) -> np.ndarray:
+    kind = lay.base_kind[pr]
+    return (kind != _DIFFUSE) & (
+        (lay.base_alpha[pr] < SMOOTH_ALPHA) | ((kind == _DIELECTRIC) & (lay.base_ior[pr] == 1.0))
+    )
+
+
+def _power(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Power heuristic a^2 / (a^2 + b^2); 1 where both vanish."""
+    a2, b2 = a * a, b * b
+    s = a2 + b2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(s > 0.0, a2 / s, 1.0)
+
+
+def _tr(tau: np.ndarray, cos: np.ndarray) -> np.ndarray:
+    with np.errstate(divide="ignore", over="ignore"):
+        return np.where(tau > 0.0, np.exp(-tau / np.abs(cos)), 1.0)
+
+
+# ------------------------------------------------------------------------------------ chain
+
+
+def _sample_chain(lay: Layers, pr: np.ndarray, wi: np.ndarray, rng: np.random.Generator):
+    """Directions d_s (pointing down into slab s) sampled from ``wi`` by transmission in
+    IMPORTANCE mode, their weights W_s (0 where the chain does not reach slab s) and the
+    density of the sample at the highest rough interface K."""
+    m, C = pr.shape[0], lay.C
+    D = np.zeros((m, C + 1, 3))
+    W = np.zeros((m, C + 1, 3))
+    PK = np.zeros(m)
+    D[:, C] = -wi
+    W[:, C] = 1.0
+    K2 = lay.K2[pr]
+    for k in range(C - 1, -1, -1):
+        act = np.flatnonzero((W[:, k + 1].max(axis=1) > 0.0) & (k > K2))
+        if act.size == 0:
+            continue
+        p = pr[act]
+        u = rng.random((act.size, 3))
+        # A smooth interface is forced to transmit (u_lobe just below 1 picks the refraction
+        # unless it is total internal reflection), weighted by the probability of that event
+        # (the delta sample's pdf), instead of killing the chain with probability F.
+        smooth = lay.smooth[p, k]
+        u[smooth, 0] = _JUST_BELOW_ONE
+        up = -D[act, k + 1]
+        bs = RoughDielectric(lay.alpha[p, k], lay.eta[p, k]).sample(up, u[:, 0], u[:, 1:], IMPORTANCE, check=False)
+        ok = bs.valid & bs.transmission & (bs.wi[:, 2] < 0.0)
+        weight = bs.weight * np.where(smooth & bs.delta, bs.pdf, 1.0)[:, None]
+        D[act, k] = np.where(ok[:, None], bs.wi, 0.0)
+        tr = _tr(lay.tau[p, k + 1], D[act, k + 1, 2])
+        W[act, k] = np.where(ok[:, None], W[act, k + 1] * tr[:, None] * weight, 0.0)
+        atK = lay.K[p] == k
+        PK[act[atK]] = bs.pdf[atK]
+    return D, W, PK
+
+
+# ------------------------------------------------------------------------------------ walk
+
+
+class _State:
+    """Live walks, compacted every event."""
+
+    FIELDS = ("wid", "pr", "s", "z", "w", "beta", "last_pdf", "last_n2cos", "straight", "nondelta")
+
+    def __init__(self, **kw):
+        for k, v in kw.items():
+            setattr(self, k, v)
+
+    def keep(self, mask: np.ndarray) -> None:
+        for f in self.FIELDS:
+            setattr(self, f, getattr(self, f)[mask])
+
+
+def run_walks(lay: Layers, pr: np.ndarray, wo: np.ndarray, wi: np.ndarray | None,
+              rng: np.random.Generator, nee: bool):
+    """Walk ``len(pr)`` independent walks, walk ``r`` for stack row ``pr[r]`` seen from ``wo[r]``.
+
+    With ``nee`` (``wi`` given): returns the per-walk estimates of f(wi[r], wo[r]) (m, 3).
+    Without: returns ``(wi, weight, specular)`` of the analog walk (weight 0 for absorbed walks).
+    """
+    m, C = pr.shape[0], lay.C
+    acc = np.zeros((m, 3))
+    out_wi = np.zeros((m, 3))
+    out_wi[:, 2] = 1.0
+    out_w = np.zeros((m, 3))
+    out_spec = np.zeros(m, dtype=bool)
+    if nee:
+        D, W, PK = _sample_chain(lay, pr, wi, rng)
+    st = _State(
+        wid=np.arange(m), pr=pr.copy(), s=np.full(m, C), z=np.zeros(m), w=-wo.copy(), beta=np.ones((m, 3)),
+        last_pdf=np.zeros(m), last_n2cos=np.ones(m), straight=np.zeros(m, dtype=bool),
+        nondelta=np.zeros(m, dtype=bool),
+    )
+    # a walk must see the stack from above
+    st.keep(wo[:, 2] > 0.0)
+
+    def connect(ix, s_nee, f_fn, pdf_fn, medium, arrive_K):
+        """NEE from vertices ``ix`` (indices into st) to the chain direction of slab s_nee."""
+        wid = st.wid[ix]
+        d = D[wid, s_nee]
+        Wc = W[wid, s_nee]
+        a = np.flatnonzero(Wc.max(axis=1) > 0.0)
+        if a.size == 0:
+            return
+        ix, wid, d, Wc, s_nee = ix[a], wid[a], d[a], Wc[a], s_nee[a]
+        arrive_K = arrive_K[a]
+        p = st.pr[ix]
+        w_in = st.w[ix]
+        dz = np.abs(d[:, 2])
+        f = f_fn(a, -d, -w_in)
+        if medium:
+            tr = _tr(lay.tau[p, s_nee] - st.z[ix], dz)
+            c = st.beta[ix] * lay.albedo[p, st.s[ix]] * (f * tr / dz)[:, None] * Wc
+        else:
+            tr = _tr(lay.tau[p, s_nee], dz)
+            c = st.beta[ix] * f * tr[:, None] * Wc
+        K = lay.K[p]
+        wt = np.ones(a.size)
+        m1 = np.flatnonzero(s_nee <= K)
+        if m1.size:
+            Km = K[m1]
+            jac = lay.n[p[m1], Km] ** 2 * np.abs(D[wid[m1], Km, 2]) / (lay.n[p[m1], s_nee[m1]] ** 2 * dz[m1])
+            pv = pdf_fn(a[m1], -d[m1], -w_in[m1], RADIANCE) * jac
+            wt[m1] = _power(PK[wid[m1]], pv)
+        m2 = np.flatnonzero(arrive_K & st.straight[ix])
+        if m2.size:
+            Km = K[m2]
+            pb = st.last_pdf[ix[m2]] * lay.n[p[m2], Km] ** 2 * np.abs(w_in[m2, 2]) / st.last_n2cos[ix[m2]]
+            pn = pdf_fn(a[m2], -w_in[m2], -d[m2], IMPORTANCE)
+            wt[m2] = _power(pb, pn)
+        acc[wid] += c * wt[:, None]
+
+    for depth in range(MAX_DEPTH):
+        if st.wid.size == 0:
+            break
+        # Russian roulette
+        if depth > RR_START:
+            bmax = st.beta.max(axis=1)
+            q = np.where(bmax < 0.25, np.maximum(0.0, 1.0 - bmax), 0.0)
+            u = rng.random(bmax.size)
+            alive = u >= q
+            st.beta /= np.where(alive, 1.0 - q, 1.0)[:, None]
+            st.keep(alive & (bmax > 0.0))
+            if st.wid.size == 0:
+                break
+
+        # ---- free flight in the current slab
+        inside = st.s < C
+        up = st.w[:, 2] > 0.0
+        tau = lay.tau[st.pr, st.s]
+        scat = np.zeros(st.wid.size, dtype=bool)
+        sc_rows = np.flatnonzero(inside & lay.scatter[st.pr, st.s])
+        if sc_rows.size:
+            wz = np.abs(st.w[sc_rows, 2])
+            dist = -np.log1p(-rng.random(sc_rows.size)) * wz
+            zp = st.z[sc_rows] + np.where(up[sc_rows], dist, -dist)
+            hit = (zp > 0.0) & (zp < tau[sc_rows])
+            scat[sc_rows[hit]] = True
+            st.z[sc_rows[hit]] = zp[hit]
+        ab_rows = np.flatnonzero(inside & ~lay.scatter[st.pr, st.s] & (tau > 0.0))
+        if ab_rows.size:
+            dist = np.where(up[ab_rows], tau[ab_rows] - st.z[ab_rows], st.z[ab_rows])
+            st.beta[ab_rows] *= _tr(dist, st.w[ab_rows, 2])[:, None]
+        dead = np.zeros(st.wid.size, dtype=bool)
+
+        # ---- medium scattering
+        ms = np.flatnonzero(scat)
+        if ms.size:
+            p, s = st.pr[ms], st.s[ms]
+            phase = HenyeyGreenstein(lay.g[p, s])
+            if nee:
+                def f_ph(a, wi_, wo_):
+                    return phase.take(a).eval(wi_, wo_, check=False)
+
+                def pdf_ph(a, wi_, wo_, mode):
+                    return phase.take(a).eval(wi_, wo_, check=False)
+
+                connect(ms, s.copy(), f_ph, pdf_ph, True, np.zeros(ms.size, dtype=bool))
+            wnew, pdf = phase.sample(-st.w[ms], rng.random((ms.size, 2)), check=False)
+            st.beta[ms] *= lay.albedo[p, s]
+            st.w[ms] = wnew
+            st.last_pdf[ms] = pdf
+            st.last_n2cos[ms] = lay.n[p, s] ** 2 * np.abs(wnew[:, 2])
+            st.straight[ms] = wnew[:, 2] > 0.0
+            st.nondelta[ms] = True
+            dead[ms] = (wnew[:, 2] == 0.0) | ~(pdf > 0.0)
+
+        # ---- surface events: interface k hit from either side, or the base
+        srf = ~scat
+        if np.any(srf):
+            new_s = st.s.copy()
+            k = np.where(up, st.s, st.s - 1)
+            base_rows = np.flatnonzero(srf & ~up & (st.s == 0))
+            if_rows = np.flatnonzero(srf & ((up & (st.s < C)) | (~up & (st.s > 0))))
+            groups = []
+            if if_rows.size:
+                p, kk = st.pr[if_rows], k[if_rows]
+                groups.append((if_rows, RoughDielectric(lay.alpha[p, kk], lay.eta[p, kk]), kk + 1,
+                               lay.smooth[p, kk], up[if_rows] & (kk == lay.K[p]), kk))
+            for kind in range(len(BASE_KINDS)):
+                rows = base_rows[lay.base_kind[st.pr[base_rows]] == kind]
+                if rows.size:
+                    p = st.pr[rows]
+                    groups.append((rows, _base_bsdf(lay, kind, p), np.zeros(rows.size, dtype=np.int64),
+                                   _base_smooth(lay, p), np.zeros(rows.size, dtype=bool), None))
+            for rows, bsdf, s_nee, smooth, arrive_K, kk in groups:
+                if nee:
+                    nd = np.flatnonzero(~smooth)
+                    if nd.size:
+                        sub = bsdf.take(nd)
+
+                        def f_s(a, wi_, wo_, sub=sub):
+                            return sub.take(a).eval(wi_, wo_, RADIANCE, check=False)
+
+                        def pdf_s(a, wi_, wo_, mode, sub=sub):
+                            return sub.take(a).pdf(wi_, wo_, mode, check=False)
+
+                        connect(rows[nd], s_nee[nd], f_s, pdf_s, False, arrive_K[nd])
+                u = rng.random((rows.size, 3))
+                forced = np.zeros(rows.size, dtype=bool)
+                if nee and kk is not None:
+                    # f has no delta part: a smooth top interface hit from above (entering) must
+                    # transmit and one hit from below must reflect for the walk to contribute;
+                    # force that event and weight it by its probability (pbrt's
+                    # transmission-only / reflection-only sampling of the interfaces).
+                    forced = smooth & (kk == C - 1)
+                    u[forced, 0] = np.where(up[rows[forced]], 0.0, _JUST_BELOW_ONE)
+                bs = bsdf.sample(-st.w[rows], u[:, 0], u[:, 1:], RADIANCE, check=False)
+                wnew = bs.wi
+                ok = bs.valid & (wnew[:, 2] != 0.0)
+                st.beta[rows] *= bs.weight * np.where(forced & bs.delta, bs.pdf, 1.0)[:, None]
+                st.w[rows] = wnew
+                upn = wnew[:, 2] > 0.0
+                if kk is None:
+                    sn = np.zeros(rows.size, dtype=np.int64)
+                else:
+                    sn = np.where(upn, kk + 1, kk)
+                new_s[rows] = sn
+                st.z[rows] = np.where(upn, 0.0, lay.tau[st.pr[rows], np.minimum(sn, C)])
+                nd_ev = ~bs.delta
+                st.last_pdf[rows] = np.where(nd_ev, bs.pdf, st.last_pdf[rows])
+                st.last_n2cos[rows] = np.where(nd_ev, lay.n[st.pr[rows], np.minimum(sn, C)] ** 2 * np.abs(wnew[:, 2]),
+                                               st.last_n2cos[rows])
+                st.straight[rows] = np.where(nd_ev, upn, st.straight[rows] & bs.transmission)
+                st.nondelta[rows] |= nd_ev
+                dead[rows] = ~ok
+            st.s = new_s
+            exits = np.flatnonzero(srf & ~dead & (st.s == C))
+            if exits.size:
+                if not nee:
+                    wid = st.wid[exits]
+                    out_wi[wid] = st.w[exits]
+                    out_w[wid] = st.beta[exits]
+                    out_spec[wid] = ~st.nondelta[exits]
+                dead[exits] = True
+        st.keep(~dead)
+
+    if nee:
+        return acc
+    return out_wi, out_w, out_spec
