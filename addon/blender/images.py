@@ -39,16 +39,18 @@ def _largest(areas):
 
 
 def show_in_image_editor(context, image):
-    """Show ``image`` in an Image Editor of the current window; return the area or None.
+    """Show ``image`` in an Image Editor; return the area or None.
 
-    Uses an existing Image Editor when the window has one. Otherwise, in the UI, opens a new
-    window for it (as F12 renders do); in background mode (no user), turns the window's largest
-    area into an Image Editor.
+    Uses an existing Image Editor (the current window's first, then any other window's).
+    Otherwise, in the UI, opens a new window for it (as F12 renders do); in background mode
+    (no user), turns the window's largest area into an Image Editor.
     """
-    window = context.window or (context.window_manager.windows[0] if context.window_manager.windows else None)
+    windows = list(context.window_manager.windows)
+    window = context.window or (windows[0] if windows else None)
     if window is None:
         return None
-    areas = [a for a in window.screen.areas if a.type == "IMAGE_EDITOR"]
+    ordered = [window] + [w for w in windows if w != window]
+    areas = [a for w in ordered for a in w.screen.areas if a.type == "IMAGE_EDITOR"]
     if not areas and not bpy.app.background:
         try:
             with context.temp_override(window=window):

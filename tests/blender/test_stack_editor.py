@@ -180,6 +180,12 @@ def test_typed_values_are_held_to_the_valid_range(material, bpy_addon):
     assert prop.hard_max == pytest.approx(4.0)
     assert coat.bl_rna.properties["roughness"].soft_min == pytest.approx(math.sqrt(0.01))
 
+    # NaN passes Blender's limits (scripts can set it): every operator names the layer and value
+    coat.ior = float("nan")
+    for op in ("evaluate_latent", "preview_lobe", "preview_sphere", "compare_reference"):
+        r = run_operator(getattr(bpy_addon.ops.neural_layers, op))
+        assert r.error and "layer 'Coating'" in r.error and "ior = nan" in r.error, (op, r.error)
+
 
 @pytest.mark.parametrize(
     "op, kwargs",
