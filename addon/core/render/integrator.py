@@ -25,7 +25,8 @@ import numpy as np
 from ..bsdf import frame
 from . import materials as mat
 from .film import Film
-from .lights import AreaLight, Environment
+from .lights import AreaLight
+from .neural_material import finish_sample
 from .scene import Scene
 
 STRATEGIES = ("mis", "light", "bsdf")
@@ -341,16 +342,24 @@ def _trace_paths(ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: i
             bound = material.bind(mat.SurfaceHits(uv[sel], footprint[sel], int(seeds[mi])))
             rows = np.nonzero(visible[sel])[0]
             v = sel[rows]
+            joint = getattr(material, "sample_needs_eval", False)
+            if joint:
+                # Propose directions first, then one evaluation for shadow and sampled directions.
+                prop_wi, prop_pdf = bound.sample_direction(wo[sel], u_lobe[sel], u_dir[sel])
+                f_all = _timed(ctx.stats, material, bound.eval, np.concatenate([wi_nee[v], prop_wi]),
+                               np.concatenate([wo[v], wo[sel]]), np.concatenate([rows, np.arange(len(sel))]))
+                bs = finish_sample(prop_wi, prop_pdf, f_all[len(v):])
             if len(v):
                 wil, wol = wi_nee[v], wo[v]
-                f = _timed(ctx.stats, material, bound.eval, wil, wol, rows)
+                f = f_all[: len(v)] if joint else _timed(ctx.stats, material, bound.eval, wil, wol, rows)
                 lw = np.ones(len(v))
                 if material.has_pdf and s.strategy == "mis":
                     pb = _timed(ctx.stats, material, bound.pdf, wil, wol, rows)
                     lw = np.where(nee_delta[v], 1.0, _power_heuristic(ctx.p_select * nee_pdf[v], pb))
                 contrib = f * (np.abs(wil[:, 2]) * lw / (ctx.p_select * nee_pdf[v]))[:, None] * nee_rad[v]
                 L[path[v]] += thr[v] * contrib
-            bs = _timed(ctx.stats, material, bound.sample, wo[sel], u_lobe[sel], u_dir[sel])
+            if not joint:
+                bs = _timed(ctx.stats, material, bound.sample, wo[sel], u_lobe[sel], u_dir[sel])
             new_wi[sel], weight[sel], s_pdf[sel], s_delta[sel] = bs.wi, bs.weight, bs.pdf, bs.delta
             s_mis[sel] = material.has_pdf
             roughish[sel] = ~bs.delta

@@ -1,0 +1,165 @@
+"""Renderer materials: reference mode, neural materials, resolution of stacks, textures."""
+
+import numpy as np
+import pytest
+
+from addon.core.render import (
+    AreaLight,
+    Camera,
+    Environment,
+    ImageTexture,
+    LambertMaterial,
+    LayeredSpec,
+    Mesh,
+    ReferenceLayered,
+    RenderSettings,
+    Scene,
+    SurfaceHits,
+    render,
+    shapes,
+)
+from addon.core.render import materials as M
+from addon.core.render import neural_material
+from addon.core.stack import PRESETS, Coating, Conductor, Diffuse, Stack
+from tests.core.test_render import block_stats, mixed_scene
+
+COPPER = Stack(Conductor(roughness=0.3, eta=(0.2, 0.9, 1.1), k=(3.9, 2.4, 2.2)))
+
+
+def compare(a, b):
+    """rms z of block differences, the z of the image means' difference, and their relative difference."""
+    (ma, sa), (mb, sb) = a, b
+    z = (ma - mb) / np.sqrt(sa**2 + sb**2 + 1e-12)
+    z_mean = (ma.mean() - mb.mean()) / (np.sqrt((sa**2).sum() + (sb**2).sum()) / sa.size)
+    return np.sqrt((z**2).mean()), abs(z_mean), abs(ma.mean() / mb.mean() - 1)
+
+
+def test_stacks_resolve_to_exact_neural_or_reference_materials():
+    assert isinstance(M.resolve(Stack(Diffuse((0.5, 0.5, 0.5))), "reference"), LambertMaterial)
+    assert isinstance(M.resolve(COPPER, "neural"), M.BSDFMaterial)
+    layered = PRESETS["coated_gold"]
+    assert isinstance(M.resolve(layered, "reference"), ReferenceLayered)
+    assert isinstance(M.resolve(LayeredSpec(layered), "reference"), ReferenceLayered)
+    # Neural mode uses the neural runtime where it can serve the stack, else the reference.
+    assert M.resolve(layered, "neural").kind in ("neural", "reference")
+    with pytest.raises(ValueError, match="render mode"):
+        M.resolve(layered, "fast")
+    with pytest.raises(ValueError, match="Stack"):
+        M.resolve("gold", "neural")
+
+
+def test_reference_mode_without_pdf_matches_the_exact_analytic_material():
+    # The same rough conductor as an exact BSDF and through the position-free estimator, which
+    # has no pdf: next-event estimation alone must carry its rough part.
+    scene = mixed_scene(24, 16)
+    scene.materials[1] = M.analytic_for_stack(COPPER)
+    exact = block_stats(render(scene, RenderSettings(samples=48, max_bounces=2, seed=1))[0])
+    scene.materials[1] = ReferenceLayered(COPPER, walks=2)
+    film, stats = render(scene, RenderSettings(samples=48, max_bounces=2, seed=2))
+    assert stats.seconds["reference"] > 0 and stats.nonfinite == 0
+    rms, z_mean, _ = compare(block_stats(film), exact)
+    assert rms < 1.8 and z_mean < 4, (rms, z_mean)
+
+
+@pytest.mark.mitsuba
+def test_reference_mode_matches_mitsuba_plastic():
+    """A smooth clear coat over a Lambertian base (delta events included) against Mitsuba's exact
+    ``plastic`` (nonlinear), lit by an area light and a constant sky."""
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_rgb")
+    width, height = 32, 24
+    eye, target = (0.0, -4.0, 1.5), (0.0, 0.0, 0.5)
+    mesh = Mesh.concatenate([shapes.uv_sphere((0, 0, 0.8), 0.8, material=1, segments=32, rings=16),
+                             shapes.quad((0, 0, 0), (3, 0, 0), (0, 3, 0), material=0)])
+    light_m = np.array([[1, 0, 0, 1.0], [0, 1, 0, -1.0], [0, 0, 1, 2.5], [0, 0, 0, 1]])
+    area = AreaLight(light_m, power=100.0, size=1.0)
+    sky, base = (0.4, 0.45, 0.5), (0.2, 0.5, 0.8)
+    stack = Stack(Diffuse(base), (Coating(roughness=0.0, ior=1.5),))
+    scene = Scene(Camera.look_at(eye, target, fov_deg=35, width=width, height=height), mesh,
+                  [LambertMaterial((0.5, 0.5, 0.5)), LayeredSpec(stack)], [area], Environment(sky))
+    film, _ = render(scene, RenderSettings(samples=48, max_bounces=3, mode="reference", reference_walks=2))
+
+    def rgb(v):
+        return {"type": "rgb", "value": [float(x) for x in v]}
+
+    def mi_mesh(index, bsdf):
+        sel = mesh.material_index == index
+        p, n = mesh.positions[sel].reshape(-1, 3), mesh.normals[sel].reshape(-1, 3)
+        props = mi.Properties()
+        props["bsdf"] = mi.load_dict(bsdf)
+        m = mi.Mesh(f"m{index}", len(p), len(p) // 3, props, has_vertex_normals=True)
+        params = mi.traverse(m)
+        params["vertex_positions"] = p.ravel().tolist()
+        params["vertex_normals"] = n.ravel().tolist()
+        params["faces"] = np.arange(len(p)).tolist()
+        params.update()
+        return m
+
+    T = mi.ScalarTransform4f
+    ref = np.array(mi.render(mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 4},
+        "sensor": {"type": "perspective", "fov": 35, "fov_axis": "larger",
+                   "to_world": T().look_at(origin=list(eye), target=list(target), up=[0, 0, 1]),
+                   "film": {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
+                            "pixel_format": "rgb"},
+                   "sampler": {"type": "independent", "sample_count": 1024}},
+        "sky": {"type": "constant", "radiance": rgb(sky)},
+        "light": {"type": "rectangle",
+                  "to_world": T().translate([1.0, -1.0, 2.5]) @ T().rotate([1, 0, 0], 180) @ T().scale([0.5, 0.5, 1]),
+                  "emitter": {"type": "area", "radiance": rgb(area.radiance)}},
+        "floor": mi_mesh(0, {"type": "diffuse", "reflectance": rgb((0.5, 0.5, 0.5))}),
+        "ball": mi_mesh(1, {"type": "plastic", "diffuse_reflectance": rgb(base), "int_ior": 1.5,
+                            "nonlinear": True}),
+    })), dtype=np.float64)
+    ours, se = block_stats(film, 8)
+    theirs = ref.reshape(3, 8, 4, 8, 3).mean(axis=(1, 3))
+    assert np.all(np.abs(ours - theirs) < 4 * se + 0.02 * theirs), np.abs(ours - theirs) / (4 * se + 0.02 * theirs)
+    assert abs(ours.mean() / theirs.mean() - 1) < 0.02
+
+
+def test_neural_material_agrees_with_the_exact_brdf_within_decoder_error():
+    material = neural_material.make(COPPER)
+    if material is None:
+        pytest.skip("neural models are not available")
+    scene = mixed_scene(24, 16)
+    scene.materials[1] = M.analytic_for_stack(COPPER)
+    exact = block_stats(render(scene, RenderSettings(samples=32, max_bounces=2, seed=1))[0])
+    scene.materials[1] = material
+    film, stats = render(scene, RenderSettings(samples=32, max_bounces=2, seed=2))
+    assert stats.seconds["network"] > 0 and stats.nonfinite == 0
+    rms, _, rel = compare(block_stats(film), exact)
+    print(f"neural vs exact: rms z {rms:.2f}, image mean differs by {100 * rel:.2f}%")
+    # The tiny decoder's lobe error is several percent: blocks may differ beyond the noise, but
+    # the image mean stays close.
+    assert rms < 4 and rel < 0.03, (rms, rel)
+
+
+def test_neural_sampling_weights_match_eval_over_pdf():
+    material = neural_material.make(COPPER)
+    if material is None:
+        pytest.skip("neural models are not available")
+    n = 4000
+    rng = np.random.default_rng(0)
+    bound = material.bind(SurfaceHits(np.zeros((n, 2)), np.zeros(n)))
+    wo = np.tile([[0.3, 0.1, np.sqrt(1 - 0.1)]], (n, 1))
+    s = bound.sample(wo, rng.random(n), rng.random((n, 2)))
+    ok = s.valid
+    assert ok.mean() > 0.9
+    assert np.allclose(s.pdf[ok], bound.pdf(s.wi[ok], wo[ok]), rtol=1e-6)
+    f = bound.eval(s.wi[ok], wo[ok])
+    assert np.allclose(s.weight[ok], f * (s.wi[ok, 2] / s.pdf[ok])[:, None], rtol=1e-5)
+
+
+def test_image_texture_footprint_selects_coarser_mip_levels():
+    checker = np.indices((64, 64)).sum(axis=0) % 2
+    tex = ImageTexture(np.repeat(checker[:, :, None], 3, axis=2).astype(np.float32))
+    uv = (np.random.default_rng(0).integers(0, 64, (500, 2)) + 0.5) / 64  # texel centres
+    sharp = tex.lookup(uv, np.full(500, 1 / 64 / 4))
+    blurred = tex.lookup(uv, np.full(500, 1.0))
+    assert sharp.std() > 0.3  # texel values survive at the finest level
+    assert np.allclose(blurred, 0.5, atol=1e-3)  # the footprint covers the whole texture
+    m = LambertMaterial((1.0, 0.5, 0.25), texture=tex)
+    bound = m.bind(SurfaceHits(uv, np.full(500, 1.0)))
+    wi = np.tile([[0.0, 0.0, 1.0]], (500, 1))
+    assert np.allclose(bound.eval(wi, wi), 0.5 * np.array([1.0, 0.5, 0.25]) / np.pi, atol=1e-3)
