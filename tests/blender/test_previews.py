@@ -234,3 +234,80 @@ def test_job_reports_progress_result_and_cancel():
     failing = Job(lambda progress: 1 / 0).start()
     failing.wait(10)
     assert isinstance(failing.error, ZeroDivisionError)
+
+
+def _modal_operator(op_cls):
+    """The operator's modal logic on a plain object (Blender's event loop does not run headless)."""
+    from addon.blender import operators
+
+    class Driven(operators._LongOperator):
+        bl_label = op_cls.bl_label
+        material = ""
+        prepare = op_cls.prepare
+
+        def __init__(self):
+            self.reports = []
+
+        def report(self, kind, message):
+            self.reports.append((set(kind), message))
+
+    return Driven()
+
+
+def _drive(op, context, events, limit=600):
+    import time
+    import types
+
+    from addon.blender.jobs import Job
+
+    work, op._finish = op.prepare(context)
+    op._job = Job(work).start()
+    result = {"RUNNING_MODAL"}
+    for event in events:
+        result = op.modal(context, types.SimpleNamespace(type=event))
+        assert result == ({"PASS_THROUGH"} if event == "MOUSEMOVE" else {"RUNNING_MODAL"}), (event, result)
+        result = {"RUNNING_MODAL"}
+    for _ in range(limit):
+        if result != {"RUNNING_MODAL"}:
+            break
+        time.sleep(0.05)
+        result = op.modal(context, types.SimpleNamespace(type="TIMER"))
+    return result
+
+
+def test_modal_preview_finishes_with_the_image(bpy_addon, fresh_scene, material, fake_neural):
+    bpy = bpy_addon
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="white_diffuse").finished
+    _small_previews(material)
+    op = _modal_operator(bpy.types.NEURAL_LAYERS_OT_preview_sphere)
+    result = _drive(op, fresh_scene, ["MOUSEMOVE"])  # other events pass through to the UI
+    assert result == {"FINISHED"}, op.reports
+    image = bpy.data.images[f"Sphere {material.name}"]
+    assert tuple(image.size) == (20, 20) and _shown(fresh_scene, image)
+    assert any("INFO" in kind and "sphere" in msg for kind, msg in op.reports)
+
+
+def test_modal_preview_cancels_on_escape(bpy_addon, fresh_scene, material, no_neural):
+    bpy = bpy_addon
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="red_car_paint").finished
+    _small_previews(material, lobe_resolution=512, walks=256)  # minutes of reference work
+    op = _modal_operator(bpy.types.NEURAL_LAYERS_OT_preview_lobe)
+    result = _drive(op, fresh_scene, ["ESC"])
+    assert result == {"CANCELLED"}
+    assert op._job.cancelled and op._job.fraction < 1.0
+    assert any("cancelled" in msg for _, msg in op.reports)
+    assert f"Lobe {material.name}" not in bpy.data.images
+
+
+def test_modal_preview_reports_worker_errors(bpy_addon, fresh_scene, material, monkeypatch):
+    bpy = bpy_addon
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="white_diffuse").finished
+    _small_previews(material, preview_method="NEURAL")
+
+    def broken():
+        raise preview.NeuralUnavailable("decoder_small.onnx is corrupt")
+
+    monkeypatch.setattr(preview, "_neural_module", broken)
+    op = _modal_operator(bpy.types.NEURAL_LAYERS_OT_preview_lobe)
+    assert _drive(op, fresh_scene, []) == {"CANCELLED"}
+    assert any("ERROR" in kind and "neural models not available" in msg for kind, msg in op.reports)
