@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import time
+import traceback
 
 import bpy
 from bpy.props import EnumProperty, StringProperty
@@ -41,7 +42,8 @@ def _guarded(label: str, op, fn) -> set:
         return _fail(op, f"neural models not available: {e}")
     except (UserError, ValueError) as e:
         return _fail(op, str(e))
-    except Exception as e:  # unexpected: still a report, with enough to file a bug
+    except Exception as e:  # unexpected: a report for the user, the traceback for a bug report
+        traceback.print_exc()
         return _fail(op, f"{label} failed: {type(e).__name__}: {e}")
 
 
@@ -56,7 +58,7 @@ class _MaterialOperator:
     @classmethod
     def poll(cls, context):
         # Always runnable: a missing object or material is reported by execute(), so scripts
-        # get a message instead of a poll failure. The panel greys buttons out itself.
+        # get a message instead of a poll failure.
         return True
 
     def target(self, context):

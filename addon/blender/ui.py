@@ -5,7 +5,6 @@ from __future__ import annotations
 import bpy
 
 from addon.blender import stack_io
-from addon.blender.properties import BASE_LAYER_TYPES
 from addon.core.stack import PRESETS
 
 _ICONS = {"DIFFUSE": "SHADING_SOLID", "CONDUCTOR": "SHADING_RENDERED", "DIELECTRIC": "SHADING_TEXTURE", "COATING": "MOD_THICKNESS"}

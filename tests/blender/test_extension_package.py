@@ -82,6 +82,10 @@ INSTALL_SCRIPT = textwrap.dedent(
     import bpy
     out = {}
     zip_path, ext_dir = sys.argv[1], os.environ["BLENDER_USER_EXTENSIONS"]
+    def snapshot():
+        ids = ("Material", "Scene", "Object", "World", "Light", "WindowManager", "Image")
+        return sorted(dir(bpy.types)) + [t + "." + k for t in ids for k in getattr(bpy.types, t).bl_rna.properties.keys()]
+    before = snapshot()
     out["install"] = sorted(bpy.ops.extensions.package_install_files(
         filepath=zip_path, repo="user_default", enable_on_install=True))
     module = "bl_ext.user_default.neural_layered_materials"
@@ -112,6 +116,7 @@ INSTALL_SCRIPT = textwrap.dedent(
 
     bpy.ops.preferences.addon_disable(module=module)
     out["after_disable"] = hasattr(bpy.types.Material, "neural_layers") or hasattr(bpy.types, "NLM_PT_view3d_stack")
+    out["left_behind"] = sorted(set(snapshot()) - set(before))
     out["modules_left"] = sorted(n for n in sys.modules if n == "addon" or n.startswith("addon."))
     bpy.ops.preferences.addon_enable(module=module)
     out["after_enable"] = hasattr(bpy.types.Material, "neural_layers") and hasattr(bpy.types, "NLM_PT_view3d_stack")
@@ -143,4 +148,5 @@ def test_zip_installs_enables_and_runs(built_zip, tmp_path):
         assert ops[name] == ["FINISHED"] or "neural models not available" in ops[name], (name, ops[name])
     assert {"Lobe Material", "Sphere Material"} <= set(out["images"])
     assert not out["after_disable"] and out["after_enable"]
+    assert out["left_behind"] == []  # disabling removes every type and property the extension added
     assert out["modules_left"] == []  # disabling forgets the code: enabling an update imports it afresh

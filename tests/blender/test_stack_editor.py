@@ -16,27 +16,38 @@ def _names(mat):
     return [(l.name, l.layer_type) for l in mat.neural_layers.layers]
 
 
+def _snapshot(bpy):
+    """Registered type names and the RNA properties of the data types an add-on may extend."""
+    ids = ("Material", "Scene", "Object", "World", "Light", "WindowManager", "Image")
+    props = {t: frozenset(getattr(bpy.types, t).bl_rna.properties.keys()) for t in ids}
+    return frozenset(dir(bpy.types)), props
+
+
 def test_register_is_idempotent_and_unregister_leaves_no_trace(bpy_addon):
     bpy = bpy_addon
     from addon import blender
-
     from addon.blender.properties import NLM_Layer, NLM_MaterialSettings
 
-    ours = ["NEURAL_LAYERS_OT_layer_add", "NEURAL_LAYERS_OT_preview_lobe", "NLM_UL_layers", "NLM_MT_presets",
-            "NLM_PT_view3d_stack", "NLM_PT_shader_stack"]
+    registered = _snapshot(bpy)
     try:
-        blender.register()  # second registration: re-registers cleanly
-        assert hasattr(bpy.types.Material, "neural_layers")
         blender.unregister()
+        bare = _snapshot(bpy)
         assert not hasattr(bpy.types.Material, "neural_layers")
-        for name in ours:
-            assert not hasattr(bpy.types, name), f"{name} still registered"
+        assert not NLM_Layer.is_registered and not NLM_MaterialSettings.is_registered
         blender.unregister()  # unregistering twice is harmless
+        blender.register()
+        blender.register()  # registering twice re-registers cleanly
+        assert _snapshot(bpy) == registered
+        blender.unregister()
+        assert _snapshot(bpy) == bare  # no trace
     finally:
         blender.register()
-    for name in ours:
-        assert hasattr(bpy.types, name), f"{name} not registered again"
-    assert NLM_Layer.is_registered and hasattr(bpy.types.Material, "neural_layers")
+    assert _snapshot(bpy) == registered
+    added_types = registered[0] - bare[0]
+    for name in ("NEURAL_LAYERS_OT_layer_add", "NEURAL_LAYERS_OT_preview_lobe", "NLM_UL_layers", "NLM_MT_presets",
+                 "NLM_PT_view3d_stack", "NLM_PT_shader_stack"):
+        assert name in added_types
+    assert "neural_layers" in registered[1]["Material"] - bare[1]["Material"]
     assert bpy.types.NLM_PT_view3d_stack.bl_category == "Layers"
     assert bpy.types.NLM_PT_shader_stack.bl_space_type == "NODE_EDITOR"
 
