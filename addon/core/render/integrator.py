@@ -70,6 +70,7 @@ class RenderStats:
     rays: int = 0
     seconds: dict = field(default_factory=lambda: {"rays": 0.0, "network": 0.0, "reference": 0.0, "total": 0.0})
     nonfinite: int = 0
+    material_kinds: list = field(default_factory=list)  # per material index: analytic/neural/reference
 
     @property
     def rest(self) -> float:
@@ -153,6 +154,7 @@ class _Context:
                         settings.reference_walks)
             for i in range(n_mat)
         ]
+        stats.material_kinds = [m.kind for m in self.materials]
         self.tracer = Tracer(scene.mesh, stats)
         env = scene.environment
         self.env = env if env is not None and not env.is_black else None

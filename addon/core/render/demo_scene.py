@@ -1,0 +1,72 @@
+"""The bundled demo scene: layered presets and a textured material on simple geometry, lit by a
+procedural sky (environment map with a sun-like hot spot) and an area light.
+
+Everything is generated here (no asset files), so the scene is the same for the main job
+(``bake/demo.py``), the benchmarks (``benchmarks/bench_render.py``, which also rebuilds it in
+Blender for Cycles) and the tests.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..stack import PRESETS
+from .lights import AreaLight, Environment
+from .materials import ImageTexture, LambertMaterial, LayeredSpec
+from .scene import Camera, Mesh, Scene
+from . import shapes
+
+DEMO_PRESETS = ("coated_gold", "red_car_paint", "lacquered_plastic", "varnished_wood", "frosted_copper")
+SPHERE_RADIUS = 0.45
+
+
+def sky_image(width: int = 128, height: int = 64) -> np.ndarray:
+    """Equirectangular sky (H, W, 3), row 0 = zenith: blue gradient, warm sun, grey-brown ground."""
+    el = (0.5 - (np.arange(height) + 0.5) / height) * math.pi  # elevation per row
+    az = ((np.arange(width) + 0.5) / width - 0.5) * 2 * math.pi
+    el, az = np.meshgrid(el, az, indexing="ij")
+    up = np.clip(np.sin(el), 0.0, 1.0)[..., None]
+    sky = (1 - up) * np.array([0.9, 0.95, 1.0]) + up * np.array([0.25, 0.45, 0.9])
+    ground = np.array([0.25, 0.22, 0.2])
+    img = np.where((el > 0)[..., None], sky, ground) * 0.8
+    # A sun 35 degrees up, to the left behind the camera's right shoulder.
+    sun_el, sun_az = math.radians(35.0), math.radians(-120.0)
+    cos_d = np.sin(el) * math.sin(sun_el) + np.cos(el) * math.cos(sun_el) * np.cos(az - sun_az)
+    img = img + np.where(cos_d > math.cos(math.radians(4.0)), 1.0, 0.0)[..., None] * np.array([60.0, 52.0, 40.0])
+    return img.astype(np.float32)
+
+
+def checker_texture(size: int = 512, squares: int = 16) -> np.ndarray:
+    """A two-tone tile texture (H, W, 3) with thin grout lines: the textured floor's base colour."""
+    i, j = np.meshgrid(np.arange(size), np.arange(size), indexing="ij")
+    cell = size // squares
+    parity = ((i // cell) + (j // cell)) % 2
+    img = np.where(parity[..., None] == 0, np.array([0.62, 0.58, 0.5]), np.array([0.25, 0.3, 0.36]))
+    grout = ((i % cell) < 2) | ((j % cell) < 2)
+    img = np.where(grout[..., None], np.array([0.8, 0.8, 0.78]), img)
+    return img.astype(np.float32)
+
+
+def demo_scene(width: int = 320, height: int = 180, presets=DEMO_PRESETS) -> Scene:
+    """Spheres of the given presets in a row on a tiled floor, a sky and a soft area light."""
+    presets = list(presets)
+    n = len(presets)
+    spacing = 1.1
+    meshes = []
+    for i in range(n):
+        x = (i - (n - 1) / 2) * spacing
+        meshes.append(shapes.uv_sphere((x, 0.0, SPHERE_RADIUS), SPHERE_RADIUS, 48, 24, material=i + 1))
+    meshes.append(shapes.quad((0, 2.0, 0), (8.0, 0, 0), (0, 8.0, 0), material=0))
+    mesh = Mesh.concatenate(meshes)
+    floor = LambertMaterial((1.0, 1.0, 1.0), ImageTexture(checker_texture()))
+    materials = [floor] + [LayeredSpec(PRESETS[p], None, p) for p in presets]
+    light = np.eye(4)
+    light[:3, 3] = (1.5, -1.5, 3.0)
+    c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
+    light[:3, :3] = np.array([[1, 0, 0], [0, c, -s], [0, s, c]])  # tilted toward the spheres
+    lights = [AreaLight(light, power=250.0, size=1.5, color=(1.0, 0.92, 0.85))]
+    cam = Camera.look_at((0.0, -5.6, 2.1), (0.0, 0.0, 0.6), fov_deg=50.0, width=width, height=height)
+    return Scene(cam, mesh, materials, lights, Environment(image=sky_image()),
+                 ["tiles"] + presets)
