@@ -92,6 +92,7 @@ INSTALL_SCRIPT = textwrap.dedent(
     out["enabled"] = module in bpy.context.preferences.addons
     import addon
     out["addon_file"] = addon.__file__
+    out["package_dir_on_path"] = any(os.path.basename(os.path.normpath(p)) == "neural_layered_materials" for p in sys.path)
     site = os.path.join(ext_dir, ".local", "lib", "python3.11", "site-packages")
     out["wheels_installed"] = sorted(n for n in os.listdir(site) if not n.endswith("-info")) if os.path.isdir(site) else []
 
@@ -136,6 +137,7 @@ def test_zip_installs_enables_and_runs(built_zip, tmp_path):
     assert proc.returncode == 0 and lines, proc.stdout[-3000:] + proc.stderr[-3000:]
     out = json.loads(lines[-1][len("RESULT "):])
     assert out["install"] == ["FINISHED"] and out["enabled"]
+    assert not out["package_dir_on_path"]  # `addon` is aliased in sys.modules, sys.path is left alone
     # the installed copy is what runs, not this checkout
     assert Path(out["addon_file"]).resolve().is_relative_to((tmp_path / "extensions").resolve())
     assert "onnxruntime" in out["wheels_installed"] and "embreex" in out["wheels_installed"]
