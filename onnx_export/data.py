@@ -108,7 +108,8 @@ def sample_directions(rng: np.random.Generator, lobe_alpha: np.ndarray, pairs: i
     for w in (wi, wo):
         w[..., 2] = np.maximum(w[..., 2], 1e-4)
         w /= np.linalg.norm(w, axis=-1, keepdims=True)
-    return wi.astype(np.float64), wo.astype(np.float64)
+    # targets are evaluated at the float32 directions that are stored and fed to the networks
+    return wi.astype(np.float32).astype(np.float64), wo.astype(np.float32).astype(np.float64)
 
 
 # ----------------------------------------------------------------------------- targets

@@ -20,7 +20,7 @@ import torch
 
 from addon.core.neural.features import FEATURE_NAMES, N_FEATURES
 from onnx_export.evaluate import load_decoder
-from onnx_export.nets import Decoder, Encoder, macs_per_eval, n_params
+from onnx_export.nets import Decoder, Encoder, RGBDecoder, macs_per_eval, n_params
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"
 OPSET = 17
@@ -34,6 +34,38 @@ def export_decoder(dec: Decoder, path: Path) -> None:
     torch.onnx.export(dec, args, str(path), input_names=["z", "wi", "wo"], output_names=["f"],
                       dynamic_axes={"z": {0: "batch"}, "wi": {0: "batch"}, "wo": {0: "batch"}, "f": {0: "batch"}},
                       opset_version=OPSET, dynamo=False)
+
+
+def export_rgb_decoder(dec: Decoder, path: Path) -> None:
+    """The runtime's fused graph: z (Bz, 3, 32) with Bz in {1, B}, wi, wo (B, 3) -> f (B, 3)."""
+    rgb = RGBDecoder(dec).eval()
+    b = 8
+    args = (torch.zeros(1, 3, 32), torch.tensor([[0.0, 0.0, 1.0]]).expand(b, 3).contiguous(),
+            torch.tensor([[0.0, 0.0, 1.0]]).expand(b, 3).contiguous())
+    torch.onnx.export(rgb, args, str(path), input_names=["z", "wi", "wo"], output_names=["f"],
+                      dynamic_axes={"z": {0: "latents"}, "wi": {0: "batch"}, "wo": {0: "batch"}, "f": {0: "batch"}},
+                      opset_version=OPSET, dynamo=False)
+
+
+def rgb_decoder_parity(dec: Decoder, path: Path, n: int = 2048, seed: int = 0) -> float:
+    """Max relative difference between the fused RGB graph (ONNX Runtime) and the scalar torch
+    decoder, for one shared latent and for per-row latents."""
+    import onnxruntime as ort
+
+    rng = np.random.default_rng(seed)
+    s = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    wi = np.concatenate([random_directions(rng, n // 2), random_directions(rng, n - n // 2, grazing=True)])
+    wo = random_directions(rng, n)
+    worst = 0.0
+    for zb in (1, n):
+        z = (rng.standard_normal((zb, 3, 32)) * 0.5).astype(np.float32)
+        zr = np.broadcast_to(z, (n, 3, 32)).reshape(-1, 32)
+        with torch.no_grad():
+            ref = dec(torch.from_numpy(np.ascontiguousarray(zr)), torch.from_numpy(np.repeat(wi, 3, 0)),
+                      torch.from_numpy(np.repeat(wo, 3, 0))).numpy().reshape(n, 3)
+        got = s.run(["f"], {"z": z, "wi": wi, "wo": wo})[0]
+        worst = max(worst, max_relative_difference(got, ref))
+    return worst
 
 
 def export_encoder(enc: Encoder, path: Path) -> None:
@@ -82,9 +114,31 @@ def encoder_parity(enc: Encoder, path: Path, x: np.ndarray) -> float:
     return max_relative_difference(got, ref, floor=1e-3)
 
 
+def macs_rgb_one_material(dec: Decoder) -> int:
+    """Multiply-adds per RGB evaluation of the fused graph for one material (latent part amortised)."""
+    lin = [m for m in dec.net if isinstance(m, torch.nn.Linear)]
+    first = lin[0].out_features * (lin[0].in_features - 32)
+    return int(first + 3 * sum(m.in_features * m.out_features for m in lin[1:]))
+
+
 def onnx_param_count(path: Path) -> int:
     m = onnx.load(str(path))
-    return int(sum(int(np.prod(t.dims)) for t in m.graph.initializer if len(t.dims) > 0 and np.prod(t.dims) > 1))
+    return int(sum(int(np.prod(t.dims)) for t in m.graph.initializer if len(t.dims) > 0))
+
+
+def torch_from_onnx(path: Path, card: dict) -> torch.nn.Module:
+    """Rebuild the torch module of an exported model from the ONNX weights and the card's
+    architecture, so parity can be checked without the training checkpoint."""
+    from onnx import numpy_helper
+
+    arch = card["architecture"]
+    if card["name"].startswith("decoder"):
+        mod: torch.nn.Module = Decoder(arch["width"], arch["depth"], arch["features"], arch["activation"])
+    else:
+        mod = Encoder(arch["n_features"], arch["width"], arch["depth"])
+    weights = {t.name: torch.from_numpy(numpy_helper.to_array(t).copy()) for t in onnx.load(str(path)).graph.initializer}
+    mod.load_state_dict(weights)
+    return mod.eval()
 
 
 def main(argv=None):
@@ -96,7 +150,7 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, default=MODEL_DIR)
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
-    dec, _ = load_decoder(a.decoder)
+    dec, latents = load_decoder(a.decoder)
     dck = torch.load(a.decoder, weights_only=False)
     eck = torch.load(a.encoder, weights_only=False)
     enc = Encoder(**eck["config"])
@@ -106,6 +160,9 @@ def main(argv=None):
     export_decoder(dec, dpath)
     export_encoder(enc, epath)
     dpar = decoder_parity(dec, dpath)
+    rgb_path = a.out / f"decoder_{a.size}_rgb.onnx"
+    export_rgb_decoder(dec, rgb_path)
+    rgb_par = rgb_decoder_parity(dec, rgb_path)
     rng = np.random.default_rng(1)
     epar = encoder_parity(enc, epath, rng.random((512, N_FEATURES)).astype(np.float32))
     metrics = json.loads(a.metrics.read_text()) if a.metrics else {}
@@ -131,7 +188,12 @@ def main(argv=None):
             "loss": f"{targs.get('loss')} on log1p(f cos_i cos_o)",
         },
         "onnx_runtime_vs_torch_max_relative_difference": dpar,
+        "rgb_graph": {"file": rgb_path.name, "inputs": "z (1 or B, 3, 32), wi (B, 3), wo (B, 3)", "outputs": "f (B, 3)",
+                      "note": "same weights; direction features and their first-layer product computed once per query",
+                      "macs_per_rgb_eval_one_material": macs_rgb_one_material(dec),
+                      "onnx_runtime_vs_torch_max_relative_difference": rgb_par},
         "opset": OPSET,
+        "latent_mean": [round(float(v), 6) for v in latents.mean(0)],
         **{k: v for k, v in metrics.items() if k.startswith(("heldout", "speed"))},
     }
     ecard = {
@@ -150,7 +212,7 @@ def main(argv=None):
     }
     dpath.with_suffix(".json").write_text(json.dumps(dcard, indent=1) + "\n")
     epath.with_suffix(".json").write_text(json.dumps(ecard, indent=1) + "\n")
-    print(json.dumps({"decoder": str(dpath), "parity": dpar, "encoder": str(epath), "encoder_parity": epar}))
+    print(json.dumps({"decoder": str(dpath), "parity": dpar, "rgb_parity": rgb_par, "encoder": str(epath), "encoder_parity": epar}))
 
 
 if __name__ == "__main__":

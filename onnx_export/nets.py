@@ -133,3 +133,33 @@ def cosine_lr(step: int, steps: int, base: float, floor: float = 0.05, warmup: i
         return base * (step + 1) / warmup
     t = min(1.0, (step - warmup) / max(1, steps - warmup))
     return base * (floor + (1.0 - floor) * 0.5 * (1.0 + math.cos(math.pi * t)))
+
+
+class RGBDecoder(nn.Module):
+    """The same decoder evaluated for the three colour channels at once (the runtime's graph).
+
+    z (Bz, 3, 32) with Bz = 1 (one material) or B (per row), wi, wo (B, 3) -> f (B, 3). The
+    direction features and their first-layer product are computed once per query instead of
+    once per channel, and for one material the latent's first-layer product is computed once
+    for the whole batch: same weights, same values as ``Decoder`` row by row.
+    """
+
+    def __init__(self, dec: Decoder):
+        super().__init__()
+        self.dec = dec
+        first = dec.net[0]
+        self.w_z = nn.Parameter(first.weight[:, :LATENT].detach().clone())
+        self.w_d = nn.Parameter(first.weight[:, LATENT:].detach().clone())
+        self.b = nn.Parameter(first.bias.detach().clone())
+        self.rest = dec.net[1:]
+
+    def forward(self, z: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+        zc = torch.matmul(z, self.w_z.t()) + self.b  # (Bz, 3, W)
+        d = torch.matmul(direction_features(wi, wo, self.dec.features), self.w_d.t())  # (B, W)
+        y = self.rest(d.unsqueeze(1) + zc)[..., 0]  # (B, 3)
+        if self.dec.activation == "exp":
+            f = torch.exp(torch.clamp(y, max=MAX_LOG_F))
+        else:
+            f = nn.functional.softplus(y)
+        above = ((wi[:, 2] > 0.0) & (wo[:, 2] > 0.0)).unsqueeze(1)
+        return torch.where(above, f, torch.zeros_like(f))

@@ -74,6 +74,9 @@ class NeuralModels:
         self.decoder_path = d / f"decoder_{size}.onnx"
         self.encoder_path = d / f"encoder_{size}.onnx"
         self._decoder = _session(self.decoder_path, threads)
+        # the fused RGB graph (same weights) is faster; the scalar graph is the reference interface
+        rgb = d / f"decoder_{size}_rgb.onnx"
+        self._rgb = _session(rgb, threads) if rgb.exists() else None
         self._encoder = _session(self.encoder_path, threads)
         card = self.decoder_path.with_suffix(".json")
         self.card = json.loads(card.read_text()) if card.exists() else {}
@@ -145,24 +148,28 @@ class NeuralModels:
                              f"got {z.shape}")
         if not np.all(np.isfinite(z)):
             raise ValueError("z must be finite (the latent holds NaN or Inf)")
-        li = np.linalg.norm(wi, axis=1)
-        lo = np.linalg.norm(wo, axis=1)
+        wi = wi.astype(np.float32)
+        wo = wo.astype(np.float32)
+        li = np.sqrt(np.einsum("ij,ij->i", wi, wi))
+        lo = np.sqrt(np.einsum("ij,ij->i", wo, wo))
         ok = (li > 0) & (lo > 0) & (wi[:, 2] > 0) & (wo[:, 2] > 0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            wi_u = np.where(ok[:, None], wi / li[:, None], (0.0, 0.0, 1.0)).astype(np.float32)
-            wo_u = np.where(ok[:, None], wo / lo[:, None], (0.0, 0.0, 1.0)).astype(np.float32)
-        out = np.zeros((n, 3), dtype=np.float32)
+        up = np.array([0.0, 0.0, 1.0], dtype=np.float32)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            wi_u = np.where(ok[:, None], wi / li[:, None], up)
+            wo_u = np.where(ok[:, None], wo / lo[:, None], up)
+        out = np.empty((n, 3), dtype=np.float32)
         step = ROWS_PER_RUN // 3
         for s in range(0, n, step):  # a loop over batches of rows, not over samples
             e = min(n, s + step)
             m = e - s
-            zz = z[s:e].reshape(-1, LATENT) if per_row else np.tile(z, (m, 1))
-            f = self._decoder.run(["f"], {
-                "z": zz,
-                "wi": np.repeat(wi_u[s:e], 3, axis=0),
-                "wo": np.repeat(wo_u[s:e], 3, axis=0),
-            })[0]
-            out[s:e] = f.reshape(m, 3)
+            if self._rgb is not None:
+                zz = z[s:e] if per_row else z[None]
+                out[s:e] = self._rgb.run(["f"], {"z": zz, "wi": wi_u[s:e], "wo": wo_u[s:e]})[0]
+            else:
+                zz = z[s:e].reshape(-1, LATENT) if per_row else np.tile(z, (m, 1))
+                out[s:e] = self._decoder.run(["f"], {
+                    "z": zz, "wi": np.repeat(wi_u[s:e], 3, axis=0), "wo": np.repeat(wo_u[s:e], 3, axis=0),
+                })[0].reshape(m, 3)
         out = np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
         return np.where(ok[:, None], np.maximum(out, 0.0), 0.0).astype(np.float32)
 

@@ -1,0 +1,235 @@
+"""Decoder zoo: held-out error against evaluation speed, one point per size, one run.
+
+    python benchmarks/bench_decoders.py                  # every shipped size
+    python benchmarks/bench_decoders.py --sizes tiny small --update-cards
+
+For each shipped decoder size (``addon/models``) it measures
+
+- the held-out lobe error (DESIGN section 7) of the held-out BRDFs projected into the latent
+  space by latent optimisation (``onnx_export.evaluate``), on ``tests/data/heldout_single.npz``
+  and, when present, ``tests/data/heldout_layered.npz``; and of the single-layer set encoded in
+  one pass by the size's encoder (runtime ``encode`` + ``eval_brdf``);
+- RGB evaluations per second of the runtime's ``eval_brdf`` (ONNX Runtime, ``--threads``
+  threads, batch 65,536, one material), and of the bare decoder session on the 3 x 65,536 rows;
+- the arithmetic limit: ONNX Runtime's own MatMul rate on this machine (multiply-adds per
+  second, 65,536 x 256 x 256) divided by the multiply-adds per RGB evaluation.
+
+It writes ``docs/decoders.md`` (table) and ``docs/decoders_error_speed.png`` (chart), and with
+``--update-cards`` stores the figures in the model cards.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from addon.core import lobe  # noqa: E402
+from addon.core.neural.runtime import MODEL_DIR, SIZES, load_models  # noqa: E402
+from addon.core.stack import Stack  # noqa: E402
+
+DOCS = ROOT / "docs"
+BATCH = 65536
+
+
+def matmul_rate(threads: int, n: int = BATCH, k: int = 256, m: int = 256, repeats: int = 5) -> float:
+    """Multiply-adds per second of an ONNX Runtime MatMul (n x k) @ (k x m) with ``threads`` threads."""
+    import onnx
+    import onnxruntime as ort
+    from onnx import TensorProto, helper, numpy_helper
+
+    w = numpy_helper.from_array(np.random.default_rng(0).standard_normal((k, m)).astype(np.float32), "w")
+    g = helper.make_graph([helper.make_node("MatMul", ["x", "w"], ["y"])], "mm",
+                          [helper.make_tensor_value_info("x", TensorProto.FLOAT, [None, k])],
+                          [helper.make_tensor_value_info("y", TensorProto.FLOAT, [None, m])], [w])
+    model = helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)])
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    s = ort.InferenceSession(model.SerializeToString(), so, providers=["CPUExecutionProvider"])
+    x = np.random.default_rng(1).standard_normal((n, k)).astype(np.float32)
+    s.run(None, {"x": x})
+    best = np.inf
+    for _ in range(repeats):
+        t = time.perf_counter()
+        s.run(None, {"x": x})
+        best = min(best, time.perf_counter() - t)
+    return n * k * m / best
+
+
+def speed(size: str, threads: int, repeats: int = 5) -> dict:
+    m = load_models(size, threads=threads)
+    rng = np.random.default_rng(0)
+    wi = rng.normal(size=(BATCH, 3))
+    wo = rng.normal(size=(BATCH, 3))
+    wi[:, 2] = np.abs(wi[:, 2])
+    wo[:, 2] = np.abs(wo[:, 2])
+    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    z = m.encode(Stack.from_json(json.dumps({"base": {"type": "Conductor", "roughness": 0.2}})).base)
+    m.eval_brdf(z, wi, wo)
+    best = np.inf
+    for _ in range(repeats):
+        t = time.perf_counter()
+        m.eval_brdf(z, wi, wo)
+        best = min(best, time.perf_counter() - t)
+    feeds = {"z": np.tile(z, (BATCH, 1)), "wi": np.repeat(wi, 3, 0).astype(np.float32),
+             "wo": np.repeat(wo, 3, 0).astype(np.float32)}
+    sess = m._decoder
+    sess.run(["f"], feeds)
+    bare = np.inf
+    for _ in range(repeats):
+        t = time.perf_counter()
+        sess.run(["f"], feeds)
+        bare = min(bare, time.perf_counter() - t)
+    return {"rgb_evals_per_s": BATCH / best, "rgb_evals_per_s_session_only": BATCH / bare,
+            "batch": BATCH, "threads": threads}
+
+
+def encoder_heldout(size: str, heldout: dict) -> dict:
+    from onnx_export.evaluate import lobe_metrics
+
+    m = load_models(size)
+    res = heldout["lobe"].shape[2]
+    pred = np.zeros_like(heldout["lobe"], dtype=np.float64)
+    for i, s in enumerate(heldout["stacks"]):
+        z = m.encode(s.base)
+        for a, t in enumerate(heldout["angles"]):
+            pred[i, a] = lobe.lobe_image(lambda wi, wo: m.eval_brdf(z, wi, wo), float(t), res)
+    out = lobe_metrics(pred, heldout["lobe"])
+    out.pop("errors")
+    return out
+
+
+def projection_heldout(size: str, heldout: dict, steps: int, threads: int) -> dict:
+    import torch
+
+    from onnx_export.evaluate import evaluate_projection
+    from onnx_export.export import torch_from_onnx
+
+    torch.set_num_threads(threads)
+    path = MODEL_DIR / f"decoder_{size}.onnx"
+    card = json.loads(path.with_suffix(".json").read_text())
+    dec = torch_from_onnx(path, card)
+    pairs = 128 if card["parameters"] > 200_000 else None
+    init = np.asarray(card["latent_mean"], np.float32)
+    m = evaluate_projection(dec, heldout, init=init, steps=steps, chunk_pairs=pairs)
+    errs = m.pop("errors")
+    m.pop("z")
+    m.update(projection_steps=steps, projection_pairs=pairs, projection_init=card["latent_mean"])
+    m["per_config_median"] = [round(float(v), 4) for v in np.median(errs, axis=1)]
+    return m
+
+
+def chart(rows: list[dict], path: Path, command: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 4.8))
+    for r in rows:
+        x = r["speed"]["rgb_evals_per_s"]
+        ax.scatter([x], [100 * r["single"]["lobe_error_median"]], color="C0", zorder=3)
+        ax.annotate(f"{r['size']} ({r['params'] / 1e3:.1f} k params)", (x, 100 * r["single"]["lobe_error_median"]),
+                    textcoords="offset points", xytext=(6, 4), fontsize=8)
+        ax.scatter([r["limit"]], [100 * r["single"]["lobe_error_median"]], color="C3", marker="|", s=200, zorder=3)
+        ax.plot([x, r["limit"]], [100 * r["single"]["lobe_error_median"]] * 2, color="C3", lw=0.8, ls=":")
+        if "layered" in r:
+            ax.scatter([x], [100 * r["layered"]["lobe_error_median"]], color="C1", marker="s", zorder=3)
+    ax.scatter([], [], color="C0", label="single-layer held-out (projected), median")
+    ax.scatter([], [], color="C1", marker="s", label="layered held-out (projected), median")
+    ax.scatter([], [], color="C3", marker="|", s=200, label="arithmetic limit (MACs / MatMul rate)")
+    ax.set_xscale("log")
+    ax.set_xlabel("RGB evaluations per second (ONNX Runtime, 2 threads, batch 65,536)")
+    ax.set_ylabel("held-out lobe error, median relative RMSE (%)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, loc="upper right")
+    ax.set_title("Decoder zoo: error against speed", fontsize=10)
+    fig.text(0.01, 0.01, command, fontsize=6, color="0.4")
+    fig.tight_layout(rect=(0, 0.03, 1, 1))
+    fig.savefig(path, dpi=120)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", nargs="+", default=[s for s in SIZES if (MODEL_DIR / f"decoder_{s}.onnx").exists()])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--steps", type=int, default=300, help="projection steps")
+    ap.add_argument("--update-cards", action="store_true")
+    ap.add_argument("--out", type=Path, default=DOCS)
+    a = ap.parse_args(argv)
+    command = "python benchmarks/bench_decoders.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
+    from onnx_export.heldout import load as load_heldout
+
+    sets = {"single": load_heldout(ROOT / "tests/data/heldout_single.npz")}
+    lay = ROOT / "tests/data/heldout_layered.npz"
+    if lay.exists():
+        sets["layered"] = load_heldout(lay)
+    mm = matmul_rate(a.threads)
+    print(f"MatMul rate {mm / 1e9:.1f} GMAC/s", file=sys.stderr, flush=True)
+    rows = []
+    for size in a.sizes:
+        card_path = MODEL_DIR / f"decoder_{size}.json"
+        card = json.loads(card_path.read_text())
+        r = {"size": size, "params": card["parameters"], "macs": card["macs_per_rgb_eval"]}
+        r["speed"] = speed(size, a.threads)
+        r["limit"] = mm / r["macs"]
+        for name, h in sets.items():
+            r[name] = projection_heldout(size, h, a.steps, a.threads)
+        r["encoder"] = encoder_heldout(size, sets["single"])
+        rows.append(r)
+        print(json.dumps({k: v for k, v in r.items() if k != "params"}, default=float)[:600], file=sys.stderr, flush=True)
+        if a.update_cards:
+            card["heldout_single"] = r["single"]
+            if "layered" in r:
+                card["heldout_layered"] = r["layered"]
+            card["speed_cpu"] = r["speed"] | {"matmul_macs_per_s": mm, "arithmetic_limit_rgb_evals_per_s": r["limit"],
+                                              "note": "2-core machine shared with other jobs: timings are noisy",
+                                              "command": command}
+            card_path.write_text(json.dumps(card, indent=1) + "\n")
+            ecard_path = MODEL_DIR / f"encoder_{size}.json"
+            ecard = json.loads(ecard_path.read_text())
+            ecard["encoder_heldout_single"] = r["encoder"]
+            ecard_path.write_text(json.dumps(ecard, indent=1) + "\n")
+    a.out.mkdir(parents=True, exist_ok=True)
+    chart(rows, a.out / "decoders_error_speed.png", command)
+    lines = [
+        "# Decoder zoo: measured error and speed", "",
+        f"Produced by `{command}` (ONNX Runtime, {a.threads} threads, batch {BATCH:,} RGB evaluations, "
+        "one material; this 2-core machine was shared with other jobs, so timings are noisy).", "",
+        f"ONNX Runtime MatMul rate here: {mm / 1e9:.1f} G multiply-adds/s (65,536 x 256 x 256); the arithmetic "
+        "limit of a size is that rate over its multiply-adds per RGB evaluation.", "",
+        "Lobe error = relative RMSE of f cos(theta_o) lobe images at incident elevations 0/30/60/75 degrees "
+        "(DESIGN section 7); median / 90th percentile over configurations x elevations. \"projected\": the "
+        "held-out BRDF is fitted by latent optimisation on separate direction samples; \"encoded\": the "
+        "single-layer encoder maps its parameters to the latent in one pass. Albedo error: mean absolute "
+        "error of the directional albedo.", "",
+        "| size | params | MACs / RGB eval | RGB evals/s (eval_brdf) | evals/s (session only) | arithmetic limit | "
+        "single-layer projected (median / p90) | albedo err | layered projected (median / p90) | "
+        "single-layer encoded (median / p90) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lay_txt = (f"{100 * r['layered']['lobe_error_median']:.1f}% / {100 * r['layered']['lobe_error_p90']:.1f}%"
+                   if "layered" in r else "n/a")
+        lines.append(
+            f"| {r['size']} | {r['params']:,} | {r['macs']:,} | {r['speed']['rgb_evals_per_s']:,.0f} | "
+            f"{r['speed']['rgb_evals_per_s_session_only']:,.0f} | {r['limit']:,.0f} | "
+            f"{100 * r['single']['lobe_error_median']:.1f}% / {100 * r['single']['lobe_error_p90']:.1f}% | "
+            f"{r['single']['albedo_abs_error_mean']:.4f} | {lay_txt} | "
+            f"{100 * r['encoder']['lobe_error_median']:.1f}% / {100 * r['encoder']['lobe_error_p90']:.1f}% |")
+    lines += ["", "![error against speed](decoders_error_speed.png)", ""]
+    (a.out / "decoders_bench.md").write_text("\n".join(lines))
+    print(json.dumps({"out": str(a.out / "decoders_bench.md")}))
+
+
+if __name__ == "__main__":
+    main()

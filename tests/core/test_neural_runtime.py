@@ -1,0 +1,179 @@
+"""The neural runtime (numpy + ONNX Runtime): API, input validation, robustness, model cards."""
+
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from addon.core import lobe
+from addon.core.neural import SIZES, ClampWarning, N_FEATURES, load_models
+from addon.core.neural.features import layer_features
+from addon.core.neural.runtime import MODEL_DIR, NeuralModels
+from addon.core.stack import Coating, Conductor, Dielectric, Diffuse, Stack, StackArrays
+
+SHIPPED = [s for s in SIZES if (MODEL_DIR / f"decoder_{s}.onnx").exists()]
+HELDOUT = Path(__file__).resolve().parents[1] / "data" / "heldout_single.npz"
+
+
+def test_models_are_shipped():
+    assert "tiny" in SHIPPED, f"no tiny decoder under {MODEL_DIR}"
+
+
+@pytest.fixture(scope="module", params=SHIPPED)
+def models(request):
+    return load_models(request.param, threads=2)
+
+
+def _dirs(rng, n):
+    w = rng.normal(size=(n, 3))
+    return w / np.linalg.norm(w, axis=1, keepdims=True)
+
+
+def test_encode_shapes_and_types(models):
+    for layer in (Diffuse((0.2, 0.5, 0.8)), Conductor(0.2), Dielectric(0.1, 1.5), Coating(0.05, 1.5)):
+        z = models.encode(layer)
+        assert z.shape == (3, 32) and z.dtype == np.float32 and np.all(np.isfinite(z))
+    # the three channels of a coloured diffuse differ; those of a dielectric are equal
+    zd = models.encode(Diffuse((0.1, 0.5, 0.9)))
+    assert np.abs(zd[0] - zd[2]).max() > 1e-3
+    zg = models.encode(Dielectric(0.3, 1.5))
+    assert np.abs(zg[0] - zg[2]).max() < 1e-5
+
+
+def test_eval_finite_nonnegative_everywhere(models):
+    rng = np.random.default_rng(0)
+    z = models.encode(Conductor(0.01))
+    n = 4000
+    wi = _dirs(rng, n)
+    wo = _dirs(rng, n)
+    wi[:500, 2] = 1e-7  # grazing
+    wo[500:1000, 2] = 0.0  # exactly on the horizon
+    wi[1000:1500] *= 7.0  # not unit length
+    wo[1500:1600] = 0.0  # zero length
+    f = models.eval_brdf(z, wi, wo)
+    assert f.shape == (n, 3) and f.dtype == np.float32
+    assert np.all(np.isfinite(f)) and np.all(f >= 0.0)
+    below = (wi[:, 2] <= 0) | (wo[:, 2] <= 0) | np.all(wo == 0, axis=1)
+    assert np.all(f[below] == 0.0)
+    # scaling a direction does not change the value
+    np.testing.assert_allclose(f[1000:1500], models.eval_brdf(z, wi[1000:1500] / 7.0, wo[1000:1500]), rtol=1e-5)
+    # extreme latents still give finite values
+    fz = models.eval_brdf(np.full((3, 32), 1e4, np.float32), wi, wo)
+    assert np.all(np.isfinite(fz)) and np.all(fz >= 0.0)
+
+
+def test_per_row_latents_match_single(models):
+    rng = np.random.default_rng(1)
+    wi, wo = _dirs(rng, 300), _dirs(rng, 300)
+    wi[:, 2] = np.abs(wi[:, 2])
+    wo[:, 2] = np.abs(wo[:, 2])
+    za, zb = models.encode(Diffuse(0.5)), models.encode(Dielectric(0.2, 1.7))
+    rows = np.stack([za] * 150 + [zb] * 150)
+    f = models.eval_brdf(rows, wi, wo)
+    np.testing.assert_allclose(f[:150], models.eval_brdf(za, wi[:150], wo[:150]), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(f[150:], models.eval_brdf(zb, wi[150:], wo[150:]), rtol=1e-5, atol=1e-7)
+
+
+def test_fused_rgb_graph_equals_scalar_graph(models):
+    if models._rgb is None:
+        pytest.skip("no fused RGB graph shipped for this size")
+    rng = np.random.default_rng(2)
+    wi, wo = _dirs(rng, 500), _dirs(rng, 500)
+    wi[:, 2] = np.abs(wi[:, 2])
+    wo[:, 2] = np.abs(wo[:, 2])
+    z = models.encode(Conductor(0.1))
+    fused = models.eval_brdf(z, wi, wo)
+    scalar = models._decoder.run(["f"], {"z": np.tile(z, (500, 1)), "wi": np.repeat(wi, 3, 0).astype(np.float32),
+                                         "wo": np.repeat(wo, 3, 0).astype(np.float32)})[0].reshape(500, 3)
+    np.testing.assert_allclose(fused, scalar, rtol=1e-4, atol=1e-6)
+
+
+def test_bad_inputs_raise_clear_errors(models):
+    z = models.encode(Diffuse(0.5))
+    w = np.array([[0.0, 0.0, 1.0]] * 4)
+    with pytest.raises(ValueError, match="wi must be finite"):
+        models.eval_brdf(z, np.array([[np.nan, 0, 1]] * 4), w)
+    with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
+        models.eval_brdf(z, np.zeros((4, 2)), w)
+    with pytest.raises(ValueError, match="rows"):
+        models.eval_brdf(z, w, w[:3])
+    with pytest.raises(ValueError, match="z must have shape"):
+        models.eval_brdf(np.zeros((3, 16)), w, w)
+    with pytest.raises(ValueError, match="z must be finite"):
+        models.eval_brdf(np.full((3, 32), np.nan), w, w)
+    with pytest.raises(ValueError, match="encoder features"):
+        models.encode_features(np.zeros((2, 3, N_FEATURES + 1)))
+    with pytest.raises(NotImplementedError, match="layering network"):
+        models.encode_stack(Stack(Diffuse(0.5), (Coating(),)))
+
+
+def test_clamps_out_of_range_with_a_warning(models):
+    with pytest.warns(ClampWarning, match="roughness"):
+        z = models.encode(Conductor(roughness=0.0))
+    np.testing.assert_allclose(z, models.encode(Conductor(roughness=0.01)), atol=1e-6)
+    with pytest.warns(ClampWarning, match="ior"):
+        models.encode(Dielectric(0.2, ior=3.5))
+    one = StackArrays.repeat(Stack(Conductor(roughness=0.002), (Coating(),)), 5)
+    arrays = StackArrays(**{f: (getattr(one, f)[:, :0] if f.startswith("coat_") else getattr(one, f))
+                            for f in StackArrays.FIELDS})
+    with pytest.warns(ClampWarning, match="5 rows"):
+        za = models.encode_arrays(arrays)
+    assert za.shape == (5, 3, 32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        models.encode(Conductor(roughness=0.5))  # in range: silent
+
+
+def test_missing_model_names_the_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="decoder_tiny.onnx"):
+        NeuralModels("tiny", model_dir=tmp_path)
+    with pytest.raises(ValueError, match="unknown decoder size"):
+        NeuralModels("huge")
+    with pytest.raises(ValueError, match="threads"):
+        NeuralModels("tiny", threads=0)
+
+
+@pytest.mark.parametrize("size", SHIPPED)
+def test_model_cards_match_the_files(size):
+    import onnx
+
+    for name in (f"decoder_{size}", f"encoder_{size}"):
+        card = json.loads((MODEL_DIR / f"{name}.json").read_text())
+        m = onnx.load(str(MODEL_DIR / f"{name}.onnx"))
+        count = sum(int(np.prod(t.dims)) for t in m.graph.initializer if len(t.dims) > 0)
+        assert card["parameters"] == count, f"{name}: card says {card['parameters']}, file holds {count}"
+        assert card["onnx_runtime_vs_torch_max_relative_difference"] <= 1e-4
+        for key in ("architecture", "macs_per_rgb_eval", "training"):
+            assert key in card, f"{name}.json lacks {key!r}"
+        names = [i.name for i in m.graph.input]
+        assert names == (["z", "wi", "wo"] if name.startswith("decoder") else ["x"])
+        assert m.graph.input[0].type.tensor_type.shape.dim[0].dim_param  # dynamic batch axis
+
+
+@pytest.mark.parametrize("size", SHIPPED)
+def test_encoded_heldout_error_not_worse_than_the_card(size):
+    """Encode the held-out single-layer configurations (no optimisation) and compare the lobe
+    images with the stored exact references; the card states what to expect."""
+    card = json.loads((MODEL_DIR / f"encoder_{size}.json").read_text())
+    if "encoder_heldout_single" not in card:
+        pytest.skip(f"encoder_{size}.json has no held-out figures")
+    expect = card["encoder_heldout_single"]
+    d = np.load(HELDOUT)
+    stacks = [Stack.from_json(str(s)) for s in d["stacks"]]
+    m = load_models(size)
+    res = d["lobe"].shape[2]
+    errs = []
+    for i, s in enumerate(stacks):
+        z = m.encode(s.base)
+        for a, t in enumerate(d["angles"]):
+            img = lobe.lobe_image(lambda wi, wo: m.eval_brdf(z, wi, wo), float(t), res)
+            errs.append(lobe.relative_rmse(img, d["lobe"][i, a]))
+    assert np.median(errs) <= expect["lobe_error_median"] * 1.05 + 1e-3
+    assert np.percentile(errs, 90) <= expect["lobe_error_p90"] * 1.05 + 1e-3
+
+
+def test_features_of_a_coating_are_its_interface():
+    np.testing.assert_array_equal(layer_features(Coating(0.2, 1.4, albedo=(0.5, 0.5, 0.5), thickness=2.0)),
+                                  layer_features(Dielectric(0.2, 1.4)))

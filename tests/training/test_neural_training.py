@@ -1,0 +1,148 @@
+"""Training-side checks (torch): data generation, a smoke run of the training code path,
+ONNX export parity for every shipped model, and the shipped decoders' held-out projection error."""
+
+import json
+from argparse import Namespace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from addon.core.bsdf import RoughConductor, RoughDielectric  # noqa: E402
+from addon.core.neural.features import N_FEATURES  # noqa: E402
+from addon.core.neural.runtime import MODEL_DIR, SIZES, NeuralModels  # noqa: E402
+from addon.core.stack import Conductor, Dielectric  # noqa: E402
+from onnx_export import data as datamod  # noqa: E402
+from onnx_export import export, train_decoder, train_encoder  # noqa: E402
+from onnx_export.evaluate import evaluate_projection  # noqa: E402
+from onnx_export.heldout import load as load_heldout  # noqa: E402
+
+SHIPPED = [s for s in SIZES if (MODEL_DIR / f"decoder_{s}.onnx").exists()]
+HELDOUT = Path(__file__).resolve().parents[1] / "data" / "heldout_single.npz"
+
+
+# ----------------------------------------------------------------------------- data
+
+
+def test_sharded_generation_equals_one_run_and_resumes(tmp_path):
+    kw = dict(materials=20, pairs=32, chunk=8, seed=5)
+    datamod.generate("single", tmp_path / "all", **kw, log=lambda s: None)
+    for i in range(2):
+        datamod.generate("single", tmp_path / "sharded", **kw, shard=(i, 2), log=lambda s: None)
+    a, b = datamod.load(tmp_path / "all"), datamod.load(tmp_path / "sharded")
+    assert a["f"].shape == (20, 32, 3)
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k])
+    # resume: a finished chunk is not regenerated
+    p = tmp_path / "all" / "chunk_00000.npz"
+    mtime = p.stat().st_mtime_ns
+    logs = []
+    datamod.generate("single", tmp_path / "all", **kw, log=logs.append)
+    assert p.stat().st_mtime_ns == mtime and logs == []
+
+
+def test_targets_are_the_bsdf_package_values_and_directions_cover_lobes():
+    d = datamod.make_chunk("single", seed=3, chunk=0, materials=60, pairs=256)
+    wi, wo, f = d["wi"].astype(np.float64), d["wo"].astype(np.float64), d["f"]
+    assert np.all(wi[..., 2] > 0) and np.all(wo[..., 2] > 0)
+    np.testing.assert_allclose(np.linalg.norm(wi, axis=-1), 1.0, atol=1e-5)
+    for m in range(60):
+        kind = d["p_base_kind"][m]
+        if kind == 1:
+            b = RoughConductor(d["p_base_roughness"][m], d["p_base_eta"][m], d["p_base_k"][m])
+        elif kind == 2:
+            b = RoughDielectric(d["p_base_roughness"][m], d["p_base_ior"][m], reflection_only=True)
+        else:
+            continue
+        np.testing.assert_allclose(f[m], b.eval(wi[m], wo[m], check=False), rtol=1e-5, atol=1e-30)
+    # about half the pairs lie in the specular lobe: near-mirror configurations are well represented
+    h = wi + wo
+    h /= np.linalg.norm(h, axis=-1, keepdims=True)
+    alpha = d["p_base_roughness"][:, None]
+    near = (1.0 - h[..., 2]) < 2.0 * alpha**2
+    assert near.mean() > 0.3
+    assert (wi[..., 2] < 0.2).mean() > 0.1  # grazing incidence too
+
+
+# ----------------------------------------------------------------------------- training smoke run
+
+
+def test_training_code_path_smoke(tmp_path):
+    datamod.generate("single", tmp_path / "data", materials=16, pairs=64, chunk=8, seed=2, log=lambda s: None)
+    args = train_decoder.parser().parse_args(
+        ["--size", "tiny", "--data", str(tmp_path / "data"), "--steps", "6", "--batch", "8", "--pairs", "32",
+         "--every", "3", "--out", str(tmp_path / "run")])
+    res = train_decoder.train(args, log=lambda s: None)
+    assert res["step"] == 6 and np.isfinite(res["loss"])
+    args.steps = 9  # resumes from the checkpoint at step 6
+    logs = []
+    assert train_decoder.train(args, log=logs.append)["step"] == 9
+    assert any("resumed" in s for s in logs)
+    enc_args = Namespace(ckpt=tmp_path / "run" / "ckpt.pt", data=[tmp_path / "data"], materials=0, heldout=HELDOUT,
+                         width=16, depth=2, distill=5, finetune=3, batch_units=16, batch=4, pairs=16, lr=1e-3,
+                         threads=1, seed=0, out=tmp_path / "enc.pt")
+    hist = train_encoder.train(enc_args, log=lambda s: None)
+    assert np.isfinite(hist["finetuned"]["lobe_error_median"])
+    export.main(["--size", "tiny", "--decoder", str(tmp_path / "run" / "ckpt.pt"), "--encoder", str(tmp_path / "enc.pt"),
+                 "--out", str(tmp_path / "models")])
+    card = json.loads((tmp_path / "models" / "decoder_tiny.json").read_text())
+    assert card["onnx_runtime_vs_torch_max_relative_difference"] <= 1e-4
+    m = NeuralModels("tiny", model_dir=tmp_path / "models")
+    f = m.eval_brdf(m.encode(Conductor(0.3)), [[0, 0, 1.0]], [[0, 0.6, 0.8]])
+    assert f.shape == (1, 3) and np.all(np.isfinite(f))
+
+
+# ----------------------------------------------------------------------------- shipped models
+
+
+@pytest.mark.parametrize("size", SHIPPED)
+def test_onnx_runtime_equals_torch(size):
+    """Rebuild each shipped network in torch from its ONNX weights; outputs agree to 1e-4."""
+    rng = np.random.default_rng(7)
+    dpath = MODEL_DIR / f"decoder_{size}.onnx"
+    dec = export.torch_from_onnx(dpath, json.loads(dpath.with_suffix(".json").read_text()))
+    assert export.decoder_parity(dec, dpath, n=2048) <= 1e-4
+    rgb = MODEL_DIR / f"decoder_{size}_rgb.onnx"  # the runtime's fused graph: same weights, same values
+    assert export.rgb_decoder_parity(dec, rgb, n=1024) <= 1e-4
+    epath = MODEL_DIR / f"encoder_{size}.onnx"
+    enc = export.torch_from_onnx(epath, json.loads(epath.with_suffix(".json").read_text()))
+    x = rng.random((256, N_FEATURES)).astype(np.float32)
+    assert export.encoder_parity(enc, epath, x) <= 1e-4
+    # and the runtime's encode() is that encoder
+    m = NeuralModels(size)
+    from addon.core.neural.features import layer_features
+
+    with torch.no_grad():
+        ref = enc(torch.from_numpy(layer_features(Dielectric(0.2, 1.5)))).numpy()
+    np.testing.assert_allclose(m.encode(Dielectric(0.2, 1.5)), ref, rtol=1e-4, atol=1e-5)
+
+
+FAST = [s for s in SHIPPED if s in ("tiny", "small")]
+SLOW = [s for s in SHIPPED if s not in FAST]
+
+
+def _projection_check(size):
+    dpath = MODEL_DIR / f"decoder_{size}.onnx"
+    card = json.loads(dpath.with_suffix(".json").read_text())
+    if "heldout_single" not in card:
+        pytest.skip(f"decoder_{size}.json has no held-out figures")
+    torch.set_num_threads(2)
+    dec = export.torch_from_onnx(dpath, card)
+    h = card["heldout_single"]
+    m = evaluate_projection(dec, load_heldout(HELDOUT), init=np.asarray(h["projection_init"], np.float32),
+                            steps=h["projection_steps"], chunk_pairs=h.get("projection_pairs"))
+    assert m["lobe_error_median"] <= h["lobe_error_median"] * 1.1 + 2e-3
+    assert m["lobe_error_p90"] <= h["lobe_error_p90"] * 1.1 + 2e-3
+
+
+@pytest.mark.parametrize("size", FAST)
+def test_heldout_projection_error_not_worse_than_card(size):
+    _projection_check(size)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("size", SLOW)
+def test_heldout_projection_error_not_worse_than_card_large(size):
+    _projection_check(size)
