@@ -106,7 +106,7 @@ def _pip_download(req: str, platform: str, folder: Path) -> bool:
         return True
     text = proc.stderr + proc.stdout
     if re.search(r"(NewConnectionError|Max retries|Temporary failure in name resolution|Network is unreachable|"
-                 r"Connection refused|ConnectTimeout)", text):
+                 r"Connection refused|ConnectTimeout|ProxyError|SSLError|ReadTimeout)", text):
         raise RegistryUnreachable(f"pip cannot reach the package index: {text.strip().splitlines()[-1]}")
     return False
 
