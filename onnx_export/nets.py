@@ -151,12 +151,13 @@ class RGBDecoder(nn.Module):
         self.w_z = nn.Parameter(first.weight[:, :LATENT].detach().clone())
         self.w_d = nn.Parameter(first.weight[:, LATENT:].detach().clone())
         self.b = nn.Parameter(first.bias.detach().clone())
-        self.rest = dec.net[1:]
+        self.rest = dec.net[2:]  # after the first Linear + ReLU
 
     def forward(self, z: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
         zc = torch.matmul(z, self.w_z.t()) + self.b  # (Bz, 3, W)
         d = torch.matmul(direction_features(wi, wo, self.dec.features), self.w_d.t())  # (B, W)
-        y = self.rest(d.unsqueeze(1) + zc)[..., 0]  # (B, 3)
+        h = torch.relu(d.unsqueeze(1) + zc).reshape(-1, self.w_z.shape[0])  # (B * 3, W)
+        y = self.rest(h).reshape(-1, 3)  # 2-D rows: the exporter emits Gemm, which fuses bias and ReLU
         if self.dec.activation == "exp":
             f = torch.exp(torch.clamp(y, max=MAX_LOG_F))
         else:
