@@ -50,12 +50,15 @@ PLATFORM_TAGS: dict[str, list[str]] = {
 
 # (distribution, required): a platform is built only when every required wheel exists.
 PACKAGES: list[tuple[str, bool]] = [
+    ("packaging", True),
     ("onnxruntime", True),
     ("flatbuffers", True),
     ("protobuf", True),
-    ("packaging", True),
     ("embreex", False),
 ]
+# A pure-Python wheel every platform gets: when even this cannot be downloaded, the package index
+# is unreachable (pip's own connection errors are not always printed).
+PROBE = "packaging"
 PINNED_FROM_ENV = ("onnxruntime", "embreex")  # ship the versions the tests run against
 NEVER_BUNDLE = ("numpy",)
 
@@ -105,6 +108,7 @@ def _pip_download(req: str, platform: str, folder: Path) -> bool:
     if proc.returncode == 0:
         return True
     text = proc.stderr + proc.stdout
+    _pip_download.last_error = (text.strip().splitlines() or ["(no output)"])[-1]
     if re.search(r"(NewConnectionError|Max retries|Temporary failure in name resolution|Network is unreachable|"
                  r"Connection refused|ConnectTimeout|ProxyError|SSLError|ReadTimeout)", text):
         raise RegistryUnreachable(f"pip cannot reach the package index: {text.strip().splitlines()[-1]}")
@@ -129,6 +133,11 @@ def download(dist: str, platform: str, folder: Path, log) -> Path | None:
         w = cached_wheel(folder, dist)
         log(f"  {platform}: {req} has no cp311 wheel; using {w.name} instead")
         return w
+    if dist == PROBE:
+        raise RegistryUnreachable(
+            f"cannot download even the pure-Python wheel {PROBE!r}, so the package index is unreachable "
+            f"(pip: {getattr(_pip_download, 'last_error', '?')})"
+        )
     log(f"  {platform}: no cp311 wheel of {dist}")
     return None
 

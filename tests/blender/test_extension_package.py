@@ -45,6 +45,19 @@ def test_manifest_with_wheels_keeps_tables_after_keys():
     assert data["permissions"] == {"files": "y"}
 
 
+def test_unreachable_index_is_told_apart_from_a_missing_wheel(tmp_path, monkeypatch):
+    monkeypatch.setattr(build_extension, "_pip_download", lambda req, platform, folder: False)
+    with pytest.raises(build_extension.RegistryUnreachable, match="package index is unreachable"):
+        build_extension.build(["linux-x64"], tmp_path / "dist", tmp_path / "cache", tmp_path / "build", log=lambda *_: None)
+    # index reachable, but one platform lacks a required wheel: skipped and named
+    monkeypatch.setattr(build_extension, "_pip_download", lambda req, platform, folder: req == "packaging" and (
+        (folder / "packaging-26.0-py3-none-any.whl").write_bytes(b"") is not None))
+    logs = []
+    with pytest.raises(RuntimeError, match="onnxruntime"):
+        build_extension.build(["windows-arm64"], tmp_path / "dist", tmp_path / "cache2", tmp_path / "build", log=logs.append)
+    assert any("skipped, missing onnxruntime" in line for line in logs)
+
+
 @pytest.fixture(scope="module")
 def built_zip(tmp_path_factory):
     if HOST is None:
