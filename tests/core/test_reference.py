@@ -287,3 +287,24 @@ def test_bad_directions_and_counts_raise():
     with pytest.raises(ValueError, match="rows"):
         R.eval_brdf(R.pack_stacks([stack, stack]), np.repeat(direction(10), 3, axis=0),
                     np.repeat(direction(10), 3, axis=0))
+
+
+# --------------------------------------------------------------------------- amortised estimator
+
+
+def test_amortised_estimator_matches_the_plain_one():
+    stack = MULTI["2 coats, rough"]
+    wo = np.concatenate([direction(20, 0), direction(60, 90)])
+    rng = np.random.default_rng(12)
+    z = 0.1 + 0.9 * rng.random((2, 5))
+    phi = 2.0 * np.pi * rng.random((2, 5))
+    s = np.sqrt(1.0 - z * z)
+    wi = np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=-1)
+    fm, sm = R.eval_brdf_many(stack, wi, wo, walks=6000, seed=1)
+    assert fm.shape == (2, 5, 3) and sm.shape == (2, 5, 3)
+    fp, sp = R.eval_brdf(stack, wi.reshape(-1, 3), np.repeat(wo, 5, axis=0), walks=6000, seed=2)
+    fp, sp = fp.reshape(2, 5, 3), sp.reshape(2, 5, 3)
+    assert np.all(fm > 0.0)
+    assert np.all(np.abs(fm - fp) <= 3.0 * np.sqrt(sm**2 + sp**2)), (fm, fp)
+    with pytest.raises(ValueError, match=r"\(N, M, 3\)"):
+        R.eval_brdf_many(stack, wi[0], wo)

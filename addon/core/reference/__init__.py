@@ -36,7 +36,7 @@ from addon.core.stack import Stack, StackArrays
 
 from .walk import CHUNK_WALKS, MAX_DEPTH, Layers, run_walks, validate_arrays
 
-__all__ = ["eval_brdf", "sample", "albedo", "pack_stacks", "MAX_DEPTH"]
+__all__ = ["eval_brdf", "eval_brdf_many", "sample", "albedo", "pack_stacks", "MAX_DEPTH"]
 
 
 def pack_stacks(stacks) -> StackArrays:
@@ -75,10 +75,12 @@ def _rng(rng) -> np.random.Generator:
     raise ValueError(f"rng must be a numpy Generator or an integer seed, got {type(rng).__name__}")
 
 
-def _mean_stderr(est: np.ndarray, pair: np.ndarray, n: int, k: int, sums: np.ndarray, sq: np.ndarray) -> None:
-    for c in range(3):
-        sums[:, c] += np.bincount(pair, weights=est[:, c], minlength=n)
-        sq[:, c] += np.bincount(pair, weights=est[:, c] ** 2, minlength=n)
+def _accumulate(sums: np.ndarray, sq: np.ndarray, pair: np.ndarray, est: np.ndarray) -> None:
+    """Add per-walk estimates to their pair's sums; ``pair`` is sorted (walks are pair-major)."""
+    starts = np.flatnonzero(np.r_[True, pair[1:] != pair[:-1]])
+    idx = pair[starts]
+    sums[idx] += np.add.reduceat(est, starts, axis=0)
+    sq[idx] += np.add.reduceat(est * est, starts, axis=0)
 
 
 def _finish(sums: np.ndarray, sq: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -100,19 +102,51 @@ def eval_brdf(stack, wi, wo, walks: int = 64, seed: int = 0) -> tuple[np.ndarray
     wo = as_directions(wo, "wo")
     if wi.shape[0] != wo.shape[0]:
         raise ValueError(f"wi has {wi.shape[0]} rows but wo has {wo.shape[0]}")
+    f, se = _eval(stack, wi[:, None, :], wo, walks, seed)
+    return f[:, 0], se[:, 0]
+
+
+def eval_brdf_many(stack, wi, wo, walks: int = 64, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Amortised estimator: f(wi[n, j], wo[n]) for M incident directions per outgoing one.
+
+    ``wi`` is (N, M, 3), ``wo`` (N, 3); returns f and its standard error, (N, M, 3) each. Every
+    walk from ``wo[n]`` connects each of its vertices to all M incident directions (one
+    pre-sampled chain each), so the walk is paid once for M values. The M estimates of one
+    ``n`` are correlated (same walks); each one is unbiased with the stated standard error.
+    For a lobe image (fixed incident direction, many outgoing ones) use reciprocity,
+    f(wi, wo) = f(wo, wi): pass the grid as ``wi`` and the incident direction as ``wo``.
+    """
+    try:
+        a = np.asarray(wi, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"wi must be an (N, M, 3) array of directions, got {type(wi).__name__}") from None
+    if a.ndim != 3 or a.shape[2] != 3:
+        raise ValueError(f"wi must have shape (N, M, 3), got {a.shape}")
+    n, m = a.shape[0], a.shape[1]
+    if m < 1:
+        raise ValueError("wi must hold at least one direction per row (M >= 1)")
+    flat = as_directions(a.reshape(-1, 3), "wi").reshape(n, m, 3)
+    wo = as_directions(wo, "wo")
+    if wo.shape[0] != n:
+        raise ValueError(f"wi has {n} rows but wo has {wo.shape[0]}")
+    return _eval(stack, flat, wo, walks, seed)
+
+
+def _eval(stack, wi: np.ndarray, wo: np.ndarray, walks, seed) -> tuple[np.ndarray, np.ndarray]:
     k = _count(walks, "walks")
-    n = wi.shape[0]
+    n, m = wi.shape[0], wi.shape[1]
     lay, prow = _layers_and_rows(stack, n)
     rng = _rng(seed)
-    sums = np.zeros((n, 3))
-    sq = np.zeros((n, 3))
+    sums = np.zeros((n, m, 3))
+    sq = np.zeros((n, m, 3))
     total = n * k
-    for r0 in range(0, total, CHUNK_WALKS):
-        r = np.arange(r0, min(total, r0 + CHUNK_WALKS))
+    step = max(1, CHUNK_WALKS // m)
+    for r0 in range(0, total, step):
+        r = np.arange(r0, min(total, r0 + step))
         pair = r // k
         est = run_walks(lay, prow[pair], wo[pair], wi[pair], rng, nee=True)
-        _mean_stderr(est, pair, n, k, sums, sq)
-    above = ((wi[:, 2] > 0.0) & (wo[:, 2] > 0.0))[:, None]
+        _accumulate(sums, sq, pair, est)
+    above = ((wi[:, :, 2] > 0.0) & (wo[:, None, 2] > 0.0))[:, :, None]
     f, se = _finish(sums, sq, k)
     return np.where(above, f, 0.0), np.where(above, se, 0.0)
 
@@ -151,5 +185,5 @@ def albedo(stack, wo, samples: int = 4096, seed: int = 0) -> tuple[np.ndarray, n
         r = np.arange(r0, min(total, r0 + CHUNK_WALKS))
         pair = r // k
         _, w, _ = run_walks(lay, prow[pair], wo[pair], None, rng, nee=False)
-        _mean_stderr(w, pair, n, k, sums, sq)
+        _accumulate(sums, sq, pair, w)
     return _finish(sums, sq, k)

@@ -258,17 +258,23 @@ def run_walks(lay: Layers, pr: np.ndarray, wo: np.ndarray, wi: np.ndarray | None
               rng: np.random.Generator, nee: bool):
     """Walk ``len(pr)`` independent walks, walk ``r`` for stack row ``pr[r]`` seen from ``wo[r]``.
 
-    With ``nee`` (``wi`` given): returns the per-walk estimates of f(wi[r], wo[r]) (m, 3).
+    With ``nee`` (``wi`` of shape (m, M, 3) given): returns the per-walk estimates of
+    f(wi[r, j], wo[r]) (m, M, 3): one walk serves the M incident directions, each with its
+    own chain.
     Without: returns ``(wi, weight, specular)`` of the analog walk (weight 0 for absorbed walks).
     """
     m, C = pr.shape[0], lay.C
-    acc = np.zeros((m, 3))
+    M = 1 if wi is None else wi.shape[1]
+    acc = np.zeros((m, M, 3))
     out_wi = np.zeros((m, 3))
     out_wi[:, 2] = 1.0
     out_w = np.zeros((m, 3))
     out_spec = np.zeros(m, dtype=bool)
     if nee:
-        D, W, PK = _sample_chain(lay, pr, wi, rng)
+        D, W, PK = _sample_chain(lay, np.repeat(pr, M), wi.reshape(-1, 3), rng)
+        D = D.reshape(m, M, C + 1, 3)
+        W = W.reshape(m, M, C + 1, 3)
+        PK = PK.reshape(m, M)
     st = _State(
         wid=np.arange(m), pr=pr.copy(), s=np.full(m, C), z=np.zeros(m), w=-wo.copy(), beta=np.ones((m, 3)),
         last_pdf=np.zeros(m), last_n2cos=np.ones(m), straight=np.zeros(m, dtype=bool),
@@ -278,40 +284,45 @@ def run_walks(lay: Layers, pr: np.ndarray, wo: np.ndarray, wi: np.ndarray | None
     st.keep(wo[:, 2] > 0.0)
 
     def connect(ix, s_nee, f_fn, pdf_fn, medium, arrive_K):
-        """NEE from vertices ``ix`` (indices into st) to the chain direction of slab s_nee."""
-        wid = st.wid[ix]
-        d = D[wid, s_nee]
-        Wc = W[wid, s_nee]
-        a = np.flatnonzero(Wc.max(axis=1) > 0.0)
-        if a.size == 0:
+        """NEE from vertices ``ix`` (indices into st) to the chain directions of slab s_nee,
+        for each of the M incident directions of the walk."""
+        rep = np.repeat(np.arange(ix.size), M)
+        mm = np.tile(np.arange(M), ix.size)
+        wid = st.wid[ix][rep]
+        sn = s_nee[rep]
+        d = D[wid, mm, sn]
+        Wc = W[wid, mm, sn]
+        sel = np.flatnonzero(Wc.max(axis=1) > 0.0)
+        if sel.size == 0:
             return
-        ix, wid, d, Wc, s_nee = ix[a], wid[a], d[a], Wc[a], s_nee[a]
-        arrive_K = arrive_K[a]
-        p = st.pr[ix]
-        w_in = st.w[ix]
+        a = rep[sel]  # row of the vertex within ``ix`` (what f_fn / pdf_fn index)
+        wid, mm, sn, d, Wc = wid[sel], mm[sel], sn[sel], d[sel], Wc[sel]
+        ixa = ix[a]
+        p = st.pr[ixa]
+        w_in = st.w[ixa]
         dz = np.abs(d[:, 2])
         f = f_fn(a, -d, -w_in)
         if medium:
-            tr = _tr(lay.tau[p, s_nee] - st.z[ix], dz)
-            c = st.beta[ix] * lay.albedo[p, st.s[ix]] * (f * tr / dz)[:, None] * Wc
+            tr = _tr(lay.tau[p, sn] - st.z[ixa], dz)
+            c = st.beta[ixa] * lay.albedo[p, st.s[ixa]] * (f * tr / dz)[:, None] * Wc
         else:
-            tr = _tr(lay.tau[p, s_nee], dz)
-            c = st.beta[ix] * f * tr[:, None] * Wc
+            tr = _tr(lay.tau[p, sn], dz)
+            c = st.beta[ixa] * f * tr[:, None] * Wc
         K = lay.K[p]
-        wt = np.ones(a.size)
-        m1 = np.flatnonzero(s_nee <= K)
+        wt = np.ones(sel.size)
+        m1 = np.flatnonzero(sn <= K)
         if m1.size:
             Km = K[m1]
-            jac = lay.n[p[m1], Km] ** 2 * np.abs(D[wid[m1], Km, 2]) / (lay.n[p[m1], s_nee[m1]] ** 2 * dz[m1])
+            jac = lay.n[p[m1], Km] ** 2 * np.abs(D[wid[m1], mm[m1], Km, 2]) / (lay.n[p[m1], sn[m1]] ** 2 * dz[m1])
             pv = pdf_fn(a[m1], -d[m1], -w_in[m1], RADIANCE) * jac
-            wt[m1] = _power(PK[wid[m1]], pv)
-        m2 = np.flatnonzero(arrive_K & st.straight[ix])
+            wt[m1] = _power(PK[wid[m1], mm[m1]], pv)
+        m2 = np.flatnonzero(arrive_K[a] & st.straight[ixa])
         if m2.size:
             Km = K[m2]
-            pb = st.last_pdf[ix[m2]] * lay.n[p[m2], Km] ** 2 * np.abs(w_in[m2, 2]) / st.last_n2cos[ix[m2]]
+            pb = st.last_pdf[ixa[m2]] * lay.n[p[m2], Km] ** 2 * np.abs(w_in[m2, 2]) / st.last_n2cos[ixa[m2]]
             pn = pdf_fn(a[m2], -w_in[m2], -d[m2], IMPORTANCE)
             wt[m2] = _power(pb, pn)
-        acc[wid] += c * wt[:, None]
+        acc[wid, mm] += c * wt[:, None]
 
     for depth in range(MAX_DEPTH):
         if st.wid.size == 0:
