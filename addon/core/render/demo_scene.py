@@ -50,8 +50,11 @@ def checker_texture(size: int = 512, squares: int = 16) -> np.ndarray:
 
 
 def demo_scene(width: int = 320, height: int = 180, presets=DEMO_PRESETS) -> Scene:
-    """Spheres of the given presets in a row on a tiled floor, a sky and a soft area light."""
+    """Spheres of the given presets (names, or Stack objects) in a row on a tiled floor, a sky and
+    a soft area light."""
     presets = list(presets)
+    stacks = [PRESETS[p] if isinstance(p, str) else p for p in presets]
+    names = [p if isinstance(p, str) else f"stack{i}" for i, p in enumerate(presets)]
     n = len(presets)
     spacing = 1.1
     meshes = []
@@ -61,7 +64,7 @@ def demo_scene(width: int = 320, height: int = 180, presets=DEMO_PRESETS) -> Sce
     meshes.append(shapes.quad((0, 2.0, 0), (8.0, 0, 0), (0, 8.0, 0), material=0))
     mesh = Mesh.concatenate(meshes)
     floor = LambertMaterial((1.0, 1.0, 1.0), ImageTexture(checker_texture()))
-    materials = [floor] + [LayeredSpec(PRESETS[p], None, p) for p in presets]
+    materials = [floor] + [LayeredSpec(st, None, name) for st, name in zip(stacks, names)]
     light = np.eye(4)
     light[:3, 3] = (1.5, -1.5, 3.0)
     c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
@@ -69,4 +72,4 @@ def demo_scene(width: int = 320, height: int = 180, presets=DEMO_PRESETS) -> Sce
     lights = [AreaLight(light, power=250.0, size=1.5, color=(1.0, 0.92, 0.85))]
     cam = Camera.look_at((0.0, -5.6, 2.1), (0.0, 0.0, 0.6), fov_deg=50.0, width=width, height=height)
     return Scene(cam, mesh, materials, lights, Environment(image=sky_image()),
-                 ["tiles"] + presets)
+                 ["tiles"] + names)
