@@ -36,119 +36,19 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from addon.core.bsdf.fresnel import fresnel_conductor  # noqa: E402
 from addon.core.render import RenderSettings, render  # noqa: E402
 from addon.core.render import materials as M  # noqa: E402
-from addon.core.render.demo_scene import checker_texture, demo_scene, sky_image  # noqa: E402
-from addon.core.stack import Conductor, Dielectric, Diffuse, artist_roughness_from_alpha  # noqa: E402
+from addon.core.render.demo_scene import demo_scene  # noqa: E402
 
 # ----------------------------------------------------------------------------- Cycles baseline
 
 
-def principled_inputs(stack) -> dict:
-    """Principled BSDF inputs approximating a stack (what an artist would set by hand).
-
-    Base: Diffuse -> base colour; Conductor -> metallic with base colour = its normal-incidence
-    Fresnel reflectance; Dielectric -> black base with the dielectric's IOR as specular.
-    Coatings: the top coating's roughness and IOR drive Coat; every coating's medium becomes a
-    coat tint exp(-thickness * (1 - albedo)) (absorption only, multiplied over the coatings).
-    """
-    b = stack.base
-    inputs = {"Roughness": 1.0, "Metallic": 0.0, "Base Color": (0.8, 0.8, 0.8, 1.0)}
-    if isinstance(b, Diffuse):
-        inputs["Base Color"] = (*b.albedo, 1.0)
-    elif isinstance(b, Conductor):
-        f0 = fresnel_conductor(np.ones(1), np.asarray(b.eta), np.asarray(b.k))[0]
-        inputs.update({"Metallic": 1.0, "Base Color": (*f0, 1.0), "Roughness": artist_roughness_from_alpha(b.roughness)})
-    elif isinstance(b, Dielectric):
-        inputs.update({"Base Color": (0.0, 0.0, 0.0, 1.0), "IOR": b.ior,
-                       "Roughness": artist_roughness_from_alpha(b.roughness)})
-    if stack.coatings:
-        top = stack.coatings[-1]
-        tint = np.ones(3)
-        for c in stack.coatings:
-            tint *= np.exp(-c.thickness * (1.0 - np.asarray(c.albedo)))
-        inputs.update({"Coat Weight": 1.0, "Coat Roughness": artist_roughness_from_alpha(top.roughness),
-                       "Coat IOR": top.ior, "Coat Tint": (*tint, 1.0)})
-    return inputs
-
-
-def _bpy_image(bpy, name, rgb):
-    h, w, _ = rgb.shape
-    img = bpy.data.images.new(name, w, h, float_buffer=True)
-    img.colorspace_settings.name = "Linear Rec.709"  # before the pixels: changing it regenerates them
-    rgba = np.concatenate([rgb, np.ones((h, w, 1), np.float32)], axis=2)[::-1]
-    img.pixels.foreach_set(np.ascontiguousarray(rgba, dtype=np.float32).ravel())
-    img.update()
-    return img
-
-
 def build_blender_scene(bpy, scene):
-    """The core demo scene as Blender data: one mesh, Principled materials, sky, area light, camera."""
-    bpy.ops.wm.read_homefile(app_template="")
-    for ob in list(bpy.data.objects):
-        bpy.data.objects.remove(ob)
-    bs = bpy.context.scene
-    mesh = scene.mesh
-    me = bpy.data.meshes.new("demo")
-    verts = mesh.positions.reshape(-1, 3)
-    faces = np.arange(len(verts)).reshape(-1, 3)
-    me.from_pydata(verts.tolist(), [], faces.tolist())
-    me.polygons.foreach_set("material_index", mesh.material_index.astype(np.int32))
-    me.polygons.foreach_set("use_smooth", np.ones(len(faces), bool))
-    uv = me.uv_layers.new(name="UVMap")
-    uv.data.foreach_set("uv", mesh.uvs.reshape(-1).astype(np.float32))
-    me.normals_split_custom_set(mesh.normals.reshape(-1, 3).tolist())
-    me.update()
-    for i, spec in enumerate(scene.materials):
-        mat = bpy.data.materials.new(scene.material_names[i])
-        if mat.node_tree is None:
-            mat.use_nodes = True
-        p = mat.node_tree.nodes["Principled BSDF"]
-        if isinstance(spec, M.LambertMaterial):
-            p.inputs["Base Color"].default_value = (*spec.color, 1.0)
-            p.inputs["Roughness"].default_value = 1.0
-            p.inputs["Specular IOR Level"].default_value = 0.0
-            if spec.texture is not None:
-                tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
-                tex.image = _bpy_image(bpy, "tiles", checker_texture())
-                mat.node_tree.links.new(tex.outputs["Color"], p.inputs["Base Color"])
-        else:
-            for key, value in principled_inputs(spec.stack).items():
-                p.inputs[key].default_value = value
-        me.materials.append(mat)
-    ob = bpy.data.objects.new("demo", me)
-    bs.collection.objects.link(ob)
-    (light,) = scene.lights
-    ld = bpy.data.lights.new("area", "AREA")
-    ld.energy, ld.size, ld.color = light.power, light.size, tuple(light.color)
-    lo = bpy.data.objects.new("area", ld)
-    import mathutils
+    """The core demo scene as Blender data, Principled coat materials (addon.core.render.principled)."""
+    from addon.blender import render_demo
 
-    m = np.eye(4)
-    m[:3, 0] = light.axis_u / np.linalg.norm(light.axis_u)
-    m[:3, 1] = light.axis_v / np.linalg.norm(light.axis_v)
-    m[:3, 2] = -light.normal
-    m[:3, 3] = light.center
-    lo.matrix_world = mathutils.Matrix(m.tolist())
-    bs.collection.objects.link(lo)
-    world = bpy.data.worlds.new("sky")
-    if world.node_tree is None:
-        world.use_nodes = True
-    env = world.node_tree.nodes.new("ShaderNodeTexEnvironment")
-    env.image = _bpy_image(bpy, "sky", sky_image())
-    env.interpolation = "Closest"
-    world.node_tree.links.new(env.outputs["Color"], world.node_tree.nodes["Background"].inputs["Color"])
-    bs.world = world
-    cd = bpy.data.cameras.new("cam")
-    cd.sensor_fit = "AUTO"
-    cd.lens_unit = "FOV"
-    cd.angle = 2 * np.arctan(max(scene.camera.tan_half_fov))
-    co = bpy.data.objects.new("cam", cd)
-    co.matrix_world = mathutils.Matrix(scene.camera.matrix.tolist())
-    bs.collection.objects.link(co)
-    bs.camera = co
-    return bs
+    bpy.ops.wm.read_homefile(app_template="")
+    return render_demo.build_scene(scene)
 
 
 def render_cycles(bpy, bs, width, height, samples, bounces, out_dir: Path):
