@@ -163,3 +163,15 @@ def test_image_texture_footprint_selects_coarser_mip_levels():
     bound = m.bind(SurfaceHits(uv, np.full(500, 1.0)))
     wi = np.tile([[0.0, 0.0, 1.0]], (500, 1))
     assert np.allclose(bound.eval(wi, wi), 0.5 * np.array([1.0, 0.5, 0.25]) / np.pi, atol=1e-3)
+
+
+def test_demo_scene_renders_in_both_modes_without_nan():
+    from addon.core.render.demo_scene import DEMO_PRESETS, demo_scene
+
+    scene = demo_scene(24, 14)
+    assert scene.material_names == ["tiles", *DEMO_PRESETS]
+    for mode in ("reference", "neural"):
+        film, stats = render(scene, RenderSettings(samples=1, max_bounces=2, mode=mode, reference_walks=1))
+        assert stats.nonfinite == 0 and np.isfinite(film.mean()).all() and film.mean().mean() > 0
+        assert stats.material_kinds[0] == "analytic"
+        assert set(stats.material_kinds[1:]) <= {"neural", "reference"}
