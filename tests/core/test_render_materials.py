@@ -175,3 +175,24 @@ def test_demo_scene_renders_in_both_modes_without_nan():
         assert stats.nonfinite == 0 and np.isfinite(film.mean()).all() and film.mean().mean() > 0
         assert stats.material_kinds[0] == "analytic"
         assert set(stats.material_kinds[1:]) <= {"neural", "reference"}
+
+
+def test_latent_texture_material_matches_its_constant_latent():
+    from addon.core.textures import LatentTexture
+
+    material = neural_material.make(COPPER)
+    if material is None:
+        pytest.skip("neural models are not available")
+    sigma, w = material.sigma, material.w
+    texels = np.concatenate([np.tile(material.z.reshape(1, 1, 96), (8, 8, 1)),
+                             np.tile([[[sigma, w]]], (8, 8, 1))], axis=2).astype(np.float32)
+    textured = neural_material.NeuralMaterial(material.models, None, (sigma, w), LatentTexture.from_texels(texels))
+    n = 300
+    rng = np.random.default_rng(3)
+    hits = SurfaceHits(rng.random((n, 2)), rng.random(n) * 0.5)
+    wo = np.tile([[0.0, 0.6, 0.8]], (n, 1))
+    a, b = material.bind(hits), textured.bind(hits)
+    sa = a.sample(wo, rng.random(n), rng.random((n, 2)))
+    ok = sa.valid
+    assert np.allclose(a.eval(sa.wi[ok], wo[ok]), b.eval(sa.wi[ok], wo[ok], np.nonzero(ok)[0]), rtol=1e-2, atol=1e-4)
+    assert np.allclose(a.pdf(sa.wi[ok], wo[ok]), b.pdf(sa.wi[ok], wo[ok], np.nonzero(ok)[0]), rtol=1e-3)
