@@ -196,3 +196,19 @@ def test_latent_texture_material_matches_its_constant_latent():
     ok = sa.valid
     assert np.allclose(a.eval(sa.wi[ok], wo[ok]), b.eval(sa.wi[ok], wo[ok], np.nonzero(ok)[0]), rtol=1e-2, atol=1e-4)
     assert np.allclose(a.pdf(sa.wi[ok], wo[ok]), b.pdf(sa.wi[ok], wo[ok], np.nonzero(ok)[0]), rtol=1e-3)
+
+
+def test_neural_and_reference_renders_of_a_layered_scene_agree():
+    """Switches on when the neural runtime can encode layered stacks (the layering network)."""
+    stack = PRESETS["lacquered_plastic"]
+    material = neural_material.make(stack)
+    if material is None:
+        pytest.skip("the neural runtime cannot encode layered stacks yet (no layering network)")
+    scene = mixed_scene(24, 16)
+    scene.materials[1] = LayeredSpec(stack)
+    ref = block_stats(render(scene, RenderSettings(samples=32, max_bounces=2, mode="reference",
+                                                   reference_walks=2, seed=1))[0])
+    film, stats = render(scene, RenderSettings(samples=32, max_bounces=2, mode="neural", seed=2))
+    assert "neural" in stats.material_kinds
+    _, _, rel = compare(block_stats(film), ref)
+    assert rel < 0.05, rel
