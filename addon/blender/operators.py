@@ -423,7 +423,12 @@ class NLM_OT_preview_sphere(_LongOperator, bpy.types.Operator):
         def work(progress):
             t0 = time.perf_counter()
             choice = preview.choose_brdf(stack, method, latent=latent, size=size, walks=walks)
-            img = preview.sphere_preview(choice.brdf, res, env_samples=k, progress=progress, chunk=choice.chunk)
+            # an importance sampler (the reference's walks) gets the walk budget per pixel
+            samples = k * walks if choice.sampler is not None else k
+            img = preview.sphere_preview(
+                choice.brdf, res, env_samples=samples, progress=progress, chunk=choice.chunk,
+                sampler=choice.sampler, sample_chunk=choice.sample_chunk,
+            )
             return img, choice, time.perf_counter() - t0
 
         def finish(context, result):

@@ -239,7 +239,8 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
     )
     env_samples: IntProperty(
         name="Environment Samples",
-        description="Fixed sky directions per pixel of the sphere preview (more = smoother sky lighting, slower)",
+        description="Sky directions per pixel of the sphere preview (more = smoother sky lighting, slower); "
+        "the reference traces this many times Walks analog walks per pixel",
         default=8,
         min=1,
         max=256,

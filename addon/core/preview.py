@@ -161,12 +161,23 @@ def _latent_for(stack, latent, size):
     return encode_latent(stack, size)
 
 
+def reference_sampler(stack: Stack, seed: int = 0):
+    """``sampler(wo) -> (wi, weight)``: one analog walk of the reference per row (weight = f cos / pdf,
+    delta reflections included); successive calls continue one seeded random stream."""
+    from addon.core import reference
+
+    rng = np.random.default_rng(seed)
+    return lambda wo: reference.sample(stack, wo, rng)
+
+
 @dataclass
 class BrdfChoice:
     brdf: BrdfFn
     method: str  # "NEURAL" or "REFERENCE"
     notes: list[str] = field(default_factory=list)
     chunk: int = DEFAULT_CHUNK  # rows per call: small enough for prompt progress and cancel
+    sampler: Optional[Callable] = None  # importance sampling of f cos, where the method has one
+    sample_chunk: int = 16384  # rows per sampler call (one walk each)
 
 
 def reference_chunk(walks: int) -> int:
@@ -192,7 +203,9 @@ def choose_brdf(
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if method == "REFERENCE":
-        return BrdfChoice(reference_brdf(stack, walks, seed), "REFERENCE", chunk=reference_chunk(walks))
+        return BrdfChoice(
+            reference_brdf(stack, walks, seed), "REFERENCE", [], reference_chunk(walks), reference_sampler(stack, seed)
+        )
     try:
         z, used, notes = _latent_for(stack, latent, size)
         return BrdfChoice(neural_brdf_from_latent(z, used), "NEURAL", notes)
@@ -200,7 +213,9 @@ def choose_brdf(
         if method == "NEURAL":
             raise
         note = f"neural models not available: {e}; showing the position-free Monte Carlo reference"
-        return BrdfChoice(reference_brdf(stack, walks, seed), "REFERENCE", [note], reference_chunk(walks))
+        return BrdfChoice(
+            reference_brdf(stack, walks, seed), "REFERENCE", [note], reference_chunk(walks), reference_sampler(stack, seed)
+        )
 
 
 # --------------------------------------------------------------------------------------------
@@ -282,6 +297,9 @@ def cosine_directions(n: int) -> np.ndarray:
     return np.stack([x, y, np.sqrt(np.clip(1.0 - r * r, 0.0, 1.0))], axis=-1)
 
 
+SamplerFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
 def sphere_preview(
     brdf: BrdfFn,
     res: int = 128,
@@ -289,42 +307,74 @@ def sphere_preview(
     env_samples: int = 16,
     progress: ProgressFn = None,
     chunk: int = DEFAULT_CHUNK,
+    sampler: Optional[SamplerFn] = None,
+    seed: int = 0,
+    sample_chunk: int = 16384,
 ) -> np.ndarray:
     """(res, res, 4) image of a unit sphere seen orthographically, shaded with ``brdf``.
 
-    Radiance per pixel = f(sun, wo) E_sun cos + the sky/ground term estimated with
-    ``env_samples`` fixed cosine-distributed directions (weight pi f L). Alpha is 1 on the
-    sphere, 0 elsewhere (RGB 0 there).
+    Radiance per pixel = f(sun, wo) E_sun cos(sun) + the sky/ground term, estimated with
+    ``env_samples`` directions per pixel:
+
+    - with ``sampler(wo) -> (wi, weight)`` (weight = f cos / pdf, e.g. the reference's analog
+      walks, which include the mirror reflection of smooth coats): mean of weight L(wi);
+    - otherwise: a fixed cosine-distributed pattern, rotated about the normal by a per-pixel
+      azimuth drawn from ``seed`` (so narrow lobes give noise, not repeated glints): mean of
+      pi f L(wi).
+
+    Deterministic for a given ``seed``. Alpha is 1 on the sphere, 0 elsewhere (RGB 0 there).
     """
     from addon.core.bsdf.frame import coordinate_system, to_local, to_world
 
     if res < 2:
         raise ValueError(f"sphere resolution must be >= 2, got {res}")
+    if env_samples < 1:
+        raise ValueError(f"need at least 1 environment sample per pixel, got {env_samples}")
     c = (np.arange(res) + 0.5) / res * 2.0 - 1.0
     x, y = np.meshgrid(c, -c)  # rows top to bottom
     r2 = (x * x + y * y).reshape(-1)
     mask = r2 < 1.0
     n = np.stack([x.reshape(-1)[mask], y.reshape(-1)[mask], np.sqrt(1.0 - r2[mask])], axis=-1)
-    m = len(n)
+    m, k = len(n), env_samples
     s, t = coordinate_system(n)
+    rng = np.random.default_rng(seed)
 
     wo = to_local(np.broadcast_to(np.array([0.0, 0.0, 1.0]), n.shape), s, t, n)
     wi_sun = to_local(np.broadcast_to(env.sun(), n.shape), s, t, n)
-    local = cosine_directions(env_samples)  # (K, 3), local frame
-    # world direction of sample k at pixel p: local[k] expressed in the pixel's frame
-    world = to_world(local[:, None, :], s[None], t[None], n[None]).reshape(-1, 3)
-    wi_env = np.repeat(local, m, axis=0)  # sample-major, like `world`
+    sun_share = 1.0 / (1.0 + k)  # of the progress bar
 
-    wi_all = np.concatenate([wi_sun, wi_env]).astype(np.float32)
-    wo_all = np.concatenate([wo, np.tile(wo, (env_samples, 1))]).astype(np.float32)
-    # only directions above the shading horizon carry light; the sun may be behind a pixel
-    f = chunked(brdf, chunk, progress)(wi_all, wo_all).astype(np.float64)
+    # directions below the shading horizon give f = 0: the sun may be behind a pixel
+    f_sun = chunked(brdf, chunk, _scaled(progress, 0.0, sun_share))(wi_sun.astype(np.float32), wo.astype(np.float32))
+    radiance = f_sun.astype(np.float64) * np.clip(wi_sun[:, 2:3], 0.0, None) * np.asarray(env.sun_irradiance)
 
-    cos_sun = np.clip(wi_sun[:, 2:3], 0.0, None)
-    radiance = f[:m] * cos_sun * np.asarray(env.sun_irradiance)
-    f_env = f[m:].reshape(env_samples, m, 3)
-    l_env = env.radiance(world).reshape(env_samples, m, 3)
-    radiance += math.pi * (f_env * l_env).mean(axis=0)
+    wo_env = np.repeat(wo, k, axis=0)  # pixel-major: rows p*k ... p*k + k - 1 belong to pixel p
+    env_progress = _scaled(progress, sun_share, 1.0)
+    if sampler is not None:
+        wi_env = np.zeros_like(wo_env)
+        weight = np.zeros_like(wo_env)
+        rows = len(wo_env)
+        for start in range(0, rows, sample_chunk):
+            stop = min(start + sample_chunk, rows)
+            wi_env[start:stop], weight[start:stop] = sampler(wo_env[start:stop])
+            if env_progress is not None:
+                env_progress(stop / rows)
+    else:
+        pattern = cosine_directions(k)  # (K, 3) in the local frame
+        phi = rng.uniform(0.0, 2.0 * math.pi, size=(m, 1))
+        cos_p, sin_p = np.cos(phi), np.sin(phi)
+        wi_env = np.stack(
+            [
+                cos_p * pattern[None, :, 0] - sin_p * pattern[None, :, 1],
+                sin_p * pattern[None, :, 0] + cos_p * pattern[None, :, 1],
+                np.broadcast_to(pattern[None, :, 2], (m, k)),
+            ],
+            axis=-1,
+        ).reshape(-1, 3)
+        f_env = chunked(brdf, chunk, env_progress)(wi_env.astype(np.float32), wo_env.astype(np.float32))
+        weight = math.pi * f_env.astype(np.float64)  # f cos / pdf with pdf = cos / pi
+    rep = lambda a: np.repeat(a, k, axis=0)  # noqa: E731
+    world = to_world(np.asarray(wi_env, dtype=np.float64), rep(s), rep(t), rep(n))
+    radiance += (np.asarray(weight, dtype=np.float64) * env.radiance(world)).reshape(m, k, 3).mean(axis=1)
 
     img = np.zeros((res * res, 3))
     img[mask] = radiance

@@ -103,3 +103,45 @@ def test_choose_brdf_falls_back_with_a_note(monkeypatch):
         preview.choose_brdf(stack, "NEURAL")
     with pytest.raises(ValueError, match="method must be one of"):
         preview.choose_brdf(stack, "FAST")
+
+
+def lambert_sampler(albedo, seed=1):
+    bsdf = Lambertian(np.asarray(albedo, dtype=np.float64))
+    rng = np.random.default_rng(seed)
+
+    def sample(wo):
+        n = len(wo)
+        out = bsdf.sample(wo, rng.random(n), rng.random((n, 2)))
+        return out.wi, out.weight
+
+    return sample
+
+
+def test_sphere_with_a_sampler_matches_the_fixed_pattern_on_average():
+    white = preview.Environment(zenith=(1, 1, 1), horizon=(1, 1, 1), ground=(1, 1, 1), sun_irradiance=(0, 0, 0))
+    img = preview.sphere_preview(lambert((0.7, 0.7, 0.7)), res=24, env=white, env_samples=5,
+                                 sampler=lambert_sampler((0.7, 0.7, 0.7)))
+    on = img[..., 3] > 0
+    np.testing.assert_allclose(img[on][:, :3], 0.7, rtol=1e-5)  # furnace: weight = albedo exactly
+
+    sampled = preview.sphere_preview(lambert((0.5, 0.5, 0.5)), res=24, env_samples=256,
+                                     sampler=lambert_sampler((0.5, 0.5, 0.5)))
+    pattern = preview.sphere_preview(lambert((0.5, 0.5, 0.5)), res=24, env_samples=256)
+    on = sampled[..., 3] > 0
+    assert sampled[on][:, :3].mean(0) == pytest.approx(pattern[on][:, :3].mean(0), rel=0.02)
+    # the sky is brighter than the ground: the top half of the sphere is brighter
+    assert sampled[:12, :, 2].sum() > sampled[12:, :, 2].sum()
+
+
+def test_reference_choice_samples_delta_reflections_of_a_smooth_coat():
+    """eval_brdf leaves out the mirror reflection of a smooth coat; the sampler carries it."""
+    stack = Stack(Diffuse((0.0, 0.0, 0.0)), (Coating(roughness=0.0, ior=1.5),))
+    choice = preview.choose_brdf(stack, "REFERENCE", walks=4)
+    assert choice.sampler is not None
+    env = preview.Environment(zenith=(1, 1, 1), horizon=(1, 1, 1), ground=(1, 1, 1), sun_irradiance=(0, 0, 0))
+    img = preview.sphere_preview(choice.brdf, res=16, env=env, env_samples=32, sampler=choice.sampler)
+    on = img[..., 3] > 0
+    centre = img[8, 8, :3]  # normal incidence: Fresnel reflectance of ior 1.5 is 0.04
+    assert centre == pytest.approx(0.04, abs=0.03)
+    # grazing pixels reflect more (Fresnel), and nothing is negative or infinite
+    assert img[on][:, 0].max() > 0.2 and np.all(np.isfinite(img)) and np.all(img >= 0)
