@@ -12,13 +12,34 @@ from tests.blender.helpers import run_operator
 pytest.importorskip("bpy")
 
 
+def _icons():
+    bpy = __import__("bpy")
+    return set(bpy.types.UILayout.bl_rna.functions["prop"].parameters["icon"].enum_items.keys())
+
+
 class RecordingLayout:
-    """Stands in for ``UILayout``: records what would be drawn and checks it refers to real data."""
+    """Stands in for ``UILayout``: records what would be drawn and checks it refers to real data
+    (properties, operators, menus, lists and icon names that exist)."""
+
+    icons = None
 
     def __init__(self, log):
         self.log = log
         self.enabled = True
         self.alert = False
+        if RecordingLayout.icons is None:
+            RecordingLayout.icons = _icons()
+
+    def __getattribute__(self, name):
+        attr = object.__getattribute__(self, name)
+        if callable(attr) and not name.startswith("_"):
+            def checked(*args, **kwargs):
+                icon = kwargs.get("icon")
+                assert icon is None or icon in RecordingLayout.icons, f"unknown icon {icon!r}"
+                return attr(*args, **kwargs)
+
+            return checked
+        return attr
 
     def _child(self, *args, **kwargs):
         return RecordingLayout(self.log)
@@ -123,3 +144,14 @@ def test_list_shows_base_at_the_bottom(bpy_addon, fresh_scene, material):
     flags, order = bpy.types.NLM_UL_layers.filter_items(ul, None, material.neural_layers, "layers")
     assert flags == [1 << 30] * 4
     assert order == [3, 2, 1, 0]  # item 0 (the base) is drawn in the last row
+
+
+def test_list_rows_draw_name_and_type(bpy_addon, fresh_scene, material):
+    bpy = bpy_addon
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="coated_gold").finished
+    s = material.neural_layers
+    for item in s.layers:
+        log = []
+        bpy.types.NLM_UL_layers.draw_item(None, fresh_scene, RecordingLayout(log), s, item, 0, s, "active_index", 0)
+        assert ("prop", "name") in log
+        assert ("label", {"CONDUCTOR": "Conductor", "COATING": "Coating"}[item.layer_type]) in log
