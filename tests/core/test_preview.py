@@ -145,3 +145,18 @@ def test_reference_choice_samples_delta_reflections_of_a_smooth_coat():
     assert centre == pytest.approx(0.04, abs=0.03)
     # grazing pixels reflect more (Fresnel), and nothing is negative or infinite
     assert img[on][:, 0].max() > 0.2 and np.all(np.isfinite(img)) and np.all(img >= 0)
+
+
+def test_amortised_reference_lobe_agrees_with_the_plain_estimator():
+    from addon.core.lobe import albedo_from_lobe
+
+    stack = PRESETS["lacquered_plastic"]
+    choice = preview.choose_brdf(stack, "REFERENCE", walks=64)
+    fast, chunk = choice.lobe()
+    assert fast is not choice.brdf
+    a = preview.lobe_preview(fast, 30.0, res=24, chunk=chunk)
+    b = preview.lobe_preview(choice.brdf, 30.0, res=24, chunk=choice.chunk)
+    np.testing.assert_allclose(albedo_from_lobe(a[..., :3]), albedo_from_lobe(b[..., :3]), rtol=0.1)
+    wi = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]])
+    with pytest.raises(ValueError, match="one incident direction"):
+        fast(wi, wi)
