@@ -1,0 +1,147 @@
+"""The held-out layered set: seeded stacks with 1 to 4 coatings, never trained on, with reference lobes.
+
+    python -m onnx_export.heldout_layered --walks 256 --res 24 --out tests/data/heldout_layered.npz
+
+For each configuration it stores ``lobe`` (C, 4, R, R, 3), the lobe image f cos(theta_o) of
+:mod:`addon.core.lobe` at the incident elevations ``lobe.INCIDENT_ANGLES_DEG``, its standard error
+``lobe_stderr``, the number of coatings ``n_coatings`` (C,), the stacks as JSON and the command.
+
+The reference values come from :func:`addon.core.reference.eval_brdf_many` by reciprocity: the
+walks start from the incident direction and connect to every pixel of the lobe grid, so a lobe
+image costs ``4 * walks`` walks. Training data are seeded ``(11, coatings, chunk, 77)``; this set
+uses ``HELDOUT_SEED`` and hand-picked configurations, so no stack here is a training stack.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from addon.core import lobe
+from addon.core.stack import PRESETS, Coating, Conductor, Dielectric, Diffuse, Stack, StackArrays
+from onnx_export.data import sample_layered_params
+
+HELDOUT_SEED = 424_242
+GOLD = dict(eta=(0.143, 0.374, 1.442), k=(3.983, 2.385, 1.603))
+ALUMINIUM = dict(eta=(1.657, 0.880, 0.521), k=(9.224, 6.270, 4.837))
+
+# configurations the variance benchmark calls "specular" and "diffuse" (indices into configs())
+SPECULAR_INDEX = 1
+DIFFUSE_INDEX = 4
+
+
+def configs() -> list[Stack]:
+    """16 stacks with one coating, 8 with two, 4 with three, 4 with four."""
+    out = [
+        Stack(Conductor(roughness=0.05, **GOLD), (Coating(roughness=0.3, ior=1.5),)),
+        Stack(Conductor(roughness=0.3, **ALUMINIUM), (Coating(roughness=0.03, ior=1.5),)),  # specular
+        Stack(Dielectric(roughness=0.2, ior=1.6), (Coating(roughness=0.1, ior=1.3, albedo=(0.9, 0.5, 0.2),
+                                                            thickness=0.5),)),
+        Stack(Diffuse((0.7, 0.4, 0.1)), (Coating(roughness=0.05, ior=1.5),)),
+        Stack(Diffuse((0.2, 0.5, 0.8)), (Coating(roughness=0.6, ior=1.4, albedo=(0.8, 0.8, 0.8),
+                                                 thickness=1.0),)),  # diffuse
+        Stack(Conductor(roughness=0.02, **GOLD), (Coating(roughness=0.15, ior=1.7, albedo=(0.2, 0.6, 0.95),
+                                                          thickness=3.0),)),
+        Stack(Diffuse((0.9, 0.9, 0.9)), (Coating(roughness=0.02, ior=1.9, albedo=(0.95, 0.3, 0.3),
+                                                 thickness=4.5),)),
+        Stack(Dielectric(roughness=0.5, ior=1.2), (Coating(roughness=0.01, ior=1.1),)),
+    ]
+    rng = np.random.default_rng(HELDOUT_SEED)
+    for c, n in ((1, 8), (2, 7), (3, 3), (4, 4)):
+        a = sample_layered_params(rng, n, c)
+        out += [a.stack(i) for i in range(n)]
+        if c == 2:
+            out.append(PRESETS["red_car_paint"])
+        if c == 3:
+            out.append(PRESETS["three_layer"])
+    return out
+
+
+def reference_lobes(stacks: list[Stack], walks: int, res: int, seed: int, log=print):
+    """(C, A, res, res, 3) reference lobe images and standard errors, one batched call per coating count."""
+    from addon.core import reference
+
+    wo_grid, mask = lobe.lobe_grid(res)
+    angles = lobe.INCIDENT_ANGLES_DEG
+    na = len(angles)
+    inc = np.stack([lobe.incident_direction(t) for t in angles])
+    img = np.zeros((len(stacks), na, res * res, 3))
+    err = np.zeros_like(img)
+    t0 = time.perf_counter()
+    counts = sorted({len(s.coatings) for s in stacks})
+    for c in counts:
+        idx = [i for i, s in enumerate(stacks) if len(s.coatings) == c]
+        rows = StackArrays.from_stacks([stacks[i] for i in idx for _ in range(na)])
+        wo = np.tile(inc, (len(idx), 1))  # walks start at the incident direction (reciprocity)
+        wi = np.broadcast_to(wo_grid[mask], (wo.shape[0], int(mask.sum()), 3))
+        f, se = reference.eval_brdf_many(rows, wi, wo, walks=walks, seed=seed + c)
+        cos_o = wo_grid[mask, 2][None, :, None]
+        img_c = np.zeros((len(idx), na, res * res, 3))
+        err_c = np.zeros_like(img_c)
+        img_c[:, :, mask] = (f * cos_o).reshape(len(idx), na, -1, 3)
+        err_c[:, :, mask] = (se * cos_o).reshape(len(idx), na, -1, 3)
+        img[idx] = img_c
+        err[idx] = err_c
+        log(f"[heldout layered] {len(idx)} stacks with {c} coating(s) done, {time.perf_counter() - t0:.0f} s")
+    return img.reshape(len(stacks), na, res, res, 3), err.reshape(len(stacks), na, res, res, 3)
+
+
+def load(path) -> dict:
+    d = dict(np.load(path, allow_pickle=False))
+    d["stacks"] = [Stack.from_json(str(s)) for s in d["stacks"]]
+    return d
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--walks", type=int, default=256, help="reference walks per incident direction")
+    ap.add_argument("--res", type=int, default=24)
+    ap.add_argument("--out", type=Path, required=True)
+    a = ap.parse_args(argv)
+    stacks = configs()
+    img, err = reference_lobes(stacks, a.walks, a.res, HELDOUT_SEED, log=lambda s: print(s, file=sys.stderr, flush=True))
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(
+        a.out, lobe=img.astype(np.float32), lobe_stderr=err.astype(np.float32),
+        angles=np.asarray(lobe.INCIDENT_ANGLES_DEG), n_coatings=np.array([len(s.coatings) for s in stacks]),
+        stacks=np.array([s.to_json() for s in stacks]),
+        command=np.array("python -m onnx_export.heldout_layered " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))))
+    print(json.dumps({"configs": len(stacks), "by_coatings": np.bincount([len(s.coatings) for s in stacks]).tolist(),
+                      "out": str(a.out)}))
+
+
+if __name__ == "__main__":
+    main()
+
+
+def runtime_errors(models, layering, data: dict, res: int | None = None) -> dict:
+    """Held-out lobe errors of the RUNTIME path (ONNX encoders + layering + decoder) per coating count.
+
+    Returns {n_coatings: {"errors": (configs, angles) relative RMSE, "albedo_error": (configs, angles, 3)
+    |albedo - reference albedo|, "lobes": (configs, angles, R, R, 3), "index": config indices}}.
+    """
+    from addon.core.neural.layering import encode_latents
+
+    stacks = data["stacks"]
+    stacks = [s if isinstance(s, Stack) else Stack.from_json(str(s)) for s in stacks]
+    res = res or data["lobe"].shape[2]
+    angles = [float(t) for t in data["angles"]]
+    out = {}
+    for c in sorted({len(s.coatings) for s in stacks}):
+        idx = [i for i, s in enumerate(stacks) if len(s.coatings) == c]
+        z = encode_latents(StackArrays.from_stacks([stacks[i] for i in idx]), models, layering)
+        lobes = np.array([[lobe.lobe_image(lambda wi, wo, k=k: models.eval_brdf(z[k], wi, wo), t, res)
+                           for t in angles] for k in range(len(idx))])
+        ref = data["lobe"][idx]
+        err = np.array([[lobe.relative_rmse(lobes[k, a], ref[k, a]) for a in range(len(angles))]
+                        for k in range(len(idx))])
+        alb = np.array([[np.abs(lobe.albedo_from_lobe(lobes[k, a]) - lobe.albedo_from_lobe(ref[k, a]))
+                         for a in range(len(angles))] for k in range(len(idx))])
+        out[c] = {"errors": err, "albedo_error": alb, "lobes": lobes, "index": idx}
+    return out

@@ -1,0 +1,379 @@
+"""The layering network: L(z_top_interface, z_bottom, albedo_c, thickness) -> z, one colour channel at a time.
+
+    python -m onnx_export.layering train --size tiny --c1 cache/data/layering_c1 --c2 cache/data/layering_c2 \
+        --steps 4000 --finetune 1500 --out cache/runs/layering_tiny
+    python -m onnx_export.layering export --size tiny --ckpt cache/runs/layering_tiny/ckpt.pt
+
+``z_top`` is the encoder's latent of the coating's interface ``Dielectric(roughness, ior)`` (reflection
+over black), ``z_bottom`` the latent of what lies below: the base, or, applied recursively bottom-up,
+the latent of the lower sub-stack. ``albedo_c`` is the slab's single-scattering albedo in the channel
+and ``thickness`` its optical thickness. The decoder and the encoder are frozen (read from the shipped
+ONNX files of the decoder size), so the layering network lives in their latent space.
+
+Training (stage 1) uses stacks with one coating, stage 2 (``--finetune`` steps) adds stacks with two
+coatings, for which the network is applied twice, so that the recursion is trained end to end. The
+loss goes THROUGH THE FROZEN DECODER against reference values f(wi, wo) (``onnx_export.layered_data``,
+a few walks each, so the targets are noisy):
+
+- ``l2rel`` (default): squared error of the first-order change of log1p(f cos_i cos_o),
+  ``cc (pred - target) / (1 + cc pred)`` with the denominator held constant in the gradient: a squared
+  error in f with a weight that depends only on the prediction, so its minimiser is the MEAN of the
+  noisy targets (unbiased), while still scaled like the log loss the decoder was trained with;
+- ``l1log``: L1 on log1p(f cos_i cos_o), the decoder's own loss: its minimiser is the median of the
+  noise (biased low for the skewed Monte Carlo estimates). Kept to measure the difference.
+
+Checkpoints go to ``OUT/ckpt.pt`` (resumable); the held-out lobe error
+(``tests/data/heldout_layered.npz``) is measured at the end of each stage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from addon.core.neural.features import base_features, arrays_features
+from addon.core.neural.runtime import NeuralModels
+from addon.core.stack import StackArrays
+from onnx_export.nets import LATENT, cosine_lr, log_target, macs_per_eval, mlp, n_params
+
+MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"
+OPSET = 17
+THICKNESS_MAX = 5.0
+
+
+class LayeringNet(nn.Module):
+    """z_top (B, 32), z_bottom (B, 32), albedo (B,), thickness (B,) -> z (B, 32) of one colour channel."""
+
+    def __init__(self, width: int = 128, depth: int = 3):
+        super().__init__()
+        self.width, self.depth = width, depth
+        self.net = mlp(2 * LATENT + 4, width, depth, LATENT)
+
+    def forward(self, z_top, z_bottom, albedo, thickness):
+        t = thickness.unsqueeze(-1)
+        a = albedo.unsqueeze(-1)
+        opacity = 1.0 - torch.exp(-t)  # fraction of light the slab interacts with, straight through
+        x = torch.cat([z_top, z_bottom, a, opacity, a * opacity, t / THICKNESS_MAX], dim=-1)
+        return self.net(x)
+
+    def config(self) -> dict:
+        return {"width": self.width, "depth": self.depth}
+
+
+def compose(net: LayeringNet, z_base: torch.Tensor, z_tops: torch.Tensor, albedo: torch.Tensor,
+            thickness: torch.Tensor) -> torch.Tensor:
+    """Latent (S, 3, 32) of S stacks, bottom-up: z_base (S, 3, 32), z_tops (S, C, 3, 32) of the coatings'
+    interfaces, albedo (S, C, 3), thickness (S, C)."""
+    s = z_base.shape[0]
+    z = z_base.reshape(s * 3, LATENT)
+    for j in range(z_tops.shape[1]):  # a loop over coatings
+        z = net(z_tops[:, j].reshape(s * 3, LATENT), z, albedo[:, j].reshape(s * 3),
+                thickness[:, j].repeat_interleave(3))
+    return z.reshape(s, 3, LATENT)
+
+
+# ----------------------------------------------------------------------------- frozen encoder / decoder
+
+
+def interface_features(arrays: StackArrays) -> np.ndarray:
+    """(N, C, 3, F) encoder features of every coating's interface, Dielectric(roughness, ior)."""
+    n, c = len(arrays), arrays.n_coatings
+    x = base_features(np.full(n * c, 2), arrays.coat_roughness.reshape(-1), np.zeros((n * c, 3)),
+                      np.ones((n * c, 3)), np.zeros((n * c, 3)), arrays.coat_ior.reshape(-1))
+    return x.reshape(n, c, 3, -1)
+
+
+def encoder_latents(models: NeuralModels, arrays: StackArrays) -> tuple[np.ndarray, np.ndarray]:
+    """Frozen-encoder latents: base (N, 3, 32) and coating interfaces (N, C, 3, 32)."""
+    zb = models.encode_features(arrays_features(arrays))
+    xi = interface_features(arrays)
+    zt = models.encode_features(xi.reshape(-1, 3, xi.shape[-1])).reshape(len(arrays), arrays.n_coatings, 3, LATENT)
+    return zb, zt
+
+
+def frozen_decoder(size: str, model_dir: Path = MODEL_DIR):
+    from onnx_export.export import torch_from_onnx
+
+    path = model_dir / f"decoder_{size}.onnx"
+    card = json.loads(path.with_suffix(".json").read_text())
+    dec = torch_from_onnx(path, card)
+    for p in dec.parameters():
+        p.requires_grad_(False)
+    return dec
+
+
+# ----------------------------------------------------------------------------- data and loss
+
+
+class StackSet:
+    """Training tensors of one coating count: encoder latents, medium parameters and reference values."""
+
+    def __init__(self, path: Path, models: NeuralModels, stacks: int = 0):
+        from onnx_export.layered_data import load
+
+        d = load(path)
+        a = d["arrays"]
+        if stacks:
+            a = a.take(slice(0, stacks))
+        n = len(a)
+        zb, zt = encoder_latents(models, a)
+        self.n = n
+        self.z_base = torch.from_numpy(zb)
+        self.z_tops = torch.from_numpy(zt)
+        self.albedo = torch.from_numpy(a.coat_albedo.astype(np.float32))
+        self.thickness = torch.from_numpy(a.coat_thickness.astype(np.float32))
+        p, m = d["wi"].shape[1:3]
+        self.wi = torch.from_numpy(d["wi"][:n].reshape(n, p * m, 3))
+        self.wo = torch.from_numpy(np.repeat(d["wo"][:n], m, axis=1))
+        self.f = torch.from_numpy(d["f"][:n].reshape(n, p * m, 3))
+
+    def batch(self, net, dec, b: int, q: int, gen: torch.Generator):
+        s = torch.randint(0, self.n, (b,), generator=gen)
+        z = compose(net, self.z_base[s], self.z_tops[s], self.albedo[s], self.thickness[s])  # (b, 3, 32)
+        idx = torch.randint(0, self.wi.shape[1], (b, q), generator=gen)
+        wi = self.wi[s[:, None], idx]  # (b, q, 3)
+        wo = self.wo[s[:, None], idx]
+        f = self.f[s[:, None], idx]  # (b, q, 3)
+        zz = z.unsqueeze(2).expand(b, 3, q, LATENT).reshape(-1, LATENT)
+        wi_r = wi.unsqueeze(1).expand(b, 3, q, 3).reshape(-1, 3)
+        wo_r = wo.unsqueeze(1).expand(b, 3, q, 3).reshape(-1, 3)
+        pred = dec(zz, wi_r, wo_r)
+        return pred, f.permute(0, 2, 1).reshape(-1), wi_r, wo_r
+
+
+def layering_loss(pred, target, wi, wo, kind: str) -> torch.Tensor:
+    if kind == "l1log":
+        return (log_target(pred, wi, wo) - log_target(target, wi, wo)).abs().mean()
+    if kind == "l2rel":
+        cc = torch.clamp(wi[:, 2], min=0.0) * torch.clamp(wo[:, 2], min=0.0)
+        d = cc * (pred - target) / (1.0 + cc * pred.detach())
+        return (d * d).mean()
+    raise ValueError(f"unknown layering loss {kind!r}; expected l2rel or l1log")
+
+
+# ----------------------------------------------------------------------------- held-out error
+
+
+@torch.no_grad()
+def heldout_error(net: LayeringNet, dec, models: NeuralModels, heldout: dict, log=None) -> dict:
+    """Lobe error of the layered latents per number of coatings, as onnx_export.evaluate measures it."""
+    from onnx_export.evaluate import decoder_lobes, lobe_metrics
+
+    stacks = heldout["stacks"]
+    counts = np.array([len(s.coatings) for s in stacks])
+    out = {}
+    for c in sorted(set(counts.tolist())):
+        idx = np.flatnonzero(counts == c)
+        a = StackArrays.from_stacks([stacks[i] for i in idx])
+        zb, zt = encoder_latents(models, a)
+        z = compose(net, torch.from_numpy(zb), torch.from_numpy(zt), torch.from_numpy(a.coat_albedo.astype(np.float32)),
+                    torch.from_numpy(a.coat_thickness.astype(np.float32)))
+        pred = decoder_lobes(dec, z, heldout["lobe"].shape[2], heldout["angles"])
+        m = lobe_metrics(pred, heldout["lobe"][idx])
+        out[f"coatings_{c}"] = {k: v for k, v in m.items() if k != "errors"} | {"configs": int(idx.size)}
+    if log:
+        log("held-out: " + json.dumps({k: {q: round(v, 4) for q, v in d.items()} for k, d in out.items()}))
+    return out
+
+
+# ----------------------------------------------------------------------------- training
+
+
+def train(args, log=print) -> dict:
+    from onnx_export.heldout_layered import load as load_heldout
+
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(args.seed)
+    gen = torch.Generator().manual_seed(args.seed)
+    models = NeuralModels(args.size, threads=args.threads)
+    dec = frozen_decoder(args.size)
+    sets = {1: StackSet(args.c1, models, args.stacks)}  # two-coating data are loaded when stage 2 starts
+
+    def heldout():
+        return load_heldout(args.heldout) if args.heldout.exists() else None
+    net = LayeringNet(args.width, args.depth)
+    opt = torch.optim.Adam(net.parameters(), lr=args.lr)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt = out / "ckpt.pt"
+    step, hist = 0, {}
+    if ckpt.exists():
+        s = torch.load(ckpt, weights_only=False)
+        net.load_state_dict(s["net"])
+        opt.load_state_dict(s["opt"])
+        step, hist = s["step"], s.get("history", {})
+        log(f"resumed from {ckpt} at step {step}")
+    total = args.steps + args.finetune
+    log(f"layering net {net.config()} params {n_params(net)}; one-coating stacks {sets[1].n}; loss {args.loss}")
+    t0 = time.perf_counter()
+    ema = None
+    while step < total:
+        stage2 = step >= args.steps
+        if stage2:
+            lr = cosine_lr(step - args.steps, args.finetune, args.lr * args.finetune_lr_scale, warmup=20)
+        else:
+            lr = cosine_lr(step, args.steps, args.lr)
+        for g in opt.param_groups:
+            g["lr"] = lr
+        if stage2 and 2 not in sets:
+            sets[2] = StackSet(args.c2, models)
+            log(f"stage 2: {sets[2].n} two-coating stacks")
+        if stage2:  # half the batch with two coatings (the recursion), half with one (keep stage 1)
+            parts = [sets[2].batch(net, dec, args.batch // 2, args.pairs, gen),
+                     sets[1].batch(net, dec, args.batch - args.batch // 2, args.pairs, gen)]
+            loss = sum(layering_loss(*p, args.loss) for p in parts) / 2
+        else:
+            loss = layering_loss(*sets[1].batch(net, dec, args.batch, args.pairs, gen), args.loss)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        nn.utils.clip_grad_norm_(net.parameters(), args.clip)
+        opt.step()
+        step += 1
+        ema = loss.item() if ema is None else 0.98 * ema + 0.02 * loss.item()
+        if step % args.log_every == 0:
+            log(f"step {step}/{total} loss {ema:.5f} lr {lr:.2e} {time.perf_counter() - t0:.0f} s")
+        end_of_stage = step == args.steps or step == total
+        if (end_of_stage or (args.eval_every and step % args.eval_every == 0)) and (ho := heldout()) is not None:
+            m = heldout_error(net, dec, models, ho, log)
+            hist[f"step_{step}"] = m
+            if end_of_stage:
+                hist["stage2" if stage2 else "stage1"] = m
+        if step % args.every == 0 or end_of_stage:
+            torch.save({"net": net.state_dict(), "config": net.config(), "opt": opt.state_dict(), "step": step,
+                        "history": hist, "loss": ema, "args": {k: str(v) for k, v in vars(args).items()}},
+                       ckpt.with_suffix(".tmp"))
+            ckpt.with_suffix(".tmp").replace(ckpt)
+    return {"loss": ema, "step": step, "history": hist}
+
+
+# ----------------------------------------------------------------------------- export
+
+
+def export_onnx(net: LayeringNet, path: Path) -> None:
+    net.eval()
+    b = 8
+    args = (torch.zeros(b, LATENT), torch.zeros(b, LATENT), torch.zeros(b), torch.zeros(b))
+    torch.onnx.export(net, args, str(path), input_names=["z_top", "z_bottom", "albedo", "thickness"],
+                      output_names=["z"], dynamic_axes={k: {0: "batch"} for k in ("z_top", "z_bottom", "albedo",
+                                                                                 "thickness", "z")},
+                      opset_version=OPSET, dynamo=False)
+
+
+def parity(net: LayeringNet, path: Path, n: int = 4096, seed: int = 0) -> float:
+    """Max relative difference (floor 1e-3) of ONNX Runtime against torch on random inputs."""
+    import onnxruntime as ort
+
+    from onnx_export.export import max_relative_difference
+
+    rng = np.random.default_rng(seed)
+    feeds = {"z_top": (rng.standard_normal((n, LATENT)) * 0.5).astype(np.float32),
+             "z_bottom": (rng.standard_normal((n, LATENT)) * 0.5).astype(np.float32),
+             "albedo": rng.random(n).astype(np.float32), "thickness": (rng.random(n) * THICKNESS_MAX).astype(np.float32)}
+    with torch.no_grad():
+        ref = net(*(torch.from_numpy(feeds[k]) for k in ("z_top", "z_bottom", "albedo", "thickness"))).numpy()
+    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(["z"], feeds)[0]
+    return max_relative_difference(got, ref, floor=1e-3)
+
+
+def net_from_onnx(path: Path, card: dict) -> LayeringNet:
+    """The torch module of an exported layering model, rebuilt from the ONNX weights and the card."""
+    import onnx
+    from onnx import numpy_helper
+
+    net = LayeringNet(card["architecture"]["width"], card["architecture"]["depth"])
+    w = {t.name: torch.from_numpy(numpy_helper.to_array(t).copy()) for t in onnx.load(str(path)).graph.initializer}
+    net.load_state_dict(w)
+    return net.eval()
+
+
+def export(args, log=print) -> dict:
+    s = torch.load(args.ckpt, weights_only=False)
+    net = LayeringNet(**s["config"])
+    net.load_state_dict(s["net"])
+    path = Path(args.out) / f"layering_{args.size}.onnx"
+    export_onnx(net, path)
+    par = parity(net, path)
+    a = s["args"]
+    card = {
+        "name": f"layering_{args.size}",
+        "role": (f"layering network in the latent space of decoder_{args.size}/encoder_{args.size}: "
+                 "z = L(z_top_interface, z_bottom, albedo_c, thickness) per colour channel, applied bottom-up"),
+        "inputs": {"z_top": "(B, 32) float32 encoder latent of the coating's interface Dielectric(roughness, ior)",
+                   "z_bottom": "(B, 32) float32 latent of the base or of the lower sub-stack",
+                   "albedo": "(B,) float32 single-scattering albedo of the slab in this channel, [0, 1]",
+                   "thickness": f"(B,) float32 optical thickness, [0, {THICKNESS_MAX}]"},
+        "outputs": {"z": "(B, 32) float32"},
+        "architecture": {**net.config(), "hidden": f"{net.depth} x Linear({net.width}) + ReLU",
+                         "inputs": "z_top, z_bottom, albedo, 1 - exp(-thickness), albedo (1 - exp(-thickness)), "
+                                   "thickness / 5"},
+        "parameters": n_params(net),
+        "macs_per_rgb_eval": 3 * macs_per_eval(net),
+        "training": {
+            "data": ["python -m onnx_export.layered_data --coatings 1 --stacks 4096 --out cache/data/layering_c1",
+                     "python -m onnx_export.layered_data --coatings 2 --stacks 1536 --out cache/data/layering_c2"],
+            "command": "python -m onnx_export.layering train " + " ".join(
+                f"--{k.replace('_', '-')} {v}" for k, v in a.items() if k not in ("every", "log_every", "cmd")),
+            "steps": s["step"], "final_loss": s.get("loss"), "seeds": {"data": 11, "training": int(a.get("seed", 0))},
+            "loss": a.get("loss"),
+        },
+        "heldout": {**{k: v for k, v in s.get("history", {}).items() if k in ("stage1", "stage2")},
+                    "set": "tests/data/heldout_layered.npz",
+                    "metric": "relative RMSE of lobe images at 0/30/60/75 deg; albedo error = |albedo from lobe|"},
+        "onnx_runtime_vs_torch_max_relative_difference": par,
+        "opset": OPSET,
+    }
+    if args.speed:
+        card["speed"] = json.loads(Path(args.speed).read_text())
+    path.with_suffix(".json").write_text(json.dumps(card, indent=1) + "\n")
+    log(json.dumps({"model": str(path), "parity": par}))
+    return card
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    t = sub.add_parser("train")
+    t.add_argument("--size", default="tiny")
+    t.add_argument("--c1", type=Path, default=Path("cache/data/layering_c1"))
+    t.add_argument("--c2", type=Path, default=Path("cache/data/layering_c2"))
+    t.add_argument("--stacks", type=int, default=0, help="use only the first N one-coating stacks (0: all)")
+    t.add_argument("--heldout", type=Path, default=Path("tests/data/heldout_layered.npz"))
+    t.add_argument("--width", type=int, default=128)
+    t.add_argument("--depth", type=int, default=3)
+    t.add_argument("--steps", type=int, default=4000)
+    t.add_argument("--finetune", type=int, default=1500)
+    t.add_argument("--finetune-lr-scale", type=float, default=0.3)
+    t.add_argument("--batch", type=int, default=64, help="stacks per step")
+    t.add_argument("--pairs", type=int, default=128, help="direction pairs per stack per step")
+    t.add_argument("--lr", type=float, default=1e-3)
+    t.add_argument("--clip", type=float, default=1.0)
+    t.add_argument("--loss", default="l2rel", choices=("l2rel", "l1log"))
+    t.add_argument("--threads", type=int, default=1)
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--every", type=int, default=250)
+    t.add_argument("--eval-every", type=int, default=1000, help="held-out error every N steps (0: stage ends only)")
+    t.add_argument("--log-every", type=int, default=50)
+    t.add_argument("--out", type=Path, required=True)
+    e = sub.add_parser("export")
+    e.add_argument("--size", default="tiny")
+    e.add_argument("--ckpt", type=Path, required=True)
+    e.add_argument("--speed", type=Path, default=None, help="JSON of measured speed to put on the card")
+    e.add_argument("--out", type=Path, default=MODEL_DIR)
+    a = ap.parse_args(argv)
+    lg = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
+    if a.cmd == "train":
+        res = train(a, log=lg)
+        (Path(a.out) / "train.json").write_text(json.dumps(res, default=str, indent=1))
+    else:
+        export(a, log=lg)
+
+
+if __name__ == "__main__":
+    main()
