@@ -27,26 +27,30 @@ walks of any length unbiased; ``MAX_DEPTH`` only bounds pathological walks.
 **Estimator of f(wi, wo)** (``nee=True``): unidirectional with next-event estimation and MIS,
 as pbrt-v4's ``LayeredBxDF``, generalised to any number of coatings:
 
-- before the walk, a *chain* of directions is sampled from ``wi`` downward, in IMPORTANCE
-  mode, by transmission through the interfaces from the top: ``d_C = -wi``, and ``d_k`` is
-  sampled from interface ``k`` given ``-d_{k+1}``. Its weight is
-  ``W_k = W_{k+1} Tr(slab k+1 along d_{k+1}) * weight_k``. The chain passes any number of
-  smooth interfaces and the *highest rough interface* ``K``, and stops at the next rough one
-  below it (``K2``): a connection from below ``K2`` would need two rough vertices.
-- every non-delta vertex (medium scattering in slab s, or a surface at the floor of slab s:
-  the base is the floor of slab 0, interface k of slab k + 1) connects to the chain
-  direction ``d_s``: ``beta f(-d_s, -w) Tr(to the top of slab s) W_s`` (for a medium vertex
-  ``beta a p(-d_s, -w) Tr W_s / |d_s.z|``, as pbrt);
-- the same light paths (vertex in slabs ``K2+1 .. K`` -> straight up through smooth
-  interfaces -> rough interface ``K``) are also found by the walk itself: its sampled
-  direction arrives at ``K`` from below and the vertex at ``K`` connects to ``d_{K+1}``. The
-  two strategies share the power heuristic with **the same two densities in both places**:
-  ``p_nee = pdf_K(d_K | -d_{K+1}, IMPORTANCE)`` (the density of the chain's own sample; pbrt
-  uses the reverse density ``pdf_K(wi | -w)`` in the second place, which biases rough coats by
-  2.5-10%) and ``p_bsdf`` = the vertex's sampling density, carried to slab K's solid angle by
-  the etendue of the smooth refractions in between, ``n_K^2 |cos_K| / (n_s^2 |cos_s|)``.
-  Paths that the other strategy cannot make (a delta reflection since the last vertex, or
-  an interface hit from above) get weight 1.
+- before the walk, a *chain* of directions is sampled from ``wi`` downward through every
+  interface, in IMPORTANCE mode, by transmission: ``d_C = -wi``, and ``d_k`` is sampled from
+  interface ``k`` given ``-d_{k+1}`` (a smooth interface is forced to refract, weighted by
+  its transmittance). Its weight is ``W_k = W_{k+1} Tr(slab k+1 along d_{k+1}) weight_k``.
+  The chain is a light subpath whose vertices are the rough interfaces it crosses.
+- every non-delta vertex of the walk (medium scattering in slab s, or a surface at the floor
+  of slab s: the base is the floor of slab 0, interface k of slab k + 1) connects to the
+  chain direction ``d_s``: ``beta f(-d_s, -w) Tr(to the top of slab s) W_s`` (for a medium
+  vertex ``beta a p(-d_s, -w) Tr W_s / |d_s.z|``, as pbrt).
+- A light path ends with a *straight run*: a vertex v, then straight up through interfaces,
+  the rough ones x_1 .. x_R being vertices (transmission), then out along wi. Every split of
+  that run between walk and chain makes it: the connection at v (chain through x_1..x_R),
+  at x_1 (the walk sampled v -> x_1), ..., at x_R (the walk sampled everything; the chain is
+  just wi: pbrt's "exit" strategy). They are combined with the power heuristic over **all**
+  splits, computed from the same densities in every place: for each segment, the walk's
+  density ``r`` (RADIANCE, sampled at its lower end) and the chain's ``q`` (IMPORTANCE,
+  sampled at its upper end), both per unit ``n^2 |cos| d(omega)`` so that they compare across
+  smooth refractions (etendue). The walk carries ``A = sum over lower splits of
+  (p_u / p_t)^2`` along its run, the chain ``B`` for the splits above; the weight is
+  ``1 / (1 + A + B)``. With one rough interface this is pbrt's two-strategy MIS with the
+  *matching* density ``pdf_exit(d | wi, IMPORTANCE)`` (pbrt weighs the exit strategy with the
+  reverse density ``pdf_exit(wi | -w)``, which biases rough coats by 2.5-10%).
+  A delta reflection or a downward direction ends a run; a path the chain cannot make (the
+  run starts after a delta event) gets its splits from the first rough vertex on.
 
 The per-walk estimate is the sum of the connections; ``f`` is its mean over walks and the
 standard error is the sample standard deviation over walks / sqrt(walks).
@@ -131,8 +135,6 @@ class Layers:
     g: np.ndarray  # (P, C)
     scatter: np.ndarray  # (P, C+1) bool: slab has a scattering medium
     smooth: np.ndarray  # (P, C) bool: interface j is a delta interface
-    K: np.ndarray  # (P,) highest rough interface, -1 if none
-    K2: np.ndarray  # (P,) next rough interface below K, -1 if none
     base_kind: np.ndarray  # (P,)
     base_albedo: np.ndarray  # (P, 3)
     base_alpha: np.ndarray  # (P,)
@@ -155,14 +157,10 @@ class Layers:
         scatter[:, :C] = (tau[:, :C] > 0.0) & (albedo.max(axis=2, initial=0.0) > 0.0)
         # RoughDielectric treats an index-matched interface as a delta transmission too.
         smooth = (alpha < SMOOTH_ALPHA) | (eta == 1.0)
-        rough = ~smooth
-        idx = np.arange(C)[None, :]
-        K = np.where(rough, idx, -1).max(axis=1, initial=-1)
-        K2 = np.where(rough & (idx < K[:, None]), idx, -1).max(axis=1, initial=-1)
         n0 = n[:, 0]
         return cls(
             C=C, n=n, eta=eta, alpha=alpha, tau=tau, albedo=albedo, g=np.asarray(sa.coat_g, dtype=np.float64),
-            scatter=scatter, smooth=smooth, K=K, K2=K2,
+            scatter=scatter, smooth=smooth,
             base_kind=np.asarray(sa.base_kind, dtype=np.int64),
             base_albedo=np.asarray(sa.base_albedo, dtype=np.float64),
             base_alpha=np.asarray(sa.base_roughness, dtype=np.float64),
@@ -187,14 +185,6 @@ def _base_smooth(lay: Layers, pr: np.ndarray) -> np.ndarray:
     )
 
 
-def _power(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Power heuristic a^2 / (a^2 + b^2); 1 where both vanish."""
-    a2, b2 = a * a, b * b
-    s = a2 + b2
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(s > 0.0, a2 / s, 1.0)
-
-
 def _tr(tau: np.ndarray, cos: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", over="ignore"):
         return np.where(tau > 0.0, np.exp(-tau / np.abs(cos)), 1.0)
@@ -204,18 +194,28 @@ def _tr(tau: np.ndarray, cos: np.ndarray) -> np.ndarray:
 
 
 def _sample_chain(lay: Layers, pr: np.ndarray, wi: np.ndarray, rng: np.random.Generator):
-    """Directions d_s (pointing down into slab s) sampled from ``wi`` by transmission in
-    IMPORTANCE mode, their weights W_s (0 where the chain does not reach slab s) and the
-    density of the sample at the highest rough interface K."""
+    """The light chain from ``wi`` down through every interface (IMPORTANCE mode, transmission).
+
+    Returns, per chain and slab s (0..C):
+    ``D`` (m, C+1, 3) the direction d_s pointing down into slab s (d_C = -wi);
+    ``W`` (m, C+1, 3) its weight (0 where the chain did not reach slab s);
+    ``Q`` (m, C+1) the chain's density of the segment in slab s, sampled at the first rough
+    interface above it, per unit n^2 |cos| solid angle (comparable across smooth refractions);
+    ``B`` (m, C+1) the sum of squared density ratios of the connection splits above that
+    interface (see :func:`run_walks`); ``HR`` (m, C+1) bool: a rough interface lies above slab s.
+    """
     m, C = pr.shape[0], lay.C
     D = np.zeros((m, C + 1, 3))
     W = np.zeros((m, C + 1, 3))
-    PK = np.zeros(m)
+    Q = np.ones((m, C + 1))
+    B = np.zeros((m, C + 1))
+    HR = np.zeros((m, C + 1), dtype=bool)
     D[:, C] = -wi
     W[:, C] = 1.0
-    K2 = lay.K2[pr]
     for k in range(C - 1, -1, -1):
-        act = np.flatnonzero((W[:, k + 1].max(axis=1) > 0.0) & (k > K2))
+        # slab k inherits the first rough interface above slab k + 1 unless interface k is rough
+        Q[:, k], B[:, k], HR[:, k] = Q[:, k + 1], B[:, k + 1], HR[:, k + 1]
+        act = np.flatnonzero(W[:, k + 1].max(axis=1) > 0.0)
         if act.size == 0:
             continue
         p = pr[act]
@@ -226,15 +226,27 @@ def _sample_chain(lay: Layers, pr: np.ndarray, wi: np.ndarray, rng: np.random.Ge
         smooth = lay.smooth[p, k]
         u[smooth, 0] = _JUST_BELOW_ONE
         up = -D[act, k + 1]
-        bs = RoughDielectric(lay.alpha[p, k], lay.eta[p, k]).sample(up, u[:, 0], u[:, 1:], IMPORTANCE, check=False)
+        iface = RoughDielectric(lay.alpha[p, k], lay.eta[p, k])
+        bs = iface.sample(up, u[:, 0], u[:, 1:], IMPORTANCE, check=False)
         ok = bs.valid & bs.transmission & (bs.wi[:, 2] < 0.0)
         weight = bs.weight * np.where(smooth & bs.delta, bs.pdf, 1.0)[:, None]
         D[act, k] = np.where(ok[:, None], bs.wi, 0.0)
         tr = _tr(lay.tau[p, k + 1], D[act, k + 1, 2])
         W[act, k] = np.where(ok[:, None], W[act, k + 1] * tr[:, None] * weight, 0.0)
-        atK = lay.K[p] == k
-        PK[act[atK]] = bs.pdf[atK]
-    return D, W, PK
+        r_ = np.flatnonzero(ok & ~smooth)
+        if r_.size:
+            a, pa = act[r_], p[r_]
+            dk, dup = D[a, k], D[a, k + 1]
+            q = bs.pdf[r_] / (lay.n[pa, k] ** 2 * np.abs(dk[:, 2]))
+            # the walk's density of the segment above this interface (arriving along -d_k)
+            rw = iface.take(r_).pdf(-dup, dk, RADIANCE, check=False) / (lay.n[pa, k + 1] ** 2 * np.abs(dup[:, 2]))
+            above = HR[a, k + 1]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = np.where(above, (rw / Q[a, k + 1]) ** 2 * (1.0 + B[a, k + 1]), 0.0)
+            Q[a, k] = q
+            B[a, k] = np.where(np.isfinite(ratio), ratio, np.inf)
+            HR[a, k] = True
+    return D, W, Q, B, HR
 
 
 # ------------------------------------------------------------------------------------ walk
@@ -243,7 +255,7 @@ def _sample_chain(lay: Layers, pr: np.ndarray, wi: np.ndarray, rng: np.random.Ge
 class _State:
     """Live walks, compacted every event."""
 
-    FIELDS = ("wid", "pr", "s", "z", "w", "beta", "last_pdf", "last_n2cos", "straight", "nondelta")
+    FIELDS = ("wid", "pr", "s", "z", "w", "beta", "run_a", "run_r", "straight", "nondelta")
 
     def __init__(self, **kw):
         for k, v in kw.items():
@@ -271,21 +283,22 @@ def run_walks(lay: Layers, pr: np.ndarray, wo: np.ndarray, wi: np.ndarray | None
     out_w = np.zeros((m, 3))
     out_spec = np.zeros(m, dtype=bool)
     if nee:
-        D, W, PK = _sample_chain(lay, np.repeat(pr, M), wi.reshape(-1, 3), rng)
+        D, W, Q, Bc, HR = _sample_chain(lay, np.repeat(pr, M), wi.reshape(-1, 3), rng)
         D = D.reshape(m, M, C + 1, 3)
         W = W.reshape(m, M, C + 1, 3)
-        PK = PK.reshape(m, M)
+        Q, Bc, HR = Q.reshape(m, M, C + 1), Bc.reshape(m, M, C + 1), HR.reshape(m, M, C + 1)
     st = _State(
         wid=np.arange(m), pr=pr.copy(), s=np.full(m, C), z=np.zeros(m), w=-wo.copy(), beta=np.ones((m, 3)),
-        last_pdf=np.zeros(m), last_n2cos=np.ones(m), straight=np.zeros(m, dtype=bool),
+        run_a=np.zeros(m), run_r=np.ones(m), straight=np.zeros(m, dtype=bool),
         nondelta=np.zeros(m, dtype=bool),
     )
     # a walk must see the stack from above
     st.keep(wo[:, 2] > 0.0)
 
-    def connect(ix, s_nee, f_fn, pdf_fn, medium, arrive_K):
+    def connect(ix, s_nee, f_fn, pdf_fn, medium, suffix):
         """NEE from vertices ``ix`` (indices into st) to the chain directions of slab s_nee,
-        for each of the M incident directions of the walk."""
+        for each of the M incident directions of the walk. ``suffix``: the vertex is a rough
+        interface reached from below (it transmits upward on the connected path)."""
         rep = np.repeat(np.arange(ix.size), M)
         mm = np.tile(np.arange(M), ix.size)
         wid = st.wid[ix][rep]
@@ -308,20 +321,23 @@ def run_walks(lay: Layers, pr: np.ndarray, wo: np.ndarray, wi: np.ndarray | None
         else:
             tr = _tr(lay.tau[p, sn], dz)
             c = st.beta[ixa] * f * tr[:, None] * Wc
-        K = lay.K[p]
-        wt = np.ones(sel.size)
-        m1 = np.flatnonzero(sn <= K)
-        if m1.size:
-            Km = K[m1]
-            jac = lay.n[p[m1], Km] ** 2 * np.abs(D[wid[m1], mm[m1], Km, 2]) / (lay.n[p[m1], sn[m1]] ** 2 * dz[m1])
-            pv = pdf_fn(a[m1], -d[m1], -w_in[m1], RADIANCE) * jac
-            wt[m1] = _power(PK[wid[m1], mm[m1]], pv)
-        m2 = np.flatnonzero(arrive_K[a] & st.straight[ixa])
-        if m2.size:
-            Km = K[m2]
-            pb = st.last_pdf[ixa[m2]] * lay.n[p[m2], Km] ** 2 * np.abs(w_in[m2, 2]) / st.last_n2cos[ixa[m2]]
-            pn = pdf_fn(a[m2], -w_in[m2], -d[m2], IMPORTANCE)
-            wt[m2] = _power(pb, pn)
+        # splits above: the chain could also have been the walk for its lower segments
+        Bw = np.zeros(sel.size)
+        hr = np.flatnonzero(HR[wid, mm, sn])
+        if hr.size:
+            r = pdf_fn(a[hr], -d[hr], -w_in[hr], RADIANCE) / (lay.n[p[hr], sn[hr]] ** 2 * dz[hr])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                Bw[hr] = (r / Q[wid[hr], mm[hr], sn[hr]]) ** 2 * (1.0 + Bc[wid[hr], mm[hr], sn[hr]])
+        # splits below: the walk's straight run could also have been the chain
+        Aw = np.zeros(sel.size)
+        sx = np.flatnonzero(suffix[a] & st.straight[ixa])
+        if sx.size:
+            k = sn[sx] - 1
+            q = pdf_fn(a[sx], -w_in[sx], -d[sx], IMPORTANCE) / (lay.n[p[sx], k] ** 2 * np.abs(w_in[sx, 2]))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                Aw[sx] = (q / st.run_r[ixa[sx]]) ** 2 * (1.0 + st.run_a[ixa[sx]])
+        with np.errstate(invalid="ignore"):
+            wt = 1.0 / (1.0 + np.nan_to_num(Aw, nan=np.inf) + np.nan_to_num(Bw, nan=np.inf))
         acc[wid, mm] += c * wt[:, None]
 
     for depth in range(MAX_DEPTH):
@@ -373,8 +389,8 @@ def run_walks(lay: Layers, pr: np.ndarray, wo: np.ndarray, wi: np.ndarray | None
             wnew, pdf = phase.sample(-st.w[ms], rng.random((ms.size, 2)), check=False)
             st.beta[ms] *= lay.albedo[p, s]
             st.w[ms] = wnew
-            st.last_pdf[ms] = pdf
-            st.last_n2cos[ms] = lay.n[p, s] ** 2 * np.abs(wnew[:, 2])
+            st.run_a[ms] = 0.0
+            st.run_r[ms] = pdf / (lay.n[p, s] ** 2 * np.abs(wnew[:, 2]))
             st.straight[ms] = wnew[:, 2] > 0.0
             st.nondelta[ms] = True
             dead[ms] = (wnew[:, 2] == 0.0) | ~(pdf > 0.0)
@@ -390,14 +406,14 @@ def run_walks(lay: Layers, pr: np.ndarray, wo: np.ndarray, wi: np.ndarray | None
             if if_rows.size:
                 p, kk = st.pr[if_rows], k[if_rows]
                 groups.append((if_rows, RoughDielectric(lay.alpha[p, kk], lay.eta[p, kk]), kk + 1,
-                               lay.smooth[p, kk], up[if_rows] & (kk == lay.K[p]), kk))
+                               lay.smooth[p, kk], up[if_rows], kk))
             for kind in range(len(BASE_KINDS)):
                 rows = base_rows[lay.base_kind[st.pr[base_rows]] == kind]
                 if rows.size:
                     p = st.pr[rows]
                     groups.append((rows, _base_bsdf(lay, kind, p), np.zeros(rows.size, dtype=np.int64),
                                    _base_smooth(lay, p), np.zeros(rows.size, dtype=bool), None))
-            for rows, bsdf, s_nee, smooth, arrive_K, kk in groups:
+            for rows, bsdf, s_nee, smooth, from_below, kk in groups:
                 if nee:
                     nd = np.flatnonzero(~smooth)
                     if nd.size:
@@ -409,7 +425,7 @@ def run_walks(lay: Layers, pr: np.ndarray, wo: np.ndarray, wi: np.ndarray | None
                         def pdf_s(a, wi_, wo_, mode, sub=sub):
                             return sub.take(a).pdf(wi_, wo_, mode, check=False)
 
-                        connect(rows[nd], s_nee[nd], f_s, pdf_s, False, arrive_K[nd])
+                        connect(rows[nd], s_nee[nd], f_s, pdf_s, False, from_below[nd])
                 u = rng.random((rows.size, 3))
                 forced = np.zeros(rows.size, dtype=bool)
                 if nee and kk is not None:
@@ -419,7 +435,8 @@ def run_walks(lay: Layers, pr: np.ndarray, wo: np.ndarray, wi: np.ndarray | None
                     # transmission-only / reflection-only sampling of the interfaces).
                     forced = smooth & (kk == C - 1)
                     u[forced, 0] = np.where(up[rows[forced]], 0.0, _JUST_BELOW_ONE)
-                bs = bsdf.sample(-st.w[rows], u[:, 0], u[:, 1:], RADIANCE, check=False)
+                bs_wo = -st.w[rows]
+                bs = bsdf.sample(bs_wo, u[:, 0], u[:, 1:], RADIANCE, check=False)
                 wnew = bs.wi
                 ok = bs.valid & (wnew[:, 2] != 0.0)
                 st.beta[rows] *= bs.weight * np.where(forced & bs.delta, bs.pdf, 1.0)[:, None]
@@ -432,9 +449,21 @@ def run_walks(lay: Layers, pr: np.ndarray, wo: np.ndarray, wi: np.ndarray | None
                 new_s[rows] = sn
                 st.z[rows] = np.where(upn, 0.0, lay.tau[st.pr[rows], np.minimum(sn, C)])
                 nd_ev = ~bs.delta
-                st.last_pdf[rows] = np.where(nd_ev, bs.pdf, st.last_pdf[rows])
-                st.last_n2cos[rows] = np.where(nd_ev, lay.n[st.pr[rows], np.minimum(sn, C)] ** 2 * np.abs(wnew[:, 2]),
-                                               st.last_n2cos[rows])
+                if nee:
+                    # bookkeeping of the straight upward run for the connection weights
+                    pr_r = st.pr[rows]
+                    with np.errstate(divide="ignore", invalid="ignore"):
+                        r_new = bs.pdf / (lay.n[pr_r, sn] ** 2 * np.abs(wnew[:, 2]))
+                    a_new = np.zeros(rows.size)
+                    cont = np.flatnonzero(nd_ev & from_below & upn & st.straight[rows])
+                    if cont.size:
+                        w_in = -bs_wo[cont]
+                        q = bsdf.take(cont).pdf(-w_in, wnew[cont], IMPORTANCE, check=False) / (
+                            lay.n[pr_r[cont], kk[cont]] ** 2 * np.abs(w_in[:, 2]))
+                        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                            a_new[cont] = (q / st.run_r[rows[cont]]) ** 2 * (1.0 + st.run_a[rows[cont]])
+                    st.run_a[rows] = np.where(nd_ev, np.nan_to_num(a_new, nan=np.inf), st.run_a[rows])
+                    st.run_r[rows] = np.where(nd_ev, r_new, st.run_r[rows])
                 st.straight[rows] = np.where(nd_ev, upn, st.straight[rows] & bs.transmission)
                 st.nondelta[rows] |= nd_ev
                 dead[rows] = ~ok
