@@ -20,7 +20,6 @@ is expected. Exit codes: 0 done, 1 bake failed, 2 bad input.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import os
 import re
@@ -36,7 +35,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from addon.core.stack import PRESETS, preset  # noqa: E402
-from addon.core.textures.bake import bake_texels  # noqa: E402
+from addon.core.textures.bake import bake_key, bake_texels, neural_encoder  # noqa: E402
 from addon.core.textures.latent_texture import LatentTexture, read_image  # noqa: E402
 from addon.core.textures.spatial import SpatialStack  # noqa: E402
 
@@ -53,14 +52,7 @@ class Job:
     sources: dict[str, str]  # parameter path -> image description, for the sidecar
 
     def key(self, model: str) -> str:
-        h = hashlib.sha256()
-        h.update(self.spatial.stack.to_json().encode())
-        h.update(repr(self.resolution).encode())
-        h.update(model.encode())
-        for path in sorted(self.spatial.maps):
-            h.update(path.encode())
-            h.update(np.ascontiguousarray(self.spatial.maps[path], dtype=np.float32).tobytes())
-        return h.hexdigest()[:16]
+        return bake_key(self.spatial, self.resolution, model)
 
 
 _MAP = re.compile(r"^(?P<path>[^=]+)=(?P<file>.+?)(?::(?P<lo>[-+0-9.eE]+):(?P<hi>[-+0-9.eE]+))?$")
@@ -135,14 +127,6 @@ def blend_jobs(args) -> list[Job]:
     if not jobs:
         raise BadInput(f"{args.blend.name} has no material with a layer stack")
     return jobs
-
-
-def default_encoder(size: str):
-    """The neural runtime's batch encoder (stack arrays -> latents, proxy parameters)."""
-    from addon.core import neural
-
-    models = neural.load_models(size)
-    return lambda arrays: neural.encode_stack_arrays(arrays, models=models)
 
 
 def _atomic_save_npy(path: Path, array: np.ndarray) -> None:
@@ -305,7 +289,7 @@ def main(argv: list[str] | None = None, encode=None) -> int:
         jobs = blend_jobs(args) if args.blend else preset_job(args)
         if encode is None:
             try:
-                encode = default_encoder(args.model)
+                encode = neural_encoder(args.model)
             except (FileNotFoundError, ValueError, ImportError) as e:
                 raise BadInput(f"--model {args.model}: {e}") from None
         stats = run(jobs, args.out, encode, args.model, shard, args.band_rows, dedup=not args.no_dedup)

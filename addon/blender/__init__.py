@@ -7,11 +7,12 @@ append it to ``_MODULES``. ``register()`` is idempotent: calling it twice re-reg
 
 from __future__ import annotations
 
-from . import engine, operators, properties, ui
+from . import bake_ops, engine, operators, properties, ui
 
 _MODULES = [
     properties,
     operators,
+    bake_ops,
     ui,
     engine,
 ]
@@ -21,6 +22,12 @@ _registered = False
 
 def register() -> None:
     global _registered
+    import bpy
+
+    # OpenImageIO (latent-texture EXRs) ships inside Blender; the bpy module keeps it apart.
+    expose = getattr(bpy.utils, "expose_bundled_modules", None)
+    if expose is not None:
+        expose()
     if _registered:
         unregister()
     done = []

@@ -34,6 +34,23 @@ def store_image(name: str, rgba: np.ndarray, metadata: dict | None = None):
     return image
 
 
+def read_pixels(image) -> np.ndarray | None:
+    """The raw (H, W, 4) float pixels of ``image``, row 0 at the top, or None if it has none
+    (e.g. a missing file). Raw: byte images give their stored values / 255, no colour transform."""
+    if image is None:
+        return None
+    try:
+        w, h = image.size
+        has = image.has_data or (w > 0 and h > 0)
+    except (ReferenceError, RuntimeError):
+        has, w, h = False, 0, 0
+    if not has or w == 0 or h == 0:
+        return None
+    px = np.empty(w * h * 4, dtype=np.float32)
+    image.pixels.foreach_get(px)
+    return np.ascontiguousarray(px.reshape(h, w, 4)[::-1])
+
+
 def _largest(areas):
     return max(areas, key=lambda a: a.width * a.height, default=None)
 

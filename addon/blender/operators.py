@@ -195,6 +195,20 @@ class NLM_OT_layer_move(_MaterialOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
+def _copy_properties(src, dst) -> None:
+    """Copy every property of a PropertyGroup, collections (parameter maps) item by item."""
+    for key, prop in src.bl_rna.properties.items():
+        if key in {"rna_type", "name"}:
+            continue
+        if prop.type == "COLLECTION":
+            target = getattr(dst, key)
+            target.clear()
+            for element in getattr(src, key):
+                _copy_properties(element, target.add())
+        else:
+            setattr(dst, key, getattr(src, key))
+
+
 class NLM_OT_layer_duplicate(_MaterialOperator, bpy.types.Operator):
     """Duplicate the active coating (placed above it)"""
 
@@ -212,9 +226,7 @@ class NLM_OT_layer_duplicate(_MaterialOperator, bpy.types.Operator):
             raise UserError(f"{src.name!r} is the base and a stack has one base: duplicate a coating instead")
         with stack_io.bulk_edit(mat):
             item = s.layers.add()
-            for key in src.bl_rna.properties.keys():
-                if key not in {"rna_type", "name"}:
-                    setattr(item, key, getattr(src, key))
+            _copy_properties(src, item)
             item.name = stack_io.default_layer_name(src.layer_type, {x.name for x in s.layers})
             s.layers.move(len(s.layers) - 1, i + 1)
             s.active_index = i + 1

@@ -58,6 +58,32 @@ def _range_text(key: str) -> str:
     return f"Trained range {lo:g} to {hi:g} (valid {vlo:g} to {vhi:g}; outside the trained range the neural models clamp)"
 
 
+MAP_PARAMETERS = [
+    ("ROUGHNESS", "Roughness", "Artist roughness (alpha = value squared) of a rough layer"),
+    ("ALBEDO", "Albedo", "Diffuse base colour"),
+    ("F0", "F0", "Normal-incidence colour of a conductor given by colour"),
+    ("ETA", "Eta", "Real index of a conductor given by complex IOR"),
+    ("K", "K", "Extinction of a conductor given by complex IOR"),
+    ("IOR", "IOR", "Index of refraction of a dielectric or coating"),
+    ("MEDIUM_ALBEDO", "Medium Albedo", "Single-scattering albedo of a coating's medium"),
+    ("THICKNESS", "Thickness", "Optical thickness of a coating's medium"),
+]
+
+
+class NLM_ParameterMap(bpy.types.PropertyGroup):
+    """An image driving one parameter of its layer: value = low + (high - low) * pixel."""
+
+    parameter: EnumProperty(name="Parameter", items=MAP_PARAMETERS, default="ROUGHNESS",
+                            description="Which parameter of the layer the image drives", update=_on_layer_changed)
+    image: PointerProperty(type=bpy.types.Image, name="Image",
+                           description="Image whose raw pixel values (0 to 1, no colour transform) drive the parameter",
+                           update=_on_layer_changed)
+    low: FloatProperty(name="Low", default=0.0, description="Parameter value where the image is 0",
+                       update=_on_layer_changed)
+    high: FloatProperty(name="High", default=1.0, description="Parameter value where the image is 1",
+                        update=_on_layer_changed)
+
+
 class NLM_Layer(bpy.types.PropertyGroup):
     """One layer; ``name`` (built in) is the label shown in the list."""
 
@@ -166,6 +192,8 @@ class NLM_Layer(bpy.types.PropertyGroup):
         soft_max=TRAINED_RANGES["thickness"][1],
         update=_on_layer_changed,
     )
+    maps: CollectionProperty(type=NLM_ParameterMap, name="Parameter Maps",
+                             description="Images that drive parameters of this layer per texel (baked into a latent texture)")
     g: FloatProperty(
         name="Anisotropy g",
         description="Henyey-Greenstein asymmetry of the medium's scattering (-1 back, 0 isotropic, 1 forward). "
@@ -245,6 +273,26 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
         min=1,
         max=256,
     )
+    # latent texture bake
+    bake_resolution: IntProperty(
+        name="Bake Resolution",
+        description="Largest side of the baked latent texture in texels; 0 = the driving images' resolution "
+        "(a bake is never finer than its images)",
+        default=0,
+        min=0,
+        max=16384,
+    )
+    bake_directory: StringProperty(
+        name="Bake Folder", description="Folder for baked latent textures (EXR)", default="//textures/",
+        subtype="DIR_PATH",
+    )
+    texture_path: StringProperty(
+        name="Latent Texture", description="The baked latent texture the renderer uses for this material",
+        default="", subtype="FILE_PATH",
+    )
+    texture_key: StringProperty(
+        name="Latent Texture Key", description="Hash of the inputs the texture was baked from", default="",
+    )
     walks: IntProperty(
         name="Walks",
         description="Monte Carlo walks per direction pair for the reference (more = less noise, slower)",
@@ -254,7 +302,7 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
     )
 
 
-_CLASSES = (NLM_Layer, NLM_MaterialSettings)
+_CLASSES = (NLM_ParameterMap, NLM_Layer, NLM_MaterialSettings)
 
 
 def register() -> None:

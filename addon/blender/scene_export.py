@@ -33,6 +33,8 @@ from addon.core.render import (
 )
 from addon.core.render.film import from_srgb
 
+from . import images
+
 GEOMETRY_TYPES = {"MESH", "CURVE", "SURFACE", "META", "FONT", "CURVES"}
 VIEWPORT_SENSOR = 72.0  # mm: the 3D viewport's lens maps to this sensor width
 
@@ -47,17 +49,10 @@ def _image_pixels(image, warnings: list[str]) -> np.ndarray | None:
     """(H, W, 4) linear float pixels, row 0 at the top; None (with a warning) if unavailable."""
     if image is None:
         return None
-    try:
-        w, h = image.size
-        has = image.has_data or (w > 0 and h > 0)
-    except (ReferenceError, RuntimeError):
-        has, w, h = False, 0, 0
-    if not has or w == 0 or h == 0:
+    px = images.read_pixels(image)
+    if px is None:
         warnings.append(f"image {image.name!r} has no pixels (missing file {image.filepath!r}?); using the colour")
         return None
-    px = np.empty(w * h * 4, dtype=np.float32)
-    image.pixels.foreach_get(px)
-    px = px.reshape(h, w, 4)[::-1]
     if not image.is_float and image.colorspace_settings.name in ("sRGB", "sRGB EOTF"):
         px = np.concatenate([from_srgb(px[:, :, :3]), px[:, :, 3:]], axis=2).astype(np.float32)
     return np.ascontiguousarray(px)
@@ -108,6 +103,25 @@ def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial:
     return LambertMaterial(color, texture)
 
 
+def _baked_texture(mat, warnings: list[str]):
+    """The material's baked latent texture if it is current, else None (with a warning if it is stale)."""
+    if not mat.neural_layers.texture_path:
+        return None
+    from addon.core.textures import LatentTexture
+
+    from . import bake_ops
+
+    path, state = bake_ops.baked_texture_state(mat)
+    if path is None:
+        warnings.append(f"material {mat.name!r}: {state}; rendering its constant stack")
+        return None
+    try:
+        return LatentTexture.read_exr(path)
+    except (OSError, ValueError, RuntimeError) as e:
+        warnings.append(f"material {mat.name!r}: cannot read its latent texture ({e}); rendering its constant stack")
+        return None
+
+
 def export_material(mat, warnings: list[str]):
     """LayeredSpec for a material with a layer stack, else an unmanaged Lambertian."""
     stack = None
@@ -120,7 +134,7 @@ def export_material(mat, warnings: list[str]):
     except ValueError as e:
         warnings.append(f"material {mat.name!r}: {e}; rendering it as a Lambertian")
     if stack is not None:
-        return LayeredSpec(stack, None, mat.name)
+        return LayeredSpec(stack, _baked_texture(mat, warnings), mat.name)
     return unmanaged_material(mat, warnings)
 
 

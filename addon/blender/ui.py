@@ -110,6 +110,22 @@ def _draw_layer(layout, item):
         layout.prop(item, "medium_albedo")
         layout.prop(item, "thickness")
         layout.prop(item, "g")
+    _draw_maps(layout, item)
+
+
+def _draw_maps(layout, item):
+    """The layer's parameter maps: image, value range, remove; and the add menu."""
+    col = layout.column(align=True)
+    for i, pmap in enumerate(item.maps):
+        box = col.box()
+        row = box.row(align=True)
+        row.prop(pmap, "parameter", text="")
+        row.operator("neural_layers.map_remove", text="", icon="X").index = i
+        box.template_ID(pmap, "image", open="image.open")
+        row = box.row(align=True)
+        row.prop(pmap, "low")
+        row.prop(pmap, "high")
+    col.operator_menu_enum("neural_layers.map_add", "parameter", text="Add Parameter Map", icon="IMAGE_DATA")
 
 
 class _LayersPanel:
@@ -169,6 +185,27 @@ class _PreviewPanel(_LayersPanel):
         col.operator("neural_layers.compare_reference", icon="IMAGE_REFERENCE")
 
 
+class _BakePanel(_LayersPanel):
+    bl_label = "Latent Texture"
+
+    def draw(self, context):
+        layout = self.layout
+        _, mat = _material(context)
+        if mat is None:
+            layout.label(text="No material")
+            return
+        s = mat.neural_layers
+        col = layout.column()
+        col.enabled = len(s.layers) > 0
+        col.prop(s, "bake_resolution")
+        col.prop(s, "bake_directory")
+        col.operator("neural_layers.bake_texture", icon="RENDER_STILL")
+        if s.texture_path:
+            row = col.row(align=True)
+            row.label(text=bpy.path.basename(s.texture_path), icon="TEXTURE")
+            row.operator("neural_layers.texture_clear", text="", icon="X")
+
+
 class NLM_PT_view3d_stack(_StackPanel, bpy.types.Panel):
     bl_idname = "NLM_PT_view3d_stack"
     bl_space_type = "VIEW_3D"
@@ -191,6 +228,18 @@ class NLM_PT_shader_preview(_PreviewPanel, bpy.types.Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
 
+class NLM_PT_view3d_bake(_BakePanel, bpy.types.Panel):
+    bl_idname = "NLM_PT_view3d_bake"
+    bl_space_type = "VIEW_3D"
+    bl_options = {"DEFAULT_CLOSED"}
+
+
+class NLM_PT_shader_bake(_BakePanel, bpy.types.Panel):
+    bl_idname = "NLM_PT_shader_bake"
+    bl_space_type = "NODE_EDITOR"
+    bl_options = {"DEFAULT_CLOSED"}
+
+
 _CLASSES = (
     NLM_UL_layers,
     NLM_MT_presets,
@@ -198,6 +247,8 @@ _CLASSES = (
     NLM_PT_view3d_preview,
     NLM_PT_shader_stack,
     NLM_PT_shader_preview,
+    NLM_PT_view3d_bake,
+    NLM_PT_shader_bake,
 )
 
 

@@ -105,9 +105,17 @@ class Conductor:
         curve's grazing rise; the edge tint of measured metals is not modelled.
         """
         f0 = _check_rgb("Conductor", "f0", f0, "albedo")
-        f0c = tuple(min(max(c, 0.0), 0.999) for c in f0)
-        k = tuple(min(2.0 * math.sqrt(c / (1.0 - c)), VALID_RANGES["k"][1]) for c in f0c)
+        k = tuple(float(x) for x in k_from_f0(np.array(f0)))
         return cls(roughness=roughness, eta=(1.0, 1.0, 1.0), k=k)
+
+
+def k_from_f0(f0: np.ndarray) -> np.ndarray:
+    """Extinction k with eta = 1 giving normal-incidence reflectance ``f0`` (any shape, 0..1).
+
+    F0 = k^2 / (4 + k^2)  =>  k = 2 sqrt(F0 / (1 - F0)), capped at the valid k range.
+    """
+    c = np.clip(np.asarray(f0, dtype=np.float64), 0.0, 0.999)
+    return np.minimum(2.0 * np.sqrt(c / (1.0 - c)), VALID_RANGES["k"][1])
 
 
 @dataclass(frozen=True)
@@ -215,9 +223,12 @@ def layer_from_dict(data: dict) -> Layer:
     return LAYER_TYPES[kind](**data)
 
 
-def alpha_from_artist_roughness(r: float) -> float:
-    """Artist roughness (perceptual, as in Blender's Principled BSDF) -> GGX alpha = r^2."""
-    return float(r) ** 2
+def alpha_from_artist_roughness(r):
+    """Artist roughness (perceptual, as in Blender's Principled BSDF) -> GGX alpha = r^2.
+
+    A number gives a float; an array gives an array."""
+    a = np.square(np.asarray(r, dtype=np.float64))
+    return float(a) if a.ndim == 0 else a
 
 
 def artist_roughness_from_alpha(alpha: float) -> float:

@@ -7,6 +7,7 @@ neural runtime provides the real one. Identical parameter tuples are encoded onc
 
 from __future__ import annotations
 
+import hashlib
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -19,6 +20,28 @@ from .spatial import SpatialStack
 
 Encoder = Callable[[StackArrays], tuple[np.ndarray, np.ndarray]]
 Progress = Callable[[float], None]
+
+
+def neural_encoder(size: str, threads: int = 2) -> Encoder:
+    """The neural runtime's batch encoder for decoder ``size``: per-layer encoder, then the
+    layering network bottom-up, then the sampling network for the proxy channels."""
+    from ..neural import layering, load_models
+
+    models = load_models(size, threads)
+    layer_model = layering.load_layering(models.size, threads)
+    return lambda arrays: layering.encode_stack_arrays(arrays, models, layer_model)
+
+
+def bake_key(spatial: SpatialStack, resolution: tuple[int, int], model: str) -> str:
+    """A short hash of everything a bake depends on: stack, driving images, resolution, model."""
+    h = hashlib.sha256()
+    h.update(spatial.stack.to_json().encode())
+    h.update(repr(tuple(resolution)).encode())
+    h.update(model.encode())
+    for path in sorted(spatial.maps):
+        h.update(path.encode())
+        h.update(np.ascontiguousarray(spatial.maps[path], dtype=np.float32).tobytes())
+    return h.hexdigest()[:16]
 
 
 class BakeCancelled(Exception):

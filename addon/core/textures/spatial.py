@@ -99,6 +99,15 @@ class SpatialStack:
             return img.shape[0], img.shape[1]
         return None
 
+    def resolution_for_max_side(self, max_side: int) -> tuple[int, int]:
+        """(height, width) with the images' aspect and the longer side at most ``max_side``
+        (0 = the images' own resolution); never finer than the images."""
+        h, w = self.resolution or (1, 1)
+        if max_side <= 0 or max(h, w) <= max_side:
+            return h, w
+        scale = max_side / max(h, w)
+        return max(1, round(h * scale)), max(1, round(w * scale))
+
     def texels(self, resolution: tuple[int, int] | None = None) -> tuple[StackArrays, tuple[int, int]]:
         """One stack per texel (rows top to bottom) and the (height, width) used.
 

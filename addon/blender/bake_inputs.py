@@ -1,0 +1,78 @@
+"""A material's layer stack with its image-driven parameters, as a core ``SpatialStack``.
+
+Each layer may hold parameter maps (``NLM_ParameterMap``): an image whose raw pixel values
+(0 to 1) map linearly onto [low, high] in the parameter's artist units (roughness as shown in
+the sidebar; alpha = roughness^2 for the core; F0 colour converted to k with eta = 1).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from addon.core.stack import alpha_from_artist_roughness, k_from_f0
+from addon.core.textures.spatial import SpatialStack
+
+from . import images, stack_io
+
+# (map parameter, layer type) -> core field name of that layer
+_FIELDS = {
+    ("ROUGHNESS", "CONDUCTOR"): "roughness",
+    ("ROUGHNESS", "DIELECTRIC"): "roughness",
+    ("ROUGHNESS", "COATING"): "roughness",
+    ("ALBEDO", "DIFFUSE"): "albedo",
+    ("F0", "CONDUCTOR"): "k",
+    ("ETA", "CONDUCTOR"): "eta",
+    ("K", "CONDUCTOR"): "k",
+    ("IOR", "DIELECTRIC"): "ior",
+    ("IOR", "COATING"): "ior",
+    ("MEDIUM_ALBEDO", "COATING"): "albedo",
+    ("THICKNESS", "COATING"): "thickness",
+}
+_RGB = {"ALBEDO", "F0", "ETA", "K", "MEDIUM_ALBEDO"}
+
+
+def _map_values(item, pmap) -> np.ndarray:
+    px = images.read_pixels(pmap.image)
+    if px is None:
+        raise ValueError(f"layer {item.name!r}: the image {pmap.image.name!r} driving {pmap.parameter.lower()} has "
+                         f"no pixels (missing file {pmap.image.filepath!r}?)")
+    values = px[..., :3] if pmap.parameter in _RGB else px[..., :1]
+    values = pmap.low + (pmap.high - pmap.low) * values.astype(np.float64)
+    if pmap.parameter == "ROUGHNESS":
+        values = alpha_from_artist_roughness(np.clip(values, 0.0, None))
+    if pmap.parameter == "F0":
+        if item.conductor_mode != "F0":
+            raise ValueError(f"layer {item.name!r}: an F0 map needs the conductor specified by colour (F0)")
+        values = k_from_f0(values)
+    elif pmap.parameter in ("ETA", "K") and item.conductor_mode != "ETA_K":
+        raise ValueError(f"layer {item.name!r}: {pmap.parameter.lower()} maps need the conductor specified by complex IOR")
+    return values
+
+
+def spatial_stack_from_material(mat):
+    """(SpatialStack, {parameter path: image description}) or None if the material has no stack.
+
+    Raises ``ValueError`` (naming layer, parameter and image) for a map that does not apply to
+    its layer, an image without pixels, images of different sizes or values outside the valid range.
+    """
+    stack = stack_io.stack_from_material(mat)
+    if stack is None:
+        return None
+    maps, sources = {}, {}
+    for index, item in enumerate(mat.neural_layers.layers):
+        for pmap in item.maps:
+            if pmap.image is None:
+                continue
+            field = _FIELDS.get((pmap.parameter, item.layer_type))
+            if field is None:
+                raise ValueError(f"layer {item.name!r} ({item.layer_type.title()}) has no {pmap.parameter.lower()} "
+                                 f"to drive by the image {pmap.image.name!r}")
+            path = f"base.{field}" if index == 0 else f"coatings[{index - 1}].{field}"
+            if path in maps:
+                raise ValueError(f"layer {item.name!r}: {pmap.parameter.lower()} is driven by two images")
+            maps[path] = _map_values(item, pmap)
+            sources[path] = f"{pmap.image.name} [{pmap.low:g}, {pmap.high:g}]"
+    try:
+        return SpatialStack(stack, maps), sources
+    except ValueError as e:
+        raise ValueError(f"material {mat.name!r}: {e}") from None

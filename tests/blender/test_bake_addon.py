@@ -1,0 +1,127 @@
+"""Baking from the add-on: parameter maps on layers, the bake operator, and the renderer using
+the baked texture while it is current. The networks are replaced by a stand-in encoder (a fixed
+linear map of each texel's parameters) except in the last test, which uses the shipped models."""
+
+import numpy as np
+import pytest
+
+from tests.blender.helpers import run_operator
+
+ops = pytest.importorskip("bpy").ops.neural_layers
+
+
+def stand_in_encoder(size, threads=2):
+    proj = np.random.default_rng(5).normal(size=(64, 98)) * 0.1
+
+    def encode(arrays):
+        v = arrays.to_matrix() @ proj[: arrays.to_matrix().shape[1]]
+        return v[:, :96].reshape(-1, 3, 32), v[:, 96:]
+
+    return encode
+
+
+@pytest.fixture()
+def wood(bpy_addon, material, tmp_path, monkeypatch):
+    """The cube's material as varnished wood whose coat roughness is driven by a 16 x 8 image."""
+    from addon.blender import bake_ops
+
+    monkeypatch.setattr(bake_ops, "neural_encoder", stand_in_encoder)
+    bpy = bpy_addon
+    assert run_operator(ops.preset_apply, preset="varnished_wood").finished
+    s = material.neural_layers
+    s.active_index = 1  # the coating
+    assert run_operator(ops.map_add, parameter="ROUGHNESS").finished
+    img = bpy.data.images.new("rough", width=16, height=8, float_buffer=True)
+    px = np.zeros((8, 16, 4), np.float32)
+    px[:, 8:, :] = 1.0  # right half rough
+    img.pixels.foreach_set(px.ravel())
+    pmap = s.layers[1].maps[0]
+    pmap.image, pmap.low, pmap.high = img, 0.1, 0.6
+    s.bake_directory = str(tmp_path)
+    return material
+
+
+def test_maps_become_a_spatial_stack_in_core_units(wood):
+    from addon.blender.bake_inputs import spatial_stack_from_material
+
+    spatial, sources = spatial_stack_from_material(wood)
+    rough = spatial.maps["coatings[0].roughness"][..., 0]
+    assert rough.shape == (8, 16)
+    assert np.allclose(rough[:, :8], 0.1**2) and np.allclose(rough[:, 8:], 0.6**2)  # artist roughness -> alpha
+    assert sources == {"coatings[0].roughness": "rough [0.1, 0.6]"}
+
+
+def test_map_on_a_parameter_the_layer_lacks_is_reported(wood):
+    wood.neural_layers.active_index = 0  # the diffuse base
+    assert run_operator(ops.map_add, parameter="THICKNESS").finished
+    wood.neural_layers.layers[0].maps[0].image = wood.neural_layers.layers[1].maps[0].image
+    r = run_operator(ops.bake_texture)
+    assert r.error and "has no thickness" in r.error
+
+
+def test_bake_writes_the_texture_and_the_renderer_uses_it_while_current(wood, bpy_addon):
+    from addon.blender import bake_ops, scene_export
+
+    r = run_operator(ops.bake_texture)
+    assert r.finished, r.error
+    path, state = bake_ops.baked_texture_state(wood)
+    assert path is not None and path.endswith(".exr"), state
+    warnings = []
+    spec = scene_export.export_material(wood, warnings)
+    assert spec.latent_texture is not None and not warnings
+    assert (spec.latent_texture.height, spec.latent_texture.width) == (8, 16)
+    # editing the stack makes the texture stale: the renderer warns and uses the constant stack
+    wood.neural_layers.layers[1].thickness = 1.0
+    assert bake_ops.baked_texture_state(wood)[0] is None
+    spec = scene_export.export_material(wood, warnings)
+    assert spec.latent_texture is None and any("out of date" in w for w in warnings)
+    assert run_operator(ops.texture_clear).finished and wood.neural_layers.texture_path == ""
+
+
+def test_bake_resolution_is_capped_by_the_images_and_images_must_match(wood, bpy_addon):
+    from addon.blender import bake_ops
+    from addon.core.textures import LatentTexture
+
+    wood.neural_layers.bake_resolution = 8
+    assert run_operator(ops.bake_texture).finished
+    tex = LatentTexture.read_exr(bake_ops.baked_texture_state(wood)[0])
+    assert (tex.height, tex.width) == (4, 8)
+    wood.neural_layers.bake_resolution = 4096  # never finer than the images
+    assert run_operator(ops.bake_texture).finished
+    tex = LatentTexture.read_exr(bake_ops.baked_texture_state(wood)[0])
+    assert (tex.height, tex.width) == (8, 16)
+    s = wood.neural_layers
+    assert run_operator(ops.map_add, parameter="THICKNESS").finished
+    s.layers[1].maps[1].image = bpy_addon.data.images.new("thick", width=4, height=4)
+    r = run_operator(ops.bake_texture)
+    assert r.error and "share a resolution" in r.error
+
+
+def test_duplicating_a_layer_copies_its_maps(wood):
+    wood.neural_layers.active_index = 1
+    assert run_operator(ops.layer_duplicate).finished
+    copy = wood.neural_layers.layers[2]
+    assert len(copy.maps) == 1 and copy.maps[0].image.name == "rough" and copy.maps[0].high == pytest.approx(0.6)
+
+
+def test_bake_with_the_shipped_models(bpy_addon, material, tmp_path):
+    from addon.core.textures.bake import neural_encoder
+
+    try:
+        neural_encoder("tiny")
+    except (FileNotFoundError, ValueError, ImportError) as e:
+        pytest.skip(f"layering models not shipped: {e}")
+    assert run_operator(ops.preset_apply, preset="lacquered_plastic").finished
+    material.neural_layers.bake_directory = str(tmp_path)
+    material.neural_layers.model_size = "TINY"
+    r = run_operator(ops.bake_texture)
+    assert r.finished, r.error
+    from addon.blender import bake_ops
+    from addon.core.neural.layering import encode_layered_stack
+    from addon.core.textures import LatentTexture
+
+    tex = LatentTexture.read_exr(bake_ops.baked_texture_state(material)[0])
+    from addon.core.stack import preset
+
+    z = encode_layered_stack(preset("lacquered_plastic"))
+    assert np.allclose(tex.levels[0][0, 0, :96], z.reshape(-1), atol=2e-3)
