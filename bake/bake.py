@@ -3,6 +3,7 @@
 Runs as a plain script with the ``bpy`` module, or inside Blender:
 
     python bake/bake.py --preset varnished_wood --map "coatings[0].roughness=rough.png:0.01:0.4" --out textures/
+    python bake/bake.py --preset coated_gold --mix frosted_copper --mask worn.png --out textures/ --name worn_gold
     python bake/bake.py --blend scene.blend --material Wood --material CarPaint --out textures/
     blender -b --python bake/bake.py -- --blend scene.blend --material Wood --out textures/
 
@@ -35,7 +36,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from addon.core.stack import PRESETS, preset  # noqa: E402
-from addon.core.textures.bake import bake_key, bake_texels, neural_encoder  # noqa: E402
+from addon.core.textures.bake import _texels_at, bake_key, bake_texels, neural_encoder  # noqa: E402
+from addon.core.textures.mip import resample_area  # noqa: E402
 from addon.core.textures.latent_texture import LatentTexture, read_image  # noqa: E402
 from addon.core.textures.spatial import SpatialStack  # noqa: E402
 
@@ -50,9 +52,20 @@ class Job:
     spatial: SpatialStack
     resolution: tuple[int, int]
     sources: dict[str, str]  # parameter path -> image description, for the sidecar
+    mix: SpatialStack | None = None  # blended in latent space through ``mask``
+    mask: np.ndarray | None = None
 
     def key(self, model: str) -> str:
-        return bake_key(self.spatial, self.resolution, model)
+        return bake_key(self.spatial, self.resolution, model, self.mix, self.mask)
+
+    def texels(self):
+        """Per-texel stacks at the bake resolution, and of the mixed stack with the mask (or None)."""
+        arrays = _texels_at(self.spatial, self.resolution)[0]
+        if self.mix is None:
+            return arrays, None, None
+        h, w = self.resolution
+        m = self.mask if self.mask.shape == (h, w) else resample_area(self.mask[..., None], h, w)[..., 0]
+        return arrays, _texels_at(self.mix, self.resolution)[0], m.reshape(-1, 1)
 
 
 _MAP = re.compile(r"^(?P<path>[^=]+)=(?P<file>.+?)(?::(?P<lo>[-+0-9.eE]+):(?P<hi>[-+0-9.eE]+))?$")
@@ -91,10 +104,27 @@ def preset_job(args) -> list[Job]:
         sources[path] = f"{file.name} [{lo}, {hi}]"
     try:
         spatial = SpatialStack(stack, maps)
-        _, res = spatial.texels(tuple(args.resolution) if args.resolution else None)
     except ValueError as e:
         raise BadInput(str(e)) from None
-    return [Job(args.name or args.preset, spatial, res, sources)]
+    mix = mask = None
+    if args.mix or args.mask:
+        if not (args.mix and args.mask):
+            raise BadInput("--mix and --mask go together: --mix PRESET --mask IMAGE blends the two stacks")
+        try:
+            mix = SpatialStack(preset(args.mix))
+            mask = read_image(args.mask)[..., 0].astype(np.float64)
+        except (FileNotFoundError, ValueError) as e:
+            raise BadInput(f"--mix/--mask: {e}") from None
+        if spatial.resolution is not None and spatial.resolution != mask.shape:
+            raise BadInput(f"--mask is {mask.shape[1]}x{mask.shape[0]} but the driving images are "
+                           f"{spatial.resolution[1]}x{spatial.resolution[0]}: they must share a resolution")
+        sources["mask"] = f"{args.mask.name} (mixes in {args.mix})"
+    native = mask.shape if mask is not None else (spatial.resolution or (1, 1))
+    res = tuple(args.resolution) if args.resolution else native
+    if not (1 <= res[0] <= native[0] and 1 <= res[1] <= native[1]):
+        raise BadInput(f"bake resolution {res[1]}x{res[0]} must be between 1x1 and the driving images' "
+                       f"{native[1]}x{native[0]}")
+    return [Job(args.name or args.preset, spatial, res, sources, mix, mask)]
 
 
 def blend_jobs(args) -> list[Job]:
@@ -195,12 +225,16 @@ def run(jobs: list[Job], out: Path, encode, model: str, shard: tuple[int, int], 
             bar.update(f"{job.name} band {band} (kept)", advance=True)
             continue
         if job.name not in cache:
-            cache[job.name] = job.spatial.texels(job.resolution)[0]
-        arrays = cache[job.name]
+            cache[job.name] = job.texels()
+        arrays, mixed, mask = cache[job.name]
         h, w = job.resolution
         rows = slice(band * band_rows * w, min((band + 1) * band_rows, h) * w)
         texels, st = bake_texels(arrays.take(rows), encode, dedup=dedup,
                                  progress=lambda f: bar.update(f"{job.name} band {band}", f))
+        if mixed is not None:  # blend in latent space: one intermediate lobe per texel
+            other, st2 = bake_texels(mixed.take(rows), encode, dedup=dedup)
+            texels = ((1.0 - mask[rows]) * texels + mask[rows] * other).astype(np.float32)
+            st.unique += st2.unique
         _atomic_save_npy(target, texels)
         bar.update(f"{job.name} band {band}", advance=True)
         stats["bands_baked"] += 1
@@ -258,6 +292,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     ap.add_argument("--material", action="append", help="material name in --blend (repeatable; default: all with a stack)")
     ap.add_argument("--map", action="append", help="with --preset: PATH=IMAGE[:LO:HI] drives a parameter by an image")
     ap.add_argument("--name", help="with --preset: output name (default: the preset's)")
+    ap.add_argument("--mix", help="with --preset and --mask: a second preset blended in latent space")
+    ap.add_argument("--mask", type=Path, help="with --mix: image whose first channel (0..1) blends towards --mix")
     ap.add_argument("--resolution", type=int, nargs=2, metavar=("H", "W"), help="bake resolution (<= the images')")
     ap.add_argument("--out", type=Path, required=True, help="output folder")
     ap.add_argument("--model", default="small", help="decoder size whose latent space to bake into")

@@ -117,3 +117,18 @@ def test_script_entry_point_reports_bad_input_with_exit_code_2(tmp_path):
     r = subprocess.run([sys.executable, str(ROOT / "bake" / "bake.py"), "--preset", "velvet", "--out", str(tmp_path)],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "unknown preset 'velvet'" in r.stderr
+
+
+def test_mix_through_a_mask_blends_latents(tmp_path):
+    mask = np.zeros((6, 10))
+    mask[:, 5:] = 1.0
+    mask[:, 4] = 0.5
+    m = write_png(tmp_path / "mask.png", mask)
+    out = tmp_path / "mix"
+    assert bake_cli.main(["--preset", "coated_gold", "--mix", "frosted_copper", "--mask", str(m), "--out", str(out),
+                          "--band-rows", "4"], encode=encoder()) == 0
+    tex = LatentTexture.read_exr(out / "coated_gold.exr").levels[0]
+    left, right, mid = tex[0, 0], tex[0, -1], tex[0, 4]
+    assert not np.allclose(left, right)
+    assert np.allclose(mid, 0.5 * (left + right), atol=0.02)  # half-float texels, mask 0.5 -> 128/255
+    assert bake_cli.main(["--preset", "coated_gold", "--mix", "frosted_copper", "--out", str(out)], encode=encoder()) == 2

@@ -106,3 +106,23 @@ def test_an_encoder_returning_the_wrong_shape_is_reported():
     arrays = StackArrays.repeat(wood(), 2)
     with pytest.raises(ValueError, match="expected"):
         bake_texels(arrays, lambda a: (np.zeros((len(a), 3, 16)), np.zeros((len(a), 2))))
+
+
+def test_mix_blends_latents_through_the_mask():
+    from addon.core.textures.bake import bake_mix
+
+    enc = linear_encoder()
+    a = SpatialStack(wood())
+    b = SpatialStack(preset("coated_gold"))
+    mask = np.tile(np.linspace(0.0, 1.0, 5), (3, 1))
+    tex, stats = bake_mix(a, b, mask, enc)
+    za, pa = enc(StackArrays.from_stacks([wood()]))
+    zb, pb = enc(StackArrays.from_stacks([preset("coated_gold")]))
+    ends = np.concatenate([za.reshape(-1), pa.reshape(-1)]), np.concatenate([zb.reshape(-1), pb.reshape(-1)])
+    base = tex.levels[0]
+    assert np.allclose(base[:, 0], ends[0], atol=1e-4) and np.allclose(base[:, -1], ends[1], atol=1e-4)
+    assert np.allclose(base[1, 2], 0.5 * (ends[0] + ends[1]), atol=1e-4)
+    with pytest.raises(ValueError, match="share a resolution"):
+        bake_mix(SpatialStack(wood(), {"coatings[0].roughness": np.full((4, 4), 0.1)}), b, mask, enc)
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        bake_mix(a, b, mask * 2, enc)

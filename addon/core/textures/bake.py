@@ -32,9 +32,13 @@ def neural_encoder(size: str, threads: int = 2) -> Encoder:
     return lambda arrays: layering.encode_stack_arrays(arrays, models, layer_model)
 
 
-def bake_key(spatial: SpatialStack, resolution: tuple[int, int], model: str) -> str:
-    """A short hash of everything a bake depends on: stack, driving images, resolution, model."""
+def bake_key(spatial: SpatialStack, resolution: tuple[int, int], model: str,
+             mix: SpatialStack | None = None, mask: np.ndarray | None = None) -> str:
+    """A short hash of everything a bake depends on: stack(s), driving images, mask, resolution, model."""
     h = hashlib.sha256()
+    if mix is not None:
+        h.update(bake_key(mix, resolution, model).encode())
+        h.update(np.ascontiguousarray(mask, dtype=np.float32).tobytes())
     h.update(spatial.stack.to_json().encode())
     h.update(repr(tuple(resolution)).encode())
     h.update(model.encode())
@@ -111,3 +115,60 @@ def bake_stack(
     meta = {"stack": spatial.stack.to_json(), "maps": ",".join(sorted(spatial.maps))}
     meta.update(metadata or {})
     return LatentTexture.from_texels(texels.reshape(h, w, -1), meta), stats
+
+
+def bake_mix(
+    a: SpatialStack,
+    b: SpatialStack,
+    mask: np.ndarray,
+    encode: Encoder,
+    *,
+    resolution: tuple[int, int] | None = None,
+    progress: Progress | None = None,
+    cancel: Callable[[], bool] | None = None,
+    metadata: dict | None = None,
+) -> tuple[LatentTexture, BakeStats]:
+    """Blend two (spatially varying) stacks through ``mask`` (H, W) in [0, 1] in latent space.
+
+    Each texel's latent is (1 - m) z_a + m z_b (and likewise the proxy parameters): a blended
+    texel has one intermediate lobe, where blending the two BRDF values would give two lobes.
+    The stacks may differ in everything, including their number of coatings.
+    """
+    m = np.asarray(mask, dtype=np.float64)
+    if m.ndim == 3 and m.shape[2] >= 1:
+        m = m[..., 0]
+    if m.ndim != 2:
+        raise ValueError(f"the mask must be an (H, W) image, got shape {np.shape(mask)}")
+    if not np.isfinite(m).all() or m.min() < 0.0 or m.max() > 1.0:
+        raise ValueError("the mask must hold values in [0, 1]")
+    for name, s in (("first", a), ("second", b)):
+        if s.resolution is not None and s.resolution != m.shape:
+            raise ValueError(f"the {name} stack's images are {s.resolution[1]}x{s.resolution[0]} but the mask is "
+                             f"{m.shape[1]}x{m.shape[0]}: they must share a resolution")
+    h, w = resolution or m.shape
+    if h > m.shape[0] or w > m.shape[1]:
+        raise ValueError(f"bake resolution {w}x{h} must not exceed the mask's {m.shape[1]}x{m.shape[0]}")
+    from .mip import resample_area
+
+    if (h, w) != m.shape:
+        m = resample_area(m[..., None], h, w)[..., 0]
+    t0 = time.perf_counter()
+    arrays_a, _ = _texels_at(a, (h, w))
+    arrays_b, _ = _texels_at(b, (h, w))
+    ta, sa = bake_texels(arrays_a, encode, progress=None if progress is None else (lambda f: progress(0.5 * f)),
+                         cancel=cancel)
+    tb, sb = bake_texels(arrays_b, encode, progress=None if progress is None else (lambda f: progress(0.5 + 0.5 * f)),
+                         cancel=cancel)
+    t = m.reshape(-1, 1)
+    texels = ((1.0 - t) * ta + t * tb).astype(np.float32)
+    meta = {"stack": a.stack.to_json(), "mix_stack": b.stack.to_json()}
+    meta.update(metadata or {})
+    stats = BakeStats(texels=h * w, unique=sa.unique + sb.unique, seconds=time.perf_counter() - t0)
+    return LatentTexture.from_texels(texels.reshape(h, w, -1), meta), stats
+
+
+def _texels_at(spatial: SpatialStack, resolution: tuple[int, int]):
+    """A stack's texels at ``resolution``; a constant stack is repeated to fill it."""
+    if spatial.resolution is None:
+        return StackArrays.repeat(spatial.stack, resolution[0] * resolution[1]), resolution
+    return spatial.texels(resolution)
