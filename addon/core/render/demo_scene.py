@@ -34,7 +34,7 @@ def sky_image(width: int = 128, height: int = 64) -> np.ndarray:
     # A sun 35 degrees up, to the left behind the camera's right shoulder.
     sun_el, sun_az = math.radians(35.0), math.radians(-120.0)
     cos_d = np.sin(el) * math.sin(sun_el) + np.cos(el) * math.cos(sun_el) * np.cos(az - sun_az)
-    img = img + np.where(cos_d > math.cos(math.radians(4.0)), 1.0, 0.0)[..., None] * np.array([60.0, 52.0, 40.0])
+    img = img + np.where(cos_d > math.cos(math.radians(6.0)), 1.0, 0.0)[..., None] * np.array([22.0, 19.0, 15.0])
     return img.astype(np.float32)
 
 
@@ -61,15 +61,17 @@ def demo_scene(width: int = 320, height: int = 180, presets=DEMO_PRESETS) -> Sce
     for i in range(n):
         x = (i - (n - 1) / 2) * spacing
         meshes.append(shapes.uv_sphere((x, 0.0, SPHERE_RADIUS), SPHERE_RADIUS, 48, 24, material=i + 1))
-    meshes.append(shapes.quad((0, 2.0, 0), (8.0, 0, 0), (0, 8.0, 0), material=0))
+    floor = shapes.quad((0, 30.0, 0), (40.0, 0, 0), (0, 40.0, 0), material=0)
+    floor.uvs = floor.uvs * 10.0  # the tile texture repeats (0.5 m squares)
+    meshes.append(floor)
     mesh = Mesh.concatenate(meshes)
-    floor = LambertMaterial((1.0, 1.0, 1.0), ImageTexture(checker_texture()))
-    materials = [floor] + [LayeredSpec(st, None, name) for st, name in zip(stacks, names)]
+    tiles = LambertMaterial((1.0, 1.0, 1.0), ImageTexture(checker_texture()))
+    materials = [tiles] + [LayeredSpec(st, None, name) for st, name in zip(stacks, names)]
     light = np.eye(4)
     light[:3, 3] = (1.5, -1.5, 3.0)
     c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
     light[:3, :3] = np.array([[1, 0, 0], [0, c, -s], [0, s, c]])  # tilted toward the spheres
     lights = [AreaLight(light, power=250.0, size=1.5, color=(1.0, 0.92, 0.85))]
-    cam = Camera.look_at((0.0, -5.6, 2.1), (0.0, 0.0, 0.6), fov_deg=50.0, width=width, height=height)
+    cam = Camera.look_at((0.0, -5.6, 1.5), (0.0, 0.0, 0.6), fov_deg=50.0, width=width, height=height)
     return Scene(cam, mesh, materials, lights, Environment(image=sky_image()),
                  ["tiles"] + names)

@@ -348,8 +348,14 @@ def _trace_paths(ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: i
             if joint:
                 # Propose directions first, then one evaluation for shadow and sampled directions.
                 prop_wi, prop_pdf = bound.sample_direction(wo[sel], u_lobe[sel], u_dir[sel])
-                f_all = _timed(ctx.stats, material, bound.eval, np.concatenate([wi_nee[v], prop_wi]),
-                               np.concatenate([wo[v], wo[sel]]), np.concatenate([rows, np.arange(len(sel))]))
+                if hasattr(bound, "eval_pair"):  # both directions from the same estimator walks
+                    wi_a = prop_wi.copy()
+                    wi_a[rows] = wi_nee[v]
+                    f_a, f_b = _timed(ctx.stats, material, bound.eval_pair, wi_a, prop_wi, wo[sel])
+                    f_all = np.concatenate([f_a[rows], f_b])
+                else:
+                    f_all = _timed(ctx.stats, material, bound.eval, np.concatenate([wi_nee[v], prop_wi]),
+                                   np.concatenate([wo[v], wo[sel]]), np.concatenate([rows, np.arange(len(sel))]))
                 bs = finish_sample(prop_wi, prop_pdf, f_all[len(v):])
             if len(v):
                 wil, wol = wi_nee[v], wo[v]

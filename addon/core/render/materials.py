@@ -15,9 +15,12 @@ whose shadow ray reached the light); None means all rows.
 textured, latent-textured or stochastic material needs. The integrator never looks inside.
 
 ``kind`` names the cost class for the render statistics ("analytic", "neural" or
-"reference"). A material without a pdf (``has_pdf = False``, the position-free reference,
-whose analog walk has no closed-form density) is rendered without MIS: next-event estimation
-for every light, BSDF-sampled emission only after delta (specular) events.
+"reference"). A material without a pdf (``has_pdf = False``, e.g. a sampler with no
+closed-form density) is rendered without MIS: next-event estimation for every light,
+BSDF-sampled emission only after delta (specular) events. A material with
+``sample_needs_eval`` proposes directions (``sample_direction``) and lets the integrator
+evaluate them together with the next-event directions (``eval``, or ``eval_pair`` when the
+bound material offers it).
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..bsdf import Lambertian, RoughConductor, RoughDielectric
-from ..bsdf.base import BSDFSample
+from ..bsdf.base import SMOOTH_ALPHA, BSDFSample
 from ..stack import Conductor, Dielectric, Diffuse, Stack
 from ..textures.mip import build_mip_chain, trilinear_lookup
 
@@ -132,9 +135,25 @@ def analytic_for_stack(stack: Stack):
     raise ValueError(f"unknown base layer {type(b).__name__}")
 
 
+def _top_is_smooth(stack: Stack) -> bool:
+    """True when light can leave the stack by delta events only (a smooth top interface)."""
+    top = stack.coatings[-1] if stack.coatings else stack.base
+    return not isinstance(top, Diffuse) and top.roughness < SMOOTH_ALPHA
+
+
 class _BoundReference:
-    def __init__(self, stack: Stack, walks: int, seed: int):
+    """The position-free estimator behind the material interface.
+
+    Directions are proposed by the sampling proxy (``addon.core.neural.proxy``, exact pdf) and
+    weighted by an ``eval_brdf`` estimate, so MIS with next-event estimation works as for any
+    material. When the top interface is smooth, part of f is a delta component that eval_brdf
+    cannot represent: then a fraction ``1 - q`` of the samples runs the analog walk and keeps
+    only its delta-only (specular) paths, which carry that component exactly.
+    """
+
+    def __init__(self, stack: Stack, walks: int, seed: int, sigma: float, w: float, q: float):
         self.stack, self.walks, self.seed = stack, walks, seed
+        self.sigma, self.w, self.q = sigma, w, q
 
     def eval(self, wi, wo, index=None):
         from .. import reference
@@ -142,43 +161,81 @@ class _BoundReference:
         f, _ = reference.eval_brdf(self.stack, wi, wo, walks=self.walks, seed=self.seed)
         return np.nan_to_num(np.maximum(f, 0.0))
 
-    def pdf(self, wi, wo, index=None):  # pragma: no cover - the integrator checks has_pdf first
-        raise NotImplementedError("the position-free reference has no closed-form pdf")
+    def eval_pair(self, wi_a, wi_b, wo):
+        """f at two incident directions per row from the same walks (reference.eval_brdf_many)."""
+        from .. import reference
+
+        f, _ = reference.eval_brdf_many(self.stack, np.stack([wi_a, wi_b], axis=1), wo, walks=self.walks,
+                                        seed=self.seed + 7)
+        f = np.nan_to_num(np.maximum(f, 0.0))
+        return f[:, 0], f[:, 1]
+
+    def pdf(self, wi, wo, index=None):
+        from ..neural import proxy
+
+        return self.q * proxy.pdf(wo, wi, self.sigma, self.w)
+
+    def sample_direction(self, wo, u_lobe, u):
+        from ..neural import proxy
+
+        return proxy.sample(wo, self.sigma, self.w, np.concatenate([u_lobe[:, None], u], axis=1))
 
     def sample(self, wo, u_lobe, u):
         from .. import reference
+        from .neural_material import finish_sample
 
-        # The analog walk draws its own numbers: a stream keyed by the bounce's seed keeps the
-        # render deterministic (u_lobe and u are not used).
-        rng = np.random.default_rng([self.seed, 1])
-        wi, weight, specular = reference.sample(self.stack, wo, rng, with_flags=True)
         n = len(wo)
-        wi = np.asarray(wi, dtype=np.float64)
-        weight = np.nan_to_num(np.maximum(np.asarray(weight, dtype=np.float64), 0.0))
-        specular = np.asarray(specular, dtype=bool)
-        valid = np.isfinite(wi).all(axis=1) & (np.abs(wi).sum(axis=1) > 0) & (weight.max(axis=1) > 0)
+        rough = u_lobe < self.q
+        out_wi, out_w = np.zeros((n, 3)), np.zeros((n, 3))
+        out_pdf, out_delta = np.zeros(n), np.zeros(n, dtype=bool)
+        r = np.nonzero(rough)[0]
+        if len(r):
+            wi, p = self.sample_direction(wo[r], u_lobe[r] / self.q, u[r])
+            f, _ = reference.eval_brdf(self.stack, wi, wo[r], walks=self.walks, seed=self.seed + 1)
+            bs = finish_sample(wi, self.q * p, np.nan_to_num(np.maximum(f, 0.0)))
+            out_wi[r], out_w[r], out_pdf[r] = bs.wi, bs.weight, bs.pdf
+        d = np.nonzero(~rough)[0]
+        if len(d):
+            # The analog walk draws its own numbers from a stream keyed by the bounce's seed.
+            rng = np.random.default_rng([self.seed, 1])
+            wi, weight, specular = reference.sample(self.stack, wo[d], rng, with_flags=True)
+            keep = np.asarray(specular, dtype=bool)
+            weight = np.nan_to_num(np.maximum(np.asarray(weight, dtype=np.float64), 0.0)) / (1 - self.q)
+            out_wi[d] = np.where(keep[:, None], wi, 0.0)
+            out_w[d] = np.where(keep[:, None], weight, 0.0)
+            out_pdf[d] = np.where(keep, 1 - self.q, 0.0)
+            out_delta[d] = keep
+        valid = out_pdf > 0
         false = np.zeros(n, dtype=bool)
-        pdf = np.ones(n)  # not a density: only the delta flag is used for materials without pdf
-        return BSDFSample.build(wi, weight, pdf, specular, false, valid)
+        return BSDFSample.build(out_wi, out_w, out_pdf, out_delta, false, valid)
 
 
 class ReferenceLayered:
     """A layered stack shaded by the position-free Monte Carlo estimator (reference mode).
 
-    ``eval`` is ``reference.eval_brdf`` with ``walks`` walks per query (an unbiased estimate of
-    f, so next-event estimation stays unbiased); ``sample`` is the unbiased analog walk.
+    ``eval`` is ``reference.eval_brdf`` with ``walks`` walks per query: an unbiased estimate of
+    f, so next-event estimation stays unbiased. Sampling proposes directions with the proxy
+    (exact pdf, hence MIS) and weights them with the same estimator; stacks with a smooth top
+    interface add the analog walk's specular paths for the delta component (see
+    ``_BoundReference``). With a rough top, next-event and sampled directions are evaluated
+    from the same walks (``eval_pair``), one estimator call per bounce.
     """
 
     kind = "reference"
-    has_pdf = False
+    has_pdf = True
 
     def __init__(self, stack: Stack, walks: int = 16):
         if walks < 1:
             raise ValueError(f"reference walks must be >= 1, got {walks}")
+        from .neural_material import proxy_guess
+
         self.stack, self.walks = stack, int(walks)
+        self.sigma, self.w = proxy_guess(stack)
+        self.q = 0.5 if _top_is_smooth(stack) else 1.0
+        self.sample_needs_eval = self.q == 1.0
 
     def bind(self, hits: SurfaceHits):
-        return _BoundReference(self.stack, self.walks, hits.seed)
+        return _BoundReference(self.stack, self.walks, hits.seed, self.sigma, self.w, self.q)
 
 
 @dataclass
