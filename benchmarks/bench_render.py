@@ -1,6 +1,7 @@
 """Renderer speed and equal-time error, against Blender Cycles on the same demo scene.
 
-    python benchmarks/bench_render.py --size 160x90 --samples 16 --bounces 4
+    python benchmarks/bench_render.py --size 160x90 --samples 16 --bounces 4 --error-size 96x54 \
+        --reference-samples 512
 
 1. Paths per second on the demo scene (``addon.core.render.demo_scene``) for our renderer in
    neural and reference mode, split into ray casting (embreex), network evaluation (ONNX
@@ -98,7 +99,8 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default="160x90")
     ap.add_argument("--samples", type=int, default=16)
     ap.add_argument("--bounces", type=int, default=4)
-    ap.add_argument("--reference-samples", type=int, default=256)
+    ap.add_argument("--error-size", default="96x54", help="image size of the equal-time error curves")
+    ap.add_argument("--reference-samples", type=int, default=512)
     ap.add_argument("--budgets", default="1,2,4,8,16", help="sample counts of the equal-time curves")
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
     args = ap.parse_args(argv)
@@ -129,9 +131,11 @@ def main(argv=None) -> int:
     rows.append(("Cycles CPU, Principled coat", paths / cyc_s, cyc_s, None, None, None, None))
     print(rows[-1], flush=True)
 
+    ew, eh = (int(v) for v in args.error_size.split("x"))
+    escene = demo_scene(ew, eh)
     print("reference render ...", flush=True)
     t0 = time.perf_counter()
-    ref, _ = ours(scene, args.reference_samples, args.bounces, "reference", seed=1000)
+    ref, _ = ours(escene, args.reference_samples, args.bounces, "reference", seed=1000)
     ref_s = time.perf_counter() - t0
 
     budgets = [int(b) for b in args.budgets.split(",")]
@@ -139,11 +143,15 @@ def main(argv=None) -> int:
     for mode in ("neural", "reference"):
         pts = []
         for spp in budgets:
-            img, st = ours(scene, spp, args.bounces, mode, seed=spp)
-            pts.append((st.seconds["total"], mse(img, ref), spp))
+            img, st = ours(escene, spp, args.bounces, mode, seed=spp)
+            pts.append((st.seconds["total"], mse(img, ref), spp, mse(np.minimum(img, 1), np.minimum(ref, 1))))
         curves[mode] = pts
         print(mode, pts, flush=True)
-    cyc_err = mse(cyc, ref)
+    with tempfile.TemporaryDirectory() as tmp:
+        bs = build_blender_scene(bpy, escene)
+        cyc_e, cyc_e_s = render_cycles(bpy, bs, ew, eh, args.samples, args.bounces, Path(tmp))
+    cyc_err = mse(cyc_e, ref)
+    cyc_err_clamped = mse(np.minimum(cyc_e, 1), np.minimum(ref, 1))
 
     # Single-layer scene: exact ground truth, decoder vs position-free estimator at equal time.
     from addon.core.render import neural_material
@@ -151,7 +159,7 @@ def main(argv=None) -> int:
     from addon.core.stack import PRESETS, Stack
 
     bases = [Stack(PRESETS[p].base) for p in DEMO_PRESETS]
-    single = demo_scene(width, height, bases)
+    single = demo_scene(ew, eh, bases)
     exact_img, _ = ours(single, args.reference_samples, args.bounces, "reference", seed=2000)
     forced = {
         "neural decoder": [neural_material.make(st) for st in bases],
@@ -162,7 +170,7 @@ def main(argv=None) -> int:
         if any(m is None for m in mats):
             print(f"skipping {label}: not available", flush=True)
             continue
-        variant = demo_scene(width, height, bases)
+        variant = demo_scene(ew, eh, bases)
         variant.materials[1:] = mats
         pts = []
         for spp in budgets:
@@ -172,7 +180,7 @@ def main(argv=None) -> int:
         print(label, [p[:3] for p in pts], flush=True)
     from addon.core.render import write_png
 
-    side = np.concatenate([ref, np.ones((height, 4, 3)), cyc], axis=1)
+    side = np.concatenate([images["reference"], np.ones((height, 4, 3)), cyc], axis=1)
     write_png(args.out / "render_demo_vs_cycles.png", side)
 
     import matplotlib
@@ -183,10 +191,10 @@ def main(argv=None) -> int:
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4))
     for mode, pts in curves.items():
         ax.loglog([p[0] for p in pts], [p[1] for p in pts], "o-", label=f"ours, {mode} mode")
-    ax.loglog([cyc_s], [cyc_err], "s", label=f"Cycles, Principled coat ({args.samples} spp)")
+    ax.loglog([cyc_e_s], [cyc_err], "s", label=f"Cycles, Principled coat ({args.samples} spp)")
     ax.set_xlabel("render time (s)")
     ax.set_ylabel(f"MSE vs {args.reference_samples}-spp reference render")
-    ax.set_title(f"Layered demo scene {width}x{height}, {args.bounces} bounces")
+    ax.set_title(f"Layered demo scene {ew}x{eh}, {args.bounces} bounces")
     for label, pts in single_curves.items():
         ax2.loglog([p[0] for p in pts], [p[1] for p in pts], "o-", label=label)
     ax2.set_xlabel("render time (s)")
@@ -223,17 +231,20 @@ def main(argv=None) -> int:
         "Cycles' time is the wall time of `bpy.ops.render.render` after a warm-up render (scene sync, BVH "
         "build and kernel setup included, as for a user's F12).",
         "",
-        f"## Equal-time error (MSE against a {args.reference_samples}-spp reference-mode render, "
+        f"## Equal-time error ({ew}x{eh}; MSE against a {args.reference_samples}-spp reference-mode render, "
         f"{ref_s:.0f} s)",
         "",
-        "| mode | samples | seconds | MSE |",
-        "|---|---|---|---|",
+        "MSE of linear radiance, and of radiance clamped at 1 (the display range; less dominated by the "
+        "brightest outliers).",
+        "",
+        "| mode | samples | seconds | MSE | MSE clamped at 1 |",
+        "|---|---|---|---|---|",
     ]
     for mode, pts in curves.items():
-        for sec, err, spp in pts:
-            lines.append(f"| {mode} | {spp} | {sec:.2f} | {err:.3g} |")
+        for sec, err, spp, errc in pts:
+            lines.append(f"| {mode} | {spp} | {sec:.2f} | {err:.3g} | {errc:.3g} |")
     lines += [
-        f"| Cycles, Principled coat | {args.samples} | {cyc_s:.2f} | {cyc_err:.3g} |",
+        f"| Cycles, Principled coat | {args.samples} | {cyc_e_s:.2f} | {cyc_err:.3g} | {cyc_err_clamped:.3g} |",
         "",
         "## Single-layer scene: neural decoder vs position-free estimator at equal time",
         "",
@@ -251,8 +262,8 @@ def main(argv=None) -> int:
         "",
         "![equal-time error](render_equal_time.png)",
         "",
-        f"Left: our reference-mode render ({args.reference_samples} spp); right: Cycles with Principled coat "
-        f"({args.samples} spp).",
+        f"Left: ours, reference mode, {args.samples} spp; right: Cycles with Principled coat, {args.samples} spp "
+        f"({width}x{height}).",
         "",
         "![ours vs Cycles](render_demo_vs_cycles.png)",
         "",
