@@ -288,7 +288,11 @@ def export_scene(depsgraph, width: int | None = None, height: int | None = None,
             continue
         key = (ob.name, ob.data.name if ob.data is not None else "")
         if key not in cache:
-            cache[key] = _mesh_arrays(ob)
+            try:
+                cache[key] = _mesh_arrays(ob)
+            except RuntimeError as e:  # an object type without a mesh form (e.g. empty curves)
+                warnings.append(f"object {ob.name!r} has no mesh to render ({e}); skipped")
+                cache[key] = None
             if cache[key] is not None:
                 slots = [material_slot(s.material) for s in ob.material_slots] or [material_slot(None)]
                 cache[key] = cache[key] + (np.asarray(slots, np.int32),)
