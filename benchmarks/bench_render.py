@@ -122,13 +122,33 @@ def main(argv=None) -> int:
                      s["rays"], s["network"], s["reference"], st.rest))
         print(rows[-1], flush=True)
 
+    # The same scene with every stack replaced by its base layer: the renderer's own speed with
+    # exact analytic BSDFs, and with the neural decoder forced on those single-layer stacks.
+    from addon.core.render import neural_material
+    from addon.core.render.demo_scene import DEMO_PRESETS
+    from addon.core.stack import PRESETS, Stack
+
+    bases = [Stack(PRESETS[p].base) for p in DEMO_PRESETS]
+    for label, mats in (("analytic BSDFs", None), ("neural decoder", [neural_material.make(b) for b in bases])):
+        if mats is not None and any(m is None for m in mats):
+            continue
+        variant = demo_scene(width, height, bases)
+        if mats is not None:
+            variant.materials[1:] = mats
+        ours(variant, 1, 1, "neural")
+        _, st = ours(variant, args.samples, args.bounces, "neural")
+        s = st.seconds
+        rows.append((f"ours, single-layer stacks, {label}", st.paths_per_second, s["total"], s["rays"], s["network"],
+                     s["reference"], st.rest))
+        print(rows[-1], flush=True)
+
     import bpy
 
     with tempfile.TemporaryDirectory() as tmp:
         bs = build_blender_scene(bpy, scene)
         render_cycles(bpy, bs, 8, 8, 1, 1, Path(tmp))  # warm-up: kernels and scene upload
         cyc, cyc_s = render_cycles(bpy, bs, width, height, args.samples, args.bounces, Path(tmp))
-    rows.append(("Cycles CPU, Principled coat", paths / cyc_s, cyc_s, None, None, None, None))
+    rows.append(("Cycles CPU, Principled coat (layered stacks)", paths / cyc_s, cyc_s, None, None, None, None))
     print(rows[-1], flush=True)
 
     ew, eh = (int(v) for v in args.error_size.split("x"))
@@ -154,11 +174,6 @@ def main(argv=None) -> int:
     cyc_err_clamped = mse(np.minimum(cyc_e, 1), np.minimum(ref, 1))
 
     # Single-layer scene: exact ground truth, decoder vs position-free estimator at equal time.
-    from addon.core.render import neural_material
-    from addon.core.render.demo_scene import DEMO_PRESETS
-    from addon.core.stack import PRESETS, Stack
-
-    bases = [Stack(PRESETS[p].base) for p in DEMO_PRESETS]
     single = demo_scene(ew, eh, bases)
     exact_img, _ = ours(single, args.reference_samples, args.bounces, "reference", seed=2000)
     forced = {
