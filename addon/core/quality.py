@@ -1,0 +1,329 @@
+"""The "auto" quality setting: no bigger decoder, no finer texture than the scene needs.
+
+    choice = choose_decoder(stack, tolerance=0.15)        # smallest size whose measured error fits
+    choice.size, choice.errors, choice.met                # e.g. "tiny", {"tiny": 0.06}, True
+    res = texture_resolution_for_footprint(fp, (2048, 2048))   # e.g. (256, 256)
+    fps = primary_footprints(scene)                       # smallest on-screen footprint per material
+
+**Decoder choice.** For one stack, the *measured error* of a decoder size is the relative RMSE of
+its lobe images (``addon.core.lobe``: f cos(theta_o) on the projected hemisphere) at the four
+incident elevations of DESIGN section 7, all four images together, against the reference
+(``addon.core.reference``): exact for single-layer stacks, the amortised estimator
+(``eval_brdf_many``, by reciprocity) for layered ones, with the estimator's own noise taken out
+(error^2 = max(||pred - ref||^2 - ||stderr||^2, 0) / ||ref||^2, as independent noise adds its
+variance). The stack is encoded as the renderer encodes it (encoder + layering network, values
+clamped to the trained range), so clamping costs show up in the error. Sizes are tried from the
+fewest parameters up and the first one under the tolerance is chosen; when none is, the choice
+falls back (``fallback``) to the most accurate size or to the reference, and a
+:class:`QualityWarning` says so. Errors are cached per (stack, size, model files, settings) in
+memory and, given ``cache_dir``, in a JSON file there.
+
+**Texture resolution.** A latent texture needs one texel per footprint of the finest ray that
+sees it: ``texture_resolution_for_footprint`` turns a footprint in uv units into a resolution
+(the next power of two above 1 / footprint texels along the longer side, never above the
+source's). ``primary_footprints`` measures, with one camera ray per pixel, the smallest
+footprint of every material as the renderer computes it (ray cone width over the square root of
+the cosine, times the triangle's uv scale); materials no camera ray hits get ``inf``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import lobe
+from .stack import Stack
+
+DEFAULT_TOLERANCE = 0.2
+LOBE_RES = 16
+REFERENCE_WALKS = 256
+FALLBACKS = ("best", "reference")
+
+
+class QualityWarning(UserWarning):
+    """No decoder meets the tolerance for a stack (or none can encode it): the choice fell back."""
+
+
+@dataclass(frozen=True)
+class DecoderChoice:
+    """The decoder size chosen for one stack.
+
+    ``size`` is a decoder size, or None when the stack should be rendered by the reference
+    estimator (no decoder can encode it, or none meets the tolerance with ``fallback="reference"``).
+    ``errors`` holds the measured error of every size tried (smallest first; ``inf`` for sizes
+    that cannot encode the stack), ``met`` whether ``size`` is within ``tolerance``.
+    """
+
+    size: str | None
+    tolerance: float
+    errors: dict = field(default_factory=dict)
+    met: bool = False
+    notes: tuple = ()
+
+
+def available_sizes(model_dir=None) -> list[str]:
+    """Shipped decoder sizes, fewest parameters first (from the model cards; unknown counts last)."""
+    from .neural.runtime import MODEL_DIR, SIZES
+
+    d = Path(model_dir) if model_dir is not None else MODEL_DIR
+    found = []
+    for s in SIZES:
+        path = d / f"decoder_{s}.onnx"
+        if not (path.exists() and (d / f"encoder_{s}.onnx").exists()):
+            continue
+        card = path.with_suffix(".json")
+        params = json.loads(card.read_text()).get("parameters", math.inf) if card.exists() else math.inf
+        found.append((params, SIZES.index(s), s))
+    return [s for _, _, s in sorted(found)]
+
+
+def _fingerprint(size: str, model_dir=None) -> str:
+    """Identity of a size's model files (name, byte size, modification time): a retrained model is new."""
+    from .neural.runtime import MODEL_DIR
+
+    d = Path(model_dir) if model_dir is not None else MODEL_DIR
+    parts = []
+    for name in (f"decoder_{size}.onnx", f"decoder_{size}_rgb.onnx", f"encoder_{size}.onnx", f"layering_{size}.onnx"):
+        p = d / name
+        if p.exists():
+            st = p.stat()
+            parts.append(f"{name}:{st.st_size}:{st.st_mtime_ns}")
+    return ";".join(parts)
+
+
+def _key(*parts) -> str:
+    return hashlib.sha256("|".join(str(p) for p in parts).encode()).hexdigest()[:24]
+
+
+_MEMO: dict[str, object] = {}
+
+
+def reference_lobes(stack: Stack, res: int = LOBE_RES, walks: int = REFERENCE_WALKS, seed: int = 0):
+    """Reference lobe images (4, res, res, 3) at ``lobe.INCIDENT_ANGLES_DEG`` and their standard error.
+
+    Single-layer stacks are exact (zero error); layered ones use ``reference.eval_brdf_many`` with
+    ``walks`` walks from each incident direction, every walk serving every pixel (reciprocity).
+    """
+    from . import reference
+
+    key = _key("ref", stack.to_json(), res, walks, seed)
+    if key in _MEMO:
+        return _MEMO[key]
+    wo, mask = lobe.lobe_grid(res)
+    grid = wo[mask]
+    imgs = np.zeros((len(lobe.INCIDENT_ANGLES_DEG), res * res, 3))
+    errs = np.zeros_like(imgs)
+    for a, theta in enumerate(lobe.INCIDENT_ANGLES_DEG):  # four calls, each vectorised over the grid
+        wi = lobe.incident_direction(theta)
+        f, se = reference.eval_brdf_many(stack, grid[None], wi[None], walks=walks, seed=seed + a)
+        imgs[a, mask] = f[0] * grid[:, 2:3]
+        errs[a, mask] = se[0] * grid[:, 2:3]
+    out = (imgs.reshape(-1, res, res, 3), errs.reshape(-1, res, res, 3))
+    _MEMO[key] = out
+    return out
+
+
+def decoder_lobes(stack: Stack, size: str, res: int = LOBE_RES, threads: int = 2) -> np.ndarray:
+    """Lobe images (4, res, res, 3) of ``stack`` encoded and decoded by one decoder size.
+
+    Raises FileNotFoundError when a model the stack needs is not shipped (e.g. no layering
+    network for this size); ClampWarnings of the encoding are passed on.
+    """
+    from .neural.layering import encode_layered_stack, load_layering
+    from .neural.runtime import load_models
+
+    models = load_models(size, threads=threads)
+    layering = load_layering(size, threads) if stack.coatings else None
+    z = encode_layered_stack(stack, models, layering)
+    return np.stack([lobe.lobe_image(lambda wi, wo: models.eval_brdf(z, wi, wo), t, res)
+                     for t in lobe.INCIDENT_ANGLES_DEG])
+
+
+def noise_corrected_error(pred: np.ndarray, ref: np.ndarray, ref_stderr: np.ndarray | None = None) -> float:
+    """Relative RMSE of ``pred`` against a noisy ``ref``, the reference's own noise variance removed."""
+    pred = np.asarray(pred, dtype=np.float64)
+    ref = np.asarray(ref, dtype=np.float64)
+    den = float(np.sum(ref * ref))
+    num = float(np.sum((pred - ref) ** 2))
+    if ref_stderr is not None:
+        num = max(num - float(np.sum(np.asarray(ref_stderr, dtype=np.float64) ** 2)), 0.0)
+    if den == 0.0:
+        return 0.0 if num == 0.0 else math.inf
+    return math.sqrt(num / den)
+
+
+class ErrorCache:
+    """Measured errors keyed by (stack, size, model files, settings): in memory, and in
+    ``<cache_dir>/decoder_errors.json`` when a folder is given (written after every new entry)."""
+
+    def __init__(self, cache_dir=None):
+        self.path = Path(cache_dir) / "decoder_errors.json" if cache_dir is not None else None
+        self.data: dict[str, float] = {}
+        if self.path is not None and self.path.exists():
+            try:
+                self.data = {k: float(v) for k, v in json.loads(self.path.read_text()).items()}
+            except (OSError, ValueError, AttributeError):
+                self.data = {}  # a damaged cache is rebuilt, never trusted
+
+    def get(self, key: str):
+        return self.data.get(key)
+
+    def put(self, key: str, value: float) -> None:
+        self.data[key] = float(value)
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = self.path.with_suffix(".tmp")
+            tmp.write_text(json.dumps(self.data, indent=0, sort_keys=True))
+            tmp.replace(self.path)
+
+
+_DEFAULT_CACHE = ErrorCache()
+
+
+def measured_error(stack: Stack, size: str, res: int = LOBE_RES, walks: int = REFERENCE_WALKS, seed: int = 0,
+                   cache: ErrorCache | None = None, threads: int = 2) -> float:
+    """The measured lobe error of ``size`` on ``stack`` (see the module docstring); ``inf`` when
+    the size cannot encode the stack (a model it needs is missing)."""
+    if not isinstance(stack, Stack):
+        raise ValueError(f"measured_error needs a Stack, got {type(stack).__name__}")
+    cache = _DEFAULT_CACHE if cache is None else cache
+    key = _key("err", stack.to_json(), size, _fingerprint(size), res, walks, seed)
+    hit = cache.get(key)
+    if hit is not None:
+        return hit
+    try:
+        pred = decoder_lobes(stack, size, res, threads)
+    except (FileNotFoundError, NotImplementedError):
+        return math.inf  # not cached: the missing model may be shipped later
+    ref, se = reference_lobes(stack, res, walks, seed)
+    err = noise_corrected_error(pred, ref, se)
+    cache.put(key, err)
+    return err
+
+
+def choose_decoder(stack: Stack, tolerance: float = DEFAULT_TOLERANCE, sizes=None, fallback: str = "best",
+                   res: int = LOBE_RES, walks: int = REFERENCE_WALKS, seed: int = 0,
+                   cache: ErrorCache | None = None, cache_dir=None, threads: int = 2) -> DecoderChoice:
+    """The smallest decoder size whose measured error on ``stack`` is at most ``tolerance``.
+
+    ``tolerance`` is a relative lobe RMSE (0.2 = 20%). Sizes default to the shipped ones, fewest
+    parameters first; they are measured in that order and the search stops at the first fit.
+    When none fits, ``fallback="best"`` returns the size with the lowest measured error and
+    ``fallback="reference"`` returns ``size=None`` (render the stack with the reference); both
+    warn with a :class:`QualityWarning`, as does a stack no size can encode (``size=None``).
+    """
+    if not isinstance(stack, Stack):
+        raise ValueError(f"choose_decoder needs a Stack, got {type(stack).__name__}")
+    try:
+        tol = float(tolerance)
+    except (TypeError, ValueError):
+        raise ValueError(f"tolerance must be a number (relative lobe error, e.g. 0.2), got {tolerance!r}") from None
+    if not (tol > 0.0) or math.isnan(tol):
+        raise ValueError(f"tolerance must be a positive relative error (e.g. 0.2 for 20%), got {tolerance!r}")
+    if fallback not in FALLBACKS:
+        raise ValueError(f"fallback must be one of {FALLBACKS}, got {fallback!r}")
+    sizes = available_sizes() if sizes is None else list(sizes)
+    if cache is None:
+        cache = ErrorCache(cache_dir) if cache_dir is not None else _DEFAULT_CACHE
+    errors: dict[str, float] = {}
+    notes: list[str] = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for s in sizes:
+            errors[s] = measured_error(stack, s, res, walks, seed, cache, threads)
+            if errors[s] <= tol:
+                break
+    for w in caught:
+        if issubclass(w.category, QualityWarning):
+            continue
+        text = str(w.message)
+        if text not in notes:
+            notes.append(text)
+    fits = [s for s in errors if errors[s] <= tol]
+    if fits:
+        return DecoderChoice(fits[0], tol, errors, True, tuple(notes))
+    finite = {s: e for s, e in errors.items() if math.isfinite(e)}
+    if not finite:
+        msg = (f"no shipped decoder can encode this stack ({len(stack.coatings)} coating(s); sizes tried: "
+               f"{list(errors) or 'none'}): it renders with the reference estimator")
+        warnings.warn(msg, QualityWarning, stacklevel=2)
+        return DecoderChoice(None, tol, errors, False, tuple(notes + [msg]))
+    best = min(finite, key=finite.get)
+    if fallback == "reference":
+        msg = (f"no decoder meets the tolerance {tol:.3g} for this stack (best: {best} at {finite[best]:.3g}): "
+               f"it renders with the reference estimator")
+        warnings.warn(msg, QualityWarning, stacklevel=2)
+        return DecoderChoice(None, tol, errors, False, tuple(notes + [msg]))
+    msg = (f"no decoder meets the tolerance {tol:.3g} for this stack; using the most accurate one, {best} "
+           f"(measured error {finite[best]:.3g}); raise the tolerance or use the reference for this material")
+    warnings.warn(msg, QualityWarning, stacklevel=2)
+    return DecoderChoice(best, tol, errors, False, tuple(notes + [msg]))
+
+
+# --------------------------------------------------------------------------- textures
+
+
+def texture_resolution_for_footprint(footprint_uv, source: tuple[int, int], min_size: int = 1) -> tuple[int, int]:
+    """(height, width) of a latent texture fine enough for a footprint of ``footprint_uv`` (uv units).
+
+    One texel per footprint along the longer side: ``2^ceil(log2(1 / footprint))`` texels, never
+    more than the ``source`` (height, width) has and never fewer than ``min_size``; the shorter
+    side keeps the source's aspect ratio (rounded up). A footprint of ``inf`` or larger than the
+    whole texture (a material seen from afar, or not at all) gives ``min_size``.
+    """
+    try:
+        h, w = (int(v) for v in source)
+    except (TypeError, ValueError):
+        raise ValueError(f"source must be (height, width), got {source!r}") from None
+    if h < 1 or w < 1:
+        raise ValueError(f"source resolution must be at least 1 x 1, got {w} x {h}")
+    fp = float(footprint_uv)
+    if math.isnan(fp) or fp <= 0.0:
+        raise ValueError(f"footprint must be a positive size in uv units (or inf), got {footprint_uv!r}")
+    big = max(h, w)
+    if math.isinf(fp):
+        need = 1
+    else:
+        need = 2 ** max(0, math.ceil(math.log2(max(1.0 / fp, 1.0)) - 1e-9))
+    side = int(min(big, max(int(min_size), need)))
+    scale = side / big
+    return max(1, min(h, math.ceil(h * scale - 1e-9))), max(1, min(w, math.ceil(w * scale - 1e-9)))
+
+
+def primary_footprints(scene, stride: int = 1) -> np.ndarray:
+    """Smallest footprint (uv units) of a camera ray on each material of ``scene`` (``inf`` if unseen).
+
+    One ray through the centre of every ``stride``-th pixel in x and y (one embreex call); the
+    footprint is the renderer's: pixel spread x distance / sqrt(cos) x the triangle's uv scale.
+    """
+    from .render.integrator import RenderSettings, RenderStats, _Context
+
+    if int(stride) < 1:
+        raise ValueError(f"stride must be >= 1, got {stride!r}")
+    cam = scene.camera
+    out = np.full(len(scene.materials), np.inf)
+    if not scene.mesh.triangle_count:
+        return out
+    ctx = _Context(scene, RenderSettings(samples=1, max_bounces=0), RenderStats())
+    ys, xs = np.meshgrid(np.arange(0, cam.height, int(stride)), np.arange(0, cam.width, int(stride)), indexing="ij")
+    px, py = xs.reshape(-1), ys.reshape(-1)
+    o, d = cam.generate_rays(px, py, np.full((len(px), 2), 0.5))
+    t, prim, _, _ = ctx.tracer.intersect(o, d)
+    hit = prim >= 0
+    if not hit.any():
+        return out
+    prim = prim[hit]
+    ng = scene.mesh.face_normals[prim].astype(np.float64)
+    cos_o = np.maximum(np.abs(np.einsum("ij,ij->i", ng, d[hit])), 0.05)
+    fp = t[hit] * cam.pixel_spread / np.sqrt(cos_o) * ctx.uv_scale[prim]
+    fp = np.where(fp > 0, fp, np.inf)  # triangles without uvs have no texture footprint
+    mats = scene.mesh.material_index[prim].astype(np.int64)
+    ok = (mats >= 0) & (mats < len(out))
+    np.minimum.at(out, mats[ok], fp[ok])
+    return out

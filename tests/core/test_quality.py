@@ -1,0 +1,199 @@
+"""The "auto" quality setting: decoder choice by measured error, texture resolution by footprint."""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+from addon.core import quality
+from addon.core.neural.runtime import MODEL_DIR
+from addon.core.render import shapes
+from addon.core.render.demo_scene import demo_scene
+from addon.core.render.materials import LambertMaterial
+from addon.core.render.scene import Camera, Mesh, Scene
+from addon.core.stack import PRESETS, Coating, Conductor, Dielectric, Diffuse, Stack
+
+SIZES = quality.available_sizes()
+needs_models = pytest.mark.skipif(not SIZES, reason="no decoder shipped in addon/models")
+
+SIMPLE = Stack(Diffuse((0.8, 0.8, 0.8)))
+# A near-mirror dielectric: a sharp lobe with a strong Fresnel rise, the hardest single layer.
+DEMANDING = Stack(Dielectric(roughness=0.02, ior=1.5))
+
+
+def test_available_sizes_are_shipped_and_ordered_by_parameters():
+    params = [json.loads((MODEL_DIR / f"decoder_{s}.json").read_text())["parameters"] for s in SIZES]
+    assert params == sorted(params)
+    for s in SIZES:
+        assert (MODEL_DIR / f"decoder_{s}.onnx").exists() and (MODEL_DIR / f"encoder_{s}.onnx").exists()
+
+
+@needs_models
+def test_simple_stack_picks_the_smallest_decoder():
+    choice = quality.choose_decoder(SIMPLE, tolerance=0.15, cache=quality.ErrorCache())
+    assert choice.size == SIZES[0]
+    assert choice.met
+    assert list(choice.errors) == [SIZES[0]]  # the search stops at the first size that fits
+    assert 0.0 <= choice.errors[SIZES[0]] <= 0.15
+
+
+@needs_models
+def test_demanding_stack_needs_more_than_the_simple_one():
+    cache = quality.ErrorCache()
+    e_simple = quality.measured_error(SIMPLE, SIZES[0], cache=cache)
+    e_hard = quality.measured_error(DEMANDING, SIZES[0], cache=cache)
+    assert e_hard > 2 * e_simple
+    tol = math.sqrt(e_simple * e_hard)  # between the two: the smallest size serves only the simple stack
+    assert quality.choose_decoder(SIMPLE, tol, cache=cache).size == SIZES[0]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        hard = quality.choose_decoder(DEMANDING, tol, cache=cache)
+    assert hard.size != SIZES[0] or not hard.met
+    if hard.met:  # a larger shipped size meets it: the smallest such one
+        assert SIZES.index(hard.size) > 0
+        assert all(hard.errors[s] > tol for s in SIZES[:SIZES.index(hard.size)])
+    else:  # none does: the most accurate measured size, and the user is told
+        assert hard.size == min(hard.errors, key=hard.errors.get)
+        assert list(hard.errors) == SIZES
+        assert any(issubclass(w.category, quality.QualityWarning) for w in caught)
+
+
+def test_rule_smallest_size_under_tolerance_from_cached_measurements(tmp_path):
+    """The selection rule on recorded errors (as read back from the on-disk cache)."""
+    cache = quality.ErrorCache(tmp_path)
+    errors = {"tiny": 0.30, "small": 0.12, "medium": 0.05, "paper": 0.04}
+    for size, err in errors.items():
+        key = quality._key("err", DEMANDING.to_json(), size, quality._fingerprint(size), quality.LOBE_RES,
+                           quality.REFERENCE_WALKS, 0)
+        cache.put(key, err)
+    reread = quality.ErrorCache(tmp_path)
+    sizes = list(errors)
+    assert quality.choose_decoder(DEMANDING, 0.2, sizes=sizes, cache=reread).size == "small"
+    assert quality.choose_decoder(DEMANDING, 0.06, sizes=sizes, cache=reread).size == "medium"
+    assert quality.choose_decoder(DEMANDING, 0.5, sizes=sizes, cache=reread).size == "tiny"
+    with pytest.warns(quality.QualityWarning, match="most accurate one, paper"):
+        c = quality.choose_decoder(DEMANDING, 0.01, sizes=sizes, cache=reread)
+    assert c.size == "paper" and not c.met
+    with pytest.warns(quality.QualityWarning, match="reference estimator"):
+        c = quality.choose_decoder(DEMANDING, 0.01, sizes=sizes, cache=reread, fallback="reference")
+    assert c.size is None and not c.met
+
+
+@needs_models
+def test_measured_errors_are_cached_on_disk_and_a_damaged_cache_is_ignored(tmp_path):
+    c1 = quality.choose_decoder(SIMPLE, 0.5, cache_dir=tmp_path)
+    data = json.loads((tmp_path / "decoder_errors.json").read_text())
+    assert list(data.values()) == [pytest.approx(c1.errors[SIZES[0]])]
+    c2 = quality.choose_decoder(SIMPLE, 0.5, cache=quality.ErrorCache(tmp_path))
+    assert c2.errors == c1.errors
+    (tmp_path / "decoder_errors.json").write_text("{not json")
+    assert quality.ErrorCache(tmp_path).data == {}
+
+
+def test_layered_stack_without_a_layering_model_falls_back_to_the_reference(tmp_path):
+    """A stack the shipped models cannot encode renders with the reference, and says so."""
+    stack = PRESETS["coated_gold"]
+    if all((MODEL_DIR / f"layering_{s}.onnx").exists() for s in SIZES) and SIZES:
+        err = quality.measured_error(stack, SIZES[0], cache=quality.ErrorCache())
+        assert math.isfinite(err) and err >= 0.0
+        return
+    with pytest.warns(quality.QualityWarning, match="reference estimator"):
+        c = quality.choose_decoder(stack, 0.2, cache=quality.ErrorCache(tmp_path))
+    assert c.size is None and not c.met
+    assert all(math.isinf(e) for e in c.errors.values())
+    assert not (tmp_path / "decoder_errors.json").exists()  # a missing model is not cached as an error
+
+
+@needs_models
+def test_out_of_range_parameters_are_clamped_and_the_note_is_kept():
+    stack = Stack(Dielectric(roughness=0.3, ior=3.0))  # above the trained ior range [1.05, 2]
+    c = quality.choose_decoder(stack, 100.0, cache=quality.ErrorCache())
+    assert c.met and any("clamped" in n and "ior" in n for n in c.notes)
+    # the clamp's cost is part of the measured error: the same stack at ior 2 is closer
+    assert c.errors[SIZES[0]] > quality.measured_error(Stack(Dielectric(roughness=0.3, ior=2.0)), SIZES[0])
+
+
+@pytest.mark.parametrize("tol", [0.0, -0.1, float("nan"), "abc", None])
+def test_bad_tolerance_is_rejected(tol):
+    with pytest.raises(ValueError, match="tolerance"):
+        quality.choose_decoder(SIMPLE, tol)
+
+
+def test_bad_arguments_are_rejected():
+    with pytest.raises(ValueError, match="Stack"):
+        quality.choose_decoder({"base": "Diffuse"}, 0.2)
+    with pytest.raises(ValueError, match="fallback"):
+        quality.choose_decoder(SIMPLE, 0.2, fallback="largest")
+
+
+def test_noise_corrected_error_removes_the_reference_noise():
+    rng = np.random.default_rng(0)
+    truth = rng.random((4, 16, 16, 3)) + 0.5
+    se = np.full_like(truth, 0.1)
+    noisy_ref = truth + rng.normal(size=truth.shape) * se
+    raw = quality.noise_corrected_error(truth, noisy_ref)
+    corrected = quality.noise_corrected_error(truth, noisy_ref, se)
+    assert raw > 0.08  # the noise alone, about 0.1 / rms(truth)
+    assert corrected < 0.25 * raw
+    off = truth * 1.2  # a real 20% error survives the correction
+    assert quality.noise_corrected_error(off, noisy_ref, se) == pytest.approx(0.2, rel=0.15)
+
+
+def test_reference_lobes_of_a_single_layer_stack_are_exact():
+    ref, se = quality.reference_lobes(Stack(Diffuse((0.5, 0.5, 0.5))), res=8)
+    assert ref.shape == (4, 8, 8, 3) and np.all(se == 0)
+    from addon.core import lobe
+
+    # a Lambertian's directional albedo is its albedo at every incidence
+    for img in ref:
+        assert lobe.albedo_from_lobe(img) == pytest.approx([0.5] * 3, rel=0.05)
+
+
+# --------------------------------------------------------------------------- textures
+
+
+@pytest.mark.parametrize("fp, source, expected", [
+    (1 / 300, (2048, 2048), (512, 512)),
+    (1 / 256, (2048, 2048), (256, 256)),
+    (1 / 300, (256, 256), (256, 256)),        # never finer than the source
+    (1 / 100, (1024, 2048), (64, 128)),       # aspect kept, longer side decides
+    (1 / 100, (999, 1000), (128, 128)),       # rounded up on the short side
+    (2.0, (512, 512), (1, 1)),                # a footprint larger than the texture
+    (math.inf, (512, 512), (1, 1)),           # not seen
+])
+def test_texture_resolution_for_footprint(fp, source, expected):
+    assert quality.texture_resolution_for_footprint(fp, source) == expected
+
+
+def test_texture_resolution_min_size_and_bad_input():
+    assert quality.texture_resolution_for_footprint(math.inf, (512, 512), min_size=16) == (16, 16)
+    for fp in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="footprint"):
+            quality.texture_resolution_for_footprint(fp, (64, 64))
+    with pytest.raises(ValueError, match="source"):
+        quality.texture_resolution_for_footprint(0.1, (0, 64))
+
+
+def test_primary_footprints_follow_the_image_resolution():
+    lo = quality.primary_footprints(demo_scene(80, 45))
+    hi = quality.primary_footprints(demo_scene(160, 90))
+    assert lo.shape == hi.shape == (6,)
+    assert np.all(np.isfinite(lo)) and np.all(lo > 0)
+    # twice the pixels across: half the footprint, hence twice the texels (up to sampling of the minimum)
+    assert np.allclose(hi / lo, 0.5, rtol=0.15)
+    res = [quality.texture_resolution_for_footprint(f, (4096, 4096)) for f in hi]
+    assert all(r[0] <= 4096 for r in res)
+
+
+def test_primary_footprints_of_an_unseen_material_are_infinite():
+    cam = Camera.look_at((0.0, -4.0, 0.0), (0.0, 0.0, 0.0), fov_deg=40.0, width=32, height=32)
+    seen = shapes.uv_sphere((0.0, 0.0, 0.0), 0.5, 16, 8, material=0)
+    behind = shapes.uv_sphere((0.0, -8.0, 0.0), 0.5, 16, 8, material=1)
+    scene = Scene(cam, Mesh.concatenate([seen, behind]), [LambertMaterial(), LambertMaterial()], [], None,
+                  ["seen", "behind"])
+    fp = quality.primary_footprints(scene)
+    assert math.isfinite(fp[0]) and fp[0] > 0 and math.isinf(fp[1])
