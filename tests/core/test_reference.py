@@ -322,3 +322,18 @@ def test_vertices_under_several_rough_interfaces_connect():
                   Stack(Diffuse(0.8), (Coating(0.05, 1.5),))):
         f, se = R.eval_brdf(stack, wi, wo, walks=256, seed=0)
         assert np.median(se[:, 1] / f[:, 1]) < 0.12
+
+
+def test_the_agreement_test_detects_pbrts_reverse_mis_density(monkeypatch):
+    """With pbrt-v4's reverse density in the exit strategy's MIS weight the albedo of a rough
+    coat comes out several percent too high (DESIGN section 4): the eval-vs-walk test sees it."""
+    from addon.core.reference import walk
+
+    stack = Stack(Diffuse(1.0), (Coating(roughness=0.3, ior=1.5),))
+    a, sa = analog_albedo(stack, NORMAL, 30000, seed=5)
+    e, se = eval_albedo(stack, NORMAL, 30000, seed=6)
+    assert np.all(np.abs(a - e) <= 3.0 * np.sqrt(sa**2 + se**2))
+    monkeypatch.setattr(walk, "EXIT_DENSITY", "pbrt_reverse")
+    b, sb = eval_albedo(stack, NORMAL, 30000, seed=6)
+    assert np.all(b - a > 5.0 * np.sqrt(sa**2 + sb**2)), (a, b)
+    assert np.all(b / a - 1.0 > 0.025)

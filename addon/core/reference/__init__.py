@@ -8,6 +8,8 @@ away from the surface; results are float64):
   (unidirectional, next-event estimation toward ``wi`` with MIS; see :mod:`.walk`), and the
   standard error of that mean. Delta components (the mirror reflection of a smooth top
   interface) are not part of f. Pairs with ``wi`` or ``wo`` below the horizon give 0.
+- ``eval_brdf_many(stack, wi, wo, walks=64, seed=0)``: the amortised form, ``wi`` (N, M, 3):
+  one walk from ``wo[n]`` serves all M incident directions (lobe images, training data).
 - ``sample(stack, wo, rng, with_flags=False) -> (wi, weight[, specular])``: one analog walk
   per row; ``weight`` = f cos / pdf in expectation (0 for absorbed walks), ``specular`` True
   where every event was a delta event (paths ``eval_brdf`` cannot represent).

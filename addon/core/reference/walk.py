@@ -81,6 +81,10 @@ MAX_DEPTH = 256
 RR_START = 3
 CHUNK_WALKS = 1 << 17
 _JUST_BELOW_ONE = float(np.nextafter(1.0, 0.0))
+# The density of the chain's sample used in the MIS weight of the walk's own splits:
+# "matching" (the chain's own density, unbiased) or "pbrt_reverse" (pbrt-v4's exit.PDF(-w, wi),
+# which biases rough coats; an ablation for the tests and the benchmark only).
+EXIT_DENSITY = "matching"
 
 _DIFFUSE, _CONDUCTOR, _DIELECTRIC = (BASE_KINDS.index(k) for k in ("Diffuse", "Conductor", "Dielectric"))
 
@@ -333,7 +337,11 @@ def run_walks(lay: Layers, pr: np.ndarray, wo: np.ndarray, wi: np.ndarray | None
         sx = np.flatnonzero(suffix[a] & st.straight[ixa])
         if sx.size:
             k = sn[sx] - 1
-            q = pdf_fn(a[sx], -w_in[sx], -d[sx], IMPORTANCE) / (lay.n[p[sx], k] ** 2 * np.abs(w_in[sx, 2]))
+            if EXIT_DENSITY == "matching":
+                q = pdf_fn(a[sx], -w_in[sx], -d[sx], IMPORTANCE)
+            else:  # pbrt-v4's reverse density: biased, kept only to measure the bias
+                q = pdf_fn(a[sx], -d[sx], -w_in[sx], RADIANCE)
+            q = q / (lay.n[p[sx], k] ** 2 * np.abs(w_in[sx, 2]))
             with np.errstate(divide="ignore", invalid="ignore"):
                 Aw[sx] = (q / st.run_r[ixa[sx]]) ** 2 * (1.0 + st.run_a[ixa[sx]])
         with np.errstate(invalid="ignore"):
