@@ -129,18 +129,30 @@ def reference_lobes(stack: Stack, res: int = LOBE_RES, walks: int = REFERENCE_WA
     return out
 
 
+_LAYERING: dict = {}
+
+
+def layering_model(size: str, threads: int = 2):
+    """The layering network of ``size`` without its sampling network (the error needs only the latent)."""
+    from .neural.layering import LayeringModel
+
+    key = (size, int(threads))
+    if key not in _LAYERING:
+        _LAYERING[key] = LayeringModel(size, threads, sampling=False)
+    return _LAYERING[key]
+
+
 def decoder_lobes(stack: Stack, size: str, res: int = LOBE_RES, threads: int = 2) -> np.ndarray:
     """Lobe images (4, res, res, 3) of ``stack`` encoded and decoded by one decoder size.
 
     Raises FileNotFoundError when a model the stack needs is not shipped (e.g. no layering
     network for this size); ClampWarnings of the encoding are passed on.
     """
-    from .neural.layering import encode_layered_stack, load_layering
+    from .neural.layering import encode_layered_stack
     from .neural.runtime import load_models
 
     models = load_models(size, threads=threads)
-    layering = load_layering(size, threads) if stack.coatings else None
-    z = encode_layered_stack(stack, models, layering)
+    z = encode_layered_stack(stack, models, layering_model(size, threads) if stack.coatings else None)
     return np.stack([lobe.lobe_image(lambda wi, wo: models.eval_brdf(z, wi, wo), t, res)
                      for t in lobe.INCIDENT_ANGLES_DEG])
 
