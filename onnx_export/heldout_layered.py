@@ -33,7 +33,7 @@ ALUMINIUM = dict(eta=(1.657, 0.880, 0.521), k=(9.224, 6.270, 4.837))
 
 # configurations the variance benchmark calls "specular" and "diffuse" (indices into configs())
 SPECULAR_INDEX = 1
-DIFFUSE_INDEX = 4
+DIFFUSE_INDEX = 3
 
 
 def configs() -> list[Stack]:
@@ -43,9 +43,9 @@ def configs() -> list[Stack]:
         Stack(Conductor(roughness=0.3, **ALUMINIUM), (Coating(roughness=0.03, ior=1.5),)),  # specular
         Stack(Dielectric(roughness=0.2, ior=1.6), (Coating(roughness=0.1, ior=1.3, albedo=(0.9, 0.5, 0.2),
                                                             thickness=0.5),)),
-        Stack(Diffuse((0.7, 0.4, 0.1)), (Coating(roughness=0.05, ior=1.5),)),
+        Stack(Diffuse((0.7, 0.4, 0.1)), (Coating(roughness=0.05, ior=1.5),)),  # diffuse (coated)
         Stack(Diffuse((0.2, 0.5, 0.8)), (Coating(roughness=0.6, ior=1.4, albedo=(0.8, 0.8, 0.8),
-                                                 thickness=1.0),)),  # diffuse
+                                                 thickness=1.0),)),
         Stack(Conductor(roughness=0.02, **GOLD), (Coating(roughness=0.15, ior=1.7, albedo=(0.2, 0.6, 0.95),
                                                           thickness=3.0),)),
         Stack(Diffuse((0.9, 0.9, 0.9)), (Coating(roughness=0.02, ior=1.9, albedo=(0.95, 0.3, 0.3),

@@ -115,7 +115,8 @@ def frozen_decoder(size: str, model_dir: Path = MODEL_DIR):
 class StackSet:
     """Training tensors of one coating count: encoder latents, medium parameters and reference values."""
 
-    def __init__(self, path: Path, models: NeuralModels, stacks: int = 0):
+    def __init__(self, path: Path, models: NeuralModels, stacks: int = 0, use_weight: bool = False):
+        self.use_weight = use_weight
         from onnx_export.layered_data import load
 
         d = load(path)
@@ -133,6 +134,7 @@ class StackSet:
         self.wi = torch.from_numpy(d["wi"][:n].reshape(n, p * m, 3))
         self.wo = torch.from_numpy(np.repeat(d["wo"][:n], m, axis=1))
         self.f = torch.from_numpy(d["f"][:n].reshape(n, p * m, 3))
+        self.weight = torch.from_numpy(cosine_weights(d["wi"][:n], d["wo"][:n], a.coat_roughness[:, -1]).reshape(n, p * m))
 
     def batch(self, net, dec, b: int, q: int, gen: torch.Generator):
         s = torch.randint(0, self.n, (b,), generator=gen)
@@ -145,17 +147,46 @@ class StackSet:
         wi_r = wi.unsqueeze(1).expand(b, 3, q, 3).reshape(-1, 3)
         wo_r = wo.unsqueeze(1).expand(b, 3, q, 3).reshape(-1, 3)
         pred = dec(zz, wi_r, wo_r)
-        return pred, f.permute(0, 2, 1).reshape(-1), wi_r, wo_r
+        wt = self.weight[s[:, None], idx].unsqueeze(1).expand(b, 3, q).reshape(-1) if self.use_weight else None
+        return pred, f.permute(0, 2, 1).reshape(-1), wi_r, wo_r, wt
 
 
-def layering_loss(pred, target, wi, wo, kind: str) -> torch.Tensor:
+def cosine_weights(wi: np.ndarray, wo: np.ndarray, lobe_alpha: np.ndarray) -> np.ndarray:
+    """Per-pair weights (S, P, M) that turn the data's direction distribution into the cosine one.
+
+    The data draw wi given wo from 0.5 lobe (GGX visible normals of the top roughness widened by
+    U(1, 2)) + 0.25 cosine + 0.25 uniform (``layered_data.sample_query_directions``), which puts half the
+    pairs in the specular peak; the lobe-image error weighs directions by cos(theta_i) (a uniform grid
+    on the projected disk). Weighting each pair by cos/pi over the sampling density makes the loss an
+    estimate of the cosine-weighted one, so a sharp peak no longer outweighs the rest of the lobe.
+    """
+    from addon.core.bsdf.conductor import RoughConductor
+
+    s, p, m = wi.shape[:3]
+    wi_f = wi.reshape(-1, 3).astype(np.float64)
+    wo_f = np.broadcast_to(wo[:, :, None, :], wi.shape).reshape(-1, 3).astype(np.float64)
+    a = np.repeat(lobe_alpha.astype(np.float64), p * m)
+    lobe_pdf = np.zeros(wi_f.shape[0])
+    for u in (1.125, 1.375, 1.625, 1.875):  # midpoint rule over the widening factor U(1, 2)
+        lobe_pdf += 0.25 * RoughConductor(np.minimum(a * u, 1.0), np.ones(3), np.ones(3)).pdf(wi_f, wo_f, check=False)
+    cos_pdf = np.maximum(wi_f[:, 2], 0.0) / np.pi
+    mix = 0.5 * lobe_pdf + 0.25 * cos_pdf + 0.25 / (2.0 * np.pi)
+    return (cos_pdf / mix).reshape(s, p, m).astype(np.float32)
+
+
+def layering_loss(pred, target, wi, wo, weight, kind: str) -> torch.Tensor:
+    """Mean per-pair loss, weighted per pair when ``weight`` is given (then normalised by its mean)."""
     if kind == "l1log":
-        return (log_target(pred, wi, wo) - log_target(target, wi, wo)).abs().mean()
-    if kind == "l2rel":
+        e = (log_target(pred, wi, wo) - log_target(target, wi, wo)).abs()
+    elif kind == "l2rel":
         cc = torch.clamp(wi[:, 2], min=0.0) * torch.clamp(wo[:, 2], min=0.0)
         d = cc * (pred - target) / (1.0 + cc * pred.detach())
-        return (d * d).mean()
-    raise ValueError(f"unknown layering loss {kind!r}; expected l2rel or l1log")
+        e = d * d
+    else:
+        raise ValueError(f"unknown layering loss {kind!r}; expected l2rel or l1log")
+    if weight is None:
+        return e.mean()
+    return (weight * e).sum() / weight.sum().clamp(min=1e-12)
 
 
 # ----------------------------------------------------------------------------- held-out error
@@ -186,6 +217,24 @@ def heldout_error(net: LayeringNet, dec, models: NeuralModels, heldout: dict, lo
 # ----------------------------------------------------------------------------- training
 
 
+def regress_projected(net: LayeringNet, data: "StackSet", args, gen, log) -> None:
+    """Stage 0 (``--projected``): MSE of L's output against the stacks' projected latents."""
+    zp = torch.from_numpy(np.load(args.projected)["z"][:data.n])
+    opt = torch.optim.Adam(net.parameters(), lr=args.lr)
+    t0 = time.perf_counter()
+    for step in range(args.regress_steps):
+        for g in opt.param_groups:
+            g["lr"] = cosine_lr(step, args.regress_steps, args.lr, warmup=20)
+        s = torch.randint(0, data.n, (512,), generator=gen)
+        z = compose(net, data.z_base[s], data.z_tops[s], data.albedo[s], data.thickness[s])
+        loss = ((z - zp[s]) ** 2).mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if (step + 1) % 500 == 0:
+            log(f"regress {step + 1}/{args.regress_steps} mse {loss.item():.5f} {time.perf_counter() - t0:.0f} s")
+
+
 def train(args, log=print) -> dict:
     from onnx_export.heldout_layered import load as load_heldout
 
@@ -194,7 +243,7 @@ def train(args, log=print) -> dict:
     gen = torch.Generator().manual_seed(args.seed)
     models = NeuralModels(args.size, threads=args.threads)
     dec = frozen_decoder(args.size)
-    sets = {1: StackSet(args.c1, models, args.stacks)}  # two-coating data are loaded when stage 2 starts
+    sets = {1: StackSet(args.c1, models, args.stacks, args.weighting == "cosine")}  # two-coating data are loaded when stage 2 starts
 
     def heldout():
         return load_heldout(args.heldout) if args.heldout.exists() else None
@@ -211,6 +260,11 @@ def train(args, log=print) -> dict:
         step, hist = s["step"], s.get("history", {})
         log(f"resumed from {ckpt} at step {step}")
     total = args.steps + args.finetune
+    if args.projected and step == 0:
+        regress_projected(net, sets[1], args, gen, log)
+        if heldout() is not None:
+            hist["regressed"] = heldout_error(net, dec, models, heldout(), log)
+        opt = torch.optim.Adam(net.parameters(), lr=args.lr)
     log(f"layering net {net.config()} params {n_params(net)}; one-coating stacks {sets[1].n}; loss {args.loss}")
     t0 = time.perf_counter()
     ema = None
@@ -223,14 +277,14 @@ def train(args, log=print) -> dict:
         for g in opt.param_groups:
             g["lr"] = lr
         if stage2 and 2 not in sets:
-            sets[2] = StackSet(args.c2, models)
+            sets[2] = StackSet(args.c2, models, use_weight=args.weighting == "cosine")
             log(f"stage 2: {sets[2].n} two-coating stacks")
         if stage2:  # half the batch with two coatings (the recursion), half with one (keep stage 1)
             parts = [sets[2].batch(net, dec, args.batch // 2, args.pairs, gen),
                      sets[1].batch(net, dec, args.batch - args.batch // 2, args.pairs, gen)]
-            loss = sum(layering_loss(*p, args.loss) for p in parts) / 2
+            loss = sum(layering_loss(*p, kind=args.loss) for p in parts) / 2
         else:
-            loss = layering_loss(*sets[1].batch(net, dec, args.batch, args.pairs, gen), args.loss)
+            loss = layering_loss(*sets[1].batch(net, dec, args.batch, args.pairs, gen), kind=args.loss)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         nn.utils.clip_grad_norm_(net.parameters(), args.clip)
@@ -355,6 +409,11 @@ def main(argv=None):
     t.add_argument("--lr", type=float, default=1e-3)
     t.add_argument("--clip", type=float, default=1.0)
     t.add_argument("--loss", default="l2rel", choices=("l2rel", "l1log"))
+    t.add_argument("--weighting", default="cosine", choices=("cosine", "none"),
+                   help="per-pair weights to the cosine measure of the lobe images (see cosine_weights)")
+    t.add_argument("--projected", type=Path, default=None,
+                   help="projected latents of the one-coating stacks (onnx_export.layering_project): regress on them first")
+    t.add_argument("--regress-steps", type=int, default=3000)
     t.add_argument("--threads", type=int, default=1)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--every", type=int, default=250)

@@ -1,0 +1,184 @@
+"""Layering and sampling benchmark: encoding speed, held-out error per coating count, sampling efficiency.
+
+    python benchmarks/bench_layering.py --threads 2 --update-cards
+
+writes ``docs/layering.md`` (tables, with this command), ``docs/layering_lobes_<size>.png`` (reference vs
+neural lobe images of held-out stacks) and, with ``--update-cards``, the measured speed and errors into
+``addon/models/layering_<size>.json``. Every shipped decoder size that has a layering model is measured.
+
+- Speed: stacks encoded per second by ``encode_layered_stack`` (one stack per call) and by
+  ``encode_stack_arrays`` (N distinct stacks in one call), for 1 to 3 coatings, ONNX Runtime on CPU.
+- Error: the runtime path (encoders + layering network + decoder, no projection, no per-material
+  optimisation) against the reference lobes of ``tests/data/heldout_layered.npz``: relative RMSE of the
+  lobe images at 0/30/60/75 degrees (median, 90th percentile) and the absolute directional-albedo error.
+- Sampling efficiency: variance of the one-sample estimate of the radiance reflected from an analytic
+  environment (``addon.core.neural.sampling.sky_radiance``) at equal sample count, for cosine sampling
+  and for the top interface's GGX lobe, divided by the proxy's (sigma, w from the sampling network).
+  Variances are relative (var / mean^2), averaged over outgoing elevations cos = 0.3, 0.6, 0.9.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from addon.core import lobe  # noqa: E402
+from addon.core.neural.layering import encode_layered_stack, encode_stack_arrays, load_layering  # noqa: E402
+from addon.core.neural.runtime import MODEL_DIR, SIZES, load_models  # noqa: E402
+from addon.core.neural.sampling import (  # noqa: E402
+    cosine_sampler,
+    ggx_sampler,
+    one_bounce_variance,
+    proxy_sampler,
+)
+from addon.core.stack import StackArrays  # noqa: E402
+from onnx_export.data import sample_layered_params  # noqa: E402
+from onnx_export.heldout_layered import DIFFUSE_INDEX, SPECULAR_INDEX, load, runtime_errors  # noqa: E402
+
+
+def speed(models, layering, reps: int, batch: int) -> dict:
+    rng = np.random.default_rng(0)
+    out = {}
+    for c in (1, 2, 3):
+        arrays = sample_layered_params(rng, batch, c)
+        stacks = [arrays.stack(i) for i in range(reps)]
+        encode_layered_stack(stacks[0], models, layering)  # warm up
+        t = time.perf_counter()
+        for s in stacks:  # one call per stack: the interactive case
+            encode_layered_stack(s, models, layering)
+        single = reps / (time.perf_counter() - t)
+        encode_stack_arrays(arrays.take(slice(0, 64)), models, layering)
+        t = time.perf_counter()
+        encode_stack_arrays(arrays, models, layering)
+        batched = batch / (time.perf_counter() - t)
+        out[c] = {"single_per_s": single, "batched_per_s": batched, "batch": batch}
+    return out
+
+
+def sampling_ratios(models, layering, stacks, n: int) -> list[dict]:
+    ct = np.array([0.3, 0.6, 0.9])
+    wo = np.stack([np.sqrt(1 - ct**2), np.zeros(3), ct], axis=1)
+    rows = []
+    for i, s in enumerate(stacks):
+        z, p = encode_stack_arrays(StackArrays.from_stacks([s]), models, layering)
+        sigma, w = p[0]
+        brdf = lambda wi, wo_, z=z[0]: models.eval_brdf(z, wi, wo_)  # noqa: E731
+        rel = {}
+        for name, smp in (("proxy", proxy_sampler(sigma, w)), ("cosine", cosine_sampler()),
+                          ("ggx_top", ggx_sampler(s.coatings[-1].roughness))):
+            mean, var = one_bounce_variance(brdf, wo, smp, n, seed=11 + i)
+            rel[name] = float(np.mean(var / np.maximum(mean, 1e-12) ** 2))
+        rows.append({"config": i, "sigma": float(sigma), "w": float(w), "rel_var": rel,
+                     "cosine_over_proxy": rel["cosine"] / rel["proxy"], "ggx_over_proxy": rel["ggx_top"] / rel["proxy"]})
+    return rows
+
+
+def lobe_figure(res: dict, data: dict, size: str, path: Path, per_count: int = 2) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    picks = [(c, k) for c in sorted(res) for k in range(min(per_count, len(res[c]["index"])))]
+    angles = list(data["angles"])
+    fig, axes = plt.subplots(len(picks), 2 * len(angles), figsize=(2 * len(angles) * 1.3, len(picks) * 1.45))
+    for r, (c, k) in enumerate(picks):
+        i = res[c]["index"][k]
+        for a, t in enumerate(angles):
+            ref = data["lobe"][i, a]
+            neu = res[c]["lobes"][k, a]
+            scale = 1.0 / max(float(np.percentile(ref, 99.5)), 1e-6)
+            for j, (img, lab) in enumerate(((ref, "ref"), (neu, "neural"))):
+                ax = axes[r, 2 * a + j]
+                ax.imshow(lobe.to_display(img, scale))
+                ax.set_xticks([])
+                ax.set_yticks([])
+                if r == 0:
+                    ax.set_title(f"{lab} {t:.0f}°", fontsize=7)
+            axes[r, 2 * a + 1].set_xlabel(f"err {res[c]['errors'][k, a]:.2f}", fontsize=6)
+        axes[r, 0].set_ylabel(f"#{i}: {c} coat.", fontsize=7)
+    fig.suptitle(f"held-out stacks: reference vs layering network, decoder {size}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--reps", type=int, default=200, help="stacks encoded one at a time")
+    ap.add_argument("--batch", type=int, default=8192, help="stacks encoded in one batched call")
+    ap.add_argument("--samples", type=int, default=8192, help="samples per outgoing direction (variance)")
+    ap.add_argument("--heldout", type=Path, default=ROOT / "tests" / "data" / "heldout_layered.npz")
+    ap.add_argument("--out", type=Path, default=ROOT / "docs")
+    ap.add_argument("--update-cards", action="store_true")
+    a = ap.parse_args(argv)
+    cmd = "python benchmarks/bench_layering.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
+    data = load(a.heldout)
+    sizes = [s for s in SIZES if (MODEL_DIR / f"layering_{s}.onnx").exists()]
+    lines = ["# Layering network and sampling network: measurements", "",
+             f"Made by `{cmd}` (CPU, ONNX Runtime, {a.threads} threads; the machine was shared with other jobs, "
+             "so speeds are noisy). Held-out set: `tests/data/heldout_layered.npz` "
+             f"({len(data['stacks'])} stacks: 16 with one coating, 8 with two, 4 with three, 4 with four; made by "
+             f"`{data['command']}`).", ""]
+    results = {}
+    for size in sizes:
+        models = load_models(size, threads=a.threads)
+        layering = load_layering(size, threads=a.threads)
+        sp = speed(models, layering, a.reps, a.batch)
+        res = runtime_errors(models, layering, data)
+        lobe_figure(res, data, size, a.out / f"layering_lobes_{size}.png")
+        ratios = sampling_ratios(models, layering, data["stacks"], a.samples)
+        results[size] = {"speed": sp, "errors": res, "ratios": ratios}
+        lines += [f"## Decoder `{size}`", "", "### Held-out error by number of coatings (runtime path, no projection)", "",
+                  "| coatings | stacks | lobe error median | lobe error p90 | albedo abs. error mean | albedo abs. error p90 |",
+                  "|---|---|---|---|---|---|"]
+        for c, r in res.items():
+            e, al = r["errors"], r["albedo_error"]
+            lines.append(f"| {c} | {len(r['index'])} | {np.median(e):.3f} | {np.percentile(e, 90):.3f} | "
+                         f"{al.mean():.4f} | {np.percentile(al, 90):.4f} |")
+        lines += ["", f"![lobes](layering_lobes_{size}.png)", "", "### Encoding speed (stacks per second)", "",
+                  "| coatings | one stack per call | batched (one call) | batch size |", "|---|---|---|---|"]
+        for c, s in sp.items():
+            lines.append(f"| {c} | {s['single_per_s']:.0f} | {s['batched_per_s']:.0f} | {s['batch']} |")
+        lines += ["", "### Sampling efficiency (variance ratio at equal sample count; > 1: the proxy is better)", "",
+                  f"{a.samples} samples per outgoing direction; relative variance averaged over cos(theta_o) = 0.3, 0.6, 0.9.",
+                  "", "| config | coatings | proxy sigma | proxy w | cosine / proxy | top GGX / proxy |", "|---|---|---|---|---|---|"]
+        for r in ratios:
+            tag = {SPECULAR_INDEX: " (specular)", DIFFUSE_INDEX: " (diffuse)"}.get(r["config"], "")
+            lines.append(f"| {r['config']}{tag} | {len(data['stacks'][r['config']].coatings)} | {r['sigma']:.3f} | "
+                         f"{r['w']:.2f} | {r['cosine_over_proxy']:.2f} | {r['ggx_over_proxy']:.2f} |")
+        cr = np.array([r["cosine_over_proxy"] for r in ratios])
+        gr = np.array([r["ggx_over_proxy"] for r in ratios])
+        lines += ["", f"Over all {len(ratios)} held-out stacks: cosine / proxy median {np.median(cr):.2f} "
+                  f"(proxy better on {int((cr > 1).sum())}), top GGX / proxy median {np.median(gr):.2f} "
+                  f"(proxy better on {int((gr > 1).sum())}).", ""]
+        if a.update_cards:
+            p = MODEL_DIR / f"layering_{size}.json"
+            card = json.loads(p.read_text())
+            card["speed"] = {f"coatings_{c}": {k: round(v) if k != "batch" else v for k, v in s.items()}
+                             for c, s in sp.items()} | {"threads": a.threads, "command": cmd,
+                                                        "note": "stacks encoded per second, shared CPU (noisy)"}
+            card["heldout_runtime"] = {f"coatings_{c}": {"lobe_error_median": float(np.median(r["errors"])),
+                                                        "lobe_error_p90": float(np.percentile(r["errors"], 90)),
+                                                        "albedo_abs_error_mean": float(r["albedo_error"].mean())}
+                                       for c, r in res.items()}
+            card["sampling_efficiency"] = {"specular": ratios[SPECULAR_INDEX], "diffuse": ratios[DIFFUSE_INDEX],
+                                           "median_cosine_over_proxy": float(np.median(cr)),
+                                           "median_ggx_over_proxy": float(np.median(gr))}
+            p.write_text(json.dumps(card, indent=1) + "\n")
+    (a.out / "layering.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()

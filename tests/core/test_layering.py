@@ -1,0 +1,145 @@
+"""Layered stacks -> latent (encoders + layering network over ONNX Runtime), clamping, errors, lerp."""
+
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from addon.core import lobe
+from addon.core.neural import ClampWarning, load_models
+from addon.core.neural.layering import (
+    encode_latents,
+    encode_layered_stack,
+    encode_stack_arrays,
+    lerp,
+    load_layering,
+)
+from addon.core.neural.runtime import MODEL_DIR, SIZES
+from addon.core.stack import PRESETS, Coating, Conductor, Dielectric, Diffuse, Stack, StackArrays
+from onnx_export.heldout_layered import runtime_errors
+
+SHIPPED = [s for s in SIZES if (MODEL_DIR / f"layering_{s}.onnx").exists()]
+HELDOUT = Path(__file__).resolve().parents[1] / "data" / "heldout_layered.npz"
+
+
+def test_layering_models_are_shipped():
+    assert "tiny" in SHIPPED, f"no layering_tiny.onnx under {MODEL_DIR}"
+    for s in SHIPPED:
+        assert (MODEL_DIR / f"sampling_{s}.onnx").exists(), f"layering_{s} ships without sampling_{s}"
+
+
+@pytest.fixture(scope="module", params=SHIPPED)
+def pair(request):
+    return load_models(request.param, threads=2), load_layering(request.param, threads=2)
+
+
+def _stack(n_coatings: int, rng) -> Stack:
+    base = (Diffuse(tuple(rng.random(3))), Conductor(0.2), Dielectric(0.3, 1.6))[n_coatings % 3]
+    coats = tuple(Coating(float(rng.uniform(0.01, 1)), float(rng.uniform(1.05, 2)), tuple(rng.random(3)),
+                          float(rng.uniform(0, 5))) for _ in range(n_coatings))
+    return Stack(base, coats)
+
+
+def test_recursive_encoding_of_1_to_4_coatings_is_finite_and_depends_on_every_layer(pair):
+    models, layering = pair
+    rng = np.random.default_rng(0)
+    for c in (1, 2, 3, 4):
+        s = _stack(c, rng)
+        z = encode_layered_stack(s, models, layering)
+        assert z.shape == (3, 32) and z.dtype == np.float32 and np.all(np.isfinite(z))
+        # changing the lowest coating changes the result: the recursion reaches the bottom
+        low = s.coatings[0]
+        other = Coating(low.roughness, low.ior, tuple(1.0 - np.array(low.albedo)), 5.0 - low.thickness)
+        z2 = encode_layered_stack(Stack(s.base, (other,) + s.coatings[1:]), models, layering)
+        assert np.abs(z2 - z).max() > 1e-4, f"{c} coatings: the lowest coating has no effect"
+        # and the decoded BRDF is finite and non-negative
+        wo, mask = lobe.lobe_grid(8)
+        f = models.eval_brdf(z, np.broadcast_to(lobe.incident_direction(30), wo.shape), wo)
+        assert np.all(np.isfinite(f)) and np.all(f >= 0)
+
+
+def test_without_coatings_the_latent_is_the_encoders(pair):
+    models, layering = pair
+    base = Conductor(0.3)
+    assert np.array_equal(encode_layered_stack(Stack(base), models, layering), models.encode(base))
+
+
+def test_batched_encoding_matches_one_at_a_time_and_dedupes(pair):
+    models, layering = pair
+    rng = np.random.default_rng(1)
+    stacks = [_stack(2, rng) for _ in range(5)]
+    stacks = stacks + stacks[:2]  # repeated rows (as texels of one material would be)
+    z, p = encode_stack_arrays(StackArrays.from_stacks(stacks), models, layering)
+    assert z.shape == (7, 3, 32) and p.shape == (7, 2)
+    for i, s in enumerate(stacks):
+        np.testing.assert_allclose(z[i], encode_layered_stack(s, models, layering), rtol=1e-5, atol=1e-5)
+    assert np.array_equal(z[5], z[0]) and np.array_equal(p[6], p[1])
+    sigma, w = p[:, 0], p[:, 1]
+    assert np.all(sigma > 0) and np.all((w >= 0) & (w <= 1))
+
+
+def test_out_of_range_coatings_are_clamped_with_a_warning(pair):
+    models, layering = pair
+    base = Diffuse((0.5, 0.5, 0.5))
+    inside = Stack(base, (Coating(0.01, 2.0, (0.5, 0.5, 0.5), 5.0),))
+    outside = Stack(base, (Coating(0.001, 3.0, (0.5, 0.5, 0.5), 50.0, g=0.5),))
+    with pytest.warns(ClampWarning) as rec:
+        z_out = encode_layered_stack(outside, models, layering)
+    text = " ".join(str(r.message) for r in rec)
+    for field in ("coat_roughness", "coat_ior", "coat_thickness", "coat_g"):
+        assert field in text, f"no warning names {field}: {text}"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ClampWarning)
+        z_in = encode_layered_stack(inside, models, layering)  # in range: no warning
+    np.testing.assert_allclose(z_out, z_in, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("field,value", [("coat_thickness", np.nan), ("coat_thickness", -1.0),
+                                         ("coat_albedo", np.inf), ("coat_roughness", -0.1),
+                                         ("base_albedo", np.nan)])
+def test_nan_or_negative_inputs_raise(pair, field, value):
+    models, layering = pair
+    a = StackArrays.from_stacks([PRESETS["red_car_paint"]] * 3)
+    arr = getattr(a, field).copy()
+    arr[1] = value
+    setattr(a, field, arr)
+    with pytest.raises(ValueError, match=field):
+        encode_stack_arrays(a, models, layering)
+
+
+def test_sizes_must_match(pair):
+    models, layering = pair
+    other = [s for s in SHIPPED if s != models.size]
+    if not other:
+        pytest.skip("only one size shipped")
+    with pytest.raises(ValueError, match="latent spaces differ"):
+        encode_latents(StackArrays.from_stacks([PRESETS["coated_gold"]]), models, load_layering(other[0]))
+
+
+def test_lerp_endpoints_are_exact_and_midpoint_is_between():
+    rng = np.random.default_rng(2)
+    za, zb = rng.normal(size=(3, 32)).astype(np.float32), rng.normal(size=(3, 32)).astype(np.float32)
+    assert np.array_equal(lerp(za, zb, 0.0), za)
+    assert np.array_equal(lerp(za, zb, 1.0), zb)
+    np.testing.assert_allclose(lerp(za, zb, 0.5), 0.5 * (za + zb), rtol=1e-6, atol=1e-7)
+    many = lerp(np.stack([za] * 3), np.stack([zb] * 3), np.array([0.0, 0.25, 1.0]))
+    assert np.array_equal(many[0], za) and np.array_equal(many[2], zb)
+    with pytest.raises(ValueError):
+        lerp(za, zb[:2], 0.5)
+    with pytest.raises(ValueError):
+        lerp(za, zb, np.nan)
+
+
+@pytest.mark.skipif(not HELDOUT.exists(), reason="held-out layered set not generated")
+def test_heldout_error_is_not_worse_than_the_model_card(pair):
+    models, layering = pair
+    card = json.loads((MODEL_DIR / f"layering_{models.size}.json").read_text())
+    got = runtime_errors(models, layering, dict(np.load(HELDOUT)))
+    stated = card["heldout"]["stage2"]
+    for c, r in got.items():
+        med, p90 = np.median(r["errors"]), np.percentile(r["errors"], 90)
+        ref = stated[f"coatings_{c}"]
+        assert med <= ref["lobe_error_median"] * 1.02 + 0.005, (c, med, ref)
+        assert p90 <= ref["lobe_error_p90"] * 1.02 + 0.005, (c, p90, ref)

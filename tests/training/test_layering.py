@@ -1,0 +1,98 @@
+"""Layering and sampling networks (torch): ONNX parity of the shipped models, the losses, the KL table."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from addon.core.neural.runtime import MODEL_DIR, SIZES
+from onnx_export import layering as lay
+from onnx_export import sampling_net as smp
+
+LAYERING = [s for s in SIZES if (MODEL_DIR / f"layering_{s}.onnx").exists()]
+SAMPLING = [s for s in SIZES if (MODEL_DIR / f"sampling_{s}.onnx").exists()]
+
+
+@pytest.mark.parametrize("size", LAYERING)
+def test_layering_onnx_matches_torch(size):
+    path = MODEL_DIR / f"layering_{size}.onnx"
+    card = json.loads(path.with_suffix(".json").read_text())
+    net = lay.net_from_onnx(path, card)
+    assert lay.parity(net, path, n=2048, seed=7) < 1e-3
+    assert card["parameters"] == sum(p.numel() for p in net.parameters())
+
+
+@pytest.mark.parametrize("size", SAMPLING)
+def test_sampling_onnx_matches_torch(size):
+    path = MODEL_DIR / f"sampling_{size}.onnx"
+    card = json.loads(path.with_suffix(".json").read_text())
+    net = smp.net_from_onnx(path, card)
+    z = np.random.default_rng(3).normal(size=(512, 3, 32)).astype(np.float32)
+    assert smp.parity(net, path, z) < 1e-4
+
+
+def test_compose_applies_the_network_once_per_coating_bottom_up():
+    torch.manual_seed(0)
+    net = lay.LayeringNet(16, 2)
+    s = 5
+    zb = torch.randn(s, 3, 32)
+    zt = torch.randn(s, 2, 3, 32)
+    alb = torch.rand(s, 2, 3)
+    th = torch.rand(s, 2) * 5
+    z = lay.compose(net, zb, zt, alb, th)
+    one = net(zt[:, 0].reshape(-1, 32), zb.reshape(-1, 32), alb[:, 0].reshape(-1), th[:, 0].repeat_interleave(3))
+    two = net(zt[:, 1].reshape(-1, 32), one, alb[:, 1].reshape(-1), th[:, 1].repeat_interleave(3))
+    torch.testing.assert_close(z, two.reshape(s, 3, 32))
+
+
+def _fit_constant(kind: str, targets: torch.Tensor) -> float:
+    """Fit one constant prediction to noisy targets with the given loss."""
+    p = torch.tensor([0.5], requires_grad=True)
+    opt = torch.optim.Adam([p], lr=0.02)
+    n = targets.shape[0]
+    up = torch.tensor([[0.0, 0.0, 1.0]]).expand(n, 3)
+    for _ in range(1500):
+        pred = torch.nn.functional.softplus(p).expand(n)
+        loss = lay.layering_loss(pred, targets, up, up, None, kind)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return float(torch.nn.functional.softplus(p.detach()))
+
+
+def test_l2rel_fits_the_mean_of_noisy_targets_and_l1log_the_median():
+    """Monte Carlo targets are skewed: the default loss must converge to their mean (unbiased)."""
+    torch.manual_seed(0)
+    targets = torch.distributions.Exponential(torch.tensor(1.0)).sample((20000,)) * 2.0  # mean 2, median 2 ln 2
+    mean, median = float(targets.mean()), float(targets.median())
+    assert abs(_fit_constant("l2rel", targets) - mean) < 0.05 * mean
+    assert abs(_fit_constant("l1log", targets) - median) < 0.05 * median
+    with pytest.raises(ValueError, match="unknown layering loss"):
+        lay.layering_loss(targets, targets, None, None, None, "huber")
+
+
+def test_kl_table_interpolation_is_exact_at_grid_nodes_and_the_minimum_is_found():
+    rng = np.random.default_rng(0)
+    table = torch.from_numpy(rng.random((4, len(smp.SIGMA_GRID), len(smp.W_GRID))).astype(np.float32))
+    si = torch.tensor([0, 5, 10, 20])
+    wi = torch.tensor([0, 3, 20, 7])
+    got = smp.interp_table(table, torch.from_numpy(smp.SIGMA_GRID[si.numpy()]).float(),
+                           torch.from_numpy(smp.W_GRID[wi.numpy()]).float())
+    torch.testing.assert_close(got, table[torch.arange(4), si, wi], rtol=1e-4, atol=1e-5)
+    t = np.ones((2, len(smp.SIGMA_GRID), len(smp.W_GRID)))
+    t[0, 3, 4] = 0.1
+    t[1, 7, 0] = 0.2
+    kl, arg = smp.table_minimum(t)
+    np.testing.assert_allclose(kl, [0.1, 0.2])
+    np.testing.assert_allclose(arg, [[smp.SIGMA_GRID[3], smp.W_GRID[4]], [smp.SIGMA_GRID[7], smp.W_GRID[0]]])
+
+
+def test_sampling_net_outputs_stay_in_the_tabulated_range():
+    net = smp.SamplingNet(16, 1)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.mul_(50.0)  # push the pre-activations to the extremes
+        s, w = net(torch.randn(256, 3, 32) * 10)
+    assert torch.all(s >= smp.SIGMA_GRID[0] * 0.999) and torch.all(s <= smp.SIGMA_GRID[-1] * 1.001)
+    assert torch.all(w >= smp.W_MIN - 1e-6) and torch.all(w <= 1.0)
