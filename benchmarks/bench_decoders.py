@@ -7,7 +7,7 @@ For each shipped decoder size (``addon/models``) it measures
 
 - the held-out lobe error (DESIGN section 7) of the held-out BRDFs projected into the latent
   space by latent optimisation (``onnx_export.evaluate``), on ``tests/data/heldout_single.npz``
-  and, when present, ``tests/data/heldout_layered.npz``; and of the single-layer set encoded in
+  and, when present, ``tests/data/heldout_layered_lobes.npz``; and of the single-layer set encoded in
   one pass by the size's encoder (runtime ``encode`` + ``eval_brdf``);
 - RGB evaluations per second of the runtime's ``eval_brdf`` (ONNX Runtime, ``--threads``
   threads, batch 65,536, one material), and of the bare decoder session on the 3 x 65,536 rows;
@@ -170,7 +170,7 @@ def main(argv=None):
     from onnx_export.heldout import load as load_heldout
 
     sets = {"single": load_heldout(ROOT / "tests/data/heldout_single.npz")}
-    lay = ROOT / "tests/data/heldout_layered.npz"
+    lay = ROOT / "tests/data/heldout_layered_lobes.npz"
     if lay.exists():
         sets["layered"] = load_heldout(lay)
     mm = matmul_rate(a.threads)

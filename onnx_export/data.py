@@ -33,7 +33,8 @@ from addon.core.bsdf import ggx
 from addon.core.bsdf.lambert import Lambertian, sample_cosine_hemisphere
 from addon.core.stack import BASE_KINDS, StackArrays
 
-KIND_PROBS = (0.2, 0.4, 0.4)  # Diffuse, Conductor, Dielectric: the glossy kinds are the hard ones
+KIND_PROBS = (0.2, 0.4, 0.4)
+GROUPS = 8  # layered set: outgoing directions per stack that share their reference walks  # Diffuse, Conductor, Dielectric: the glossy kinds are the hard ones
 
 
 # ----------------------------------------------------------------------------- parameters
@@ -87,14 +88,21 @@ def uniform_hemisphere(u: np.ndarray) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1)
 
 
-def sample_directions(rng: np.random.Generator, lobe_alpha: np.ndarray, pairs: int) -> tuple[np.ndarray, np.ndarray]:
-    """(M, P, 3) wi and wo for M materials whose specular lobe has GGX roughness ``lobe_alpha`` (M,)."""
+def sample_directions(rng: np.random.Generator, lobe_alpha: np.ndarray, pairs: int,
+                      wi: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(M, P, 3) wi and wo for M materials whose specular lobe has GGX roughness ``lobe_alpha`` (M,).
+
+    ``wi`` (M, P, 3) may be given (e.g. repeated, for the amortised reference); else it is drawn.
+    """
     m = lobe_alpha.shape[0]
     shape = (m, pairs)
     which = rng.random(shape)  # < 0.25 uniform, < 0.5 cosine, else lobe
-    wi_u = uniform_hemisphere(rng.random(shape + (2,)))
-    wi_c = sample_cosine_hemisphere(rng.random((m * pairs, 2))).reshape(shape + (3,))
-    wi = np.where((which < 0.25)[..., None] | (which >= 0.5)[..., None], wi_u, wi_c)
+    if wi is None:
+        wi_u = uniform_hemisphere(rng.random(shape + (2,)))
+        wi_c = sample_cosine_hemisphere(rng.random((m * pairs, 2))).reshape(shape + (3,))
+        wi = np.where((which < 0.25)[..., None] | (which >= 0.5)[..., None], wi_u, wi_c)
+    else:
+        wi = np.array(wi, dtype=np.float64)
     wo_u = uniform_hemisphere(rng.random(shape + (2,)))
     wo_c = sample_cosine_hemisphere(rng.random((m * pairs, 2))).reshape(shape + (3,))
     widen = rng.uniform(1.0, 2.0, shape)
@@ -171,18 +179,27 @@ def make_chunk(kind: str, seed: int, chunk: int, materials: int, pairs: int, wal
         arrays = sample_single_params(rng, materials)
     else:
         arrays = sample_layered_params(rng, materials, n_coatings=int(rng.integers(1, 4)))
-    wi, wo = sample_directions(rng, lobe_alpha_of(arrays), pairs)
     if kind == "single":
+        wi, wo = sample_directions(rng, lobe_alpha_of(arrays), pairs)
         f = eval_single(arrays, wi, wo)
         stderr = np.zeros_like(f)
     else:
+        # amortised reference (eval_brdf_many): GROUP outgoing directions per stack, each shared by
+        # pairs / GROUP incident directions drawn around it, so one set of walks serves a group
         from addon.core import reference
 
+        per = pairs // GROUPS
+        if per * GROUPS != pairs:
+            raise ValueError(f"--pairs must be a multiple of {GROUPS} for the layered set, got {pairs}")
+        first, _ = sample_directions(rng, lobe_alpha_of(arrays), GROUPS)  # (M, GROUPS, 3) shared directions
+        wo = np.repeat(first, per, axis=1)
+        _, wi = sample_directions(rng, lobe_alpha_of(arrays), pairs, wi=wo)  # drawn around each shared one
         f = np.zeros((materials, pairs, 3))
         stderr = np.zeros_like(f)
         for i in range(materials):  # one reference call per stack, all its direction pairs at once
-            f[i], stderr[i] = reference.eval_brdf(arrays.stack(i), wi[i], wo[i], walks=walks,
-                                                  seed=int(rng.integers(2**31)))
+            fi, si = reference.eval_brdf_many(arrays.take([i]), wi[i].reshape(GROUPS, per, 3), first[i],
+                                              walks=walks, seed=int(rng.integers(2**31)))
+            f[i], stderr[i] = fi.reshape(pairs, 3), si.reshape(pairs, 3)
     out = {f"p_{name}": getattr(arrays, name) for name in StackArrays.FIELDS}
     out.update(wi=wi.astype(np.float32), wo=wo.astype(np.float32), f=f.astype(np.float32))
     if kind != "single":  # exact single-layer targets have no error to store

@@ -1,7 +1,7 @@
 """The held-out benchmark set (DESIGN section 7): fixed seeded configurations, never trained on.
 
     python -m onnx_export.heldout --set single --out tests/data/heldout_single.npz
-    python -m onnx_export.heldout --set layered --walks 1024 --out tests/data/heldout_layered.npz
+    python -m onnx_export.heldout --set layered --walks 256 --fit-walks 32 --out tests/data/heldout_layered_lobes.npz
 
 For each configuration it stores
 
@@ -94,24 +94,35 @@ def stack_brdf(stack: Stack, walks: int, seed: int):
     return lambda wi, wo: reference.eval_brdf(stack, wi, wo, walks=walks, seed=seed)
 
 
-def make(kind: str, walks: int, res: int, pairs: int, log=print) -> dict:
+def make(kind: str, walks: int, res: int, pairs: int, fit_walks: int = 64, log=print) -> dict:
     stacks = single_configs() if kind == "single" else layered_configs()
     c, na = len(stacks), len(lobe.INCIDENT_ANGLES_DEG)
     wo_grid, mask = lobe.lobe_grid(res)
     lobe_img = np.zeros((c, na, res * res, 3))
     lobe_err = np.zeros_like(lobe_img)
-    arrays_rows = []
     t0 = time.perf_counter()
-    for i, s in enumerate(stacks):  # one batched call per configuration
-        brdf = stack_brdf(s, walks, HELDOUT_SEED + 17 * i)
-        wi = np.concatenate([np.broadcast_to(lobe.incident_direction(t), (int(mask.sum()), 3))
-                             for t in lobe.INCIDENT_ANGLES_DEG])
-        wo = np.tile(wo_grid[mask], (na, 1))
-        f, se = brdf(wi, wo)
-        cos_o = wo[:, 2:3]
-        lobe_img[i][:, mask] = (f * cos_o).reshape(na, -1, 3)
-        lobe_err[i][:, mask] = (se * cos_o).reshape(na, -1, 3)
-        arrays_rows.append(s)
+    for i, s in enumerate(stacks):  # one batched call per configuration (and elevation)
+        if not s.coatings:
+            brdf = stack_brdf(s, walks, HELDOUT_SEED + 17 * i)
+            wi = np.concatenate([np.broadcast_to(lobe.incident_direction(t), (int(mask.sum()), 3))
+                                 for t in lobe.INCIDENT_ANGLES_DEG])
+            wo = np.tile(wo_grid[mask], (na, 1))
+            f, se = brdf(wi, wo)
+            f, se = f.reshape(na, -1, 3), se.reshape(na, -1, 3)
+        else:
+            # amortised reference: by reciprocity f(wi, wo) = f(wo, wi), so one set of walks from
+            # the incident direction serves every pixel of its lobe image
+            from addon.core import reference
+
+            f = np.zeros((na, int(mask.sum()), 3))
+            se = np.zeros_like(f)
+            for a, t in enumerate(lobe.INCIDENT_ANGLES_DEG):
+                fa, sa = reference.eval_brdf_many(s, wo_grid[mask][None], lobe.incident_direction(t)[None],
+                                                  walks=walks, seed=HELDOUT_SEED + 17 * i + a)
+                f[a], se[a] = fa[0], sa[0]
+        cos_o = wo_grid[mask][None, :, 2:3]
+        lobe_img[i][:, mask] = f * cos_o
+        lobe_err[i][:, mask] = se * cos_o
         log(f"[heldout {kind}] lobes {i + 1}/{c} {time.perf_counter() - t0:.0f} s")
     rng = np.random.default_rng(HELDOUT_SEED + 2)
     alpha = np.array([_lobe_alpha(s) for s in stacks])
@@ -119,7 +130,7 @@ def make(kind: str, walks: int, res: int, pairs: int, log=print) -> dict:
     fit_f = np.zeros((c, pairs, 3))
     fit_se = np.zeros_like(fit_f)
     for i, s in enumerate(stacks):
-        fit_f[i], fit_se[i] = stack_brdf(s, walks // 4 or 1, HELDOUT_SEED + 17 * i + 5)(fit_wi[i], fit_wo[i])
+        fit_f[i], fit_se[i] = stack_brdf(s, fit_walks, HELDOUT_SEED + 17 * i + 5)(fit_wi[i], fit_wo[i])
     return dict(
         lobe=lobe_img.reshape(c, na, res, res, 3).astype(np.float32),
         lobe_stderr=lobe_err.reshape(c, na, res, res, 3).astype(np.float32),
@@ -144,11 +155,12 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--set", choices=("single", "layered"), default="single")
     ap.add_argument("--walks", type=int, default=1024, help="reference walks per lobe pixel (layered)")
+    ap.add_argument("--fit-walks", type=int, default=64, help="reference walks per projection pair (layered)")
     ap.add_argument("--res", type=int, default=LOBE_RES)
     ap.add_argument("--pairs", type=int, default=FIT_PAIRS)
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args(argv)
-    d = make(a.set, a.walks, a.res, a.pairs, log=lambda s: print(s, file=sys.stderr, flush=True))
+    d = make(a.set, a.walks, a.res, a.pairs, a.fit_walks, log=lambda s: print(s, file=sys.stderr, flush=True))
     d["command"] = np.array("python -m onnx_export.heldout " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:])))
     a.out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(a.out, **d)
