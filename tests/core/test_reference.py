@@ -337,3 +337,18 @@ def test_the_agreement_test_detects_pbrts_reverse_mis_density(monkeypatch):
     b, sb = eval_albedo(stack, NORMAL, 30000, seed=6)
     assert np.all(b - a > 5.0 * np.sqrt(sa**2 + sb**2)), (a, b)
     assert np.all(b / a - 1.0 > 0.025)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("theta", [10, 70])
+@pytest.mark.parametrize("name", list(MULTI) + ["four rough coats"])
+def test_eval_matches_analog_walk_high_precision(name, theta):
+    stack = MULTI.get(name) or Stack(
+        Conductor(0.1, eta=(0.2, 0.9, 1.1), k=(3.9, 2.4, 2.2)),
+        (Coating(0.3, 1.3, (0.9, 0.6, 0.3), 0.4, 0.3), Coating(0.1, 1.7), Coating(0.5, 1.4, (0.5, 0.9, 0.9), 0.2),
+         Coating(0.2, 1.5)),
+    )
+    wo = direction(theta, 30)
+    a, sa = analog_albedo(stack, wo, 150000, seed=21)
+    e, se = eval_albedo(stack, wo, 150000, seed=22)
+    assert np.all(np.abs(a - e) <= 3.0 * np.sqrt(sa**2 + se**2)), (a, e, sa, se)
