@@ -120,14 +120,18 @@ def test_eval_matches_analog_walk_rough_coat(alpha, base):
 MULTI = {
     "1 coat, scattering": Stack(Conductor(0.3, **GOLD), (Coating(0.6, 1.5, (0.9, 0.5, 0.1), 1.0, 0.5),)),
     "2 coats, smooth top": Stack(Diffuse(0.8), (Coating(0.3, 1.4, (0.5, 0.7, 0.9), 0.7), Coating(0.0, 1.6))),
-    "2 coats, rough": Stack(Diffuse(0.8), (Coating(0.2, 1.3, (0.5, 0.7, 0.9), 0.7), Coating(0.4, 1.6, (0.9, 0.9, 0.3), 0.3))),
-    "2 coats, smooth low": Stack(Conductor(0.2, **GOLD), (Coating(0.0, 1.8, (0.5, 0.7, 0.9), 0.7, -0.3), Coating(0.3, 1.3))),
+    "2 coats, rough": Stack(
+        Diffuse(0.8), (Coating(0.2, 1.3, (0.5, 0.7, 0.9), 0.7), Coating(0.4, 1.6, (0.9, 0.9, 0.3), 0.3))),
+    "2 coats, smooth low": Stack(
+        Conductor(0.2, **GOLD), (Coating(0.0, 1.8, (0.5, 0.7, 0.9), 0.7, -0.3), Coating(0.3, 1.3))),
     "3 coats": Stack(Diffuse(0.8), (Coating(0.3, 1.4, (0.2, 0.6, 0.9), 1.0), Coating(0.2, 1.6, (0.9, 0.9, 0.3), 0.5),
                                     Coating(0.05, 1.5))),
-    "3 coats, rough smooth rough": Stack(Dielectric(0.2, 1.9), (Coating(0.3, 1.4, (0.2, 0.6, 0.9), 1.0, 0.7),
-                                                                Coating(0.0, 1.6, (0.9, 0.9, 0.3), 0.5), Coating(0.25, 1.5))),
-    "3 coats, all smooth": Stack(Diffuse(0.8), (Coating(0.0, 1.4, (0.2, 0.6, 0.9), 1.0), Coating(0.0, 1.2, (0.9, 0.9, 0.3), 0.5),
-                                                Coating(0.0, 1.5))),
+    "3 coats, rough smooth rough": Stack(
+        Dielectric(0.2, 1.9),
+        (Coating(0.3, 1.4, (0.2, 0.6, 0.9), 1.0, 0.7), Coating(0.0, 1.6, (0.9, 0.9, 0.3), 0.5), Coating(0.25, 1.5))),
+    "3 coats, all smooth": Stack(
+        Diffuse(0.8),
+        (Coating(0.0, 1.4, (0.2, 0.6, 0.9), 1.0), Coating(0.0, 1.2, (0.9, 0.9, 0.3), 0.5), Coating(0.0, 1.5))),
 }
 
 
