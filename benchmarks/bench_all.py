@@ -215,60 +215,22 @@ def brdf_cycles(sets: dict, cfg: Config) -> list[dict]:
 
 
 def _neural_variant(scene_fn, size: str):
-    """The demo scene with every layered material forced onto decoder ``size`` (None if it cannot encode)."""
-    from addon.core.neural.layering import encode_layered_stack
-    from addon.core.neural.runtime import load_models
+    """The demo scene with every layered material on decoder ``size`` (None if one cannot be encoded)."""
     from addon.core.render.materials import LayeredSpec
-    from addon.core.render.neural_material import NeuralMaterial, proxy_guess
 
     scene = scene_fn()
-    models = load_models(size)
-    mats = []
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        for m in scene.materials:
-            if not isinstance(m, LayeredSpec):
-                mats.append(m)
-                continue
-            try:
-                lay = quality.layering_model(size) if m.stack.coatings else None
-                z = encode_layered_stack(m.stack, models, lay)
-            except (FileNotFoundError, NotImplementedError):
-                return None
-            mats.append(NeuralMaterial(models, z, proxy_guess(m.stack)))
+    mats, _, _ = quality.assign_decoders(scene, size)
+    if any(isinstance(m, LayeredSpec) and m.stack.coatings for m in mats):
+        return None
     scene.materials = mats
     return scene
 
 
 def _auto_variant(scene_fn, tolerance: float, res: int, walks: int):
-    """The demo scene with the auto setting: per material, the decoder chosen by quality.choose_decoder
-    (the reference estimator where it returns None). Returns the scene and the choices."""
-    from addon.core.render.materials import LayeredSpec, ReferenceLayered
-
+    """The demo scene under the auto setting (``quality.assign_decoders``); returns it and the choices."""
     scene = scene_fn()
-    choices = {}
-    mats = []
-    for name, m in zip(scene.material_names, scene.materials):
-        if not isinstance(m, LayeredSpec):
-            mats.append(m)
-            continue
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            c = quality.choose_decoder(m.stack, tolerance, res=res, walks=walks)
-        choices[name] = {"size": c.size, "errors": c.errors, "met": c.met}
-        if c.size is None:
-            mats.append(ReferenceLayered(m.stack, 2))
-        else:
-            one = _neural_variant(lambda m=m: _single_material_scene(scene_fn, m), c.size)
-            mats.append(one.materials[1] if one is not None else ReferenceLayered(m.stack, 2))
-    scene.materials = mats
-    return scene, choices
-
-
-def _single_material_scene(scene_fn, spec):
-    s = scene_fn()
-    s.materials = [s.materials[0], spec]
-    return s
+    scene.materials, choices, _ = quality.assign_decoders(scene, "auto", tolerance, res=res, walks=walks)
+    return scene, {k: {"size": c.size, "errors": c.errors, "met": c.met} for k, c in choices.items()}
 
 
 def render_level(cfg: Config, out: Path) -> dict:

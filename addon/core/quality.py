@@ -339,3 +339,75 @@ def primary_footprints(scene, stride: int = 1) -> np.ndarray:
     ok = (mats >= 0) & (mats < len(out))
     np.minimum.at(out, mats[ok], fp[ok])
     return out
+
+
+# --------------------------------------------------------------------------- renderer materials
+
+
+def neural_material(stack: Stack, size: str, threads: int = 2):
+    """A renderer NeuralMaterial of ``stack`` on decoder ``size`` (encoder + layering network), with the
+    sampling network's proxy parameters where that network is shipped. Raises FileNotFoundError when a
+    model the stack needs is missing."""
+    from .neural.layering import encode_layered_stack
+    from .neural.runtime import load_models
+    from .neural.sampling import load_sampling
+    from .render.neural_material import NeuralMaterial, proxy_guess
+
+    models = load_models(size, threads=threads)
+    z = encode_layered_stack(stack, models, layering_model(size, threads) if stack.coatings else None)
+    try:
+        sigma, w = (float(v) for v in load_sampling(size, threads).proxy_params(z)[0])
+    except (FileNotFoundError, OSError):
+        sigma, w = proxy_guess(stack)
+    return NeuralMaterial(models, z, (sigma, w))
+
+
+def assign_decoders(scene, quality: str = "auto", tolerance: float = DEFAULT_TOLERANCE, fallback: str = "best",
+                    threads: int = 2, **measure) -> tuple[list, dict, list[str]]:
+    """Renderer materials for the layered materials of a core ``Scene``, each on its decoder size.
+
+    ``quality`` is "auto" (per material, :func:`choose_decoder` with ``tolerance`` and ``fallback``)
+    or a decoder size (every layered material on it). Returns ``(materials, choices, notes)``:
+    a new material list for ``scene.materials`` (entries the decoders do not take stay as they were:
+    materials without coatings, which render exactly; latent-textured ones, whose texture fixes the
+    size; and stacks no shipped model can encode, which the renderer shades with the reference),
+    the choice per material name, and the warnings to show the user. ``measure`` passes ``res``,
+    ``walks`` or ``cache`` on to :func:`choose_decoder`.
+    """
+    from .render.materials import LayeredSpec
+
+    if quality != "auto":
+        from .neural.runtime import SIZES
+
+        if quality not in SIZES:
+            raise ValueError(f"quality must be 'auto' or a decoder size {list(SIZES)}, got {quality!r}")
+    names = list(scene.material_names) + [f"material {i}" for i in range(len(scene.material_names),
+                                                                          len(scene.materials))]
+    out, choices, notes = [], {}, []
+    for name, m in zip(names, scene.materials):
+        spec = m if isinstance(m, LayeredSpec) else (LayeredSpec(m) if isinstance(m, Stack) else None)
+        if spec is None or not spec.stack.coatings or spec.latent_texture is not None:
+            out.append(m)
+            continue
+        if quality == "auto":
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                choice = choose_decoder(spec.stack, tolerance, fallback=fallback, threads=threads, **measure)
+            size = choice.size
+            choices[name] = choice
+            notes += [f"material {name!r}: {w.message}" for w in caught if issubclass(w.category, QualityWarning)]
+        else:
+            size = quality
+            choices[name] = DecoderChoice(size, math.nan)
+        if size is None:
+            out.append(m)
+            continue
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                out.append(neural_material(spec.stack, size, threads))
+            notes += [f"material {name!r}: {w.message}" for w in caught]
+        except (FileNotFoundError, NotImplementedError) as e:
+            notes.append(f"material {name!r}: decoder {size} cannot encode it ({e}); rendering it with the reference")
+            out.append(m)
+    return out, choices, list(dict.fromkeys(notes))

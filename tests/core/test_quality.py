@@ -202,3 +202,44 @@ def test_primary_footprints_of_an_unseen_material_are_infinite():
                   ["seen", "behind"])
     fp = quality.primary_footprints(scene)
     assert math.isfinite(fp[0]) and fp[0] > 0 and math.isinf(fp[1])
+
+
+# --------------------------------------------------------------------------- renderer materials
+
+
+@needs_models
+def test_assign_decoders_auto_gives_every_encodable_layered_material_its_decoder():
+    from addon.core.render import RenderSettings, render
+    from addon.core.render.materials import LayeredSpec
+    from addon.core.render.neural_material import NeuralMaterial
+
+    scene = demo_scene(16, 9)
+    mats, choices, notes = quality.assign_decoders(scene, "auto", 0.3, res=8, walks=16, cache=quality.ErrorCache())
+    assert mats[0] is scene.materials[0]  # the textured floor is not a stack
+    assert set(choices) == set(scene.material_names[1:])
+    for name, m in zip(scene.material_names[1:], mats[1:]):
+        c = choices[name]
+        if c.size is None:
+            assert isinstance(m, LayeredSpec)
+        else:
+            assert isinstance(m, NeuralMaterial) and m.models.size == c.size
+            assert c.met or any(name in n and "tolerance" in n for n in notes)
+    scene.materials = mats
+    film, stats = render(scene, RenderSettings(samples=1, max_bounces=2))
+    assert np.isfinite(film.mean()).all()
+    assert {stats.material_kinds[i] for i in range(1, 6)} <= {"neural", "reference"}
+
+
+@needs_models
+def test_assign_decoders_fixed_size_and_what_stays_untouched():
+    from addon.core.render.materials import LayeredSpec
+
+    scene = demo_scene(16, 9, presets=["coated_gold", "white_diffuse"])
+    mats, choices, notes = quality.assign_decoders(scene, SIZES[0])
+    assert mats[2] is scene.materials[2]  # no coating: rendered exactly by its analytic BSDF
+    layering = (MODEL_DIR / f"layering_{SIZES[0]}.onnx").exists()
+    assert (type(mats[1]).__name__ == "NeuralMaterial") == layering
+    if not layering:
+        assert isinstance(mats[1], LayeredSpec) and any("reference" in n for n in notes)
+    with pytest.raises(ValueError, match="quality"):
+        quality.assign_decoders(scene, "huge")
