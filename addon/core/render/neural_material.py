@@ -98,19 +98,47 @@ class NeuralMaterial:
         return _BoundNeural(self.models, z, sigma, w)
 
 
-def make(stack: Stack, latent_texture=None, size: str = DEFAULT_SIZE):
-    """A NeuralMaterial for ``stack``, or None when the runtime cannot serve it (models missing,
-    or a layered stack while the layering network is not available)."""
-    try:
-        from .. import neural
+def _candidate_sizes(size):
+    from ..neural.runtime import DEFAULT_SIZE, SIZES
 
-        models = neural.load_models(size)
-    except (ImportError, FileNotFoundError, OSError, ValueError):
+    if size is not None:
+        return [size]
+    return [DEFAULT_SIZE] + [x for x in SIZES if x != DEFAULT_SIZE]
+
+
+def make(stack: Stack, latent_texture=None, size: str | None = None):
+    """A NeuralMaterial for ``stack``, or None when no shipped model can serve it.
+
+    ``size`` picks the decoder; None tries the runtime's default size first, then the others, and
+    takes the first whose models are shipped (a layered stack also needs that size's layering
+    network). A latent texture is decoded by the size it was baked for (its ``model`` metadata).
+    Proxy parameters come from the sampling network when it is shipped, else from
+    :func:`proxy_guess`.
+    """
+    try:
+        from ..neural import load_models
+        from ..neural.layering import encode_layered_stack, load_layering
+        from ..neural.sampling import load_sampling
+    except ImportError:
         return None
     if latent_texture is not None:
-        return NeuralMaterial(models, None, proxy_guess(stack), latent_texture)
-    try:
-        z = models.encode_stack(stack)
-    except NotImplementedError:
-        return None
-    return NeuralMaterial(models, z, proxy_guess(stack))
+        size = latent_texture.metadata.get("model", size) if hasattr(latent_texture, "metadata") else size
+    for candidate in _candidate_sizes(size):
+        try:
+            models = load_models(candidate)
+            if latent_texture is not None:
+                return NeuralMaterial(models, None, proxy_guess(stack), latent_texture)
+            layering = load_layering(candidate, models.threads) if stack.coatings else None
+            z = encode_layered_stack(stack, models, layering)
+        except (FileNotFoundError, OSError, NotImplementedError):
+            continue
+        except ValueError:
+            return None
+        try:
+            sigma, w = (float(v) for v in load_sampling(candidate, models.threads).proxy_params(z)[0])
+        except (FileNotFoundError, OSError):
+            sigma, w = proxy_guess(stack)
+        material = NeuralMaterial(models, z, (sigma, w))
+        material.size = candidate
+        return material
+    return None
