@@ -200,7 +200,9 @@ def test_latent_texture_material_matches_its_constant_latent():
 
 
 def test_neural_and_reference_renders_of_a_layered_scene_agree():
-    """Switches on when the neural runtime can encode layered stacks (the layering network)."""
+    """Encoder + layering network + decoder against the position-free estimator on a coated
+    sphere. The tiny layering network's held-out albedo error is 2-4% (its model card), so the
+    image means may differ by a few percent, not more."""
     stack = PRESETS["lacquered_plastic"]
     material = neural_material.make(stack)
     if material is None:
@@ -213,3 +215,4 @@ def test_neural_and_reference_renders_of_a_layered_scene_agree():
     assert "neural" in stats.material_kinds
     _, _, rel = compare(block_stats(film), ref)
     assert rel < 0.05, rel
+    assert stats.seconds["network"] > 0
