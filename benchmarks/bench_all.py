@@ -74,8 +74,8 @@ FULL = Config(single=None, layered=None, cycles_single=(0, 5, 9, 14, 20, 28, 33,
               bounces=4, reference_spp=256, budgets=(1, 2, 4, 8, 16), cycles_budgets=(1, 4, 16, 64),
               auto_tolerance=0.3, auto_spp=8)
 QUICK = Config(single=(0, 5), layered=(0, 12), cycles_single=(), cycles_layered=(0,), walks=(1, 4, 16),
-               ref_pixels=12, cycles_res=32, cycles_samples=2, size=(24, 14), bounces=2, reference_spp=4,
-               cycles_angles=(30.0, 60.0), speed_repeats=1,
+               ref_pixels=12, cycles_res=24, cycles_samples=1, size=(24, 14), bounces=2, reference_spp=4,
+               cycles_angles=(60.0,), speed_repeats=1,
                budgets=(1, 2), cycles_budgets=(1, 2), auto_tolerance=0.3, auto_spp=1, auto_res=8,
                auto_walks=16)
 

@@ -58,10 +58,10 @@ def test_auto_setting_flags_decoder_cells_clearly_over_the_tolerance(cells):
     for c in cells:
         if c.method.startswith("neural") and c.error is not None and c.case not in grazing:
             if c.error > 2 * tol:
-                assert c.auto == "reference", (c.case, c.error)
+                assert c.auto == "flagged", (c.case, c.error)
                 checked += 1
             elif c.error < tol / 2:
-                assert c.auto == "decoder", (c.case, c.error)
+                assert c.auto == "within tolerance", (c.case, c.error)
     assert checked > 0
 
 
