@@ -296,7 +296,24 @@ def render_level(cfg: Config, out: Path) -> dict:
                 "auto_mse": mse(img_a, ref), "largest_mse": mse(img_l, ref)}
         print(auto, file=sys.stderr, flush=True)
     return {"reference_spp": cfg.reference_spp, "reference_seconds": ref_seconds, "size": [w, h],
-            "bounces": cfg.bounces, "curves": curves, "pareto": pareto(curves), "auto": auto}
+            "bounces": cfg.bounces, "curves": curves, "pareto": pareto(curves), "auto": auto,
+            "textures": texture_footprints()}
+
+
+def texture_footprints(source: int = 4096, sizes=((320, 180), (1920, 1080))) -> dict:
+    """Per demo material and image size: the smallest on-screen footprint and the texture it needs."""
+    from addon.core.render.demo_scene import demo_scene
+
+    out = {}
+    for w, h in sizes:
+        scene = demo_scene(w, h)
+        t0 = time.perf_counter()
+        fp = quality.primary_footprints(scene)
+        sec = time.perf_counter() - t0
+        out[f"{w}x{h}"] = {"seconds": sec, "materials": {
+            name: {"footprint": float(f), "resolution": list(quality.texture_resolution_for_footprint(f, (source, source)))}
+            for name, f in zip(scene.material_names, fp)}}
+    return out
 
 
 def pareto(curves: dict) -> list[list]:
@@ -455,6 +472,18 @@ def markdown(data: dict, command: str) -> str:
             f"MSE {a['auto_mse'] - a['largest_mse']:+.3g}. With a single shipped size both settings use the same "
             "decoder and differ only by noise.",
         ]
+    tex = r.get("textures") or {}
+    if tex:
+        lines += ["", "### Textures no finer than the footprint", "",
+                  "Smallest camera-ray footprint per demo material (`addon.core.quality.primary_footprints`, one ray "
+                  "per pixel) and the latent-texture resolution it needs out of a 4096^2 source "
+                  "(`texture_resolution_for_footprint`); a latent texel is 98 half floats (196 bytes).", "",
+                  "| image | material | footprint (uv) | texture needed | memory vs 4096^2 |", "|---|---|---|---|---|"]
+        for img, d in tex.items():
+            for name, m in d["materials"].items():
+                rh, rw = m["resolution"]
+                lines.append(f"| {img} | {name} | {m['footprint']:.3g} | {rw}x{rh} | "
+                             f"{100 * rh * rw / 4096 ** 2:.2f}% |")
     lines += ["", "## Stability", "", "See [stability.md](stability.md) (written by the same command).", ""]
     return "\n".join(lines)
 
