@@ -26,10 +26,15 @@ from onnx_export.nets import Decoder, cosine_lr, log_target, make_decoder, macs_
 
 
 def load_training_tensors(paths: list[Path], materials: int | None = None) -> dict:
+    """wi, wo, f (M, P, 3) of all data sets, cut to the smallest number of pairs P of any set
+    (pairs are in random order), plus ``source`` (M,): which set each material came from."""
     parts = [datamod.load(p) for p in paths]
+    pmin = min(p["wi"].shape[1] for p in parts)
+    parts = [{k: (v[:, :pmin] if k in ("wi", "wo", "f", "stderr") else v) for k, v in p.items()} for p in parts]
     d = {k: np.concatenate([p[k] for p in parts]) for k in ("wi", "wo", "f") if all(k in p for p in parts)}
     if "stderr" in parts[0] or any("stderr" in p for p in parts):
         d["stderr"] = np.concatenate([p.get("stderr", np.zeros_like(p["f"])) for p in parts])
+    d["source"] = np.concatenate([np.full(p["wi"].shape[0], i, np.float32) for i, p in enumerate(parts)])
     if materials:
         d = {k: v[:materials] for k, v in d.items()}
     return {k: torch.from_numpy(np.ascontiguousarray(v, dtype=np.float32)) for k, v in d.items()}
@@ -65,6 +70,17 @@ def train(args, log=print) -> dict:
     if args.width:
         dec = Decoder(args.width, args.depth, args.features, args.activation)
     latents = torch.nn.Parameter(torch.randn(n_units, 32, generator=gen) * 0.01)
+    if args.init:  # start from another run: its decoder, and its latents for the units both share
+        s0 = torch.load(args.init, weights_only=False)
+        dec.load_state_dict(s0["decoder"])
+        k = min(n_units, s0["latents"].shape[0])
+        latents.data[:k] = s0["latents"][:k]
+        latents.data[k:] = s0["latents"].mean(0)
+    # sampling weight of each unit: data set i gets the share data_weights[i] of every batch
+    src = t["source"].repeat_interleave(3)
+    w = torch.tensor(args.data_weights or [1.0] * len(args.data), dtype=torch.float32)
+    counts = torch.bincount(src.long(), minlength=len(w)).float()
+    unit_w = (w / counts.clamp(min=1))[src.long()]
     opt = torch.optim.Adam([{"params": dec.parameters(), "lr": args.lr},
                             {"params": [latents], "lr": args.lr * args.latent_lr_scale}])
     out = Path(args.out)
@@ -86,7 +102,7 @@ def train(args, log=print) -> dict:
         lr = cosine_lr(step, args.steps, args.lr)
         opt.param_groups[0]["lr"] = lr
         opt.param_groups[1]["lr"] = lr * args.latent_lr_scale
-        units = torch.randint(0, n_units, (args.batch,), generator=gen)
+        units = torch.multinomial(unit_w, args.batch, replacement=True, generator=gen)
         wi, wo, f = batch_of(t, units, args.pairs, gen)
         z = latents[units].repeat_interleave(args.pairs, dim=0)
         pred = dec(z, wi, wo)
@@ -114,6 +130,9 @@ def parser():
     ap.add_argument("--width", type=int, default=0, help="override the size's width (with --depth)")
     ap.add_argument("--depth", type=int, default=0)
     ap.add_argument("--data", type=Path, nargs="+", required=True)
+    ap.add_argument("--data-weights", type=float, nargs="+", default=None,
+                    help="share of each --data set in a batch (default: equal shares)")
+    ap.add_argument("--init", type=Path, default=None, help="start from this checkpoint's decoder and latents")
     ap.add_argument("--materials", type=int, default=0, help="use only the first N materials (0: all)")
     ap.add_argument("--steps", type=int, default=6000)
     ap.add_argument("--batch", type=int, default=64, help="BRDF channels per step")
