@@ -257,7 +257,7 @@ def test_mitsuba_renders_the_same_scene():
                    "to_world": T().look_at(origin=list(eye), target=list(target), up=[0, 0, 1]),
                    "film": {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
                             "pixel_format": "rgb"},
-                   "sampler": {"type": "independent", "sample_count": 1024}},
+                   "sampler": {"type": "independent", "sample_count": 512}},
         "sky": {"type": "constant", "radiance": rgb(sky)},
         # Mitsuba's rectangle emits along +z: turn it over to emit downward like ours.
         "light": {"type": "rectangle",

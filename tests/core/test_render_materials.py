@@ -103,7 +103,7 @@ def test_reference_mode_matches_mitsuba_plastic():
                    "to_world": T().look_at(origin=list(eye), target=list(target), up=[0, 0, 1]),
                    "film": {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
                             "pixel_format": "rgb"},
-                   "sampler": {"type": "independent", "sample_count": 1024}},
+                   "sampler": {"type": "independent", "sample_count": 512}},
         "sky": {"type": "constant", "radiance": rgb(sky)},
         "light": {"type": "rectangle",
                   "to_world": T().translate([1.0, -1.0, 2.5]) @ T().rotate([1, 0, 0], 180) @ T().scale([0.5, 0.5, 1]),
