@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lobe-res", type=int, default=48, help="lobe image resolution")
     ap.add_argument("--walks", type=int, default=32, help="reference walks per lobe pixel")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--render-size", type=_size, default=(240, 135), help="demo render size WxH")
+    ap.add_argument("--render-size", type=_size, default=(320, 180), help="demo render size WxH")
     ap.add_argument("--samples", type=int, default=16, help="demo render paths per pixel")
     ap.add_argument("--bounces", type=int, default=4, help="demo render max bounces")
     ap.add_argument("--mode", choices=("neural", "reference"), default="neural",
