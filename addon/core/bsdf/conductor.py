@@ -26,53 +26,53 @@ class RoughConductor(BSDF):
         self.eta = as_param(eta, "RoughConductor.eta", lo=0.0, lo_open=True, rgb=True)
         self.k = as_param(k, "RoughConductor.k", lo=0.0, rgb=True)
 
-    def _rows(self, n):
-        return rows(self.alpha, n, "alpha"), rows(self.eta, n, "eta"), rows(self.k, n, "k")
+    def _rows(self, n, xp):
+        return rows(self.alpha, n, "alpha", xp), rows(self.eta, n, "eta", xp), rows(self.k, n, "k", xp)
 
     def eval(self, wi, wo, mode=RADIANCE, check=True) -> np.ndarray:
-        wi, wo = self._inputs(wi, wo, mode, check)
+        wi, wo, xp = self._inputs(wi, wo, mode, check)
         n = wi.shape[0]
-        alpha, eta, k = self._rows(n)
+        alpha, eta, k = self._rows(n, xp)
         ci, co = wi[:, 2], wo[:, 2]
         h = wi + wo
-        h *= np.where(h[:, 2] < 0.0, -1.0, 1.0)[:, None]
-        hn = np.sqrt(np.einsum("ij,ij->i", h, h))
+        h *= xp.where(h[:, 2] < 0.0, -1.0, 1.0)[:, None]
+        hn = xp.sqrt(xp.einsum("ij,ij->i", h, h))
         ok = (ci * co > 0.0) & (hn > 0.0) & (alpha >= SMOOTH_ALPHA)
-        with np.errstate(invalid="ignore", divide="ignore"):
+        with xp.errstate(invalid="ignore", divide="ignore"):
             m = h / hn[:, None]
-            dwo = np.abs(np.einsum("ij,ij->i", wo, m))
-            f = (ggx.ndf(m, alpha) * ggx.smith_g2(wi, wo, alpha) / (4.0 * np.abs(ci * co)))[:, None]
+            dwo = xp.abs(xp.einsum("ij,ij->i", wo, m))
+            f = (ggx.ndf(m, alpha) * ggx.smith_g2(wi, wo, alpha) / (4.0 * xp.abs(ci * co)))[:, None]
             f = f * fresnel_conductor(dwo, eta, k)
-        return np.where(ok[:, None] & np.isfinite(f), f, 0.0)
+        return xp.where(ok[:, None] & xp.isfinite(f), f, 0.0)
 
     def pdf(self, wi, wo, mode=RADIANCE, check=True) -> np.ndarray:
-        wi, wo = self._inputs(wi, wo, mode, check)
+        wi, wo, xp = self._inputs(wi, wo, mode, check)
         n = wi.shape[0]
-        alpha = rows(self.alpha, n, "alpha")
+        alpha = rows(self.alpha, n, "alpha", xp)
         h = wi + wo
-        h *= np.where(h[:, 2] < 0.0, -1.0, 1.0)[:, None]
-        hn = np.sqrt(np.einsum("ij,ij->i", h, h))
+        h *= xp.where(h[:, 2] < 0.0, -1.0, 1.0)[:, None]
+        hn = xp.sqrt(xp.einsum("ij,ij->i", h, h))
         ok = (wi[:, 2] * wo[:, 2] > 0.0) & (hn > 0.0) & (alpha >= SMOOTH_ALPHA)
-        with np.errstate(invalid="ignore", divide="ignore"):
+        with xp.errstate(invalid="ignore", divide="ignore"):
             m = h / hn[:, None]
-            p = ggx.pdf_visible_normal(wo, m, alpha) / (4.0 * np.abs(np.einsum("ij,ij->i", wo, m)))
-        return np.where(ok & np.isfinite(p), p, 0.0)
+            p = ggx.pdf_visible_normal(wo, m, alpha) / (4.0 * xp.abs(xp.einsum("ij,ij->i", wo, m)))
+        return xp.where(ok & xp.isfinite(p), p, 0.0)
 
     def sample(self, wo, u_lobe, u, mode=RADIANCE, check=True) -> BSDFSample:
-        wo, u_lobe, u = self._sample_inputs(wo, u_lobe, u, mode, check)
+        wo, u_lobe, u, xp = self._sample_inputs(wo, u_lobe, u, mode, check)
         n = wo.shape[0]
-        alpha, eta, k = self._rows(n)
+        alpha, eta, k = self._rows(n, xp)
         smooth = alpha < SMOOTH_ALPHA
         m = ggx.sample_visible_normal(wo, alpha, u)
-        m = np.where(smooth[:, None], np.array([0.0, 0.0, 1.0]), m)
-        wi = 2.0 * np.einsum("ij,ij->i", wo, m)[:, None] * m - wo
-        dwo = np.abs(np.einsum("ij,ij->i", wo, m))
+        m = xp.where(smooth[:, None], xp.asarray([0.0, 0.0, 1.0]), m)
+        wi = 2.0 * xp.einsum("ij,ij->i", wo, m)[:, None] * m - wo
+        dwo = xp.abs(xp.einsum("ij,ij->i", wo, m))
         F = fresnel_conductor(dwo, eta, k)
-        with np.errstate(invalid="ignore", divide="ignore"):
+        with xp.errstate(invalid="ignore", divide="ignore"):
             rough_w = ggx.smith_g2(wi, wo, alpha) / ggx.smith_g1(wo, alpha)
             rough_pdf = ggx.pdf_visible_normal(wo, m, alpha) / (4.0 * dwo)
-        weight = F * np.where(smooth, 1.0, rough_w)[:, None]
-        pdf = np.where(smooth, 1.0, rough_pdf)
+        weight = F * xp.where(smooth, 1.0, rough_w)[:, None]
+        pdf = xp.where(smooth, 1.0, rough_pdf)
         valid = (wi[:, 2] * wo[:, 2] > 0.0)
-        false = np.zeros(n, dtype=bool)
-        return BSDFSample.build(wi, weight, pdf, smooth.copy(), false, valid)
+        false = xp.zeros(n, dtype=bool)
+        return BSDFSample.build(wi, weight, pdf, xp.copy(smooth), false, valid)

@@ -10,15 +10,13 @@ from .base import BSDF, RADIANCE, SMOOTH_ALPHA, BSDFSample, as_param, rows
 from .frame import refract
 from .fresnel import fresnel_dielectric
 
-_UP = np.array([0.0, 0.0, 1.0])
-
 # |ior - 1| below this is index-matched: Fresnel reflectance is < 1e-15 there, and the
 # generalised half vector of rough transmission loses all precision to cancellation.
 INDEX_MATCHED_TOL = 1e-7
 
 
-def _dot(a, b):
-    return np.einsum("ij,ij->i", a, b)
+def _dot(a, b, xp=np):
+    return xp.einsum("ij,ij->i", a, b)
 
 
 class RoughDielectric(BSDF):
@@ -60,91 +58,91 @@ class RoughDielectric(BSDF):
         self.ior = as_param(ior, "RoughDielectric.ior", lo=0.0, lo_open=True)
         self.reflection_only = bool(reflection_only)
 
-    def _rows(self, n):
-        alpha = rows(self.alpha, n, "alpha")
-        ior = rows(self.ior, n, "ior")
-        return alpha, ior, (alpha < SMOOTH_ALPHA) | (np.abs(ior - 1.0) < INDEX_MATCHED_TOL)
+    def _rows(self, n, xp):
+        alpha = rows(self.alpha, n, "alpha", xp)
+        ior = rows(self.ior, n, "ior", xp)
+        return alpha, ior, (alpha < SMOOTH_ALPHA) | (xp.abs(ior - 1.0) < INDEX_MATCHED_TOL)
 
-    def _half(self, wi, wo, ior):
+    def _half(self, wi, wo, ior, xp):
         """Generalised half vector m (facing +z), etap, reflect flag and the row mask where
         the microfacet configuration is possible (pbrt-v4 DielectricBxDF::f)."""
         ci, co = wi[:, 2], wo[:, 2]
         refl = ci * co > 0.0
-        etap = np.where(refl, 1.0, np.where(co > 0.0, ior, 1.0 / ior))
+        etap = xp.where(refl, 1.0, xp.where(co > 0.0, ior, 1.0 / ior))
         h = wi * etap[:, None] + wo
-        h *= np.where(h[:, 2] < 0.0, -1.0, 1.0)[:, None]
-        hn = np.sqrt(_dot(h, h))
-        with np.errstate(invalid="ignore", divide="ignore"):
+        h *= xp.where(h[:, 2] < 0.0, -1.0, 1.0)[:, None]
+        hn = xp.sqrt(_dot(h, h, xp))
+        with xp.errstate(invalid="ignore", divide="ignore"):
             m = h / hn[:, None]
-        dwi, dwo = _dot(wi, m), _dot(wo, m)
+        dwi, dwo = _dot(wi, m, xp), _dot(wo, m, xp)
         ok = (ci != 0.0) & (co != 0.0) & (hn > 0.0) & (dwi * ci > 0.0) & (dwo * co > 0.0)
         return m, etap, refl, ok, dwi, dwo
 
     def eval(self, wi, wo, mode=RADIANCE, check=True) -> np.ndarray:
-        wi, wo = self._inputs(wi, wo, mode, check)
+        wi, wo, xp = self._inputs(wi, wo, mode, check)
         n = wi.shape[0]
-        alpha, ior, smooth = self._rows(n)
-        m, etap, refl, ok, dwi, dwo = self._half(wi, wo, ior)
+        alpha, ior, smooth = self._rows(n, xp)
+        m, etap, refl, ok, dwi, dwo = self._half(wi, wo, ior, xp)
         ci, co = wi[:, 2], wo[:, 2]
-        with np.errstate(invalid="ignore", divide="ignore"):
+        with xp.errstate(invalid="ignore", divide="ignore"):
             F = fresnel_dielectric(dwo, ior)
             dg = ggx.ndf(m, alpha) * ggx.smith_g2(wi, wo, alpha)
-            fr = dg * F / np.abs(4.0 * ci * co)
+            fr = dg * F / xp.abs(4.0 * ci * co)
             denom = (dwi + dwo / etap) ** 2 * ci * co
-            ft = dg * (1.0 - F) * np.abs(dwi * dwo / denom)
+            ft = dg * (1.0 - F) * xp.abs(dwi * dwo / denom)
             if mode == RADIANCE:
                 ft = ft / (etap * etap)
         if self.reflection_only:
-            ft = np.zeros_like(ft)
-        f = np.where(refl, fr, ft)
-        f = np.where(ok & ~smooth & np.isfinite(f), f, 0.0)
-        return np.repeat(f[:, None], 3, axis=1)
+            ft = xp.zeros_like(ft)
+        f = xp.where(refl, fr, ft)
+        f = xp.where(ok & ~smooth & xp.isfinite(f), f, 0.0)
+        return xp.repeat(f[:, None], 3, axis=1)
 
     def pdf(self, wi, wo, mode=RADIANCE, check=True) -> np.ndarray:
-        wi, wo = self._inputs(wi, wo, mode, check)
+        wi, wo, xp = self._inputs(wi, wo, mode, check)
         n = wi.shape[0]
-        alpha, ior, smooth = self._rows(n)
-        m, etap, refl, ok, dwi, dwo = self._half(wi, wo, ior)
-        with np.errstate(invalid="ignore", divide="ignore"):
+        alpha, ior, smooth = self._rows(n, xp)
+        m, etap, refl, ok, dwi, dwo = self._half(wi, wo, ior, xp)
+        with xp.errstate(invalid="ignore", divide="ignore"):
             R = fresnel_dielectric(dwo, ior)
-            T = np.zeros_like(R) if self.reflection_only else 1.0 - R
+            T = xp.zeros_like(R) if self.reflection_only else 1.0 - R
             pvis = ggx.pdf_visible_normal(wo, m, alpha)
-            pr = pvis / (4.0 * np.abs(dwo)) * R / (R + T)
-            pt = pvis * np.abs(dwi) / (dwi + dwo / etap) ** 2 * T / (R + T)
-        p = np.where(refl, pr, pt)
-        return np.where(ok & ~smooth & np.isfinite(p), p, 0.0)
+            pr = pvis / (4.0 * xp.abs(dwo)) * R / (R + T)
+            pt = pvis * xp.abs(dwi) / (dwi + dwo / etap) ** 2 * T / (R + T)
+        p = xp.where(refl, pr, pt)
+        return xp.where(ok & ~smooth & xp.isfinite(p), p, 0.0)
 
     def sample(self, wo, u_lobe, u, mode=RADIANCE, check=True) -> BSDFSample:
-        wo, u_lobe, u = self._sample_inputs(wo, u_lobe, u, mode, check)
+        wo, u_lobe, u, xp = self._sample_inputs(wo, u_lobe, u, mode, check)
         n = wo.shape[0]
-        alpha, ior, smooth = self._rows(n)
+        alpha, ior, smooth = self._rows(n, xp)
         # smooth rows use the geometric normal; rough rows a visible microfacet normal
         m = ggx.sample_visible_normal(wo, alpha, u)
-        m = np.where(smooth[:, None], _UP, m)
-        dwo = _dot(wo, m)
+        m = xp.where(smooth[:, None], xp.asarray([0.0, 0.0, 1.0]), m)
+        dwo = _dot(wo, m, xp)
         R = fresnel_dielectric(dwo, ior)
-        T = np.zeros_like(R) if self.reflection_only else 1.0 - R
-        with np.errstate(invalid="ignore", divide="ignore"):
+        T = xp.zeros_like(R) if self.reflection_only else 1.0 - R
+        with xp.errstate(invalid="ignore", divide="ignore"):
             p_refl = R / (R + T)
         choose_r = u_lobe < p_refl
 
         wr = 2.0 * dwo[:, None] * m - wo
         wt, tir_free = refract(wo, m, ior)
-        etap = np.where(dwo > 0.0, ior, 1.0 / ior)
-        wi = np.where(choose_r[:, None], wr, wt)
-        dwi = _dot(wi, m)
+        etap = xp.where(dwo > 0.0, ior, 1.0 / ior)
+        wi = xp.where(choose_r[:, None], wr, wt)
+        dwi = _dot(wi, m, xp)
         ci, co = wi[:, 2], wo[:, 2]
-        valid = np.where(choose_r, ci * co > 0.0, tir_free & (ci * co < 0.0)) & (co != 0.0)
+        valid = xp.where(choose_r, ci * co > 0.0, tir_free & (ci * co < 0.0)) & (co != 0.0)
 
-        scale_t = 1.0 / (etap * etap) if mode == RADIANCE else np.ones(n)
-        with np.errstate(invalid="ignore", divide="ignore"):
+        scale_t = 1.0 / (etap * etap) if mode == RADIANCE else xp.ones(n)
+        with xp.errstate(invalid="ignore", divide="ignore"):
             pvis = ggx.pdf_visible_normal(wo, m, alpha)
-            pdf_r = pvis / (4.0 * np.abs(dwo)) * p_refl
-            pdf_t = pvis * np.abs(dwi) / (dwi + dwo / etap) ** 2 * (1.0 - p_refl)
+            pdf_r = pvis / (4.0 * xp.abs(dwo)) * p_refl
+            pdf_t = pvis * xp.abs(dwi) / (dwi + dwo / etap) ** 2 * (1.0 - p_refl)
             g = ggx.smith_g2(wi, wo, alpha) / ggx.smith_g1(wo, alpha)
         # both lobes have f |cos| / pdf = (R + T) g (times the radiance scale for transmission)
-        lobe_w = (R + T) * np.where(choose_r, 1.0, scale_t)
-        weight = lobe_w * np.where(smooth, 1.0, g)
-        pdf = np.where(smooth, np.where(choose_r, p_refl, 1.0 - p_refl), np.where(choose_r, pdf_r, pdf_t))
-        weight = np.repeat(weight[:, None], 3, axis=1)
-        return BSDFSample.build(wi, weight, pdf, smooth.copy(), ~choose_r, valid)
+        lobe_w = (R + T) * xp.where(choose_r, 1.0, scale_t)
+        weight = lobe_w * xp.where(smooth, 1.0, g)
+        pdf = xp.where(smooth, xp.where(choose_r, p_refl, 1.0 - p_refl), xp.where(choose_r, pdf_r, pdf_t))
+        weight = xp.repeat(weight[:, None], 3, axis=1)
+        return BSDFSample.build(wi, weight, pdf, xp.copy(smooth), ~choose_r, valid)

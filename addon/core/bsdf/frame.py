@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..xp import namespace
+
 
 def cos_theta(w: np.ndarray) -> np.ndarray:
     """Cosine to the local normal (+z): the z component, shape (N,)."""
@@ -21,16 +23,17 @@ def same_hemisphere(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise dot product, shape (N,)."""
-    return np.einsum("...i,...i->...", a, b)
+    return namespace(a, b).einsum("...i,...i->...", a, b)
 
 
 def normalize(v: np.ndarray) -> np.ndarray:
     """Unit vectors along ``v``; zero-length rows stay zero (never NaN)."""
-    v = np.asarray(v, dtype=np.float64)
-    n = np.sqrt(dot(v, v))[..., None]
-    with np.errstate(invalid="ignore", divide="ignore"):
+    xp = namespace(v)
+    v = xp.asarray(v, dtype=xp.float64)
+    n = xp.sqrt(dot(v, v))[..., None]
+    with xp.errstate(invalid="ignore", divide="ignore"):
         out = v / n
-    return np.where(n > 0.0, out, 0.0)
+    return xp.where(n > 0.0, out, 0.0)
 
 
 def reflect(w: np.ndarray, n: np.ndarray) -> np.ndarray:
@@ -47,18 +50,19 @@ def refract(w: np.ndarray, n: np.ndarray, eta) -> tuple[np.ndarray, np.ndarray]:
     transmitted direction (pointing away on the other side) and False under total internal
     reflection (there ``wt`` is 0).
     """
-    eta = np.asarray(eta, dtype=np.float64)
+    xp = namespace(w, n, eta)
+    eta = xp.asarray(eta, dtype=xp.float64)
     c = dot(w, n)
     flip = c < 0.0
-    eta = np.where(flip, 1.0 / eta, eta)
-    c = np.abs(c)
-    n = np.where(flip[..., None], -n, n)
-    sin2_i = np.maximum(0.0, 1.0 - c * c)
+    eta = xp.where(flip, 1.0 / eta, eta)
+    c = xp.abs(c)
+    n = xp.where(flip[..., None], -n, n)
+    sin2_i = xp.maximum(0.0, 1.0 - c * c)
     sin2_t = sin2_i / (eta * eta)
     valid = sin2_t < 1.0
-    cos_t = np.sqrt(np.maximum(0.0, 1.0 - sin2_t))
+    cos_t = xp.sqrt(xp.maximum(0.0, 1.0 - sin2_t))
     wt = -w / eta[..., None] + (c / eta - cos_t)[..., None] * n
-    wt = np.where(valid[..., None], wt, 0.0)
+    wt = xp.where(valid[..., None], wt, 0.0)
     return wt, valid
 
 
@@ -67,19 +71,20 @@ def coordinate_system(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     Branchless construction of Duff et al. 2017, "Building an Orthonormal Basis, Revisited".
     """
-    n = np.asarray(n, dtype=np.float64)
+    xp = namespace(n)
+    n = xp.asarray(n, dtype=xp.float64)
     x, y, z = n[..., 0], n[..., 1], n[..., 2]
-    sign = np.copysign(1.0, z)
+    sign = xp.copysign(1.0, z)
     a = -1.0 / (sign + z)
     b = x * y * a
-    s = np.stack([1.0 + sign * x * x * a, sign * b, -sign * x], axis=-1)
-    t = np.stack([b, sign + y * y * a, -y], axis=-1)
+    s = xp.stack([1.0 + sign * x * x * a, sign * b, -sign * x], axis=-1)
+    t = xp.stack([b, sign + y * y * a, -y], axis=-1)
     return s, t
 
 
 def to_local(v: np.ndarray, s: np.ndarray, t: np.ndarray, n: np.ndarray) -> np.ndarray:
     """World vector ``v`` in the frame (s, t, n): components (v.s, v.t, v.n)."""
-    return np.stack([dot(v, s), dot(v, t), dot(v, n)], axis=-1)
+    return namespace(v, s, t, n).stack([dot(v, s), dot(v, t), dot(v, n)], axis=-1)
 
 
 def to_world(v: np.ndarray, s: np.ndarray, t: np.ndarray, n: np.ndarray) -> np.ndarray:

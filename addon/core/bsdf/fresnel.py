@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..xp import namespace
+
 
 def fresnel_dielectric(cos_i, eta) -> np.ndarray:
     """Unpolarised Fresnel reflectance of a dielectric interface (pbrt-v4 ``FrDielectric``).
@@ -12,19 +14,20 @@ def fresnel_dielectric(cos_i, eta) -> np.ndarray:
     to. ``cos_i < 0`` means arriving from the other side: then ``eta`` is inverted. Total
     internal reflection gives 1. Shapes broadcast; returns float64.
     """
-    cos_i = np.clip(np.asarray(cos_i, dtype=np.float64), -1.0, 1.0)
-    eta = np.asarray(eta, dtype=np.float64)
+    xp = namespace(cos_i, eta)
+    cos_i = xp.clip(xp.asarray(cos_i, dtype=xp.float64), -1.0, 1.0)
+    eta = xp.asarray(eta, dtype=xp.float64)
     inside = cos_i < 0.0
-    eta = np.where(inside, 1.0 / eta, eta)
-    cos_i = np.abs(cos_i)
+    eta = xp.where(inside, 1.0 / eta, eta)
+    cos_i = xp.abs(cos_i)
     sin2_t = (1.0 - cos_i * cos_i) / (eta * eta)
     tir = sin2_t >= 1.0
-    cos_t = np.sqrt(np.maximum(0.0, 1.0 - sin2_t))
-    with np.errstate(invalid="ignore", divide="ignore"):
+    cos_t = xp.sqrt(xp.maximum(0.0, 1.0 - sin2_t))
+    with xp.errstate(invalid="ignore", divide="ignore"):
         r_parl = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
         r_perp = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
     r = 0.5 * (r_parl * r_parl + r_perp * r_perp)
-    return np.where(tir, 1.0, np.where(np.isfinite(r), r, 1.0))
+    return xp.where(tir, 1.0, xp.where(xp.isfinite(r), r, 1.0))
 
 
 def fresnel_conductor(cos_i, eta, k) -> np.ndarray:
@@ -36,21 +39,22 @@ def fresnel_conductor(cos_i, eta, k) -> np.ndarray:
     conductor is seen from outside only); ``eta`` and ``k`` are RGB ``(N, 3)`` or ``(3,)``.
     Returns ``(N, 3)`` float64 in [0, 1].
     """
-    c = np.clip(np.asarray(cos_i, dtype=np.float64), 0.0, 1.0)[..., None]
-    eta = np.asarray(eta, dtype=np.float64)
-    k = np.asarray(k, dtype=np.float64)
+    xp = namespace(cos_i, eta, k)
+    c = xp.clip(xp.asarray(cos_i, dtype=xp.float64), 0.0, 1.0)[..., None]
+    eta = xp.asarray(eta, dtype=xp.float64)
+    k = xp.asarray(k, dtype=xp.float64)
     cos2 = c * c
     sin2 = 1.0 - cos2
     eta2, k2 = eta * eta, k * k
     t0 = eta2 - k2 - sin2
-    a2b2 = np.sqrt(t0 * t0 + 4.0 * eta2 * k2)  # a^2 + b^2 = |n^2 - sin^2|
+    a2b2 = xp.sqrt(t0 * t0 + 4.0 * eta2 * k2)  # a^2 + b^2 = |n^2 - sin^2|
     t1 = a2b2 + cos2
-    a = np.sqrt(np.maximum(0.0, 0.5 * (a2b2 + t0)))
+    a = xp.sqrt(xp.maximum(0.0, 0.5 * (a2b2 + t0)))
     t2 = 2.0 * c * a
     t3 = cos2 * a2b2 + sin2 * sin2
     t4 = t2 * sin2
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with xp.errstate(invalid="ignore", divide="ignore"):
         rs = (t1 - t2) / (t1 + t2)
         rp = rs * (t3 - t4) / (t3 + t4)
     r = 0.5 * (rs + rp)
-    return np.where(np.isfinite(r), np.clip(r, 0.0, 1.0), 1.0)
+    return xp.where(xp.isfinite(r), xp.clip(r, 0.0, 1.0), 1.0)

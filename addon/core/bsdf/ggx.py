@@ -12,19 +12,22 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..xp import namespace
+
 MIN_ALPHA = 1e-4
 
 
-def _alpha(alpha) -> np.ndarray:
-    return np.maximum(np.asarray(alpha, dtype=np.float64), MIN_ALPHA)
+def _alpha(alpha, xp=np) -> np.ndarray:
+    return xp.maximum(xp.asarray(alpha, dtype=xp.float64), MIN_ALPHA)
 
 
 def ndf(m: np.ndarray, alpha) -> np.ndarray:
     """D(m) in 1/sr (projected-area normalised: integral of D(m) cos(m) dm = 1); 0 for m.z <= 0."""
-    a2 = _alpha(alpha) ** 2
+    xp = namespace(m, alpha)
+    a2 = _alpha(alpha, xp) ** 2
     c2 = m[..., 2] ** 2
     d = c2 * (a2 - 1.0) + 1.0
-    return np.where(m[..., 2] > 0.0, a2 / (np.pi * d * d), 0.0)
+    return xp.where(m[..., 2] > 0.0, a2 / (xp.pi * d * d), 0.0)
 
 
 def smith_lambda(w: np.ndarray, alpha) -> np.ndarray:
@@ -33,12 +36,13 @@ def smith_lambda(w: np.ndarray, alpha) -> np.ndarray:
     Written as a^2 t^2 / (2 (1 + sqrt(1 + a^2 t^2))) to avoid cancellation at small alpha.
     Depends on |cos w| only, so directions below the surface are mirrored.
     """
-    a2 = _alpha(alpha) ** 2
+    xp = namespace(w, alpha)
+    a2 = _alpha(alpha, xp) ** 2
     c2 = w[..., 2] ** 2
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with xp.errstate(divide="ignore", invalid="ignore"):
         x = a2 * (1.0 - c2) / c2
-        lam = x / (2.0 * (1.0 + np.sqrt(1.0 + x)))
-    return np.where(c2 > 0.0, lam, np.inf)
+        lam = x / (2.0 * (1.0 + xp.sqrt(1.0 + x)))
+    return xp.where(c2 > 0.0, lam, xp.inf)
 
 
 def smith_g1(w: np.ndarray, alpha) -> np.ndarray:
@@ -57,34 +61,36 @@ def sample_visible_normal(w: np.ndarray, alpha, u: np.ndarray) -> np.ndarray:
     Density :func:`pdf_visible_normal`. ``w`` below the surface is mirrored to +z first
     (the distribution is symmetric), so m always faces +z. ``u`` is (N, 2) in [0, 1).
     """
-    a = _alpha(alpha)
-    sign = np.where(w[..., 2] < 0.0, -1.0, 1.0)
+    xp = namespace(w, alpha, u)
+    a = _alpha(alpha, xp)
+    sign = xp.where(w[..., 2] < 0.0, -1.0, 1.0)
     # stretch the (upper-hemisphere) view direction to the unit-roughness configuration
     wx = w[..., 0] * sign * a
     wy = w[..., 1] * sign * a
-    wz = np.abs(w[..., 2])
-    inv = 1.0 / np.sqrt(wx * wx + wy * wy + wz * wz)
+    wz = xp.abs(w[..., 2])
+    inv = 1.0 / xp.sqrt(wx * wx + wy * wy + wz * wz)
     wx, wy, wz = wx * inv, wy * inv, wz * inv
     # sample the spherical cap z in (-wz, 1]
-    phi = 2.0 * np.pi * u[..., 0]
+    phi = 2.0 * xp.pi * u[..., 0]
     z = (1.0 - u[..., 1]) * (1.0 + wz) - wz
-    sin_t = np.sqrt(np.clip(1.0 - z * z, 0.0, 1.0))
-    hx = sin_t * np.cos(phi) + wx
-    hy = sin_t * np.sin(phi) + wy
+    sin_t = xp.sqrt(xp.clip(1.0 - z * z, 0.0, 1.0))
+    hx = sin_t * xp.cos(phi) + wx
+    hy = sin_t * xp.sin(phi) + wy
     hz = z + wz
-    m = np.stack([hx * a, hy * a, np.maximum(hz, 0.0)], axis=-1)
-    n = np.sqrt(np.einsum("...i,...i->...", m, m))[..., None]
-    with np.errstate(invalid="ignore", divide="ignore"):
+    m = xp.stack([hx * a, hy * a, xp.maximum(hz, 0.0)], axis=-1)
+    n = xp.sqrt(xp.einsum("...i,...i->...", m, m))[..., None]
+    with xp.errstate(invalid="ignore", divide="ignore"):
         m = m / n
-    return np.where(n > 0.0, m, np.array([0.0, 0.0, 1.0]))
+    return xp.where(n > 0.0, m, xp.asarray([0.0, 0.0, 1.0]))
 
 
 def pdf_visible_normal(w: np.ndarray, m: np.ndarray, alpha) -> np.ndarray:
     """Density of :func:`sample_visible_normal`: G1(w) max(0, w'.m) D(m) / |cos w|, with w' = w
     mirrored to the upper hemisphere (so for w below the surface the facing test is -w.m > 0)."""
+    xp = namespace(w, m, alpha)
     cz = w[..., 2]
-    sign = np.where(cz < 0.0, -1.0, 1.0)
-    wm = np.maximum(0.0, sign * np.einsum("...i,...i->...", w, m))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        p = smith_g1(w, alpha) * wm * ndf(m, alpha) / np.abs(cz)
-    return np.where((cz != 0.0) & np.isfinite(p), p, 0.0)
+    sign = xp.where(cz < 0.0, -1.0, 1.0)
+    wm = xp.maximum(0.0, sign * xp.einsum("...i,...i->...", w, m))
+    with xp.errstate(invalid="ignore", divide="ignore"):
+        p = smith_g1(w, alpha) * wm * ndf(m, alpha) / xp.abs(cz)
+    return xp.where((cz != 0.0) & xp.isfinite(p), p, 0.0)
