@@ -16,6 +16,13 @@ away from the surface; results are float64):
 - ``albedo(stack, wo, samples=4096, seed=0) -> (albedo, stderr)``, both (N, 3): directional
   albedo (all paths, delta ones included) as the mean of ``samples`` analog walks.
 
+Backends: every function takes ``backend=None | "numpy" | "torch" | "cupy"`` and ``device``
+(``"cpu"``, ``"cuda"``, ``"cuda:N"``). With a backend, the inputs are moved to that array library,
+the walks run there (the same source as on numpy, see :mod:`addon.core.xp`) and the results come
+back as numpy arrays. Without one, the walks run in the library of the inputs (numpy in, numpy
+out). ``seed``/``rng`` may also be an :class:`addon.core.xp.Rng` (e.g. a ``HostRng`` that feeds
+every backend the same numbers).
+
 ``stack`` is a :class:`~addon.core.stack.Stack` (the same stack for every row) or a
 :class:`~addon.core.stack.StackArrays` with one row (shared) or N rows (one stack per
 direction pair: a batch of different stacks with the same number of coatings; build it with
@@ -33,8 +40,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from addon.core import xp as xpmod
 from addon.core.bsdf.base import as_directions
 from addon.core.stack import Stack, StackArrays
+from addon.core.xp import Rng, namespace, to_numpy
 
 from .walk import CHUNK_WALKS, MAX_DEPTH, Layers, run_walks, validate_arrays
 
@@ -48,7 +57,7 @@ def pack_stacks(stacks) -> StackArrays:
     return StackArrays.from_stacks(list(stacks))
 
 
-def _layers_and_rows(stack, n: int) -> tuple[Layers, np.ndarray]:
+def _layers_and_rows(stack, n: int, xp=np) -> tuple[Layers, np.ndarray]:
     if isinstance(stack, Stack):
         sa = StackArrays.from_stacks([stack])
     elif isinstance(stack, StackArrays):
@@ -57,10 +66,10 @@ def _layers_and_rows(stack, n: int) -> tuple[Layers, np.ndarray]:
         raise ValueError(f"stack must be a Stack or StackArrays, got {type(stack).__name__}")
     validate_arrays(sa)
     if len(sa) == 1:
-        return Layers.from_arrays(sa), np.zeros(n, dtype=np.int64)
+        return Layers.from_arrays(sa).to(xp), xp.zeros(n, dtype=xp.int64)
     if len(sa) != n:
         raise ValueError(f"StackArrays has {len(sa)} rows but there are {n} directions; give 1 or {n} stacks")
-    return Layers.from_arrays(sa), np.arange(n)
+    return Layers.from_arrays(sa).to(xp), xp.arange(n)
 
 
 def _count(value, name: str) -> int:
@@ -69,46 +78,64 @@ def _count(value, name: str) -> int:
     return int(value)
 
 
-def _rng(rng) -> np.random.Generator:
-    if isinstance(rng, np.random.Generator):
+def _rng(rng, xp=np) -> Rng:
+    if isinstance(rng, Rng):
         return rng
+    if isinstance(rng, np.random.Generator):
+        return Rng(xp, rng)
     if isinstance(rng, (int, np.integer)) and not isinstance(rng, bool):
-        return np.random.default_rng(int(rng))
+        return Rng(xp, int(rng))
     raise ValueError(f"rng must be a numpy Generator or an integer seed, got {type(rng).__name__}")
 
 
-def _accumulate(sums: np.ndarray, sq: np.ndarray, pair: np.ndarray, est: np.ndarray) -> None:
+def _backend(backend, device, *arrays):
+    """``(xp, out)``: the namespace to run in and the conversion of the results."""
+    if backend is None:
+        if device is not None:
+            raise ValueError(f"device={device!r} needs a backend ('numpy', 'torch' or 'cupy')")
+        return namespace(*arrays), lambda a: a
+    return xpmod.get(backend, device), to_numpy
+
+
+def _accumulate(sums, sq, pair, est) -> None:
     """Add per-walk estimates to their pair's sums; ``pair`` is sorted (walks are pair-major)."""
+    xp = namespace(est)
+    if xp is not np:
+        xpmod.index_add(xp, sums, pair, est)
+        xpmod.index_add(xp, sq, pair, est * est)
+        return
     starts = np.flatnonzero(np.r_[True, pair[1:] != pair[:-1]])
     idx = pair[starts]
     sums[idx] += np.add.reduceat(est, starts, axis=0)
     sq[idx] += np.add.reduceat(est * est, starts, axis=0)
 
 
-def _finish(sums: np.ndarray, sq: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+def _finish(sums, sq, k: int):
+    xp = namespace(sums)
     mean = sums / k
     if k < 2:
-        return mean, np.full_like(mean, np.inf)
-    var = np.maximum(sq / k - mean * mean, 0.0) * (k / (k - 1))
-    return mean, np.sqrt(var / k)
+        return mean, xp.full_like(mean, xp.inf)
+    var = xp.maximum(sq / k - mean * mean, 0.0) * (k / (k - 1))
+    return mean, xp.sqrt(var / k)
 
 
-def eval_brdf(stack, wi, wo, walks: int = 64, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def eval_brdf(stack, wi, wo, walks: int = 64, seed: int = 0, backend=None, device=None):
     """f(wi, wo) (N, 3) without the cosine and its standard error (N, 3).
 
     Each pair gets ``walks`` independent walks; with ``walks == 1`` the standard error is
     infinite (unknown). Raises ValueError on malformed or non-finite directions, bad stack
-    parameters or a non-positive walk count.
+    parameters or a non-positive walk count. ``backend``/``device``: see the module docstring.
     """
     wi = as_directions(wi, "wi")
     wo = as_directions(wo, "wo")
     if wi.shape[0] != wo.shape[0]:
         raise ValueError(f"wi has {wi.shape[0]} rows but wo has {wo.shape[0]}")
-    f, se = _eval(stack, wi[:, None, :], wo, walks, seed)
-    return f[:, 0], se[:, 0]
+    xp, out = _backend(backend, device, wi, wo)
+    f, se = _eval(stack, xp.asarray(wi)[:, None, :], xp.asarray(wo), walks, seed, xp)
+    return out(f[:, 0]), out(se[:, 0])
 
 
-def eval_brdf_many(stack, wi, wo, walks: int = 64, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def eval_brdf_many(stack, wi, wo, walks: int = 64, seed: int = 0, backend=None, device=None):
     """Amortised estimator: f(wi[n, j], wo[n]) for M incident directions per outgoing one.
 
     ``wi`` is (N, M, 3), ``wo`` (N, 3); returns f and its standard error, (N, M, 3) each. Every
@@ -118,12 +145,13 @@ def eval_brdf_many(stack, wi, wo, walks: int = 64, seed: int = 0) -> tuple[np.nd
     For a lobe image (fixed incident direction, many outgoing ones) use reciprocity,
     f(wi, wo) = f(wo, wi): pass the grid as ``wi`` and the incident direction as ``wo``.
     """
+    xin = namespace(wi)
     try:
-        a = np.asarray(wi, dtype=np.float64)
+        a = xin.asarray(wi, dtype=xin.float64)
     except (TypeError, ValueError):
         raise ValueError(f"wi must be an (N, M, 3) array of directions, got {type(wi).__name__}") from None
     if a.ndim != 3 or a.shape[2] != 3:
-        raise ValueError(f"wi must have shape (N, M, 3), got {a.shape}")
+        raise ValueError(f"wi must have shape (N, M, 3), got {tuple(a.shape)}")
     n, m = a.shape[0], a.shape[1]
     if m < 1:
         raise ValueError("wi must hold at least one direction per row (M >= 1)")
@@ -131,61 +159,68 @@ def eval_brdf_many(stack, wi, wo, walks: int = 64, seed: int = 0) -> tuple[np.nd
     wo = as_directions(wo, "wo")
     if wo.shape[0] != n:
         raise ValueError(f"wi has {n} rows but wo has {wo.shape[0]}")
-    return _eval(stack, flat, wo, walks, seed)
+    xp, out = _backend(backend, device, flat, wo)
+    f, se = _eval(stack, xp.asarray(flat), xp.asarray(wo), walks, seed, xp)
+    return out(f), out(se)
 
 
-def _eval(stack, wi: np.ndarray, wo: np.ndarray, walks, seed) -> tuple[np.ndarray, np.ndarray]:
+def _eval(stack, wi, wo, walks, seed, xp=np):
     k = _count(walks, "walks")
     n, m = wi.shape[0], wi.shape[1]
-    lay, prow = _layers_and_rows(stack, n)
-    rng = _rng(seed)
-    sums = np.zeros((n, m, 3))
-    sq = np.zeros((n, m, 3))
+    lay, prow = _layers_and_rows(stack, n, xp)
+    rng = _rng(seed, xp)
+    sums = xp.zeros((n, m, 3))
+    sq = xp.zeros((n, m, 3))
     total = n * k
     step = max(1, CHUNK_WALKS // m)
     for r0 in range(0, total, step):
-        r = np.arange(r0, min(total, r0 + step))
+        r = xp.arange(r0, min(total, r0 + step))
         pair = r // k
         est = run_walks(lay, prow[pair], wo[pair], wi[pair], rng, nee=True)
         _accumulate(sums, sq, pair, est)
     above = ((wi[:, :, 2] > 0.0) & (wo[:, None, 2] > 0.0))[:, :, None]
     f, se = _finish(sums, sq, k)
-    return np.where(above, f, 0.0), np.where(above, se, 0.0)
+    return xp.where(above, f, 0.0), xp.where(above, se, 0.0)
 
 
-def sample(stack, wo, rng, with_flags: bool = False):
+def sample(stack, wo, rng, with_flags: bool = False, backend=None, device=None):
     """One analog walk per row of ``wo``: ``(wi, weight)`` or ``(wi, weight, specular)``.
 
     ``weight`` (N, 3) is an unbiased estimate of f(wi, wo) cos(wi) / pdf(wi); absorbed walks
     and ``wo`` below the horizon give weight 0 (and wi = +z). ``rng`` is a numpy Generator or
-    an integer seed.
+    an integer seed (or an :class:`addon.core.xp.Rng`).
     """
     wo = as_directions(wo, "wo")
     n = wo.shape[0]
-    lay, prow = _layers_and_rows(stack, n)
-    g = _rng(rng)
-    out_wi = np.zeros((n, 3))
-    out_w = np.zeros((n, 3))
-    out_s = np.zeros(n, dtype=bool)
+    xp, out = _backend(backend, device, wo)
+    wo = xp.asarray(wo)
+    lay, prow = _layers_and_rows(stack, n, xp)
+    g = _rng(rng, xp)
+    out_wi = xp.zeros((n, 3))
+    out_w = xp.zeros((n, 3))
+    out_s = xp.zeros(n, dtype=bool)
     for r0 in range(0, n, CHUNK_WALKS):
         sl = slice(r0, min(n, r0 + CHUNK_WALKS))
         out_wi[sl], out_w[sl], out_s[sl] = run_walks(lay, prow[sl], wo[sl], None, g, nee=False)
-    return (out_wi, out_w, out_s) if with_flags else (out_wi, out_w)
+    return (out(out_wi), out(out_w), out(out_s)) if with_flags else (out(out_wi), out(out_w))
 
 
-def albedo(stack, wo, samples: int = 4096, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def albedo(stack, wo, samples: int = 4096, seed: int = 0, backend=None, device=None):
     """Directional albedo (N, 3) seen from ``wo`` (all paths) and its standard error (N, 3)."""
     wo = as_directions(wo, "wo")
     k = _count(samples, "samples")
     n = wo.shape[0]
-    lay, prow = _layers_and_rows(stack, n)
-    rng = _rng(seed)
-    sums = np.zeros((n, 3))
-    sq = np.zeros((n, 3))
+    xp, out = _backend(backend, device, wo)
+    wo = xp.asarray(wo)
+    lay, prow = _layers_and_rows(stack, n, xp)
+    rng = _rng(seed, xp)
+    sums = xp.zeros((n, 3))
+    sq = xp.zeros((n, 3))
     total = n * k
     for r0 in range(0, total, CHUNK_WALKS):
-        r = np.arange(r0, min(total, r0 + CHUNK_WALKS))
+        r = xp.arange(r0, min(total, r0 + CHUNK_WALKS))
         pair = r // k
         _, w, _ = run_walks(lay, prow[pair], wo[pair], None, rng, nee=False)
         _accumulate(sums, sq, pair, w)
-    return _finish(sums, sq, k)
+    f, se = _finish(sums, sq, k)
+    return out(f), out(se)

@@ -76,6 +76,7 @@ from addon.core.bsdf import (
     RoughDielectric,
 )
 from addon.core.stack import BASE_KINDS, VALID_RANGES, StackArrays
+from addon.core.xp import Rng, namespace
 
 MAX_DEPTH = 256
 RR_START = 3
@@ -145,6 +146,7 @@ class Layers:
     base_eta: np.ndarray  # (P, 3) relative to n_0
     base_k: np.ndarray  # (P, 3) relative to n_0
     base_ior: np.ndarray  # (P,) relative to n_0
+    xp: object = np  # the array namespace of the fields
 
     @classmethod
     def from_arrays(cls, sa: StackArrays) -> "Layers":
@@ -173,8 +175,15 @@ class Layers:
             base_ior=np.asarray(sa.base_ior, dtype=np.float64) / n0,
         )
 
+    def to(self, xp) -> "Layers":
+        """The same layers with every array in the namespace ``xp`` (itself if already there)."""
+        if xp is self.xp:
+            return self
+        fields = {k: (v if k == "C" else xp.asarray(v)) for k, v in self.__dict__.items() if k != "xp"}
+        return Layers(**fields, xp=xp)
 
-def _base_bsdf(lay: Layers, kind: int, pr: np.ndarray):
+
+def _base_bsdf(lay: Layers, kind: int, pr):
     if kind == _DIFFUSE:
         return Lambertian(lay.base_albedo[pr])
     if kind == _CONDUCTOR:
@@ -182,22 +191,23 @@ def _base_bsdf(lay: Layers, kind: int, pr: np.ndarray):
     return RoughDielectric(lay.base_alpha[pr], lay.base_ior[pr], reflection_only=True)
 
 
-def _base_smooth(lay: Layers, pr: np.ndarray) -> np.ndarray:
+def _base_smooth(lay: Layers, pr):
     kind = lay.base_kind[pr]
     return (kind != _DIFFUSE) & (
         (lay.base_alpha[pr] < SMOOTH_ALPHA) | ((kind == _DIELECTRIC) & (lay.base_ior[pr] == 1.0))
     )
 
 
-def _tr(tau: np.ndarray, cos: np.ndarray) -> np.ndarray:
-    with np.errstate(divide="ignore", over="ignore"):
-        return np.where(tau > 0.0, np.exp(-tau / np.abs(cos)), 1.0)
+def _tr(tau, cos):
+    xp = namespace(tau, cos)
+    with xp.errstate(divide="ignore", over="ignore"):
+        return xp.where(tau > 0.0, xp.exp(-tau / xp.abs(cos)), 1.0)
 
 
 # ------------------------------------------------------------------------------------ chain
 
 
-def _sample_chain(lay: Layers, pr: np.ndarray, wi: np.ndarray, rng: np.random.Generator):
+def _sample_chain(lay: Layers, pr, wi, rng: Rng):
     """The light chain from ``wi`` down through every interface (IMPORTANCE mode, transmission).
 
     Returns, per chain and slab s (0..C):
@@ -208,22 +218,23 @@ def _sample_chain(lay: Layers, pr: np.ndarray, wi: np.ndarray, rng: np.random.Ge
     ``B`` (m, C+1) the sum of squared density ratios of the connection splits above that
     interface (see :func:`run_walks`); ``HR`` (m, C+1) bool: a rough interface lies above slab s.
     """
+    xp = lay.xp
     m, C = pr.shape[0], lay.C
-    D = np.zeros((m, C + 1, 3))
-    W = np.zeros((m, C + 1, 3))
-    Q = np.ones((m, C + 1))
-    B = np.zeros((m, C + 1))
-    HR = np.zeros((m, C + 1), dtype=bool)
+    D = xp.zeros((m, C + 1, 3))
+    W = xp.zeros((m, C + 1, 3))
+    Q = xp.ones((m, C + 1))
+    B = xp.zeros((m, C + 1))
+    HR = xp.zeros((m, C + 1), dtype=bool)
     D[:, C] = -wi
     W[:, C] = 1.0
     for k in range(C - 1, -1, -1):
         # slab k inherits the first rough interface above slab k + 1 unless interface k is rough
         Q[:, k], B[:, k], HR[:, k] = Q[:, k + 1], B[:, k + 1], HR[:, k + 1]
-        act = np.flatnonzero(W[:, k + 1].max(axis=1) > 0.0)
-        if act.size == 0:
+        act = xp.flatnonzero(xp.max(W[:, k + 1], axis=1) > 0.0)
+        if act.shape[0] == 0:
             continue
         p = pr[act]
-        u = rng.random((act.size, 3))
+        u = rng.random((act.shape[0], 3))
         # A smooth interface is forced to transmit (u_lobe just below 1 picks the refraction
         # unless it is total internal reflection), weighted by the probability of that event
         # (the delta sample's pdf), instead of killing the chain with probability F.
@@ -233,22 +244,22 @@ def _sample_chain(lay: Layers, pr: np.ndarray, wi: np.ndarray, rng: np.random.Ge
         iface = RoughDielectric(lay.alpha[p, k], lay.eta[p, k])
         bs = iface.sample(up, u[:, 0], u[:, 1:], IMPORTANCE, check=False)
         ok = bs.valid & bs.transmission & (bs.wi[:, 2] < 0.0)
-        weight = bs.weight * np.where(smooth & bs.delta, bs.pdf, 1.0)[:, None]
-        D[act, k] = np.where(ok[:, None], bs.wi, 0.0)
+        weight = bs.weight * xp.where(smooth & bs.delta, bs.pdf, 1.0)[:, None]
+        D[act, k] = xp.where(ok[:, None], bs.wi, 0.0)
         tr = _tr(lay.tau[p, k + 1], D[act, k + 1, 2])
-        W[act, k] = np.where(ok[:, None], W[act, k + 1] * tr[:, None] * weight, 0.0)
-        r_ = np.flatnonzero(ok & ~smooth)
-        if r_.size:
+        W[act, k] = xp.where(ok[:, None], W[act, k + 1] * tr[:, None] * weight, 0.0)
+        r_ = xp.flatnonzero(ok & ~smooth)
+        if r_.shape[0]:
             a, pa = act[r_], p[r_]
             dk, dup = D[a, k], D[a, k + 1]
-            q = bs.pdf[r_] / (lay.n[pa, k] ** 2 * np.abs(dk[:, 2]))
+            q = bs.pdf[r_] / (lay.n[pa, k] ** 2 * xp.abs(dk[:, 2]))
             # the walk's density of the segment above this interface (arriving along -d_k)
-            rw = iface.take(r_).pdf(-dup, dk, RADIANCE, check=False) / (lay.n[pa, k + 1] ** 2 * np.abs(dup[:, 2]))
+            rw = iface.take(r_).pdf(-dup, dk, RADIANCE, check=False) / (lay.n[pa, k + 1] ** 2 * xp.abs(dup[:, 2]))
             above = HR[a, k + 1]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                ratio = np.where(above, (rw / Q[a, k + 1]) ** 2 * (1.0 + B[a, k + 1]), 0.0)
+            with xp.errstate(divide="ignore", invalid="ignore"):
+                ratio = xp.where(above, (rw / Q[a, k + 1]) ** 2 * (1.0 + B[a, k + 1]), 0.0)
             Q[a, k] = q
-            B[a, k] = np.where(np.isfinite(ratio), ratio, np.inf)
+            B[a, k] = xp.where(xp.isfinite(ratio), ratio, xp.inf)
             HR[a, k] = True
     return D, W, Q, B, HR
 
@@ -265,36 +276,37 @@ class _State:
         for k, v in kw.items():
             setattr(self, k, v)
 
-    def keep(self, mask: np.ndarray) -> None:
+    def keep(self, mask) -> None:
         for f in self.FIELDS:
             setattr(self, f, getattr(self, f)[mask])
 
 
-def run_walks(lay: Layers, pr: np.ndarray, wo: np.ndarray, wi: np.ndarray | None,
-              rng: np.random.Generator, nee: bool):
+def run_walks(lay: Layers, pr, wo, wi, rng: Rng, nee: bool):
     """Walk ``len(pr)`` independent walks, walk ``r`` for stack row ``pr[r]`` seen from ``wo[r]``.
 
     With ``nee`` (``wi`` of shape (m, M, 3) given): returns the per-walk estimates of
     f(wi[r, j], wo[r]) (m, M, 3): one walk serves the M incident directions, each with its
     own chain.
     Without: returns ``(wi, weight, specular)`` of the analog walk (weight 0 for absorbed walks).
+    Arrays (``lay``, ``pr``, ``wo``, ``wi``) are in the namespace ``lay.xp``; ``rng`` draws there.
     """
+    xp = lay.xp
     m, C = pr.shape[0], lay.C
     M = 1 if wi is None else wi.shape[1]
-    acc = np.zeros((m, M, 3))
-    out_wi = np.zeros((m, 3))
+    acc = xp.zeros((m, M, 3))
+    out_wi = xp.zeros((m, 3))
     out_wi[:, 2] = 1.0
-    out_w = np.zeros((m, 3))
-    out_spec = np.zeros(m, dtype=bool)
+    out_w = xp.zeros((m, 3))
+    out_spec = xp.zeros(m, dtype=bool)
     if nee:
-        D, W, Q, Bc, HR = _sample_chain(lay, np.repeat(pr, M), wi.reshape(-1, 3), rng)
+        D, W, Q, Bc, HR = _sample_chain(lay, xp.repeat(pr, M), wi.reshape(-1, 3), rng)
         D = D.reshape(m, M, C + 1, 3)
         W = W.reshape(m, M, C + 1, 3)
         Q, Bc, HR = Q.reshape(m, M, C + 1), Bc.reshape(m, M, C + 1), HR.reshape(m, M, C + 1)
     st = _State(
-        wid=np.arange(m), pr=pr.copy(), s=np.full(m, C), z=np.zeros(m), w=-wo.copy(), beta=np.ones((m, 3)),
-        run_a=np.zeros(m), run_r=np.ones(m), straight=np.zeros(m, dtype=bool),
-        nondelta=np.zeros(m, dtype=bool),
+        wid=xp.arange(m), pr=xp.copy(pr), s=xp.full(m, C), z=xp.zeros(m), w=-xp.copy(wo), beta=xp.ones((m, 3)),
+        run_a=xp.zeros(m), run_r=xp.ones(m), straight=xp.zeros(m, dtype=bool),
+        nondelta=xp.zeros(m, dtype=bool),
     )
     # a walk must see the stack from above
     st.keep(wo[:, 2] > 0.0)
@@ -303,21 +315,21 @@ def run_walks(lay: Layers, pr: np.ndarray, wo: np.ndarray, wi: np.ndarray | None
         """NEE from vertices ``ix`` (indices into st) to the chain directions of slab s_nee,
         for each of the M incident directions of the walk. ``suffix``: the vertex is a rough
         interface reached from below (it transmits upward on the connected path)."""
-        rep = np.repeat(np.arange(ix.size), M)
-        mm = np.tile(np.arange(M), ix.size)
+        rep = xp.repeat(xp.arange(ix.shape[0]), M)
+        mm = xp.tile(xp.arange(M), ix.shape[0])
         wid = st.wid[ix][rep]
         sn = s_nee[rep]
         d = D[wid, mm, sn]
         Wc = W[wid, mm, sn]
-        sel = np.flatnonzero(Wc.max(axis=1) > 0.0)
-        if sel.size == 0:
+        sel = xp.flatnonzero(xp.max(Wc, axis=1) > 0.0)
+        if sel.shape[0] == 0:
             return
         a = rep[sel]  # row of the vertex within ``ix`` (what f_fn / pdf_fn index)
         wid, mm, sn, d, Wc = wid[sel], mm[sel], sn[sel], d[sel], Wc[sel]
         ixa = ix[a]
         p = st.pr[ixa]
         w_in = st.w[ixa]
-        dz = np.abs(d[:, 2])
+        dz = xp.abs(d[:, 2])
         f = f_fn(a, -d, -w_in)
         if medium:
             tr = _tr(lay.tau[p, sn] - st.z[ixa], dz)
@@ -326,64 +338,64 @@ def run_walks(lay: Layers, pr: np.ndarray, wo: np.ndarray, wi: np.ndarray | None
             tr = _tr(lay.tau[p, sn], dz)
             c = st.beta[ixa] * f * tr[:, None] * Wc
         # splits above: the chain could also have been the walk for its lower segments
-        Bw = np.zeros(sel.size)
-        hr = np.flatnonzero(HR[wid, mm, sn])
-        if hr.size:
+        Bw = xp.zeros(sel.shape[0])
+        hr = xp.flatnonzero(HR[wid, mm, sn])
+        if hr.shape[0]:
             r = pdf_fn(a[hr], -d[hr], -w_in[hr], RADIANCE) / (lay.n[p[hr], sn[hr]] ** 2 * dz[hr])
-            with np.errstate(divide="ignore", invalid="ignore"):
+            with xp.errstate(divide="ignore", invalid="ignore"):
                 Bw[hr] = (r / Q[wid[hr], mm[hr], sn[hr]]) ** 2 * (1.0 + Bc[wid[hr], mm[hr], sn[hr]])
         # splits below: the walk's straight run could also have been the chain
-        Aw = np.zeros(sel.size)
-        sx = np.flatnonzero(suffix[a] & st.straight[ixa])
-        if sx.size:
+        Aw = xp.zeros(sel.shape[0])
+        sx = xp.flatnonzero(suffix[a] & st.straight[ixa])
+        if sx.shape[0]:
             k = sn[sx] - 1
             if EXIT_DENSITY == "matching":
                 q = pdf_fn(a[sx], -w_in[sx], -d[sx], IMPORTANCE)
             else:  # pbrt-v4's reverse density: biased, kept only to measure the bias
                 q = pdf_fn(a[sx], -d[sx], -w_in[sx], RADIANCE)
-            q = q / (lay.n[p[sx], k] ** 2 * np.abs(w_in[sx, 2]))
-            with np.errstate(divide="ignore", invalid="ignore"):
+            q = q / (lay.n[p[sx], k] ** 2 * xp.abs(w_in[sx, 2]))
+            with xp.errstate(divide="ignore", invalid="ignore"):
                 Aw[sx] = (q / st.run_r[ixa[sx]]) ** 2 * (1.0 + st.run_a[ixa[sx]])
-        with np.errstate(invalid="ignore"):
-            wt = 1.0 / (1.0 + np.nan_to_num(Aw, nan=np.inf) + np.nan_to_num(Bw, nan=np.inf))
+        with xp.errstate(invalid="ignore"):
+            wt = 1.0 / (1.0 + xp.nan_to_num(Aw, nan=xp.inf) + xp.nan_to_num(Bw, nan=xp.inf))
         acc[wid, mm] += c * wt[:, None]
 
     for depth in range(MAX_DEPTH):
-        if st.wid.size == 0:
+        if st.wid.shape[0] == 0:
             break
         # Russian roulette
         if depth > RR_START:
-            bmax = st.beta.max(axis=1)
-            q = np.where(bmax < 0.25, np.maximum(0.0, 1.0 - bmax), 0.0)
-            u = rng.random(bmax.size)
+            bmax = xp.max(st.beta, axis=1)
+            q = xp.where(bmax < 0.25, xp.maximum(0.0, 1.0 - bmax), 0.0)
+            u = rng.random(bmax.shape[0])
             alive = u >= q
-            st.beta /= np.where(alive, 1.0 - q, 1.0)[:, None]
+            st.beta /= xp.where(alive, 1.0 - q, 1.0)[:, None]
             st.keep(alive & (bmax > 0.0))
-            if st.wid.size == 0:
+            if st.wid.shape[0] == 0:
                 break
 
         # ---- free flight in the current slab
         inside = st.s < C
         up = st.w[:, 2] > 0.0
         tau = lay.tau[st.pr, st.s]
-        scat = np.zeros(st.wid.size, dtype=bool)
-        sc_rows = np.flatnonzero(inside & lay.scatter[st.pr, st.s])
-        if sc_rows.size:
-            wz = np.abs(st.w[sc_rows, 2])
-            dist = -np.log1p(-rng.random(sc_rows.size)) * wz
-            zp = st.z[sc_rows] + np.where(up[sc_rows], dist, -dist)
+        scat = xp.zeros(st.wid.shape[0], dtype=bool)
+        sc_rows = xp.flatnonzero(inside & lay.scatter[st.pr, st.s])
+        if sc_rows.shape[0]:
+            wz = xp.abs(st.w[sc_rows, 2])
+            dist = -xp.log1p(-rng.random(sc_rows.shape[0])) * wz
+            zp = st.z[sc_rows] + xp.where(up[sc_rows], dist, -dist)
             hit = (zp > 0.0) & (zp < tau[sc_rows])
             scat[sc_rows[hit]] = True
             st.z[sc_rows[hit]] = zp[hit]
-        ab_rows = np.flatnonzero(inside & ~lay.scatter[st.pr, st.s] & (tau > 0.0))
-        if ab_rows.size:
-            dist = np.where(up[ab_rows], tau[ab_rows] - st.z[ab_rows], st.z[ab_rows])
+        ab_rows = xp.flatnonzero(inside & ~lay.scatter[st.pr, st.s] & (tau > 0.0))
+        if ab_rows.shape[0]:
+            dist = xp.where(up[ab_rows], tau[ab_rows] - st.z[ab_rows], st.z[ab_rows])
             st.beta[ab_rows] *= _tr(dist, st.w[ab_rows, 2])[:, None]
-        dead = np.zeros(st.wid.size, dtype=bool)
+        dead = xp.zeros(st.wid.shape[0], dtype=bool)
 
         # ---- medium scattering
-        ms = np.flatnonzero(scat)
-        if ms.size:
+        ms = xp.flatnonzero(scat)
+        if ms.shape[0]:
             p, s = st.pr[ms], st.s[ms]
             phase = HenyeyGreenstein(lay.g[p, s])
             if nee:
@@ -393,38 +405,38 @@ def run_walks(lay: Layers, pr: np.ndarray, wo: np.ndarray, wi: np.ndarray | None
                 def pdf_ph(a, wi_, wo_, mode):
                     return phase.take(a).eval(wi_, wo_, check=False)
 
-                connect(ms, s.copy(), f_ph, pdf_ph, True, np.zeros(ms.size, dtype=bool))
-            wnew, pdf = phase.sample(-st.w[ms], rng.random((ms.size, 2)), check=False)
+                connect(ms, xp.copy(s), f_ph, pdf_ph, True, xp.zeros(ms.shape[0], dtype=bool))
+            wnew, pdf = phase.sample(-st.w[ms], rng.random((ms.shape[0], 2)), check=False)
             st.beta[ms] *= lay.albedo[p, s]
             st.w[ms] = wnew
             st.run_a[ms] = 0.0
-            st.run_r[ms] = pdf / (lay.n[p, s] ** 2 * np.abs(wnew[:, 2]))
+            st.run_r[ms] = pdf / (lay.n[p, s] ** 2 * xp.abs(wnew[:, 2]))
             st.straight[ms] = wnew[:, 2] > 0.0
             st.nondelta[ms] = True
             dead[ms] = (wnew[:, 2] == 0.0) | ~(pdf > 0.0)
 
         # ---- surface events: interface k hit from either side, or the base
         srf = ~scat
-        if np.any(srf):
-            new_s = st.s.copy()
-            k = np.where(up, st.s, st.s - 1)
-            base_rows = np.flatnonzero(srf & ~up & (st.s == 0))
-            if_rows = np.flatnonzero(srf & ((up & (st.s < C)) | (~up & (st.s > 0))))
+        if xp.any(srf):
+            new_s = xp.copy(st.s)
+            k = xp.where(up, st.s, st.s - 1)
+            base_rows = xp.flatnonzero(srf & ~up & (st.s == 0))
+            if_rows = xp.flatnonzero(srf & ((up & (st.s < C)) | (~up & (st.s > 0))))
             groups = []
-            if if_rows.size:
+            if if_rows.shape[0]:
                 p, kk = st.pr[if_rows], k[if_rows]
                 groups.append((if_rows, RoughDielectric(lay.alpha[p, kk], lay.eta[p, kk]), kk + 1,
                                lay.smooth[p, kk], up[if_rows], kk))
             for kind in range(len(BASE_KINDS)):
                 rows = base_rows[lay.base_kind[st.pr[base_rows]] == kind]
-                if rows.size:
+                if rows.shape[0]:
                     p = st.pr[rows]
-                    groups.append((rows, _base_bsdf(lay, kind, p), np.zeros(rows.size, dtype=np.int64),
-                                   _base_smooth(lay, p), np.zeros(rows.size, dtype=bool), None))
+                    groups.append((rows, _base_bsdf(lay, kind, p), xp.zeros(rows.shape[0], dtype=xp.int64),
+                                   _base_smooth(lay, p), xp.zeros(rows.shape[0], dtype=bool), None))
             for rows, bsdf, s_nee, smooth, from_below, kk in groups:
                 if nee:
-                    nd = np.flatnonzero(~smooth)
-                    if nd.size:
+                    nd = xp.flatnonzero(~smooth)
+                    if nd.shape[0]:
                         sub = bsdf.take(nd)
 
                         def f_s(a, wi_, wo_, sub=sub):
@@ -434,50 +446,50 @@ def run_walks(lay: Layers, pr: np.ndarray, wo: np.ndarray, wi: np.ndarray | None
                             return sub.take(a).pdf(wi_, wo_, mode, check=False)
 
                         connect(rows[nd], s_nee[nd], f_s, pdf_s, False, from_below[nd])
-                u = rng.random((rows.size, 3))
-                forced = np.zeros(rows.size, dtype=bool)
+                u = rng.random((rows.shape[0], 3))
+                forced = xp.zeros(rows.shape[0], dtype=bool)
                 if nee and kk is not None:
                     # f has no delta part: a smooth top interface hit from above (entering) must
                     # transmit and one hit from below must reflect for the walk to contribute;
                     # force that event and weight it by its probability (pbrt's
                     # transmission-only / reflection-only sampling of the interfaces).
                     forced = smooth & (kk == C - 1)
-                    u[forced, 0] = np.where(up[rows[forced]], 0.0, _JUST_BELOW_ONE)
+                    u[forced, 0] = xp.where(up[rows[forced]], 0.0, _JUST_BELOW_ONE)
                 bs_wo = -st.w[rows]
                 bs = bsdf.sample(bs_wo, u[:, 0], u[:, 1:], RADIANCE, check=False)
                 wnew = bs.wi
                 ok = bs.valid & (wnew[:, 2] != 0.0)
-                st.beta[rows] *= bs.weight * np.where(forced & bs.delta, bs.pdf, 1.0)[:, None]
+                st.beta[rows] *= bs.weight * xp.where(forced & bs.delta, bs.pdf, 1.0)[:, None]
                 st.w[rows] = wnew
                 upn = wnew[:, 2] > 0.0
                 if kk is None:
-                    sn = np.zeros(rows.size, dtype=np.int64)
+                    sn = xp.zeros(rows.shape[0], dtype=xp.int64)
                 else:
-                    sn = np.where(upn, kk + 1, kk)
+                    sn = xp.where(upn, kk + 1, kk)
                 new_s[rows] = sn
-                st.z[rows] = np.where(upn, 0.0, lay.tau[st.pr[rows], np.minimum(sn, C)])
+                st.z[rows] = xp.where(upn, 0.0, lay.tau[st.pr[rows], xp.minimum(sn, C)])
                 nd_ev = ~bs.delta
                 if nee:
                     # bookkeeping of the straight upward run for the connection weights
                     pr_r = st.pr[rows]
-                    with np.errstate(divide="ignore", invalid="ignore"):
-                        r_new = bs.pdf / (lay.n[pr_r, sn] ** 2 * np.abs(wnew[:, 2]))
-                    a_new = np.zeros(rows.size)
-                    cont = np.flatnonzero(nd_ev & from_below & upn & st.straight[rows])
-                    if cont.size:
+                    with xp.errstate(divide="ignore", invalid="ignore"):
+                        r_new = bs.pdf / (lay.n[pr_r, sn] ** 2 * xp.abs(wnew[:, 2]))
+                    a_new = xp.zeros(rows.shape[0])
+                    cont = xp.flatnonzero(nd_ev & from_below & upn & st.straight[rows])
+                    if cont.shape[0]:
                         w_in = -bs_wo[cont]
                         q = bsdf.take(cont).pdf(-w_in, wnew[cont], IMPORTANCE, check=False) / (
-                            lay.n[pr_r[cont], kk[cont]] ** 2 * np.abs(w_in[:, 2]))
-                        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                            lay.n[pr_r[cont], kk[cont]] ** 2 * xp.abs(w_in[:, 2]))
+                        with xp.errstate(divide="ignore", invalid="ignore", over="ignore"):
                             a_new[cont] = (q / st.run_r[rows[cont]]) ** 2 * (1.0 + st.run_a[rows[cont]])
-                    st.run_a[rows] = np.where(nd_ev, np.nan_to_num(a_new, nan=np.inf), st.run_a[rows])
-                    st.run_r[rows] = np.where(nd_ev, r_new, st.run_r[rows])
-                st.straight[rows] = np.where(nd_ev, upn, st.straight[rows] & bs.transmission)
+                    st.run_a[rows] = xp.where(nd_ev, xp.nan_to_num(a_new, nan=xp.inf), st.run_a[rows])
+                    st.run_r[rows] = xp.where(nd_ev, r_new, st.run_r[rows])
+                st.straight[rows] = xp.where(nd_ev, upn, st.straight[rows] & bs.transmission)
                 st.nondelta[rows] |= nd_ev
                 dead[rows] = ~ok
             st.s = new_s
-            exits = np.flatnonzero(srf & ~dead & (st.s == C))
-            if exits.size:
+            exits = xp.flatnonzero(srf & ~dead & (st.s == C))
+            if exits.shape[0]:
                 if not nee:
                     wid = st.wid[exits]
                     out_wi[wid] = st.w[exits]
