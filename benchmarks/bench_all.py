@@ -186,10 +186,7 @@ def brdf_reference(sets: dict, cfg: Config) -> list[dict]:
     return rows
 
 
-def brdf_cycles(sets: dict, cfg: Config) -> list[dict]:
-    from cycles_brdf import CyclesBRDF
-
-    cy = CyclesBRDF(cfg.cycles_res, cfg.cycles_samples)
+def brdf_cycles(sets: dict, cfg: Config, cy) -> list[dict]:
     rows = []
     for name, idx in (("single", cfg.cycles_single), ("layered", cfg.cycles_layered)):
         s = sets[name]
@@ -509,7 +506,10 @@ def main(argv=None) -> int:
     stage("reference walks")
     brdf += brdf_reference(sets, cfg)
     stage("Cycles BRDF")
-    brdf += brdf_cycles(sets, cfg)
+    from cycles_brdf import CyclesBRDF
+
+    cy = CyclesBRDF(cfg.cycles_res, cfg.cycles_samples)
+    brdf += brdf_cycles(sets, cfg, cy)
     stage("render level")
     render_data = render_level(cfg, a.out)
     stage("stability")
@@ -519,7 +519,8 @@ def main(argv=None) -> int:
 
         # the quick run checks the harness on a few cases (tests/core/test_stability.py covers every case)
         few = ("alpha_to_0", "grazing", "three_coatings", "out_of_range", "nan_direction") if a.quick else None
-        cells = stability.run(a.quick, case_names=few)
+        cy = CyclesBRDF(cfg.cycles_res, cfg.cycles_samples)  # a fresh Blender scene: the render level replaced it
+        cells = stability.run(a.quick, case_names=few, cycles=None if a.quick else cy)
         (a.out / "stability.md").write_text(stability.markdown(cells, command))
     data = {"command": command, "seconds": time.perf_counter() - t0, "sizes": quality.available_sizes(),
             "n_single": len(sets["single"]["stacks"]), "n_layered": len(sets["layered"]["stacks"]),

@@ -5,9 +5,10 @@
 
 Methods: the position-free reference (``addon.core.reference``, ``eval_brdf`` + analog-walk
 albedo), every shipped neural decoder size (encoded as the renderer encodes it: encoder +
-layering network, clamped to the trained range), and the Principled coat mapping used for the
-Cycles baseline (``addon.core.render.principled``: only whether it maps the stack to finite
-socket values; its BRDF is measured with Cycles by ``benchmarks/bench_all.py``).
+layering network, clamped to the trained range), the Principled coat mapping used for the
+Cycles baseline (``addon.core.render.principled``: whether it maps the stack to finite socket
+values) and, when run by ``benchmarks/bench_all.py`` (which has bpy), Cycles' Principled coat
+itself: its directional albedo rendered in Cycles (``benchmarks/cycles_brdf.py``).
 
 Stress cases: alpha -> 0, grazing incidence and exitance (89.5 degrees), very thick absorbing
 and very thick highly scattering media, ior near 1 and at the top of the valid range, total
@@ -277,7 +278,34 @@ def principled_cell(case: Case) -> Cell:
     return cell
 
 
-def run(quick: bool = False, sizes=None, case_names=None) -> list[Cell]:
+def cycles_cell(cy, case: Case, albedo_samples: int) -> Cell:
+    """Cycles' Principled coat (``cycles_brdf.CyclesBRDF``): its directional albedo at the case's angles,
+    rendered in Cycles, against the reference's; the error is the largest relative albedo difference."""
+    cell = Cell("Cycles Principled", case.name)
+    if case.nan_directions:
+        cell.status, cell.notes = "n/a", ["Cycles traces its own rays"]
+        return cell
+    if case.stack is None:
+        return _nan_cell(cell.method, case, None)
+    cos = np.cos(np.radians(np.asarray(case.angles, dtype=np.float64)))
+    t0 = time.perf_counter()
+    a = cy.albedo(case.stack, cos)
+    cell.seconds_per_eval = (time.perf_counter() - t0) / max(1, int(cy.on_plane.sum()) * cy.samples)
+    cell.finite = bool(np.isfinite(a).all())
+    cell.nonnegative = bool((a >= 0).all())
+    cell.albedo_max = float(a.max())
+    cell.albedo_ok = bool(cell.albedo_max <= 1.02)  # Monte Carlo noise of the render
+    views = np.array([lobe.incident_direction(th) for th in case.angles])
+    ref, _ = reference.albedo(case.stack, views, samples=albedo_samples, seed=2)
+    cell.error = float(np.max(np.abs(a - ref) / np.maximum(ref, 1e-3)))
+    cell.notes.append("albedo only (world of radiance 1); error = largest relative albedo difference")
+    if not (cell.finite and cell.nonnegative and cell.albedo_ok):
+        cell.status = "FAIL"
+    return cell
+
+
+def run(quick: bool = False, sizes=None, case_names=None, cycles=None) -> list[Cell]:
+    """The matrix; ``cycles`` is an optional ``cycles_brdf.CyclesBRDF`` (needs bpy) adding Cycles' column."""
     res = 8 if quick else 16
     walks = 32 if quick else 256
     albedo_samples = 2000 if quick else 20000
@@ -289,6 +317,8 @@ def run(quick: bool = False, sizes=None, case_names=None) -> list[Cell]:
         for s in sizes:
             cells.append(neural_cell(s, case, res, walks))
         cells.append(principled_cell(case))
+        if cycles is not None:
+            cells.append(cycles_cell(cycles, case, albedo_samples))
         print(" | ".join(f"{c.method}: {c.status}" for c in cells if c.case == case.name), file=sys.stderr, flush=True)
     return cells
 
