@@ -519,8 +519,9 @@ def main(argv=None) -> int:
 
         # the quick run checks the harness on a few cases (tests/core/test_stability.py covers every case)
         few = ("alpha_to_0", "grazing", "three_coatings", "out_of_range", "nan_direction") if a.quick else None
-        cy = CyclesBRDF(cfg.cycles_res, cfg.cycles_samples)  # a fresh Blender scene: the render level replaced it
-        cells = stability.run(a.quick, case_names=few, cycles=None if a.quick else cy)
+        # a fresh Blender scene (the render level replaced it); the quick run leaves Cycles out
+        cy = None if a.quick else CyclesBRDF(cfg.cycles_res, cfg.cycles_samples)
+        cells = stability.run(a.quick, case_names=few, cycles=cy)
         (a.out / "stability.md").write_text(stability.markdown(cells, command))
     data = {"command": command, "seconds": time.perf_counter() - t0, "sizes": quality.available_sizes(),
             "n_single": len(sets["single"]["stacks"]), "n_layered": len(sets["layered"]["stacks"]),
