@@ -71,7 +71,7 @@ class Config:
 
 
 FULL = Config(single=None, layered=None, cycles_single=(0, 5, 9, 14, 20, 28, 33, 38), cycles_layered=None,
-              walks=(1, 4, 16, 64, 256, 1024), ref_pixels=48, cycles_res=128, cycles_samples=32, size=(80, 45),
+              walks=(1, 4, 16, 64, 256, 1024), ref_pixels=48, cycles_res=96, cycles_samples=16, size=(80, 45),
               bounces=4, reference_spp=256, budgets=(1, 2, 4, 8, 16), cycles_budgets=(1, 4, 16, 64),
               auto_tolerance=0.3, auto_spp=8)
 QUICK = Config(single=(0, 5), layered=(0, 12), cycles_single=(), cycles_layered=(0,), walks=(1, 4, 16),

@@ -183,12 +183,14 @@ class CyclesBRDF:
     # ---------------------------------------------------------------- measurements
 
     def _to_grid(self, values: np.ndarray, res: int) -> np.ndarray:
-        from scipy.interpolate import griddata
+        from scipy.interpolate import LinearNDInterpolator
+        from scipy.spatial import Delaunay
 
+        if getattr(self, "_tri", None) is None:  # one triangulation of the pixels' directions, reused
+            self._tri = Delaunay(self.wo[self.on_plane][:, :2])
         wo, mask = lobe.lobe_grid(res)
-        pts = self.wo[self.on_plane][:, :2]
         out = np.zeros((res * res, 3))
-        out[mask] = griddata(pts, values[self.on_plane], wo[mask][:, :2], method="linear")
+        out[mask] = LinearNDInterpolator(self._tri, values[self.on_plane])(wo[mask][:, :2])
         return np.nan_to_num(out).reshape(res, res, 3)
 
     def lobes(self, stack, res: int = 32, angles=lobe.INCIDENT_ANGLES_DEG):
