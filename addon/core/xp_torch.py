@@ -41,6 +41,7 @@ class TorchNamespace:
         self.int64 = torch.int64
         self.bool_ = torch.bool
         self.ndarray = torch.Tensor
+        self._consts = {}
         self._dtypes = {
             bool: torch.bool, float: torch.float64, int: torch.int64,
             np.bool_: torch.bool, np.float64: torch.float64, np.float32: torch.float32, np.int64: torch.int64,
@@ -59,12 +60,21 @@ class TorchNamespace:
         """``x`` as a tensor on this device (numpy-typed: Python floats become float64)."""
         if isinstance(x, self.torch.Tensor):
             return x if x.device == self.device else x.to(self.device)
+        if isinstance(x, (float, int)) and x == x:
+            # Python scalars recur (0.0, 1.0, inf, ...): one 0-d tensor each, never written to
+            key = (type(x), x)
+            t = self._consts.get(key)
+            if t is None:
+                t = self.torch.as_tensor(np.asarray(x), device=self.device)
+                if len(self._consts) < 4096:
+                    self._consts[key] = t
+            return t
         if type(x).__module__.startswith("cupy"):
             x = x.get()
         return self.torch.as_tensor(np.asarray(x), device=self.device)
 
     def asarray(self, x, dtype=None):
-        t = self._t(x)
+        t = self._t(x) if isinstance(x, self.torch.Tensor) else self._t(np.asarray(x))
         dt = self._dt(dtype)
         return t if dt is None or t.dtype == dt else t.to(dt)
 

@@ -3,6 +3,7 @@
 
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -137,7 +138,7 @@ def test_backend_arguments_are_checked():
 def test_core_imports_neither_torch_nor_cupy():
     code = ("import sys; import addon.core.reference, addon.core.bsdf, addon.core.xp; "
             "assert 'torch' not in sys.modules and 'cupy' not in sys.modules, 'imported'")
-    subprocess.run([sys.executable, "-c", code], check=True)
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[2])
 
 
 # ----------------------------------------------------------------------------- analytic BSDFs
