@@ -2,6 +2,8 @@
 
     python benchmarks/bench_reference.py            # writes docs/reference_benchmark.md and .png
     python benchmarks/bench_reference.py --quick    # smaller runs, same outputs
+    python benchmarks/bench_reference.py --backend torch [--device cuda] [--quick]
+        # walks per second only, numpy next to the backend: docs/reference_benchmark_<backend>.md
 
 Measures, on this machine's CPU with numpy:
 
@@ -54,11 +56,65 @@ def lobe_noise(f: np.ndarray, se: np.ndarray, cos_o: np.ndarray) -> float:
     return float(num / den) if den > 0 else float("inf")
 
 
+def backend_speed(args) -> int:
+    """Walks per second of every preset with numpy and with ``args.backend`` (same calls)."""
+    q = args.quick
+    res = 16 if q else 24
+    walks = 32 if q else 64
+    k = 20000 if q else 60000
+    be = dict(backend=args.backend, device=args.device)
+    dev = args.device or ("cpu" if args.backend == "torch" else "cuda")
+    cmd = f"python benchmarks/bench_reference.py --backend {args.backend}" + (
+        f" --device {args.device}" if args.device else "") + (
+        f" --threads {args.threads}" if args.threads else "") + (" --quick" if q else "")
+    if args.backend == "torch":
+        import torch
+
+        if args.threads:
+            torch.set_num_threads(args.threads)
+        dev += f", torch {torch.__version__}, CPU threads: {torch.get_num_threads()}"
+    lines = [
+        f"# Reference walks per second: numpy and {args.backend} ({dev})",
+        "",
+        f"Command: `{cmd}` (numpy {np.__version__}, Python {platform.python_version()}, {platform.machine()}).",
+        "The same source runs on both (`addon/core/xp.py`); timings from a shared machine: rough.",
+        f"`eval_brdf`: a {res}x{res} lobe grid at 30 degrees x {walks} walks per pixel; analog: `albedo`, "
+        f"{k} walks from one direction. Each is timed after one small warm-up call.",
+        "",
+        f"| preset | coatings | eval numpy | eval {args.backend} | analog numpy | analog {args.backend} |",
+        "|---|---|---|---|---|---|",
+    ]
+    wd = lobe.incident_direction(30.0)[None]
+    for name, stack in PRESETS.items():
+        wi, wo, _ = lobe_pairs(res, 30.0)
+        row = []
+        for kw in ({}, be):
+            reference.eval_brdf(stack, wi[:8], wo[:8], walks=2, seed=0, **kw)  # warm-up
+            _, dt = timed(lambda: reference.eval_brdf(stack, wi, wo, walks=walks, seed=1, **kw))
+            _, dt_a = timed(lambda: reference.albedo(stack, wd, samples=k, seed=2, **kw))
+            row.append((wi.shape[0] * walks / dt, k / dt_a))
+        lines.append(f"| {name} | {len(stack.coatings)} | {row[0][0]:,.0f} | {row[1][0]:,.0f} | "
+                     f"{row[0][1]:,.0f} | {row[1][1]:,.0f} |")
+        print(lines[-1], flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / f"reference_benchmark_{args.backend}.md"
+    path.write_text("\n".join(lines) + "\n")
+    print(f"wrote {path}")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smaller runs (noisier figures)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
+    ap.add_argument("--backend", choices=("numpy", "torch", "cupy"), default="numpy",
+                    help="array library of the walks; other than numpy: walks/s only, next to numpy's")
+    ap.add_argument("--device", default=None, help="cpu, cuda or cuda:N (torch, cupy)")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch.set_num_threads(N) for --backend torch on the CPU (1 on a shared machine)")
     args = ap.parse_args(argv)
+    if args.backend != "numpy":
+        return backend_speed(args)
     q = args.quick
     res = 16 if q else 24
     pilot_walks = 32 if q else 64
@@ -67,7 +123,7 @@ def main(argv=None) -> int:
         "# Reference (position-free Monte Carlo) benchmark",
         "",
         f"Command: `{cmd}` (numpy {np.__version__}, Python {platform.python_version()}, "
-        f"{platform.machine()}, CPU only: no GPU path is implemented yet).",
+        f"{platform.machine()}, numpy backend; `--backend torch|cupy` measures the others).",
         "Timings come from a shared 2-core machine with other work running: treat them as rough.",
         "",
         "## Walks per second",
