@@ -29,7 +29,15 @@ def neural_encoder(size: str, threads: int = 2) -> Encoder:
 
     models = load_models(size, threads)
     layer_model = layering.load_layering(models.size, threads)
-    return lambda arrays: layering.encode_stack_arrays(arrays, models, layer_model)
+    if layer_model.sampling is None:
+        raise FileNotFoundError(f"no sampling model for decoder size {size!r}: the proxy channels need one")
+
+    def encode(arrays):
+        # every row is encoded: deduplication is bake_texels' job, so it can be measured
+        z = layering.encode_latents(arrays, models, layer_model)
+        return z, layer_model.sampling.proxy_params(z)
+
+    return encode
 
 
 def bake_key(spatial: SpatialStack, resolution: tuple[int, int], model: str,

@@ -28,12 +28,24 @@ def downsample(level: np.ndarray) -> np.ndarray:
     return resample_area(level, max(1, level.shape[0] // 2), max(1, level.shape[1] // 2))
 
 
+def _reduce_rows(image: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """``weights @ image`` along axis 0, using that each output row mixes only a few input rows."""
+    taps = int((weights > 0).sum(axis=1).max())
+    first = np.argmax(weights > 0, axis=1)
+    out = np.zeros((weights.shape[0],) + image.shape[1:], dtype=image.dtype)
+    rows = np.arange(weights.shape[0])
+    for k in range(taps):  # a loop over filter taps (2 or 3 for a mip level), not texels
+        src = np.minimum(first + k, weights.shape[1] - 1)
+        wk = weights[rows, src] * (first + k < weights.shape[1])
+        out += wk.astype(image.dtype).reshape((-1,) + (1,) * (image.ndim - 1)) * image[src]
+    return out
+
+
 def resample_area(image: np.ndarray, height: int, width: int) -> np.ndarray:
     """Area-weighted box reduction of an (H, W, C) image to (height, width), each at most H, W."""
-    wy = box_weights(image.shape[0], height)
-    wx = box_weights(image.shape[1], width)
-    tmp = np.einsum("ij,jwc->iwc", wy, image.astype(np.float64, copy=False))
-    return np.einsum("kw,iwc->ikc", wx, tmp)
+    h, w, _ = image.shape
+    tmp = _reduce_rows(image, box_weights(h, height))
+    return _reduce_rows(tmp.transpose(1, 0, 2), box_weights(w, width)).transpose(1, 0, 2)
 
 
 def build_mip_chain(base: np.ndarray) -> list[np.ndarray]:
@@ -41,10 +53,8 @@ def build_mip_chain(base: np.ndarray) -> list[np.ndarray]:
     if base.ndim != 3 or base.shape[0] < 1 or base.shape[1] < 1:
         raise ValueError(f"a mip chain needs an (H, W, C) array, got shape {base.shape}")
     levels = [np.asarray(base, dtype=np.float32)]
-    cur = levels[0].astype(np.float64)
-    while cur.shape[0] > 1 or cur.shape[1] > 1:
-        cur = downsample(cur)
-        levels.append(cur.astype(np.float32))
+    while levels[-1].shape[0] > 1 or levels[-1].shape[1] > 1:
+        levels.append(downsample(levels[-1]))  # float32: the texture is stored as half floats
     return levels
 
 
