@@ -123,5 +123,7 @@ def test_bake_with_the_shipped_models(bpy_addon, material, tmp_path):
     tex = LatentTexture.read_exr(bake_ops.baked_texture_state(material)[0])
     from addon.core.stack import preset
 
-    z = encode_layered_stack(preset("lacquered_plastic"))
+    from addon.core.neural import load_models
+
+    z = encode_layered_stack(preset("lacquered_plastic"), load_models("tiny"))
     assert np.allclose(tex.levels[0][0, 0, :96], z.reshape(-1), atol=2e-3)
