@@ -289,7 +289,8 @@ def test_lights_match_cycles_on_a_lambertian_floor(fresh_scene, tmp_path, kind):
     assert ours.mean() == pytest.approx(cycles.mean(), rel=0.03)
 
 
-def test_f12_renders_layered_materials_in_reference_mode(fresh_scene, tmp_path):
+@pytest.mark.parametrize("mode", ["reference", "neural"])
+def test_f12_renders_layered_materials(fresh_scene, tmp_path, mode):
     from addon.blender import stack_io
     from addon.core.stack import PRESETS
 
@@ -297,7 +298,7 @@ def test_f12_renders_layered_materials_in_reference_mode(fresh_scene, tmp_path):
     small(ctx.scene, 16, 12, samples=1)
     stack_io.stack_to_material(PRESETS["red_car_paint"], ctx.scene.objects["Cube"].active_material)
     ctx.scene.render.engine = "NEURAL_LAYERED"
-    ctx.scene.neural_render.mode = "reference"
+    ctx.scene.neural_render.mode = mode
     ctx.scene.neural_render.reference_walks = 1
     ctx.scene.render.image_settings.file_format = "OPEN_EXR"
     ctx.scene.render.filepath = str(tmp_path / "layered.exr")

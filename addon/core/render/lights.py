@@ -197,18 +197,24 @@ class AreaLight:
 
     def intersect(self, o: np.ndarray, d: np.ndarray):
         """Distance along unit rays to the emitting side (inf where missed) and the solid-angle pdf."""
+        n = len(o)
+        t_out, pdf_out = np.full(n, INF), np.zeros(n)
         denom = d @ self.normal
-        front = denom < -1e-12  # the ray arrives against the emitting normal
-        t = ((self.center - o) @ self.normal) / np.where(front, denom, -1.0)
-        q = o + t[:, None] * d - self.center
+        height = (self.center - o) @ self.normal
+        # Only rays arriving against the emitting normal, from its lit side, can hit it.
+        idx = np.nonzero((denom < -1e-12) & (height < 0))[0]
+        if len(idx) == 0:
+            return t_out, pdf_out
+        t = height[idx] / denom[idx]
+        q = o[idx] + t[:, None] * d[idx] - self.center
         a = (q @ self.axis_u) / (self.axis_u @ self.axis_u)
         b = (q @ self.axis_v) / (self.axis_v @ self.axis_v)
         inside = (a * a + b * b <= 1) if self.ellipse else ((np.abs(a) <= 1) & (np.abs(b) <= 1))
-        hit = front & (t > 1e-6) & inside
-        t = np.where(hit, t, INF)
-        cos_l = np.where(hit, -denom, 1.0)
-        pdf = np.where(hit, np.where(hit, t, 0.0) ** 2 / (cos_l * self.area), 0.0)
-        return t, pdf
+        hit = inside & (t > 1e-6)
+        idx, t = idx[hit], t[hit]
+        t_out[idx] = t
+        pdf_out[idx] = t * t / (-denom[idx] * self.area)
+        return t_out, pdf_out
 
     def estimated_power(self) -> float:
         return float(self.power * self.color.mean())
