@@ -387,6 +387,8 @@ def chart_render(r: dict, path: Path, command: str) -> None:
         a = r["auto"]
         ax.loglog([a["auto_seconds"]], [a["auto_mse"]], "*", ms=12, color="k",
                   label=f"auto (tolerance {a['tolerance']:g}, {a['spp']} spp)")
+        ax.loglog([a["largest_seconds"]], [a["largest_mse"]], "*", ms=12, mfc="none", color="k",
+                  label=f"always {a['largest']} ({a['spp']} spp, same seed)")
     w, h = r["size"]
     ax.set_xlabel("render time (s)")
     ax.set_ylabel(f"MSE against a {r['reference_spp']}-spp reference-mode render")
