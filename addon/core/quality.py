@@ -344,22 +344,16 @@ def primary_footprints(scene, stride: int = 1) -> np.ndarray:
 # --------------------------------------------------------------------------- renderer materials
 
 
-def neural_material(stack: Stack, size: str, threads: int = 2):
-    """A renderer NeuralMaterial of ``stack`` on decoder ``size`` (encoder + layering network), with the
-    sampling network's proxy parameters where that network is shipped. Raises FileNotFoundError when a
-    model the stack needs is missing."""
-    from .neural.layering import encode_layered_stack
-    from .neural.runtime import load_models
-    from .neural.sampling import load_sampling
-    from .render.neural_material import NeuralMaterial, proxy_guess
+def neural_material(stack: Stack, size: str):
+    """The renderer's NeuralMaterial of ``stack`` on decoder ``size`` (``render.neural_material.make``);
+    raises FileNotFoundError when that size cannot encode the stack (a model it needs is missing)."""
+    from .render import neural_material as nm
 
-    models = load_models(size, threads=threads)
-    z = encode_layered_stack(stack, models, layering_model(size, threads) if stack.coatings else None)
-    try:
-        sigma, w = (float(v) for v in load_sampling(size, threads).proxy_params(z)[0])
-    except (FileNotFoundError, OSError):
-        sigma, w = proxy_guess(stack)
-    return NeuralMaterial(models, z, (sigma, w))
+    made = nm.make(stack, size=size)
+    if made is None:
+        raise FileNotFoundError(f"the shipped models of decoder size {size!r} cannot encode this stack "
+                                f"({len(stack.coatings)} coating(s)): a model it needs is missing")
+    return made
 
 
 def assign_decoders(scene, quality: str = "auto", tolerance: float = DEFAULT_TOLERANCE, fallback: str = "best",
@@ -405,7 +399,7 @@ def assign_decoders(scene, quality: str = "auto", tolerance: float = DEFAULT_TOL
         try:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                out.append(neural_material(spec.stack, size, threads))
+                out.append(neural_material(spec.stack, size))
             notes += [f"material {name!r}: {w.message}" for w in caught]
         except (FileNotFoundError, NotImplementedError) as e:
             notes.append(f"material {name!r}: decoder {size} cannot encode it ({e}); rendering it with the reference")
