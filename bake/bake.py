@@ -311,12 +311,6 @@ def main(argv: list[str] | None = None, encode=None) -> int:
     except SystemExit as e:
         return 2 if e.code else 0
     try:
-        import bpy  # noqa: F401  (OpenImageIO ships inside Blender / the bpy wheel)
-
-        bpy.utils.expose_bundled_modules()
-    except ImportError:
-        pass
-    try:
         shard = parse_shard(args.shard)
         if args.band_rows < 1:
             raise BadInput(f"--band-rows must be >= 1, got {args.band_rows}")

@@ -62,11 +62,41 @@ def preset_lobes(out: Path, res: int, walks: int, seed: int) -> list[str]:
     return rows
 
 
+def bake_floor(out: Path):
+    """Bake the varnished tile floor (spatially varying stack) into a latent texture, or None
+    (with a message) when no shipped decoder size has its layering and sampling networks."""
+    from addon.core.neural import SIZES
+    from addon.core.render.demo_scene import FLOOR_STACK, floor_maps
+    from addon.core.textures import LatentTexture
+    from addon.core.textures.bake import bake_stack, neural_encoder
+    from addon.core.textures.spatial import SpatialStack
+
+    for size in SIZES:
+        try:
+            encode = neural_encoder(size)
+        except (FileNotFoundError, ValueError):
+            continue
+        t0 = time.perf_counter()
+        tex, stats = bake_stack(SpatialStack(FLOOR_STACK, floor_maps()), encode, metadata={"model": size})
+        path = out / "varnished_tiles.exr"
+        try:
+            tex.write_exr(path)
+            tex = LatentTexture.read_exr(path)  # render what was written
+        except RuntimeError as e:
+            print(f"  (latent texture not written: {e})")
+        print(f"Baked the floor: {tex.width}x{tex.height} texels, {stats.unique} distinct, {size} decoder, "
+              f"{time.perf_counter() - t0:.1f} s -> {path}", flush=True)
+        return tex
+    print("  no decoder size ships layering + sampling networks: the floor renders as a plain texture")
+    return None
+
+
 def render_demo(out: Path, width: int, height: int, samples: int, bounces: int, mode: str, seed: int) -> None:
     from addon.core.render import RenderSettings, render, write_exr, write_png
     from addon.core.render.demo_scene import demo_scene
 
-    scene = demo_scene(width, height)
+    floor = bake_floor(out) if mode == "neural" else None
+    scene = demo_scene(width, height, floor_texture=floor)
     settings = RenderSettings(samples=samples, max_bounces=bounces, seed=seed, mode=mode, reference_walks=2)
     t0 = time.perf_counter()
 

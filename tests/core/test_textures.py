@@ -60,9 +60,12 @@ def test_lookup_rejects_bad_input():
 
 @pytest.fixture(scope="module")
 def oiio():
-    bpy = pytest.importorskip("bpy")
-    bpy.utils.expose_bundled_modules()
-    return pytest.importorskip("OpenImageIO")
+    from addon.core.textures.latent_texture import oiio_module
+
+    try:
+        return oiio_module()
+    except RuntimeError as e:
+        pytest.skip(str(e))
 
 
 def test_exr_round_trip_preserves_latents_within_half_precision(tmp_path, oiio):

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from ..stack import PRESETS
+from ..stack import PRESETS, Coating, Diffuse, Stack
 from .lights import AreaLight, Environment
 from .materials import ImageTexture, LambertMaterial, LayeredSpec
 from .scene import Camera, Mesh, Scene
@@ -49,9 +49,26 @@ def checker_texture(size: int = 512, squares: int = 16) -> np.ndarray:
     return img.astype(np.float32)
 
 
-def demo_scene(width: int = 320, height: int = 180, presets=DEMO_PRESETS) -> Scene:
+FLOOR_STACK = Stack(Diffuse((0.6, 0.6, 0.6)), (Coating(roughness=0.05, ior=1.5, albedo=(0.9, 0.75, 0.4), thickness=0.3),))
+
+
+def floor_maps(size: int = 256, squares: int = 16) -> dict[str, np.ndarray]:
+    """Driving images of the varnished tile floor (``FLOOR_STACK``): the tile colours as the base
+    albedo, and a varnish that is glossy on the light tiles and worn (rougher, thinner) on the dark."""
+    colour = checker_texture(size, squares)
+    light = colour[..., 0] > 0.5
+    return {
+        "base.albedo": colour,
+        "coatings[0].roughness": np.where(light, 0.03, 0.25),
+        "coatings[0].thickness": np.where(light, 0.4, 0.1),
+    }
+
+
+def demo_scene(width: int = 320, height: int = 180, presets=DEMO_PRESETS, floor_texture=None) -> Scene:
     """Spheres of the given presets (names, or Stack objects) in a row on a tiled floor, a sky and
-    a soft area light."""
+    a soft area light. With ``floor_texture`` (a latent texture baked from ``FLOOR_STACK`` and
+    :func:`floor_maps`) the floor is a varnished, spatially varying layered material; without it
+    a Lambertian with the tile texture."""
     presets = list(presets)
     stacks = [PRESETS[p] if isinstance(p, str) else p for p in presets]
     names = [p if isinstance(p, str) else f"stack{i}" for i, p in enumerate(presets)]
@@ -65,7 +82,10 @@ def demo_scene(width: int = 320, height: int = 180, presets=DEMO_PRESETS) -> Sce
     floor.uvs = floor.uvs * 10.0  # the tile texture repeats (0.5 m squares)
     meshes.append(floor)
     mesh = Mesh.concatenate(meshes)
-    tiles = LambertMaterial((1.0, 1.0, 1.0), ImageTexture(checker_texture()))
+    if floor_texture is None:
+        tiles = LambertMaterial((1.0, 1.0, 1.0), ImageTexture(checker_texture()))
+    else:
+        tiles = LayeredSpec(FLOOR_STACK, floor_texture, "varnished_tiles")
     materials = [tiles] + [LayeredSpec(st, None, name) for st, name in zip(stacks, names)]
     light = np.eye(4)
     light[:3, 3] = (1.5, -1.5, 3.0)

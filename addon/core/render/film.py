@@ -63,16 +63,9 @@ def write_png(path: str | os.PathLike, linear: np.ndarray, exposure: float = 1.0
 
 def write_exr(path: str | os.PathLike, linear: np.ndarray) -> None:
     """Float RGB(A) OpenEXR through OpenImageIO (shipped with Blender and the bpy wheel)."""
-    try:
-        import OpenImageIO as oiio  # noqa: N813
-    except ImportError:
-        try:
-            import bpy  # noqa: F401  (only to expose OpenImageIO; no bpy API is used)
+    from ..textures.latent_texture import oiio_module
 
-            bpy.utils.expose_bundled_modules()
-            import OpenImageIO as oiio  # noqa: N813
-        except ImportError as e:
-            raise RuntimeError("writing EXR needs OpenImageIO, which ships with Blender and the bpy wheel") from e
+    oiio = oiio_module()
     path = Path(path)
     img = np.ascontiguousarray(np.asarray(linear, dtype=np.float32))
     tmp = path.with_name(path.name + ".partial.exr")

@@ -25,14 +25,33 @@ TILE = 64
 
 
 def oiio_module():
+    """The OpenImageIO module: importable inside Blender; with the bpy wheel it lies in the
+    wheel's bundled site-packages, which is found here without importing bpy."""
     try:
         import OpenImageIO as oiio  # noqa: N813
-    except ImportError as e:
-        raise RuntimeError(
-            "OpenImageIO is not importable: it ships with Blender and the bpy wheel; outside Blender "
-            "call bpy.utils.expose_bundled_modules() before using EXR latent textures"
-        ) from e
-    return oiio
+
+        return oiio
+    except ImportError:
+        pass
+    import importlib.util
+    import sys
+
+    spec = importlib.util.find_spec("bpy")
+    roots = list(spec.submodule_search_locations or []) if spec is not None else []
+    for root in roots:
+        for site in sorted(Path(root).glob("*/python/lib/python3*/site-packages")):
+            if (site / "OpenImageIO").is_dir():
+                sys.path.append(str(site))
+                try:
+                    import OpenImageIO as oiio  # noqa: N813
+
+                    return oiio
+                except ImportError:
+                    sys.path.remove(str(site))
+    raise RuntimeError(
+        "OpenImageIO is not importable: it ships with Blender and the bpy wheel (pip install bpy); "
+        "latent textures and EXR output need it"
+    )
 
 
 def read_image(path: str | os.PathLike) -> np.ndarray:
