@@ -4,7 +4,10 @@
 
 For each configuration it stores ``lobe`` (C, 4, R, R, 3), the lobe image f cos(theta_o) of
 :mod:`addon.core.lobe` at the incident elevations ``lobe.INCIDENT_ANGLES_DEG``, its standard error
-``lobe_stderr``, the number of coatings ``n_coatings`` (C,), the stacks as JSON and the command.
+``lobe_stderr``, the number of coatings ``n_coatings`` (C,), the stacks as JSON, the command(s) and
+``walks`` (C,), the walks per incident direction of each stack (-1: as in the first command). The
+stacks with three coatings were recomputed with more walks (``--only-coatings 3 --walks 4096``): at 512
+walks their reference noise was the largest error term.
 
 The reference values come from :func:`addon.core.reference.eval_brdf_many` by reciprocity: the
 walks start from the incident direction and connect to every pixel of the lobe grid, so a lobe
@@ -102,16 +105,31 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--walks", type=int, default=256, help="reference walks per incident direction")
     ap.add_argument("--res", type=int, default=24)
+    ap.add_argument("--only-coatings", type=int, default=0,
+                    help="recompute only the stacks with this many coatings in an existing --out file (more walks "
+                         "where the reference is noisiest); the other rows are kept")
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args(argv)
     stacks = configs()
-    img, err = reference_lobes(stacks, a.walks, a.res, HELDOUT_SEED, log=lambda s: print(s, file=sys.stderr, flush=True))
+    cmd = "python -m onnx_export.heldout_layered " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
+    lg = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
+    if a.only_coatings:
+        old = dict(np.load(a.out))
+        idx = [i for i, s in enumerate(stacks) if len(s.coatings) == a.only_coatings]
+        img, err = old["lobe"].copy(), old["lobe_stderr"].copy()
+        img[idx], err[idx] = reference_lobes([stacks[i] for i in idx], a.walks, a.res, HELDOUT_SEED + 1000, log=lg)
+        walks = old.get("walks", np.full(len(stacks), -1))
+        walks[idx] = a.walks
+        command = np.array(str(old["command"]) + " && " + cmd)
+    else:
+        img, err = reference_lobes(stacks, a.walks, a.res, HELDOUT_SEED, log=lg)
+        walks = np.full(len(stacks), a.walks)
+        command = np.array(cmd)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(
         a.out, lobe=img.astype(np.float32), lobe_stderr=err.astype(np.float32),
         angles=np.asarray(lobe.INCIDENT_ANGLES_DEG), n_coatings=np.array([len(s.coatings) for s in stacks]),
-        stacks=np.array([s.to_json() for s in stacks]),
-        command=np.array("python -m onnx_export.heldout_layered " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))))
+        stacks=np.array([s.to_json() for s in stacks]), walks=walks, command=command)
     print(json.dumps({"configs": len(stacks), "by_coatings": np.bincount([len(s.coatings) for s in stacks]).tolist(),
                       "out": str(a.out)}))
 

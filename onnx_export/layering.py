@@ -38,7 +38,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from addon.core.neural.features import base_features, arrays_features
+from addon.core.neural.features import arrays_features, base_features
+from addon.core.neural.layering import file_digest
 from addon.core.neural.runtime import NeuralModels
 from addon.core.stack import StackArrays
 from onnx_export.nets import LATENT, cosine_lr, log_target, macs_per_eval, mlp, n_params
@@ -243,6 +244,7 @@ def train(args, log=print) -> dict:
     gen = torch.Generator().manual_seed(args.seed)
     models = NeuralModels(args.size, threads=args.threads)
     dec = frozen_decoder(args.size)
+    trained_with = {p.name: file_digest(p) for p in (models.encoder_path, models.decoder_path)}
     sets = {1: StackSet(args.c1, models, args.stacks, args.weighting == "cosine")}  # two-coating data are loaded when stage 2 starts
 
     def heldout():
@@ -301,6 +303,7 @@ def train(args, log=print) -> dict:
                 hist["stage2" if stage2 else "stage1"] = m
         if step % args.every == 0 or end_of_stage:
             torch.save({"net": net.state_dict(), "config": net.config(), "opt": opt.state_dict(), "step": step,
+                        "trained_with": trained_with,
                         "history": hist, "loss": ema, "args": {k: str(v) for k, v in vars(args).items()}},
                        ckpt.with_suffix(".tmp"))
             ckpt.with_suffix(".tmp").replace(ckpt)
@@ -382,6 +385,9 @@ def export(args, log=print) -> dict:
                     "metric": "relative RMSE of lobe images at 0/30/60/75 deg; albedo error = |albedo from lobe|"},
         "onnx_runtime_vs_torch_max_relative_difference": par,
         "opset": OPSET,
+        # checkpoints from before the digests were recorded: the current files (check their dates)
+        "trained_with": s.get("trained_with") or {f"{k}_{args.size}.onnx": file_digest(MODEL_DIR / f"{k}_{args.size}.onnx")
+                                                  for k in ("encoder", "decoder")},
     }
     if args.speed:
         card["speed"] = json.loads(Path(args.speed).read_text())

@@ -185,7 +185,7 @@ def net_from_onnx(path: Path, card: dict) -> SamplingNet:
 
 
 def run(args, log=print) -> dict:
-    from addon.core.neural.layering import LayeringModel
+    from addon.core.neural.layering import LayeringModel, file_digest
     from addon.core.neural.runtime import NeuralModels
 
     torch.set_num_threads(args.threads)
@@ -259,6 +259,7 @@ def run(args, log=print) -> dict:
         "heldout": metrics,
         "onnx_runtime_vs_torch_max_relative_difference": par,
         "opset": OPSET,
+        "trained_with": {p.name: file_digest(p) for p in (models.encoder_path, models.decoder_path, layering.path)},
     }
     path.with_suffix(".json").write_text(json.dumps(card, indent=1) + "\n")
     log(json.dumps({"model": str(path), "parity": par}))

@@ -22,6 +22,7 @@ the two materials through physically plausible ones, unlike a linear blend of th
 
 from __future__ import annotations
 
+import hashlib
 import json
 import warnings
 from pathlib import Path
@@ -35,6 +36,29 @@ from .runtime import LATENT, MODEL_DIR, SIZES, ClampWarning, NeuralModels, _sess
 from .sampling import SamplingModel
 
 ROWS_PER_RUN = 65536
+
+
+class StaleModelWarning(UserWarning):
+    """A layering or sampling model was trained with other encoder/decoder files than those shipped beside it."""
+
+
+def file_digest(path: Path) -> str:
+    """sha256 of a model file: the model cards record which encoder/decoder a model was trained with."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def check_trained_with(card: dict, model_dir: Path, name: str) -> list[str]:
+    """Names of the files in ``card["trained_with"]`` whose digest differs from the file in ``model_dir``;
+    warns with ``StaleModelWarning`` when any does (the latent spaces no longer match)."""
+    stale = [f for f, digest in card.get("trained_with", {}).items()
+             if not (model_dir / f).exists() or file_digest(model_dir / f) != digest]
+    if stale:
+        warnings.warn(f"{name} was trained with other versions of {stale} than those in {model_dir}; its latents "
+                      f"do not match them: retrain it (python -m onnx_export.layering train ...)", StaleModelWarning,
+                      stacklevel=3)
+    return stale
+
+
 _COAT_FIELDS = (("coat_roughness", "roughness"), ("coat_ior", "ior"), ("coat_albedo", "albedo"),
                 ("coat_thickness", "thickness"), ("coat_g", "g"))
 
@@ -51,7 +75,10 @@ class LayeringModel:
         self._session = _session(self.path, threads)
         card = self.path.with_suffix(".json")
         self.card = json.loads(card.read_text()) if card.exists() else {}
+        self.stale = check_trained_with(self.card, d, self.path.name)
         self.sampling = SamplingModel(size, threads, d) if sampling else None
+        if self.sampling is not None:
+            self.stale += check_trained_with(self.sampling.card, d, self.sampling.path.name)
 
     def layer(self, z_top, z_bottom, albedo, thickness) -> np.ndarray:
         """One application of L: z_top, z_bottom (B, 32), albedo, thickness (B,) -> z (B, 32) float32."""
