@@ -46,7 +46,8 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
             except ValueError as e:
                 self.report({"ERROR"}, str(e))
                 return
-            for w in warnings:
+            self.update_stats("", "Choosing decoders")
+            for w in warnings + props.assign_decoders(core_scene):
                 self.report({"WARNING"}, w)
             settings = props.to_core()
             combined = result.layers[0].passes["Combined"]

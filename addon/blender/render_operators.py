@@ -89,7 +89,7 @@ class NLM_OT_render_preview(bpy.types.Operator):
         camera = _view_camera(context, w, h) if self.use_view else None
         depsgraph = context.evaluated_depsgraph_get()
         core_scene, warnings = scene_export.export_scene(depsgraph, w, h, camera)
-        for msg in warnings:
+        for msg in warnings + scene.neural_render.assign_decoders(core_scene):
             self.report({"WARNING"}, msg)
         settings = scene.neural_render.to_core(self.samples or scene.neural_render.preview_samples)
         return render_work(core_scene, settings)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import bpy
-from bpy.props import EnumProperty, IntProperty, PointerProperty
+from bpy.props import EnumProperty, FloatProperty, IntProperty, PointerProperty
 
 from addon.core.render import RenderSettings
 
@@ -31,10 +31,40 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
         name="Reference Walks", description="Walks per layered-BRDF evaluation in reference mode", default=8, min=1,
         max=4096,
     )
+    decoder_quality: EnumProperty(
+        name="Decoder",
+        items=[
+            ("AUTO", "Auto", "Per material, the smallest decoder whose measured error on its stack is under the "
+                             "tolerance (measured once per stack and cached; the most accurate one, with a warning, "
+                             "when none is)"),
+            ("TINY", "Tiny", "Every layered material on the tiny decoder"),
+            ("SMALL", "Small", "Every layered material on the small decoder"),
+            ("MEDIUM", "Medium", "Every layered material on the medium decoder"),
+            ("PAPER", "Paper", "Every layered material on the paper's decoder (about 1 M parameters)"),
+        ],
+        default="AUTO",
+        description="Neural decoder of layered materials in neural mode",
+    )
+    tolerance: FloatProperty(
+        name="Tolerance",
+        description="Largest relative lobe error (against the reference) the Auto decoder choice accepts",
+        default=0.2, min=0.01, max=1.0, subtype="FACTOR",
+    )
 
     def to_core(self, samples: int | None = None) -> RenderSettings:
         return RenderSettings(samples=samples or self.samples, max_bounces=self.max_bounces, seed=self.seed,
                               mode=self.mode, reference_walks=self.reference_walks)
+
+
+    def assign_decoders(self, core_scene) -> list[str]:
+        """Put the layered materials of an exported scene on their decoders (neural mode); returns warnings."""
+        if self.mode != "neural":
+            return []
+        from addon.core import quality
+
+        size = "auto" if self.decoder_quality == "AUTO" else self.decoder_quality.lower()
+        core_scene.materials, _, notes = quality.assign_decoders(core_scene, size, self.tolerance)
+        return notes
 
 
 def register() -> None:

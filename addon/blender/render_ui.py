@@ -28,6 +28,10 @@ class NLM_PT_render(bpy.types.Panel):
         col.prop(props, "mode")
         if props.mode == "reference":
             col.prop(props, "reference_walks")
+        else:
+            col.prop(props, "decoder_quality")
+            if props.decoder_quality == "AUTO":
+                col.prop(props, "tolerance")
         layout.operator("neural_layers.render_preview", icon="RENDER_STILL")
 
 
