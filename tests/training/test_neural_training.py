@@ -119,7 +119,7 @@ def test_onnx_runtime_equals_torch(size):
     np.testing.assert_allclose(m.encode(Dielectric(0.2, 1.5)), ref, rtol=1e-4, atol=1e-5)
 
 
-FAST = [s for s in SHIPPED if s in ("tiny", "small")]
+FAST = [s for s in SHIPPED if s == "tiny"]  # projection is CPU-heavy: larger sizes run with -m slow
 SLOW = [s for s in SHIPPED if s not in FAST]
 
 
@@ -137,6 +137,7 @@ def _projection_check(size):
     assert m["lobe_error_p90"] <= h["lobe_error_p90"] * 1.1 + 2e-3
 
 
+@pytest.mark.slow  # minutes of CPU on a loaded 2-core machine (it passed for tiny: 344 s)
 @pytest.mark.parametrize("size", FAST)
 def test_heldout_projection_error_not_worse_than_card(size):
     _projection_check(size)
