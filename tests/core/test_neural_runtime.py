@@ -105,8 +105,22 @@ def test_bad_inputs_raise_clear_errors(models):
         models.eval_brdf(np.full((3, 32), np.nan), w, w)
     with pytest.raises(ValueError, match="encoder features"):
         models.encode_features(np.zeros((2, 3, N_FEATURES + 1)))
-    with pytest.raises(NotImplementedError, match="layering network"):
-        models.encode_stack(Stack(Diffuse(0.5), (Coating(),)))
+    with pytest.raises(ValueError, match="layering.encode_stack_arrays"):
+        models.encode_arrays(StackArrays.repeat(Stack(Diffuse(0.5), (Coating(),)), 2))
+
+
+def test_encode_stack_layers_coatings_with_the_sizes_layering_network(models):
+    from addon.core.neural import layering
+
+    coated = Stack(Diffuse(0.5), (Coating(roughness=0.2, thickness=0.5), Coating(roughness=0.05)))
+    if not (layering.MODEL_DIR / f"layering_{models.size}.onnx").is_file():
+        with pytest.raises(FileNotFoundError, match=f"layering_{models.size}.onnx"):
+            models.encode_stack(coated)
+        return
+    z = models.encode_stack(coated)
+    expected = layering.encode_layered_stack(coated, models, layering.LayeringModel(models.size, sampling=False))
+    np.testing.assert_array_equal(z, expected)
+    assert not np.allclose(z, models.encode(coated.base))
 
 
 def test_clamps_out_of_range_with_a_warning(models):

@@ -104,19 +104,24 @@ class NeuralModels:
         return self.encode_features(layer_features(clamped.base)[None])[0]
 
     def encode_stack(self, stack: Stack) -> np.ndarray:
-        """(3, 32) latent of a stack. Stacks with coatings need the layering network."""
+        """(3, 32) latent of a stack: the encoder for each layer, then the layering network of this
+        size bottom-up over the coatings (``layering.encode_layered_stack``). A size whose layering
+        network is not shipped raises ``FileNotFoundError`` naming the file."""
         if not isinstance(stack, Stack):
             raise ValueError(f"encode_stack needs a Stack, got {type(stack).__name__}")
-        if stack.coatings:
-            raise NotImplementedError(
-                f"this stack has {len(stack.coatings)} coating(s); encoding layered stacks needs the layering "
-                f"network, which is not available yet (only single-layer stacks can be encoded)")
-        return self.encode(stack.base)
+        if not stack.coatings:
+            return self.encode(stack.base)
+        from .layering import LayeringModel, encode_layered_stack
+
+        if getattr(self, "_layering", None) is None:  # the latent needs no sampling network
+            self._layering = LayeringModel(self.size, self.threads, sampling=False)
+        return encode_layered_stack(stack, self, self._layering)
 
     def encode_arrays(self, arrays: StackArrays) -> np.ndarray:
         """(N, 3, 32) latents of N single-layer stacks (texels), in batches, clamped to the trained range."""
         if arrays.n_coatings:
-            raise NotImplementedError("encoding stacks with coatings needs the layering network (not available yet)")
+            raise ValueError("encode_arrays encodes single layers; stacks with coatings go through "
+                             "layering.encode_stack_arrays (encoder, then the layering network)")
         fixed = _clamp_arrays(arrays)
         x = arrays_features(fixed)
         out = np.empty((len(arrays), 3, LATENT), dtype=np.float32)
