@@ -340,10 +340,16 @@ def chart_brdf(rows: list[dict], path: Path, command: str, floor: float | None =
         ref = [r for r in rows if r.get("kind") == "reference" and r["set"] == set_name and "walks" in r
                and r["method"].endswith("walks")]
         if ref:
-            ax.loglog([r["seconds_per_eval"] for r in ref], [100 * max(r["median"], 1e-3) for r in ref], "-",
+            low = floor if floor else 1e-3  # an error below the stored reference's noise is drawn at that noise
+
+            def y(r):
+                return 100 * max(r["median"], low)
+
+            ax.loglog([r["seconds_per_eval"] for r in ref], [y(r) for r in ref], "-",
                       marker=markers[set_name], color="C0", label=f"reference, 1-{ref[-1]['walks']} walks ({set_name})")
             for r in ref:
-                ax.annotate(str(r["walks"]), (r["seconds_per_eval"], 100 * max(r["median"], 1e-3)), fontsize=7,
+                below = " (below the noise)" if r["median"] < low else ""
+                ax.annotate(f"{r['walks']}{below}", (r["seconds_per_eval"], y(r)), fontsize=7,
                             textcoords="offset points", xytext=(4, 4))
         for i, r in enumerate(x for x in rows if x.get("kind") == "decoder" and x["set"] == set_name):
             ax.loglog([r["seconds_per_eval"]], [100 * r["median"]], marker=markers[set_name], color="C1",
@@ -360,7 +366,7 @@ def chart_brdf(rows: list[dict], path: Path, command: str, floor: float | None =
     ax.set_ylabel("lobe error, median relative RMSE (%)")
     ax.set_title("BRDF level: error against time per evaluation (held-out stacks)", fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="lower center", framealpha=0.9)
     fig.text(0.01, 0.01, command, fontsize=6, color="0.4")
     fig.tight_layout(rect=(0, 0.03, 1, 1))
     fig.savefig(path, dpi=110)
