@@ -334,7 +334,7 @@ def chart_brdf(rows: list[dict], path: Path, command: str, floor: float | None =
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(8, 5))
+    fig, ax = plt.subplots(figsize=(11, 5))
     markers = {"single": "o", "layered": "s"}
     for set_name in ("single", "layered"):
         ref = [r for r in rows if r.get("kind") == "reference" and r["set"] == set_name and "walks" in r
@@ -366,7 +366,7 @@ def chart_brdf(rows: list[dict], path: Path, command: str, floor: float | None =
     ax.set_ylabel("lobe error, median relative RMSE (%)")
     ax.set_title("BRDF level: error against time per evaluation (held-out stacks)", fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="lower center", framealpha=0.9)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.text(0.01, 0.01, command, fontsize=6, color="0.4")
     fig.tight_layout(rect=(0, 0.03, 1, 1))
     fig.savefig(path, dpi=110)
