@@ -308,11 +308,9 @@ class NLM_OT_evaluate_latent(_MaterialOperator, bpy.types.Operator):
 # Long operations: previews and comparison
 
 
-class _LongOperator(_MaterialOperator):
+class _LongOperator(jobs.ModalJob, _MaterialOperator):
     """prepare() reads Blender and returns (work, finish): work(progress) is core-only."""
 
-    _job = None
-    _timer = None
     _finish = None
 
     def prepare(self, context):
@@ -337,36 +335,9 @@ class _LongOperator(_MaterialOperator):
         if _guarded(self.bl_label, self, prepare) != {"FINISHED"}:
             return {"CANCELLED"}
         work, self._finish = prepared[0]
-        self._job = jobs.Job(work).start()
-        wm = context.window_manager
-        self._timer = wm.event_timer_add(0.1, window=context.window)
-        wm.progress_begin(0, 100)
-        context.workspace.status_text_set(f"{self.bl_label}: Esc to cancel")
-        wm.modal_handler_add(self)
-        return {"RUNNING_MODAL"}
+        return self.start_job(context, work)
 
-    def _cleanup(self, context):
-        wm = context.window_manager
-        if self._timer is not None:
-            wm.event_timer_remove(self._timer)
-            self._timer = None
-        wm.progress_end()
-        context.workspace.status_text_set(None)
-
-    def modal(self, context, event):
-        job = self._job
-        if event.type == "ESC":
-            job.cancel()
-            return {"RUNNING_MODAL"}
-        if event.type != "TIMER":
-            return {"PASS_THROUGH"}
-        context.window_manager.progress_update(int(100 * job.fraction))
-        if not job.done:
-            return {"RUNNING_MODAL"}
-        self._cleanup(context)
-        if job.cancelled:
-            self.report({"INFO"}, f"{self.bl_label} cancelled")
-            return {"CANCELLED"}
+    def job_done(self, context, job):
         if job.error is not None:
             err = job.error
 
@@ -375,11 +346,6 @@ class _LongOperator(_MaterialOperator):
 
             return _guarded(self.bl_label, self, reraise)
         return _guarded(self.bl_label, self, lambda: self._finish(context, job.result))
-
-    def cancel(self, context):
-        if self._job is not None:
-            self._job.cancel()
-        self._cleanup(context)
 
     def show(self, context, name, rgba, metadata, notes, summary):
         image = images.store_image(name, rgba, metadata)

@@ -54,7 +54,7 @@ def save_image(path: str, rgba) -> None:
         raise ValueError(f"filepath {path!r} must end in .exr or .png")
 
 
-class NLM_OT_render_preview(bpy.types.Operator):
+class NLM_OT_render_preview(jobs.ModalJob, bpy.types.Operator):
     """Render the current view with the Neural Layered path tracer into the Image Editor"""
 
     bl_idname = "neural_layers.render_preview"
@@ -72,8 +72,6 @@ class NLM_OT_render_preview(bpy.types.Operator):
     filepath: StringProperty(name="File Path", description="Also write the image here (.exr or .png)", default="",
                              subtype="FILE_PATH")
 
-    _job = None
-    _timer = None
 
     def _prepare(self, context):
         if self.filepath and Path(self.filepath).suffix.lower() not in (".exr", ".png"):
@@ -129,47 +127,15 @@ class NLM_OT_render_preview(bpy.types.Operator):
             work = self._prepare(context)
         except (ValueError, RuntimeError) as e:
             return self._fail(str(e))
-        self._job = jobs.Job(work).start()
-        wm = context.window_manager
-        self._timer = wm.event_timer_add(0.2, window=context.window)
-        wm.progress_begin(0, 100)
-        context.workspace.status_text_set(f"{self.bl_label}: Esc to cancel")
-        wm.modal_handler_add(self)
-        return {"RUNNING_MODAL"}
+        return self.start_job(context, work, interval=0.2)
 
-    def _cleanup(self, context):
-        wm = context.window_manager
-        if self._timer is not None:
-            wm.event_timer_remove(self._timer)
-            self._timer = None
-        wm.progress_end()
-        context.workspace.status_text_set(None)
-
-    def modal(self, context, event):
-        job = self._job
-        if event.type == "ESC":
-            job.cancel()
-            return {"RUNNING_MODAL"}
-        if event.type != "TIMER":
-            return {"PASS_THROUGH"}
-        context.window_manager.progress_update(int(100 * job.fraction))
-        if not job.done:
-            return {"RUNNING_MODAL"}
-        self._cleanup(context)
-        if job.cancelled:
-            self.report({"INFO"}, "Render Preview cancelled")
-            return {"CANCELLED"}
+    def job_done(self, context, job):
         if job.error is not None:
             return self._fail(f"Render Preview failed: {type(job.error).__name__}: {job.error}")
         try:
             return self._finish(context, job.result)
         except (ValueError, RuntimeError) as e:
             return self._fail(str(e))
-
-    def cancel(self, context):
-        if self._job is not None:
-            self._job.cancel()
-        self._cleanup(context)
 
 
 _CLASSES = (NLM_OT_render_preview,)
