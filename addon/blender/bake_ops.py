@@ -43,10 +43,23 @@ def baked_texture_state(mat) -> tuple[str | None, str]:
     if found is None:
         return None, "no layer stack"
     spatial, _ = found
-    res = spatial.resolution_for_max_side(s.bake_resolution)
+    res = tuple(s.texture_size)
     if bake_key(spatial, res, stack_io.model_size(mat)) != s.texture_key:
         return None, "baked texture is out of date: bake again"
     return path, f"baked: {os.path.basename(path)}"
+
+
+def camera_resolution(context, mat, spatial) -> tuple[int, int]:
+    """(height, width) no finer than the material's smallest footprint through the scene camera."""
+    from addon.core import quality
+
+    from . import scene_export
+
+    scene, _ = scene_export.export_scene(context.evaluated_depsgraph_get())
+    footprints = quality.primary_footprints(scene)
+    names = list(getattr(scene, "material_names", []))
+    footprint = footprints[names.index(mat.name)] if mat.name in names else float("inf")
+    return quality.texture_resolution_for_footprint(footprint, spatial.resolution or (1, 1))
 
 
 class NLM_OT_map_add(_MaterialOperator, bpy.types.Operator):
@@ -111,6 +124,8 @@ class NLM_OT_bake_texture(_LongOperator, bpy.types.Operator):
         spatial, sources = found
         s = mat.neural_layers
         res = spatial.resolution_for_max_side(s.bake_resolution)
+        if s.bake_fit_camera:
+            res = min(res, camera_resolution(context, mat, spatial), key=lambda r: r[0] * r[1])
         size = stack_io.model_size(mat)
         path = texture_output_path(mat)
         key = bake_key(spatial, res, size)
@@ -129,6 +144,7 @@ class NLM_OT_bake_texture(_LongOperator, bpy.types.Operator):
             stats, seconds = result
             mat.neural_layers.texture_path = bpy.path.relpath(path) if bpy.data.filepath else path
             mat.neural_layers.texture_key = key
+            mat.neural_layers.texture_size = res
             self.report({"INFO"}, f"{name}: baked {res[1]}x{res[0]} ({stats.unique} distinct of {stats.texels} texels, "
                                   f"{stats.texels_per_second:,.0f} texels/s) in {seconds:.1f} s -> {path}")
             return {"FINISHED"}

@@ -22,6 +22,7 @@ from bpy.props import (
     FloatProperty,
     FloatVectorProperty,
     IntProperty,
+    IntVectorProperty,
     PointerProperty,
     StringProperty,
 )
@@ -281,6 +282,16 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
         default=0,
         min=0,
         max=16384,
+    )
+    bake_fit_camera: BoolProperty(
+        name="Fit to Camera",
+        description="Bake no finer than the material's smallest on-screen footprint, seen through the scene camera "
+        "at the render resolution (also capped by Bake Resolution and the images)",
+        default=False,
+    )
+    texture_size: IntVectorProperty(
+        name="Latent Texture Size", description="(height, width) the latent texture was baked at", size=2,
+        default=(0, 0),
     )
     bake_directory: StringProperty(
         name="Bake Folder", description="Folder for baked latent textures (EXR)", default="//textures/",

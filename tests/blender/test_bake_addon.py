@@ -127,3 +127,23 @@ def test_bake_with_the_shipped_models(bpy_addon, material, tmp_path):
 
     z = encode_layered_stack(preset("lacquered_plastic"), load_models("tiny"))
     assert np.allclose(tex.levels[0][0, 0, :96], z.reshape(-1), atol=2e-3)
+
+
+def test_fit_to_camera_bakes_no_finer_than_the_on_screen_footprint(wood, bpy_addon):
+    from addon.blender import bake_ops
+
+    bpy = bpy_addon
+    big = bpy.data.images.new("rough_big", width=256, height=256, float_buffer=True)
+    big.pixels.foreach_set(np.random.default_rng(0).random(256 * 256 * 4).astype(np.float32))
+    wood.neural_layers.layers[1].maps[0].image = big
+    scene = bpy.context.scene
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 64, 36, 100
+    wood.neural_layers.bake_fit_camera = True
+    r = run_operator(ops.bake_texture)
+    assert r.finished, r.error
+    small = tuple(wood.neural_layers.texture_size)
+    assert 1 <= small[0] < 256 and small[0] == small[1]  # the cube covers a few dozen pixels
+    assert bake_ops.baked_texture_state(wood)[0] is not None  # current at the size it was baked at
+    scene.render.resolution_x, scene.render.resolution_y = 1920, 1080
+    assert run_operator(ops.bake_texture).finished
+    assert tuple(wood.neural_layers.texture_size)[0] > small[0]  # a closer look needs more texels
