@@ -151,20 +151,6 @@ def eval_single(arrays: StackArrays, wi: np.ndarray, wo: np.ndarray) -> np.ndarr
     return f
 
 
-def arrays_of(stacks) -> StackArrays:
-    """``StackArrays.from_stacks`` that also accepts stacks without coatings (its reshape of the
-    empty coating lists fails there): a placeholder coating is added and dropped again."""
-    if any(s.coatings for s in stacks):
-        return StackArrays.from_stacks(list(stacks))
-    from addon.core.stack import Coating, Stack
-
-    a = StackArrays.from_stacks([Stack(s.base, (Coating(),)) for s in stacks])
-    for name in StackArrays.FIELDS:
-        if name.startswith("coat_"):
-            setattr(a, name, getattr(a, name)[:, :0])
-    return a
-
-
 def lobe_alpha_of(arrays: StackArrays) -> np.ndarray:
     """The roughness that sets the specular lobe: the top coating's, else the base's (diffuse: 1)."""
     if arrays.n_coatings:

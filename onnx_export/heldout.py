@@ -29,7 +29,7 @@ import numpy as np
 
 from addon.core import lobe
 from addon.core.stack import Coating, Conductor, Dielectric, Diffuse, Stack, StackArrays
-from onnx_export.data import arrays_of, eval_single, lobe_alpha_of, sample_directions, sample_single_params
+from onnx_export.data import eval_single, lobe_alpha_of, sample_directions, sample_single_params
 
 HELDOUT_SEED = 987_654_321
 LOBE_RES = 32
@@ -82,7 +82,7 @@ def layered_configs() -> list[Stack]:
 def stack_brdf(stack: Stack, walks: int, seed: int):
     """(brdf(wi, wo) -> (f, stderr)) of a stack: exact for single layers, reference otherwise."""
     if not stack.coatings:
-        arrays = arrays_of([stack])
+        arrays = StackArrays.from_stacks([stack])
 
         def exact(wi, wo):
             f = eval_single(arrays, wi[None], wo[None])[0]
@@ -142,7 +142,7 @@ def make(kind: str, walks: int, res: int, pairs: int, fit_walks: int = 64, log=p
 
 
 def _lobe_alpha(s: Stack) -> float:
-    return float(lobe_alpha_of(arrays_of([s]))[0])
+    return float(lobe_alpha_of(StackArrays.from_stacks([s]))[0])
 
 
 def load(path) -> dict:
