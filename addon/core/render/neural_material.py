@@ -130,7 +130,7 @@ def make(stack: Stack, latent_texture=None, size: str | None = None):
                 return NeuralMaterial(models, None, proxy_guess(stack), latent_texture)
             layering = load_layering(candidate, models.threads) if stack.coatings else None
             z = encode_layered_stack(stack, models, layering)
-        except (FileNotFoundError, OSError, NotImplementedError):
+        except (FileNotFoundError, OSError):
             continue
         except ValueError:
             return None
