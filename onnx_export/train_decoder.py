@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from onnx_export import data as datamod
-from onnx_export.nets import Decoder, cosine_lr, log_target, make_decoder, macs_per_eval, n_params
+from onnx_export.nets import Decoder, cosine_lr, he_init, log_target, make_decoder, macs_per_eval, n_params
 
 
 def load_training_tensors(paths: list[Path], materials: int | None = None) -> dict:
@@ -69,6 +69,8 @@ def train(args, log=print) -> dict:
     dec = make_decoder(args.size, features=args.features, activation=args.activation)
     if args.width:
         dec = Decoder(args.width, args.depth, args.features, args.activation)
+    if args.init_scheme == "he":
+        he_init(dec)
     latents = torch.nn.Parameter(torch.randn(n_units, 32, generator=gen) * 0.01)
     if args.init:  # start from another run: its decoder, and its latents for the units both share
         s0 = torch.load(args.init, weights_only=False)
@@ -110,6 +112,8 @@ def train(args, log=print) -> dict:
         reg = args.latent_reg * (latents[units] ** 2).mean()
         opt.zero_grad(set_to_none=True)
         (loss + reg).backward()
+        if args.clip > 0:
+            torch.nn.utils.clip_grad_norm_(list(dec.parameters()) + [latents], args.clip)
         opt.step()
         step += 1
         ema = loss.item() if ema is None else 0.98 * ema + 0.02 * loss.item()
@@ -140,6 +144,9 @@ def parser():
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--latent-lr-scale", type=float, default=5.0)
     ap.add_argument("--latent-reg", type=float, default=1e-4)
+    ap.add_argument("--init-scheme", default="default", choices=("default", "he"),
+                    help="weight init: PyTorch's default, or He-normal (needed for the paper's 16 layers)")
+    ap.add_argument("--clip", type=float, default=0.0, help="clip the gradient norm to this (0: off)")
     ap.add_argument("--features", default="iso_bumps", choices=("raw", "iso", "iso_bumps"))
     ap.add_argument("--activation", default="exp", choices=("exp", "softplus"))
     ap.add_argument("--loss", default="l1", choices=("l1", "l2"))

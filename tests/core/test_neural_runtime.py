@@ -191,3 +191,45 @@ def test_encoded_heldout_error_not_worse_than_the_card(size):
 def test_features_of_a_coating_are_its_interface():
     np.testing.assert_array_equal(layer_features(Coating(0.2, 1.4, albedo=(0.5, 0.5, 0.5), thickness=2.0)),
                                   layer_features(Dielectric(0.2, 1.4)))
+
+
+@pytest.mark.parametrize("n", [0, 1, 2047, 2048, 2049, 9000])
+def test_chunked_threaded_decoding_equals_one_call(n):
+    """eval_brdf cuts a batch into chunks run on a thread pool; across chunk edges, for one
+    latent and per-row latents, it must equal one single-threaded ONNX Runtime call."""
+    from addon.core.neural.session import ChunkedSession
+
+    models = load_models("tiny", threads=2)
+    assert models._rgb.chunk < 9000  # the larger cases span several chunks
+    rng = np.random.default_rng(n)
+    wi, wo = _dirs(rng, n), _dirs(rng, n)
+    wi[:, 2] = np.abs(wi[:, 2]) + 1e-3
+    wo[:, 2] = np.abs(wo[:, 2]) + 1e-3
+    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    whole = ChunkedSession(models._rgb.path, threads=1, chunk=max(n, 1))
+    z = models.encode(Conductor(0.1))
+    zr = np.stack([models.encode(Diffuse(a)) for a in (0.1, 0.9)])[rng.integers(0, 2, n)]
+    for zz, feeds in ((z, {"z": z[None]}), (zr, {"z": zr})):
+        f = models.eval_brdf(zz, wi, wo)
+        ref = whole.run_once(["f"], {**feeds, "wi": wi.astype(np.float32), "wo": wo.astype(np.float32)})[0]
+        assert f.shape == (n, 3)
+        np.testing.assert_allclose(f, ref, rtol=1e-5, atol=1e-7)
+    # the generic row-split run agrees with one call too, and checks its inputs
+    two = ChunkedSession(models._rgb.path, threads=2, chunk=1000)
+    got = two.run(["f"], {"wi": wi.astype(np.float32), "wo": wo.astype(np.float32)}, {"z": z[None]})[0]
+    ref = whole.run_once(["f"], {"z": z[None], "wi": wi.astype(np.float32), "wo": wo.astype(np.float32)})[0]
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-7)
+    with pytest.raises(ValueError, match="disagree"):
+        two.run(["f"], {"wi": wi.astype(np.float32), "wo": np.zeros((n + 1, 3), np.float32)}, {"z": z[None]})
+
+
+def test_chunked_session_rejects_bad_settings(tmp_path):
+    from addon.core.neural.session import ChunkedSession
+
+    with pytest.raises(FileNotFoundError, match="missing.onnx"):
+        ChunkedSession(tmp_path / "missing.onnx")
+    with pytest.raises(ValueError, match="threads"):
+        ChunkedSession(MODEL_DIR / "decoder_tiny_rgb.onnx", threads=0)
+    with pytest.raises(ValueError, match="chunk"):
+        ChunkedSession(MODEL_DIR / "decoder_tiny_rgb.onnx", chunk=0)

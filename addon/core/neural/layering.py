@@ -32,10 +32,10 @@ import numpy as np
 from ..reference.walk import validate_arrays
 from ..stack import TRAINED_RANGES, Stack, StackArrays
 from .features import base_features
-from .runtime import LATENT, MODEL_DIR, SIZES, ClampWarning, NeuralModels, _session, load_models
+from .runtime import LATENT, MODEL_DIR, SIZES, ClampWarning, NeuralModels, load_models
+from .session import ChunkedSession
 from .sampling import SamplingModel
 
-ROWS_PER_RUN = 65536
 
 
 class StaleModelWarning(UserWarning):
@@ -72,7 +72,7 @@ class LayeringModel:
         d = Path(model_dir) if model_dir is not None else MODEL_DIR
         self.size = size
         self.path = d / f"layering_{size}.onnx"
-        self._session = _session(self.path, threads)
+        self._session = ChunkedSession(self.path, threads)
         card = self.path.with_suffix(".json")
         self.card = json.loads(card.read_text()) if card.exists() else {}
         self.stale = check_trained_with(self.card, d, self.path.name)
@@ -90,12 +90,7 @@ class LayeringModel:
         if zt.shape != (b, LATENT) or zb.shape != (b, LATENT) or a.shape != (b,) or t.shape != (b,):
             raise ValueError(f"layer() needs z_top, z_bottom (B, {LATENT}), albedo, thickness (B,); got "
                              f"{zt.shape}, {zb.shape}, {a.shape}, {t.shape}")
-        out = np.empty((b, LATENT), dtype=np.float32)
-        for s in range(0, b, ROWS_PER_RUN):  # a loop over batches
-            e = s + ROWS_PER_RUN
-            out[s:e] = self._session.run(["z"], {"z_top": zt[s:e], "z_bottom": zb[s:e], "albedo": a[s:e],
-                                                 "thickness": t[s:e]})[0]
-        return out
+        return self._session.run(["z"], {"z_top": zt, "z_bottom": zb, "albedo": a, "thickness": t})[0]
 
 
 _CACHE: dict[tuple[str, int], LayeringModel] = {}
@@ -149,8 +144,7 @@ def encode_latents(arrays: StackArrays, models: NeuralModels, layering: Layering
         return z
     x = base_features(np.full(n * c, 2), fixed.coat_roughness.reshape(-1), np.zeros((n * c, 3)), np.ones((n * c, 3)),
                       np.zeros((n * c, 3)), fixed.coat_ior.reshape(-1))
-    z_tops = np.concatenate([models.encode_features(x[s:s + ROWS_PER_RUN]) for s in range(0, n * c, ROWS_PER_RUN)])
-    z_tops = z_tops.reshape(n, c, 3, LATENT)
+    z_tops = models.encode_features(x).reshape(n, c, 3, LATENT)
     zc = z.reshape(n * 3, LATENT)
     for j in range(c):  # bottom-up over coatings; all stacks and channels in one call each
         zc = layering.layer(z_tops[:, j].reshape(n * 3, LATENT), zc, fixed.coat_albedo[:, j].reshape(n * 3),

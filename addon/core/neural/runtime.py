@@ -22,30 +22,18 @@ import numpy as np
 
 from ..stack import Coating, Dielectric, Layer, Stack, StackArrays, clamp_to_trained
 from .features import N_FEATURES, arrays_features, layer_features
+from .session import ChunkedSession
 
 MODEL_DIR = Path(__file__).resolve().parents[2] / "models"
 SIZES = ("tiny", "small", "medium", "paper")
 DEFAULT_SIZE = "small"  # the best error for its speed; see docs/decoders.md
 LATENT = 32
-ROWS_PER_RUN = 3 * 65536  # decoder rows per ONNX Runtime call: bounds the working memory
+DECODER_CHUNK = 2048  # RGB queries per ONNX Runtime call (6,144 decoder rows): intermediates stay in cache
+ENCODER_CHUNK = 4096
 
 
 class ClampWarning(UserWarning):
     """A parameter was outside the range the networks were trained on and was clamped."""
-
-
-def _session(path: Path, threads: int):
-    import onnxruntime as ort
-
-    if not path.exists():
-        raise FileNotFoundError(
-            f"neural model file {path} is missing; export it with `python -m onnx_export.export` "
-            f"(available here: {sorted(p.name for p in path.parent.glob('*.onnx'))})")
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = int(threads)
-    so.inter_op_num_threads = 1
-    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    return ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
 
 
 def _directions(w, name: str) -> np.ndarray:
@@ -58,6 +46,18 @@ def _directions(w, name: str) -> np.ndarray:
         bad = int(np.flatnonzero(~np.all(np.isfinite(a), axis=1))[0])
         raise ValueError(f"{name} must be finite; row {bad} is {a[bad].tolist()}")
     return a
+
+
+def _unit_or_up(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """float32 unit directions of rows ``w`` (normalised in float64) and whether each is usable:
+    nonzero and above the horizon; unusable rows become +z (their output is zeroed)."""
+    w = np.asarray(w, dtype=np.float64)
+    n2 = np.einsum("ij,ij->i", w, w)
+    ok = (n2 > 0.0) & (w[:, 2] > 0.0) & np.isfinite(n2)
+    u = w * (1.0 / np.sqrt(np.where(ok, n2, 1.0)))[:, None]
+    if not ok.all():
+        u[~ok] = (0.0, 0.0, 1.0)
+    return u.astype(np.float32), ok
 
 
 class NeuralModels:
@@ -73,11 +73,11 @@ class NeuralModels:
         d = Path(model_dir) if model_dir is not None else MODEL_DIR
         self.decoder_path = d / f"decoder_{size}.onnx"
         self.encoder_path = d / f"encoder_{size}.onnx"
-        self._decoder = _session(self.decoder_path, threads)
+        self._decoder = ChunkedSession(self.decoder_path, threads, DECODER_CHUNK)
         # the fused RGB graph (same weights) is faster; the scalar graph is the reference interface
         rgb = d / f"decoder_{size}_rgb.onnx"
-        self._rgb = _session(rgb, threads) if rgb.exists() else None
-        self._encoder = _session(self.encoder_path, threads)
+        self._rgb = ChunkedSession(rgb, threads, DECODER_CHUNK) if rgb.exists() else None
+        self._encoder = ChunkedSession(self.encoder_path, threads, ENCODER_CHUNK)
         card = self.decoder_path.with_suffix(".json")
         self.card = json.loads(card.read_text()) if card.exists() else {}
 
@@ -123,12 +123,7 @@ class NeuralModels:
             raise ValueError("encode_arrays encodes single layers; stacks with coatings go through "
                              "layering.encode_stack_arrays (encoder, then the layering network)")
         fixed = _clamp_arrays(arrays)
-        x = arrays_features(fixed)
-        out = np.empty((len(arrays), 3, LATENT), dtype=np.float32)
-        step = ROWS_PER_RUN // 3
-        for s in range(0, len(arrays), step):
-            out[s:s + step] = self.encode_features(x[s:s + step])
-        return out
+        return self.encode_features(arrays_features(fixed))
 
     # ------------------------------------------------------------------ decoding
 
@@ -153,30 +148,24 @@ class NeuralModels:
                              f"got {z.shape}")
         if not np.all(np.isfinite(z)):
             raise ValueError("z must be finite (the latent holds NaN or Inf)")
-        wi = wi.astype(np.float32)
-        wo = wo.astype(np.float32)
-        li = np.sqrt(np.einsum("ij,ij->i", wi, wi))
-        lo = np.sqrt(np.einsum("ij,ij->i", wo, wo))
-        ok = (li > 0) & (lo > 0) & (wi[:, 2] > 0) & (wo[:, 2] > 0)
-        up = np.array([0.0, 0.0, 1.0], dtype=np.float32)
-        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            wi_u = np.where(ok[:, None], wi / li[:, None], up)
-            wo_u = np.where(ok[:, None], wo / lo[:, None], up)
         out = np.empty((n, 3), dtype=np.float32)
-        step = ROWS_PER_RUN // 3
-        for s in range(0, n, step):  # a loop over batches of rows, not over samples
-            e = min(n, s + step)
-            m = e - s
+        zz = z[None]
+
+        def chunk(rows: slice) -> None:  # runs on the session's threads, one chunk of rows each
+            a, b = _unit_or_up(wi[rows]), _unit_or_up(wo[rows])
+            ok = a[1] & b[1]
             if self._rgb is not None:
-                zz = z[s:e] if per_row else z[None]
-                out[s:e] = self._rgb.run(["f"], {"z": zz, "wi": wi_u[s:e], "wo": wo_u[s:e]})[0]
+                f = self._rgb.run_once(["f"], {"z": z[rows] if per_row else zz, "wi": a[0], "wo": b[0]})[0]
             else:
-                zz = z[s:e].reshape(-1, LATENT) if per_row else np.tile(z, (m, 1))
-                out[s:e] = self._decoder.run(["f"], {
-                    "z": zz, "wi": np.repeat(wi_u[s:e], 3, axis=0), "wo": np.repeat(wo_u[s:e], 3, axis=0),
-                })[0].reshape(m, 3)
-        out = np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
-        return np.where(ok[:, None], np.maximum(out, 0.0), 0.0).astype(np.float32)
+                m = a[0].shape[0]
+                f = self._decoder.run_once(["f"], {
+                    "z": z[rows].reshape(-1, LATENT) if per_row else np.tile(z, (m, 1)),
+                    "wi": np.repeat(a[0], 3, axis=0), "wo": np.repeat(b[0], 3, axis=0)})[0].reshape(m, 3)
+            # 0 below the horizon, and for NaN (an overflowing latent); the graph's exp is >= 0
+            out[rows] = np.where(ok[:, None] & (f >= 0.0), f, 0.0)
+
+        (self._rgb or self._decoder).map(chunk, n)
+        return out
 
 
 def _clamp_arrays(arrays: StackArrays) -> StackArrays:

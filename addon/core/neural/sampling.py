@@ -16,9 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from . import proxy
-from .runtime import LATENT, MODEL_DIR, SIZES, _session
-
-ROWS_PER_RUN = 65536
+from .runtime import LATENT, MODEL_DIR, SIZES
+from .session import ChunkedSession
 
 
 class SamplingModel:
@@ -29,7 +28,7 @@ class SamplingModel:
             raise ValueError(f"unknown decoder size {size!r}; sizes are {list(SIZES)}")
         self.size = size
         self.path = (Path(model_dir) if model_dir is not None else MODEL_DIR) / f"sampling_{size}.onnx"
-        self._session = _session(self.path, threads)
+        self._session = ChunkedSession(self.path, threads)
         card = self.path.with_suffix(".json")
         self.card = json.loads(card.read_text()) if card.exists() else {}
 
@@ -42,11 +41,8 @@ class SamplingModel:
             raise ValueError(f"z must have shape (N, 3, {LATENT}) or (3, {LATENT}), got {z.shape}")
         if not np.all(np.isfinite(z)):
             raise ValueError("z must be finite (the latent holds NaN or Inf)")
-        out = np.empty((z.shape[0], 2), dtype=np.float32)
-        for s in range(0, z.shape[0], ROWS_PER_RUN):  # a loop over batches
-            sig, w = self._session.run(["sigma", "w"], {"z": z[s:s + ROWS_PER_RUN]})
-            out[s:s + ROWS_PER_RUN, 0] = sig
-            out[s:s + ROWS_PER_RUN, 1] = w
+        sig, w = self._session.run(["sigma", "w"], {"z": z})
+        out = np.stack([sig, w], axis=1).astype(np.float32)
         out[:, 0] = np.maximum(out[:, 0], proxy.SIGMA_MIN)
         out[:, 1] = np.clip(out[:, 1], 0.0, 1.0)
         return out
