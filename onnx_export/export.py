@@ -141,14 +141,64 @@ def torch_from_onnx(path: Path, card: dict) -> torch.nn.Module:
     return mod.eval()
 
 
+def initializers(path: Path) -> dict[str, np.ndarray]:
+    from onnx import numpy_helper
+
+    return {t.name: numpy_helper.to_array(t) for t in onnx.load(str(path)).graph.initializer}
+
+
+def regraph_decoder(size: str, model_dir: Path = MODEL_DIR) -> dict:
+    """Re-export the two decoder graphs of a shipped size from their own weights, after a change
+    to the graph code (``nets.direction_features``) that leaves the weights alone.
+
+    Checks that every weight is bit-identical before and after, refreshes the parity figures of
+    the decoder card, and moves the digest of ``decoder_<size>.onnx`` in the cards of the models
+    trained against it (layering, sampling: ``trained_with``) to the new file: those models are
+    still valid, since what they were trained against is the weights."""
+    from addon.core.neural.layering import file_digest
+
+    dpath = model_dir / f"decoder_{size}.onnx"
+    rgb_path = model_dir / f"decoder_{size}_rgb.onnx"
+    card_path = dpath.with_suffix(".json")
+    card = json.loads(card_path.read_text())
+    before = initializers(dpath)
+    old_digest = file_digest(dpath)
+    dec = torch_from_onnx(dpath, card)
+    export_decoder(dec, dpath)
+    export_rgb_decoder(dec, rgb_path)
+    after = initializers(dpath)
+    if before.keys() != after.keys() or any(not np.array_equal(before[k], after[k]) for k in before):
+        raise RuntimeError(f"re-exporting {dpath.name} changed its weights; retrain the models that depend on it")
+    card["onnx_runtime_vs_torch_max_relative_difference"] = decoder_parity(dec, dpath)
+    card["rgb_graph"]["onnx_runtime_vs_torch_max_relative_difference"] = rgb_decoder_parity(dec, rgb_path)
+    card_path.write_text(json.dumps(card, indent=1) + "\n")
+    new_digest = file_digest(dpath)
+    moved = []
+    for other in sorted(model_dir.glob("*.json")):
+        c = json.loads(other.read_text())
+        if c.get("trained_with", {}).get(dpath.name) == old_digest:
+            c["trained_with"][dpath.name] = new_digest
+            other.write_text(json.dumps(c, indent=1) + "\n")
+            moved.append(other.name)
+    return {"decoder": dpath.name, "parity": card["onnx_runtime_vs_torch_max_relative_difference"],
+            "rgb_parity": card["rgb_graph"]["onnx_runtime_vs_torch_max_relative_difference"], "cards_moved": moved}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size", required=True)
-    ap.add_argument("--decoder", type=Path, required=True)
-    ap.add_argument("--encoder", type=Path, required=True)
+    ap.add_argument("--decoder", type=Path)
+    ap.add_argument("--encoder", type=Path)
+    ap.add_argument("--regraph", action="store_true",
+                    help="re-export the shipped decoder graphs of --size from their own weights (regraph_decoder)")
     ap.add_argument("--metrics", type=Path, default=None)
     ap.add_argument("--out", type=Path, default=MODEL_DIR)
     a = ap.parse_args(argv)
+    if a.regraph:
+        print(json.dumps(regraph_decoder(a.size, a.out)))
+        return
+    if a.decoder is None or a.encoder is None:
+        ap.error("--decoder and --encoder are required (or --regraph)")
     a.out.mkdir(parents=True, exist_ok=True)
     dec, latents = load_decoder(a.decoder)
     dck = torch.load(a.decoder, weights_only=False)
