@@ -19,7 +19,7 @@ def test_layering_onnx_matches_torch(size):
     path = MODEL_DIR / f"layering_{size}.onnx"
     card = json.loads(path.with_suffix(".json").read_text())
     net = lay.net_from_onnx(path, card)
-    assert lay.parity(net, path, n=2048, seed=7) < 1e-3
+    assert lay.parity(net, path, n=2048, seed=7) <= 1e-4  # relative, floor 1e-3 on latents near 0
     assert card["parameters"] == sum(p.numel() for p in net.parameters())
 
 
