@@ -314,30 +314,20 @@ def primary_footprints(scene, stride: int = 1) -> np.ndarray:
     One ray through the centre of every ``stride``-th pixel in x and y (one embreex call); the
     footprint is the renderer's: pixel spread x distance / sqrt(cos) x the triangle's uv scale.
     """
-    from .render.integrator import RenderSettings, RenderStats, _Context
+    from .render.integrator import camera_hits
 
     if int(stride) < 1:
         raise ValueError(f"stride must be >= 1, got {stride!r}")
     cam = scene.camera
     out = np.full(len(scene.materials), np.inf)
-    if not scene.mesh.triangle_count:
-        return out
-    ctx = _Context(scene, RenderSettings(samples=1, max_bounces=0), RenderStats())
     ys, xs = np.meshgrid(np.arange(0, cam.height, int(stride)), np.arange(0, cam.width, int(stride)), indexing="ij")
-    px, py = xs.reshape(-1), ys.reshape(-1)
-    o, d = cam.generate_rays(px, py, np.full((len(px), 2), 0.5))
-    t, prim, _, _ = ctx.tracer.intersect(o, d)
+    prim, fp = camera_hits(scene, xs.reshape(-1), ys.reshape(-1))
     hit = prim >= 0
     if not hit.any():
         return out
-    prim = prim[hit]
-    ng = scene.mesh.face_normals[prim].astype(np.float64)
-    cos_o = np.maximum(np.abs(np.einsum("ij,ij->i", ng, d[hit])), 0.05)
-    fp = t[hit] * cam.pixel_spread / np.sqrt(cos_o) * ctx.uv_scale[prim]
-    fp = np.where(fp > 0, fp, np.inf)  # triangles without uvs have no texture footprint
-    mats = scene.mesh.material_index[prim].astype(np.int64)
+    mats = scene.mesh.material_index[prim[hit]].astype(np.int64)
     ok = (mats >= 0) & (mats < len(out))
-    np.minimum.at(out, mats[ok], fp[ok])
+    np.minimum.at(out, mats[ok], fp[hit][ok])
     return out
 
 

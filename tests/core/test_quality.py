@@ -243,3 +243,23 @@ def test_assign_decoders_fixed_size_and_what_stays_untouched():
         assert isinstance(mats[1], LayeredSpec) and any("reference" in n for n in notes)
     with pytest.raises(ValueError, match="quality"):
         quality.assign_decoders(scene, "huge")
+
+
+def test_camera_hits_give_the_renderers_footprint_on_a_facing_quad():
+    """A 2 x 2 quad (uvs span [0, 1]: 0.5 uv units per world unit) 4 units in front of the camera:
+    the footprint at the image centre is 4 x pixel spread x 0.5; tilting the quad by 60 degrees
+    stretches it by 1 / sqrt(cos 60); a miss is -1 / inf."""
+    from addon.core.render.integrator import camera_hits, texture_footprint
+
+    cam = Camera.look_at((0.0, -4.0, 0.0), (0.0, 0.0, 0.0), fov_deg=30.0, width=33, height=33)
+    facing = shapes.quad((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+    scene = Scene(cam, facing, [LambertMaterial()], [], None, ["quad"])
+    prim, fp = camera_hits(scene, [16, 0], [16, 0])
+    assert prim[0] >= 0 and prim[1] == -1 and math.isinf(fp[1])
+    np.testing.assert_allclose(fp[0], 4.0 * cam.pixel_spread * 0.5, rtol=1e-6)
+    c, s = math.cos(math.radians(60.0)), math.sin(math.radians(60.0))
+    tilted = shapes.quad((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, -s, c))  # normal 60 deg from the view ray
+    prim, fp = camera_hits(Scene(cam, tilted, [LambertMaterial()], [], None, ["quad"]), [16], [16])
+    np.testing.assert_allclose(fp[0], 4.0 * cam.pixel_spread * 0.5 / math.sqrt(c), rtol=1e-6)
+    # the grazing floor: |cos| below 0.05 counts as 0.05
+    np.testing.assert_allclose(texture_footprint(1.0, 1e-9, 2.0), 2.0 / math.sqrt(0.05))

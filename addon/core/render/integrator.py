@@ -143,6 +143,46 @@ def _timed(stats: RenderStats, material, fn, *args):
     return out
 
 
+def uv_scale(mesh) -> np.ndarray:
+    """(triangles,) uv units per world unit of each triangle: sqrt(uv area / world area); 0 for a
+    mesh without uvs (no texture footprint)."""
+    if not mesh.triangle_count or mesh.uvs is None:
+        return np.zeros(mesh.triangle_count)
+    uv = mesh.uvs.astype(np.float64)
+    a_uv = 0.5 * np.abs((uv[:, 1, 0] - uv[:, 0, 0]) * (uv[:, 2, 1] - uv[:, 0, 1])
+                        - (uv[:, 2, 0] - uv[:, 0, 0]) * (uv[:, 1, 1] - uv[:, 0, 1]))
+    return np.sqrt(a_uv / np.maximum(mesh.areas, 1e-30))
+
+
+def texture_footprint(width, cos_o, tri_uv_scale) -> np.ndarray:
+    """Footprint in uv units of a ray cone of ``width`` (world units) hitting a surface at
+    |cos| ``cos_o`` (floored at 0.05: grazing hits do not blow up) on triangles of uv scale
+    ``tri_uv_scale``: the width stretched by 1 / sqrt(cos) (the mean of its two axes)."""
+    return width / np.sqrt(np.maximum(np.abs(cos_o), 0.05)) * tri_uv_scale
+
+
+def camera_hits(scene: Scene, px, py) -> tuple[np.ndarray, np.ndarray]:
+    """Primary rays through the centres of pixels (``px``, ``py``): the triangle each hits (-1 for
+    none) and the texture footprint there (uv units; ``inf`` on a miss or a triangle without uvs),
+    as the renderer computes it for its first bounce. One intersection call."""
+    cam = scene.camera
+    px = np.asarray(px, dtype=np.int64).reshape(-1)
+    py = np.asarray(py, dtype=np.int64).reshape(-1)
+    fp = np.full(len(px), np.inf)
+    if not scene.mesh.triangle_count or not len(px):
+        return np.full(len(px), -1, dtype=np.int64), fp
+    o, d = cam.generate_rays(px, py, np.full((len(px), 2), 0.5))
+    t, prim, _, _ = Tracer(scene.mesh, RenderStats()).intersect(o, d)
+    prim = np.asarray(prim, dtype=np.int64)
+    hit = prim >= 0
+    if hit.any():
+        ng = scene.mesh.face_normals[prim[hit]].astype(np.float64)
+        cos_o = np.einsum("ij,ij->i", ng, d[hit])
+        f = texture_footprint(t[hit] * cam.pixel_spread, cos_o, uv_scale(scene.mesh)[prim[hit]])
+        fp[hit] = np.where(f > 0, f, np.inf)
+    return prim, fp
+
+
 class _Context:
     """What stays fixed during a render: resolved materials, lights, tracer, settings."""
 
@@ -170,15 +210,9 @@ class _Context:
         if m.triangle_count:
             p = m.positions.astype(np.float64)
             self.eps = 1e-4 * (1.0 + float(np.abs(p).max()))
-            if m.uvs is not None:
-                uv = m.uvs.astype(np.float64)
-                a_uv = 0.5 * np.abs((uv[:, 1, 0] - uv[:, 0, 0]) * (uv[:, 2, 1] - uv[:, 0, 1])
-                                    - (uv[:, 2, 0] - uv[:, 0, 0]) * (uv[:, 1, 1] - uv[:, 0, 1]))
-                self.uv_scale = np.sqrt(a_uv / np.maximum(m.areas, 1e-30))
-            else:
-                self.uv_scale = np.zeros(m.triangle_count)
         else:
             self.eps = 1e-4
+        self.uv_scale = uv_scale(m)
 
     def light_weight(self, pdf_light_solid, prev_pdf, prev_delta, prev_mis):
         """Weight of emission found by BSDF sampling."""
@@ -294,8 +328,7 @@ def _trace_paths(ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: i
         else:
             uv = np.zeros((m, 2))
         width = width + spread * t
-        cos_o = np.maximum(np.abs(frame.dot(ng, wo_w)), 0.05)
-        footprint = width / np.sqrt(cos_o) * ctx.uv_scale[prim]
+        footprint = texture_footprint(width, frame.dot(ng, wo_w), ctx.uv_scale[prim])
 
         # Next-event estimation: pick one light per hit, one occlusion call for all.
         u_light = rng.random((m, 3))
