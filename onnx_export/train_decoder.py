@@ -72,6 +72,14 @@ def train(args, log=print) -> dict:
     if args.init_scheme == "he":
         he_init(dec)
     latents = torch.nn.Parameter(torch.randn(n_units, 32, generator=gen) * 0.01)
+    if args.init_latents_from:  # start from a shipped size's latent space: its encoder's latents
+        from addon.core.neural.runtime import load_models
+        from onnx_export.train_encoder import unit_features
+
+        x = unit_features(args.data, args.materials).numpy()
+        z0 = load_models(args.init_latents_from, threads=args.threads).encode_features(x.reshape(-1, 3, x.shape[1]))
+        latents.data.copy_(torch.from_numpy(z0.reshape(n_units, 32)))
+        log(f"latents start from encoder_{args.init_latents_from} (mean |z| {float(np.abs(z0).mean()):.3f})")
     if args.init:  # start from another run: its decoder, and its latents for the units both share
         s0 = torch.load(args.init, weights_only=False)
         dec.load_state_dict(s0["decoder"])
@@ -137,6 +145,8 @@ def parser():
     ap.add_argument("--data-weights", type=float, nargs="+", default=None,
                     help="share of each --data set in a batch (default: equal shares)")
     ap.add_argument("--init", type=Path, default=None, help="start from this checkpoint's decoder and latents")
+    ap.add_argument("--init-latents-from", default=None,
+                    help="start the latents from this shipped size's encoder (its latent space), then optimise them")
     ap.add_argument("--materials", type=int, default=0, help="use only the first N materials (0: all)")
     ap.add_argument("--steps", type=int, default=6000)
     ap.add_argument("--batch", type=int, default=64, help="BRDF channels per step")
