@@ -6,7 +6,7 @@ through memory between operators. Cutting the batch into chunks of a few thousan
 intermediates in cache, and running the chunks of one batch on ``threads`` Python threads, each
 calling a single-threaded session (``InferenceSession.run`` releases the GIL and is safe to call
 concurrently), keeps every core busy on whole graphs. On the 2-core development machine this
-doubled the tiny decoder's throughput against one 2-thread call on the whole batch
+about doubled the decoders' throughput against one 2-thread call on the whole batch
 (``benchmarks/bench_decoders.py`` measures both).
 """
 
