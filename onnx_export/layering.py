@@ -250,6 +250,11 @@ def train(args, log=print) -> dict:
     def heldout():
         return load_heldout(args.heldout) if args.heldout.exists() else None
     net = LayeringNet(args.width, args.depth)
+    if args.init_from:  # warm start: a shipped size's layering network (same architecture)
+        src = MODEL_DIR / f"layering_{args.init_from}.onnx"
+        net = net_from_onnx(src, json.loads(src.with_suffix(".json").read_text()))
+        net.train()
+        log(f"starting from {src.name}")
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -405,6 +410,9 @@ def main(argv=None):
     t.add_argument("--c2", type=Path, default=Path("cache/data/layering_c2"))
     t.add_argument("--stacks", type=int, default=0, help="use only the first N one-coating stacks (0: all)")
     t.add_argument("--heldout", type=Path, default=Path("tests/data/heldout_layered.npz"))
+    t.add_argument("--init-from", default=None,
+                   help="start from this shipped size's layering network (e.g. a decoder whose latents began in "
+                        "that size's latent space)")
     t.add_argument("--width", type=int, default=128)
     t.add_argument("--depth", type=int, default=3)
     t.add_argument("--steps", type=int, default=4000)

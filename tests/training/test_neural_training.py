@@ -147,3 +147,27 @@ def test_heldout_projection_error_not_worse_than_card(size):
 @pytest.mark.parametrize("size", SLOW)
 def test_heldout_projection_error_not_worse_than_card_large(size):
     _projection_check(size)
+
+
+def test_he_init_keeps_activations_alive_through_the_papers_16_layers():
+    """With PyTorch's default init the input-dependent part of the ReLU activations shrinks about
+    3x per layer, so after the paper's 16 layers of 256 the output no longer depends on the input
+    (the first paper-size run stalled); He init keeps it within a few x of the first layer's."""
+    from onnx_export.nets import he_init, make_decoder
+
+    torch.manual_seed(0)
+    x = torch.randn(4096, 43)
+
+    def spread(dec):  # per-unit std over inputs, first and last hidden layer
+        h, out = x, []
+        with torch.no_grad():
+            for m in list(dec.net)[:-1]:
+                h = m(h)
+                if isinstance(m, torch.nn.ReLU):
+                    out.append(float(h.std(0).mean()))
+        return out[0], out[-1]
+
+    first, last = spread(make_decoder("paper"))
+    assert last < 1e-3 * first
+    first, last = spread(he_init(make_decoder("paper")))
+    assert last > 0.1 * first
