@@ -318,6 +318,15 @@ def train(args, log=print) -> dict:
 # ----------------------------------------------------------------------------- export
 
 
+def _stacks_in(data_dir: Path, default: int) -> int:
+    """Number of stacks in a layering data directory (for the card's data command), or ``default``
+    when the directory is not here."""
+    chunks = sorted(data_dir.glob("chunk_*.npz"))
+    if not chunks:
+        return default
+    return int(sum(np.load(c)["wo"].shape[0] for c in chunks))
+
+
 def export_onnx(net: LayeringNet, path: Path) -> None:
     net.eval()
     b = 8
@@ -378,8 +387,10 @@ def export(args, log=print) -> dict:
         "parameters": n_params(net),
         "macs_per_rgb_eval": 3 * macs_per_eval(net),
         "training": {
-            "data": ["python -m onnx_export.layered_data --coatings 1 --stacks 4096 --out cache/data/layering_c1",
-                     "python -m onnx_export.layered_data --coatings 2 --stacks 1536 --out cache/data/layering_c2"],
+            "data": [f"python -m onnx_export.layered_data --coatings {c} --stacks {n} --out {d}"
+                     for c, d, n in ((1, a.get("c1", "cache/data/layering_c1"), 4096),
+                                     (2, a.get("c2", "cache/data/layering_c2"), 1536))
+                     for n in [_stacks_in(Path(d), n)]],
             "command": "python -m onnx_export.layering train " + " ".join(
                 f"--{k.replace('_', '-')} {v}" for k, v in a.items() if k not in ("every", "log_every", "cmd")),
             "steps": s["step"], "final_loss": s.get("loss"), "seeds": {"data": 11, "training": int(a.get("seed", 0))},
