@@ -126,8 +126,8 @@ def main(argv=None):
     data = load(a.heldout)
     sizes = [s for s in SIZES if (MODEL_DIR / f"layering_{s}.onnx").exists()]
     lines = ["# Layering network and sampling network: measurements", "",
-             f"Made by `{cmd}` (CPU, ONNX Runtime, {a.threads} threads; the machine was shared with other jobs, "
-             "so speeds are noisy). Held-out set: `tests/data/heldout_layered.npz` "
+             f"Made by `{cmd}` (CPU, ONNX Runtime, {a.threads} threads on a 2-core machine whose speed varies by "
+             "up to 1.5x between runs). Held-out set: `tests/data/heldout_layered.npz` "
              f"({len(data['stacks'])} stacks: 16 with one coating, 8 with two, 4 with three, 4 with four; made by "
              f"`{data['command']}`).", ""]
     results = {}
