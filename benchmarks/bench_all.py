@@ -411,8 +411,8 @@ def markdown(data: dict, command: str) -> str:
     cfg = data["config"]
     lines = [
         "# Benchmarks: speed against accuracy", "",
-        f"Produced by `{command}` in {data['seconds']:.0f} s ({platform.machine()}, 2 CPU threads, no GPU; the "
-        "machine was shared with other jobs, so times are noisy: compare ratios within one run). Decoder sizes "
+        f"Produced by `{command}` in {data['seconds']:.0f} s ({platform.machine()}, 2 CPU threads, no GPU; this "
+        "machine's speed varies by up to 1.5x between runs: compare ratios within one run). Decoder sizes "
         f"shipped at the time: {', '.join(data['sizes']) or 'none'}.", "",
         "## BRDF level", "",
         "Lobe error (relative RMSE of f cos(theta_o) at 0/30/60/75 degrees incidence, noise of the stored "
