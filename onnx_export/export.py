@@ -19,6 +19,7 @@ import onnx
 import torch
 
 from addon.core.neural.features import FEATURE_NAMES, N_FEATURES
+from onnx_export.cli import command_line
 from onnx_export.evaluate import load_decoder
 from onnx_export.nets import Decoder, Encoder, RGBDecoder, macs_per_eval, n_params
 
@@ -230,9 +231,7 @@ def main(argv=None):
         "macs_per_rgb_eval": 3 * macs_per_eval(dec),
         "training": {
             "data": data_cmd,
-            "command": "python -m onnx_export.train_decoder " + " ".join(
-                f"--{k.replace('_', '-')} {' '.join(v) if isinstance(v, list) else v}" for k, v in targs.items()
-                if k not in ("every", "log_every")),
+            "command": command_line("onnx_export.train_decoder", targs, skip=("every", "log_every")),
             "steps": dck["step"], "final_loss": dck.get("loss"),
             "seeds": {"data": 1, "training": targs.get("seed", 0)},
             "loss": f"{targs.get('loss')} on log1p(f cos_i cos_o)",
@@ -254,8 +253,7 @@ def main(argv=None):
         "architecture": {**eck["config"], "hidden": f"{enc.depth} x Linear({enc.width}) + ReLU"},
         "parameters": n_params(enc),
         "macs_per_rgb_eval": 3 * macs_per_eval(enc),
-        "training": {"command": "python -m onnx_export.train_encoder " + " ".join(
-            f"--{k.replace('_', '-')} {v}" for k, v in eck["args"].items()), "history": eck.get("history")},
+        "training": {"command": command_line("onnx_export.train_encoder", eck["args"]), "history": eck.get("history")},
         "onnx_runtime_vs_torch_max_relative_difference": epar,
         "opset": OPSET,
         **{k: v for k, v in metrics.items() if k.startswith("encoder")},

@@ -42,6 +42,7 @@ from addon.core.neural.features import arrays_features, base_features
 from addon.core.neural.layering import file_digest
 from addon.core.neural.runtime import NeuralModels
 from addon.core.stack import StackArrays
+from onnx_export.cli import command_line
 from onnx_export.nets import LATENT, cosine_lr, log_target, macs_per_eval, mlp, n_params
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"
@@ -387,12 +388,10 @@ def export(args, log=print) -> dict:
         "parameters": n_params(net),
         "macs_per_rgb_eval": 3 * macs_per_eval(net),
         "training": {
-            "data": [f"python -m onnx_export.layered_data --coatings {c} --stacks {n} --out {d}"
+            "data": [f"python -m onnx_export.layered_data --coatings {c} --stacks {_stacks_in(Path(d), n)} --out {d}"
                      for c, d, n in ((1, a.get("c1", "cache/data/layering_c1"), 4096),
-                                     (2, a.get("c2", "cache/data/layering_c2"), 1536))
-                     for n in [_stacks_in(Path(d), n)]],
-            "command": "python -m onnx_export.layering train " + " ".join(
-                f"--{k.replace('_', '-')} {v}" for k, v in a.items() if k not in ("every", "log_every", "cmd")),
+                                     (2, a.get("c2", "cache/data/layering_c2"), 1536))],
+            "command": command_line("onnx_export.layering train", a, skip=("every", "log_every", "cmd")),
             "steps": s["step"], "final_loss": s.get("loss"), "seeds": {"data": 11, "training": int(a.get("seed", 0))},
             "loss": a.get("loss"),
         },

@@ -39,6 +39,7 @@ import torch
 from torch import nn
 
 from addon.core.neural import proxy
+from onnx_export.cli import command_line
 from onnx_export.nets import LATENT, macs_per_eval, mlp, n_params
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"
@@ -250,8 +251,7 @@ def run(args, log=print) -> dict:
         "parameters": n_params(net),
         "macs_per_material": macs_per_eval(net),
         "training": {
-            "command": "python -m onnx_export.sampling_net " + " ".join(
-                f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k != "models"),
+            "command": command_line("onnx_export.sampling_net", vars(args), skip=("models",)),
             "loss": "KL(BRDF cos / albedo || proxy) averaged over wo with cos(theta_o) in " + str(list(WO_COS)) +
                     ", bilinear in a per-material table over (log sigma, w)",
             "materials": int(z.shape[0]), "seeds": {"materials": [args.seed, 5], "training": args.seed},

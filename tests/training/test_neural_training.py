@@ -171,3 +171,42 @@ def test_he_init_keeps_activations_alive_through_the_papers_16_layers():
     assert last < 1e-3 * first
     first, last = spread(he_init(make_decoder("paper")))
     assert last > 0.1 * first
+
+
+CARDS = sorted(p for p in MODEL_DIR.glob("*.json"))
+
+
+@pytest.mark.parametrize("card", CARDS, ids=lambda p: p.stem)
+def test_card_training_commands_parse(card, monkeypatch):
+    """Each card's training command is one its script accepts (the work itself is replaced)."""
+    import importlib
+    import shlex
+
+    from onnx_export.cli import command_line
+
+    cmd = json.loads(card.read_text()).get("training", {}).get("command")
+    if not cmd:
+        pytest.skip(f"{card.name} has no training command")
+    words = shlex.split(cmd)
+    assert words[:2] == ["python", "-m"], cmd
+    mod = importlib.import_module(words[2])
+    parsed = {}
+    for name in ("train", "run", "export"):
+        if hasattr(mod, name):
+            monkeypatch.setattr(mod, name, lambda a, log=None, **kw: parsed.update(vars(a)) or {"loss": 0, "step": 0})
+    monkeypatch.setattr(Path, "write_text", lambda self, *a, **k: 0)  # train.json beside the output
+    mod.main(words[3:])
+    assert parsed, f"{words[2]} did not parse {cmd}"
+    # and rendering the parsed arguments gives the command back (no value lost or invented)
+    prog = " ".join(words[2:4]) if words[3:4] == ["train"] else words[2]
+    skip = [k for k in ("every", "log_every", "cmd", "models") if f"--{k.replace('_', '-')}" not in cmd]
+    assert command_line(prog, {k: v for k, v in parsed.items() if k in
+                               {w[2:].replace("-", "_") for w in words if w.startswith("--")}}, skip) == cmd
+
+
+def test_command_line_renders_stored_arguments():
+    from onnx_export.cli import command_line
+
+    args = {"data": "[PosixPath('a/b'), PosixPath('c')]", "init": "None", "flag": True, "off": False,
+            "weights": [0.5, 0.5], "steps": 10}
+    assert command_line("m", args) == "python -m m --data a/b c --flag --weights 0.5 0.5 --steps 10"
