@@ -21,6 +21,7 @@ import torch
 from addon.core.neural.features import FEATURE_NAMES, N_FEATURES
 from onnx_export.cli import command_line
 from onnx_export.evaluate import load_decoder
+from onnx_export.layered_data import data_command, holds_layering_data
 from onnx_export.nets import Decoder, Encoder, RGBDecoder, macs_per_eval, n_params
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"
@@ -185,6 +186,32 @@ def regraph_decoder(size: str, model_dir: Path = MODEL_DIR) -> dict:
             "rgb_parity": card["rgb_graph"]["onnx_runtime_vs_torch_max_relative_difference"], "cards_moved": moved}
 
 
+SINGLE_DATA_COMMAND = "python -m onnx_export.data --set single --materials 4096 --pairs 1024 --out cache/data/single"
+
+
+def training_commands(ckpt: dict) -> list[str]:
+    """The train_decoder commands that made a checkpoint, first stage first: a run started with
+    ``--init`` from another run's checkpoint is preceded by that run's command (when it is here)."""
+    a = ckpt.get("args")
+    if a is None:  # a checkpoint assembled by hand (no command made it)
+        return []
+    out = [command_line("onnx_export.train_decoder", a, skip=("every", "log_every"))]
+    init = a.get("init")
+    if init not in (None, "None") and Path(str(init)).exists():
+        out = training_commands(torch.load(str(init), weights_only=False)) + out
+    return out
+
+
+def loss_text(args: dict) -> str:
+    kinds = args.get("loss")
+    kinds = kinds if isinstance(kinds, (list, tuple)) else [kinds]
+    if len(kinds) == 1:
+        return f"{kinds[0]} on log1p(f cos_i cos_o)"
+    scales = args.get("loss_scales") or [1.0] * len(kinds)
+    return "; ".join(f"{d}: {k} x {sc}" for d, k, sc in zip(args["data"], kinds, scales)) + \
+        " (l1: on log1p(f cos_i cos_o); l2rel: onnx_export.nets.pair_loss, the mean of Monte Carlo targets)"
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size", required=True)
@@ -218,7 +245,9 @@ def main(argv=None):
     epar = encoder_parity(enc, epath, rng.random((512, N_FEATURES)).astype(np.float32))
     metrics = json.loads(a.metrics.read_text()) if a.metrics else {}
     targs = dck["args"]
-    data_cmd = "python -m onnx_export.data --set single --materials 4096 --pairs 1024 --out cache/data/single"
+    data_cmd = [data_command(Path(d)) if holds_layering_data(Path(d)) else SINGLE_DATA_COMMAND for d in targs["data"]]
+    data_cmd = data_cmd[0] if len(data_cmd) == 1 else data_cmd
+    stages = training_commands(dck)
     dcard = {
         "name": f"decoder_{a.size}",
         "role": "neural BRDF decoder f(z_c, wi, wo) -> f_c >= 0 (1/sr, no cosine), one scalar network shared by R, G, B",
@@ -231,10 +260,11 @@ def main(argv=None):
         "macs_per_rgb_eval": 3 * macs_per_eval(dec),
         "training": {
             "data": data_cmd,
-            "command": command_line("onnx_export.train_decoder", targs, skip=("every", "log_every")),
+            "command": stages[-1],
+            **({"earlier_stages": stages[:-1]} if len(stages) > 1 else {}),
             "steps": dck["step"], "final_loss": dck.get("loss"),
             "seeds": {"data": 1, "training": targs.get("seed", 0)},
-            "loss": f"{targs.get('loss')} on log1p(f cos_i cos_o)",
+            "loss": loss_text(targs),
         },
         "onnx_runtime_vs_torch_max_relative_difference": dpar,
         "rgb_graph": {"file": rgb_path.name, "inputs": "z (1 or B, 3, 32), wi (B, 3), wo (B, 3)", "outputs": "f (B, 3)",

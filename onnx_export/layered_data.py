@@ -114,6 +114,27 @@ def load(out: Path) -> dict:
     return d
 
 
+def holds_layering_data(out: Path) -> bool:
+    """True when ``out`` holds chunks of this module (incident directions per outgoing direction),
+    False for other data (``onnx_export.data``) or none."""
+    first = next(iter(sorted(Path(out).glob("chunk_*.npz"))), None)
+    return first is not None and np.load(first)["wi"].ndim == 4
+
+
+def data_command(out: Path, default_stacks: int = 0) -> str:
+    """The command that makes the layering data under ``out`` (the number of stacks it holds, or
+    ``default_stacks`` when it is not on this machine)."""
+    chunks = sorted(p for p in Path(out).glob("chunk_*.npz") if not p.name.endswith(".tmp.npz"))
+    if chunks:
+        first = np.load(chunks[0])
+        coatings = first["p_coat_roughness"].shape[1]
+        stacks = int(sum(np.load(c)["wo"].shape[0] for c in chunks))
+    else:
+        coatings = 2 if str(out).rstrip("/").endswith("c2") else 1
+        stacks = default_stacks
+    return f"python -m onnx_export.layered_data --coatings {coatings} --stacks {stacks} --out {out}"
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--coatings", type=int, default=1, choices=(1, 2, 3))

@@ -43,7 +43,8 @@ from addon.core.neural.layering import file_digest
 from addon.core.neural.runtime import NeuralModels
 from addon.core.stack import StackArrays
 from onnx_export.cli import command_line
-from onnx_export.nets import LATENT, cosine_lr, log_target, macs_per_eval, mlp, n_params
+from onnx_export.layered_data import data_command
+from onnx_export.nets import LATENT, cosine_lr, macs_per_eval, mlp, n_params, pair_loss
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"
 OPSET = 17
@@ -177,15 +178,11 @@ def cosine_weights(wi: np.ndarray, wo: np.ndarray, lobe_alpha: np.ndarray) -> np
 
 
 def layering_loss(pred, target, wi, wo, weight, kind: str) -> torch.Tensor:
-    """Mean per-pair loss, weighted per pair when ``weight`` is given (then normalised by its mean)."""
-    if kind == "l1log":
-        e = (log_target(pred, wi, wo) - log_target(target, wi, wo)).abs()
-    elif kind == "l2rel":
-        cc = torch.clamp(wi[:, 2], min=0.0) * torch.clamp(wo[:, 2], min=0.0)
-        d = cc * (pred - target) / (1.0 + cc * pred.detach())
-        e = d * d
-    else:
+    """Mean per-pair loss (``nets.pair_loss``; ``l1log`` is its ``l1``), weighted per pair when
+    ``weight`` is given (then normalised by its mean)."""
+    if kind not in ("l2rel", "l1log"):
         raise ValueError(f"unknown layering loss {kind!r}; expected l2rel or l1log")
+    e = pair_loss(pred, target, wi, wo, "l1" if kind == "l1log" else kind)
     if weight is None:
         return e.mean()
     return (weight * e).sum() / weight.sum().clamp(min=1e-12)
@@ -219,17 +216,38 @@ def heldout_error(net: LayeringNet, dec, models: NeuralModels, heldout: dict, lo
 # ----------------------------------------------------------------------------- training
 
 
-def regress_projected(net: LayeringNet, data: "StackSet", args, gen, log) -> None:
-    """Stage 0 (``--projected``): MSE of L's output against the stacks' projected latents."""
-    zp = torch.from_numpy(np.load(args.projected)["z"][:data.n])
+def projected_latents(path: Path, data_dir: Path, n: int) -> torch.Tensor:
+    """(n, 3, 32) latents of the first ``n`` stacks of ``data_dir`` in the decoder's latent space, from
+    ``path``: an ``.npz`` of ``onnx_export.layering_project`` (``z``), or a decoder checkpoint of
+    ``onnx_export.train_decoder`` trained with ``data_dir`` among its sets (its auto-decoder latents:
+    a projection that comes with the training)."""
+    if Path(path).suffix == ".npz":
+        return torch.from_numpy(np.load(path)["z"][:n])
+    ck = torch.load(path, weights_only=False)
+    dirs = [Path(d).resolve() for d in ck["args"]["data"]]
+    if Path(data_dir).resolve() not in dirs or "units_per_set" not in ck:
+        raise ValueError(f"{path} was not trained on {data_dir}: its sets are {ck['args']['data']}")
+    i = dirs.index(Path(data_dir).resolve())
+    start = sum(ck["units_per_set"][:i])
+    z = ck["latents"][start:start + ck["units_per_set"][i]].reshape(-1, 3, LATENT)
+    if z.shape[0] < n:
+        raise ValueError(f"{path} holds latents of {z.shape[0]} stacks of {data_dir}, {n} needed")
+    return z[:n].float()
+
+
+def regress_projected(net: LayeringNet, sets: dict, targets: dict, args, gen, log) -> None:
+    """Stage 0 (``--projected``): MSE of L's output against the stacks' projected latents, over every
+    coating count that has them (so the recursion is regressed too)."""
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
     t0 = time.perf_counter()
     for step in range(args.regress_steps):
         for g in opt.param_groups:
             g["lr"] = cosine_lr(step, args.regress_steps, args.lr, warmup=20)
-        s = torch.randint(0, data.n, (512,), generator=gen)
-        z = compose(net, data.z_base[s], data.z_tops[s], data.albedo[s], data.thickness[s])
-        loss = ((z - zp[s]) ** 2).mean()
+        loss = 0.0
+        for c, data in sets.items():
+            s = torch.randint(0, data.n, (512,), generator=gen)
+            z = compose(net, data.z_base[s], data.z_tops[s], data.albedo[s], data.thickness[s])
+            loss = loss + ((z - targets[c][s]) ** 2).mean() / len(sets)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -243,8 +261,8 @@ def train(args, log=print) -> dict:
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
-    models = NeuralModels(args.size, threads=args.threads)
-    dec = frozen_decoder(args.size)
+    models = NeuralModels(args.size, threads=args.threads, model_dir=args.model_dir)
+    dec = frozen_decoder(args.size, Path(args.model_dir or MODEL_DIR))
     trained_with = {p.name: file_digest(p) for p in (models.encoder_path, models.decoder_path)}
     sets = {1: StackSet(args.c1, models, args.stacks, args.weighting == "cosine")}  # two-coating data are loaded when stage 2 starts
 
@@ -269,7 +287,11 @@ def train(args, log=print) -> dict:
         log(f"resumed from {ckpt} at step {step}")
     total = args.steps + args.finetune
     if args.projected and step == 0:
-        regress_projected(net, sets[1], args, gen, log)
+        targets = {1: projected_latents(args.projected, args.c1, sets[1].n)}
+        if Path(args.projected).suffix != ".npz":  # a decoder checkpoint may hold the two-coating stacks too
+            sets[2] = StackSet(args.c2, models, use_weight=args.weighting == "cosine")
+            targets[2] = projected_latents(args.projected, args.c2, sets[2].n)
+        regress_projected(net, sets, targets, args, gen, log)
         if heldout() is not None:
             hist["regressed"] = heldout_error(net, dec, models, heldout(), log)
         opt = torch.optim.Adam(net.parameters(), lr=args.lr)
@@ -317,15 +339,6 @@ def train(args, log=print) -> dict:
 
 
 # ----------------------------------------------------------------------------- export
-
-
-def _stacks_in(data_dir: Path, default: int) -> int:
-    """Number of stacks in a layering data directory (for the card's data command), or ``default``
-    when the directory is not here."""
-    chunks = sorted(data_dir.glob("chunk_*.npz"))
-    if not chunks:
-        return default
-    return int(sum(np.load(c)["wo"].shape[0] for c in chunks))
 
 
 def export_onnx(net: LayeringNet, path: Path) -> None:
@@ -388,9 +401,8 @@ def export(args, log=print) -> dict:
         "parameters": n_params(net),
         "macs_per_rgb_eval": 3 * macs_per_eval(net),
         "training": {
-            "data": [f"python -m onnx_export.layered_data --coatings {c} --stacks {_stacks_in(Path(d), n)} --out {d}"
-                     for c, d, n in ((1, a.get("c1", "cache/data/layering_c1"), 4096),
-                                     (2, a.get("c2", "cache/data/layering_c2"), 1536))],
+            "data": [data_command(Path(d), n) for d, n in ((a.get("c1", "cache/data/layering_c1"), 4096),
+                                                            (a.get("c2", "cache/data/layering_c2"), 1536))],
             "command": command_line("onnx_export.layering train", a, skip=("every", "log_every", "cmd")),
             "steps": s["step"], "final_loss": s.get("loss"), "seeds": {"data": 11, "training": int(a.get("seed", 0))},
             "loss": a.get("loss"),
@@ -436,7 +448,10 @@ def main(argv=None):
     t.add_argument("--weighting", default="cosine", choices=("cosine", "none"),
                    help="per-pair weights to the cosine measure of the lobe images (see cosine_weights)")
     t.add_argument("--projected", type=Path, default=None,
-                   help="projected latents of the one-coating stacks (onnx_export.layering_project): regress on them first")
+                   help="latents of the training stacks to regress on first: an .npz of onnx_export.layering_project "
+                        "(one coating) or a decoder checkpoint trained on the layering data (one and two coatings)")
+    t.add_argument("--model-dir", type=Path, default=None,
+                   help="where the frozen encoder and decoder of --size are read (default: the shipped models)")
     t.add_argument("--regress-steps", type=int, default=3000)
     t.add_argument("--threads", type=int, default=1)
     t.add_argument("--seed", type=int, default=0)

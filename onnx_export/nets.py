@@ -150,6 +150,28 @@ def log_target(f: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Ten
     return torch.log1p(f * cc)
 
 
+PAIR_LOSSES = ("l1", "l2", "l2rel")
+
+
+def pair_loss(pred: torch.Tensor, target: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, kind: str) -> torch.Tensor:
+    """Loss of each (wi, wo) pair, compared as log1p(f cos_i cos_o):
+
+    - ``l1``: |difference of logs|; its minimiser is the median of noisy targets (exact targets: fine);
+    - ``l2``: squared difference of logs; the mean of the LOG, still biased low for skewed noise;
+    - ``l2rel``: squared first-order change of the log, ``cc (pred - target) / (1 + cc pred)`` with the
+      denominator held constant in the gradient: a squared error in f weighted by the prediction only,
+      so its minimiser is the MEAN of Monte Carlo targets (unbiased), scaled like the log losses.
+    """
+    if kind == "l2rel":
+        cc = torch.clamp(wi[:, 2], min=0.0) * torch.clamp(wo[:, 2], min=0.0)
+        d = cc * (pred - target) / (1.0 + cc * pred.detach())
+        return d * d
+    if kind not in PAIR_LOSSES:
+        raise ValueError(f"unknown loss {kind!r}; expected one of {', '.join(PAIR_LOSSES)}")
+    d = log_target(pred, wi, wo) - log_target(target, wi, wo)
+    return d.abs() if kind == "l1" else d * d
+
+
 def cosine_lr(step: int, steps: int, base: float, floor: float = 0.05, warmup: int = 100) -> float:
     if step < warmup:
         return base * (step + 1) / warmup

@@ -22,13 +22,33 @@ import numpy as np
 import torch
 
 from onnx_export import data as datamod
-from onnx_export.nets import Decoder, cosine_lr, he_init, log_target, make_decoder, macs_per_eval, n_params
+from onnx_export import layered_data
+from addon.core.stack import StackArrays
+from onnx_export.nets import PAIR_LOSSES, Decoder, cosine_lr, he_init, make_decoder, macs_per_eval, n_params, pair_loss
+
+
+def load_set(path: Path) -> dict:
+    """One training set as wi, wo, f (M, P, 3) and its ``arrays`` (StackArrays, one row per material).
+
+    Reads both formats: ``onnx_export.data`` (pairs per material) and ``onnx_export.layered_data``
+    (``wi`` per outgoing direction, flattened here to pairs)."""
+    if layered_data.holds_layering_data(path):
+        d = layered_data.load(path)
+        s, p, m = d["wi"].shape[:3]
+        return {"wi": d["wi"].reshape(s, p * m, 3), "wo": np.repeat(d["wo"], m, axis=1),
+                "f": d["f"].reshape(s, p * m, 3), "stderr": d["stderr"].reshape(s, p * m, 3), "arrays": d["arrays"]}
+    d = datamod.load(path)
+    n = len(d["p_base_kind"])
+    d["arrays"] = StackArrays(**{f: d[f"p_{f}"] for f in StackArrays.FIELDS if f.startswith("base_")},
+                              **{f: np.zeros((n, 0) + ((3,) if f == "coat_albedo" else ()))
+                                 for f in StackArrays.FIELDS if f.startswith("coat_")})
+    return d
 
 
 def load_training_tensors(paths: list[Path], materials: int | None = None) -> dict:
     """wi, wo, f (M, P, 3) of all data sets, cut to the smallest number of pairs P of any set
     (pairs are in random order), plus ``source`` (M,): which set each material came from."""
-    parts = [datamod.load(p) for p in paths]
+    parts = [load_set(p) for p in paths]
     pmin = min(p["wi"].shape[1] for p in parts)
     parts = [{k: (v[:, :pmin] if k in ("wi", "wo", "f", "stderr") else v) for k, v in p.items()} for p in parts]
     d = {k: np.concatenate([p[k] for p in parts]) for k in ("wi", "wo", "f") if all(k in p for p in parts)}
@@ -40,13 +60,24 @@ def load_training_tensors(paths: list[Path], materials: int | None = None) -> di
     return {k: torch.from_numpy(np.ascontiguousarray(v, dtype=np.float32)) for k, v in d.items()}
 
 
+def initial_latents(paths: list[Path], size: str, materials: int | None, threads: int) -> np.ndarray:
+    """(units, 32) latents of every training channel in a shipped size's latent space: single-layer
+    materials through its encoder, layered stacks through its encoder and layering network."""
+    from addon.core.neural.layering import LayeringModel, encode_latents
+    from addon.core.neural.runtime import load_models
+
+    models = load_models(size, threads=threads)
+    sets = [load_set(p)["arrays"] for p in paths]
+    layering = LayeringModel(size, threads, sampling=False) if any(a.n_coatings for a in sets) else None
+    out = [encode_latents(a, models, layering) for a in sets]
+    z = np.concatenate(out)
+    if materials:
+        z = z[:materials]
+    return z.reshape(-1, 32)
+
+
 def brdf_loss(pred, target, wi, wo, kind: str) -> torch.Tensor:
-    diff = log_target(pred, wi, wo) - log_target(target, wi, wo)
-    if kind == "l1":
-        return diff.abs().mean()
-    if kind == "l2":
-        return (diff * diff).mean()
-    raise ValueError(f"unknown loss {kind!r}; expected l1 or l2")
+    return pair_loss(pred, target, wi, wo, kind).mean()
 
 
 def batch_of(t: dict, units: torch.Tensor, pairs: int, gen: torch.Generator):
@@ -61,6 +92,11 @@ def batch_of(t: dict, units: torch.Tensor, pairs: int, gen: torch.Generator):
 
 
 def train(args, log=print) -> dict:
+    n_sets = len(args.data)
+    if len(args.loss) not in (1, n_sets) or len(args.loss_scales or [0] * n_sets) != n_sets \
+            or len(args.data_weights or [0] * n_sets) != n_sets:
+        raise ValueError(f"--loss, --loss-scales and --data-weights take one value per --data set ({n_sets}) "
+                         f"(--loss may also take one for all)")
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
@@ -72,25 +108,27 @@ def train(args, log=print) -> dict:
     if args.init_scheme == "he":
         he_init(dec)
     latents = torch.nn.Parameter(torch.randn(n_units, 32, generator=gen) * 0.01)
-    if args.init_latents_from:  # start from a shipped size's latent space: its encoder's latents
-        from addon.core.neural.runtime import load_models
-        from onnx_export.train_encoder import unit_features
-
-        x = unit_features(args.data, args.materials).numpy()
-        z0 = load_models(args.init_latents_from, threads=args.threads).encode_features(x.reshape(-1, 3, x.shape[1]))
-        latents.data.copy_(torch.from_numpy(z0.reshape(n_units, 32)))
-        log(f"latents start from encoder_{args.init_latents_from} (mean |z| {float(np.abs(z0).mean()):.3f})")
+    if args.init_latents_from:  # start in a shipped size's latent space: its encoder (+ layering network)
+        z0 = initial_latents(args.data, args.init_latents_from, args.materials, args.threads)
+        latents.data.copy_(torch.from_numpy(z0))
+        log(f"latents start from the {args.init_latents_from} encoder / layering network "
+            f"(mean |z| {float(np.abs(z0).mean()):.3f})")
     if args.init:  # start from another run: its decoder, and its latents for the units both share
         s0 = torch.load(args.init, weights_only=False)
         dec.load_state_dict(s0["decoder"])
         k = min(n_units, s0["latents"].shape[0])
         latents.data[:k] = s0["latents"][:k]
-        latents.data[k:] = s0["latents"].mean(0)
+        if not args.init_latents_from:
+            latents.data[k:] = s0["latents"].mean(0)
+        log(f"decoder and {k} latents from {args.init}")
     # sampling weight of each unit: data set i gets the share data_weights[i] of every batch
     src = t["source"].repeat_interleave(3)
     w = torch.tensor(args.data_weights or [1.0] * len(args.data), dtype=torch.float32)
     counts = torch.bincount(src.long(), minlength=len(w)).float()
     unit_w = (w / counts.clamp(min=1))[src.long()]
+    kinds = args.loss * len(args.data) if len(args.loss) == 1 else list(args.loss)
+    scales = torch.tensor(args.loss_scales or [1.0] * len(args.data), dtype=torch.float32)
+    units_per_set = [int(c) for c in counts.tolist()]  # src is per unit (material * 3 + channel)
     opt = torch.optim.Adam([{"params": dec.parameters(), "lr": args.lr},
                             {"params": [latents], "lr": args.lr * args.latent_lr_scale}])
     out = Path(args.out)
@@ -107,7 +145,7 @@ def train(args, log=print) -> dict:
     log(f"decoder {dec.config()} params {n_params(dec)} MACs/eval {macs_per_eval(dec)}; "
         f"{n_units} BRDF channels")
     t0 = time.perf_counter()
-    ema = None
+    ema, ema_set = None, [None] * len(args.data)
     while step < args.steps:
         lr = cosine_lr(step, args.steps, args.lr)
         opt.param_groups[0]["lr"] = lr
@@ -116,7 +154,15 @@ def train(args, log=print) -> dict:
         wi, wo, f = batch_of(t, units, args.pairs, gen)
         z = latents[units].repeat_interleave(args.pairs, dim=0)
         pred = dec(z, wi, wo)
-        loss = brdf_loss(pred, f, wi, wo, args.loss)
+        row_set = src[units].long().repeat_interleave(args.pairs)
+        terms = torch.zeros_like(pred)
+        for i, kind in enumerate(kinds):  # each set with its own loss (exact targets: l1; noisy: l2rel)
+            m = row_set == i
+            if m.any():
+                terms[m] = scales[i] * pair_loss(pred[m], f[m], wi[m], wo[m], kind)
+                v = terms[m].mean().item() / scales[i].item()
+                ema_set[i] = v if ema_set[i] is None else 0.98 * ema_set[i] + 0.02 * v
+        loss = terms.mean()
         reg = args.latent_reg * (latents[units] ** 2).mean()
         opt.zero_grad(set_to_none=True)
         (loss + reg).backward()
@@ -127,13 +173,15 @@ def train(args, log=print) -> dict:
         ema = loss.item() if ema is None else 0.98 * ema + 0.02 * loss.item()
         if step % args.log_every == 0 or step == args.steps:
             el = time.perf_counter() - t0
-            log(f"step {step}/{args.steps} loss {ema:.5f} lr {lr:.2e} {el:.0f} s")
+            per_set = " ".join(f"{v:.5f}" for v in ema_set if v is not None) if len(kinds) > 1 else ""
+            log(f"step {step}/{args.steps} loss {ema:.5f}{' (sets ' + per_set + ')' if per_set else ''} "
+                f"lr {lr:.2e} {el:.0f} s")
         if step % args.every == 0 or step == args.steps:
             torch.save({"decoder": dec.state_dict(), "config": dec.config(), "latents": latents.data,
                         "opt": opt.state_dict(), "step": step, "args": vars(args) | {"data": [str(p) for p in args.data]},
-                        "loss": ema}, ckpt.with_suffix(".tmp"))
+                        "loss": ema, "loss_per_set": ema_set, "units_per_set": units_per_set}, ckpt.with_suffix(".tmp"))
             ckpt.with_suffix(".tmp").replace(ckpt)
-    return {"loss": ema, "step": step}
+    return {"loss": ema, "step": step, "loss_per_set": ema_set, "units_per_set": units_per_set}
 
 
 def parser():
@@ -159,7 +207,10 @@ def parser():
     ap.add_argument("--clip", type=float, default=0.0, help="clip the gradient norm to this (0: off)")
     ap.add_argument("--features", default="iso_bumps", choices=("raw", "iso", "iso_bumps"))
     ap.add_argument("--activation", default="exp", choices=("exp", "softplus"))
-    ap.add_argument("--loss", default="l1", choices=("l1", "l2"))
+    ap.add_argument("--loss", nargs="+", default=["l1"], choices=PAIR_LOSSES,
+                    help="loss per --data set, or one for all (l1 for exact targets, l2rel for Monte Carlo ones)")
+    ap.add_argument("--loss-scales", type=float, nargs="+", default=None,
+                    help="factor on each --data set's loss (default 1 each)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--every", type=int, default=250, help="checkpoint every N steps")

@@ -63,6 +63,11 @@ def train(args, log=print) -> dict:
     for p in dec.parameters():
         p.requires_grad_(False)
     x = unit_features(args.data, args.materials)
+    ck = torch.load(args.ckpt, weights_only=False)
+    if "units_per_set" in ck and len(ck["units_per_set"]) > len(args.data):
+        # a decoder trained on single-layer AND layered sets: the encoder learns the single-layer ones,
+        # which come first (the layered stacks are the layering network's job)
+        latents = latents[:sum(ck["units_per_set"][:len(args.data)])]
     if x.shape[0] != latents.shape[0]:
         raise ValueError(f"{x.shape[0]} training channels in the data but {latents.shape[0]} latents in {args.ckpt}; "
                          f"pass the same --data (and --materials) as the decoder run")

@@ -94,6 +94,58 @@ def test_training_code_path_smoke(tmp_path):
     assert f.shape == (1, 3) and np.all(np.isfinite(f))
 
 
+def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
+    """Mixed training: exact single-layer targets (l1) and Monte Carlo layered ones (l2rel) in one run;
+    the checkpoint says which latents belong to which set, so the encoder takes the single-layer ones
+    and the layering network regresses onto the layered ones."""
+    from onnx_export import layered_data
+    from onnx_export.layering import projected_latents
+
+    datamod.generate("single", tmp_path / "single", materials=8, pairs=64, chunk=8, seed=2, log=lambda s: None)
+    layered_data.generate(tmp_path / "layering_c1", coatings=1, stacks=4, n_wo=2, n_wi=32, walks=4, chunk=4, seed=3,
+                          log=lambda s: None)
+    assert layered_data.holds_layering_data(tmp_path / "layering_c1")
+    assert not layered_data.holds_layering_data(tmp_path / "single")
+    lay = train_decoder.load_set(tmp_path / "layering_c1")
+    assert lay["wi"].shape == (4, 64, 3) and lay["arrays"].n_coatings == 1
+    np.testing.assert_array_equal(lay["wo"][:, :32], np.repeat(lay["wo"][:, :1], 32, axis=1))  # flattened per wo
+    args = train_decoder.parser().parse_args(
+        ["--size", "tiny", "--data", str(tmp_path / "single"), str(tmp_path / "layering_c1"), "--data-weights", "0.5",
+         "0.5", "--loss", "l1", "l2rel", "--loss-scales", "1", "4", "--init-latents-from", "tiny", "--steps", "4",
+         "--batch", "8", "--pairs", "16", "--out", str(tmp_path / "run")])
+    res = train_decoder.train(args, log=lambda s: None)
+    assert res["units_per_set"] == [24, 12] and all(np.isfinite(v) for v in res["loss_per_set"])
+    ck = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=False)
+    z = projected_latents(tmp_path / "run" / "ckpt.pt", tmp_path / "layering_c1", 4)
+    torch.testing.assert_close(z, ck["latents"][24:].reshape(4, 3, 32))
+    with pytest.raises(ValueError, match="was not trained on"):
+        projected_latents(tmp_path / "run" / "ckpt.pt", tmp_path / "single_elsewhere", 4)
+    with pytest.raises(ValueError, match="one value per --data set"):
+        bad = train_decoder.parser().parse_args(["--data", str(tmp_path / "single"), str(tmp_path / "layering_c1"),
+                                                 "--loss", "l1", "l2", "l2rel", "--steps", "1", "--out", str(tmp_path / "bad")])
+        train_decoder.train(bad, log=lambda s: None)
+    enc_args = Namespace(ckpt=tmp_path / "run" / "ckpt.pt", data=[tmp_path / "single"], materials=0, heldout=HELDOUT,
+                         width=16, depth=2, distill=3, finetune=2, batch_units=16, batch=4, pairs=16, lr=1e-3,
+                         threads=1, seed=0, out=tmp_path / "enc.pt")
+    assert np.isfinite(train_encoder.train(enc_args, log=lambda s: None)["finetuned"]["lobe_error_median"])
+    export.main(["--size", "tiny", "--decoder", str(tmp_path / "run" / "ckpt.pt"), "--encoder", str(tmp_path / "enc.pt"),
+                 "--out", str(tmp_path / "models")])
+    card = json.loads((tmp_path / "models" / "decoder_tiny.json").read_text())["training"]
+    assert card["data"][1] == f"python -m onnx_export.layered_data --coatings 1 --stacks 4 --out {tmp_path / 'layering_c1'}"
+    assert "l2rel x 4.0" in card["loss"] and "--loss l1 l2rel" in card["command"]
+
+
+def test_pair_loss_kinds_and_bad_kind():
+    from onnx_export.nets import pair_loss
+
+    up = torch.tensor([[0.0, 0.0, 1.0]]).expand(3, 3)
+    pred, target = torch.tensor([1.0, 2.0, 4.0]), torch.tensor([1.0, 1.0, 1.0])
+    torch.testing.assert_close(pair_loss(pred, target, up, up, "l1"), (torch.log1p(pred) - np.log(2.0)).abs())
+    torch.testing.assert_close(pair_loss(pred, target, up, up, "l2rel"), ((pred - 1.0) / (1.0 + pred)) ** 2)
+    with pytest.raises(ValueError, match="unknown loss"):
+        pair_loss(pred, target, up, up, "huber")
+
+
 # ----------------------------------------------------------------------------- shipped models
 
 
