@@ -140,12 +140,15 @@ def main(argv=None):
         ratios = sampling_ratios(models, layering, data["stacks"], a.samples)
         results[size] = {"speed": sp, "errors": res, "ratios": ratios}
         lines += [f"## Decoder `{size}`", "", "### Held-out error by number of coatings (runtime path, no projection)", "",
-                  "| coatings | stacks | lobe error median | lobe error p90 | albedo abs. error mean | albedo abs. error p90 |",
-                  "|---|---|---|---|---|---|"]
+                  "Layers = base + coatings (a two-layer stack has one coating). Reference noise: the stored "
+                  "reference's own relative standard error, which the lobe error includes.", "",
+                  "| coatings | layers | stacks | lobe error median | lobe error p90 | reference noise median / p90 | "
+                  "albedo abs. error mean | albedo abs. error p90 |",
+                  "|---|---|---|---|---|---|---|---|"]
         for c, r in res.items():
-            e, al = r["errors"], r["albedo_error"]
-            lines.append(f"| {c} | {len(r['index'])} | {np.median(e):.3f} | {np.percentile(e, 90):.3f} | "
-                         f"{al.mean():.4f} | {np.percentile(al, 90):.4f} |")
+            e, al, nz = r["errors"], r["albedo_error"], r["reference_noise"]
+            lines.append(f"| {c} | {c + 1} | {len(r['index'])} | {np.median(e):.3f} | {np.percentile(e, 90):.3f} | "
+                         f"{np.median(nz):.3f} / {np.percentile(nz, 90):.3f} | {al.mean():.4f} | {np.percentile(al, 90):.4f} |")
         lines += ["", f"![lobes](layering_lobes_{size}.png)", "", "### Encoding speed (stacks per second)", "",
                   "| coatings | one stack per call | batched (one call) | batch size |", "|---|---|---|---|"]
         for c, s in sp.items():

@@ -21,7 +21,7 @@ import torch
 
 from addon.core import lobe
 from onnx_export.heldout import load as load_heldout
-from onnx_export.nets import Decoder, log_target
+from onnx_export.nets import Decoder, pair_loss
 
 
 def load_decoder(ckpt_path) -> tuple[Decoder, torch.Tensor]:
@@ -56,8 +56,7 @@ def project(dec: Decoder, wi, wo, f, *, init=None, steps: int = 300, lr: float =
         zz = z.unsqueeze(2).expand(c, 3, q, 32).reshape(-1, 32)
         for g in opt.param_groups:
             g["lr"] = lr * (0.1 + 0.9 * 0.5 * (1 + np.cos(np.pi * step / steps)))
-        d = log_target(dec(zz, wi_r, wo_r), wi_r, wo_r) - log_target(f_r, wi_r, wo_r)
-        l = d.abs().mean() if loss == "l1" else (d * d).mean()
+        l = pair_loss(dec(zz, wi_r, wo_r), f_r, wi_r, wo_r, loss).mean()
         opt.zero_grad()
         l.backward()
         opt.step()

@@ -142,7 +142,8 @@ def runtime_errors(models, layering, data: dict, res: int | None = None) -> dict
     """Held-out lobe errors of the RUNTIME path (ONNX encoders + layering + decoder) per coating count.
 
     Returns {n_coatings: {"errors": (configs, angles) relative RMSE, "albedo_error": (configs, angles, 3)
-    |albedo - reference albedo|, "lobes": (configs, angles, R, R, 3), "index": config indices}}.
+    |albedo - reference albedo|, "lobes": (configs, angles, R, R, 3), "index": config indices,
+    "reference_noise": (configs, angles) the reference's own relative standard error ||stderr|| / ||ref||}}.
     """
     from addon.core.neural.layering import encode_latents
 
@@ -161,5 +162,7 @@ def runtime_errors(models, layering, data: dict, res: int | None = None) -> dict
                         for k in range(len(idx))])
         alb = np.array([[np.abs(lobe.albedo_from_lobe(lobes[k, a]) - lobe.albedo_from_lobe(ref[k, a]))
                          for a in range(len(angles))] for k in range(len(idx))])
-        out[c] = {"errors": err, "albedo_error": alb, "lobes": lobes, "index": idx}
+        noise = np.array([[lobe.relative_rmse(ref[k, a] + data["lobe_stderr"][i, a], ref[k, a])
+                           for a in range(len(angles))] for k, i in enumerate(idx)])
+        out[c] = {"errors": err, "albedo_error": alb, "lobes": lobes, "index": idx, "reference_noise": noise}
     return out
