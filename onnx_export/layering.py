@@ -286,7 +286,15 @@ def train(args, log=print) -> dict:
         step, hist = s["step"], s.get("history", {})
         log(f"resumed from {ckpt} at step {step}")
     total = args.steps + args.finetune
-    if args.projected and step == 0:
+
+    def save(step, ema):
+        torch.save({"net": net.state_dict(), "config": net.config(), "opt": opt.state_dict(), "step": step,
+                    "trained_with": trained_with,
+                    "history": hist, "loss": ema, "args": {k: str(v) for k, v in vars(args).items()}},
+                   ckpt.with_suffix(".tmp"))
+        ckpt.with_suffix(".tmp").replace(ckpt)
+
+    if args.projected and step == 0 and "regressed" not in hist:
         targets = {1: projected_latents(args.projected, args.c1, sets[1].n)}
         if Path(args.projected).suffix != ".npz":  # a decoder checkpoint may hold the two-coating stacks too
             sets[2] = StackSet(args.c2, models, use_weight=args.weighting == "cosine")
@@ -295,6 +303,7 @@ def train(args, log=print) -> dict:
         if heldout() is not None:
             hist["regressed"] = heldout_error(net, dec, models, heldout(), log)
         opt = torch.optim.Adam(net.parameters(), lr=args.lr)
+        save(0, None)  # --steps 0 --finetune 0: the regressed network is the result
     log(f"layering net {net.config()} params {n_params(net)}; one-coating stacks {sets[1].n}; loss {args.loss}")
     t0 = time.perf_counter()
     ema = None
@@ -330,11 +339,7 @@ def train(args, log=print) -> dict:
             if end_of_stage:
                 hist["stage2" if stage2 else "stage1"] = m
         if step % args.every == 0 or end_of_stage:
-            torch.save({"net": net.state_dict(), "config": net.config(), "opt": opt.state_dict(), "step": step,
-                        "trained_with": trained_with,
-                        "history": hist, "loss": ema, "args": {k: str(v) for k, v in vars(args).items()}},
-                       ckpt.with_suffix(".tmp"))
-            ckpt.with_suffix(".tmp").replace(ckpt)
+            save(step, ema)
     return {"loss": ema, "step": step, "history": hist}
 
 
@@ -403,11 +408,11 @@ def export(args, log=print) -> dict:
         "training": {
             "data": [data_command(Path(d), n) for d, n in ((a.get("c1", "cache/data/layering_c1"), 4096),
                                                             (a.get("c2", "cache/data/layering_c2"), 1536))],
-            "command": command_line("onnx_export.layering train", a, skip=("every", "log_every", "cmd")),
+            "command": command_line("onnx_export.layering train", a, skip=("every", "log_every", "cmd", "model_dir")),
             "steps": s["step"], "final_loss": s.get("loss"), "seeds": {"data": 11, "training": int(a.get("seed", 0))},
-            "loss": a.get("loss"),
+            "loss": a.get("loss") if s["step"] else "MSE against the latents of --projected (stage 0 only: no step through the decoder)",
         },
-        "heldout": {**{k: v for k, v in s.get("history", {}).items() if k in ("stage1", "stage2")},
+        "heldout": {**{k: v for k, v in s.get("history", {}).items() if k in ("regressed", "stage1", "stage2")},
                     "set": "tests/data/heldout_layered.npz",
                     "metric": "relative RMSE of lobe images at 0/30/60/75 deg; albedo error = |albedo from lobe|"},
         "onnx_runtime_vs_torch_max_relative_difference": par,
