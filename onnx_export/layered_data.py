@@ -103,9 +103,14 @@ def generate(out: Path, coatings: int, stacks: int, n_wo: int, n_wi: int, walks:
     return [out / f"chunk_{j:05d}.npz" for j in mine]
 
 
+def chunk_paths(out: Path) -> list[Path]:
+    """The finished chunks under ``out``, in order (an interrupted chunk is still a ``.tmp.npz``)."""
+    return sorted(p for p in Path(out).glob("chunk_*.npz") if not p.name.endswith(".tmp.npz"))
+
+
 def load(out: Path) -> dict:
     """All chunks under ``out`` concatenated along the stack axis, with ``arrays`` (StackArrays)."""
-    paths = sorted(p for p in Path(out).glob("chunk_*.npz") if not p.name.endswith(".tmp.npz"))
+    paths = chunk_paths(out)
     if not paths:
         raise FileNotFoundError(f"no layering data under {out}; run python -m onnx_export.layered_data first")
     parts = [dict(np.load(p)) for p in paths]
@@ -117,20 +122,20 @@ def load(out: Path) -> dict:
 def holds_layering_data(out: Path) -> bool:
     """True when ``out`` holds chunks of this module (incident directions per outgoing direction),
     False for other data (``onnx_export.data``) or none."""
-    first = next(iter(sorted(Path(out).glob("chunk_*.npz"))), None)
-    return first is not None and np.load(first)["wi"].ndim == 4
+    chunks = chunk_paths(out)
+    return bool(chunks) and np.load(chunks[0])["wi"].ndim == 4
 
 
-def data_command(out: Path, default_stacks: int = 0) -> str:
-    """The command that makes the layering data under ``out`` (the number of stacks it holds, or
-    ``default_stacks`` when it is not on this machine)."""
-    chunks = sorted(p for p in Path(out).glob("chunk_*.npz") if not p.name.endswith(".tmp.npz"))
+def data_command(out: Path, coatings: int | None = None, default_stacks: int = 0) -> str:
+    """The command that makes the layering data under ``out``: its coatings and number of stacks as
+    found there, else ``coatings`` and ``default_stacks`` (data not on this machine)."""
+    chunks = chunk_paths(out)
     if chunks:
-        first = np.load(chunks[0])
-        coatings = first["p_coat_roughness"].shape[1]
+        coatings = np.load(chunks[0])["p_coat_roughness"].shape[1]
         stacks = int(sum(np.load(c)["wo"].shape[0] for c in chunks))
+    elif coatings is None:
+        raise FileNotFoundError(f"no layering data under {out}, and no number of coatings given")
     else:
-        coatings = 2 if str(out).rstrip("/").endswith("c2") else 1
         stacks = default_stacks
     return f"python -m onnx_export.layered_data --coatings {coatings} --stacks {stacks} --out {out}"
 

@@ -406,8 +406,8 @@ def export(args, log=print) -> dict:
         "parameters": n_params(net),
         "macs_per_rgb_eval": 3 * macs_per_eval(net),
         "training": {
-            "data": [data_command(Path(d), n) for d, n in ((a.get("c1", "cache/data/layering_c1"), 4096),
-                                                            (a.get("c2", "cache/data/layering_c2"), 1536))],
+            "data": [data_command(Path(d), c, n) for c, d, n in ((1, a.get("c1", "cache/data/layering_c1"), 4096),
+                                                                  (2, a.get("c2", "cache/data/layering_c2"), 1536))],
             "command": command_line("onnx_export.layering train", a, skip=("every", "log_every", "cmd", "model_dir")),
             "steps": s["step"], "final_loss": s.get("loss"), "seeds": {"data": 11, "training": int(a.get("seed", 0))},
             "loss": a.get("loss") if s["step"] else "MSE against the latents of --projected (stage 0 only: no step through the decoder)",

@@ -22,23 +22,17 @@ import numpy as np
 import torch
 
 from addon.core.neural.features import N_FEATURES, arrays_features
-from addon.core.stack import StackArrays
-from onnx_export import data as datamod
 from onnx_export.evaluate import decoder_lobes, load_decoder, lobe_metrics
 from onnx_export.heldout import load as load_heldout
 from onnx_export.nets import Encoder
-from onnx_export.train_decoder import batch_of, brdf_loss, load_training_tensors
+from onnx_export.train_decoder import batch_of, brdf_loss, load_set, load_training_tensors
 
 
 def unit_features(data_dirs, materials=None) -> torch.Tensor:
     """(units, N_FEATURES) encoder inputs of the training BRDF channels (unit = material * 3 + channel)."""
     feats = []
     for d in data_dirs:
-        raw = datamod.load(d)
-        arrays = StackArrays(**{f: raw[f"p_{f}"] for f in StackArrays.FIELDS if f.startswith("base_")},
-                             **{f: np.zeros((len(raw["p_base_kind"]), 0) + ((3,) if f == "coat_albedo" else ()))
-                                for f in StackArrays.FIELDS if f.startswith("coat_")})
-        feats.append(arrays_features(arrays))
+        feats.append(arrays_features(load_set(d)["arrays"]))
     x = np.concatenate(feats)
     if materials:
         x = x[:materials]
