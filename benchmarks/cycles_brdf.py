@@ -23,9 +23,11 @@ samples (scene sync and ray casting included: an upper bound).
 from __future__ import annotations
 
 import math
+import shutil
 import sys
 import tempfile
 import time
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -101,6 +103,7 @@ class CyclesBRDF:
         bs.render.image_settings.color_depth = "32"
         self.scene = bs
         self.tmp = Path(tempfile.mkdtemp(prefix="cycles_brdf_"))
+        weakref.finalize(self, shutil.rmtree, self.tmp, ignore_errors=True)  # the renders' folder goes with it
         self.wo, self.on_plane = self._directions()
         self.calibration = self._calibration()
 

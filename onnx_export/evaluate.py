@@ -34,8 +34,11 @@ def load_decoder(ckpt_path) -> tuple[Decoder, torch.Tensor]:
 
 
 def project(dec: Decoder, wi, wo, f, *, init=None, steps: int = 300, lr: float = 0.02, loss: str = "l1",
-            chunk_pairs: int | None = None, log=None) -> torch.Tensor:
-    """Latents (C, 3, 32) of C tabulated RGB BRDFs given at (C, P, 3) direction pairs with values f (C, P, 3)."""
+            chunk_pairs: int | None = None, seed: int = 0, log=None) -> torch.Tensor:
+    """Latents (C, 3, 32) of C tabulated RGB BRDFs given at (C, P, 3) direction pairs with values f (C, P, 3).
+
+    ``init``: one latent (3, 32) for all, or one per BRDF (C, 3, 32); ``chunk_pairs``: pairs drawn per
+    step (the same for all C; seeded by ``seed``), all of them when not given."""
     wi, wo, f = (torch.as_tensor(np.asarray(a), dtype=torch.float32) for a in (wi, wo, f))
     c, p = wi.shape[:2]
     z = torch.zeros(c, 3, 32) if init is None else torch.as_tensor(init, dtype=torch.float32).expand(c, 3, 32).clone()
@@ -43,7 +46,7 @@ def project(dec: Decoder, wi, wo, f, *, init=None, steps: int = 300, lr: float =
     opt = torch.optim.Adam([z], lr=lr)
     for p_ in dec.parameters():
         p_.requires_grad_(False)
-    gen = torch.Generator().manual_seed(0)
+    gen = torch.Generator().manual_seed(seed)
     for step in range(steps):
         if chunk_pairs and chunk_pairs < p:
             idx = torch.randint(0, p, (chunk_pairs,), generator=gen)

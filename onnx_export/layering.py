@@ -296,9 +296,12 @@ def train(args, log=print) -> dict:
 
     if args.projected and step == 0 and "regressed" not in hist:
         targets = {1: projected_latents(args.projected, args.c1, sets[1].n)}
-        if Path(args.projected).suffix != ".npz":  # a decoder checkpoint may hold the two-coating stacks too
-            sets[2] = StackSet(args.c2, models, use_weight=args.weighting == "cosine")
-            targets[2] = projected_latents(args.projected, args.c2, sets[2].n)
+        if Path(args.projected).suffix != ".npz":
+            ck = torch.load(args.projected, weights_only=False)
+            if Path(args.c2).resolve() in [Path(d).resolve() for d in ck["args"]["data"]]:  # the recursion too
+                sets[2] = StackSet(args.c2, models, use_weight=args.weighting == "cosine")
+                targets[2] = projected_latents(args.projected, args.c2, sets[2].n)
+            hist["projected"] = {"latents": str(args.projected), "refit": ck.get("refit", {}).get("command")}
         regress_projected(net, sets, targets, args, gen, log)
         if heldout() is not None:
             hist["regressed"] = heldout_error(net, dec, models, heldout(), log)
@@ -411,6 +414,7 @@ def export(args, log=print) -> dict:
             "command": command_line("onnx_export.layering train", a, skip=("every", "log_every", "cmd", "model_dir")),
             "steps": s["step"], "final_loss": s.get("loss"), "seeds": {"data": 11, "training": int(a.get("seed", 0))},
             "loss": a.get("loss") if s["step"] else "MSE against the latents of --projected (stage 0 only: no step through the decoder)",
+            "projected_latents": s.get("history", {}).get("projected"),  # the command of a re-fit of them, if any
         },
         "heldout": {**{k: v for k, v in s.get("history", {}).items() if k in ("regressed", "stage1", "stage2")},
                     "set": "tests/data/heldout_layered.npz",

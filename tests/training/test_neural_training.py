@@ -99,7 +99,10 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
     the checkpoint says which latents belong to which set, so the encoder takes the single-layer ones
     and the layering network regresses onto the layered ones."""
     from onnx_export import layered_data
+    from onnx_export import layering
     from onnx_export.layering import projected_latents
+    from onnx_export import layering_project
+    from onnx_export.layering_project import refit_checkpoint
 
     datamod.generate("single", tmp_path / "single", materials=8, pairs=64, chunk=8, seed=2, log=lambda s: None)
     layered_data.generate(tmp_path / "layering_c1", coatings=1, stacks=4, n_wo=2, n_wi=32, walks=4, chunk=4, seed=3,
@@ -120,6 +123,25 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
     torch.testing.assert_close(z, ck["latents"][24:].reshape(4, 3, 32))
     with pytest.raises(ValueError, match="was not trained on"):
         projected_latents(tmp_path / "run" / "ckpt.pt", tmp_path / "single_elsewhere", 4)
+    # the layered latents re-fitted against the frozen decoder: lower loss, everything else unchanged, resumable
+    refit = tmp_path / "refit" / "ckpt.pt"
+    layering_project.main(["--decoder", str(tmp_path / "run" / "ckpt.pt"), "--data", str(tmp_path / "layering_c1"),
+                           "--steps", "40", "--chunk", "3", "--pairs", "16", "--out", str(refit)])
+    kw = dict(steps=40, chunk=3, pairs=16, lr=0.01, loss=None, seed=0, log=lambda s: None)  # the same re-fit
+    rec = torch.load(refit, weights_only=False)["refit"]["sets"][str(tmp_path / "layering_c1")]
+    assert rec["done"] == 4 and rec["loss"] == "l2rel" and len(rec["loss_after"]) == 2  # chunks of 3 + 1 stacks
+    assert np.mean(rec["loss_after"]) < np.mean(rec["loss_before"])
+    ck2 = torch.load(refit, weights_only=False)
+    torch.testing.assert_close(ck2["latents"][:24], ck["latents"][:24])
+    assert not torch.allclose(ck2["latents"][24:], ck["latents"][24:])
+    assert all(torch.equal(ck2["decoder"][k], v) for k, v in ck["decoder"].items())
+    torch.testing.assert_close(projected_latents(refit, tmp_path / "layering_c1", 4), ck2["latents"][24:].reshape(4, 3, 32))
+    assert refit_checkpoint(tmp_path / "run" / "ckpt.pt", [tmp_path / "layering_c1"], refit, **kw)["sets"] \
+        [str(tmp_path / "layering_c1")]["loss_after"] == rec["loss_after"]  # a rerun finds it done
+    with pytest.raises(ValueError, match="another re-fit"):
+        refit_checkpoint(tmp_path / "run" / "ckpt.pt", [tmp_path / "layering_c1"], refit, **(kw | {"steps": 5}))
+    with pytest.raises(ValueError, match="was not trained on"):
+        refit_checkpoint(tmp_path / "run" / "ckpt.pt", [tmp_path / "single_elsewhere"], tmp_path / "r2.pt", **kw)
     with pytest.raises(ValueError, match="one value per --data set"):
         bad = train_decoder.parser().parse_args(["--data", str(tmp_path / "single"), str(tmp_path / "layering_c1"),
                                                  "--loss", "l1", "l2", "l2rel", "--steps", "1", "--out", str(tmp_path / "bad")])
@@ -133,6 +155,15 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
     card = json.loads((tmp_path / "models" / "decoder_tiny.json").read_text())["training"]
     assert card["data"][1] == f"python -m onnx_export.layered_data --coatings 1 --stacks 4 --out {tmp_path / 'layering_c1'}"
     assert "l2rel x 4.0" in card["loss"] and "--loss l1 l2rel" in card["command"]
+    # a layering network regressed onto the re-fitted latents, against the decoder and encoder exported above
+    lay_out = tmp_path / "layering"
+    layering.main(["train", "--size", "tiny", "--c1", str(tmp_path / "layering_c1"), "--projected", str(refit),
+                   "--model-dir", str(tmp_path / "models"), "--heldout", str(tmp_path / "none.npz"),
+                   "--regress-steps", "20", "--steps", "0", "--finetune", "0", "--out", str(lay_out)])
+    layering.main(["export", "--size", "tiny", "--ckpt", str(lay_out / "ckpt.pt"), "--out", str(tmp_path / "models")])
+    lay_card = json.loads((tmp_path / "models" / "layering_tiny.json").read_text())["training"]
+    assert lay_card["steps"] == 0 and lay_card["projected_latents"]["latents"] == str(refit)
+    assert lay_card["projected_latents"]["refit"].startswith("python -m onnx_export.layering_project --decoder")
 
 
 def test_pair_loss_kinds_and_bad_kind():
