@@ -24,8 +24,9 @@ from onnx_export.heldout import load as load_heldout
 from onnx_export.nets import Decoder, pair_loss
 
 
-def load_decoder(ckpt_path) -> tuple[Decoder, torch.Tensor]:
-    s = torch.load(ckpt_path, weights_only=False)
+def load_decoder(ckpt) -> tuple[Decoder, torch.Tensor]:
+    """The decoder (eval mode) and latents of a ``train_decoder`` checkpoint: its path, or the loaded dict."""
+    s = ckpt if isinstance(ckpt, dict) else torch.load(ckpt, weights_only=False)
     c = s["config"]
     dec = Decoder(c["width"], c["depth"], c["features"], c["activation"])
     dec.load_state_dict(s["decoder"])

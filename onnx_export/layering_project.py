@@ -88,7 +88,7 @@ def refit_checkpoint(ckpt: Path, data: list[Path], out: Path, *, steps: int, chu
                              "remove it or write elsewhere")
         s = s_out
     refit = s.setdefault("refit", {"config": config, "command": cmd, "sets": {}})
-    dec, _ = load_decoder(ckpt)
+    dec, _ = load_decoder(s)
     for p_ in dec.parameters():
         p_.requires_grad_(False)
     for d in data:

@@ -47,7 +47,8 @@ def load_set(path: Path) -> dict:
 
 def load_training_tensors(paths: list[Path], materials: int | None = None) -> dict:
     """wi, wo, f (M, P, 3) of all data sets, cut to the smallest number of pairs P of any set
-    (pairs are in random order), plus ``source`` (M,): which set each material came from."""
+    (pairs are in random order), plus ``source`` (M,): which set each material came from, and
+    ``arrays``: each set's StackArrays (not cut to ``materials``)."""
     parts = [load_set(p) for p in paths]
     pmin = min(p["wi"].shape[1] for p in parts)
     parts = [{k: (v[:, :pmin] if k in ("wi", "wo", "f", "stderr") else v) for k, v in p.items()} for p in parts]
@@ -57,17 +58,18 @@ def load_training_tensors(paths: list[Path], materials: int | None = None) -> di
     d["source"] = np.concatenate([np.full(p["wi"].shape[0], i, np.float32) for i, p in enumerate(parts)])
     if materials:
         d = {k: v[:materials] for k, v in d.items()}
-    return {k: torch.from_numpy(np.ascontiguousarray(v, dtype=np.float32)) for k, v in d.items()}
+    return {k: torch.from_numpy(np.ascontiguousarray(v, dtype=np.float32)) for k, v in d.items()} \
+        | {"arrays": [p["arrays"] for p in parts]}
 
 
-def initial_latents(paths: list[Path], size: str, materials: int | None, threads: int) -> np.ndarray:
-    """(units, 32) latents of every training channel in a shipped size's latent space: single-layer
-    materials through its encoder, layered stacks through its encoder and layering network."""
+def initial_latents(sets: list[StackArrays], size: str, materials: int | None, threads: int) -> np.ndarray:
+    """(units, 32) latents of every training channel of ``sets`` (one StackArrays per data set) in a
+    shipped size's latent space: single-layer materials through its encoder, layered stacks through its
+    encoder and layering network."""
     from addon.core.neural.layering import LayeringModel, encode_latents
     from addon.core.neural.runtime import load_models
 
     models = load_models(size, threads=threads)
-    sets = [load_set(p)["arrays"] for p in paths]
     layering = LayeringModel(size, threads, sampling=False) if any(a.n_coatings for a in sets) else None
     out = [encode_latents(a, models, layering) for a in sets]
     z = np.concatenate(out)
@@ -109,7 +111,7 @@ def train(args, log=print) -> dict:
         he_init(dec)
     latents = torch.nn.Parameter(torch.randn(n_units, 32, generator=gen) * 0.01)
     if args.init_latents_from:  # start in a shipped size's latent space: its encoder (+ layering network)
-        z0 = initial_latents(args.data, args.init_latents_from, args.materials, args.threads)
+        z0 = initial_latents(t["arrays"], args.init_latents_from, args.materials, args.threads)
         latents.data.copy_(torch.from_numpy(z0))
         log(f"latents start from the {args.init_latents_from} encoder / layering network "
             f"(mean |z| {float(np.abs(z0).mean()):.3f})")

@@ -53,11 +53,11 @@ def train(args, log=print) -> dict:
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
-    dec, latents = load_decoder(args.ckpt)
+    ck = torch.load(args.ckpt, weights_only=False)
+    dec, latents = load_decoder(ck)
     for p in dec.parameters():
         p.requires_grad_(False)
     x = unit_features(args.data, args.materials)
-    ck = torch.load(args.ckpt, weights_only=False)
     if "units_per_set" in ck and len(ck["units_per_set"]) > len(args.data):
         # a decoder trained on single-layer AND layered sets: the encoder learns the single-layer ones,
         # which come first (the layered stacks are the layering network's job)
