@@ -13,6 +13,12 @@ The reference values come from :func:`addon.core.reference.eval_brdf_many` by re
 walks start from the incident direction and connect to every pixel of the lobe grid, so a lobe
 image costs ``4 * walks`` walks. Training data are seeded ``(11, coatings, chunk, 77)``; this set
 uses ``HELDOUT_SEED`` and hand-picked configurations, so no stack here is a training stack.
+
+    python -m onnx_export.heldout_layered --validation 64 32 --walks 512 --out cache/data/validation_layered.npz
+
+makes a validation set instead: random stacks of the training distribution (64 with one coating, 32
+with two) seeded with ``VALIDATION_SEED``, for choosing between training recipes without looking at
+the held-out set. It has the same format.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ from addon.core.stack import PRESETS, Coating, Conductor, Dielectric, Diffuse, S
 from onnx_export.data import sample_layered_params
 
 HELDOUT_SEED = 424_242
+VALIDATION_SEED = 515_151
 GOLD = dict(eta=(0.143, 0.374, 1.442), k=(3.983, 2.385, 1.603))
 ALUMINIUM = dict(eta=(1.657, 0.880, 0.521), k=(9.224, 6.270, 4.837))
 
@@ -63,6 +70,16 @@ def configs() -> list[Stack]:
             out.append(PRESETS["red_car_paint"])
         if c == 3:
             out.append(PRESETS["three_layer"])
+    return out
+
+
+def validation_configs(counts: list[int]) -> list[Stack]:
+    """``counts[c - 1]`` random stacks with c coatings, drawn as the training stacks are."""
+    rng = np.random.default_rng(VALIDATION_SEED)
+    out = []
+    for c, n in enumerate(counts, start=1):
+        a = sample_layered_params(rng, n, c)
+        out += [a.stack(i) for i in range(n)]
     return out
 
 
@@ -108,9 +125,13 @@ def main(argv=None):
     ap.add_argument("--only-coatings", type=int, default=0,
                     help="recompute only the stacks with this many coatings in an existing --out file (more walks "
                          "where the reference is noisiest); the other rows are kept")
+    ap.add_argument("--validation", type=int, nargs="+", default=None, metavar="N",
+                    help="a validation set: N random stacks with one coating, N2 with two, ... (not the held-out set)")
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args(argv)
-    stacks = configs()
+    if a.validation and (a.only_coatings or min(a.validation) < 0):
+        ap.error("--validation takes counts >= 0 and makes a new file (no --only-coatings)")
+    stacks = validation_configs(a.validation) if a.validation else configs()
     cmd = "python -m onnx_export.heldout_layered " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
     lg = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     if a.only_coatings:
@@ -122,7 +143,7 @@ def main(argv=None):
         walks[idx] = a.walks
         command = np.array(str(old["command"]) + " && " + cmd)
     else:
-        img, err = reference_lobes(stacks, a.walks, a.res, HELDOUT_SEED, log=lg)
+        img, err = reference_lobes(stacks, a.walks, a.res, VALIDATION_SEED if a.validation else HELDOUT_SEED, log=lg)
         walks = np.full(len(stacks), a.walks)
         command = np.array(cmd)
     a.out.parent.mkdir(parents=True, exist_ok=True)

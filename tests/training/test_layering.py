@@ -96,3 +96,20 @@ def test_sampling_net_outputs_stay_in_the_tabulated_range():
         s, w = net(torch.randn(256, 3, 32) * 10)
     assert torch.all(s >= smp.SIGMA_GRID[0] * 0.999) and torch.all(s <= smp.SIGMA_GRID[-1] * 1.001)
     assert torch.all(w >= smp.W_MIN - 1e-6) and torch.all(w <= 1.0)
+
+
+def test_validation_set_is_seeded_drawn_like_training_and_apart_from_the_heldout_set(tmp_path):
+    from onnx_export import heldout_layered as hl
+
+    a, b = hl.validation_configs([3, 2]), hl.validation_configs([3, 2])
+    assert [s.to_json() for s in a] == [s.to_json() for s in b]
+    assert [len(s.coatings) for s in a] == [1, 1, 1, 2, 2]
+    assert not {s.to_json() for s in a} & {s.to_json() for s in hl.configs()}
+    out = tmp_path / "validation.npz"
+    hl.main(["--validation", "2", "1", "--walks", "4", "--res", "8", "--out", str(out)])
+    d = hl.load(out)
+    assert d["lobe"].shape == (3, 4, 8, 8, 3) and d["n_coatings"].tolist() == [1, 1, 2]
+    assert [s.to_json() for s in d["stacks"]] == [s.to_json() for s in hl.validation_configs([2, 1])]
+    assert np.isfinite(d["lobe"]).all() and d["lobe"].max() > 0
+    with pytest.raises(SystemExit):
+        hl.main(["--validation", "2", "--only-coatings", "1", "--out", str(out)])
