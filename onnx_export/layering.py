@@ -216,13 +216,31 @@ def heldout_error(net: LayeringNet, dec, models: NeuralModels, heldout: dict, lo
 # ----------------------------------------------------------------------------- training
 
 
-def projected_latents(path: Path, data_dir: Path, n: int) -> torch.Tensor:
+def projected_latents(path: Path, data_dir: Path, n: int, shrink: float = 1.0) -> torch.Tensor:
     """(n, 3, 32) latents of the first ``n`` stacks of ``data_dir`` in the decoder's latent space, from
     ``path``: an ``.npz`` of ``onnx_export.layering_project`` (``z``), or a decoder checkpoint of
     ``onnx_export.train_decoder`` trained with ``data_dir`` among its sets (its auto-decoder latents:
-    a projection that comes with the training)."""
+    a projection that comes with the training), possibly re-fitted by ``layering_project --decoder``.
+
+    ``shrink`` < 1 takes a re-fitted checkpoint's latents only that fraction of the way from the ones
+    the joint training left (``z0 + shrink (z_refit - z0)``): the re-fit fits each stack's Monte Carlo
+    data better, the joint training's latents vary more smoothly from stack to stack, and the layering
+    network regresses best onto a mix (docs/layering_training.md)."""
     if Path(path).suffix == ".npz":
+        if shrink != 1.0:
+            raise ValueError("a shrink applies to a re-fitted decoder checkpoint, not to an .npz of latents")
         return torch.from_numpy(np.load(path)["z"][:n])
+    z = _checkpoint_latents(path, data_dir, n)
+    if shrink != 1.0:
+        refit = torch.load(path, weights_only=False).get("refit")
+        if not refit:
+            raise ValueError(f"{path} is not a re-fit (onnx_export.layering_project --decoder): nothing to shrink")
+        z0 = _checkpoint_latents(refit["config"]["from"], data_dir, n)
+        z = z0 + shrink * (z - z0)
+    return z
+
+
+def _checkpoint_latents(path, data_dir: Path, n: int) -> torch.Tensor:
     ck = torch.load(path, weights_only=False)
     dirs = [Path(d).resolve() for d in ck["args"]["data"]]
     if Path(data_dir).resolve() not in dirs or "units_per_set" not in ck:
@@ -295,13 +313,14 @@ def train(args, log=print) -> dict:
         ckpt.with_suffix(".tmp").replace(ckpt)
 
     if args.projected and step == 0 and "regressed" not in hist:
-        targets = {1: projected_latents(args.projected, args.c1, sets[1].n)}
+        targets = {1: projected_latents(args.projected, args.c1, sets[1].n, args.shrink)}
         if Path(args.projected).suffix != ".npz":
             ck = torch.load(args.projected, weights_only=False)
             if Path(args.c2).resolve() in [Path(d).resolve() for d in ck["args"]["data"]]:  # the recursion too
                 sets[2] = StackSet(args.c2, models, use_weight=args.weighting == "cosine")
-                targets[2] = projected_latents(args.projected, args.c2, sets[2].n)
-            hist["projected"] = {"latents": str(args.projected), "refit": ck.get("refit", {}).get("command")}
+                targets[2] = projected_latents(args.projected, args.c2, sets[2].n, args.shrink)
+            hist["projected"] = {"latents": str(args.projected), "refit": ck.get("refit", {}).get("command"),
+                                 "shrink": args.shrink}
         regress_projected(net, sets, targets, args, gen, log)
         if heldout() is not None:
             hist["regressed"] = heldout_error(net, dec, models, heldout(), log)
@@ -459,6 +478,9 @@ def main(argv=None):
     t.add_argument("--projected", type=Path, default=None,
                    help="latents of the training stacks to regress on first: an .npz of onnx_export.layering_project "
                         "(one coating) or a decoder checkpoint trained on the layering data (one and two coatings)")
+    t.add_argument("--shrink", type=float, default=1.0,
+                   help="with a re-fitted --projected checkpoint: regress onto z0 + SHRINK (z_refit - z0), z0 the "
+                        "latents it was re-fitted from (1: the re-fitted latents)")
     t.add_argument("--model-dir", type=Path, default=None,
                    help="where the frozen encoder and decoder of --size are read (default: the shipped models)")
     t.add_argument("--regress-steps", type=int, default=3000)

@@ -136,6 +136,10 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
     assert not torch.allclose(ck2["latents"][24:], ck["latents"][24:])
     assert all(torch.equal(ck2["decoder"][k], v) for k, v in ck["decoder"].items())
     torch.testing.assert_close(projected_latents(refit, tmp_path / "layering_c1", 4), ck2["latents"][24:].reshape(4, 3, 32))
+    torch.testing.assert_close(projected_latents(refit, tmp_path / "layering_c1", 4, shrink=0.5),
+                               (0.5 * (ck["latents"][24:] + ck2["latents"][24:])).reshape(4, 3, 32))
+    with pytest.raises(ValueError, match="not a re-fit"):
+        projected_latents(tmp_path / "run" / "ckpt.pt", tmp_path / "layering_c1", 4, shrink=0.5)
     assert refit_checkpoint(tmp_path / "run" / "ckpt.pt", [tmp_path / "layering_c1"], refit, **kw)["sets"] \
         [str(tmp_path / "layering_c1")]["loss_after"] == rec["loss_after"]  # a rerun finds it done
     with pytest.raises(ValueError, match="another re-fit"):
@@ -157,12 +161,13 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
     assert "l2rel x 4.0" in card["loss"] and "--loss l1 l2rel" in card["command"]
     # a layering network regressed onto the re-fitted latents, against the decoder and encoder exported above
     lay_out = tmp_path / "layering"
-    layering.main(["train", "--size", "tiny", "--c1", str(tmp_path / "layering_c1"), "--projected", str(refit),
+    layering.main(["train", "--size", "tiny", "--c1", str(tmp_path / "layering_c1"), "--projected", str(refit), "--shrink", "0.5",
                    "--model-dir", str(tmp_path / "models"), "--heldout", str(tmp_path / "none.npz"),
                    "--regress-steps", "20", "--steps", "0", "--finetune", "0", "--out", str(lay_out)])
     layering.main(["export", "--size", "tiny", "--ckpt", str(lay_out / "ckpt.pt"), "--out", str(tmp_path / "models")])
     lay_card = json.loads((tmp_path / "models" / "layering_tiny.json").read_text())["training"]
     assert lay_card["steps"] == 0 and lay_card["projected_latents"]["latents"] == str(refit)
+    assert lay_card["projected_latents"]["shrink"] == 0.5
     assert lay_card["projected_latents"]["refit"].startswith("python -m onnx_export.layering_project --decoder")
 
 
