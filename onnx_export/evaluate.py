@@ -34,6 +34,17 @@ def load_decoder(ckpt) -> tuple[Decoder, torch.Tensor]:
     return dec, s["latents"]
 
 
+def latent_pair_loss(dec: Decoder, z, wi, wo, f, idx, loss: str) -> torch.Tensor:
+    """Mean ``loss`` of latents z (C, 3, 32) at the pairs ``idx`` of the C tabulated BRDFs (C, P, 3):
+    every channel of every BRDF at the same pairs."""
+    c, q = z.shape[0], idx.shape[0]
+    wi_r = wi[:, idx].unsqueeze(1).expand(c, 3, q, 3).reshape(-1, 3)
+    wo_r = wo[:, idx].unsqueeze(1).expand(c, 3, q, 3).reshape(-1, 3)
+    f_r = f[:, idx].permute(0, 2, 1).reshape(-1)
+    zz = z.unsqueeze(2).expand(c, 3, q, 32).reshape(-1, 32)
+    return pair_loss(dec(zz, wi_r, wo_r), f_r, wi_r, wo_r, loss).mean()
+
+
 def project(dec: Decoder, wi, wo, f, *, init=None, steps: int = 300, lr: float = 0.02, loss: str = "l1",
             chunk_pairs: int | None = None, seed: int = 0, log=None) -> torch.Tensor:
     """Latents (C, 3, 32) of C tabulated RGB BRDFs given at (C, P, 3) direction pairs with values f (C, P, 3).
@@ -53,14 +64,9 @@ def project(dec: Decoder, wi, wo, f, *, init=None, steps: int = 300, lr: float =
             idx = torch.randint(0, p, (chunk_pairs,), generator=gen)
         else:
             idx = torch.arange(p)
-        q = idx.shape[0]
-        wi_r = wi[:, idx].unsqueeze(1).expand(c, 3, q, 3).reshape(-1, 3)
-        wo_r = wo[:, idx].unsqueeze(1).expand(c, 3, q, 3).reshape(-1, 3)
-        f_r = f[:, idx].permute(0, 2, 1).reshape(-1)
-        zz = z.unsqueeze(2).expand(c, 3, q, 32).reshape(-1, 32)
         for g in opt.param_groups:
             g["lr"] = lr * (0.1 + 0.9 * 0.5 * (1 + np.cos(np.pi * step / steps)))
-        l = pair_loss(dec(zz, wi_r, wo_r), f_r, wi_r, wo_r, loss).mean()
+        l = latent_pair_loss(dec, z, wi, wo, f, idx, loss)
         opt.zero_grad()
         l.backward()
         opt.step()

@@ -31,10 +31,9 @@ import numpy as np
 import torch
 
 from onnx_export.cli import command_line
-from onnx_export.evaluate import load_decoder, project
+from onnx_export.evaluate import latent_pair_loss, load_decoder, project
 from onnx_export.layered_data import load
 from onnx_export.layering import frozen_decoder
-from onnx_export.nets import pair_loss
 from onnx_export.train_decoder import load_set
 
 
@@ -60,14 +59,8 @@ def project_set(size: str, data: Path, steps: int, chunk: int, pairs: int, loss:
 def mean_pair_loss(dec, wi, wo, f, z, loss: str, pairs: int = 256, seed: int = 1) -> float:
     """Mean ``loss`` of latents z (C, 3, 32) on ``pairs`` fixed pairs of each of the C stacks (C, P, 3)."""
     gen = torch.Generator().manual_seed(seed)
-    c, p = wi.shape[:2]
-    idx = torch.randint(0, p, (min(pairs, p),), generator=gen)
-    q = idx.shape[0]
-    wi_r = wi[:, idx].unsqueeze(1).expand(c, 3, q, 3).reshape(-1, 3)
-    wo_r = wo[:, idx].unsqueeze(1).expand(c, 3, q, 3).reshape(-1, 3)
-    f_r = f[:, idx].permute(0, 2, 1).reshape(-1)
-    zz = z.unsqueeze(2).expand(c, 3, q, 32).reshape(-1, 32)
-    return float(pair_loss(dec(zz, wi_r, wo_r), f_r, wi_r, wo_r, loss).mean())
+    p = wi.shape[1]
+    return float(latent_pair_loss(dec, z, wi, wo, f, torch.randint(0, p, (min(pairs, p),), generator=gen), loss))
 
 
 def refit_checkpoint(ckpt: Path, data: list[Path], out: Path, *, steps: int, chunk: int, pairs: int, lr: float,
