@@ -230,18 +230,19 @@ def projected_latents(path: Path, data_dir: Path, n: int, shrink: float = 1.0) -
         if shrink != 1.0:
             raise ValueError("a shrink applies to a re-fitted decoder checkpoint, not to an .npz of latents")
         return torch.from_numpy(np.load(path)["z"][:n])
-    z = _checkpoint_latents(path, data_dir, n)
+    ck = torch.load(path, weights_only=False)
+    z = _checkpoint_latents(ck, path, data_dir, n)
     if shrink != 1.0:
-        refit = torch.load(path, weights_only=False).get("refit")
-        if not refit:
+        if "refit" not in ck:
             raise ValueError(f"{path} is not a re-fit (onnx_export.layering_project --decoder): nothing to shrink")
-        z0 = _checkpoint_latents(refit["config"]["from"], data_dir, n)
+        start = ck["refit"]["config"]["from"]
+        z0 = _checkpoint_latents(torch.load(start, weights_only=False), start, data_dir, n)
         z = z0 + shrink * (z - z0)
     return z
 
 
-def _checkpoint_latents(path, data_dir: Path, n: int) -> torch.Tensor:
-    ck = torch.load(path, weights_only=False)
+def _checkpoint_latents(ck: dict, path, data_dir: Path, n: int) -> torch.Tensor:
+    """The latents of ``data_dir``'s first ``n`` stacks in the loaded decoder checkpoint ``ck`` (from ``path``)."""
     dirs = [Path(d).resolve() for d in ck["args"]["data"]]
     if Path(data_dir).resolve() not in dirs or "units_per_set" not in ck:
         raise ValueError(f"{path} was not trained on {data_dir}: its sets are {ck['args']['data']}")
@@ -436,7 +437,9 @@ def export(args, log=print) -> dict:
             "projected_latents": s.get("history", {}).get("projected"),  # the command of a re-fit of them, if any
         },
         "heldout": {**{k: v for k, v in s.get("history", {}).items() if k in ("regressed", "stage1", "stage2")},
-                    "set": "tests/data/heldout_layered.npz",
+                    "set": str(a.get("heldout", "tests/data/heldout_layered.npz")),
+                    "when": "measured at training time against the reference file of that time; "
+                            "heldout_runtime: the latest benchmark run",
                     "metric": "relative RMSE of lobe images at 0/30/60/75 deg; albedo error = |albedo from lobe|"},
         "onnx_runtime_vs_torch_max_relative_difference": par,
         "opset": OPSET,
