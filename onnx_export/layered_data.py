@@ -75,7 +75,7 @@ def make_chunk(seed: int, coatings: int, chunk: int, stacks: int, n_wo: int, n_w
     out = {f"p_{name}": getattr(arrays, name) for name in StackArrays.FIELDS}
     out.update(wo=wo.astype(np.float32), wi=wi.astype(np.float32),
                f=f.reshape(stacks, n_wo, n_wi, 3).astype(np.float32),
-               stderr=se.reshape(stacks, n_wo, n_wi, 3).astype(np.float32))
+               stderr=se.reshape(stacks, n_wo, n_wi, 3).astype(np.float32), walks=np.full(stacks, walks))
     return out
 
 
@@ -133,6 +133,11 @@ def data_command(out: Path, coatings: int | None = None, default_stacks: int = 0
     if chunks:
         coatings = np.load(chunks[0])["p_coat_roughness"].shape[1]
         stacks = int(sum(np.load(c)["wo"].shape[0] for c in chunks))
+        first = np.load(chunks[0])
+        walks = int(first["walks"][0]) if "walks" in first else 8  # chunks from before it was recorded: the default
+        if walks != 8:
+            return (f"python -m onnx_export.layered_data --coatings {coatings} --stacks {stacks} --walks {walks} "
+                    f"--out {out}")
     elif coatings is None:
         raise FileNotFoundError(f"no layering data under {out}, and no number of coatings given")
     else:

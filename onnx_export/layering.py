@@ -22,6 +22,14 @@ a few walks each, so the targets are noisy):
 - ``l1log``: L1 on log1p(f cos_i cos_o), the decoder's own loss: its minimiser is the median of the
   noise (biased low for the skewed Monte Carlo estimates). Kept to measure the difference.
 
+With ``--projected`` the network is first regressed onto projected latents of the training stacks (MSE
+in latent space, no decoder in the loop); ``--decoded-steps`` then continue in function space with
+``decoded_lobe_loss``: the relative squared error of the cosine-weighted lobe, RGB together, per
+(stack, outgoing direction), the square of the held-out metric. Its target is the lobe decoded from the
+projected latents (``--decoded-target latents``) or the Monte Carlo values themselves (``data``; best
+with the same stacks computed with more walks, ``--decoded-data``); docs/layering_training.md compares
+them.
+
 Checkpoints go to ``OUT/ckpt.pt`` (resumable); the held-out lobe error
 (``tests/data/heldout_layered.npz``) is measured at the end of each stage.
 """
@@ -138,6 +146,49 @@ class StackSet:
         self.wo = torch.from_numpy(np.repeat(d["wo"][:n], m, axis=1))
         self.f = torch.from_numpy(d["f"][:n].reshape(n, p * m, 3))
         self.weight = torch.from_numpy(cosine_weights(d["wi"][:n], d["wo"][:n], a.coat_roughness[:, -1]).reshape(n, p * m))
+        self.groups = p  # outgoing directions per stack, each with m incident ones
+
+    def decoded_batch(self, net, dec, z_target: torch.Tensor | None, b: int, g: int, gen: torch.Generator) -> torch.Tensor:
+        """Function-space loss of ``b`` random stacks at ``g`` of their outgoing directions each: the
+        relative squared error of the cosine-weighted lobe (``decoded_lobe_loss``) between the decoder's
+        values for L's latent and the decoder's values for the stack's target latent ``z_target``
+        (n, 3, 32), or the stack's Monte Carlo values when ``z_target`` is None (a squared error: its
+        minimiser is their mean)."""
+        n, pm = self.wi.shape[:2]
+        m = pm // self.groups
+        s = torch.randint(0, self.n, (b,), generator=gen)
+        grp = torch.randint(0, self.groups, (b, g), generator=gen)
+        idx = (grp.unsqueeze(-1) * m + torch.arange(m)).reshape(b, g * m)  # every incident direction of a group
+        wi, wo, w = self.wi[s[:, None], idx], self.wo[s[:, None], idx], self.weight[s[:, None], idx]
+        z = compose(net, self.z_base[s], self.z_tops[s], self.albedo[s], self.thickness[s])
+        pred = decode_pairs(dec, z, wi, wo)
+        if z_target is None:
+            target = self.f[s[:, None], idx]
+        else:
+            with torch.no_grad():
+                target = decode_pairs(dec, z_target[s], wi, wo)
+        sh = (b, g, m)
+        return decoded_lobe_loss(pred.reshape(*sh, 3), target.reshape(*sh, 3), wi[..., 2].reshape(sh), w.reshape(sh))
+
+
+def decode_pairs(dec, z: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+    """RGB decoder values (b, q, 3) of latents z (b, 3, 32) at b x q direction pairs wi, wo (b, q, 3)."""
+    b, q = wi.shape[:2]
+    zz = z.unsqueeze(2).expand(b, 3, q, LATENT).reshape(-1, LATENT)
+    wi_r = wi.unsqueeze(1).expand(b, 3, q, 3).reshape(-1, 3)
+    wo_r = wo.unsqueeze(1).expand(b, 3, q, 3).reshape(-1, 3)
+    return dec(zz, wi_r, wo_r).reshape(b, 3, q).permute(0, 2, 1)
+
+
+def decoded_lobe_loss(pred, target, cos_i, weight) -> torch.Tensor:
+    """Mean over groups of ||pred - target||^2 / ||target||^2 of the lobe f cos_i, RGB together, each
+    group (..., m) being m incident directions of one outgoing direction with the weights that make their
+    sum a cosine-weighted integral (``cosine_weights``): by reciprocity, the square of the lobe image's
+    relative RMSE that ``onnx_export.evaluate.lobe_metrics`` reports, for that outgoing direction."""
+    c = cos_i.clamp(min=0.0).unsqueeze(-1)
+    num = (weight * (((pred - target) * c) ** 2).sum(-1)).sum(-1)
+    den = (weight * ((target * c) ** 2).sum(-1)).sum(-1)
+    return (num / den.clamp(min=1e-12)).mean()
 
     def batch(self, net, dec, b: int, q: int, gen: torch.Generator):
         s = torch.randint(0, self.n, (b,), generator=gen)
@@ -146,10 +197,9 @@ class StackSet:
         wi = self.wi[s[:, None], idx]  # (b, q, 3)
         wo = self.wo[s[:, None], idx]
         f = self.f[s[:, None], idx]  # (b, q, 3)
-        zz = z.unsqueeze(2).expand(b, 3, q, LATENT).reshape(-1, LATENT)
+        pred = decode_pairs(dec, z, wi, wo).permute(0, 2, 1).reshape(-1)  # (b, 3, q) flattened, as f below
         wi_r = wi.unsqueeze(1).expand(b, 3, q, 3).reshape(-1, 3)
         wo_r = wo.unsqueeze(1).expand(b, 3, q, 3).reshape(-1, 3)
-        pred = dec(zz, wi_r, wo_r)
         wt = self.weight[s[:, None], idx].unsqueeze(1).expand(b, 3, q).reshape(-1) if self.use_weight else None
         return pred, f.permute(0, 2, 1).reshape(-1), wi_r, wo_r, wt
 
@@ -210,6 +260,58 @@ def heldout_error(net: LayeringNet, dec, models: NeuralModels, heldout: dict, lo
         out[f"coatings_{c}"] = {k: v for k, v in m.items() if k != "errors"} | {"configs": int(idx.size)}
     if log:
         log("held-out: " + json.dumps({k: {q: round(v, 4) for q, v in d.items()} for k, d in out.items()}))
+    return out
+
+
+def lobe_bound(net: LayeringNet, dec, models: NeuralModels, heldout: dict, steps: int = 400, pixels: int = 96,
+               lr: float = 0.01, seed: int = 0, log=None) -> dict:
+    """What the decoder could hold: the held-out lobes projected into its latent space, per number of
+    coatings, by latent optimisation on the scored pixels themselves with the metric as the loss
+    (``decoded_lobe_loss``, ``pixels`` random pixels of every image per step), starting from the
+    layering network's latents. An optimistic bound on any layering network in this latent space."""
+    from addon.core import lobe
+    from onnx_export.evaluate import decoder_lobes, lobe_metrics
+
+    stacks, ref_all, angles = heldout["stacks"], heldout["lobe"], heldout["angles"]
+    res = ref_all.shape[2]
+    wo_grid, mask = lobe.lobe_grid(res)
+    wo = torch.as_tensor(wo_grid[mask], dtype=torch.float32)
+    wis = torch.as_tensor(np.stack([lobe.incident_direction(t) for t in angles]), dtype=torch.float32)
+    counts = np.array([len(st.coatings) for st in stacks])
+    gen = torch.Generator().manual_seed(seed)
+    out = {}
+    for c in sorted(set(counts.tolist())):
+        idx = np.flatnonzero(counts == c)
+        a = StackArrays.from_stacks([stacks[i] for i in idx])
+        zb, zt = encoder_latents(models, a)
+        with torch.no_grad():
+            z0 = compose(net, torch.from_numpy(zb), torch.from_numpy(zt),
+                         torch.from_numpy(a.coat_albedo.astype(np.float32)), torch.from_numpy(a.coat_thickness.astype(np.float32)))
+        ref = torch.as_tensor(ref_all[idx].reshape(len(idx), len(angles), res * res, 3)[:, :, mask] / wo[:, 2:3],
+                              dtype=torch.float32)  # f at the pixels (S, A, npx, 3)
+        z = z0.clone().requires_grad_(True)
+        opt = torch.optim.Adam([z], lr=lr)
+        n_s, n_a = len(idx), len(angles)
+        for step in range(steps):
+            for g in opt.param_groups:
+                g["lr"] = lr * (0.1 + 0.9 * 0.5 * (1 + np.cos(np.pi * step / steps)))
+            pix = torch.randint(0, wo.shape[0], (n_a, pixels), generator=gen)
+            wo_b = wo[pix].unsqueeze(0).expand(n_s, n_a, pixels, 3).reshape(n_s, -1, 3)
+            wi_b = wis[:, None, :].expand(n_a, pixels, 3).unsqueeze(0).expand(n_s, n_a, pixels, 3).reshape(n_s, -1, 3)
+            pred = decode_pairs(dec, z, wi_b, wo_b).reshape(n_s, n_a, pixels, 3)
+            target = ref[:, torch.arange(n_a)[:, None], pix]
+            loss = decoded_lobe_loss(pred, target, wo[pix][..., 2].expand(n_s, n_a, pixels),
+                                     torch.ones(n_s, n_a, pixels))
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+        m = lobe_metrics(decoder_lobes(dec, z.detach(), res, angles), ref_all[idx])
+        m0 = lobe_metrics(decoder_lobes(dec, z0, res, angles), ref_all[idx])
+        out[f"coatings_{c}"] = {"layering": [m0["lobe_error_median"], m0["lobe_error_p90"]],
+                                "bound": [m["lobe_error_median"], m["lobe_error_p90"]], "configs": int(idx.size)}
+        if log:
+            log(f"{c} coatings: layering {m0['lobe_error_median']:.4f} / {m0['lobe_error_p90']:.4f}, "
+                f"bound {m['lobe_error_median']:.4f} / {m['lobe_error_p90']:.4f} (median / p90)")
     return out
 
 
@@ -274,6 +376,29 @@ def regress_projected(net: LayeringNet, sets: dict, targets: dict, args, gen, lo
             log(f"regress {step + 1}/{args.regress_steps} mse {loss.item():.5f} {time.perf_counter() - t0:.0f} s")
 
 
+def regress_decoded(net: LayeringNet, dec, sets: dict, targets: dict, args, gen, log) -> None:
+    """Stage 0b (``--decoded-steps``): the regression in function space. L's latent and the stack's
+    target latent are both decoded at the stack's direction pairs and compared as lobes
+    (``decoded_lobe_loss``, the held-out metric). Latents that decode to the same lobe cost nothing here,
+    so a target table that fits the data well but wanders along such directions from stack to stack
+    (a re-fit's, ``--decoded-shrink 1``) can be followed where the latent-space MSE cannot; and the
+    targets are the decoder's smooth values, not the Monte Carlo noise of the data."""
+    opt = torch.optim.Adam(net.parameters(), lr=args.decoded_lr)
+    t0, ema = time.perf_counter(), None
+    for step in range(args.decoded_steps):
+        for g in opt.param_groups:
+            g["lr"] = cosine_lr(step, args.decoded_steps, args.decoded_lr, warmup=20)
+        loss = sum(data.decoded_batch(net, dec, targets[c], args.batch // len(sets), 2, gen)
+                   for c, data in sets.items()) / len(sets)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        nn.utils.clip_grad_norm_(net.parameters(), args.clip)
+        opt.step()
+        ema = loss.item() if ema is None else 0.95 * ema + 0.05 * loss.item()
+        if (step + 1) % args.log_every == 0:
+            log(f"decoded {step + 1}/{args.decoded_steps} lobe loss {ema:.5f} {time.perf_counter() - t0:.0f} s")
+
+
 def train(args, log=print) -> dict:
     from onnx_export.heldout_layered import load as load_heldout
 
@@ -325,6 +450,31 @@ def train(args, log=print) -> dict:
         regress_projected(net, sets, targets, args, gen, log)
         if heldout() is not None:
             hist["regressed"] = heldout_error(net, dec, models, heldout(), log)
+        if args.decoded_steps:
+            dsets = sets
+            if args.decoded_data:  # the same stacks and directions with other values (more walks)
+                if args.decoded_target != "data":
+                    raise ValueError("--decoded-data gives Monte Carlo values: it goes with --decoded-target data")
+                dsets = {c: StackSet(d, models, sets[c].n, use_weight=True) for c, d in zip((1, 2), args.decoded_data)
+                         if c in sets}
+                for c in dsets:
+                    if not (torch.equal(dsets[c].wi, sets[c].wi) and torch.equal(dsets[c].albedo, sets[c].albedo)):
+                        raise ValueError(f"{args.decoded_data[c - 1]} does not hold the stacks and directions of the "
+                                         f"{'--c1' if c == 1 else '--c2'} data")
+            if args.decoded_target == "data":
+                targets = {c: None for c in dsets}
+            elif args.decoded_shrink != args.shrink:
+                targets = {c: projected_latents(args.projected, data_dir, sets[c].n, args.decoded_shrink)
+                           for c, data_dir in ((1, args.c1), (2, args.c2)) if c in sets}
+            hist["decoded"] = {"steps": args.decoded_steps, "target": args.decoded_target, "lr": args.decoded_lr}
+            if args.decoded_target == "latents":
+                hist["decoded"]["shrink"] = args.decoded_shrink
+            else:
+                hist["decoded"]["data"] = [data_command(Path(d)) for d in (args.decoded_data or [args.c1, args.c2])
+                                           [:len(dsets)]]
+            regress_decoded(net, dec, dsets, targets, args, gen, log)
+            if heldout() is not None:
+                hist["decoded"]["heldout"] = heldout_error(net, dec, models, heldout(), log)
         opt = torch.optim.Adam(net.parameters(), lr=args.lr)
         save(0, None)  # --steps 0 --finetune 0: the regressed network is the result
     log(f"layering net {net.config()} params {n_params(net)}; one-coating stacks {sets[1].n}; loss {args.loss}")
@@ -414,6 +564,7 @@ def export(args, log=print) -> dict:
     export_onnx(net, path)
     par = parity(net, path)
     a = s["args"]
+    decoded = s.get("history", {}).get("decoded") or {}
     card = {
         "name": f"layering_{args.size}",
         "role": (f"layering network in the latent space of decoder_{args.size}/encoder_{args.size}: "
@@ -433,10 +584,16 @@ def export(args, log=print) -> dict:
                                                                   (2, a.get("c2", "cache/data/layering_c2"), 1536))],
             "command": command_line("onnx_export.layering train", a, skip=("every", "log_every", "cmd", "model_dir")),
             "steps": s["step"], "final_loss": s.get("loss"), "seeds": {"data": 11, "training": int(a.get("seed", 0))},
-            "loss": a.get("loss") if s["step"] else "MSE against the latents of --projected (stage 0 only: no step through the decoder)",
+            "loss": a.get("loss") if s["step"] else (
+                "MSE against the latents of --projected, then the relative squared error of the lobes decoded from "
+                "L's latents and from the target latents (onnx_export.layering.decoded_lobe_loss): no step against "
+                "the Monte Carlo values" if decoded else
+                "MSE against the latents of --projected (stage 0 only: no step through the decoder)"),
             "projected_latents": s.get("history", {}).get("projected"),  # the command of a re-fit of them, if any
+            "decoded": {k: v for k, v in decoded.items() if k != "heldout"} or None,
         },
         "heldout": {**{k: v for k, v in s.get("history", {}).items() if k in ("regressed", "stage1", "stage2")},
+                    **({"decoded": decoded["heldout"]} if "heldout" in decoded else {}),
                     "set": str(a.get("heldout", "tests/data/heldout_layered.npz")),
                     "when": "measured at training time against the reference file of that time; "
                             "heldout_runtime: the latest benchmark run",
@@ -487,6 +644,18 @@ def main(argv=None):
     t.add_argument("--model-dir", type=Path, default=None,
                    help="where the frozen encoder and decoder of --size are read (default: the shipped models)")
     t.add_argument("--regress-steps", type=int, default=3000)
+    t.add_argument("--decoded-steps", type=int, default=0,
+                   help="after the regression (--projected), steps of the regression in function space: "
+                        "lobes decoded from L's latents against lobes decoded from the target latents")
+    t.add_argument("--decoded-shrink", type=float, default=1.0,
+                   help="the target latents of --decoded-steps, as --shrink (1: the re-fit's own)")
+    t.add_argument("--decoded-target", default="latents", choices=("latents", "data"),
+                   help="what --decoded-steps compare with: the lobes decoded from the target latents, or the "
+                        "stacks' Monte Carlo values themselves")
+    t.add_argument("--decoded-data", type=Path, nargs="+", default=None, metavar="DIR",
+                   help="with --decoded-target data: the values of the one- (and two-) coating stacks of --c1 "
+                        "(--c2) from a run of onnx_export.layered_data with more --walks (same stacks, directions)")
+    t.add_argument("--decoded-lr", type=float, default=2e-4)
     t.add_argument("--threads", type=int, default=1)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--every", type=int, default=250)
@@ -498,11 +667,35 @@ def main(argv=None):
     e.add_argument("--ckpt", type=Path, required=True)
     e.add_argument("--speed", type=Path, default=None, help="JSON of measured speed to put on the card")
     e.add_argument("--out", type=Path, default=MODEL_DIR)
+    b = sub.add_parser("bound", help="the held-out lobes projected into the decoder's latent space (an optimistic "
+                                     "bound on any layering network), beside the shipped layering network's error")
+    b.add_argument("--size", default="paper")
+    b.add_argument("--heldout", type=Path, default=Path("tests/data/heldout_layered.npz"))
+    b.add_argument("--coatings", type=int, nargs="+", default=None, help="only these numbers of coatings")
+    b.add_argument("--steps", type=int, default=400)
+    b.add_argument("--pixels", type=int, default=96, help="random pixels of each lobe image per step")
+    b.add_argument("--threads", type=int, default=1)
+    b.add_argument("--seed", type=int, default=0)
     a = ap.parse_args(argv)
     lg = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     if a.cmd == "train":
         res = train(a, log=lg)
         (Path(a.out) / "train.json").write_text(json.dumps(res, default=str, indent=1))
+    elif a.cmd == "bound":
+        from onnx_export.heldout_layered import load as load_heldout
+
+        torch.set_num_threads(a.threads)
+        ho = load_heldout(a.heldout)
+        if a.coatings:
+            keep = [i for i, st in enumerate(ho["stacks"]) if len(st.coatings) in a.coatings]
+            if not keep:
+                raise SystemExit(f"{a.heldout} holds no stack with {a.coatings} coatings")
+            ho = ho | {"stacks": [ho["stacks"][i] for i in keep], "lobe": ho["lobe"][keep]}
+        src = MODEL_DIR / f"layering_{a.size}.onnx"
+        net = net_from_onnx(src, json.loads(src.with_suffix(".json").read_text()))
+        res = lobe_bound(net, frozen_decoder(a.size), NeuralModels(a.size, threads=a.threads), ho, a.steps, a.pixels,
+                         seed=a.seed, log=lg)
+        print(json.dumps(res))
     else:
         export(a, log=lg)
 

@@ -157,18 +157,69 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
     export.main(["--size", "tiny", "--decoder", str(tmp_path / "run" / "ckpt.pt"), "--encoder", str(tmp_path / "enc.pt"),
                  "--out", str(tmp_path / "models")])
     card = json.loads((tmp_path / "models" / "decoder_tiny.json").read_text())["training"]
-    assert card["data"][1] == f"python -m onnx_export.layered_data --coatings 1 --stacks 4 --out {tmp_path / 'layering_c1'}"
+    assert card["data"][1] == (f"python -m onnx_export.layered_data --coatings 1 --stacks 4 --walks 4 "
+                               f"--out {tmp_path / 'layering_c1'}")
     assert "l2rel x 4.0" in card["loss"] and "--loss l1 l2rel" in card["command"]
     # a layering network regressed onto the re-fitted latents, against the decoder and encoder exported above
     lay_out = tmp_path / "layering"
     layering.main(["train", "--size", "tiny", "--c1", str(tmp_path / "layering_c1"), "--projected", str(refit), "--shrink", "0.5",
                    "--model-dir", str(tmp_path / "models"), "--heldout", str(tmp_path / "none.npz"),
-                   "--regress-steps", "20", "--steps", "0", "--finetune", "0", "--out", str(lay_out)])
+                   "--regress-steps", "20", "--decoded-steps", "3", "--batch", "4", "--steps", "0", "--finetune", "0",
+                   "--out", str(lay_out)])
     layering.main(["export", "--size", "tiny", "--ckpt", str(lay_out / "ckpt.pt"), "--out", str(tmp_path / "models")])
     lay_card = json.loads((tmp_path / "models" / "layering_tiny.json").read_text())["training"]
     assert lay_card["steps"] == 0 and lay_card["projected_latents"]["latents"] == str(refit)
     assert lay_card["projected_latents"]["shrink"] == 0.5
+    assert lay_card["decoded"] == {"steps": 3, "target": "latents", "shrink": 1.0, "lr": 2e-4} and "decoded from" in lay_card["loss"]
+    # the function-space stage against Monte Carlo values of the same stacks with more walks
+    layered_data.generate(tmp_path / "c1_more", coatings=1, stacks=4, n_wo=2, n_wi=32, walks=8, chunk=4, seed=3,
+                          log=lambda s: None)
+    layered_data.generate(tmp_path / "c1_other", coatings=1, stacks=4, n_wo=2, n_wi=32, walks=8, chunk=4, seed=5,
+                          log=lambda s: None)
+    base = ["train", "--size", "tiny", "--c1", str(tmp_path / "layering_c1"), "--projected", str(refit),
+            "--model-dir", str(tmp_path / "models"), "--heldout", str(tmp_path / "none.npz"), "--regress-steps", "5",
+            "--decoded-steps", "2", "--batch", "4", "--steps", "0", "--finetune", "0"]
+    layering.main(base + ["--decoded-target", "data", "--decoded-data", str(tmp_path / "c1_more"), "--out", str(tmp_path / "l2")])
+    rec = torch.load(tmp_path / "l2" / "ckpt.pt", weights_only=False)["history"]["decoded"]
+    assert rec["target"] == "data" and rec["data"] == [
+        f"python -m onnx_export.layered_data --coatings 1 --stacks 4 --out {tmp_path / 'c1_more'}"]
+    with pytest.raises(ValueError, match="does not hold the stacks"):
+        layering.main(base + ["--decoded-target", "data", "--decoded-data", str(tmp_path / "c1_other"), "--out", str(tmp_path / "l3")])
+    with pytest.raises(ValueError, match="goes with --decoded-target data"):
+        layering.main(base + ["--decoded-data", str(tmp_path / "c1_more"), "--out", str(tmp_path / "l4")])
     assert lay_card["projected_latents"]["refit"].startswith("python -m onnx_export.layering_project --decoder")
+
+
+def test_decoded_lobe_loss_is_the_squared_lobe_error_of_the_metric():
+    """With the weights of a uniform grid on the projected disk (cosine-weighted directions), the
+    function-space loss of one group is the square of the lobe image's relative RMSE."""
+    from addon.core import lobe
+    from onnx_export.layering import decoded_lobe_loss
+
+    rng = np.random.default_rng(4)
+    wo, mask = lobe.lobe_grid(24)
+    d = wo[mask]
+    target = np.exp(rng.normal(size=(d.shape[0], 3))) * (1.0 + 20.0 * (d[:, 2:3] > 0.95))  # with a peak
+    pred = target * np.exp(0.2 * rng.normal(size=target.shape))
+    img = np.zeros((2, 24 * 24, 3))
+    img[0][mask], img[1][mask] = pred * d[:, 2:3], target * d[:, 2:3]
+    t = lambda x: torch.as_tensor(x, dtype=torch.float64)[None, None]  # noqa: E731
+    got = decoded_lobe_loss(t(pred), t(target), t(d[:, 2]), t(np.ones(d.shape[0]))).item()
+    assert got == pytest.approx(lobe.relative_rmse(img[0], img[1]) ** 2, rel=1e-9)
+    assert decoded_lobe_loss(t(target), t(target), t(d[:, 2]), t(np.ones(d.shape[0]))).item() == 0.0
+
+
+def test_lobe_bound_projects_below_the_layering_network(capsys):
+    """The bound (held-out lobes projected with the metric as the loss, from the layering network's
+    latents) is below the layering network's own error, and the command reports both."""
+    from onnx_export import layering
+
+    layering.main(["bound", "--size", "tiny", "--coatings", "1", "--steps", "40", "--pixels", "48"])
+    res = json.loads(capsys.readouterr().out)
+    assert list(res) == ["coatings_1"] and res["coatings_1"]["configs"] == 16
+    assert res["coatings_1"]["bound"][0] < 0.8 * res["coatings_1"]["layering"][0]
+    with pytest.raises(SystemExit, match="no stack with"):
+        layering.main(["bound", "--size", "tiny", "--coatings", "7", "--steps", "1"])
 
 
 def test_pair_loss_kinds_and_bad_kind():
