@@ -19,7 +19,10 @@ def test_layering_onnx_matches_torch(size):
     path = MODEL_DIR / f"layering_{size}.onnx"
     card = json.loads(path.with_suffix(".json").read_text())
     net = lay.net_from_onnx(path, card)
-    assert lay.parity(net, path, n=2048, seed=7) <= 1e-4  # relative, floor 1e-3 on latents near 0
+    # relative, floor 1e-3 on latents near 0: float32 round-off of the paper size's 256 x 4 network reaches
+    # about 2e-4 there (torch float32 against float64 differs as much: 1.9e-4 on these inputs); an export
+    # error (an op, a weight, an input order) is orders larger
+    assert lay.parity(net, path, n=2048, seed=7) <= 5e-4
     assert card["parameters"] == sum(p.numel() for p in net.parameters())
 
 
