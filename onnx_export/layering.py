@@ -171,6 +171,20 @@ class StackSet:
         return decoded_lobe_loss(pred.reshape(*sh, 3), target.reshape(*sh, 3), wi[..., 2].reshape(sh), w.reshape(sh))
 
 
+    def batch(self, net, dec, b: int, q: int, gen: torch.Generator):
+        s = torch.randint(0, self.n, (b,), generator=gen)
+        z = compose(net, self.z_base[s], self.z_tops[s], self.albedo[s], self.thickness[s])  # (b, 3, 32)
+        idx = torch.randint(0, self.wi.shape[1], (b, q), generator=gen)
+        wi = self.wi[s[:, None], idx]  # (b, q, 3)
+        wo = self.wo[s[:, None], idx]
+        f = self.f[s[:, None], idx]  # (b, q, 3)
+        pred = decode_pairs(dec, z, wi, wo).permute(0, 2, 1).reshape(-1)  # (b, 3, q) flattened, as f below
+        wi_r = wi.unsqueeze(1).expand(b, 3, q, 3).reshape(-1, 3)
+        wo_r = wo.unsqueeze(1).expand(b, 3, q, 3).reshape(-1, 3)
+        wt = self.weight[s[:, None], idx].unsqueeze(1).expand(b, 3, q).reshape(-1) if self.use_weight else None
+        return pred, f.permute(0, 2, 1).reshape(-1), wi_r, wo_r, wt
+
+
 def decode_pairs(dec, z: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
     """RGB decoder values (b, q, 3) of latents z (b, 3, 32) at b x q direction pairs wi, wo (b, q, 3)."""
     b, q = wi.shape[:2]
@@ -189,19 +203,6 @@ def decoded_lobe_loss(pred, target, cos_i, weight) -> torch.Tensor:
     num = (weight * (((pred - target) * c) ** 2).sum(-1)).sum(-1)
     den = (weight * ((target * c) ** 2).sum(-1)).sum(-1)
     return (num / den.clamp(min=1e-12)).mean()
-
-    def batch(self, net, dec, b: int, q: int, gen: torch.Generator):
-        s = torch.randint(0, self.n, (b,), generator=gen)
-        z = compose(net, self.z_base[s], self.z_tops[s], self.albedo[s], self.thickness[s])  # (b, 3, 32)
-        idx = torch.randint(0, self.wi.shape[1], (b, q), generator=gen)
-        wi = self.wi[s[:, None], idx]  # (b, q, 3)
-        wo = self.wo[s[:, None], idx]
-        f = self.f[s[:, None], idx]  # (b, q, 3)
-        pred = decode_pairs(dec, z, wi, wo).permute(0, 2, 1).reshape(-1)  # (b, 3, q) flattened, as f below
-        wi_r = wi.unsqueeze(1).expand(b, 3, q, 3).reshape(-1, 3)
-        wo_r = wo.unsqueeze(1).expand(b, 3, q, 3).reshape(-1, 3)
-        wt = self.weight[s[:, None], idx].unsqueeze(1).expand(b, 3, q).reshape(-1) if self.use_weight else None
-        return pred, f.permute(0, 2, 1).reshape(-1), wi_r, wo_r, wt
 
 
 def cosine_weights(wi: np.ndarray, wo: np.ndarray, lobe_alpha: np.ndarray) -> np.ndarray:

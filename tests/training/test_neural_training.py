@@ -185,6 +185,11 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
         f"python -m onnx_export.layered_data --coatings 1 --stacks 4 --out {tmp_path / 'c1_more'}"]
     with pytest.raises(ValueError, match="does not hold the stacks"):
         layering.main(base + ["--decoded-target", "data", "--decoded-data", str(tmp_path / "c1_other"), "--out", str(tmp_path / "l3")])
+    # the stages through the decoder against the Monte Carlo values (StackSet.batch), from the same start
+    layering.main(["train", "--size", "tiny", "--c1", str(tmp_path / "layering_c1"), "--model-dir", str(tmp_path / "models"),
+                   "--heldout", str(tmp_path / "none.npz"), "--steps", "2", "--finetune", "0", "--batch", "4",
+                   "--pairs", "8", "--out", str(tmp_path / "l5")])
+    assert torch.load(tmp_path / "l5" / "ckpt.pt", weights_only=False)["step"] == 2
     with pytest.raises(ValueError, match="goes with --decoded-target data"):
         layering.main(base + ["--decoded-data", str(tmp_path / "c1_more"), "--out", str(tmp_path / "l4")])
     assert lay_card["projected_latents"]["refit"].startswith("python -m onnx_export.layering_project --decoder")
