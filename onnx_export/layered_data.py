@@ -131,9 +131,9 @@ def data_command(out: Path, coatings: int | None = None, default_stacks: int = 0
     found there, else ``coatings`` and ``default_stacks`` (data not on this machine)."""
     chunks = chunk_paths(out)
     if chunks:
-        coatings = np.load(chunks[0])["p_coat_roughness"].shape[1]
-        stacks = int(sum(np.load(c)["wo"].shape[0] for c in chunks))
         first = np.load(chunks[0])
+        coatings = first["p_coat_roughness"].shape[1]
+        stacks = int(sum(np.load(c)["wo"].shape[0] for c in chunks))
         walks = int(first["walks"][0]) if "walks" in first else 8  # chunks from before it was recorded: the default
         if walks != 8:
             return (f"python -m onnx_export.layered_data --coatings {coatings} --stacks {stacks} --walks {walks} "

@@ -378,12 +378,12 @@ def regress_projected(net: LayeringNet, sets: dict, targets: dict, args, gen, lo
 
 
 def regress_decoded(net: LayeringNet, dec, sets: dict, targets: dict, args, gen, log) -> None:
-    """Stage 0b (``--decoded-steps``): the regression in function space. L's latent and the stack's
-    target latent are both decoded at the stack's direction pairs and compared as lobes
-    (``decoded_lobe_loss``, the held-out metric). Latents that decode to the same lobe cost nothing here,
-    so a target table that fits the data well but wanders along such directions from stack to stack
-    (a re-fit's, ``--decoded-shrink 1``) can be followed where the latent-space MSE cannot; and the
-    targets are the decoder's smooth values, not the Monte Carlo noise of the data."""
+    """Stage 0b (``--decoded-steps``): the regression in function space. L's latent is decoded at the
+    stack's direction pairs and compared as a lobe (``decoded_lobe_loss``, the held-out metric) with the
+    lobe of the stack's target latent (``targets[c]``) or, where that is None, with its Monte Carlo values.
+    Latents that decode to the same lobe cost nothing here, so a target table that fits the data well
+    but wanders along such directions from stack to stack (a re-fit's, ``--decoded-shrink 1``) can be
+    followed where the latent-space MSE cannot."""
     opt = torch.optim.Adam(net.parameters(), lr=args.decoded_lr)
     t0, ema = time.perf_counter(), None
     for step in range(args.decoded_steps):
@@ -586,10 +586,11 @@ def export(args, log=print) -> dict:
             "command": command_line("onnx_export.layering train", a, skip=("every", "log_every", "cmd", "model_dir")),
             "steps": s["step"], "final_loss": s.get("loss"), "seeds": {"data": 11, "training": int(a.get("seed", 0))},
             "loss": a.get("loss") if s["step"] else (
-                "MSE against the latents of --projected, then the relative squared error of the lobes decoded from "
-                "L's latents and from the target latents (onnx_export.layering.decoded_lobe_loss): no step against "
-                "the Monte Carlo values" if decoded else
-                "MSE against the latents of --projected (stage 0 only: no step through the decoder)"),
+                "MSE against the latents of --projected, then the relative squared error of the cosine-weighted "
+                "lobes decoded from L's latents (onnx_export.layering.decoded_lobe_loss) against "
+                + ("the Monte Carlo values of the data in decoded.data" if decoded.get("target") == "data"
+                   else "the lobes decoded from the target latents (no step against the Monte Carlo values)")
+                if decoded else "MSE against the latents of --projected (stage 0 only: no step through the decoder)"),
             "projected_latents": s.get("history", {}).get("projected"),  # the command of a re-fit of them, if any
             "decoded": {k: v for k, v in decoded.items() if k != "heldout"} or None,
         },
@@ -647,7 +648,7 @@ def main(argv=None):
     t.add_argument("--regress-steps", type=int, default=3000)
     t.add_argument("--decoded-steps", type=int, default=0,
                    help="after the regression (--projected), steps of the regression in function space: "
-                        "lobes decoded from L's latents against lobes decoded from the target latents")
+                        "lobes decoded from L's latents against those of --decoded-target")
     t.add_argument("--decoded-shrink", type=float, default=1.0,
                    help="the target latents of --decoded-steps, as --shrink (1: the re-fit's own)")
     t.add_argument("--decoded-target", default="latents", choices=("latents", "data"),
