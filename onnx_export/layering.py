@@ -377,16 +377,23 @@ def regress_projected(net: LayeringNet, sets: dict, targets: dict, args, gen, lo
             log(f"regress {step + 1}/{args.regress_steps} mse {loss.item():.5f} {time.perf_counter() - t0:.0f} s")
 
 
-def regress_decoded(net: LayeringNet, dec, sets: dict, targets: dict, args, gen, log) -> None:
+def regress_decoded(net: LayeringNet, dec, sets: dict, targets: dict, args, gen, log, rec: dict,
+                    checkpoint=None, evaluate=None, opt_state=None) -> None:
     """Stage 0b (``--decoded-steps``): the regression in function space. L's latent is decoded at the
     stack's direction pairs and compared as a lobe (``decoded_lobe_loss``, the held-out metric) with the
     lobe of the stack's target latent (``targets[c]``) or, where that is None, with its Monte Carlo values.
     Latents that decode to the same lobe cost nothing here, so a target table that fits the data well
     but wanders along such directions from stack to stack (a re-fit's, ``--decoded-shrink 1``) can be
-    followed where the latent-space MSE cannot."""
+    followed where the latent-space MSE cannot.
+
+    ``rec`` is the stage's record in the history: ``rec["step"]`` steps are done (a resumed run starts
+    there, with the optimiser state ``opt_state``); every ``args.every`` steps ``checkpoint(opt)`` saves,
+    and every ``args.eval_every`` steps ``evaluate()`` (the held-out error, or None) goes to ``rec["evals"]``."""
     opt = torch.optim.Adam(net.parameters(), lr=args.decoded_lr)
+    if opt_state is not None:
+        opt.load_state_dict(opt_state)
     t0, ema = time.perf_counter(), None
-    for step in range(args.decoded_steps):
+    for step in range(rec.get("step", 0), args.decoded_steps):
         for g in opt.param_groups:
             g["lr"] = cosine_lr(step, args.decoded_steps, args.decoded_lr, warmup=20)
         loss = sum(data.decoded_batch(net, dec, targets[c], args.batch // len(sets), 2, gen)
@@ -396,8 +403,53 @@ def regress_decoded(net: LayeringNet, dec, sets: dict, targets: dict, args, gen,
         nn.utils.clip_grad_norm_(net.parameters(), args.clip)
         opt.step()
         ema = loss.item() if ema is None else 0.95 * ema + 0.05 * loss.item()
-        if (step + 1) % args.log_every == 0:
-            log(f"decoded {step + 1}/{args.decoded_steps} lobe loss {ema:.5f} {time.perf_counter() - t0:.0f} s")
+        done = step + 1
+        if done % args.log_every == 0:
+            log(f"decoded {done}/{args.decoded_steps} lobe loss {ema:.5f} {time.perf_counter() - t0:.0f} s")
+        if evaluate is not None and args.eval_every and done % args.eval_every == 0 and done < args.decoded_steps:
+            if (m := evaluate()) is not None:
+                rec.setdefault("evals", {})[str(done)] = m
+        rec["step"] = done
+        if checkpoint is not None and (done % args.every == 0 or done == args.decoded_steps):
+            checkpoint(opt)
+
+
+def projected_targets(args, models: NeuralModels, sets: dict, shrink: float) -> dict:
+    """The ``--projected`` latents of the training stacks, per coating count, shrunk by ``shrink``; the
+    two-coating stacks join ``sets`` when the re-fit holds them (so the recursion is regressed too)."""
+    targets = {1: projected_latents(args.projected, args.c1, sets[1].n, shrink)}
+    if Path(args.projected).suffix != ".npz":
+        ck = torch.load(args.projected, weights_only=False)
+        if Path(args.c2).resolve() in [Path(d).resolve() for d in ck["args"]["data"]]:
+            if 2 not in sets:
+                sets[2] = StackSet(args.c2, models, use_weight=args.weighting == "cosine")
+            targets[2] = projected_latents(args.projected, args.c2, sets[2].n, shrink)
+    return targets
+
+
+def decoded_stage_data(args, models: NeuralModels, sets: dict) -> tuple[dict, dict]:
+    """The stacks of the function-space stage and their targets (None: the Monte Carlo values)."""
+    if args.decoded_target == "latents":
+        if args.decoded_data:
+            raise ValueError("--decoded-data gives Monte Carlo values: it goes with --decoded-target data")
+        if not args.projected:
+            raise ValueError("--decoded-target latents decodes the --projected latents: give --projected, "
+                             "or --decoded-target data")
+        return sets, projected_targets(args, models, sets, args.decoded_shrink)
+    coatings = args.decoded_coatings or (sorted(sets) if args.projected else [1, 2])
+    for c in coatings:
+        if c not in sets:
+            sets[c] = StackSet(args.c1 if c == 1 else args.c2, models, args.stacks if c == 1 else 0,
+                               use_weight=args.weighting == "cosine")
+    dsets = {c: sets[c] for c in coatings}
+    if args.decoded_data:  # the same stacks and directions with other values (more walks)
+        dsets = {c: StackSet(d, models, sets[c].n, use_weight=True) for c, d in zip((1, 2), args.decoded_data)
+                 if c in dsets}
+        for c in dsets:
+            if not (torch.equal(dsets[c].wi, sets[c].wi) and torch.equal(dsets[c].albedo, sets[c].albedo)):
+                raise ValueError(f"{args.decoded_data[c - 1]} does not hold the stacks and directions of the "
+                                 f"{'--c1' if c == 1 else '--c2'} data")
+    return dsets, {c: None for c in dsets}
 
 
 def train(args, log=print) -> dict:
@@ -414,16 +466,22 @@ def train(args, log=print) -> dict:
     def heldout():
         return load_heldout(args.heldout) if args.heldout.exists() else None
     net = LayeringNet(args.width, args.depth)
+    init_rec = None
     if args.init_from:  # warm start: a shipped size's layering network (same architecture)
-        src = MODEL_DIR / f"layering_{args.init_from}.onnx"
+        src = Path(args.model_dir or MODEL_DIR) / f"layering_{args.init_from}.onnx"
         net = net_from_onnx(src, json.loads(src.with_suffix(".json").read_text()))
+        if (net.width, net.depth) != (args.width, args.depth):  # the command must say what was trained
+            raise ValueError(f"{src.name} is {net.width} x {net.depth}: give --width {net.width} --depth {net.depth}")
         net.train()
+        prev = json.loads(src.with_suffix(".json").read_text()).get("training", {})  # how the start was made
+        init_rec = {"model": src.name, "sha256": file_digest(src), "command": prev.get("command"),
+                    "decoded": prev.get("decoded"), "init_from": prev.get("init_from")}
         log(f"starting from {src.name}")
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "ckpt.pt"
-    step, hist = 0, {}
+    step, hist = 0, ({"init_from": init_rec} if init_rec else {})
     if ckpt.exists():
         s = torch.load(ckpt, weights_only=False)
         net.load_state_dict(s["net"])
@@ -432,52 +490,52 @@ def train(args, log=print) -> dict:
         log(f"resumed from {ckpt} at step {step}")
     total = args.steps + args.finetune
 
-    def save(step, ema):
+    def save(step, ema, **extra):
         torch.save({"net": net.state_dict(), "config": net.config(), "opt": opt.state_dict(), "step": step,
                     "trained_with": trained_with,
-                    "history": hist, "loss": ema, "args": {k: str(v) for k, v in vars(args).items()}},
+                    "history": hist, "loss": ema, "args": {k: str(v) for k, v in vars(args).items()}, **extra},
                    ckpt.with_suffix(".tmp"))
         ckpt.with_suffix(".tmp").replace(ckpt)
 
+    fresh_opt = False  # a stage below ran in this call: the stages after it start with a fresh optimiser
     if args.projected and step == 0 and "regressed" not in hist:
-        targets = {1: projected_latents(args.projected, args.c1, sets[1].n, args.shrink)}
+        targets = projected_targets(args, models, sets, args.shrink)
+        refit = None
         if Path(args.projected).suffix != ".npz":
-            ck = torch.load(args.projected, weights_only=False)
-            if Path(args.c2).resolve() in [Path(d).resolve() for d in ck["args"]["data"]]:  # the recursion too
-                sets[2] = StackSet(args.c2, models, use_weight=args.weighting == "cosine")
-                targets[2] = projected_latents(args.projected, args.c2, sets[2].n, args.shrink)
-            hist["projected"] = {"latents": str(args.projected), "refit": ck.get("refit", {}).get("command"),
-                                 "shrink": args.shrink}
+            refit = torch.load(args.projected, weights_only=False).get("refit", {}).get("command")
+        hist["projected"] = {"latents": str(args.projected), "refit": refit, "shrink": args.shrink}
         regress_projected(net, sets, targets, args, gen, log)
         if heldout() is not None:
             hist["regressed"] = heldout_error(net, dec, models, heldout(), log)
-        if args.decoded_steps:
-            dsets = sets
-            if args.decoded_data:  # the same stacks and directions with other values (more walks)
-                if args.decoded_target != "data":
-                    raise ValueError("--decoded-data gives Monte Carlo values: it goes with --decoded-target data")
-                dsets = {c: StackSet(d, models, sets[c].n, use_weight=True) for c, d in zip((1, 2), args.decoded_data)
-                         if c in sets}
-                for c in dsets:
-                    if not (torch.equal(dsets[c].wi, sets[c].wi) and torch.equal(dsets[c].albedo, sets[c].albedo)):
-                        raise ValueError(f"{args.decoded_data[c - 1]} does not hold the stacks and directions of the "
-                                         f"{'--c1' if c == 1 else '--c2'} data")
-            if args.decoded_target == "data":
-                targets = {c: None for c in dsets}
-            elif args.decoded_shrink != args.shrink:
-                targets = {c: projected_latents(args.projected, data_dir, sets[c].n, args.decoded_shrink)
-                           for c, data_dir in ((1, args.c1), (2, args.c2)) if c in sets}
-            hist["decoded"] = {"steps": args.decoded_steps, "target": args.decoded_target, "lr": args.decoded_lr}
+        fresh_opt = True
+        save(0, None)  # --steps 0 --finetune 0 (and no --decoded-steps): the regressed network is the result
+    rec = hist.get("decoded")
+    if args.decoded_steps and step == 0 and (rec is None or rec.get("step", rec["steps"]) < args.decoded_steps):
+        dsets, targets = decoded_stage_data(args, models, sets)
+        opt_state = None
+        if rec is None:
+            rec = hist["decoded"] = {"steps": args.decoded_steps, "target": args.decoded_target,
+                                     "lr": args.decoded_lr, "step": 0}
             if args.decoded_target == "latents":
-                hist["decoded"]["shrink"] = args.decoded_shrink
+                rec["shrink"] = args.decoded_shrink
             else:
-                hist["decoded"]["data"] = [data_command(Path(d)) for d in (args.decoded_data or [args.c1, args.c2])
-                                           [:len(dsets)]]
-            regress_decoded(net, dec, dsets, targets, args, gen, log)
-            if heldout() is not None:
-                hist["decoded"]["heldout"] = heldout_error(net, dec, models, heldout(), log)
-        opt = torch.optim.Adam(net.parameters(), lr=args.lr)
-        save(0, None)  # --steps 0 --finetune 0: the regressed network is the result
+                dirs = dict(zip((1, 2), args.decoded_data or [args.c1, args.c2]))
+                rec["data"] = [data_command(Path(dirs[c])) for c in dsets]
+        else:
+            s = torch.load(ckpt, weights_only=False)
+            opt_state = s["decoded_opt"]
+            gen.set_state(s["decoded_gen"])
+            log(f"function-space stage resumed at step {rec['step']}")
+        regress_decoded(net, dec, dsets, targets, args, gen, log, rec,
+                        checkpoint=lambda o: save(0, None, decoded_opt=o.state_dict(), decoded_gen=gen.get_state()),
+                        evaluate=lambda: heldout_error(net, dec, models, ho, log) if (ho := heldout()) is not None else None,
+                        opt_state=opt_state)
+        if heldout() is not None:
+            rec["heldout"] = heldout_error(net, dec, models, heldout(), log)
+        fresh_opt = True
+        save(0, None)
+    if fresh_opt:
+        opt = torch.optim.Adam(net.parameters(), lr=args.lr)  # the stages below start afresh
     log(f"layering net {net.config()} params {n_params(net)}; one-coating stacks {sets[1].n}; loss {args.loss}")
     t0 = time.perf_counter()
     ema = None
@@ -557,6 +615,25 @@ def net_from_onnx(path: Path, card: dict) -> LayeringNet:
     return net.eval()
 
 
+def training_loss(s: dict) -> str:
+    """The card's words for what checkpoint ``s`` was trained against, stage by stage."""
+    hist, a = s.get("history", {}), s["args"]
+    decoded = hist.get("decoded") or {}
+    parts = [f"started from {hist['init_from']['model']} (init_from)"] if "init_from" in hist else []
+    if "projected" in hist or "regressed" in hist:
+        parts.append("MSE against the latents of --projected")
+    if decoded:
+        parts.append("the relative squared error of the cosine-weighted lobes decoded from L's latents "
+                     "(onnx_export.layering.decoded_lobe_loss) against "
+                     + ("the Monte Carlo values of the data in decoded.data" if decoded.get("target") == "data"
+                        else "the lobes decoded from the target latents (no step against the Monte Carlo values)"))
+    if s["step"]:
+        parts.append(f"{a.get('loss')} through the decoder against the Monte Carlo values")
+    elif not decoded:
+        parts.append("(stage 0 only: no step through the decoder)")
+    return ", then ".join(parts)
+
+
 def export(args, log=print) -> dict:
     s = torch.load(args.ckpt, weights_only=False)
     net = LayeringNet(**s["config"])
@@ -585,12 +662,8 @@ def export(args, log=print) -> dict:
                                                                   (2, a.get("c2", "cache/data/layering_c2"), 1536))],
             "command": command_line("onnx_export.layering train", a, skip=("every", "log_every", "cmd", "model_dir")),
             "steps": s["step"], "final_loss": s.get("loss"), "seeds": {"data": 11, "training": int(a.get("seed", 0))},
-            "loss": a.get("loss") if s["step"] else (
-                "MSE against the latents of --projected, then the relative squared error of the cosine-weighted "
-                "lobes decoded from L's latents (onnx_export.layering.decoded_lobe_loss) against "
-                + ("the Monte Carlo values of the data in decoded.data" if decoded.get("target") == "data"
-                   else "the lobes decoded from the target latents (no step against the Monte Carlo values)")
-                if decoded else "MSE against the latents of --projected (stage 0 only: no step through the decoder)"),
+            "loss": training_loss(s),
+            "init_from": s.get("history", {}).get("init_from"),  # a warm start: the model it started from, and how that was made
             "projected_latents": s.get("history", {}).get("projected"),  # the command of a re-fit of them, if any
             "decoded": {k: v for k, v in decoded.items() if k != "heldout"} or None,
         },
@@ -613,7 +686,7 @@ def export(args, log=print) -> dict:
     return card
 
 
-def main(argv=None):
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
     t = sub.add_parser("train")
@@ -623,8 +696,9 @@ def main(argv=None):
     t.add_argument("--stacks", type=int, default=0, help="use only the first N one-coating stacks (0: all)")
     t.add_argument("--heldout", type=Path, default=Path("tests/data/heldout_layered.npz"))
     t.add_argument("--init-from", default=None,
-                   help="start from this shipped size's layering network (e.g. a decoder whose latents began in "
-                        "that size's latent space)")
+                   help="start from this size's layering network (read beside the encoder and decoder, --model-dir; "
+                        "e.g. a decoder whose latents began in that size's latent space, or more training of the "
+                        "shipped one); --width and --depth must be its own")
     t.add_argument("--width", type=int, default=128)
     t.add_argument("--depth", type=int, default=3)
     t.add_argument("--steps", type=int, default=4000)
@@ -647,8 +721,9 @@ def main(argv=None):
                    help="where the frozen encoder and decoder of --size are read (default: the shipped models)")
     t.add_argument("--regress-steps", type=int, default=3000)
     t.add_argument("--decoded-steps", type=int, default=0,
-                   help="after the regression (--projected), steps of the regression in function space: "
-                        "lobes decoded from L's latents against those of --decoded-target")
+                   help="steps of the regression in function space (after the regression onto --projected, or "
+                        "from --init-from): lobes decoded from L's latents against those of --decoded-target; "
+                        "resumable, with the held-out error every --eval-every steps")
     t.add_argument("--decoded-shrink", type=float, default=1.0,
                    help="the target latents of --decoded-steps, as --shrink (1: the re-fit's own)")
     t.add_argument("--decoded-target", default="latents", choices=("latents", "data"),
@@ -658,6 +733,9 @@ def main(argv=None):
                    help="with --decoded-target data: the values of the one- (and two-) coating stacks of --c1 "
                         "(--c2) from a run of onnx_export.layered_data with more --walks (same stacks, directions)")
     t.add_argument("--decoded-lr", type=float, default=2e-4)
+    t.add_argument("--decoded-coatings", type=int, nargs="+", default=None, choices=(1, 2),
+                   help="coating counts of the function-space stage (default: those regressed with --projected, "
+                        "else 1 and 2)")
     t.add_argument("--threads", type=int, default=1)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--every", type=int, default=250)
@@ -678,7 +756,11 @@ def main(argv=None):
     b.add_argument("--pixels", type=int, default=96, help="random pixels of each lobe image per step")
     b.add_argument("--threads", type=int, default=1)
     b.add_argument("--seed", type=int, default=0)
-    a = ap.parse_args(argv)
+    return ap
+
+
+def main(argv=None):
+    a = parser().parse_args(argv)
     lg = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     if a.cmd == "train":
         res = train(a, log=lg)

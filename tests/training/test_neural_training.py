@@ -21,6 +21,7 @@ from onnx_export.heldout import load as load_heldout  # noqa: E402
 
 SHIPPED = [s for s in SIZES if (MODEL_DIR / f"decoder_{s}.onnx").exists()]
 HELDOUT = Path(__file__).resolve().parents[1] / "data" / "heldout_single.npz"
+HELDOUT_LAYERED = HELDOUT.with_name("heldout_layered.npz")
 
 
 # ----------------------------------------------------------------------------- data
@@ -170,7 +171,7 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
     lay_card = json.loads((tmp_path / "models" / "layering_tiny.json").read_text())["training"]
     assert lay_card["steps"] == 0 and lay_card["projected_latents"]["latents"] == str(refit)
     assert lay_card["projected_latents"]["shrink"] == 0.5
-    assert lay_card["decoded"] == {"steps": 3, "target": "latents", "shrink": 1.0, "lr": 2e-4} and "decoded from the target" in lay_card["loss"]
+    assert lay_card["decoded"] == {"steps": 3, "step": 3, "target": "latents", "shrink": 1.0, "lr": 2e-4} and "decoded from the target" in lay_card["loss"]
     # the function-space stage against Monte Carlo values of the same stacks with more walks
     layered_data.generate(tmp_path / "c1_more", coatings=1, stacks=4, n_wo=2, n_wi=32, walks=8, chunk=4, seed=3,
                           log=lambda s: None)
@@ -193,6 +194,38 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
     with pytest.raises(ValueError, match="goes with --decoded-target data"):
         layering.main(base + ["--decoded-data", str(tmp_path / "c1_more"), "--out", str(tmp_path / "l4")])
     assert lay_card["projected_latents"]["refit"].startswith("python -m onnx_export.layering_project --decoder")
+    # more function-space steps from the exported network (no --projected), interrupted and resumed: the
+    # same weights as one uninterrupted run, the start's training on record, validation along the way
+    warm = ["--size", "tiny", "--c1", str(tmp_path / "c1_more"), "--model-dir", str(tmp_path / "models"),
+            "--heldout", str(HELDOUT_LAYERED), "--init-from", "tiny", "--width", "128", "--depth", "3",
+            "--regress-steps", "0", "--decoded-steps", "4", "--decoded-target", "data", "--decoded-coatings", "1",
+            "--batch", "4", "--steps", "0", "--finetune", "0", "--every", "2", "--eval-every", "2", "--log-every", "1"]
+
+    def stop_at_step_3(line):
+        if line.startswith("decoded 3/4"):
+            raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt):
+        layering.train(layering.parser().parse_args(["train", *warm, "--out", str(tmp_path / "w1")]), log=stop_at_step_3)
+    assert torch.load(tmp_path / "w1" / "ckpt.pt", weights_only=False)["history"]["decoded"]["step"] == 2
+    logs = []
+    layering.train(layering.parser().parse_args(["train", *warm, "--out", str(tmp_path / "w1")]), log=logs.append)
+    assert "function-space stage resumed at step 2" in logs
+    layering.train(layering.parser().parse_args(["train", *warm, "--out", str(tmp_path / "w2")]), log=lambda s: None)
+    resumed, whole = (torch.load(tmp_path / w / "ckpt.pt", weights_only=False) for w in ("w1", "w2"))
+    for k, v in whole["net"].items():
+        torch.testing.assert_close(resumed["net"][k], v, rtol=0, atol=0)
+    rec = whole["history"]["decoded"]
+    assert rec["step"] == 4 and list(rec["evals"]) == ["2"] and "coatings_1" in rec["heldout"]
+    assert rec["data"] == [f"python -m onnx_export.layered_data --coatings 1 --stacks 4 --out {tmp_path / 'c1_more'}"]
+    assert whole["history"]["init_from"]["command"] == lay_card["command"]
+    layering.main(["export", "--size", "tiny", "--ckpt", str(tmp_path / "w2" / "ckpt.pt"), "--out", str(tmp_path / "models")])
+    warm_card = json.loads((tmp_path / "models" / "layering_tiny.json").read_text())["training"]
+    assert warm_card["init_from"]["model"] == "layering_tiny.onnx" and warm_card["loss"].startswith("started from")
+    assert "--init-from tiny" in warm_card["command"] and "--projected" not in warm_card["command"]
+    with pytest.raises(ValueError, match="give --width 128 --depth 3"):
+        layering.main(["train", *warm[:-12], "--depth", "4", "--out", str(tmp_path / "w3")])
+    with pytest.raises(ValueError, match="give --projected"):
+        layering.main(["train", *[("latents" if w == "data" else w) for w in warm], "--out", str(tmp_path / "w4")])
 
 
 def test_decoded_lobe_loss_is_the_squared_lobe_error_of_the_metric():
