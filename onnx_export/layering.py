@@ -28,10 +28,12 @@ in latent space, no decoder in the loop); ``--decoded-steps`` then continue in f
 (stack, outgoing direction), the square of the held-out metric. Its target is the lobe decoded from the
 projected latents (``--decoded-target latents``) or the Monte Carlo values themselves (``data``; best
 with the same stacks computed with more walks, ``--decoded-data``); docs/layering_training.md compares
-them.
+them. Against data, the stage also runs without ``--projected``, from a trained network
+(``--init-from SIZE``): more steps, or more stacks, without a new projection.
 
-Checkpoints go to ``OUT/ckpt.pt`` (resumable); the held-out lobe error
-(``tests/data/heldout_layered.npz``) is measured at the end of each stage.
+Checkpoints go to ``OUT/ckpt.pt`` (resumable, the function-space stage too); the held-out lobe error
+(``tests/data/heldout_layered.npz``) is measured at the end of each stage and every ``--eval-every``
+steps.
 """
 
 from __future__ import annotations
@@ -148,7 +150,8 @@ class StackSet:
         self.weight = torch.from_numpy(cosine_weights(d["wi"][:n], d["wo"][:n], a.coat_roughness[:, -1]).reshape(n, p * m))
         self.groups = p  # outgoing directions per stack, each with m incident ones
 
-    def decoded_batch(self, net, dec, z_target: torch.Tensor | None, b: int, g: int, gen: torch.Generator) -> torch.Tensor:
+    def decoded_batch(self, net, dec, z_target: torch.Tensor | None, b: int, g: int, gen: torch.Generator,
+                      kind: str = "squared") -> torch.Tensor:
         """Function-space loss of ``b`` random stacks at ``g`` of their outgoing directions each: the
         relative squared error of the cosine-weighted lobe (``decoded_lobe_loss``) between the decoder's
         values for L's latent and the decoder's values for the stack's target latent ``z_target``
@@ -168,7 +171,8 @@ class StackSet:
             with torch.no_grad():
                 target = decode_pairs(dec, z_target[s], wi, wo)
         sh = (b, g, m)
-        return decoded_lobe_loss(pred.reshape(*sh, 3), target.reshape(*sh, 3), wi[..., 2].reshape(sh), w.reshape(sh))
+        return decoded_lobe_loss(pred.reshape(*sh, 3), target.reshape(*sh, 3), wi[..., 2].reshape(sh), w.reshape(sh),
+                                 kind)
 
 
     def batch(self, net, dec, b: int, q: int, gen: torch.Generator):
@@ -194,15 +198,22 @@ def decode_pairs(dec, z: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> to
     return dec(zz, wi_r, wo_r).reshape(b, 3, q).permute(0, 2, 1)
 
 
-def decoded_lobe_loss(pred, target, cos_i, weight) -> torch.Tensor:
+def decoded_lobe_loss(pred, target, cos_i, weight, kind: str = "squared") -> torch.Tensor:
     """Mean over groups of ||pred - target||^2 / ||target||^2 of the lobe f cos_i, RGB together, each
     group (..., m) being m incident directions of one outgoing direction with the weights that make their
     sum a cosine-weighted integral (``cosine_weights``): by reciprocity, the square of the lobe image's
-    relative RMSE that ``onnx_export.evaluate.lobe_metrics`` reports, for that outgoing direction."""
+    relative RMSE that ``onnx_export.evaluate.lobe_metrics`` reports, for that outgoing direction.
+
+    ``kind="rmse"`` averages its square root instead, the relative RMSE itself: each group's own
+    minimiser is unchanged (a monotone function of its error), but a group weighs 1 / (2 RMSE) as much
+    in the gradient, so the worst groups no longer dominate the mean, which moves the median more."""
+    if kind not in ("squared", "rmse"):
+        raise ValueError(f"unknown function-space loss {kind!r}; expected squared or rmse")
     c = cos_i.clamp(min=0.0).unsqueeze(-1)
     num = (weight * (((pred - target) * c) ** 2).sum(-1)).sum(-1)
     den = (weight * ((target * c) ** 2).sum(-1)).sum(-1)
-    return (num / den.clamp(min=1e-12)).mean()
+    rel = num / den.clamp(min=1e-12)
+    return (rel if kind == "squared" else (rel + 1e-12).sqrt()).mean()
 
 
 def cosine_weights(wi: np.ndarray, wo: np.ndarray, lobe_alpha: np.ndarray) -> np.ndarray:
@@ -396,7 +407,7 @@ def regress_decoded(net: LayeringNet, dec, sets: dict, targets: dict, args, gen,
     for step in range(rec.get("step", 0), args.decoded_steps):
         for g in opt.param_groups:
             g["lr"] = cosine_lr(step, args.decoded_steps, args.decoded_lr, warmup=20)
-        loss = sum(data.decoded_batch(net, dec, targets[c], args.batch // len(sets), 2, gen)
+        loss = sum(data.decoded_batch(net, dec, targets[c], args.batch // len(sets), 2, gen, args.decoded_loss)
                    for c, data in sets.items()) / len(sets)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -516,6 +527,8 @@ def train(args, log=print) -> dict:
         if rec is None:
             rec = hist["decoded"] = {"steps": args.decoded_steps, "target": args.decoded_target,
                                      "lr": args.decoded_lr, "step": 0}
+            if args.decoded_loss != "squared":
+                rec["loss"] = args.decoded_loss
             if args.decoded_target == "latents":
                 rec["shrink"] = args.decoded_shrink
             else:
@@ -623,7 +636,8 @@ def training_loss(s: dict) -> str:
     if "projected" in hist or "regressed" in hist:
         parts.append("MSE against the latents of --projected")
     if decoded:
-        parts.append("the relative squared error of the cosine-weighted lobes decoded from L's latents "
+        parts.append(("the relative RMSE" if decoded.get("loss") == "rmse" else "the relative squared error")
+                     + " of the cosine-weighted lobes decoded from L's latents "
                      "(onnx_export.layering.decoded_lobe_loss) against "
                      + ("the Monte Carlo values of the data in decoded.data" if decoded.get("target") == "data"
                         else "the lobes decoded from the target latents (no step against the Monte Carlo values)"))
@@ -733,6 +747,8 @@ def parser() -> argparse.ArgumentParser:
                    help="with --decoded-target data: the values of the one- (and two-) coating stacks of --c1 "
                         "(--c2) from a run of onnx_export.layered_data with more --walks (same stacks, directions)")
     t.add_argument("--decoded-lr", type=float, default=2e-4)
+    t.add_argument("--decoded-loss", default="squared", choices=("squared", "rmse"),
+                   help="per outgoing direction, the squared relative lobe error or its root (decoded_lobe_loss)")
     t.add_argument("--decoded-coatings", type=int, nargs="+", default=None, choices=(1, 2),
                    help="coating counts of the function-space stage (default: those regressed with --projected, "
                         "else 1 and 2)")

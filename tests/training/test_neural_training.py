@@ -199,6 +199,7 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
     warm = ["--size", "tiny", "--c1", str(tmp_path / "c1_more"), "--model-dir", str(tmp_path / "models"),
             "--heldout", str(HELDOUT_LAYERED), "--init-from", "tiny", "--width", "128", "--depth", "3",
             "--regress-steps", "0", "--decoded-steps", "4", "--decoded-target", "data", "--decoded-coatings", "1",
+            "--decoded-loss", "rmse",
             "--batch", "4", "--steps", "0", "--finetune", "0", "--every", "2", "--eval-every", "2", "--log-every", "1"]
 
     def stop_at_step_3(line):
@@ -215,12 +216,13 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
     for k, v in whole["net"].items():
         torch.testing.assert_close(resumed["net"][k], v, rtol=0, atol=0)
     rec = whole["history"]["decoded"]
-    assert rec["step"] == 4 and list(rec["evals"]) == ["2"] and "coatings_1" in rec["heldout"]
+    assert rec["step"] == 4 and rec["loss"] == "rmse" and list(rec["evals"]) == ["2"] and "coatings_1" in rec["heldout"]
     assert rec["data"] == [f"python -m onnx_export.layered_data --coatings 1 --stacks 4 --out {tmp_path / 'c1_more'}"]
     assert whole["history"]["init_from"]["command"] == lay_card["command"]
     layering.main(["export", "--size", "tiny", "--ckpt", str(tmp_path / "w2" / "ckpt.pt"), "--out", str(tmp_path / "models")])
     warm_card = json.loads((tmp_path / "models" / "layering_tiny.json").read_text())["training"]
     assert warm_card["init_from"]["model"] == "layering_tiny.onnx" and warm_card["loss"].startswith("started from")
+    assert "relative RMSE" in warm_card["loss"]
     assert "--init-from tiny" in warm_card["command"] and "--projected" not in warm_card["command"]
     with pytest.raises(ValueError, match="give --width 128 --depth 3"):
         layering.main(["train", *warm[:-12], "--depth", "4", "--out", str(tmp_path / "w3")])
@@ -245,6 +247,13 @@ def test_decoded_lobe_loss_is_the_squared_lobe_error_of_the_metric():
     got = decoded_lobe_loss(t(pred), t(target), t(d[:, 2]), t(np.ones(d.shape[0]))).item()
     assert got == pytest.approx(lobe.relative_rmse(img[0], img[1]) ** 2, rel=1e-9)
     assert decoded_lobe_loss(t(target), t(target), t(d[:, 2]), t(np.ones(d.shape[0]))).item() == 0.0
+    # the "rmse" kind is the metric itself, and averages it over groups (here a second, twice as wrong)
+    two = lambda x, y: torch.cat([t(x), t(y)], dim=1)  # noqa: E731
+    rmse = decoded_lobe_loss(two(pred, target + 2 * (pred - target)), two(target, target), two(d[:, 2], d[:, 2]),
+                             two(np.ones(d.shape[0]), np.ones(d.shape[0])), kind="rmse").item()
+    assert rmse == pytest.approx(1.5 * lobe.relative_rmse(img[0], img[1]), rel=1e-6)
+    with pytest.raises(ValueError, match="expected squared or rmse"):
+        decoded_lobe_loss(t(pred), t(target), t(d[:, 2]), t(np.ones(d.shape[0])), kind="l1")
 
 
 def test_lobe_bound_projects_below_the_layering_network(capsys):
