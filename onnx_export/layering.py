@@ -53,7 +53,7 @@ from addon.core.neural.layering import file_digest
 from addon.core.neural.runtime import NeuralModels
 from addon.core.stack import StackArrays
 from onnx_export.cli import command_line
-from onnx_export.layered_data import data_command
+from onnx_export.layered_data import data_command, holds_layering_data
 from onnx_export.nets import LATENT, cosine_lr, macs_per_eval, mlp, n_params, pair_loss
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"
@@ -493,6 +493,7 @@ def train(args, log=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "ckpt.pt"
     step, hist = 0, ({"init_from": init_rec} if init_rec else {})
+    hist["data"] = [data_command(Path(d)) for d in (args.c1, args.c2) if holds_layering_data(Path(d))]
     if ckpt.exists():
         s = torch.load(ckpt, weights_only=False)
         net.load_state_dict(s["net"])
@@ -628,6 +629,20 @@ def net_from_onnx(path: Path, card: dict) -> LayeringNet:
     return net.eval()
 
 
+def training_data(s: dict) -> list[str]:
+    """The commands of the data checkpoint ``s`` was trained on, as recorded when its training started
+    (the directories may have grown since); older checkpoints: the function-space stage's record, else
+    the directories as they are now."""
+    hist, a = s.get("history", {}), s["args"]
+    if "data" in hist:
+        return hist["data"]
+    decoded = hist.get("decoded") or {}
+    if decoded.get("target") == "data" and a.get("decoded_data") in (None, "None"):
+        return decoded["data"]
+    return [data_command(Path(d), c, n) for c, d, n in ((1, a.get("c1", "cache/data/layering_c1"), 4096),
+                                                        (2, a.get("c2", "cache/data/layering_c2"), 1536))]
+
+
 def training_loss(s: dict) -> str:
     """The card's words for what checkpoint ``s`` was trained against, stage by stage."""
     hist, a = s.get("history", {}), s["args"]
@@ -672,8 +687,7 @@ def export(args, log=print) -> dict:
         "parameters": n_params(net),
         "macs_per_rgb_eval": 3 * macs_per_eval(net),
         "training": {
-            "data": [data_command(Path(d), c, n) for c, d, n in ((1, a.get("c1", "cache/data/layering_c1"), 4096),
-                                                                  (2, a.get("c2", "cache/data/layering_c2"), 1536))],
+            "data": training_data(s),
             "command": command_line("onnx_export.layering train", a, skip=("every", "log_every", "cmd", "model_dir")),
             "steps": s["step"], "final_loss": s.get("loss"), "seeds": {"data": 11, "training": int(a.get("seed", 0))},
             "loss": training_loss(s),

@@ -196,7 +196,8 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
     assert lay_card["projected_latents"]["refit"].startswith("python -m onnx_export.layering_project --decoder")
     # more function-space steps from the exported network (no --projected), interrupted and resumed: the
     # same weights as one uninterrupted run, the start's training on record, validation along the way
-    warm = ["--size", "tiny", "--c1", str(tmp_path / "c1_more"), "--model-dir", str(tmp_path / "models"),
+    warm = ["--size", "tiny", "--c1", str(tmp_path / "c1_more"), "--c2", str(tmp_path / "no_c2"),
+            "--model-dir", str(tmp_path / "models"),
             "--heldout", str(HELDOUT_LAYERED), "--init-from", "tiny", "--width", "128", "--depth", "3",
             "--regress-steps", "0", "--decoded-steps", "4", "--decoded-target", "data", "--decoded-coatings", "1",
             "--decoded-loss", "rmse",
@@ -219,8 +220,11 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
     assert rec["step"] == 4 and rec["loss"] == "rmse" and list(rec["evals"]) == ["2"] and "coatings_1" in rec["heldout"]
     assert rec["data"] == [f"python -m onnx_export.layered_data --coatings 1 --stacks 4 --out {tmp_path / 'c1_more'}"]
     assert whole["history"]["init_from"]["command"] == lay_card["command"]
+    layered_data.generate(tmp_path / "c1_more", coatings=1, stacks=8, n_wo=2, n_wi=32, walks=8, chunk=4, seed=3,
+                          log=lambda s: None)  # the data grow after the training: the card names what it used
     layering.main(["export", "--size", "tiny", "--ckpt", str(tmp_path / "w2" / "ckpt.pt"), "--out", str(tmp_path / "models")])
     warm_card = json.loads((tmp_path / "models" / "layering_tiny.json").read_text())["training"]
+    assert warm_card["data"] == rec["data"]
     assert warm_card["init_from"]["model"] == "layering_tiny.onnx" and warm_card["loss"].startswith("started from")
     assert "relative RMSE" in warm_card["loss"]
     assert "--init-from tiny" in warm_card["command"] and "--projected" not in warm_card["command"]
