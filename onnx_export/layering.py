@@ -536,6 +536,9 @@ def train(args, log=print) -> dict:
                 dirs = dict(zip((1, 2), args.decoded_data or [args.c1, args.c2]))
                 rec["data"] = [data_command(Path(dirs[c])) for c in dsets]
         else:
+            if rec["steps"] != args.decoded_steps:  # its learning-rate schedule is that of its own length
+                raise ValueError(f"{ckpt} holds a function-space stage of {rec['steps']} steps: resume it with "
+                                 f"--decoded-steps {rec['steps']}, or train into another --out")
             s = torch.load(ckpt, weights_only=False)
             opt_state = s["decoded_opt"]
             gen.set_state(s["decoded_gen"])

@@ -209,6 +209,8 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         layering.train(layering.parser().parse_args(["train", *warm, "--out", str(tmp_path / "w1")]), log=stop_at_step_3)
     assert torch.load(tmp_path / "w1" / "ckpt.pt", weights_only=False)["history"]["decoded"]["step"] == 2
+    with pytest.raises(ValueError, match="resume it with --decoded-steps 4"):
+        layering.main(["train", *warm, "--decoded-steps", "6", "--out", str(tmp_path / "w1")])
     logs = []
     layering.train(layering.parser().parse_args(["train", *warm, "--out", str(tmp_path / "w1")]), log=logs.append)
     assert "function-space stage resumed at step 2" in logs
