@@ -53,7 +53,7 @@ from addon.core.neural.layering import file_digest
 from addon.core.neural.runtime import NeuralModels
 from addon.core.stack import StackArrays
 from onnx_export.cli import command_line
-from onnx_export.layered_data import data_command, holds_layering_data
+from onnx_export.layered_data import data_command
 from onnx_export.nets import LATENT, cosine_lr, macs_per_eval, mlp, n_params, pair_loss
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"
@@ -133,6 +133,7 @@ class StackSet:
         from onnx_export.layered_data import load
 
         d = load(path)
+        self.command = data_command(Path(path))  # the command of these data as loaded (directories grow)
         a = d["arrays"]
         if stacks:
             a = a.take(slice(0, stacks))
@@ -173,7 +174,6 @@ class StackSet:
         sh = (b, g, m)
         return decoded_lobe_loss(pred.reshape(*sh, 3), target.reshape(*sh, 3), wi[..., 2].reshape(sh), w.reshape(sh),
                                  kind)
-
 
     def batch(self, net, dec, b: int, q: int, gen: torch.Generator):
         s = torch.randint(0, self.n, (b,), generator=gen)
@@ -425,17 +425,19 @@ def regress_decoded(net: LayeringNet, dec, sets: dict, targets: dict, args, gen,
             checkpoint(opt)
 
 
-def projected_targets(args, models: NeuralModels, sets: dict, shrink: float) -> dict:
-    """The ``--projected`` latents of the training stacks, per coating count, shrunk by ``shrink``; the
-    two-coating stacks join ``sets`` when the re-fit holds them (so the recursion is regressed too)."""
-    targets = {1: projected_latents(args.projected, args.c1, sets[1].n, shrink)}
+def projected_targets(args, models: NeuralModels, sets: dict, shrink: float) -> tuple[dict, str | None]:
+    """The ``--projected`` latents of the training stacks, per coating count, shrunk by ``shrink``, and
+    the command of their re-fit (None: none); the two-coating stacks join ``sets`` when the re-fit holds
+    them (so the recursion is regressed too)."""
+    targets, refit = {1: projected_latents(args.projected, args.c1, sets[1].n, shrink)}, None
     if Path(args.projected).suffix != ".npz":
         ck = torch.load(args.projected, weights_only=False)
+        refit = ck.get("refit", {}).get("command")
         if Path(args.c2).resolve() in [Path(d).resolve() for d in ck["args"]["data"]]:
             if 2 not in sets:
                 sets[2] = StackSet(args.c2, models, use_weight=args.weighting == "cosine")
             targets[2] = projected_latents(args.projected, args.c2, sets[2].n, shrink)
-    return targets
+    return targets, refit
 
 
 def decoded_stage_data(args, models: NeuralModels, sets: dict) -> tuple[dict, dict]:
@@ -446,7 +448,7 @@ def decoded_stage_data(args, models: NeuralModels, sets: dict) -> tuple[dict, di
         if not args.projected:
             raise ValueError("--decoded-target latents decodes the --projected latents: give --projected, "
                              "or --decoded-target data")
-        return sets, projected_targets(args, models, sets, args.decoded_shrink)
+        return sets, projected_targets(args, models, sets, args.decoded_shrink)[0]
     coatings = args.decoded_coatings or (sorted(sets) if args.projected else [1, 2])
     for c in coatings:
         if c not in sets:
@@ -492,17 +494,17 @@ def train(args, log=print) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "ckpt.pt"
-    step, hist = 0, ({"init_from": init_rec} if init_rec else {})
-    hist["data"] = [data_command(Path(d)) for d in (args.c1, args.c2) if holds_layering_data(Path(d))]
+    step, hist, resumed = 0, ({"init_from": init_rec} if init_rec else {}), None
     if ckpt.exists():
-        s = torch.load(ckpt, weights_only=False)
-        net.load_state_dict(s["net"])
-        opt.load_state_dict(s["opt"])
-        step, hist = s["step"], s.get("history", {})
+        resumed = torch.load(ckpt, weights_only=False)
+        net.load_state_dict(resumed["net"])
+        opt.load_state_dict(resumed["opt"])
+        step, hist = resumed["step"], resumed.get("history", {})
         log(f"resumed from {ckpt} at step {step}")
     total = args.steps + args.finetune
 
     def save(step, ema, **extra):
+        hist["data"] = [sets[c].command for c in sorted(sets)]  # the data this training has loaded
         torch.save({"net": net.state_dict(), "config": net.config(), "opt": opt.state_dict(), "step": step,
                     "trained_with": trained_with,
                     "history": hist, "loss": ema, "args": {k: str(v) for k, v in vars(args).items()}, **extra},
@@ -511,10 +513,7 @@ def train(args, log=print) -> dict:
 
     fresh_opt = False  # a stage below ran in this call: the stages after it start with a fresh optimiser
     if args.projected and step == 0 and "regressed" not in hist:
-        targets = projected_targets(args, models, sets, args.shrink)
-        refit = None
-        if Path(args.projected).suffix != ".npz":
-            refit = torch.load(args.projected, weights_only=False).get("refit", {}).get("command")
+        targets, refit = projected_targets(args, models, sets, args.shrink)
         hist["projected"] = {"latents": str(args.projected), "refit": refit, "shrink": args.shrink}
         regress_projected(net, sets, targets, args, gen, log)
         if heldout() is not None:
@@ -533,15 +532,13 @@ def train(args, log=print) -> dict:
             if args.decoded_target == "latents":
                 rec["shrink"] = args.decoded_shrink
             else:
-                dirs = dict(zip((1, 2), args.decoded_data or [args.c1, args.c2]))
-                rec["data"] = [data_command(Path(dirs[c])) for c in dsets]
+                rec["data"] = [dsets[c].command for c in dsets]
         else:
             if rec["steps"] != args.decoded_steps:  # its learning-rate schedule is that of its own length
                 raise ValueError(f"{ckpt} holds a function-space stage of {rec['steps']} steps: resume it with "
                                  f"--decoded-steps {rec['steps']}, or train into another --out")
-            s = torch.load(ckpt, weights_only=False)
-            opt_state = s["decoded_opt"]
-            gen.set_state(s["decoded_gen"])
+            opt_state = resumed["decoded_opt"]
+            gen.set_state(resumed["decoded_gen"])
             log(f"function-space stage resumed at step {rec['step']}")
         regress_decoded(net, dec, dsets, targets, args, gen, log, rec,
                         checkpoint=lambda o: save(0, None, decoded_opt=o.state_dict(), decoded_gen=gen.get_state()),
@@ -633,9 +630,9 @@ def net_from_onnx(path: Path, card: dict) -> LayeringNet:
 
 
 def training_data(s: dict) -> list[str]:
-    """The commands of the data checkpoint ``s`` was trained on, as recorded when its training started
-    (the directories may have grown since); older checkpoints: the function-space stage's record, else
-    the directories as they are now."""
+    """The commands of the data checkpoint ``s`` was trained on, as the training recorded them when it
+    loaded them (the directories may have grown since); older checkpoints: the function-space stage's
+    record, else the directories as they are now."""
     hist, a = s.get("history", {}), s["args"]
     if "data" in hist:
         return hist["data"]
