@@ -6,8 +6,9 @@ For each configuration it stores ``lobe`` (C, 4, R, R, 3), the lobe image f cos(
 :mod:`addon.core.lobe` at the incident elevations ``lobe.INCIDENT_ANGLES_DEG``, its standard error
 ``lobe_stderr``, the number of coatings ``n_coatings`` (C,), the stacks as JSON, the command(s) and
 ``walks`` (C,), the walks per incident direction of each stack (-1: as in the first command). The
-stacks with two and three coatings were recomputed with more walks (``--only-coatings 2 --walks 4096``,
-the same for 3): at 512 walks their reference noise was a large part of the error.
+stacks with one, two and three coatings were recomputed with more walks (``--only-coatings 1 --walks 4096``,
+the same for 2 and 3): at 512 walks their reference noise was a large part of the error, and for the
+smoothest coats the noisy reference had hidden part of the networks' error at grazing angles.
 
 The reference values come from :func:`addon.core.reference.eval_brdf_many` by reciprocity: the
 walks start from the incident direction and connect to every pixel of the lobe grid, so a lobe
