@@ -10,7 +10,8 @@ neural lobe images of held-out stacks) and, with ``--update-cards``, the measure
   ``encode_stack_arrays`` (N distinct stacks in one call), for 1 to 3 coatings, ONNX Runtime on CPU.
 - Error: the runtime path (encoders + layering network + decoder, no projection, no per-material
   optimisation) against the reference lobes of ``tests/data/heldout_layered.npz``: relative RMSE of the
-  lobe images at 0/30/60/75 degrees (median, 90th percentile) and the absolute directional-albedo error.
+  lobe images at 0/30/60/75 degrees (median, 90th percentile), the absolute directional-albedo error,
+  and its sign per incident elevation (the albedo bias: median relative error, > 0 too bright).
 - Sampling efficiency: variance of the one-sample estimate of the radiance reflected from an analytic
   environment (``addon.core.neural.sampling.sky_radiance``) at equal sample count, for cosine sampling
   and for the top interface's GGX lobe, divided by the proxy's (sigma, w from the sampling network).
@@ -149,6 +150,12 @@ def main(argv=None):
             e, al, nz = r["errors"], r["albedo_error"], r["reference_noise"]
             lines.append(f"| {c} | {c + 1} | {len(r['index'])} | {np.median(e):.3f} | {np.percentile(e, 90):.3f} | "
                          f"{np.median(nz):.3f} / {np.percentile(nz, 90):.3f} | {al.mean():.4f} | {np.percentile(al, 90):.4f} |")
+        lines += ["", "Albedo bias by incident elevation: median over stacks of (network - reference) / reference "
+                  "of the directional albedo (RGB mean; > 0: the network reflects too much).", "",
+                  "| coatings | " + " | ".join(f"{t:g} deg" for t in data["angles"]) + " |",
+                  "|---|" + "---|" * len(data["angles"])]
+        for c, r in res.items():
+            lines.append(f"| {c} | " + " | ".join(f"{b:+.3f}" for b in np.median(r["albedo_bias"], axis=0)) + " |")
         lines += ["", f"![lobes](layering_lobes_{size}.png)", "", "### Encoding speed (stacks per second)", "",
                   "| coatings | one stack per call | batched (one call) | batch size |", "|---|---|---|---|"]
         for c, s in sp.items():
@@ -173,7 +180,10 @@ def main(argv=None):
                                                         "note": "stacks encoded per second, shared CPU (noisy)"}
             card["heldout_runtime"] = {f"coatings_{c}": {"lobe_error_median": float(np.median(r["errors"])),
                                                         "lobe_error_p90": float(np.percentile(r["errors"], 90)),
-                                                        "albedo_abs_error_mean": float(r["albedo_error"].mean())}
+                                                        "albedo_abs_error_mean": float(r["albedo_error"].mean()),
+                                                        "albedo_bias_median_by_angle": {
+                                                            f"{t:g}": float(b) for t, b in
+                                                            zip(data["angles"], np.median(r["albedo_bias"], axis=0))}}
                                        for c, r in res.items()}
             card["sampling_efficiency"] = {"specular": ratios[SPECULAR_INDEX], "diffuse": ratios[DIFFUSE_INDEX],
                                            "median_cosine_over_proxy": float(np.median(cr)),

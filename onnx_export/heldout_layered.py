@@ -164,8 +164,10 @@ def runtime_errors(models, layering, data: dict, res: int | None = None) -> dict
     """Held-out lobe errors of the RUNTIME path (ONNX encoders + layering + decoder) per coating count.
 
     Returns {n_coatings: {"errors": (configs, angles) relative RMSE, "albedo_error": (configs, angles, 3)
-    |albedo - reference albedo|, "lobes": (configs, angles, R, R, 3), "index": config indices,
-    "reference_noise": (configs, angles) the reference's own relative standard error ||stderr|| / ||ref||}}.
+    |albedo - reference albedo|, "albedo_bias": (configs, angles) (albedo - reference) / reference of the
+    RGB mean (signed: > 0 the network reflects too much), "lobes": (configs, angles, R, R, 3), "index":
+    config indices, "reference_noise": (configs, angles) the reference's own relative standard error
+    ||stderr|| / ||ref||}}.
     """
     from addon.core.neural.layering import encode_latents
 
@@ -182,9 +184,12 @@ def runtime_errors(models, layering, data: dict, res: int | None = None) -> dict
         ref = data["lobe"][idx]
         err = np.array([[lobe.relative_rmse(lobes[k, a], ref[k, a]) for a in range(len(angles))]
                         for k in range(len(idx))])
-        alb = np.array([[np.abs(lobe.albedo_from_lobe(lobes[k, a]) - lobe.albedo_from_lobe(ref[k, a]))
-                         for a in range(len(angles))] for k in range(len(idx))])
+        alb_net = np.array([[lobe.albedo_from_lobe(lobes[k, a]) for a in range(len(angles))] for k in range(len(idx))])
+        alb_ref = np.array([[lobe.albedo_from_lobe(ref[k, a]) for a in range(len(angles))] for k in range(len(idx))])
+        alb = np.abs(alb_net - alb_ref)
+        bias = (alb_net.mean(-1) - alb_ref.mean(-1)) / np.maximum(alb_ref.mean(-1), 1e-12)
         noise = np.array([[lobe.relative_rmse(ref[k, a] + data["lobe_stderr"][i, a], ref[k, a])
                            for a in range(len(angles))] for k, i in enumerate(idx)])
-        out[c] = {"errors": err, "albedo_error": alb, "lobes": lobes, "index": idx, "reference_noise": noise}
+        out[c] = {"errors": err, "albedo_error": alb, "albedo_bias": bias, "lobes": lobes, "index": idx,
+                  "reference_noise": noise}
     return out

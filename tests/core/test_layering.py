@@ -168,3 +168,12 @@ def test_heldout_error_is_not_worse_than_the_model_card(pair):
         ref = stated[f"coatings_{c}"]
         assert med <= ref["lobe_error_median"] * 1.02 + 0.005, (c, med, ref)
         assert p90 <= ref["lobe_error_p90"] * 1.02 + 0.005, (c, p90, ref)
+        # the albedo bias per elevation the benchmark recorded is the one measured now, and it is signed
+        bias = np.median(r["albedo_bias"], axis=0)
+        if "albedo_bias_median_by_angle" in ref:
+            want = np.array(list(ref["albedo_bias_median_by_angle"].values()))
+            np.testing.assert_allclose(bias, want, atol=0.01, err_msg=f"coatings {c}")
+        k, a = np.unravel_index(np.argmax(np.abs(r["albedo_bias"])), r["albedo_bias"].shape)
+        net = lobe.albedo_from_lobe(r["lobes"][k, a]).mean()
+        ref_alb = lobe.albedo_from_lobe(np.load(HELDOUT)["lobe"][r["index"][k], a]).mean()
+        assert np.isclose(r["albedo_bias"][k, a], (net - ref_alb) / ref_alb, rtol=1e-6)
