@@ -11,7 +11,8 @@ neural lobe images of held-out stacks) and, with ``--update-cards``, the measure
 - Error: the runtime path (encoders + layering network + decoder, no projection, no per-material
   optimisation) against the reference lobes of ``tests/data/heldout_layered.npz``: relative RMSE of the
   lobe images at 0/30/60/75 degrees (median, 90th percentile), the absolute directional-albedo error,
-  and its sign per incident elevation (the albedo bias: median relative error, > 0 too bright).
+  and its sign per incident elevation (the albedo bias: median relative error, > 0 too bright), with
+  the single-layer held-out materials through the encoder and decoder alone as the baseline row.
 - Sampling efficiency: variance of the one-sample estimate of the radiance reflected from an analytic
   environment (``addon.core.neural.sampling.sky_radiance``) at equal sample count, for cosine sampling
   and for the top interface's GGX lobe, divided by the proxy's (sigma, w from the sampling network).
@@ -125,6 +126,11 @@ def main(argv=None):
     a = ap.parse_args(argv)
     cmd = "python benchmarks/bench_layering.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
     data = load(a.heldout)
+    # single layers through the encoder and the same decoder: whether a bias is the layering network's
+    single_path = a.heldout.with_name("heldout_single.npz")
+    single_data = load(single_path) if single_path.exists() else None
+    if single_data is not None and not np.allclose(single_data["angles"], data["angles"]):
+        single_data = None
     sizes = [s for s in SIZES if (MODEL_DIR / f"layering_{s}.onnx").exists()]
     lines = ["# Layering network and sampling network: measurements", "",
              f"Made by `{cmd}` (CPU, ONNX Runtime, {a.threads} threads on a 2-core machine whose speed varies by "
@@ -137,6 +143,7 @@ def main(argv=None):
         layering = load_layering(size, threads=a.threads)
         sp = speed(models, layering, a.reps, a.batch)
         res = runtime_errors(models, layering, data)
+        single = runtime_errors(models, layering, single_data)[0] if single_data is not None else None
         lobe_figure(res, data, size, a.out / f"layering_lobes_{size}.png")
         ratios = sampling_ratios(models, layering, data["stacks"], a.samples)
         results[size] = {"speed": sp, "errors": res, "ratios": ratios}
@@ -154,6 +161,10 @@ def main(argv=None):
                   "of the directional albedo (RGB mean; > 0: the network reflects too much).", "",
                   "| coatings | " + " | ".join(f"{t:g} deg" for t in data["angles"]) + " |",
                   "|---|" + "---|" * len(data["angles"])]
+        if single is not None:
+            lines.append(f"| 0 (single layers, encoder + decoder; {len(single['index'])} stacks of "
+                         f"`heldout_single.npz`) | "
+                         + " | ".join(f"{b:+.3f}" for b in np.median(single["albedo_bias"], axis=0)) + " |")
         for c, r in res.items():
             lines.append(f"| {c} | " + " | ".join(f"{b:+.3f}" for b in np.median(r["albedo_bias"], axis=0)) + " |")
         lines += ["", f"![lobes](layering_lobes_{size}.png)", "", "### Encoding speed (stacks per second)", "",
