@@ -126,10 +126,13 @@ def main(argv=None):
     a = ap.parse_args(argv)
     cmd = "python benchmarks/bench_layering.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
     data = load(a.heldout)
+    a.out.mkdir(parents=True, exist_ok=True)
     # single layers through the encoder and the same decoder: whether a bias is the layering network's
     single_path = a.heldout.with_name("heldout_single.npz")
     single_data = load(single_path) if single_path.exists() else None
     if single_data is not None and not np.allclose(single_data["angles"], data["angles"]):
+        print(f"{single_path} is measured at other elevations than {a.heldout}: no single-layer baseline row",
+              file=sys.stderr)
         single_data = None
     sizes = [s for s in SIZES if (MODEL_DIR / f"layering_{s}.onnx").exists()]
     lines = ["# Layering network and sampling network: measurements", "",
@@ -161,12 +164,10 @@ def main(argv=None):
                   "of the directional albedo (RGB mean; > 0: the network reflects too much).", "",
                   "| coatings | " + " | ".join(f"{t:g} deg" for t in data["angles"]) + " |",
                   "|---|" + "---|" * len(data["angles"])]
-        if single is not None:
-            lines.append(f"| 0 (single layers, encoder + decoder; {len(single['index'])} stacks of "
-                         f"`heldout_single.npz`) | "
-                         + " | ".join(f"{b:+.3f}" for b in np.median(single["albedo_bias"], axis=0)) + " |")
-        for c, r in res.items():
-            lines.append(f"| {c} | " + " | ".join(f"{b:+.3f}" for b in np.median(r["albedo_bias"], axis=0)) + " |")
+        rows = ([(f"0 (single layers, encoder + decoder; {len(single['index'])} stacks of `heldout_single.npz`)",
+                  single)] if single is not None else []) + list(res.items())
+        for label, r in rows:
+            lines.append(f"| {label} | " + " | ".join(f"{b:+.3f}" for b in np.median(r["albedo_bias"], axis=0)) + " |")
         lines += ["", f"![lobes](layering_lobes_{size}.png)", "", "### Encoding speed (stacks per second)", "",
                   "| coatings | one stack per call | batched (one call) | batch size |", "|---|---|---|---|"]
         for c, s in sp.items():
