@@ -152,25 +152,35 @@ class StackSet:
         self.groups = p  # outgoing directions per stack, each with m incident ones
 
     def decoded_batch(self, net, dec, z_target: torch.Tensor | None, b: int, g: int, gen: torch.Generator,
-                      kind: str = "squared") -> torch.Tensor:
+                      kind: str = "squared", reciprocal: bool = False) -> torch.Tensor:
         """Function-space loss of ``b`` random stacks at ``g`` of their outgoing directions each: the
         relative squared error of the cosine-weighted lobe (``decoded_lobe_loss``) between the decoder's
         values for L's latent and the decoder's values for the stack's target latent ``z_target``
         (n, 3, 32), or the stack's Monte Carlo values when ``z_target`` is None (a squared error: its
-        minimiser is their mean)."""
+        minimiser is their mean).
+
+        A group's fixed direction is the decoder's ``wo``; the lobe images of the metric, and half the
+        renderer's calls, hold the incident direction fixed instead. The decoder's inputs are not
+        symmetric in its two directions, so a latent fitted in one order is not fitted in the other:
+        with ``reciprocal`` a random half of the groups is decoded with the two directions swapped,
+        against the same values (the reference BRDF is reciprocal), so both orders are trained."""
         n, pm = self.wi.shape[:2]
         m = pm // self.groups
         s = torch.randint(0, self.n, (b,), generator=gen)
         grp = torch.randint(0, self.groups, (b, g), generator=gen)
         idx = (grp.unsqueeze(-1) * m + torch.arange(m)).reshape(b, g * m)  # every incident direction of a group
         wi, wo, w = self.wi[s[:, None], idx], self.wo[s[:, None], idx], self.weight[s[:, None], idx]
+        d_in, d_out = wi, wo  # the decoder's incident and outgoing directions
+        if reciprocal:
+            swap = (torch.rand((b, g), generator=gen) < 0.5).repeat_interleave(m, dim=1).unsqueeze(-1)
+            d_in, d_out = torch.where(swap, wo, wi), torch.where(swap, wi, wo)
         z = compose(net, self.z_base[s], self.z_tops[s], self.albedo[s], self.thickness[s])
-        pred = decode_pairs(dec, z, wi, wo)
+        pred = decode_pairs(dec, z, d_in, d_out)
         if z_target is None:
             target = self.f[s[:, None], idx]
         else:
             with torch.no_grad():
-                target = decode_pairs(dec, z_target[s], wi, wo)
+                target = decode_pairs(dec, z_target[s], d_in, d_out)
         sh = (b, g, m)
         return decoded_lobe_loss(pred.reshape(*sh, 3), target.reshape(*sh, 3), wi[..., 2].reshape(sh), w.reshape(sh),
                                  kind)
@@ -407,7 +417,8 @@ def regress_decoded(net: LayeringNet, dec, sets: dict, targets: dict, args, gen,
     for step in range(rec.get("step", 0), args.decoded_steps):
         for g in opt.param_groups:
             g["lr"] = cosine_lr(step, args.decoded_steps, args.decoded_lr, warmup=20)
-        loss = sum(data.decoded_batch(net, dec, targets[c], args.batch // len(sets), 2, gen, args.decoded_loss)
+        loss = sum(data.decoded_batch(net, dec, targets[c], args.batch // len(sets), 2, gen, args.decoded_loss,
+                                      args.decoded_reciprocal)
                    for c, data in sets.items()) / len(sets)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -529,11 +540,17 @@ def train(args, log=print) -> dict:
                                      "lr": args.decoded_lr, "step": 0}
             if args.decoded_loss != "squared":
                 rec["loss"] = args.decoded_loss
+            if args.decoded_reciprocal:
+                rec["reciprocal"] = True
             if args.decoded_target == "latents":
                 rec["shrink"] = args.decoded_shrink
             else:
                 rec["data"] = [dsets[c].command for c in dsets]
         else:
+            if rec.get("reciprocal", False) != args.decoded_reciprocal:
+                raise ValueError(f"{ckpt} holds a function-space stage "
+                                 f"{'with' if rec.get('reciprocal') else 'without'} --decoded-reciprocal: resume it "
+                                 "the same way, or train into another --out")
             if rec["steps"] != args.decoded_steps:  # its learning-rate schedule is that of its own length
                 raise ValueError(f"{ckpt} holds a function-space stage of {rec['steps']} steps: resume it with "
                                  f"--decoded-steps {rec['steps']}, or train into another --out")
@@ -652,8 +669,9 @@ def training_loss(s: dict) -> str:
         parts.append("MSE against the latents of --projected")
     if decoded:
         parts.append(("the relative RMSE" if decoded.get("loss") == "rmse" else "the relative squared error")
-                     + " of the cosine-weighted lobes decoded from L's latents "
-                     "(onnx_export.layering.decoded_lobe_loss) against "
+                     + " of the cosine-weighted lobes decoded from L's latents"
+                     + (" in both orders of the decoder's directions" if decoded.get("reciprocal") else "")
+                     + " (onnx_export.layering.decoded_lobe_loss) against "
                      + ("the Monte Carlo values of the data in decoded.data" if decoded.get("target") == "data"
                         else "the lobes decoded from the target latents (no step against the Monte Carlo values)"))
     if s["step"]:
@@ -763,6 +781,9 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--decoded-lr", type=float, default=2e-4)
     t.add_argument("--decoded-loss", default="squared", choices=("squared", "rmse"),
                    help="per outgoing direction, the squared relative lobe error or its root (decoded_lobe_loss)")
+    t.add_argument("--decoded-reciprocal", action="store_true",
+                   help="decode half the groups with the directions swapped (the fixed one as the decoder's incident "
+                        "direction), so that the latents are fitted in both orders (StackSet.decoded_batch)")
     t.add_argument("--decoded-coatings", type=int, nargs="+", default=None, choices=(1, 2),
                    help="coating counts of the function-space stage (default: those regressed with --projected, "
                         "else 1 and 2)")

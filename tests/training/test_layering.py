@@ -116,3 +116,45 @@ def test_validation_set_is_seeded_drawn_like_training_and_apart_from_the_heldout
     assert np.isfinite(d["lobe"]).all() and d["lobe"].max() > 0
     with pytest.raises(SystemExit):
         hl.main(["--validation", "2", "--only-coatings", "1", "--out", str(out)])
+
+
+def _toy_stack_set(s=6, groups=4, m=8, seed=0):
+    """A StackSet without files: random latents, media and directions; values f = cos(theta_i) of the
+    data's incident direction in every channel (not reciprocal, so that the order shows)."""
+    g = torch.Generator().manual_seed(seed)
+    ss = lay.StackSet.__new__(lay.StackSet)
+    ss.n, ss.groups, ss.use_weight = s, groups, True
+    ss.z_base, ss.z_tops = torch.randn(s, 3, 32, generator=g), torch.randn(s, 1, 3, 32, generator=g)
+    ss.albedo, ss.thickness = torch.rand(s, 1, 3, generator=g), torch.rand(s, 1, generator=g)
+
+    def unit(shape):
+        v = torch.randn(*shape, 3, generator=g)
+        v[..., 2] = v[..., 2].abs() + 0.1
+        return v / v.norm(dim=-1, keepdim=True)
+
+    ss.wi = unit((s, groups * m))
+    ss.wo = unit((s, groups)).repeat_interleave(m, dim=1)
+    ss.f = ss.wi[..., 2:3].expand(s, groups * m, 3).contiguous()
+    ss.weight = torch.rand(s, groups * m, generator=g) + 0.5
+    return ss
+
+
+def test_reciprocal_function_space_loss_swaps_the_decoders_directions_and_nothing_else():
+    torch.manual_seed(0)
+    net = lay.LayeringNet(16, 2)
+    ss = _toy_stack_set()
+
+    def loss(dec, reciprocal, seed=3):
+        return ss.decoded_batch(net, dec, None, 16, 2, torch.Generator().manual_seed(seed), "squared", reciprocal).item()
+
+    def incident_cos(z, wi, wo):  # reproduces the values in the data's order only
+        return wi[:, 2]
+
+    def symmetric(z, wi, wo):  # the same in both orders
+        return 0.5 * (wi[:, 2] + wo[:, 2]) + z[:, 0].abs()
+
+    assert loss(incident_cos, False) == 0.0
+    swapped = [loss(incident_cos, True, seed) for seed in range(8)]
+    assert all(v > 0.0 for v in swapped)  # some group of 32 was swapped in every batch
+    # targets, weights and cosines stay with their pairs: a reciprocal decoder does not see the swap
+    assert loss(symmetric, True) == pytest.approx(loss(symmetric, False), rel=1e-6)
