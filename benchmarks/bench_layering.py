@@ -12,7 +12,8 @@ neural lobe images of held-out stacks) and, with ``--update-cards``, the measure
   optimisation) against the reference lobes of ``tests/data/heldout_layered.npz``: relative RMSE of the
   lobe images at 0/30/60/75 degrees (median, 90th percentile), the absolute directional-albedo error,
   and its sign per incident elevation (the albedo bias: median relative error, > 0 too bright), with
-  the single-layer held-out materials through the encoder and decoder alone as the baseline row.
+  the single-layer held-out materials through the encoder and decoder alone as the baseline row, and
+  the reciprocity of the decoded lobes (the lobe with the decoder's two directions swapped against it).
 - Sampling efficiency: variance of the one-sample estimate of the radiance reflected from an analytic
   environment (``addon.core.neural.sampling.sky_radiance``) at equal sample count, for cosine sampling
   and for the top interface's GGX lobe, divided by the proxy's (sigma, w from the sampling network).
@@ -168,6 +169,13 @@ def main(argv=None):
                   single)] if single is not None else []) + list(res.items())
         for label, r in rows:
             lines.append(f"| {label} | " + " | ".join(f"{b:+.3f}" for b in np.median(r["albedo_bias"], axis=0)) + " |")
+        lines += ["", "Reciprocity: relative RMSE of the lobe decoded with the two directions swapped, f(wo, wi) "
+                  "cos(theta_o), against the lobe as measured, median / p90 over stacks and elevations (the "
+                  "reference is reciprocal; the decoder is not by construction).", "",
+                  "| coatings | " + " | ".join(label.split(" (")[0] for label, _ in rows) + " |",
+                  "|---|" + "---|" * len(rows), "| reciprocity | " + " | ".join(
+                      f"{np.median(r['reciprocity']):.3f} / {np.percentile(r['reciprocity'], 90):.3f}" for _, r in rows)
+                  + " |"]
         lines += ["", f"![lobes](layering_lobes_{size}.png)", "", "### Encoding speed (stacks per second)", "",
                   "| coatings | one stack per call | batched (one call) | batch size |", "|---|---|---|---|"]
         for c, s in sp.items():
@@ -193,6 +201,7 @@ def main(argv=None):
             card["heldout_runtime"] = {f"coatings_{c}": {"lobe_error_median": float(np.median(r["errors"])),
                                                         "lobe_error_p90": float(np.percentile(r["errors"], 90)),
                                                         "albedo_abs_error_mean": float(r["albedo_error"].mean()),
+                                                        "reciprocity_median": float(np.median(r["reciprocity"])),
                                                         "albedo_bias_median_by_angle": {
                                                             f"{t:g}": float(b) for t, b in
                                                             zip(data["angles"], np.median(r["albedo_bias"], axis=0))}}

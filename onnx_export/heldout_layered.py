@@ -167,7 +167,9 @@ def runtime_errors(models, layering, data: dict, res: int | None = None) -> dict
     |albedo - reference albedo|, "albedo_bias": (configs, angles) (albedo - reference) / reference of the
     RGB mean (signed: > 0 the network reflects too much), "lobes": (configs, angles, R, R, 3), "index":
     config indices, "reference_noise": (configs, angles) the reference's own relative standard error
-    ||stderr|| / ||ref||}}.
+    ||stderr|| / ||ref||, "reciprocity": (configs, angles) the relative RMSE of the lobe decoded with the
+    two directions swapped, f(wo, wi) cos(theta_o), against the lobe as measured (the reference BRDF is
+    reciprocal; the decoder is not by construction)}}.
     """
     from addon.core.neural.layering import encode_latents
 
@@ -181,6 +183,8 @@ def runtime_errors(models, layering, data: dict, res: int | None = None) -> dict
         z = encode_latents(StackArrays.from_stacks([stacks[i] for i in idx]), models, layering)
         lobes = np.array([[lobe.lobe_image(lambda wi, wo, k=k: models.eval_brdf(z[k], wi, wo), t, res)
                            for t in angles] for k in range(len(idx))])
+        swapped = np.array([[lobe.lobe_image(lambda wi, wo, k=k: models.eval_brdf(z[k], wo, wi), t, res)
+                             for t in angles] for k in range(len(idx))])
         ref = data["lobe"][idx]
         err = np.array([[lobe.relative_rmse(lobes[k, a], ref[k, a]) for a in range(len(angles))]
                         for k in range(len(idx))])
@@ -190,6 +194,8 @@ def runtime_errors(models, layering, data: dict, res: int | None = None) -> dict
         bias = (alb_net.mean(-1) - alb_ref.mean(-1)) / np.maximum(alb_ref.mean(-1), 1e-12)
         noise = np.array([[lobe.relative_rmse(ref[k, a] + data["lobe_stderr"][i, a], ref[k, a])
                            for a in range(len(angles))] for k, i in enumerate(idx)])
+        recip = np.array([[lobe.relative_rmse(swapped[k, a], lobes[k, a]) for a in range(len(angles))]
+                          for k in range(len(idx))])
         out[c] = {"errors": err, "albedo_error": alb, "albedo_bias": bias, "lobes": lobes, "index": idx,
-                  "reference_noise": noise}
+                  "reference_noise": noise, "reciprocity": recip}
     return out

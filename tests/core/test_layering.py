@@ -173,6 +173,8 @@ def test_heldout_error_is_not_worse_than_the_model_card(pair):
         if "albedo_bias_median_by_angle" in ref:
             want = np.array(list(ref["albedo_bias_median_by_angle"].values()))
             np.testing.assert_allclose(bias, want, atol=0.01, err_msg=f"coatings {c}")
+        if "reciprocity_median" in ref:  # the decoded lobes' departure from reciprocity, as recorded
+            assert abs(np.median(r["reciprocity"]) - ref["reciprocity_median"]) <= 0.005, (c, ref)
         k, a = np.unravel_index(np.argmax(np.abs(r["albedo_bias"])), r["albedo_bias"].shape)
         net = lobe.albedo_from_lobe(r["lobes"][k, a]).mean()
         ref_alb = lobe.albedo_from_lobe(np.load(HELDOUT)["lobe"][r["index"][k], a]).mean()
