@@ -172,7 +172,7 @@ def main(argv=None):
         lines += ["", "Reciprocity: relative RMSE of the lobe decoded with the two directions swapped, f(wo, wi) "
                   "cos(theta_o), against the lobe as measured, median / p90 over stacks and elevations (the "
                   "reference is reciprocal; the decoder is not by construction).", "",
-                  "| coatings | " + " | ".join(label.split(" (")[0] for label, _ in rows) + " |",
+                  "| coatings | " + " | ".join(str(label).split(" (")[0] for label, _ in rows) + " |",
                   "|---|" + "---|" * len(rows), "| reciprocity | " + " | ".join(
                       f"{np.median(r['reciprocity']):.3f} / {np.percentile(r['reciprocity'], 90):.3f}" for _, r in rows)
                   + " |"]
