@@ -175,6 +175,9 @@ def test_heldout_error_is_not_worse_than_the_model_card(pair):
             np.testing.assert_allclose(bias, want, atol=0.01, err_msg=f"coatings {c}")
         if "reciprocity_median" in ref:  # the decoded lobes' departure from reciprocity, as recorded
             assert abs(np.median(r["reciprocity"]) - ref["reciprocity_median"]) <= 0.005, (c, ref)
+        # the reference is reciprocal: swapping the decoder's directions moves the lobes (2-4.4% median over
+        # the shipped sizes) less than the lobe error itself
+        assert np.median(r["reciprocity"]) <= min(0.06, med), (c, np.median(r["reciprocity"]), med)
         k, a = np.unravel_index(np.argmax(np.abs(r["albedo_bias"])), r["albedo_bias"].shape)
         net = lobe.albedo_from_lobe(r["lobes"][k, a]).mean()
         ref_alb = lobe.albedo_from_lobe(np.load(HELDOUT)["lobe"][r["index"][k], a]).mean()
