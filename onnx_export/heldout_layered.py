@@ -169,7 +169,8 @@ def runtime_errors(models, layering, data: dict, res: int | None = None) -> dict
     config indices, "reference_noise": (configs, angles) the reference's own relative standard error
     ||stderr|| / ||ref||, "reciprocity": (configs, angles) the relative RMSE of the lobe decoded with the
     two directions swapped, f(wo, wi) cos(theta_o), against the lobe as measured (the reference BRDF is
-    reciprocal; the decoder is not by construction)}}.
+    reciprocal; the decoder is not by construction), "errors_swapped": (configs, angles) the relative RMSE
+    of that swapped lobe against the reference}}.
     """
     from addon.core.neural.layering import encode_latents
 
@@ -196,6 +197,8 @@ def runtime_errors(models, layering, data: dict, res: int | None = None) -> dict
                            for a in range(len(angles))] for k, i in enumerate(idx)])
         recip = np.array([[lobe.relative_rmse(swapped[k, a], lobes[k, a]) for a in range(len(angles))]
                           for k in range(len(idx))])
+        err_sw = np.array([[lobe.relative_rmse(swapped[k, a], ref[k, a]) for a in range(len(angles))]
+                           for k in range(len(idx))])
         out[c] = {"errors": err, "albedo_error": alb, "albedo_bias": bias, "lobes": lobes, "index": idx,
-                  "reference_noise": noise, "reciprocity": recip}
+                  "reference_noise": noise, "reciprocity": recip, "errors_swapped": err_sw}
     return out
