@@ -20,6 +20,14 @@ uses ``HELDOUT_SEED`` and hand-picked configurations, so no stack here is a trai
 makes a validation set instead: random stacks of the training distribution (64 with one coating, 32
 with two) seeded with ``VALIDATION_SEED``, for choosing between training recipes without looking at
 the held-out set. It has the same format.
+
+    python -m onnx_export.heldout_layered --training cache/data/layering_c1_w64 32 cache/data/layering_c2_w64 16 \
+        --walks 512 --out cache/data/fit_layered.npz
+
+makes a set of *training* stacks (the first N of each ``onnx_export.layered_data`` directory, in its
+order) with references as the validation set's: a network's error on it against its error on the
+validation set says whether it under-fits (both alike) or over-fits (training much lower). Any of the
+three files goes to ``benchmarks/bench_layering.py --heldout``.
 """
 
 from __future__ import annotations
@@ -84,6 +92,25 @@ def validation_configs(counts: list[int]) -> list[Stack]:
     return out
 
 
+def training_configs(sources: list[tuple[Path, int]]) -> list[Stack]:
+    """The first ``n`` stacks of each training data directory ``(dir, n)`` of ``onnx_export.layered_data``."""
+    from onnx_export.layered_data import chunk_paths
+
+    out = []
+    for d, n in sources:
+        got = []
+        for p in chunk_paths(d):
+            if len(got) >= n:
+                break
+            with np.load(p) as c:
+                a = StackArrays(**{f: c[f"p_{f}"] for f in StackArrays.FIELDS})
+            got += [a.stack(i) for i in range(min(n - len(got), len(a)))]
+        if len(got) < n:
+            raise ValueError(f"{d} holds {len(got)} finished stacks, fewer than the {n} asked for")
+        out += got
+    return out
+
+
 def reference_lobes(stacks: list[Stack], walks: int, res: int, seed: int, log=print):
     """(C, A, res, res, 3) reference lobe images and standard errors, one batched call per coating count."""
     from addon.core import reference
@@ -128,11 +155,22 @@ def main(argv=None):
                          "where the reference is noisiest); the other rows are kept")
     ap.add_argument("--validation", type=int, nargs="+", default=None, metavar="N",
                     help="a validation set: N random stacks with one coating, N2 with two, ... (not the held-out set)")
+    ap.add_argument("--training", nargs="+", default=None, metavar="DIR N",
+                    help="a set of training stacks: the first N stacks of each layered_data directory DIR")
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args(argv)
     if a.validation and (a.only_coatings or min(a.validation) < 0):
         ap.error("--validation takes counts >= 0 and makes a new file (no --only-coatings)")
-    stacks = validation_configs(a.validation) if a.validation else configs()
+    if a.training is not None:
+        pairs = a.training
+        if a.validation or a.only_coatings or len(pairs) % 2 or not all(n.isdigit() and int(n) > 0 for n in pairs[1::2]):
+            ap.error("--training takes pairs DIR N (N > 0) and makes a new file (no --validation, --only-coatings)")
+        try:
+            stacks = training_configs([(Path(d), int(n)) for d, n in zip(pairs[::2], pairs[1::2])])
+        except (FileNotFoundError, ValueError) as e:
+            ap.error(str(e))
+    else:
+        stacks = validation_configs(a.validation) if a.validation else configs()
     cmd = "python -m onnx_export.heldout_layered " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
     lg = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     if a.only_coatings:
@@ -144,7 +182,8 @@ def main(argv=None):
         walks[idx] = a.walks
         command = np.array(str(old["command"]) + " && " + cmd)
     else:
-        img, err = reference_lobes(stacks, a.walks, a.res, VALIDATION_SEED if a.validation else HELDOUT_SEED, log=lg)
+        seed = VALIDATION_SEED if a.validation or a.training else HELDOUT_SEED
+        img, err = reference_lobes(stacks, a.walks, a.res, seed, log=lg)
         walks = np.full(len(stacks), a.walks)
         command = np.array(cmd)
     a.out.parent.mkdir(parents=True, exist_ok=True)

@@ -118,6 +118,32 @@ def test_validation_set_is_seeded_drawn_like_training_and_apart_from_the_heldout
         hl.main(["--validation", "2", "--only-coatings", "1", "--out", str(out)])
 
 
+def test_training_fit_set_holds_the_first_training_stacks_in_order(tmp_path):
+    from onnx_export import heldout_layered as hl
+    from onnx_export import layered_data
+
+    for c in (1, 2):
+        layered_data.generate(tmp_path / f"c{c}", coatings=c, stacks=6, n_wo=2, n_wi=8, walks=2, chunk=4, seed=3,
+                              log=lambda s: None)
+    want = [layered_data.load(tmp_path / "c1")["arrays"].stack(i) for i in range(5)]  # across both chunks
+    want += [layered_data.load(tmp_path / "c2")["arrays"].stack(i) for i in range(2)]
+    out = tmp_path / "fit.npz"
+    hl.main(["--training", str(tmp_path / "c1"), "5", str(tmp_path / "c2"), "2", "--walks", "4", "--res", "8",
+             "--out", str(out)])
+    d = hl.load(out)
+    assert [s.to_json() for s in d["stacks"]] == [s.to_json() for s in want]
+    assert d["n_coatings"].tolist() == [1] * 5 + [2] * 2 and d["lobe"].shape == (7, 4, 8, 8, 3)
+    assert np.isfinite(d["lobe"]).all() and d["lobe"].max() > 0
+    for bad in (["--training", str(tmp_path / "c1"), "7"],  # more stacks than the directory holds
+                ["--training", str(tmp_path / "none"), "1"],
+                ["--training", str(tmp_path / "c1")],
+                ["--training", str(tmp_path / "c1"), "0"],
+                ["--training", str(tmp_path / "c1"), "2", "--validation", "2"]):
+        with pytest.raises(SystemExit):
+            hl.main(bad + ["--out", str(tmp_path / "bad.npz")])
+    assert not (tmp_path / "bad.npz").exists()
+
+
 def _toy_stack_set(s=6, groups=4, m=8, seed=0):
     """A StackSet without files: random latents, media and directions; values f = cos(theta_i) of the
     data's incident direction in every channel (not reciprocal, so that the order shows)."""
