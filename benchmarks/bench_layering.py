@@ -47,6 +47,14 @@ from addon.core.stack import StackArrays  # noqa: E402
 from onnx_export.data import sample_layered_params  # noqa: E402
 from onnx_export.heldout_layered import DIFFUSE_INDEX, SPECULAR_INDEX, load, runtime_errors  # noqa: E402
 
+HELDOUT = ROOT / "tests" / "data" / "heldout_layered.npz"
+
+
+def shown_path(p: Path) -> str:
+    """``p`` relative to the repository where it lies inside it (no machine's paths in the tables)."""
+    p = p.resolve()
+    return str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else p.name
+
 
 def speed(models, layering, reps: int, batch: int) -> dict:
     rng = np.random.default_rng(0)
@@ -121,12 +129,20 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=200, help="stacks encoded one at a time")
     ap.add_argument("--batch", type=int, default=8192, help="stacks encoded in one batched call")
     ap.add_argument("--samples", type=int, default=8192, help="samples per outgoing direction (variance)")
-    ap.add_argument("--heldout", type=Path, default=ROOT / "tests" / "data" / "heldout_layered.npz")
+    ap.add_argument("--heldout", type=Path, default=HELDOUT,
+                    help="the stacks and reference lobes (onnx_export.heldout_layered: held-out, validation or "
+                         "training-fit set)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
     ap.add_argument("--update-cards", action="store_true")
+    ap.add_argument("--errors-only", action="store_true",
+                    help="the error tables only, no speed and no sampling (a validation set, a training-fit set)")
+    ap.add_argument("--sizes", nargs="+", choices=SIZES, default=None, help="decoder sizes (default: all shipped)")
     a = ap.parse_args(argv)
+    if a.errors_only and a.update_cards:
+        ap.error("--update-cards records speed and sampling too: run without --errors-only")
     cmd = "python benchmarks/bench_layering.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
     data = load(a.heldout)
+    set_name = "Held-out" if a.heldout.resolve() == HELDOUT else "Stack"
     a.out.mkdir(parents=True, exist_ok=True)
     # single layers through the encoder and the same decoder: whether a bias is the layering network's
     single_path = a.heldout.with_name("heldout_single.npz")
@@ -135,23 +151,23 @@ def main(argv=None):
         print(f"{single_path} is measured at other elevations than {a.heldout}: no single-layer baseline row",
               file=sys.stderr)
         single_data = None
-    sizes = [s for s in SIZES if (MODEL_DIR / f"layering_{s}.onnx").exists()]
+    sizes = [s for s in (a.sizes or SIZES) if (MODEL_DIR / f"layering_{s}.onnx").exists()]
+    if not sizes:
+        ap.error(f"no layering model of size {', '.join(a.sizes or SIZES)} under {MODEL_DIR.name}/")
     lines = ["# Layering network and sampling network: measurements", "",
              f"Made by `{cmd}` (CPU, ONNX Runtime, {a.threads} threads on a 2-core machine whose speed varies by "
-             "up to 1.5x between runs). Held-out set: `tests/data/heldout_layered.npz` "
-             f"({len(data['stacks'])} stacks: 16 with one coating, 8 with two, 4 with three, 4 with four; made by "
-             f"`{data['command']}`).", ""]
+             f"up to 1.5x between runs). {set_name} set: `{shown_path(a.heldout)}` ({len(data['stacks'])} stacks: "
+             + ", ".join(f"{n} with {c} coating{'s' * (c > 1)}" for c, n in enumerate(np.bincount(data["n_coatings"]))
+                         if n) + f"; made by `{data['command']}`).", ""]
     results = {}
     for size in sizes:
         models = load_models(size, threads=a.threads)
         layering = load_layering(size, threads=a.threads)
-        sp = speed(models, layering, a.reps, a.batch)
         res = runtime_errors(models, layering, data)
         single = runtime_errors(models, layering, single_data)[0] if single_data is not None else None
         lobe_figure(res, data, size, a.out / f"layering_lobes_{size}.png")
-        ratios = sampling_ratios(models, layering, data["stacks"], a.samples)
-        results[size] = {"speed": sp, "errors": res, "ratios": ratios}
-        lines += [f"## Decoder `{size}`", "", "### Held-out error by number of coatings (runtime path, no projection)", "",
+        results[size] = {"errors": res}
+        lines += [f"## Decoder `{size}`", "", f"### {set_name} error by number of coatings (runtime path, no projection)", "",
                   "Layers = base + coatings (a two-layer stack has one coating). Reference noise: the stored "
                   "reference's own relative standard error, which the lobe error includes.", "",
                   "| coatings | layers | stacks | lobe error median | lobe error p90 | reference noise median / p90 | "
@@ -178,7 +194,13 @@ def main(argv=None):
         for key, name in (("reciprocity", "reciprocity"), ("errors_swapped", "lobe error, directions swapped")):
             lines.append(f"| {name} | " + " | ".join(
                 f"{np.median(r[key]):.3f} / {np.percentile(r[key], 90):.3f}" for _, r in rows) + " |")
-        lines += ["", f"![lobes](layering_lobes_{size}.png)", "", "### Encoding speed (stacks per second)", "",
+        lines += ["", f"![lobes](layering_lobes_{size}.png)", ""]
+        if a.errors_only:
+            continue
+        sp = speed(models, layering, a.reps, a.batch)
+        ratios = sampling_ratios(models, layering, data["stacks"], a.samples)
+        results[size] |= {"speed": sp, "ratios": ratios}
+        lines += ["### Encoding speed (stacks per second)", "",
                   "| coatings | one stack per call | batched (one call) | batch size |", "|---|---|---|---|"]
         for c, s in sp.items():
             lines.append(f"| {c} | {s['single_per_s']:.0f} | {s['batched_per_s']:.0f} | {s['batch']} |")

@@ -144,6 +144,26 @@ def test_training_fit_set_holds_the_first_training_stacks_in_order(tmp_path):
     assert not (tmp_path / "bad.npz").exists()
 
 
+def test_bench_layering_errors_only_tables_the_given_set_and_touches_no_card(tmp_path):
+    from benchmarks import bench_layering  # the repository root is on sys.path (conftest)
+
+    size = LAYERING[0]
+    card = (MODEL_DIR / f"layering_{size}.json").read_text()
+    out = tmp_path / "docs"
+    bench_layering.main(["--errors-only", "--sizes", size, "--threads", "1", "--out", str(out)])
+    text = (out / "layering.md").read_text()
+    assert f"## Decoder `{size}`" in text and len([s for s in LAYERING if f"## Decoder `{s}`" in text]) == 1
+    assert "Held-out set: `tests/data/heldout_layered.npz` (32 stacks: 16 with 1 coating" in text
+    assert "| 1 | 2 | 16 |" in text and "| 4 | 5 | 4 |" in text  # coatings, layers, stacks
+    assert "Encoding speed" not in text and "Sampling efficiency" not in text
+    assert (out / f"layering_lobes_{size}.png").stat().st_size > 0
+    assert (MODEL_DIR / f"layering_{size}.json").read_text() == card
+    for bad in (["--errors-only", "--update-cards"], ["--sizes", "huge"]):
+        with pytest.raises(SystemExit):
+            bench_layering.main(bad + ["--out", str(tmp_path / "bad")])
+    assert not (tmp_path / "bad").exists()
+
+
 def _toy_stack_set(s=6, groups=4, m=8, seed=0):
     """A StackSet without files: random latents, media and directions; values f = cos(theta_i) of the
     data's incident direction in every channel (not reciprocal, so that the order shows)."""
