@@ -82,9 +82,9 @@ def configs() -> list[Stack]:
     return out
 
 
-def validation_configs(counts: list[int]) -> list[Stack]:
+def validation_configs(counts: list[int], seed: int = VALIDATION_SEED) -> list[Stack]:
     """``counts[c - 1]`` random stacks with c coatings, drawn as the training stacks are."""
-    rng = np.random.default_rng(VALIDATION_SEED)
+    rng = np.random.default_rng(seed)
     out = []
     for c, n in enumerate(counts, start=1):
         a = sample_layered_params(rng, n, c)
@@ -155,10 +155,17 @@ def main(argv=None):
                          "where the reference is noisiest); the other rows are kept")
     ap.add_argument("--validation", type=int, nargs="+", default=None, metavar="N",
                     help="a validation set: N random stacks with one coating, N2 with two, ... (not the held-out set)")
+    ap.add_argument("--seed", type=int, default=VALIDATION_SEED,
+                    help="with --validation: the seed of the stacks and of the reference walks (another seed, "
+                         "another validation set)")
     ap.add_argument("--training", nargs="+", default=None, metavar="DIR N",
                     help="a set of training stacks: the first N stacks of each layered_data directory DIR")
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args(argv)
+    if a.seed != VALIDATION_SEED and not a.validation:
+        ap.error("--seed draws another validation set: give --validation")
+    if a.seed in (HELDOUT_SEED, HELDOUT_SEED + 1000):
+        ap.error("--seed must differ from the held-out set's")
     if a.validation and (a.only_coatings or min(a.validation) < 0):
         ap.error("--validation takes counts >= 0 and makes a new file (no --only-coatings)")
     if a.training is not None:
@@ -170,7 +177,7 @@ def main(argv=None):
         except (FileNotFoundError, ValueError) as e:
             ap.error(str(e))
     else:
-        stacks = validation_configs(a.validation) if a.validation else configs()
+        stacks = validation_configs(a.validation, a.seed) if a.validation else configs()
     cmd = "python -m onnx_export.heldout_layered " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
     lg = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     if a.only_coatings:
@@ -182,7 +189,7 @@ def main(argv=None):
         walks[idx] = a.walks
         command = np.array(str(old["command"]) + " && " + cmd)
     else:
-        seed = VALIDATION_SEED if a.validation or a.training else HELDOUT_SEED
+        seed = a.seed if a.validation or a.training else HELDOUT_SEED
         img, err = reference_lobes(stacks, a.walks, a.res, seed, log=lg)
         walks = np.full(len(stacks), a.walks)
         command = np.array(cmd)

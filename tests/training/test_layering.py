@@ -116,6 +116,15 @@ def test_validation_set_is_seeded_drawn_like_training_and_apart_from_the_heldout
     assert np.isfinite(d["lobe"]).all() and d["lobe"].max() > 0
     with pytest.raises(SystemExit):
         hl.main(["--validation", "2", "--only-coatings", "1", "--out", str(out)])
+    # another seed, another validation set (stacks and walks), apart from both
+    other = hl.validation_configs([3, 2], seed=626_262)
+    assert not {s.to_json() for s in other} & {s.to_json() for s in a + hl.configs()}
+    hl.main(["--validation", "2", "1", "--seed", "626262", "--walks", "4", "--res", "8", "--out", str(tmp_path / "v2.npz")])
+    assert [s.to_json() for s in hl.load(tmp_path / "v2.npz")["stacks"]] == [
+        s.to_json() for s in hl.validation_configs([2, 1], seed=626_262)]
+    for bad in (["--seed", "626262"], ["--validation", "2", "--seed", str(hl.HELDOUT_SEED)]):
+        with pytest.raises(SystemExit):
+            hl.main(bad + ["--out", str(tmp_path / "bad.npz")])
 
 
 def test_training_fit_set_holds_the_first_training_stacks_in_order(tmp_path):
