@@ -6,6 +6,11 @@ writes ``docs/layering.md`` (tables, with this command), ``docs/layering_lobes_<
 neural lobe images of held-out stacks) and, with ``--update-cards``, the measured speed and errors into
 ``addon/models/layering_<size>.json``. Every shipped decoder size that has a layering model is measured.
 
+    python benchmarks/bench_layering.py --errors-only --sizes paper --heldout cache/data/validation_layered.npz --out /tmp/v
+
+measures the error tables alone on another set of ``onnx_export.heldout_layered`` (a validation set, a
+set of training stacks), for choosing between training rounds without looking at the held-out set.
+
 - Speed: stacks encoded per second by ``encode_layered_stack`` (one stack per call) and by
   ``encode_stack_arrays`` (N distinct stacks in one call), for 1 to 3 coatings, ONNX Runtime on CPU.
 - Error: the runtime path (encoders + layering network + decoder, no projection, no per-material
