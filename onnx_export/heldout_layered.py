@@ -19,7 +19,8 @@ uses ``HELDOUT_SEED`` and hand-picked configurations, so no stack here is a trai
 
 makes a validation set instead: random stacks of the training distribution (64 with one coating, 32
 with two) seeded with ``VALIDATION_SEED``, for choosing between training recipes without looking at
-the held-out set. It has the same format.
+the held-out set. It has the same format. ``--seed`` draws another one (stacks and reference walks),
+for two rounds the first cannot tell apart (docs/layering_training.md, round 8).
 
     python -m onnx_export.heldout_layered --training cache/data/layering_c1_w64 32 cache/data/layering_c2_w64 16 \
         --walks 512 --out cache/data/fit_layered.npz
