@@ -234,18 +234,13 @@ def runtime_errors(models, layering, data: dict, res: int | None = None) -> dict
         swapped = np.array([[lobe.lobe_image(lambda wi, wo, k=k: models.eval_brdf(z[k], wo, wi), t, res)
                              for t in angles] for k in range(len(idx))])
         ref = data["lobe"][idx]
-        err = np.array([[lobe.relative_rmse(lobes[k, a], ref[k, a]) for a in range(len(angles))]
-                        for k in range(len(idx))])
-        alb_net = np.array([[lobe.albedo_from_lobe(lobes[k, a]) for a in range(len(angles))] for k in range(len(idx))])
-        alb_ref = np.array([[lobe.albedo_from_lobe(ref[k, a]) for a in range(len(angles))] for k in range(len(idx))])
+        err = lobe.relative_rmse(lobes, ref, image_axes=3)  # (stacks, angles)
+        alb_net, alb_ref = lobe.albedo_from_lobe(lobes), lobe.albedo_from_lobe(ref)
         alb = np.abs(alb_net - alb_ref)
         bias = (alb_net.mean(-1) - alb_ref.mean(-1)) / np.maximum(alb_ref.mean(-1), 1e-12)
-        noise = np.array([[lobe.relative_rmse(ref[k, a] + data["lobe_stderr"][i, a], ref[k, a])
-                           for a in range(len(angles))] for k, i in enumerate(idx)])
-        recip = np.array([[lobe.relative_rmse(swapped[k, a], lobes[k, a]) for a in range(len(angles))]
-                          for k in range(len(idx))])
-        err_sw = np.array([[lobe.relative_rmse(swapped[k, a], ref[k, a]) for a in range(len(angles))]
-                           for k in range(len(idx))])
+        noise = lobe.relative_rmse(ref + data["lobe_stderr"][idx], ref, image_axes=3)
+        recip = lobe.relative_rmse(swapped, lobes, image_axes=3)
+        err_sw = lobe.relative_rmse(swapped, ref, image_axes=3)
         out[c] = {"errors": err, "albedo_error": alb, "albedo_bias": bias, "lobes": lobes, "index": idx,
                   "reference_noise": noise, "reciprocity": recip, "errors_swapped": err_sw}
     return out

@@ -56,24 +56,29 @@ def lobe_image(brdf: BrdfFn, theta_i_deg: float, res: int = 64) -> np.ndarray:
 
 
 def albedo_from_lobe(lobe: np.ndarray) -> np.ndarray:
-    """Directional albedo (3,) from a lobe image: sum of f over the disk times the pixel area."""
-    res = lobe.shape[0]
+    """Directional albedo (..., 3) from lobe images (..., R, R, 3): sum of f over the disk times the pixel area."""
+    res = lobe.shape[-2]
     wo, mask = lobe_grid(res)
-    f = lobe.reshape(-1, 3)[mask] / wo[mask, 2:3]
-    return f.sum(axis=0) * (2.0 / res) ** 2
+    f = lobe.reshape(*lobe.shape[:-3], res * res, 3)[..., mask, :] / wo[mask, 2:3]
+    return f.sum(axis=-2) * (2.0 / res) ** 2
 
 
-def relative_rmse(estimate: np.ndarray, reference: np.ndarray) -> float:
-    """||estimate - reference|| / ||reference|| over all pixels and channels (0 if both vanish)."""
+def relative_rmse(estimate: np.ndarray, reference: np.ndarray, image_axes: int | None = None):
+    """||estimate - reference|| / ||reference|| over all pixels and channels (0 if both vanish).
+
+    With ``image_axes=k`` the last k axes are one image and the result is an array over the leading
+    axes (e.g. k = 3 for (stacks, angles, R, R, 3) lobe images); without it, one float over everything.
+    """
     e = np.asarray(estimate, dtype=np.float64)
     r = np.asarray(reference, dtype=np.float64)
     if e.shape != r.shape:
         raise ValueError(f"shapes differ: estimate {e.shape} vs reference {r.shape}")
-    num = np.sqrt(np.mean((e - r) ** 2))
-    den = np.sqrt(np.mean(r**2))
-    if den == 0.0:
-        return 0.0 if num == 0.0 else float("inf")
-    return float(num / den)
+    axes = None if image_axes is None else tuple(range(e.ndim - image_axes, e.ndim))
+    num = np.sqrt(np.mean((e - r) ** 2, axis=axes))
+    den = np.sqrt(np.mean(r**2, axis=axes))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.where(den > 0.0, num / np.where(den > 0.0, den, 1.0), np.where(num == 0.0, 0.0, np.inf))
+    return float(out) if image_axes is None else out
 
 
 def to_display(img: np.ndarray, exposure: float = 1.0) -> np.ndarray:

@@ -33,3 +33,16 @@ def test_relative_rmse():
     assert lobe.relative_rmse(ref * 0, ref * 0) == 0.0
     with pytest.raises(ValueError, match="shapes differ"):
         lobe.relative_rmse(ref, ref[:2])
+
+
+def test_relative_rmse_and_albedo_per_image_match_one_image_at_a_time():
+    rng = np.random.default_rng(0)
+    est, ref = rng.random((3, 4, 8, 8, 3)), rng.random((3, 4, 8, 8, 3))
+    ref[0, 0] = 0.0  # a black reference: inf, as for one image
+    est[1, 1] = ref[1, 1] = 0.0  # both black: 0
+    per = lobe.relative_rmse(est, ref, image_axes=3)
+    one = np.array([[lobe.relative_rmse(est[i, j], ref[i, j]) for j in range(4)] for i in range(3)])
+    assert per.shape == (3, 4) and np.array_equal(per, one)
+    assert np.isinf(per[0, 0]) and per[1, 1] == 0.0
+    alb = np.array([[lobe.albedo_from_lobe(est[i, j]) for j in range(4)] for i in range(3)])
+    np.testing.assert_allclose(lobe.albedo_from_lobe(est), alb, rtol=1e-12)
