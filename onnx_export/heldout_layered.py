@@ -158,13 +158,13 @@ def main(argv=None):
                     help="a validation set: N random stacks with one coating, N2 with two, ... (not the held-out set)")
     ap.add_argument("--seed", type=int, default=VALIDATION_SEED,
                     help="with --validation: the seed of the stacks and of the reference walks (another seed, "
-                         "another validation set)")
+                         "another validation set); with --training: of the reference walks")
     ap.add_argument("--training", nargs="+", default=None, metavar="DIR N",
                     help="a set of training stacks: the first N stacks of each layered_data directory DIR")
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args(argv)
-    if a.seed != VALIDATION_SEED and not a.validation:
-        ap.error("--seed draws another validation set: give --validation")
+    if a.seed != VALIDATION_SEED and not (a.validation or a.training):
+        ap.error("--seed draws another validation set (or the walks of a --training set): give --validation")
     if a.seed in (HELDOUT_SEED, HELDOUT_SEED + 1000):
         ap.error("--seed must differ from the held-out set's")
     if a.validation and (a.only_coatings or min(a.validation) < 0):
