@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from addon.core.stack import alpha_from_artist_roughness, k_from_f0
-from addon.core.textures.spatial import SpatialStack
+from ..core.stack import alpha_from_artist_roughness, k_from_f0
+from ..core.textures.spatial import SpatialStack
 
 from . import images, stack_io
 

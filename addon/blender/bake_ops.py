@@ -14,7 +14,7 @@ import time
 import bpy
 from bpy.props import EnumProperty, IntProperty
 
-from addon.core.textures.bake import bake_key, bake_stack, neural_encoder
+from ..core.textures.bake import bake_key, bake_stack, neural_encoder
 
 from . import bake_inputs, stack_io
 from .operators import UserError, _guarded, _LongOperator, _MaterialOperator
@@ -51,7 +51,7 @@ def baked_texture_state(mat) -> tuple[str | None, str]:
 
 def camera_resolution(context, mat, spatial) -> tuple[int, int]:
     """(height, width) no finer than the material's smallest footprint through the scene camera."""
-    from addon.core import quality
+    from ..core import quality
 
     from . import scene_export
 

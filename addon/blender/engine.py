@@ -11,8 +11,8 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from addon.blender import render_operators, render_properties, render_ui, scene_export
-from addon.core.render import Cancelled, render
+from . import render_operators, render_properties, render_ui, scene_export
+from ..core.render import Cancelled, render
 
 ENGINE_ID = "NEURAL_LAYERED"
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import threading
 from typing import Any, Callable
 
-from addon.core.preview import Cancelled
+from ..core.preview import Cancelled
 
 
 class Job:

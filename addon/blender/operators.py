@@ -19,10 +19,10 @@ import traceback
 import bpy
 from bpy.props import EnumProperty, StringProperty
 
-from addon.blender import images, jobs, stack_io
-from addon.blender.properties import BASE_LAYER_TYPES, LAYER_TYPES
-from addon.core import preview
-from addon.core.stack import PRESETS, Coating, Conductor, Dielectric, Diffuse
+from . import images, jobs, stack_io
+from .properties import BASE_LAYER_TYPES, LAYER_TYPES
+from ..core import preview
+from ..core.stack import PRESETS, Coating, Conductor, Dielectric, Diffuse
 
 
 class UserError(Exception):

@@ -27,7 +27,7 @@ from bpy.props import (
     StringProperty,
 )
 
-from addon.core.stack import TRAINED_RANGES, VALID_RANGES
+from ..core.stack import TRAINED_RANGES, VALID_RANGES
 
 LAYER_TYPES = [
     ("DIFFUSE", "Diffuse", "Base: Lambertian surface with an RGB albedo", "SHADING_SOLID", 0),
@@ -44,7 +44,7 @@ _ROUGH_SOFT = (math.sqrt(_ALPHA_LO), math.sqrt(_ALPHA_HI))
 def _on_layer_changed(layer, context) -> None:
     material = layer.id_data
     if isinstance(material, bpy.types.Material):
-        from addon.blender import stack_io
+        from . import stack_io
 
         stack_io.on_stack_changed(material)
 

@@ -13,8 +13,8 @@ import bpy
 import mathutils
 import numpy as np
 
-from addon.core.render import AreaLight, LambertMaterial, LayeredSpec
-from addon.core.render.principled import principled_inputs
+from ..core.render import AreaLight, LambertMaterial, LayeredSpec
+from ..core.render.principled import principled_inputs
 
 
 def image_from_array(name: str, rgb: np.ndarray):
@@ -45,7 +45,7 @@ def _material(name: str, spec):
         for key, value in principled_inputs(spec.stack).items():
             p.inputs[key].default_value = value
         if hasattr(mat, "neural_layers"):
-            from addon.blender import stack_io
+            from . import stack_io
 
             stack_io.stack_to_material(spec.stack, mat)
     return mat

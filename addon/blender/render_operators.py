@@ -14,8 +14,8 @@ from pathlib import Path
 import bpy
 from bpy.props import BoolProperty, IntProperty, StringProperty
 
-from addon.blender import images, jobs, scene_export
-from addon.core.render import Cancelled, render, write_exr, write_png
+from . import images, jobs, scene_export
+from ..core.render import Cancelled, render, write_exr, write_png
 
 IMAGE_NAME = "Neural Layered Render"
 

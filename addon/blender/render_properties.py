@@ -5,7 +5,7 @@ from __future__ import annotations
 import bpy
 from bpy.props import EnumProperty, FloatProperty, IntProperty, PointerProperty
 
-from addon.core.render import RenderSettings
+from ..core.render import RenderSettings
 
 
 class NLM_RenderSettings(bpy.types.PropertyGroup):
@@ -60,7 +60,7 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
         """Put the layered materials of an exported scene on their decoders (neural mode); returns warnings."""
         if self.mode != "neural":
             return []
-        from addon.core import quality
+        from ..core import quality
 
         size = "auto" if self.decoder_quality == "AUTO" else self.decoder_quality.lower()
         core_scene.materials, _, notes = quality.assign_decoders(core_scene, size, self.tolerance)

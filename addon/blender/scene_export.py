@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from addon.core.render import (
+from ..core.render import (
     AreaLight,
     Camera,
     Environment,
@@ -31,7 +31,7 @@ from addon.core.render import (
     SpotLight,
     SunLight,
 )
-from addon.core.render.film import from_srgb
+from ..core.render.film import from_srgb
 
 from . import images
 
@@ -107,7 +107,7 @@ def _baked_texture(mat, warnings: list[str]):
     """The material's baked latent texture if it is current, else None (with a warning if it is stale)."""
     if not mat.neural_layers.texture_path:
         return None
-    from addon.core.textures import LatentTexture
+    from ..core.textures import LatentTexture
 
     from . import bake_ops
 
@@ -126,7 +126,7 @@ def export_material(mat, warnings: list[str]):
     """LayeredSpec for a material with a layer stack, else an unmanaged Lambertian."""
     stack = None
     try:
-        from addon.blender import stack_io
+        from . import stack_io
 
         stack = stack_io.stack_from_material(mat)
     except ImportError:

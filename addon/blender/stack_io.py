@@ -12,8 +12,8 @@ from typing import Optional
 
 import numpy as np
 
-from addon.core import preview
-from addon.core.stack import (
+from ..core import preview
+from ..core.stack import (
     Coating,
     Conductor,
     Dielectric,

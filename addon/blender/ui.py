@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import bpy
 
-from addon.blender import stack_io
-from addon.core.stack import PRESETS
+from . import stack_io
+from ..core.stack import PRESETS
 
 _ICONS = {"DIFFUSE": "SHADING_SOLID", "CONDUCTOR": "SHADING_RENDERED", "DIELECTRIC": "SHADING_TEXTURE", "COATING": "MOD_THICKNESS"}
 

@@ -20,8 +20,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from addon.core import lobe
-from addon.core.stack import Stack, clamp_to_trained
+from . import lobe
+from .stack import Stack, clamp_to_trained
 
 BrdfFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 ProgressFn = Optional[Callable[[float], None]]
@@ -77,7 +77,7 @@ def _scaled(progress: ProgressFn, lo: float, hi: float) -> ProgressFn:
 
 def _neural_module():
     try:
-        from addon.core import neural
+        from . import neural
     except Exception as e:  # an import error anywhere inside the runtime
         raise NeuralUnavailable(f"the neural runtime cannot be imported ({type(e).__name__}: {e})") from None
     for name in ("load_models", "encode_stack", "eval_brdf"):
@@ -143,7 +143,7 @@ def reference_brdf(stack: Stack, walks: int = 64, seed: int = 0) -> BrdfFn:
     """
     if walks < 1:
         raise ValueError(f"walks must be >= 1, got {walks}")
-    from addon.core import reference
+    from . import reference
 
     calls = [0]
 
@@ -171,7 +171,7 @@ def reference_lobe_brdf(stack: Stack, walks: int = 64, seed: int = 0) -> BrdfFn:
     """
     if walks < 1:
         raise ValueError(f"walks must be >= 1, got {walks}")
-    from addon.core import reference
+    from . import reference
 
     calls = [0]
 
@@ -189,7 +189,7 @@ def reference_lobe_brdf(stack: Stack, walks: int = 64, seed: int = 0) -> BrdfFn:
 def reference_sampler(stack: Stack, seed: int = 0):
     """``sampler(wo) -> (wi, weight)``: one analog walk of the reference per row (weight = f cos / pdf,
     delta reflections included); successive calls continue one seeded random stream."""
-    from addon.core import reference
+    from . import reference
 
     rng = np.random.default_rng(seed)
     return lambda wo: reference.sample(stack, wo, rng)
@@ -364,7 +364,7 @@ def sphere_preview(
 
     Deterministic for a given ``seed``. Alpha is 1 on the sphere, 0 elsewhere (RGB 0 there).
     """
-    from addon.core.bsdf.frame import coordinate_system, to_local, to_world
+    from .bsdf.frame import coordinate_system, to_local, to_world
 
     if res < 2:
         raise ValueError(f"sphere resolution must be >= 2, got {res}")

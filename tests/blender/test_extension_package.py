@@ -103,8 +103,8 @@ INSTALL_SCRIPT = textwrap.dedent(
         filepath=zip_path, repo="user_default", enable_on_install=True))
     module = "bl_ext.user_default.neural_layered_materials"
     out["enabled"] = module in bpy.context.preferences.addons
-    import addon
-    out["addon_file"] = addon.__file__
+    out["top_level_addon"] = "addon" in sys.modules  # the extension must not claim a global name
+    out["addon_file"] = sys.modules[module + ".addon"].__file__
     out["package_dir_on_path"] = any(os.path.basename(os.path.normpath(p)) == "neural_layered_materials" for p in sys.path)
     site = os.path.join(ext_dir, ".local", "lib", "python3.11", "site-packages")
     out["wheels_installed"] = sorted(n for n in os.listdir(site) if not n.endswith("-info")) if os.path.isdir(site) else []
@@ -131,7 +131,7 @@ INSTALL_SCRIPT = textwrap.dedent(
     bpy.ops.preferences.addon_disable(module=module)
     out["after_disable"] = hasattr(bpy.types.Material, "neural_layers") or hasattr(bpy.types, "NLM_PT_view3d_stack")
     out["left_behind"] = sorted(set(snapshot()) - set(before))
-    out["modules_left"] = sorted(n for n in sys.modules if n == "addon" or n.startswith("addon."))
+    out["modules_left"] = sorted(n for n in sys.modules if n.startswith(module + "."))
     bpy.ops.preferences.addon_enable(module=module)
     out["after_enable"] = hasattr(bpy.types.Material, "neural_layers") and hasattr(bpy.types, "NLM_PT_view3d_stack")
     print("RESULT " + json.dumps(out))
@@ -150,7 +150,8 @@ def test_zip_installs_enables_and_runs(built_zip, tmp_path):
     assert proc.returncode == 0 and lines, proc.stdout[-3000:] + proc.stderr[-3000:]
     out = json.loads(lines[-1][len("RESULT "):])
     assert out["install"] == ["FINISHED"] and out["enabled"]
-    assert not out["package_dir_on_path"]  # `addon` is aliased in sys.modules, sys.path is left alone
+    assert not out["package_dir_on_path"]  # imports are relative: sys.path is left alone
+    assert not out["top_level_addon"]
     # the installed copy is what runs, not this checkout
     assert Path(out["addon_file"]).resolve().is_relative_to((tmp_path / "extensions").resolve())
     assert "onnxruntime" in out["wheels_installed"] and "embreex" in out["wheels_installed"]

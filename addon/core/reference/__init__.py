@@ -40,10 +40,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from addon.core import xp as xpmod
-from addon.core.bsdf.base import as_directions
-from addon.core.stack import Stack, StackArrays
-from addon.core.xp import Rng, namespace, to_numpy
+from .. import xp as xpmod
+from ..bsdf.base import as_directions
+from ..stack import Stack, StackArrays
+from ..xp import Rng, namespace, to_numpy
 
 from .walk import CHUNK_WALKS, MAX_DEPTH, Layers, run_walks, validate_arrays
 

@@ -66,7 +66,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from addon.core.bsdf import (
+from ..bsdf import (
     IMPORTANCE,
     RADIANCE,
     SMOOTH_ALPHA,
@@ -75,8 +75,8 @@ from addon.core.bsdf import (
     RoughConductor,
     RoughDielectric,
 )
-from addon.core.stack import BASE_KINDS, VALID_RANGES, StackArrays
-from addon.core.xp import Rng, namespace
+from ..stack import BASE_KINDS, VALID_RANGES, StackArrays
+from ..xp import Rng, namespace
 
 MAX_DEPTH = 256
 RR_START = 3
