@@ -50,34 +50,34 @@ def to_srgb(linear: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
-def write_png(path: str | os.PathLike, linear: np.ndarray, exposure: float = 1.0) -> None:
-    """8-bit sRGB PNG of a linear (H, W, 3) image; written to a temporary name, then renamed."""
-    from PIL import Image
-
-    path = Path(path)
-    img = (to_srgb(np.asarray(linear)[:, :, :3] * exposure) * 255 + 0.5).astype(np.uint8)
-    tmp = path.with_name(path.name + ".partial.png")
-    Image.fromarray(img).save(tmp, format="PNG")
-    tmp.replace(path)
-
-
-def write_exr(path: str | os.PathLike, linear: np.ndarray) -> None:
-    """Float RGB(A) OpenEXR through OpenImageIO (shipped with Blender and the bpy wheel)."""
+def _write_oiio(path: Path, pixels: np.ndarray, pixel_type: str) -> None:
+    """Write (H, W, C) ``pixels`` through OpenImageIO (shipped with Blender and the bpy wheel; the
+    format follows the file name), to a temporary name first, then renamed."""
     from ..textures.latent_texture import oiio_module
 
     oiio = oiio_module()
-    path = Path(path)
-    img = np.ascontiguousarray(np.asarray(linear, dtype=np.float32))
-    tmp = path.with_name(path.name + ".partial.exr")
-    spec = oiio.ImageSpec(img.shape[1], img.shape[0], img.shape[2], oiio.FLOAT)
+    tmp = path.with_name(path.name + ".partial" + path.suffix)
+    spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], getattr(oiio, pixel_type))
     out = oiio.ImageOutput.create(str(tmp))
     if out is None or not out.open(str(tmp), spec):
         raise RuntimeError(f"cannot write {path}: {oiio.geterror()}")
     try:
-        out.write_image(img)
+        if not out.write_image(np.ascontiguousarray(pixels)):
+            raise RuntimeError(f"cannot write {path}: {out.geterror()}")
     finally:
         out.close()
     tmp.replace(path)
+
+
+def write_png(path: str | os.PathLike, linear: np.ndarray, exposure: float = 1.0) -> None:
+    """8-bit sRGB PNG of a linear (H, W, 3) image, through OpenImageIO (Blender ships no Pillow)."""
+    img = (to_srgb(np.asarray(linear)[:, :, :3] * exposure) * 255 + 0.5).astype(np.uint8)
+    _write_oiio(Path(path), img, "UINT8")
+
+
+def write_exr(path: str | os.PathLike, linear: np.ndarray) -> None:
+    """Float RGB(A) OpenEXR through OpenImageIO (shipped with Blender and the bpy wheel)."""
+    _write_oiio(Path(path), np.asarray(linear, dtype=np.float32), "FLOAT")
 
 
 def from_srgb(encoded: np.ndarray) -> np.ndarray:
