@@ -44,7 +44,6 @@ from .. import xp as xpmod
 from ..bsdf.base import as_directions
 from ..stack import Stack, StackArrays
 from ..xp import Rng, namespace, to_numpy
-
 from .walk import CHUNK_WALKS, MAX_DEPTH, Layers, run_walks, validate_arrays
 
 __all__ = ["eval_brdf", "eval_brdf_many", "sample", "albedo", "pack_stacks", "MAX_DEPTH"]

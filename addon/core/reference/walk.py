@@ -21,6 +21,9 @@ a free flight in the current slab (the depth is sampled with the exponential dis
 of extinction 1 along ``|w.z|``; absorbing-only slabs attenuate deterministically) that ends
 either in a medium scattering (throughput times the RGB albedo, new direction from the phase
 function) or at a boundary, where the interface or base BSDF is sampled in RADIANCE mode.
+The steps are the methods of :class:`_RandomWalk`: ``free_flight``, ``medium_events``,
+``surface_event`` and, with NEE, ``connect`` (with the MIS weights ``_splits_above`` /
+``_splits_below``); the light chains are :class:`Chains`.
 Crossing the top interface upward ends the walk. Russian roulette after 3 events keeps
 walks of any length unbiased; ``MAX_DEPTH`` only bounds pathological walks.
 
@@ -207,78 +210,450 @@ def _tr(tau, cos):
 # ------------------------------------------------------------------------------------ chain
 
 
-def _sample_chain(lay: Layers, pr, wi, rng: Rng):
-    """The light chain from ``wi`` down through every interface (IMPORTANCE mode, transmission).
+@dataclass
+class Chains:
+    """Light chains sampled from incident directions down through every interface.
 
-    Returns, per chain and slab s (0..C):
-    ``D`` (m, C+1, 3) the direction d_s pointing down into slab s (d_C = -wi);
-    ``W`` (m, C+1, 3) its weight (0 where the chain did not reach slab s);
-    ``Q`` (m, C+1) the chain's density of the segment in slab s, sampled at the first rough
-    interface above it, per unit n^2 |cos| solid angle (comparable across smooth refractions);
-    ``B`` (m, C+1) the sum of squared density ratios of the connection splits above that
-    interface (see :func:`run_walks`); ``HR`` (m, C+1) bool: a rough interface lies above slab s.
+    Per chain and slab s (0..C), arrays of shape (m, C+1, ...) (or (m, M, C+1, ...) once
+    :meth:`per_walk` has grouped the M chains of each walk):
+
+    - ``direction`` (.., 3): d_s, pointing down into slab s (d_C = -wi);
+    - ``weight`` (.., 3): W_s, 0 where the chain did not reach slab s;
+    - ``density``: the chain's density of its segment in slab s, sampled at the first rough
+      interface above it, per unit n^2 |cos| solid angle (comparable across smooth refractions);
+    - ``splits_above``: the sum of squared density ratios of the connection splits above that
+      interface (``B`` of the module docstring);
+    - ``rough_above`` (bool): a rough interface lies above slab s.
     """
+
+    direction: object
+    weight: object
+    density: object
+    splits_above: object
+    rough_above: object
+
+    def per_walk(self, m: int, M: int) -> "Chains":
+        """The chains of ``m * M`` rows grouped as (m walks, M incident directions)."""
+        fields = {k: v.reshape((m, M) + tuple(v.shape[1:])) for k, v in self.__dict__.items()}
+        return Chains(**fields)
+
+
+def _sample_chain(lay: Layers, pr, wi, rng: Rng) -> Chains:
+    """The light chain from ``wi`` (m, 3) for stack rows ``pr`` down through every interface
+    (IMPORTANCE mode, transmission); see :class:`Chains`."""
     xp = lay.xp
     m, C = pr.shape[0], lay.C
-    D = xp.zeros((m, C + 1, 3))
-    W = xp.zeros((m, C + 1, 3))
-    Q = xp.ones((m, C + 1))
-    B = xp.zeros((m, C + 1))
-    HR = xp.zeros((m, C + 1), dtype=bool)
-    D[:, C] = -wi
-    W[:, C] = 1.0
+    ch = Chains(direction=xp.zeros((m, C + 1, 3)), weight=xp.zeros((m, C + 1, 3)), density=xp.ones((m, C + 1)),
+                splits_above=xp.zeros((m, C + 1)), rough_above=xp.zeros((m, C + 1), dtype=bool))
+    ch.direction[:, C] = -wi
+    ch.weight[:, C] = 1.0
     for k in range(C - 1, -1, -1):
         # slab k inherits the first rough interface above slab k + 1 unless interface k is rough
-        Q[:, k], B[:, k], HR[:, k] = Q[:, k + 1], B[:, k + 1], HR[:, k + 1]
-        act = xp.flatnonzero(xp.max(W[:, k + 1], axis=1) > 0.0)
-        if act.shape[0] == 0:
-            continue
-        p = pr[act]
-        u = rng.random((act.shape[0], 3))
-        # A smooth interface is forced to transmit (u_lobe just below 1 picks the refraction
-        # unless it is total internal reflection), weighted by the probability of that event
-        # (the delta sample's pdf), instead of killing the chain with probability F.
-        smooth = lay.smooth[p, k]
-        u[smooth, 0] = _JUST_BELOW_ONE
-        up = -D[act, k + 1]
-        iface = RoughDielectric(lay.alpha[p, k], lay.eta[p, k])
-        bs = iface.sample(up, u[:, 0], u[:, 1:], IMPORTANCE, check=False)
-        ok = bs.valid & bs.transmission & (bs.wi[:, 2] < 0.0)
-        weight = bs.weight * xp.where(smooth & bs.delta, bs.pdf, 1.0)[:, None]
-        D[act, k] = xp.where(ok[:, None], bs.wi, 0.0)
-        tr = _tr(lay.tau[p, k + 1], D[act, k + 1, 2])
-        W[act, k] = xp.where(ok[:, None], W[act, k + 1] * tr[:, None] * weight, 0.0)
-        r_ = xp.flatnonzero(ok & ~smooth)
-        if r_.shape[0]:
-            a, pa = act[r_], p[r_]
-            dk, dup = D[a, k], D[a, k + 1]
-            q = bs.pdf[r_] / (lay.n[pa, k] ** 2 * xp.abs(dk[:, 2]))
-            # the walk's density of the segment above this interface (arriving along -d_k)
-            rw = iface.take(r_).pdf(-dup, dk, RADIANCE, check=False) / (lay.n[pa, k + 1] ** 2 * xp.abs(dup[:, 2]))
-            above = HR[a, k + 1]
-            with xp.errstate(divide="ignore", invalid="ignore"):
-                ratio = xp.where(above, (rw / Q[a, k + 1]) ** 2 * (1.0 + B[a, k + 1]), 0.0)
-            Q[a, k] = q
-            B[a, k] = xp.where(xp.isfinite(ratio), ratio, xp.inf)
-            HR[a, k] = True
-    return D, W, Q, B, HR
+        ch.density[:, k] = ch.density[:, k + 1]
+        ch.splits_above[:, k] = ch.splits_above[:, k + 1]
+        ch.rough_above[:, k] = ch.rough_above[:, k + 1]
+        reached = xp.flatnonzero(xp.max(ch.weight[:, k + 1], axis=1) > 0.0)
+        if reached.shape[0]:
+            _chain_through_interface(lay, pr, k, reached, ch, rng)
+    return ch
+
+
+def _chain_through_interface(lay: Layers, pr, k: int, act, ch: Chains, rng: Rng) -> None:
+    """Refract the chains ``act`` from slab k + 1 down through interface k into slab k."""
+    xp = lay.xp
+    p = pr[act]
+    u = rng.random((act.shape[0], 3))
+    # A smooth interface is forced to transmit (u_lobe just below 1 picks the refraction
+    # unless it is total internal reflection), weighted by the probability of that event
+    # (the delta sample's pdf), instead of killing the chain with probability F.
+    smooth = lay.smooth[p, k]
+    u[smooth, 0] = _JUST_BELOW_ONE
+    up = -ch.direction[act, k + 1]
+    iface = RoughDielectric(lay.alpha[p, k], lay.eta[p, k])
+    bs = iface.sample(up, u[:, 0], u[:, 1:], IMPORTANCE, check=False)
+    ok = bs.valid & bs.transmission & (bs.wi[:, 2] < 0.0)
+    weight = bs.weight * xp.where(smooth & bs.delta, bs.pdf, 1.0)[:, None]
+    ch.direction[act, k] = xp.where(ok[:, None], bs.wi, 0.0)
+    tr = _tr(lay.tau[p, k + 1], ch.direction[act, k + 1, 2])
+    ch.weight[act, k] = xp.where(ok[:, None], ch.weight[act, k + 1] * tr[:, None] * weight, 0.0)
+    rough = xp.flatnonzero(ok & ~smooth)
+    if rough.shape[0] == 0:
+        return
+    # interface k is the first rough one above slab k: the densities of the segment below it
+    a, pa = act[rough], p[rough]
+    dk, dup = ch.direction[a, k], ch.direction[a, k + 1]
+    q = bs.pdf[rough] / (lay.n[pa, k] ** 2 * xp.abs(dk[:, 2]))
+    # the walk's density of the segment above this interface (arriving along -d_k)
+    rw = iface.take(rough).pdf(-dup, dk, RADIANCE, check=False) / (lay.n[pa, k + 1] ** 2 * xp.abs(dup[:, 2]))
+    above = ch.rough_above[a, k + 1]
+    with xp.errstate(divide="ignore", invalid="ignore"):
+        ratio = xp.where(above, (rw / ch.density[a, k + 1]) ** 2 * (1.0 + ch.splits_above[a, k + 1]), 0.0)
+    ch.density[a, k] = q
+    ch.splits_above[a, k] = xp.where(xp.isfinite(ratio), ratio, xp.inf)
+    ch.rough_above[a, k] = True
 
 
 # ------------------------------------------------------------------------------------ walk
 
 
-class _State:
-    """Live walks, compacted every event."""
+class _Walks:
+    """The live walks (one row each), compacted after every event.
 
-    FIELDS = ("wid", "pr", "s", "z", "w", "beta", "run_a", "run_r", "straight", "nondelta")
+    ``walk``: the walk's index in the output; ``row``: its stack row; ``slab``: the slab it is in
+    (C: above the top interface); ``height``: its optical height above the slab's floor;
+    ``direction``: its direction of travel; ``throughput``: beta (RGB). For the MIS weights of
+    the straight upward run that may end the path (see the module docstring):
+    ``straight_run`` (travelling up, with only delta transmissions since the last non-delta vertex),
+    ``run_density`` (the walk's density ``r`` of its current segment, sampled at its lower end)
+    and ``run_splits`` (``A``: the sum of squared density ratios of the splits below).
+    ``any_nondelta``: some event of the walk was not a delta event.
+    """
 
-    def __init__(self, **kw):
-        for k, v in kw.items():
+    FIELDS = ("walk", "row", "slab", "height", "direction", "throughput", "run_splits", "run_density",
+              "straight_run", "any_nondelta")
+
+    def __init__(self, **fields):
+        for k, v in fields.items():
             setattr(self, k, v)
+
+    def __len__(self) -> int:
+        return self.walk.shape[0]
 
     def keep(self, mask) -> None:
         for f in self.FIELDS:
             setattr(self, f, getattr(self, f)[mask])
+
+
+class _PhaseVertex:
+    """Medium-scattering vertices, as the connection sees them: f = p (the phase function),
+    and the same as density in either mode."""
+
+    in_medium = True
+
+    def __init__(self, phase: HenyeyGreenstein):
+        self.phase = phase
+
+    def f(self, a, wi, wo):
+        return self.phase.take(a).eval(wi, wo, check=False)
+
+    def pdf(self, a, wi, wo, mode):
+        return self.phase.take(a).eval(wi, wo, check=False)
+
+
+class _SurfaceVertex:
+    """Non-delta surface vertices (rough interface or base), as the connection sees them."""
+
+    in_medium = False
+
+    def __init__(self, bsdf):
+        self.bsdf = bsdf
+
+    def f(self, a, wi, wo):
+        return self.bsdf.take(a).eval(wi, wo, RADIANCE, check=False)
+
+    def pdf(self, a, wi, wo, mode):
+        return self.bsdf.take(a).pdf(wi, wo, mode, check=False)
+
+
+@dataclass
+class _Surface:
+    """Walks hitting one kind of surface in this event: ``rows`` (into the live walks), the
+    surface's ``bsdf`` per row, whether it is ``smooth`` (a delta BSDF), ``from_below`` (an
+    interface hit from below), ``interface`` (its index k per row; None for the base) and
+    ``chain_slab``: the slab above the surface, whose chain direction a connection uses."""
+
+    rows: object
+    bsdf: object
+    smooth: object
+    from_below: object
+    interface: object
+    chain_slab: object
+
+
+@dataclass
+class _Link:
+    """Connections of one ``connect`` call, one per (vertex, incident direction) whose chain
+    reached the vertex's slab: ``a`` the vertex (index into the call's rows), ``rows`` its live
+    walk, ``walk`` and ``chain`` where the estimate goes, ``slab`` the chain's slab and ``d``
+    its direction there (pointing down)."""
+
+    a: object
+    rows: object
+    walk: object
+    chain: object
+    slab: object
+    d: object
+
+
+class _RandomWalk:
+    """One batch of walks through the layers: the event loop of :func:`run_walks`."""
+
+    def __init__(self, lay: Layers, pr, wo, wi, rng: Rng, nee: bool):
+        xp = self.xp = lay.xp
+        self.lay, self.rng, self.nee = lay, rng, nee
+        m, C = pr.shape[0], lay.C
+        self.C = C
+        self.M = 1 if wi is None else wi.shape[1]
+        self.estimate = xp.zeros((m, self.M, 3))
+        self.exit_direction = xp.zeros((m, 3))
+        self.exit_direction[:, 2] = 1.0
+        self.exit_weight = xp.zeros((m, 3))
+        self.exit_specular = xp.zeros(m, dtype=bool)
+        if nee:
+            self.chains = _sample_chain(lay, xp.repeat(pr, self.M), wi.reshape(-1, 3), rng).per_walk(m, self.M)
+        self.walks = _Walks(
+            walk=xp.arange(m), row=xp.copy(pr), slab=xp.full(m, C), height=xp.zeros(m), direction=-xp.copy(wo),
+            throughput=xp.ones((m, 3)), run_splits=xp.zeros(m), run_density=xp.ones(m),
+            straight_run=xp.zeros(m, dtype=bool), any_nondelta=xp.zeros(m, dtype=bool),
+        )
+        # a walk must see the stack from above
+        self.walks.keep(wo[:, 2] > 0.0)
+
+    def run(self):
+        xp = self.xp
+        for depth in range(MAX_DEPTH):
+            if len(self.walks) == 0:
+                break
+            if depth > RR_START:
+                self.roulette()
+                if len(self.walks) == 0:
+                    break
+            scattered, upward = self.free_flight()
+            dead = xp.zeros(len(self.walks), dtype=bool)
+            self.medium_events(xp.flatnonzero(scattered), dead)
+            self.surface_events(~scattered, upward, dead)
+            self.walks.keep(~dead)
+        if self.nee:
+            return self.estimate
+        return self.exit_direction, self.exit_weight, self.exit_specular
+
+    def roulette(self) -> None:
+        """Russian roulette: a walk of low throughput ends with probability 1 - max(beta),
+        the survivors carry the lost weight (pbrt's rule)."""
+        xp, w = self.xp, self.walks
+        bmax = xp.max(w.throughput, axis=1)
+        q = xp.where(bmax < 0.25, xp.maximum(0.0, 1.0 - bmax), 0.0)
+        u = self.rng.random(bmax.shape[0])
+        alive = u >= q
+        w.throughput /= xp.where(alive, 1.0 - q, 1.0)[:, None]
+        w.keep(alive & (bmax > 0.0))
+
+    def free_flight(self):
+        """Fly through the current slab: a scattering medium stops the walk at an
+        exponentially distributed optical depth (extinction 1 along |cos|) unless it reaches a
+        boundary first; an absorbing-only slab attenuates the throughput all the way across.
+        Returns (scattered in the medium, travelling upward), per live walk."""
+        xp, lay, w = self.xp, self.lay, self.walks
+        inside = w.slab < self.C
+        up = w.direction[:, 2] > 0.0
+        tau = lay.tau[w.row, w.slab]
+        scattered = xp.zeros(len(w), dtype=bool)
+        in_medium = xp.flatnonzero(inside & lay.scatter[w.row, w.slab])
+        if in_medium.shape[0]:
+            wz = xp.abs(w.direction[in_medium, 2])
+            dist = -xp.log1p(-self.rng.random(in_medium.shape[0])) * wz
+            zp = w.height[in_medium] + xp.where(up[in_medium], dist, -dist)
+            hit = (zp > 0.0) & (zp < tau[in_medium])
+            scattered[in_medium[hit]] = True
+            w.height[in_medium[hit]] = zp[hit]
+        absorbing = xp.flatnonzero(inside & ~lay.scatter[w.row, w.slab] & (tau > 0.0))
+        if absorbing.shape[0]:
+            dist = xp.where(up[absorbing], tau[absorbing] - w.height[absorbing], w.height[absorbing])
+            w.throughput[absorbing] *= _tr(dist, w.direction[absorbing, 2])[:, None]
+        return scattered, up
+
+    def medium_events(self, rows, dead) -> None:
+        """Scatter in the medium: connect to the light, then the albedo scales the throughput
+        and the phase function gives the new direction."""
+        if rows.shape[0] == 0:
+            return
+        xp, lay, w = self.xp, self.lay, self.walks
+        p, s = w.row[rows], w.slab[rows]
+        phase = HenyeyGreenstein(lay.g[p, s])
+        if self.nee:
+            self.connect(rows, xp.copy(s), _PhaseVertex(phase), xp.zeros(rows.shape[0], dtype=bool))
+        wnew, pdf = phase.sample(-w.direction[rows], self.rng.random((rows.shape[0], 2)), check=False)
+        w.throughput[rows] *= lay.albedo[p, s]
+        w.direction[rows] = wnew
+        # a medium vertex starts a new run, sampled by the phase function
+        w.run_splits[rows] = 0.0
+        w.run_density[rows] = pdf / (lay.n[p, s] ** 2 * xp.abs(wnew[:, 2]))
+        w.straight_run[rows] = wnew[:, 2] > 0.0
+        w.any_nondelta[rows] = True
+        dead[rows] = (wnew[:, 2] == 0.0) | ~(pdf > 0.0)
+
+    def _surfaces(self, at_surface, upward) -> list[_Surface]:
+        """The walks at a boundary this event, grouped by surface: interfaces, then each base kind."""
+        xp, lay, w, C = self.xp, self.lay, self.walks, self.C
+        groups = []
+        at_interface = xp.flatnonzero(at_surface & ((upward & (w.slab < C)) | (~upward & (w.slab > 0))))
+        if at_interface.shape[0]:
+            p = w.row[at_interface]
+            k = xp.where(upward, w.slab, w.slab - 1)[at_interface]
+            groups.append(_Surface(at_interface, RoughDielectric(lay.alpha[p, k], lay.eta[p, k]), lay.smooth[p, k],
+                                   upward[at_interface], k, k + 1))
+        at_base = xp.flatnonzero(at_surface & ~upward & (w.slab == 0))
+        for kind in range(len(BASE_KINDS)):
+            rows = at_base[lay.base_kind[w.row[at_base]] == kind]
+            if rows.shape[0]:
+                p = w.row[rows]
+                groups.append(_Surface(rows, _base_bsdf(lay, kind, p), _base_smooth(lay, p),
+                                       xp.zeros(rows.shape[0], dtype=bool), None,
+                                       xp.zeros(rows.shape[0], dtype=xp.int64)))
+        return groups
+
+    def surface_events(self, at_surface, upward, dead) -> None:
+        """Reflect or refract at the boundary the flight reached (an interface from either side,
+        or the base); walks that leave through the top interface end there."""
+        if not self.xp.any(at_surface):
+            return
+        for surface in self._surfaces(at_surface, upward):
+            dead[surface.rows] = self.surface_event(surface, upward)
+        self.exit(at_surface, dead)
+
+    def surface_event(self, srf: _Surface, upward):
+        """Connect to the light from a rough surface, then sample the surface's BSDF in
+        RADIANCE mode for the new direction. Returns the rows whose sample failed."""
+        xp, lay, w, C, rows = self.xp, self.lay, self.walks, self.C, srf.rows
+        if self.nee:
+            rough = xp.flatnonzero(~srf.smooth)
+            if rough.shape[0]:
+                self.connect(rows[rough], srf.chain_slab[rough], _SurfaceVertex(srf.bsdf.take(rough)),
+                             srf.from_below[rough])
+        u = self.rng.random((rows.shape[0], 3))
+        forced = xp.zeros(rows.shape[0], dtype=bool)
+        if self.nee and srf.interface is not None:
+            # f has no delta part: a smooth top interface hit from above (entering) must
+            # transmit and one hit from below must reflect for the walk to contribute;
+            # force that event and weight it by its probability (pbrt's
+            # transmission-only / reflection-only sampling of the interfaces).
+            forced = srf.smooth & (srf.interface == C - 1)
+            u[forced, 0] = xp.where(upward[rows[forced]], 0.0, _JUST_BELOW_ONE)
+        bs_wo = -w.direction[rows]
+        bs = srf.bsdf.sample(bs_wo, u[:, 0], u[:, 1:], RADIANCE, check=False)
+        wnew = bs.wi
+        ok = bs.valid & (wnew[:, 2] != 0.0)
+        w.throughput[rows] *= bs.weight * xp.where(forced & bs.delta, bs.pdf, 1.0)[:, None]
+        w.direction[rows] = wnew
+        goes_up = wnew[:, 2] > 0.0
+        if srf.interface is None:
+            slab = xp.zeros(rows.shape[0], dtype=xp.int64)
+        else:
+            slab = xp.where(goes_up, srf.interface + 1, srf.interface)
+        w.slab[rows] = slab
+        w.height[rows] = xp.where(goes_up, 0.0, lay.tau[w.row[rows], xp.minimum(slab, C)])
+        nondelta = ~bs.delta
+        if self.nee:
+            self.continue_run(srf, bs_wo, bs, slab, goes_up, nondelta)
+        w.straight_run[rows] = xp.where(nondelta, goes_up, w.straight_run[rows] & bs.transmission)
+        w.any_nondelta[rows] |= nondelta
+        return ~ok
+
+    def continue_run(self, srf: _Surface, bs_wo, bs, slab, goes_up, nondelta) -> None:
+        """Bookkeeping of the straight upward run for the connection weights: a non-delta
+        event restarts the run with the density ``r`` of its sample; a rough interface crossed
+        upward on a straight run adds to ``A`` the split in which the chain made the segment
+        below it."""
+        xp, lay, w, rows = self.xp, self.lay, self.walks, srf.rows
+        wnew = bs.wi
+        p = w.row[rows]
+        with xp.errstate(divide="ignore", invalid="ignore"):
+            r_new = bs.pdf / (lay.n[p, slab] ** 2 * xp.abs(wnew[:, 2]))
+        a_new = xp.zeros(rows.shape[0])
+        cont = xp.flatnonzero(nondelta & srf.from_below & goes_up & w.straight_run[rows])
+        if cont.shape[0]:
+            w_in = -bs_wo[cont]
+            q = srf.bsdf.take(cont).pdf(-w_in, wnew[cont], IMPORTANCE, check=False) / (
+                lay.n[p[cont], srf.interface[cont]] ** 2 * xp.abs(w_in[:, 2]))
+            with xp.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                a_new[cont] = (q / w.run_density[rows[cont]]) ** 2 * (1.0 + w.run_splits[rows[cont]])
+        w.run_splits[rows] = xp.where(nondelta, xp.nan_to_num(a_new, nan=xp.inf), w.run_splits[rows])
+        w.run_density[rows] = xp.where(nondelta, r_new, w.run_density[rows])
+
+    # ---------------------------------------------------------------- connection
+
+    def connect(self, rows, chain_slab, vertex, from_below) -> None:
+        """Next-event estimation: join the vertices ``rows`` (live walks) to the light chains'
+        directions in ``chain_slab`` (the slab above each vertex), one connection per incident
+        direction, through the interfaces above (the chain's weight) with the MIS weight of
+        every split of the path. ``from_below``: the vertex is a rough interface reached from
+        below (on the connected path it transmits upward, continuing the walk's straight run)."""
+        xp, lay, w, ch, M = self.xp, self.lay, self.walks, self.chains, self.M
+        vertex_of = xp.repeat(xp.arange(rows.shape[0]), M)
+        chain = xp.tile(xp.arange(M), rows.shape[0])
+        walk = w.walk[rows][vertex_of]
+        slab = chain_slab[vertex_of]
+        chain_weight = ch.weight[walk, chain, slab]
+        sel = xp.flatnonzero(xp.max(chain_weight, axis=1) > 0.0)
+        if sel.shape[0] == 0:
+            return
+        a = vertex_of[sel]
+        link = _Link(a=a, rows=rows[a], walk=walk[sel], chain=chain[sel], slab=slab[sel],
+                     d=ch.direction[walk, chain, slab][sel])
+        chain_weight = chain_weight[sel]
+        p = w.row[link.rows]
+        w_in = w.direction[link.rows]
+        dz = xp.abs(link.d[:, 2])
+        f = vertex.f(a, -link.d, -w_in)
+        if vertex.in_medium:
+            tr = _tr(lay.tau[p, link.slab] - w.height[link.rows], dz)
+            c = w.throughput[link.rows] * lay.albedo[p, w.slab[link.rows]] * (f * tr / dz)[:, None] * chain_weight
+        else:
+            tr = _tr(lay.tau[p, link.slab], dz)
+            c = w.throughput[link.rows] * f * tr[:, None] * chain_weight
+        splits_above = self._splits_above(link, vertex, p, w_in, dz)
+        splits_below = self._splits_below(link, vertex, p, w_in, from_below)
+        with xp.errstate(invalid="ignore"):
+            mis = 1.0 / (1.0 + xp.nan_to_num(splits_below, nan=xp.inf) + xp.nan_to_num(splits_above, nan=xp.inf))
+        self.estimate[link.walk, link.chain] += c * mis[:, None]
+
+    def _splits_above(self, link: "_Link", vertex, p, w_in, dz):
+        """``B``: the splits in which the chain's lower segments were made by the walk instead
+        (the walk's density over the chain's, squared, at the first rough interface above)."""
+        xp, lay, ch = self.xp, self.lay, self.chains
+        out = xp.zeros(link.a.shape[0])
+        hr = xp.flatnonzero(ch.rough_above[link.walk, link.chain, link.slab])
+        if hr.shape[0]:
+            d = link.d[hr]
+            r = vertex.pdf(link.a[hr], -d, -w_in[hr], RADIANCE) / (lay.n[p[hr], link.slab[hr]] ** 2 * dz[hr])
+            at = (link.walk[hr], link.chain[hr], link.slab[hr])
+            with xp.errstate(divide="ignore", invalid="ignore"):
+                out[hr] = (r / ch.density[at]) ** 2 * (1.0 + ch.splits_above[at])
+        return out
+
+    def _splits_below(self, link: "_Link", vertex, p, w_in, from_below):
+        """``A``: the splits in which the chain made the walk's straight run below this vertex
+        (the chain's density over the walk's, squared, for the segment below it)."""
+        xp, lay, w = self.xp, self.lay, self.walks
+        out = xp.zeros(link.a.shape[0])
+        sx = xp.flatnonzero(from_below[link.a] & w.straight_run[link.rows])
+        if sx.shape[0]:
+            k = link.slab[sx] - 1
+            if EXIT_DENSITY == "matching":
+                q = vertex.pdf(link.a[sx], -w_in[sx], -link.d[sx], IMPORTANCE)
+            else:  # pbrt-v4's reverse density: biased, kept only to measure the bias
+                q = vertex.pdf(link.a[sx], -link.d[sx], -w_in[sx], RADIANCE)
+            q = q / (lay.n[p[sx], k] ** 2 * xp.abs(w_in[sx, 2]))
+            run = link.rows[sx]
+            with xp.errstate(divide="ignore", invalid="ignore"):
+                out[sx] = (q / w.run_density[run]) ** 2 * (1.0 + w.run_splits[run])
+        return out
+
+    # ---------------------------------------------------------------- exit
+
+    def exit(self, at_surface, dead) -> None:
+        """Walks above the top interface have left the stack: in the analog walk each is a
+        sample (direction, weight, specular flag); with NEE their light was connected already."""
+        w = self.walks
+        exits = self.xp.flatnonzero(at_surface & ~dead & (w.slab == self.C))
+        if exits.shape[0] == 0:
+            return
+        if not self.nee:
+            wid = w.walk[exits]
+            self.exit_direction[wid] = w.direction[exits]
+            self.exit_weight[wid] = w.throughput[exits]
+            self.exit_specular[wid] = ~w.any_nondelta[exits]
+        dead[exits] = True
 
 
 def run_walks(lay: Layers, pr, wo, wi, rng: Rng, nee: bool):
@@ -290,214 +665,4 @@ def run_walks(lay: Layers, pr, wo, wi, rng: Rng, nee: bool):
     Without: returns ``(wi, weight, specular)`` of the analog walk (weight 0 for absorbed walks).
     Arrays (``lay``, ``pr``, ``wo``, ``wi``) are in the namespace ``lay.xp``; ``rng`` draws there.
     """
-    xp = lay.xp
-    m, C = pr.shape[0], lay.C
-    M = 1 if wi is None else wi.shape[1]
-    acc = xp.zeros((m, M, 3))
-    out_wi = xp.zeros((m, 3))
-    out_wi[:, 2] = 1.0
-    out_w = xp.zeros((m, 3))
-    out_spec = xp.zeros(m, dtype=bool)
-    if nee:
-        D, W, Q, Bc, HR = _sample_chain(lay, xp.repeat(pr, M), wi.reshape(-1, 3), rng)
-        D = D.reshape(m, M, C + 1, 3)
-        W = W.reshape(m, M, C + 1, 3)
-        Q, Bc, HR = Q.reshape(m, M, C + 1), Bc.reshape(m, M, C + 1), HR.reshape(m, M, C + 1)
-    st = _State(
-        wid=xp.arange(m), pr=xp.copy(pr), s=xp.full(m, C), z=xp.zeros(m), w=-xp.copy(wo), beta=xp.ones((m, 3)),
-        run_a=xp.zeros(m), run_r=xp.ones(m), straight=xp.zeros(m, dtype=bool),
-        nondelta=xp.zeros(m, dtype=bool),
-    )
-    # a walk must see the stack from above
-    st.keep(wo[:, 2] > 0.0)
-
-    def connect(ix, s_nee, f_fn, pdf_fn, medium, suffix):
-        """NEE from vertices ``ix`` (indices into st) to the chain directions of slab s_nee,
-        for each of the M incident directions of the walk. ``suffix``: the vertex is a rough
-        interface reached from below (it transmits upward on the connected path)."""
-        rep = xp.repeat(xp.arange(ix.shape[0]), M)
-        mm = xp.tile(xp.arange(M), ix.shape[0])
-        wid = st.wid[ix][rep]
-        sn = s_nee[rep]
-        d = D[wid, mm, sn]
-        Wc = W[wid, mm, sn]
-        sel = xp.flatnonzero(xp.max(Wc, axis=1) > 0.0)
-        if sel.shape[0] == 0:
-            return
-        a = rep[sel]  # row of the vertex within ``ix`` (what f_fn / pdf_fn index)
-        wid, mm, sn, d, Wc = wid[sel], mm[sel], sn[sel], d[sel], Wc[sel]
-        ixa = ix[a]
-        p = st.pr[ixa]
-        w_in = st.w[ixa]
-        dz = xp.abs(d[:, 2])
-        f = f_fn(a, -d, -w_in)
-        if medium:
-            tr = _tr(lay.tau[p, sn] - st.z[ixa], dz)
-            c = st.beta[ixa] * lay.albedo[p, st.s[ixa]] * (f * tr / dz)[:, None] * Wc
-        else:
-            tr = _tr(lay.tau[p, sn], dz)
-            c = st.beta[ixa] * f * tr[:, None] * Wc
-        # splits above: the chain could also have been the walk for its lower segments
-        Bw = xp.zeros(sel.shape[0])
-        hr = xp.flatnonzero(HR[wid, mm, sn])
-        if hr.shape[0]:
-            r = pdf_fn(a[hr], -d[hr], -w_in[hr], RADIANCE) / (lay.n[p[hr], sn[hr]] ** 2 * dz[hr])
-            with xp.errstate(divide="ignore", invalid="ignore"):
-                Bw[hr] = (r / Q[wid[hr], mm[hr], sn[hr]]) ** 2 * (1.0 + Bc[wid[hr], mm[hr], sn[hr]])
-        # splits below: the walk's straight run could also have been the chain
-        Aw = xp.zeros(sel.shape[0])
-        sx = xp.flatnonzero(suffix[a] & st.straight[ixa])
-        if sx.shape[0]:
-            k = sn[sx] - 1
-            if EXIT_DENSITY == "matching":
-                q = pdf_fn(a[sx], -w_in[sx], -d[sx], IMPORTANCE)
-            else:  # pbrt-v4's reverse density: biased, kept only to measure the bias
-                q = pdf_fn(a[sx], -d[sx], -w_in[sx], RADIANCE)
-            q = q / (lay.n[p[sx], k] ** 2 * xp.abs(w_in[sx, 2]))
-            with xp.errstate(divide="ignore", invalid="ignore"):
-                Aw[sx] = (q / st.run_r[ixa[sx]]) ** 2 * (1.0 + st.run_a[ixa[sx]])
-        with xp.errstate(invalid="ignore"):
-            wt = 1.0 / (1.0 + xp.nan_to_num(Aw, nan=xp.inf) + xp.nan_to_num(Bw, nan=xp.inf))
-        acc[wid, mm] += c * wt[:, None]
-
-    for depth in range(MAX_DEPTH):
-        if st.wid.shape[0] == 0:
-            break
-        # Russian roulette
-        if depth > RR_START:
-            bmax = xp.max(st.beta, axis=1)
-            q = xp.where(bmax < 0.25, xp.maximum(0.0, 1.0 - bmax), 0.0)
-            u = rng.random(bmax.shape[0])
-            alive = u >= q
-            st.beta /= xp.where(alive, 1.0 - q, 1.0)[:, None]
-            st.keep(alive & (bmax > 0.0))
-            if st.wid.shape[0] == 0:
-                break
-
-        # ---- free flight in the current slab
-        inside = st.s < C
-        up = st.w[:, 2] > 0.0
-        tau = lay.tau[st.pr, st.s]
-        scat = xp.zeros(st.wid.shape[0], dtype=bool)
-        sc_rows = xp.flatnonzero(inside & lay.scatter[st.pr, st.s])
-        if sc_rows.shape[0]:
-            wz = xp.abs(st.w[sc_rows, 2])
-            dist = -xp.log1p(-rng.random(sc_rows.shape[0])) * wz
-            zp = st.z[sc_rows] + xp.where(up[sc_rows], dist, -dist)
-            hit = (zp > 0.0) & (zp < tau[sc_rows])
-            scat[sc_rows[hit]] = True
-            st.z[sc_rows[hit]] = zp[hit]
-        ab_rows = xp.flatnonzero(inside & ~lay.scatter[st.pr, st.s] & (tau > 0.0))
-        if ab_rows.shape[0]:
-            dist = xp.where(up[ab_rows], tau[ab_rows] - st.z[ab_rows], st.z[ab_rows])
-            st.beta[ab_rows] *= _tr(dist, st.w[ab_rows, 2])[:, None]
-        dead = xp.zeros(st.wid.shape[0], dtype=bool)
-
-        # ---- medium scattering
-        ms = xp.flatnonzero(scat)
-        if ms.shape[0]:
-            p, s = st.pr[ms], st.s[ms]
-            phase = HenyeyGreenstein(lay.g[p, s])
-            if nee:
-                def f_ph(a, wi_, wo_):
-                    return phase.take(a).eval(wi_, wo_, check=False)
-
-                def pdf_ph(a, wi_, wo_, mode):
-                    return phase.take(a).eval(wi_, wo_, check=False)
-
-                connect(ms, xp.copy(s), f_ph, pdf_ph, True, xp.zeros(ms.shape[0], dtype=bool))
-            wnew, pdf = phase.sample(-st.w[ms], rng.random((ms.shape[0], 2)), check=False)
-            st.beta[ms] *= lay.albedo[p, s]
-            st.w[ms] = wnew
-            st.run_a[ms] = 0.0
-            st.run_r[ms] = pdf / (lay.n[p, s] ** 2 * xp.abs(wnew[:, 2]))
-            st.straight[ms] = wnew[:, 2] > 0.0
-            st.nondelta[ms] = True
-            dead[ms] = (wnew[:, 2] == 0.0) | ~(pdf > 0.0)
-
-        # ---- surface events: interface k hit from either side, or the base
-        srf = ~scat
-        if xp.any(srf):
-            new_s = xp.copy(st.s)
-            k = xp.where(up, st.s, st.s - 1)
-            base_rows = xp.flatnonzero(srf & ~up & (st.s == 0))
-            if_rows = xp.flatnonzero(srf & ((up & (st.s < C)) | (~up & (st.s > 0))))
-            groups = []
-            if if_rows.shape[0]:
-                p, kk = st.pr[if_rows], k[if_rows]
-                groups.append((if_rows, RoughDielectric(lay.alpha[p, kk], lay.eta[p, kk]), kk + 1,
-                               lay.smooth[p, kk], up[if_rows], kk))
-            for kind in range(len(BASE_KINDS)):
-                rows = base_rows[lay.base_kind[st.pr[base_rows]] == kind]
-                if rows.shape[0]:
-                    p = st.pr[rows]
-                    groups.append((rows, _base_bsdf(lay, kind, p), xp.zeros(rows.shape[0], dtype=xp.int64),
-                                   _base_smooth(lay, p), xp.zeros(rows.shape[0], dtype=bool), None))
-            for rows, bsdf, s_nee, smooth, from_below, kk in groups:
-                if nee:
-                    nd = xp.flatnonzero(~smooth)
-                    if nd.shape[0]:
-                        sub = bsdf.take(nd)
-
-                        def f_s(a, wi_, wo_, sub=sub):
-                            return sub.take(a).eval(wi_, wo_, RADIANCE, check=False)
-
-                        def pdf_s(a, wi_, wo_, mode, sub=sub):
-                            return sub.take(a).pdf(wi_, wo_, mode, check=False)
-
-                        connect(rows[nd], s_nee[nd], f_s, pdf_s, False, from_below[nd])
-                u = rng.random((rows.shape[0], 3))
-                forced = xp.zeros(rows.shape[0], dtype=bool)
-                if nee and kk is not None:
-                    # f has no delta part: a smooth top interface hit from above (entering) must
-                    # transmit and one hit from below must reflect for the walk to contribute;
-                    # force that event and weight it by its probability (pbrt's
-                    # transmission-only / reflection-only sampling of the interfaces).
-                    forced = smooth & (kk == C - 1)
-                    u[forced, 0] = xp.where(up[rows[forced]], 0.0, _JUST_BELOW_ONE)
-                bs_wo = -st.w[rows]
-                bs = bsdf.sample(bs_wo, u[:, 0], u[:, 1:], RADIANCE, check=False)
-                wnew = bs.wi
-                ok = bs.valid & (wnew[:, 2] != 0.0)
-                st.beta[rows] *= bs.weight * xp.where(forced & bs.delta, bs.pdf, 1.0)[:, None]
-                st.w[rows] = wnew
-                upn = wnew[:, 2] > 0.0
-                if kk is None:
-                    sn = xp.zeros(rows.shape[0], dtype=xp.int64)
-                else:
-                    sn = xp.where(upn, kk + 1, kk)
-                new_s[rows] = sn
-                st.z[rows] = xp.where(upn, 0.0, lay.tau[st.pr[rows], xp.minimum(sn, C)])
-                nd_ev = ~bs.delta
-                if nee:
-                    # bookkeeping of the straight upward run for the connection weights
-                    pr_r = st.pr[rows]
-                    with xp.errstate(divide="ignore", invalid="ignore"):
-                        r_new = bs.pdf / (lay.n[pr_r, sn] ** 2 * xp.abs(wnew[:, 2]))
-                    a_new = xp.zeros(rows.shape[0])
-                    cont = xp.flatnonzero(nd_ev & from_below & upn & st.straight[rows])
-                    if cont.shape[0]:
-                        w_in = -bs_wo[cont]
-                        q = bsdf.take(cont).pdf(-w_in, wnew[cont], IMPORTANCE, check=False) / (
-                            lay.n[pr_r[cont], kk[cont]] ** 2 * xp.abs(w_in[:, 2]))
-                        with xp.errstate(divide="ignore", invalid="ignore", over="ignore"):
-                            a_new[cont] = (q / st.run_r[rows[cont]]) ** 2 * (1.0 + st.run_a[rows[cont]])
-                    st.run_a[rows] = xp.where(nd_ev, xp.nan_to_num(a_new, nan=xp.inf), st.run_a[rows])
-                    st.run_r[rows] = xp.where(nd_ev, r_new, st.run_r[rows])
-                st.straight[rows] = xp.where(nd_ev, upn, st.straight[rows] & bs.transmission)
-                st.nondelta[rows] |= nd_ev
-                dead[rows] = ~ok
-            st.s = new_s
-            exits = xp.flatnonzero(srf & ~dead & (st.s == C))
-            if exits.shape[0]:
-                if not nee:
-                    wid = st.wid[exits]
-                    out_wi[wid] = st.w[exits]
-                    out_w[wid] = st.beta[exits]
-                    out_spec[wid] = ~st.nondelta[exits]
-                dead[exits] = True
-        st.keep(~dead)
-
-    if nee:
-        return acc
-    return out_wi, out_w, out_spec
+    return _RandomWalk(lay, pr, wo, wi, rng, nee).run()
