@@ -12,6 +12,8 @@ about doubled the decoders' throughput against one 2-thread call on the whole ba
 
 from __future__ import annotations
 
+import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable, TypeVar
@@ -20,6 +22,13 @@ import numpy as np
 
 T = TypeVar("T")
 _POOLS: dict[int, ThreadPoolExecutor] = {}
+_CLOCK = threading.local()
+
+
+def seconds_on_this_thread() -> float:
+    """Wall seconds the calling thread has spent waiting on network batches (``ChunkedSession.map``
+    and ``run``) so far: the difference around a piece of work is its time in the networks."""
+    return getattr(_CLOCK, "seconds", 0.0)
 
 
 def _pool(threads: int) -> ThreadPoolExecutor:
@@ -64,9 +73,13 @@ class ChunkedSession:
         """``fn(rows)`` for each chunk ``rows`` (a slice) of ``range(n)``, on the pool's threads
         (inline with one thread or one chunk); the results in chunk order."""
         slices = [slice(s, min(n, s + self.chunk)) for s in range(0, n, self.chunk)] or [slice(0, 0)]
-        if self.threads == 1 or len(slices) == 1:
-            return [fn(s) for s in slices]
-        return list(_pool(self.threads).map(fn, slices))
+        t0 = time.perf_counter()
+        try:
+            if self.threads == 1 or len(slices) == 1:
+                return [fn(s) for s in slices]
+            return list(_pool(self.threads).map(fn, slices))
+        finally:
+            _CLOCK.seconds = seconds_on_this_thread() + time.perf_counter() - t0
 
     def run(self, outputs: list[str], rows: dict[str, np.ndarray], shared: dict[str, np.ndarray] | None = None
             ) -> list[np.ndarray]:

@@ -23,10 +23,10 @@ from typing import Callable
 import numpy as np
 
 from ..bsdf import frame
+from ..neural import session
 from . import materials as mat
 from .film import Film
 from .lights import AreaLight
-from .neural_material import finish_sample
 from .scene import Scene
 
 STRATEGIES = ("mis", "light", "bsdf")
@@ -131,16 +131,6 @@ def _power_heuristic(a, b):
     with np.errstate(invalid="ignore", divide="ignore"):
         w = a2 / (a2 + b2)
     return np.where(a2 + b2 > 0, w, 0.0)
-
-
-def _timed(stats: RenderStats, material, fn, *args):
-    if material.kind == "analytic":
-        return fn(*args)
-    t0 = time.perf_counter()
-    out = fn(*args)
-    key = "network" if material.kind == "neural" else "reference"
-    stats.seconds[key] += time.perf_counter() - t0
-    return out
 
 
 def uv_scale(mesh) -> np.ndarray:
@@ -266,160 +256,223 @@ def render(scene: Scene, settings: RenderSettings | None = None,
     return film, stats
 
 
-def _trace_paths(ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: int) -> np.ndarray:
-    s = ctx.settings
+@dataclass
+class _Paths:
+    """The live paths of one chunk: ``row`` into the chunk's radiance, the ray (origin ``o``,
+    unit direction ``d``), the throughput, how the ray was sampled (for MIS on the emission it
+    finds) and its ray cone (``width`` at the origin, ``spread`` per unit distance)."""
+
+    row: np.ndarray
+    o: np.ndarray
+    d: np.ndarray
+    throughput: np.ndarray
+    pdf: np.ndarray
+    delta: np.ndarray
+    mis: np.ndarray
+    width: np.ndarray
+    spread: np.ndarray
+
+    def take(self, keep: np.ndarray) -> "_Paths":
+        return _Paths(*(getattr(self, f)[keep] for f in self.__dataclass_fields__))
+
+
+@dataclass
+class _Hits:
+    """Surface geometry at the hits: position, geometric and shading normals turned toward the
+    viewer, the shading frame (ts, tt, ns), ``wo`` in it, uv, texture footprint, material index."""
+
+    p: np.ndarray
+    ng: np.ndarray
+    ns: np.ndarray
+    ts: np.ndarray
+    tt: np.ndarray
+    wo: np.ndarray
+    uv: np.ndarray
+    footprint: np.ndarray
+    material: np.ndarray
+
+
+@dataclass
+class _LightSamples:
+    """One next-event sample per hit: local direction ``wi``, arriving radiance, solid-angle pdf,
+    delta flag, and whether the shadow ray reached the light."""
+
+    wi: np.ndarray
+    radiance: np.ndarray
+    pdf: np.ndarray
+    delta: np.ndarray
+    visible: np.ndarray
+
+
+def _camera_paths(ctx: _Context, pix: np.ndarray, rng: np.random.Generator) -> _Paths:
+    """Primary rays, one per pixel, jittered inside it; emission they see counts with weight 1."""
     cam = ctx.scene.camera
-    mesh = ctx.scene.mesh
     n = len(pix)
-    rng = np.random.default_rng([s.seed, pass_index, chunk_index, 0])
     o, d = cam.generate_rays(pix % cam.width, pix // cam.width, rng.random((n, 2)))
-    L = np.zeros((n, 3))
-    path = np.arange(n)  # live path -> row of L
-    thr = np.ones((n, 3))
-    prev_pdf = np.ones(n)
-    prev_delta = np.ones(n, dtype=bool)  # camera rays count emission with weight 1
-    prev_mis = np.ones(n, dtype=bool)
-    width = np.zeros(n)  # ray-cone width at the origin
-    spread = np.full(n, cam.pixel_spread)
+    return _Paths(np.arange(n), o, d, np.ones((n, 3)), np.ones(n), np.ones(n, dtype=bool), np.ones(n, dtype=bool),
+                  np.zeros(n), np.full(n, cam.pixel_spread))
+
+
+def _add_emission(ctx: _Context, paths: _Paths, t: np.ndarray, miss: np.ndarray, L: np.ndarray) -> None:
+    """Emission the rays reach: area lights in front of the first surface, the sky where they
+    escape, weighted against next-event estimation by how each ray was sampled."""
+    for light in ctx.area:
+        tl, pdf_l = light.intersect(paths.o, paths.d)
+        m = tl < t
+        if m.any():
+            w = ctx.light_weight(pdf_l[m], paths.pdf[m], paths.delta[m], paths.mis[m])
+            L[paths.row[m]] += paths.throughput[m] * light.radiance * w[:, None]
+    if ctx.env is not None and miss.any():
+        dm = paths.d[miss]
+        w = ctx.light_weight(ctx.env.pdf(dm), paths.pdf[miss], paths.delta[miss], paths.mis[miss])
+        L[paths.row[miss]] += paths.throughput[miss] * ctx.env.radiance(dm) * w[:, None]
+
+
+def _surface_hits(ctx: _Context, paths: _Paths, t, prim, bu, bv) -> _Hits:
+    """The surface where each ray lands: interpolated position, normals and uv; a shading frame
+    facing the viewer (shading normals that disagree with the geometry fall back to it); the
+    ray cone grown to the hit and its footprint in texture space."""
+    mesh = ctx.scene.mesh
+    b0 = 1.0 - bu - bv
+    tri = mesh.positions[prim].astype(np.float64)
+    p = b0[:, None] * tri[:, 0] + bu[:, None] * tri[:, 1] + bv[:, None] * tri[:, 2]
+    ng = mesh.face_normals[prim].astype(np.float64)
+    nrm = mesh.normals[prim].astype(np.float64)
+    ns = frame.normalize(b0[:, None] * nrm[:, 0] + bu[:, None] * nrm[:, 1] + bv[:, None] * nrm[:, 2])
+    ns = np.where((frame.dot(ns, ng) > 0)[:, None], ns, ng)  # inconsistent or zero: use ng
+    wo_w = -paths.d
+    side = np.where(frame.dot(ng, wo_w) >= 0, 1.0, -1.0)[:, None]
+    ng, ns = ng * side, ns * side
+    ns = np.where((frame.dot(ns, wo_w) > 1e-6)[:, None], ns, ng)  # grazing: fall back to ng
+    ts, tt = frame.coordinate_system(ns)
+    wo = frame.to_local(wo_w, ts, tt, ns)
+    if mesh.uvs is not None:
+        uvt = mesh.uvs[prim].astype(np.float64)
+        uv = b0[:, None] * uvt[:, 0] + bu[:, None] * uvt[:, 1] + bv[:, None] * uvt[:, 2]
+    else:
+        uv = np.zeros((len(prim), 2))
+    paths.width = paths.width + paths.spread * t
+    footprint = texture_footprint(paths.width, frame.dot(ng, wo_w), ctx.uv_scale[prim])
+    return _Hits(p, ng, ns, ts, tt, wo, uv, footprint, mesh.material_index[prim])
+
+
+def _sample_lights(ctx: _Context, hits: _Hits, u_light: np.ndarray) -> _LightSamples:
+    """Next-event estimation: one light (or the sky) chosen uniformly per hit, a point on it, and
+    one occlusion query for all shadow rays; light reaching the surface through the shading
+    normal's side but not the geometric one's is discarded."""
+    m = len(hits.p)
+    if not ctx.nee:
+        return _LightSamples(np.zeros((m, 3)), np.zeros((m, 3)), np.ones(m), np.zeros(m, dtype=bool),
+                             np.zeros(m, dtype=bool))
+    wi_w, rad = np.zeros((m, 3)), np.zeros((m, 3))
+    pdf, delta, dist = np.ones(m), np.zeros(m, dtype=bool), np.full(m, np.inf)
+    choice = np.minimum((u_light[:, 0] * len(ctx.nee)).astype(np.int64), len(ctx.nee) - 1)
+    for j, light in enumerate(ctx.nee):
+        sel = np.nonzero(choice == j)[0]
+        if len(sel) == 0:
+            continue
+        ls = light.sample(hits.p[sel], u_light[sel, 1:])
+        wi_w[sel], rad[sel], pdf[sel] = ls.wi, ls.radiance, ls.pdf
+        dist[sel], delta[sel] = ls.dist, ls.delta
+    cos_g = frame.dot(wi_w, hits.ng)
+    useful = (pdf > 0) & (rad.max(axis=1) > 0) & (cos_g != 0)
+    org = hits.p + hits.ng * (np.sign(cos_g) * ctx.eps)[:, None]
+    tmax = np.where(np.isinf(dist), np.inf, dist * (1 - 1e-4) - ctx.eps)
+    unseen = np.zeros(m, dtype=bool)
+    idx = np.nonzero(useful)[0]
+    unseen[idx] = ctx.tracer.occluded(org[idx], wi_w[idx], tmax[idx])
+    wi = frame.to_local(wi_w, hits.ts, hits.tt, hits.ns)
+    visible = useful & ~unseen & (np.sign(wi[:, 2]) == np.sign(cos_g))
+    return _LightSamples(wi, rad, pdf, delta, visible)
+
+
+@dataclass
+class _Scatter:
+    """The BSDF sample of every hit: local direction, weight f |cos| / pdf, pdf, flags."""
+
+    wi: np.ndarray
+    weight: np.ndarray
+    pdf: np.ndarray
+    delta: np.ndarray
+    mis: np.ndarray
+
+
+def _shade(ctx: _Context, paths: _Paths, hits: _Hits, lights: _LightSamples, u_lobe, u_dir, seeds,
+           L: np.ndarray) -> _Scatter:
+    """Scattering at the surface, one query per material: the reflected next-event light
+    (MIS-weighted against BSDF sampling) goes into the image, and each hit draws the direction
+    its path continues in."""
+    m = len(hits.p)
+    out = _Scatter(np.zeros((m, 3)), np.zeros((m, 3)), np.zeros(m), np.zeros(m, dtype=bool), np.ones(m, dtype=bool))
+    for mi in np.unique(hits.material):  # a loop over materials
+        sel = np.nonzero(hits.material == mi)[0]
+        material = ctx.materials[mi]
+        need_pdf = material.has_pdf and ctx.settings.strategy == "mis"
+        rows = np.nonzero(lights.visible[sel])[0]
+        v = sel[rows]
+        t0, net0 = time.perf_counter(), session.seconds_on_this_thread()
+        bound = material.bind(mat.SurfaceHits(hits.uv[sel], hits.footprint[sel], int(seeds[mi])))
+        sh = bound.shade(hits.wo[sel], lights.wi[v], rows, u_lobe[sel], u_dir[sel], need_pdf)
+        ctx.stats.seconds["network"] += session.seconds_on_this_thread() - net0
+        if material.kind == "reference":
+            ctx.stats.seconds["reference"] += time.perf_counter() - t0
+        if len(v):
+            lw = np.ones(len(v))
+            if need_pdf:
+                lw = np.where(lights.delta[v], 1.0, _power_heuristic(ctx.p_select * lights.pdf[v], sh.pdf_light))
+            cos_l = np.abs(lights.wi[v, 2])
+            contrib = sh.f_light * (cos_l * lw / (ctx.p_select * lights.pdf[v]))[:, None] * lights.radiance[v]
+            L[paths.row[v]] += paths.throughput[v] * contrib
+        bs = sh.sample
+        out.wi[sel], out.weight[sel], out.pdf[sel], out.delta[sel] = bs.wi, bs.weight, bs.pdf, bs.delta
+        out.mis[sel] = material.has_pdf
+    return out
+
+
+def _continue_paths(ctx: _Context, paths: _Paths, hits: _Hits, sc: _Scatter, depth: int,
+                    rng: np.random.Generator) -> _Paths:
+    """The next rays: throughput times the sample weight, Russian roulette from ``rr_depth``
+    (survivors reweighted by 1 / q), paths that died or would cross the geometric surface on the
+    wrong side dropped, origins offset off the surface; a non-specular bounce widens the cone."""
+    s = ctx.settings
+    wi_w = frame.to_world(sc.wi, hits.ts, hits.tt, hits.ns)
+    cos_g = frame.dot(wi_w, hits.ng)
+    ok = (sc.weight.max(axis=1) > 0) & (np.sign(cos_g) == np.sign(sc.wi[:, 2])) & (cos_g != 0)
+    thr = paths.throughput * sc.weight
+    if depth + 1 >= s.rr_depth:
+        q = np.clip(thr.max(axis=1), 0.05, 1.0)
+        ok &= rng.random(len(thr)) < q
+        thr = thr / q[:, None]
+    keep = np.nonzero(ok)[0]
+    o = (hits.p + hits.ng * (np.sign(cos_g) * ctx.eps)[:, None])[keep]
+    spread = np.where(~sc.delta, np.maximum(paths.spread, 0.2), paths.spread)
+    return _Paths(paths.row[keep], o, frame.normalize(wi_w[keep]), thr[keep], sc.pdf[keep], sc.delta[keep],
+                  sc.mis[keep], paths.width[keep], spread[keep])
+
+
+def _trace_paths(ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: int) -> np.ndarray:
+    """Radiance (N, 3) of one path per pixel of ``pix``, all paths a bounce at a time."""
+    s = ctx.settings
+    L = np.zeros((len(pix), 3))
+    paths = _camera_paths(ctx, pix, np.random.default_rng([s.seed, pass_index, chunk_index, 0]))
     for depth in range(s.max_bounces + 1):
-        if len(path) == 0:
+        if len(paths.row) == 0:
             break
         rng = np.random.default_rng([s.seed, pass_index, chunk_index, depth + 1])
-        t, prim, bu, bv = ctx.tracer.intersect(o, d)
-
-        # Emission reached by this ray: area lights in front of the surface, then the sky.
-        for light in ctx.area:
-            tl, pdf_l = light.intersect(o, d)
-            m = tl < t
-            if m.any():
-                w = ctx.light_weight(pdf_l[m], prev_pdf[m], prev_delta[m], prev_mis[m])
-                L[path[m]] += thr[m] * light.radiance * w[:, None]
+        t, prim, bu, bv = ctx.tracer.intersect(paths.o, paths.d)
         miss = prim < 0
-        if ctx.env is not None and miss.any():
-            dm = d[miss]
-            w = ctx.light_weight(ctx.env.pdf(dm), prev_pdf[miss], prev_delta[miss], prev_mis[miss])
-            L[path[miss]] += thr[miss] * ctx.env.radiance(dm) * w[:, None]
+        _add_emission(ctx, paths, t, miss, L)
         if depth == s.max_bounces:
             break
-        hit = ~miss
-        path, o, d, t, prim, bu, bv = path[hit], o[hit], d[hit], t[hit], prim[hit], bu[hit], bv[hit]
-        thr, width, spread = thr[hit], width[hit], spread[hit]
-        m = len(path)
-        if m == 0:
+        hit = np.nonzero(~miss)[0]
+        if len(hit) == 0:
             break
-
-        # Surface geometry at the hits.
-        b0 = 1.0 - bu - bv
-        tri = mesh.positions[prim].astype(np.float64)
-        p = b0[:, None] * tri[:, 0] + bu[:, None] * tri[:, 1] + bv[:, None] * tri[:, 2]
-        ng = mesh.face_normals[prim].astype(np.float64)
-        nrm = mesh.normals[prim].astype(np.float64)
-        ns = frame.normalize(b0[:, None] * nrm[:, 0] + bu[:, None] * nrm[:, 1] + bv[:, None] * nrm[:, 2])
-        ns = np.where((frame.dot(ns, ng) > 0)[:, None], ns, ng)  # inconsistent or zero: use ng
-        wo_w = -d
-        side = np.where(frame.dot(ng, wo_w) >= 0, 1.0, -1.0)[:, None]
-        ng, ns = ng * side, ns * side
-        ns = np.where((frame.dot(ns, wo_w) > 1e-6)[:, None], ns, ng)  # grazing: fall back to ng
-        ts, tt = frame.coordinate_system(ns)
-        wo = frame.to_local(wo_w, ts, tt, ns)
-        if mesh.uvs is not None:
-            uvt = mesh.uvs[prim].astype(np.float64)
-            uv = b0[:, None] * uvt[:, 0] + bu[:, None] * uvt[:, 1] + bv[:, None] * uvt[:, 2]
-        else:
-            uv = np.zeros((m, 2))
-        width = width + spread * t
-        footprint = texture_footprint(width, frame.dot(ng, wo_w), ctx.uv_scale[prim])
-
-        # Next-event estimation: pick one light per hit, one occlusion call for all.
-        u_light = rng.random((m, 3))
-        nee_wi = np.zeros((m, 3))
-        nee_rad = np.zeros((m, 3))
-        nee_pdf = np.ones(m)
-        nee_delta = np.zeros(m, dtype=bool)
-        nee_dist = np.full(m, np.inf)
-        if ctx.nee:
-            choice = np.minimum((u_light[:, 0] * len(ctx.nee)).astype(np.int64), len(ctx.nee) - 1)
-            for j, light in enumerate(ctx.nee):
-                sel = np.nonzero(choice == j)[0]
-                if len(sel) == 0:
-                    continue
-                ls = light.sample(p[sel], u_light[sel, 1:])
-                nee_wi[sel], nee_rad[sel], nee_pdf[sel] = ls.wi, ls.radiance, ls.pdf
-                nee_dist[sel], nee_delta[sel] = ls.dist, ls.delta
-            cos_g = frame.dot(nee_wi, ng)
-            useful = (nee_pdf > 0) & (nee_rad.max(axis=1) > 0) & (cos_g != 0)
-            org = p + ng * (np.sign(cos_g) * ctx.eps)[:, None]
-            tmax = np.where(np.isinf(nee_dist), np.inf, nee_dist * (1 - 1e-4) - ctx.eps)
-            unseen = np.zeros(m, dtype=bool)
-            idx = np.nonzero(useful)[0]
-            unseen[idx] = ctx.tracer.occluded(org[idx], nee_wi[idx], tmax[idx])
-            visible = useful & ~unseen
-            wi_nee = frame.to_local(nee_wi, ts, tt, ns)
-            # Light leaks through shading normals: the geometric and shading sides must agree.
-            visible &= np.sign(wi_nee[:, 2]) == np.sign(cos_g)
-        else:
-            visible = np.zeros(m, dtype=bool)
-            wi_nee = np.zeros((m, 3))
-
-        u_lobe = rng.random(m)
-        u_dir = rng.random((m, 2))
-        new_wi = np.zeros((m, 3))
-        weight = np.zeros((m, 3))
-        s_pdf = np.zeros(m)
-        s_delta = np.zeros(m, dtype=bool)
-        s_mis = np.ones(m, dtype=bool)
-        roughish = np.ones(m, dtype=bool)
-        mat_index = mesh.material_index[prim]
+        paths = paths.take(hit)
+        hits = _surface_hits(ctx, paths, t[hit], prim[hit], bu[hit], bv[hit])
+        m = len(hit)
+        lights = _sample_lights(ctx, hits, rng.random((m, 3)))
+        u_lobe, u_dir = rng.random(m), rng.random((m, 2))
         seeds = rng.integers(0, 2**31, size=len(ctx.materials))
-        for mi in np.unique(mat_index):  # a loop over materials
-            sel = np.nonzero(mat_index == mi)[0]
-            material = ctx.materials[mi]
-            bound = material.bind(mat.SurfaceHits(uv[sel], footprint[sel], int(seeds[mi])))
-            rows = np.nonzero(visible[sel])[0]
-            v = sel[rows]
-            joint = getattr(material, "sample_needs_eval", False)
-            if joint:
-                # Propose directions first, then one evaluation for shadow and sampled directions.
-                prop_wi, prop_pdf = bound.sample_direction(wo[sel], u_lobe[sel], u_dir[sel])
-                if hasattr(bound, "eval_pair"):  # both directions from the same estimator walks
-                    wi_a = prop_wi.copy()
-                    wi_a[rows] = wi_nee[v]
-                    f_a, f_b = _timed(ctx.stats, material, bound.eval_pair, wi_a, prop_wi, wo[sel])
-                    f_all = np.concatenate([f_a[rows], f_b])
-                else:
-                    f_all = _timed(ctx.stats, material, bound.eval, np.concatenate([wi_nee[v], prop_wi]),
-                                   np.concatenate([wo[v], wo[sel]]), np.concatenate([rows, np.arange(len(sel))]))
-                bs = finish_sample(prop_wi, prop_pdf, f_all[len(v):])
-            if len(v):
-                wil, wol = wi_nee[v], wo[v]
-                f = f_all[: len(v)] if joint else _timed(ctx.stats, material, bound.eval, wil, wol, rows)
-                lw = np.ones(len(v))
-                if material.has_pdf and s.strategy == "mis":
-                    pb = _timed(ctx.stats, material, bound.pdf, wil, wol, rows)
-                    lw = np.where(nee_delta[v], 1.0, _power_heuristic(ctx.p_select * nee_pdf[v], pb))
-                contrib = f * (np.abs(wil[:, 2]) * lw / (ctx.p_select * nee_pdf[v]))[:, None] * nee_rad[v]
-                L[path[v]] += thr[v] * contrib
-            if not joint:
-                bs = _timed(ctx.stats, material, bound.sample, wo[sel], u_lobe[sel], u_dir[sel])
-            new_wi[sel], weight[sel], s_pdf[sel], s_delta[sel] = bs.wi, bs.weight, bs.pdf, bs.delta
-            s_mis[sel] = material.has_pdf
-            roughish[sel] = ~bs.delta
-
-        # Continue the paths.
-        wi_w = frame.to_world(new_wi, ts, tt, ns)
-        cos_g = frame.dot(wi_w, ng)
-        ok = (weight.max(axis=1) > 0) & (np.sign(cos_g) == np.sign(new_wi[:, 2])) & (cos_g != 0)
-        thr = thr * weight
-        if depth + 1 >= s.rr_depth:
-            q = np.clip(thr.max(axis=1), 0.05, 1.0)
-            ok &= rng.random(m) < q
-            thr = thr / q[:, None]
-        keep = np.nonzero(ok)[0]
-        o = (p + ng * (np.sign(cos_g) * ctx.eps)[:, None])[keep]
-        d = frame.normalize(wi_w[keep])
-        path, thr = path[keep], thr[keep]
-        prev_pdf, prev_delta, prev_mis = s_pdf[keep], s_delta[keep], s_mis[keep]
-        # Ray cone: widths carry on; a non-specular bounce widens the cone (a simple heuristic).
-        width = width[keep]
-        spread = np.where(roughish[keep], np.maximum(spread[keep], 0.2), spread[keep])
+        sc = _shade(ctx, paths, hits, lights, u_lobe, u_dir, seeds, L)
+        paths = _continue_paths(ctx, paths, hits, sc, depth, rng)
     return L

@@ -1,15 +1,29 @@
-"""Renderer materials: what the integrator asks of a surface, in one small interface.
+"""Renderer materials: what the integrator asks of a surface, in one declared interface.
 
-A material is bound to a batch of hits (``bind(hits)``, once per bounce and material) and the
-bound object answers batched queries on local-frame directions (normal +z, ``wi`` toward the
-light, ``wo`` toward the viewer, DESIGN section 3):
+A :class:`Material` is bound to a batch of hits (``bind(hits)``, once per bounce and material);
+the :class:`BoundMaterial` it returns answers one query per bounce on local-frame directions
+(normal +z, ``wi`` toward the light, ``wo`` toward the viewer, docs/architecture.md):
+
+    shade(wo, light_wi, light_rows, u_lobe, u, need_pdf) -> Shading
+
+``wo`` (N, 3) are the bound hits' view directions; ``light_wi`` (V, 3) next-event directions of
+the rows ``light_rows`` (V,) of the batch (the hits whose shadow ray reached a light); ``u_lobe``
+(N,) and ``u`` (N, 2) the random numbers of the BSDF sample. The answer holds f (without the
+cosine) at the next-event directions, their solid-angle BSDF pdf when ``need_pdf`` (for MIS),
+and a BSDF sample for every hit. Answering both in one call lets a material that is expensive to
+evaluate (a neural decoder, the position-free estimator) serve shadow and sampled directions with
+one evaluation.
+
+Most materials answer from three smaller methods, and :class:`ShadeByParts` builds ``shade`` from
+them:
 
     eval(wi, wo, index=None) -> (M, 3)   f without the cosine
     pdf(wi, wo, index=None) -> (M,)      solid-angle density of sample(); only if has_pdf
     sample(wo, u_lobe, u) -> BSDFSample  for all N bound hits (addon.core.bsdf.base)
 
-``index`` (M,) selects rows of the bound batch (next-event estimation only evaluates the hits
-whose shadow ray reached the light); None means all rows.
+``index`` (M,) selects rows of the bound batch; None means all rows. :class:`ShadeByProposal`
+does the same for materials that only propose directions (``sample_direction``) and evaluate
+proposals together with the next-event directions in one ``eval`` call.
 
 ``hits`` is a :class:`SurfaceHits` (uv, ray-cone footprint in uv units, a seed): everything a
 textured, latent-textured or stochastic material needs. The integrator never looks inside.
@@ -17,15 +31,13 @@ textured, latent-textured or stochastic material needs. The integrator never loo
 ``kind`` names the cost class for the render statistics ("analytic", "neural" or
 "reference"). A material without a pdf (``has_pdf = False``, e.g. a sampler with no
 closed-form density) is rendered without MIS: next-event estimation for every light,
-BSDF-sampled emission only after delta (specular) events. A material with
-``sample_needs_eval`` proposes directions (``sample_direction``) and lets the integrator
-evaluate them together with the next-event directions (``eval``, or ``eval_pair`` when the
-bound material offers it).
+BSDF-sampled emission only after delta (specular) events.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -33,6 +45,7 @@ from ..bsdf import Lambertian, RoughConductor, RoughDielectric
 from ..bsdf.base import SMOOTH_ALPHA, BSDFSample
 from ..stack import Conductor, Dielectric, Diffuse, Stack
 from ..textures.mip import build_mip_chain, trilinear_lookup
+from .shading import ShadeByParts, Shading, finish_sample
 
 
 @dataclass
@@ -48,7 +61,23 @@ class SurfaceHits:
         return len(self.uv)
 
 
-class _BoundBSDF:
+class BoundMaterial(Protocol):
+    """A material bound to a batch of hits (see the module docstring)."""
+
+    def shade(self, wo: np.ndarray, light_wi: np.ndarray, light_rows: np.ndarray, u_lobe: np.ndarray,
+              u: np.ndarray, need_pdf: bool) -> Shading: ...
+
+
+class Material(Protocol):
+    """What the integrator asks of a scene material."""
+
+    kind: str  # "analytic", "neural" or "reference": the cost class in the render statistics
+    has_pdf: bool  # sample() has a closed-form pdf (MIS with next-event estimation)
+
+    def bind(self, hits: SurfaceHits) -> BoundMaterial: ...
+
+
+class _BoundBSDF(ShadeByParts):
     """An analytic BSDF (addon.core.bsdf) seen through the material interface."""
 
     def __init__(self, bsdf):
@@ -141,7 +170,7 @@ def _top_is_smooth(stack: Stack) -> bool:
     return not isinstance(top, Diffuse) and top.roughness < SMOOTH_ALPHA
 
 
-class _BoundReference:
+class _BoundReference(ShadeByParts):
     """The position-free estimator behind the material interface.
 
     Directions are proposed by the sampling proxy (``addon.core.neural.proxy``, exact pdf) and
@@ -160,6 +189,17 @@ class _BoundReference:
 
         f, _ = reference.eval_brdf(self.stack, wi, wo, walks=self.walks, seed=self.seed)
         return np.nan_to_num(np.maximum(f, 0.0))
+
+    def shade(self, wo, light_wi, light_rows, u_lobe, u, need_pdf) -> Shading:
+        if self.q < 1.0:  # a delta component: the analog walk samples part of the time
+            return ShadeByParts.shade(self, wo, light_wi, light_rows, u_lobe, u, need_pdf)
+        # Rough top: next-event and proposed directions are estimated from the same walks.
+        prop_wi, prop_pdf = self.sample_direction(wo, u_lobe, u)
+        wi_a = prop_wi.copy()
+        wi_a[light_rows] = light_wi
+        f_a, f_b = self.eval_pair(wi_a, prop_wi, wo)
+        pdf = self.pdf(light_wi, wo[light_rows], light_rows) if need_pdf and len(light_rows) else None
+        return Shading(f_a[light_rows], pdf, finish_sample(prop_wi, prop_pdf, f_b))
 
     def eval_pair(self, wi_a, wi_b, wo):
         """f at two incident directions per row from the same walks (reference.eval_brdf_many)."""
@@ -182,7 +222,6 @@ class _BoundReference:
 
     def sample(self, wo, u_lobe, u):
         from .. import reference
-        from .neural_material import finish_sample
 
         n = len(wo)
         rough = u_lobe < self.q
@@ -232,7 +271,6 @@ class ReferenceLayered:
         self.stack, self.walks = stack, int(walks)
         self.sigma, self.w = proxy_guess(stack)
         self.q = 0.5 if _top_is_smooth(stack) else 1.0
-        self.sample_needs_eval = self.q == 1.0
 
     def bind(self, hits: SurfaceHits):
         return _BoundReference(self.stack, self.walks, hits.seed, self.sigma, self.w, self.q)

@@ -6,17 +6,18 @@ parameters looked up at the hit's uv with its ray footprint). ``eval`` runs the 
 over the projected half vector plus a cosine lobe) whose pdf is exact, so MIS with next-event
 estimation stays unbiased whatever the proxy's parameters are.
 
-Such a material sets ``sample_needs_eval``: it only proposes directions (``sample_direction``),
-and the integrator evaluates the decoder for those directions together with the next-event
-directions, so each neural material costs one ONNX batch per bounce.
+Such a material only proposes directions (``sample_direction``) and evaluates the decoder for
+those directions together with the next-event directions (``shade``, from
+``addon.core.render.shading.ShadeByProposal``), so each neural material costs one ONNX batch per
+bounce.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..bsdf.base import BSDFSample
 from ..stack import Stack
+from .shading import ShadeByProposal, finish_sample
 
 DEFAULT_SIZE = "tiny"
 
@@ -33,7 +34,7 @@ def proxy_guess(stack: Stack) -> tuple[float, float]:
     return max(alpha, 0.02), (0.5 if diffuse_below or stack.coatings else 0.1)
 
 
-class _BoundNeural:
+class _BoundNeural(ShadeByProposal):
     def __init__(self, models, z, sigma, w):
         self.models, self.z, self.sigma, self.w = models, z, sigma, w
 
@@ -59,19 +60,9 @@ class _BoundNeural:
         return wi, pdf
 
     def sample(self, wo, u_lobe, u):
-        """Self-contained sampling (one extra decoder batch); the integrator uses sample_direction."""
+        """Self-contained sampling (one decoder batch of its own); the integrator uses ``shade``."""
         wi, pdf = self.sample_direction(wo, u_lobe, u)
         return finish_sample(wi, pdf, self.eval(wi, wo))
-
-
-def finish_sample(wi, pdf, f) -> BSDFSample:
-    """A BSDFSample from proposed directions, their pdf and the evaluated f."""
-    n = len(wi)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        weight = f * (np.abs(wi[:, 2]) / pdf)[:, None]
-    false = np.zeros(n, dtype=bool)
-    valid = (pdf > 0) & (wi[:, 2] > 0)
-    return BSDFSample.build(wi, np.where(valid[:, None], weight, 0.0), pdf, false, false, valid)
 
 
 class NeuralMaterial:
@@ -79,7 +70,6 @@ class NeuralMaterial:
 
     kind = "neural"
     has_pdf = True
-    sample_needs_eval = True
 
     def __init__(self, models, z=None, proxy=(0.2, 0.5), latent_texture=None):
         self.models = models
