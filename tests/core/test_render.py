@@ -212,6 +212,34 @@ def test_bad_settings_and_inputs_say_what_is_wrong():
         Camera(np.eye(4), 0, 10, (1.0, 1.0))
     with pytest.raises(ValueError, match="material_index"):
         Scene(Camera(np.eye(4), 4, 4, (1.0, 1.0)), Mesh(np.eye(3)[None], material_index=[-1]))
+    with pytest.raises(ValueError, match="image size must be at least 1 x 1, got 0 x 0"):
+        Camera.look_at((0, -3, 1), (0, 0, 0), width=0, height=0)
+    with pytest.raises(ValueError, match="fov_deg"):
+        Camera.look_at((0, -3, 1), (0, 0, 0), fov_deg=0)
+    with pytest.raises(ValueError, match="camera eye must be finite"):
+        Camera.look_at((np.nan, -3, 1), (0, 0, 0))
+    with pytest.raises(ValueError, match="PointLight.position must be three finite numbers"):
+        PointLight((np.nan, 0.0, 2.0))
+    with pytest.raises(ValueError, match="SpotLight.position"):
+        SpotLight((0.0, np.inf, 2.0))
+    with pytest.raises(ValueError, match="AreaLight.matrix must be finite"):
+        AreaLight(np.full((4, 4), np.nan))
+    with pytest.raises(ValueError, match="reference_walks must be >= 1"):
+        RenderSettings(reference_walks=0)
+    with pytest.raises(ValueError, match="threads"):
+        RenderSettings(threads=-1)
+
+
+def test_images_do_not_depend_on_the_thread_count():
+    scene = mixed_scene(24, 16)
+    films = [render(scene, RenderSettings(samples=3, max_bounces=3, seed=3, chunk_paths=100, threads=n))
+             for n in (1, 3)]
+    assert np.array_equal(films[0][0].mean(), films[1][0].mean())
+    one, three = films[0][1], films[1][1]
+    assert one.paths == three.paths == 3 * 24 * 16 and one.rays == three.rays
+    # The phases are shares of the wall time, whatever the thread count.
+    for st in (one, three):
+        assert 0 < st.seconds["rays"] and st.seconds["rays"] + st.rest <= st.seconds["total"] * (1 + 1e-9)
 
 
 @pytest.mark.mitsuba

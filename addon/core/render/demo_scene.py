@@ -13,10 +13,10 @@ import math
 import numpy as np
 
 from ..stack import PRESETS, Coating, Diffuse, Stack
+from . import shapes
 from .lights import AreaLight, Environment
 from .materials import ImageTexture, LambertMaterial, LayeredSpec
 from .scene import Camera, Mesh, Scene
-from . import shapes
 
 DEMO_PRESETS = ("coated_gold", "red_car_paint", "lacquered_plastic", "varnished_wood", "frosted_copper")
 SPHERE_RADIUS = 0.45
@@ -49,7 +49,8 @@ def checker_texture(size: int = 512, squares: int = 16) -> np.ndarray:
     return img.astype(np.float32)
 
 
-FLOOR_STACK = Stack(Diffuse((0.6, 0.6, 0.6)), (Coating(roughness=0.05, ior=1.5, albedo=(0.9, 0.75, 0.4), thickness=0.3),))
+FLOOR_STACK = Stack(Diffuse((0.6, 0.6, 0.6)),
+                    (Coating(roughness=0.05, ior=1.5, albedo=(0.9, 0.75, 0.4), thickness=0.3),))
 
 
 def floor_maps(size: int = 256, squares: int = 16) -> dict[str, np.ndarray]:
@@ -86,7 +87,7 @@ def demo_scene(width: int = 320, height: int = 180, presets=DEMO_PRESETS, floor_
         tiles = LambertMaterial((1.0, 1.0, 1.0), ImageTexture(checker_texture()))
     else:
         tiles = LayeredSpec(FLOOR_STACK, floor_texture, "varnished_tiles")
-    materials = [tiles] + [LayeredSpec(st, None, name) for st, name in zip(stacks, names)]
+    materials = [tiles] + [LayeredSpec(st, None, name) for st, name in zip(stacks, names, strict=True)]
     light = np.eye(4)
     light[:3, 3] = (1.5, -1.5, 3.0)
     c, s = math.cos(math.radians(30)), math.sin(math.radians(30))

@@ -16,7 +16,9 @@ converge to the same image, which the tests check.
 
 from __future__ import annotations
 
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -47,6 +49,7 @@ class RenderSettings:
     rr_depth: int = 3
     chunk_paths: int = 1 << 16
     reference_walks: int = 16
+    threads: int = 0  # chunks traced at once; 0: one per CPU core
 
     def __post_init__(self):
         if self.strategy not in STRATEGIES:
@@ -59,18 +62,35 @@ class RenderSettings:
             raise ValueError(f"max_bounces must be >= 0, got {self.max_bounces}")
         if int(self.chunk_paths) < 1:
             raise ValueError(f"chunk_paths must be >= 1, got {self.chunk_paths}")
+        if int(self.reference_walks) < 1:
+            raise ValueError(f"reference_walks must be >= 1 (walks per reference estimate), got {self.reference_walks}")
+        if int(self.threads) < 0:
+            raise ValueError(f"threads must be >= 0 (0: one per CPU core), got {self.threads}")
+
+    @property
+    def thread_count(self) -> int:
+        """Chunks of paths traced at once: ``threads``, or one per CPU core when it is 0."""
+        return int(self.threads) or (os.cpu_count() or 1)
 
 
 @dataclass
 class RenderStats:
-    """Wall time per phase (seconds) and counts. ``network`` is time inside neural materials,
-    ``reference`` inside position-free estimators, ``rays`` the embreex time."""
+    """Wall time per phase (seconds) and counts. ``network`` is time waiting on the networks
+    (ONNX Runtime batches), ``reference`` inside position-free estimators, ``rays`` the embreex
+    time, ``total`` the render's wall time.
+
+    Chunks of paths are traced on several threads at once; each thread's time splits into the
+    phases and the rest, and the phase times here are those splits summed over the threads and
+    scaled by wall time / thread time (``thread_seconds``), so the phases and the rest add up
+    to ``total`` whatever the thread count."""
 
     paths: int = 0
     rays: int = 0
     seconds: dict = field(default_factory=lambda: {"rays": 0.0, "network": 0.0, "reference": 0.0, "total": 0.0})
     nonfinite: int = 0
     material_kinds: list = field(default_factory=list)  # per material index: analytic/neural/reference
+    thread_seconds: float = 0.0  # summed wall time of the threads that traced the chunks
+    thread_phases: dict = field(default_factory=lambda: {"rays": 0.0, "network": 0.0, "reference": 0.0})
 
     @property
     def rest(self) -> float:
@@ -88,11 +108,11 @@ class RenderStats:
 
 
 class Tracer:
-    """embreex closest-hit and occlusion queries over the scene's triangles (float32 rays)."""
+    """embreex closest-hit and occlusion queries over the scene's triangles (float32 rays); each
+    query adds its time and ray count to ``stats``."""
 
-    def __init__(self, mesh, stats: RenderStats):
+    def __init__(self, mesh):
         self.mesh = mesh
-        self.stats = stats
         self.scene = None
         if mesh.triangle_count:
             from embreex import rtcore_scene as rtcs
@@ -101,19 +121,19 @@ class Tracer:
             self.scene = rtcs.EmbreeScene()
             TriangleMesh(self.scene, np.ascontiguousarray(mesh.positions, dtype=np.float32))
 
-    def intersect(self, o, d):
+    def intersect(self, o, d, stats: RenderStats):
         n = len(o)
         if self.scene is None or n == 0:
             return np.full(n, np.inf), np.full(n, -1, np.int64), np.zeros(n), np.zeros(n)
         t0 = time.perf_counter()
         r = self.scene.run(np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32), output=1)
-        self.stats.seconds["rays"] += time.perf_counter() - t0
-        self.stats.rays += n
+        stats.seconds["rays"] += time.perf_counter() - t0
+        stats.rays += n
         prim = r["primID"].astype(np.int64)
         t = np.where(prim >= 0, r["tfar"].astype(np.float64), np.inf)
         return t, prim, r["u"].astype(np.float64), r["v"].astype(np.float64)
 
-    def occluded(self, o, d, tmax):
+    def occluded(self, o, d, tmax, stats: RenderStats):
         n = len(o)
         if self.scene is None or n == 0:
             return np.zeros(n, dtype=bool)
@@ -121,8 +141,8 @@ class Tracer:
         dist = np.minimum(tmax, 1e30).astype(np.float32)
         r = self.scene.run(np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32),
                            dists=np.ascontiguousarray(dist), query="OCCLUDED")
-        self.stats.seconds["rays"] += time.perf_counter() - t0
-        self.stats.rays += n
+        stats.seconds["rays"] += time.perf_counter() - t0
+        stats.rays += n
         return np.asarray(r) != -1
 
 
@@ -162,7 +182,7 @@ def camera_hits(scene: Scene, px, py) -> tuple[np.ndarray, np.ndarray]:
     if not scene.mesh.triangle_count or not len(px):
         return np.full(len(px), -1, dtype=np.int64), fp
     o, d = cam.generate_rays(px, py, np.full((len(px), 2), 0.5))
-    t, prim, _, _ = Tracer(scene.mesh, RenderStats()).intersect(o, d)
+    t, prim, _, _ = Tracer(scene.mesh).intersect(o, d, RenderStats())
     prim = np.asarray(prim, dtype=np.int64)
     hit = prim >= 0
     if hit.any():
@@ -185,7 +205,7 @@ class _Context:
             for i in range(n_mat)
         ]
         stats.material_kinds = [m.kind for m in self.materials]
-        self.tracer = Tracer(scene.mesh, stats)
+        self.tracer = Tracer(scene.mesh)
         env = scene.environment
         self.env = env if env is not None and not env.is_black else None
         self.area = [li for li in scene.lights if isinstance(li, AreaLight) and li.power > 0]
@@ -203,6 +223,11 @@ class _Context:
         else:
             self.eps = 1e-4
         self.uv_scale = uv_scale(m)
+        # Per-triangle geometry in float64 once, so a bounce gathers without converting.
+        self.positions = m.positions.astype(np.float64)
+        self.face_normals = m.face_normals.astype(np.float64)
+        self.normals = m.normals.astype(np.float64)
+        self.uvs = None if m.uvs is None else m.uvs.astype(np.float64)
 
     def light_weight(self, pdf_light_solid, prev_pdf, prev_delta, prev_mis):
         """Weight of emission found by BSDF sampling."""
@@ -225,6 +250,12 @@ def render(scene: Scene, settings: RenderSettings | None = None,
     ``progress(film, done, total)`` is called after every pass of one sample per pixel; returning
     False stops the render (raising :class:`Cancelled`, with the partial film attached as
     ``exc.film``). Pass a ``film`` to continue accumulating into it (progressive refinement).
+
+    Each pass is cut into chunks of ``chunk_paths`` pixels; ``settings.thread_count`` chunks
+    (of this pass or the next) are traced at once on a pool of threads (numpy, embreex and ONNX
+    Runtime release the GIL in their loops). Chunks draw their random numbers from their own
+    (pass, chunk) key and are added to the film in order, so the image does not depend on the
+    thread count.
     """
     settings = settings or RenderSettings()
     cam = scene.camera
@@ -235,25 +266,70 @@ def render(scene: Scene, settings: RenderSettings | None = None,
     start_pass = film.passes
     npix = cam.width * cam.height
     chunk = int(settings.chunk_paths)
-    for k in range(settings.samples):
-        pass_index = start_pass + k
-        for c0 in range(0, npix, chunk):
-            pix = np.arange(c0, min(npix, c0 + chunk))
-            L = _trace_paths(ctx, pix, pass_index, c0 // chunk)
-            bad = ~np.isfinite(L).all(axis=1)
-            if bad.any():
-                stats.nonfinite += int(bad.sum())
-                L[bad] = 0.0
+    starts = list(range(0, npix, chunk))
+    tasks = [(k, c) for k in range(settings.samples) for c in range(len(starts))]
+
+    def trace(task):
+        k, c = task
+        pix = np.arange(starts[c], min(npix, starts[c] + chunk))
+        return pix, _trace_paths(ctx, pix, start_pass + k, c)
+
+    workers = min(settings.thread_count, len(tasks))
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="render") if workers > 1 else None
+    try:
+        results = _ordered(pool, trace, tasks, workers)
+        for k, c in tasks:
+            pix, (L, piece) = next(results)
             film.add(pix, L)
-            stats.paths += len(pix)
-        film.passes += 1
-        stats.seconds["total"] = time.perf_counter() - t_start
-        if progress is not None and progress(film, k + 1, settings.samples) is False:
-            exc = Cancelled(f"render cancelled after {k + 1} of {settings.samples} samples")
-            exc.film, exc.stats = film, stats
-            raise exc
-    stats.seconds["total"] = time.perf_counter() - t_start
+            _merge_stats(stats, piece)
+            if c < len(starts) - 1:
+                continue
+            film.passes += 1
+            _finish_stats(stats, time.perf_counter() - t_start)
+            if progress is not None and progress(film, k + 1, settings.samples) is False:
+                exc = Cancelled(f"render cancelled after {k + 1} of {settings.samples} samples")
+                exc.film, exc.stats = film, stats
+                raise exc
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
+    _finish_stats(stats, time.perf_counter() - t_start)
     return film, stats
+
+
+def _ordered(pool, fn, tasks, ahead: int):
+    """``fn(task)`` for each task, in order; with a pool, at most ``ahead`` tasks in flight (a
+    cancelled render does not leave a queue of passes behind)."""
+    if pool is None:
+        yield from map(fn, tasks)
+        return
+    futures = [pool.submit(fn, t) for t in tasks[:ahead]]
+    for i in range(len(tasks)):
+        if i + ahead < len(tasks):
+            futures.append(pool.submit(fn, tasks[i + ahead]))
+        yield futures[i].result()
+        futures[i] = None
+
+
+_PHASES = ("rays", "network", "reference")
+
+
+def _merge_stats(stats: RenderStats, piece: RenderStats) -> None:
+    """Add one chunk's counts and thread-time phases."""
+    stats.paths += piece.paths
+    stats.rays += piece.rays
+    stats.nonfinite += piece.nonfinite
+    stats.thread_seconds += piece.thread_seconds
+    for key in _PHASES:
+        stats.thread_phases[key] += piece.seconds[key]
+
+
+def _finish_stats(stats: RenderStats, wall: float) -> None:
+    """Phases in wall time: each thread-time phase scaled by wall / thread time (the class docstring)."""
+    stats.seconds["total"] = wall
+    scale = wall / stats.thread_seconds if stats.thread_seconds > 0 else 0.0
+    for key in _PHASES:
+        stats.seconds[key] = stats.thread_phases[key] * scale
 
 
 @dataclass
@@ -323,22 +399,19 @@ def _add_emission(ctx: _Context, paths: _Paths, t: np.ndarray, miss: np.ndarray,
             w = ctx.light_weight(pdf_l[m], paths.pdf[m], paths.delta[m], paths.mis[m])
             L[paths.row[m]] += paths.throughput[m] * light.radiance * w[:, None]
     if ctx.env is not None and miss.any():
-        dm = paths.d[miss]
-        w = ctx.light_weight(ctx.env.pdf(dm), paths.pdf[miss], paths.delta[miss], paths.mis[miss])
-        L[paths.row[miss]] += paths.throughput[miss] * ctx.env.radiance(dm) * w[:, None]
+        radiance, pdf = ctx.env.radiance_and_pdf(paths.d[miss])
+        w = ctx.light_weight(pdf, paths.pdf[miss], paths.delta[miss], paths.mis[miss])
+        L[paths.row[miss]] += paths.throughput[miss] * radiance * w[:, None]
 
 
 def _surface_hits(ctx: _Context, paths: _Paths, t, prim, bu, bv) -> _Hits:
     """The surface where each ray lands: interpolated position, normals and uv; a shading frame
     facing the viewer (shading normals that disagree with the geometry fall back to it); the
     ray cone grown to the hit and its footprint in texture space."""
-    mesh = ctx.scene.mesh
-    b0 = 1.0 - bu - bv
-    tri = mesh.positions[prim].astype(np.float64)
-    p = b0[:, None] * tri[:, 0] + bu[:, None] * tri[:, 1] + bv[:, None] * tri[:, 2]
-    ng = mesh.face_normals[prim].astype(np.float64)
-    nrm = mesh.normals[prim].astype(np.float64)
-    ns = frame.normalize(b0[:, None] * nrm[:, 0] + bu[:, None] * nrm[:, 1] + bv[:, None] * nrm[:, 2])
+    bary = np.stack([1.0 - bu - bv, bu, bv], axis=1)
+    p = np.einsum("ij,ijk->ik", bary, ctx.positions[prim])
+    ng = ctx.face_normals[prim]
+    ns = frame.normalize(np.einsum("ij,ijk->ik", bary, ctx.normals[prim]))
     ns = np.where((frame.dot(ns, ng) > 0)[:, None], ns, ng)  # inconsistent or zero: use ng
     wo_w = -paths.d
     side = np.where(frame.dot(ng, wo_w) >= 0, 1.0, -1.0)[:, None]
@@ -346,17 +419,13 @@ def _surface_hits(ctx: _Context, paths: _Paths, t, prim, bu, bv) -> _Hits:
     ns = np.where((frame.dot(ns, wo_w) > 1e-6)[:, None], ns, ng)  # grazing: fall back to ng
     ts, tt = frame.coordinate_system(ns)
     wo = frame.to_local(wo_w, ts, tt, ns)
-    if mesh.uvs is not None:
-        uvt = mesh.uvs[prim].astype(np.float64)
-        uv = b0[:, None] * uvt[:, 0] + bu[:, None] * uvt[:, 1] + bv[:, None] * uvt[:, 2]
-    else:
-        uv = np.zeros((len(prim), 2))
+    uv = np.einsum("ij,ijk->ik", bary, ctx.uvs[prim]) if ctx.uvs is not None else np.zeros((len(prim), 2))
     paths.width = paths.width + paths.spread * t
     footprint = texture_footprint(paths.width, frame.dot(ng, wo_w), ctx.uv_scale[prim])
-    return _Hits(p, ng, ns, ts, tt, wo, uv, footprint, mesh.material_index[prim])
+    return _Hits(p, ng, ns, ts, tt, wo, uv, footprint, ctx.scene.mesh.material_index[prim])
 
 
-def _sample_lights(ctx: _Context, hits: _Hits, u_light: np.ndarray) -> _LightSamples:
+def _sample_lights(ctx: _Context, hits: _Hits, u_light: np.ndarray, stats: RenderStats) -> _LightSamples:
     """Next-event estimation: one light (or the sky) chosen uniformly per hit, a point on it, and
     one occlusion query for all shadow rays; light reaching the surface through the shading
     normal's side but not the geometric one's is discarded."""
@@ -380,7 +449,7 @@ def _sample_lights(ctx: _Context, hits: _Hits, u_light: np.ndarray) -> _LightSam
     tmax = np.where(np.isinf(dist), np.inf, dist * (1 - 1e-4) - ctx.eps)
     unseen = np.zeros(m, dtype=bool)
     idx = np.nonzero(useful)[0]
-    unseen[idx] = ctx.tracer.occluded(org[idx], wi_w[idx], tmax[idx])
+    unseen[idx] = ctx.tracer.occluded(org[idx], wi_w[idx], tmax[idx], stats)
     wi = frame.to_local(wi_w, hits.ts, hits.tt, hits.ns)
     visible = useful & ~unseen & (np.sign(wi[:, 2]) == np.sign(cos_g))
     return _LightSamples(wi, rad, pdf, delta, visible)
@@ -398,7 +467,7 @@ class _Scatter:
 
 
 def _shade(ctx: _Context, paths: _Paths, hits: _Hits, lights: _LightSamples, u_lobe, u_dir, seeds,
-           L: np.ndarray) -> _Scatter:
+           L: np.ndarray, stats: RenderStats) -> _Scatter:
     """Scattering at the surface, one query per material: the reflected next-event light
     (MIS-weighted against BSDF sampling) goes into the image, and each hit draws the direction
     its path continues in."""
@@ -413,9 +482,9 @@ def _shade(ctx: _Context, paths: _Paths, hits: _Hits, lights: _LightSamples, u_l
         t0, net0 = time.perf_counter(), session.seconds_on_this_thread()
         bound = material.bind(mat.SurfaceHits(hits.uv[sel], hits.footprint[sel], int(seeds[mi])))
         sh = bound.shade(hits.wo[sel], lights.wi[v], rows, u_lobe[sel], u_dir[sel], need_pdf)
-        ctx.stats.seconds["network"] += session.seconds_on_this_thread() - net0
+        stats.seconds["network"] += session.seconds_on_this_thread() - net0
         if material.kind == "reference":
-            ctx.stats.seconds["reference"] += time.perf_counter() - t0
+            stats.seconds["reference"] += time.perf_counter() - t0
         if len(v):
             lw = np.ones(len(v))
             if need_pdf:
@@ -450,8 +519,12 @@ def _continue_paths(ctx: _Context, paths: _Paths, hits: _Hits, sc: _Scatter, dep
                   sc.mis[keep], paths.width[keep], spread[keep])
 
 
-def _trace_paths(ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: int) -> np.ndarray:
-    """Radiance (N, 3) of one path per pixel of ``pix``, all paths a bounce at a time."""
+def _trace_paths(ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: int
+                 ) -> tuple[np.ndarray, RenderStats]:
+    """Radiance (N, 3) of one path per pixel of ``pix``, all paths a bounce at a time, and the
+    chunk's statistics (its phases in thread time)."""
+    t_start = time.perf_counter()
+    stats = RenderStats()
     s = ctx.settings
     L = np.zeros((len(pix), 3))
     paths = _camera_paths(ctx, pix, np.random.default_rng([s.seed, pass_index, chunk_index, 0]))
@@ -459,7 +532,7 @@ def _trace_paths(ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: i
         if len(paths.row) == 0:
             break
         rng = np.random.default_rng([s.seed, pass_index, chunk_index, depth + 1])
-        t, prim, bu, bv = ctx.tracer.intersect(paths.o, paths.d)
+        t, prim, bu, bv = ctx.tracer.intersect(paths.o, paths.d, stats)
         miss = prim < 0
         _add_emission(ctx, paths, t, miss, L)
         if depth == s.max_bounces:
@@ -470,9 +543,15 @@ def _trace_paths(ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: i
         paths = paths.take(hit)
         hits = _surface_hits(ctx, paths, t[hit], prim[hit], bu[hit], bv[hit])
         m = len(hit)
-        lights = _sample_lights(ctx, hits, rng.random((m, 3)))
+        lights = _sample_lights(ctx, hits, rng.random((m, 3)), stats)
         u_lobe, u_dir = rng.random(m), rng.random((m, 2))
         seeds = rng.integers(0, 2**31, size=len(ctx.materials))
-        sc = _shade(ctx, paths, hits, lights, u_lobe, u_dir, seeds, L)
+        sc = _shade(ctx, paths, hits, lights, u_lobe, u_dir, seeds, L, stats)
         paths = _continue_paths(ctx, paths, hits, sc, depth, rng)
-    return L
+    bad = ~np.isfinite(L).all(axis=1)
+    if bad.any():
+        stats.nonfinite += int(bad.sum())
+        L[bad] = 0.0
+    stats.paths = len(pix)
+    stats.thread_seconds = time.perf_counter() - t_start
+    return L, stats

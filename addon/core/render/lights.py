@@ -48,6 +48,13 @@ def _unit(v, name: str) -> np.ndarray:
     return v / n
 
 
+def _point(value, name: str) -> np.ndarray:
+    v = np.asarray(value, dtype=np.float64)
+    if v.size != 3 or not np.isfinite(v).all():
+        raise ValueError(f"{name} must be three finite numbers, got {np.asarray(value).tolist()!r}")
+    return v.reshape(3)
+
+
 def _power(value, name: str) -> float:
     v = float(value)
     if not math.isfinite(v) or v < 0:
@@ -62,7 +69,7 @@ class PointLight:
     color: tuple = (1.0, 1.0, 1.0)
 
     def __post_init__(self):
-        self.position = np.asarray(self.position, dtype=np.float64).reshape(3)
+        self.position = _point(self.position, f"{type(self).__name__}.position")
         self.power = _power(self.power, "PointLight.power")
         self.color = _rgb(self.color, "PointLight.color")
 
@@ -156,6 +163,8 @@ class AreaLight:
 
     def __post_init__(self):
         m = np.asarray(self.matrix, dtype=np.float64).reshape(4, 4)
+        if not np.isfinite(m).all():
+            raise ValueError(f"AreaLight.matrix must be finite, got {m.tolist()}")
         self.power = _power(self.power, "AreaLight.power")
         self.color = _rgb(self.color, "AreaLight.color")
         sy = self.size if self.size_y is None else self.size_y
@@ -280,16 +289,21 @@ class Environment:
 
     def radiance(self, d: np.ndarray) -> np.ndarray:
         """Radiance (N, 3) arriving from world directions d (pointing away from the scene)."""
-        if self.image is None:
-            return np.broadcast_to(self.constant, (len(d), 3)).copy()
-        y, x = self._pixel(d)
-        return self.image[y, x]
+        return self.radiance_and_pdf(d)[0]
 
     def pdf(self, d: np.ndarray) -> np.ndarray:
+        return self.radiance_and_pdf(d)[1]
+
+    def radiance_and_pdf(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Radiance (N, 3) from world directions d and the solid-angle pdf (N,) of :meth:`sample`
+        choosing them, from one pixel lookup."""
         if self.image is None:
-            return np.full(len(d), 1 / (4 * math.pi))
-        h, w, _ = self.image.shape
+            return np.broadcast_to(self.constant, (len(d), 3)).copy(), np.full(len(d), 1 / (4 * math.pi))
         y, x = self._pixel(d)
+        return self.image[y, x], self._pdf_at(y, x, d)
+
+    def _pdf_at(self, y: np.ndarray, x: np.ndarray, d: np.ndarray) -> np.ndarray:
+        h, w, _ = self.image.shape
         sin_t = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-8)
         return self.pixel_p[y * w + x] * (w * h) / (2 * math.pi**2 * sin_t)
 
@@ -300,6 +314,7 @@ class Environment:
             r = np.sqrt(np.maximum(0.0, 1 - z * z))
             phi = 2 * math.pi * u[:, 1]
             wi = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+            rad, pdf = self.radiance_and_pdf(wi)
         else:
             h, w, _ = self.image.shape
             # One uniform picks the pixel through the cdf; the second jitters inside it.
@@ -310,7 +325,9 @@ class Environment:
             y, x = np.divmod(idx, w)
             uv = np.stack([(x + fx) / w, 1 - (y + u[:, 1]) / h], axis=1)
             wi = equirect_to_direction(uv)
-        return LightSample(wi, np.full(n, INF), self.radiance(wi), self.pdf(wi), False)
+            # The direction lies inside the chosen pixel: its radiance and density are that pixel's.
+            rad, pdf = self.image[y, x], self._pdf_at(y, x, wi)
+        return LightSample(wi, np.full(n, INF), rad, pdf, False)
 
     def estimated_power(self) -> float:
         if self.image is None:

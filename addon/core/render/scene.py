@@ -57,7 +57,16 @@ class Camera:
     def look_at(cls, eye, target, up=(0.0, 0.0, 1.0), fov_deg: float = 40.0, width: int = 64,
                 height: int = 64) -> "Camera":
         """A camera at ``eye`` looking at ``target``; ``fov_deg`` spans the larger image side."""
-        eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+        width, height = int(width), int(height)
+        if width < 1 or height < 1:
+            raise ValueError(f"image size must be at least 1 x 1, got {width} x {height}")
+        fov = float(fov_deg)
+        if not 0.0 < fov < 180.0:
+            raise ValueError(f"fov_deg must be in (0, 180) degrees, got {fov_deg!r}")
+        eye, target, up = (np.asarray(v, dtype=np.float64).reshape(3) for v in (eye, target, up))
+        for name, v in (("eye", eye), ("target", target), ("up", up)):
+            if not np.isfinite(v).all():
+                raise ValueError(f"camera {name} must be finite, got {v.tolist()}")
         back = eye - target
         if np.linalg.norm(back) == 0:
             raise ValueError("camera eye and target must differ")
@@ -69,7 +78,7 @@ class Camera:
         true_up = np.cross(back, right)
         m = np.eye(4)
         m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, true_up, back, eye
-        t = math.tan(math.radians(fov_deg) / 2)
+        t = math.tan(math.radians(fov) / 2)
         aspect = width / height
         tan = (t, t / aspect) if width >= height else (t * aspect, t)
         return cls(m, width, height, tan)
