@@ -7,23 +7,34 @@ Runs as a plain script with the ``bpy`` module, or inside Blender:
     python bake/bake.py --blend scene.blend --material Wood --material CarPaint --out textures/
     blender -b --python bake/bake.py -- --blend scene.blend --material Wood --out textures/
 
-Writes ``<out>/<material>.exr`` (tiled, mip-mapped, half-float latent texture) and
-``<out>/<material>.json`` (stack, driving images, models, timings) per material.
+Writes ``<out>/<file>.exr`` (tiled, mip-mapped, half-float latent texture) and
+``<out>/<file>.json`` (stack, driving images, models, timings) per material, where ``<file>`` is
+the material name (or ``--name``) made safe as a file name: a name holding path separators or
+other characters a file name cannot hold gets them replaced and a short hash of the name
+appended, so every output stays inside ``--out`` and different materials never share a file.
 
 Work is split into (material, band of rows) items: ``--shard i/n`` takes every n-th item from
-the i-th, so shards can run anywhere; each finished band is kept as ``.<material>.bands/NNNN.npy``
-and whichever shard completes a material's last band assembles its EXR. Finished outputs and
-bands are skipped when the inputs are unchanged, so an interrupted bake resumes. Every file is
-written under a temporary name and renamed, so nothing half-written sits where a finished file
-is expected. Exit codes: 0 done, 1 bake failed, 2 bad input.
+the i-th, so shards can run anywhere, at the same time too; each finished band is kept as
+``.<file>.bands/<key>_NNNN.npy``, where the key hashes every input, so a band is only ever reused
+for the same inputs (and only if it reads back whole and finite). Whichever shard finds all bands
+present assembles the EXR; when several do at once each publishes the same texels, and bands are
+deleted only after a publish, by the publisher (a shard that finds them gone checks that the
+texture was published). Finished outputs and bands are skipped when the inputs are unchanged, so
+an interrupted bake resumes. Every file is written under a temporary name unique to its process
+and renamed atomically, so nothing half-written sits where a finished file is expected; an
+interrupted bake removes its temporary files, and those of a killed one are removed by the next
+run. Exit codes: 0 done, 1 bake failed, 2 bad input, 130 interrupted (Ctrl-C, SIGINT),
+143 terminated (SIGTERM); finished bands are kept in every case.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import re
+import signal
 import sys
 import time
 from dataclasses import dataclass
@@ -35,15 +46,27 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from addon.core.stack import PRESETS, preset  # noqa: E402
+from addon.core.stack import PRESETS, Stack, preset  # noqa: E402
+from addon.core.textures import files  # noqa: E402
 from addon.core.textures.bake import _texels_at, bake_key, bake_texels, neural_encoder  # noqa: E402
+from addon.core.textures.latent_texture import CHANNEL_NAMES, LatentTexture, read_image  # noqa: E402
 from addon.core.textures.mip import resample_area  # noqa: E402
-from addon.core.textures.latent_texture import LatentTexture, read_image  # noqa: E402
 from addon.core.textures.spatial import SpatialStack  # noqa: E402
+
+EXIT_DONE, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
+EXIT_SIGNAL = {signal.SIGINT: 130, signal.SIGTERM: 143}  # 128 + signal number, as shells report it
 
 
 class BadInput(Exception):
     """Invalid command-line input: reported with exit code 2."""
+
+
+class Interrupted(BaseException):
+    """SIGINT or SIGTERM arrived: unwinds like KeyboardInterrupt, so every temporary file is removed."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
 
 
 @dataclass
@@ -54,6 +77,11 @@ class Job:
     sources: dict[str, str]  # parameter path -> image description, for the sidecar
     mix: SpatialStack | None = None  # blended in latent space through ``mask``
     mask: np.ndarray | None = None
+
+    @property
+    def file(self) -> str:
+        """The output file stem: the name made safe (see ``files.safe_file_name``)."""
+        return files.safe_file_name(self.name)
 
     def key(self, model: str) -> str:
         return bake_key(self.spatial, self.resolution, model, self.mix, self.mask)
@@ -115,6 +143,7 @@ def preset_job(args) -> list[Job]:
             mask = read_image(args.mask)[..., 0].astype(np.float64)
         except (FileNotFoundError, ValueError) as e:
             raise BadInput(f"--mix/--mask: {e}") from None
+        check_mask(mask, args.mask)
         if spatial.resolution is not None and spatial.resolution != mask.shape:
             raise BadInput(f"--mask is {mask.shape[1]}x{mask.shape[0]} but the driving images are "
                            f"{spatial.resolution[1]}x{spatial.resolution[0]}: they must share a resolution")
@@ -127,14 +156,56 @@ def preset_job(args) -> list[Job]:
     return [Job(args.name or args.preset, spatial, res, sources, mix, mask)]
 
 
+def check_mask(mask: np.ndarray, path: Path) -> None:
+    """A mask blends two latents, so it must hold finite values in [0, 1]: outside it extrapolates."""
+    bad = ~np.isfinite(mask) | (mask < 0.0) | (mask > 1.0)
+    if bad.any():
+        y, x = np.argwhere(bad)[0]
+        raise BadInput(f"--mask {path}: {int(bad.sum())} texel(s) outside [0, 1], first {mask[y, x]} at "
+                       f"(x={x}, y={y}); a mask's first channel must hold finite values in [0, 1]")
+
+
+def material_reader(bpy):
+    """``spatial_stack_from_material`` of the add-on whose properties the materials carry.
+
+    Inside Blender with the extension enabled that is the enabled extension's (its properties
+    are registered); with the plain ``bpy`` module nothing is registered, so this checkout's
+    add-on is registered here. The stack it returns is rebuilt with this checkout's core
+    classes, which the rest of the bake uses.
+    """
+    import importlib
+
+    prop = bpy.types.Material.bl_rna.properties.get("neural_layers")
+    if prop is None:
+        from addon import blender
+
+        blender.register()
+        prop = bpy.types.Material.bl_rna.properties["neural_layers"]
+    owners = [c for c in bpy.types.PropertyGroup.__subclasses__()
+              if c.__name__ == prop.fixed_type.identifier and getattr(c, "is_registered", False)]
+    package = owners[-1].__module__.rsplit(".", 1)[0] if owners else "addon.blender"
+    read = importlib.import_module(package + ".bake_inputs").spatial_stack_from_material
+
+    def spatial_stack(mat):
+        found = read(mat)
+        if found is None:
+            return None
+        spatial, sources = found
+        return SpatialStack(Stack.from_json(spatial.stack.to_json()), dict(spatial.maps)), sources
+
+    return spatial_stack
+
+
 def blend_jobs(args) -> list[Job]:
     if not args.blend.is_file():
         raise BadInput(f"--blend: file not found: {args.blend}")
     import bpy
 
-    from addon.blender.bake_inputs import spatial_stack_from_material
-
-    bpy.ops.wm.open_mainfile(filepath=str(args.blend))
+    spatial_stack_from_material = material_reader(bpy)
+    try:
+        bpy.ops.wm.open_mainfile(filepath=str(args.blend))
+    except RuntimeError as e:
+        raise BadInput(f"--blend {args.blend}: cannot open it as a .blend file ({str(e).strip()})") from None
     jobs = []
     names = args.material or [m.name for m in bpy.data.materials if spatial_stack_from_material(m) is not None]
     for name in names:
@@ -160,16 +231,13 @@ def blend_jobs(args) -> list[Job]:
 
 
 def _atomic_save_npy(path: Path, array: np.ndarray) -> None:
-    tmp = path.with_name(path.name + ".partial")
-    with open(tmp, "wb") as f:
-        np.save(f, array)
-    os.replace(tmp, path)
+    with files.publishing(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.save(f, array)
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".partial")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    files.write_bytes(path, text.encode("utf-8"))
 
 
 class ProgressBar:
@@ -189,27 +257,90 @@ class ProgressBar:
         self.stream.write("\n")
 
 
-def run(jobs: list[Job], out: Path, encode, model: str, shard: tuple[int, int], band_rows: int,
-        dedup: bool = True, log=print) -> dict:
-    """Bake this shard's items, assemble every material whose bands are all present."""
+def _check_output_folder(out: Path, jobs: list[Job]) -> None:
     try:
         out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".write-test"
-        probe.write_text("")
+        probe = files.temp_path(out / "write-test")  # unique: shards probe the same folder at once
+        probe.write_bytes(b"")
         probe.unlink()
     except OSError as e:
         raise BadInput(f"--out {out}: not writable ({e})") from None
+    seen: dict[str, str] = {}
+    for job in jobs:  # file systems that ignore case would still put two of them in one file
+        other = seen.setdefault(job.file.casefold(), job.name)
+        if other != job.name:
+            raise BadInput(f"materials {other!r} and {job.name!r} would both write {job.file}.exr on a file system "
+                           f"that ignores case; rename one (or bake them into different --out folders)")
+
+
+def _band_folder(out: Path, job: Job) -> Path:
+    return out / f".{job.file}.bands"
+
+
+def _band_rows(job: Job, band: int, band_rows: int) -> int:
+    return min((band + 1) * band_rows, job.resolution[0]) - band * band_rows
+
+
+def _load_band(path: Path, rows: int, width: int) -> np.ndarray:
+    """A kept band, or ValueError if it is not whole: the right shape, float32 and finite."""
+    try:
+        band = np.load(path, allow_pickle=False)
+    except (EOFError, OSError, ValueError) as e:
+        if isinstance(e, FileNotFoundError):
+            raise
+        raise ValueError(f"band {path.name} is unreadable ({e})") from None
+    want = (rows * width, len(CHANNEL_NAMES))
+    if band.shape != want or band.dtype != np.float32:
+        raise ValueError(f"band {path.name} is {band.dtype} {band.shape}, expected float32 {want}")
+    if not np.isfinite(band).all():
+        raise ValueError(f"band {path.name} holds non-finite texels")
+    return band
+
+
+def _kept_band(target: Path, rows: int, width: int, log) -> bool:
+    """Whether a band from an earlier run can be reused; an invalid one is removed so it is baked again."""
+    if not target.is_file():
+        return False
+    try:
+        _load_band(target, rows, width)
+        return True
+    except FileNotFoundError:
+        return False
+    except ValueError as e:
+        log(f"{e}: baking it again")
+        target.unlink(missing_ok=True)
+        return False
+
+
+def _bake_band(job: Job, band: int, band_rows: int, encode, dedup: bool, cache: dict, bar) -> tuple[np.ndarray, object]:
+    if job.name not in cache:
+        cache[job.name] = job.texels()
+    arrays, mixed, mask = cache[job.name]
+    h, w = job.resolution
+    rows = slice(band * band_rows * w, min((band + 1) * band_rows, h) * w)
+    texels, st = bake_texels(arrays.take(rows), encode, dedup=dedup,
+                             progress=lambda f: bar.update(f"{job.name} band {band}", f))
+    if mixed is not None:  # blend in latent space: one intermediate lobe per texel
+        other, st2 = bake_texels(mixed.take(rows), encode, dedup=dedup)
+        texels = ((1.0 - mask[rows]) * texels + mask[rows] * other).astype(np.float32)
+        st.unique += st2.unique
+    if not np.isfinite(texels).all():
+        raise ValueError(f"{job.name} band {band}: non-finite latents; nothing was kept")
+    return texels, st
+
+
+def run(jobs: list[Job], out: Path, encode, model: str, shard: tuple[int, int], band_rows: int,
+        dedup: bool = True, log=print) -> dict:
+    """Bake this shard's items, assemble every material whose bands are all present."""
+    _check_output_folder(out, jobs)
+    files.remove_stale_temps(out)
     items = []
     for job in jobs:
         key = job.key(model)
-        sidecar = out / f"{job.name}.json"
-        if (out / f"{job.name}.exr").is_file() and sidecar.is_file():
-            try:
-                if json.loads(sidecar.read_text()).get("key") == key:
-                    log(f"{job.name}: up to date, skipped")
-                    continue
-            except (OSError, json.JSONDecodeError):
-                pass
+        if _fresh(out, job, key):
+            log(f"{job.name}: up to date, skipped")
+            _remove_bands(out, job)
+            continue
         bands = -(-job.resolution[0] // band_rows)
         items += [(job, key, b) for b in range(bands)]
     mine = [it for k, it in enumerate(items) if k % shard[1] == shard[0]]
@@ -217,25 +348,22 @@ def run(jobs: list[Job], out: Path, encode, model: str, shard: tuple[int, int], 
     stats = {"bands_baked": 0, "bands_skipped": 0, "texels": 0, "unique": 0, "seconds": 0.0, "assembled": []}
     cache: dict[str, object] = {}
     for job, key, band in mine:
-        folder = out / f".{job.name}.bands"
-        folder.mkdir(exist_ok=True)
+        folder = _band_folder(out, job)
         target = folder / f"{key}_{band:04d}.npy"
-        if target.is_file():
-            stats["bands_skipped"] += 1
+        rows = _band_rows(job, band, band_rows)
+        if _kept_band(target, rows, job.resolution[1], log) or _fresh(out, job, key):
+            stats["bands_skipped"] += 1  # kept from an earlier run, or another shard already published
             bar.update(f"{job.name} band {band} (kept)", advance=True)
             continue
-        if job.name not in cache:
-            cache[job.name] = job.texels()
-        arrays, mixed, mask = cache[job.name]
-        h, w = job.resolution
-        rows = slice(band * band_rows * w, min((band + 1) * band_rows, h) * w)
-        texels, st = bake_texels(arrays.take(rows), encode, dedup=dedup,
-                                 progress=lambda f: bar.update(f"{job.name} band {band}", f))
-        if mixed is not None:  # blend in latent space: one intermediate lobe per texel
-            other, st2 = bake_texels(mixed.take(rows), encode, dedup=dedup)
-            texels = ((1.0 - mask[rows]) * texels + mask[rows] * other).astype(np.float32)
-            st.unique += st2.unique
-        _atomic_save_npy(target, texels)
+        texels, st = _bake_band(job, band, band_rows, encode, dedup, cache, bar)
+        for attempt in (0, 1):  # a shard that just published may have removed the (then empty) folder
+            folder.mkdir(exist_ok=True)
+            try:
+                _atomic_save_npy(target, texels)
+                break
+            except FileNotFoundError:
+                if attempt:
+                    raise
         bar.update(f"{job.name} band {band}", advance=True)
         stats["bands_baked"] += 1
         stats["texels"] += st.texels
@@ -243,53 +371,113 @@ def run(jobs: list[Job], out: Path, encode, model: str, shard: tuple[int, int], 
         stats["seconds"] += st.seconds
     bar.close()
     for job in jobs:
-        key = job.key(model)
-        folder = out / f".{job.name}.bands"
-        bands = -(-job.resolution[0] // band_rows)
-        files = [folder / f"{key}_{b:04d}.npy" for b in range(bands)]
-        if not all(f.is_file() for f in files) or (out / f"{job.name}.exr").is_file() and _fresh(out, job, key):
-            continue
-        t0 = time.perf_counter()
-        h, w = job.resolution
-        texels = np.concatenate([np.load(f) for f in files]).reshape(h, w, -1)
-        meta = {"stack": job.spatial.stack.to_json(), "model": model, "key": key}
-        LatentTexture.from_texels(texels, meta).write_exr(out / f"{job.name}.exr")
-        sidecar = {
-            "key": key,
-            "material": job.name,
-            "stack": job.spatial.stack.to_dict(),
-            "maps": job.sources,
-            "resolution": [w, h],
-            "model": model,
-            "seconds_assemble_and_write": round(time.perf_counter() - t0, 3),
-            "this_shard": {"texels": stats["texels"], "unique_texels": stats["unique"],
-                           "encode_seconds": round(stats["seconds"], 3)},
-        }
-        _atomic_write_text(out / f"{job.name}.json", json.dumps(sidecar, indent=2))
-        for f in files:
-            f.unlink(missing_ok=True)
-        try:
-            folder.rmdir()
-        except OSError:
-            pass
-        stats["assembled"].append(job.name)
-        log(f"{job.name}: wrote {out / (job.name + '.exr')} ({w}x{h})")
+        def rebake(band, job=job):
+            return _bake_band(job, band, band_rows, encode, dedup, cache, bar)[0]
+
+        if assemble(out, job, job.key(model), model, band_rows, stats, rebake, log):
+            stats["assembled"].append(job.name)
+            log(f"{job.name}: wrote {out / (job.file + '.exr')} ({job.resolution[1]}x{job.resolution[0]})")
     return stats
 
 
-def _fresh(out: Path, job: Job, key: str) -> bool:
-    try:
-        return json.loads((out / f"{job.name}.json").read_text()).get("key") == key
-    except (OSError, json.JSONDecodeError):
+def assemble(out: Path, job: Job, key: str, model: str, band_rows: int, stats: dict, rebake, log=print) -> bool:
+    """Publish the material's texture if all its bands are present; True if this process published it.
+
+    Several shards may get here at once: each reads the bands and publishes (atomically, the
+    same texels); bands are removed only after a publish, so a shard that finds one gone checks
+    that the texture it was about to write is there. A band found damaged is baked again by
+    ``rebake(band) -> texels``.
+    """
+    folder = _band_folder(out, job)
+    h, w = job.resolution
+    bands = -(-h // band_rows)
+    paths = [folder / f"{key}_{b:04d}.npy" for b in range(bands)]
+    if _fresh(out, job, key) or not all(p.is_file() for p in paths):
         return False
+    t0 = time.perf_counter()
+    parts = []
+    for b, p in enumerate(paths):
+        try:
+            parts.append(_load_band(p, _band_rows(job, b, band_rows), w))
+        except FileNotFoundError:
+            if _fresh(out, job, key):
+                return False  # another shard published it and removed the bands
+            raise RuntimeError(f"{job.name}: its bands were removed while assembling, and no texture for these "
+                               f"inputs was published (another bake of different inputs into {out}?)") from None
+        except ValueError as e:  # damaged after it was kept: never reused, baked again here
+            log(f"{e}: baking it again")
+            p.unlink(missing_ok=True)
+            parts.append(rebake(b))
+    texels = np.concatenate(parts).reshape(h, w, -1)
+    meta = {"stack": job.spatial.stack.to_json(), "model": model, "key": key}
+    LatentTexture.from_texels(texels, meta).write_exr(out / f"{job.file}.exr")
+    sidecar = {
+        "key": key,
+        "material": job.name,
+        "stack": job.spatial.stack.to_dict(),
+        "maps": job.sources,
+        "resolution": [w, h],
+        "model": model,
+        "seconds_assemble_and_write": round(time.perf_counter() - t0, 3),
+        "this_shard": {"texels": stats["texels"], "unique_texels": stats["unique"],
+                       "encode_seconds": round(stats["seconds"], 3)},
+    }
+    _atomic_write_text(out / f"{job.file}.json", json.dumps(sidecar, indent=2))
+    _remove_bands(out, job)
+    return True
+
+
+def _remove_bands(out: Path, job: Job) -> None:
+    """Once the texture is published its bands are not needed, nor those of earlier inputs."""
+    folder = _band_folder(out, job)
+    if not folder.is_dir():
+        return
+    for entry in folder.glob("*.npy"):
+        entry.unlink(missing_ok=True)
+    files.remove_stale_temps(folder)
+    with contextlib.suppress(OSError):
+        folder.rmdir()  # only if empty: another shard may still be writing a temporary file there
+
+
+def _fresh(out: Path, job: Job, key: str) -> bool:
+    """Whether the published texture and its sidecar are both of these inputs."""
+    exr = out / f"{job.file}.exr"
+    if not exr.is_file():
+        return False
+    try:
+        if json.loads((out / f"{job.file}.json").read_text()).get("key") != key:
+            return False
+    except (OSError, ValueError):
+        return False
+    return _exr_key(exr) == key
+
+
+def _exr_key(path: Path) -> str | None:
+    """The bake key in a texture's header (the sidecar alone could describe another texture)."""
+    from addon.core.textures.latent_texture import oiio_module
+
+    inp = oiio_module().ImageInput.open(str(path))
+    if inp is None:
+        return None
+    try:
+        value = inp.spec().get_string_attribute("nlm:key")
+        return value or None
+    finally:
+        inp.close()
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line, exit code 2, instead of argparse's usage block
+        raise BadInput(f"{message} (bake.py --help lists the options)")
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="bake.py", description="Bake layered materials into latent textures.")
+    ap = _Parser(prog="bake.py", description="Bake layered materials into latent textures.")
     src = ap.add_mutually_exclusive_group(required=True)
     src.add_argument("--blend", type=Path, help=".blend file holding the materials")
     src.add_argument("--preset", help=f"bake a preset stack: {', '.join(sorted(PRESETS))}")
-    ap.add_argument("--material", action="append", help="material name in --blend (repeatable; default: all with a stack)")
+    ap.add_argument("--material", action="append",
+                    help="material name in --blend (repeatable; default: all with a stack)")
     ap.add_argument("--map", action="append", help="with --preset: PATH=IMAGE[:LO:HI] drives a parameter by an image")
     ap.add_argument("--name", help="with --preset: output name (default: the preset's)")
     ap.add_argument("--mix", help="with --preset and --mask: a second preset blended in latent space")
@@ -303,34 +491,68 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     return ap.parse_args(argv)
 
 
+def _bake(argv: list[str], encode) -> int:
+    args = parse_args(argv)
+    shard = parse_shard(args.shard)
+    if args.band_rows < 1:
+        raise BadInput(f"--band-rows must be >= 1, got {args.band_rows}")
+    if args.preset is None and (args.map or args.mix or args.mask or args.name):
+        raise BadInput("--map, --mix, --mask and --name go with --preset; in a .blend they are set on the material")
+    jobs = blend_jobs(args) if args.blend else preset_job(args)
+    if encode is None:
+        try:
+            encode = neural_encoder(args.model)
+        except (FileNotFoundError, ValueError, ImportError) as e:
+            raise BadInput(f"--model {args.model}: {e}") from None
+    stats = run(jobs, args.out, encode, args.model, shard, args.band_rows, dedup=not args.no_dedup)
+    print(f"baked {stats['bands_baked']} band(s), kept {stats['bands_skipped']}, assembled {stats['assembled']}")
+    return EXIT_DONE
+
+
+@contextlib.contextmanager
+def _signals_interrupt():
+    """SIGINT and SIGTERM raise :class:`Interrupted` (once: a second signal during the clean-up is ignored)."""
+    fired = []
+
+    def handler(signum, frame):
+        if not fired:
+            fired.append(signum)
+            raise Interrupted(signum)
+
+    previous = {}
+    try:
+        for sig in EXIT_SIGNAL:
+            previous[sig] = signal.signal(sig, handler)
+    except ValueError:  # not the main thread: signals stay as they are
+        pass
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
 def main(argv: list[str] | None = None, encode=None) -> int:
     if argv is None:
         argv = sys.argv[sys.argv.index("--") + 1 :] if "--" in sys.argv else sys.argv[1:]
     try:
-        args = parse_args(argv)
-    except SystemExit as e:
-        return 2 if e.code else 0
-    try:
-        shard = parse_shard(args.shard)
-        if args.band_rows < 1:
-            raise BadInput(f"--band-rows must be >= 1, got {args.band_rows}")
-        if args.preset is None and args.map:
-            raise BadInput("--map goes with --preset; in a .blend the images are set on the material")
-        jobs = blend_jobs(args) if args.blend else preset_job(args)
-        if encode is None:
+        with _signals_interrupt():
             try:
-                encode = neural_encoder(args.model)
-            except (FileNotFoundError, ValueError, ImportError) as e:
-                raise BadInput(f"--model {args.model}: {e}") from None
-        stats = run(jobs, args.out, encode, args.model, shard, args.band_rows, dedup=not args.no_dedup)
+                return _bake(argv, encode)
+            except KeyboardInterrupt:
+                raise Interrupted(signal.SIGINT) from None
+    except SystemExit as e:  # --help
+        return EXIT_DONE if not e.code else EXIT_BAD_INPUT
     except BadInput as e:
         print(f"error: {e}", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
+    except Interrupted as e:
+        print(f"\nerror: interrupted by {e}; finished bands are kept, rerun the same command to resume",
+              file=sys.stderr)
+        return EXIT_SIGNAL[e.signum]
     except Exception as e:  # a failed bake: one clear line, non-zero exit
         print(f"error: bake failed: {type(e).__name__}: {e}", file=sys.stderr)
-        return 1
-    print(f"baked {stats['bands_baked']} band(s), kept {stats['bands_skipped']}, assembled {stats['assembled']}")
-    return 0
+        return EXIT_FAILED
 
 
 if __name__ == "__main__":

@@ -46,7 +46,7 @@ def preset_lobes(out: Path, res: int, walks: int, seed: int) -> list[str]:
         tiles = []
         for theta in lobe.INCIDENT_ANGLES_DEG:
             img = lobe.lobe_image(
-                lambda wi, wo: reference.eval_brdf(stack, wi, wo, walks=walks, seed=seed)[0], theta, res
+                lambda wi, wo, stack=stack: reference.eval_brdf(stack, wi, wo, walks=walks, seed=seed)[0], theta, res
             )
             tiles.append(img)
         strip = np.concatenate(tiles, axis=1)
@@ -114,7 +114,7 @@ def render_demo(out: Path, width: int, height: int, samples: int, bounces: int, 
         written.append("demo_render.exr")
     except RuntimeError as e:
         print(f"  (no EXR: {e})")
-    kinds = ", ".join(f"{name}: {kind}" for name, kind in zip(scene.material_names, stats.material_kinds))
+    kinds = ", ".join(f"{name}: {kind}" for name, kind in zip(scene.material_names, stats.material_kinds, strict=True))
     (out / "demo_render.md").write_text(
         "Demo scene render (layered presets and a textured floor; sky + area light).\n\n"
         f"Command: `python bake/demo.py --out {out} --render-size {width}x{height} --samples {samples} "

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import files
 from .mip import build_mip_chain, trilinear_lookup
 
 LATENT_DIM = 32
@@ -22,6 +23,7 @@ LATENT_CHANNELS = [f"z.{c}.{i:02d}" for c in "RGB" for i in range(LATENT_DIM)]
 PROXY_CHANNELS = ["proxy.sigma", "proxy.w"]
 CHANNEL_NAMES = LATENT_CHANNELS + PROXY_CHANNELS
 TILE = 64
+HALF_MAX = 65504.0  # largest finite half float: the EXR stores texels as halves
 
 
 def oiio_module():
@@ -111,73 +113,115 @@ class LatentTexture:
         return z, v[:, CHANNELS * LATENT_DIM :]
 
     def write_exr(self, path: str | os.PathLike) -> None:
-        """Write a tiled, mip-mapped, half-float EXR; written to a temporary name, then renamed."""
+        """Write a tiled, mip-mapped, half-float EXR, published atomically (see ``files.publishing``):
+        nothing is left at ``path`` or beside it if writing fails or is interrupted."""
         oiio = oiio_module()
         path = Path(path)
-        tmp = path.with_name(path.name + ".partial.exr")
-        out = oiio.ImageOutput.create(str(tmp))
-        if out is None:
-            raise RuntimeError(f"cannot create an EXR writer for {path}: {oiio.geterror()}")
-        try:
-            for i, level in enumerate(self.levels):
-                h, w, c = level.shape
-                spec = oiio.ImageSpec(w, h, c, "half")
-                spec.channelnames = tuple(CHANNEL_NAMES)
-                spec.tile_width = TILE
-                spec.tile_height = TILE
-                spec.attribute("compression", "zip")
-                for key, value in self.metadata.items():
-                    spec.attribute(f"nlm:{key}", str(value))
-                mode = "Create" if i == 0 else "AppendMIPLevel"
-                if i == 0:
-                    spec.attribute("textureformat", "Plain Texture")  # tells the EXR writer: MIPMAP_LEVELS
-                    spec.attribute("openexr:levelmode", 1)
-                    spec.attribute("openexr:roundingmode", 0)  # ROUND_DOWN
-                if not out.open(str(tmp), spec, mode):
-                    raise RuntimeError(f"cannot write {path}: {out.geterror()}")
-                if not out.write_image(np.ascontiguousarray(level, dtype=np.float32)):
-                    raise RuntimeError(f"cannot write level {i} of {path}: {out.geterror()}")
-        except BaseException:
-            out.close()
-            tmp.unlink(missing_ok=True)
-            raise
-        out.close()
-        tmp.replace(path)
+        for i, level in enumerate(self.levels):
+            big = np.abs(level) > HALF_MAX
+            if big.any() or not np.isfinite(level).all():
+                raise ValueError(f"cannot write {path}: mip level {i} holds values outside the half-float range "
+                                 f"[-{HALF_MAX:g}, {HALF_MAX:g}] (largest magnitude {np.nanmax(np.abs(level)):g})")
+        with files.publishing(path) as tmp:
+            out = oiio.ImageOutput.create(str(tmp))
+            if out is None:
+                raise RuntimeError(f"cannot create an EXR writer for {path}: {oiio.geterror()}")
+            try:
+                self._write_levels(out, tmp, path)
+            finally:
+                out.close()
+
+    def _write_levels(self, out, tmp: Path, path: Path) -> None:
+        for i, level in enumerate(self.levels):
+            h, w, c = level.shape
+            spec = oiio_module().ImageSpec(w, h, c, "half")
+            spec.channelnames = tuple(CHANNEL_NAMES)
+            spec.tile_width = TILE
+            spec.tile_height = TILE
+            spec.attribute("compression", "zip")
+            for key, value in self.metadata.items():
+                spec.attribute(f"nlm:{key}", str(value))
+            mode = "Create" if i == 0 else "AppendMIPLevel"
+            if i == 0:
+                spec.attribute("textureformat", "Plain Texture")  # tells the EXR writer: MIPMAP_LEVELS
+                spec.attribute("openexr:levelmode", 1)
+                spec.attribute("openexr:roundingmode", 0)  # ROUND_DOWN
+            if not out.open(str(tmp), spec, mode):
+                raise RuntimeError(f"cannot write {path}: {out.geterror()}")
+            if not out.write_image(np.ascontiguousarray(level, dtype=np.float32)):
+                raise RuntimeError(f"cannot write level {i} of {path}: {out.geterror()}")
 
     @classmethod
     def read_exr(cls, path: str | os.PathLike) -> "LatentTexture":
-        """Read a latent texture EXR written by :meth:`write_exr` (all mip levels)."""
+        """Read a latent texture EXR written by :meth:`write_exr` (all mip levels).
+
+        Raises ``FileNotFoundError`` for a missing file and :class:`LatentTextureError` (a
+        ``ValueError``) for anything else that is not a valid latent texture: not an image,
+        damaged, other channels, a mip chain of the wrong sizes, or non-finite texels. A caller
+        can therefore fall back (to the constant stack) on one exception type.
+        """
         oiio = oiio_module()
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"latent texture not found: {path}")
         inp = oiio.ImageInput.open(str(path))
         if inp is None:
-            raise ValueError(f"cannot read {path} as an image: {oiio.geterror()}")
+            raise LatentTextureError(f"cannot read {path} as an image: {oiio.geterror()}")
         try:
             spec = inp.spec()
             names = list(spec.channelnames)
             # OpenEXR stores channels sorted by name: map them back to the layout by name.
             if sorted(names) != sorted(CHANNEL_NAMES):
-                raise ValueError(
+                raise LatentTextureError(
                     f"{path} is not a latent texture: expected {len(CHANNEL_NAMES)} channels "
                     f"{CHANNEL_NAMES[0]} .. {CHANNEL_NAMES[-1]}, got {len(names)}: {names[:4]}..."
                 )
             metadata = {
                 a.name[4:]: a.value for a in spec.extra_attribs if a.name.startswith("nlm:")
             }
-            order = [names.index(n) for n in CHANNEL_NAMES]
-            levels = []
-            level = 0
-            while inp.seek_subimage(0, level):
-                pixels = inp.read_image(0, level, 0, len(CHANNEL_NAMES), "float")
-                if pixels is None:
-                    raise ValueError(f"cannot read mip level {level} of {path}: {inp.geterror()}")
-                lspec = inp.spec_dimensions(0, level)
-                arr = np.asarray(pixels, dtype=np.float32).reshape(
-                    lspec.height, lspec.width, len(CHANNEL_NAMES))
-                levels.append(np.ascontiguousarray(arr[..., order]))
-                level += 1
+            levels = _read_levels(inp, path, [names.index(n) for n in CHANNEL_NAMES])
         finally:
             inp.close()
+        _check_levels(levels, path)
         return cls(levels, metadata)
+
+
+class LatentTextureError(ValueError):
+    """A file that is not a valid latent texture (damaged, other content, non-finite texels)."""
+
+
+def _read_levels(inp, path: Path, order: list[int]) -> list[np.ndarray]:
+    levels = []
+    level = 0
+    while inp.seek_subimage(0, level):
+        lspec = inp.spec_dimensions(0, level)
+        pixels = inp.read_image(0, level, 0, len(CHANNEL_NAMES), "float")
+        if pixels is None or np.size(pixels) != lspec.height * lspec.width * len(CHANNEL_NAMES):
+            raise LatentTextureError(f"cannot read mip level {level} of {path} (damaged file?): {inp.geterror()}")
+        arr = np.asarray(pixels, dtype=np.float32).reshape(lspec.height, lspec.width, len(CHANNEL_NAMES))
+        levels.append(np.ascontiguousarray(arr[..., order]))
+        level += 1
+    if inp.has_error:
+        raise LatentTextureError(f"cannot read {path} (damaged file?): {inp.geterror()}")
+    return levels
+
+
+def _check_levels(levels: list[np.ndarray], path: Path) -> None:
+    """The chain's sizes are the round-down mip sizes of level 0, and every texel is finite."""
+    if not levels:
+        raise LatentTextureError(f"{path} holds no image levels")
+    h, w = levels[0].shape[:2]
+    for i, level in enumerate(levels):
+        if level.shape[:2] != (h, w):
+            raise LatentTextureError(f"{path}: mip level {i} is {level.shape[1]}x{level.shape[0]}, expected {w}x{h} "
+                                     f"(each level halves the one above, rounding down)")
+        bad = ~np.isfinite(level)
+        if bad.any():
+            y, x, c = np.argwhere(bad)[0]
+            raise LatentTextureError(
+                f"{path}: {int(bad.sum())} non-finite value(s) in mip level {i}, first {level[y, x, c]} at "
+                f"(x={x}, y={y}) in channel {CHANNEL_NAMES[c]}; latent texels must be finite (re-bake the texture)")
+        h, w = max(1, h // 2), max(1, w // 2)
+    if levels[-1].shape[:2] != (1, 1):
+        raise LatentTextureError(f"{path}: the mip chain stops at {levels[-1].shape[1]}x{levels[-1].shape[0]}; "
+                                 f"a latent texture's chain goes down to 1x1")

@@ -14,14 +14,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..stack import VALID_RANGES, StackArrays, Stack
+from ..stack import VALID_RANGES, Stack, StackArrays
 from .mip import resample_area
 
 _PATH = re.compile(r"^(base|coatings\[(\d+)\])\.(\w+)$")
 RGB_FIELDS = {"albedo", "eta", "k"}
 
 # StackArrays attribute for each (layer kind, field).
-_BASE_ATTR = {"albedo": "base_albedo", "roughness": "base_roughness", "eta": "base_eta", "k": "base_k", "ior": "base_ior"}
+_BASE_ATTR = {"albedo": "base_albedo", "roughness": "base_roughness", "eta": "base_eta", "k": "base_k",
+              "ior": "base_ior"}
 _COAT_ATTR = {"roughness": "coat_roughness", "ior": "coat_ior", "albedo": "coat_albedo",
               "thickness": "coat_thickness", "g": "coat_g"}
 
@@ -39,7 +40,8 @@ def parse_parameter_path(stack: Stack, path: str) -> tuple[str, int | None, str]
         return "base", None, name
     i = int(m.group(2))
     if i >= len(stack.coatings):
-        raise ValueError(f"{path!r}: the stack has {len(stack.coatings)} coating(s), so indices are 0..{len(stack.coatings) - 1}")
+        raise ValueError(f"{path!r}: the stack has {len(stack.coatings)} coating(s), "
+                         f"so indices are 0..{len(stack.coatings) - 1}")
     if name not in _COAT_ATTR:
         raise ValueError(f"a coating has no parameter {name!r}; it has {sorted(_COAT_ATTR)}")
     return "coating", i, name

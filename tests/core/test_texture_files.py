@@ -1,0 +1,99 @@
+"""Latent-texture files that are not what they claim: read fails with one clear, typed error
+(``LatentTextureError``, a ``ValueError``) so a renderer can fall back; writes never leave a
+half-written or out-of-range file."""
+
+import numpy as np
+import pytest
+
+from addon.core.textures import CHANNEL_NAMES, LatentTexture, LatentTextureError, files
+
+
+@pytest.fixture(scope="module")
+def oiio():
+    from addon.core.textures.latent_texture import oiio_module
+
+    return oiio_module()
+
+
+def raw_latent_exr(oiio, path, levels):
+    """A 98-channel EXR holding ``levels`` as they are (no checks), like a damaged or foreign writer."""
+    out = oiio.ImageOutput.create(str(path))
+    for i, level in enumerate(levels):
+        spec = oiio.ImageSpec(level.shape[1], level.shape[0], level.shape[2], "half")
+        spec.channelnames = tuple(CHANNEL_NAMES)
+        if len(levels) > 1:
+            spec.tile_width = spec.tile_height = 64
+            if i == 0:
+                spec.attribute("textureformat", "Plain Texture")
+                spec.attribute("openexr:levelmode", 1)
+                spec.attribute("openexr:roundingmode", 0)
+        assert out.open(str(path), spec, "Create" if i == 0 else "AppendMIPLevel")
+        assert out.write_image(np.ascontiguousarray(level, dtype=np.float32))
+    out.close()
+    return path
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_a_non_finite_texture_fails_at_read_naming_level_texel_and_channel(tmp_path, oiio, bad):
+    levels = LatentTexture.from_texels(np.zeros((4, 6, 98), np.float32)).levels
+    levels[1] = levels[1].copy()
+    levels[1][1, 2, 97] = bad
+    path = raw_latent_exr(oiio, tmp_path / "bad.exr", levels)
+    with pytest.raises(LatentTextureError, match=r"non-finite value\(s\) in mip level 1.*\(x=2, y=1\).*proxy\.w"):
+        LatentTexture.read_exr(path)
+
+
+def test_a_nan_filled_texture_is_refused(tmp_path, oiio):
+    levels = [np.full(lvl.shape, np.nan, np.float32)
+              for lvl in LatentTexture.from_texels(np.zeros((8, 8, 98), np.float32)).levels]
+    with pytest.raises(ValueError, match="latent texels must be finite"):
+        LatentTexture.read_exr(raw_latent_exr(oiio, tmp_path / "nan.exr", levels))
+
+
+def test_a_mip_chain_that_stops_early_is_refused(tmp_path, oiio):
+    path = raw_latent_exr(oiio, tmp_path / "flat.exr", [np.zeros((4, 4, 98), np.float32)])
+    with pytest.raises(LatentTextureError, match="stops at 4x4"):
+        LatentTexture.read_exr(path)
+
+
+@pytest.mark.parametrize("keep", [0.1, 0.5, 0.9])
+def test_a_truncated_texture_is_refused(tmp_path, keep):
+    path = tmp_path / "t.exr"
+    rng = np.random.default_rng(0)
+    LatentTexture.from_texels(rng.normal(size=(70, 50, 98)).astype(np.float32)).write_exr(path)
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * keep)])
+    with pytest.raises(LatentTextureError, match=str(path)):
+        LatentTexture.read_exr(path)
+
+
+def test_values_a_half_float_cannot_hold_are_refused_at_write(tmp_path):
+    texels = np.zeros((2, 2, 98), np.float32)
+    texels[1, 1, 5] = 1e5  # would be stored as inf
+    with pytest.raises(ValueError, match="half-float range"):
+        LatentTexture.from_texels(texels).write_exr(tmp_path / "big.exr")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_publishing_removes_its_temporary_file_on_failure_and_renames_on_success(tmp_path):
+    target = tmp_path / "a.json"
+    with pytest.raises(RuntimeError):
+        with files.publishing(target) as tmp:
+            tmp.write_text("half")
+            assert files.is_temp(tmp) and tmp.parent == tmp_path
+            raise RuntimeError("interrupted")
+    assert list(tmp_path.iterdir()) == []
+    files.write_bytes(target, b"{}")
+    assert target.read_bytes() == b"{}" and list(tmp_path.iterdir()) == [target]
+    a, b = files.temp_path(target), files.temp_path(target)
+    assert a != b and a.suffix == ".json"  # unique per call; the suffix kept for writers that go by it
+
+
+def test_safe_file_names_keep_plain_names_and_separate_the_rest():
+    assert files.safe_file_name("Wood") == "Wood"
+    assert files.safe_file_name("Lack (glänzend)") == "Lack (glänzend)"
+    a, b = files.safe_file_name("a/b"), files.safe_file_name("a_b")
+    assert a != b and a.startswith("a_b-") and b == "a_b"
+    assert files.safe_file_name("").startswith("unnamed-")
+    with pytest.raises(TypeError, match="must be a string"):
+        files.safe_file_name(None)
