@@ -1,18 +1,28 @@
-"""The Neural Layered render engine: F12 and ``blender -b file.blend -E NEURAL_LAYERED -f 1``.
+"""The Neural Layered render engine: F12, ``blender -b file.blend -E NEURAL_LAYERED -f 1``, and the
+3D viewport's Rendered mode.
 
 ``render()`` exports the evaluated depsgraph (``scene_export``), renders it with the core path
 tracer one pass of one sample per pixel at a time, shows each pass (progressive), reports
 progress and statistics, and stops when the user cancels (Esc). Blender writes the result in the
-scene's output format (OpenEXR, PNG, ...).
+scene's output format (OpenEXR, PNG, ...). Every failure is reported in the UI (``report`` and
+the render's error line); where the neural runtime fails the reference renders instead.
+
+``view_update`` / ``view_draw`` keep a progressive session (``addon.core.render.progressive``)
+for the viewport: 1 sample per pixel at a quarter of the resolution first, then refinement,
+restarted on every edit and every view change; ``_Viewport`` draws its newest image.
+The render thread setting of the scene (Threads: Auto / Fixed) decides the cores used.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import bpy
 import numpy as np
 
-from . import render_operators, render_properties, render_ui, scene_export
 from ..core.render import Cancelled, render
+from ..core.render.progressive import ProgressiveSession
+from . import render_operators, render_properties, render_ui, scene_export
 
 ENGINE_ID = "NEURAL_LAYERED"
 
@@ -28,11 +38,95 @@ def _compatible_panels():
             if getattr(p, "COMPAT_ENGINES", None) is not None and p.__name__ in keep]
 
 
+def _failure(e: Exception) -> str:
+    """One line for the UI: what failed, named by its type unless it is a plain ValueError."""
+    return str(e) if isinstance(e, ValueError) else f"{type(e).__name__}: {e}"
+
+
+def _view_key(context) -> tuple:
+    """What makes a viewport image stale without an edit: the view matrix, lens and region size."""
+    r3d, region = context.region_data, context.region
+    return (tuple(map(tuple, r3d.view_matrix)), context.space_data.lens, region.width, region.height)
+
+
+class _Viewport:
+    """Thin glue between a progressive session and the 3D viewport: a main-thread timer asks
+    for a redraw when the session has a new image; ``draw`` uploads it as a texture and draws it
+    over the region through Blender's display transform."""
+
+    def __init__(self, engine, settings):
+        self.engine_ref = engine
+        self.key = None
+        self.session = ProgressiveSession(settings, preview_divisor=4)
+        self._drawn = None  # (generation, samples) on screen
+        self._texture = None
+        bpy.app.timers.register(self._poll, first_interval=0.05)
+
+    def restart(self, core_scene, settings, key) -> None:
+        self.key = key
+        self.session.restart(core_scene, settings)
+
+    def _poll(self):
+        if self.session is None:
+            return None  # closed: the timer ends
+        image = self.session.latest()
+        if image is not None and (image.generation, image.samples) != self._drawn:
+            try:
+                self.engine_ref.tag_redraw()
+            except ReferenceError:  # the engine is gone
+                self.close()
+                return None
+        return 0.05
+
+    def draw(self, engine, scene) -> None:
+        import gpu
+        from gpu_extras.presets import draw_texture_2d
+
+        image = self.session.latest()
+        if self.session.error is not None:
+            engine.report({"ERROR"}, _failure(self.session.error))
+        if image is None:
+            return
+        if (image.generation, image.samples) != self._drawn or self._texture is None:
+            h, w, _ = image.rgba.shape
+            pixels = np.ascontiguousarray(image.rgba[::-1]).ravel()  # GPU rows run bottom to top
+            self._texture = gpu.types.GPUTexture((w, h), format="RGBA16F",
+                                                 data=gpu.types.Buffer("FLOAT", pixels.size, pixels))
+            self._drawn = (image.generation, image.samples)
+        region = bpy.context.region
+        gpu.state.blend_set("ALPHA_PREMULT")
+        engine.bind_display_space_shader(scene)
+        draw_texture_2d(self._texture, (0, 0), region.width, region.height)
+        engine.unbind_display_space_shader()
+        gpu.state.blend_set("NONE")
+
+    def close(self) -> None:
+        if self.session is not None:
+            self.session.close(timeout=5.0)
+            self.session = None
+
+
 class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
     bl_idname = ENGINE_ID
     bl_label = "Neural Layered"
     bl_use_preview = False
     bl_use_shading_nodes_custom = False
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._viewport = None  # the 3D viewport's progressive session (view_update / view_draw)
+
+    def __del__(self):
+        view = getattr(self, "_viewport", None)
+        if view is not None:
+            view.close()
+
+    # ------------------------------------------------------------------ F12
+
+    def _fail(self, e: Exception) -> None:
+        message = _failure(e)
+        self.report({"ERROR"}, message)
+        self.error_set(message)
 
     def render(self, depsgraph):
         scene = depsgraph.scene
@@ -40,33 +134,75 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         width, height = scene_export.render_size(scene)
         result = self.begin_result(0, 0, width, height)
         try:
-            self.update_stats("", "Exporting scene")
-            try:
-                core_scene, warnings = scene_export.export_scene(depsgraph, width, height)
-            except ValueError as e:
-                self.report({"ERROR"}, str(e))
-                return
-            self.update_stats("", "Choosing decoders")
-            for w in warnings + props.assign_decoders(core_scene):
-                self.report({"WARNING"}, w)
-            settings = props.to_core()
-            combined = result.layers[0].passes["Combined"]
-
-            def progress(film, done, total):
-                combined.rect.foreach_set(np.ascontiguousarray(film.rgba()[::-1]).ravel())
-                self.update_result(result)
-                self.update_progress(done / total)
-                self.update_stats("", f"Sample {done}/{total} | {core_scene.mesh.triangle_count} triangles")
-                return not self.test_break()
-
-            try:
-                film, stats = render(core_scene, settings, progress=progress)
-                self.update_stats("", stats.summary())
-            except Cancelled as c:
-                film = c.film
-            combined.rect.foreach_set(np.ascontiguousarray(film.rgba()[::-1]).ravel())
+            self._render(depsgraph, scene, props, result)
+        except Exception as e:  # every failure reaches the UI, not only a console traceback
+            self._fail(e)
         finally:
             self.end_result(result)
+
+    def _render(self, depsgraph, scene, props, result):
+        self.update_stats("", "Exporting scene")
+        core_scene, warnings = scene_export.export_scene(depsgraph, *scene_export.render_size(scene))
+        self.update_stats("", "Choosing decoders")
+        try:
+            warnings = warnings + props.assign_decoders(core_scene)
+        except Exception as e:  # the stacks stay, on the default decoder or the reference
+            warnings.append(f"decoder choice failed ({_failure(e)}); layered materials use the default decoder")
+        for w in warnings:
+            self.report({"WARNING"}, w)
+        settings = props.to_core(scene=scene)
+        combined = result.layers[0].passes["Combined"]
+
+        def progress(film, done, total):
+            combined.rect.foreach_set(np.ascontiguousarray(film.rgba()[::-1]).ravel())
+            self.update_result(result)
+            self.update_progress(done / total)
+            self.update_stats("", f"Sample {done}/{total} | {core_scene.mesh.triangle_count} triangles")
+            return not self.test_break()
+
+        try:
+            film, stats = render(core_scene, settings, progress=progress)
+        except Cancelled as c:
+            film, stats = c.film, c.stats
+        except (RuntimeError, OSError) as e:
+            if settings.mode != "neural":
+                raise
+            # The neural runtime failed (a broken model file, say): the reference still renders.
+            self.report({"WARNING"}, f"neural evaluation failed ({_failure(e)}); rendering in reference mode")
+            film, stats = render(core_scene, replace(settings, mode="reference"), progress=progress)
+        self.update_stats("", stats.summary())
+        combined.rect.foreach_set(np.ascontiguousarray(film.rgba()[::-1]).ravel())
+
+    # ------------------------------------------------------------------ 3D viewport (Rendered mode)
+
+    def _view_scene(self, context, depsgraph):
+        region, space = context.region, context.space_data
+        camera = scene_export.view_camera(context.region_data, space.lens, region.width, region.height)
+        core_scene, _ = scene_export.export_scene(depsgraph, region.width, region.height, camera=camera)
+        props = depsgraph.scene.neural_render
+        try:
+            props.assign_decoders(core_scene)
+        except Exception:  # the default decoder, as for F12
+            pass
+        return core_scene, props.to_core(scene=depsgraph.scene)
+
+    def view_update(self, context, depsgraph):
+        """An edit (stack, objects, lights, world) or the first draw: restart the progressive session."""
+        try:
+            core_scene, settings = self._view_scene(context, depsgraph)
+        except Exception as e:
+            self.report({"ERROR"}, _failure(e))
+            return
+        if self._viewport is None:
+            self._viewport = _Viewport(self, settings)
+        self._viewport.restart(core_scene, settings, _view_key(context))
+
+    def view_draw(self, context, depsgraph):
+        """Draw the newest image; a moved view (navigation does not call view_update) restarts."""
+        if self._viewport is None or self._viewport.key != _view_key(context):
+            self.view_update(context, depsgraph)
+        if self._viewport is not None and self._viewport.session is not None:
+            self._viewport.draw(self, depsgraph.scene)
 
 
 _panels: list = []

@@ -89,7 +89,7 @@ class NLM_OT_render_preview(jobs.ModalJob, bpy.types.Operator):
         core_scene, warnings = scene_export.export_scene(depsgraph, w, h, camera)
         for msg in warnings + scene.neural_render.assign_decoders(core_scene):
             self.report({"WARNING"}, msg)
-        settings = scene.neural_render.to_core(self.samples or scene.neural_render.preview_samples)
+        settings = scene.neural_render.to_core(self.samples or scene.neural_render.preview_samples, scene=scene)
         return render_work(core_scene, settings)
 
     def _finish(self, context, result):

@@ -51,9 +51,12 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
         default=0.2, min=0.01, max=1.0, subtype="FACTOR",
     )
 
-    def to_core(self, samples: int | None = None) -> RenderSettings:
+    def to_core(self, samples: int | None = None, scene=None) -> RenderSettings:
+        """Core settings; with ``scene``, its render thread setting (Blender's Threads: Auto or Fixed)
+        decides how many cores the path tracer and the networks use."""
+        threads = 0 if scene is None else RenderSettings.threads_for(scene.render.threads_mode, scene.render.threads)
         return RenderSettings(samples=samples or self.samples, max_bounces=self.max_bounces, seed=self.seed,
-                              mode=self.mode, reference_walks=self.reference_walks)
+                              mode=self.mode, reference_walks=self.reference_walks, threads=threads)
 
 
     def assign_decoders(self, core_scene) -> list[str]:

@@ -305,3 +305,47 @@ def test_f12_renders_layered_materials(fresh_scene, tmp_path, mode):
     bpy.ops.render.render(write_still=True)
     px = read_image(tmp_path / "layered.exr")[..., :3]
     assert np.isfinite(px).all() and px.max() > 0
+
+
+def test_f12_reports_every_failure_and_falls_back_to_the_reference(fresh_scene, tmp_path, monkeypatch):
+    from addon.blender import engine, stack_io
+    from addon.core.stack import PRESETS
+
+    ctx = fresh_scene
+    small(ctx.scene, 12, 8, samples=1)
+    stack_io.stack_to_material(PRESETS["red_car_paint"], ctx.scene.objects["Cube"].active_material)
+    ctx.scene.render.engine = "NEURAL_LAYERED"
+    ctx.scene.neural_render.reference_walks = 1
+    real = engine.render
+    modes = []
+
+    def neural_breaks(scene, settings, **kw):
+        modes.append(settings.mode)
+        if settings.mode == "neural":
+            raise RuntimeError("ONNX Runtime: model file damaged")
+        return real(scene, settings, **kw)
+
+    monkeypatch.setattr(engine, "render", neural_breaks)
+    ctx.scene.render.filepath = str(tmp_path / "fallback.exr")
+    ctx.scene.render.image_settings.file_format = "OPEN_EXR"
+    bpy.ops.render.render(write_still=True)
+    assert modes == ["neural", "reference"]
+    assert np.isfinite(read_image(tmp_path / "fallback.exr")).all()
+
+    def always_breaks(scene, settings, **kw):
+        raise MemoryError("out of memory while tracing")
+
+    monkeypatch.setattr(engine, "render", always_breaks)
+    with pytest.raises(RuntimeError, match="MemoryError: out of memory while tracing"):
+        bpy.ops.render.render(write_still=True)
+
+
+def test_render_threads_follow_the_scene_setting(fresh_scene):
+    import os
+
+    scene = fresh_scene.scene
+    scene.render.threads_mode = "FIXED"
+    scene.render.threads = 3
+    assert scene.neural_render.to_core(scene=scene).thread_count == 3
+    scene.render.threads_mode = "AUTO"
+    assert scene.neural_render.to_core(scene=scene).thread_count == (os.cpu_count() or 1)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, TypeVar
 
@@ -23,6 +24,21 @@ import numpy as np
 T = TypeVar("T")
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 _CLOCK = threading.local()
+_THREADS: list[int] = []  # process-wide thread counts in force, innermost last (``threads_in_force``)
+
+
+@contextmanager
+def threads_in_force(threads: int):
+    """Within the block, every session runs its chunks on ``threads`` threads, whatever count it
+    was made with: the renderer and the bakes put the scene's render thread setting (or every
+    core) in force for their work, so no constant decides how many cores the networks use."""
+    if isinstance(threads, bool) or int(threads) < 1:
+        raise ValueError(f"threads must be >= 1, got {threads!r}")
+    _THREADS.append(int(threads))
+    try:
+        yield
+    finally:
+        _THREADS.pop()
 
 
 def seconds_on_this_thread() -> float:
@@ -39,7 +55,7 @@ def _pool(threads: int) -> ThreadPoolExecutor:
 
 class ChunkedSession:
     """One ONNX model as a single-threaded ONNX Runtime session, run over chunks of ``chunk``
-    rows on ``threads`` threads.
+    rows on ``threads`` threads (or the count :func:`threads_in_force` puts in force).
 
     ``run(outputs, rows, shared)``: ``rows`` are inputs whose first axis is the batch (cut into
     chunks), ``shared`` are inputs given whole to every chunk (a material's latent, say). Returns
@@ -73,11 +89,12 @@ class ChunkedSession:
         """``fn(rows)`` for each chunk ``rows`` (a slice) of ``range(n)``, on the pool's threads
         (inline with one thread or one chunk); the results in chunk order."""
         slices = [slice(s, min(n, s + self.chunk)) for s in range(0, n, self.chunk)] or [slice(0, 0)]
+        threads = _THREADS[-1] if _THREADS else self.threads
         t0 = time.perf_counter()
         try:
-            if self.threads == 1 or len(slices) == 1:
+            if threads == 1 or len(slices) == 1:
                 return [fn(s) for s in slices]
-            return list(_pool(self.threads).map(fn, slices))
+            return list(_pool(threads).map(fn, slices))
         finally:
             _CLOCK.seconds = seconds_on_this_thread() + time.perf_counter() - t0
 

@@ -67,6 +67,14 @@ class RenderSettings:
         if int(self.threads) < 0:
             raise ValueError(f"threads must be >= 0 (0: one per CPU core), got {self.threads}")
 
+    @classmethod
+    def threads_for(cls, threads_mode: str, threads: int) -> int:
+        """The ``threads`` setting for Blender's render thread setting (``scene.render.threads_mode``
+        "AUTO": 0, every core; "FIXED": ``threads``)."""
+        if threads_mode not in ("AUTO", "FIXED"):
+            raise ValueError(f"threads_mode must be 'AUTO' or 'FIXED', got {threads_mode!r}")
+        return 0 if threads_mode == "AUTO" else max(1, int(threads))
+
     @property
     def thread_count(self) -> int:
         """Chunks of paths traced at once: ``threads``, or one per CPU core when it is 0."""
@@ -253,9 +261,9 @@ def render(scene: Scene, settings: RenderSettings | None = None,
 
     Each pass is cut into chunks of ``chunk_paths`` pixels; ``settings.thread_count`` chunks
     (of this pass or the next) are traced at once on a pool of threads (numpy, embreex and ONNX
-    Runtime release the GIL in their loops). Chunks draw their random numbers from their own
-    (pass, chunk) key and are added to the film in order, so the image does not depend on the
-    thread count.
+    Runtime release the GIL in their loops), and the networks run their batches on as many.
+    Chunks draw their random numbers from their own (pass, chunk) key and are added to the film
+    in order, so the image does not depend on the thread count.
     """
     settings = settings or RenderSettings()
     cam = scene.camera
@@ -276,23 +284,24 @@ def render(scene: Scene, settings: RenderSettings | None = None,
 
     workers = min(settings.thread_count, len(tasks))
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="render") if workers > 1 else None
-    try:
-        results = _ordered(pool, trace, tasks, workers)
-        for k, c in tasks:
-            pix, (L, piece) = next(results)
-            film.add(pix, L)
-            _merge_stats(stats, piece)
-            if c < len(starts) - 1:
-                continue
-            film.passes += 1
-            _finish_stats(stats, time.perf_counter() - t_start)
-            if progress is not None and progress(film, k + 1, settings.samples) is False:
-                exc = Cancelled(f"render cancelled after {k + 1} of {settings.samples} samples")
-                exc.film, exc.stats = film, stats
-                raise exc
-    finally:
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+    with session.threads_in_force(settings.thread_count):  # the networks' threads too
+        try:
+            results = _ordered(pool, trace, tasks, workers)
+            for k, c in tasks:
+                pix, (L, piece) = next(results)
+                film.add(pix, L)
+                _merge_stats(stats, piece)
+                if c < len(starts) - 1:
+                    continue
+                film.passes += 1
+                _finish_stats(stats, time.perf_counter() - t_start)
+                if progress is not None and progress(film, k + 1, settings.samples) is False:
+                    exc = Cancelled(f"render cancelled after {k + 1} of {settings.samples} samples")
+                    exc.film, exc.stats = film, stats
+                    raise exc
+        finally:
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=True)
     _finish_stats(stats, time.perf_counter() - t_start)
     return film, stats
 

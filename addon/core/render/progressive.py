@@ -1,0 +1,189 @@
+"""Progressive rendering for an interactive view: a first image fast, then refinement, restarted
+on every edit.
+
+A :class:`ProgressiveSession` renders on a background thread: first one sample per pixel at a
+reduced resolution (``preview_divisor`` times smaller on each side, so the first image of an
+edit arrives in a fraction of a full pass), then passes of one sample per pixel at full
+resolution, accumulated into one film until ``settings.samples`` passes. ``restart(scene)``
+(after an edit: stack, camera, objects) drops the old work and starts again; the old render
+stops at its next pass (``render``'s progress callback), so a cancelled pass costs at most one
+pass of the old scene. The full-resolution accumulation is the offline render of the same
+settings: the same passes with the same random numbers (``render(..., film=...)``).
+
+The viewport glue (``addon/blender/engine.py``) only calls ``restart`` from ``view_update`` and
+draws :meth:`ProgressiveSession.latest` from ``view_draw``.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .film import Film
+from .integrator import Cancelled, RenderSettings, render
+from .materials import resolve
+from .scene import Camera, Scene
+
+
+@dataclass
+class ViewImage:
+    """The newest image of a session: linear RGBA (H, W, 4) float32 (row 0 at the top), the
+    samples per pixel in it, whether it is the reduced-resolution first image, and the session's
+    generation (one per restart)."""
+
+    rgba: np.ndarray
+    samples: int
+    reduced: bool
+    generation: int
+
+
+def reduced_camera(camera: Camera, divisor: int) -> Camera:
+    """The same view with ``divisor`` times fewer pixels on each side (at least 1 x 1)."""
+    return Camera(camera.matrix, max(1, camera.width // divisor), max(1, camera.height // divisor),
+                  camera.tan_half_fov, camera.shift)
+
+
+class ProgressiveSession:
+    """Renders the latest scene given to :meth:`restart` on one background thread.
+
+    ``on_image(image)`` (optional) is called from that thread after every new image, e.g. to ask
+    the viewport for a redraw. Errors of a render are kept in ``error`` (and passed to
+    ``on_error``), never raised on the background thread unseen.
+    """
+
+    def __init__(self, settings: RenderSettings, preview_divisor: int = 4, on_image=None, on_error=None):
+        if int(preview_divisor) < 1:
+            raise ValueError(f"preview_divisor must be >= 1, got {preview_divisor!r}")
+        self.settings = settings
+        self.preview_divisor = int(preview_divisor)
+        self.on_image, self.on_error = on_image, on_error
+        self.error: Exception | None = None
+        self._lock = threading.Lock()
+        self._wake = threading.Condition(self._lock)
+        self._scene: Scene | None = None
+        self._generation = 0
+        self._image: ViewImage | None = None
+        self._closed = False
+        self._busy = False
+        self._thread = threading.Thread(target=self._run, name="progressive-render", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ control (any thread)
+
+    def restart(self, scene: Scene, settings: RenderSettings | None = None) -> int:
+        """Render ``scene`` from scratch (the running render stops at its next pass); returns the
+        new generation."""
+        with self._lock:
+            self._scene = scene
+            if settings is not None:
+                self.settings = settings
+            self._generation += 1
+            self.error = None
+            self._wake.notify_all()
+            return self._generation
+
+    def cancel(self) -> None:
+        """Stop rendering (the current pass is the last); the newest image stays available."""
+        with self._lock:
+            self._scene = None
+            self._generation += 1
+            self._wake.notify_all()
+
+    def close(self, timeout: float | None = 10.0) -> None:
+        """Cancel and end the background thread."""
+        with self._lock:
+            self._closed = True
+            self._scene = None
+            self._generation += 1
+            self._wake.notify_all()
+        self._thread.join(timeout)
+
+    def latest(self) -> ViewImage | None:
+        with self._lock:
+            return self._image
+
+    def wait(self, samples: int | None = None, timeout: float = 60.0) -> ViewImage | None:
+        """Block until the current generation has ``samples`` full-resolution samples per pixel
+        (default: all of them) or has stopped; returns the newest image (for tests and scripts)."""
+        import time
+
+        end = time.monotonic() + timeout
+        with self._lock:
+            while time.monotonic() < end:
+                img, gen = self._image, self._generation
+                want = self.settings.samples if samples is None else samples
+                done = img is not None and img.generation == gen and not img.reduced and img.samples >= want
+                if done or self.error is not None or (self._scene is None and not self._busy):
+                    return img
+                self._wake.wait(timeout=max(0.0, min(0.05, end - time.monotonic())))
+            return self._image
+
+    @property
+    def idle(self) -> bool:
+        with self._lock:
+            return not self._busy
+
+    # ------------------------------------------------------------------ the background thread
+
+    def _current(self, generation: int) -> bool:
+        with self._lock:
+            return generation == self._generation and not self._closed
+
+    def _publish(self, film: Film, generation: int, reduced: bool) -> bool:
+        image = ViewImage(film.rgba(), film.passes, reduced, generation)
+        with self._lock:
+            if generation != self._generation:
+                return False
+            self._image = image
+            self._wake.notify_all()
+        if self.on_image is not None:
+            self.on_image(image)
+        return self._current(generation)
+
+    def _run(self) -> None:
+        while True:
+            with self._lock:
+                while self._scene is None and not self._closed:
+                    self._busy = False
+                    self._wake.notify_all()
+                    self._wake.wait()
+                if self._closed:
+                    self._busy = False
+                    self._wake.notify_all()
+                    return
+                scene, settings, generation = self._scene, self.settings, self._generation
+                self._busy = True
+            try:
+                self._render_generation(scene, settings, generation)
+            except Exception as e:  # kept and reported, never lost on this thread
+                with self._lock:
+                    if generation == self._generation:
+                        self.error = e
+                if self.on_error is not None:
+                    self.on_error(e)
+            with self._lock:
+                if generation == self._generation:
+                    self._scene = None  # done: wait for the next restart
+
+    def _render_generation(self, scene: Scene, settings: RenderSettings, generation: int) -> None:
+        def progress(reduced):
+            return lambda film, done, total: self._publish(film, generation, reduced)
+
+        # Materials resolved (stacks encoded) once for both renders of the generation.
+        scene = replace(scene, materials=[resolve(m, settings.mode, settings.reference_walks)
+                                          for m in scene.materials])
+
+        if self.preview_divisor > 1:
+            small = replace(scene, camera=reduced_camera(scene.camera, self.preview_divisor))
+            try:
+                render(small, replace(settings, samples=1), progress=progress(True))
+            except Cancelled:
+                return
+        if not self._current(generation):
+            return
+        try:
+            render(scene, settings, progress=progress(False))
+        except Cancelled:
+            return

@@ -1,0 +1,93 @@
+"""Progressive sessions (the viewport's renderer): first image, accumulation, restart, cancel."""
+
+import time
+
+import numpy as np
+import pytest
+
+from addon.core.render import Camera, Environment, LambertMaterial, PointLight, RenderSettings, Scene, render, shapes
+from addon.core.render.progressive import ProgressiveSession, reduced_camera
+
+
+def small_scene(sky=(0.3, 0.4, 0.5), width=24, height=16):
+    cam = Camera.look_at((0.0, -3.0, 1.0), (0.0, 0.0, 0.3), width=width, height=height)
+    mesh = shapes.uv_sphere((0.0, 0.0, 0.4), 0.4, segments=12, rings=6)
+    return Scene(cam, mesh, [LambertMaterial((0.7, 0.5, 0.3))], [PointLight((1.0, -2.0, 2.0), 80.0)],
+                 Environment(sky))
+
+
+def test_accumulation_equals_an_offline_render_of_the_same_samples():
+    scene = small_scene()
+    settings = RenderSettings(samples=5, max_bounces=3, seed=4)
+    seen = []
+    session = ProgressiveSession(settings, preview_divisor=2, on_image=seen.append)
+    try:
+        session.restart(scene)
+        image = session.wait()
+    finally:
+        session.close()
+    offline, _ = render(scene, settings)
+    assert image.samples == 5 and not image.reduced
+    assert np.array_equal(image.rgba, offline.rgba())
+    # The first image is one sample at half the resolution on each side.
+    assert seen[0].reduced and seen[0].samples == 1 and seen[0].rgba.shape == (8, 12, 4)
+    assert [im.samples for im in seen[1:]] == [1, 2, 3, 4, 5]
+
+
+def test_restart_renders_only_the_newest_scene():
+    settings = RenderSettings(samples=3, max_bounces=2, seed=1)
+    session = ProgressiveSession(settings, preview_divisor=1)
+    try:
+        session.restart(small_scene((1.0, 0.0, 0.0)))
+        generation = session.restart(small_scene((0.0, 0.0, 1.0)))
+        image = session.wait()
+    finally:
+        session.close()
+    assert image.generation == generation == 2
+    offline, _ = render(small_scene((0.0, 0.0, 1.0)), settings)
+    assert np.array_equal(image.rgba, offline.rgba())
+
+
+def test_cancel_stops_within_a_pass_and_keeps_the_last_image():
+    settings = RenderSettings(samples=100_000, max_bounces=2)
+    session = ProgressiveSession(settings, preview_divisor=4)
+    try:
+        session.restart(small_scene(width=64, height=48))
+        first = session.wait(samples=2, timeout=60)
+        assert first is not None and first.samples >= 2
+        t0 = time.monotonic()
+        session.cancel()
+        while not session.idle and time.monotonic() - t0 < 30:
+            time.sleep(0.01)
+        assert session.idle
+        stopped = session.latest().samples
+        time.sleep(0.3)
+        assert session.latest().samples == stopped < 100_000
+    finally:
+        session.close()
+
+
+def test_a_failing_render_is_reported_not_lost():
+    class Broken(LambertMaterial):
+        def bind(self, hits):
+            raise RuntimeError("texture file vanished")
+
+    scene = small_scene()
+    scene.materials = [Broken()]
+    errors = []
+    session = ProgressiveSession(RenderSettings(samples=2), preview_divisor=1, on_error=errors.append)
+    try:
+        session.restart(scene)
+        session.wait(timeout=30)
+    finally:
+        session.close()
+    assert isinstance(session.error, RuntimeError) and errors == [session.error]
+
+
+def test_reduced_camera_and_bad_divisor():
+    cam = Camera.look_at((0, -3, 1), (0, 0, 0), width=320, height=180)
+    small = reduced_camera(cam, 4)
+    assert (small.width, small.height) == (80, 45) and small.tan_half_fov == cam.tan_half_fov
+    assert (reduced_camera(cam, 1000).width, reduced_camera(cam, 1000).height) == (1, 1)
+    with pytest.raises(ValueError, match="preview_divisor"):
+        ProgressiveSession(RenderSettings(), preview_divisor=0)
