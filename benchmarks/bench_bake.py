@@ -73,7 +73,7 @@ def main(argv=None) -> int:
             mpix = args.res * args.res / 1e6
             exr_sizes.append(size / mpix)
             rows.append(f"| {label} | {'yes' if dedup else 'no'} | {stats.unique:,} | {stats.texels / bake_s:,.0f} | "
-                        f"{bake_s:.2f} | {write_s:.2f} | {size / mpix / 2**20:.1f} |")
+                        f"{stats.unique / bake_s:,.0f} | {bake_s:.2f} | {write_s:.2f} | {size / mpix / 2**20:.1f} |")
             print(rows[-1], flush=True)
 
     # Blending two stacks through a mask: the lobe of a half-way texel.
@@ -111,10 +111,13 @@ def main(argv=None) -> int:
         "",
         f"Command: `{cmd}` (2-core CPU, ONNX Runtime, 2 threads; `{args.size}` encoder + layering + sampling models).",
         f"Stack: `varnished_wood` driven by {args.res}x{args.res} images. Texels/s counts every texel of the",
-        "texture (base level); the mip chain and the half-float EXR write are timed separately.",
+        "texture (base level), distinct texels/s the rows the networks encoded; the mip chain is part of the bake",
+        "time, the half-float EXR write is timed separately. Deduplication hashes the float32 parameter rows",
+        "(`addon.core.textures.bake.distinct_rows`) and sorts only the hashes.",
         "",
-        "| driving images | dedup | distinct texels encoded | texels/s | bake s | EXR write s | EXR MiB per megapixel |",
-        "|---|---|---|---|---|---|---|",
+        "| driving images | dedup | distinct texels encoded | texels/s | distinct texels/s | bake s | EXR write s | "
+        "EXR MiB per megapixel |",
+        "|---|---|---|---|---|---|---|---|",
         *rows,
         "",
         "The EXR holds 98 half-float channels (96 latent + 2 proxy) with the full mip chain, zip-compressed;",
