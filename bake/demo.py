@@ -137,8 +137,34 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+class _BadInput(Exception):
+    """Invalid command-line input: one line, exit code 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # one line and exit code 2, instead of argparse's usage block
+        raise _BadInput(f"{message} (demo.py --help lists the options)")
+
+
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    """Exit codes: 0 done, 1 failed, 2 bad input, 130 interrupted (Ctrl-C)."""
+    try:
+        return _main(argv)
+    except SystemExit as e:  # --help
+        return 0 if not e.code else 2
+    except _BadInput as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("\nerror: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:  # one clear line, not a traceback
+        print(f"error: demo failed: {type(e).__name__}: {e}", file=sys.stderr)
+        return 1
+
+
+def _main(argv: list[str] | None) -> int:
+    ap = _Parser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("output"), help="output folder (created)")
     ap.add_argument("--lobe-res", type=int, default=48, help="lobe image resolution")
     ap.add_argument("--walks", type=int, default=32, help="reference walks per lobe pixel")
@@ -150,15 +176,14 @@ def main(argv: list[str] | None = None) -> int:
                     help="layered materials: neural decoder (reference where it cannot serve a stack) or reference")
     ap.add_argument("--skip-lobes", action="store_true", help="only render the demo scene")
     args = ap.parse_args(argv)
-    if args.samples < 1 or args.bounces < 0:
-        print(f"error: --samples must be >= 1 and --bounces >= 0, got {args.samples} and {args.bounces}",
-              file=sys.stderr)
-        return 2
+    for name, value, least in (("--samples", args.samples, 1), ("--bounces", args.bounces, 0),
+                               ("--lobe-res", args.lobe_res, 1), ("--walks", args.walks, 1), ("--seed", args.seed, 0)):
+        if value < least:
+            raise _BadInput(f"{name} must be >= {least}, got {value}")
     try:
         args.out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        print(f"error: cannot create output folder {args.out}: {e}", file=sys.stderr)
-        return 2
+        raise _BadInput(f"cannot create output folder {args.out}: {e}") from None
     if not args.skip_lobes:
         print(f"Reference lobes of {len(PRESETS)} presets -> {args.out / 'lobes'}", flush=True)
         rows = preset_lobes(args.out, args.lobe_res, args.walks, args.seed)

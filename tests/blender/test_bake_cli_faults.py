@@ -414,20 +414,3 @@ def test_argument_errors_are_one_line(tmp_path, capsys):
         assert bake_cli.main(argv, encode=stand_in_encoder()) == 2
         err = capsys.readouterr().err
         assert len(err.strip().splitlines()) == 1 and err.startswith("error: "), err
-
-
-def test_stop_at_every_phase_leaves_only_finished_files(rough_png, tmp_path):
-    """A quick pass over the phases with SIGTERM (the fault-injection test kills at random moments)."""
-    ref = tmp_path / "ref"
-    assert bake_cli.main(preset_argv(rough_png, ref), encode=stand_in_encoder()) == 0
-    for phase in ("assemble", "publish", "cleanup"):
-        out = tmp_path / phase
-        occurrence = 12 if phase == "publish" else 1  # 10 bands, then the texture (11) and its sidecar (12)
-        code, err = _stop_at(phase, preset_argv(rough_png, out), signal.SIGTERM, tmp_path, occurrence)
-        assert code in (0, 143), err
-        assert not [p for p in out.rglob("*") if files.is_temp(p)], phase
-        if (out / "varnished_wood.exr").exists():
-            LatentTexture.read_exr(out / "varnished_wood.exr")
-        assert bake_cli.main(preset_argv(rough_png, out), encode=stand_in_encoder()) == 0
-        assert_same_texture(ref / "varnished_wood.exr", out / "varnished_wood.exr")
-        assert listing(out) == ["varnished_wood.exr", "varnished_wood.json"], phase
