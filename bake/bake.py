@@ -374,19 +374,20 @@ def run(jobs: list[Job], out: Path, encode, model: str, shard: tuple[int, int], 
         def rebake(band, job=job):
             return _bake_band(job, band, band_rows, encode, dedup, cache, bar)[0]
 
-        if assemble(out, job, job.key(model), model, band_rows, stats, rebake, log):
+        if assemble(out, job, job.key(model), model, band_rows, stats, rebake, log, getattr(encode, "metadata", None)):
             stats["assembled"].append(job.name)
             log(f"{job.name}: wrote {out / (job.file + '.exr')} ({job.resolution[1]}x{job.resolution[0]})")
     return stats
 
 
-def assemble(out: Path, job: Job, key: str, model: str, band_rows: int, stats: dict, rebake, log=print) -> bool:
+def assemble(out: Path, job: Job, key: str, model: str, band_rows: int, stats: dict, rebake, log=print,
+             model_metadata: dict | None = None) -> bool:
     """Publish the material's texture if all its bands are present; True if this process published it.
 
     Several shards may get here at once: each reads the bands and publishes (atomically, the
     same texels); bands are removed only after a publish, so a shard that finds one gone checks
     that the texture it was about to write is there. A band found damaged is baked again by
-    ``rebake(band) -> texels``.
+    ``rebake(band) -> texels``. ``model_metadata`` (the encoder's decoder size and digest) goes into the texture.
     """
     folder = _band_folder(out, job)
     h, w = job.resolution
@@ -409,7 +410,7 @@ def assemble(out: Path, job: Job, key: str, model: str, band_rows: int, stats: d
             p.unlink(missing_ok=True)
             parts.append(rebake(b))
     texels = np.concatenate(parts).reshape(h, w, -1)
-    meta = {"stack": job.spatial.stack.to_json(), "model": model, "key": key}
+    meta = {"stack": job.spatial.stack.to_json(), "model": model, "key": key, **(model_metadata or {})}
     LatentTexture.from_texels(texels, meta).write_exr(out / f"{job.file}.exr")
     sidecar = {
         "key": key,
@@ -484,7 +485,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     ap.add_argument("--mask", type=Path, help="with --mix: image whose first channel (0..1) blends towards --mix")
     ap.add_argument("--resolution", type=int, nargs=2, metavar=("H", "W"), help="bake resolution (<= the images')")
     ap.add_argument("--out", type=Path, required=True, help="output folder")
-    ap.add_argument("--model", default="small", help="decoder size whose latent space to bake into")
+    ap.add_argument("--model", default="auto", help="decoder size whose latent space to bake into (auto: the "
+                    "default size, addon.core.neural.resolve_size)")
     ap.add_argument("--shard", default="0/1", help="i/n: bake every n-th work item starting at i")
     ap.add_argument("--band-rows", type=int, default=256, help="rows per work item")
     ap.add_argument("--no-dedup", action="store_true", help="encode every texel, even repeated ones")
@@ -502,9 +504,10 @@ def _bake(argv: list[str], encode) -> int:
     if encode is None:
         try:
             encode = neural_encoder(args.model)
-        except (FileNotFoundError, ValueError, ImportError) as e:
+        except (OSError, ValueError, ImportError) as e:  # missing (FileNotFoundError) or damaged models
             raise BadInput(f"--model {args.model}: {e}") from None
-    stats = run(jobs, args.out, encode, args.model, shard, args.band_rows, dedup=not args.no_dedup)
+    model = getattr(encode, "metadata", {}).get("model", args.model)  # "auto" resolved by the encoder
+    stats = run(jobs, args.out, encode, model, shard, args.band_rows, dedup=not args.no_dedup)
     print(f"baked {stats['bands_baked']} band(s), kept {stats['bands_skipped']}, assembled {stats['assembled']}")
     return EXIT_DONE
 

@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from addon.core import lobe  # noqa: E402
-from addon.core.neural.runtime import MODEL_DIR, SIZES, load_models  # noqa: E402
+from addon.core.neural import MODEL_DIR, SIZES, encode_stack, load_models  # noqa: E402
 from addon.core.stack import Stack  # noqa: E402
 
 DOCS = ROOT / "docs"
@@ -98,7 +98,7 @@ def speed(size: str, threads: int, repeats: int = 5) -> dict:
     wo[:, 2] = np.abs(wo[:, 2])
     wi /= np.linalg.norm(wi, axis=1, keepdims=True)
     wo /= np.linalg.norm(wo, axis=1, keepdims=True)
-    z = m.encode(Stack.from_json(json.dumps({"base": {"type": "Conductor", "roughness": 0.2}})).base)
+    z = encode_stack(Stack.from_json(json.dumps({"base": {"type": "Conductor", "roughness": 0.2}})), m)
     m.eval_brdf(z, wi, wo)
     best = np.inf
     for _ in range(repeats):
@@ -131,7 +131,7 @@ def encoder_heldout(size: str, heldout: dict) -> dict:
     res = heldout["lobe"].shape[2]
     pred = np.zeros_like(heldout["lobe"], dtype=np.float64)
     for i, s in enumerate(heldout["stacks"]):
-        z = m.encode(s.base)
+        z = encode_stack(Stack(s.base), m)
         for a, t in enumerate(heldout["angles"]):
             pred[i, a] = lobe.lobe_image(lambda wi, wo: m.eval_brdf(z, wi, wo), float(t), res)
     out = lobe_metrics(pred, heldout["lobe"])

@@ -11,8 +11,8 @@ neural lobe images of held-out stacks) and, with ``--update-cards``, the measure
 measures the error tables alone on another set of ``onnx_export.heldout_layered`` (a validation set, a
 set of training stacks), for choosing between training rounds without looking at the held-out set.
 
-- Speed: stacks encoded per second by ``encode_layered_stack`` (one stack per call) and by
-  ``encode_stack_arrays`` (N distinct stacks in one call), for 1 to 3 coatings, ONNX Runtime on CPU.
+- Speed: stacks encoded per second by ``encode_stack`` (one stack per call) and by
+  ``encode_arrays`` + ``proxy_params`` (N distinct stacks in one call), for 1 to 3 coatings, ONNX Runtime on CPU.
 - Error: the runtime path (encoders + layering network + decoder, no projection, no per-material
   optimisation) against the reference lobes of ``tests/data/heldout_layered.npz``: relative RMSE of the
   lobe images at 0/30/60/75 degrees (median, 90th percentile), the absolute directional-albedo error,
@@ -20,7 +20,7 @@ set of training stacks), for choosing between training rounds without looking at
   the single-layer held-out materials through the encoder and decoder alone as the baseline row, and
   the reciprocity of the decoded lobes (the lobe with the decoder's two directions swapped against it).
 - Sampling efficiency: variance of the one-sample estimate of the radiance reflected from an analytic
-  environment (``addon.core.neural.sampling.sky_radiance``) at equal sample count, for cosine sampling
+  environment (``benchmarks/sampling_efficiency.sky_radiance``) at equal sample count, for cosine sampling
   and for the top interface's GGX lobe, divided by the proxy's (sigma, w from the sampling network).
   Variances are relative (var / mean^2), averaged over outgoing elevations cos = 0.3, 0.6, 0.9.
 """
@@ -40,15 +40,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from addon.core import lobe  # noqa: E402
-from addon.core.neural.layering import encode_layered_stack, encode_stack_arrays, load_layering  # noqa: E402
-from addon.core.neural.runtime import MODEL_DIR, SIZES, load_models  # noqa: E402
-from addon.core.neural.sampling import (  # noqa: E402
+from addon.core.neural import MODEL_DIR, SIZES, encode_arrays, encode_stack, load_models  # noqa: E402
+from addon.core.stack import StackArrays  # noqa: E402
+from benchmarks.sampling_efficiency import (  # noqa: E402
     cosine_sampler,
     ggx_sampler,
     one_bounce_variance,
     proxy_sampler,
 )
-from addon.core.stack import StackArrays  # noqa: E402
 from onnx_export.data import sample_layered_params  # noqa: E402
 from onnx_export.heldout_layered import DIFFUSE_INDEX, SPECULAR_INDEX, load, runtime_errors  # noqa: E402
 
@@ -61,31 +60,32 @@ def shown_path(p: Path) -> str:
     return str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else p.name
 
 
-def speed(models, layering, reps: int, batch: int) -> dict:
+def speed(models, reps: int, batch: int) -> dict:
     rng = np.random.default_rng(0)
     out = {}
     for c in (1, 2, 3):
         arrays = sample_layered_params(rng, batch, c)
         stacks = [arrays.stack(i) for i in range(reps)]
-        encode_layered_stack(stacks[0], models, layering)  # warm up
+        encode_stack(stacks[0], models)  # warm up
         t = time.perf_counter()
         for s in stacks:  # one call per stack: the interactive case
-            encode_layered_stack(s, models, layering)
+            encode_stack(s, models)
         single = reps / (time.perf_counter() - t)
-        encode_stack_arrays(arrays.take(slice(0, 64)), models, layering)
+        models.proxy_params(encode_arrays(arrays.take(slice(0, 64)), models))
         t = time.perf_counter()
-        encode_stack_arrays(arrays, models, layering)
+        models.proxy_params(encode_arrays(arrays, models))
         batched = batch / (time.perf_counter() - t)
         out[c] = {"single_per_s": single, "batched_per_s": batched, "batch": batch}
     return out
 
 
-def sampling_ratios(models, layering, stacks, n: int) -> list[dict]:
+def sampling_ratios(models, stacks, n: int) -> list[dict]:
     ct = np.array([0.3, 0.6, 0.9])
     wo = np.stack([np.sqrt(1 - ct**2), np.zeros(3), ct], axis=1)
     rows = []
     for i, s in enumerate(stacks):
-        z, p = encode_stack_arrays(StackArrays.from_stacks([s]), models, layering)
+        z = encode_arrays(StackArrays.from_stacks([s]), models)
+        p = models.proxy_params(z)
         sigma, w = p[0]
         brdf = lambda wi, wo_, z=z[0]: models.eval_brdf(z, wi, wo_)  # noqa: E731
         rel = {}
@@ -167,9 +167,8 @@ def main(argv=None):
     results = {}
     for size in sizes:
         models = load_models(size, threads=a.threads)
-        layering = load_layering(size, threads=a.threads)
-        res = runtime_errors(models, layering, data)
-        single = runtime_errors(models, layering, single_data)[0] if single_data is not None else None
+        res = runtime_errors(models, data)
+        single = runtime_errors(models, single_data)[0] if single_data is not None else None
         lobe_figure(res, data, size, a.out / f"layering_lobes_{size}.png")
         results[size] = {"errors": res}
         lines += [f"## Decoder `{size}`", "", f"### {set_name} error by number of coatings (runtime path, no projection)", "",
@@ -202,8 +201,8 @@ def main(argv=None):
         lines += ["", f"![lobes](layering_lobes_{size}.png)", ""]
         if a.errors_only:
             continue
-        sp = speed(models, layering, a.reps, a.batch)
-        ratios = sampling_ratios(models, layering, data["stacks"], a.samples)
+        sp = speed(models, a.reps, a.batch)
+        ratios = sampling_ratios(models, data["stacks"], a.samples)
         results[size] |= {"speed": sp, "ratios": ratios}
         lines += ["### Encoding speed (stacks per second)", "",
                   "| coatings | one stack per call | batched (one call) | batch size |", "|---|---|---|---|"]

@@ -3,7 +3,7 @@
     python benchmarks/lerp_figure.py --size tiny
 
 writes ``docs/lerp.png`` and ``docs/lerp.md``. Two layered materials A and B are encoded
-(``encode_layered_stack``); for t in 0 .. 1 the top rows decode ``lerp(z_A, z_B, t)`` and the bottom
+(``encode_stack``); for t in 0 .. 1 the top rows decode ``lerp(z_A, z_B, t)`` and the bottom
 rows show the linear blend (1 - t) f_A + t f_B of the two decoded BRDFs, as lobe images at 30 degrees
 incidence and as spheres under the preview environment, plus the in-plane lobe f cos(theta_o). A linear
 blend superimposes the two highlights (a sharp peak on a wide lobe); the latent interpolation moves one
@@ -23,8 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from addon.core import lobe, preview  # noqa: E402
-from addon.core.neural.layering import encode_layered_stack, lerp, load_layering  # noqa: E402
-from addon.core.neural.runtime import load_models  # noqa: E402
+from addon.core.neural import encode_stack, lerp, load_models  # noqa: E402
 from addon.core.stack import Coating, Conductor, Diffuse, Stack  # noqa: E402
 
 GOLD = dict(eta=(0.143, 0.374, 1.442), k=(3.983, 2.385, 1.603))
@@ -46,9 +45,8 @@ def main(argv=None):
     import matplotlib.pyplot as plt
 
     models = load_models(a.size, threads=2)
-    layering = load_layering(a.size, threads=2)
-    za = encode_layered_stack(MATERIAL_A, models, layering)
-    zb = encode_layered_stack(MATERIAL_B, models, layering)
+    za = encode_stack(MATERIAL_A, models)
+    zb = encode_stack(MATERIAL_B, models)
 
     def latent_brdf(t):
         z = lerp(za, zb, t)

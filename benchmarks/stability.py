@@ -185,12 +185,12 @@ def reference_cell(case: Case, res: int, walks: int, albedo_samples: int) -> Cel
 
 
 def neural_cell(size: str, case: Case, res: int, walks: int) -> Cell:
-    from addon.core.neural.runtime import load_models
+    from addon.core.neural import encode_stack, load_models
 
     method = f"neural {size}"
     if case.nan_directions or case.stack is None:
         m = load_models(size)
-        z = m.encode(Diffuse((0.5, 0.5, 0.5)))
+        z = encode_stack(Stack(Diffuse((0.5, 0.5, 0.5))), m)
         return _nan_cell(method, case, lambda wi, wo: m.eval_brdf(z, wi, wo))
     cell = Cell(method, case.name)
     imgs, caught, exc = _caught(lambda: _decoder_lobes(case.stack, size, res, case.angles))
@@ -228,12 +228,11 @@ def neural_cell(size: str, case: Case, res: int, walks: int) -> Cell:
 
 
 def _decoder_lobes(stack: Stack, size: str, res: int, angles):
-    from addon.core.neural.layering import encode_layered_stack
-    from addon.core.neural.runtime import load_models
+    from addon.core.neural import encode_stack, load_models
 
     m = load_models(size)
     try:
-        z = encode_layered_stack(stack, m, quality.layering_model(size) if stack.coatings else None)
+        z = encode_stack(stack, m)
     except (FileNotFoundError, NotImplementedError):
         return None
     t0 = time.perf_counter()

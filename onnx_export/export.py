@@ -157,7 +157,7 @@ def regraph_decoder(size: str, model_dir: Path = MODEL_DIR) -> dict:
     the decoder card, and moves the digest of ``decoder_<size>.onnx`` in the cards of the models
     trained against it (layering, sampling: ``trained_with``) to the new file: those models are
     still valid, since what they were trained against is the weights."""
-    from addon.core.neural.layering import file_digest
+    from addon.core.neural.models import file_digest
 
     dpath = model_dir / f"decoder_{size}.onnx"
     rgb_path = model_dir / f"decoder_{size}_rgb.onnx"
@@ -173,6 +173,7 @@ def regraph_decoder(size: str, model_dir: Path = MODEL_DIR) -> dict:
         raise RuntimeError(f"re-exporting {dpath.name} changed its weights; retrain the models that depend on it")
     card["onnx_runtime_vs_torch_max_relative_difference"] = decoder_parity(dec, dpath)
     card["rgb_graph"]["onnx_runtime_vs_torch_max_relative_difference"] = rgb_decoder_parity(dec, rgb_path)
+    card["files"] = {p.name: file_digest(p) for p in (dpath, rgb_path)}
     card_path.write_text(json.dumps(card, indent=1) + "\n")
     new_digest = file_digest(dpath)
     moved = []
@@ -248,9 +249,12 @@ def main(argv=None):
     data_cmd = [data_command(Path(d)) if holds_layering_data(Path(d)) else SINGLE_DATA_COMMAND for d in targs["data"]]
     data_cmd = data_cmd[0] if len(data_cmd) == 1 else data_cmd
     stages = training_commands(dck)
+    from addon.core.neural.models import file_digest
+
     dcard = {
         "name": f"decoder_{a.size}",
         "role": "neural BRDF decoder f(z_c, wi, wo) -> f_c >= 0 (1/sr, no cosine), one scalar network shared by R, G, B",
+        "files": {p.name: file_digest(p) for p in (dpath, rgb_path)},
         "inputs": {"z": "(B, 32) float32 latent of one colour channel", "wi": "(B, 3) float32 unit, toward the light",
                    "wo": "(B, 3) float32 unit, toward the viewer"},
         "outputs": {"f": "(B,) float32"},
@@ -278,6 +282,7 @@ def main(argv=None):
     ecard = {
         "name": f"encoder_{a.size}",
         "role": f"single-layer parameters -> latent of decoder_{a.size}, per colour channel",
+        "files": {epath.name: file_digest(epath)},
         "inputs": {"x": f"(B, {N_FEATURES}) float32 features (addon.core.neural.features)", "features": list(FEATURE_NAMES)},
         "outputs": {"z": "(B, 32) float32"},
         "architecture": {**eck["config"], "hidden": f"{enc.depth} x Linear({enc.width}) + ReLU"},
@@ -287,6 +292,7 @@ def main(argv=None):
         "onnx_runtime_vs_torch_max_relative_difference": epar,
         "opset": OPSET,
         **{k: v for k, v in metrics.items() if k.startswith("encoder")},
+        "trained_with": {dpath.name: file_digest(dpath)},
     }
     dpath.with_suffix(".json").write_text(json.dumps(dcard, indent=1) + "\n")
     epath.with_suffix(".json").write_text(json.dumps(ecard, indent=1) + "\n")

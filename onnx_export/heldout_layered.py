@@ -207,7 +207,7 @@ if __name__ == "__main__":
     main()
 
 
-def runtime_errors(models, layering, data: dict, res: int | None = None) -> dict:
+def runtime_errors(models, data: dict, res: int | None = None) -> dict:
     """Held-out lobe errors of the RUNTIME path (ONNX encoders + layering + decoder) per coating count.
 
     Returns {n_coatings: {"errors": (configs, angles) relative RMSE, "albedo_error": (configs, angles, 3)
@@ -219,7 +219,7 @@ def runtime_errors(models, layering, data: dict, res: int | None = None) -> dict
     reciprocal; the decoder is not by construction), "errors_swapped": (configs, angles) the relative RMSE
     of that swapped lobe against the reference}}.
     """
-    from addon.core.neural.layering import encode_latents
+    from addon.core.neural import encode_arrays
 
     stacks = data["stacks"]
     stacks = [s if isinstance(s, Stack) else Stack.from_json(str(s)) for s in stacks]
@@ -228,7 +228,7 @@ def runtime_errors(models, layering, data: dict, res: int | None = None) -> dict
     out = {}
     for c in sorted({len(s.coatings) for s in stacks}):
         idx = [i for i, s in enumerate(stacks) if len(s.coatings) == c]
-        z = encode_latents(StackArrays.from_stacks([stacks[i] for i in idx]), models, layering)
+        z = encode_arrays(StackArrays.from_stacks([stacks[i] for i in idx]), models)
         lobes = np.array([[lobe.lobe_image(lambda wi, wo, k=k: models.eval_brdf(z[k], wi, wo), t, res)
                            for t in angles] for k in range(len(idx))])
         swapped = np.array([[lobe.lobe_image(lambda wi, wo, k=k: models.eval_brdf(z[k], wo, wi), t, res)

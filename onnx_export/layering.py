@@ -48,17 +48,16 @@ import numpy as np
 import torch
 from torch import nn
 
-from addon.core.neural.features import arrays_features, base_features
-from addon.core.neural.layering import file_digest
-from addon.core.neural.runtime import NeuralModels
-from addon.core.stack import StackArrays
+from addon.core.neural.features import arrays_features
+from addon.core.neural.models import ModelSet, file_digest
+from addon.core.stack import TRAINED_RANGES, StackArrays
 from onnx_export.cli import command_line
 from onnx_export.layered_data import data_command
 from onnx_export.nets import LATENT, cosine_lr, macs_per_eval, mlp, n_params, pair_loss
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"
 OPSET = 17
-THICKNESS_MAX = 5.0
+THICKNESS_MAX = TRAINED_RANGES["thickness"][1]
 
 
 class LayeringNet(nn.Module):
@@ -96,18 +95,16 @@ def compose(net: LayeringNet, z_base: torch.Tensor, z_tops: torch.Tensor, albedo
 
 
 def interface_features(arrays: StackArrays) -> np.ndarray:
-    """(N, C, 3, F) encoder features of every coating's interface, Dielectric(roughness, ior)."""
-    n, c = len(arrays), arrays.n_coatings
-    x = base_features(np.full(n * c, 2), arrays.coat_roughness.reshape(-1), np.zeros((n * c, 3)),
-                      np.ones((n * c, 3)), np.zeros((n * c, 3)), arrays.coat_ior.reshape(-1))
-    return x.reshape(n, c, 3, -1)
+    """(N, C, 3, F) encoder features of every coating's interface (``StackArrays.coating_interfaces``)."""
+    x = arrays_features(arrays.coating_interfaces())
+    return x.reshape(len(arrays), arrays.n_coatings, 3, -1)
 
 
-def encoder_latents(models: NeuralModels, arrays: StackArrays) -> tuple[np.ndarray, np.ndarray]:
+def encoder_latents(models: ModelSet, arrays: StackArrays) -> tuple[np.ndarray, np.ndarray]:
     """Frozen-encoder latents: base (N, 3, 32) and coating interfaces (N, C, 3, 32)."""
-    zb = models.encode_features(arrays_features(arrays))
+    zb = models.run_encoder(arrays_features(arrays))
     xi = interface_features(arrays)
-    zt = models.encode_features(xi.reshape(-1, 3, xi.shape[-1])).reshape(len(arrays), arrays.n_coatings, 3, LATENT)
+    zt = models.run_encoder(xi.reshape(-1, 3, xi.shape[-1])).reshape(len(arrays), arrays.n_coatings, 3, LATENT)
     return zb, zt
 
 
@@ -128,7 +125,7 @@ def frozen_decoder(size: str, model_dir: Path = MODEL_DIR):
 class StackSet:
     """Training tensors of one coating count: encoder latents, medium parameters and reference values."""
 
-    def __init__(self, path: Path, models: NeuralModels, stacks: int = 0, use_weight: bool = False):
+    def __init__(self, path: Path, models: ModelSet, stacks: int = 0, use_weight: bool = False):
         self.use_weight = use_weight
         from onnx_export.layered_data import load
 
@@ -264,7 +261,7 @@ def layering_loss(pred, target, wi, wo, weight, kind: str) -> torch.Tensor:
 
 
 @torch.no_grad()
-def heldout_error(net: LayeringNet, dec, models: NeuralModels, heldout: dict, log=None) -> dict:
+def heldout_error(net: LayeringNet, dec, models: ModelSet, heldout: dict, log=None) -> dict:
     """Lobe error of the layered latents per number of coatings, as onnx_export.evaluate measures it."""
     from onnx_export.evaluate import decoder_lobes, lobe_metrics
 
@@ -285,7 +282,7 @@ def heldout_error(net: LayeringNet, dec, models: NeuralModels, heldout: dict, lo
     return out
 
 
-def lobe_bound(net: LayeringNet, dec, models: NeuralModels, heldout: dict, steps: int = 400, pixels: int = 96,
+def lobe_bound(net: LayeringNet, dec, models: ModelSet, heldout: dict, steps: int = 400, pixels: int = 96,
                lr: float = 0.01, seed: int = 0, log=None) -> dict:
     """What the decoder could hold: the held-out lobes projected into its latent space, per number of
     coatings, by latent optimisation on the scored pixels themselves with the metric as the loss
@@ -436,7 +433,7 @@ def regress_decoded(net: LayeringNet, dec, sets: dict, targets: dict, args, gen,
             checkpoint(opt)
 
 
-def projected_targets(args, models: NeuralModels, sets: dict, shrink: float) -> tuple[dict, str | None]:
+def projected_targets(args, models: ModelSet, sets: dict, shrink: float) -> tuple[dict, str | None]:
     """The ``--projected`` latents of the training stacks, per coating count, shrunk by ``shrink``, and
     the command of their re-fit (None: none); the two-coating stacks join ``sets`` when the re-fit holds
     them (so the recursion is regressed too)."""
@@ -451,7 +448,7 @@ def projected_targets(args, models: NeuralModels, sets: dict, shrink: float) -> 
     return targets, refit
 
 
-def decoded_stage_data(args, models: NeuralModels, sets: dict) -> tuple[dict, dict]:
+def decoded_stage_data(args, models: ModelSet, sets: dict) -> tuple[dict, dict]:
     """The stacks of the function-space stage and their targets (None: the Monte Carlo values)."""
     if args.decoded_target == "latents":
         if args.decoded_data:
@@ -482,7 +479,7 @@ def train(args, log=print) -> dict:
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
-    models = NeuralModels(args.size, threads=args.threads, model_dir=args.model_dir)
+    models = ModelSet(args.size, threads=args.threads, model_dir=args.model_dir)
     dec = frozen_decoder(args.size, Path(args.model_dir or MODEL_DIR))
     trained_with = {p.name: file_digest(p) for p in (models.encoder_path, models.decoder_path)}
     sets = {1: StackSet(args.c1, models, args.stacks, args.weighting == "cosine")}  # two-coating data are loaded when stage 2 starts
@@ -694,6 +691,7 @@ def export(args, log=print) -> dict:
         "name": f"layering_{args.size}",
         "role": (f"layering network in the latent space of decoder_{args.size}/encoder_{args.size}: "
                  "z = L(z_top_interface, z_bottom, albedo_c, thickness) per colour channel, applied bottom-up"),
+        "files": {path.name: file_digest(path)},
         "inputs": {"z_top": "(B, 32) float32 encoder latent of the coating's interface Dielectric(roughness, ior)",
                    "z_bottom": "(B, 32) float32 latent of the base or of the lower sub-stack",
                    "albedo": "(B,) float32 single-scattering albedo of the slab in this channel, [0, 1]",
@@ -828,7 +826,7 @@ def main(argv=None):
             ho = ho | {"stacks": [ho["stacks"][i] for i in keep], "lobe": ho["lobe"][keep]}
         src = MODEL_DIR / f"layering_{a.size}.onnx"
         net = net_from_onnx(src, json.loads(src.with_suffix(".json").read_text()))
-        res = lobe_bound(net, frozen_decoder(a.size), NeuralModels(a.size, threads=a.threads), ho, a.steps, a.pixels,
+        res = lobe_bound(net, frozen_decoder(a.size), ModelSet(a.size, threads=a.threads), ho, a.steps, a.pixels,
                          seed=a.seed, log=lg)
         print(json.dumps(res))
     else:

@@ -23,7 +23,7 @@ tabulate KL on a grid of (log sigma, w) (``proxy.pdf`` evaluated once per sigma)
 trained to minimise the bilinearly interpolated KL of its own output: the KL loss itself, with no
 second implementation of the proxy's formula in torch. The table's minimum is the best proxy a
 per-material fit could reach; both are reported. Latents come from the runtime encoders and layering
-network (``addon.core.neural.layering``) of random stacks with 0 to 3 coatings.
+network (``addon.core.neural.encode``) of random stacks with 0 to 3 coatings.
 """
 
 from __future__ import annotations
@@ -86,10 +86,10 @@ def random_arrays(rng: np.random.Generator, n: int):
     return out
 
 
-def material_latents(arrays_list, models, layering) -> np.ndarray:
-    from addon.core.neural.layering import encode_latents
+def material_latents(arrays_list, models) -> np.ndarray:
+    from addon.core.neural import encode_arrays
 
-    return np.concatenate([encode_latents(a, models, layering) for a in arrays_list])
+    return np.concatenate([encode_arrays(a, models) for a in arrays_list])
 
 
 def kl_tables(models, z: np.ndarray, samples: int = 160, seed: int = 0, batch: int = 48, log=None):
@@ -186,25 +186,23 @@ def net_from_onnx(path: Path, card: dict) -> SamplingNet:
 
 
 def run(args, log=print) -> dict:
-    from addon.core.neural.layering import LayeringModel, file_digest
-    from addon.core.neural.runtime import NeuralModels
+    from addon.core.neural.models import ModelSet, file_digest
 
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    models = NeuralModels(args.size, threads=args.threads, model_dir=args.models)
-    layering = LayeringModel(args.size, threads=args.threads, model_dir=args.models, sampling=False)
+    models = ModelSet(args.size, threads=args.threads, model_dir=args.models)
     cache = out / "tables.npz"
     if cache.exists():
         d = np.load(cache)
         z, table, z_ho, table_ho = d["z"], d["table"], d["z_ho"], d["table_ho"]
     else:
         rng = np.random.default_rng([args.seed, 5])
-        z = material_latents(random_arrays(rng, args.materials), models, layering)
+        z = material_latents(random_arrays(rng, args.materials), models)
         table = kl_tables(models, z, args.samples, seed=args.seed, log=log)
         rng_ho = np.random.default_rng([args.seed, 6])  # held-out materials
-        z_ho = material_latents(random_arrays(rng_ho, args.heldout), models, layering)
+        z_ho = material_latents(random_arrays(rng_ho, args.heldout), models)
         table_ho = kl_tables(models, z_ho, args.samples, seed=args.seed + 1, log=log)
         np.savez(cache, z=z, table=table, z_ho=z_ho, table_ho=table_ho)
     net = SamplingNet(args.width, args.depth)
@@ -243,6 +241,7 @@ def run(args, log=print) -> dict:
         "name": f"sampling_{args.size}",
         "role": f"sampling network in the latent space of decoder_{args.size}: z (3, 32) -> (sigma, w) of the proxy "
                 "pdf (1 - w) Gaussian(sigma) over the projected half vector + w cosine lobe (addon.core.neural.proxy)",
+        "files": {path.name: file_digest(path)},
         "inputs": {"z": "(B, 3, 32) float32 latent (all three channels)"},
         "outputs": {"sigma": f"(B,) float32 in [{SIGMA_GRID[0]:.3g}, {SIGMA_GRID[-1]:.3g}]",
                     "w": f"(B,) float32 in [{W_MIN}, 1]"},
@@ -259,7 +258,8 @@ def run(args, log=print) -> dict:
         "heldout": metrics,
         "onnx_runtime_vs_torch_max_relative_difference": par,
         "opset": OPSET,
-        "trained_with": {p.name: file_digest(p) for p in (models.encoder_path, models.decoder_path, layering.path)},
+        "trained_with": {p.name: file_digest(p) for p in (models.encoder_path, models.decoder_path,
+                                                          models.path("layering"))},
     }
     path.with_suffix(".json").write_text(json.dumps(card, indent=1) + "\n")
     log(json.dumps({"model": str(path), "parity": par}))

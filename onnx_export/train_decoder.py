@@ -66,12 +66,10 @@ def initial_latents(sets: list[StackArrays], size: str, materials: int | None, t
     """(units, 32) latents of every training channel of ``sets`` (one StackArrays per data set) in a
     shipped size's latent space: single-layer materials through its encoder, layered stacks through its
     encoder and layering network."""
-    from addon.core.neural.layering import LayeringModel, encode_latents
-    from addon.core.neural.runtime import load_models
+    from addon.core.neural import encode_arrays, load_models
 
     models = load_models(size, threads=threads)
-    layering = LayeringModel(size, threads, sampling=False) if any(a.n_coatings for a in sets) else None
-    out = [encode_latents(a, models, layering) for a in sets]
+    out = [encode_arrays(a, models) for a in sets]
     z = np.concatenate(out)
     if materials:
         z = z[:materials]

@@ -14,6 +14,7 @@ import time
 import bpy
 from bpy.props import EnumProperty, IntProperty
 
+from ..core.neural.models import resolve_size
 from ..core.textures.bake import bake_key, bake_stack, neural_encoder
 
 from . import bake_inputs, stack_io
@@ -26,6 +27,14 @@ def texture_output_path(mat) -> str:
     if not folder or folder.startswith("//"):
         raise UserError("the bake folder is relative to the .blend file: save the file first or choose an absolute folder")
     return os.path.join(folder, f"{bpy.path.clean_name(mat.name)}.exr")
+
+
+def bake_size(mat) -> str:
+    """The decoder size a bake of ``mat`` uses: its model-size setting, "auto" resolved (``neural.resolve_size``)."""
+    try:
+        return resolve_size(stack_io.model_size(mat))
+    except (ValueError, FileNotFoundError) as e:
+        raise UserError(str(e)) from None
 
 
 def baked_texture_state(mat) -> tuple[str | None, str]:
@@ -44,7 +53,11 @@ def baked_texture_state(mat) -> tuple[str | None, str]:
         return None, "no layer stack"
     spatial, _ = found
     res = tuple(s.texture_size)
-    if bake_key(spatial, res, stack_io.model_size(mat)) != s.texture_key:
+    try:
+        size = bake_size(mat)
+    except UserError as e:
+        return None, str(e)
+    if bake_key(spatial, res, size) != s.texture_key:
         return None, "baked texture is out of date: bake again"
     return path, f"baked: {os.path.basename(path)}"
 
@@ -126,7 +139,7 @@ class NLM_OT_bake_texture(_LongOperator, bpy.types.Operator):
         res = spatial.resolution_for_max_side(s.bake_resolution)
         if s.bake_fit_camera:
             res = min(res, camera_resolution(context, mat, spatial), key=lambda r: r[0] * r[1])
-        size = stack_io.model_size(mat)
+        size = bake_size(mat)
         path = texture_output_path(mat)
         key = bake_key(spatial, res, size)
         name = mat.name

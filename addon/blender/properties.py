@@ -228,7 +228,7 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
     model_size: EnumProperty(
         name="Model Size",
         items=[
-            ("AUTO", "Auto", "The first shipped decoder of: small, tiny, medium, paper"),
+            ("AUTO", "Auto", "The default decoder (tiny, the fastest; else the first shipped size)"),
             ("TINY", "Tiny", "Smallest, fastest decoder"),
             ("SMALL", "Small", "The interactive default"),
             ("MEDIUM", "Medium", "Larger decoder: more accurate, slower"),

@@ -21,7 +21,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from . import lobe
-from .stack import Stack, clamp_to_trained
+from .stack import LATENT, Stack, clamp_to_trained
 
 BrdfFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 ProgressFn = Optional[Callable[[float], None]]
@@ -86,25 +86,22 @@ def _neural_module():
     return neural
 
 
-# Decoder sizes tried, in order, when the size is "auto": the interactive default first.
-AUTO_SIZE_ORDER = ("small", "tiny", "medium", "paper")
-
-
 def resolve_size(size: str = "auto") -> str:
-    """The decoder size to use: ``size`` itself, or for "auto" the first of ``AUTO_SIZE_ORDER``
-    whose models load. Raises :class:`NeuralUnavailable` naming what is missing."""
+    """The decoder size to use: ``size`` itself, or for "auto" the neural runtime's choice
+    (``neural.resolve_size``, the one rule for every consumer), once its models load. Raises
+    :class:`NeuralUnavailable` naming what is missing."""
     neural = _neural_module()
-    candidates = AUTO_SIZE_ORDER if size == "auto" else (size,)
-    errors = []
-    for candidate in candidates:
-        try:
-            neural.load_models(size=candidate)
-            return candidate
-        except Exception as e:
-            errors.append(f"{candidate}: {e}")
-    if size == "auto":
-        raise NeuralUnavailable("no decoder size could be loaded (" + "; ".join(errors) + ")")
-    raise NeuralUnavailable(f"models of size {size!r} cannot be loaded ({errors[0].split(': ', 1)[1]})")
+    from .neural.models import resolve_size as runtime_resolve_size
+
+    try:
+        candidate = runtime_resolve_size(size)
+    except (ValueError, FileNotFoundError) as e:
+        raise NeuralUnavailable(str(e)) from None
+    try:
+        neural.load_models(size=candidate)
+    except Exception as e:
+        raise NeuralUnavailable(f"models of size {candidate!r} cannot be loaded ({e})") from None
+    return candidate
 
 
 def encode_latent(stack: Stack, size: str = "auto") -> tuple[np.ndarray, str, list[str]]:
@@ -118,20 +115,20 @@ def encode_latent(stack: Stack, size: str = "auto") -> tuple[np.ndarray, str, li
     size = resolve_size(size)
     clamped, notes = clamp_to_trained(stack)
     try:
-        z = np.asarray(neural.encode_stack(clamped, size=size), dtype=np.float32)
+        z = np.asarray(neural.encode_stack(clamped, size), dtype=np.float32)
     except Exception as e:
         raise NeuralUnavailable(f"the {size} encoder cannot encode this stack ({e})") from None
-    if z.shape != (3, 32):
-        raise NeuralUnavailable(f"the encoder returned a latent of shape {z.shape}, expected (3, 32)")
+    if z.shape != (3, LATENT):
+        raise NeuralUnavailable(f"the encoder returned a latent of shape {z.shape}, expected (3, {LATENT})")
     if not np.all(np.isfinite(z)):
         raise NeuralUnavailable("the encoder returned a latent with non-finite values")
     return z, size, notes
 
 
-def neural_brdf_from_latent(z: np.ndarray, size: str = "small") -> BrdfFn:
+def neural_brdf_from_latent(z: np.ndarray, size: str = "auto") -> BrdfFn:
     """``brdf(wi, wo)`` of the neural decoder of ``size`` for a latent ``(3, 32)`` of that size."""
     neural = _neural_module()
-    z = np.asarray(z, dtype=np.float32).reshape(3, 32)
+    z = np.asarray(z, dtype=np.float32).reshape(3, LATENT)
     return lambda wi, wo: neural.eval_brdf(z, wi, wo, size=size)
 
 

@@ -69,7 +69,7 @@ class DecoderChoice:
 
 def available_sizes(model_dir=None) -> list[str]:
     """Shipped decoder sizes, fewest parameters first (from the model cards; unknown counts last)."""
-    from .neural.runtime import MODEL_DIR, SIZES
+    from .neural.models import MODEL_DIR, SIZES
 
     d = Path(model_dir) if model_dir is not None else MODEL_DIR
     found = []
@@ -85,7 +85,7 @@ def available_sizes(model_dir=None) -> list[str]:
 
 def _fingerprint(size: str, model_dir=None) -> str:
     """Identity of a size's model files (name, byte size, modification time): a retrained model is new."""
-    from .neural.runtime import MODEL_DIR
+    from .neural.models import MODEL_DIR
 
     d = Path(model_dir) if model_dir is not None else MODEL_DIR
     parts = []
@@ -129,30 +129,16 @@ def reference_lobes(stack: Stack, res: int = LOBE_RES, walks: int = REFERENCE_WA
     return out
 
 
-_LAYERING: dict = {}
-
-
-def layering_model(size: str, threads: int = 2):
-    """The layering network of ``size`` without its sampling network (the error needs only the latent)."""
-    from .neural.layering import LayeringModel
-
-    key = (size, int(threads))
-    if key not in _LAYERING:
-        _LAYERING[key] = LayeringModel(size, threads, sampling=False)
-    return _LAYERING[key]
-
-
 def decoder_lobes(stack: Stack, size: str, res: int = LOBE_RES, threads: int = 2) -> np.ndarray:
     """Lobe images (4, res, res, 3) of ``stack`` encoded and decoded by one decoder size.
 
     Raises FileNotFoundError when a model the stack needs is not shipped (e.g. no layering
     network for this size); ClampWarnings of the encoding are passed on.
     """
-    from .neural.layering import encode_layered_stack
-    from .neural.runtime import load_models
+    from .neural import encode_stack, load_models
 
     models = load_models(size, threads=threads)
-    z = encode_layered_stack(stack, models, layering_model(size, threads) if stack.coatings else None)
+    z = encode_stack(stack, models)
     return np.stack([lobe.lobe_image(lambda wi, wo: models.eval_brdf(z, wi, wo), t, res)
                      for t in lobe.INCIDENT_ANGLES_DEG])
 
@@ -209,10 +195,12 @@ def measured_error(stack: Stack, size: str, res: int = LOBE_RES, walks: int = RE
     hit = cache.get(key)
     if hit is not None:
         return hit
+    from .neural import ModelFileError
+
     try:
         pred = decoder_lobes(stack, size, res, threads)
-    except FileNotFoundError:
-        return math.inf  # not cached: the missing model may be shipped later
+    except (FileNotFoundError, ModelFileError):
+        return math.inf  # not cached: the missing or damaged model may be shipped (repaired) later
     ref, se = reference_lobes(stack, res, walks, seed)
     err = noise_corrected_error(pred, ref, se)
     cache.put(key, err)
@@ -361,14 +349,14 @@ def assign_decoders(scene, quality: str = "auto", tolerance: float = DEFAULT_TOL
     from .render.materials import LayeredSpec
 
     if quality != "auto":
-        from .neural.runtime import SIZES
+        from .neural.models import SIZES
 
         if quality not in SIZES:
             raise ValueError(f"quality must be 'auto' or a decoder size {list(SIZES)}, got {quality!r}")
     names = list(scene.material_names) + [f"material {i}" for i in range(len(scene.material_names),
                                                                           len(scene.materials))]
     out, choices, notes = [], {}, []
-    for name, m in zip(names, scene.materials):
+    for name, m in zip(names, scene.materials, strict=True):
         spec = m if isinstance(m, LayeredSpec) else (LayeredSpec(m) if isinstance(m, Stack) else None)
         if spec is None or not spec.stack.coatings or spec.latent_texture is not None:
             out.append(m)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Iterable, Union
 
@@ -25,42 +26,51 @@ import numpy as np
 
 RGB = tuple[float, float, float]
 
-# Valid (physical) ranges, inclusive.
-VALID_RANGES: dict[str, tuple[float, float]] = {
-    "roughness": (0.0, 1.0),
-    "ior": (1.0, 4.0),
-    "eta": (0.01, 10.0),
-    "k": (0.0, 20.0),
-    "albedo": (0.0, 1.0),
-    "thickness": (0.0, 100.0),
-    "g": (-0.99, 0.99),
+# Every parameter's two ranges, inclusive: field -> (valid range, trained range). The valid range is
+# what is physical; the trained range what the neural models saw in training (docs/architecture.md,
+# "The layer stack"). The one table of both: everything else reads VALID_RANGES / TRAINED_RANGES.
+RANGES: dict[str, tuple[tuple[float, float], tuple[float, float]]] = {
+    "roughness": ((0.0, 1.0), (0.01, 1.0)),
+    "ior": ((1.0, 4.0), (1.05, 2.0)),
+    "eta": ((0.01, 10.0), (0.01, 10.0)),
+    "k": ((0.0, 20.0), (0.0, 20.0)),
+    "albedo": ((0.0, 1.0), (0.0, 1.0)),
+    "thickness": ((0.0, 100.0), (0.0, 5.0)),
+    "g": ((-0.99, 0.99), (0.0, 0.0)),
 }
+VALID_RANGES: dict[str, tuple[float, float]] = {k: v[0] for k, v in RANGES.items()}
+TRAINED_RANGES: dict[str, tuple[float, float]] = {k: v[1] for k, v in RANGES.items()}
 
-# Ranges the neural models were trained on (DESIGN section 3), inclusive.
-TRAINED_RANGES: dict[str, tuple[float, float]] = {
-    "roughness": (0.01, 1.0),
-    "ior": (1.05, 2.0),
-    "eta": (0.01, 10.0),
-    "k": (0.0, 20.0),
-    "albedo": (0.0, 1.0),
-    "thickness": (0.0, 5.0),
-    "g": (0.0, 0.0),
-}
+# Floats per colour channel of a stack's latent code: a latent is (3, LATENT), a latent texture holds
+# 3 * LATENT latent channels per texel.
+LATENT = 32
+
+
+class ClampWarning(UserWarning):
+    """A parameter was outside the range the networks were trained on and was clamped."""
+
+
+def _number(layer: str, name: str, value) -> float:
+    """``value`` as a float if it is a real number (not a bool, a string or complex)."""
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value[()]
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{layer}.{name} must be a number, got {value!r} ({type(value).__name__})")
+    return float(value)
 
 
 def _check_scalar(layer: str, name: str, value, valid_key: str | None = None) -> float:
     lo, hi = VALID_RANGES[valid_key or name]
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{layer}.{name} must be a number, got {value!r}") from None
+    v = _number(layer, name, value)
     if not math.isfinite(v) or v < lo or v > hi:
         raise ValueError(f"{layer}.{name} = {value!r} is outside the valid range [{lo}, {hi}]")
     return v
 
 
 def _check_rgb(layer: str, name: str, value, valid_key: str | None = None) -> RGB:
-    if isinstance(value, (int, float)):
+    if isinstance(value, (str, bytes)):
+        raise ValueError(f"{layer}.{name} must be an RGB triple of numbers (or one number), got {value!r}")
+    if isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)):
         value = (value, value, value)
     try:
         items = list(value)
@@ -235,13 +245,21 @@ def artist_roughness_from_alpha(alpha: float) -> float:
     return math.sqrt(max(float(alpha), 0.0))
 
 
+def coating_interface(coating: Coating) -> Dielectric:
+    """The single layer a coating's interface is: ``Dielectric(roughness, ior)``, reflection over black.
+
+    The one rule of how the encoders see a coating: a coating (or its interface on top of a stack) is
+    encoded as this dielectric, and the layering network adds the slab and what lies below.
+    """
+    return Dielectric(coating.roughness, coating.ior)
+
+
 def _clamp(v: float, key: str) -> float:
     lo, hi = TRAINED_RANGES[key]
     return min(max(v, lo), hi)
 
 
-def clamp_to_trained(stack: Stack) -> tuple[Stack, list[str]]:
-    """Clamp every parameter into the trained range; return the stack and what changed."""
+def _clamp_stack(stack: Stack) -> tuple[Stack, list[str]]:
     notes: list[str] = []
 
     def fix(layer_name: str, layer: Layer) -> Layer:
@@ -419,3 +437,101 @@ class StackArrays:
             for j in range(self.n_coatings)
         )
         return Stack(base, coats)
+
+    def coating_interfaces(self) -> "StackArrays":
+        """The interfaces of all coatings as N * C single-layer rows (row i * C + j: coating j of stack i),
+        by :func:`coating_interface`'s rule: ``Dielectric(coat_roughness, coat_ior)``."""
+        m = len(self) * self.n_coatings
+        d = Diffuse().albedo, Conductor().eta, Conductor().k
+        return StackArrays(
+            base_kind=np.full(m, BASE_KINDS.index("Dielectric"), dtype=np.int64),
+            base_albedo=np.tile(np.asarray(d[0], dtype=np.float64), (m, 1)),
+            base_roughness=np.asarray(self.coat_roughness, dtype=np.float64).reshape(m),
+            base_eta=np.tile(np.asarray(d[1], dtype=np.float64), (m, 1)),
+            base_k=np.tile(np.asarray(d[2], dtype=np.float64), (m, 1)),
+            base_ior=np.asarray(self.coat_ior, dtype=np.float64).reshape(m),
+            **_no_coatings(m),
+        )
+
+
+def _no_coatings(n: int) -> dict:
+    return {"coat_roughness": np.zeros((n, 0)), "coat_ior": np.zeros((n, 0)), "coat_albedo": np.zeros((n, 0, 3)),
+            "coat_thickness": np.zeros((n, 0)), "coat_g": np.zeros((n, 0))}
+
+
+# StackArrays field -> (its range in RANGES, the base kinds whose rows use it; None: every row).
+ARRAY_FIELDS: dict[str, tuple[str, tuple[int, ...] | None]] = {
+    "base_albedo": ("albedo", (0,)), "base_roughness": ("roughness", (1, 2)), "base_eta": ("eta", (1,)),
+    "base_k": ("k", (1,)), "base_ior": ("ior", (2,)), "coat_roughness": ("roughness", None),
+    "coat_ior": ("ior", None), "coat_albedo": ("albedo", None), "coat_thickness": ("thickness", None),
+    "coat_g": ("g", None),
+}
+
+
+def _array_shapes(sa: StackArrays) -> dict[str, tuple[int, ...]]:
+    n, c = len(sa), sa.n_coatings
+    return {"base_kind": (n,), "base_albedo": (n, 3), "base_roughness": (n,), "base_eta": (n, 3), "base_k": (n, 3),
+            "base_ior": (n,), "coat_roughness": (n, c), "coat_ior": (n, c), "coat_albedo": (n, c, 3),
+            "coat_thickness": (n, c), "coat_g": (n, c)}
+
+
+def _validate_arrays(sa: StackArrays) -> None:
+    for name in StackArrays.FIELDS:
+        a = getattr(sa, name)
+        if np.iscomplexobj(a) or np.asarray(a).dtype.kind not in "biuf":
+            raise ValueError(f"StackArrays.{name} must hold real numbers, got dtype {np.asarray(a).dtype}")
+    for name, shape in _array_shapes(sa).items():
+        a = np.asarray(getattr(sa, name))
+        if a.shape != shape:
+            raise ValueError(f"StackArrays.{name} must have shape {shape}, got {a.shape}")
+    kind = np.asarray(sa.base_kind)
+    if np.any((kind < 0) | (kind >= len(BASE_KINDS))):
+        raise ValueError(f"StackArrays.base_kind must index {BASE_KINDS}, got values {np.unique(kind).tolist()}")
+    for name, (key, _) in ARRAY_FIELDS.items():
+        a = np.asarray(getattr(sa, name), dtype=np.float64)
+        lo, hi = VALID_RANGES[key]
+        bad = ~np.isfinite(a) | (a < lo) | (a > hi)
+        if np.any(bad):
+            where = tuple(int(i[0]) for i in np.nonzero(bad))
+            raise ValueError(
+                f"StackArrays.{name}{list(where)} = {a[where]!r} is outside the valid range [{lo}, {hi}]"
+            )
+
+
+def validate(stacks: "Stack | StackArrays") -> None:
+    """Raise ValueError naming the field, the row and the range when ``stacks`` is not a valid Stack or
+    StackArrays: malformed, not real, not finite or outside VALID_RANGES (a Stack checks itself when
+    it is built, so for one only its type is checked)."""
+    if isinstance(stacks, Stack):
+        return
+    if not isinstance(stacks, StackArrays):
+        raise ValueError(f"expected a Stack or StackArrays, got {type(stacks).__name__}")
+    _validate_arrays(stacks)
+
+
+def _clamp_arrays(arrays: StackArrays) -> tuple[StackArrays, list[str]]:
+    out = arrays.take(slice(None))
+    notes = []
+    for name, (key, kinds) in ARRAY_FIELDS.items():
+        lo, hi = TRAINED_RANGES[key]
+        v = np.asarray(getattr(out, name), dtype=np.float64)
+        c = np.clip(v, lo, hi)
+        changed = (c != v).reshape(len(out), int(np.prod(v.shape[1:]))).any(axis=1)
+        if kinds is not None:  # only the fields a row's base kind uses matter
+            changed &= np.isin(out.base_kind, kinds)
+        if np.any(changed):
+            i, k = int(np.flatnonzero(changed)[0]), int(changed.sum())
+            notes.append(f"{name}: {k} row{'s' if k != 1 else ''} clamped to the trained range [{lo}, {hi}] "
+                         f"(first: row {i}, {v[i].tolist()} -> {c[i].tolist()})")
+        setattr(out, name, c)
+    return out, notes
+
+
+def clamp_to_trained(stacks: "Stack | StackArrays") -> "tuple[Stack | StackArrays, list[str]]":
+    """Every parameter clamped into TRAINED_RANGES: the clamped copy and a note per change (a Stack:
+    per layer field; StackArrays: per field, with the count of rows whose base kind uses it)."""
+    if isinstance(stacks, Stack):
+        return _clamp_stack(stacks)
+    if isinstance(stacks, StackArrays):
+        return _clamp_arrays(stacks)
+    raise ValueError(f"clamp_to_trained needs a Stack or StackArrays, got {type(stacks).__name__}")

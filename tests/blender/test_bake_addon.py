@@ -104,29 +104,28 @@ def test_duplicating_a_layer_copies_its_maps(wood):
     assert len(copy.maps) == 1 and copy.maps[0].image.name == "rough" and copy.maps[0].high == pytest.approx(0.6)
 
 
-def test_bake_with_the_shipped_models(bpy_addon, material, tmp_path):
-    from addon.core.textures.bake import neural_encoder
-
-    try:
-        neural_encoder("tiny")
-    except (FileNotFoundError, ValueError, ImportError) as e:
-        pytest.skip(f"layering models not shipped: {e}")
-    assert run_operator(ops.preset_apply, preset="lacquered_plastic").finished
-    material.neural_layers.bake_directory = str(tmp_path)
-    material.neural_layers.model_size = "TINY"
-    r = run_operator(ops.bake_texture)
-    assert r.finished, r.error
+def test_bake_with_the_shipped_models_at_the_default_auto_size(bpy_addon, material, tmp_path):
+    """The default model size, Auto, bakes (it is resolved once, by the neural runtime) and the texture
+    records the size and decoder digest the renderer decodes it with."""
     from addon.blender import bake_ops
-    from addon.core.neural.layering import encode_layered_stack
+    from addon.core.neural import DEFAULT_SIZE, encode_stack, load_models
+    from addon.core.render import neural_material
+    from addon.core.stack import preset
     from addon.core.textures import LatentTexture
 
-    tex = LatentTexture.read_exr(bake_ops.baked_texture_state(material)[0])
-    from addon.core.stack import preset
-
-    from addon.core.neural import load_models
-
-    z = encode_layered_stack(preset("lacquered_plastic"), load_models("tiny"))
+    assert run_operator(ops.preset_apply, preset="lacquered_plastic").finished
+    material.neural_layers.bake_directory = str(tmp_path)
+    assert material.neural_layers.model_size == "AUTO"
+    r = run_operator(ops.bake_texture)
+    assert r.finished, r.error
+    path, state = bake_ops.baked_texture_state(material)
+    assert path is not None, state
+    tex = LatentTexture.read_exr(path)
+    models = load_models(DEFAULT_SIZE)
+    assert tex.metadata["model"] == DEFAULT_SIZE and tex.metadata["model_digest"] == models.digest
+    z = encode_stack(preset("lacquered_plastic"), models)
     assert np.allclose(tex.levels[0][0, 0, :96], z.reshape(-1), atol=2e-3)
+    assert neural_material.make(preset("lacquered_plastic"), tex).models.size == DEFAULT_SIZE
 
 
 def test_fit_to_camera_bakes_no_finer_than_the_on_screen_footprint(wood, bpy_addon):

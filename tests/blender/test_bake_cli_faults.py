@@ -107,11 +107,10 @@ def wood_blend(bpy_addon, material, tmp_path):
 
 
 def tiny_latent(name):
-    from addon.core.neural import load_models
-    from addon.core.neural.layering import encode_layered_stack
+    from addon.core.neural import encode_stack
     from addon.core.stack import preset
 
-    return encode_layered_stack(preset(name), load_models("tiny")).reshape(-1)
+    return encode_stack(preset(name), "tiny").reshape(-1)
 
 
 def check_blend_outputs(out: Path):

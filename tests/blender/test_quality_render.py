@@ -8,7 +8,7 @@ import pytest
 bpy = pytest.importorskip("bpy")
 
 from addon.core import quality  # noqa: E402
-from addon.core.neural.runtime import MODEL_DIR  # noqa: E402
+from addon.core.neural import MODEL_DIR  # noqa: E402
 from addon.core.stack import PRESETS  # noqa: E402
 
 SIZES = quality.available_sizes()

@@ -126,3 +126,18 @@ def test_mix_blends_latents_through_the_mask():
         bake_mix(SpatialStack(wood(), {"coatings[0].roughness": np.full((4, 4), 0.1)}), b, mask, enc)
     with pytest.raises(ValueError, match=r"\[0, 1\]"):
         bake_mix(a, b, mask * 2, enc)
+
+
+def test_the_default_auto_bake_uses_the_default_size_and_records_it():
+    """"auto" (the add-on's default model size) is resolved once, by the neural runtime: the bake
+    encodes with the default size's models and the texture says which."""
+    from addon.core.neural import DEFAULT_SIZE, encode_stack, load_models
+    from addon.core.textures.bake import neural_encoder
+
+    encode = neural_encoder("auto")
+    assert encode.metadata == {"model": DEFAULT_SIZE, "model_digest": load_models(DEFAULT_SIZE).digest}
+    maps = {"coatings[0].roughness": np.full((2, 3), 0.1)}
+    tex, stats = bake_stack(SpatialStack(wood(), maps), encode, metadata={"model": "auto"})
+    assert tex.metadata["model"] == DEFAULT_SIZE and stats.unique == 1
+    z = encode_stack(wood(), DEFAULT_SIZE)
+    assert np.allclose(tex.levels[0][..., :96], z.reshape(96), atol=1e-6)

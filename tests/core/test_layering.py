@@ -1,7 +1,6 @@
 """Layered stacks -> latent (encoders + layering network over ONNX Runtime), clamping, errors, lerp."""
 
 import json
-import shutil
 import warnings
 from pathlib import Path
 
@@ -9,54 +8,31 @@ import numpy as np
 import pytest
 
 from addon.core import lobe
-from addon.core.neural import ClampWarning, load_models
-from addon.core.neural.layering import (
-    LayeringModel,
-    StaleModelWarning,
-    encode_latents,
-    encode_layered_stack,
-    encode_stack_arrays,
-    lerp,
-    load_layering,
-)
-from addon.core.neural.runtime import MODEL_DIR, SIZES
+from addon.core.neural import MODEL_DIR, SIZES, ClampWarning, encode_arrays, encode_stack, lerp, load_models
 from addon.core.stack import PRESETS, Coating, Conductor, Dielectric, Diffuse, Stack, StackArrays
 from onnx_export.heldout_layered import runtime_errors
 
-SHIPPED = [s for s in SIZES if (MODEL_DIR / f"layering_{s}.onnx").exists()]
 HELDOUT = Path(__file__).resolve().parents[1] / "data" / "heldout_layered.npz"
 
 
-def test_layering_models_are_shipped():
-    assert "tiny" in SHIPPED, f"no layering_tiny.onnx under {MODEL_DIR}"
-    for s in SHIPPED:
-        assert (MODEL_DIR / f"sampling_{s}.onnx").exists(), f"layering_{s} ships without sampling_{s}"
+def test_layering_and_sampling_models_are_shipped_for_every_size():
+    for s in SIZES:
+        for role in ("layering", "sampling"):
+            assert (MODEL_DIR / f"{role}_{s}.onnx").is_file(), f"{role}_{s}.onnx is not shipped"
 
 
 def test_shipped_models_were_trained_with_the_shipped_encoder_and_decoder():
     """A layering model is only valid in the latent space it was trained in: retraining the encoder or
     decoder of a size without retraining its layering and sampling models must fail here."""
-    for s in SHIPPED:
-        m = LayeringModel(s, threads=1)
-        assert {f"encoder_{s}.onnx", f"decoder_{s}.onnx"} <= set(m.card.get("trained_with", {})), m.card.keys()
-        assert f"layering_{s}.onnx" in m.sampling.card.get("trained_with", {})
-        assert m.stale == [], f"{s}: stale against {m.stale}"
+    for s in SIZES:
+        m = load_models(s, threads=1)
+        assert {f"encoder_{s}.onnx", f"decoder_{s}.onnx"} <= set(m.card("layering")["trained_with"])
+        assert f"layering_{s}.onnx" in m.card("sampling")["trained_with"]
 
 
-def test_a_changed_encoder_is_reported(tmp_path):
-    for f in MODEL_DIR.glob("*_tiny*"):
-        shutil.copy(f, tmp_path / f.name)
-    card = json.loads((tmp_path / "layering_tiny.json").read_text())
-    card["trained_with"]["encoder_tiny.onnx"] = "0" * 64
-    (tmp_path / "layering_tiny.json").write_text(json.dumps(card))
-    with pytest.warns(StaleModelWarning, match="encoder_tiny.onnx"):
-        m = LayeringModel("tiny", threads=1, model_dir=tmp_path)
-    assert m.stale == ["encoder_tiny.onnx"]
-
-
-@pytest.fixture(scope="module", params=SHIPPED)
-def pair(request):
-    return load_models(request.param, threads=2), load_layering(request.param, threads=2)
+@pytest.fixture(scope="module", params=SIZES)
+def models(request):
+    return load_models(request.param, threads=2)
 
 
 def _stack(n_coatings: int, rng) -> Stack:
@@ -66,17 +42,16 @@ def _stack(n_coatings: int, rng) -> Stack:
     return Stack(base, coats)
 
 
-def test_recursive_encoding_of_1_to_4_coatings_is_finite_and_depends_on_every_layer(pair):
-    models, layering = pair
+def test_recursive_encoding_of_1_to_4_coatings_is_finite_and_depends_on_every_layer(models):
     rng = np.random.default_rng(0)
     for c in (1, 2, 3, 4):
         s = _stack(c, rng)
-        z = encode_layered_stack(s, models, layering)
+        z = encode_stack(s, models)
         assert z.shape == (3, 32) and z.dtype == np.float32 and np.all(np.isfinite(z))
         # changing the lowest coating changes the result: the recursion reaches the bottom
         low = s.coatings[0]
         other = Coating(low.roughness, low.ior, tuple(1.0 - np.array(low.albedo)), 5.0 - low.thickness)
-        z2 = encode_layered_stack(Stack(s.base, (other,) + s.coatings[1:]), models, layering)
+        z2 = encode_stack(Stack(s.base, (other,) + s.coatings[1:]), models)
         assert np.abs(z2 - z).max() > 1e-4, f"{c} coatings: the lowest coating has no effect"
         # and the decoded BRDF is finite and non-negative
         wo, mask = lobe.lobe_grid(8)
@@ -84,62 +59,52 @@ def test_recursive_encoding_of_1_to_4_coatings_is_finite_and_depends_on_every_la
         assert np.all(np.isfinite(f)) and np.all(f >= 0)
 
 
-def test_without_coatings_the_latent_is_the_encoders(pair):
-    models, layering = pair
+def test_without_coatings_the_latent_is_the_encoders(models):
     base = Conductor(0.3)
-    assert np.array_equal(encode_layered_stack(Stack(base), models, layering), models.encode(base))
+    from addon.core.neural import layer_features
+
+    assert np.array_equal(encode_stack(Stack(base), models), models.run_encoder(layer_features(base)[None])[0])
 
 
-def test_batched_encoding_matches_one_at_a_time_and_dedupes(pair):
-    models, layering = pair
+def test_batched_encoding_matches_one_at_a_time_and_dedupes(models):
     rng = np.random.default_rng(1)
     stacks = [_stack(2, rng) for _ in range(5)]
     stacks = stacks + stacks[:2]  # repeated rows (as texels of one material would be)
-    z, p = encode_stack_arrays(StackArrays.from_stacks(stacks), models, layering)
+    z = encode_arrays(StackArrays.from_stacks(stacks), models)
+    p = models.proxy_params(z)
     assert z.shape == (7, 3, 32) and p.shape == (7, 2)
     for i, s in enumerate(stacks):
-        np.testing.assert_allclose(z[i], encode_layered_stack(s, models, layering), rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(z[i], encode_stack(s, models), rtol=1e-5, atol=1e-5)
     assert np.array_equal(z[5], z[0]) and np.array_equal(p[6], p[1])
     sigma, w = p[:, 0], p[:, 1]
     assert np.all(sigma > 0) and np.all((w >= 0) & (w <= 1))
 
 
-def test_out_of_range_coatings_are_clamped_with_a_warning(pair):
-    models, layering = pair
+def test_out_of_range_coatings_are_clamped_with_a_warning(models):
     base = Diffuse((0.5, 0.5, 0.5))
     inside = Stack(base, (Coating(0.01, 2.0, (0.5, 0.5, 0.5), 5.0),))
     outside = Stack(base, (Coating(0.001, 3.0, (0.5, 0.5, 0.5), 50.0, g=0.5),))
     with pytest.warns(ClampWarning) as rec:
-        z_out = encode_layered_stack(outside, models, layering)
+        z_out = encode_stack(outside, models)
     text = " ".join(str(r.message) for r in rec)
     for field in ("coat_roughness", "coat_ior", "coat_thickness", "coat_g"):
         assert field in text, f"no warning names {field}: {text}"
     with warnings.catch_warnings():
         warnings.simplefilter("error", ClampWarning)
-        z_in = encode_layered_stack(inside, models, layering)  # in range: no warning
+        z_in = encode_stack(inside, models)  # in range: no warning
     np.testing.assert_allclose(z_out, z_in, rtol=1e-6, atol=1e-6)
 
 
 @pytest.mark.parametrize("field,value", [("coat_thickness", np.nan), ("coat_thickness", -1.0),
                                          ("coat_albedo", np.inf), ("coat_roughness", -0.1),
                                          ("base_albedo", np.nan)])
-def test_nan_or_negative_inputs_raise(pair, field, value):
-    models, layering = pair
+def test_nan_or_negative_inputs_raise(models, field, value):
     a = StackArrays.from_stacks([PRESETS["red_car_paint"]] * 3)
     arr = getattr(a, field).copy()
     arr[1] = value
     setattr(a, field, arr)
     with pytest.raises(ValueError, match=field):
-        encode_stack_arrays(a, models, layering)
-
-
-def test_sizes_must_match(pair):
-    models, layering = pair
-    other = [s for s in SHIPPED if s != models.size]
-    if not other:
-        pytest.skip("only one size shipped")
-    with pytest.raises(ValueError, match="latent spaces differ"):
-        encode_latents(StackArrays.from_stacks([PRESETS["coated_gold"]]), models, load_layering(other[0]))
+        encode_arrays(a, models)
 
 
 def test_lerp_endpoints_are_exact_and_midpoint_is_between():
@@ -156,11 +121,9 @@ def test_lerp_endpoints_are_exact_and_midpoint_is_between():
         lerp(za, zb, np.nan)
 
 
-@pytest.mark.skipif(not HELDOUT.exists(), reason="held-out layered set not generated")
-def test_heldout_error_is_not_worse_than_the_model_card(pair):
-    models, layering = pair
+def test_heldout_error_is_not_worse_than_the_model_card(models):
     card = json.loads((MODEL_DIR / f"layering_{models.size}.json").read_text())
-    got = runtime_errors(models, layering, dict(np.load(HELDOUT)))
+    got = runtime_errors(models, dict(np.load(HELDOUT)))
     # the benchmark's runtime measurement when present (bench_layering.py --update-cards), else training's
     stated = card.get("heldout_runtime") or card["heldout"]["stage2"]
     for c, r in got.items():

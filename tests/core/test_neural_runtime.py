@@ -8,10 +8,18 @@ import numpy as np
 import pytest
 
 from addon.core import lobe
-from addon.core.neural import SIZES, ClampWarning, N_FEATURES, load_models
+from addon.core.neural import (
+    MODEL_DIR,
+    N_FEATURES,
+    SIZES,
+    ClampWarning,
+    ModelSet,
+    encode_arrays,
+    encode_stack,
+    load_models,
+)
 from addon.core.neural.features import layer_features
-from addon.core.neural.runtime import MODEL_DIR, NeuralModels
-from addon.core.stack import Coating, Conductor, Dielectric, Diffuse, Stack, StackArrays
+from addon.core.stack import Coating, Conductor, Dielectric, Diffuse, Stack, StackArrays, coating_interface
 
 SHIPPED = [s for s in SIZES if (MODEL_DIR / f"decoder_{s}.onnx").exists()]
 HELDOUT = Path(__file__).resolve().parents[1] / "data" / "heldout_single.npz"
@@ -26,6 +34,11 @@ def models(request):
     return load_models(request.param, threads=2)
 
 
+def encode_layer(models, layer):
+    """The latent of one layer as a stack of its own (a coating: its interface)."""
+    return encode_stack(Stack(coating_interface(layer) if isinstance(layer, Coating) else layer), models)
+
+
 def _dirs(rng, n):
     w = rng.normal(size=(n, 3))
     return w / np.linalg.norm(w, axis=1, keepdims=True)
@@ -33,18 +46,18 @@ def _dirs(rng, n):
 
 def test_encode_shapes_and_types(models):
     for layer in (Diffuse((0.2, 0.5, 0.8)), Conductor(0.2), Dielectric(0.1, 1.5), Coating(0.05, 1.5)):
-        z = models.encode(layer)
+        z = encode_layer(models, layer)
         assert z.shape == (3, 32) and z.dtype == np.float32 and np.all(np.isfinite(z))
     # the three channels of a coloured diffuse differ; those of a dielectric are equal
-    zd = models.encode(Diffuse((0.1, 0.5, 0.9)))
+    zd = encode_layer(models, Diffuse((0.1, 0.5, 0.9)))
     assert np.abs(zd[0] - zd[2]).max() > 1e-3
-    zg = models.encode(Dielectric(0.3, 1.5))
+    zg = encode_layer(models, Dielectric(0.3, 1.5))
     assert np.abs(zg[0] - zg[2]).max() < 1e-5
 
 
 def test_eval_finite_nonnegative_everywhere(models):
     rng = np.random.default_rng(0)
-    z = models.encode(Conductor(0.01))
+    z = encode_layer(models, Conductor(0.01))
     n = 4000
     wi = _dirs(rng, n)
     wo = _dirs(rng, n)
@@ -69,7 +82,7 @@ def test_per_row_latents_match_single(models):
     wi, wo = _dirs(rng, 300), _dirs(rng, 300)
     wi[:, 2] = np.abs(wi[:, 2])
     wo[:, 2] = np.abs(wo[:, 2])
-    za, zb = models.encode(Diffuse(0.5)), models.encode(Dielectric(0.2, 1.7))
+    za, zb = encode_layer(models, Diffuse(0.5)), encode_layer(models, Dielectric(0.2, 1.7))
     rows = np.stack([za] * 150 + [zb] * 150)
     f = models.eval_brdf(rows, wi, wo)
     np.testing.assert_allclose(f[:150], models.eval_brdf(za, wi[:150], wo[:150]), rtol=1e-5, atol=1e-7)
@@ -77,13 +90,12 @@ def test_per_row_latents_match_single(models):
 
 
 def test_fused_rgb_graph_equals_scalar_graph(models):
-    if models._rgb is None:
-        pytest.skip("no fused RGB graph shipped for this size")
+    assert models._rgb is not None, f"decoder_{models.size}_rgb.onnx is not shipped"
     rng = np.random.default_rng(2)
     wi, wo = _dirs(rng, 500), _dirs(rng, 500)
     wi[:, 2] = np.abs(wi[:, 2])
     wo[:, 2] = np.abs(wo[:, 2])
-    z = models.encode(Conductor(0.1))
+    z = encode_layer(models, Conductor(0.1))
     fused = models.eval_brdf(z, wi, wo)
     scalar = models._decoder.run(["f"], {"z": np.tile(z, (500, 1)), "wi": np.repeat(wi, 3, 0).astype(np.float32),
                                          "wo": np.repeat(wo, 3, 0).astype(np.float32)})[0].reshape(500, 3)
@@ -91,7 +103,7 @@ def test_fused_rgb_graph_equals_scalar_graph(models):
 
 
 def test_bad_inputs_raise_clear_errors(models):
-    z = models.encode(Diffuse(0.5))
+    z = encode_layer(models, Diffuse(0.5))
     w = np.array([[0.0, 0.0, 1.0]] * 4)
     with pytest.raises(ValueError, match="wi must be finite"):
         models.eval_brdf(z, np.array([[np.nan, 0, 1]] * 4), w)
@@ -104,49 +116,56 @@ def test_bad_inputs_raise_clear_errors(models):
     with pytest.raises(ValueError, match="z must be finite"):
         models.eval_brdf(np.full((3, 32), np.nan), w, w)
     with pytest.raises(ValueError, match="encoder features"):
-        models.encode_features(np.zeros((2, 3, N_FEATURES + 1)))
-    with pytest.raises(ValueError, match="layering.encode_stack_arrays"):
-        models.encode_arrays(StackArrays.repeat(Stack(Diffuse(0.5), (Coating(),)), 2))
+        models.run_encoder(np.zeros((2, 3, N_FEATURES + 1)))
+    with pytest.raises(ValueError, match="wi must be real"):
+        models.eval_brdf(z, w * (1 + 1j), w)
+    with pytest.raises(ValueError, match="z must be real"):
+        models.eval_brdf(z * 1j, w, w)
+    with pytest.raises(ValueError, match="encode_stack needs a Stack"):
+        encode_stack(Diffuse(0.5), models)
 
 
 def test_encode_stack_layers_coatings_with_the_sizes_layering_network(models):
-    from addon.core.neural import layering
-
     coated = Stack(Diffuse(0.5), (Coating(roughness=0.2, thickness=0.5), Coating(roughness=0.05)))
-    if not (layering.MODEL_DIR / f"layering_{models.size}.onnx").is_file():
-        with pytest.raises(FileNotFoundError, match=f"layering_{models.size}.onnx"):
-            models.encode_stack(coated)
-        return
-    z = models.encode_stack(coated)
-    expected = layering.encode_layered_stack(coated, models, layering.LayeringModel(models.size, sampling=False))
-    np.testing.assert_array_equal(z, expected)
-    assert not np.allclose(z, models.encode(coated.base))
+    z = encode_stack(coated, models)
+    np.testing.assert_array_equal(z, encode_arrays(StackArrays.from_stacks([coated]), models)[0])
+    assert not np.allclose(z, encode_layer(models, coated.base))
+
+
+@pytest.mark.parametrize("coatings", [0, 2])
+def test_empty_batches_give_empty_arrays(models, coatings):
+    one = StackArrays.repeat(Stack(Diffuse(0.5), (Coating(),) * coatings), 3)
+    z = encode_arrays(one.take(slice(0, 0)), models)
+    assert z.shape == (0, 3, 32) and z.dtype == np.float32
+    assert models.proxy_params(z).shape == (0, 2)
+    f = models.eval_brdf(encode_layer(models, Diffuse(0.5)), np.zeros((0, 3)), np.zeros((0, 3)))
+    assert f.shape == (0, 3)
 
 
 def test_clamps_out_of_range_with_a_warning(models):
     with pytest.warns(ClampWarning, match="roughness"):
-        z = models.encode(Conductor(roughness=0.0))
-    np.testing.assert_allclose(z, models.encode(Conductor(roughness=0.01)), atol=1e-6)
+        z = encode_layer(models, Conductor(roughness=0.0))
+    np.testing.assert_allclose(z, encode_layer(models, Conductor(roughness=0.01)), atol=1e-6)
     with pytest.warns(ClampWarning, match="ior"):
-        models.encode(Dielectric(0.2, ior=3.5))
+        encode_layer(models, Dielectric(0.2, ior=3.5))
     one = StackArrays.repeat(Stack(Conductor(roughness=0.002), (Coating(),)), 5)
     arrays = StackArrays(**{f: (getattr(one, f)[:, :0] if f.startswith("coat_") else getattr(one, f))
                             for f in StackArrays.FIELDS})
     with pytest.warns(ClampWarning, match="5 rows"):
-        za = models.encode_arrays(arrays)
+        za = encode_arrays(arrays, models)
     assert za.shape == (5, 3, 32)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        models.encode(Conductor(roughness=0.5))  # in range: silent
+        encode_layer(models, Conductor(roughness=0.5))  # in range: silent
 
 
 def test_missing_model_names_the_file(tmp_path):
     with pytest.raises(FileNotFoundError, match="decoder_tiny.onnx"):
-        NeuralModels("tiny", model_dir=tmp_path)
+        ModelSet("tiny", model_dir=tmp_path)
     with pytest.raises(ValueError, match="unknown decoder size"):
-        NeuralModels("huge")
+        ModelSet("huge")
     with pytest.raises(ValueError, match="threads"):
-        NeuralModels("tiny", threads=0)
+        ModelSet("tiny", threads=0)
 
 
 @pytest.mark.parametrize("size", SHIPPED)
@@ -180,7 +199,7 @@ def test_encoded_heldout_error_not_worse_than_the_card(size):
     res = d["lobe"].shape[2]
     errs = []
     for i, s in enumerate(stacks):
-        z = m.encode(s.base)
+        z = encode_layer(m, s.base)
         for a, t in enumerate(d["angles"]):
             img = lobe.lobe_image(lambda wi, wo: m.eval_brdf(z, wi, wo), float(t), res)
             errs.append(lobe.relative_rmse(img, d["lobe"][i, a]))
@@ -208,8 +227,8 @@ def test_chunked_threaded_decoding_equals_one_call(n):
     wi /= np.linalg.norm(wi, axis=1, keepdims=True)
     wo /= np.linalg.norm(wo, axis=1, keepdims=True)
     whole = ChunkedSession(models._rgb.path, threads=1, chunk=max(n, 1))
-    z = models.encode(Conductor(0.1))
-    zr = np.stack([models.encode(Diffuse(a)) for a in (0.1, 0.9)])[rng.integers(0, 2, n)]
+    z = encode_layer(models, Conductor(0.1))
+    zr = np.stack([encode_layer(models, Diffuse(a)) for a in (0.1, 0.9)])[rng.integers(0, 2, n)]
     for zz, feeds in ((z, {"z": z[None]}), (zr, {"z": zr})):
         f = models.eval_brdf(zz, wi, wo)
         ref = whole.run_once(["f"], {**feeds, "wi": wi.astype(np.float32), "wo": wo.astype(np.float32)})[0]

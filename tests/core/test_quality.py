@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 
 from addon.core import quality
-from addon.core.neural.runtime import MODEL_DIR
+from addon.core.neural import MODEL_DIR
+from addon.core.neural import SIZES as ALL_SIZES
 from addon.core.render import shapes
 from addon.core.render.demo_scene import demo_scene
 from addon.core.render.materials import LambertMaterial
 from addon.core.render.scene import Camera, Mesh, Scene
-from addon.core.stack import PRESETS, Coating, Conductor, Dielectric, Diffuse, Stack
+from addon.core.stack import PRESETS, Dielectric, Diffuse, Stack
 
 SIZES = quality.available_sizes()
-needs_models = pytest.mark.skipif(not SIZES, reason="no decoder shipped in addon/models")
 
 SIMPLE = Stack(Diffuse((0.8, 0.8, 0.8)))
 # A near-mirror dielectric: a sharp lobe with a strong Fresnel rise, the hardest single layer.
@@ -26,13 +26,13 @@ DEMANDING = Stack(Dielectric(roughness=0.02, ior=1.5))
 
 
 def test_available_sizes_are_shipped_and_ordered_by_parameters():
+    assert sorted(SIZES) == sorted(ALL_SIZES), f"shipped: {SIZES}"  # the models are committed
     params = [json.loads((MODEL_DIR / f"decoder_{s}.json").read_text())["parameters"] for s in SIZES]
     assert params == sorted(params)
     for s in SIZES:
         assert (MODEL_DIR / f"decoder_{s}.onnx").exists() and (MODEL_DIR / f"encoder_{s}.onnx").exists()
 
 
-@needs_models
 def test_simple_stack_picks_the_smallest_decoder():
     choice = quality.choose_decoder(SIMPLE, tolerance=0.15, cache=quality.ErrorCache())
     assert choice.size == SIZES[0]
@@ -41,7 +41,6 @@ def test_simple_stack_picks_the_smallest_decoder():
     assert 0.0 <= choice.errors[SIZES[0]] <= 0.15
 
 
-@needs_models
 def test_demanding_stack_needs_more_than_the_simple_one():
     cache = quality.ErrorCache()
     e_simple = quality.measured_error(SIMPLE, SIZES[0], cache=cache)
@@ -83,7 +82,6 @@ def test_rule_smallest_size_under_tolerance_from_cached_measurements(tmp_path):
     assert c.size is None and not c.met
 
 
-@needs_models
 def test_measured_errors_are_cached_on_disk_and_a_damaged_cache_is_ignored(tmp_path):
     c1 = quality.choose_decoder(SIMPLE, 0.5, cache_dir=tmp_path)
     data = json.loads((tmp_path / "decoder_errors.json").read_text())
@@ -96,29 +94,24 @@ def test_measured_errors_are_cached_on_disk_and_a_damaged_cache_is_ignored(tmp_p
 
 def test_sizes_that_cannot_encode_the_stack_fall_back_to_the_reference(tmp_path, monkeypatch):
     """A size whose models are not shipped (or cannot encode the stack) is never chosen, nor cached."""
-    from addon.core.neural import runtime
+    from addon.core.neural import models
 
-    missing = "paper"
-    if missing in SIZES:  # every size is shipped: take the paper size's models away for this test
-        empty = tmp_path / "models"
-        empty.mkdir()
-        monkeypatch.setattr(runtime, "MODEL_DIR", empty)
-        monkeypatch.setattr(runtime, "_DEFAULT", {})
+    missing = "paper"  # every size is shipped: take the paper size's models away for this test
+    empty = tmp_path / "models"
+    empty.mkdir()
+    monkeypatch.setattr(models, "MODEL_DIR", empty)
+    monkeypatch.setattr(models, "_CACHE", {})
     with pytest.warns(quality.QualityWarning, match="reference estimator"):
         c = quality.choose_decoder(PRESETS["coated_gold"], 0.2, sizes=[missing], cache=quality.ErrorCache(tmp_path))
     assert c.size is None and not c.met and math.isinf(c.errors[missing])
     assert not (tmp_path / "decoder_errors.json").exists()
 
 
-@needs_models
-def test_layered_stacks_get_a_measured_error_when_a_layering_network_is_shipped():
-    if not (MODEL_DIR / f"layering_{SIZES[0]}.onnx").exists():
-        pytest.skip("no layering network shipped yet")
+def test_layered_stacks_get_a_measured_error():
     err = quality.measured_error(PRESETS["coated_gold"], SIZES[0], cache=quality.ErrorCache())
     assert math.isfinite(err) and err > 0.0
 
 
-@needs_models
 def test_out_of_range_parameters_are_clamped_and_the_note_is_kept():
     stack = Stack(Dielectric(roughness=0.3, ior=3.0))  # above the trained ior range [1.05, 2]
     c = quality.choose_decoder(stack, 100.0, cache=quality.ErrorCache())
@@ -212,7 +205,6 @@ def test_primary_footprints_of_an_unseen_material_are_infinite():
 # --------------------------------------------------------------------------- renderer materials
 
 
-@needs_models
 def test_assign_decoders_auto_gives_every_encodable_layered_material_its_decoder():
     from addon.core.render import RenderSettings, render
     from addon.core.render.materials import LayeredSpec
@@ -235,17 +227,12 @@ def test_assign_decoders_auto_gives_every_encodable_layered_material_its_decoder
     assert {stats.material_kinds[i] for i in range(1, 6)} <= {"neural", "reference"}
 
 
-@needs_models
 def test_assign_decoders_fixed_size_and_what_stays_untouched():
-    from addon.core.render.materials import LayeredSpec
 
     scene = demo_scene(16, 9, presets=["coated_gold", "white_diffuse"])
     mats, choices, notes = quality.assign_decoders(scene, SIZES[0])
     assert mats[2] is scene.materials[2]  # no coating: rendered exactly by its analytic BSDF
-    layering = (MODEL_DIR / f"layering_{SIZES[0]}.onnx").exists()
-    assert (type(mats[1]).__name__ == "NeuralMaterial") == layering
-    if not layering:
-        assert isinstance(mats[1], LayeredSpec) and any("reference" in n for n in notes)
+    assert type(mats[1]).__name__ == "NeuralMaterial" and mats[1].models.size == SIZES[0]
     with pytest.raises(ValueError, match="quality"):
         quality.assign_decoders(scene, "huge")
 

@@ -121,8 +121,7 @@ def test_reference_mode_matches_mitsuba_plastic():
 
 def test_neural_material_agrees_with_the_exact_brdf_within_decoder_error():
     material = neural_material.make(COPPER)
-    if material is None:
-        pytest.skip("neural models are not available")
+    assert material is not None, "the shipped models must serve this stack"
     scene = mixed_scene(24, 16)
     scene.materials[1] = M.analytic_for_stack(COPPER)
     exact = block_stats(render(scene, RenderSettings(samples=32, max_bounces=2, seed=1))[0])
@@ -138,8 +137,7 @@ def test_neural_material_agrees_with_the_exact_brdf_within_decoder_error():
 
 def test_neural_sampling_weights_match_eval_over_pdf():
     material = neural_material.make(COPPER)
-    if material is None:
-        pytest.skip("neural models are not available")
+    assert material is not None, "the shipped models must serve this stack"
     n = 4000
     rng = np.random.default_rng(0)
     bound = material.bind(SurfaceHits(np.zeros((n, 2)), np.zeros(n)))
@@ -182,8 +180,7 @@ def test_latent_texture_material_matches_its_constant_latent():
     from addon.core.textures import LatentTexture
 
     material = neural_material.make(COPPER)
-    if material is None:
-        pytest.skip("neural models are not available")
+    assert material is not None, "the shipped models must serve this stack"
     sigma, w = material.sigma, material.w
     texels = np.concatenate([np.tile(material.z.reshape(1, 1, 96), (8, 8, 1)),
                              np.tile([[[sigma, w]]], (8, 8, 1))], axis=2).astype(np.float32)
@@ -205,8 +202,7 @@ def test_neural_and_reference_renders_of_a_layered_scene_agree():
     image means may differ by a few percent, not more."""
     stack = PRESETS["lacquered_plastic"]
     material = neural_material.make(stack)
-    if material is None:
-        pytest.skip("the neural runtime cannot encode layered stacks yet (no layering network)")
+    assert material is not None, "the shipped models must serve this stack"
     scene = mixed_scene(24, 16)
     scene.materials[1] = LayeredSpec(stack)
     ref = block_stats(render(scene, RenderSettings(samples=32, max_bounces=2, mode="reference",
@@ -216,3 +212,70 @@ def test_neural_and_reference_renders_of_a_layered_scene_agree():
     _, _, rel = compare(block_stats(film), ref)
     assert rel < 0.05, rel
     assert stats.seconds["network"] > 0
+
+
+def _baked(stack, size, **metadata):
+    """A constant latent texture of ``stack`` baked by ``bake_stack`` with the shipped models of ``size``."""
+    from addon.core.textures.bake import bake_stack, neural_encoder
+    from addon.core.textures.spatial import SpatialStack
+
+    top = len(stack.coatings) - 1
+    maps = {f"coatings[{top}].roughness": np.full((2, 2), stack.coatings[top].roughness)}
+    tex, _ = bake_stack(SpatialStack(stack, maps), neural_encoder(size), metadata=metadata or None)
+    return tex
+
+
+def test_a_baked_texture_is_decoded_with_the_size_it_was_baked_for():
+    """bake_stack records the decoder size and digest; make decodes with that size, not the default."""
+    from addon.core.neural import encode_stack, load_models
+
+    stack = PRESETS["coated_gold"]
+    tex = _baked(stack, "small")
+    assert tex.metadata["model"] == "small" and tex.metadata["model_digest"] == load_models("small").digest
+    material = neural_material.make(stack, tex)
+    assert material.models.size == "small" and material.size == "small"
+    hits = SurfaceHits(np.full((4, 2), 0.5), np.zeros(4))
+    wi = np.tile([[0.0, 0.0, 1.0]], (4, 1))
+    got = material.bind(hits).eval(wi, wi, np.arange(4))
+    small = load_models("small")
+    want = small.eval_brdf(encode_stack(stack, small), wi, wi)
+    np.testing.assert_allclose(got, want, rtol=2e-3, atol=1e-4)  # the texture holds the latent at half precision
+
+
+def test_make_raises_on_textures_it_cannot_place_and_on_unknown_sizes():
+    stack = PRESETS["coated_gold"]
+    tex = _baked(stack, "tiny")
+    with pytest.raises(ValueError, match="baked for decoder size 'tiny', not 'small'"):
+        neural_material.make(stack, tex, size="small")
+    tex.metadata["model"] = "huge"
+    with pytest.raises(ValueError, match="'huge'"):
+        neural_material.make(stack, tex)
+    del tex.metadata["model"]
+    with pytest.raises(ValueError, match="records no decoder size"):
+        neural_material.make(stack, tex)
+    with pytest.raises(ValueError, match="unknown decoder size 'huge'"):
+        neural_material.make(stack, size="huge")
+    with pytest.raises(ValueError, match="needs a Stack"):
+        neural_material.make("coated_gold")
+
+
+def test_make_falls_back_with_a_reason_for_stale_textures_and_damaged_models(tmp_path, monkeypatch):
+    import shutil
+
+    from addon.core.neural import models as model_files
+
+    stack = PRESETS["coated_gold"]
+    tex = _baked(stack, "tiny")
+    tex.metadata["model_digest"] = "0" * 64
+    with pytest.warns(neural_material.NeuralFallbackWarning, match="baked with another decoder_tiny.onnx"):
+        assert neural_material.make(stack, tex) is None
+    for f in model_files.MODEL_DIR.glob("*_tiny*"):
+        shutil.copy(f, tmp_path / f.name)
+    (tmp_path / "layering_tiny.onnx").write_text("version https://git-lfs.github.com/spec/v1\n")
+    monkeypatch.setattr(model_files, "MODEL_DIR", tmp_path)
+    monkeypatch.setattr(model_files, "_CACHE", {})
+    with pytest.warns(neural_material.NeuralFallbackWarning, match="layering_tiny.onnx is a Git LFS pointer"):
+        assert neural_material.make(stack) is None
+    # the renderer then shades the stack with the reference
+    with pytest.warns(neural_material.NeuralFallbackWarning):
+        assert isinstance(M.resolve(LayeredSpec(stack), "neural"), ReferenceLayered)

@@ -3,35 +3,29 @@
 import numpy as np
 import pytest
 
-from addon.core.neural import load_models, proxy
-from addon.core.neural.layering import encode_layered_stack, encode_stack_arrays, load_layering
-from addon.core.neural.runtime import MODEL_DIR, SIZES
-from addon.core.neural.sampling import (
+from addon.core.neural import SIZES, encode_arrays, encode_stack, load_models, proxy
+from addon.core.stack import Coating, Conductor, Diffuse, Stack, StackArrays
+from benchmarks.sampling_efficiency import (
     cosine_sampler,
     ggx_sampler,
-    load_sampling,
     one_bounce_variance,
     proxy_sampler,
     sky_radiance,
 )
-from addon.core.stack import Coating, Conductor, Diffuse, Stack, StackArrays
 from tests.stats import chi2_direction_test
-
-SHIPPED = [s for s in SIZES if (MODEL_DIR / f"sampling_{s}.onnx").exists()]
 ALUMINIUM = dict(eta=(1.657, 0.880, 0.521), k=(9.224, 6.270, 4.837))
 # the held-out "specular" and "diffuse" stacks (onnx_export.heldout_layered.SPECULAR_INDEX / DIFFUSE_INDEX)
 SPECULAR = Stack(Conductor(roughness=0.3, **ALUMINIUM), (Coating(roughness=0.03, ior=1.5),))
 DIFFUSE = Stack(Diffuse((0.7, 0.4, 0.1)), (Coating(roughness=0.05, ior=1.5),))  # coated diffuse
 
 
-@pytest.fixture(scope="module", params=SHIPPED)
-def trio(request):
-    s = request.param
-    return load_models(s, threads=2), load_layering(s, threads=2), load_sampling(s, threads=2)
+@pytest.fixture(scope="module", params=SIZES)
+def models(request):
+    return load_models(request.param, threads=2)
 
 
-def test_sampling_model_output_range_and_shapes(trio):
-    models, layering, sampling = trio
+def test_sampling_model_output_range_and_shapes(models):
+    sampling = models
     rng = np.random.default_rng(0)
     z = rng.normal(scale=2.0, size=(64, 3, 32)).astype(np.float32)
     p = sampling.proxy_params(z)
@@ -44,19 +38,17 @@ def test_sampling_model_output_range_and_shapes(trio):
         sampling.proxy_params(np.zeros((2, 32), dtype=np.float32))
 
 
-def test_proxy_is_narrower_and_less_diffuse_under_a_smooth_coat_than_under_a_rough_one(trio):
-    models, layering, sampling = trio
+def test_proxy_is_narrower_and_less_diffuse_under_a_smooth_coat_than_under_a_rough_one(models):
     rough = Stack(Diffuse((0.2, 0.5, 0.8)), (Coating(roughness=0.6, ior=1.4, albedo=(0.8, 0.8, 0.8), thickness=1.0),))
-    _, p = encode_stack_arrays(StackArrays.from_stacks([SPECULAR, rough]), models, layering)
+    p = models.proxy_params(encode_arrays(StackArrays.from_stacks([SPECULAR, rough]), models))
     (s_spec, w_spec), (s_rough, w_rough) = p
     assert s_spec < s_rough and w_spec < w_rough, p
 
 
 @pytest.mark.parametrize("which", ["specular", "diffuse"])
-def test_proxy_sample_agrees_with_its_pdf_at_the_networks_parameters(trio, which):
-    models, layering, sampling = trio
+def test_proxy_sample_agrees_with_its_pdf_at_the_networks_parameters(models, which):
     stack = SPECULAR if which == "specular" else DIFFUSE
-    sigma, w = sampling.proxy_params(encode_layered_stack(stack, models, layering))[0]
+    sigma, w = models.proxy_params(encode_stack(stack, models))[0]
     wo = np.array([0.5, 0.0, np.sqrt(0.75)])
 
     def sample_fn(n, rng):
@@ -70,9 +62,9 @@ def test_proxy_sample_agrees_with_its_pdf_at_the_networks_parameters(trio, which
     assert p > 1e-3, (which, sigma, w, stat, p)
 
 
-def _variances(models, layering, sampling, stack, n, seed):
-    z = encode_layered_stack(stack, models, layering)
-    sigma, w = sampling.proxy_params(z)[0]
+def _variances(models, stack, n, seed):
+    z = encode_stack(stack, models)
+    sigma, w = models.proxy_params(z)[0]
     ct = np.array([0.3, 0.6, 0.9])
     wo = np.stack([np.sqrt(1 - ct**2), np.zeros(3), ct], axis=1)
     brdf = lambda wi, wo_: models.eval_brdf(z, wi, wo_)  # noqa: E731
@@ -85,12 +77,11 @@ def _variances(models, layering, sampling, stack, n, seed):
 
 
 @pytest.mark.parametrize("which", ["specular", "diffuse"])
-def test_importance_sampling_with_the_proxy_lowers_variance(trio, which):
+def test_importance_sampling_with_the_proxy_lowers_variance(models, which):
     """Same sample count, same BRDF (the decoder), same light: the proxy's variance is lower than cosine
     sampling's and than sampling the top interface's GGX lobe (ratios measured in this run)."""
-    models, layering, sampling = trio
     stack = SPECULAR if which == "specular" else DIFFUSE
-    v = _variances(models, layering, sampling, stack, 4096, seed=5)
+    v = _variances(models, stack, 4096, seed=5)
     # the three strategies estimate the same integral
     for name in ("cosine", "ggx_top"):
         se = np.sqrt(v[name][1] / 4096 + v["proxy"][1] / 4096)

@@ -76,3 +76,82 @@ def test_clamp_to_trained_reports_every_change():
 def test_artist_roughness_mapping_round_trips():
     for r in (0.0, 0.1, 0.5, 1.0):
         assert math.isclose(st.artist_roughness_from_alpha(st.alpha_from_artist_roughness(r)), r)
+
+
+@pytest.mark.parametrize("build,field", [
+    (lambda: st.Diffuse("111"), "Diffuse.albedo"),
+    (lambda: st.Diffuse(b"111"), "Diffuse.albedo"),
+    (lambda: st.Diffuse(("0.5", 0.5, 0.5)), "Diffuse.albedo[R]"),
+    (lambda: st.Conductor(roughness="0.5"), "Conductor.roughness"),
+    (lambda: st.Conductor(roughness=True), "Conductor.roughness"),
+    (lambda: st.Dielectric(ior=1.5 + 0j), "Dielectric.ior"),
+    (lambda: st.Coating(thickness=None), "Coating.thickness"),
+    (lambda: st.Coating(albedo=(True, 0.0, 0.0)), "Coating.albedo[R]"),
+])
+def test_strings_bools_and_complex_numbers_are_not_parameters(build, field):
+    with pytest.raises(ValueError, match=field.replace("[", r"\[").replace("]", r"\]")):
+        build()
+
+
+def test_numpy_numbers_are_parameters():
+    import numpy as np
+
+    c = st.Coating(roughness=np.float32(0.25), ior=np.float64(1.5), albedo=np.array([0.1, 0.2, 0.3]),
+                   thickness=np.array(2.0), g=np.int64(0))
+    assert c.roughness == 0.25 and c.albedo == (0.1, 0.2, 0.3) and c.thickness == 2.0
+    assert st.Diffuse(np.float32(0.5)).albedo == (0.5, 0.5, 0.5)
+
+
+def test_one_table_holds_both_ranges_of_every_field():
+    assert set(st.RANGES) == set(st.VALID_RANGES) == set(st.TRAINED_RANGES)
+    for key, (valid, trained) in st.RANGES.items():
+        assert valid[0] <= trained[0] <= trained[1] <= valid[1], key
+    assert {k for k, _ in st.ARRAY_FIELDS.values()} <= set(st.RANGES)
+
+
+def test_validate_names_field_row_and_range_of_stack_arrays():
+    import numpy as np
+
+    a = st.StackArrays.from_stacks([st.preset("red_car_paint")] * 3)
+    st.validate(a)
+    st.validate(st.preset("red_car_paint"))
+    bad = a.take(slice(None))
+    bad.coat_thickness = bad.coat_thickness.copy()
+    bad.coat_thickness[2, 1] = 101.0
+    with pytest.raises(ValueError, match=r"coat_thickness\[2, 1\].*\[0.0, 100.0\]"):
+        st.validate(bad)
+    bad = a.take(slice(None))
+    bad.base_k = bad.base_k + 1j
+    with pytest.raises(ValueError, match="base_k must hold real numbers"):
+        st.validate(bad)
+    bad = a.take(slice(None))
+    bad.coat_ior = bad.coat_ior[:, :1]
+    with pytest.raises(ValueError, match=r"coat_ior must have shape \(3, 2\)"):
+        st.validate(bad)
+    with pytest.raises(ValueError, match="Stack or StackArrays"):
+        st.validate({"base": "Diffuse"})
+    assert np.all(np.isfinite(a.to_matrix()))
+
+
+def test_clamp_to_trained_of_arrays_matches_the_stack_rule_and_counts_rows():
+    import numpy as np
+
+    s = st.Stack(st.Conductor(roughness=0.001), (st.Coating(ior=3.0, thickness=20.0, g=0.5),))
+    one, notes = st.clamp_to_trained(s)
+    arrays, arr_notes = st.clamp_to_trained(st.StackArrays.repeat(s, 4))
+    assert arrays.stack(3) == one and len(notes) == len(arr_notes) == 4
+    assert any(n.startswith("coat_thickness: 4 rows") for n in arr_notes)
+    # a field the row's base kind does not use is not reported
+    d = st.StackArrays.repeat(st.Stack(st.Diffuse(0.5)), 2)
+    d.base_roughness = np.zeros(2)
+    assert st.clamp_to_trained(d)[1] == []
+    with pytest.raises(ValueError, match="Stack or StackArrays"):
+        st.clamp_to_trained([s])
+
+
+def test_a_coating_encodes_as_its_interface_in_both_forms():
+    s = st.preset("three_layer")
+    rows = st.StackArrays.from_stacks([s, s]).coating_interfaces()
+    assert len(rows) == 2 * len(s.coatings) and rows.n_coatings == 0
+    for j, c in enumerate(s.coatings):
+        assert rows.stack(len(s.coatings) + j) == st.Stack(st.coating_interface(c))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from addon.core.neural.runtime import MODEL_DIR, SIZES
+from addon.core.neural import MODEL_DIR, SIZES
 from onnx_export import layering as lay
 from onnx_export import sampling_net as smp
 

@@ -12,8 +12,8 @@ torch = pytest.importorskip("torch")
 
 from addon.core.bsdf import RoughConductor, RoughDielectric  # noqa: E402
 from addon.core.neural.features import N_FEATURES  # noqa: E402
-from addon.core.neural.runtime import MODEL_DIR, SIZES, NeuralModels  # noqa: E402
-from addon.core.stack import Conductor, Dielectric  # noqa: E402
+from addon.core.neural import MODEL_DIR, SIZES, ModelSet, encode_stack  # noqa: E402
+from addon.core.stack import Conductor, Dielectric, Stack  # noqa: E402
 from onnx_export import data as datamod  # noqa: E402
 from onnx_export import export, train_decoder, train_encoder  # noqa: E402
 from onnx_export.evaluate import evaluate_projection  # noqa: E402
@@ -90,8 +90,8 @@ def test_training_code_path_smoke(tmp_path):
                  "--out", str(tmp_path / "models")])
     card = json.loads((tmp_path / "models" / "decoder_tiny.json").read_text())
     assert card["onnx_runtime_vs_torch_max_relative_difference"] <= 1e-4
-    m = NeuralModels("tiny", model_dir=tmp_path / "models")
-    f = m.eval_brdf(m.encode(Conductor(0.3)), [[0, 0, 1.0]], [[0, 0.6, 0.8]])
+    m = ModelSet("tiny", model_dir=tmp_path / "models")  # the exported cards name their files and digests
+    f = m.eval_brdf(encode_stack(Stack(Conductor(0.3)), m), [[0, 0, 1.0]], [[0, 0.6, 0.8]])
     assert f.shape == (1, 3) and np.all(np.isfinite(f))
 
 
@@ -303,12 +303,12 @@ def test_onnx_runtime_equals_torch(size):
     x = rng.random((256, N_FEATURES)).astype(np.float32)
     assert export.encoder_parity(enc, epath, x) <= 1e-4
     # and the runtime's encode() is that encoder
-    m = NeuralModels(size)
+    m = ModelSet(size)
     from addon.core.neural.features import layer_features
 
     with torch.no_grad():
         ref = enc(torch.from_numpy(layer_features(Dielectric(0.2, 1.5)))).numpy()
-    np.testing.assert_allclose(m.encode(Dielectric(0.2, 1.5)), ref, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(encode_stack(Stack(Dielectric(0.2, 1.5)), m), ref, rtol=1e-4, atol=1e-5)
 
 
 FAST = [s for s in SHIPPED if s == "tiny"]  # projection is CPU-heavy: larger sizes run with -m slow

@@ -1,12 +1,36 @@
-"""Neural BRDFs at run time: ONNX Runtime decoders and encoders (no torch).
+"""Neural BRDFs at run time: ONNX Runtime networks (no torch).
 
-See ``runtime.py`` for the API and ``docs/decoders.md`` for the model zoo and its measurements.
+``models.py`` loads the model set of a decoder size (decoder, encoder, layering and sampling networks,
+checked against their cards, one cache); ``encode.py`` turns stacks into latents (``encode_stack``,
+``encode_arrays``); ``proxy.py`` is the sampling proxy. ``docs/decoders.md`` lists the sizes and their
+measurements; ``docs/architecture.md`` ("Neural runtime") the data path.
 """
 
+from ..stack import ClampWarning
+from .encode import encode_arrays, encode_stack, lerp
 from .features import N_FEATURES, arrays_features, base_features, layer_features
-from .runtime import SIZES, ClampWarning, NeuralModels, encode, encode_stack, eval_brdf, load_models
+from .models import (
+    AUTO,
+    DEFAULT_SIZE,
+    MODEL_DIR,
+    ROLES,
+    SIZES,
+    ModelFileError,
+    ModelSet,
+    clear_cache,
+    file_digest,
+    load_models,
+    read_card,
+    resolve_size,
+)
 
 __all__ = [
-    "N_FEATURES", "SIZES", "ClampWarning", "NeuralModels", "arrays_features", "base_features", "encode",
-    "encode_stack", "eval_brdf", "layer_features", "load_models",
+    "AUTO", "DEFAULT_SIZE", "MODEL_DIR", "N_FEATURES", "ROLES", "SIZES", "ClampWarning", "ModelFileError", "ModelSet",
+    "arrays_features", "base_features", "clear_cache", "encode_arrays", "encode_stack", "eval_brdf", "file_digest",
+    "layer_features", "lerp", "load_models", "read_card", "resolve_size",
 ]
+
+
+def eval_brdf(z, wi, wo, size: str = AUTO):
+    """f (N, 3) of latent(s) ``z`` of decoder ``size`` (see ``ModelSet.eval_brdf``)."""
+    return load_models(size).eval_brdf(z, wi, wo)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..bsdf.fresnel import fresnel_conductor, fresnel_dielectric
-from ..stack import BASE_KINDS, Coating, Conductor, Dielectric, Diffuse, StackArrays
+from ..stack import BASE_KINDS, TRAINED_RANGES, Coating, Conductor, Dielectric, Diffuse, StackArrays, coating_interface
 
 FRESNEL_COSINES = (1.0, 0.5, 0.2, 0.05)
 FEATURE_NAMES = (
@@ -20,7 +20,7 @@ FEATURE_NAMES = (
     *(f"fresnel_{c:g}" for c in FRESNEL_COSINES),
 )
 N_FEATURES = len(FEATURE_NAMES)
-ALPHA_MIN = 0.01
+ALPHA_MIN, ALPHA_MAX = TRAINED_RANGES["roughness"]
 
 
 def base_features(kind, alpha, albedo, eta, k, ior) -> np.ndarray:
@@ -28,11 +28,11 @@ def base_features(kind, alpha, albedo, eta, k, ior) -> np.ndarray:
 
     ``kind`` (N,) indexes ``BASE_KINDS``; ``alpha`` (N,), ``albedo``/``eta``/``k`` (N, 3),
     ``ior`` (N,). Fields a kind does not use are ignored. ``alpha`` is clamped to the
-    trained range [0.01, 1] first (callers warn about clamping; this only keeps logs finite).
+    trained range first (callers warn about clamping; this only keeps logs finite).
     """
     kind = np.asarray(kind, dtype=np.int64).reshape(-1)
     n = kind.shape[0]
-    alpha = np.clip(np.asarray(alpha, dtype=np.float64).reshape(n), ALPHA_MIN, 1.0)
+    alpha = np.clip(np.asarray(alpha, dtype=np.float64).reshape(n), ALPHA_MIN, ALPHA_MAX)
     albedo = np.broadcast_to(np.asarray(albedo, dtype=np.float64), (n, 3))
     eta = np.broadcast_to(np.asarray(eta, dtype=np.float64), (n, 3))
     k = np.broadcast_to(np.asarray(k, dtype=np.float64), (n, 3))
@@ -63,10 +63,10 @@ def arrays_features(arrays: StackArrays) -> np.ndarray:
 
 
 def layer_features(layer) -> np.ndarray:
-    """(3, N_FEATURES) features of one base layer; a ``Coating`` is encoded as its interface,
-    ``Dielectric(coating.roughness, coating.ior)`` (reflection over black)."""
+    """(3, N_FEATURES) features of one base layer; a ``Coating`` is encoded as its interface
+    (``stack.coating_interface``)."""
     if isinstance(layer, Coating):
-        layer = Dielectric(layer.roughness, layer.ior)
+        layer = coating_interface(layer)
     if isinstance(layer, Diffuse):
         return base_features([0], [1.0], [layer.albedo], [1.0] * 3, [0.0] * 3, [1.5])[0]
     if isinstance(layer, Conductor):

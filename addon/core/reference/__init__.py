@@ -42,9 +42,9 @@ import numpy as np
 
 from .. import xp as xpmod
 from ..bsdf.base import as_directions
-from ..stack import Stack, StackArrays
+from ..stack import Stack, StackArrays, validate
 from ..xp import Rng, namespace, to_numpy
-from .walk import CHUNK_WALKS, MAX_DEPTH, Layers, run_walks, validate_arrays
+from .walk import CHUNK_WALKS, MAX_DEPTH, Layers, run_walks
 
 __all__ = ["eval_brdf", "eval_brdf_many", "sample", "albedo", "pack_stacks", "MAX_DEPTH"]
 
@@ -63,7 +63,7 @@ def _layers_and_rows(stack, n: int, xp=np) -> tuple[Layers, np.ndarray]:
         sa = stack
     else:
         raise ValueError(f"stack must be a Stack or StackArrays, got {type(stack).__name__}")
-    validate_arrays(sa)
+    validate(sa)
     if len(sa) == 1:
         return Layers.from_arrays(sa).to(xp), xp.zeros(n, dtype=xp.int64)
     if len(sa) != n:

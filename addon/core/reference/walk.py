@@ -84,7 +84,7 @@ from ..bsdf import (
     RoughConductor,
     RoughDielectric,
 )
-from ..stack import BASE_KINDS, VALID_RANGES, StackArrays
+from ..stack import BASE_KINDS, StackArrays, validate
 from ..xp import Rng, namespace
 
 # Safety cap on events per walk, never reached in practice. Over a white base under a smooth
@@ -106,40 +106,6 @@ _DIFFUSE, _CONDUCTOR, _DIELECTRIC = (BASE_KINDS.index(k) for k in ("Diffuse", "C
 
 
 # ------------------------------------------------------------------------------------ layers
-
-
-def validate_arrays(sa: StackArrays) -> None:
-    """Raise ValueError if any field of ``sa`` is malformed, not finite or outside VALID_RANGES."""
-    if not isinstance(sa, StackArrays):
-        raise ValueError(f"expected a Stack or StackArrays, got {type(sa).__name__}")
-    n = len(sa)
-    c = sa.n_coatings
-    shapes = {
-        "base_kind": (n,), "base_albedo": (n, 3), "base_roughness": (n,), "base_eta": (n, 3),
-        "base_k": (n, 3), "base_ior": (n,), "coat_roughness": (n, c), "coat_ior": (n, c),
-        "coat_albedo": (n, c, 3), "coat_thickness": (n, c), "coat_g": (n, c),
-    }
-    ranges = {
-        "base_albedo": "albedo", "base_roughness": "roughness", "base_eta": "eta", "base_k": "k",
-        "base_ior": "ior", "coat_roughness": "roughness", "coat_ior": "ior", "coat_albedo": "albedo",
-        "coat_thickness": "thickness", "coat_g": "g",
-    }
-    for name, shape in shapes.items():
-        a = np.asarray(getattr(sa, name))
-        if a.shape != shape:
-            raise ValueError(f"StackArrays.{name} must have shape {shape}, got {a.shape}")
-    kind = np.asarray(sa.base_kind)
-    if np.any((kind < 0) | (kind >= len(BASE_KINDS))):
-        raise ValueError(f"StackArrays.base_kind must index {BASE_KINDS}, got values {np.unique(kind).tolist()}")
-    for name, key in ranges.items():
-        a = np.asarray(getattr(sa, name), dtype=np.float64)
-        lo, hi = VALID_RANGES[key]
-        bad = ~np.isfinite(a) | (a < lo) | (a > hi)
-        if np.any(bad):
-            where = tuple(int(i[0]) for i in np.nonzero(bad))
-            raise ValueError(
-                f"StackArrays.{name}{list(where)} = {a[where]!r} is outside the valid range [{lo}, {hi}]"
-            )
 
 
 @dataclass
@@ -165,7 +131,7 @@ class Layers:
 
     @classmethod
     def from_arrays(cls, sa: StackArrays) -> "Layers":
-        validate_arrays(sa)
+        validate(sa)
         P, C = len(sa), sa.n_coatings
         n = np.ones((P, C + 1))
         n[:, :C] = sa.coat_ior

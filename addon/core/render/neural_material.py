@@ -14,12 +14,12 @@ bounce.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
-from ..stack import Stack
+from ..stack import LATENT, Stack
 from .shading import ShadeByProposal, finish_sample
-
-DEFAULT_SIZE = "tiny"
 
 
 def proxy_guess(stack: Stack) -> tuple[float, float]:
@@ -73,7 +73,7 @@ class NeuralMaterial:
 
     def __init__(self, models, z=None, proxy=(0.2, 0.5), latent_texture=None):
         self.models = models
-        self.z = None if z is None else np.asarray(z, dtype=np.float32).reshape(3, 32)
+        self.z = None if z is None else np.asarray(z, dtype=np.float32).reshape(3, LATENT)
         self.sigma, self.w = float(proxy[0]), float(proxy[1])
         self.texture = latent_texture
         if self.z is None and self.texture is None:
@@ -88,47 +88,70 @@ class NeuralMaterial:
         return _BoundNeural(self.models, z, sigma, w)
 
 
-def _candidate_sizes(size):
-    from ..neural.runtime import DEFAULT_SIZE, SIZES
+class NeuralFallbackWarning(UserWarning):
+    """A layered material renders with the reference instead of its neural models; the message says why."""
 
-    if size is not None:
-        return [size]
-    return [DEFAULT_SIZE] + [x for x in SIZES if x != DEFAULT_SIZE]
+
+def _texture_size(latent_texture) -> tuple[str, str | None]:
+    """The decoder size a latent texture was baked for and the decoder digest it records (or None)."""
+    from ..neural import SIZES
+
+    meta = getattr(latent_texture, "metadata", None)
+    if not isinstance(meta, dict) or "model" not in meta:
+        raise ValueError("the latent texture records no decoder size (metadata 'model'): its latent space is "
+                         "unknown; bake it with textures.bake.neural_encoder, which records it")
+    size = meta["model"]
+    if size not in SIZES:
+        raise ValueError(f"the latent texture was baked for decoder size {size!r}, which is not one of "
+                         f"{list(SIZES)}; rebake it")
+    return size, meta.get("model_digest")
 
 
 def make(stack: Stack, latent_texture=None, size: str | None = None):
-    """A NeuralMaterial for ``stack``, or None when no shipped model can serve it.
+    """A NeuralMaterial for ``stack`` (or for its latent texture), or None in the documented cases below.
 
-    ``size`` picks the decoder; None tries the runtime's default size first, then the others, and
-    takes the first whose models are shipped (a layered stack also needs that size's layering
-    network). A latent texture is decoded by the size it was baked for (its ``model`` metadata).
-    Proxy parameters come from the sampling network when it is shipped, else from
-    :func:`proxy_guess`.
+    ``size`` picks the decoder ("auto" or None: ``neural.resolve_size``, the default size). A latent
+    texture is decoded by the size it was baked for (its ``model`` metadata, checked against ``size``
+    when one is given). Proxy parameters come from the size's sampling network when it is shipped,
+    else from :func:`proxy_guess`.
+
+    Returns None, with a :class:`NeuralFallbackWarning` naming the reason (the renderer then shades
+    the stack with the reference), only when
+    - a model file the material needs is missing or damaged (``FileNotFoundError``,
+      ``neural.ModelFileError``: a layered stack needs the size's layering network), or
+    - the latent texture was baked with another decoder file than the shipped one (its
+      ``model_digest``): its latents belong to another latent space.
+    Everything else raises: ValueError for an unknown size, a texture that records no or an unknown
+    decoder size, or one baked for another size than ``size``.
     """
-    try:
-        from ..neural import load_models
-        from ..neural.layering import encode_layered_stack, load_layering
-        from ..neural.sampling import load_sampling
-    except ImportError:
-        return None
+    from ..neural import AUTO, ModelFileError, encode_stack, load_models, resolve_size
+
+    if not isinstance(stack, Stack):
+        raise ValueError(f"make needs a Stack, got {type(stack).__name__}")
+    requested = None if size is None or size == AUTO else resolve_size(size)
     if latent_texture is not None:
-        size = latent_texture.metadata.get("model", size) if hasattr(latent_texture, "metadata") else size
-    for candidate in _candidate_sizes(size):
-        try:
-            models = load_models(candidate)
-            if latent_texture is not None:
-                return NeuralMaterial(models, None, proxy_guess(stack), latent_texture)
-            layering = load_layering(candidate, models.threads) if stack.coatings else None
-            z = encode_layered_stack(stack, models, layering)
-        except (FileNotFoundError, OSError):
-            continue
-        except ValueError:
+        size, digest = _texture_size(latent_texture)
+        if requested is not None and requested != size:
+            raise ValueError(f"the latent texture was baked for decoder size {size!r}, not {requested!r}: a latent "
+                             f"belongs to the latent space of its size; rebake it or pass size={size!r}")
+    else:
+        size, digest = requested or resolve_size(AUTO), None
+    try:
+        models = load_models(size)
+        if digest is not None and digest != models.digest:
+            warnings.warn(f"the latent texture was baked with another decoder_{size}.onnx (sha256 {digest[:12]}...) "
+                          f"than the shipped one ({models.digest[:12]}...): rebake it; rendering the stack with the "
+                          f"reference", NeuralFallbackWarning, stacklevel=2)
             return None
-        try:
-            sigma, w = (float(v) for v in load_sampling(candidate, models.threads).proxy_params(z)[0])
-        except (FileNotFoundError, OSError):
-            sigma, w = proxy_guess(stack)
-        material = NeuralMaterial(models, z, (sigma, w))
-        material.size = candidate
-        return material
-    return None
+        if latent_texture is not None:
+            material = NeuralMaterial(models, None, proxy_guess(stack), latent_texture)
+        else:
+            z = encode_stack(stack, models)
+            proxy = models.proxy_params(z)[0] if models.has("sampling") else proxy_guess(stack)
+            material = NeuralMaterial(models, z, tuple(float(v) for v in proxy))
+    except (FileNotFoundError, ModelFileError) as e:
+        warnings.warn(f"decoder size {size}: {e}; rendering the stack with the reference", NeuralFallbackWarning,
+                      stacklevel=2)
+        return None
+    material.size = size
+    return material

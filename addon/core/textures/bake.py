@@ -22,21 +22,22 @@ Encoder = Callable[[StackArrays], tuple[np.ndarray, np.ndarray]]
 Progress = Callable[[float], None]
 
 
-def neural_encoder(size: str, threads: int = 2) -> Encoder:
-    """The neural runtime's batch encoder for decoder ``size``: per-layer encoder, then the
-    layering network bottom-up, then the sampling network for the proxy channels."""
-    from ..neural import layering, load_models
+def neural_encoder(size: str = "auto", threads: int = 2) -> Encoder:
+    """The neural runtime's batch encoder for decoder ``size`` ("auto": ``neural.resolve_size``): per-layer
+    encoder, then the layering network bottom-up, then the sampling network for the proxy channels.
 
-    models = load_models(size, threads)
-    layer_model = layering.load_layering(models.size, threads)
-    if layer_model.sampling is None:
-        raise FileNotFoundError(f"no sampling model for decoder size {size!r}: the proxy channels need one")
+    Its ``metadata`` (``model``: the size, ``model_digest``: the decoder's sha256) goes into every
+    texture baked with it, so the renderer decodes the texture with the models it was baked for."""
+    from ..neural import encode_arrays, load_models
+
+    models = load_models(size, threads).load("layering", "sampling")  # a bake needs both: missing or damaged raise now
 
     def encode(arrays):
         # every row is encoded: deduplication is bake_texels' job, so it can be measured
-        z = layering.encode_latents(arrays, models, layer_model)
-        return z, layer_model.sampling.proxy_params(z)
+        z = encode_arrays(arrays, models)
+        return z, models.proxy_params(z)
 
+    encode.metadata = {"model": models.size, "model_digest": models.digest}
     return encode
 
 
@@ -155,6 +156,7 @@ def bake_stack(
     texels, stats = bake_texels(arrays, encode, dedup=dedup, progress=progress, cancel=cancel)
     meta = {"stack": spatial.stack.to_json(), "maps": ",".join(sorted(spatial.maps))}
     meta.update(metadata or {})
+    meta.update(getattr(encode, "metadata", {}))  # the encoder's decoder size and digest
     return LatentTexture.from_texels(texels.reshape(h, w, -1), meta), stats
 
 
@@ -204,6 +206,7 @@ def bake_mix(
     texels = ((1.0 - t) * ta + t * tb).astype(np.float32)
     meta = {"stack": a.stack.to_json(), "mix_stack": b.stack.to_json()}
     meta.update(metadata or {})
+    meta.update(getattr(encode, "metadata", {}))  # the encoder's decoder size and digest
     stats = BakeStats(texels=h * w, unique=sa.unique + sb.unique, seconds=time.perf_counter() - t0)
     return LatentTexture.from_texels(texels.reshape(h, w, -1), meta), stats
 

@@ -14,10 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..stack import LATENT as LATENT_DIM
 from . import files
 from .mip import build_mip_chain, trilinear_lookup
 
-LATENT_DIM = 32
 CHANNELS = 3
 LATENT_CHANNELS = [f"z.{c}.{i:02d}" for c in "RGB" for i in range(LATENT_DIM)]
 PROXY_CHANNELS = ["proxy.sigma", "proxy.w"]

@@ -1,0 +1,376 @@
+"""The model set of one decoder size: its four ONNX networks, their cards, one loader and one cache.
+
+    models = load_models("tiny")                   # cached per (size, threads)
+    f = models.eval_brdf(z, wi, wo)                # (N, 3) f in 1/sr, without the cosine
+    sigma_w = models.proxy_params(z)               # (N, 2) proxy parameters of the sampling network
+
+Every decoder size has its own latent space, so a size ships as a set of files in ``addon/models``:
+
+- ``decoder_<size>.onnx`` (inputs ``z`` (B, 32), ``wi``, ``wo`` (B, 3); output ``f`` (B,)) and its fused
+  RGB graph ``decoder_<size>_rgb.onnx`` (same weights; ``z`` (1 or B, 3, 32) -> ``f`` (B, 3));
+- ``encoder_<size>.onnx`` (input ``x`` (B, N_FEATURES); output ``z`` (B, 32));
+- ``layering_<size>.onnx`` (``z_top``, ``z_bottom`` (B, 32), ``albedo``, ``thickness`` (B,) -> ``z``);
+- ``sampling_<size>.onnx`` (``z`` (B, 3, 32) -> ``sigma``, ``w`` (B,)).
+
+Each network has a model card ``<name>.json`` beside it. :func:`read_card` is the one reader: the card
+must be JSON, name its network (``name``), give the sha256 of its own files (``files``) and, for every
+network but the decoder, of the files it was trained with (``trained_with``); widths must be positive.
+A file that is a Git LFS pointer, does not match its card, or was trained against other files than
+those beside it raises :class:`ModelFileError` naming the file and what is wrong; a missing file
+raises ``FileNotFoundError``. The decoder and encoder load with the set; the layering and sampling
+networks when first used (a single-layer stack needs neither).
+
+``resolve_size`` turns the model-size setting ("auto" or a size) into a size, for every consumer.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..stack import LATENT
+from . import proxy
+from .features import N_FEATURES
+from .session import ChunkedSession
+
+MODEL_DIR = Path(__file__).resolve().parents[2] / "models"
+SIZES = ("tiny", "small", "medium", "paper")
+AUTO = "auto"
+# The size the renderer, the previews and the bakes use when the setting is "auto": the fastest, the
+# only one above 1 M RGB evaluations per second on the 2-core development machine (docs/decoders.md:
+# tiny 1.78 M/s, small 0.87 M/s); larger sizes are chosen explicitly or per material by the render
+# quality setting (``addon.core.quality``).
+DEFAULT_SIZE = "tiny"
+ROLES = ("decoder", "encoder", "layering", "sampling")
+# What each network was trained with (its card's ``trained_with`` must name these files of its size).
+TRAINED_WITH = {"decoder": (), "encoder": ("decoder",), "layering": ("encoder", "decoder"),
+                "sampling": ("encoder", "decoder", "layering")}
+# Floats of one hidden layer's activations per ONNX Runtime call (768 KB): the decoder's chunk is
+# that over 3 x its width, 2,048 RGB queries for the tiny decoder, 256 for the paper's, so the
+# intermediates stay in cache (measured best or near it for tiny, small and medium).
+DECODER_CHUNK_FLOATS = 196_608
+ENCODER_CHUNK = 4096
+LFS_POINTER = b"version https://git-lfs"
+
+
+class ModelFileError(OSError):
+    """A shipped model file or its card is damaged, or does not belong with the files beside it."""
+
+
+def file_digest(path: Path | str) -> str:
+    """sha256 of a model file, as the cards record it."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def file_name(role: str, size: str) -> str:
+    """``<role>_<size>.onnx``."""
+    return f"{role}_{size}.onnx"
+
+
+def _positive_ints(card: dict, card_path: Path) -> None:
+    arch = card.get("architecture", {})
+    if not isinstance(arch, dict):
+        raise ModelFileError(f"model card {card_path.name}: 'architecture' must be an object, got {arch!r}")
+    for key in ("width", "depth", "latent", "n_features"):
+        if key in arch:
+            v = arch[key]
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ModelFileError(f"model card {card_path.name}: architecture.{key} must be a positive "
+                                     f"integer, got {v!r}")
+    if arch.get("latent", LATENT) != LATENT:
+        raise ModelFileError(f"model card {card_path.name}: latent size {arch['latent']} but the runtime's is {LATENT}")
+
+
+def _digest_map(card: dict, key: str, card_path: Path) -> dict[str, str]:
+    m = card.get(key)
+    if not isinstance(m, dict) or not m or not all(isinstance(v, str) and len(v) == 64 for v in m.values()):
+        raise ModelFileError(f"model card {card_path.name} has no valid {key!r} (file name -> sha256); "
+                             f"re-export the model (python -m onnx_export.export ...)")
+    return m
+
+
+def _check_file(path: Path, digest: str, card_path: Path) -> None:
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"neural model file {path} is missing; export it with `python -m onnx_export.export` "
+            f"(available here: {sorted(p.name for p in path.parent.glob('*.onnx'))})")
+    data = path.read_bytes()
+    if data.startswith(LFS_POINTER):
+        raise ModelFileError(f"{path.name} is a Git LFS pointer, not the model: fetch the models with `git lfs pull`")
+    got = hashlib.sha256(data).hexdigest()
+    if got != digest:
+        raise ModelFileError(f"{path.name} does not match its card {card_path.name} (sha256 {got[:12]}..., the card "
+                             f"says {digest[:12]}...): the file was replaced, renamed from another size or damaged")
+
+
+def read_card(role: str, size: str, model_dir: Path | str | None = None) -> dict:
+    """The checked model card of network ``role`` of ``size``: JSON, naming this network, positive
+    widths, and every file it names (its own, and those it was trained with) present with that digest."""
+    if role not in ROLES:
+        raise ValueError(f"unknown network role {role!r}; roles are {list(ROLES)}")
+    d = Path(model_dir) if model_dir is not None else MODEL_DIR
+    onnx_path = d / file_name(role, size)
+    card_path = onnx_path.with_suffix(".json")
+    if not card_path.is_file():
+        if not onnx_path.is_file():
+            _check_file(onnx_path, "", card_path)  # raises FileNotFoundError naming the model
+        raise FileNotFoundError(f"model card {card_path} is missing: every model ships with its card")
+    try:
+        card = json.loads(card_path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ModelFileError(f"model card {card_path.name} is not valid JSON ({e}); restore it from the "
+                             f"repository or re-export the model") from None
+    if not isinstance(card, dict):
+        raise ModelFileError(f"model card {card_path.name} must hold a JSON object, got {type(card).__name__}")
+    if card.get("name") != onnx_path.stem:
+        raise ModelFileError(f"model card {card_path.name} is the card of {card.get('name')!r}, not of "
+                             f"{onnx_path.stem!r}: it was renamed from another model")
+    _positive_ints(card, card_path)
+    own = _digest_map(card, "files", card_path)
+    if onnx_path.name not in own:
+        raise ModelFileError(f"model card {card_path.name} does not name {onnx_path.name} in 'files' ({sorted(own)})")
+    for name, digest in own.items():
+        _check_file(d / name, digest, card_path)
+    needed = [file_name(r, size) for r in TRAINED_WITH[role]]
+    if needed:
+        trained = _digest_map(card, "trained_with", card_path)
+        for name in needed:
+            if name not in trained:
+                raise ModelFileError(f"model card {card_path.name} does not say which {name} it was trained with")
+            if not (d / name).is_file() or file_digest(d / name) != trained[name]:
+                raise ModelFileError(
+                    f"{onnx_path.name} was trained with another {name} than the one in {d.name}/: its latents do not "
+                    f"match it; retrain {onnx_path.name} or restore the {name} it was trained with")
+    return card
+
+
+def _session(path: Path, threads: int, chunk: int = 4096) -> ChunkedSession:
+    """A ChunkedSession of a checked file; a file ONNX Runtime cannot load raises ModelFileError."""
+    try:
+        return ChunkedSession(path, threads, chunk)
+    except (FileNotFoundError, ValueError):
+        raise
+    except Exception as e:  # onnxruntime's InvalidProtobuf, Fail, ...: not a loadable model
+        raise ModelFileError(f"{path.name} is not a loadable ONNX model ({type(e).__name__}: {e})") from None
+
+
+def _directions(w, name: str) -> np.ndarray:
+    if np.iscomplexobj(w):
+        raise ValueError(f"{name} must be real directions, got complex values")
+    a = np.asarray(w, dtype=np.float64)
+    if a.ndim == 1 and a.shape[0] == 3:
+        a = a[None]
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3) (or (3,)), got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        bad = int(np.flatnonzero(~np.all(np.isfinite(a), axis=1))[0])
+        raise ValueError(f"{name} must be finite; row {bad} is {a[bad].tolist()}")
+    return a
+
+
+def _unit_or_up(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """float32 unit directions of rows ``w`` (normalised in float64) and whether each is usable:
+    nonzero and above the horizon; unusable rows become +z (their output is zeroed)."""
+    w = np.asarray(w, dtype=np.float64)
+    n2 = np.einsum("ij,ij->i", w, w)
+    ok = (n2 > 0.0) & (w[:, 2] > 0.0) & np.isfinite(n2)
+    u = w * (1.0 / np.sqrt(np.where(ok, n2, 1.0)))[:, None]
+    if not ok.all():
+        u[~ok] = (0.0, 0.0, 1.0)
+    return u.astype(np.float32), ok
+
+
+def latents(z, name: str = "z") -> np.ndarray:
+    """``z`` as float32 latents (N, 3, 32) ((3, 32) becomes (1, 3, 32)); complex, NaN or Inf raise."""
+    if np.iscomplexobj(z):
+        raise ValueError(f"{name} must be real, got complex values")
+    z = np.asarray(z, dtype=np.float32)
+    if z.shape == (3, LATENT):
+        z = z[None]
+    if z.ndim != 3 or z.shape[1:] != (3, LATENT):
+        raise ValueError(f"{name} must have shape (N, 3, {LATENT}) or (3, {LATENT}), got {z.shape}")
+    if not np.all(np.isfinite(z)):
+        raise ValueError(f"{name} must be finite (the latent holds NaN or Inf)")
+    return z
+
+
+class ModelSet:
+    """The networks of one decoder size as ONNX Runtime sessions, each checked against its card."""
+
+    def __init__(self, size: str, threads: int = 2, model_dir: Path | str | None = None):
+        if size not in SIZES:
+            raise ValueError(f"unknown decoder size {size!r}; sizes are {list(SIZES)} (resolve 'auto' with "
+                             f"resolve_size first)")
+        if isinstance(threads, bool) or int(threads) < 1:
+            raise ValueError(f"threads must be >= 1, got {threads!r}")
+        self.size = size
+        self.threads = int(threads)
+        self.model_dir = Path(model_dir) if model_dir is not None else MODEL_DIR
+        self.cards: dict[str, dict] = {}
+        self._sessions: dict[str, ChunkedSession] = {}
+        self.decoder_path = self.path("decoder")
+        self.encoder_path = self.path("encoder")
+        width = self.card("decoder").get("architecture", {}).get("width")
+        if width is None:
+            raise ModelFileError(f"model card {self.decoder_path.stem}.json gives no architecture.width")
+        chunk = max(128, DECODER_CHUNK_FLOATS // (3 * width))
+        self._decoder = self._load("decoder", chunk)
+        # the fused RGB graph (same weights) is faster; the scalar graph is the reference interface
+        rgb = self.model_dir / f"decoder_{size}_rgb.onnx"
+        self._rgb = _session(rgb, self.threads, chunk) if rgb.name in self.card("decoder")["files"] else None
+        self._load("encoder", ENCODER_CHUNK)
+
+    def path(self, role: str) -> Path:
+        return self.model_dir / file_name(role, self.size)
+
+    def card(self, role: str) -> dict:
+        """The checked card of one network of this size (read once)."""
+        if role not in self.cards:
+            self.cards[role] = read_card(role, self.size, self.model_dir)
+        return self.cards[role]
+
+    def _load(self, role: str, chunk: int = 4096) -> ChunkedSession:
+        if role not in self._sessions:
+            self.card(role)
+            self._sessions[role] = _session(self.path(role), self.threads, chunk)
+        return self._sessions[role]
+
+    def load(self, *roles: str) -> "ModelSet":
+        """Load (and check) the networks ``roles`` now rather than when first used; returns the set."""
+        for role in roles:
+            if role not in ROLES:
+                raise ValueError(f"unknown network role {role!r}; roles are {list(ROLES)}")
+            self._load(role, ENCODER_CHUNK if role == "encoder" else 4096)
+        return self
+
+    def has(self, role: str) -> bool:
+        """Whether the network ``role`` of this size is shipped (its file exists; loading still checks it)."""
+        return self.path(role).is_file()
+
+    @property
+    def digest(self) -> str:
+        """Identity of the latent space: the sha256 of the decoder file (every other network's card names it)."""
+        return self.card("decoder")["files"][self.decoder_path.name]
+
+    # ------------------------------------------------------------------ the four networks
+
+    def run_encoder(self, x: np.ndarray) -> np.ndarray:
+        """Latents (N, 3, 32) of per-channel encoder features (N, 3, N_FEATURES)."""
+        x = np.asarray(x, dtype=np.float32)
+        if x.ndim != 3 or x.shape[1:] != (3, N_FEATURES):
+            raise ValueError(f"encoder features must have shape (N, 3, {N_FEATURES}), got {x.shape}")
+        if not np.all(np.isfinite(x)):
+            raise ValueError("encoder features must be finite")
+        if x.shape[0] == 0:
+            return np.zeros((0, 3, LATENT), dtype=np.float32)
+        z = self._load("encoder").run(["z"], {"x": x.reshape(-1, N_FEATURES)})[0]
+        return z.reshape(-1, 3, LATENT)
+
+    def run_layering(self, z_top, z_bottom, albedo, thickness) -> np.ndarray:
+        """One application of the layering network: z_top, z_bottom (B, 32), albedo, thickness (B,) -> z (B, 32)."""
+        zt = np.ascontiguousarray(z_top, dtype=np.float32)
+        zb = np.ascontiguousarray(z_bottom, dtype=np.float32)
+        a = np.ascontiguousarray(albedo, dtype=np.float32).reshape(-1)
+        t = np.ascontiguousarray(thickness, dtype=np.float32).reshape(-1)
+        b = zt.shape[0]
+        if zt.shape != (b, LATENT) or zb.shape != (b, LATENT) or a.shape != (b,) or t.shape != (b,):
+            raise ValueError(f"run_layering needs z_top, z_bottom (B, {LATENT}), albedo, thickness (B,); got "
+                             f"{zt.shape}, {zb.shape}, {a.shape}, {t.shape}")
+        session = self._load("layering")
+        if b == 0:
+            return np.zeros((0, LATENT), dtype=np.float32)
+        return session.run(["z"], {"z_top": zt, "z_bottom": zb, "albedo": a, "thickness": t})[0]
+
+    def proxy_params(self, z) -> np.ndarray:
+        """(N, 2) float32 (sigma, w) of the sampling proxy for latents z (N, 3, 32) or (3, 32) (-> (1, 2))."""
+        z = latents(z)
+        session = self._load("sampling")
+        if z.shape[0] == 0:
+            return np.zeros((0, 2), dtype=np.float32)
+        sig, w = session.run(["sigma", "w"], {"z": z})
+        out = np.stack([sig, w], axis=1).astype(np.float32)
+        out[:, 0] = np.maximum(out[:, 0], proxy.SIGMA_MIN)
+        out[:, 1] = np.clip(out[:, 1], 0.0, 1.0)
+        return out
+
+    def eval_brdf(self, z, wi, wo) -> np.ndarray:
+        """f (N, 3) in 1/sr (no cosine) for one material ``z`` (3, 32) or per-row latents (N, 3, 32).
+
+        Directions need not be unit length (they are normalised); zero-length directions and
+        directions at or below the horizon give 0.
+        """
+        wi = _directions(wi, "wi")
+        wo = _directions(wo, "wo")
+        if wi.shape[0] != wo.shape[0]:
+            raise ValueError(f"wi has {wi.shape[0]} rows but wo has {wo.shape[0]}")
+        n = wi.shape[0]
+        if np.iscomplexobj(z):
+            raise ValueError("z must be real, got complex values")
+        z = np.asarray(z, dtype=np.float32)
+        if z.shape == (3, LATENT):
+            per_row = False
+        elif z.ndim == 3 and z.shape[1:] == (3, LATENT) and z.shape[0] == n:
+            per_row = True
+        else:
+            raise ValueError(f"z must have shape (3, {LATENT}) or ({n}, 3, {LATENT}) to match {n} directions, "
+                             f"got {z.shape}")
+        if not np.all(np.isfinite(z)):
+            raise ValueError("z must be finite (the latent holds NaN or Inf)")
+        out = np.empty((n, 3), dtype=np.float32)
+        if n == 0:
+            return out
+        zz = z[None]
+
+        def chunk(rows: slice) -> None:  # runs on the session's threads, one chunk of rows each
+            a, b = _unit_or_up(wi[rows]), _unit_or_up(wo[rows])
+            ok = a[1] & b[1]
+            if self._rgb is not None:
+                f = self._rgb.run_once(["f"], {"z": z[rows] if per_row else zz, "wi": a[0], "wo": b[0]})[0]
+            else:
+                m = a[0].shape[0]
+                f = self._decoder.run_once(["f"], {
+                    "z": z[rows].reshape(-1, LATENT) if per_row else np.tile(z, (m, 1)),
+                    "wi": np.repeat(a[0], 3, axis=0), "wo": np.repeat(b[0], 3, axis=0)})[0].reshape(m, 3)
+            # 0 below the horizon, and for NaN (an overflowing latent); the graph's exp is >= 0
+            out[rows] = np.where(ok[:, None] & (f >= 0.0), f, 0.0)
+
+        (self._rgb or self._decoder).map(chunk, n)
+        return out
+
+
+_CACHE: dict[tuple[str, int, Path], ModelSet] = {}
+
+
+def load_models(size: str = AUTO, threads: int = 2, model_dir: Path | str | None = None) -> ModelSet:
+    """The model set of ``size`` ("auto" resolves with :func:`resolve_size`), cached per size, thread
+    count and folder (the one cache of the neural runtime)."""
+    size = resolve_size(size, model_dir)
+    key = (size, int(threads), Path(model_dir) if model_dir is not None else MODEL_DIR)
+    if key not in _CACHE:
+        _CACHE[key] = ModelSet(size, threads, model_dir)
+    return _CACHE[key]
+
+
+def clear_cache() -> None:
+    """Forget every loaded model set (after the model files changed)."""
+    _CACHE.clear()
+
+
+def resolve_size(size: str = AUTO, model_dir: Path | str | None = None) -> str:
+    """The decoder size a model-size setting means: a size is itself; "auto" is :data:`DEFAULT_SIZE`,
+    or when its decoder and encoder are not shipped, the first size in ``SIZES`` whose are.
+
+    Raises ValueError for anything else, FileNotFoundError when "auto" finds no shipped size."""
+    if isinstance(size, str) and size.lower() in SIZES:
+        return size.lower()
+    if not (isinstance(size, str) and size.lower() == AUTO):
+        raise ValueError(f"unknown decoder size {size!r}; sizes are {[AUTO, *SIZES]}")
+    d = Path(model_dir) if model_dir is not None else MODEL_DIR
+    for s in (DEFAULT_SIZE, *(x for x in SIZES if x != DEFAULT_SIZE)):
+        if (d / file_name("decoder", s)).is_file() and (d / file_name("encoder", s)).is_file():
+            return s
+    raise FileNotFoundError(f"no decoder size is shipped in {d} (looked for decoder_<size>.onnx and "
+                            f"encoder_<size>.onnx for sizes {list(SIZES)})")
