@@ -227,7 +227,7 @@ def test_a_shard_that_finds_the_bands_gone_after_another_published_succeeds(roug
             monkeypatch.setattr(bake_cli, "_load_band", real_load)
             job = bake_cli.preset_job(bake_cli.parse_args(preset_argv(rough_png, out)))[0]
             stats = {"texels": 0, "unique": 0, "seconds": 0}
-            assert real_assemble(out, job, job.key("small"), "small", 4, stats, rebake=None)
+            assert real_assemble(out, job, job.key("auto"), "auto", 4, stats, rebake=None)
         return real_load(path, rows, width)
 
     monkeypatch.setattr(bake_cli, "_load_band", load_after_another_shard_finished)
