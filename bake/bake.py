@@ -199,7 +199,11 @@ def material_reader(bpy):
 def blend_jobs(args) -> list[Job]:
     if not args.blend.is_file():
         raise BadInput(f"--blend: file not found: {args.blend}")
-    import bpy
+    try:
+        import bpy
+    except ImportError:
+        raise BadInput("--blend needs Blender's Python or the bpy module (pip install bpy==5.0.1) to read "
+                       f"{args.blend.name}; --preset bakes need neither") from None
 
     spatial_stack_from_material = material_reader(bpy)
     try:

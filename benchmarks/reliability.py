@@ -224,8 +224,8 @@ def main(argv: list[str] | None = None) -> int:
     tests = sorted({c[3] for c in CASES if c[3] is not None})
     collector = Collector()
     t0 = time.perf_counter()
-    pytest.main(["-q", "-p", "no:cacheprovider", "--rootdir", str(ROOT), *[str(ROOT / t) for t in tests]],
-                plugins=[collector])
+    present = [str(ROOT / t) for t in tests if _exists(t)]  # pytest stops at a test it cannot find
+    pytest.main(["-q", "-p", "no:cacheprovider", "--rootdir", str(ROOT), *present], plugins=[collector])
     text = table(collector, time.perf_counter() - t0)
     args.out.write_text(text)
     print(f"wrote {args.out}")
