@@ -12,7 +12,7 @@ import math
 import torch
 from torch import nn
 
-LATENT = 32
+from addon.core.stack import LATENT  # floats per colour channel of a latent (the runtime's)
 
 # name -> (hidden width, hidden layers); "paper" is the topology of Fan et al. 2022
 SIZES = {

@@ -13,6 +13,7 @@ from benchmarks.sampling_efficiency import (
     sky_radiance,
 )
 from tests.stats import chi2_direction_test
+
 ALUMINIUM = dict(eta=(1.657, 0.880, 0.521), k=(9.224, 6.270, 4.837))
 # the held-out "specular" and "diffuse" stacks (onnx_export.heldout_layered.SPECULAR_INDEX / DIFFUSE_INDEX)
 SPECULAR = Stack(Conductor(roughness=0.3, **ALUMINIUM), (Coating(roughness=0.03, ior=1.5),))
