@@ -94,6 +94,59 @@ def mse(a, b):
     return float(((a - b) ** 2).mean())
 
 
+def speed_only(args, command: str) -> int:
+    """Ours (neural mode, default settings) and Cycles on the demo scene, alternating in this
+    process ``--repeats`` times per size: the ratio of each pair, their median and spread, and
+    our time split into ray casting, networks and the rest. Writes ``docs/render_speed.md``."""
+    import statistics
+
+    import bpy
+
+    sections = []
+    for size in args.sizes.split(","):
+        width, height = (int(v) for v in size.split("x"))
+        scene = demo_scene(width, height)
+        paths = width * height * args.samples
+        with tempfile.TemporaryDirectory() as tmp:
+            bs = build_blender_scene(bpy, scene)
+            render_cycles(bpy, bs, 8, 8, 1, 1, Path(tmp))  # warm-up: kernels and scene upload
+            ours(scene, 1, 1, "neural")  # warm-up: model loading, encoding, first-call overheads
+            pairs = []
+            for rep in range(args.repeats):
+                _, st = ours(scene, args.samples, args.bounces, "neural", seed=rep)
+                _, cyc_s = render_cycles(bpy, bs, width, height, args.samples, args.bounces, Path(tmp))
+                s = st.seconds
+                pairs.append((s["total"], cyc_s, s["rays"], s["network"], st.rest))
+                print(size, rep, f"ours {s['total']:.2f} s, Cycles {cyc_s:.2f} s, ratio {cyc_s / s['total']:.2f}",
+                      st.summary(), flush=True)
+        ratios = [c / o for o, c, *_ in pairs]
+        rest_share = [r / o for o, _, _, _, r in pairs]
+        lines = [f"## {width}x{height}, {args.samples} spp, {args.bounces} bounces ({paths:,} paths per render)", "",
+                 "| repetition | ours s | Cycles s | throughput ours / Cycles | rays s | networks s | rest s | "
+                 "rest share |", "|---|---|---|---|---|---|---|---|"]
+        for i, (o, c, ra, ne, re) in enumerate(pairs):
+            lines.append(f"| {i + 1} | {o:.2f} | {c:.2f} | {c / o:.2f}x | {ra:.2f} | {ne:.2f} | {re:.2f} | "
+                         f"{100 * re / o:.0f}% |")
+        lines += ["", f"Throughput ours / Cycles: median **{statistics.median(ratios):.2f}x** (range "
+                  f"{min(ratios):.2f}-{max(ratios):.2f}x over {len(ratios)} pairs); the rest's share of our time: "
+                  f"median {100 * statistics.median(rest_share):.0f}% (range {100 * min(rest_share):.0f}-"
+                  f"{100 * max(rest_share):.0f}%).", ""]
+        sections += lines
+    text = ["# Renderer speed: demo scene, ours vs Blender Cycles, alternating", "",
+            f"Command: `{command}`", "",
+            f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU threads, no GPU, shared with "
+            "other jobs while measured: each of our renders is followed by a Cycles render of the same scene in the "
+            "same process, so each ratio compares two renders that met the same load.", "",
+            "Ours: neural mode, default settings (every core; `RenderSettings.threads = 0`). Cycles: CPU, same "
+            "resolution, samples and bounces, no denoising or adaptive sampling, Principled coat materials, wall time "
+            "of `bpy.ops.render.render` after a warm-up (scene sync included, as for a user's F12). Rays: embreex; "
+            "networks: ONNX Runtime batches; rest: everything else (numpy shading, sampling, bookkeeping), as "
+            "shares of our wall time (`RenderStats`).", "", *sections]
+    (args.out / "render_speed.md").write_text("\n".join(text))
+    print(f"Wrote {args.out / 'render_speed.md'}")
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", default="160x90")
@@ -103,9 +156,16 @@ def main(argv=None) -> int:
     ap.add_argument("--reference-samples", type=int, default=512)
     ap.add_argument("--budgets", default="1,2,4,8,16", help="sample counts of the equal-time curves")
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
+    ap.add_argument("--speed-only", action="store_true",
+                    help="only ours vs Cycles, alternating --repeats times per size in --sizes (docs/render_speed.md)")
+    ap.add_argument("--sizes", default="480x270,640x360", help="image sizes of --speed-only")
+    ap.add_argument("--repeats", type=int, default=3, help="ours/Cycles pairs per size of --speed-only")
     args = ap.parse_args(argv)
     width, height = (int(v) for v in args.size.split("x"))
     command = "python benchmarks/bench_render.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    if args.speed_only:
+        args.out.mkdir(parents=True, exist_ok=True)
+        return speed_only(args, command)
     scene = demo_scene(width, height)
     args.out.mkdir(parents=True, exist_ok=True)
     paths = width * height * args.samples
