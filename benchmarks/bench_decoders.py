@@ -24,6 +24,7 @@ import argparse
 import json
 import shlex
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -124,6 +125,44 @@ def speed(size: str, threads: int, repeats: int = 5) -> dict:
             "batch": BATCH, "threads": threads, "chunk": m._rgb.chunk}
 
 
+def operator_breakdown(size: str, chunk: int, runs: int = 100) -> dict:
+    """Where one chunk's time goes in the RGB decoder graph, from ONNX Runtime's own profiler
+    (one single-threaded session, as the runtime runs them): the share of kernel time per
+    operator type (matrix products against everything else), and the time per call outside the
+    kernels (session overhead)."""
+    import onnxruntime as ort
+
+    from addon.core.neural.session import session_options
+
+    rng = np.random.default_rng(0)
+    wi = rng.normal(size=(chunk, 3))
+    wi[:, 2] = np.abs(wi[:, 2])
+    wi = (wi / np.linalg.norm(wi, axis=1, keepdims=True)).astype(np.float32)
+    z = (rng.normal(size=(1, 3, 32)) * 0.3).astype(np.float32)
+    with tempfile.TemporaryDirectory() as tmp:
+        so = session_options()
+        so.enable_profiling = True
+        so.profile_file_prefix = str(Path(tmp) / "ort")
+        sess = ort.InferenceSession(str(MODEL_DIR / f"decoder_{size}_rgb.onnx"), so,
+                                    providers=["CPUExecutionProvider"])
+        for _ in range(runs):
+            sess.run(["f"], {"z": z, "wi": wi, "wo": wi})
+        events = json.loads(Path(sess.end_profiling()).read_text())
+    by_op: dict[str, float] = {}
+    for e in events:
+        if e.get("cat") == "Node" and e["name"].endswith("_kernel_time"):
+            op = e["args"]["op_name"]
+            by_op[op] = by_op.get(op, 0.0) + e["dur"]
+    run_us = sum(e["dur"] for e in events if e.get("name") == "model_run") / runs
+    kernel_us = sum(by_op.values()) / runs
+    matmul = sum(v for k, v in by_op.items() if k in ("Gemm", "FusedGemm", "MatMul", "FusedMatMul")) / runs
+    top = sorted(by_op.items(), key=lambda kv: -kv[1])[:6]
+    return {"chunk": chunk, "run_us": run_us, "kernel_us": kernel_us, "matmul_share": matmul / kernel_us,
+            "overhead_share": max(0.0, run_us - kernel_us) / run_us,
+            "nodes": sum(1 for e in events if e.get("cat") == "Node" and e["name"].endswith("_kernel_time")) // runs,
+            "top": [(k, v / runs / kernel_us) for k, v in top]}
+
+
 def encoder_heldout(size: str, heldout: dict) -> dict:
     from onnx_export.evaluate import lobe_metrics
 
@@ -219,6 +258,7 @@ def main(argv=None):
         card = json.loads(card_path.read_text())
         r = {"size": size, "params": card["parameters"], "macs": card["macs_per_rgb_eval"]}
         r["speed"] = speed(size, a.threads, a.repeats)
+        r["breakdown"] = operator_breakdown(size, r["speed"]["chunk"])
         r["limit"] = mm / r["macs"]
         cached = ROOT / "cache" / "bench" / f"errors_{size}.json"
         onnx_mtime = (MODEL_DIR / f"decoder_{size}.onnx").stat().st_mtime
@@ -283,6 +323,19 @@ def main(argv=None):
             f"{100 * r['single']['lobe_error_median']:.1f}% / {100 * r['single']['lobe_error_p90']:.1f}% | "
             f"{r['single']['albedo_abs_error_mean']:.4f} | {lay_txt} | "
             f"{100 * r['encoder']['lobe_error_median']:.1f}% / {100 * r['encoder']['lobe_error_p90']:.1f}% |")
+    lines += ["", "## Where a decoder call's time goes", "",
+              "ONNX Runtime's profiler on one single-threaded session running one chunk of the runtime's size "
+              "(100 calls): the share of kernel time in matrix products (Gemm, FusedGemm, MatMul), the share of "
+              "each call spent outside kernels, and the costliest operator types. The rest of the kernel time is "
+              "the graph's element-wise work: the direction features, the latent projection broadcast to the "
+              "batch, the output exponential and the horizon mask.", "",
+              "| size | chunk (queries) | operators per call | us per call | matrix products | outside kernels | "
+              "costliest operators (share of kernel time) |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        b = r["breakdown"]
+        top = ", ".join(f"{k} {100 * v:.0f}%" for k, v in b["top"])
+        lines.append(f"| {r['size']} | {b['chunk']:,} | {b['nodes']} | {b['run_us']:,.0f} | "
+                     f"{100 * b['matmul_share']:.0f}% | {100 * b['overhead_share']:.0f}% | {top} |")
     lines += ["", "![error against speed](decoders_error_speed.png)", ""]
     (a.out / "decoders_bench.md").write_text("\n".join(lines))
     print(json.dumps({"out": str(a.out / "decoders_bench.md")}))

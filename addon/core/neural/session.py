@@ -53,6 +53,18 @@ def _pool(threads: int) -> ThreadPoolExecutor:
     return _POOLS[threads]
 
 
+def session_options():
+    """The options every session is made with: one intra-op and one inter-op thread (the
+    parallelism is over chunks, on the pool), every graph optimisation ONNX Runtime has."""
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = 1
+    so.inter_op_num_threads = 1
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    return so
+
+
 class ChunkedSession:
     """One ONNX model as a single-threaded ONNX Runtime session, run over chunks of ``chunk``
     rows on ``threads`` threads (or the count :func:`threads_in_force` puts in force).
@@ -75,11 +87,8 @@ class ChunkedSession:
         if int(chunk) < 1:
             raise ValueError(f"chunk must be >= 1, got {chunk!r}")
         self.path, self.threads, self.chunk = path, int(threads), int(chunk)
-        so = ort.SessionOptions()
-        so.intra_op_num_threads = 1
-        so.inter_op_num_threads = 1
-        so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        self._session = ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
+        self._session = ort.InferenceSession(str(path), sess_options=session_options(),
+                                             providers=["CPUExecutionProvider"])
 
     def run_once(self, outputs: list[str], feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
         """One ONNX Runtime call on the whole of ``feeds`` (on the calling thread)."""
