@@ -68,17 +68,22 @@ class DecoderChoice:
 
 
 def available_sizes(model_dir=None) -> list[str]:
-    """Shipped decoder sizes, fewest parameters first (from the model cards; unknown counts last)."""
-    from .neural.models import MODEL_DIR, SIZES
+    """Shipped decoder sizes, fewest parameters first (from the checked model cards, ``neural.read_card``;
+    unknown counts last). A size whose decoder or encoder is damaged or does not match its card is
+    left out with a :class:`QualityWarning` naming the file."""
+    from .neural.models import MODEL_DIR, SIZES, ModelFileError, read_card
 
     d = Path(model_dir) if model_dir is not None else MODEL_DIR
     found = []
     for s in SIZES:
-        path = d / f"decoder_{s}.onnx"
-        if not (path.exists() and (d / f"encoder_{s}.onnx").exists()):
+        if not ((d / f"decoder_{s}.onnx").exists() and (d / f"encoder_{s}.onnx").exists()):
             continue
-        card = path.with_suffix(".json")
-        params = json.loads(card.read_text()).get("parameters", math.inf) if card.exists() else math.inf
+        try:
+            params = read_card("decoder", s, d).get("parameters", math.inf)
+            read_card("encoder", s, d)
+        except (FileNotFoundError, ModelFileError) as e:
+            warnings.warn(f"decoder size {s} is not available: {e}", QualityWarning, stacklevel=2)
+            continue
         found.append((params, SIZES.index(s), s))
     return [s for _, _, s in sorted(found)]
 

@@ -255,3 +255,14 @@ def test_camera_hits_give_the_renderers_footprint_on_a_facing_quad():
     np.testing.assert_allclose(fp[0], 4.0 * cam.pixel_spread * 0.5 / math.sqrt(c), rtol=1e-6)
     # the grazing floor: |cos| below 0.05 counts as 0.05
     np.testing.assert_allclose(texture_footprint(1.0, 1e-9, 2.0), 2.0 / math.sqrt(0.05))
+
+
+def test_a_size_with_a_damaged_card_is_not_available_and_says_why(tmp_path):
+    import shutil
+
+    for f in MODEL_DIR.glob("*"):
+        if f.name.startswith(("decoder_", "encoder_")) and ("tiny" in f.name or "small" in f.name):
+            shutil.copy(f, tmp_path / f.name)
+    (tmp_path / "decoder_tiny.json").write_text("{")
+    with pytest.warns(quality.QualityWarning, match="decoder size tiny is not available: .*decoder_tiny.json"):
+        assert quality.available_sizes(tmp_path) == ["small"]
