@@ -106,6 +106,16 @@ class _Viewport:
             self.session = None
 
 
+def _write_feature_passes(passes, film) -> None:
+    """Denoising Albedo / Normal and Depth from the film's first-hit features, where the result
+    has those passes."""
+    features = film.features()
+    for name, key in (("Denoising Albedo", "albedo"), ("Denoising Normal", "normal"), ("Depth", "depth")):
+        rp = passes.find(name)
+        if rp >= 0:
+            passes[rp].rect.foreach_set(np.ascontiguousarray(features[key][::-1]).ravel())
+
+
 class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
     bl_idname = ENGINE_ID
     bl_label = "Neural Layered"
@@ -128,10 +138,22 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         self.report({"ERROR"}, message)
         self.error_set(message)
 
+    def update_render_passes(self, scene=None, renderlayer=None):
+        """The passes this engine writes, for the compositor's Render Layers node."""
+        self.register_pass(scene, renderlayer, "Combined", 4, "RGBA", "COLOR")
+        if renderlayer.use_pass_z:
+            self.register_pass(scene, renderlayer, "Depth", 1, "Z", "VALUE")
+        if scene.neural_render.denoise:
+            for name, channels, ids, kind in render_properties.DENOISING_PASSES:
+                self.register_pass(scene, renderlayer, name, channels, ids, kind)
+
     def render(self, depsgraph):
         scene = depsgraph.scene
         props = scene.neural_render
         width, height = scene_export.render_size(scene)
+        if props.denoise:
+            for name, channels, ids, _ in render_properties.DENOISING_PASSES:
+                self.add_pass(name, channels, ids)
         result = self.begin_result(0, 0, width, height)
         try:
             self._render(depsgraph, scene, props, result)
@@ -172,6 +194,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
             film, stats = render(core_scene, replace(settings, mode="reference"), progress=progress)
         self.update_stats("", stats.summary())
         combined.rect.foreach_set(np.ascontiguousarray(film.rgba()[::-1]).ravel())
+        _write_feature_passes(result.layers[0].passes, film)
 
     # ------------------------------------------------------------------ 3D viewport (Rendered mode)
 

@@ -3,9 +3,49 @@
 from __future__ import annotations
 
 import bpy
-from bpy.props import EnumProperty, FloatProperty, IntProperty, PointerProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty
 
 from ..core.render import RenderSettings
+
+DENOISE_GROUP = "Neural Layered Denoise"
+DENOISING_PASSES = (("Denoising Normal", 3, "XYZ", "VECTOR"), ("Denoising Albedo", 3, "RGB", "COLOR"))
+
+
+def ensure_denoise_compositor(scene) -> str | None:
+    """Set the scene's compositor to Render Layers -> Denoise (image, normal, albedo) -> output,
+    Blender's own OpenImageDenoise; returns a note when the scene already has another compositor
+    (left alone)."""
+    group = scene.compositing_node_group
+    if group is not None and group.name != DENOISE_GROUP:
+        return (f"the scene already has the compositor {group.name!r}: connect its Render Layers' Denoising "
+                "Normal and Denoising Albedo to a Denoise node")
+    if group is None:
+        group = bpy.data.node_groups.get(DENOISE_GROUP) or bpy.data.node_groups.new(DENOISE_GROUP,
+                                                                                  "CompositorNodeTree")
+        scene.compositing_node_group = group
+    group.nodes.clear()
+    if not group.interface.items_tree:
+        group.interface.new_socket("Image", in_out="OUTPUT", socket_type="NodeSocketColor")
+    layers = group.nodes.new("CompositorNodeRLayers")
+    layers.scene = scene
+    denoise = group.nodes.new("CompositorNodeDenoise")
+    out = group.nodes.new("NodeGroupOutput")
+    layers.location, denoise.location, out.location = (-300, 0), (0, 0), (250, 0)
+    group.links.new(layers.outputs["Image"], denoise.inputs["Image"])
+    for name, socket in (("Denoising Normal", "Normal"), ("Denoising Albedo", "Albedo")):
+        if name in layers.outputs:
+            group.links.new(layers.outputs[name], denoise.inputs[socket])
+    group.links.new(denoise.outputs["Image"], out.inputs[0])
+    scene.render.use_compositing = True
+    return None
+
+
+def _denoise_changed(self, context):
+    scene = self.id_data
+    if self.denoise:
+        ensure_denoise_compositor(scene)
+    elif scene.compositing_node_group is not None and scene.compositing_node_group.name == DENOISE_GROUP:
+        scene.compositing_node_group = None
 
 
 class NLM_RenderSettings(bpy.types.PropertyGroup):
@@ -44,6 +84,12 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
         ],
         default="AUTO",
         description="Neural decoder of layered materials in neural mode",
+    )
+    denoise: BoolProperty(
+        name="Denoise",
+        description="Write Denoising Normal and Denoising Albedo passes and denoise the image with Blender's "
+                    "compositor (Denoise node, OpenImageDenoise)",
+        default=False, update=_denoise_changed,
     )
     tolerance: FloatProperty(
         name="Tolerance",

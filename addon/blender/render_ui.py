@@ -25,6 +25,7 @@ class NLM_PT_render(bpy.types.Panel):
         col.prop(props, "preview_samples")
         col.prop(props, "max_bounces")
         col.prop(props, "seed")
+        col.prop(props, "denoise")
         col.prop(props, "mode")
         if props.mode == "reference":
             col.prop(props, "reference_walks")

@@ -349,3 +349,32 @@ def test_render_threads_follow_the_scene_setting(fresh_scene):
     assert scene.neural_render.to_core(scene=scene).thread_count == 3
     scene.render.threads_mode = "AUTO"
     assert scene.neural_render.to_core(scene=scene).thread_count == (os.cpu_count() or 1)
+
+
+def test_denoise_option_brings_a_4_spp_render_closer_to_256_spp(fresh_scene, tmp_path):
+    ctx = fresh_scene
+    scene = ctx.scene
+    small(scene, 48, 36)
+    scene.render.engine = "NEURAL_LAYERED"
+    scene.render.image_settings.file_format = "OPEN_EXR"
+    scene.render.image_settings.color_depth = "32"
+
+    def frame(samples, denoise, name):
+        scene.neural_render.samples = samples
+        scene.neural_render.denoise = denoise
+        scene.render.filepath = str(tmp_path / f"{name}.exr")
+        bpy.ops.render.render(write_still=True)
+        return read_image(tmp_path / f"{name}.exr")[..., :3].astype(np.float64)
+
+    truth = frame(256, False, "truth")
+    noisy = frame(4, False, "noisy")
+    assert scene.compositing_node_group is None
+    denoised = frame(4, True, "denoised")
+    group = scene.compositing_node_group
+    assert group is not None and any(n.bl_idname == "CompositorNodeDenoise" for n in group.nodes)
+    denoise = next(n for n in group.nodes if n.bl_idname == "CompositorNodeDenoise")
+    assert denoise.inputs["Normal"].is_linked and denoise.inputs["Albedo"].is_linked
+    err = {k: float(((v - truth) ** 2).mean()) for k, v in (("noisy", noisy), ("denoised", denoised))}
+    assert err["denoised"] < 0.7 * err["noisy"], err
+    scene.neural_render.denoise = False
+    assert scene.compositing_node_group is None

@@ -302,3 +302,19 @@ def test_mitsuba_renders_the_same_scene():
     tol = 4 * se + 0.02 * theirs
     assert np.all(np.abs(ours - theirs) < tol), np.abs(ours - theirs) / tol
     assert abs(ours.mean() / theirs.mean() - 1) < 0.01
+
+
+def test_first_hit_features_are_albedo_normal_and_depth():
+    # A Lambertian quad facing the camera, filling the view: albedo is its colour exactly (a
+    # cosine-sampled Lambertian's weight), the normal faces the camera, depth is the distance.
+    cam = Camera.look_at((0.0, 0.0, 2.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_deg=20, width=8, height=6)
+    mesh = shapes.quad((-5, -5, 0), (10, 0, 0), (0, 10, 0), material=0)
+    scene = Scene(cam, mesh, [LambertMaterial((0.2, 0.5, 0.7))], [PointLight((0, 0, 1.0), 10.0)])
+    film, _ = render(scene, RenderSettings(samples=3, max_bounces=1))
+    f = film.features()
+    assert np.allclose(f["albedo"], [0.2, 0.5, 0.7], atol=1e-6)
+    assert np.allclose(f["normal"], [0.0, 0.0, 1.0], atol=1e-6)
+    assert np.all((f["depth"] >= 2.0 - 1e-4) & (f["depth"] < 2.0 / math.cos(math.radians(12))))
+    # Rays that escape carry no features.
+    empty, _ = render(Scene(cam, environment=Environment((1.0, 1.0, 1.0))), RenderSettings(samples=1))
+    assert all(np.all(v == 0) for v in empty.features().values())

@@ -17,12 +17,25 @@ class Film:
         self.sum_sq = np.zeros((self.height * self.width, 3))
         self.count = np.zeros(self.height * self.width)
         self.passes = 0
+        # What a denoiser is guided by, from each path's first hit: albedo, shading normal, depth.
+        self.feature_sum = np.zeros((self.height * self.width, 7))
 
-    def add(self, pixels: np.ndarray, radiance: np.ndarray) -> None:
-        """Add radiance (N, 3) to ``pixels`` (N,) flat indices; each index at most once per call."""
+    def add(self, pixels: np.ndarray, radiance: np.ndarray, features: np.ndarray | None = None) -> None:
+        """Add radiance (N, 3) to ``pixels`` (N,) flat indices; each index at most once per call.
+        ``features`` (N, 7): first-hit albedo (3), world shading normal (3) and depth (1)."""
         self.sum[pixels] += radiance
         self.sum_sq[pixels] += radiance * radiance
         self.count[pixels] += 1
+        if features is not None:
+            self.feature_sum[pixels] += features
+
+    def features(self) -> dict[str, np.ndarray]:
+        """Per-pixel means of the denoising features, (H, W, C) float32 each, row 0 at the top:
+        ``albedo`` (3), ``normal`` (3, world space, not renormalised) and ``depth`` (1, distance
+        along the camera ray; 0 where the ray escaped)."""
+        c = np.maximum(self.count, 1)[:, None]
+        f = (self.feature_sum / c).reshape(self.height, self.width, 7).astype(np.float32)
+        return {"albedo": f[..., :3], "normal": f[..., 3:6], "depth": f[..., 6:7]}
 
     def mean(self) -> np.ndarray:
         """(H, W, 3) float32 per-pixel mean (0 where no sample yet)."""

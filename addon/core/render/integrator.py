@@ -288,8 +288,8 @@ def render(scene: Scene, settings: RenderSettings | None = None,
         try:
             results = _ordered(pool, trace, tasks, workers)
             for k, c in tasks:
-                pix, (L, piece) = next(results)
-                film.add(pix, L)
+                pix, (L, features, piece) = next(results)
+                film.add(pix, L, features)
                 _merge_stats(stats, piece)
                 if c < len(starts) - 1:
                     continue
@@ -528,14 +528,25 @@ def _continue_paths(ctx: _Context, paths: _Paths, hits: _Hits, sc: _Scatter, dep
                   sc.mis[keep], paths.width[keep], spread[keep])
 
 
+def _first_hit_features(features: np.ndarray, paths: _Paths, hits: _Hits, sc: _Scatter, t: np.ndarray) -> None:
+    """What a denoiser is guided by, at the camera rays' hits: the albedo (the first sample's
+    weight f |cos| / pdf, clipped to [0, 1]: its mean is the directional albedo), the world
+    shading normal, and the depth."""
+    features[paths.row, :3] = np.clip(sc.weight, 0.0, 1.0)
+    features[paths.row, 3:6] = hits.ns
+    features[paths.row, 6] = t
+
+
 def _trace_paths(ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: int
-                 ) -> tuple[np.ndarray, RenderStats]:
-    """Radiance (N, 3) of one path per pixel of ``pix``, all paths a bounce at a time, and the
-    chunk's statistics (its phases in thread time)."""
+                 ) -> tuple[np.ndarray, np.ndarray, RenderStats]:
+    """Radiance (N, 3) of one path per pixel of ``pix``, all paths a bounce at a time, the
+    denoising features of their first hits (N, 7; see ``Film.add``), and the chunk's statistics
+    (its phases in thread time)."""
     t_start = time.perf_counter()
     stats = RenderStats()
     s = ctx.settings
     L = np.zeros((len(pix), 3))
+    features = np.zeros((len(pix), 7))
     paths = _camera_paths(ctx, pix, np.random.default_rng([s.seed, pass_index, chunk_index, 0]))
     for depth in range(s.max_bounces + 1):
         if len(paths.row) == 0:
@@ -556,6 +567,8 @@ def _trace_paths(ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: i
         u_lobe, u_dir = rng.random(m), rng.random((m, 2))
         seeds = rng.integers(0, 2**31, size=len(ctx.materials))
         sc = _shade(ctx, paths, hits, lights, u_lobe, u_dir, seeds, L, stats)
+        if depth == 0:
+            _first_hit_features(features, paths, hits, sc, t[hit])
         paths = _continue_paths(ctx, paths, hits, sc, depth, rng)
     bad = ~np.isfinite(L).all(axis=1)
     if bad.any():
@@ -563,4 +576,4 @@ def _trace_paths(ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: i
         L[bad] = 0.0
     stats.paths = len(pix)
     stats.thread_seconds = time.perf_counter() - t_start
-    return L, stats
+    return L, features, stats
