@@ -25,7 +25,7 @@ import numpy as np
 import onnx
 from onnx import numpy_helper
 
-from addon.core.neural.layering import file_digest
+from addon.core.neural.models import file_digest
 from onnx_export.nets import BUMP_SHARPNESS, LATENT, MAX_LOG_F
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"

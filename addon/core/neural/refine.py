@@ -2,8 +2,8 @@
 
     z, report = refine_latent(stack, "small", budget_s=5.0)
 
-The latent starts where the runtime puts it (``load_models(size).encode_stack``: encoder, then the
-layering network over the coatings) and is fitted with Adam to Monte Carlo values of the reference
+The latent starts where the runtime puts it (``encode_stack``: the encoder, then the layering network
+over the coatings) and is fitted with Adam to Monte Carlo values of the reference
 (``addon.core.reference.eval_brdf_many``) on a fixed, seeded set of direction pairs. The report gives
 the error before and after on a SEPARATE, independently seeded validation set of pairs (never fitted);
 the refined latent is returned only when it is better there, otherwise the encoded one is.
@@ -48,15 +48,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..stack import Stack
-from .runtime import LATENT, MODEL_DIR, SIZES, _unit_or_up, load_models
+from ..stack import LATENT, Stack
+from .encode import encode_stack
+from .models import MODEL_DIR, SIZES, _unit_or_up, file_digest, load_models, resolve_size
 
 REFINE_VERSION = 1  # part of the cache key: bump when the procedure changes what it returns
 GRAZING_COS = (float(np.cos(np.radians(89.5))), float(np.cos(np.radians(80.0))))
-
-
-def file_sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 class StaleWeightsError(RuntimeError):
@@ -97,19 +94,20 @@ class NumpyDecoder:
     """The decoder MLP of one size in numpy: f(z (3, 32), wi, wo) for the three channels, and the
     gradient of a scalar loss with respect to z (one backward pass)."""
 
-    def __init__(self, arrays: dict, size: str):
+    def __init__(self, arrays: dict, size: str, dtype=np.float32):
         self.size = size
+        self.dtype = np.dtype(dtype)  # float32 as the ONNX graphs; float64 for finite-difference checks
         self.depth = int(arrays["depth"])
         self.width = int(arrays["width"])
-        self.w_latent = np.asarray(arrays["w0_latent"], dtype=np.float32)
-        self.w_directions = np.asarray(arrays["w0_directions"], dtype=np.float32)
-        self.weights = [np.asarray(arrays[f"w{i}"], dtype=np.float32) for i in range(1, self.depth + 1)]
-        self.biases = [np.asarray(arrays[f"b{i}"], dtype=np.float32) for i in range(self.depth + 1)]
+        self.w_latent = np.asarray(arrays["w0_latent"], dtype=self.dtype)
+        self.w_directions = np.asarray(arrays["w0_directions"], dtype=self.dtype)
+        self.weights = [np.asarray(arrays[f"w{i}"], dtype=self.dtype) for i in range(1, self.depth + 1)]
+        self.biases = [np.asarray(arrays[f"b{i}"], dtype=self.dtype) for i in range(self.depth + 1)]
         self.bump_sharpness = tuple(float(v) for v in arrays["bump_sharpness"])
         self.max_log_f = float(arrays["max_log_f"])
 
     @classmethod
-    def load(cls, size: str, model_dir: Path | str | None = None) -> "NumpyDecoder":
+    def load(cls, size: str, model_dir: Path | str | None = None, dtype=np.float32) -> "NumpyDecoder":
         """The weights of ``decoder_<size>.onnx``; raises FileNotFoundError when the weights file is
         missing and StaleWeightsError when it was exported from another version of the ONNX file."""
         if size not in SIZES:
@@ -124,17 +122,17 @@ class NumpyDecoder:
         onnx_path = d / f"decoder_{size}.onnx"
         if not onnx_path.exists():
             raise FileNotFoundError(f"{onnx_path.name} is missing from the models folder")
-        digest = file_sha256(onnx_path)
+        digest = file_digest(onnx_path)
         if str(arrays["onnx_sha256"]) != digest:
             raise StaleWeightsError(f"{path.name} was exported from another version of {onnx_path.name} "
                                     f"(sha256 {str(arrays['onnx_sha256'])[:12]}..., the file is {digest[:12]}...): "
                                     f"run python -m onnx_export.decoder_weights --sizes {size}")
-        return cls(arrays, size)
+        return cls(arrays, size, dtype)
 
     def _features_product(self, wi, wo):
         a, ok_a = _unit_or_up(np.asarray(wi, dtype=np.float64))
         b, ok_b = _unit_or_up(np.asarray(wo, dtype=np.float64))
-        feats = direction_features(a, b, self.bump_sharpness).astype(np.float32)
+        feats = direction_features(a, b, self.bump_sharpness).astype(self.dtype)
         return feats @ self.w_directions.T, ok_a & ok_b
 
     def run(self, z, wi=None, wo=None, directions_product=None) -> _Pass:
@@ -142,17 +140,17 @@ class NumpyDecoder:
         layer's product with the direction features and the horizon mask) may be passed from
         ``directions(wi, wo)`` to skip recomputing it for fixed pairs."""
         dprod, above = directions_product if directions_product is not None else self._features_product(wi, wo)
-        z = np.asarray(z, dtype=np.float32).reshape(3, LATENT)
+        z = np.asarray(z, dtype=self.dtype).reshape(3, LATENT)
         n = dprod.shape[0]
         # rows (pair, channel) as one 2-D matrix: numpy runs a 3-D matmul as many small ones
         pre = [(dprod[:, None, :] + (z @ self.w_latent.T + self.biases[0])[None]).reshape(3 * n, self.width)]
         hidden = [np.maximum(pre[0], 0.0)]
-        for w, b in zip(self.weights[:-1], self.biases[1:-1]):
+        for w, b in zip(self.weights[:-1], self.biases[1:-1], strict=True):
             pre.append(hidden[-1] @ w.T + b)
             hidden.append(np.maximum(pre[-1], 0.0))
         y = (hidden[-1] @ self.weights[-1][0] + self.biases[-1][0]).reshape(n, 3)
         f = np.exp(np.minimum(y, self.max_log_f))
-        f = np.where(above[:, None], f, 0.0).astype(np.float32)
+        f = np.where(above[:, None], f, 0.0).astype(self.dtype)
         return _Pass(pre, hidden, y, f, above)
 
     def directions(self, wi, wo):
@@ -160,12 +158,13 @@ class NumpyDecoder:
         return self._features_product(wi, wo)
 
     def forward(self, z, wi, wo) -> np.ndarray:
-        """f (P, 3) float32 in 1/sr for one latent z (3, 32); 0 where a direction is below the horizon."""
+        """f (P, 3) in 1/sr (float32 unless made with another dtype) for one latent z (3, 32); 0 where a
+        direction is below the horizon."""
         return self.run(z, wi, wo).f
 
     def backward(self, p: _Pass, grad_f: np.ndarray) -> np.ndarray:
         """dL/dz (3, 32) float64 from dL/df (P, 3) of the forward pass ``p``."""
-        gy = np.asarray(grad_f, dtype=np.float32) * p.f * (p.y < self.max_log_f)  # d exp(y) = f; 0 if clamped
+        gy = np.asarray(grad_f, dtype=self.dtype) * p.f * (p.y < self.max_log_f)  # d exp(y) = f; 0 if clamped
         gh = gy.reshape(-1, 1) * self.weights[-1][0]  # (3 P, W)
         for k in range(len(p.pre) - 1, 0, -1):
             gh = (gh * (p.pre[k] > 0.0)) @ self.weights[k - 1]
@@ -230,7 +229,8 @@ def refinement_pairs(stack: Stack, groups: int, per_group: int, seed: int, grazi
         c = u[..., 0] ** (1.0 / (n + 1.0))
         s = np.sqrt(np.maximum(1.0 - c * c, 0.0))
         p = 2.0 * np.pi * u[..., 1]
-        d = (s * np.cos(p))[..., None] * t[:, None] + (s * np.sin(p))[..., None] * b[:, None] + c[..., None] * mirror[:, None]
+        d = ((s * np.cos(p))[..., None] * t[:, None] + (s * np.sin(p))[..., None] * b[:, None]
+             + c[..., None] * mirror[:, None])
         wo = np.where((comp == k)[..., None], d, wo)
     cos_o = np.maximum(wo[..., 2], 0.0)
     p_cos = cos_o / np.pi
@@ -347,7 +347,7 @@ def refine_key(stack: Stack, size: str, settings: RefineSettings, model_dir=None
         if not p.exists():
             raise FileNotFoundError(f"{p.name} is missing from the models folder (needed to refine a {size} latent)")
         h.update(p.name.encode())
-        h.update(file_sha256(p).encode())
+        h.update(file_digest(p).encode())
     return h.hexdigest()
 
 
@@ -383,7 +383,7 @@ def _adam(decoder: NumpyDecoder, z0: np.ndarray, fit: PairSet, s: RefineSettings
     return best_z.astype(np.float32), first, best, step, stopped
 
 
-def refine_latent(stack: Stack, size: str = "small", budget_s: float = 5.0, settings: RefineSettings | None = None,
+def refine_latent(stack: Stack, size: str = "auto", budget_s: float = 5.0, settings: RefineSettings | None = None,
                   threads: int = 2, model_dir=None, cache_dir: Path | str | None = None, use_cache: bool = True):
     """``(z (3, 32) float32, RefineReport)``: the latent of ``stack`` for decoder ``size`` fitted to the
     reference (see the module docstring). ``budget_s`` bounds the whole call (reference walks and
@@ -391,6 +391,7 @@ def refine_latent(stack: Stack, size: str = "small", budget_s: float = 5.0, sett
     one only where it is better on the validation pairs, else the encoded one."""
     if not isinstance(stack, Stack):
         raise ValueError(f"refine_latent needs a Stack, got {type(stack).__name__}")
+    size = resolve_size(size, model_dir)
     if isinstance(budget_s, bool) or not np.isfinite(budget_s) or budget_s <= 0:
         raise ValueError(f"budget_s must be a finite number of seconds > 0, got {budget_s!r}")
     s = settings or RefineSettings()
@@ -400,7 +401,7 @@ def refine_latent(stack: Stack, size: str = "small", budget_s: float = 5.0, sett
         return cached
     t0 = time.perf_counter()
     decoder = NumpyDecoder.load(size, model_dir)
-    z0 = np.asarray(load_models(size, threads, model_dir).encode_stack(stack), dtype=np.float32)
+    z0 = np.asarray(encode_stack(stack, load_models(size, threads, model_dir)), dtype=np.float32)
     fit = PairSet.measure(stack, s.fit_groups, s.per_group, s.walks, seed=2 * s.seed)
     val = PairSet.measure(stack, s.validation_groups, s.per_group, s.walks, seed=2 * s.seed + 1)
     t1 = time.perf_counter()
