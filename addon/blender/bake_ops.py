@@ -22,11 +22,22 @@ from .operators import UserError, _guarded, _LongOperator, _MaterialOperator
 from .properties import MAP_PARAMETERS
 
 
+DEFAULT_BAKE_FOLDER = "//textures/"
+
+
 def texture_output_path(mat) -> str:
-    folder = bpy.path.abspath(mat.neural_layers.bake_directory or "//textures/")
-    if not folder or folder.startswith("//"):
-        raise UserError("the bake folder is relative to the .blend file: save the file first or choose an absolute folder")
-    return os.path.join(folder, f"{bpy.path.clean_name(mat.name)}.exr")
+    """Where the bake of ``mat`` goes: its Bake Folder (relative to the .blend file by default).
+
+    A folder relative to the .blend file ("//...") needs a saved file; without one Blender would
+    resolve it against the process's working folder, so the bake refuses instead.
+    """
+    folder = mat.neural_layers.bake_directory or DEFAULT_BAKE_FOLDER
+    if folder.startswith("//") and not bpy.data.filepath:
+        raise UserError(
+            f"the bake folder {folder!r} is relative to the .blend file, which is not saved: "
+            "save the file first or choose an absolute Bake Folder"
+        )
+    return os.path.join(bpy.path.abspath(folder), f"{bpy.path.clean_name(mat.name)}.exr")
 
 
 def bake_size(mat) -> str:

@@ -146,3 +146,19 @@ def test_fit_to_camera_bakes_no_finer_than_the_on_screen_footprint(wood, bpy_add
     scene.render.resolution_x, scene.render.resolution_y = 1920, 1080
     assert run_operator(ops.bake_texture).finished
     assert tuple(wood.neural_layers.texture_size)[0] > small[0]  # a closer look needs more texels
+
+
+def test_bake_in_an_unsaved_file_refuses_a_folder_relative_to_it(wood, bpy_addon, tmp_path, monkeypatch):
+    bpy = bpy_addon
+    assert bpy.data.filepath == ""
+    monkeypatch.chdir(tmp_path)
+    wood.neural_layers.bake_directory = "//textures/"
+    r = run_operator(ops.bake_texture)
+    assert not r.finished and "save the file first" in r.error, r.error
+    assert list(tmp_path.iterdir()) == []  # nothing in the process's working folder
+    assert wood.neural_layers.texture_path == ""
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "saved.blend"))
+    r = run_operator(ops.bake_texture)
+    assert r.finished, r.error
+    assert wood.neural_layers.texture_path == "//textures/Material.exr"
+    assert (tmp_path / "textures" / "Material.exr").is_file()
