@@ -1,7 +1,8 @@
 """A material's layer stack with its image-driven parameters, as a core ``SpatialStack``.
 
-Each layer may hold parameter maps (``NLM_ParameterMap``): an image whose raw pixel values
-(0 to 1) map linearly onto [low, high] in the parameter's artist units (roughness as shown in
+Each layer may hold parameter maps (``NLM_ParameterMap``): an image whose pixel values, decoded
+by its Color Space as Cycles decodes them (``images.linear_pixels``: set Non-Color for data such
+as roughness), map linearly onto [low, high] in the parameter's artist units (roughness as shown in
 the sidebar; alpha = roughness^2 for the core; F0 colour converted to k with eta = 1).
 """
 
@@ -32,7 +33,7 @@ _RGB = {"ALBEDO", "F0", "ETA", "K", "MEDIUM_ALBEDO"}
 
 
 def _map_values(item, pmap) -> np.ndarray:
-    px = images.read_pixels(pmap.image)
+    px = images.linear_pixels(pmap.image)
     if px is None:
         raise ValueError(f"layer {item.name!r}: the image {pmap.image.name!r} driving {pmap.parameter.lower()} has "
                          f"no pixels (missing file {pmap.image.filepath!r}?)")

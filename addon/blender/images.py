@@ -1,6 +1,16 @@
-"""Preview images in ``bpy.data.images`` and showing them in an Image Editor."""
+"""Images in ``bpy.data.images``: pixels read as Cycles sees them, previews stored and shown.
+
+``linear_pixels`` is the one way the add-on reads an image that feeds a material (base-colour
+textures, environment images, parameter maps): byte images are decoded from their Color Space to
+scene linear with Blender's own OpenColorIO configuration, as Cycles does (an sRGB byte 128 reads
+0.216, the same byte in a Non-Color image reads 0.502); float images are stored in scene linear
+already, and data (Non-Color) images are not transformed.
+"""
 
 from __future__ import annotations
+
+import functools
+import os
 
 import bpy
 import numpy as np
@@ -36,7 +46,8 @@ def store_image(name: str, rgba: np.ndarray, metadata: dict | None = None):
 
 def read_pixels(image) -> np.ndarray | None:
     """The raw (H, W, 4) float pixels of ``image``, row 0 at the top, or None if it has none
-    (e.g. a missing file). Raw: byte images give their stored values / 255, no colour transform."""
+    (e.g. a missing file). Raw: byte images give their stored values / 255, no colour transform
+    (what feeds a material is read through :func:`linear_pixels`)."""
     if image is None:
         return None
     try:
@@ -49,6 +60,32 @@ def read_pixels(image) -> np.ndarray | None:
     px = np.empty(w * h * 4, dtype=np.float32)
     image.pixels.foreach_get(px)
     return np.ascontiguousarray(px.reshape(h, w, 4)[::-1])
+
+
+@functools.lru_cache(maxsize=None)
+def _to_scene_linear(colorspace: str):
+    """OpenColorIO CPU processor from ``colorspace`` to Blender's scene-linear role."""
+    import PyOpenColorIO as ocio  # bundled with Blender (bpy.utils.expose_bundled_modules)
+
+    path = os.path.join(bpy.utils.system_resource("DATAFILES", path="colormanagement"), "config.ocio")
+    config = ocio.Config.CreateFromFile(path)
+    return config.getProcessor(colorspace, ocio.ROLE_SCENE_LINEAR).getDefaultCPUProcessor()
+
+
+def linear_pixels(image) -> np.ndarray | None:
+    """(H, W, 4) scene-linear float pixels of ``image``, row 0 at the top, decoded by its Color
+    Space as Cycles does; None if it has no pixels. Alpha is left as stored."""
+    px = read_pixels(image)
+    if px is None or image.is_float or image.colorspace_settings.is_data:
+        return px
+    rgb = np.ascontiguousarray(px[..., :3])
+    try:
+        _to_scene_linear(image.colorspace_settings.name).applyRGB(rgb)
+    except Exception as e:  # an OpenColorIO failure: say which image and space
+        raise ValueError(f"image {image.name!r}: cannot decode its colour space "
+                         f"{image.colorspace_settings.name!r} to linear ({e})") from None
+    px[..., :3] = rgb
+    return px
 
 
 def _largest(areas):

@@ -77,7 +77,8 @@ class NLM_ParameterMap(bpy.types.PropertyGroup):
     parameter: EnumProperty(name="Parameter", items=MAP_PARAMETERS, default="ROUGHNESS",
                             description="Which parameter of the layer the image drives", update=_on_layer_changed)
     image: PointerProperty(type=bpy.types.Image, name="Image",
-                           description="Image whose raw pixel values (0 to 1, no colour transform) drive the parameter",
+                           description="Image whose pixel values (0 to 1) drive the parameter, decoded by its Color Space as "
+                           "Cycles does: use Non-Color for data such as roughness, sRGB for colours",
                            update=_on_layer_changed)
     low: FloatProperty(name="Low", default=0.0, description="Parameter value where the image is 0",
                        update=_on_layer_changed)

@@ -31,7 +31,6 @@ from ..core.render import (
     SpotLight,
     SunLight,
 )
-from ..core.render.film import from_srgb
 
 from . import images
 
@@ -46,16 +45,18 @@ def render_size(scene) -> tuple[int, int]:
 
 
 def _image_pixels(image, warnings: list[str]) -> np.ndarray | None:
-    """(H, W, 4) linear float pixels, row 0 at the top; None (with a warning) if unavailable."""
+    """(H, W, 4) scene-linear float pixels, row 0 at the top; None (with a warning) if unavailable."""
     if image is None:
         return None
-    px = images.read_pixels(image)
+    try:
+        px = images.linear_pixels(image)
+    except ValueError as e:
+        warnings.append(f"{e}; using the colour")
+        return None
     if px is None:
         warnings.append(f"image {image.name!r} has no pixels (missing file {image.filepath!r}?); using the colour")
         return None
-    if not image.is_float and image.colorspace_settings.name in ("sRGB", "sRGB EOTF"):
-        px = np.concatenate([from_srgb(px[:, :, :3]), px[:, :, 3:]], axis=2).astype(np.float32)
-    return np.ascontiguousarray(px)
+    return np.ascontiguousarray(px, dtype=np.float32)
 
 
 def _linked_image(socket):

@@ -162,3 +162,32 @@ def test_bake_in_an_unsaved_file_refuses_a_folder_relative_to_it(wood, bpy_addon
     assert r.finished, r.error
     assert wood.neural_layers.texture_path == "//textures/Material.exr"
     assert (tmp_path / "textures" / "Material.exr").is_file()
+
+
+@pytest.mark.parametrize("colorspace, expected", [("sRGB", 0.2158605), ("Non-Color", 128 / 255)])
+def test_maps_and_base_colour_textures_decode_the_colour_space_as_cycles(bpy_addon, material, colorspace, expected):
+    """An 8-bit image holding 128 drives albedo 0.216 in sRGB and 0.502 as Non-Color, in a bake
+    and as the base-colour texture of an ordinary material alike (one path, as Cycles decodes)."""
+    bpy = bpy_addon
+    from addon.blender import scene_export
+    from addon.blender.bake_inputs import spatial_stack_from_material
+
+    img = bpy.data.images.new("half", width=4, height=2)  # an 8-bit image
+    assert not img.is_float
+    img.colorspace_settings.name = colorspace
+    img.pixels.foreach_set(np.full(4 * 2 * 4, 128 / 255, np.float32))
+    assert run_operator(ops.preset_apply, preset="white_diffuse").finished
+    s = material.neural_layers
+    s.active_index = 0
+    assert run_operator(ops.map_add, parameter="ALBEDO").finished
+    s.layers[0].maps[0].image = img
+    spatial, _ = spatial_stack_from_material(material)
+    np.testing.assert_allclose(spatial.maps["base.albedo"], expected, rtol=2e-3)
+
+    plain = bpy.data.materials.new("plain")  # 5.0: a new material has its node tree
+    tex = plain.node_tree.nodes.new("ShaderNodeTexImage")
+    tex.image = img
+    principled = plain.node_tree.nodes["Principled BSDF"]
+    plain.node_tree.links.new(tex.outputs["Color"], principled.inputs["Base Color"])
+    lambert = scene_export.unmanaged_material(plain, [])
+    np.testing.assert_allclose(lambert.texture.levels[0], expected, rtol=2e-3)
