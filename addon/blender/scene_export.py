@@ -101,6 +101,11 @@ def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial:
                 color = (1.0, 1.0, 1.0)
             elif not socket.is_linked or image is not None:
                 color = tuple(socket.default_value[:3])
+            else:
+                warnings.append(
+                    f"material {mat.name!r}: its {socket.name} comes from a {socket.links[0].from_node.type} node, "
+                    "which this renderer does not evaluate (only an Image Texture is); using the viewport colour"
+                )
     return LambertMaterial(color, texture)
 
 
@@ -237,6 +242,12 @@ def _world(world, warnings: list[str]) -> Environment | None:
                         return Environment(image=px[:, :, :3], strength=strength)
                 elif image is False:
                     warnings.append(f"world {world.name!r}: environment texture node has no image; using its colour")
+                elif socket.is_linked:
+                    warnings.append(
+                        f"world {world.name!r}: the Background colour comes from a {socket.links[0].from_node.type} "
+                        f"node, which this renderer does not evaluate (only an Environment or Image Texture is); "
+                        f"lighting with the socket's flat colour {tuple(round(c, 3) for c in socket.default_value[:3])}"
+                    )
                 return Environment(tuple(socket.default_value[:3]), strength=strength)
             warnings.append(f"world {world.name!r}: surface is a {bg.type} node, not Background; using the world colour")
         elif out is not None:
