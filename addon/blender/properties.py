@@ -296,11 +296,11 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
     )
     bake_directory: StringProperty(
         name="Bake Folder", description="Folder for baked latent textures (EXR)", default="//textures/",
-        subtype="DIR_PATH",
+        subtype="DIR_PATH", options={"PATH_SUPPORTS_BLEND_RELATIVE"},
     )
     texture_path: StringProperty(
         name="Latent Texture", description="The baked latent texture the renderer uses for this material",
-        default="", subtype="FILE_PATH",
+        default="", subtype="FILE_PATH", options={"PATH_SUPPORTS_BLEND_RELATIVE"},
     )
     texture_key: StringProperty(
         name="Latent Texture Key", description="Hash of the inputs the texture was baked from", default="",

@@ -70,7 +70,7 @@ class NLM_OT_render_preview(jobs.ModalJob, bpy.types.Operator):
     use_view: BoolProperty(name="Current View", description="Render the 3D viewport's view rather than the camera",
                            default=True)
     filepath: StringProperty(name="File Path", description="Also write the image here (.exr or .png)", default="",
-                             subtype="FILE_PATH")
+                             subtype="FILE_PATH", options={"PATH_SUPPORTS_BLEND_RELATIVE", "SKIP_SAVE"})
 
 
     def _prepare(self, context):

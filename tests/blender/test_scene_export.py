@@ -47,3 +47,18 @@ def test_a_procedural_base_colour_warns(bpy_addon, fresh_scene):
     warnings: list[str] = []
     scene_export.unmanaged_material(mat, warnings)
     assert any("TEX_NOISE" in w and "does not evaluate" in w for w in warnings), warnings
+
+
+def test_path_properties_take_blend_relative_paths_without_a_warning(bpy_addon, material, tmp_path):
+    import warnings
+
+    bpy = bpy_addon
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        material.neural_layers.bake_directory = "//textures/"
+        material.neural_layers.texture_path = "//textures/Material.exr"
+        bpy.context.scene.render.resolution_x, bpy.context.scene.render.resolution_y = 8, 6
+        bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "a.blend"))
+        assert bpy.ops.neural_layers.render_preview(filepath="//preview.exr", samples=1) == {"FINISHED"}
+    assert (tmp_path / "preview.exr").is_file()
+    assert not [str(w.message) for w in caught if "relative" in str(w.message)]
