@@ -12,8 +12,15 @@ Steps:
 3. run Blender's extension CLI (``blender_ext.py build --split-platforms``, shipped in the ``bpy``
    wheel) into ``dist/``, then ``blender_ext.py validate`` on every zip.
 
-A platform is built when onnxruntime (the neural runtime) has a wheel for it; embreex (the
-path tracer's ray casting) is bundled where it has one, and the summary names what is missing.
+Each platform's zip is assembled and built on its own, so that it holds its own wheels only (a
+pure-Python wheel one platform needs never lands in the others' zips, where Blender's
+duplicate-wheel tie-break would pick it over the native one). A platform is built when every
+required wheel exists: onnxruntime (the neural runtime) and embreex (the path tracer's ray
+casting; there is no fallback ray caster, so a zip without it would render nothing). The log
+names each skipped platform and why; today that is linux-arm64 and windows-arm64 (embreex has no
+wheel for them). A macOS zip needs the macOS version
+its wheels were built for, which the log and the zip's manifest state (macOS 14 for onnxruntime
+1.32 on macos-arm64).
 Exit status: 0 on success, 1 when nothing could be built or a zip does not validate, 3 when the
 package index cannot be reached and the cache does not hold the wheels.
 """
@@ -48,13 +55,13 @@ PLATFORM_TAGS: dict[str, list[str]] = {
     "windows-arm64": ["win_arm64"],
 }
 
-# (distribution, required): a platform is built only when every required wheel exists.
-PACKAGES: list[tuple[str, bool]] = [
-    ("packaging", True),
-    ("onnxruntime", True),
-    ("flatbuffers", True),
-    ("protobuf", True),
-    ("embreex", False),
+# (distribution, what it is for): a platform is built only when every one has a wheel for it.
+PACKAGES: list[tuple[str, str]] = [
+    ("packaging", "a dependency of onnxruntime"),
+    ("onnxruntime", "the neural runtime"),
+    ("flatbuffers", "a dependency of onnxruntime"),
+    ("protobuf", "a dependency of onnxruntime"),
+    ("embreex", "the path tracer's ray casting; there is no fallback ray caster"),
 ]
 # A pure-Python wheel every platform gets: when even this cannot be downloaded, the package index
 # is unreachable (pip's own connection errors are not always printed).
@@ -148,20 +155,20 @@ def _macos_minimum(wheels: list[Path]) -> str | None:
 
 
 def collect_wheels(platforms: list[str], cache: Path, log) -> tuple[dict[str, list[Path]], dict[str, list[str]]]:
-    """Wheels per buildable platform, and what is missing per platform."""
+    """Wheels per buildable platform, and per platform what is missing (with what it is for)."""
     wheels: dict[str, list[Path]] = {}
     missing: dict[str, list[str]] = {}
     for platform in platforms:
         got, lost = [], []
-        for dist, required in PACKAGES:
+        for dist, purpose in PACKAGES:
             w = download(dist, platform, cache / platform, log)
             if w is None:
-                lost.append(dist + ("" if not required else " (required)"))
+                lost.append(f"{dist}, {purpose}")
             else:
                 got.append(w)
         missing[platform] = lost
-        if any(l.endswith("(required)") for l in lost):
-            log(f"  {platform}: skipped, missing {', '.join(lost)}")
+        if lost:
+            log(f"  {platform}: skipped, no zip: missing {', '.join(lost)}")
             continue
         for w in got:
             if _norm(w.name.split("-")[0]) in NEVER_BUNDLE:
@@ -170,11 +177,12 @@ def collect_wheels(platforms: list[str], cache: Path, log) -> tuple[dict[str, li
     return wheels, missing
 
 
-def manifest_with_wheels(source: str, wheel_names: list[str], platforms: list[str]) -> str:
-    """The source manifest with ``wheels`` and ``platforms`` added as top-level keys (before any table)."""
+def manifest_with_wheels(source: str, wheel_names: list[str], platforms: list[str], notes: list[str] = ()) -> str:
+    """The source manifest with ``wheels`` and ``platforms`` added as top-level keys (before any
+    table), and ``notes`` as comments above them."""
     if re.search(r"^\s*(wheels|platforms)\s*=", source, re.M):
         raise ValueError("the source blender_manifest.toml already lists wheels/platforms; the build script writes them")
-    keys = "platforms = {}\nwheels = [\n{}]\n\n".format(
+    keys = "".join(f"# {n}\n" for n in notes) + "platforms = {}\nwheels = [\n{}]\n\n".format(
         json.dumps(platforms), "".join(f'  "./wheels/{n}",\n' for n in wheel_names)
     )
     m = re.search(r"^\[", source, re.M)
@@ -182,19 +190,26 @@ def manifest_with_wheels(source: str, wheel_names: list[str], platforms: list[st
     return source[:at] + keys + source[at:]
 
 
-def assemble(build: Path, wheels: dict[str, list[Path]]) -> None:
+def platform_notes(platform: str, wheels: list[Path]) -> list[str]:
+    """What a user of ``platform`` must know beyond Blender's own requirements."""
+    if platform.startswith("macos") and (mac := _macos_minimum(wheels)):
+        return [f"{platform}: needs macOS {mac} or newer (the bundled wheels are built for it)"]
+    return []
+
+
+def assemble(build: Path, platform: str, wheels: list[Path]) -> None:
+    """The package source of one platform's zip: the add-on, that platform's wheels, the manifest."""
     if build.exists():
         shutil.rmtree(build)
     build.mkdir(parents=True)
     shutil.copy2(ROOT / "__init__.py", build / "__init__.py")
     shutil.copytree(ROOT / "addon", build / "addon", ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     (build / "wheels").mkdir()
-    names = sorted({w.name for ws in wheels.values() for w in ws})
-    for ws in wheels.values():
-        for w in ws:
-            shutil.copy2(w, build / "wheels" / w.name)
+    for w in wheels:
+        shutil.copy2(w, build / "wheels" / w.name)
     source = (ROOT / "blender_manifest.toml").read_text()
-    (build / "blender_manifest.toml").write_text(manifest_with_wheels(source, names, sorted(wheels)))
+    manifest = manifest_with_wheels(source, sorted(w.name for w in wheels), [platform], platform_notes(platform, wheels))
+    (build / "blender_manifest.toml").write_text(manifest)
 
 
 def run_cli(cli: Path, args: list[str]) -> subprocess.CompletedProcess:
@@ -202,7 +217,8 @@ def run_cli(cli: Path, args: list[str]) -> subprocess.CompletedProcess:
 
 
 def build(platforms: list[str], out: Path, cache: Path, build_dir: Path, log=print) -> list[Path]:
-    """Build and validate the zips; return their paths. Raises on failure (see module docstring)."""
+    """Build and validate one zip per buildable platform; return their paths. Raises on failure
+    (see module docstring)."""
     unknown = [p for p in platforms if p not in PLATFORM_TAGS]
     if unknown:
         raise ValueError(f"unknown platform(s) {unknown}; known: {sorted(PLATFORM_TAGS)}")
@@ -212,26 +228,29 @@ def build(platforms: list[str], out: Path, cache: Path, build_dir: Path, log=pri
     if not wheels:
         raise RuntimeError(f"no platform has all required wheels; missing: {missing}")
     for platform, ws in sorted(wheels.items()):
-        extra = f"; without {', '.join(missing[platform])}" if missing[platform] else ""
-        if platform.startswith("macos") and (mac := _macos_minimum(ws)):
-            extra += f"; needs macOS {mac} or newer"
-        log(f"  {platform}: {', '.join(w.name for w in ws)}{extra}")
-    assemble(build_dir, wheels)
+        notes = "".join(f"; {n.split(': ', 1)[1]}" for n in platform_notes(platform, ws))
+        log(f"  {platform}: {', '.join(w.name for w in ws)}{notes}")
     out.mkdir(parents=True, exist_ok=True)
-    version = tomllib.loads((build_dir / "blender_manifest.toml").read_text())["version"]
-    zips = [out / f"{EXTENSION_ID}-{version}-{pl.replace('-', '_')}.zip" for pl in sorted(wheels)]
-    for z in zips:
+    version = tomllib.loads((ROOT / "blender_manifest.toml").read_text())["version"]
+    zips = []
+    for platform, ws in sorted(wheels.items()):
+        source = build_dir / platform
+        assemble(source, platform, ws)
+        z = out / f"{EXTENSION_ID}-{version}-{platform.replace('-', '_')}.zip"
         z.unlink(missing_ok=True)
-    proc = run_cli(cli, ["build", "--source-dir", str(build_dir), "--output-dir", str(out), "--split-platforms"])
-    if proc.returncode != 0:
-        raise RuntimeError(f"blender_ext.py build failed:\n{proc.stdout}{proc.stderr}")
-    for z in zips:
+        proc = run_cli(cli, ["build", "--source-dir", str(source), "--output-dir", str(out), "--split-platforms"])
+        if proc.returncode != 0:
+            raise RuntimeError(f"blender_ext.py build failed for {platform}:\n{proc.stdout}{proc.stderr}")
         if not z.exists():
             raise RuntimeError(f"blender_ext.py build did not write {z.name}:\n{proc.stdout}{proc.stderr}")
         v = run_cli(cli, ["validate", str(z)])
         if v.returncode != 0:
             raise RuntimeError(f"{z.name} does not validate:\n{v.stdout}{v.stderr}")
         log(f"built and validated {z} ({z.stat().st_size / 1e6:.1f} MB)")
+        zips.append(z)
+    skipped = sorted(set(platforms) - set(wheels))
+    if skipped:
+        log("no zip for " + "; ".join(f"{p} (missing {' and '.join(missing[p])})" for p in skipped))
     return zips
 
 

@@ -55,7 +55,7 @@ def test_unreachable_index_is_told_apart_from_a_missing_wheel(tmp_path, monkeypa
     logs = []
     with pytest.raises(RuntimeError, match="onnxruntime"):
         build_extension.build(["windows-arm64"], tmp_path / "dist", tmp_path / "cache2", tmp_path / "build", log=logs.append)
-    assert any("skipped, missing onnxruntime" in line for line in logs)
+    assert any("skipped, no zip: missing onnxruntime" in line for line in logs)
 
 
 @pytest.fixture(scope="module")
@@ -166,3 +166,51 @@ def test_zip_installs_enables_and_runs(built_zip, tmp_path):
     assert not out["after_disable"] and out["after_enable"]
     assert out["left_behind"] == []  # disabling removes every type and property the extension added
     assert out["modules_left"] == []  # disabling forgets the code: enabling an update imports it afresh
+
+
+def _fake_wheel(folder: Path, name: str) -> Path:
+    """A minimal valid wheel file (Blender's builder reads wheels as zips)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    dist, version = name.split("-")[:2]
+    path = folder / name
+    with zipfile.ZipFile(path, "w") as z:
+        z.writestr(f"{dist}/__init__.py", "")
+        z.writestr(f"{dist}-{version}.dist-info/METADATA", f"Metadata-Version: 2.1\nName: {dist}\nVersion: {version}\n")
+    return path
+
+
+def test_each_zip_holds_its_own_platforms_wheels_only(tmp_path, monkeypatch):
+    """A pure-Python wheel one platform needs (protobuf here) stays out of the other zips, where
+    Blender's duplicate-wheel tie-break would pick it over the native one; a platform without
+    embreex gets no zip, and the log says why."""
+    native = {
+        "linux-x64": "cp311-cp311-manylinux_2_28_x86_64",
+        "macos-arm64": "cp311-cp311-macosx_14_0_arm64",
+    }
+
+    def fake_download(dist, platform, folder, log):
+        if dist == "embreex" and platform == "linux-arm64":
+            return None
+        if dist == "protobuf":
+            tag = "py3-none-any" if platform == "macos-arm64" else "cp310-abi3-manylinux2014_x86_64"
+        elif dist in ("packaging", "flatbuffers"):
+            tag = "py3-none-any"
+        else:
+            tag = native.get(platform, "cp311-cp311-manylinux_2_28_aarch64")
+        return _fake_wheel(folder, f"{dist}-1.0-{tag}.whl")
+
+    monkeypatch.setattr(build_extension, "download", fake_download)
+    logs = []
+    zips = build_extension.build(["linux-x64", "macos-arm64", "linux-arm64"], tmp_path / "dist", tmp_path / "cache",
+                                 tmp_path / "build", log=logs.append)
+    assert sorted(z.name for z in zips) == ["neural_layered_materials-0.1.0-linux_x64.zip",
+                                            "neural_layered_materials-0.1.0-macos_arm64.zip"]
+    for z in zips:
+        with zipfile.ZipFile(z) as f:
+            protobufs = [Path(n).name for n in f.namelist() if Path(n).name.startswith("protobuf-")]
+            manifest = f.read("blender_manifest.toml").decode()
+        assert len(protobufs) == 1, (z.name, protobufs)
+        assert ("none-any" in protobufs[0]) == ("macos" in z.name), (z.name, protobufs)
+        if "macos" in z.name:
+            assert "needs macOS 14.0 or newer" in manifest
+    assert any("linux-arm64" in line and "embreex" in line and "no fallback ray caster" in line for line in logs), logs
