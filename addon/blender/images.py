@@ -96,8 +96,9 @@ def show_in_image_editor(context, image):
     """Show ``image`` in an Image Editor; return the area or None.
 
     Uses an existing Image Editor (the current window's first, then any other window's).
-    Otherwise, in the UI, opens a new window for it (as F12 renders do); in background mode
-    (no user), turns the window's largest area into an Image Editor.
+    Otherwise, in the UI, opens a new window for it (as F12 renders do). In background mode
+    there is no one to show it to: the image stays in ``bpy.data.images`` and no area of the
+    file's screens is changed (turning the 3D viewport into an Image Editor would be saved with it).
     """
     windows = list(context.window_manager.windows)
     window = context.window or (windows[0] if windows else None)
@@ -105,7 +106,9 @@ def show_in_image_editor(context, image):
         return None
     ordered = [window] + [w for w in windows if w != window]
     areas = [a for w in ordered for a in w.screen.areas if a.type == "IMAGE_EDITOR"]
-    if not areas and not bpy.app.background:
+    if not areas:
+        if bpy.app.background:
+            return None
         try:
             with context.temp_override(window=window):
                 bpy.ops.wm.window_new()
@@ -114,13 +117,7 @@ def show_in_image_editor(context, image):
             area.type = "IMAGE_EDITOR"
             areas = [area]
         except RuntimeError:
-            areas = []
-    if not areas:
-        area = _largest(window.screen.areas)
-        if area is None:
             return None
-        area.type = "IMAGE_EDITOR"
-        areas = [area]
     area = areas[0]
     area.spaces.active.image = image
     area.tag_redraw()

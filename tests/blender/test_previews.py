@@ -27,12 +27,17 @@ def _pixels(image):
     return px.reshape(h, w, 4)
 
 
+def _area_types(context):
+    return [a.type for w in context.window_manager.windows for a in w.screen.areas]
+
+
 def _shown(context, image):
-    return any(
-        a.type == "IMAGE_EDITOR" and a.spaces.active.image == image
-        for w in context.window_manager.windows
-        for a in w.screen.areas
-    )
+    """Where an Image Editor is open it shows ``image``; with none (background mode), the preview
+    changed no area and the image is in ``bpy.data.images``."""
+    editors = [a for w in context.window_manager.windows for a in w.screen.areas if a.type == "IMAGE_EDITOR"]
+    if not editors:
+        return image.name in __import__("bpy").data.images and "VIEW_3D" in _area_types(context)
+    return editors[0].spaces.active.image == image
 
 
 def stand_in_neural():
@@ -311,3 +316,18 @@ def test_modal_preview_reports_worker_errors(bpy_addon, fresh_scene, material, m
     op = _modal_operator(bpy.types.NEURAL_LAYERS_OT_preview_lobe)
     assert _drive(op, fresh_scene, []) == {"CANCELLED"}
     assert any("ERROR" in kind and "neural models not available" in msg for kind, msg in op.reports)
+
+
+def test_background_previews_leave_the_screen_alone_and_use_an_open_image_editor(bpy_addon, fresh_scene, material,
+                                                                                  no_neural):
+    bpy = bpy_addon
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="lacquered_plastic").finished
+    _small_previews(material)
+    before = _area_types(fresh_scene)
+    assert "IMAGE_EDITOR" not in before
+    assert run_operator(bpy.ops.neural_layers.preview_lobe).finished
+    assert _area_types(fresh_scene) == before  # the 3D viewport is not turned into an Image Editor
+    area = next(a for a in fresh_scene.window_manager.windows[0].screen.areas if a.type == "PROPERTIES")
+    area.type = "IMAGE_EDITOR"
+    assert run_operator(bpy.ops.neural_layers.preview_sphere).finished
+    assert area.spaces.active.image == bpy.data.images[f"Sphere {material.name}"]
