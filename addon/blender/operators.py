@@ -371,8 +371,7 @@ class NLM_OT_preview_lobe(_LongOperator, bpy.types.Operator):
         def work(progress):
             t0 = time.perf_counter()
             choice = preview.choose_brdf(stack, method, latent=latent, size=size, walks=walks)
-            brdf, chunk = choice.lobe()
-            img = preview.lobe_preview(brdf, theta, res, progress, chunk)
+            img = preview.lobe_preview(choice.brdf, theta, res, progress, choice.chunk)
             return img, choice, time.perf_counter() - t0
 
         def finish(context, result):

@@ -135,8 +135,11 @@ def neural_brdf_from_latent(z: np.ndarray, size: str = "auto") -> BrdfFn:
 def reference_brdf(stack: Stack, walks: int = 64, seed: int = 0) -> BrdfFn:
     """``brdf(wi, wo)`` of the position-free Monte Carlo reference (estimate only).
 
-    Each call uses the next seed so that chunks are independent yet the whole preview is
-    deterministic for a given ``seed``.
+    Every row (pixel) gets ``walks`` walks of its own, so the noise of neighbouring pixels is
+    independent. (The reference's amortised estimator, one set of walks connected to every
+    pixel of a chunk, is 2x faster on a lobe but shares each chunk's noise among its pixels,
+    which a lobe image shows as horizontal bands.) Each call uses the next seed so that chunks
+    are independent yet the whole preview is deterministic for a given ``seed``.
     """
     if walks < 1:
         raise ValueError(f"walks must be >= 1, got {walks}")
@@ -158,31 +161,6 @@ def _latent_for(stack, latent, size):
     return encode_latent(stack, size)
 
 
-def reference_lobe_brdf(stack: Stack, walks: int = 64, seed: int = 0) -> BrdfFn:
-    """``brdf(wi, wo)`` for rows that share one incident direction (a lobe image), by the
-    reference's amortised estimator: by reciprocity f(wi, wo) = f(wo, wi), so the walks start
-    from the incident direction and connect to every outgoing one (``eval_brdf_many``).
-
-    About 2-3x faster than :func:`reference_brdf` at the same walks for a 128 x 128 lobe; the
-    noise of neighbouring pixels is correlated (shared walks), so the lobe looks smoother.
-    """
-    if walks < 1:
-        raise ValueError(f"walks must be >= 1, got {walks}")
-    from . import reference
-
-    calls = [0]
-
-    def evaluate(wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
-        wi = np.asarray(wi, dtype=np.float64)
-        if len(wi) and not np.allclose(wi, wi[0]):
-            raise ValueError("reference_lobe_brdf needs one incident direction for all rows (a lobe image)")
-        f, _stderr = reference.eval_brdf_many(stack, np.asarray(wo)[None], wi[:1], walks=walks, seed=seed + calls[0])
-        calls[0] += 1
-        return f[0]
-
-    return evaluate
-
-
 def reference_sampler(stack: Stack, seed: int = 0):
     """``sampler(wo) -> (wi, weight)``: one analog walk of the reference per row (weight = f cos / pdf,
     delta reflections included); successive calls continue one seeded random stream."""
@@ -200,12 +178,6 @@ class BrdfChoice:
     chunk: int = DEFAULT_CHUNK  # rows per call: small enough for prompt progress and cancel
     sampler: Optional[Callable] = None  # importance sampling of f cos, where the method has one
     sample_chunk: int = 16384  # rows per sampler call (one walk each)
-    lobe_brdf: Optional[BrdfFn] = None  # faster evaluation for one incident direction, if any
-    lobe_chunk: int = DEFAULT_CHUNK
-
-    def lobe(self) -> tuple[BrdfFn, int]:
-        """The BRDF and rows per call to use for a lobe image."""
-        return (self.lobe_brdf, self.lobe_chunk) if self.lobe_brdf is not None else (self.brdf, self.chunk)
 
 
 def reference_chunk(walks: int) -> int:
@@ -213,16 +185,10 @@ def reference_chunk(walks: int) -> int:
     return max(64, 16384 // max(int(walks), 1))
 
 
-def reference_lobe_chunk(walks: int) -> int:
-    """Rows per amortised reference call: about 64 k connections."""
-    return max(256, 65536 // max(int(walks), 1))
-
-
 def _reference_choice(stack: Stack, walks: int, seed: int, notes: list[str]) -> "BrdfChoice":
     return BrdfChoice(
         reference_brdf(stack, walks, seed), "REFERENCE", notes, reference_chunk(walks),
         sampler=reference_sampler(stack, seed),
-        lobe_brdf=reference_lobe_brdf(stack, walks, seed), lobe_chunk=reference_lobe_chunk(walks),
     )
 
 
@@ -463,8 +429,7 @@ def compare_with_reference(
     img_n = lobe_preview(neural, theta_i_deg, res, _scaled(progress, 0.0, 0.1))
     t1 = time.perf_counter()
     img_r = lobe_preview(
-        reference_lobe_brdf(stack, walks, seed), theta_i_deg, res, _scaled(progress, 0.1, 1.0),
-        reference_lobe_chunk(walks),
+        reference_brdf(stack, walks, seed), theta_i_deg, res, _scaled(progress, 0.1, 1.0), reference_chunk(walks)
     )
     t2 = time.perf_counter()
     img_n, bad_n = sanitize(img_n)
