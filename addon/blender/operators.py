@@ -405,7 +405,7 @@ class NLM_OT_preview_sphere(_LongOperator, bpy.types.Operator):
             samples = k * walks if choice.sampler is not None else k
             img = preview.sphere_preview(
                 choice.brdf, res, env_samples=samples, progress=progress, chunk=choice.chunk,
-                sampler=choice.sampler, sample_chunk=choice.sample_chunk,
+                sampler=choice.sampler, sample_chunk=choice.sample_chunk, proxy=choice.proxy,
             )
             return img, choice, time.perf_counter() - t0
 

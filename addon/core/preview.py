@@ -132,6 +132,19 @@ def neural_brdf_from_latent(z: np.ndarray, size: str = "auto") -> BrdfFn:
     return lambda wi, wo: neural.eval_brdf(z, wi, wo, size=size)
 
 
+def neural_proxy(z: np.ndarray, size: str) -> tuple[Optional[tuple[float, float]], list[str]]:
+    """(sigma, w) of the shipped sampling network for latent ``z`` of decoder ``size``, and notes;
+    (None, [why]) when that network cannot be loaded (previews then sample a cosine lobe)."""
+    try:
+        from .neural.sampling import load_sampling
+
+        sigma, w = load_sampling(size).proxy_params(np.asarray(z, dtype=np.float32).reshape(3, 32))[0]
+    except Exception as e:  # a missing or unloadable sampling model: the preview still works, noisier
+        return None, [f"no sampling proxy for the {size} decoder ({type(e).__name__}: {e}); "
+                      "the sphere preview samples a cosine lobe (noisier on glossy stacks)"]
+    return (float(sigma), float(w)), []
+
+
 def reference_brdf(stack: Stack, walks: int = 64, seed: int = 0) -> BrdfFn:
     """``brdf(wi, wo)`` of the position-free Monte Carlo reference (estimate only).
 
@@ -178,6 +191,7 @@ class BrdfChoice:
     chunk: int = DEFAULT_CHUNK  # rows per call: small enough for prompt progress and cancel
     sampler: Optional[Callable] = None  # importance sampling of f cos, where the method has one
     sample_chunk: int = 16384  # rows per sampler call (one walk each)
+    proxy: Optional[tuple[float, float]] = None  # (sigma, w) of the sampling proxy, where the method has one
 
 
 def reference_chunk(walks: int) -> int:
@@ -213,7 +227,8 @@ def choose_brdf(
         return _reference_choice(stack, walks, seed, [])
     try:
         z, used, notes = _latent_for(stack, latent, size)
-        return BrdfChoice(neural_brdf_from_latent(z, used), "NEURAL", notes)
+        proxy, proxy_note = neural_proxy(z, used)
+        return BrdfChoice(neural_brdf_from_latent(z, used), "NEURAL", notes + proxy_note, proxy=proxy)
     except NeuralUnavailable as e:
         if method == "NEURAL":
             raise
@@ -281,26 +296,82 @@ class Environment:
         d = np.asarray(self.sun_direction, dtype=np.float64)
         return d / np.linalg.norm(d)
 
+    # The sky's own distribution: its radiance depends on the height y = d_y alone, and on the
+    # sphere d(omega) = dy dphi, so directions are drawn with y from a piecewise-constant density
+    # proportional to the mean radiance of SKY_BINS slabs and phi uniform.
+    SKY_BINS = 256
+
+    def _sky_table(self) -> tuple[np.ndarray, np.ndarray]:
+        """(per-bin density in y, cumulative probability at the bin edges)."""
+        n = self.SKY_BINS
+        y = (np.arange(n) + 0.5) / n * 2.0 - 1.0
+        d = np.stack([np.sqrt(1.0 - y * y), y, np.zeros(n)], axis=1)
+        weight = self.radiance(d).mean(axis=1) + 1e-3  # every direction can be drawn
+        dy = 2.0 / n
+        density = weight / (weight.sum() * dy)
+        cdf = np.concatenate([[0.0], np.cumsum(density * dy)])
+        cdf[-1] = 1.0
+        return density, cdf
+
+    def sample_sky(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World directions (N, 3) from the sky's own distribution, with their solid-angle density;
+        ``u`` (N, 2) uniform in [0, 1)."""
+        density, cdf = self._sky_table()
+        n = self.SKY_BINS
+        b = np.clip(np.searchsorted(cdf, u[:, 0], side="right") - 1, 0, n - 1)
+        frac = (u[:, 0] - cdf[b]) / np.maximum(cdf[b + 1] - cdf[b], 1e-300)
+        y = np.clip(-1.0 + (b + frac) * (2.0 / n), -1.0, 1.0)
+        phi = 2.0 * math.pi * u[:, 1]
+        r = np.sqrt(np.maximum(1.0 - y * y, 0.0))
+        d = np.stack([r * np.cos(phi), y, r * np.sin(phi)], axis=1)
+        return d, density[b] / (2.0 * math.pi)
+
+    def sky_pdf(self, d: np.ndarray) -> np.ndarray:
+        """Solid-angle density (N,) of :meth:`sample_sky` at world directions ``d``."""
+        density, _ = self._sky_table()
+        b = np.clip(((d[:, 1] + 1.0) * 0.5 * self.SKY_BINS).astype(int), 0, self.SKY_BINS - 1)
+        return density[b] / (2.0 * math.pi)
+
 
 DEFAULT_ENVIRONMENT = Environment()
 
 
-def cosine_directions(n: int) -> np.ndarray:
-    """``n`` fixed, well-spread cosine-distributed directions on the +z hemisphere (N, 3).
-
-    A Fibonacci spiral on the projected disk (uniform in the disk = cosine-weighted on the
-    hemisphere): deterministic, so previews do not flicker between runs.
-    """
-    if n < 1:
-        raise ValueError(f"need at least 1 environment sample, got {n}")
-    k = np.arange(n) + 0.5
-    r = np.sqrt(k / n)
-    phi = k * math.pi * (3.0 - math.sqrt(5.0))
-    x, y = r * np.cos(phi), r * np.sin(phi)
-    return np.stack([x, y, np.sqrt(np.clip(1.0 - r * r, 0.0, 1.0))], axis=-1)
-
-
 SamplerFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+def _mis_sky_samples(brdf, env, proxy, wo, s, t, n, k, rng, chunk, progress):
+    """Sky directions (local frame) and their weights f cos / (balance-heuristic density) for the
+    rows of ``wo`` (pixel-major, ``k`` rows per pixel): the first ceil(k / 2) rows of each pixel
+    from the proxy, the others from the sky's distribution."""
+    from .bsdf.frame import to_local, to_world
+    from .neural import proxy as proxy_pdf
+
+    sigma, w = proxy if proxy is not None else (1.0, 1.0)
+    rows = len(wo)
+    k_brdf = (k + 1) // 2
+    k_sky = k - k_brdf
+    j = np.arange(rows) % k
+    from_brdf = j < k_brdf
+    # stratified per pixel: sample j of a strategy's m takes the j-th slice of [0, 1) in one
+    # dimension and a golden-ratio step in the other, both shifted by the pixel's random offsets
+    index = np.where(from_brdf, j, j - k_brdf)
+    count = np.where(from_brdf, k_brdf, max(k_sky, 1))
+    shift = np.repeat(rng.random((rows // k, 2)), k, axis=0)
+    u1 = (index + shift[:, 0]) / count
+    u2 = np.mod(index * 0.6180339887498949 + shift[:, 1], 1.0)
+    wi_brdf, _ = proxy_pdf.sample(wo, sigma, w, np.stack([rng.random(rows), u1, u2], axis=1))
+    d_sky, _ = env.sample_sky(np.stack([u1, u2], axis=1))
+    wi = np.where(from_brdf[:, None], wi_brdf, to_local(d_sky, s, t, n))
+    p_brdf = proxy_pdf.pdf(wo, wi, sigma, w)
+    p_sky = env.sky_pdf(to_world(wi, s, t, n))
+    # balance heuristic over both strategies' sample counts; each pixel's k rows are averaged
+    # later, so the weight is scaled by k
+    denominator = (k_brdf * p_brdf + k_sky * p_sky) / k
+    above = wi[:, 2] > 0.0
+    f = chunked(brdf, chunk, progress)(wi.astype(np.float32), wo.astype(np.float32)).astype(np.float64)
+    weight = np.where(above[:, None], f * np.clip(wi[:, 2:3], 0.0, None) / np.maximum(denominator, 1e-300)[:, None],
+                      0.0)
+    return wi, weight
 
 
 def sphere_preview(
@@ -313,6 +384,7 @@ def sphere_preview(
     sampler: Optional[SamplerFn] = None,
     seed: int = 0,
     sample_chunk: int = 16384,
+    proxy: Optional[tuple[float, float]] = None,
 ) -> np.ndarray:
     """(res, res, 4) image of a unit sphere seen orthographically, shaded with ``brdf``.
 
@@ -321,9 +393,12 @@ def sphere_preview(
 
     - with ``sampler(wo) -> (wi, weight)`` (weight = f cos / pdf, e.g. the reference's analog
       walks, which include the mirror reflection of smooth coats): mean of weight L(wi);
-    - otherwise: a fixed cosine-distributed pattern, rotated about the normal by a per-pixel
-      azimuth drawn from ``seed`` (so narrow lobes give noise, not repeated glints): mean of
-      pi f L(wi).
+    - otherwise: multiple importance sampling (balance heuristic) of two strategies, half of
+      the directions each: the BRDF's sampling proxy ``proxy = (sigma, w)`` (the shipped
+      sampling network's parameters of the material; a cosine lobe when None) and the sky's own
+      distribution (:meth:`Environment.sample_sky`). The proxy puts directions into a glossy
+      lobe that a cosine pattern would miss with all but a few pixels' samples (the fireflies
+      of a neural car-paint sphere at 8 samples), the sky strategy covers what the proxy does not.
 
     Deterministic for a given ``seed``. Alpha is 1 on the sphere, 0 elsewhere (RGB 0 there).
     """
@@ -362,19 +437,8 @@ def sphere_preview(
             if env_progress is not None:
                 env_progress(stop / rows)
     else:
-        pattern = cosine_directions(k)  # (K, 3) in the local frame
-        phi = rng.uniform(0.0, 2.0 * math.pi, size=(m, 1))
-        cos_p, sin_p = np.cos(phi), np.sin(phi)
-        wi_env = np.stack(
-            [
-                cos_p * pattern[None, :, 0] - sin_p * pattern[None, :, 1],
-                sin_p * pattern[None, :, 0] + cos_p * pattern[None, :, 1],
-                np.broadcast_to(pattern[None, :, 2], (m, k)),
-            ],
-            axis=-1,
-        ).reshape(-1, 3)
-        f_env = chunked(brdf, chunk, env_progress)(wi_env.astype(np.float32), wo_env.astype(np.float32))
-        weight = math.pi * f_env.astype(np.float64)  # f cos / pdf with pdf = cos / pi
+        wi_env, weight = _mis_sky_samples(brdf, env, proxy, wo_env, np.repeat(s, k, axis=0), np.repeat(t, k, axis=0),
+                                          np.repeat(n, k, axis=0), k, rng, chunk, env_progress)
     rep = lambda a: np.repeat(a, k, axis=0)  # noqa: E731
     world = to_world(np.asarray(wi_env, dtype=np.float64), rep(s), rep(t), rep(n))
     radiance += (np.asarray(weight, dtype=np.float64) * env.radiance(world)).reshape(m, k, 3).mean(axis=1)
