@@ -136,9 +136,7 @@ def neural_proxy(z: np.ndarray, size: str) -> tuple[Optional[tuple[float, float]
     """(sigma, w) of the shipped sampling network for latent ``z`` of decoder ``size``, and notes;
     (None, [why]) when that network cannot be loaded (previews then sample a cosine lobe)."""
     try:
-        from .neural.sampling import load_sampling
-
-        sigma, w = load_sampling(size).proxy_params(np.asarray(z, dtype=np.float32).reshape(3, 32))[0]
+        sigma, w = _neural_module().load_models(size).proxy_params(np.asarray(z, dtype=np.float32).reshape(3, LATENT))[0]
     except Exception as e:  # a missing or unloadable sampling model: the preview still works, noisier
         return None, [f"no sampling proxy for the {size} decoder ({type(e).__name__}: {e}); "
                       "the sphere preview samples a cosine lobe (noisier on glossy stacks)"]
