@@ -166,10 +166,13 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         self.update_stats("", "Exporting scene")
         core_scene, warnings = scene_export.export_scene(depsgraph, *scene_export.render_size(scene))
         self.update_stats("", "Choosing decoders")
+        info: list[str] = []
         try:
-            warnings = warnings + props.assign_decoders(core_scene)
+            warnings = warnings + props.assign_decoders(core_scene, info=info)
         except Exception as e:  # the stacks stay, on the default decoder or the reference
             warnings.append(f"decoder choice failed ({_failure(e)}); layered materials use the default decoder")
+        for line in info:
+            self.report({"INFO"}, line)
         for w in warnings:
             self.report({"WARNING"}, w)
         settings = props.to_core(scene=scene)

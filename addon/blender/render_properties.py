@@ -85,6 +85,13 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
         default="AUTO",
         description="Neural decoder of layered materials in neural mode",
     )
+    time_budget: FloatProperty(
+        name="Time Budget",
+        description="Auto decoder choice: sizes whose predicted decoder time for the frame (every path on the "
+                    "material at every bounce, at the size's measured speed) is over this many seconds are not "
+                    "considered, so the paper-sized decoder is only chosen for a frame it fits",
+        default=120.0, min=1.0, soft_max=3600.0, subtype="TIME_ABSOLUTE", unit="TIME_ABSOLUTE",
+    )
     denoise: BoolProperty(
         name="Denoise",
         description="Write Denoising Normal and Denoising Albedo passes and denoise the image with Blender's "
@@ -105,14 +112,23 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
                               mode=self.mode, reference_walks=self.reference_walks, threads=threads)
 
 
-    def assign_decoders(self, core_scene) -> list[str]:
-        """Put the layered materials of an exported scene on their decoders (neural mode); returns warnings."""
+    def assign_decoders(self, core_scene, samples: int | None = None, info: list | None = None) -> list[str]:
+        """Put the layered materials of an exported scene on their decoders (neural mode); returns warnings.
+
+        *Auto* only considers the sizes whose predicted decoder time for this frame (``samples``
+        per pixel, default Samples) fits Time Budget; ``info`` (a list) receives each material's
+        size and the reason for it."""
         if self.mode != "neural":
             return []
         from ..core import quality
 
         size = "auto" if self.decoder_quality == "AUTO" else self.decoder_quality.lower()
-        core_scene.materials, _, notes = quality.assign_decoders(core_scene, size, self.tolerance)
+        queries = quality.frame_decoder_queries(core_scene.camera.width * core_scene.camera.height,
+                                                samples or self.samples, self.max_bounces)
+        core_scene.materials, choices, notes = quality.assign_decoders(
+            core_scene, size, self.tolerance, budget_seconds=self.time_budget, evaluations=queries)
+        if info is not None:
+            info += [quality.choice_reason(name, c) for name, c in choices.items()]
         return notes
 
 

@@ -33,6 +33,7 @@ class NLM_PT_render(bpy.types.Panel):
             col.prop(props, "decoder_quality")
             if props.decoder_quality == "AUTO":
                 col.prop(props, "tolerance")
+                col.prop(props, "time_budget")
         layout.operator("neural_layers.render_preview", icon="RENDER_STILL")
 
 

@@ -271,6 +271,50 @@ def choose_decoder(stack: Stack, tolerance: float = DEFAULT_TOLERANCE, sizes=Non
     return DecoderChoice(best, tol, errors, False, tuple(notes + [msg]))
 
 
+def choice_reason(name: str, choice: DecoderChoice) -> str:
+    """One line for the user: the size a material got, and why."""
+    if choice.size is None:
+        return f"material {name!r}: the reference estimator (no decoder fits: {', '.join(choice.notes) or 'none'})"
+    err = choice.errors.get(choice.size, math.nan)
+    if math.isnan(err):
+        return f"material {name!r}: decoder {choice.size} (as set)"
+    why = "the smallest within" if choice.met else "the most accurate, none within"
+    return f"material {name!r}: decoder {choice.size}, measured error {err:.3g} ({why} {choice.tolerance:.3g})"
+
+
+def predicted_decoder_seconds(size: str, evaluations: float, model_dir=None) -> float:
+    """Seconds ``evaluations`` RGB decoder queries take on this machine class at ``size``'s measured
+    speed (``speed_cpu.rgb_evals_per_s`` of its card, written by ``benchmarks/bench_decoders.py``);
+    ``inf`` when the card holds no speed."""
+    from .neural.models import read_card
+
+    rate = float(read_card("decoder", size, model_dir).get("speed_cpu", {}).get("rgb_evals_per_s", 0.0))
+    return float(evaluations) / rate if rate > 0 else math.inf
+
+
+def frame_decoder_queries(pixels: int, samples: int, max_bounces: int) -> float:
+    """An upper bound on one material's decoder queries in a frame: every path hits it at every
+    bounce, with one next-event and one sampled direction each."""
+    return 2.0 * int(pixels) * int(samples) * max(1, int(max_bounces))
+
+
+def sizes_within_budget(evaluations: float, budget_seconds: float | None, sizes=None) -> tuple[list[str], list[str]]:
+    """The sizes whose predicted decoder time for ``evaluations`` queries fits ``budget_seconds``
+    (all of them when the budget is None), and a note per size left out, with its prediction."""
+    sizes = available_sizes() if sizes is None else list(sizes)
+    if budget_seconds is None:
+        return sizes, []
+    predicted = {s: predicted_decoder_seconds(s, evaluations) for s in sizes}
+    keep = [s for s in sizes if predicted[s] <= budget_seconds]
+    if not keep and sizes:
+        fastest = min(sizes, key=predicted.get)
+        note = (f"no decoder's predicted time for this frame fits the time budget of {budget_seconds:,.0f} s "
+                f"(fastest: {fastest}, {predicted[fastest]:,.0f} s); using {fastest}")
+        return [fastest], [note]
+    return keep, [f"decoder {s} left out: its predicted decoder time for this frame, {predicted[s]:,.0f} s, is over "
+                  f"the time budget of {budget_seconds:,.0f} s" for s in sizes if s not in keep]
+
+
 # --------------------------------------------------------------------------- textures
 
 
@@ -340,7 +384,8 @@ def neural_material(stack: Stack, size: str):
 
 
 def assign_decoders(scene, quality: str = "auto", tolerance: float = DEFAULT_TOLERANCE, fallback: str = "best",
-                    threads: int = 2, **measure) -> tuple[list, dict, list[str]]:
+                    threads: int = 2, budget_seconds: float | None = None, evaluations: float = 0.0,
+                    **measure) -> tuple[list, dict, list[str]]:
     """Renderer materials for the layered materials of a core ``Scene``, each on its decoder size.
 
     ``quality`` is "auto" (per material, :func:`choose_decoder` with ``tolerance`` and ``fallback``)
@@ -348,8 +393,14 @@ def assign_decoders(scene, quality: str = "auto", tolerance: float = DEFAULT_TOL
     a new material list for ``scene.materials`` (entries the decoders do not take stay as they were:
     materials without coatings, which render exactly; latent-textured ones, whose texture fixes the
     size; and stacks no shipped model can encode, which the renderer shades with the reference),
-    the choice per material name, and the warnings to show the user. ``measure`` passes ``res``,
-    ``walks`` or ``cache`` on to :func:`choose_decoder`.
+    the choice per material name (its size and the measured errors that decided it), and the
+    warnings to show the user.
+    ``measure`` passes ``res``, ``walks`` or ``cache`` on to :func:`choose_decoder`.
+
+    With ``budget_seconds``, "auto" only considers the sizes whose predicted decoder time for
+    ``evaluations`` queries (:func:`frame_decoder_queries`) fits the budget
+    (:func:`sizes_within_budget`), so no frame meets the paper-sized decoder unless its cost fits;
+    when no size fits, the fastest one is used and a note says so. Fixed sizes are never changed.
     """
     from .render.materials import LayeredSpec
 
@@ -361,6 +412,10 @@ def assign_decoders(scene, quality: str = "auto", tolerance: float = DEFAULT_TOL
     names = list(scene.material_names) + [f"material {i}" for i in range(len(scene.material_names),
                                                                           len(scene.materials))]
     out, choices, notes = [], {}, []
+    sizes = None
+    if quality == "auto" and budget_seconds is not None:
+        sizes, left_out = sizes_within_budget(evaluations, budget_seconds)
+        notes += left_out
     for name, m in zip(names, scene.materials, strict=True):
         spec = m if isinstance(m, LayeredSpec) else (LayeredSpec(m) if isinstance(m, Stack) else None)
         if spec is None or not spec.stack.coatings or spec.latent_texture is not None:
@@ -369,7 +424,8 @@ def assign_decoders(scene, quality: str = "auto", tolerance: float = DEFAULT_TOL
         if quality == "auto":
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                choice = choose_decoder(spec.stack, tolerance, fallback=fallback, threads=threads, **measure)
+                choice = choose_decoder(spec.stack, tolerance, sizes=sizes, fallback=fallback, threads=threads,
+                                        **measure)
             size = choice.size
             choices[name] = choice
             notes += [f"material {name!r}: {w.message}" for w in caught if issubclass(w.category, QualityWarning)]

@@ -1,0 +1,47 @@
+"""Auto decoder choice within a time budget: predicted decoder time per size, sizes left out."""
+
+import math
+
+import pytest
+
+from addon.core import quality
+from addon.core.render.demo_scene import demo_scene
+from addon.core.stack import PRESETS
+
+
+def test_predicted_time_follows_the_measured_speed_of_each_size():
+    sizes = quality.available_sizes()
+    assert len(sizes) >= 2
+    t = {s: quality.predicted_decoder_seconds(s, 1e6) for s in sizes}
+    assert all(math.isfinite(v) and v > 0 for v in t.values())
+    assert t[sizes[0]] < t[sizes[-1]]  # more parameters, slower
+    assert quality.predicted_decoder_seconds(sizes[0], 2e6) == pytest.approx(2 * t[sizes[0]])
+    assert quality.frame_decoder_queries(480 * 270, 64, 4) == 2 * 480 * 270 * 64 * 4
+
+
+def test_sizes_over_the_budget_are_left_out_with_their_prediction():
+    sizes = quality.available_sizes()
+    queries = quality.frame_decoder_queries(480 * 270, 64, 4)
+    budget = 2 * quality.predicted_decoder_seconds(sizes[0], queries)
+    keep, notes = quality.sizes_within_budget(queries, budget, sizes)
+    assert sizes[0] in keep and sizes[-1] not in keep
+    assert any(sizes[-1] in n and "time budget" in n for n in notes)
+    assert quality.sizes_within_budget(queries, None, sizes) == (sizes, [])
+    # Nothing fits: the fastest, said so.
+    keep, notes = quality.sizes_within_budget(queries, 1e-9, sizes)
+    assert keep == [sizes[0]] and "no decoder" in notes[0]
+
+
+def test_auto_never_takes_a_size_over_the_budget_even_when_none_meets_the_tolerance():
+    sizes = quality.available_sizes()
+    scene = demo_scene(8, 6, [PRESETS["coated_gold"]])
+    queries = quality.frame_decoder_queries(1920 * 1080, 64, 6)
+    budget = 1.01 * quality.predicted_decoder_seconds(sizes[1], queries)
+    _, choices, notes = quality.assign_decoders(scene, "auto", 1e-4, res=8, walks=16, cache=quality.ErrorCache(),
+                                                budget_seconds=budget, evaluations=queries)
+    (choice,) = [c for c in choices.values()]
+    assert choice.size in sizes[:2] and not choice.met
+    assert set(choice.errors) <= set(sizes[:2])
+    assert any(sizes[-1] in n and "left out" in n for n in notes)
+    reason = quality.choice_reason("gold", choice)
+    assert choice.size in reason and "measured error" in reason
