@@ -335,12 +335,18 @@ def _bake_band(job: Job, band: int, band_rows: int, encode, dedup: bool, cache: 
 
 def run(jobs: list[Job], out: Path, encode, model: str, shard: tuple[int, int], band_rows: int,
         dedup: bool = True, log=print) -> dict:
-    """Bake this shard's items, assemble every material whose bands are all present."""
+    """Bake this shard's items, assemble every material whose bands are all present.
+
+    The bake key of a material hashes its inputs and the model: the size and, when the encoder
+    tells it (``encode.metadata["model_digest"]``), the decoder file's digest, so bands and
+    textures of a retrained model are never reused."""
+    model_metadata = getattr(encode, "metadata", None) or {}
+    model_id = f"{model}:{model_metadata['model_digest']}" if model_metadata.get("model_digest") else model
     _check_output_folder(out, jobs)
     files.remove_stale_temps(out)
     items = []
     for job in jobs:
-        key = job.key(model)
+        key = job.key(model_id)
         if _fresh(out, job, key):
             log(f"{job.name}: up to date, skipped")
             _remove_bands(out, job)
@@ -378,7 +384,7 @@ def run(jobs: list[Job], out: Path, encode, model: str, shard: tuple[int, int], 
         def rebake(band, job=job):
             return _bake_band(job, band, band_rows, encode, dedup, cache, bar)[0]
 
-        if assemble(out, job, job.key(model), model, band_rows, stats, rebake, log, getattr(encode, "metadata", None)):
+        if assemble(out, job, job.key(model_id), model, band_rows, stats, rebake, log, model_metadata):
             stats["assembled"].append(job.name)
             log(f"{job.name}: wrote {out / (job.file + '.exr')} ({job.resolution[1]}x{job.resolution[0]})")
     return stats

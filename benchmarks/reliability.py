@@ -78,6 +78,9 @@ CASES: list[tuple[str, str, str, str | None]] = [
      f"{CLI}::test_an_invalid_kept_band_is_baked_again_never_reused"),
     ("7", "bands of earlier inputs in the output folder", "not reused (keyed by every input) and removed on publish",
      f"{CLI}::test_bands_of_other_inputs_are_not_reused_and_are_cleaned"),
+    ("7", "bands and a finished texture baked with an earlier decoder file of the same size",
+     "not reused: the key holds the decoder's digest; the texture equals a clean bake with the new decoder",
+     f"{CLI}::test_bands_and_textures_of_another_decoder_file_are_not_reused"),
     ("9", "`write_exr` to a folder", "`IsADirectoryError` and nothing written beside it",
      f"{CLI}::test_a_texture_written_to_a_folder_name_is_an_error_and_leaves_nothing"),
     ("9", "a texture write interrupted part-way", "the previous file intact, no temporary file",
@@ -151,8 +154,13 @@ CASES: list[tuple[str, str, str, str | None]] = [
      "tests/core/test_stack.py::test_strings_bools_and_complex_numbers_are_not_parameters"),
     ("10", "N = 0 through the batched encoders", "empty arrays, not a reshape error",
      "tests/core/test_neural_runtime.py::test_empty_batches_give_empty_arrays"),
-    ("4", "white furnace of a thick clear coat (thickness 20 .. 100) over a white base",
-     "(the reference work: not pinned on main when this table was written)", None),
+    ("4", "white base under smooth, non-absorbing coats of thickness 0 .. 100 (any g, ior up to 4, two coats)",
+     "white furnace exact: albedo 1 with standard error 0; walks end by Russian roulette, none is cut",
+     "tests/core/test_reference.py::test_white_furnace_is_exactly_one_at_every_valid_thickness"),
+    ("4", "a rough (alpha 0.3) white coat of thickness 0 .. 100", "albedo <= 1 within its standard error",
+     "tests/core/test_reference.py::test_white_furnace_rough_coat_keeps_energy_at_most_one"),
+    ("4", "a walk that reaches the safety cap", "a `RuntimeWarning` naming `MAX_DEPTH` (never a silent cut)",
+     "tests/core/test_reference.py::test_a_walk_cut_by_the_safety_cap_warns"),
 ]
 
 

@@ -413,3 +413,29 @@ def test_argument_errors_are_one_line(tmp_path, capsys):
         assert bake_cli.main(argv, encode=stand_in_encoder()) == 2
         err = capsys.readouterr().err
         assert len(err.strip().splitlines()) == 1 and err.startswith("error: "), err
+
+
+def test_bands_and_textures_of_another_decoder_file_are_not_reused(rough_png, tmp_path):
+    """The key holds the decoder's digest: after a model is retrained nothing baked with the old one is kept."""
+
+    def encoder(digest, seed):
+        proj = np.random.default_rng(seed).normal(size=(64, 98))
+
+        def encode(arrays):
+            v = arrays.to_matrix() @ proj[: arrays.to_matrix().shape[1]]
+            return v[:, :96], v[:, 96:]
+
+        encode.metadata = {"model": "tiny", "model_digest": digest}
+        return encode
+
+    out, ref = tmp_path / "out", tmp_path / "ref"
+    assert bake_cli.main(preset_argv(rough_png, ref), encode=encoder("new", 2)) == 0
+    assert bake_cli.main(preset_argv(rough_png, out, "--shard", "0/2"), encode=encoder("old", 1)) == 0
+    assert bake_cli.main(preset_argv(rough_png, out, "--shard", "1/2"), encode=encoder("new", 2)) == 0
+    assert not (out / "varnished_wood.exr").exists()  # shard 0's bands are of the old decoder
+    assert bake_cli.main(preset_argv(rough_png, out, "--shard", "0/2"), encode=encoder("new", 2)) == 0
+    assert_same_texture(ref / "varnished_wood.exr", out / "varnished_wood.exr")
+    assert LatentTexture.read_exr(out / "varnished_wood.exr").metadata["model_digest"] == "new"
+    assert bake_cli.main(preset_argv(rough_png, out), encode=encoder("newer", 3)) == 0  # not "up to date"
+    assert LatentTexture.read_exr(out / "varnished_wood.exr").metadata["model_digest"] == "newer"
+    assert listing(out) == ["varnished_wood.exr", "varnished_wood.json"]
