@@ -222,8 +222,10 @@ def table(collector: Collector | None, seconds: float | None) -> str:
         "Written by `python benchmarks/reliability.py`, which runs every pinning test below and records what it",
         "tried. Each row is one case: what was tried, what the code does now, the test that pins it, and that test's",
         "outcome in the run that wrote this file. Property-based tests are seeded (`derandomize=True`) and bounded",
-        "(`max_examples` per test), so every run tries the same examples; explicit examples pin the cases first found",
-        "by hand. Issue numbering: items of issue 21 (`CLI`: the command-line tools, `stack`: stack properties).",
+        "(`max_examples` per test), so every run draws its examples from the same seed (the counts below may differ",
+        "by one or two between runs: examples Hypothesis discards part-way are counted too); explicit examples pin",
+        "the cases first found by hand. Items are those of issue 21 (`CLI`: the command-line tools, `stack`: stack",
+        "properties). Faults: each killed bake is rerun and compared with an uninterrupted one.",
         "",
         f"- cases: {len(CASES)} ({len(pinned)} pinned by {len(tests)} tests, {len(CASES) - len(pinned)} not yet)",
     ]
