@@ -94,6 +94,39 @@ def mse(a, b):
     return float(((a - b) ** 2).mean())
 
 
+def viewport_latency(repeats: int, size=(320, 180)) -> list[str]:
+    """Seconds from an edit (``ProgressiveSession.restart`` with a freshly exported demo scene, its
+    stacks still to encode) to the viewport's first image (1 spp at a quarter of the resolution)
+    and to the first full-resolution pass, default settings."""
+    from addon.core.render.progressive import ProgressiveSession
+
+    session = ProgressiveSession(RenderSettings(samples=4, max_bounces=4), preview_divisor=4)
+    rows = []
+    try:
+        for rep in range(repeats + 1):  # the first one loads the models (once per Blender session)
+            scene = demo_scene(*size)
+            first = {}
+            t0 = time.perf_counter()
+            session.on_image = lambda im, t0=t0, first=first: first.setdefault(im.reduced, time.perf_counter() - t0)
+            session.restart(scene)
+            session.wait(samples=1, timeout=300)
+            session.cancel()
+            while not session.idle:
+                time.sleep(0.01)
+            if rep:
+                rows.append((first.get(True, float("nan")), first.get(False, float("nan"))))
+                print("viewport", rows[-1], flush=True)
+    finally:
+        session.close()
+    lines = [f"## Viewport: first image after an edit ({size[0]}x{size[1]}, demo scene)", "",
+             "Seconds from `ProgressiveSession.restart` with a newly exported scene (its stacks encoded again, "
+             "as after an edit) to the first image (1 spp at a quarter of the resolution on each side) and to the "
+             "first full-resolution pass.", "",
+             "| repetition | first image s | first full pass s |", "|---|---|---|"]
+    lines += [f"| {i + 1} | {a:.2f} | {b:.2f} |" for i, (a, b) in enumerate(rows)]
+    return lines + [""]
+
+
 def speed_only(args, command: str) -> int:
     """Ours (neural mode, default settings) and Cycles on the demo scene, alternating in this
     process ``--repeats`` times per size: the ratio of each pair, their median and spread, and
@@ -132,6 +165,7 @@ def speed_only(args, command: str) -> int:
                   f"median {100 * statistics.median(rest_share):.0f}% (range {100 * min(rest_share):.0f}-"
                   f"{100 * max(rest_share):.0f}%).", ""]
         sections += lines
+    sections += viewport_latency(args.repeats)
     text = ["# Renderer speed: demo scene, ours vs Blender Cycles, alternating", "",
             f"Command: `{command}`", "",
             f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU threads, no GPU, shared with "
