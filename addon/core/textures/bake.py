@@ -8,6 +8,7 @@ neural runtime provides the real one. Identical parameter tuples are encoded onc
 from __future__ import annotations
 
 import hashlib
+import os
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -112,8 +113,17 @@ def bake_texels(
     batch: int = 65536,
     progress: Progress | None = None,
     cancel: Callable[[], bool] | None = None,
+    threads: int = 0,
 ) -> tuple[np.ndarray, BakeStats]:
-    """(N, 98) float32 texels (latents then proxy channels) for N stacks."""
+    """(N, 98) float32 texels (latents then proxy channels) for N stacks; the networks run on
+    ``threads`` threads (0: every core; ``addon.core.neural.session.threads_in_force``)."""
+    from ..neural.session import threads_in_force
+
+    with threads_in_force(int(threads) or (os.cpu_count() or 1)):
+        return _bake_texels(arrays, encode, dedup, batch, progress, cancel)
+
+
+def _bake_texels(arrays, encode, dedup, batch, progress, cancel) -> tuple[np.ndarray, BakeStats]:
     t0 = time.perf_counter()
     n = len(arrays)
     if dedup:
