@@ -53,19 +53,23 @@ def test_refinement_loss_gradient_equals_torch_autograd():
     rows_wi = np.repeat(wi, per, axis=0).astype(np.float32)  # the directions the decoders see
     wo = wo.reshape(-1, 3).astype(np.float32)
     target = rng.random((groups * per, 3)) * 2.0
-    pairs = rf.PairSet(rows_wi, wo, target, np.zeros_like(target), w.reshape(-1), groups)
+    level = target * (1.0 + 0.2 * rng.standard_normal(target.shape))
+    pairs = rf.PairSet(rows_wi, wo, target, np.zeros_like(target), w.reshape(-1), groups, level)
     dec = _torch_decoder("tiny")
     z = (rng.standard_normal((3, 32)) * 0.3)
     zt = torch.tensor(z, requires_grad=True)
     m = rows_wi.shape[0]
     f_t = dec(zt.repeat(m, 1), torch.from_numpy(np.repeat(rows_wi, 3, 0)).double(),
               torch.from_numpy(np.repeat(wo, 3, 0)).double()).reshape(m, 3)
-    cos_o = torch.from_numpy(np.maximum(wo[:, 2], 0.0))[:, None]
+    cos_o = torch.from_numpy(np.maximum(wo[:, 2], 0.0).astype(np.float64))[:, None]
     wt = torch.from_numpy(pairs.weight)[:, None]
     tt = torch.from_numpy(target)
-    num = (wt * (cos_o * (f_t - tt)) ** 2).reshape(groups, -1).sum(1)
-    den = (wt * (cos_o * tt) ** 2).reshape(groups, -1).sum(1)
-    loss_t = (num / den).mean()
+    lt = torch.from_numpy(np.maximum(level, 0.0))
+    wsum = wt.reshape(groups, per).sum(1)
+    scale = (wt * cos_o * lt).reshape(groups, -1).sum(1) / (3 * wsum)
+    den = scale.repeat_interleave(per)[:, None] + cos_o * lt
+    d = cos_o * (f_t - tt) / den
+    loss_t = ((wt * d**2).reshape(groups, -1).sum(1) / (3 * wsum)).mean()
     loss_t.backward()
     npd = rf.NumpyDecoder.load("tiny", dtype=np.float64)
     p = npd.run(z, rows_wi, wo)

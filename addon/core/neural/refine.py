@@ -9,19 +9,25 @@ the error before and after on a SEPARATE, independently seeded validation set of
 the refined latent is returned only when it is better there, otherwise the encoded one is.
 
 Direction pairs come in groups, as lobe images do: one incident direction ``wi`` and M outgoing
-directions ``wo`` drawn cosine-distributed (uniform on the projected disk, the measure of
-``addon.core.lobe``), so a group is a Monte Carlo lobe image. Incident directions have cos(theta_i)
-uniform in [cos 80 deg, 1] (the lobe metric's elevations and between) and a share of them grazing,
-80 to 89.5 degrees. The reference walks start from ``wi`` and connect to all M ``wo`` (reciprocity),
-one set of walks per group.
+directions ``wo``, drawn from the cosine distribution (uniform on the projected disk, the measure of
+``addon.core.lobe``) and from lobes about the mirror direction, each pair weighted by the ratio of the
+two densities: a group is an importance-sampled Monte Carlo lobe image (``refinement_pairs``).
+Incident directions have cos(theta_i) uniform in [cos 80 deg, 1] (the lobe metric's elevations and
+between) and a share of them grazing, 80 to 89.5 degrees. The reference walks start from ``wi`` and
+connect to all M ``wo`` (reciprocity), one set of walks per group.
 
-Loss: per group, the relative squared error of the cosine-weighted lobe, RGB together,
-``sum (cos_o (f - t))^2 / sum (cos_o t)^2``, averaged over groups: the square of the held-out lobe
-metric (relative RMSE of f cos_o per image). The denominator does not depend on the prediction, so for
-each pair the minimiser is the MEAN of noisy targets (a squared error, as ``l2rel`` in training; an L1
-or log loss would fit their median or the mean of their log). The validation error is the same
-quantity on the validation pairs; against noisy targets it includes their noise, equally before and
-after (for a squared error, E|f - t|^2 = |f - E t|^2 + var t), so the comparison is fair.
+Loss (``lobe_loss``): per pair, the error of the cosine-weighted lobe value relative to the group's mean
+lobe value, or to the value itself in a peak far above that mean (relative where values are large, as
+``l2rel`` in training, so a sharp highlight cannot outweigh the rest of the lobe: a squared error of
+the lobe image alone let the 1e3-high spike of a smooth coat decide, and the fit dropped the diffuse
+body under it). The value in that weight is an independent estimate (other walks), not the prediction
+(``l2rel``'s choice made a 3x overshoot of a peak cheap: measured on a held-out coated metal) nor the
+target itself (whose noise would bias the fit low in the peaks), so for each pair the minimiser is the
+MEAN of noisy targets (a squared error; an L1 or log loss would fit their median or the mean of their
+log).
+The validation error is the same quantity on the validation pairs; against noisy targets it includes
+their noise, equally before and after (for a squared error, E|f - t|^2 = |f - E t|^2 + var t), so the
+comparison is fair.
 
 Gradients: one closed-form backward pass of the decoder's MLP in numpy (``NumpyDecoder``), from the
 weights exported beside each ONNX decoder (``decoder_<size>_weights.npz``, written by
@@ -52,7 +58,7 @@ from ..stack import LATENT, Stack
 from .encode import encode_stack
 from .models import MODEL_DIR, SIZES, _unit_or_up, file_digest, load_models, resolve_size
 
-REFINE_VERSION = 1  # part of the cache key: bump when the procedure changes what it returns
+REFINE_VERSION = 3  # part of the cache key: bump when the procedure changes what it returns
 GRAZING_COS = (float(np.cos(np.radians(89.5))), float(np.cos(np.radians(80.0))))
 
 
@@ -254,6 +260,7 @@ class PairSet:
     stderr: np.ndarray
     weight: np.ndarray  # (P,) p_cosine / p_mixture of wo
     groups: int
+    level: np.ndarray | None = None  # (P, 3) an independent estimate of the targets, for the loss's weights
 
     @classmethod
     def measure(cls, stack: Stack, groups: int, per_group: int, walks: int, seed: int) -> "PairSet":
@@ -262,20 +269,36 @@ class PairSet:
         wi, wo, weight = refinement_pairs(stack, groups, per_group, seed)
         # walks start from wi and connect to every wo of the group: f(wo[g, j], wi[g]) = f(wi[g], wo[g, j])
         f, se = reference.eval_brdf_many(stack, wo, wi, walks=walks, seed=int(seed))
+        # the loss's weights come from other walks (a quarter as many): independent of the targets' noise
+        level, _ = reference.eval_brdf_many(stack, wo, wi, walks=max(4, walks // 4),
+                                          seed=np.random.default_rng([int(seed), 0x1E7E1]))
         rows_wi = np.repeat(wi, per_group, axis=0)
-        return cls(rows_wi, wo.reshape(-1, 3), f.reshape(-1, 3), se.reshape(-1, 3), weight.reshape(-1), groups)
+        return cls(rows_wi, wo.reshape(-1, 3), f.reshape(-1, 3), se.reshape(-1, 3), weight.reshape(-1), groups,
+                   level.reshape(-1, 3))
 
 
 def lobe_loss(f: np.ndarray, pairs: PairSet) -> tuple[float, np.ndarray, np.ndarray]:
-    """(loss, dloss/df (P, 3), per-group relative RMSE (G,)) of the cosine-weighted lobe values, each
-    pair weighted by ``pairs.weight`` (the sampling density's correction)."""
+    """(loss, dloss/df (P, 3), per-group error (G,)) of the cosine-weighted lobe values ``cos_o f``.
+
+    Per pair and channel ``d = cos_o (f - t) / (s + cos_o l)``: ``s`` the group's mean lobe value
+    (weighted by ``pairs.weight``, RGB together) and ``l`` an independent estimate of the target
+    (``pairs.level``, other walks; the targets themselves where it is not given). Below the lobe's mean
+    ``d`` is the error relative to that mean (the lobe metric); in a peak far above it, the error
+    relative to the peak, so a sharp highlight cannot outweigh the rest of the lobe, and an overshoot is
+    not cheaper than an undershoot. The group's loss is the weighted mean of ``d^2``, the loss the mean
+    over groups. No weight depends on the prediction or on the targets' own noise, so each pair's
+    minimiser is the mean of its noisy targets."""
     g = pairs.groups
+    m = pairs.wo.shape[0] // g
     cos_o = np.maximum(pairs.wo[:, 2], 0.0)[:, None]
+    level = np.maximum(pairs.target if pairs.level is None else pairs.level, 0.0)
     w = pairs.weight[:, None]
-    diff = cos_o * (f.astype(np.float64) - pairs.target)
-    norm = np.maximum((w * (cos_o * pairs.target) ** 2).reshape(g, -1).sum(axis=1), 1e-30)
-    per_group = (w * diff**2).reshape(g, -1).sum(axis=1) / norm
-    grad = 2.0 * w * diff * cos_o / np.repeat(norm, diff.shape[0] // g)[:, None] / g
+    wsum = np.maximum(pairs.weight.reshape(g, m).sum(axis=1), 1e-30)  # (G,)
+    scale = (w * cos_o * level).reshape(g, -1).sum(axis=1) / (3.0 * wsum)
+    den = np.repeat(np.maximum(scale, 1e-12), m)[:, None] + cos_o * level
+    d = cos_o * (f.astype(np.float64) - pairs.target) / den
+    per_group = (w * d**2).reshape(g, -1).sum(axis=1) / (3.0 * wsum)
+    grad = 2.0 * w * d * cos_o / den / (3.0 * np.repeat(wsum, m)[:, None] * g)
     return float(per_group.mean()), grad, np.sqrt(per_group)
 
 
