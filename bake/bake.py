@@ -500,6 +500,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     ap.add_argument("--shard", default="0/1", help="i/n: bake every n-th work item starting at i")
     ap.add_argument("--band-rows", type=int, default=256, help="rows per work item")
     ap.add_argument("--no-dedup", action="store_true", help="encode every texel, even repeated ones")
+    ap.add_argument("--refine", type=float, default=0.0, metavar="SECONDS",
+                    help="refine the latents of distinct texels against the reference, in order, up to this many "
+                         "seconds in all (addon.core.neural.refine; cached in OUT/.refine)")
     return ap.parse_args(argv)
 
 
@@ -513,10 +516,12 @@ def _bake(argv: list[str], encode) -> int:
     jobs = blend_jobs(args) if args.blend else preset_job(args)
     if encode is None:
         try:
-            encode = neural_encoder(args.model)
+            encode = neural_encoder(args.model, refine_s=args.refine, refine_cache=args.out / ".refine")
         except (OSError, ValueError, ImportError) as e:  # missing (FileNotFoundError) or damaged models
             raise BadInput(f"--model {args.model}: {e}") from None
     model = getattr(encode, "metadata", {}).get("model", args.model)  # "auto" resolved by the encoder
+    if getattr(encode, "metadata", {}).get("refine_s"):  # refined bands are not the unrefined ones: another key
+        model = f"{model}+refine{encode.metadata['refine_s']:g}"
     stats = run(jobs, args.out, encode, model, shard, args.band_rows, dedup=not args.no_dedup)
     print(f"baked {stats['bands_baked']} band(s), kept {stats['bands_skipped']}, assembled {stats['assembled']}")
     return EXIT_DONE

@@ -7,11 +7,12 @@ append it to ``_MODULES``. ``register()`` is idempotent: calling it twice re-reg
 
 from __future__ import annotations
 
-from . import bake_ops, engine, operators, properties, ui
+from . import bake_ops, engine, operators, properties, refine_ops, ui
 
 _MODULES = [
     properties,
     operators,
+    refine_ops,
     bake_ops,
     ui,
     engine,

@@ -169,6 +169,7 @@ class _PreviewPanel(_LayersPanel):
         text = f"Latent: current ({s.latent_size})" if current else "Latent: stale"
         row.label(text=text, icon="CHECKMARK" if current else "ERROR")
         row.operator("neural_layers.evaluate_latent", text="Evaluate")
+        row.operator("neural_layers.refine_latent", text="Refine")
         layout.prop(s, "model_size")
         layout.prop(s, "auto_latent")
         col = layout.column()

@@ -23,23 +23,58 @@ Encoder = Callable[[StackArrays], tuple[np.ndarray, np.ndarray]]
 Progress = Callable[[float], None]
 
 
-def neural_encoder(size: str = "auto", threads: int = 2) -> Encoder:
+def neural_encoder(size: str = "auto", threads: int = 2, refine_s: float = 0.0, refine_cache=None,
+                   refine_settings=None) -> Encoder:
     """The neural runtime's batch encoder for decoder ``size`` ("auto": ``neural.resolve_size``): per-layer
     encoder, then the layering network bottom-up, then the sampling network for the proxy channels.
 
     Its ``metadata`` (``model``: the size, ``model_digest``: the decoder's sha256) goes into every
-    texture baked with it, so the renderer decodes the texture with the models it was baked for."""
+    texture baked with it, so the renderer decodes the texture with the models it was baked for.
+
+    ``refine_s`` > 0: the rows it is given (distinct texels: ``bake_texels`` deduplicates) are refined
+    against the reference (``neural.refine.refine_latent``) in order, while this encoder's total budget of
+    ``refine_s`` seconds lasts (each refinement gets what is left, at most ``REFINE_PER_MATERIAL_S``; one
+    started near the end may overrun by its reference walks); ``refine_cache`` is its cache folder and
+    ``refine_settings`` its ``RefineSettings`` (default: the refinement's own).
+    ``metadata["refine_s"]`` records the budget and ``metadata["refined"]`` counts the rows refined."""
     from ..neural import encode_arrays, load_models
 
     models = load_models(size, threads).load("layering", "sampling")  # a bake needs both: missing or damaged raise now
+    if isinstance(refine_s, bool) or not (np.isfinite(refine_s) and refine_s >= 0):
+        raise ValueError(f"refine_s must be a finite number of seconds >= 0, got {refine_s!r}")
+    left = [float(refine_s)]
 
     def encode(arrays):
         # every row is encoded: deduplication is bake_texels' job, so it can be measured
         z = encode_arrays(arrays, models)
+        if left[0] > 0.0:
+            z = _refine_rows(arrays, z, models, left, refine_cache, refine_settings, encode.metadata)
         return z, models.proxy_params(z)
 
     encode.metadata = {"model": models.size, "model_digest": models.digest}
+    if refine_s > 0:
+        encode.metadata.update(refine_s=float(refine_s), refined=0)
     return encode
+
+
+REFINE_PER_MATERIAL_S = 10.0
+
+
+def _refine_rows(arrays: StackArrays, z: np.ndarray, models, left: list, cache_dir, settings,
+                 metadata: dict) -> np.ndarray:
+    """Refined latents for the first rows of ``arrays`` while the budget ``left[0]`` lasts."""
+    from ..neural.refine import refine_latent
+
+    z = np.array(z, dtype=np.float32)
+    for i in range(len(arrays)):  # a loop over materials (distinct texels), each seconds of work, not pixels
+        if left[0] <= 0.0:
+            break
+        t = time.perf_counter()
+        z[i], _ = refine_latent(arrays.stack(i), models.size, budget_s=min(left[0], REFINE_PER_MATERIAL_S),
+                                settings=settings, threads=models.threads, cache_dir=cache_dir)
+        left[0] -= time.perf_counter() - t
+        metadata["refined"] += 1
+    return z
 
 
 def bake_key(spatial: SpatialStack, resolution: tuple[int, int], model: str,

@@ -1,0 +1,89 @@
+"""The *Refine* button: fit the material's latent to the reference (``core.neural.refine.refine_latent``).
+
+The refined latent is stored where the encoded one lives (``neural_layers.latent``, with its decoder
+size and the stack's hash, so previews use it and any edit of the stack makes it stale), and what the
+refinement measured goes into ``neural_refine`` on the material: the refinement's cache key, the
+validation error before and after and the seconds it took. A refinement that was not better on its
+validation pairs leaves the encoded latent in place and says so.
+"""
+
+from __future__ import annotations
+
+import bpy
+from bpy.props import FloatProperty, PointerProperty, StringProperty
+
+from ..core import preview
+from . import stack_io
+from .operators import _guarded, _MaterialOperator
+
+
+class NLM_RefineResult(bpy.types.PropertyGroup):
+    key: StringProperty(name="Key", description="Cache key of the refinement (stack, model files, settings)",
+                        default="")
+    stack_hash: StringProperty(name="Stack hash", description="Hash of the stack that was refined", default="")
+    size: StringProperty(name="Decoder size", default="")
+    error_before: FloatProperty(name="Error before", description="Validation lobe error of the encoded latent",
+                                default=0.0)
+    error_after: FloatProperty(name="Error after", description="Validation lobe error of the refined latent",
+                               default=0.0)
+    seconds: FloatProperty(name="Seconds", default=0.0)
+    kept: StringProperty(name="Kept", description="'yes' when the refined latent is the one stored", default="")
+
+
+class NLM_OT_refine_latent(_MaterialOperator, bpy.types.Operator):
+    """Fit the latent code to the reference BRDF of the stack (a few seconds; cached by stack and model
+    files) and store it on the material when it is better on separate validation pairs"""
+
+    bl_idname = "neural_layers.refine_latent"
+    bl_label = "Refine Latent"
+    bl_options = {"REGISTER", "UNDO"}
+
+    budget: FloatProperty(name="Budget (s)", description="Seconds the refinement may take", default=8.0,
+                          min=0.5, max=600.0)
+
+    def execute(self, context):
+        return _guarded("refining the latent", self, lambda: self._run(context))
+
+    def _run(self, context):
+        from ..core.neural.refine import refine_latent
+        from ..core.stack import clamp_to_trained
+
+        mat, stack = self.target_stack(context)
+        size = preview.resolve_size(stack_io.model_size(mat))
+        _, notes = clamp_to_trained(stack)  # the encoder sees the clamped stack; the reference the real one
+        self.report_notes(notes)
+        z, rep = refine_latent(stack, size, budget_s=float(self.budget))
+        s = stack_io.settings(mat)
+        s.latent = z.tolist()
+        s.latent_size = size
+        s.latent_hash = preview.stack_hash(stack)
+        r = mat.neural_refine
+        r.key, r.stack_hash, r.size = rep.key, s.latent_hash, size
+        r.error_before, r.error_after = rep.validation_error_before, rep.validation_error_after
+        r.seconds, r.kept = rep.total_s, "yes" if rep.kept else "no"
+        how = "cached" if rep.cached else f"{rep.total_s:.1f} s"
+        if rep.kept:
+            self.report({"INFO"}, f"latent of {mat.name!r} refined ({size}, {how}): validation lobe error "
+                                  f"{rep.validation_error_before:.3f} -> {rep.validation_error_after:.3f}")
+        else:
+            self.report({"WARNING"}, f"refining {mat.name!r} ({size}, {how}) did not improve on the validation "
+                                     f"pairs ({rep.validation_error_before:.3f} -> {rep.validation_error_after:.3f}): "
+                                     f"the encoded latent is kept")
+        return {"FINISHED"}
+
+
+_CLASSES = (NLM_RefineResult, NLM_OT_refine_latent)
+
+
+def register() -> None:
+    for cls in _CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.Material.neural_refine = PointerProperty(type=NLM_RefineResult)
+
+
+def unregister() -> None:
+    if hasattr(bpy.types.Material, "neural_refine"):
+        del bpy.types.Material.neural_refine
+    for cls in reversed(_CLASSES):
+        if getattr(cls, "is_registered", False):
+            bpy.utils.unregister_class(cls)
