@@ -5,7 +5,7 @@ docs/architecture.md for the conventions.
 """
 
 from . import frame, fresnel, ggx
-from .base import IMPORTANCE, RADIANCE, SMOOTH_ALPHA, BSDF, BSDFSample
+from .base import BSDF, IMPORTANCE, RADIANCE, SMOOTH_ALPHA, BSDFSample
 from .conductor import RoughConductor
 from .dielectric import RoughDielectric
 from .frame import (

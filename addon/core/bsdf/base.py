@@ -20,13 +20,13 @@ array library of its inputs and parameters (numpy in, numpy out).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..xp import namespace, to_numpy
+from .frame import dot
 
 SMOOTH_ALPHA = 1e-3
 RADIANCE = "radiance"
@@ -109,7 +109,7 @@ def _check_directions(a: np.ndarray, name: str) -> None:
     if not np.all(np.isfinite(a)):
         bad = int(np.flatnonzero(~np.all(np.isfinite(a), axis=1))[0])
         raise ValueError(f"{name} must be finite, row {bad} is {a[bad].tolist()}")
-    n = np.einsum("ij,ij->i", a, a)
+    n = dot(a, a)
     off = np.abs(n - 1.0) > 2.0 * UNIT_TOLERANCE
     if np.any(off):
         bad = int(np.flatnonzero(off)[0])

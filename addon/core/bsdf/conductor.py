@@ -6,7 +6,18 @@ import numpy as np
 
 from . import ggx
 from .base import BSDF, RADIANCE, SMOOTH_ALPHA, BSDFSample, as_param, rows
+from .frame import dot, reflect
 from .fresnel import fresnel_conductor
+
+
+def _half_vector(wi, wo, xp):
+    """The reflection half vector normalize(wi + wo) turned to face +z, and where it exists."""
+    h = wi + wo
+    h *= xp.where(h[:, 2] < 0.0, -1.0, 1.0)[:, None]
+    hn = xp.sqrt(dot(h, h))
+    with xp.errstate(invalid="ignore", divide="ignore"):
+        m = h / hn[:, None]
+    return m, hn > 0.0
 
 
 class RoughConductor(BSDF):
@@ -34,13 +45,10 @@ class RoughConductor(BSDF):
         n = wi.shape[0]
         alpha, eta, k = self._rows(n, xp)
         ci, co = wi[:, 2], wo[:, 2]
-        h = wi + wo
-        h *= xp.where(h[:, 2] < 0.0, -1.0, 1.0)[:, None]
-        hn = xp.sqrt(xp.einsum("ij,ij->i", h, h))
-        ok = (ci * co > 0.0) & (hn > 0.0) & (alpha >= SMOOTH_ALPHA)
+        m, has_half = _half_vector(wi, wo, xp)
+        ok = (ci * co > 0.0) & has_half & (alpha >= SMOOTH_ALPHA)
         with xp.errstate(invalid="ignore", divide="ignore"):
-            m = h / hn[:, None]
-            dwo = xp.abs(xp.einsum("ij,ij->i", wo, m))
+            dwo = xp.abs(dot(wo, m))
             f = (ggx.ndf(m, alpha) * ggx.smith_g2(wi, wo, alpha) / (4.0 * xp.abs(ci * co)))[:, None]
             f = f * fresnel_conductor(dwo, eta, k)
         return xp.where(ok[:, None] & xp.isfinite(f), f, 0.0)
@@ -49,13 +57,10 @@ class RoughConductor(BSDF):
         wi, wo, xp = self._inputs(wi, wo, mode, check)
         n = wi.shape[0]
         alpha = rows(self.alpha, n, "alpha", xp)
-        h = wi + wo
-        h *= xp.where(h[:, 2] < 0.0, -1.0, 1.0)[:, None]
-        hn = xp.sqrt(xp.einsum("ij,ij->i", h, h))
-        ok = (wi[:, 2] * wo[:, 2] > 0.0) & (hn > 0.0) & (alpha >= SMOOTH_ALPHA)
+        m, has_half = _half_vector(wi, wo, xp)
+        ok = (wi[:, 2] * wo[:, 2] > 0.0) & has_half & (alpha >= SMOOTH_ALPHA)
         with xp.errstate(invalid="ignore", divide="ignore"):
-            m = h / hn[:, None]
-            p = ggx.pdf_visible_normal(wo, m, alpha) / (4.0 * xp.abs(xp.einsum("ij,ij->i", wo, m)))
+            p = ggx.pdf_visible_normal(wo, m, alpha) / (4.0 * xp.abs(dot(wo, m)))
         return xp.where(ok & xp.isfinite(p), p, 0.0)
 
     def sample(self, wo, u_lobe, u, mode=RADIANCE, check=True) -> BSDFSample:
@@ -65,8 +70,8 @@ class RoughConductor(BSDF):
         smooth = alpha < SMOOTH_ALPHA
         m = ggx.sample_visible_normal(wo, alpha, u)
         m = xp.where(smooth[:, None], xp.asarray([0.0, 0.0, 1.0]), m)
-        wi = 2.0 * xp.einsum("ij,ij->i", wo, m)[:, None] * m - wo
-        dwo = xp.abs(xp.einsum("ij,ij->i", wo, m))
+        wi = reflect(wo, m)
+        dwo = xp.abs(dot(wo, m))
         F = fresnel_conductor(dwo, eta, k)
         with xp.errstate(invalid="ignore", divide="ignore"):
             rough_w = ggx.smith_g2(wi, wo, alpha) / ggx.smith_g1(wo, alpha)

@@ -7,16 +7,12 @@ import numpy as np
 
 from . import ggx
 from .base import BSDF, RADIANCE, SMOOTH_ALPHA, BSDFSample, as_param, rows
-from .frame import refract
+from .frame import dot, reflect, refract
 from .fresnel import fresnel_dielectric
 
 # |ior - 1| below this is index-matched: Fresnel reflectance is < 1e-15 there, and the
 # generalised half vector of rough transmission loses all precision to cancellation.
 INDEX_MATCHED_TOL = 1e-7
-
-
-def _dot(a, b, xp=np):
-    return xp.einsum("ij,ij->i", a, b)
 
 
 class RoughDielectric(BSDF):
@@ -71,10 +67,10 @@ class RoughDielectric(BSDF):
         etap = xp.where(refl, 1.0, xp.where(co > 0.0, ior, 1.0 / ior))
         h = wi * etap[:, None] + wo
         h *= xp.where(h[:, 2] < 0.0, -1.0, 1.0)[:, None]
-        hn = xp.sqrt(_dot(h, h, xp))
+        hn = xp.sqrt(dot(h, h))
         with xp.errstate(invalid="ignore", divide="ignore"):
             m = h / hn[:, None]
-        dwi, dwo = _dot(wi, m, xp), _dot(wo, m, xp)
+        dwi, dwo = dot(wi, m), dot(wo, m)
         ok = (ci != 0.0) & (co != 0.0) & (hn > 0.0) & (dwi * ci > 0.0) & (dwo * co > 0.0)
         return m, etap, refl, ok, dwi, dwo
 
@@ -119,18 +115,18 @@ class RoughDielectric(BSDF):
         # smooth rows use the geometric normal; rough rows a visible microfacet normal
         m = ggx.sample_visible_normal(wo, alpha, u)
         m = xp.where(smooth[:, None], xp.asarray([0.0, 0.0, 1.0]), m)
-        dwo = _dot(wo, m, xp)
+        dwo = dot(wo, m)
         R = fresnel_dielectric(dwo, ior)
         T = xp.zeros_like(R) if self.reflection_only else 1.0 - R
         with xp.errstate(invalid="ignore", divide="ignore"):
             p_refl = R / (R + T)
         choose_r = u_lobe < p_refl
 
-        wr = 2.0 * dwo[:, None] * m - wo
+        wr = reflect(wo, m)
         wt, tir_free = refract(wo, m, ior)
         etap = xp.where(dwo > 0.0, ior, 1.0 / ior)
         wi = xp.where(choose_r[:, None], wr, wt)
-        dwi = _dot(wi, m, xp)
+        dwi = dot(wi, m)
         ci, co = wi[:, 2], wo[:, 2]
         valid = xp.where(choose_r, ci * co > 0.0, tir_free & (ci * co < 0.0)) & (co != 0.0)
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..xp import namespace
+from .frame import dot
 
 MIN_ALPHA = 1e-4
 
@@ -78,7 +79,7 @@ def sample_visible_normal(w: np.ndarray, alpha, u: np.ndarray) -> np.ndarray:
     hy = sin_t * xp.sin(phi) + wy
     hz = z + wz
     m = xp.stack([hx * a, hy * a, xp.maximum(hz, 0.0)], axis=-1)
-    n = xp.sqrt(xp.einsum("...i,...i->...", m, m))[..., None]
+    n = xp.sqrt(dot(m, m))[..., None]
     with xp.errstate(invalid="ignore", divide="ignore"):
         m = m / n
     return xp.where(n > 0.0, m, xp.asarray([0.0, 0.0, 1.0]))
@@ -90,7 +91,7 @@ def pdf_visible_normal(w: np.ndarray, m: np.ndarray, alpha) -> np.ndarray:
     xp = namespace(w, m, alpha)
     cz = w[..., 2]
     sign = xp.where(cz < 0.0, -1.0, 1.0)
-    wm = xp.maximum(0.0, sign * xp.einsum("...i,...i->...", w, m))
+    wm = xp.maximum(0.0, sign * dot(w, m))
     with xp.errstate(invalid="ignore", divide="ignore"):
         p = smith_g1(w, alpha) * wm * ndf(m, alpha) / xp.abs(cz)
     return xp.where((cz != 0.0) & xp.isfinite(p), p, 0.0)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 from ..xp import namespace
-
 from .base import BSDF, RADIANCE, BSDFSample, as_param, rows
 
 

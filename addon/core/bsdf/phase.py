@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import as_directions, as_param, as_uniform, rows, same_rows
-from .frame import coordinate_system, to_world
 from ..xp import namespace
+from .base import as_directions, as_param, as_uniform, rows, same_rows
+from .frame import coordinate_system, dot, to_world
 
 
 class HenyeyGreenstein:
@@ -41,7 +41,7 @@ class HenyeyGreenstein:
         wi = as_directions(wi, "wi", check, xp)
         wo = as_directions(wo, "wo", check, xp)
         n = same_rows("wi", wi, "wo", wo)
-        cos = xp.clip(xp.einsum("ij,ij->i", wi, wo), -1.0, 1.0)
+        cos = xp.clip(dot(wi, wo), -1.0, 1.0)
         return self._value(cos, rows(self.g, n, "g", xp))
 
     pdf = eval
