@@ -3,7 +3,6 @@ chi2 tests), and the sample weight against f |cos| / pdf."""
 
 import numpy as np
 import pytest
-from scipy import stats
 
 from addon.core.bsdf import (
     IMPORTANCE,
@@ -14,50 +13,17 @@ from addon.core.bsdf import (
     RoughDielectric,
     ggx,
 )
+from tests.stats import chi2_direction_test, chi2_sphere
 
 N_SAMPLES = 100_000
-# equal-area bins in (cos theta, phi), each integrated with SUBZ x SUBPHI midpoints: fine, because
-# rough transmission has a steep edge (the pdf grows toward the boundary of the reachable cone)
-NZ, NPHI, SUBZ, SUBPHI = 40, 80, 24, 12
+# equal-area bins in (cos theta, phi), each integrated with SUB midpoints: fine, because rough
+# transmission has a steep edge (the pdf grows toward the boundary of the reachable cone)
+BINS = dict(theta_bins=40, phi_bins=80, sub=(24, 12))
 SIGNIFICANCE = 1e-3  # per test, on a seeded (deterministic) run
 
 
-def _grid():
-    z = -1.0 + (np.arange(NZ * SUBZ) + 0.5) * (2.0 / (NZ * SUBZ))
-    phi = (np.arange(NPHI * SUBPHI) + 0.5) * (2.0 * np.pi / (NPHI * SUBPHI))
-    zz, pp = np.meshgrid(z, phi, indexing="ij")
-    r = np.sqrt(1.0 - zz * zz)
-    w = np.stack([r * np.cos(pp), r * np.sin(pp), zz], axis=-1).reshape(-1, 3)
-    dw = 4.0 * np.pi / w.shape[0]
-    return w, dw
-
-
-GRID, GRID_DW = _grid()
-
-
-def _bin_index(w):
-    iz = np.clip(((w[:, 2] + 1.0) * 0.5 * NZ).astype(int), 0, NZ - 1)
-    phi = np.mod(np.arctan2(w[:, 1], w[:, 0]), 2.0 * np.pi)
-    ip = np.clip((phi / (2.0 * np.pi) * NPHI).astype(int), 0, NPHI - 1)
-    return iz * NPHI + ip
-
-
-def chi2_pvalue(pdf_values_on_grid, wi, valid):
-    """p-value that samples ``wi[valid]`` (with the rest counted as 'no sample') come from the
-    density whose values on GRID are given. Bins expecting fewer than 5 samples are pooled."""
-    n = wi.shape[0]
-    p = pdf_values_on_grid.reshape(NZ, SUBZ, NPHI, SUBPHI).sum(axis=(1, 3)).ravel() * GRID_DW
-    expected = np.append(p * n, max(n * (1.0 - p.sum()), 0.0))
-    observed = np.append(np.bincount(_bin_index(wi[valid]), minlength=NZ * NPHI), n - valid.sum())
-    low = expected < 5.0
-    e = np.append(expected[~low], expected[low].sum())
-    o = np.append(observed[~low], observed[low].sum())
-    keep = e > 0.0
-    assert np.all(o[~keep] == 0), "samples fall where the density is zero"
-    e, o = e[keep], o[keep]
-    e *= o.sum() / e.sum()  # the quadrature total is 1 only to O(1e-4)
-    stat = np.sum((o - e) ** 2 / e)
-    return stats.chi2.sf(stat, len(e) - 1), p.sum()
+def chi2(wi, valid, pdf_fn, pole="z"):
+    return chi2_sphere(wi, valid, pdf_fn, pole=pole, **BINS)
 
 
 def _dir(theta_deg, phi_deg=30.0, below=False):
@@ -86,9 +52,9 @@ def _check_bsdf(bsdf, wo, seed, mode=RADIANCE):
     # transmission flag = opposite side
     np.testing.assert_array_equal(s.transmission[v], s.wi[v, 2] * wo[2] < 0.0)
     # sample distribution matches pdf()
-    grid_pdf = bsdf.pdf(GRID, np.tile(wo, (GRID.shape[0], 1)), mode=mode)
-    pval, total = chi2_pvalue(grid_pdf, s.wi, v)
-    assert pval > SIGNIFICANCE, f"chi-square p = {pval:.2e} (pdf integrates to {total:.4f})"
+    res = chi2(s.wi, v, lambda g: bsdf.pdf(g, np.tile(wo, (g.shape[0], 1)), mode=mode))
+    total = res.pdf_integral
+    assert res.pvalue > SIGNIFICANCE, f"chi-square p = {res.pvalue:.2e} (pdf integrates to {total:.4f})"
     # the fraction of valid samples is the integral of the pdf
     assert abs(v.mean() - total) < 5.0 * np.sqrt(max(total * (1 - total), 0.0) / n) + 2e-3
 
@@ -132,13 +98,12 @@ def test_visible_normal_sampling(alpha, below):
     m = ggx.sample_visible_normal(w, alpha, rng.random((N_SAMPLES, 2)))
     assert np.all(m[:, 2] >= 0.0)
     np.testing.assert_allclose(np.linalg.norm(m, axis=1), 1.0, atol=1e-12)
-    # m peaks at +z, where the (cos theta, phi) bins are too coarse for small alpha: bin in a
-    # rotated frame (a cyclic permutation of the axes) that puts +z on the grid's equator
-    grid_m = GRID[:, [1, 2, 0]]
-    grid_pdf = ggx.pdf_visible_normal(np.tile(w[0], (GRID.shape[0], 1)), grid_m, alpha)
-    pval, total = chi2_pvalue(grid_pdf, m[:, [2, 0, 1]], np.ones(N_SAMPLES, bool))
-    assert abs(total - 1.0) < 2e-3
-    assert pval > SIGNIFICANCE
+    # m peaks at +z, where the (cos theta, phi) bins are too coarse for small alpha: bin with
+    # the grid's pole on +y, which puts +z on the grid's equator
+    res = chi2(m, np.ones(N_SAMPLES, bool), lambda g: ggx.pdf_visible_normal(np.tile(w[0], (g.shape[0], 1)), g, alpha),
+               pole="y")
+    assert abs(res.pdf_integral - 1.0) < 2e-3
+    assert res.pvalue > SIGNIFICANCE
 
 
 @pytest.mark.parametrize("g", [-0.5, 0.0, 0.8])
@@ -149,18 +114,48 @@ def test_henyey_greenstein_sampling(g):
     wi, pdf = hg.sample(wo, rng.random((N_SAMPLES, 2)))
     np.testing.assert_allclose(np.linalg.norm(wi, axis=1), 1.0, atol=1e-12)
     np.testing.assert_allclose(pdf, hg.pdf(wi, wo), rtol=1e-9)
-    pval, total = chi2_pvalue(hg.pdf(GRID, np.tile(wo[0], (GRID.shape[0], 1))), wi, np.ones(N_SAMPLES, bool))
-    assert abs(total - 1.0) < 2e-3
-    assert pval > SIGNIFICANCE
+    res = chi2(wi, np.ones(N_SAMPLES, bool), lambda g: hg.pdf(g, np.tile(wo[0], (g.shape[0], 1))))
+    assert abs(res.pdf_integral - 1.0) < 2e-3
+    assert res.pvalue > SIGNIFICANCE
     # pbrt-v4 convention: both directions point away, so the mean of wi.wo is -g
     assert abs(np.mean(np.sum(wi * wo, axis=1)) + g) < 0.01
 
 
-def test_chi2_detects_a_wrong_density():
-    """The test itself has power: a sampler checked against a slightly different pdf fails."""
+@pytest.mark.parametrize("pole", ["z", "y"])
+def test_chi2_detects_a_wrong_density(pole):
+    """The test itself has power: a sampler checked against a slightly different pdf fails, and
+    passes against its own (with either pole of the binning grid)."""
     rng = np.random.default_rng(9)
     wo = np.tile(_dir(30.0), (N_SAMPLES, 1))
     s = RoughConductor(0.3, 1.0, 3.0).sample(wo, rng.random(N_SAMPLES), rng.random((N_SAMPLES, 2)))
-    wrong = RoughConductor(0.33, 1.0, 3.0).pdf(GRID, np.tile(wo[0], (GRID.shape[0], 1)))
-    pval, _ = chi2_pvalue(wrong, s.wi, s.valid)
-    assert pval < 1e-6
+    for alpha, detected in ((0.33, True), (0.3, False)):
+        bsdf = RoughConductor(alpha, 1.0, 3.0)
+        res = chi2(s.wi, s.valid, lambda g, b=bsdf: b.pdf(g, np.tile(wo[0], (g.shape[0], 1))), pole=pole)
+        assert (res.pvalue < 1e-6) == detected, (alpha, res.pvalue)
+
+
+def test_chi2_detects_samples_where_the_density_is_zero():
+    """Samples in the lower hemisphere against a reflection-only density: rejected outright."""
+    rng = np.random.default_rng(10)
+    wo = np.tile(_dir(30.0), (20_000, 1))
+    s = Lambertian(0.5).sample(wo, rng.random(20_000), rng.random((20_000, 2)))
+    wi = s.wi.copy()
+    wi[:100, 2] *= -1.0
+    with pytest.raises(AssertionError, match="density is zero"):
+        chi2(wi, s.valid, lambda g: Lambertian(0.5).pdf(g, np.tile(wo[0], (g.shape[0], 1))))
+
+
+def test_chi2_direction_test_has_power():
+    """The sample-drawing entry point (the proxy's and the sampling network's tests) rejects a
+    cosine lobe checked against a slightly wider one."""
+    wo1 = _dir(0.0)
+
+    def sample_fn(n, rng):
+        s = Lambertian(0.5).sample(np.tile(wo1, (n, 1)), rng.random(n), rng.random((n, 2)))
+        return np.where(s.valid[:, None], s.wi, np.nan)
+
+    def cos_power(k):
+        return lambda g: np.where(g[:, 2] > 0.0, (k + 1) / (2 * np.pi) * np.maximum(g[:, 2], 0.0) ** k, 0.0)
+
+    assert chi2_direction_test(sample_fn, cos_power(1.0), n=100_000, seed=2)[1] > SIGNIFICANCE
+    assert chi2_direction_test(sample_fn, cos_power(1.1), n=100_000, seed=2)[1] < 1e-6
