@@ -206,7 +206,7 @@ def test_smooth_coat_over_lambertian_matches_mitsuba_plastic():
     wo = np.concatenate([direction(45, 120), direction(0), direction(20, 30), direction(70, 300)])
     ctx = mi.BSDFContext()
     ref = []
-    for a, b in zip(wi, wo):
+    for a, b in zip(wi, wo, strict=True):
         si = mi.SurfaceInteraction3f()
         si.n = mi.Normal3f(0.0, 0.0, 1.0)
         si.sh_frame = mi.Frame3f(si.n)
