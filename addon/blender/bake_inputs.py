@@ -12,7 +12,6 @@ import numpy as np
 
 from ..core.stack import alpha_from_artist_roughness, k_from_f0
 from ..core.textures.spatial import SpatialStack
-
 from . import images, stack_io
 
 # (map parameter, layer type) -> core field name of that layer

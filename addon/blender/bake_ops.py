@@ -14,69 +14,16 @@ import time
 import bpy
 from bpy.props import EnumProperty, IntProperty
 
-from ..core.neural.models import resolve_size
 from ..core.textures.bake import bake_key, bake_stack, neural_encoder
-
-from . import bake_inputs, stack_io
-from .operators import UserError, _guarded, _LongOperator, _MaterialOperator
+from . import bake_inputs
+from .bake_state import bake_size, baked_texture_state, texture_output_path  # noqa: F401 (baked_texture_state: API)
+from .operator_base import LongOperator, MaterialOperator, UserError, guarded
 from .properties import MAP_PARAMETERS
-
-
-DEFAULT_BAKE_FOLDER = "//textures/"
-
-
-def texture_output_path(mat) -> str:
-    """Where the bake of ``mat`` goes: its Bake Folder (relative to the .blend file by default).
-
-    A folder relative to the .blend file ("//...") needs a saved file; without one Blender would
-    resolve it against the process's working folder, so the bake refuses instead.
-    """
-    folder = mat.neural_layers.bake_directory or DEFAULT_BAKE_FOLDER
-    if folder.startswith("//") and not bpy.data.filepath:
-        raise UserError(
-            f"the bake folder {folder!r} is relative to the .blend file, which is not saved: "
-            "save the file first or choose an absolute Bake Folder"
-        )
-    return os.path.join(bpy.path.abspath(folder), f"{bpy.path.clean_name(mat.name)}.exr")
-
-
-def bake_size(mat) -> str:
-    """The decoder size a bake of ``mat`` uses: its model-size setting, "auto" resolved (``neural.resolve_size``)."""
-    try:
-        return resolve_size(stack_io.model_size(mat))
-    except (ValueError, FileNotFoundError) as e:
-        raise UserError(str(e)) from None
-
-
-def baked_texture_state(mat) -> tuple[str | None, str]:
-    """(path of a current baked texture or None, a line for the user about its state)."""
-    s = mat.neural_layers
-    if not s.texture_path:
-        return None, "not baked"
-    path = bpy.path.abspath(s.texture_path)
-    if not os.path.isfile(path):
-        return None, f"baked texture missing: {path}"
-    try:
-        found = bake_inputs.spatial_stack_from_material(mat)
-    except ValueError as e:
-        return None, str(e)
-    if found is None:
-        return None, "no layer stack"
-    spatial, _ = found
-    res = tuple(s.texture_size)
-    try:
-        size = bake_size(mat)
-    except UserError as e:
-        return None, str(e)
-    if bake_key(spatial, res, size) != s.texture_key:
-        return None, "baked texture is out of date: bake again"
-    return path, f"baked: {os.path.basename(path)}"
 
 
 def camera_resolution(context, mat, spatial) -> tuple[int, int]:
     """(height, width) no finer than the material's smallest footprint through the scene camera."""
     from ..core import quality
-
     from . import scene_export
 
     scene, _ = scene_export.export_scene(context.evaluated_depsgraph_get())
@@ -86,7 +33,7 @@ def camera_resolution(context, mat, spatial) -> tuple[int, int]:
     return quality.texture_resolution_for_footprint(footprint, spatial.resolution or (1, 1))
 
 
-class NLM_OT_map_add(_MaterialOperator, bpy.types.Operator):
+class NLM_OT_map_add(MaterialOperator, bpy.types.Operator):
     """Drive a parameter of the active layer by an image"""
 
     bl_idname = "neural_layers.map_add"
@@ -96,7 +43,7 @@ class NLM_OT_map_add(_MaterialOperator, bpy.types.Operator):
     parameter: EnumProperty(name="Parameter", items=MAP_PARAMETERS, default="ROUGHNESS")
 
     def execute(self, context):
-        return _guarded(self.bl_label, self, lambda: self._run(context))
+        return guarded(self.bl_label, self, lambda: self._run(context))
 
     def _run(self, context):
         mat = self.target(context)
@@ -109,7 +56,7 @@ class NLM_OT_map_add(_MaterialOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
-class NLM_OT_map_remove(_MaterialOperator, bpy.types.Operator):
+class NLM_OT_map_remove(MaterialOperator, bpy.types.Operator):
     """Remove a parameter map of the active layer"""
 
     bl_idname = "neural_layers.map_remove"
@@ -119,7 +66,7 @@ class NLM_OT_map_remove(_MaterialOperator, bpy.types.Operator):
     index: IntProperty(name="Index", default=0, min=0)
 
     def execute(self, context):
-        return _guarded(self.bl_label, self, lambda: self._run(context))
+        return guarded(self.bl_label, self, lambda: self._run(context))
 
     def _run(self, context):
         mat = self.target(context)
@@ -133,7 +80,7 @@ class NLM_OT_map_remove(_MaterialOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
-class NLM_OT_bake_texture(_LongOperator, bpy.types.Operator):
+class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
     """Bake the material's stack and its parameter maps into a mip-mapped latent texture (EXR)"""
 
     bl_idname = "neural_layers.bake_texture"
@@ -176,7 +123,7 @@ class NLM_OT_bake_texture(_LongOperator, bpy.types.Operator):
         return work, finish
 
 
-class NLM_OT_texture_clear(_MaterialOperator, bpy.types.Operator):
+class NLM_OT_texture_clear(MaterialOperator, bpy.types.Operator):
     """Stop using the baked latent texture for this material (the file is kept)"""
 
     bl_idname = "neural_layers.texture_clear"
@@ -184,7 +131,7 @@ class NLM_OT_texture_clear(_MaterialOperator, bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     def execute(self, context):
-        return _guarded(self.bl_label, self, lambda: self._run(context))
+        return guarded(self.bl_label, self, lambda: self._run(context))
 
     def _run(self, context):
         mat = self.target(context)
@@ -195,13 +142,4 @@ class NLM_OT_texture_clear(_MaterialOperator, bpy.types.Operator):
 
 _CLASSES = (NLM_OT_map_add, NLM_OT_map_remove, NLM_OT_bake_texture, NLM_OT_texture_clear)
 
-
-def register() -> None:
-    for cls in _CLASSES:
-        bpy.utils.register_class(cls)
-
-
-def unregister() -> None:
-    for cls in reversed(_CLASSES):
-        if getattr(cls, "is_registered", False):
-            bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(_CLASSES)

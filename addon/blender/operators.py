@@ -14,101 +14,32 @@ from __future__ import annotations
 
 import math
 import time
-import traceback
 
 import bpy
 from bpy.props import EnumProperty, StringProperty
 
-from . import images, jobs, stack_io
-from .properties import BASE_LAYER_TYPES, LAYER_TYPES
 from ..core import preview
-from ..core.stack import PRESETS, Coating, Conductor, Dielectric, Diffuse
-
-
-class UserError(Exception):
-    """A problem the user can fix; its message is reported as is."""
-
-
-def _fail(op, message: str) -> set:
-    op.report({"ERROR"}, message)
-    return {"CANCELLED"}
-
-
-def _guarded(label: str, op, fn) -> set:
-    """Run ``fn()``; turn any failure into a report instead of a traceback."""
-    try:
-        return fn()
-    except preview.NeuralUnavailable as e:
-        return _fail(op, f"neural models not available: {e}")
-    except (UserError, ValueError) as e:
-        return _fail(op, str(e))
-    except Exception as e:  # unexpected: a report for the user, the traceback for a bug report
-        traceback.print_exc()
-        return _fail(op, f"{label} failed: {type(e).__name__}: {e}")
-
-
-class _MaterialOperator:
-    material: StringProperty(
-        name="Material",
-        description="Name of the material to act on (default: the active object's active material)",
-        default="",
-        options={"SKIP_SAVE"},
-    )
-
-    @classmethod
-    def poll(cls, context):
-        # Always runnable: a missing object or material is reported by execute(), so scripts
-        # get a message instead of a poll failure.
-        return True
-
-    def target(self, context):
-        if self.material:
-            mat = bpy.data.materials.get(self.material)
-            if mat is None:
-                raise UserError(f"there is no material named {self.material!r}")
-            return mat
-        ob = getattr(context, "object", None) or getattr(context, "active_object", None)
-        if ob is None:
-            raise UserError("no active object: select an object with a material (or pass material=\"Name\")")
-        mat = ob.active_material
-        if mat is None:
-            raise UserError(f"object {ob.name!r} has no material: add one (Material Properties > New)")
-        return mat
-
-    def target_stack(self, context):
-        mat = self.target(context)
-        stack = stack_io.stack_from_material(mat)
-        if stack is None:
-            raise UserError(f"material {mat.name!r} has an empty layer stack: add a base layer or pick a preset")
-        return mat, stack
-
-    def report_notes(self, notes):
-        for note in notes:
-            self.report({"WARNING"}, note)
-
+from ..core.stack import PRESETS
+from . import layer_types, stack_io
+from .layer_types import BASE_LAYER_TYPES
+from .operator_base import LongOperator, MaterialOperator, UserError, fail, guarded
 
 # --------------------------------------------------------------------------------------------
 # Editing the stack
 
-_DEFAULTS = {
-    "DIFFUSE": Diffuse(),
-    "CONDUCTOR": Conductor(),
-    "DIELECTRIC": Dielectric(),
-    "COATING": Coating(),
-}
 
-
-class NLM_OT_layer_add(_MaterialOperator, bpy.types.Operator):
+class NLM_OT_layer_add(MaterialOperator, bpy.types.Operator):
     """Add a layer: a base (when the stack has none) or a coating above the active layer"""
 
     bl_idname = "neural_layers.layer_add"
     bl_label = "Add Layer"
     bl_options = {"REGISTER", "UNDO"}
 
-    layer_type: EnumProperty(name="Type", items=LAYER_TYPES, default="COATING")
+    layer_type: EnumProperty(name="Type", items=layer_types.enum_items(), default="COATING",
+                            description="The type of the new layer")
 
     def execute(self, context):
-        return _guarded("adding a layer", self, lambda: self._run(context))
+        return guarded("adding a layer", self, lambda: self._run(context))
 
     def _run(self, context):
         mat = self.target(context)
@@ -127,7 +58,7 @@ class NLM_OT_layer_add(_MaterialOperator, bpy.types.Operator):
                     raise UserError("add a base layer first (Diffuse, Conductor or Dielectric); coatings go above it")
                 position = min(max(s.active_index, 0) + 1, len(layers))
             item = layers.add()
-            stack_io.write_layer(item, _DEFAULTS[self.layer_type])
+            stack_io.write_layer(item, layer_types.BY_ID[self.layer_type].default())
             if self.layer_type == "CONDUCTOR":
                 item.conductor_mode = "F0"
             item.name = stack_io.default_layer_name(self.layer_type, {x.name for x in layers})
@@ -146,7 +77,7 @@ def _active_item(op, context):
     return mat, s, s.active_index
 
 
-class NLM_OT_layer_remove(_MaterialOperator, bpy.types.Operator):
+class NLM_OT_layer_remove(MaterialOperator, bpy.types.Operator):
     """Remove the active layer"""
 
     bl_idname = "neural_layers.layer_remove"
@@ -154,7 +85,7 @@ class NLM_OT_layer_remove(_MaterialOperator, bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     def execute(self, context):
-        return _guarded("removing a layer", self, lambda: self._run(context))
+        return guarded("removing a layer", self, lambda: self._run(context))
 
     def _run(self, context):
         mat, s, i = _active_item(self, context)
@@ -164,7 +95,7 @@ class NLM_OT_layer_remove(_MaterialOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
-class NLM_OT_layer_move(_MaterialOperator, bpy.types.Operator):
+class NLM_OT_layer_move(MaterialOperator, bpy.types.Operator):
     """Move the active coating up (toward the top) or down (toward the base)"""
 
     bl_idname = "neural_layers.layer_move"
@@ -178,7 +109,7 @@ class NLM_OT_layer_move(_MaterialOperator, bpy.types.Operator):
     )
 
     def execute(self, context):
-        return _guarded("moving a layer", self, lambda: self._run(context))
+        return guarded("moving a layer", self, lambda: self._run(context))
 
     def _run(self, context):
         mat, s, i = _active_item(self, context)
@@ -209,7 +140,7 @@ def _copy_properties(src, dst) -> None:
             setattr(dst, key, getattr(src, key))
 
 
-class NLM_OT_layer_duplicate(_MaterialOperator, bpy.types.Operator):
+class NLM_OT_layer_duplicate(MaterialOperator, bpy.types.Operator):
     """Duplicate the active coating (placed above it)"""
 
     bl_idname = "neural_layers.layer_duplicate"
@@ -217,7 +148,7 @@ class NLM_OT_layer_duplicate(_MaterialOperator, bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     def execute(self, context):
-        return _guarded("duplicating a layer", self, lambda: self._run(context))
+        return guarded("duplicating a layer", self, lambda: self._run(context))
 
     def _run(self, context):
         mat, s, i = _active_item(self, context)
@@ -233,7 +164,7 @@ class NLM_OT_layer_duplicate(_MaterialOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
-class NLM_OT_layer_rename(_MaterialOperator, bpy.types.Operator):
+class NLM_OT_layer_rename(MaterialOperator, bpy.types.Operator):
     """Rename the active layer"""
 
     bl_idname = "neural_layers.layer_rename"
@@ -247,11 +178,11 @@ class NLM_OT_layer_rename(_MaterialOperator, bpy.types.Operator):
             _, s, i = _active_item(self, context)
             self.name = s.layers[i].name
         except UserError as e:
-            return _fail(self, str(e))
+            return fail(self, str(e))
         return context.window_manager.invoke_props_dialog(self)
 
     def execute(self, context):
-        return _guarded("renaming a layer", self, lambda: self._run(context))
+        return guarded("renaming a layer", self, lambda: self._run(context))
 
     def _run(self, context):
         _, s, i = _active_item(self, context)
@@ -261,7 +192,7 @@ class NLM_OT_layer_rename(_MaterialOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
-class NLM_OT_preset_apply(_MaterialOperator, bpy.types.Operator):
+class NLM_OT_preset_apply(MaterialOperator, bpy.types.Operator):
     """Replace the stack with one of the bundled presets"""
 
     bl_idname = "neural_layers.preset_apply"
@@ -274,7 +205,7 @@ class NLM_OT_preset_apply(_MaterialOperator, bpy.types.Operator):
     )
 
     def execute(self, context):
-        return _guarded("applying a preset", self, lambda: self._run(context))
+        return guarded("applying a preset", self, lambda: self._run(context))
 
     def _run(self, context):
         mat = self.target(context)
@@ -286,7 +217,7 @@ class NLM_OT_preset_apply(_MaterialOperator, bpy.types.Operator):
 # Latent
 
 
-class NLM_OT_evaluate_latent(_MaterialOperator, bpy.types.Operator):
+class NLM_OT_evaluate_latent(MaterialOperator, bpy.types.Operator):
     """Encode the stack into its latent code with the neural encoder and store it on the material"""
 
     bl_idname = "neural_layers.evaluate_latent"
@@ -294,7 +225,7 @@ class NLM_OT_evaluate_latent(_MaterialOperator, bpy.types.Operator):
     bl_options = {"REGISTER", "UNDO"}
 
     def execute(self, context):
-        return _guarded("evaluating the latent", self, lambda: self._run(context))
+        return guarded("evaluating the latent", self, lambda: self._run(context))
 
     def _run(self, context):
         mat, _ = self.target_stack(context)
@@ -308,54 +239,7 @@ class NLM_OT_evaluate_latent(_MaterialOperator, bpy.types.Operator):
 # Long operations: previews and comparison
 
 
-class _LongOperator(jobs.ModalJob, _MaterialOperator):
-    """prepare() reads Blender and returns (work, finish): work(progress) is core-only."""
-
-    _finish = None
-
-    def prepare(self, context):
-        raise NotImplementedError
-
-    def execute(self, context):
-        def run():
-            work, finish = self.prepare(context)
-            return finish(context, work(None))
-
-        return _guarded(self.bl_label, self, run)
-
-    def invoke(self, context, event):
-        if bpy.app.background or context.window is None:
-            return self.execute(context)
-        prepared = []
-
-        def prepare():
-            prepared.append(self.prepare(context))
-            return {"FINISHED"}
-
-        if _guarded(self.bl_label, self, prepare) != {"FINISHED"}:
-            return {"CANCELLED"}
-        work, self._finish = prepared[0]
-        return self.start_job(context, work)
-
-    def job_done(self, context, job):
-        if job.error is not None:
-            err = job.error
-
-            def reraise():
-                raise err
-
-            return _guarded(self.bl_label, self, reraise)
-        return _guarded(self.bl_label, self, lambda: self._finish(context, job.result))
-
-    def show(self, context, name, rgba, metadata, notes, summary):
-        image = images.store_image(name, rgba, metadata)
-        images.show_in_image_editor(context, image)
-        self.report_notes(notes)
-        self.report({"INFO"}, f"{image.name}: {summary}")
-        return {"FINISHED"}
-
-
-class NLM_OT_preview_lobe(_LongOperator, bpy.types.Operator):
+class NLM_OT_preview_lobe(LongOperator, bpy.types.Operator):
     """Show the BRDF lobe (f cos over the projected outgoing hemisphere) for the incident angle in the Image Editor"""
 
     bl_idname = "neural_layers.preview_lobe"
@@ -385,7 +269,7 @@ class NLM_OT_preview_lobe(_LongOperator, bpy.types.Operator):
         return work, finish
 
 
-class NLM_OT_preview_sphere(_LongOperator, bpy.types.Operator):
+class NLM_OT_preview_sphere(LongOperator, bpy.types.Operator):
     """Show a sphere shaded with the stack under a default sky and sun in the Image Editor"""
 
     bl_idname = "neural_layers.preview_sphere"
@@ -420,7 +304,7 @@ class NLM_OT_preview_sphere(_LongOperator, bpy.types.Operator):
         return work, finish
 
 
-class NLM_OT_compare_reference(_LongOperator, bpy.types.Operator):
+class NLM_OT_compare_reference(LongOperator, bpy.types.Operator):
     """Neural and Monte Carlo reference lobes side by side with their error image and timings"""
 
     bl_idname = "neural_layers.compare_reference"
@@ -464,13 +348,4 @@ _CLASSES = (
     NLM_OT_compare_reference,
 )
 
-
-def register() -> None:
-    for cls in _CLASSES:
-        bpy.utils.register_class(cls)
-
-
-def unregister() -> None:
-    for cls in reversed(_CLASSES):
-        if getattr(cls, "is_registered", False):
-            bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(_CLASSES)

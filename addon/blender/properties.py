@@ -12,6 +12,7 @@ Conversion to and from ``addon.core.stack.Stack`` lives in ``stack_io``.
 
 from __future__ import annotations
 
+import json
 import math
 
 import bpy
@@ -27,15 +28,9 @@ from bpy.props import (
     StringProperty,
 )
 
+from ..core.neural.models import DEFAULT_SIZE, MODEL_DIR, SIZES
 from ..core.stack import TRAINED_RANGES, VALID_RANGES
-
-LAYER_TYPES = [
-    ("DIFFUSE", "Diffuse", "Base: Lambertian surface with an RGB albedo", "SHADING_SOLID", 0),
-    ("CONDUCTOR", "Conductor", "Base: rough metal (GGX), by F0 colour or by complex index eta + i k", "SHADING_RENDERED", 1),
-    ("DIELECTRIC", "Dielectric", "Base: rough dielectric reflection over black (GGX)", "SHADING_TEXTURE", 2),
-    ("COATING", "Coating", "A rough dielectric interface over a slab of scattering medium; goes above the base", "MOD_THICKNESS", 3),
-]
-BASE_LAYER_TYPES = {"DIFFUSE", "CONDUCTOR", "DIELECTRIC"}
+from . import layer_types
 
 _ALPHA_LO, _ALPHA_HI = TRAINED_RANGES["roughness"]
 _ROUGH_SOFT = (math.sqrt(_ALPHA_LO), math.sqrt(_ALPHA_HI))
@@ -71,6 +66,27 @@ MAP_PARAMETERS = [
 ]
 
 
+def model_size_items(auto_description: str | None = None) -> list[tuple[str, str, str]]:
+    """EnumProperty items of a decoder-size setting: Auto, then every size of the model set
+    (``addon.core.neural.SIZES``), each described from its model card (parameters, speed)."""
+    auto = auto_description or (f"The neural runtime's default size, {DEFAULT_SIZE} (or the first size shipped "
+                                "when it is not)")
+    items = [("AUTO", "Auto", auto)]
+    for size in SIZES:
+        items.append((size.upper(), size.title(), _size_description(size)))
+    return items
+
+
+def _size_description(size: str) -> str:
+    try:  # the card's figures; the digests are checked when the models load, not here
+        card = json.loads((MODEL_DIR / f"decoder_{size}.json").read_text())
+        parameters = f"{int(card['parameters']):,} parameters"
+    except (OSError, ValueError, KeyError, TypeError):
+        return f"The {size} decoder (its model card is missing)"
+    default = "; the Auto choice" if size == DEFAULT_SIZE else ""
+    return f"The {size} decoder: {parameters}, more is slower and closer to the reference{default}"
+
+
 class NLM_ParameterMap(bpy.types.PropertyGroup):
     """An image driving one parameter of its layer: value = low + (high - low) * pixel."""
 
@@ -91,7 +107,7 @@ class NLM_Layer(bpy.types.PropertyGroup):
 
     layer_type: EnumProperty(
         name="Type",
-        items=LAYER_TYPES,
+        items=layer_types.enum_items(),
         default="DIFFUSE",
         description="What this layer is: a base (Diffuse, Conductor, Dielectric) or a Coating above it",
         update=_on_layer_changed,
@@ -228,15 +244,9 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
     )
     model_size: EnumProperty(
         name="Model Size",
-        items=[
-            ("AUTO", "Auto", "The default decoder (tiny, the fastest; else the first shipped size)"),
-            ("TINY", "Tiny", "Smallest, fastest decoder"),
-            ("SMALL", "Small", "The interactive default"),
-            ("MEDIUM", "Medium", "Larger decoder: more accurate, slower"),
-            ("PAPER", "Paper", "The paper's decoder (about 1 M parameters): slowest"),
-        ],
+        items=model_size_items(),
         default="AUTO",
-        description="Neural decoder size used for the latent and the previews",
+        description="Neural decoder size of the latent, the previews and the bake (each size has its own latent space)",
         update=_on_auto_latent,
     )
     auto_latent: BoolProperty(
@@ -317,9 +327,11 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
 _CLASSES = (NLM_ParameterMap, NLM_Layer, NLM_MaterialSettings)
 
 
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(_CLASSES)
+
+
 def register() -> None:
-    for cls in _CLASSES:
-        bpy.utils.register_class(cls)
+    _register_classes()
     bpy.types.Material.neural_layers = PointerProperty(
         type=NLM_MaterialSettings, name="Neural Layers", description="Layer stack of the neural layered material"
     )
@@ -328,6 +340,4 @@ def register() -> None:
 def unregister() -> None:
     if hasattr(bpy.types.Material, "neural_layers"):
         del bpy.types.Material.neural_layers
-    for cls in reversed(_CLASSES):
-        if getattr(cls, "is_registered", False):
-            bpy.utils.unregister_class(cls)
+    _unregister_classes()

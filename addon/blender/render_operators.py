@@ -14,8 +14,8 @@ from pathlib import Path
 import bpy
 from bpy.props import BoolProperty, IntProperty, StringProperty
 
-from . import images, jobs, scene_export
 from ..core.render import Cancelled, render, write_exr, write_png
+from . import images, jobs, scene_export
 
 IMAGE_NAME = "Neural Layered Render"
 
@@ -140,16 +140,4 @@ class NLM_OT_render_preview(jobs.ModalJob, bpy.types.Operator):
 
 _CLASSES = (NLM_OT_render_preview,)
 
-
-def register() -> None:
-    for cls in _CLASSES:
-        bpy.utils.register_class(cls)
-
-
-def unregister() -> None:
-    for cls in reversed(_CLASSES):
-        if getattr(cls, "is_registered", False):
-            bpy.utils.unregister_class(cls)
-
-
-
+register, unregister = bpy.utils.register_classes_factory(_CLASSES)

@@ -31,7 +31,6 @@ from ..core.render import (
     SpotLight,
     SunLight,
 )
-
 from . import images
 
 GEOMETRY_TYPES = {"MESH", "CURVE", "SURFACE", "META", "FONT", "CURVES"}
@@ -114,10 +113,9 @@ def _baked_texture(mat, warnings: list[str]):
     if not mat.neural_layers.texture_path:
         return None
     from ..core.textures import LatentTexture
+    from . import bake_state
 
-    from . import bake_ops
-
-    path, state = bake_ops.baked_texture_state(mat)
+    path, state = bake_state.baked_texture_state(mat)
     if path is None:
         warnings.append(f"material {mat.name!r}: {state}; rendering its constant stack")
         return None

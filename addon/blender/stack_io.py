@@ -23,9 +23,7 @@ from ..core.stack import (
     alpha_from_artist_roughness,
     artist_roughness_from_alpha,
 )
-
-_TYPE_LABEL = {"DIFFUSE": "Diffuse", "CONDUCTOR": "Conductor", "DIELECTRIC": "Dielectric", "COATING": "Coating"}
-_BASES = {"DIFFUSE", "CONDUCTOR", "DIELECTRIC"}
+from . import layer_types
 
 # While True, property update callbacks do not react (bulk writes of a whole stack).
 _suspend_updates = False
@@ -58,7 +56,7 @@ def layer_from_item(item) -> Layer:
             )
     except ValueError as e:
         raise ValueError(f"layer {item.name!r}: {e}") from None
-    raise ValueError(f"layer {item.name!r} has unknown type {kind!r}; expected one of {sorted(_TYPE_LABEL)}")
+    raise ValueError(f"layer {item.name!r} has unknown type {kind!r}; expected one of {sorted(layer_types.BY_ID)}")
 
 
 def stack_from_material(mat) -> Optional[Stack]:
@@ -73,22 +71,22 @@ def stack_from_material(mat) -> Optional[Stack]:
     if not layers:
         return None
     bottom = layers[0]
-    if bottom.layer_type not in _BASES:
+    if bottom.layer_type not in layer_types.BASE_LAYER_TYPES:
         raise ValueError(
-            f"layer {bottom.name!r} ({_TYPE_LABEL.get(bottom.layer_type, bottom.layer_type)}) is at the bottom of "
+            f"layer {bottom.name!r} ({layer_types.label(bottom.layer_type)}) is at the bottom of "
             f"the stack of material {mat.name!r}; the bottom layer must be a base: Diffuse, Conductor or Dielectric"
         )
     for item in layers[1:]:
         if item.layer_type != "COATING":
             raise ValueError(
-                f"layer {item.name!r} ({_TYPE_LABEL.get(item.layer_type, item.layer_type)}) is above the base of "
+                f"layer {item.name!r} ({layer_types.label(item.layer_type)}) is above the base of "
                 f"material {mat.name!r}; only Coating layers can go above the base (move it to the bottom or change its type)"
             )
     return Stack(base=layer_from_item(bottom), coatings=tuple(layer_from_item(i) for i in layers[1:]))
 
 
 def default_layer_name(kind: str, existing: set[str]) -> str:
-    base = _TYPE_LABEL[kind]
+    base = layer_types.BY_ID[kind].label
     if base not in existing:
         return base
     n = 1
@@ -98,28 +96,23 @@ def default_layer_name(kind: str, existing: set[str]) -> str:
 
 
 def write_layer(item, layer: Layer) -> None:
-    """Fill an ``NLM_Layer`` item from a core layer."""
+    """Fill an ``NLM_Layer`` item from a core layer (ValueError for a kind the sidebar does not know)."""
+    item.layer_type = layer_types.identifier_of(layer)
     if isinstance(layer, Diffuse):
-        item.layer_type = "DIFFUSE"
         item.albedo = layer.albedo
         return
     item.roughness = artist_roughness_from_alpha(layer.roughness)
     if isinstance(layer, Conductor):
-        item.layer_type = "CONDUCTOR"
         item.conductor_mode = "ETA_K"
         item.eta = layer.eta
         item.k = layer.k
     elif isinstance(layer, Dielectric):
-        item.layer_type = "DIELECTRIC"
         item.ior = layer.ior
     elif isinstance(layer, Coating):
-        item.layer_type = "COATING"
         item.ior = layer.ior
         item.medium_albedo = layer.albedo
         item.thickness = layer.thickness
         item.g = layer.g
-    else:
-        raise ValueError(f"cannot store a layer of type {type(layer).__name__}")
 
 
 @contextmanager

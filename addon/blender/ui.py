@@ -4,10 +4,8 @@ from __future__ import annotations
 
 import bpy
 
-from . import stack_io
 from ..core.stack import PRESETS
-
-_ICONS = {"DIFFUSE": "SHADING_SOLID", "CONDUCTOR": "SHADING_RENDERED", "DIELECTRIC": "SHADING_TEXTURE", "COATING": "MOD_THICKNESS"}
+from . import layer_types, stack_io
 
 
 class NLM_UL_layers(bpy.types.UIList):
@@ -16,9 +14,10 @@ class NLM_UL_layers(bpy.types.UIList):
     bl_idname = "NLM_UL_layers"
 
     def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index):
+        kind = layer_types.BY_ID.get(item.layer_type)
         row = layout.row(align=True)
-        row.prop(item, "name", text="", emboss=False, icon=_ICONS.get(item.layer_type, "DOT"))
-        row.label(text=item.bl_rna.properties["layer_type"].enum_items[item.layer_type].name)
+        row.prop(item, "name", text="", emboss=False, icon=kind.icon if kind else "DOT")
+        row.label(text=layer_types.label(item.layer_type))
 
     def filter_items(self, context, data, propname):
         items = getattr(data, propname)
@@ -253,13 +252,4 @@ _CLASSES = (
     NLM_PT_shader_bake,
 )
 
-
-def register() -> None:
-    for cls in _CLASSES:
-        bpy.utils.register_class(cls)
-
-
-def unregister() -> None:
-    for cls in reversed(_CLASSES):
-        if getattr(cls, "is_registered", False):
-            bpy.utils.unregister_class(cls)
+register, unregister = bpy.utils.register_classes_factory(_CLASSES)

@@ -243,9 +243,9 @@ def test_job_reports_progress_result_and_cancel():
 
 def _modal_operator(op_cls):
     """The operator's modal logic on a plain object (Blender's event loop does not run headless)."""
-    from addon.blender import operators
+    from addon.blender import operator_base
 
-    class Driven(operators._LongOperator):
+    class Driven(operator_base.LongOperator):
         bl_label = op_cls.bl_label
         material = ""
         prepare = op_cls.prepare

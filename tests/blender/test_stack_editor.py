@@ -238,3 +238,22 @@ def test_every_operator_reports_edge_cases(bpy_addon, fresh_scene, op, kwargs):
         assert r.finished
     else:
         assert r.error and ("empty layer stack" in r.error or "has no layers" in r.error or "no layer stack" in r.error)
+
+
+def test_enums_come_from_the_one_table_of_each_kind(bpy_addon):
+    """Layer types from ``layer_types.LAYER_TYPES`` (the list's icons, Add Layer's defaults and the
+    conversion's labels read it too) and model sizes from the model set's ``SIZES``."""
+    bpy = bpy_addon
+    from addon.blender import layer_types
+    from addon.core.neural import SIZES
+
+    from addon.blender.properties import NLM_Layer, NLM_MaterialSettings
+
+    layer_enum = NLM_Layer.bl_rna.properties["layer_type"].enum_items
+    assert [(e.identifier, e.name, e.description, e.icon) for e in layer_enum] == [
+        (t.identifier, t.label, t.description, t.icon) for t in layer_types.LAYER_TYPES]
+    add_enum = bpy.ops.neural_layers.layer_add.get_rna_type().properties["layer_type"].enum_items
+    assert [e.identifier for e in add_enum] == [t.identifier for t in layer_types.LAYER_TYPES]
+    sizes = NLM_MaterialSettings.bl_rna.properties["model_size"].enum_items
+    assert [e.identifier for e in sizes] == ["AUTO"] + [s.upper() for s in SIZES]
+    assert all("parameters" in e.description for e in sizes if e.identifier != "AUTO")

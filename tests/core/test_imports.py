@@ -3,8 +3,6 @@
 import ast
 from pathlib import Path
 
-import pytest
-
 ADDON = Path(__file__).resolve().parents[2] / "addon"
 
 
@@ -82,8 +80,6 @@ def test_no_import_cycle_in_addon_core():
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
 
 
-@pytest.mark.xfail(strict=True, reason="addon.blender.bake_ops <-> scene_export import each other (issue 23, "
-                                       "addon/blender part); remove this mark when that lands")
 def test_no_import_cycle_in_addon():
     cycle = find_cycle(import_graph())
     assert cycle is None, "import cycle: " + " -> ".join(cycle)

@@ -1,0 +1,66 @@
+"""Where a material's latent texture is baked to and whether the baked one is current.
+
+Read by the bake operator (``bake_ops``) and by the scene export (``scene_export``), which renders
+a material's baked texture only while ``baked_texture_state`` says it is current.
+"""
+
+from __future__ import annotations
+
+import os
+
+import bpy
+
+from ..core.neural.models import resolve_size
+from ..core.textures.bake import bake_key
+from . import bake_inputs, stack_io
+from .operator_base import UserError
+
+DEFAULT_BAKE_FOLDER = "//textures/"
+
+
+def texture_output_path(mat) -> str:
+    """Where the bake of ``mat`` goes: its Bake Folder (relative to the .blend file by default).
+
+    A folder relative to the .blend file ("//...") needs a saved file; without one Blender would
+    resolve it against the process's working folder, so the bake refuses instead.
+    """
+    folder = mat.neural_layers.bake_directory or DEFAULT_BAKE_FOLDER
+    if folder.startswith("//") and not bpy.data.filepath:
+        raise UserError(
+            f"the bake folder {folder!r} is relative to the .blend file, which is not saved: "
+            "save the file first or choose an absolute Bake Folder"
+        )
+    return os.path.join(bpy.path.abspath(folder), f"{bpy.path.clean_name(mat.name)}.exr")
+
+
+def bake_size(mat) -> str:
+    """The decoder size a bake of ``mat`` uses: its model-size setting, "auto" resolved (``neural.resolve_size``)."""
+    try:
+        return resolve_size(stack_io.model_size(mat))
+    except (ValueError, FileNotFoundError) as e:
+        raise UserError(str(e)) from None
+
+
+def baked_texture_state(mat) -> tuple[str | None, str]:
+    """(path of a current baked texture or None, a line for the user about its state)."""
+    s = mat.neural_layers
+    if not s.texture_path:
+        return None, "not baked"
+    path = bpy.path.abspath(s.texture_path)
+    if not os.path.isfile(path):
+        return None, f"baked texture missing: {path}"
+    try:
+        found = bake_inputs.spatial_stack_from_material(mat)
+    except ValueError as e:
+        return None, str(e)
+    if found is None:
+        return None, "no layer stack"
+    spatial, _ = found
+    res = tuple(s.texture_size)
+    try:
+        size = bake_size(mat)
+    except UserError as e:
+        return None, str(e)
+    if bake_key(spatial, res, size) != s.texture_key:
+        return None, "baked texture is out of date: bake again"
+    return path, f"baked: {os.path.basename(path)}"

@@ -1,0 +1,132 @@
+"""What every operator of the add-on shares: user errors, guarded execution, the target material,
+and long operations on a worker thread.
+
+- :class:`UserError`: a problem the user can fix; its message is reported as is.
+- :func:`guarded`: runs an operator's body and turns every failure into a report (``{'CANCELLED'}``),
+  never a traceback.
+- :class:`MaterialOperator`: acts on the active object's active material, or on ``material`` (a
+  material name) when given; ``poll`` greys the button out where there is no material to act on
+  (scripts that pass ``material`` always run and get a report instead).
+- :class:`LongOperator`: ``prepare(context)`` reads Blender and returns ``(work, finish)``;
+  ``work(progress)`` is core-only and runs on a worker thread when invoked from the UI (progress in
+  the status bar, Esc cancels), blocking when executed (scripts, background mode).
+"""
+
+from __future__ import annotations
+
+import traceback
+
+import bpy
+from bpy.props import StringProperty
+
+from ..core import preview
+from . import images, jobs, stack_io
+
+
+class UserError(Exception):
+    """A problem the user can fix; its message is reported as is."""
+
+
+def fail(op, message: str) -> set:
+    op.report({"ERROR"}, message)
+    return {"CANCELLED"}
+
+
+def guarded(label: str, op, fn) -> set:
+    """Run ``fn()``; turn any failure into a report instead of a traceback."""
+    try:
+        return fn()
+    except preview.NeuralUnavailable as e:
+        return fail(op, f"neural models not available: {e}")
+    except (UserError, ValueError) as e:
+        return fail(op, str(e))
+    except Exception as e:  # unexpected: a report for the user, the traceback for a bug report
+        traceback.print_exc()
+        return fail(op, f"{label} failed: {type(e).__name__}: {e}")
+
+
+class MaterialOperator:
+    material: StringProperty(
+        name="Material",
+        description="Name of the material to act on (default: the active object's active material)",
+        default="",
+        options={"SKIP_SAVE"},
+    )
+
+    @classmethod
+    def poll(cls, context):
+        # Always runnable: a missing object or material is reported by execute(), so scripts
+        # get a message instead of a poll failure.
+        return True
+
+    def target(self, context):
+        if self.material:
+            mat = bpy.data.materials.get(self.material)
+            if mat is None:
+                raise UserError(f"there is no material named {self.material!r}")
+            return mat
+        ob = getattr(context, "object", None) or getattr(context, "active_object", None)
+        if ob is None:
+            raise UserError("no active object: select an object with a material (or pass material=\"Name\")")
+        mat = ob.active_material
+        if mat is None:
+            raise UserError(f"object {ob.name!r} has no material: add one (Material Properties > New)")
+        return mat
+
+    def target_stack(self, context):
+        mat = self.target(context)
+        stack = stack_io.stack_from_material(mat)
+        if stack is None:
+            raise UserError(f"material {mat.name!r} has an empty layer stack: add a base layer or pick a preset")
+        return mat, stack
+
+    def report_notes(self, notes):
+        for note in notes:
+            self.report({"WARNING"}, note)
+
+
+class LongOperator(jobs.ModalJob, MaterialOperator):
+    """prepare() reads Blender and returns (work, finish): work(progress) is core-only."""
+
+    _finish = None
+
+    def prepare(self, context):
+        raise NotImplementedError
+
+    def execute(self, context):
+        def run():
+            work, finish = self.prepare(context)
+            return finish(context, work(None))
+
+        return guarded(self.bl_label, self, run)
+
+    def invoke(self, context, event):
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        prepared = []
+
+        def prepare():
+            prepared.append(self.prepare(context))
+            return {"FINISHED"}
+
+        if guarded(self.bl_label, self, prepare) != {"FINISHED"}:
+            return {"CANCELLED"}
+        work, self._finish = prepared[0]
+        return self.start_job(context, work)
+
+    def job_done(self, context, job):
+        if job.error is not None:
+            err = job.error
+
+            def reraise():
+                raise err
+
+            return guarded(self.bl_label, self, reraise)
+        return guarded(self.bl_label, self, lambda: self._finish(context, job.result))
+
+    def show(self, context, name, rgba, metadata, notes, summary):
+        image = images.store_image(name, rgba, metadata)
+        images.show_in_image_editor(context, image)
+        self.report_notes(notes)
+        self.report({"INFO"}, f"{image.name}: {summary}")
+        return {"FINISHED"}
