@@ -14,7 +14,7 @@ from bpy.props import FloatProperty, PointerProperty, StringProperty
 
 from ..core import preview
 from . import stack_io
-from .operators import _guarded, _MaterialOperator
+from .operator_base import MaterialOperator, guarded
 
 
 class NLM_RefineResult(bpy.types.PropertyGroup):
@@ -30,7 +30,7 @@ class NLM_RefineResult(bpy.types.PropertyGroup):
     kept: StringProperty(name="Kept", description="'yes' when the refined latent is the one stored", default="")
 
 
-class NLM_OT_refine_latent(_MaterialOperator, bpy.types.Operator):
+class NLM_OT_refine_latent(MaterialOperator, bpy.types.Operator):
     """Fit the latent code to the reference BRDF of the stack (a few seconds; cached by stack and model
     files) and store it on the material when it is better on separate validation pairs"""
 
@@ -42,7 +42,7 @@ class NLM_OT_refine_latent(_MaterialOperator, bpy.types.Operator):
                           min=0.5, max=600.0)
 
     def execute(self, context):
-        return _guarded("refining the latent", self, lambda: self._run(context))
+        return guarded("refining the latent", self, lambda: self._run(context))
 
     def _run(self, context):
         from ..core.neural.refine import refine_latent
@@ -75,15 +75,15 @@ class NLM_OT_refine_latent(_MaterialOperator, bpy.types.Operator):
 _CLASSES = (NLM_RefineResult, NLM_OT_refine_latent)
 
 
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(_CLASSES)
+
+
 def register() -> None:
-    for cls in _CLASSES:
-        bpy.utils.register_class(cls)
+    _register_classes()
     bpy.types.Material.neural_refine = PointerProperty(type=NLM_RefineResult)
 
 
 def unregister() -> None:
     if hasattr(bpy.types.Material, "neural_refine"):
         del bpy.types.Material.neural_refine
-    for cls in reversed(_CLASSES):
-        if getattr(cls, "is_registered", False):
-            bpy.utils.unregister_class(cls)
+    _unregister_classes()
