@@ -67,7 +67,7 @@ def test_refinement_loss_gradient_equals_torch_autograd():
     lt = torch.from_numpy(np.maximum(level, 0.0))
     wsum = wt.reshape(groups, per).sum(1)
     scale = (wt * cos_o * lt).reshape(groups, -1).sum(1) / (3 * wsum)
-    den = scale.repeat_interleave(per)[:, None] + cos_o * lt
+    den = scale.repeat_interleave(per)[:, None] + cos_o * lt / rf.PEAK_RATIO
     d = cos_o * (f_t - tt) / den
     loss_t = ((wt * d**2).reshape(groups, -1).sum(1) / (3 * wsum)).mean()
     loss_t.backward()

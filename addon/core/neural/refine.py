@@ -17,10 +17,11 @@ between) and a share of them grazing, 80 to 89.5 degrees. The reference walks st
 connect to all M ``wo`` (reciprocity), one set of walks per group.
 
 Loss (``lobe_loss``): per pair, the error of the cosine-weighted lobe value relative to the group's mean
-lobe value, or to the value itself in a peak far above that mean (relative where values are large, as
-``l2rel`` in training, so a sharp highlight cannot outweigh the rest of the lobe: a squared error of
-the lobe image alone let the 1e3-high spike of a smooth coat decide, and the fit dropped the diffuse
-body under it). The value in that weight is an independent estimate (other walks), not the prediction
+lobe value, or to the value itself in a peak far above that mean (PEAK_RATIO times it; relative where
+values are large, as ``l2rel`` in training: a squared error of the lobe image alone let the 1e3-high
+spike of a smooth coat decide, and the fit dropped the diffuse body under it; relative from the mean
+on, it neglected a clear coat's highlight that the lobe metric weighs, measured on held-out stacks).
+The value in that weight is an independent estimate (other walks), not the prediction
 (``l2rel``'s choice made a 3x overshoot of a peak cheap: measured on a held-out coated metal) nor the
 target itself (whose noise would bias the fit low in the peaks), so for each pair the minimiser is the
 MEAN of noisy targets (a squared error; an L1 or log loss would fit their median or the mean of their
@@ -58,7 +59,10 @@ from ..stack import LATENT, Stack
 from .encode import encode_stack
 from .models import MODEL_DIR, SIZES, _unit_or_up, file_digest, load_models, resolve_size
 
-REFINE_VERSION = 3  # part of the cache key: bump when the procedure changes what it returns
+# Lobe values up to about this many times the group's mean count as absolute errors (the lobe metric), above
+# it as relative ones: a highlight a few pixels wide keeps its weight, a smooth coat's spike does not
+PEAK_RATIO = 30.0
+REFINE_VERSION = 4  # part of the cache key: bump when the procedure changes what it returns
 GRAZING_COS = (float(np.cos(np.radians(89.5))), float(np.cos(np.radians(80.0))))
 
 
@@ -280,12 +284,13 @@ class PairSet:
 def lobe_loss(f: np.ndarray, pairs: PairSet) -> tuple[float, np.ndarray, np.ndarray]:
     """(loss, dloss/df (P, 3), per-group error (G,)) of the cosine-weighted lobe values ``cos_o f``.
 
-    Per pair and channel ``d = cos_o (f - t) / (s + cos_o l)``: ``s`` the group's mean lobe value
-    (weighted by ``pairs.weight``, RGB together) and ``l`` an independent estimate of the target
-    (``pairs.level``, other walks; the targets themselves where it is not given). Below the lobe's mean
-    ``d`` is the error relative to that mean (the lobe metric); in a peak far above it, the error
-    relative to the peak, so a sharp highlight cannot outweigh the rest of the lobe, and an overshoot is
-    not cheaper than an undershoot. The group's loss is the weighted mean of ``d^2``, the loss the mean
+    Per pair and channel ``d = cos_o (f - t) / (s + cos_o l / PEAK_RATIO)``: ``s`` the group's mean lobe
+    value (weighted by ``pairs.weight``, RGB together) and ``l`` an independent estimate of the target
+    (``pairs.level``, other walks; the targets themselves where it is not given). Up to about PEAK_RATIO
+    times the lobe's mean, ``d`` is the error relative to that mean (the lobe metric, which a highlight
+    a few pixels wide dominates); far above it, the error relative to the peak, so the spike of a smooth
+    coat cannot outweigh the rest of the lobe, and an overshoot is not cheaper than an undershoot.
+    The group's loss is the weighted mean of ``d^2``, the loss the mean
     over groups. No weight depends on the prediction or on the targets' own noise, so each pair's
     minimiser is the mean of its noisy targets."""
     g = pairs.groups
@@ -295,7 +300,7 @@ def lobe_loss(f: np.ndarray, pairs: PairSet) -> tuple[float, np.ndarray, np.ndar
     w = pairs.weight[:, None]
     wsum = np.maximum(pairs.weight.reshape(g, m).sum(axis=1), 1e-30)  # (G,)
     scale = (w * cos_o * level).reshape(g, -1).sum(axis=1) / (3.0 * wsum)
-    den = np.repeat(np.maximum(scale, 1e-12), m)[:, None] + cos_o * level
+    den = np.repeat(np.maximum(scale, 1e-12), m)[:, None] + cos_o * level / PEAK_RATIO
     d = cos_o * (f.astype(np.float64) - pairs.target) / den
     per_group = (w * d**2).reshape(g, -1).sum(axis=1) / (3.0 * wsum)
     grad = 2.0 * w * d * cos_o / den / (3.0 * np.repeat(wsum, m)[:, None] * g)
