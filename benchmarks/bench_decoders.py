@@ -5,7 +5,7 @@
 
 For each shipped decoder size (``addon/models``) it measures
 
-- the held-out lobe error (DESIGN section 7) of the held-out BRDFs projected into the latent
+- the held-out lobe error (`addon.core.lobe`) of the held-out BRDFs projected into the latent
   space by latent optimisation (``onnx_export.evaluate``), on ``tests/data/heldout_single.npz``
   and, when present, ``tests/data/heldout_layered_lobes.npz``; and of the single-layer set encoded in
   one pass by the size's encoder (runtime ``encode`` + ``eval_brdf``);
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import sys
 import tempfile
@@ -58,7 +59,8 @@ def matmul_rate(threads: int, n: int = BATCH, k: int = 256, layers: int = 8, rep
     rng = np.random.default_rng(0)
     inits, nodes, prev = [], [], "x"
     for i in range(layers):
-        inits.append(numpy_helper.from_array((rng.standard_normal((k, k)) * np.sqrt(2.0 / k)).astype(np.float32), f"w{i}"))
+        w = (rng.standard_normal((k, k)) * np.sqrt(2.0 / k)).astype(np.float32)
+        inits.append(numpy_helper.from_array(w, f"w{i}"))
         inits.append(numpy_helper.from_array(np.zeros(k, np.float32), f"b{i}"))
         # Gemm + Relu, as the exported decoders are (ONNX Runtime fuses the pair)
         nodes += [helper.make_node("Gemm", [prev, f"w{i}", f"b{i}"], [f"m{i}"]),
@@ -172,7 +174,7 @@ def encoder_heldout(size: str, heldout: dict) -> dict:
     for i, s in enumerate(heldout["stacks"]):
         z = encode_stack(Stack(s.base), m)
         for a, t in enumerate(heldout["angles"]):
-            pred[i, a] = lobe.lobe_image(lambda wi, wo: m.eval_brdf(z, wi, wo), float(t), res)
+            pred[i, a] = lobe.lobe_image(lambda wi, wo, z=z: m.eval_brdf(z, wi, wo), float(t), res)
     out = lobe_metrics(pred, heldout["lobe"])
     out.pop("errors")
     return out
@@ -277,7 +279,8 @@ def main(argv=None):
             cached.write_text(json.dumps(errs, default=float))
             r.update(errs)
         rows.append(r)
-        print(json.dumps({k: v for k, v in r.items() if k != "params"}, default=float)[:600], file=sys.stderr, flush=True)
+        print(json.dumps({k: v for k, v in r.items() if k != "params"}, default=float)[:600], file=sys.stderr,
+              flush=True)
         if a.update_cards:
             card["heldout_single"] = r["single"]
             if "layered" in r:
@@ -299,17 +302,20 @@ def main(argv=None):
         f"{rows[0]['speed']['chunk'] if rows else '?'} queries run by single-threaded sessions on {a.threads} "
         "threads (`addon/core/neural/session.py`); the column beside it is one call on the whole batch with "
         f"{a.threads} intra-op threads, the same graph.", "",
+        f"Load average of the machine when the run ended: {os.getloadavg()[1]:.1f} over 5 minutes on "
+        f"{os.cpu_count()} CPU threads (shared with other jobs: compare rows of one run, not runs).", "",
         f"ONNX Runtime MatMul rate here: {mm / 1e9:.1f} G multiply-adds/s (65,536 rows through eight 256 x 256 "
         "Gemm + ReLU layers, the best of one 2-thread call and chunks on single-threaded sessions); the "
         "arithmetic limit of a size is that rate over its multiply-adds per RGB evaluation (three scalar "
         "decoder passes).", "",
         "Lobe error = relative RMSE of f cos(theta_o) lobe images at incident elevations 0/30/60/75 degrees "
-        "(DESIGN section 7); median / 90th percentile over configurations x elevations. \"projected\": the "
+        "(`addon.core.lobe`); median / 90th percentile over configurations x elevations. \"projected\": the "
         "held-out BRDF is fitted by latent optimisation on separate direction samples; \"encoded\": the "
         "single-layer encoder maps its parameters to the latent in one pass. Albedo error: mean absolute "
         "error of the directional albedo. Projection: 300 Adam steps on all 1024 pairs per configuration "
         "(for CPU time: models above 20 k parameters use 256 random pairs per step, above 200 k 128).", "",
-        "| size | params | MACs / RGB eval | RGB evals/s (runtime eval_brdf: chunks on a thread pool) | RGB evals/s (one ONNX Runtime call on the whole batch) | arithmetic limit | "
+        "| size | params | MACs / RGB eval | RGB evals/s (runtime eval_brdf: chunks on a thread pool) | "
+        "RGB evals/s (one ONNX Runtime call on the whole batch) | arithmetic limit | "
         "single-layer projected (median / p90) | albedo err | layered projected (median / p90) | "
         "single-layer encoded (median / p90) |",
         "|---|---|---|---|---|---|---|---|---|---|",
