@@ -9,6 +9,7 @@ Writes docs/bake.md and docs/bake_mix_lobes.png.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
 import time
@@ -55,7 +56,8 @@ def main(argv=None) -> int:
     rows = []
     maps = driving_images(args.res)
     cases = {
-        "constant stack (1 distinct texel)": SpatialStack(stack, {"coatings[0].thickness": np.full((args.res, args.res), 0.6)}),
+        "constant stack (1 distinct texel)": SpatialStack(stack, {"coatings[0].thickness":
+                                                                  np.full((args.res, args.res), 0.6)}),
         "8-level thickness map": SpatialStack(stack, {"coatings[0].thickness": maps["coatings[0].thickness"]}),
         "smooth roughness + thickness maps": SpatialStack(stack, maps),
     }
@@ -95,8 +97,9 @@ def main(argv=None) -> int:
 
     fig, axes = plt.subplots(1, 4, figsize=(12, 3.3))
     peak = max(np.percentile(im, 99.7) for im in (*lobes.values(), brdf_mix))
-    for ax, (title, im) in zip(axes, [("coated gold (mask 0)", lobes[0.0]), ("latent blend (mask 0.5)", lobes[0.5]),
-                                      ("BRDF blend (mean of ends)", brdf_mix), ("frosted copper (mask 1)", lobes[1.0])]):
+    panels = [("coated gold (mask 0)", lobes[0.0]), ("latent blend (mask 0.5)", lobes[0.5]),
+              ("BRDF blend (mean of ends)", brdf_mix), ("frosted copper (mask 1)", lobes[1.0])]
+    for ax, (title, im) in zip(axes, panels, strict=True):
         ax.imshow(lobe.to_display(im / peak))
         ax.set_title(title, fontsize=9)
         ax.axis("off")
@@ -109,7 +112,10 @@ def main(argv=None) -> int:
     text = [
         "# Baking latent textures: speed and size",
         "",
-        f"Command: `{cmd}` (2-core CPU, ONNX Runtime, 2 threads; `{args.size}` encoder + layering + sampling models).",
+        f"Command: `{cmd}` ({os.cpu_count()}-thread CPU, ONNX Runtime on every core; `{args.size}` encoder + "
+        "layering + sampling models).",
+        f"Load average just after the run ended: {os.getloadavg()[1]:.1f} over 5 minutes (shared with other jobs: "
+        "compare rows of one run).",
         f"Stack: `varnished_wood` driven by {args.res}x{args.res} images. Texels/s counts every texel of the",
         "texture (base level), distinct texels/s the rows the networks encoded; the mip chain is part of the bake",
         "time, the half-float EXR write is timed separately. Deduplication hashes the float32 parameter rows",
