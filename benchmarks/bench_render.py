@@ -169,8 +169,9 @@ def speed_only(args, command: str) -> int:
     text = ["# Renderer speed: demo scene, ours vs Blender Cycles, alternating", "",
             f"Command: `{command}`", "",
             f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU threads, no GPU, shared with "
-            "other jobs while measured: each of our renders is followed by a Cycles render of the same scene in the "
-            "same process, so each ratio compares two renders that met the same load.", "",
+            f"other jobs while measured (load average {os.getloadavg()[1]:.1f} over the last 5 minutes of the run): "
+            "each of our renders is followed by a Cycles render of the same scene in the same process, so each "
+            "ratio compares two renders that met about the same load.", "",
             "Ours: neural mode, default settings (every core; `RenderSettings.threads = 0`). Cycles: CPU, same "
             "resolution, samples and bounces, no denoising or adaptive sampling, Principled coat materials, wall time "
             "of `bpy.ops.render.render` after a warm-up (scene sync included, as for a user's F12). Rays: embreex; "
@@ -322,7 +323,8 @@ def main(argv=None) -> int:
         f"Command: `{command}`",
         "",
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU threads, no GPU; shared with "
-        "other jobs while measured, so timings are noisy (compare ratios within one run).",
+        f"other jobs while measured (load average {os.getloadavg()[1]:.1f} over the last 5 minutes of the run), "
+        "so timings are noisy (compare ratios within one run).",
         "",
         f"Scene: `addon.core.render.demo_scene` ({len(scene.materials) - 1} layered presets on spheres, textured "
         f"floor, sky image + area light), {scene.mesh.triangle_count} triangles, {width}x{height}, "
