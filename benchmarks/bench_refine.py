@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import shlex
 import sys
@@ -69,22 +70,26 @@ def measure(size: str, data: dict, budget: float, settings: RefineSettings, thre
 
 def table(results: dict[str, list[dict]]) -> list[str]:
     out = ["| size | coatings | stacks | lobe error before (median / p90) | after (median / p90) | kept | "
-           "seconds per material (median / max) |", "|---|---|---|---|---|---|---|"]
+           "seconds per material (median / max) | of which reference walks (median) |",
+           "|---|---|---|---|---|---|---|---|"]
     for size, rows in results.items():
         for c in sorted({r["coatings"] for r in rows}) + ["all"]:
             sel = [r for r in rows if c == "all" or r["coatings"] == c]
             b = np.concatenate([r["before"] for r in sel])
             a = np.concatenate([r["after"] for r in sel])
             sec = np.array([r["seconds"] for r in sel])
+            ref_s = np.median([r["reference_s"] for r in sel])
             kept = sum(r["kept"] for r in sel)
             out.append(f"| {size} | {c} | {len(sel)} | {np.median(b):.3f} / {np.percentile(b, 90):.3f} | "
                        f"{np.median(a):.3f} / {np.percentile(a, 90):.3f} | {kept} / {len(sel)} | "
-                       f"{np.median(sec):.1f} / {sec.max():.1f} |")
+                       f"{np.median(sec):.1f} / {sec.max():.1f} | {ref_s:.1f} |")
     return out
 
 
-def section(results: dict, command: str, settings: RefineSettings, budget: float) -> str:
+def section(results: dict, command: str, settings: RefineSettings, budget: float, load: list | None = None) -> str:
     s = settings
+    busy = (f" During the runs the machine's load average was {min(load):.0f} to {max(load):.0f} (other jobs on "
+            "its 2 cores): the seconds are those of a busy machine." if load else "")
     lines = [
         SECTION, "",
         f"Made by `{command}` (CPU, numpy + ONNX Runtime, on the shared 2-core development machine: the times vary "
@@ -106,7 +111,7 @@ def section(results: dict, command: str, settings: RefineSettings, budget: float
         *table(results), "",
         "Layers = base + coatings. \"kept\": materials whose refined latent was better on its validation pairs "
         "(the others keep the runtime path's latent, so their error is unchanged). Seconds: the whole call "
-        "(reference walks for both pair sets, then the optimisation).", "",
+        f"(reference walks for both pair sets, then the optimisation).{busy}", "",
     ]
     return "\n".join(lines)
 
@@ -138,7 +143,11 @@ def main(argv=None) -> None:
         saved = [json.loads(p.read_text()) for p in a.from_json]
         results = {k: v for s in saved for k, v in s["results"].items()}
         command = "` and `".join(s["command"] for s in saved)
-        write_section(section(results, command, RefineSettings(**saved[0]["settings"]), saved[0]["budget"]))
+        if len(saved) > 1 or "--no-doc" in command:
+            command += ("` (one process per size, side by side), this section written from their --json files by "
+                        "`python benchmarks/bench_refine.py --from-json " + " ".join(str(p) for p in a.from_json))
+        load = [v for s in saved for v in s.get("load", [])]
+        write_section(section(results, command, RefineSettings(**saved[0]["settings"]), saved[0]["budget"], load))
         return
     from onnx_export.heldout_layered import load
 
@@ -149,19 +158,21 @@ def main(argv=None) -> None:
     settings = RefineSettings()
     command = "python benchmarks/bench_refine.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     results: dict[str, list[dict]] = {}
+    load: list[float] = []
 
     def save(size, rows):  # after every stack, so a long run stopped early keeps what it measured
         results[size] = rows
+        load.append(round(os.getloadavg()[0], 1))
         if a.json:
             a.json.write_text(json.dumps({"command": command.strip(), "settings": settings.__dict__,
-                                          "budget": a.budget, "results": results}, indent=1))
+                                          "budget": a.budget, "results": results, "load": load}, indent=1))
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ClampWarning)
         for size in a.sizes:
             measure(size, data, a.budget, settings, a.threads, lambda m: print(m, flush=True),
                     lambda rows, size=size: save(size, rows))
-    text = section(results, command.strip(), settings, a.budget)
+    text = section(results, command.strip(), settings, a.budget, load)
     print(text)
     if not a.no_doc:
         write_section(text)
