@@ -41,7 +41,28 @@ def store_image(name: str, rgba: np.ndarray, metadata: dict | None = None):
     image.update()
     for key, value in (metadata or {}).items():
         image[key] = value
+    set_preview(image, rgba)
     return image
+
+
+PREVIEW_SIDE = 256  # largest side of the picture shown in the sidebar
+
+
+def set_preview(image, rgba: np.ndarray) -> None:
+    """Give ``image`` the picture the sidebar shows (``image.preview``, drawn by ``template_icon``):
+    ``rgba`` (rows top to bottom, linear) subsampled to at most ``PREVIEW_SIDE`` and encoded for
+    display (sRGB), so it is there at once, without waiting for Blender to render previews."""
+    from ..core.render.film import to_srgb
+
+    h, w = rgba.shape[:2]
+    step = max(1, -(-max(h, w) // PREVIEW_SIDE))
+    small = np.asarray(rgba, dtype=np.float32)[::step, ::step]
+    shown = np.empty_like(small)
+    shown[..., :3] = to_srgb(small[..., :3])
+    shown[..., 3] = np.clip(small[..., 3], 0.0, 1.0)
+    preview = image.preview_ensure()
+    preview.image_size = (small.shape[1], small.shape[0])
+    preview.image_pixels_float.foreach_set(np.ascontiguousarray(shown[::-1]).ravel())
 
 
 def read_pixels(image) -> np.ndarray | None:

@@ -183,6 +183,21 @@ class _PreviewPanel(_LayersPanel):
         row.operator("neural_layers.preview_lobe", text="Lobe", icon="LIGHT_SPOT")
         row.operator("neural_layers.preview_sphere", text="Sphere", icon="SHADING_RENDERED")
         col.operator("neural_layers.compare_reference", icon="IMAGE_REFERENCE")
+        _draw_preview_images(col, mat)
+
+
+PREVIEW_IMAGES = (("Lobe", "Lobe {}"), ("Sphere", "Sphere {}"), ("Compare: neural | reference | error", "Compare {}"))
+
+
+def _draw_preview_images(layout, mat) -> None:
+    """The material's latest previews, in the panel (they are also in the Image Editor)."""
+    for label, pattern in PREVIEW_IMAGES:
+        image = bpy.data.images.get(pattern.format(mat.name))
+        if image is None or image.preview is None:
+            continue
+        box = layout.box()
+        box.label(text=label, icon="IMAGE_DATA")
+        box.template_icon(icon_value=image.preview.icon_id, scale=8.0)
 
 
 class _BakePanel(_LayersPanel):

@@ -118,3 +118,5 @@ def test_every_output_exists_and_is_finite(session, label):
         assert image["exists"] and image["readable"] and image["finite"], (name, image)
         assert image["shape"][:2] == [24, 32] and image["mean"] > 0, (name, image)
     assert out["reloaded layers"] == 3
+    icons = [e for e in out["NLM_PT_view3d_preview"] if e[0] == "template_icon"]
+    assert len(icons) == 3, out["NLM_PT_view3d_preview"]  # lobe, sphere and comparison, in the sidebar too

@@ -71,6 +71,9 @@ class RecordingLayout:
         assert hasattr(__import__("bpy").types, menu_id), menu_id
         self.log.append(("menu", menu_id))
 
+    def template_icon(self, icon_value=0, scale=1.0):
+        self.log.append(("template_icon", icon_value))
+
     def label(self, text="", **kwargs):
         self.log.append(("label", text))
 
@@ -155,3 +158,32 @@ def test_list_rows_draw_name_and_type(bpy_addon, fresh_scene, material):
         bpy.types.NLM_UL_layers.draw_item(None, fresh_scene, RecordingLayout(log), s, item, 0, s, "active_index", 0)
         assert ("prop", "name") in log
         assert ("label", {"CONDUCTOR": "Conductor", "COATING": "Coating"}[item.layer_type]) in log
+
+
+def test_previews_are_shown_in_the_sidebar_panel(bpy_addon, fresh_scene, material):
+    """After Preview Lobe the panel shows the lobe (``template_icon`` of the image's preview), whose
+    pixels are the preview image encoded for display, there at once (no preview rendering job)."""
+    import numpy as np
+
+    from addon.core.render.film import to_srgb
+
+    bpy = bpy_addon
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="coated_gold").finished
+    s = material.neural_layers
+    s.lobe_resolution, s.preview_method, s.walks = 24, "REFERENCE", 4
+    log = draw(bpy.types.NLM_PT_view3d_preview, _ctx(fresh_scene))
+    assert not any(e[0] == "template_icon" for e in log)  # nothing previewed yet
+    assert run_operator(bpy.ops.neural_layers.preview_lobe).finished
+    image = bpy.data.images[f"Lobe {material.name}"]
+    log = draw(bpy.types.NLM_PT_view3d_preview, _ctx(fresh_scene))
+    assert ("template_icon", image.preview.icon_id) in log
+    assert any(e[0] == "label" and e[1] == "Lobe" for e in log)
+    preview = image.preview
+    assert tuple(preview.image_size) == (24, 24)
+    shown = np.empty(24 * 24 * 4, np.float32)
+    preview.image_pixels_float.foreach_get(shown)
+    px = np.empty(24 * 24 * 4, np.float32)
+    image.pixels.foreach_get(px)
+    px, shown = px.reshape(24, 24, 4), shown.reshape(24, 24, 4)
+    np.testing.assert_allclose(shown[..., :3], to_srgb(px[..., :3]), atol=1 / 255)  # previews hold 8 bits
+    assert shown[..., :3].max() > 0.1
