@@ -36,6 +36,7 @@ def camera_resolution(context, mat, spatial) -> tuple[int, int]:
 class NLM_OT_map_add(MaterialOperator, bpy.types.Operator):
     """Drive a parameter of the active layer by an image"""
 
+    poll_needs = "stack"
     bl_idname = "neural_layers.map_add"
     bl_label = "Add Parameter Map"
     bl_options = {"REGISTER", "UNDO"}
@@ -59,6 +60,7 @@ class NLM_OT_map_add(MaterialOperator, bpy.types.Operator):
 class NLM_OT_map_remove(MaterialOperator, bpy.types.Operator):
     """Remove a parameter map of the active layer"""
 
+    poll_needs = "stack"
     bl_idname = "neural_layers.map_remove"
     bl_label = "Remove Parameter Map"
     bl_options = {"REGISTER", "UNDO"}
@@ -83,6 +85,7 @@ class NLM_OT_map_remove(MaterialOperator, bpy.types.Operator):
 class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
     """Bake the material's stack and its parameter maps into a mip-mapped latent texture (EXR)"""
 
+    poll_needs = "stack"
     bl_idname = "neural_layers.bake_texture"
     bl_label = "Bake Latent Texture"
     bl_options = {"REGISTER", "UNDO"}
@@ -126,6 +129,7 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
 class NLM_OT_texture_clear(MaterialOperator, bpy.types.Operator):
     """Stop using the baked latent texture for this material (the file is kept)"""
 
+    poll_needs = "texture"
     bl_idname = "neural_layers.texture_clear"
     bl_label = "Clear Latent Texture"
     bl_options = {"REGISTER", "UNDO"}

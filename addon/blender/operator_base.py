@@ -45,6 +45,25 @@ def guarded(label: str, op, fn) -> set:
         return fail(op, f"{label} failed: {type(e).__name__}: {e}")
 
 
+def scripted() -> bool:
+    """True in background mode: no one presses buttons, scripts call the operators."""
+    return bool(bpy.app.background)
+
+
+def poll_problem(context, needs: str = "material") -> str | None:
+    """Why an operator that needs ``needs`` ("material", "stack" or "texture") cannot act on the
+    context's active material, or None when it can."""
+    ob = getattr(context, "object", None)
+    mat = getattr(ob, "active_material", None) if ob is not None else None
+    if mat is None:
+        return "Select an object with a material" if ob is None else f"Object {ob.name!r} has no material"
+    if needs in ("stack", "texture") and len(mat.neural_layers.layers) == 0:
+        return f"The layer stack of {mat.name!r} is empty: add a base layer or pick a preset"
+    if needs == "texture" and not mat.neural_layers.texture_path:
+        return f"{mat.name!r} has no baked latent texture"
+    return None
+
+
 class MaterialOperator:
     material: StringProperty(
         name="Material",
@@ -53,11 +72,19 @@ class MaterialOperator:
         options={"SKIP_SAVE"},
     )
 
+    # What the button needs to be pressable: "material" (an active material), "stack" (one with
+    # layers) or "texture" (one with a baked latent texture).
+    poll_needs = "material"
+
     @classmethod
     def poll(cls, context):
-        # Always runnable: a missing object or material is reported by execute(), so scripts
-        # get a message instead of a poll failure.
-        return True
+        """Grey the button out (with the reason as its tooltip) where it cannot run. In background
+        mode (scripts, which may name any material) it always runs and reports what is missing."""
+        problem = poll_problem(context, cls.poll_needs)
+        if problem is None or scripted():
+            return True
+        cls.poll_message_set(problem)
+        return False
 
     def target(self, context):
         if self.material:

@@ -80,6 +80,7 @@ def _active_item(op, context):
 class NLM_OT_layer_remove(MaterialOperator, bpy.types.Operator):
     """Remove the active layer"""
 
+    poll_needs = "stack"
     bl_idname = "neural_layers.layer_remove"
     bl_label = "Remove Layer"
     bl_options = {"REGISTER", "UNDO"}
@@ -98,6 +99,7 @@ class NLM_OT_layer_remove(MaterialOperator, bpy.types.Operator):
 class NLM_OT_layer_move(MaterialOperator, bpy.types.Operator):
     """Move the active coating up (toward the top) or down (toward the base)"""
 
+    poll_needs = "stack"
     bl_idname = "neural_layers.layer_move"
     bl_label = "Move Layer"
     bl_options = {"REGISTER", "UNDO"}
@@ -143,6 +145,7 @@ def _copy_properties(src, dst) -> None:
 class NLM_OT_layer_duplicate(MaterialOperator, bpy.types.Operator):
     """Duplicate the active coating (placed above it)"""
 
+    poll_needs = "stack"
     bl_idname = "neural_layers.layer_duplicate"
     bl_label = "Duplicate Layer"
     bl_options = {"REGISTER", "UNDO"}
@@ -167,6 +170,7 @@ class NLM_OT_layer_duplicate(MaterialOperator, bpy.types.Operator):
 class NLM_OT_layer_rename(MaterialOperator, bpy.types.Operator):
     """Rename the active layer"""
 
+    poll_needs = "stack"
     bl_idname = "neural_layers.layer_rename"
     bl_label = "Rename Layer"
     bl_options = {"REGISTER", "UNDO"}
@@ -220,6 +224,7 @@ class NLM_OT_preset_apply(MaterialOperator, bpy.types.Operator):
 class NLM_OT_evaluate_latent(MaterialOperator, bpy.types.Operator):
     """Encode the stack into its latent code with the neural encoder and store it on the material"""
 
+    poll_needs = "stack"
     bl_idname = "neural_layers.evaluate_latent"
     bl_label = "Evaluate Latent"
     bl_options = {"REGISTER", "UNDO"}
@@ -242,6 +247,7 @@ class NLM_OT_evaluate_latent(MaterialOperator, bpy.types.Operator):
 class NLM_OT_preview_lobe(LongOperator, bpy.types.Operator):
     """Show the BRDF lobe (f cos over the projected outgoing hemisphere) for the incident angle in the Image Editor"""
 
+    poll_needs = "stack"
     bl_idname = "neural_layers.preview_lobe"
     bl_label = "Preview Lobe"
     bl_options = {"REGISTER"}
@@ -272,6 +278,7 @@ class NLM_OT_preview_lobe(LongOperator, bpy.types.Operator):
 class NLM_OT_preview_sphere(LongOperator, bpy.types.Operator):
     """Show a sphere shaded with the stack under a default sky and sun in the Image Editor"""
 
+    poll_needs = "stack"
     bl_idname = "neural_layers.preview_sphere"
     bl_label = "Preview Sphere"
     bl_options = {"REGISTER"}
@@ -307,6 +314,7 @@ class NLM_OT_preview_sphere(LongOperator, bpy.types.Operator):
 class NLM_OT_compare_reference(LongOperator, bpy.types.Operator):
     """Neural and Monte Carlo reference lobes side by side with their error image and timings"""
 
+    poll_needs = "stack"
     bl_idname = "neural_layers.compare_reference"
     bl_label = "Compare with Reference"
     bl_options = {"REGISTER"}

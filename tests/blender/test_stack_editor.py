@@ -257,3 +257,32 @@ def test_enums_come_from_the_one_table_of_each_kind(bpy_addon):
     sizes = NLM_MaterialSettings.bl_rna.properties["model_size"].enum_items
     assert [e.identifier for e in sizes] == ["AUTO"] + [s.upper() for s in SIZES]
     assert all("parameters" in e.description for e in sizes if e.identifier != "AUTO")
+
+
+def test_buttons_grey_out_where_they_cannot_run(bpy_addon, fresh_scene, material, monkeypatch):
+    """In the UI, poll() refuses (with the reason) what cannot run: no material, an empty stack,
+    no baked texture; in background mode scripts may name any material, so poll lets them run."""
+    import types
+
+    from addon.blender import bake_ops, operator_base, operators
+
+    bpy = bpy_addon
+    ob = fresh_scene.view_layer.objects.active
+    ctx = types.SimpleNamespace(object=ob)
+    no_object = types.SimpleNamespace(object=None)
+    assert operators.NLM_OT_preview_lobe.poll(no_object)  # background: scripts get a report instead
+    monkeypatch.setattr(operator_base, "scripted", lambda: False)
+    assert not operators.NLM_OT_layer_add.poll(no_object)
+    assert operators.NLM_OT_layer_add.poll(ctx) and operators.NLM_OT_preset_apply.poll(ctx)
+    needs_stack = (operators.NLM_OT_layer_remove, operators.NLM_OT_evaluate_latent, operators.NLM_OT_preview_lobe,
+                   operators.NLM_OT_preview_sphere, operators.NLM_OT_compare_reference, bake_ops.NLM_OT_bake_texture,
+                   bake_ops.NLM_OT_map_add)
+    assert not any(op.poll(ctx) for op in needs_stack)
+    assert "empty" in operator_base.poll_problem(ctx, "stack")
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="coated_gold").finished
+    assert all(op.poll(ctx) for op in needs_stack)
+    assert not bake_ops.NLM_OT_texture_clear.poll(ctx)
+    assert "no baked latent texture" in operator_base.poll_problem(ctx, "texture")
+    ob.data.materials.clear()
+    assert "has no material" in operator_base.poll_problem(ctx, "material")
+    assert not operators.NLM_OT_preset_apply.poll(ctx)
