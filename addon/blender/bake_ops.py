@@ -41,7 +41,8 @@ class NLM_OT_map_add(MaterialOperator, bpy.types.Operator):
     bl_label = "Add Parameter Map"
     bl_options = {"REGISTER", "UNDO"}
 
-    parameter: EnumProperty(name="Parameter", items=MAP_PARAMETERS, default="ROUGHNESS")
+    parameter: EnumProperty(name="Parameter", items=MAP_PARAMETERS, default="ROUGHNESS",
+                            description="The parameter of the active layer the new map drives")
 
     def execute(self, context):
         return guarded(self.bl_label, self, lambda: self._run(context))
@@ -65,7 +66,7 @@ class NLM_OT_map_remove(MaterialOperator, bpy.types.Operator):
     bl_label = "Remove Parameter Map"
     bl_options = {"REGISTER", "UNDO"}
 
-    index: IntProperty(name="Index", default=0, min=0)
+    index: IntProperty(name="Index", default=0, min=0, description="Which of the layer's maps to remove (0 = first)")
 
     def execute(self, context):
         return guarded(self.bl_label, self, lambda: self._run(context))

@@ -108,6 +108,7 @@ class NLM_OT_layer_move(MaterialOperator, bpy.types.Operator):
         name="Direction",
         items=[("UP", "Up", "Toward the top of the stack"), ("DOWN", "Down", "Toward the base")],
         default="UP",
+        description="Which way the active coating moves",
     )
 
     def execute(self, context):
@@ -206,6 +207,7 @@ class NLM_OT_preset_apply(MaterialOperator, bpy.types.Operator):
     preset: EnumProperty(
         name="Preset",
         items=[(k, k.replace("_", " ").title(), f"Layer stack preset {k!r}") for k in sorted(PRESETS)],
+        description="The bundled layer stack that replaces the material's",
     )
 
     def execute(self, context):

@@ -225,7 +225,8 @@ class NLM_Layer(bpy.types.PropertyGroup):
 
 class NLM_MaterialSettings(bpy.types.PropertyGroup):
     layers: CollectionProperty(type=NLM_Layer, name="Layers", description="The stack, bottom (base) to top")
-    active_index: IntProperty(name="Active Layer", default=0, min=0)
+    active_index: IntProperty(name="Active Layer", default=0, min=0,
+                               description="The layer shown for editing (index into the stack, 0 = the base)")
     latent: FloatVectorProperty(
         name="Latent",
         description="Latent code of the stack from the neural encoder: 32 floats per RGB channel",
@@ -264,6 +265,7 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
             ("REFERENCE", "Reference", "Position-free Monte Carlo reference (slow, noisy, exact on average)"),
         ],
         default="AUTO",
+        description="How the previews evaluate the stack's BRDF",
     )
     theta_i: FloatProperty(
         name="Incident Angle",

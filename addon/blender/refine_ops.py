@@ -21,12 +21,12 @@ class NLM_RefineResult(bpy.types.PropertyGroup):
     key: StringProperty(name="Key", description="Cache key of the refinement (stack, model files, settings)",
                         default="")
     stack_hash: StringProperty(name="Stack hash", description="Hash of the stack that was refined", default="")
-    size: StringProperty(name="Decoder size", default="")
+    size: StringProperty(name="Decoder size", description="Decoder size of the refined latent", default="")
     error_before: FloatProperty(name="Error before", description="Validation lobe error of the encoded latent",
                                 default=0.0)
     error_after: FloatProperty(name="Error after", description="Validation lobe error of the refined latent",
                                default=0.0)
-    seconds: FloatProperty(name="Seconds", default=0.0)
+    seconds: FloatProperty(name="Seconds", description="Seconds the refinement took", default=0.0)
     kept: StringProperty(name="Kept", description="'yes' when the refined latent is the one stored", default="")
 
 

@@ -66,6 +66,7 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
                                        "(slow; ground truth on average)"),
         ],
         default="neural",
+        description="How layered materials are evaluated while rendering",
     )
     reference_walks: IntProperty(
         name="Reference Walks", description="Walks per layered-BRDF evaluation in reference mode", default=8, min=1,

@@ -286,3 +286,33 @@ def test_buttons_grey_out_where_they_cannot_run(bpy_addon, fresh_scene, material
     ob.data.materials.clear()
     assert "has no material" in operator_base.poll_problem(ctx, "material")
     assert not operators.NLM_OT_preset_apply.poll(ctx)
+
+
+def _addon_rna_structs(bpy):
+    """Every property group and operator the add-on registers, as RNA structs."""
+    from addon.blender import bake_ops, operators, properties, refine_ops, render_operators
+
+    groups = [cls.bl_rna for cls in properties._CLASSES]
+    groups += [bpy.types.Scene.bl_rna.properties["neural_render"].fixed_type,
+               bpy.types.Material.bl_rna.properties["neural_refine"].fixed_type]
+    ops = [c for m in (operators, bake_ops, render_operators, refine_ops) for c in m._CLASSES
+           if issubclass(c, bpy.types.Operator)]
+    groups += [getattr(bpy.ops, c.bl_idname.split(".")[0]).__getattr__(c.bl_idname.split(".")[1]).get_rna_type()
+               for c in ops]
+    return groups, ops
+
+
+def test_every_property_enum_item_and_operator_has_a_tooltip(bpy_addon):
+    bpy = bpy_addon
+    groups, ops = _addon_rna_structs(bpy)
+    missing = []
+    for rna in groups:
+        for key, prop in rna.properties.items():
+            if key in ("rna_type", "name") and not prop.description:
+                continue  # Blender's own
+            if not prop.description.strip():
+                missing.append(f"{rna.identifier}.{key}")
+            if prop.type == "ENUM":
+                missing += [f"{rna.identifier}.{key}[{e.identifier}]" for e in prop.enum_items if not e.description]
+    missing += [c.__name__ for c in ops if not (c.__doc__ or "").strip()]
+    assert missing == [], "\n".join(missing)
