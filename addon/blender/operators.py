@@ -16,10 +16,11 @@ import math
 import time
 
 import bpy
+from bl_operators.presets import AddPresetBase
 from bpy.props import EnumProperty, StringProperty
 
 from ..core import preview
-from ..core.stack import PRESETS
+from ..core.stack import PRESETS, Stack
 from . import layer_types, stack_io
 from .layer_types import BASE_LAYER_TYPES
 from .operator_base import LongOperator, MaterialOperator, UserError, fail, guarded
@@ -219,6 +220,59 @@ class NLM_OT_preset_apply(MaterialOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
+class NLM_OT_stack_apply(MaterialOperator, bpy.types.Operator):
+    """Replace the stack with one given as JSON (what a saved layer preset runs)"""
+
+    bl_idname = "neural_layers.stack_apply"
+    bl_label = "Apply Layer Stack"
+    bl_options = {"REGISTER", "UNDO"}
+
+    stack: StringProperty(name="Stack", default="", options={"SKIP_SAVE"},
+                          description="The layer stack as JSON (addon.core.stack.Stack.to_json)")
+
+    def execute(self, context):
+        return guarded("applying a layer stack", self, lambda: self._run(context))
+
+    def _run(self, context):
+        try:
+            stack = Stack.from_json(self.stack)
+        except (ValueError, TypeError, KeyError) as e:
+            raise UserError(f"not a layer stack ({type(e).__name__}: {e}); a preset holds Stack.to_json()") from None
+        stack_io.stack_to_material(stack, self.target(context))
+        return {"FINISHED"}
+
+
+PRESET_SUBDIR = "neural_layered_materials/layer_stacks"
+
+
+def preset_file_text(stack: Stack) -> str:
+    """A layer preset file: Python that Blender's preset menu runs, applying ``stack`` to the
+    active material. Plain JSON inside, so presets can be read, shared and edited by hand."""
+    return ("import bpy\n\n"
+            "# A Neural Layered Materials layer stack (bottom to top); applied to the active material.\n"
+            f"bpy.ops.neural_layers.stack_apply(stack={stack.to_json()!r})\n")
+
+
+class NLM_OT_preset_add(AddPresetBase, MaterialOperator, bpy.types.Operator):
+    """Save the material's layer stack as a preset of your own (in your Blender scripts folder,
+    presets/neural_layered_materials/layer_stacks), or remove the active one of yours"""
+
+    poll_needs = "material"
+    bl_idname = "neural_layers.preset_add"
+    bl_label = "Add Layer Preset"
+    bl_options = {"REGISTER", "INTERNAL"}
+    preset_menu = "NLM_MT_presets"
+    preset_subdir = PRESET_SUBDIR
+
+    def add(self, context, filepath):  # AddPresetBase's hook: write our own file
+        mat, stack = self.target_stack(context)
+        with open(filepath, "w", encoding="utf-8") as f:
+            f.write(preset_file_text(stack))
+
+    def execute(self, context):
+        return guarded(self.bl_label, self, lambda: AddPresetBase.execute(self, context))
+
+
 # --------------------------------------------------------------------------------------------
 # Latent
 
@@ -352,6 +406,8 @@ _CLASSES = (
     NLM_OT_layer_duplicate,
     NLM_OT_layer_rename,
     NLM_OT_preset_apply,
+    NLM_OT_stack_apply,
+    NLM_OT_preset_add,
     NLM_OT_evaluate_latent,
     NLM_OT_preview_lobe,
     NLM_OT_preview_sphere,

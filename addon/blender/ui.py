@@ -6,6 +6,7 @@ import bpy
 
 from ..core.stack import PRESETS
 from . import layer_types, stack_io
+from .operators import PRESET_SUBDIR
 
 
 class NLM_UL_layers(bpy.types.UIList):
@@ -30,13 +31,21 @@ class NLM_UL_layers(bpy.types.UIList):
 
 
 class NLM_MT_presets(bpy.types.Menu):
+    """The bundled layer stacks, then your own (saved with the + beside this menu)."""
+
     bl_idname = "NLM_MT_presets"
     bl_label = "Layer Presets"
+    preset_subdir = PRESET_SUBDIR
+    preset_operator = "script.execute_preset"
 
     def draw(self, context):
+        layout = self.layout
         for key in sorted(PRESETS):
-            op = self.layout.operator("neural_layers.preset_apply", text=key.replace("_", " ").title())
+            op = layout.operator("neural_layers.preset_apply", text=key.replace("_", " ").title())
             op.preset = key
+        if bpy.utils.preset_paths(self.preset_subdir):
+            layout.separator()
+            bpy.types.Menu.draw_preset(self, context)
 
 
 def _material(context):
@@ -66,6 +75,7 @@ def _draw_stack(layout, context):
     col.operator("neural_layers.layer_move", text="", icon="TRIA_DOWN").direction = "DOWN"
     col.separator()
     col.menu("NLM_MT_presets", text="", icon="PRESET")
+    col.operator("neural_layers.preset_add", text="", icon="FILE_NEW")
     try:
         stack_io.stack_from_material(mat)
     except ValueError as e:

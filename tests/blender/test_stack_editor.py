@@ -316,3 +316,35 @@ def test_every_property_enum_item_and_operator_has_a_tooltip(bpy_addon):
                 missing += [f"{rna.identifier}.{key}[{e.identifier}]" for e in prop.enum_items if not e.description]
     missing += [c.__name__ for c in ops if not (c.__doc__ or "").strip()]
     assert missing == [], "\n".join(missing)
+
+
+def test_users_save_share_and_apply_their_own_layer_presets(bpy_addon, material, tmp_path, monkeypatch):
+    """Blender's preset system: + saves the stack as a preset file in the user's scripts folder,
+    the presets menu lists it beside the bundled stacks, and choosing it restores the stack (on
+    another material too: the file holds the stack as JSON)."""
+    import os
+
+    from addon.blender.operators import PRESET_SUBDIR
+    from addon.core.stack import PRESETS
+
+    bpy = bpy_addon
+    monkeypatch.setitem(os.environ, "BLENDER_USER_SCRIPTS", str(tmp_path / "scripts"))
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="red_car_paint").finished
+    material.neural_layers.layers[1].thickness = 0.75  # an edit of the user's own
+    saved = __import__("addon.blender.stack_io", fromlist=["x"]).stack_from_material(material)
+    r = run_operator(bpy.ops.neural_layers.preset_add, name="My Paint")
+    assert r.finished, r.error
+    files = list((tmp_path / "scripts" / "presets" / PRESET_SUBDIR).glob("*.py"))
+    assert [f.name for f in files] == ["My_Paint.py"]
+    assert "neural_layers.stack_apply" in files[0].read_text()
+    assert [str(files[0].parent)] == bpy.utils.preset_paths(PRESET_SUBDIR)
+
+    other = bpy.data.materials.new("other")
+    bpy.context.object.active_material = other
+    r = run_operator(bpy.ops.script.execute_preset, filepath=str(files[0]), menu_idname="NLM_MT_presets")
+    assert r.finished, r.error
+    from addon.blender import stack_io
+
+    assert stack_io.stack_from_material(other) == saved != PRESETS["red_car_paint"]
+    r = run_operator(bpy.ops.neural_layers.stack_apply, stack="{not json")
+    assert not r.finished and "not a layer stack" in r.error
