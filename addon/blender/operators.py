@@ -17,7 +17,7 @@ import time
 
 import bpy
 from bl_operators.presets import AddPresetBase
-from bpy.props import EnumProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, StringProperty
 
 from ..core import preview
 from ..core.stack import PRESETS, Stack
@@ -263,6 +263,11 @@ class NLM_OT_preset_add(AddPresetBase, MaterialOperator, bpy.types.Operator):
     bl_options = {"REGISTER", "INTERNAL"}
     preset_menu = "NLM_MT_presets"
     preset_subdir = PRESET_SUBDIR
+    # AddPresetBase's own switches, with tooltips
+    remove_name: BoolProperty(default=False, options={"HIDDEN", "SKIP_SAVE"},
+                              description="Remove the preset called Name instead of adding one")
+    remove_active: BoolProperty(default=False, options={"HIDDEN", "SKIP_SAVE"},
+                                description="Remove the preset applied last instead of adding one")
 
     def add(self, context, filepath):  # AddPresetBase's hook: write our own file
         mat, stack = self.target_stack(context)
