@@ -46,3 +46,26 @@ def test_refine_reports_a_missing_material_or_an_empty_stack(bpy_addon, fresh_sc
     fresh_scene.view_layer.objects.active = None
     r = run_operator(bpy.ops.neural_layers.refine_latent)
     assert r.error and "no active object" in r.error
+
+
+def test_bake_command_refine_flag_refines_and_keys_the_bake_apart(tmp_path):
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bake"))
+    import bake as bake_cli
+    from addon.core.textures import LatentTexture
+
+    out = tmp_path / "out"
+    argv = ["--preset", "coated_gold", "--resolution", "1", "1", "--model", "tiny", "--out", str(out)]
+    assert bake_cli.main([*argv, "--refine", "0.01"]) == 0  # the one distinct texel is refined
+    meta = LatentTexture.read_exr(out / "coated_gold.exr").metadata
+    assert meta["refined"] == "1" and float(meta["refine_s"]) == 0.01 and meta["model"] == "tiny"
+    assert len(list((out / ".refine").glob("refine_*.npz"))) == 1
+    key = json.loads((out / "coated_gold.json").read_text())["key"]
+    # without the flag: another key, baked again, unrefined
+    assert bake_cli.main(argv) == 0
+    plain = LatentTexture.read_exr(out / "coated_gold.exr")
+    assert "refined" not in plain.metadata and json.loads((out / "coated_gold.json").read_text())["key"] != key
+    assert bake_cli.main(["--preset", "coated_gold", "--out", str(out), "--refine", "-1"]) == 2
