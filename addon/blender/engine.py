@@ -60,6 +60,7 @@ class _Viewport:
         self.session = ProgressiveSession(settings, preview_divisor=4)
         self._drawn = None  # (generation, samples) on screen
         self._texture = None
+        self._reported = None  # the last session error shown
         bpy.app.timers.register(self._poll, first_interval=0.05)
 
     def restart(self, core_scene, settings, key) -> None:
@@ -83,8 +84,10 @@ class _Viewport:
         from gpu_extras.presets import draw_texture_2d
 
         image = self.session.latest()
-        if self.session.error is not None:
-            engine.report({"ERROR"}, _failure(self.session.error))
+        error = self.session.error
+        if error is not None and error is not self._reported:  # once per failure, not per redraw
+            engine.report({"ERROR"}, _failure(error))
+            self._reported = error
         if image is None:
             return
         if (image.generation, image.samples) != self._drawn or self._texture is None:

@@ -378,3 +378,28 @@ def test_denoise_option_brings_a_4_spp_render_closer_to_256_spp(fresh_scene, tmp
     assert err["denoised"] < 0.7 * err["noisy"], err
     scene.neural_render.denoise = False
     assert scene.compositing_node_group is None
+
+
+def test_denoising_passes_reach_the_compositor(fresh_scene, tmp_path):
+    ctx = fresh_scene
+    scene = ctx.scene
+    small(scene, 16, 12)
+    scene.render.engine = "NEURAL_LAYERED"
+    scene.neural_render.denoise = True
+    group = scene.compositing_node_group
+    layers = next(n for n in group.nodes if n.bl_idname == "CompositorNodeRLayers")
+    assert {"Denoising Normal", "Denoising Albedo"} <= {o.name for o in layers.outputs if o.enabled}
+    out = group.nodes.new("CompositorNodeOutputFile")
+    out.directory = str(tmp_path) + "/"
+    out.file_name = "albedo"
+    out.format.file_format = "OPEN_EXR_MULTILAYER"
+    out.file_output_items.new("RGBA", "albedo")
+    group.links.new(layers.outputs["Denoising Albedo"], out.inputs[0])
+    scene.render.filepath = str(tmp_path / "frame.exr")
+    bpy.ops.render.render(write_still=True)
+    albedo = read_image(tmp_path / "albedo.exr")[..., :3].reshape(-1, 3)
+    # The startup cube's grey (0.8) where the camera rays hit it, 0 where they escape (edge pixels:
+    # the mean of both over the samples).
+    seen = albedo.max(axis=1) > 0
+    assert 0 < seen.sum() < len(seen)
+    assert np.allclose(np.median(albedo[seen], axis=0), 0.8, atol=1e-3) and albedo.max() <= 0.8 + 1e-3
