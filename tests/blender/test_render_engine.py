@@ -218,7 +218,8 @@ def test_core_scene_round_trips_through_blender(fresh_scene):
     assert np.allclose(m1.positions, m0.positions, atol=1e-5)
     assert np.allclose(m1.normals, m0.normals, atol=2e-3)
     assert np.allclose(m1.uvs, m0.uvs, atol=1e-6)
-    assert [back.material_names[i] for i in m1.material_index[:5]] == [core.material_names[i] for i in m0.material_index[:5]]
+    names = [back.material_names[i] for i in m1.material_index[:5]]
+    assert names == [core.material_names[i] for i in m0.material_index[:5]]
     kinds = [type(m) for m in back.materials]
     assert kinds == [LambertMaterial, LayeredSpec, LayeredSpec]
     assert back.materials[1].stack.base.roughness == pytest.approx(core.materials[1].stack.base.roughness, rel=1e-5)
