@@ -3,7 +3,7 @@
 The linux-x64 zip is built with ``scripts/build_extension.py`` and installed into a fresh
 user-extensions folder by a Python run with ``-S -P`` (no site-packages, no script folder on the
 path) whose ``PYTHONPATH`` is a folder of links to the ``bpy`` package and ``numpy`` alone, as in
-Blender: no Pillow, scipy, torch, checkout or virtual environment. There
+Blender (``scripts/blender_only.py``): no Pillow, scipy, torch, checkout or virtual environment. There
 ``blender_only_session.py`` presses every button with its default settings, from an unsaved and
 from a saved .blend, and this test checks that no step raised or reported an error (except the
 bake's refusal in an unsaved file, which must say to save it), that every output exists and is
@@ -12,11 +12,8 @@ finite, and that nothing was written into the process's working folder.
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import os
 import platform
-import subprocess
 import sys
 from pathlib import Path
 
@@ -26,27 +23,13 @@ pytest.importorskip("bpy")
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "scripts"))
+import blender_only  # noqa: E402
 import build_extension  # noqa: E402
 
 SESSION = Path(__file__).with_name("blender_only_session.py")
 DEFAULT_PATH_STEPS = ("preset_apply", "evaluate_latent", "preview_lobe", "preview_sphere", "compare_reference",
                       "draw NLM_PT_view3d_stack", "draw NLM_PT_view3d_preview", "draw NLM_PT_view3d_bake",
                       "render_preview png", "render_preview exr", "F12", "reload", "F12 after reload")
-
-
-def blender_only_path(folder: Path) -> Path:
-    """A folder holding links to what Blender ships of this environment: bpy (with its own
-    libraries, scripts and bundled modules inside its folder) and numpy (with its libraries)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    for name in ("bpy", "numpy"):
-        spec = importlib.util.find_spec(name)
-        assert spec is not None and spec.submodule_search_locations, f"{name} is not installed as a package"
-        package = Path(list(spec.submodule_search_locations)[0])
-        (folder / name).symlink_to(package, target_is_directory=True)
-        libs = package.with_name(name + ".libs")  # the shared libraries of a manylinux wheel
-        if libs.is_dir():
-            (folder / libs.name).symlink_to(libs, target_is_directory=True)
-    return folder
 
 
 @pytest.fixture(scope="module")
@@ -59,19 +42,9 @@ def session(tmp_path_factory):
                                      log=lambda *_: None)
     except build_extension.RegistryUnreachable as e:
         pytest.skip(f"package index unreachable and wheels not cached: {e}")
-    home, work = tmp / "home", tmp / "work"
-    home.mkdir()
+    work = tmp / "work"
     work.mkdir()
-    env = {
-        "PATH": os.environ.get("PATH", "/usr/bin:/bin"),
-        "HOME": str(home),
-        "PYTHONPATH": str(blender_only_path(tmp / "blender_python")),
-        "BLENDER_USER_RESOURCES": str(home / "blender"),
-        "BLENDER_USER_EXTENSIONS": str(home / "extensions"),
-        "OMP_NUM_THREADS": "1",
-    }
-    proc = subprocess.run([sys.executable, "-S", "-P", str(SESSION), str(zips[0]), str(work)], cwd=work, env=env,
-                          capture_output=True, text=True, timeout=600)
+    proc = blender_only.run(SESSION, [str(zips[0]), str(work)], tmp, cwd=work, timeout=600)
     lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
     assert proc.returncode == 0 and lines, proc.stdout[-4000:] + proc.stderr[-4000:]
     result = json.loads(lines[-1][len("RESULT "):])
