@@ -32,7 +32,6 @@ import glob
 import importlib.metadata
 import importlib.util
 import json
-import os
 import re
 import shutil
 import subprocess
@@ -181,7 +180,9 @@ def manifest_with_wheels(source: str, wheel_names: list[str], platforms: list[st
     """The source manifest with ``wheels`` and ``platforms`` added as top-level keys (before any
     table), and ``notes`` as comments above them."""
     if re.search(r"^\s*(wheels|platforms)\s*=", source, re.M):
-        raise ValueError("the source blender_manifest.toml already lists wheels/platforms; the build script writes them")
+        raise ValueError(
+            "the source blender_manifest.toml already lists wheels/platforms; the build script writes them"
+        )
     keys = "".join(f"# {n}\n" for n in notes) + "platforms = {}\nwheels = [\n{}]\n\n".format(
         json.dumps(platforms), "".join(f'  "./wheels/{n}",\n' for n in wheel_names)
     )
@@ -208,7 +209,8 @@ def assemble(build: Path, platform: str, wheels: list[Path]) -> None:
     for w in wheels:
         shutil.copy2(w, build / "wheels" / w.name)
     source = (ROOT / "blender_manifest.toml").read_text()
-    manifest = manifest_with_wheels(source, sorted(w.name for w in wheels), [platform], platform_notes(platform, wheels))
+    names = sorted(w.name for w in wheels)
+    manifest = manifest_with_wheels(source, names, [platform], platform_notes(platform, wheels))
     (build / "blender_manifest.toml").write_text(manifest)
 
 

@@ -45,7 +45,9 @@ def _map_values(item, pmap) -> np.ndarray:
             raise ValueError(f"layer {item.name!r}: an F0 map needs the conductor specified by colour (F0)")
         values = k_from_f0(values)
     elif pmap.parameter in ("ETA", "K") and item.conductor_mode != "ETA_K":
-        raise ValueError(f"layer {item.name!r}: {pmap.parameter.lower()} maps need the conductor specified by complex IOR")
+        raise ValueError(
+            f"layer {item.name!r}: {pmap.parameter.lower()} maps need the conductor specified by complex IOR"
+        )
     return values
 
 

@@ -51,7 +51,8 @@ def _on_auto_latent(settings, context) -> None:
 def _range_text(key: str) -> str:
     lo, hi = TRAINED_RANGES[key]
     vlo, vhi = VALID_RANGES[key]
-    return f"Trained range {lo:g} to {hi:g} (valid {vlo:g} to {vhi:g}; outside the trained range the neural models clamp)"
+    return (f"Trained range {lo:g} to {hi:g} (valid {vlo:g} to {vhi:g}; "
+            "outside the trained range the neural models clamp)")
 
 
 MAP_PARAMETERS = [
@@ -93,8 +94,8 @@ class NLM_ParameterMap(bpy.types.PropertyGroup):
     parameter: EnumProperty(name="Parameter", items=MAP_PARAMETERS, default="ROUGHNESS",
                             description="Which parameter of the layer the image drives", update=_on_layer_changed)
     image: PointerProperty(type=bpy.types.Image, name="Image",
-                           description="Image whose pixel values (0 to 1) drive the parameter, decoded by its Color Space as "
-                           "Cycles does: use Non-Color for data such as roughness, sRGB for colours",
+                           description="Image whose pixel values (0 to 1) drive the parameter, decoded by its "
+                           "Color Space as Cycles does: use Non-Color for data such as roughness, sRGB for colours",
                            update=_on_layer_changed)
     low: FloatProperty(name="Low", default=0.0, description="Parameter value where the image is 0",
                        update=_on_layer_changed)
@@ -116,7 +117,8 @@ class NLM_Layer(bpy.types.PropertyGroup):
         name="Roughness",
         description=(
             "Artist roughness, as in the Principled BSDF: the GGX alpha is its square. "
-            f"Trained alpha {_ALPHA_LO:g} to {_ALPHA_HI:g}, i.e. roughness {_ROUGH_SOFT[0]:.1f} to {_ROUGH_SOFT[1]:.1f}; "
+            f"Trained alpha {_ALPHA_LO:g} to {_ALPHA_HI:g}, "
+            f"i.e. roughness {_ROUGH_SOFT[0]:.1f} to {_ROUGH_SOFT[1]:.1f}; "
             "smoother surfaces are clamped by the neural models"
         ),
         default=0.3,
@@ -149,7 +151,8 @@ class NLM_Layer(bpy.types.PropertyGroup):
     )
     f0: FloatVectorProperty(
         name="F0",
-        description="Reflectance at normal incidence (linear RGB, 0 to 1); converted to eta = 1 and k = 2 sqrt(F0 / (1 - F0))",
+        description="Reflectance at normal incidence (linear RGB, 0 to 1); "
+        "converted to eta = 1 and k = 2 sqrt(F0 / (1 - F0))",
         size=3,
         default=(0.95, 0.64, 0.54),
         min=0.0,
@@ -211,7 +214,8 @@ class NLM_Layer(bpy.types.PropertyGroup):
         update=_on_layer_changed,
     )
     maps: CollectionProperty(type=NLM_ParameterMap, name="Parameter Maps",
-                             description="Images that drive parameters of this layer per texel (baked into a latent texture)")
+                             description="Images that drive parameters of this layer per texel "
+                             "(baked into a latent texture)")
     g: FloatProperty(
         name="Anisotropy g",
         description="Henyey-Greenstein asymmetry of the medium's scattering (-1 back, 0 isotropic, 1 forward). "
@@ -275,7 +279,8 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
         max=math.radians(89.0),
         subtype="ANGLE",
     )
-    lobe_resolution: IntProperty(name="Lobe Size", description="Lobe image size in pixels", default=128, min=8, max=1024)
+    lobe_resolution: IntProperty(name="Lobe Size", description="Lobe image size in pixels", default=128, min=8,
+                                 max=1024)
     sphere_resolution: IntProperty(
         name="Sphere Size", description="Sphere image size in pixels", default=128, min=8, max=1024
     )

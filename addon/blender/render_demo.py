@@ -70,7 +70,7 @@ def build_scene(scene, context=None):
     me.normals_split_custom_set(mesh.normals.reshape(-1, 3).tolist())
     me.update()
     names = scene.material_names or [f"material {i}" for i in range(len(scene.materials))]
-    for name, spec in zip(names, scene.materials):
+    for name, spec in zip(names, scene.materials, strict=True):
         me.materials.append(_material(name, spec))
     ob = bpy.data.objects.new("scene mesh", me)
     bs.collection.objects.link(ob)

@@ -247,10 +247,36 @@ def _world(world, warnings: list[str]) -> Environment | None:
                         f"lighting with the socket's flat colour {tuple(round(c, 3) for c in socket.default_value[:3])}"
                     )
                 return Environment(tuple(socket.default_value[:3]), strength=strength)
-            warnings.append(f"world {world.name!r}: surface is a {bg.type} node, not Background; using the world colour")
+            warnings.append(
+                f"world {world.name!r}: surface is a {bg.type} node, not Background; using the world colour"
+            )
         elif out is not None:
             return None  # nothing connected: a black world
     return Environment(tuple(world.color))
+
+
+def _object_arrays(ob, material_slot, warnings: list[str]):
+    """``_mesh_arrays`` of an evaluated object plus its scene material indices; None (with a
+    warning for an object without a mesh form, e.g. empty curves) when it has no triangles."""
+    try:
+        arrays = _mesh_arrays(ob)
+    except RuntimeError as e:
+        warnings.append(f"object {ob.name!r} has no mesh to render ({e}); skipped")
+        return None
+    if arrays is None:
+        return None
+    slots = [material_slot(s.material) for s in ob.material_slots] or [material_slot(None)]
+    return arrays + (np.asarray(slots, np.int32),)
+
+
+def _world_mesh(arrays, matrix: np.ndarray) -> Mesh:
+    """One instance's triangles in world space: positions by its matrix, normals by the inverse
+    transpose, material slots mapped to the scene's material indices."""
+    pos, nrm, uvs, mat_i, slots = arrays
+    world_pos = pos @ matrix[:3, :3].T.astype(np.float32) + matrix[:3, 3].astype(np.float32)
+    normal_m = np.linalg.inv(matrix[:3, :3]).T if abs(np.linalg.det(matrix[:3, :3])) > 1e-30 else np.eye(3)
+    world_nrm = nrm @ normal_m.T.astype(np.float32)
+    return Mesh(world_pos, world_nrm, uvs, slots[np.clip(mat_i, 0, len(slots) - 1)])
 
 
 def export_scene(depsgraph, width: int | None = None, height: int | None = None, camera: Camera | None = None):
@@ -298,23 +324,11 @@ def export_scene(depsgraph, width: int | None = None, height: int | None = None,
             continue
         key = (ob.name, ob.data.name if ob.data is not None else "")
         if key not in cache:
-            try:
-                cache[key] = _mesh_arrays(ob)
-            except RuntimeError as e:  # an object type without a mesh form (e.g. empty curves)
-                warnings.append(f"object {ob.name!r} has no mesh to render ({e}); skipped")
-                cache[key] = None
-            if cache[key] is not None:
-                slots = [material_slot(s.material) for s in ob.material_slots] or [material_slot(None)]
-                cache[key] = cache[key] + (np.asarray(slots, np.int32),)
+            cache[key] = _object_arrays(ob, material_slot, warnings)
         arrays = cache[key]
         if arrays is None:
             continue
-        pos, nrm, uvs, mat_i, slots = arrays
-        world_pos = pos @ matrix[:3, :3].T.astype(np.float32) + matrix[:3, 3].astype(np.float32)
-        normal_m = np.linalg.inv(matrix[:3, :3]).T if abs(np.linalg.det(matrix[:3, :3])) > 1e-30 else np.eye(3)
-        world_nrm = nrm @ normal_m.T.astype(np.float32)
-        global_mat = slots[np.clip(mat_i, 0, len(slots) - 1)]
-        meshes.append(Mesh(world_pos, world_nrm, uvs, global_mat))
+        meshes.append(_world_mesh(arrays, matrix))
     mesh = Mesh.concatenate(meshes)
     if mesh.uvs is None and any(isinstance(m, LambertMaterial) and m.texture is not None for m in materials):
         warnings.append("textured materials on meshes without UV maps sample the texture at uv (0, 0)")

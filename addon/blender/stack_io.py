@@ -80,7 +80,8 @@ def stack_from_material(mat) -> Optional[Stack]:
         if item.layer_type != "COATING":
             raise ValueError(
                 f"layer {item.name!r} ({layer_types.label(item.layer_type)}) is above the base of "
-                f"material {mat.name!r}; only Coating layers can go above the base (move it to the bottom or change its type)"
+                f"material {mat.name!r}; only Coating layers can go above the base "
+                "(move it to the bottom or change its type)"
             )
     return Stack(base=layer_from_item(bottom), coatings=tuple(layer_from_item(i) for i in layers[1:]))
 

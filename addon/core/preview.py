@@ -136,7 +136,8 @@ def neural_proxy(z: np.ndarray, size: str) -> tuple[Optional[tuple[float, float]
     """(sigma, w) of the shipped sampling network for latent ``z`` of decoder ``size``, and notes;
     (None, [why]) when that network cannot be loaded (previews then sample a cosine lobe)."""
     try:
-        sigma, w = _neural_module().load_models(size).proxy_params(np.asarray(z, dtype=np.float32).reshape(3, LATENT))[0]
+        z = np.asarray(z, dtype=np.float32).reshape(3, LATENT)
+        sigma, w = _neural_module().load_models(size).proxy_params(z)[0]
     except Exception as e:  # a missing or unloadable sampling model: the preview still works, noisier
         return None, [f"no sampling proxy for the {size} decoder ({type(e).__name__}: {e}); "
                       "the sphere preview samples a cosine lobe (noisier on glossy stacks)"]
@@ -465,7 +466,8 @@ class Comparison:
 
     def summary(self) -> str:
         return (
-            f"neural ({self.size}) {self.seconds_neural * 1e3:.1f} ms, reference {self.seconds_reference * 1e3:.1f} ms, "
+            f"neural ({self.size}) {self.seconds_neural * 1e3:.1f} ms, "
+            f"reference {self.seconds_reference * 1e3:.1f} ms, "
             f"relative RMSE {self.relative_rmse:.3f}"
         )
 

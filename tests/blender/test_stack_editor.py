@@ -112,7 +112,7 @@ def test_presets_match_core(material, bpy_addon):
         assert run_operator(bpy_addon.ops.neural_layers.preset_apply, preset=name).finished
         got = stack_from_material(material)
         assert len(got.layers) == len(stack.layers)
-        for a, b in zip(got.layers, stack.layers):
+        for a, b in zip(got.layers, stack.layers, strict=True):
             assert type(a) is type(b)
             for key, va in vars(a).items():
                 assert va == pytest.approx(getattr(b, key), rel=1e-5, abs=1e-6), (name, key)
@@ -245,9 +245,8 @@ def test_enums_come_from_the_one_table_of_each_kind(bpy_addon):
     conversion's labels read it too) and model sizes from the model set's ``SIZES``."""
     bpy = bpy_addon
     from addon.blender import layer_types
-    from addon.core.neural import SIZES
-
     from addon.blender.properties import NLM_Layer, NLM_MaterialSettings
+    from addon.core.neural import SIZES
 
     layer_enum = NLM_Layer.bl_rna.properties["layer_type"].enum_items
     assert [(e.identifier, e.name, e.description, e.icon) for e in layer_enum] == [
