@@ -86,6 +86,23 @@ def table(results: dict[str, list[dict]]) -> list[str]:
     return out
 
 
+def regressions(results: dict) -> str:
+    """Per size: on how many stacks the held-out error (median over elevations) rose, and the worst one."""
+    parts = []
+    for size, rows in results.items():
+        worse = [(float(np.median(r["after"])) - float(np.median(r["before"])), r) for r in rows
+                 if np.median(r["after"]) > np.median(r["before"])]
+        if not worse:
+            parts.append(f"{size} on none of {len(rows)}")
+            continue
+        _, r = max(worse, key=lambda x: x[0])
+        parts.append(f"{size} on {len(worse)} of {len(rows)} (worst: stack {r['stack']}, "
+                     f"{np.median(r['before']):.3f} -> {np.median(r['after']):.3f})")
+    return ("The held-out error (median over the four elevations) rose after a refinement its validation pairs "
+            "accepted for " + "; ".join(parts) + ": the validation pairs are a Monte Carlo estimate of the lobe "
+            "metric, not the metric itself.")
+
+
 def section(results: dict, command: str, settings: RefineSettings, budget: float, load: list | None = None) -> str:
     s = settings
     busy = (f" During the runs the machine's load average was {min(load):.0f} to {max(load):.0f} (other jobs on "
@@ -111,7 +128,7 @@ def section(results: dict, command: str, settings: RefineSettings, budget: float
         *table(results), "",
         "Layers = base + coatings. \"kept\": materials whose refined latent was better on its validation pairs "
         "(the others keep the runtime path's latent, so their error is unchanged). Seconds: the whole call "
-        f"(reference walks for both pair sets, then the optimisation).{busy}", "",
+        f"(reference walks for both pair sets, then the optimisation).{busy}", "", regressions(results), "",
     ]
     return "\n".join(lines)
 
