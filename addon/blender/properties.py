@@ -67,25 +67,27 @@ MAP_PARAMETERS = [
 ]
 
 
-def model_size_items(auto_description: str | None = None) -> list[tuple[str, str, str]]:
+def model_size_items(auto_description: str | None = None, size_description: str = "The {size} decoder",
+                     ) -> list[tuple[str, str, str]]:
     """EnumProperty items of a decoder-size setting: Auto, then every size of the model set
-    (``addon.core.neural.SIZES``), each described from its model card (parameters, speed)."""
+    (``addon.core.neural.SIZES``), each described by ``size_description`` (``{size}`` is filled
+    in) and its model card's parameter count. The render settings' Decoder uses it too."""
     auto = auto_description or (f"The neural runtime's default size, {DEFAULT_SIZE} (or the first size shipped "
                                 "when it is not)")
     items = [("AUTO", "Auto", auto)]
     for size in SIZES:
-        items.append((size.upper(), size.title(), _size_description(size)))
+        items.append((size.upper(), size.title(), _size_description(size, size_description.format(size=size))))
     return items
 
 
-def _size_description(size: str) -> str:
+def _size_description(size: str, text: str) -> str:
     try:  # the card's figures; the digests are checked when the models load, not here
         card = json.loads((MODEL_DIR / f"decoder_{size}.json").read_text())
         parameters = f"{int(card['parameters']):,} parameters"
     except (OSError, ValueError, KeyError, TypeError):
-        return f"The {size} decoder (its model card is missing)"
+        return f"{text} (its model card is missing)"
     default = "; the Auto choice" if size == DEFAULT_SIZE else ""
-    return f"The {size} decoder: {parameters}, more is slower and closer to the reference{default}"
+    return f"{text}: {parameters}, more is slower and closer to the reference{default}"
 
 
 class NLM_ParameterMap(bpy.types.PropertyGroup):

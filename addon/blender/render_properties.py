@@ -6,6 +6,7 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty
 
 from ..core.render import RenderSettings
+from .properties import model_size_items
 
 DENOISE_GROUP = "Neural Layered Denoise"
 DENOISING_PASSES = (("Denoising Normal", 3, "XYZ", "VECTOR"), ("Denoising Albedo", 3, "RGB", "COLOR"))
@@ -74,15 +75,12 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
     )
     decoder_quality: EnumProperty(
         name="Decoder",
-        items=[
-            ("AUTO", "Auto", "Per material, the smallest decoder whose measured error on its stack is under the "
-                             "tolerance (measured once per stack and cached; the most accurate one, with a warning, "
-                             "when none is)"),
-            ("TINY", "Tiny", "Every layered material on the tiny decoder"),
-            ("SMALL", "Small", "Every layered material on the small decoder"),
-            ("MEDIUM", "Medium", "Every layered material on the medium decoder"),
-            ("PAPER", "Paper", "Every layered material on the paper's decoder (about 1 M parameters)"),
-        ],
+        items=model_size_items(
+            "Per material, the smallest decoder whose measured error on its stack is under the "
+            "tolerance (measured once per stack and cached; the most accurate one, with a warning, "
+            "when none is)",
+            "Every layered material on the {size} decoder",
+        ),
         default="AUTO",
         description="Neural decoder of layered materials in neural mode",
     )

@@ -256,6 +256,8 @@ def test_enums_come_from_the_one_table_of_each_kind(bpy_addon):
     sizes = NLM_MaterialSettings.bl_rna.properties["model_size"].enum_items
     assert [e.identifier for e in sizes] == ["AUTO"] + [s.upper() for s in SIZES]
     assert all("parameters" in e.description for e in sizes if e.identifier != "AUTO")
+    render = bpy.types.Scene.bl_rna.properties["neural_render"].fixed_type.properties["decoder_quality"].enum_items
+    assert [e.identifier for e in render] == ["AUTO"] + [s.upper() for s in SIZES]
 
 
 def test_buttons_grey_out_where_they_cannot_run(bpy_addon, fresh_scene, material, monkeypatch):
