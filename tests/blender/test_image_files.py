@@ -41,3 +41,62 @@ def test_exr_round_trips_float_values(tmp_path, no_pillow):
 def test_unwritable_path_raises_with_the_path(tmp_path):
     with pytest.raises(RuntimeError, match="cannot write"):
         write_png(tmp_path / "missing folder" / "a.png", np.zeros((2, 2, 3)))
+
+
+def test_writing_to_a_folder_name_refuses_up_front_and_leaves_nothing(tmp_path):
+    folder = tmp_path / "renders"
+    folder.mkdir()
+    for write, name in ((write_exr, "EXR"), (write_png, "PNG")):
+        with pytest.raises(IsADirectoryError, match="it is a folder"):
+            write(folder, np.ones((3, 4, 3), dtype=np.float32))
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["renders"], name
+        assert not list(folder.iterdir()), name
+
+
+class _FailingOutput:
+    """An OpenImageIO output that writes the image, then is interrupted before it returns."""
+
+    def __init__(self, real):
+        self.real = real
+
+    def open(self, *args):
+        return self.real.open(*args)
+
+    def write_image(self, pixels):
+        self.real.write_image(pixels)
+        raise KeyboardInterrupt("interrupted mid-write")
+
+    def close(self):
+        return self.real.close()
+
+    def geterror(self):
+        return self.real.geterror()
+
+
+@pytest.mark.parametrize("write, suffix", [(write_exr, ".exr"), (write_png, ".png")])
+def test_an_interrupted_write_leaves_the_previous_file_and_no_temporary(tmp_path, monkeypatch, write, suffix):
+    import types
+
+    from addon.core.textures import latent_texture
+
+    path = tmp_path / f"frame{suffix}"
+    before = np.full((5, 6, 3), 0.25, dtype=np.float32)
+    write(path, before)
+    real = latent_texture.oiio_module()
+    created = []
+
+    def create(name):
+        created.append(name)
+        return _FailingOutput(real.ImageOutput.create(name))
+
+    fake = types.SimpleNamespace(ImageSpec=real.ImageSpec, ImageOutput=types.SimpleNamespace(create=create),
+                                 FLOAT=real.FLOAT, UINT8=real.UINT8, geterror=real.geterror)
+    monkeypatch.setattr(latent_texture, "oiio_module", lambda: fake)
+    with pytest.raises(KeyboardInterrupt):
+        write(path, np.full((5, 6, 3), 0.75, dtype=np.float32))
+    monkeypatch.undo()
+    assert created and created[0] != str(path)  # it wrote under a temporary name ...
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]  # ... and removed it
+    expected = before if suffix == ".exr" else np.round(to_srgb(before) * 255) / 255
+    np.testing.assert_allclose(read_image(path), expected, atol=1e-6)  # the previous file, round-tripped
+

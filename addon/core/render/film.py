@@ -65,21 +65,22 @@ def to_srgb(linear: np.ndarray) -> np.ndarray:
 
 def _write_oiio(path: Path, pixels: np.ndarray, pixel_type: str) -> None:
     """Write (H, W, C) ``pixels`` through OpenImageIO (shipped with Blender and the bpy wheel; the
-    format follows the file name), to a temporary name first, then renamed."""
+    format follows the file name), published as the textures' files are: a temporary name unique to
+    this process, flushed and renamed over ``path`` in one step, removed on any failure."""
+    from ..textures.files import publishing
     from ..textures.latent_texture import oiio_module
 
     oiio = oiio_module()
-    tmp = path.with_name(path.name + ".partial" + path.suffix)
     spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], getattr(oiio, pixel_type))
-    out = oiio.ImageOutput.create(str(tmp))
-    if out is None or not out.open(str(tmp), spec):
-        raise RuntimeError(f"cannot write {path}: {oiio.geterror()}")
-    try:
-        if not out.write_image(np.ascontiguousarray(pixels)):
-            raise RuntimeError(f"cannot write {path}: {out.geterror()}")
-    finally:
-        out.close()
-    tmp.replace(path)
+    with publishing(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None or not out.open(str(tmp), spec):
+            raise RuntimeError(f"cannot write {path}: {oiio.geterror()}")
+        try:
+            if not out.write_image(np.ascontiguousarray(pixels)):
+                raise RuntimeError(f"cannot write {path}: {out.geterror()}")
+        finally:
+            out.close()
 
 
 def write_png(path: str | os.PathLike, linear: np.ndarray, exposure: float = 1.0) -> None:
