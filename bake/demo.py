@@ -6,8 +6,9 @@ Writes, for every preset stack, its reference lobe images (f cos on the projecte
 hemisphere at the DESIGN incident angles) as PNG, and an albedo table (Markdown) with the
 standard errors of the position-free Monte Carlo reference. Then renders the bundled demo
 scene (layered presets and a textured floor under a sky and an area light) headless with the
-add-on's path tracer, as ``demo_render.png`` (sRGB), ``demo_render.exr`` (linear, when
-OpenImageIO is available through the bpy module) and ``demo_render.md`` (settings and timings).
+add-on's path tracer, as ``demo_render.png`` (sRGB), ``demo_render.exr`` (linear) and
+``demo_render.md`` (settings and timings). Images are written by the add-on's own writers
+(OpenImageIO, which Blender and the bpy module ship), as Render Preview writes them.
 """
 
 from __future__ import annotations
@@ -24,16 +25,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from addon.core import lobe, reference  # noqa: E402
+from addon.core.render.film import write_png  # noqa: E402
 from addon.core.stack import PRESETS  # noqa: E402
-
-
-def write_png(path: Path, rgb: np.ndarray) -> None:
-    from PIL import Image
-
-    img = (lobe.to_display(rgb) * 255.0 + 0.5).astype(np.uint8)
-    tmp = path.with_suffix(".tmp.png")
-    Image.fromarray(img).save(tmp)
-    tmp.replace(path)
 
 
 def preset_lobes(out: Path, res: int, walks: int, seed: int) -> list[str]:
@@ -92,7 +85,7 @@ def bake_floor(out: Path):
 
 
 def render_demo(out: Path, width: int, height: int, samples: int, bounces: int, mode: str, seed: int) -> None:
-    from addon.core.render import RenderSettings, render, write_exr, write_png
+    from addon.core.render import RenderSettings, render, write_exr
     from addon.core.render.demo_scene import demo_scene
 
     floor = bake_floor(out) if mode == "neural" else None
