@@ -191,6 +191,54 @@ def speed_only(args, command: str) -> int:
     return 0
 
 
+def single_layer_rows(width, height, bases, samples, bounces) -> list[tuple]:
+    """The demo scene with every stack replaced by its base layer: the renderer's own speed with
+    exact analytic BSDFs, and with the neural decoder forced on those single-layer stacks."""
+    from addon.core.render import neural_material
+
+    rows = []
+    for label, mats in (("analytic BSDFs", None), ("neural decoder", [neural_material.make(b) for b in bases])):
+        if mats is not None and any(m is None for m in mats):
+            continue
+        variant = demo_scene(width, height, bases)
+        if mats is not None:
+            variant.materials[1:] = mats
+        ours(variant, 1, 1, "neural")
+        _, st = ours(variant, samples, bounces, "neural")
+        s = st.seconds
+        rows.append((f"ours, single-layer stacks, {label}", st.paths_per_second, s["total"], s["rays"], s["network"],
+                     s["reference"], st.rest))
+        print(rows[-1], flush=True)
+    return rows
+
+
+def single_layer_curves(ew, eh, bases, budgets, reference_samples, bounces) -> dict:
+    """Single-layer scene: exact ground truth, decoder vs position-free estimator at equal time;
+    per material kind, (seconds, MSE, samples, stats) per budget."""
+    from addon.core.render import neural_material
+
+    single = demo_scene(ew, eh, bases)
+    exact_img, _ = ours(single, reference_samples, bounces, "reference", seed=2000)
+    forced = {
+        "neural decoder": [neural_material.make(st) for st in bases],
+        "reference estimator": [M.ReferenceLayered(st, walks=2) for st in bases],
+    }
+    single_curves = {}
+    for label, mats in forced.items():
+        if any(m is None for m in mats):
+            print(f"skipping {label}: not available", flush=True)
+            continue
+        variant = demo_scene(ew, eh, bases)
+        variant.materials[1:] = mats
+        pts = []
+        for spp in budgets:
+            img, st = ours(variant, spp, bounces, "neural", seed=spp)
+            pts.append((st.seconds["total"], mse(img, exact_img), spp, st))
+        single_curves[label] = pts
+        print(label, [p[:3] for p in pts], flush=True)
+    return single_curves
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", default="160x90")
@@ -226,25 +274,11 @@ def main(argv=None) -> int:
                      s["rays"], s["network"], s["reference"], st.rest))
         print(rows[-1], flush=True)
 
-    # The same scene with every stack replaced by its base layer: the renderer's own speed with
-    # exact analytic BSDFs, and with the neural decoder forced on those single-layer stacks.
-    from addon.core.render import neural_material
     from addon.core.render.demo_scene import DEMO_PRESETS
     from addon.core.stack import PRESETS, Stack
 
     bases = [Stack(PRESETS[p].base) for p in DEMO_PRESETS]
-    for label, mats in (("analytic BSDFs", None), ("neural decoder", [neural_material.make(b) for b in bases])):
-        if mats is not None and any(m is None for m in mats):
-            continue
-        variant = demo_scene(width, height, bases)
-        if mats is not None:
-            variant.materials[1:] = mats
-        ours(variant, 1, 1, "neural")
-        _, st = ours(variant, args.samples, args.bounces, "neural")
-        s = st.seconds
-        rows.append((f"ours, single-layer stacks, {label}", st.paths_per_second, s["total"], s["rays"], s["network"],
-                     s["reference"], st.rest))
-        print(rows[-1], flush=True)
+    rows += single_layer_rows(width, height, bases, args.samples, args.bounces)
 
     import bpy
 
@@ -277,26 +311,7 @@ def main(argv=None) -> int:
     cyc_err = mse(cyc_e, ref)
     cyc_err_clamped = mse(np.minimum(cyc_e, 1), np.minimum(ref, 1))
 
-    # Single-layer scene: exact ground truth, decoder vs position-free estimator at equal time.
-    single = demo_scene(ew, eh, bases)
-    exact_img, _ = ours(single, args.reference_samples, args.bounces, "reference", seed=2000)
-    forced = {
-        "neural decoder": [neural_material.make(st) for st in bases],
-        "reference estimator": [M.ReferenceLayered(st, walks=2) for st in bases],
-    }
-    single_curves = {}
-    for label, mats in forced.items():
-        if any(m is None for m in mats):
-            print(f"skipping {label}: not available", flush=True)
-            continue
-        variant = demo_scene(ew, eh, bases)
-        variant.materials[1:] = mats
-        pts = []
-        for spp in budgets:
-            img, st = ours(variant, spp, args.bounces, "neural", seed=spp)
-            pts.append((st.seconds["total"], mse(img, exact_img), spp, st))
-        single_curves[label] = pts
-        print(label, [p[:3] for p in pts], flush=True)
+    single_curves = single_layer_curves(ew, eh, bases, budgets, args.reference_samples, args.bounces)
     from addon.core.render import write_png
 
     side = np.concatenate([images["reference"], np.ones((height, 4, 3)), cyc], axis=1)
