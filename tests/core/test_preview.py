@@ -7,7 +7,7 @@ import pytest
 
 from addon.core import preview
 from addon.core.bsdf.lambert import Lambertian
-from addon.core.stack import PRESETS, Stack, Coating, Diffuse
+from addon.core.stack import PRESETS, Coating, Diffuse, Stack
 
 
 def lambert(albedo):
