@@ -48,7 +48,7 @@ if str(ROOT) not in sys.path:
 
 from addon.core.stack import PRESETS, Stack, preset  # noqa: E402
 from addon.core.textures import files  # noqa: E402
-from addon.core.textures.bake import _texels_at, bake_key, bake_texels, neural_encoder  # noqa: E402
+from addon.core.textures.bake import _texels_at, bake_key, bake_texels, model_key, neural_encoder  # noqa: E402
 from addon.core.textures.latent_texture import CHANNEL_NAMES, LatentTexture, read_image  # noqa: E402
 from addon.core.textures.mip import resample_area  # noqa: E402
 from addon.core.textures.spatial import SpatialStack  # noqa: E402
@@ -341,7 +341,7 @@ def run(jobs: list[Job], out: Path, encode, model: str, shard: tuple[int, int], 
     tells it (``encode.metadata["model_digest"]``), the decoder file's digest, so bands and
     textures of a retrained model are never reused."""
     model_metadata = getattr(encode, "metadata", None) or {}
-    model_id = f"{model}:{model_metadata['model_digest']}" if model_metadata.get("model_digest") else model
+    model_id = model_key(model, model_metadata.get("model_digest"))
     _check_output_folder(out, jobs)
     files.remove_stale_temps(out)
     items = []

@@ -16,7 +16,12 @@ from bpy.props import EnumProperty, IntProperty
 
 from ..core.textures.bake import bake_key, bake_stack, neural_encoder
 from . import bake_inputs
-from .bake_state import bake_size, baked_texture_state, texture_output_path  # noqa: F401 (baked_texture_state: API)
+from .bake_state import (  # noqa: F401 (baked_texture_state: API)
+    bake_model_key,
+    bake_size,
+    baked_texture_state,
+    texture_output_path,
+)
 from .operator_base import LongOperator, MaterialOperator, UserError, guarded
 from .properties import MAP_PARAMETERS
 
@@ -103,7 +108,7 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
             res = min(res, camera_resolution(context, mat, spatial), key=lambda r: r[0] * r[1])
         size = bake_size(mat)
         path = texture_output_path(mat)
-        key = bake_key(spatial, res, size)
+        key = bake_key(spatial, res, bake_model_key(size))  # with the decoder's digest, as bake_state checks it
         name = mat.name
 
         def work(progress):

@@ -10,8 +10,9 @@ import os
 
 import bpy
 
-from ..core.neural.models import resolve_size
-from ..core.textures.bake import bake_key
+from ..core.neural.models import ModelFileError, load_models, resolve_size
+from ..core.textures.bake import bake_key, model_key
+from ..core.textures.files import safe_file_name
 from . import bake_inputs, stack_io
 from .operator_base import UserError
 
@@ -30,7 +31,8 @@ def texture_output_path(mat) -> str:
             f"the bake folder {folder!r} is relative to the .blend file, which is not saved: "
             "save the file first or choose an absolute Bake Folder"
         )
-    return os.path.join(bpy.path.abspath(folder), f"{bpy.path.clean_name(mat.name)}.exr")
+    # the bake CLI's file names: two different material names never share a file ("a/b", "a_b")
+    return os.path.join(bpy.path.abspath(folder), f"{safe_file_name(mat.name)}.exr")
 
 
 def bake_size(mat) -> str:
@@ -38,6 +40,15 @@ def bake_size(mat) -> str:
     try:
         return resolve_size(stack_io.model_size(mat))
     except (ValueError, FileNotFoundError) as e:
+        raise UserError(str(e)) from None
+
+
+def bake_model_key(size: str) -> str:
+    """The model part of the bake key of a bake with decoder ``size``: the size and the shipped decoder
+    file's digest, as the bake CLI keys its textures (``textures.bake.model_key``)."""
+    try:
+        return model_key(size, load_models(size).digest)
+    except (ValueError, FileNotFoundError, ModelFileError) as e:
         raise UserError(str(e)) from None
 
 
@@ -58,9 +69,9 @@ def baked_texture_state(mat) -> tuple[str | None, str]:
     spatial, _ = found
     res = tuple(s.texture_size)
     try:
-        size = bake_size(mat)
+        model = bake_model_key(bake_size(mat))
     except UserError as e:
         return None, str(e)
-    if bake_key(spatial, res, size) != s.texture_key:
+    if bake_key(spatial, res, model) != s.texture_key:
         return None, "baked texture is out of date: bake again"
     return path, f"baked: {os.path.basename(path)}"

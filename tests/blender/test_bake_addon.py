@@ -191,3 +191,39 @@ def test_maps_and_base_colour_textures_decode_the_colour_space_as_cycles(bpy_add
     plain.node_tree.links.new(tex.outputs["Color"], principled.inputs["Base Color"])
     lambert = scene_export.unmanaged_material(plain, [])
     np.testing.assert_allclose(lambert.texture.levels[0], expected, rtol=2e-3)
+
+
+def test_materials_whose_names_differ_only_in_unsafe_characters_bake_to_different_files(wood, bpy_addon, tmp_path):
+    """The operator names files as the bake CLI does (``textures.files.safe_file_name``): "a/b" and "a_b"
+    must not overwrite each other, and no name leaves the bake folder."""
+    from addon.blender import bake_ops
+    from addon.core.textures.files import safe_file_name
+
+    paths = []
+    for name in ("a/b", "a_b", "../../x"):
+        wood.name = name
+        assert wood.name == name
+        r = run_operator(ops.bake_texture)
+        assert r.finished, r.error
+        path, state = bake_ops.baked_texture_state(wood)
+        assert path is not None, state
+        paths.append(path)
+        assert path == str(tmp_path / f"{safe_file_name(name)}.exr")
+    assert len(set(paths)) == 3
+    assert sorted(p.name for p in tmp_path.glob("*.exr")) == sorted(f"{safe_file_name(n)}.exr"
+                                                                   for n in ("a/b", "a_b", "../../x"))
+
+
+def test_a_texture_baked_with_another_decoder_file_is_out_of_date(wood, bpy_addon, monkeypatch):
+    """The freshness key holds the decoder file's digest, as the bake CLI's does: a texture baked
+    before the decoder of its size was replaced is not rendered."""
+    from addon.blender import bake_ops
+    from addon.core.neural.models import ModelSet
+
+    assert run_operator(ops.bake_texture).finished
+    assert bake_ops.baked_texture_state(wood)[0] is not None
+    monkeypatch.setattr(ModelSet, "digest", property(lambda self: "0" * 64))  # a retrained decoder
+    path, state = bake_ops.baked_texture_state(wood)
+    assert path is None and "out of date" in state
+    assert run_operator(ops.bake_texture).finished  # baking again with it makes it current
+    assert bake_ops.baked_texture_state(wood)[0] is not None

@@ -77,6 +77,13 @@ def _refine_rows(arrays: StackArrays, z: np.ndarray, models, left: list, cache_d
     return z
 
 
+def model_key(size: str, digest: str | None) -> str:
+    """The model part of a bake key: the decoder size and, when known, the decoder file's digest
+    (``encode.metadata["model_digest"]``, ``ModelSet.digest``), so a bake made with an earlier
+    decoder of the same size is never taken for current."""
+    return f"{size}:{digest}" if digest else size
+
+
 def bake_key(spatial: SpatialStack, resolution: tuple[int, int], model: str,
              mix: SpatialStack | None = None, mask: np.ndarray | None = None) -> str:
     """A short hash of everything a bake depends on: stack(s), driving images, mask, resolution, model."""
