@@ -46,6 +46,8 @@ class NLM_MT_presets(bpy.types.Menu):
         if bpy.utils.preset_paths(self.preset_subdir):
             layout.separator()
             bpy.types.Menu.draw_preset(self, context)
+            remove = layout.operator("neural_layers.preset_add", text="Remove Last Applied Preset", icon="REMOVE")
+            remove.remove_active = True
 
 
 def _material(context):

@@ -347,5 +347,8 @@ def test_users_save_share_and_apply_their_own_layer_presets(bpy_addon, material,
     from addon.blender import stack_io
 
     assert stack_io.stack_from_material(other) == saved != PRESETS["red_car_paint"]
+    # the menu's Remove Last Applied Preset deletes the user's file (never a bundled stack)
+    assert run_operator(bpy.ops.neural_layers.preset_add, remove_active=True).finished
+    assert not files[0].exists()
     r = run_operator(bpy.ops.neural_layers.stack_apply, stack="{not json")
     assert not r.finished and "not a layer stack" in r.error
