@@ -358,7 +358,7 @@ class _Paths:
     spread: np.ndarray
 
     def take(self, keep: np.ndarray) -> "_Paths":
-        return _Paths(*(getattr(self, f)[keep] for f in self.__dataclass_fields__))
+        return _Paths(*(v[keep] for v in vars(self).values()))  # every field, in order
 
 
 @dataclass
