@@ -88,12 +88,12 @@ from ..stack import BASE_KINDS, StackArrays, validate
 from ..xp import Rng, namespace
 
 # Safety cap on events per walk, never reached in practice. Over a white base under a smooth
-# coat of thickness 100 (the valid maximum), the longest of 1000 walks took 71 000 events (ior
-# 1.5, g 0; 0.3% of the walks still inside at 50 000, decaying as exp(-n / ~20 000)) and the
-# longest of 100 took 140 000 (ior 4, g -0.99, the slowest corner; 2% still inside at 100 000,
-# decaying as exp(-n / ~64 000)): extrapolated, less than 1e-7 of the energy reaches this cap
-# (docs/reference.md). Walks still alive here are cut with a RuntimeWarning.
-MAX_DEPTH = 1 << 20
+# coat of thickness 100 (the valid maximum), the longest of 1000 walks took 57 000 events (ior
+# 1.5, g 0; 0.1% still inside at 50 000, decaying as exp(-n / 12 000)) and the longest of 100
+# took 290 000 (ior 4, g -0.99, the slowest corner of the valid range; 2% still inside at
+# 100 000, decaying as exp(-n / 95 000)): extrapolated, about 1e-11 of the energy reaches this
+# cap there (docs/reference_furnace.md). Walks still alive here are cut with a RuntimeWarning.
+MAX_DEPTH = 1 << 21
 RR_START = 3
 CHUNK_WALKS = 1 << 17
 _JUST_BELOW_ONE = float(np.nextafter(1.0, 0.0))
@@ -387,7 +387,9 @@ class _RandomWalk:
         # a walk must see the stack from above
         self.walks.keep(wo[:, 2] > 0.0)
 
-    def run(self):
+    def run(self, alive_per_event: list | None = None):
+        """The event loop: after the first events Russian roulette, then a free flight that
+        ends in a medium or a surface event, until every walk has left the stack or ended."""
         xp = self.xp
         for depth in range(MAX_DEPTH):
             if len(self.walks) == 0:
@@ -401,6 +403,8 @@ class _RandomWalk:
             self.medium_events(xp.flatnonzero(scattered), dead)
             self.surface_events(~scattered, upward, dead)
             self.walks.keep(~dead)
+            if alive_per_event is not None:
+                alive_per_event.append(len(self.walks))
         if len(self.walks):
             self._warn_cut()
         if self.nee:
@@ -408,6 +412,7 @@ class _RandomWalk:
         return self.exit_direction, self.exit_weight, self.exit_specular
 
     def _warn_cut(self) -> None:
+        """Walks still inside at the safety cap are cut: say so, it biases the estimate."""
         lost = float(self.xp.max(self.walks.throughput))
         warnings.warn(
             f"{len(self.walks)} reference walks were still inside the stack after MAX_DEPTH = {MAX_DEPTH} events "
@@ -644,7 +649,7 @@ class _RandomWalk:
         dead[exits] = True
 
 
-def run_walks(lay: Layers, pr, wo, wi, rng: Rng, nee: bool):
+def run_walks(lay: Layers, pr, wo, wi, rng: Rng, nee: bool, alive_per_event: list | None = None):
     """Walk ``len(pr)`` independent walks, walk ``r`` for stack row ``pr[r]`` seen from ``wo[r]``.
 
     With ``nee`` (``wi`` of shape (m, M, 3) given): returns the per-walk estimates of
@@ -652,5 +657,7 @@ def run_walks(lay: Layers, pr, wo, wi, rng: Rng, nee: bool):
     own chain.
     Without: returns ``(wi, weight, specular)`` of the analog walk (weight 0 for absorbed walks).
     Arrays (``lay``, ``pr``, ``wo``, ``wi``) are in the namespace ``lay.xp``; ``rng`` draws there.
+    ``alive_per_event``: a list that receives the number of walks still inside after each event
+    (for measuring walk lengths).
     """
-    return _RandomWalk(lay, pr, wo, wi, rng, nee).run()
+    return _RandomWalk(lay, pr, wo, wi, rng, nee).run(alive_per_event)
