@@ -3,7 +3,7 @@
     python bake/demo.py --out output
 
 Writes, for every preset stack, its reference lobe images (f cos on the projected outgoing
-hemisphere at the DESIGN incident angles) as PNG, and an albedo table (Markdown) with the
+hemisphere at the incident angles of docs/architecture.md, Measurement) as PNG, and an albedo table (Markdown) with the
 standard errors of the position-free Monte Carlo reference. Then renders the bundled demo
 scene (layered presets and a textured floor under a sky and an area light) headless with the
 add-on's path tracer, as ``demo_render.png`` (sRGB), ``demo_render.exr`` (linear) and

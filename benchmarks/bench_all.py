@@ -16,7 +16,7 @@ Needs the ``bpy`` module (Cycles). Writes into ``--out`` (default ``docs/``):
 - ``benchmarks.json``: the measured numbers (what the tests compare in shape);
 - ``stability.md``: the stability matrix (``benchmarks/stability.py``).
 
-Lobe error (DESIGN section 7): relative RMSE of f cos(theta_o) lobe images at incident elevations
+Lobe error (docs/architecture.md, Measurement): relative RMSE of f cos(theta_o) lobe images at incident elevations
 0/30/60/75 degrees, per stack and elevation; median and 90th percentile over them. The stored
 layered reference lobes are Monte Carlo estimates: their noise variance is removed from every
 error (``addon.core.quality.noise_corrected_error``). Timings come from a shared 2-core machine:

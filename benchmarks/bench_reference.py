@@ -11,7 +11,7 @@ Measures, on this machine's CPU with numpy:
    walk (``albedo``) for every preset;
 2. the standard error against the walk count (median relative standard error over a lobe
    grid), which should fall as 1/sqrt(walks);
-3. the cost of a reference lobe image (f cos on the projected hemisphere, DESIGN section 7)
+3. the cost of a reference lobe image (f cos on the projected hemisphere, docs/architecture.md, Measurement)
    at 1% noise (relative RMS of the per-pixel standard error), extrapolated from a pilot run
    with the measured 1/sqrt(walks) law, for the plain estimator (one walk per pixel and
    walk count) and the amortised one (``eval_brdf_many``: each walk from the incident
@@ -224,7 +224,7 @@ def main(argv=None) -> int:
 
     lines += [
         "",
-        "## The MIS density trap (DESIGN section 4)",
+        "## The MIS density trap (docs/architecture.md, Physics traps)",
         "",
         "Directional albedo at normal incidence of a white Lambertian under a rough coat (ior 1.5): the "
         "analog walk (no MIS) against `eval_brdf` integrated over cosine-distributed wi, with the matching "

@@ -1,4 +1,4 @@
-"""Stability matrix: every BRDF method under every stress case (DESIGN section 7).
+"""Stability matrix: every BRDF method under every stress case (docs/architecture.md, Measurement).
 
     python benchmarks/stability.py            # writes docs/stability.md
     python benchmarks/stability.py --quick    # smaller lobes and fewer walks (the test's configuration)

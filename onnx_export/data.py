@@ -45,7 +45,7 @@ def log_uniform(rng, lo, hi, size):
 
 
 def sample_single_params(rng: np.random.Generator, n: int, kind_probs=KIND_PROBS) -> StackArrays:
-    """``n`` random single-layer materials over the trained ranges (DESIGN section 3)."""
+    """``n`` random single-layer materials over the trained ranges (docs/architecture.md, Conventions)."""
     kind = rng.choice(3, size=n, p=np.asarray(kind_probs) / np.sum(kind_probs))
     # a third of conductors are "artist" metals eta ~ 1 with colour in k; the rest span eta/k widely
     eta = log_uniform(rng, 0.05, 4.0, (n, 3))

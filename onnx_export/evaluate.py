@@ -1,4 +1,4 @@
-"""Held-out lobe error of a decoder (DESIGN section 7), and offline projection of tabulated BRDFs.
+"""Held-out lobe error of a decoder (docs/architecture.md, Measurement), and offline projection of tabulated BRDFs.
 
     python -m onnx_export.evaluate --ckpt cache/runs/tiny/ckpt.pt --heldout tests/data/heldout_single.npz
 

@@ -1,4 +1,4 @@
-"""The held-out benchmark set (DESIGN section 7): fixed seeded configurations, never trained on.
+"""The held-out benchmark set (docs/architecture.md, Measurement): fixed seeded configurations, never trained on.
 
     python -m onnx_export.heldout --set single --out tests/data/heldout_single.npz
     python -m onnx_export.heldout --set layered --walks 256 --fit-walks 32 --out tests/data/heldout_layered_lobes.npz

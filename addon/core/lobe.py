@@ -1,6 +1,6 @@
 """Lobe images: f(wi, wo) cos(theta_o) on a regular grid of the projected outgoing hemisphere.
 
-This is the measurement of DESIGN section 7 and what the lobe preview shows. A pixel (x, y)
+This is the measurement of docs/architecture.md, Measurement and what the lobe preview shows. A pixel (x, y)
 of the unit disk maps to wo = (x, y, sqrt(1 - x^2 - y^2)); pixels outside the disk are 0.
 The incident direction lies in the x-z plane at ``theta_i`` degrees from the normal, on the
 -x side, so the mirror direction appears at +x.

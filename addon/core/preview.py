@@ -1,7 +1,7 @@
 """Previews of a layer stack: which BRDF to use, lobe and shaded-sphere images, reference comparison.
 
 Everything here is plain numpy on top of a ``brdf(wi, wo) -> (N, 3)`` callable (local frame,
-normal +z, no cosine, DESIGN section 3), so the same functions serve the Blender operators, scripts
+normal +z, no cosine, docs/architecture.md, Conventions), so the same functions serve the Blender operators, scripts
 and tests. The BRDF is either the neural runtime (``addon.core.neural``) or the position-free Monte
 Carlo reference (``addon.core.reference``); this module holds no BRDF maths of its own.
 

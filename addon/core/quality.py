@@ -7,7 +7,7 @@
 
 **Decoder choice.** For one stack, the *measured error* of a decoder size is the relative RMSE of
 its lobe images (``addon.core.lobe``: f cos(theta_o) on the projected hemisphere) at the four
-incident elevations of DESIGN section 7, all four images together, against the reference
+incident elevations of docs/architecture.md, Measurement, all four images together, against the reference
 (``addon.core.reference``): exact for single-layer stacks, the amortised estimator
 (``eval_brdf_many``, by reciprocity) for layered ones, with the estimator's own noise taken out
 (error^2 = max(||pred - ref||^2 - ||stderr||^2, 0) / ||ref||^2, as independent noise adds its

@@ -124,7 +124,7 @@ def test_white_furnace_with_a_white_scattering_medium():
 
 
 def test_rough_interface_loses_energy_as_the_single_scattering_model_says():
-    """DESIGN: a white base under an alpha = 0.3 coat keeps about 0.70 (not a bug)."""
+    """The model (docs/architecture.md, Physics traps): a white base under an alpha = 0.3 coat keeps about 0.70 (not a bug)."""
     stack = Stack(Diffuse(1.0), (Coating(roughness=0.3, ior=1.5),))
     a, se = R.albedo(stack, NORMAL, samples=20000, seed=4)
     assert np.all(np.abs(a - 0.70) < 0.03), a
@@ -387,7 +387,7 @@ def test_vertices_under_several_rough_interfaces_connect():
 
 def test_the_agreement_test_detects_pbrts_reverse_mis_density(monkeypatch):
     """With pbrt-v4's reverse density in the exit strategy's MIS weight the albedo of a rough
-    coat comes out several percent too high (DESIGN section 4): the eval-vs-walk test sees it."""
+    coat comes out several percent too high (docs/architecture.md, Physics traps): the eval-vs-walk test sees it."""
     from addon.core.reference import walk
 
     stack = Stack(Diffuse(1.0), (Coating(roughness=0.3, ior=1.5),))

@@ -2,7 +2,7 @@
 
 Used to set up the same scene for Cycles/EEVEE (benchmarks, the demo .blend). Not a physical
 equivalence: Principled's coat scales albedo with a view-dependent tint and has no light trapped
-under the coat (DESIGN section 8), which is exactly the gap the layered materials close.
+under the coat (docs/architecture.md, Physics traps), which is exactly the gap the layered materials close.
 """
 
 from __future__ import annotations

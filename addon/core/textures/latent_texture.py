@@ -1,6 +1,6 @@
 """Latent textures: per-texel latent codes (3 x 32) plus the two sampling-proxy channels.
 
-Channel layout (DESIGN section 3): ``z.R.00 .. z.R.31, z.G.00 .. z.B.31, proxy.sigma, proxy.w``,
+Channel layout (docs/architecture.md, Conventions): ``z.R.00 .. z.R.31, z.G.00 .. z.B.31, proxy.sigma, proxy.w``,
 98 channels in all. Stored as a tiled, mip-mapped, half-float OpenEXR through OpenImageIO.
 OpenImageIO ships inside Blender and the bpy wheel; inside Blender's Python (or after
 ``bpy.utils.expose_bundled_modules()``) it is importable as ``OpenImageIO``.
