@@ -241,7 +241,20 @@ def _decoder_lobes(stack: Stack, size: str, res: int, angles):
     return imgs, (time.perf_counter() - t0) / n
 
 
+_REFERENCE_LOBES: dict = {}
+
+
 def _reference_lobes(stack: Stack, res: int, walks: int, angles):
+    """Reference lobe images and their standard errors, computed once per stack and grid: every decoder
+    size is scored against the same (seeded) images, and thick coats make them the matrix's main cost."""
+    key = (stack.to_json(), res, walks, tuple(float(a) for a in angles))
+    if key not in _REFERENCE_LOBES:
+        _REFERENCE_LOBES[key] = _compute_reference_lobes(stack, res, walks, angles)
+    imgs, errs = _REFERENCE_LOBES[key]
+    return imgs.copy(), errs.copy()
+
+
+def _compute_reference_lobes(stack: Stack, res: int, walks: int, angles):
     wo, mask = lobe.lobe_grid(res)
     grid = wo[mask]
     imgs = np.zeros((len(angles), res * res, 3))
