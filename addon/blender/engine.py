@@ -167,9 +167,9 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
 
     def _render(self, depsgraph, scene, props, result):
         self.update_stats("", "Exporting scene")
-        core_scene, warnings = scene_export.export_scene(depsgraph, *scene_export.render_size(scene))
-        self.update_stats("", "Choosing decoders")
         info: list[str] = []
+        core_scene, warnings = scene_export.export_scene(depsgraph, *scene_export.render_size(scene), info=info)
+        self.update_stats("", "Choosing decoders")
         try:
             warnings = warnings + props.assign_decoders(core_scene, info=info)
         except Exception as e:  # the stacks stay, on the default decoder or the reference

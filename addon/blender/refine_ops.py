@@ -22,6 +22,9 @@ class NLM_RefineResult(bpy.types.PropertyGroup):
                         default="")
     stack_hash: StringProperty(name="Stack hash", description="Hash of the stack that was refined", default="")
     size: StringProperty(name="Decoder size", description="Decoder size of the refined latent", default="")
+    decoder_digest: StringProperty(name="Decoder digest", description="sha256 of the decoder file the latent was "
+                                   "refined for: F12 renders the refined latent only while that decoder is shipped",
+                                   default="")
     error_before: FloatProperty(name="Error before", description="Validation lobe error of the encoded latent",
                                 default=0.0)
     error_after: FloatProperty(name="Error after", description="Validation lobe error of the refined latent",
@@ -45,6 +48,7 @@ class NLM_OT_refine_latent(MaterialOperator, bpy.types.Operator):
         return guarded("refining the latent", self, lambda: self._run(context))
 
     def _run(self, context):
+        from ..core.neural.models import load_models
         from ..core.neural.refine import refine_latent
         from ..core.stack import clamp_to_trained
 
@@ -59,6 +63,7 @@ class NLM_OT_refine_latent(MaterialOperator, bpy.types.Operator):
         s.latent_hash = preview.stack_hash(stack)
         r = mat.neural_refine
         r.key, r.stack_hash, r.size = rep.key, s.latent_hash, size
+        r.decoder_digest = load_models(size).digest
         r.error_before, r.error_after = rep.validation_error_before, rep.validation_error_after
         r.seconds, r.kept = rep.total_s, "yes" if rep.kept else "no"
         how = "cached" if rep.cached else f"{rep.total_s:.1f} s"

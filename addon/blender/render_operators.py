@@ -86,7 +86,10 @@ class NLM_OT_render_preview(jobs.ModalJob, bpy.types.Operator):
             w, h = max(1, round(self.height * w / h)), self.height
         camera = _view_camera(context, w, h) if self.use_view else None
         depsgraph = context.evaluated_depsgraph_get()
-        core_scene, warnings = scene_export.export_scene(depsgraph, w, h, camera)
+        info: list[str] = []
+        core_scene, warnings = scene_export.export_scene(depsgraph, w, h, camera, info=info)
+        for msg in info:
+            self.report({"INFO"}, msg)
         for msg in warnings + scene.neural_render.assign_decoders(core_scene):
             self.report({"WARNING"}, msg)
         settings = scene.neural_render.to_core(self.samples or scene.neural_render.preview_samples, scene=scene)

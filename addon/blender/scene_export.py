@@ -126,8 +126,40 @@ def _baked_texture(mat, warnings: list[str]):
         return None
 
 
-def export_material(mat, warnings: list[str]):
-    """LayeredSpec for a material with a layer stack, else an unmanaged Lambertian."""
+def _refined_latent(mat, stack, info: list[str]):
+    """``(z, size)`` of the material's refined latent (the sidebar's *Refine*) while it is current: refined
+    from this stack, stored for the size it was refined for, with the decoder file it was refined for
+    still shipped. Else None, with a line in ``info`` when a refined latent is there but stale."""
+    mat = getattr(mat, "original", mat)  # Refine writes the original; a depsgraph copy may predate it
+    refined = getattr(mat, "neural_refine", None)
+    if refined is None or not refined.key or refined.kept != "yes":
+        return None  # never refined, or the refinement kept the encoded latent
+    from ..core import preview
+    from ..core.neural.models import ModelFileError, load_models
+    from . import stack_io
+
+    s = mat.neural_layers
+    now = preview.stack_hash(stack)
+    if refined.stack_hash != now or s.latent_hash != now or s.latent_size != refined.size:
+        info.append(f"material {mat.name!r}: its refined latent is out of date (the stack or model size changed "
+                    "since Refine); rendering the stack encoded again: press Refine to refine it again")
+        return None
+    try:
+        shipped = load_models(refined.size).digest
+    except (ValueError, FileNotFoundError, ModelFileError):
+        shipped = None  # the renderer reports the missing models itself
+    if shipped != refined.decoder_digest:
+        info.append(f"material {mat.name!r}: its latent was refined for another decoder_{refined.size}.onnx than "
+                    "the shipped one; rendering the stack encoded again: press Refine to refine it again")
+        return None
+    return stack_io.latent_of(mat), refined.size
+
+
+def export_material(mat, warnings: list[str], info: list[str] | None = None):
+    """LayeredSpec for a material with a layer stack, else an unmanaged Lambertian.
+
+    A material without a current baked texture renders its current refined latent when it has one
+    (``_refined_latent``); ``info`` receives the lines about stale ones."""
     stack = None
     try:
         from . import stack_io
@@ -138,7 +170,9 @@ def export_material(mat, warnings: list[str]):
     except ValueError as e:
         warnings.append(f"material {mat.name!r}: {e}; rendering it as a Lambertian")
     if stack is not None:
-        return LayeredSpec(stack, _baked_texture(mat, warnings), mat.name)
+        texture = _baked_texture(mat, warnings)
+        latent = _refined_latent(mat, stack, [] if info is None else info) if texture is None else None
+        return LayeredSpec(stack, texture, mat.name, latent=latent)
     return unmanaged_material(mat, warnings)
 
 
@@ -279,11 +313,13 @@ def _world_mesh(arrays, matrix: np.ndarray) -> Mesh:
     return Mesh(world_pos, world_nrm, uvs, slots[np.clip(mat_i, 0, len(slots) - 1)])
 
 
-def export_scene(depsgraph, width: int | None = None, height: int | None = None, camera: Camera | None = None):
+def export_scene(depsgraph, width: int | None = None, height: int | None = None, camera: Camera | None = None,
+                 info: list[str] | None = None):
     """The depsgraph's scene as a core ``Scene``; returns ``(scene, warnings)``.
 
     ``width``/``height`` default to the render resolution (with its percentage); ``camera``
     replaces the scene camera (e.g. the viewport's). Raises ValueError if there is no camera.
+    ``info`` (a list) receives the lines that are not warnings (a stale refined latent ignored).
     """
     scene = depsgraph.scene
     warnings: list[str] = []
@@ -302,7 +338,7 @@ def export_scene(depsgraph, width: int | None = None, height: int | None = None,
         key = mat.name if mat is not None else ""
         if key not in material_index:
             material_index[key] = len(materials)
-            materials.append(export_material(mat, warnings) if mat is not None else LambertMaterial())
+            materials.append(export_material(mat, warnings, info) if mat is not None else LambertMaterial())
             names.append(key)
         return material_index[key]
 

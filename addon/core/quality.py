@@ -391,8 +391,9 @@ def assign_decoders(scene, quality: str = "auto", tolerance: float = DEFAULT_TOL
     ``quality`` is "auto" (per material, :func:`choose_decoder` with ``tolerance`` and ``fallback``)
     or a decoder size (every layered material on it). Returns ``(materials, choices, notes)``:
     a new material list for ``scene.materials`` (entries the decoders do not take stay as they were:
-    materials without coatings, which render exactly; latent-textured ones, whose texture fixes the
-    size; and stacks no shipped model can encode, which the renderer shades with the reference),
+    materials without coatings, which render exactly; latent-textured ones and ones given a latent
+    (refined), whose latent fixes the size; and stacks no shipped model can encode, which the
+    renderer shades with the reference),
     the choice per material name (its size and the measured errors that decided it), and the
     warnings to show the user.
     ``measure`` passes ``res``, ``walks`` or ``cache`` on to :func:`choose_decoder`.
@@ -418,7 +419,7 @@ def assign_decoders(scene, quality: str = "auto", tolerance: float = DEFAULT_TOL
         notes += left_out
     for name, m in zip(names, scene.materials, strict=True):
         spec = m if isinstance(m, LayeredSpec) else (LayeredSpec(m) if isinstance(m, Stack) else None)
-        if spec is None or not spec.stack.coatings or spec.latent_texture is not None:
+        if spec is None or not spec.stack.coatings or spec.latent_texture is not None or spec.latent is not None:
             out.append(m)
             continue
         if quality == "auto":

@@ -69,3 +69,54 @@ def test_bake_command_refine_flag_refines_and_keys_the_bake_apart(tmp_path):
     plain = LatentTexture.read_exr(out / "coated_gold.exr")
     assert "refined" not in plain.metadata and json.loads((out / "coated_gold.json").read_text())["key"] != key
     assert bake_cli.main(["--preset", "coated_gold", "--out", str(out), "--refine", "-1"]) == 2
+
+
+def _f12(bpy, scene, path):
+    scene.render.filepath = str(path)
+    scene.render.image_settings.file_format = "OPEN_EXR"
+    bpy.ops.render.render(write_still=True)
+    bpy.utils.expose_bundled_modules()
+    import OpenImageIO as oiio  # noqa: N813
+
+    buf = oiio.ImageBuf(str(path))
+    assert not buf.has_error, buf.geterror()
+    return buf.get_pixels(oiio.FLOAT)[..., :3]
+
+
+def test_f12_renders_the_refined_latent_the_preview_shows_and_ignores_a_stale_one(bpy_addon, material, tmp_path):
+    bpy = bpy_addon
+    from addon.blender import scene_export, stack_io
+    from addon.core import preview
+    from addon.core.render.materials import resolve
+
+    scene = bpy.context.scene
+    scene.render.engine = "NEURAL_LAYERED"
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 24, 16, 100
+    scene.neural_render.samples, scene.neural_render.max_bounces = 2, 2
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="coated_gold").finished
+    material.neural_layers.model_size = "TINY"
+    plain = _f12(bpy, scene, tmp_path / "encoded.exr")
+    assert run_operator(bpy.ops.neural_layers.refine_latent, budget=20.0).finished
+    assert material.neural_refine.kept == "yes", "coated gold on the tiny decoder is one the refinement improves"
+    # the exported material carries the stored (refined) latent; the renderer decodes exactly it, as the preview
+    info = []
+    core_scene, _ = scene_export.export_scene(bpy.context.evaluated_depsgraph_get(), info=info)
+    (spec,) = [m for m, n in zip(core_scene.materials, core_scene.material_names, strict=True) if n == material.name]
+    shown = preview.choose_brdf(stack_io.stack_from_material(material), "NEURAL",
+                                latent=stack_io.current_latent(material), size=stack_io.model_size(material))
+    z_shown = stack_io.current_latent(material)[0]
+    made = resolve(spec, "neural")
+    assert made.size == "tiny" and np.array_equal(made.z, z_shown) and not info
+    wi, wo = np.array([[0.3, 0.1, 0.95]]), np.array([[-0.2, 0.4, 0.9]])
+    wi, wo = wi / np.linalg.norm(wi, axis=1, keepdims=True), wo / np.linalg.norm(wo, axis=1, keepdims=True)
+    from addon.core import neural
+
+    np.testing.assert_allclose(neural.eval_brdf(made.z, wi, wo, size=made.size), shown.brdf(wi, wo), rtol=1e-6)
+    refined = _f12(bpy, scene, tmp_path / "refined.exr")
+    assert np.isfinite(refined).all() and np.abs(refined - plain).max() > 1e-3  # F12 changed with Refine
+    # the stack edited: the refined latent is stale, F12 encodes the stack again and says why
+    material.neural_layers.layers[-1].roughness = 0.2
+    info = []
+    core_scene, _ = scene_export.export_scene(bpy.context.evaluated_depsgraph_get(), info=info)
+    assert all(getattr(m, "latent", None) is None for m in core_scene.materials)
+    assert any("refined latent is out of date" in line for line in info)

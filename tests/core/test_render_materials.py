@@ -279,3 +279,27 @@ def test_make_falls_back_with_a_reason_for_stale_textures_and_damaged_models(tmp
     # the renderer then shades the stack with the reference
     with pytest.warns(neural_material.NeuralFallbackWarning):
         assert isinstance(M.resolve(LayeredSpec(stack), "neural"), ReferenceLayered)
+
+
+def test_a_given_latent_is_decoded_as_it_is_and_keeps_its_size_through_the_decoder_choice():
+    """A LayeredSpec carrying a latent (a refined one) renders that latent on its size: make decodes it
+    instead of encoding the stack, and quality.assign_decoders leaves it as it is."""
+    from addon.core import quality
+    from addon.core.neural import encode_stack, load_models
+
+    stack = PRESETS["coated_gold"]
+    z = encode_stack(stack, load_models("tiny")) + np.float32(0.05)  # not what the encoder gives
+    made = M.resolve(M.LayeredSpec(stack, None, "gold", latent=(z, "tiny")), "neural")
+    assert made.size == "tiny" and np.array_equal(made.z, z)
+    assert not np.array_equal(M.resolve(M.LayeredSpec(stack, None, "gold"), "neural").z, z)
+    with pytest.raises(ValueError, match="3 x 32 finite numbers; got shape \\(5,\\)"):
+        neural_material.make(stack, latent=(np.zeros(5), "tiny"))
+    with pytest.raises(ValueError, match="non-finite"):
+        neural_material.make(stack, latent=(np.full((3, 32), np.nan), "tiny"))
+    with pytest.raises(ValueError, match="belongs to decoder size 'tiny', not 'small'"):
+        neural_material.make(stack, size="small", latent=(z, "tiny"))
+    spec = M.LayeredSpec(stack, None, "gold", latent=(z, "tiny"))
+    scene = mixed_scene()
+    scene = Scene(scene.camera, scene.mesh, [spec], scene.lights, scene.environment, ["gold"])
+    materials, choices, _ = quality.assign_decoders(scene, "small")
+    assert materials == [spec] and not choices

@@ -278,11 +278,16 @@ class ReferenceLayered:
 
 @dataclass
 class LayeredSpec:
-    """A managed material: its layer stack and, for spatially varying stacks, a latent texture."""
+    """A managed material: its layer stack and, for spatially varying stacks, a latent texture.
+
+    ``latent``, when given, is ``(z (3, 32), size)``: a latent of ``stack`` for decoder ``size``
+    (a refined one, say) that neural mode decodes instead of encoding the stack again; like a latent
+    texture it fixes the material's decoder size."""
 
     stack: Stack
     latent_texture: object | None = None
     name: str = ""
+    latent: tuple | None = None
 
 
 def resolve(material, mode: str, reference_walks: int = 16):
@@ -310,7 +315,7 @@ def resolve(material, mode: str, reference_walks: int = 16):
     if mode == "neural":
         from . import neural_material
 
-        made = neural_material.make(stack, spec.latent_texture if spec else None)
+        made = neural_material.make(stack, spec.latent_texture if spec else None, latent=spec.latent if spec else None)
         if made is not None:
             return made
     return ReferenceLayered(stack, reference_walks)

@@ -107,12 +107,14 @@ def _texture_size(latent_texture) -> tuple[str, str | None]:
     return size, meta.get("model_digest")
 
 
-def make(stack: Stack, latent_texture=None, size: str | None = None):
+def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None):
     """A NeuralMaterial for ``stack`` (or for its latent texture), or None in the documented cases below.
 
     ``size`` picks the decoder ("auto" or None: ``neural.resolve_size``, the default size). A latent
     texture is decoded by the size it was baked for (its ``model`` metadata, checked against ``size``
-    when one is given). Proxy parameters come from the size's sampling network when it is shipped,
+    when one is given). ``latent``, when given, is ``(z (3, 32), size)``: a latent of ``stack`` for
+    that decoder size (a refined one), decoded as it is instead of encoding the stack.
+    Proxy parameters come from the size's sampling network when it is shipped,
     else from :func:`proxy_guess`.
 
     Returns None, with a :class:`NeuralFallbackWarning` naming the reason (the renderer then shades
@@ -129,7 +131,21 @@ def make(stack: Stack, latent_texture=None, size: str | None = None):
     if not isinstance(stack, Stack):
         raise ValueError(f"make needs a Stack, got {type(stack).__name__}")
     requested = None if size is None or size == AUTO else resolve_size(size)
-    if latent_texture is not None:
+    z = None
+    if latent is not None:
+        if latent_texture is not None:
+            raise ValueError("give make a latent texture or a latent (z, size), not both")
+        z, latent_size = latent
+        size = resolve_size(latent_size)
+        z = np.asarray(z, dtype=np.float32)
+        if z.size != 3 * LATENT or not np.all(np.isfinite(z)):
+            raise ValueError(f"a given latent must be 3 x {LATENT} finite numbers; got shape {z.shape}"
+                             f"{'' if np.all(np.isfinite(z)) else ' with non-finite values'}")
+        z = z.reshape(3, LATENT)
+        if requested is not None and requested != size:
+            raise ValueError(f"the given latent belongs to decoder size {size!r}, not {requested!r}")
+        digest = None
+    elif latent_texture is not None:
         size, digest = _texture_size(latent_texture)
         if requested is not None and requested != size:
             raise ValueError(f"the latent texture was baked for decoder size {size!r}, not {requested!r}: a latent "
@@ -146,7 +162,7 @@ def make(stack: Stack, latent_texture=None, size: str | None = None):
         if latent_texture is not None:
             material = NeuralMaterial(models, None, proxy_guess(stack), latent_texture)
         else:
-            z = encode_stack(stack, models)
+            z = encode_stack(stack, models) if z is None else z
             proxy = models.proxy_params(z)[0] if models.has("sampling") else proxy_guess(stack)
             material = NeuralMaterial(models, z, tuple(float(v) for v in proxy))
     except (FileNotFoundError, ModelFileError) as e:
