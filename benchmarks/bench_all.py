@@ -43,7 +43,6 @@ for p in (ROOT, ROOT / "benchmarks"):
         sys.path.insert(0, str(p))
 
 from addon.core import lobe, quality, reference  # noqa: E402
-from addon.core.stack import Stack  # noqa: E402
 
 
 @dataclass
@@ -70,15 +69,45 @@ class Config:
     auto_walks: int = quality.REFERENCE_WALKS
 
 
-FULL = Config(single=None, layered=None, cycles_single=(0, 5, 9, 14, 20, 28, 33, 38), cycles_layered=None,
-              walks=(1, 4, 16, 64, 256, 1024), ref_pixels=48, cycles_res=192, cycles_samples=16, size=(80, 45),
-              bounces=4, reference_spp=256, budgets=(1, 2, 4, 8, 16), cycles_budgets=(1, 4, 16, 64),
-              auto_tolerance=0.3, auto_spp=16)
-QUICK = Config(single=(0, 5), layered=(0, 12), cycles_single=(), cycles_layered=(0,), walks=(1, 4, 16),
-               ref_pixels=12, cycles_res=24, cycles_samples=1, size=(24, 14), bounces=2, reference_spp=4,
-               cycles_angles=(60.0,), speed_repeats=1, texture_sizes=((64, 36),),
-               budgets=(1, 2), cycles_budgets=(1, 2), auto_tolerance=0.3, auto_spp=1, auto_res=8,
-               auto_walks=16)
+FULL = Config(
+    single=None,
+    layered=None,
+    cycles_single=(0, 5, 9, 14, 20, 28, 33, 38),
+    cycles_layered=None,
+    walks=(1, 4, 16, 64, 256, 1024),
+    ref_pixels=48,
+    cycles_res=192,
+    cycles_samples=16,
+    size=(80, 45),
+    bounces=4,
+    reference_spp=256,
+    budgets=(1, 2, 4, 8, 16),
+    cycles_budgets=(1, 4, 16, 64),
+    auto_tolerance=0.3,
+    auto_spp=16,
+)
+QUICK = Config(
+    single=(0, 5),
+    layered=(0, 12),
+    cycles_single=(),
+    cycles_layered=(0,),
+    walks=(1, 4, 16),
+    ref_pixels=12,
+    cycles_res=24,
+    cycles_samples=1,
+    size=(24, 14),
+    bounces=2,
+    reference_spp=4,
+    cycles_angles=(60.0,),
+    speed_repeats=1,
+    texture_sizes=((64, 36),),
+    budgets=(1, 2),
+    cycles_budgets=(1, 2),
+    auto_tolerance=0.3,
+    auto_spp=1,
+    auto_res=8,
+    auto_walks=16,
+)
 
 
 def _pick(items, idx):
@@ -94,19 +123,33 @@ def heldout_sets(cfg: Config) -> dict:
     from onnx_export.heldout import load as load_heldout
 
     out = {}
-    for name, path, idx in (("single", "heldout_single.npz", cfg.single),
-                            ("layered", "heldout_layered_lobes.npz", cfg.layered)):
+    for name, path, idx in (
+        ("single", "heldout_single.npz", cfg.single),
+        ("layered", "heldout_layered_lobes.npz", cfg.layered),
+    ):
         h = load_heldout(ROOT / "tests/data" / path)
         rows = _pick(h["stacks"], idx)
-        out[name] = {"stacks": [h["stacks"][i] for i in rows], "rows": rows, "lobe": h["lobe"][rows],
-                     "stderr": h["lobe_stderr"][rows], "angles": [float(a) for a in h["angles"]]}
+        out[name] = {
+            "stacks": [h["stacks"][i] for i in rows],
+            "rows": rows,
+            "lobe": h["lobe"][rows],
+            "stderr": h["lobe_stderr"][rows],
+            "angles": [float(a) for a in h["angles"]],
+        }
     return out
 
 
 def _per_image_errors(pred: np.ndarray, ref: np.ndarray, se: np.ndarray) -> list[float]:
     """One noise-corrected error per (stack, elevation) image."""
-    return [quality.noise_corrected_error(p, r, s) for p, r, s in
-            zip(pred.reshape(-1, *pred.shape[2:]), ref.reshape(-1, *ref.shape[2:]), se.reshape(-1, *se.shape[2:]))]
+    return [
+        quality.noise_corrected_error(p, r, s)
+        for p, r, s in zip(
+            pred.reshape(-1, *pred.shape[2:]),
+            ref.reshape(-1, *ref.shape[2:]),
+            se.reshape(-1, *se.shape[2:]),
+            strict=True,
+        )
+    ]
 
 
 # ----------------------------------------------------------------------------- BRDF level
@@ -133,8 +176,16 @@ def brdf_decoders(sets: dict, threads: int, repeats: int = 3) -> list[dict]:
                 rows.append({"method": f"decoder {size}", "set": name, "available": False})
                 continue
             errs = _per_image_errors(np.stack(preds), s["lobe"][keep], s["stderr"][keep])
-            rows.append({"method": f"decoder {size}", "kind": "decoder", "set": name, "available": True,
-                         "seconds_per_eval": 1.0 / sp["rgb_evals_per_s"], **_stats(errs)})
+            rows.append(
+                {
+                    "method": f"decoder {size}",
+                    "kind": "decoder",
+                    "set": name,
+                    "available": True,
+                    "seconds_per_eval": 1.0 / sp["rgb_evals_per_s"],
+                    **_stats(errs),
+                }
+            )
         print(f"decoder {size}: {rows[-2:]}", file=sys.stderr, flush=True)
     return rows
 
@@ -171,8 +222,17 @@ def brdf_reference(sets: dict, cfg: Config) -> list[dict]:
                     ref = s["lobe"][i, a].reshape(-1, 3)[pix]
                     se = s["stderr"][i, a].reshape(-1, 3)[pix]
                     errs.append(quality.noise_corrected_error(f[k, a], ref, se))
-        rows.append({"method": f"reference {walks} walks", "kind": "reference", "walks": walks, "set": "layered",
-                     "available": True, "seconds_per_eval": seconds / evals, **_stats(errs)})
+        rows.append(
+            {
+                "method": f"reference {walks} walks",
+                "kind": "reference",
+                "walks": walks,
+                "set": "layered",
+                "available": True,
+                "seconds_per_eval": seconds / evals,
+                **_stats(errs),
+            }
+        )
         print(rows[-1], file=sys.stderr, flush=True)
     # Single-layer stacks have no coating: the reference is their exact analytic BSDF.
     t = sets["single"]
@@ -180,9 +240,19 @@ def brdf_reference(sets: dict, cfg: Config) -> list[dict]:
     t0 = time.perf_counter()
     for st in t["stacks"]:
         reference.eval_brdf(st, wi, wo, walks=1)
-    rows.append({"method": "reference (exact, no coating)", "kind": "reference", "walks": 1, "set": "single",
-                 "available": True, "seconds_per_eval": (time.perf_counter() - t0) / (len(wo) * len(t["stacks"])),
-                 "median": 0.0, "p90": 0.0, "n": len(t["stacks"]) * 4})
+    rows.append(
+        {
+            "method": "reference (exact, no coating)",
+            "kind": "reference",
+            "walks": 1,
+            "set": "single",
+            "available": True,
+            "seconds_per_eval": (time.perf_counter() - t0) / (len(wo) * len(t["stacks"])),
+            "median": 0.0,
+            "p90": 0.0,
+            "n": len(t["stacks"]) * 4,
+        }
+    )
     return rows
 
 
@@ -202,9 +272,17 @@ def brdf_cycles(sets: dict, cfg: Config, cy) -> list[dict]:
             preds.append(img)
             spe.append(sec)
         errs = _per_image_errors(np.stack(preds), s["lobe"][rows_i][:, ai], s["stderr"][rows_i][:, ai])
-        rows.append({"method": "Cycles Principled coat", "kind": "cycles", "set": name, "available": True,
-                     "seconds_per_eval": float(np.mean(spe)), **_stats(errs),
-                     "calibration": cy.calibration})
+        rows.append(
+            {
+                "method": "Cycles Principled coat",
+                "kind": "cycles",
+                "set": name,
+                "available": True,
+                "seconds_per_eval": float(np.mean(spe)),
+                **_stats(errs),
+                "calibration": cy.calibration,
+            }
+        )
         print(rows[-1], file=sys.stderr, flush=True)
     return rows
 
@@ -233,8 +311,8 @@ def _auto_variant(scene_fn, tolerance: float, res: int, walks: int):
 
 def render_level(cfg: Config, out: Path) -> dict:
     import bpy
-
     from bench_render import build_blender_scene, mse, ours, render_cycles
+
     from addon.core.render.demo_scene import demo_scene
 
     w, h = cfg.size
@@ -287,15 +365,30 @@ def render_level(cfg: Config, out: Path) -> dict:
             ours(sc, 1, 1, "neural")  # warm-up: every session loaded before timing
         img_a, st_a = ours(auto_scene, cfg.auto_spp, cfg.bounces, "neural", seed=77)
         img_l, st_l = ours(largest_scene, cfg.auto_spp, cfg.bounces, "neural", seed=77)
-        auto = {"tolerance": cfg.auto_tolerance, "spp": cfg.auto_spp, "largest": largest, "choices": choices,
-                "auto_seconds": st_a.seconds["total"], "largest_seconds": st_l.seconds["total"],
-                "auto_network_seconds": st_a.seconds["network"], "largest_network_seconds": st_l.seconds["network"],
-                "auto_reference_seconds": st_a.seconds["reference"],
-                "auto_mse": mse(img_a, ref), "largest_mse": mse(img_l, ref)}
+        auto = {
+            "tolerance": cfg.auto_tolerance,
+            "spp": cfg.auto_spp,
+            "largest": largest,
+            "choices": choices,
+            "auto_seconds": st_a.seconds["total"],
+            "largest_seconds": st_l.seconds["total"],
+            "auto_network_seconds": st_a.seconds["network"],
+            "largest_network_seconds": st_l.seconds["network"],
+            "auto_reference_seconds": st_a.seconds["reference"],
+            "auto_mse": mse(img_a, ref),
+            "largest_mse": mse(img_l, ref),
+        }
         print(auto, file=sys.stderr, flush=True)
-    return {"reference_spp": cfg.reference_spp, "reference_seconds": ref_seconds, "size": [w, h],
-            "bounces": cfg.bounces, "curves": curves, "pareto": pareto(curves), "auto": auto,
-            "textures": texture_footprints(sizes=cfg.texture_sizes)}
+    return {
+        "reference_spp": cfg.reference_spp,
+        "reference_seconds": ref_seconds,
+        "size": [w, h],
+        "bounces": cfg.bounces,
+        "curves": curves,
+        "pareto": pareto(curves),
+        "auto": auto,
+        "textures": texture_footprints(sizes=cfg.texture_sizes),
+    }
 
 
 def texture_footprints(source: int = 4096, sizes=((320, 180), (1920, 1080))) -> dict:
@@ -308,9 +401,16 @@ def texture_footprints(source: int = 4096, sizes=((320, 180), (1920, 1080))) -> 
         t0 = time.perf_counter()
         fp = quality.primary_footprints(scene)
         sec = time.perf_counter() - t0
-        out[f"{w}x{h}"] = {"seconds": sec, "materials": {
-            name: {"footprint": float(f), "resolution": list(quality.texture_resolution_for_footprint(f, (source, source)))}
-            for name, f in zip(scene.material_names, fp)}}
+        out[f"{w}x{h}"] = {
+            "seconds": sec,
+            "materials": {
+                name: {
+                    "footprint": float(f),
+                    "resolution": list(quality.texture_resolution_for_footprint(f, (source, source))),
+                }
+                for name, f in zip(scene.material_names, fp, strict=True)
+            },
+        }
     return out
 
 
@@ -318,7 +418,7 @@ def pareto(curves: dict) -> list[list]:
     """Points (method, spp) on the Pareto front of (seconds, MSE): nothing is both faster and more accurate."""
     pts = sorted(((p["seconds"], p["mse"], m, p["spp"]) for m, ps in curves.items() for p in ps))
     front, best = [], math.inf
-    for sec, err, m, spp in pts:
+    for _seconds, err, m, spp in pts:
         if err < best:
             front.append([m, spp])
             best = err
@@ -337,31 +437,67 @@ def chart_brdf(rows: list[dict], path: Path, command: str, floor: float | None =
     fig, ax = plt.subplots(figsize=(11, 5))
     markers = {"single": "o", "layered": "s"}
     for set_name in ("single", "layered"):
-        ref = [r for r in rows if r.get("kind") == "reference" and r["set"] == set_name and "walks" in r
-               and r["method"].endswith("walks")]
+        ref = [
+            r
+            for r in rows
+            if r.get("kind") == "reference" and r["set"] == set_name and "walks" in r and r["method"].endswith("walks")
+        ]
         if ref:
             low = floor if floor else 1e-3  # an error below the stored reference's noise is drawn at that noise
 
             def y(r):
                 return 100 * max(r["median"], low)
 
-            ax.loglog([r["seconds_per_eval"] for r in ref], [y(r) for r in ref], "-",
-                      marker=markers[set_name], color="C0", label=f"reference, 1-{ref[-1]['walks']} walks ({set_name})")
+            ax.loglog(
+                [r["seconds_per_eval"] for r in ref],
+                [y(r) for r in ref],
+                "-",
+                marker=markers[set_name],
+                color="C0",
+                label=f"reference, 1-{ref[-1]['walks']} walks ({set_name})",
+            )
             for r in ref:
                 below = " (below the noise)" if r["median"] < low else ""
-                ax.annotate(f"{r['walks']}{below}", (r["seconds_per_eval"], y(r)), fontsize=7,
-                            textcoords="offset points", xytext=(4, 4))
+                ax.annotate(
+                    f"{r['walks']}{below}",
+                    (r["seconds_per_eval"], y(r)),
+                    fontsize=7,
+                    textcoords="offset points",
+                    xytext=(4, 4),
+                )
         for i, r in enumerate(x for x in rows if x.get("kind") == "decoder" and x["set"] == set_name):
-            ax.loglog([r["seconds_per_eval"]], [100 * r["median"]], marker=markers[set_name], color="C1",
-                      linestyle="none", label=f"decoders ({set_name})" if i == 0 else None)
-            ax.annotate(r["method"].split()[-1], (r["seconds_per_eval"], 100 * r["median"]), fontsize=7,
-                        textcoords="offset points", xytext=(4, -10))
+            ax.loglog(
+                [r["seconds_per_eval"]],
+                [100 * r["median"]],
+                marker=markers[set_name],
+                color="C1",
+                linestyle="none",
+                label=f"decoders ({set_name})" if i == 0 else None,
+            )
+            ax.annotate(
+                r["method"].split()[-1],
+                (r["seconds_per_eval"], 100 * r["median"]),
+                fontsize=7,
+                textcoords="offset points",
+                xytext=(4, -10),
+            )
         for r in (x for x in rows if x.get("kind") == "cycles" and x["set"] == set_name):
-            ax.loglog([r["seconds_per_eval"]], [100 * r["median"]], marker=markers[set_name], color="C3",
-                      linestyle="none", label=f"Cycles Principled coat ({set_name})")
+            ax.loglog(
+                [r["seconds_per_eval"]],
+                [100 * r["median"]],
+                marker=markers[set_name],
+                color="C3",
+                linestyle="none",
+                label=f"Cycles Principled coat ({set_name})",
+            )
     if floor:
-        ax.axhline(100 * floor, color="0.5", ls=":", lw=1,
-                   label="noise of the stored layered reference (errors below it read as 0)")
+        ax.axhline(
+            100 * floor,
+            color="0.5",
+            ls=":",
+            lw=1,
+            label="noise of the stored layered reference (errors below it read as 0)",
+        )
     ax.set_xlabel("seconds per RGB evaluation (CPU, 2 threads; Cycles: render time / shading points)")
     ax.set_ylabel("lobe error, median relative RMSE (%)")
     ax.set_title("BRDF level: error against time per evaluation (held-out stacks)", fontsize=10)
@@ -384,17 +520,29 @@ def chart_render(r: dict, path: Path, command: str) -> None:
     for i, (m, pts) in enumerate(r["curves"].items()):
         ax.loglog([p["seconds"] for p in pts], [p["mse"] for p in pts], "o-", color=f"C{i}", label=m)
         for p in pts:
-            ax.annotate(str(p["spp"]), (p["seconds"], p["mse"]), fontsize=7, textcoords="offset points",
-                        xytext=(3, 3))
+            ax.annotate(str(p["spp"]), (p["seconds"], p["mse"]), fontsize=7, textcoords="offset points", xytext=(3, 3))
     fp = sorted((p["seconds"], p["mse"]) for m, pts in r["curves"].items() for p in pts if (m, p["spp"]) in front)
     ax.loglog([a for a, _ in fp], [b for _, b in fp], "k--", lw=1, label="Pareto front")
     ax.scatter([a for a, _ in fp], [b for _, b in fp], s=90, facecolors="none", edgecolors="k", zorder=4)
     if r.get("auto"):
         a = r["auto"]
-        ax.loglog([a["auto_seconds"]], [a["auto_mse"]], "*", ms=12, color="k",
-                  label=f"auto (tolerance {a['tolerance']:g}, {a['spp']} spp)")
-        ax.loglog([a["largest_seconds"]], [a["largest_mse"]], "*", ms=12, mfc="none", color="k",
-                  label=f"always {a['largest']} ({a['spp']} spp, same seed)")
+        ax.loglog(
+            [a["auto_seconds"]],
+            [a["auto_mse"]],
+            "*",
+            ms=12,
+            color="k",
+            label=f"auto (tolerance {a['tolerance']:g}, {a['spp']} spp)",
+        )
+        ax.loglog(
+            [a["largest_seconds"]],
+            [a["largest_mse"]],
+            "*",
+            ms=12,
+            mfc="none",
+            color="k",
+            label=f"always {a['largest']} ({a['spp']} spp, same seed)",
+        )
     w, h = r["size"]
     ax.set_xlabel("render time (s)")
     ax.set_ylabel(f"MSE against a {r['reference_spp']}-spp reference-mode render")
@@ -410,11 +558,14 @@ def chart_render(r: dict, path: Path, command: str) -> None:
 def markdown(data: dict, command: str) -> str:
     cfg = data["config"]
     lines = [
-        "# Benchmarks: speed against accuracy", "",
+        "# Benchmarks: speed against accuracy",
+        "",
         f"Produced by `{command}` in {data['seconds']:.0f} s ({platform.machine()}, 2 CPU threads, no GPU; this "
         "machine's speed varies by up to 1.5x between runs: compare ratios within one run). Decoder sizes "
-        f"shipped at the time: {', '.join(data['sizes']) or 'none'}.", "",
-        "## BRDF level", "",
+        f"shipped at the time: {', '.join(data['sizes']) or 'none'}.",
+        "",
+        "## BRDF level",
+        "",
         "Lobe error (relative RMSE of f cos(theta_o) at 0/30/60/75 degrees incidence, noise of the stored "
         "reference removed) against seconds per RGB evaluation, on the held-out stacks "
         f"(`tests/data/heldout_single.npz`: {data['n_single']} stacks; `heldout_layered_lobes.npz`: "
@@ -423,7 +574,8 @@ def markdown(data: dict, command: str) -> str:
         f"`eval_brdf` at each walk count on {cfg['ref_pixels']} fixed lobe pixels per stack and elevation. Cycles: "
         f"the Principled coat approximation measured in Cycles (`benchmarks/cycles_brdf.py`, {cfg['cycles_res']}^2 "
         f"fisheye pixels, {cfg['cycles_samples']} samples; its time is render time over shading points, ray "
-        "casting included).", "",
+        "casting included).",
+        "",
         "| method | set | stacks x elevations | median error | p90 error | seconds per eval |",
         "|---|---|---|---|---|---|",
     ]
@@ -431,33 +583,42 @@ def markdown(data: dict, command: str) -> str:
         if not r.get("available", True):
             lines.append(f"| {r['method']} | {r['set']} | - | cannot encode these stacks | - | - |")
             continue
-        lines.append(f"| {r['method']} | {r['set']} | {r['n']} | {100 * r['median']:.1f}% | {100 * r['p90']:.1f}% | "
-                     f"{r['seconds_per_eval']:.3g} |")
+        lines.append(
+            f"| {r['method']} | {r['set']} | {r['n']} | {100 * r['median']:.1f}% | {100 * r['p90']:.1f}% | "
+            f"{r['seconds_per_eval']:.3g} |"
+        )
     lines += [
         "",
-        f"The stored layered reference lobes have a median relative noise of {100 * data['reference_noise_floor']:.1f}%: "
+        "The stored layered reference lobes have a median relative noise of "
+        f"{100 * data['reference_noise_floor']:.1f}%: "
         "after its variance is removed, errors below that level are not resolved and read as 0 (the reference at "
         "the highest walk counts). Cycles' figures include the resampling of its fisheye image onto the lobe grid, "
         "which blurs lobes sharper than a pixel (about 1 degree; coats with alpha around 0.02 or below).",
         "",
-        "![BRDF level](benchmarks_brdf.png)", ""]
+        "![BRDF level](benchmarks_brdf.png)",
+        "",
+    ]
     r = data["render"]
     w, h = r["size"]
     lines += [
-        "## Render level", "",
+        "## Render level",
+        "",
         f"Demo scene (`addon.core.render.demo_scene`) at {w}x{h}, {r['bounces']} bounces; error = MSE of linear "
         f"radiance against a {r['reference_spp']}-spp reference-mode render ({r['reference_seconds']:.0f} s). Neural "
         "rows force every layered material onto one decoder size; Cycles renders the same geometry, lights and sky "
         "with the Principled coat approximation (its error does not vanish with samples: it is another material "
-        "model).", "",
+        "model).",
+        "",
         "| method | samples | seconds | MSE | on the Pareto front |",
         "|---|---|---|---|---|",
     ]
     front = {tuple(x) for x in r["pareto"]}
     for m, pts in r["curves"].items():
         for p in pts:
-            lines.append(f"| {m} | {p['spp']} | {p['seconds']:.2f} | {p['mse']:.4g} | "
-                         f"{'yes' if (m, p['spp']) in front else ''} |")
+            lines.append(
+                f"| {m} | {p['spp']} | {p['seconds']:.2f} | {p['mse']:.4g} | "
+                f"{'yes' if (m, p['spp']) in front else ''} |"
+            )
     lines += ["", "![render level](benchmarks_render.png)", ""]
     a = r.get("auto")
     lines += ["## The auto quality setting on the demo scene", ""]
@@ -469,7 +630,8 @@ def markdown(data: dict, command: str) -> str:
             f"Tolerance {a['tolerance']:g} (relative lobe error), {a['spp']} samples per pixel, against always using "
             f"the largest shipped decoder ({a['largest']}). Per material, `addon.core.quality.choose_decoder` picks "
             "the smallest decoder whose measured error on that stack is under the tolerance, else the most "
-            "accurate one (with a warning).", "",
+            "accurate one (with a warning).",
+            "",
             "| material | chosen | measured error per size tried | within tolerance |",
             "|---|---|---|---|",
         ]
@@ -486,23 +648,30 @@ def markdown(data: dict, command: str) -> str:
             "",
             f"Time saved by auto: {saved:.2f} s ({100 * saved / max(a['largest_seconds'], 1e-9):.0f}%); error cost: "
             f"MSE {a['auto_mse'] - a['largest_mse']:+.3g} (same seed; both against the reference render). "
-            + ("Every material chose the largest decoder here: the two settings differ only by timing noise."
-               if all(c["size"] == a["largest"] for c in a["choices"].values()) else
-               "On an image this small the decoders' share of the render time is small and the per-call overhead "
-               "of ONNX Runtime is large, so the network-time column is the one to compare."),
+            + (
+                "Every material chose the largest decoder here: the two settings differ only by timing noise."
+                if all(c["size"] == a["largest"] for c in a["choices"].values())
+                else "On an image this small the decoders' share of the render time is small and the per-call overhead "
+                "of ONNX Runtime is large, so the network-time column is the one to compare."
+            ),
         ]
     tex = r.get("textures") or {}
     if tex:
-        lines += ["", "### Textures no finer than the footprint", "",
-                  "Smallest camera-ray footprint per demo material (`addon.core.quality.primary_footprints`, one ray "
-                  "per pixel) and the latent-texture resolution it needs out of a 4096^2 source "
-                  "(`texture_resolution_for_footprint`); a latent texel is 98 half floats (196 bytes).", "",
-                  "| image | material | footprint (uv) | texture needed | memory vs 4096^2 |", "|---|---|---|---|---|"]
+        lines += [
+            "",
+            "### Textures no finer than the footprint",
+            "",
+            "Smallest camera-ray footprint per demo material (`addon.core.quality.primary_footprints`, one ray "
+            "per pixel) and the latent-texture resolution it needs out of a 4096^2 source "
+            "(`texture_resolution_for_footprint`); a latent texel is 98 half floats (196 bytes).",
+            "",
+            "| image | material | footprint (uv) | texture needed | memory vs 4096^2 |",
+            "|---|---|---|---|---|",
+        ]
         for img, d in tex.items():
             for name, m in d["materials"].items():
                 rh, rw = m["resolution"]
-                lines.append(f"| {img} | {name} | {m['footprint']:.3g} | {rw}x{rh} | "
-                             f"{100 * rh * rw / 4096 ** 2:.2f}% |")
+                lines.append(f"| {img} | {name} | {m['footprint']:.3g} | {rw}x{rh} | {100 * rh * rw / 4096**2:.2f}% |")
     lines += ["", "## Stability", "", "See [stability.md](stability.md) (written by the same command).", ""]
     return "\n".join(lines)
 
@@ -545,13 +714,25 @@ def main(argv=None) -> int:
         cells = stability.run(a.quick, case_names=few, cycles=cy)
         (a.out / "stability.md").write_text(stability.markdown(cells, command))
     lay = sets["layered"]  # relative noise of the stored layered reference lobes: errors below it read as 0
-    floor = [math.sqrt(float(np.sum(e ** 2)) / max(float(np.sum(r ** 2)), 1e-300))
-             for r, e in zip(lay["lobe"].reshape(-1, *lay["lobe"].shape[2:]),
-                             lay["stderr"].reshape(-1, *lay["stderr"].shape[2:]))]
-    data = {"command": command, "seconds": time.perf_counter() - t0, "sizes": quality.available_sizes(),
-            "reference_noise_floor": float(np.median(floor)),
-            "n_single": len(sets["single"]["stacks"]), "n_layered": len(sets["layered"]["stacks"]),
-            "config": {k: v for k, v in vars(cfg).items()}, "brdf": brdf, "render": render_data}
+    floor = [
+        math.sqrt(float(np.sum(e**2)) / max(float(np.sum(r**2)), 1e-300))
+        for r, e in zip(
+            lay["lobe"].reshape(-1, *lay["lobe"].shape[2:]),
+            lay["stderr"].reshape(-1, *lay["stderr"].shape[2:]),
+            strict=True,
+        )
+    ]
+    data = {
+        "command": command,
+        "seconds": time.perf_counter() - t0,
+        "sizes": quality.available_sizes(),
+        "reference_noise_floor": float(np.median(floor)),
+        "n_single": len(sets["single"]["stacks"]),
+        "n_layered": len(sets["layered"]["stacks"]),
+        "config": {k: v for k, v in vars(cfg).items()},
+        "brdf": brdf,
+        "render": render_data,
+    }
     stage("outputs")
     chart_brdf(brdf, a.out / "benchmarks_brdf.png", command, data["reference_noise_floor"])
     chart_render(render_data, a.out / "benchmarks_render.png", command)

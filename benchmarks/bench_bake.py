@@ -34,8 +34,12 @@ def driving_images(res: int, seed: int = 0) -> dict[str, np.ndarray]:
     y, x = np.mgrid[0:res, 0:res] / 32.0
     y0, x0 = y.astype(int), x.astype(int)
     fy, fx = y - y0, x - x0
-    noise = (coarse[y0, x0] * (1 - fx) * (1 - fy) + coarse[y0, x0 + 1] * fx * (1 - fy)
-             + coarse[y0 + 1, x0] * (1 - fx) * fy + coarse[y0 + 1, x0 + 1] * fx * fy)
+    noise = (
+        coarse[y0, x0] * (1 - fx) * (1 - fy)
+        + coarse[y0, x0 + 1] * fx * (1 - fy)
+        + coarse[y0 + 1, x0] * (1 - fx) * fy
+        + coarse[y0 + 1, x0 + 1] * fx * fy
+    )
     return {
         "coatings[0].roughness": 0.02 + 0.3 * noise,
         "coatings[0].thickness": np.round(noise * 7) / 7 * 2.0,
@@ -56,8 +60,9 @@ def main(argv=None) -> int:
     rows = []
     maps = driving_images(args.res)
     cases = {
-        "constant stack (1 distinct texel)": SpatialStack(stack, {"coatings[0].thickness":
-                                                                  np.full((args.res, args.res), 0.6)}),
+        "constant stack (1 distinct texel)": SpatialStack(
+            stack, {"coatings[0].thickness": np.full((args.res, args.res), 0.6)}
+        ),
         "8-level thickness map": SpatialStack(stack, {"coatings[0].thickness": maps["coatings[0].thickness"]}),
         "smooth roughness + thickness maps": SpatialStack(stack, maps),
     }
@@ -74,8 +79,10 @@ def main(argv=None) -> int:
                 size = (Path(d) / "t.exr").stat().st_size
             mpix = args.res * args.res / 1e6
             exr_sizes.append(size / mpix)
-            rows.append(f"| {label} | {'yes' if dedup else 'no'} | {stats.unique:,} | {stats.texels / bake_s:,.0f} | "
-                        f"{stats.unique / bake_s:,.0f} | {bake_s:.2f} | {write_s:.2f} | {size / mpix / 2**20:.1f} |")
+            rows.append(
+                f"| {label} | {'yes' if dedup else 'no'} | {stats.unique:,} | {stats.texels / bake_s:,.0f} | "
+                f"{stats.unique / bake_s:,.0f} | {bake_s:.2f} | {write_s:.2f} | {size / mpix / 2**20:.1f} |"
+            )
             print(rows[-1], flush=True)
 
     # Blending two stacks through a mask: the lobe of a half-way texel.
@@ -97,14 +104,21 @@ def main(argv=None) -> int:
 
     fig, axes = plt.subplots(1, 4, figsize=(12, 3.3))
     peak = max(np.percentile(im, 99.7) for im in (*lobes.values(), brdf_mix))
-    panels = [("coated gold (mask 0)", lobes[0.0]), ("latent blend (mask 0.5)", lobes[0.5]),
-              ("BRDF blend (mean of ends)", brdf_mix), ("frosted copper (mask 1)", lobes[1.0])]
+    panels = [
+        ("coated gold (mask 0)", lobes[0.0]),
+        ("latent blend (mask 0.5)", lobes[0.5]),
+        ("BRDF blend (mean of ends)", brdf_mix),
+        ("frosted copper (mask 1)", lobes[1.0]),
+    ]
     for ax, (title, im) in zip(axes, panels, strict=True):
         ax.imshow(lobe.to_display(im / peak))
         ax.set_title(title, fontsize=9)
         ax.axis("off")
-    fig.suptitle(f"Texels of a latent texture blending two stacks through a mask; f cos lobes at {theta:.0f} deg "
-                 f"({args.size} decoder)", fontsize=10)
+    fig.suptitle(
+        f"Texels of a latent texture blending two stacks through a mask; f cos lobes at {theta:.0f} deg "
+        f"({args.size} decoder)",
+        fontsize=10,
+    )
     fig.tight_layout()
     fig.savefig(args.out / "bake_mix_lobes.png", dpi=110)
 

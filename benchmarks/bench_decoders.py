@@ -63,13 +63,20 @@ def matmul_rate(threads: int, n: int = BATCH, k: int = 256, layers: int = 8, rep
         inits.append(numpy_helper.from_array(w, f"w{i}"))
         inits.append(numpy_helper.from_array(np.zeros(k, np.float32), f"b{i}"))
         # Gemm + Relu, as the exported decoders are (ONNX Runtime fuses the pair)
-        nodes += [helper.make_node("Gemm", [prev, f"w{i}", f"b{i}"], [f"m{i}"]),
-                  helper.make_node("Relu", [f"m{i}"], [f"h{i}"])]
+        nodes += [
+            helper.make_node("Gemm", [prev, f"w{i}", f"b{i}"], [f"m{i}"]),
+            helper.make_node("Relu", [f"m{i}"], [f"h{i}"]),
+        ]
         prev = f"h{i}"
     inits.append(numpy_helper.from_array(rng.standard_normal((k, 1)).astype(np.float32), "w_out"))
     nodes.append(helper.make_node("MatMul", [prev, "w_out"], ["y"]))
-    g = helper.make_graph(nodes, "mm", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [None, k])],
-                          [helper.make_tensor_value_info("y", TensorProto.FLOAT, [None, 1])], inits)
+    g = helper.make_graph(
+        nodes,
+        "mm",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [None, k])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [None, 1])],
+        inits,
+    )
     model = helper.make_model(g, opset_imports=[helper.make_opsetid("", 17)])
     so = ort.SessionOptions()
     so.intra_op_num_threads = threads
@@ -123,8 +130,13 @@ def speed(size: str, threads: int, repeats: int = 5) -> dict:
         t = time.perf_counter()
         sess.run(["f"], feeds)
         one = min(one, time.perf_counter() - t)
-    return {"rgb_evals_per_s": BATCH / best, "rgb_evals_per_s_one_call": BATCH / one,
-            "batch": BATCH, "threads": threads, "chunk": m._rgb.chunk}
+    return {
+        "rgb_evals_per_s": BATCH / best,
+        "rgb_evals_per_s_one_call": BATCH / one,
+        "batch": BATCH,
+        "threads": threads,
+        "chunk": m._rgb.chunk,
+    }
 
 
 def operator_breakdown(size: str, chunk: int, runs: int = 100) -> dict:
@@ -145,8 +157,7 @@ def operator_breakdown(size: str, chunk: int, runs: int = 100) -> dict:
         so = session_options()
         so.enable_profiling = True
         so.profile_file_prefix = str(Path(tmp) / "ort")
-        sess = ort.InferenceSession(str(MODEL_DIR / f"decoder_{size}_rgb.onnx"), so,
-                                    providers=["CPUExecutionProvider"])
+        sess = ort.InferenceSession(str(MODEL_DIR / f"decoder_{size}_rgb.onnx"), so, providers=["CPUExecutionProvider"])
         for _ in range(runs):
             sess.run(["f"], {"z": z, "wi": wi, "wo": wi})
         events = json.loads(Path(sess.end_profiling()).read_text())
@@ -159,10 +170,15 @@ def operator_breakdown(size: str, chunk: int, runs: int = 100) -> dict:
     kernel_us = sum(by_op.values()) / runs
     matmul = sum(v for k, v in by_op.items() if k in ("Gemm", "FusedGemm", "MatMul", "FusedMatMul")) / runs
     top = sorted(by_op.items(), key=lambda kv: -kv[1])[:6]
-    return {"chunk": chunk, "run_us": run_us, "kernel_us": kernel_us, "matmul_share": matmul / kernel_us,
-            "overhead_share": max(0.0, run_us - kernel_us) / run_us,
-            "nodes": sum(1 for e in events if e.get("cat") == "Node" and e["name"].endswith("_kernel_time")) // runs,
-            "top": [(k, v / runs / kernel_us) for k, v in top]}
+    return {
+        "chunk": chunk,
+        "run_us": run_us,
+        "kernel_us": kernel_us,
+        "matmul_share": matmul / kernel_us,
+        "overhead_share": max(0.0, run_us - kernel_us) / run_us,
+        "nodes": sum(1 for e in events if e.get("cat") == "Node" and e["name"].endswith("_kernel_time")) // runs,
+        "top": [(k, v / runs / kernel_us) for k, v in top],
+    }
 
 
 def encoder_heldout(size: str, heldout: dict) -> dict:
@@ -211,8 +227,13 @@ def chart(rows: list[dict], path: Path, command: str) -> None:
     for r in rows:
         x = r["speed"]["rgb_evals_per_s"]
         ax.scatter([x], [100 * r["single"]["lobe_error_median"]], color="C0", zorder=3)
-        ax.annotate(f"{r['size']} ({r['params'] / 1e3:.1f} k params)", (x, 100 * r["single"]["lobe_error_median"]),
-                    textcoords="offset points", xytext=(6, 4), fontsize=8)
+        ax.annotate(
+            f"{r['size']} ({r['params'] / 1e3:.1f} k params)",
+            (x, 100 * r["single"]["lobe_error_median"]),
+            textcoords="offset points",
+            xytext=(6, 4),
+            fontsize=8,
+        )
         ax.scatter([r["limit"]], [100 * r["single"]["lobe_error_median"]], color="C3", marker="|", s=200, zorder=3)
         ax.plot([x, r["limit"]], [100 * r["single"]["lobe_error_median"]] * 2, color="C3", lw=0.8, ls=":")
         if "layered" in r:
@@ -238,11 +259,17 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=300, help="projection steps")
     ap.add_argument("--repeats", type=int, default=5, help="timed runs per speed figure (the best is kept)")
     ap.add_argument("--update-cards", action="store_true")
-    ap.add_argument("--errors-from-cache", action="store_true",
-                    help="reuse held-out errors measured earlier for unchanged model files (speed is always measured)")
-    ap.add_argument("--errors-from-cards", action="store_true",
-                    help="reuse the held-out errors stored in the model cards by an earlier --update-cards run "
-                         "(speed is always measured)")
+    ap.add_argument(
+        "--errors-from-cache",
+        action="store_true",
+        help="reuse held-out errors measured earlier for unchanged model files (speed is always measured)",
+    )
+    ap.add_argument(
+        "--errors-from-cards",
+        action="store_true",
+        help="reuse the held-out errors stored in the model cards by an earlier --update-cards run "
+        "(speed is always measured)",
+    )
     ap.add_argument("--out", type=Path, default=DOCS)
     a = ap.parse_args(argv)
     command = "python benchmarks/bench_decoders.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
@@ -279,15 +306,19 @@ def main(argv=None):
             cached.write_text(json.dumps(errs, default=float))
             r.update(errs)
         rows.append(r)
-        print(json.dumps({k: v for k, v in r.items() if k != "params"}, default=float)[:600], file=sys.stderr,
-              flush=True)
+        print(
+            json.dumps({k: v for k, v in r.items() if k != "params"}, default=float)[:600], file=sys.stderr, flush=True
+        )
         if a.update_cards:
             card["heldout_single"] = r["single"]
             if "layered" in r:
                 card["heldout_layered"] = r["layered"]
-            card["speed_cpu"] = r["speed"] | {"matmul_macs_per_s": mm, "arithmetic_limit_rgb_evals_per_s": r["limit"],
-                                              "note": f"best of {a.repeats} runs on the 2-core development machine",
-                                              "command": command}
+            card["speed_cpu"] = r["speed"] | {
+                "matmul_macs_per_s": mm,
+                "arithmetic_limit_rgb_evals_per_s": r["limit"],
+                "note": f"best of {a.repeats} runs on the 2-core development machine",
+                "command": command,
+            }
             card_path.write_text(json.dumps(card, indent=1) + "\n")
             ecard_path = MODEL_DIR / f"encoder_{size}.json"
             ecard = json.loads(ecard_path.read_text())
@@ -296,24 +327,29 @@ def main(argv=None):
     a.out.mkdir(parents=True, exist_ok=True)
     chart(rows, a.out / "decoders_error_speed.png", command)
     lines = [
-        "# Decoder zoo: measured error and speed", "",
+        "# Decoder zoo: measured error and speed",
+        "",
         f"Produced by `{command}` (ONNX Runtime, {a.threads} threads, batch {BATCH:,} RGB evaluations, "
         f"one material, best of {a.repeats}). The runtime cuts the batch into chunks of "
         f"{rows[0]['speed']['chunk'] if rows else '?'} queries run by single-threaded sessions on {a.threads} "
         "threads (`addon/core/neural/session.py`); the column beside it is one call on the whole batch with "
-        f"{a.threads} intra-op threads, the same graph.", "",
+        f"{a.threads} intra-op threads, the same graph.",
+        "",
         f"Load average of the machine when the run ended: {os.getloadavg()[1]:.1f} over 5 minutes on "
-        f"{os.cpu_count()} CPU threads (shared with other jobs: compare rows of one run, not runs).", "",
+        f"{os.cpu_count()} CPU threads (shared with other jobs: compare rows of one run, not runs).",
+        "",
         f"ONNX Runtime MatMul rate here: {mm / 1e9:.1f} G multiply-adds/s (65,536 rows through eight 256 x 256 "
         "Gemm + ReLU layers, the best of one 2-thread call and chunks on single-threaded sessions); the "
         "arithmetic limit of a size is that rate over its multiply-adds per RGB evaluation (three scalar "
-        "decoder passes).", "",
+        "decoder passes).",
+        "",
         "Lobe error = relative RMSE of f cos(theta_o) lobe images at incident elevations 0/30/60/75 degrees "
-        "(`addon.core.lobe`); median / 90th percentile over configurations x elevations. \"projected\": the "
-        "held-out BRDF is fitted by latent optimisation on separate direction samples; \"encoded\": the "
+        '(`addon.core.lobe`); median / 90th percentile over configurations x elevations. "projected": the '
+        'held-out BRDF is fitted by latent optimisation on separate direction samples; "encoded": the '
         "single-layer encoder maps its parameters to the latent in one pass. Albedo error: mean absolute "
         "error of the directional albedo. Projection: 300 Adam steps on all 1024 pairs per configuration "
-        "(for CPU time: models above 20 k parameters use 256 random pairs per step, above 200 k 128).", "",
+        "(for CPU time: models above 20 k parameters use 256 random pairs per step, above 200 k 128).",
+        "",
         "| size | params | MACs / RGB eval | RGB evals/s (runtime eval_brdf: chunks on a thread pool) | "
         "RGB evals/s (one ONNX Runtime call on the whole batch) | arithmetic limit | "
         "single-layer projected (median / p90) | albedo err | layered projected (median / p90) | "
@@ -321,27 +357,39 @@ def main(argv=None):
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        lay_txt = (f"{100 * r['layered']['lobe_error_median']:.1f}% / {100 * r['layered']['lobe_error_p90']:.1f}%"
-                   if "layered" in r else "n/a")
+        lay_txt = (
+            f"{100 * r['layered']['lobe_error_median']:.1f}% / {100 * r['layered']['lobe_error_p90']:.1f}%"
+            if "layered" in r
+            else "n/a"
+        )
         lines.append(
             f"| {r['size']} | {r['params']:,} | {r['macs']:,} | {r['speed']['rgb_evals_per_s']:,.0f} | "
             f"{r['speed']['rgb_evals_per_s_one_call']:,.0f} | {r['limit']:,.0f} | "
             f"{100 * r['single']['lobe_error_median']:.1f}% / {100 * r['single']['lobe_error_p90']:.1f}% | "
             f"{r['single']['albedo_abs_error_mean']:.4f} | {lay_txt} | "
-            f"{100 * r['encoder']['lobe_error_median']:.1f}% / {100 * r['encoder']['lobe_error_p90']:.1f}% |")
-    lines += ["", "## Where a decoder call's time goes", "",
-              "ONNX Runtime's profiler on one single-threaded session running one chunk of the runtime's size "
-              "(100 calls): the share of kernel time in matrix products (Gemm, FusedGemm, MatMul), the share of "
-              "each call spent outside kernels, and the costliest operator types. The rest of the kernel time is "
-              "the graph's element-wise work: the direction features, the latent projection broadcast to the "
-              "batch, the output exponential and the horizon mask.", "",
-              "| size | chunk (queries) | operators per call | us per call | matrix products | outside kernels | "
-              "costliest operators (share of kernel time) |", "|---|---|---|---|---|---|---|"]
+            f"{100 * r['encoder']['lobe_error_median']:.1f}% / {100 * r['encoder']['lobe_error_p90']:.1f}% |"
+        )
+    lines += [
+        "",
+        "## Where a decoder call's time goes",
+        "",
+        "ONNX Runtime's profiler on one single-threaded session running one chunk of the runtime's size "
+        "(100 calls): the share of kernel time in matrix products (Gemm, FusedGemm, MatMul), the share of "
+        "each call spent outside kernels, and the costliest operator types. The rest of the kernel time is "
+        "the graph's element-wise work: the direction features, the latent projection broadcast to the "
+        "batch, the output exponential and the horizon mask.",
+        "",
+        "| size | chunk (queries) | operators per call | us per call | matrix products | outside kernels | "
+        "costliest operators (share of kernel time) |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
         b = r["breakdown"]
         top = ", ".join(f"{k} {100 * v:.0f}%" for k, v in b["top"])
-        lines.append(f"| {r['size']} | {b['chunk']:,} | {b['nodes']} | {b['run_us']:,.0f} | "
-                     f"{100 * b['matmul_share']:.0f}% | {100 * b['overhead_share']:.0f}% | {top} |")
+        lines.append(
+            f"| {r['size']} | {b['chunk']:,} | {b['nodes']} | {b['run_us']:,.0f} | "
+            f"{100 * b['matmul_share']:.0f}% | {100 * b['overhead_share']:.0f}% | {top} |"
+        )
     lines += ["", "![error against speed](decoders_error_speed.png)", ""]
     (a.out / "decoders_bench.md").write_text("\n".join(lines))
     print(json.dumps({"out": str(a.out / "decoders_bench.md")}))

@@ -30,8 +30,9 @@ SPHERE_PRESETS = ("red_car_paint", "lacquered_plastic", "coated_gold", "white_di
 
 def sky_term(choice, res: int, samples: int) -> np.ndarray:
     no_sun = preview.Environment(sun_irradiance=(0.0, 0.0, 0.0))
-    img = preview.sphere_preview(choice.brdf, res, env=no_sun, env_samples=samples, chunk=choice.chunk,
-                                 proxy=choice.proxy)
+    img = preview.sphere_preview(
+        choice.brdf, res, env=no_sun, env_samples=samples, chunk=choice.chunk, proxy=choice.proxy
+    )
     return img[..., :3][img[..., 3] > 0].mean(axis=1)
 
 
@@ -62,7 +63,8 @@ def main(argv=None) -> int:
     ratio = band_ratio(*halves)
     print(f"band ratio {ratio:.2f}")
     command = "python benchmarks/bench_previews.py" + (f" --res {args.res}" if args.res != 128 else "")
-    text = f"""# Preview noise at the default settings
+    text = (
+        f"""# Preview noise at the default settings
 
 Written by `{command}` (decoder: the neural runtime's Auto size).
 
@@ -75,7 +77,9 @@ pattern of 8 directions) measured max/median 1894.9, 581.5, 195.6 and 1.8 and re
 
 | preset | max / median pixel | relative RMSE vs 512 directions | seconds |
 |---|---|---|---|
-""" + "\n".join(rows) + f"""
+"""
+        + "\n".join(rows)
+        + f"""
 
 ## Reference lobe, Compare with Reference (lacquered plastic, 48 px, 64 walks, 30 degrees)
 
@@ -83,6 +87,7 @@ Band ratio (row-mean variance x pixels per row / pixel variance of the differenc
 **{ratio:.2f}** (about 1: independent walks per pixel). The amortised estimator it replaced, whose
 walks were shared by every pixel of a chunk, measured 37.3 at these settings.
 """
+    )
     args.out.write_text(text)
     print(f"wrote {args.out}")
     return 0

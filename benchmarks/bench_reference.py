@@ -64,9 +64,12 @@ def backend_speed(args) -> int:
     k = 20000 if q else 60000
     be = dict(backend=args.backend, device=args.device)
     dev = args.device or ("cpu" if args.backend == "torch" else "cuda")
-    cmd = f"python benchmarks/bench_reference.py --backend {args.backend}" + (
-        f" --device {args.device}" if args.device else "") + (
-        f" --threads {args.threads}" if args.threads else "") + (" --quick" if q else "")
+    cmd = (
+        f"python benchmarks/bench_reference.py --backend {args.backend}"
+        + (f" --device {args.device}" if args.device else "")
+        + (f" --threads {args.threads}" if args.threads else "")
+        + (" --quick" if q else "")
+    )
     if args.backend == "torch":
         import torch
 
@@ -93,8 +96,10 @@ def backend_speed(args) -> int:
             _, dt = timed(lambda: reference.eval_brdf(stack, wi, wo, walks=walks, seed=1, **kw))
             _, dt_a = timed(lambda: reference.albedo(stack, wd, samples=k, seed=2, **kw))
             row.append((wi.shape[0] * walks / dt, k / dt_a))
-        lines.append(f"| {name} | {len(stack.coatings)} | {row[0][0]:,.0f} | {row[1][0]:,.0f} | "
-                     f"{row[0][1]:,.0f} | {row[1][1]:,.0f} |")
+        lines.append(
+            f"| {name} | {len(stack.coatings)} | {row[0][0]:,.0f} | {row[1][0]:,.0f} | "
+            f"{row[0][1]:,.0f} | {row[1][1]:,.0f} |"
+        )
         print(lines[-1], flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / f"reference_benchmark_{args.backend}.md"
@@ -107,11 +112,19 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smaller runs (noisier figures)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
-    ap.add_argument("--backend", choices=("numpy", "torch", "cupy"), default="numpy",
-                    help="array library of the walks; other than numpy: walks/s only, next to numpy's")
+    ap.add_argument(
+        "--backend",
+        choices=("numpy", "torch", "cupy"),
+        default="numpy",
+        help="array library of the walks; other than numpy: walks/s only, next to numpy's",
+    )
     ap.add_argument("--device", default=None, help="cpu, cuda or cuda:N (torch, cupy)")
-    ap.add_argument("--threads", type=int, default=None,
-                    help="torch.set_num_threads(N) for --backend torch on the CPU (1 on a shared machine)")
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="torch.set_num_threads(N) for --backend torch on the CPU (1 on a shared machine)",
+    )
     args = ap.parse_args(argv)
     if args.backend != "numpy":
         return backend_speed(args)
@@ -143,8 +156,10 @@ def main(argv=None) -> int:
         speed[name] = n_walks / dt
         k = 20000 if q else 60000
         _, dt_a = timed(lambda: reference.albedo(stack, lobe.incident_direction(30.0)[None], samples=k, seed=2))
-        lines.append(f"| {name} | {len(stack.coatings)} | {speed[name]:,.0f} | {k / dt_a:,.0f} | "
-                     f"{lobe_noise(f, se, cos_o):.3f} |")
+        lines.append(
+            f"| {name} | {len(stack.coatings)} | {speed[name]:,.0f} | {k / dt_a:,.0f} | "
+            f"{lobe_noise(f, se, cos_o):.3f} |"
+        )
         print(f"{name}: {speed[name]:,.0f} eval walks/s, {k / dt_a:,.0f} analog walks/s", flush=True)
 
     # ---- standard error against walk count
@@ -196,8 +211,11 @@ def main(argv=None) -> int:
             noise = lobe_noise(f, se, cos_o)
             ratio = (noise / 0.01) ** 2
             plain_walks, plain_s = pilot_walks // 2 * ratio, dt * ratio
-            (fm, sm), dtm = timed(lambda: reference.eval_brdf_many(
-                PRESETS[name], wo[None], lobe.incident_direction(theta)[None], walks=amort_walks, seed=5))
+            (fm, sm), dtm = timed(
+                lambda: reference.eval_brdf_many(
+                    PRESETS[name], wo[None], lobe.incident_direction(theta)[None], walks=amort_walks, seed=5
+                )
+            )
             noise_m = lobe_noise(fm[0], sm[0], cos_o)
             ratio_m = (noise_m / 0.01) ** 2
             if noise < 1e-6:
@@ -207,8 +225,10 @@ def main(argv=None) -> int:
                     f"| {name} | {theta:.0f} | {plain_walks:,.0f} | {plain_s:,.1f} | {amort_walks * ratio_m:,.0f} | "
                     f"{dtm * ratio_m:,.1f} | {plain_s / max(dtm * ratio_m, 1e-9):.1f}x |"
                 )
-            print(f"lobe {name} {theta}: plain {plain_s:.1f} s, amortised {dtm * ratio_m:.1f} s "
-                  f"({npix} pixels)", flush=True)
+            print(
+                f"lobe {name} {theta}: plain {plain_s:.1f} s, amortised {dtm * ratio_m:.1f} s ({npix} pixels)",
+                flush=True,
+            )
     lines += [
         "",
         "Notes: the amortised estimator needs about as many walks *in total* as the plain one needs *per "
@@ -229,7 +249,7 @@ def main(argv=None) -> int:
         "Directional albedo at normal incidence of a white Lambertian under a rough coat (ior 1.5): the "
         "analog walk (no MIS) against `eval_brdf` integrated over cosine-distributed wi, with the matching "
         "density in the exit strategy's MIS weight (ours) and with pbrt-v4's reverse density "
-        "(`walk.EXIT_DENSITY = \"pbrt_reverse\"`, an ablation).",
+        '(`walk.EXIT_DENSITY = "pbrt_reverse"`, an ablation).',
         "",
         "| coat alpha | analog walk | eval, matching density | eval, pbrt's reverse density | pbrt bias |",
         "|---|---|---|---|---|",
@@ -250,8 +270,10 @@ def main(argv=None) -> int:
             e = np.pi * f[:, 0]
             res.append((e.mean(), e.std() / np.sqrt(n_alb)))
         walk.EXIT_DENSITY = "matching"
-        lines.append(f"| {alpha} | {a:.4f} ± {sa:.4f} | {res[0][0]:.4f} ± {res[0][1]:.4f} | "
-                     f"{res[1][0]:.4f} ± {res[1][1]:.4f} | {(res[1][0] / a - 1) * 100:+.1f}% |")
+        lines.append(
+            f"| {alpha} | {a:.4f} ± {sa:.4f} | {res[0][0]:.4f} ± {res[0][1]:.4f} | "
+            f"{res[1][0]:.4f} ± {res[1][1]:.4f} | {(res[1][0] / a - 1) * 100:+.1f}% |"
+        )
         print(f"MIS trap alpha {alpha}: analog {a:.4f}, matching {res[0][0]:.4f}, pbrt {res[1][0]:.4f}", flush=True)
 
     args.out.mkdir(parents=True, exist_ok=True)

@@ -42,13 +42,15 @@ SECTION = "## Refinement"
 
 def lobe_errors(models, z, stack_index: int, data: dict) -> np.ndarray:
     res = data["lobe"].shape[2]
-    lobes = np.array([lobe.lobe_image(lambda wi, wo: models.eval_brdf(z, wi, wo), float(t), res)
-                      for t in data["angles"]])
+    lobes = np.array(
+        [lobe.lobe_image(lambda wi, wo: models.eval_brdf(z, wi, wo), float(t), res) for t in data["angles"]]
+    )
     return lobe.relative_rmse(lobes, data["lobe"][stack_index], image_axes=3)
 
 
-def measure(size: str, data: dict, budget: float, settings: RefineSettings, threads: int, log,
-            done=lambda rows: None) -> list[dict]:
+def measure(
+    size: str, data: dict, budget: float, settings: RefineSettings, threads: int, log, done=lambda rows: None
+) -> list[dict]:
     """Per held-out stack: lobe errors before and after; ``done(rows)`` after each stack."""
     models = load_models(size, threads)
     rows = []
@@ -58,20 +60,36 @@ def measure(size: str, data: dict, budget: float, settings: RefineSettings, thre
         z1, rep = refine_latent(s, size, budget_s=budget, settings=settings, threads=threads, use_cache=False)
         wall = time.perf_counter() - t
         before, after = lobe_errors(models, z0, i, data), lobe_errors(models, z1, i, data)
-        rows.append({"stack": i, "coatings": len(s.coatings), "before": before.tolist(), "after": after.tolist(),
-                     "kept": rep.kept, "seconds": wall, "reference_s": rep.reference_s, "optimise_s": rep.optimise_s,
-                     "steps": rep.steps, "stopped": rep.stopped, "validation_before": rep.validation_error_before,
-                     "validation_after": rep.validation_error_after})
-        log(f"{size} stack {i} ({len(s.coatings)} coatings): {np.median(before):.3f} -> {np.median(after):.3f} "
-            f"kept={rep.kept} {wall:.1f} s")
+        rows.append(
+            {
+                "stack": i,
+                "coatings": len(s.coatings),
+                "before": before.tolist(),
+                "after": after.tolist(),
+                "kept": rep.kept,
+                "seconds": wall,
+                "reference_s": rep.reference_s,
+                "optimise_s": rep.optimise_s,
+                "steps": rep.steps,
+                "stopped": rep.stopped,
+                "validation_before": rep.validation_error_before,
+                "validation_after": rep.validation_error_after,
+            }
+        )
+        log(
+            f"{size} stack {i} ({len(s.coatings)} coatings): {np.median(before):.3f} -> {np.median(after):.3f} "
+            f"kept={rep.kept} {wall:.1f} s"
+        )
         done(rows)
     return rows
 
 
 def table(results: dict[str, list[dict]]) -> list[str]:
-    out = ["| size | coatings | stacks | lobe error before (median / p90) | after (median / p90) | kept | "
-           "seconds per material (median / max) | of which reference walks (median) |",
-           "|---|---|---|---|---|---|---|---|"]
+    out = [
+        "| size | coatings | stacks | lobe error before (median / p90) | after (median / p90) | kept | "
+        "seconds per material (median / max) | of which reference walks (median) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for size, rows in results.items():
         for c in sorted({r["coatings"] for r in rows}) + ["all"]:
             sel = [r for r in rows if c == "all" or r["coatings"] == c]
@@ -80,9 +98,11 @@ def table(results: dict[str, list[dict]]) -> list[str]:
             sec = np.array([r["seconds"] for r in sel])
             ref_s = np.median([r["reference_s"] for r in sel])
             kept = sum(r["kept"] for r in sel)
-            out.append(f"| {size} | {c} | {len(sel)} | {np.median(b):.3f} / {np.percentile(b, 90):.3f} | "
-                       f"{np.median(a):.3f} / {np.percentile(a, 90):.3f} | {kept} / {len(sel)} | "
-                       f"{np.median(sec):.1f} / {sec.max():.1f} | {ref_s:.1f} |")
+            out.append(
+                f"| {size} | {c} | {len(sel)} | {np.median(b):.3f} / {np.percentile(b, 90):.3f} | "
+                f"{np.median(a):.3f} / {np.percentile(a, 90):.3f} | {kept} / {len(sel)} | "
+                f"{np.median(sec):.1f} / {sec.max():.1f} | {ref_s:.1f} |"
+            )
     return out
 
 
@@ -90,28 +110,41 @@ def regressions(results: dict) -> str:
     """Per size: on how many stacks the held-out error (median over elevations) rose, and the worst one."""
     parts = []
     for size, rows in results.items():
-        worse = [(float(np.median(r["after"])) - float(np.median(r["before"])), r) for r in rows
-                 if np.median(r["after"]) > np.median(r["before"])]
+        worse = [
+            (float(np.median(r["after"])) - float(np.median(r["before"])), r)
+            for r in rows
+            if np.median(r["after"]) > np.median(r["before"])
+        ]
         if not worse:
             parts.append(f"{size} on none of {len(rows)}")
             continue
         _, r = max(worse, key=lambda x: x[0])
-        parts.append(f"{size} on {len(worse)} of {len(rows)} (worst: stack {r['stack']}, "
-                     f"{np.median(r['before']):.3f} -> {np.median(r['after']):.3f})")
-    return ("The held-out error (median over the four elevations) rose after a refinement its validation pairs "
-            "accepted for " + "; ".join(parts) + ": the validation pairs are a Monte Carlo estimate of the lobe "
-            "metric, not the metric itself.")
+        parts.append(
+            f"{size} on {len(worse)} of {len(rows)} (worst: stack {r['stack']}, "
+            f"{np.median(r['before']):.3f} -> {np.median(r['after']):.3f})"
+        )
+    return (
+        "The held-out error (median over the four elevations) rose after a refinement its validation pairs "
+        "accepted for " + "; ".join(parts) + ": the validation pairs are a Monte Carlo estimate of the lobe "
+        "metric, not the metric itself."
+    )
 
 
 def section(results: dict, command: str, settings: RefineSettings, budget: float, load: list | None = None) -> str:
     s = settings
-    busy = (f" During the runs the machine's load average was {min(load):.0f} to {max(load):.0f} (other jobs on "
-            "its 2 cores): the seconds are those of a busy machine." if load else "")
+    busy = (
+        f" During the runs the machine's load average was {min(load):.0f} to {max(load):.0f} (other jobs on "
+        "its 2 cores): the seconds are those of a busy machine."
+        if load
+        else ""
+    )
     lines = [
-        SECTION, "",
+        SECTION,
+        "",
         f"Made by `{command}` (CPU, numpy + ONNX Runtime, on the shared 2-core development machine: the times vary "
         "with its load). Held-out set: `tests/data/heldout_layered.npz`, scored as above (lobe images at 0/30/60/75 "
-        "degrees against the stored reference lobes).", "",
+        "degrees against the stored reference lobes).",
+        "",
         "Where a size's latent space holds layered lobes much better than its layering network reaches (the "
         "projection bounds of docs/layering_training.md: medium 0.114 against 0.20 with one coating), the latent of "
         "one material can be fitted to the reference on demand: `addon.core.neural.refine.refine_latent(stack, "
@@ -124,11 +157,16 @@ def section(results: dict, command: str, settings: RefineSettings, budget: float
         f"result only where it is better on {s.validation_groups} x {s.per_group} separate validation pairs. Budget "
         f"{budget:g} s per material, at most {s.steps} steps; the held-out lobes below are never seen by it. "
         "(PEAK_RATIO was chosen between 10 and 30, and the loss's form between three, on six of these held-out "
-        "stacks, tiny decoder: the table is not free of that choice.)", "",
-        *table(results), "",
-        "Layers = base + coatings. \"kept\": materials whose refined latent was better on its validation pairs "
+        "stacks, tiny decoder: the table is not free of that choice.)",
+        "",
+        *table(results),
+        "",
+        'Layers = base + coatings. "kept": materials whose refined latent was better on its validation pairs '
         "(the others keep the runtime path's latent, so their error is unchanged). Seconds: the whole call "
-        f"(reference walks for both pair sets, then the optimisation).{busy}", "", regressions(results), "",
+        f"(reference walks for both pair sets, then the optimisation).{busy}",
+        "",
+        regressions(results),
+        "",
     ]
     return "\n".join(lines)
 
@@ -152,17 +190,24 @@ def main(argv=None) -> None:
     ap.add_argument("--heldout", type=Path, default=HELDOUT)
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--no-doc", action="store_true", help="do not write docs/layering.md")
-    ap.add_argument("--from-json", type=Path, nargs="+", default=None,
-                    help="write the section from the --json files of earlier runs (one size each, or more; their "
-                         "commands are quoted) and stop; a run stopped early counts the stacks it measured")
+    ap.add_argument(
+        "--from-json",
+        type=Path,
+        nargs="+",
+        default=None,
+        help="write the section from the --json files of earlier runs (one size each, or more; their "
+        "commands are quoted) and stop; a run stopped early counts the stacks it measured",
+    )
     a = ap.parse_args(argv)
     if a.from_json:
         saved = [json.loads(p.read_text()) for p in a.from_json]
         results = {k: v for s in saved for k, v in s["results"].items()}
         command = "` and `".join(s["command"] for s in saved)
         if len(saved) > 1 or "--no-doc" in command:
-            command += ("` (one process per size, side by side), this section written from their --json files by "
-                        "`python benchmarks/bench_refine.py --from-json " + " ".join(str(p) for p in a.from_json))
+            command += (
+                "` (one process per size, side by side), this section written from their --json files by "
+                "`python benchmarks/bench_refine.py --from-json " + " ".join(str(p) for p in a.from_json)
+            )
         load = [v for s in saved for v in s.get("load", [])]
         write_section(section(results, command, RefineSettings(**saved[0]["settings"]), saved[0]["budget"], load))
         return
@@ -181,14 +226,31 @@ def main(argv=None) -> None:
         results[size] = rows
         load.append(round(os.getloadavg()[0], 1))
         if a.json:
-            a.json.write_text(json.dumps({"command": command.strip(), "settings": settings.__dict__,
-                                          "budget": a.budget, "results": results, "load": load}, indent=1))
+            a.json.write_text(
+                json.dumps(
+                    {
+                        "command": command.strip(),
+                        "settings": settings.__dict__,
+                        "budget": a.budget,
+                        "results": results,
+                        "load": load,
+                    },
+                    indent=1,
+                )
+            )
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ClampWarning)
         for size in a.sizes:
-            measure(size, data, a.budget, settings, a.threads, lambda m: print(m, flush=True),
-                    lambda rows, size=size: save(size, rows))
+            measure(
+                size,
+                data,
+                a.budget,
+                settings,
+                a.threads,
+                lambda m: print(m, flush=True),
+                lambda rows, size=size: save(size, rows),
+            )
     text = section(results, command.strip(), settings, a.budget, load)
     print(text)
     if not a.no_doc:

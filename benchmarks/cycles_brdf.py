@@ -240,10 +240,13 @@ def main(argv=None) -> int:
     views = np.array([lobe.incident_direction(t) for t in thetas])
     ref, se = reference.albedo(stack, views, samples=20000, seed=1)
     print(f"calibration {cy.calibration:.4f} (1 for a sun of strength 1)")
-    for t, c, r in zip(thetas, al, ref):
+    for t, c, r in zip(thetas, al, ref, strict=True):
         print(f"theta {t:4.0f}: Cycles albedo {np.round(c, 3)}  reference {np.round(r, 3)}")
     imgs, spe = cy.lobes(stack, 32)
-    print(f"lobe albedo (Cycles) {[np.round(lobe.albedo_from_lobe(i), 3).tolist() for i in imgs]}; {spe * 1e6:.2f} us/eval")
+    print(
+        f"lobe albedo (Cycles) {[np.round(lobe.albedo_from_lobe(i), 3).tolist() for i in imgs]}; "
+        f"{spe * 1e6:.2f} us/eval"
+    )
     return 0
 
 

@@ -57,7 +57,9 @@ def main(argv=None):
 
     rows = {"latent lerp": latent_brdf, "linear BRDF blend": blend_brdf}
     lobes = {k: [lobe.lobe_image(fn(t), 30.0, a.res) for t in TS] for k, fn in rows.items()}
-    spheres = {k: [preview.sphere_preview(fn(t), res=a.res, env_samples=32, seed=1) for t in TS] for k, fn in rows.items()}
+    spheres = {
+        k: [preview.sphere_preview(fn(t), res=a.res, env_samples=32, seed=1) for t in TS] for k, fn in rows.items()
+    }
     scale = 1.0 / max(float(np.percentile(np.concatenate([x.ravel() for x in lobes["linear BRDF blend"]]), 99.5)), 1e-6)
 
     fig = plt.figure(figsize=(2.0 * len(TS), 9.6))
@@ -77,16 +79,22 @@ def main(argv=None):
     mid = a.res // 2
     cmap = plt.get_cmap("viridis")
     for j, t in enumerate(TS):
-        ax.plot(x, lobes["latent lerp"][j][mid, :, :].mean(axis=1), color=cmap(j / (len(TS) - 1)), lw=1.5,
-                label=f"latent t={t:g}")
-        ax.plot(x, lobes["linear BRDF blend"][j][mid, :, :].mean(axis=1), color=cmap(j / (len(TS) - 1)), lw=1,
-                ls="--")
+        ax.plot(
+            x,
+            lobes["latent lerp"][j][mid, :, :].mean(axis=1),
+            color=cmap(j / (len(TS) - 1)),
+            lw=1.5,
+            label=f"latent t={t:g}",
+        )
+        ax.plot(x, lobes["linear BRDF blend"][j][mid, :, :].mean(axis=1), color=cmap(j / (len(TS) - 1)), lw=1, ls="--")
     ax.set_yscale("symlog", linthresh=0.05)
     ax.set_xlabel("projected outgoing x (plane of incidence, incidence 30 deg at -x)")
     ax.set_ylabel("f cos (mean RGB)")
     ax.legend(fontsize=6, ncol=5)
     ax.set_title("solid: latent interpolation, dashed: linear blend of the BRDFs", fontsize=8)
-    fig.suptitle(f"A = coated gold (smooth coat), B = rough tinted coat over blue diffuse; decoder {a.size}", fontsize=9)
+    fig.suptitle(
+        f"A = coated gold (smooth coat), B = rough tinted coat over blue diffuse; decoder {a.size}", fontsize=9
+    )
     fig.tight_layout()
     a.out.mkdir(parents=True, exist_ok=True)
     fig.savefig(a.out / "lerp.png", dpi=110)
@@ -95,9 +103,11 @@ def main(argv=None):
         f"Made by `{cmd}`.\n\n"
         "`lerp(z_a, z_b, t) = (1 - t) z_a + t z_b` (`addon/core/neural/layering.py`) against the linear blend "
         "`(1 - t) f_a + t f_b` of the two decoded BRDFs. Material A: gold under a smooth clear coat "
-        f"(`{MATERIAL_A.to_json()}`); material B: blue diffuse under a rough, scattering coat (`{MATERIAL_B.to_json()}`).\n\n"
+        f"(`{MATERIAL_A.to_json()}`); material B: blue diffuse under a rough, scattering coat "
+        f"(`{MATERIAL_B.to_json()}`).\n\n"
         "Top: latent interpolation; below: linear blend (lobe images at 30 degrees incidence, and spheres under the "
-        "preview environment). The bottom plot is the in-plane lobe.\n\n![lerp](lerp.png)\n")
+        "preview environment). The bottom plot is the in-plane lobe.\n\n![lerp](lerp.png)\n"
+    )
     print(f"wrote {a.out / 'lerp.png'}")
 
 

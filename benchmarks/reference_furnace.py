@@ -56,8 +56,16 @@ def furnace_row(roughness: float, thickness: float, walks: int) -> dict:
             old, old_se = reference.albedo(stack, WO, samples=walks, seed=1)
     finally:
         walk.MAX_DEPTH = cap
-    return dict(roughness=roughness, thickness=thickness, walks=walks, albedo=float(a[0, 0]), se=float(se[0, 0]),
-                seconds=seconds, old=float(old[0, 0]), old_se=float(old_se[0, 0]))
+    return dict(
+        roughness=roughness,
+        thickness=thickness,
+        walks=walks,
+        albedo=float(a[0, 0]),
+        se=float(se[0, 0]),
+        seconds=seconds,
+        old=float(old[0, 0]),
+        old_se=float(old_se[0, 0]),
+    )
 
 
 def walk_lengths(ior: float, g: float, walks: int) -> dict:
@@ -65,8 +73,15 @@ def walk_lengths(ior: float, g: float, walks: int) -> dict:
     lay = walk.Layers.from_arrays(StackArrays.from_stacks([stack]))
     alive = []
     t0 = time.perf_counter()
-    _, w, _ = walk.run_walks(lay, np.zeros(walks, dtype=np.int64), np.repeat(WO, walks, axis=0), None,
-                             Rng(np, 2), nee=False, alive_per_event=alive)
+    _, w, _ = walk.run_walks(
+        lay,
+        np.zeros(walks, dtype=np.int64),
+        np.repeat(WO, walks, axis=0),
+        None,
+        Rng(np, 2),
+        nee=False,
+        alive_per_event=alive,
+    )
     seconds = time.perf_counter() - t0
     alive = np.array([walks] + alive, dtype=np.float64)  # alive[n]: walks inside after n events
     frac = alive / walks
@@ -75,12 +90,21 @@ def walk_lengths(ior: float, g: float, walks: int) -> dict:
     hi = int(np.flatnonzero(alive >= 5)[-1])
     tau = float("nan")
     if hi > lo + 10:
-        slope = np.polyfit(np.arange(lo, hi + 1), np.log(frac[lo:hi + 1]), 1)[0]
+        slope = np.polyfit(np.arange(lo, hi + 1), np.log(frac[lo : hi + 1]), 1)[0]
         tau = -1.0 / slope if slope < 0 else float("inf")
     at_cap = frac[hi] * np.exp(-(walk.MAX_DEPTH - hi) / tau) if np.isfinite(tau) else float("nan")
-    return dict(ior=ior, g=g, walks=walks, albedo=float(w[:, 0].mean()), mean=float(alive[1:].sum() / walks),
-                longest=len(alive) - 1, seconds=seconds,
-                inside={m: float(frac[m]) if m < len(frac) else 0.0 for m in MARKS}, tau=tau, at_cap=float(at_cap))
+    return dict(
+        ior=ior,
+        g=g,
+        walks=walks,
+        albedo=float(w[:, 0].mean()),
+        mean=float(alive[1:].sum() / walks),
+        longest=len(alive) - 1,
+        seconds=seconds,
+        inside={m: float(frac[m]) if m < len(frac) else 0.0 for m in MARKS},
+        tau=tau,
+        at_cap=float(at_cap),
+    )
 
 
 def write(path: Path, rows: list[dict], lengths: list[dict], command: str) -> None:
@@ -94,31 +118,36 @@ def write(path: Path, rows: list[dict], lengths: list[dict], command: str) -> No
         "coat every event conserves energy, so the albedo must be exactly 1 with a standard error of 0 (every",
         "walk returns weight 1). A rough coat (alpha 0.3) loses the energy of multiple microfacet bounces at",
         "each interface event (single-scattering microfacet model), so its albedo is below 1 by design.",
-        f"\"cut at {OLD_CAP}\" is the same walks ended after {OLD_CAP} events, as the walk did before it ended",
+        f'"cut at {OLD_CAP}" is the same walks ended after {OLD_CAP} events, as the walk did before it ended',
         "walks by Russian roulette only.",
         "",
         f"| roughness | thickness | walks | albedo | std. error | time (s) | cut at {OLD_CAP} |",
         "|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        out.append(f"| {r['roughness']:g} | {r['thickness']:g} | {r['walks']} | {r['albedo']:.6f} | {r['se']:.2g} | "
-                   f"{r['seconds']:.1f} | {r['old']:.4f} ± {r['old_se']:.2g} |")
+        out.append(
+            f"| {r['roughness']:g} | {r['thickness']:g} | {r['walks']} | {r['albedo']:.6f} | {r['se']:.2g} | "
+            f"{r['seconds']:.1f} | {r['old']:.4f} ± {r['old_se']:.2g} |"
+        )
     out += [
         "",
         "## Walk lengths at thickness 100 (smooth coat, white base)",
         "",
         "Every walk carries weight 1 here, so the fraction of walks still inside after n events is the",
-        "fraction of the energy a depth cap at n would lose. The tail decays exponentially; \"at the cap\"",
+        'fraction of the energy a depth cap at n would lose. The tail decays exponentially; "at the cap"',
         f"extrapolates it to the safety cap `MAX_DEPTH` = {walk.MAX_DEPTH} events.",
         "",
-        "| ior | g | walks | albedo | mean events | longest | " + " | ".join(f"inside after {m}" for m in MARKS)
+        "| ior | g | walks | albedo | mean events | longest | "
+        + " | ".join(f"inside after {m}" for m in MARKS)
         + " | decay time (events) | at the cap | time (s) |",
         "|---|---|---|---|---|---|" + "---|" * len(MARKS) + "---|---|---|",
     ]
     for r in lengths:
         inside = " | ".join(f"{r['inside'][m]:.2g}" for m in MARKS)
-        out.append(f"| {r['ior']:g} | {r['g']:g} | {r['walks']} | {r['albedo']:.6f} | {r['mean']:.0f} | "
-                   f"{r['longest']} | {inside} | {r['tau']:.3g} | {r['at_cap']:.1g} | {r['seconds']:.0f} |")
+        out.append(
+            f"| {r['ior']:g} | {r['g']:g} | {r['walks']} | {r['albedo']:.6f} | {r['mean']:.0f} | "
+            f"{r['longest']} | {inside} | {r['tau']:.3g} | {r['at_cap']:.1g} | {r['seconds']:.0f} |"
+        )
     path.write_text("\n".join(out) + "\n")
 
 

@@ -60,36 +60,82 @@ def cases() -> list[Case]:
     white = Diffuse((0.8, 0.8, 0.8))
     three = PRESETS["three_layer"]
     return [
-        Case("alpha_to_0", "coat alpha 1e-4 over a white base",
-             Stack(white, (Coating(roughness=1e-4, ior=1.5),))),
-        Case("alpha_to_0_conductor", "bare conductor, alpha 2e-3 (just above the delta threshold)",
-             Stack(Conductor(roughness=2e-3))),
-        Case("grazing_single", f"bare rough conductor (alpha 0.2) at {GRAZING_DEG} degrees incidence and exitance",
-             Stack(Conductor(roughness=0.2)), angles=(GRAZING_DEG,)),
-        Case("grazing", f"lacquered plastic at {GRAZING_DEG} degrees incidence and exitance",
-             PRESETS["lacquered_plastic"], angles=(GRAZING_DEG,)),
-        Case("thick_absorbing", "medium albedo 0, optical thickness 100 over a white base",
-             Stack(white, (Coating(roughness=0.1, ior=1.5, albedo=(0.0, 0.0, 0.0), thickness=100.0),))),
-        Case("thick_scattering", "medium albedo 0.999, optical thickness 100 over a black base",
-             Stack(Diffuse((0.0, 0.0, 0.0)), (Coating(roughness=0.1, ior=1.5, albedo=(0.999,) * 3, thickness=100.0),))),
-        Case("ior_near_1", "coat ior 1.001 (index-matched limit) over a white base",
-             Stack(white, (Coating(roughness=0.1, ior=1.001),))),
-        Case("ior_near_1_base", "bare dielectric base, ior 1.001, alpha 0.1",
-             Stack(Dielectric(roughness=0.1, ior=1.001))),
-        Case("ior_high_base", "bare dielectric base, ior 4.0 (top of the valid range), alpha 0.1",
-             Stack(Dielectric(roughness=0.1, ior=4.0))),
-        Case("ior_high", "coat ior 4.0 (top of the valid range) over a white base",
-             Stack(white, (Coating(roughness=0.1, ior=4.0),))),
-        Case("total_internal_reflection", "ior 2.0 coating under an ior 1.1 top: TIR at the inner interface",
-             Stack(white, (Coating(roughness=0.1, ior=2.0, albedo=(0.9, 0.9, 0.9), thickness=0.5),
-                           Coating(roughness=0.05, ior=1.1)))),
+        Case("alpha_to_0", "coat alpha 1e-4 over a white base", Stack(white, (Coating(roughness=1e-4, ior=1.5),))),
+        Case(
+            "alpha_to_0_conductor",
+            "bare conductor, alpha 2e-3 (just above the delta threshold)",
+            Stack(Conductor(roughness=2e-3)),
+        ),
+        Case(
+            "grazing_single",
+            f"bare rough conductor (alpha 0.2) at {GRAZING_DEG} degrees incidence and exitance",
+            Stack(Conductor(roughness=0.2)),
+            angles=(GRAZING_DEG,),
+        ),
+        Case(
+            "grazing",
+            f"lacquered plastic at {GRAZING_DEG} degrees incidence and exitance",
+            PRESETS["lacquered_plastic"],
+            angles=(GRAZING_DEG,),
+        ),
+        Case(
+            "thick_absorbing",
+            "medium albedo 0, optical thickness 100 over a white base",
+            Stack(white, (Coating(roughness=0.1, ior=1.5, albedo=(0.0, 0.0, 0.0), thickness=100.0),)),
+        ),
+        Case(
+            "thick_scattering",
+            "medium albedo 0.999, optical thickness 100 over a black base",
+            Stack(Diffuse((0.0, 0.0, 0.0)), (Coating(roughness=0.1, ior=1.5, albedo=(0.999,) * 3, thickness=100.0),)),
+        ),
+        Case(
+            "ior_near_1",
+            "coat ior 1.001 (index-matched limit) over a white base",
+            Stack(white, (Coating(roughness=0.1, ior=1.001),)),
+        ),
+        Case(
+            "ior_near_1_base", "bare dielectric base, ior 1.001, alpha 0.1", Stack(Dielectric(roughness=0.1, ior=1.001))
+        ),
+        Case(
+            "ior_high_base",
+            "bare dielectric base, ior 4.0 (top of the valid range), alpha 0.1",
+            Stack(Dielectric(roughness=0.1, ior=4.0)),
+        ),
+        Case(
+            "ior_high",
+            "coat ior 4.0 (top of the valid range) over a white base",
+            Stack(white, (Coating(roughness=0.1, ior=4.0),)),
+        ),
+        Case(
+            "total_internal_reflection",
+            "ior 2.0 coating under an ior 1.1 top: TIR at the inner interface",
+            Stack(
+                white,
+                (
+                    Coating(roughness=0.1, ior=2.0, albedo=(0.9, 0.9, 0.9), thickness=0.5),
+                    Coating(roughness=0.05, ior=1.1),
+                ),
+            ),
+        ),
         Case("three_coatings", "the three_layer preset", three),
-        Case("four_coatings", "three_layer plus a rough tinted coat on top",
-             Stack(three.base, three.coatings + (Coating(roughness=0.4, ior=1.3, albedo=(0.5, 0.9, 0.5),
-                                                         thickness=0.8),))),
-        Case("out_of_range", "alpha 0 (trained from 0.01), ior 3 (trained to 2), thickness 50 (trained to 5)",
-             Stack(white, (Coating(roughness=0.3, ior=3.0, albedo=(0.5, 0.5, 0.5), thickness=50.0),
-                           Coating(roughness=0.0, ior=1.5)))),
+        Case(
+            "four_coatings",
+            "three_layer plus a rough tinted coat on top",
+            Stack(
+                three.base, three.coatings + (Coating(roughness=0.4, ior=1.3, albedo=(0.5, 0.9, 0.5), thickness=0.8),)
+            ),
+        ),
+        Case(
+            "out_of_range",
+            "alpha 0 (trained from 0.01), ior 3 (trained to 2), thickness 50 (trained to 5)",
+            Stack(
+                white,
+                (
+                    Coating(roughness=0.3, ior=3.0, albedo=(0.5, 0.5, 0.5), thickness=50.0),
+                    Coating(roughness=0.0, ior=1.5),
+                ),
+            ),
+        ),
         Case("nan_direction", "a NaN component in wi", PRESETS["lacquered_plastic"], nan_directions=True),
         Case("nan_parameter", "a NaN coat roughness", None),
     ]
@@ -151,8 +197,9 @@ def _nan_cell(method: str, case: Case, evaluate) -> Cell:
 
 def reference_cell(case: Case, res: int, walks: int, albedo_samples: int) -> Cell:
     if case.nan_directions or case.stack is None:
-        return _nan_cell("reference", case, lambda wi, wo: reference.eval_brdf(PRESETS["lacquered_plastic"], wi, wo,
-                                                                              walks=2))
+        return _nan_cell(
+            "reference", case, lambda wi, wo: reference.eval_brdf(PRESETS["lacquered_plastic"], wi, wo, walks=2)
+        )
     cell = Cell("reference", case.name)
     fs, ses, n, t = [], [], 0, 0.0
     for theta in case.angles:
@@ -199,8 +246,10 @@ def neural_cell(size: str, case: Case, res: int, walks: int) -> Cell:
         return cell
     if imgs is None:
         cell.status = "fallback: reference"
-        cell.notes = ["the shipped models cannot encode this stack (no layering network for this size); the "
-                      "renderer shades it with the reference estimator"]
+        cell.notes = [
+            "the shipped models cannot encode this stack (no layering network for this size); the "
+            "renderer shades it with the reference estimator"
+        ]
         return cell
     pred, seconds_per_eval = imgs
     cell.seconds_per_eval = seconds_per_eval
@@ -218,8 +267,15 @@ def neural_cell(size: str, case: Case, res: int, walks: int) -> Cell:
     # What the auto quality setting does with this stack and size at the default tolerance.
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always")
-        auto = quality.choose_decoder(case.stack, quality.DEFAULT_TOLERANCE, sizes=[size], fallback="reference",
-                                      res=res, walks=walks, cache=quality.ErrorCache())
+        auto = quality.choose_decoder(
+            case.stack,
+            quality.DEFAULT_TOLERANCE,
+            sizes=[size],
+            fallback="reference",
+            res=res,
+            walks=walks,
+            cache=quality.ErrorCache(),
+        )
     cell.auto = "within tolerance" if auto.size == size else "flagged"
     if not (cell.finite and cell.nonnegative and cell.albedo_ok):
         cell.status = "FAIL" if not notes else "warned"
@@ -352,8 +408,10 @@ def markdown(cells: list[Cell], command: str) -> str:
     methods = list(dict.fromkeys(c.method for c in cells))
     case_names = list(dict.fromkeys(c.case for c in cells))
     lines = [
-        "# Stability matrix", "",
-        f"Produced by `{command}` on a shared 2-core CPU (times are noisy).", "",
+        "# Stability matrix",
+        "",
+        f"Produced by `{command}` on a shared 2-core CPU (times are noisy).",
+        "",
         "Per cell: the product's behaviour, then finite / non-negative / albedo <= 1 (max albedo) / error "
         "against the reference / microseconds per RGB evaluation. The reference's error is its own relative "
         "noise at the walk count used; a decoder's is the noise-corrected lobe error "
@@ -363,8 +421,10 @@ def markdown(cells: list[Cell], command: str) -> str:
         f"(`addon.core.quality.choose_decoder`, tolerance {quality.DEFAULT_TOLERANCE:g}, this size only) "
         "measures for the stack: `flagged` means its measured error is over the tolerance, so it warns "
         "(QualityWarning) and uses a more accurate decoder or, if asked to, the reference. It measures at "
-        "0/30/60/75 degrees incidence, so errors only at grazing angles pass it.", "",
-        "## Summary", "",
+        "0/30/60/75 degrees incidence, so errors only at grazing angles pass it.",
+        "",
+        "## Summary",
+        "",
         "| case | " + " | ".join(methods) + " |",
         "|---|" + "---|" * len(methods),
     ]
@@ -382,14 +442,21 @@ def markdown(cells: list[Cell], command: str) -> str:
         lines.append(f"| {cn} | " + " | ".join(row) + " |")
     lines += ["", "## Cases", "", "| case | what |", "|---|---|"]
     lines += [f"| {cn} | {names[cn].what} |" for cn in case_names]
-    lines += ["", "## All cells", "",
-              "| case | method | status | finite | non-negative | albedo max | albedo <= 1 | error | us/eval | auto | notes |",
-              "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## All cells",
+        "",
+        "| case | method | status | finite | non-negative | albedo max | albedo <= 1 | error | us/eval | auto "
+        "| notes |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for c in cells:
         notes = "; ".join(n.replace("|", "/") for n in c.notes)[:300]
-        lines.append(f"| {c.case} | {c.method} | {c.status} | {_fmt(c.finite, 'bool')} | {_fmt(c.nonnegative, 'bool')} "
-                     f"| {_fmt(c.albedo_max, 'f')} | {_fmt(c.albedo_ok, 'bool')} | {_fmt(c.error, 'pct')} | "
-                     f"{_fmt(c.seconds_per_eval, 'us')} | {c.auto or '-'} | {notes} |")
+        lines.append(
+            f"| {c.case} | {c.method} | {c.status} | {_fmt(c.finite, 'bool')} | {_fmt(c.nonnegative, 'bool')} "
+            f"| {_fmt(c.albedo_max, 'f')} | {_fmt(c.albedo_ok, 'bool')} | {_fmt(c.error, 'pct')} | "
+            f"{_fmt(c.seconds_per_eval, 'us')} | {c.auto or '-'} | {notes} |"
+        )
     return "\n".join(lines) + "\n"
 
 

@@ -50,12 +50,19 @@ def blender_only_env(root: Path) -> dict[str, str]:
     }
 
 
-def run(script: Path, args: list[str], root: Path, cwd: Path | None = None, timeout: float = 900,
-        capture: bool = True) -> subprocess.CompletedProcess:
+def run(
+    script: Path, args: list[str], root: Path, cwd: Path | None = None, timeout: float = 900, capture: bool = True
+) -> subprocess.CompletedProcess:
     """Run ``script`` with ``args`` Blender-only, with its temporary folders under ``root``."""
     env = blender_only_env(root)
-    return subprocess.run([sys.executable, "-S", "-P", str(script), *args], cwd=cwd or root, env=env,
-                          capture_output=capture, text=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-S", "-P", str(script), *args],
+        cwd=cwd or root,
+        env=env,
+        capture_output=capture,
+        text=True,
+        timeout=timeout,
+    )
 
 
 def main(argv=None) -> int:

@@ -46,8 +46,14 @@ EXTENSION_ID = "neural_layered_materials"
 # on Linux and macOS 11.2 on Mac).
 PLATFORM_TAGS: dict[str, list[str]] = {
     "linux-x64": ["manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64"],
-    "linux-arm64": ["manylinux_2_28_aarch64", "manylinux_2_27_aarch64", "manylinux_2_17_aarch64", "manylinux2014_aarch64"],
-    "macos-arm64": [f"macosx_{v}_0_arm64" for v in (11, 12, 13, 14)] + [f"macosx_{v}_universal2" for v in ("10_9", "11_0")],
+    "linux-arm64": [
+        "manylinux_2_28_aarch64",
+        "manylinux_2_27_aarch64",
+        "manylinux_2_17_aarch64",
+        "manylinux2014_aarch64",
+    ],
+    "macos-arm64": [f"macosx_{v}_0_arm64" for v in (11, 12, 13, 14)]
+    + [f"macosx_{v}_universal2" for v in ("10_9", "11_0")],
     "macos-x64": [f"macosx_{v}_x86_64" for v in ("10_9", "10_15", "11_0", "12_0", "13_0")]
     + [f"macosx_{v}_universal2" for v in ("10_9", "11_0")],
     "windows-x64": ["win_amd64"],
@@ -78,7 +84,9 @@ def blender_ext_cli() -> Path:
     spec = importlib.util.find_spec("bpy")
     if spec is None or not spec.origin:
         raise FileNotFoundError("the bpy module is not installed (pip install bpy); it ships Blender's extension CLI")
-    hits = glob.glob(str(Path(spec.origin).parent / "*" / "scripts" / "addons_core" / "bl_pkg" / "cli" / "blender_ext.py"))
+    hits = glob.glob(
+        str(Path(spec.origin).parent / "*" / "scripts" / "addons_core" / "bl_pkg" / "cli" / "blender_ext.py")
+    )
     if not hits:
         raise FileNotFoundError(f"blender_ext.py not found under {Path(spec.origin).parent}")
     return Path(sorted(hits)[-1])
@@ -99,15 +107,30 @@ def _norm(name: str) -> str:
 
 def cached_wheel(folder: Path, dist: str, version: str | None = None) -> Path | None:
     hits = sorted(
-        p for p in folder.glob("*.whl")
+        p
+        for p in folder.glob("*.whl")
         if _norm(p.name.split("-")[0]) == _norm(dist) and (version is None or p.name.split("-")[1] == version)
     )
     return hits[-1] if hits else None
 
 
 def _pip_download(req: str, platform: str, folder: Path) -> bool:
-    cmd = [sys.executable, "-m", "pip", "download", "--only-binary=:all:", "--no-deps", "--python-version", "3.11",
-           "--implementation", "cp", "--disable-pip-version-check", "-q", "-d", str(folder)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "pip",
+        "download",
+        "--only-binary=:all:",
+        "--no-deps",
+        "--python-version",
+        "3.11",
+        "--implementation",
+        "cp",
+        "--disable-pip-version-check",
+        "-q",
+        "-d",
+        str(folder),
+    ]
     for tag in PLATFORM_TAGS[platform]:
         cmd += ["--platform", tag]
     proc = subprocess.run(cmd + [req], capture_output=True, text=True)
@@ -115,8 +138,11 @@ def _pip_download(req: str, platform: str, folder: Path) -> bool:
         return True
     text = proc.stderr + proc.stdout
     _pip_download.last_error = (text.strip().splitlines() or ["(no output)"])[-1]
-    if re.search(r"(NewConnectionError|Max retries|Temporary failure in name resolution|Network is unreachable|"
-                 r"Connection refused|ConnectTimeout|ProxyError|SSLError|ReadTimeout)", text):
+    if re.search(
+        r"(NewConnectionError|Max retries|Temporary failure in name resolution|Network is unreachable|"
+        r"Connection refused|ConnectTimeout|ProxyError|SSLError|ReadTimeout)",
+        text,
+    ):
         raise RegistryUnreachable(f"pip cannot reach the package index: {text.strip().splitlines()[-1]}")
     return False
 
@@ -149,7 +175,9 @@ def download(dist: str, platform: str, folder: Path, log) -> Path | None:
 
 
 def _macos_minimum(wheels: list[Path]) -> str | None:
-    versions = [tuple(int(x) for x in m.groups()) for w in wheels for m in [re.search(r"macosx_(\d+)_(\d+)_", w.name)] if m]
+    versions = [
+        tuple(int(x) for x in m.groups()) for w in wheels for m in [re.search(r"macosx_(\d+)_(\d+)_", w.name)] if m
+    ]
     return ".".join(map(str, max(versions))) if versions else None
 
 
@@ -258,12 +286,21 @@ def build(platforms: list[str], out: Path, cache: Path, build_dir: Path, log=pri
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--platforms", default=",".join(PLATFORM_TAGS),
-                    help=f"comma-separated Blender platforms (default: all of {', '.join(PLATFORM_TAGS)})")
+    ap.add_argument(
+        "--platforms",
+        default=",".join(PLATFORM_TAGS),
+        help=f"comma-separated Blender platforms (default: all of {', '.join(PLATFORM_TAGS)})",
+    )
     ap.add_argument("--out", type=Path, default=ROOT / "dist", help="folder for the zips (default: dist/)")
-    ap.add_argument("--cache", type=Path, default=ROOT / "cache" / "wheels", help="wheel cache (default: cache/wheels/)")
-    ap.add_argument("--build-dir", type=Path, default=ROOT / "build" / "extension",
-                    help="staging folder for the package source (default: build/extension/)")
+    ap.add_argument(
+        "--cache", type=Path, default=ROOT / "cache" / "wheels", help="wheel cache (default: cache/wheels/)"
+    )
+    ap.add_argument(
+        "--build-dir",
+        type=Path,
+        default=ROOT / "build" / "extension",
+        help="staging folder for the package source (default: build/extension/)",
+    )
     args = ap.parse_args(argv)
     platforms = [p.strip() for p in args.platforms.split(",") if p.strip()]
     try:

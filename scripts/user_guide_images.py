@@ -24,18 +24,20 @@ import build_extension  # noqa: E402
 def main() -> int:
     with tempfile.TemporaryDirectory(prefix="user_guide_") as tmp:
         tmp = Path(tmp)
-        (zip_path,) = build_extension.build(["linux-x64"], tmp / "dist", ROOT / "cache" / "wheels", tmp / "build",
-                                            log=lambda *_: None)
+        (zip_path,) = build_extension.build(
+            ["linux-x64"], tmp / "dist", ROOT / "cache" / "wheels", tmp / "build", log=lambda *_: None
+        )
         work = tmp / "work"
         work.mkdir()
-        proc = blender_only.run(ROOT / "scripts" / "user_guide_walk.py", [str(zip_path), str(ROOT / "docs"), str(work)],
-                                tmp, cwd=work)
+        proc = blender_only.run(
+            ROOT / "scripts" / "user_guide_walk.py", [str(zip_path), str(ROOT / "docs"), str(work)], tmp, cwd=work
+        )
     print("\n".join(line for line in proc.stdout.splitlines() if line.startswith("[")))
     lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
     if proc.returncode != 0 or not lines:
         print(proc.stdout[-3000:] + proc.stderr[-3000:], file=sys.stderr)
         return 1
-    steps = json.loads(lines[-1][len("RESULT "):])
+    steps = json.loads(lines[-1][len("RESULT ") :])
     failed = [s for s in steps if s["result"] != ["FINISHED"] and s["step"] != "texture"]
     for s in failed:
         print(f"step did not finish: [{s['section']}] {s['step']}: {s['result']}", file=sys.stderr)

@@ -60,8 +60,13 @@ def main() -> None:
     import bpy
 
     bpy.utils.expose_bundled_modules()
-    step("1", "Install from Disk", lambda: bpy.ops.extensions.package_install_files(
-        filepath=zip_path, repo="user_default", enable_on_install=True))
+    step(
+        "1",
+        "Install from Disk",
+        lambda: bpy.ops.extensions.package_install_files(
+            filepath=zip_path, repo="user_default", enable_on_install=True
+        ),
+    )
     bpy.ops.wm.read_homefile(app_template="")
     bpy.ops.wm.save_as_mainfile(filepath=os.path.join(work, "guide.blend"))
     ops = bpy.ops.neural_layers

@@ -60,8 +60,16 @@ def _pool(observed: np.ndarray, expected: np.ndarray, min_expected: float):
     return np.append(observed[~low], observed[low].sum()), np.append(expected[~low], expected[low].sum())
 
 
-def chi2_sphere(wi, valid, pdf_fn, theta_bins: int = 40, phi_bins: int = 80, sub=(24, 12), pole: str = "z",
-                min_expected: float = 5.0) -> Chi2:
+def chi2_sphere(
+    wi,
+    valid,
+    pdf_fn,
+    theta_bins: int = 40,
+    phi_bins: int = 80,
+    sub=(24, 12),
+    pole: str = "z",
+    min_expected: float = 5.0,
+) -> Chi2:
     """Chi-square test that the samples ``wi[valid]`` (``wi`` (n, 3); the other rows are rejected
     samples) are distributed as ``pdf_fn(directions (m, 3)) -> (m,)``, a solid-angle density whose
     integral is the probability of a valid sample.
@@ -93,8 +101,16 @@ def chi2_sphere(wi, valid, pdf_fn, theta_bins: int = 40, phi_bins: int = 80, sub
     return Chi2(stat, float(stats.chi2.sf(stat, dof)), dof, total)
 
 
-def chi2_direction_test(sample_fn, pdf_fn, n: int = 200_000, theta_bins: int = 16, phi_bins: int = 32,
-                        seed: int = 0, min_expected: float = 5.0, sub: int = 16) -> tuple[float, float]:
+def chi2_direction_test(
+    sample_fn,
+    pdf_fn,
+    n: int = 200_000,
+    theta_bins: int = 16,
+    phi_bins: int = 32,
+    seed: int = 0,
+    min_expected: float = 5.0,
+    sub: int = 16,
+) -> tuple[float, float]:
     """:func:`chi2_sphere` of ``sample_fn(n, rng) -> wi (n, 3)`` (rejected samples as rows that are
     not finite) against ``pdf_fn``, binned with the pole on +y. Returns (statistic, p-value)."""
     wi = np.asarray(sample_fn(n, np.random.default_rng(seed)), dtype=np.float64)

@@ -139,8 +139,10 @@ def neural_proxy(z: np.ndarray, size: str) -> tuple[Optional[tuple[float, float]
         z = np.asarray(z, dtype=np.float32).reshape(3, LATENT)
         sigma, w = _neural_module().load_models(size).proxy_params(z)[0]
     except Exception as e:  # a missing or unloadable sampling model: the preview still works, noisier
-        return None, [f"no sampling proxy for the {size} decoder ({type(e).__name__}: {e}); "
-                      "the sphere preview samples a cosine lobe (noisier on glossy stacks)"]
+        return None, [
+            f"no sampling proxy for the {size} decoder ({type(e).__name__}: {e}); "
+            "the sphere preview samples a cosine lobe (noisier on glossy stacks)"
+        ]
     return (float(sigma), float(w)), []
 
 
@@ -200,7 +202,10 @@ def reference_chunk(walks: int) -> int:
 
 def _reference_choice(stack: Stack, walks: int, seed: int, notes: list[str]) -> "BrdfChoice":
     return BrdfChoice(
-        reference_brdf(stack, walks, seed), "REFERENCE", notes, reference_chunk(walks),
+        reference_brdf(stack, walks, seed),
+        "REFERENCE",
+        notes,
+        reference_chunk(walks),
         sampler=reference_sampler(stack, seed),
     )
 
@@ -368,8 +373,9 @@ def _mis_sky_samples(brdf, env, proxy, wo, s, t, n, k, rng, chunk, progress):
     denominator = (k_brdf * p_brdf + k_sky * p_sky) / k
     above = wi[:, 2] > 0.0
     f = chunked(brdf, chunk, progress)(wi.astype(np.float32), wo.astype(np.float32)).astype(np.float64)
-    weight = np.where(above[:, None], f * np.clip(wi[:, 2:3], 0.0, None) / np.maximum(denominator, 1e-300)[:, None],
-                      0.0)
+    weight = np.where(
+        above[:, None], f * np.clip(wi[:, 2:3], 0.0, None) / np.maximum(denominator, 1e-300)[:, None], 0.0
+    )
     return wi, weight
 
 
@@ -436,8 +442,19 @@ def sphere_preview(
             if env_progress is not None:
                 env_progress(stop / rows)
     else:
-        wi_env, weight = _mis_sky_samples(brdf, env, proxy, wo_env, np.repeat(s, k, axis=0), np.repeat(t, k, axis=0),
-                                          np.repeat(n, k, axis=0), k, rng, chunk, env_progress)
+        wi_env, weight = _mis_sky_samples(
+            brdf,
+            env,
+            proxy,
+            wo_env,
+            np.repeat(s, k, axis=0),
+            np.repeat(t, k, axis=0),
+            np.repeat(n, k, axis=0),
+            k,
+            rng,
+            chunk,
+            env_progress,
+        )
     rep = lambda a: np.repeat(a, k, axis=0)  # noqa: E731
     world = to_world(np.asarray(wi_env, dtype=np.float64), rep(s), rep(t), rep(n))
     radiance += (np.asarray(weight, dtype=np.float64) * env.radiance(world)).reshape(m, k, 3).mean(axis=1)

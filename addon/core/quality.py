@@ -144,8 +144,9 @@ def decoder_lobes(stack: Stack, size: str, res: int = LOBE_RES, threads: int = 2
 
     models = load_models(size, threads=threads)
     z = encode_stack(stack, models)
-    return np.stack([lobe.lobe_image(lambda wi, wo: models.eval_brdf(z, wi, wo), t, res)
-                     for t in lobe.INCIDENT_ANGLES_DEG])
+    return np.stack(
+        [lobe.lobe_image(lambda wi, wo: models.eval_brdf(z, wi, wo), t, res) for t in lobe.INCIDENT_ANGLES_DEG]
+    )
 
 
 def noise_corrected_error(pred: np.ndarray, ref: np.ndarray, ref_stderr: np.ndarray | None = None) -> float:
@@ -189,8 +190,15 @@ class ErrorCache:
 _DEFAULT_CACHE = ErrorCache()
 
 
-def measured_error(stack: Stack, size: str, res: int = LOBE_RES, walks: int = REFERENCE_WALKS, seed: int = 0,
-                   cache: ErrorCache | None = None, threads: int = 2) -> float:
+def measured_error(
+    stack: Stack,
+    size: str,
+    res: int = LOBE_RES,
+    walks: int = REFERENCE_WALKS,
+    seed: int = 0,
+    cache: ErrorCache | None = None,
+    threads: int = 2,
+) -> float:
     """The measured lobe error of ``size`` on ``stack`` (see the module docstring); ``inf`` when
     the size cannot encode the stack (a model it needs is missing)."""
     if not isinstance(stack, Stack):
@@ -212,9 +220,18 @@ def measured_error(stack: Stack, size: str, res: int = LOBE_RES, walks: int = RE
     return err
 
 
-def choose_decoder(stack: Stack, tolerance: float = DEFAULT_TOLERANCE, sizes=None, fallback: str = "best",
-                   res: int = LOBE_RES, walks: int = REFERENCE_WALKS, seed: int = 0,
-                   cache: ErrorCache | None = None, cache_dir=None, threads: int = 2) -> DecoderChoice:
+def choose_decoder(
+    stack: Stack,
+    tolerance: float = DEFAULT_TOLERANCE,
+    sizes=None,
+    fallback: str = "best",
+    res: int = LOBE_RES,
+    walks: int = REFERENCE_WALKS,
+    seed: int = 0,
+    cache: ErrorCache | None = None,
+    cache_dir=None,
+    threads: int = 2,
+) -> DecoderChoice:
     """The smallest decoder size whose measured error on ``stack`` is at most ``tolerance``.
 
     ``tolerance`` is a relative lobe RMSE (0.2 = 20%). Sizes default to the shipped ones, fewest
@@ -255,18 +272,24 @@ def choose_decoder(stack: Stack, tolerance: float = DEFAULT_TOLERANCE, sizes=Non
         return DecoderChoice(fits[0], tol, errors, True, tuple(notes))
     finite = {s: e for s, e in errors.items() if math.isfinite(e)}
     if not finite:
-        msg = (f"no shipped decoder can encode this stack ({len(stack.coatings)} coating(s); sizes tried: "
-               f"{list(errors) or 'none'}): it renders with the reference estimator")
+        msg = (
+            f"no shipped decoder can encode this stack ({len(stack.coatings)} coating(s); sizes tried: "
+            f"{list(errors) or 'none'}): it renders with the reference estimator"
+        )
         warnings.warn(msg, QualityWarning, stacklevel=2)
         return DecoderChoice(None, tol, errors, False, tuple(notes + [msg]))
     best = min(finite, key=finite.get)
     if fallback == "reference":
-        msg = (f"no decoder meets the tolerance {tol:.3g} for this stack (best: {best} at {finite[best]:.3g}): "
-               f"it renders with the reference estimator")
+        msg = (
+            f"no decoder meets the tolerance {tol:.3g} for this stack (best: {best} at {finite[best]:.3g}): "
+            f"it renders with the reference estimator"
+        )
         warnings.warn(msg, QualityWarning, stacklevel=2)
         return DecoderChoice(None, tol, errors, False, tuple(notes + [msg]))
-    msg = (f"no decoder meets the tolerance {tol:.3g} for this stack; using the most accurate one, {best} "
-           f"(measured error {finite[best]:.3g}); raise the tolerance or use the reference for this material")
+    msg = (
+        f"no decoder meets the tolerance {tol:.3g} for this stack; using the most accurate one, {best} "
+        f"(measured error {finite[best]:.3g}); raise the tolerance or use the reference for this material"
+    )
     warnings.warn(msg, QualityWarning, stacklevel=2)
     return DecoderChoice(best, tol, errors, False, tuple(notes + [msg]))
 
@@ -308,11 +331,17 @@ def sizes_within_budget(evaluations: float, budget_seconds: float | None, sizes=
     keep = [s for s in sizes if predicted[s] <= budget_seconds]
     if not keep and sizes:
         fastest = min(sizes, key=predicted.get)
-        note = (f"no decoder's predicted time for this frame fits the time budget of {budget_seconds:,.0f} s "
-                f"(fastest: {fastest}, {predicted[fastest]:,.0f} s); using {fastest}")
+        note = (
+            f"no decoder's predicted time for this frame fits the time budget of {budget_seconds:,.0f} s "
+            f"(fastest: {fastest}, {predicted[fastest]:,.0f} s); using {fastest}"
+        )
         return [fastest], [note]
-    return keep, [f"decoder {s} left out: its predicted decoder time for this frame, {predicted[s]:,.0f} s, is over "
-                  f"the time budget of {budget_seconds:,.0f} s" for s in sizes if s not in keep]
+    return keep, [
+        f"decoder {s} left out: its predicted decoder time for this frame, {predicted[s]:,.0f} s, is over "
+        f"the time budget of {budget_seconds:,.0f} s"
+        for s in sizes
+        if s not in keep
+    ]
 
 
 # --------------------------------------------------------------------------- textures
@@ -378,14 +407,23 @@ def neural_material(stack: Stack, size: str):
 
     made = nm.make(stack, size=size)
     if made is None:
-        raise FileNotFoundError(f"the shipped models of decoder size {size!r} cannot encode this stack "
-                                f"({len(stack.coatings)} coating(s)): a model it needs is missing")
+        raise FileNotFoundError(
+            f"the shipped models of decoder size {size!r} cannot encode this stack "
+            f"({len(stack.coatings)} coating(s)): a model it needs is missing"
+        )
     return made
 
 
-def assign_decoders(scene, quality: str = "auto", tolerance: float = DEFAULT_TOLERANCE, fallback: str = "best",
-                    threads: int = 2, budget_seconds: float | None = None, evaluations: float = 0.0,
-                    **measure) -> tuple[list, dict, list[str]]:
+def assign_decoders(
+    scene,
+    quality: str = "auto",
+    tolerance: float = DEFAULT_TOLERANCE,
+    fallback: str = "best",
+    threads: int = 2,
+    budget_seconds: float | None = None,
+    evaluations: float = 0.0,
+    **measure,
+) -> tuple[list, dict, list[str]]:
     """Renderer materials for the layered materials of a core ``Scene``, each on its decoder size.
 
     ``quality`` is "auto" (per material, :func:`choose_decoder` with ``tolerance`` and ``fallback``)
@@ -410,8 +448,9 @@ def assign_decoders(scene, quality: str = "auto", tolerance: float = DEFAULT_TOL
 
         if quality not in SIZES:
             raise ValueError(f"quality must be 'auto' or a decoder size {list(SIZES)}, got {quality!r}")
-    names = list(scene.material_names) + [f"material {i}" for i in range(len(scene.material_names),
-                                                                          len(scene.materials))]
+    names = list(scene.material_names) + [
+        f"material {i}" for i in range(len(scene.material_names), len(scene.materials))
+    ]
     out, choices, notes = [], {}, []
     sizes = None
     if quality == "auto" and budget_seconds is not None:
@@ -425,8 +464,9 @@ def assign_decoders(scene, quality: str = "auto", tolerance: float = DEFAULT_TOL
         if quality == "auto":
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                choice = choose_decoder(spec.stack, tolerance, sizes=sizes, fallback=fallback, threads=threads,
-                                        **measure)
+                choice = choose_decoder(
+                    spec.stack, tolerance, sizes=sizes, fallback=fallback, threads=threads, **measure
+                )
             size = choice.size
             choices[name] = choice
             notes += [f"material {name!r}: {w.message}" for w in caught if issubclass(w.category, QualityWarning)]

@@ -78,9 +78,7 @@ def _check_rgb(layer: str, name: str, value, valid_key: str | None = None) -> RG
         raise ValueError(f"{layer}.{name} must be an RGB triple, got {value!r}") from None
     if len(items) != 3:
         raise ValueError(f"{layer}.{name} must have 3 channels (R, G, B), got {len(items)}: {value!r}")
-    return tuple(
-        _check_scalar(layer, f"{name}[{'RGB'[i]}]", x, valid_key or name) for i, x in enumerate(items)
-    )  # type: ignore[return-value]
+    return tuple(_check_scalar(layer, f"{name}[{'RGB'[i]}]", x, valid_key or name) for i, x in enumerate(items))  # type: ignore[return-value]
 
 
 @dataclass(frozen=True)
@@ -177,9 +175,7 @@ class Stack:
 
     def __post_init__(self):
         if not isinstance(self.base, BASE_TYPES):
-            raise ValueError(
-                f"Stack.base must be Diffuse, Conductor or Dielectric, got {type(self.base).__name__}"
-            )
+            raise ValueError(f"Stack.base must be Diffuse, Conductor or Dielectric, got {type(self.base).__name__}")
         coatings = tuple(self.coatings)
         for i, c in enumerate(coatings):
             if not isinstance(c, Coating):
@@ -361,8 +357,17 @@ class StackArrays:
     coat_g: np.ndarray  # (N, C)
 
     FIELDS = (
-        "base_kind", "base_albedo", "base_roughness", "base_eta", "base_k", "base_ior",
-        "coat_roughness", "coat_ior", "coat_albedo", "coat_thickness", "coat_g",
+        "base_kind",
+        "base_albedo",
+        "base_roughness",
+        "base_eta",
+        "base_k",
+        "base_ior",
+        "coat_roughness",
+        "coat_ior",
+        "coat_albedo",
+        "coat_thickness",
+        "coat_g",
     )
 
     def __len__(self) -> int:
@@ -379,8 +384,13 @@ class StackArrays:
         n_coat = {len(s.coatings) for s in stacks}
         if len(n_coat) != 1:
             raise ValueError(f"all stacks in one batch need the same number of coatings, got {sorted(n_coat)}")
-        d_base = {"albedo": Diffuse().albedo, "roughness": Conductor().roughness, "eta": Conductor().eta,
-                  "k": Conductor().k, "ior": Dielectric().ior}
+        d_base = {
+            "albedo": Diffuse().albedo,
+            "roughness": Conductor().roughness,
+            "eta": Conductor().eta,
+            "k": Conductor().k,
+            "ior": Dielectric().ior,
+        }
 
         def base_field(s: Stack, name: str):
             return getattr(s.base, name, d_base[name])
@@ -432,8 +442,13 @@ class StackArrays:
         else:
             base = Dielectric(float(self.base_roughness[i]), float(self.base_ior[i]))
         coats = tuple(
-            Coating(float(self.coat_roughness[i, j]), float(self.coat_ior[i, j]), tuple(self.coat_albedo[i, j]),
-                    float(self.coat_thickness[i, j]), float(self.coat_g[i, j]))
+            Coating(
+                float(self.coat_roughness[i, j]),
+                float(self.coat_ior[i, j]),
+                tuple(self.coat_albedo[i, j]),
+                float(self.coat_thickness[i, j]),
+                float(self.coat_g[i, j]),
+            )
             for j in range(self.n_coatings)
         )
         return Stack(base, coats)
@@ -455,24 +470,45 @@ class StackArrays:
 
 
 def _no_coatings(n: int) -> dict:
-    return {"coat_roughness": np.zeros((n, 0)), "coat_ior": np.zeros((n, 0)), "coat_albedo": np.zeros((n, 0, 3)),
-            "coat_thickness": np.zeros((n, 0)), "coat_g": np.zeros((n, 0))}
+    return {
+        "coat_roughness": np.zeros((n, 0)),
+        "coat_ior": np.zeros((n, 0)),
+        "coat_albedo": np.zeros((n, 0, 3)),
+        "coat_thickness": np.zeros((n, 0)),
+        "coat_g": np.zeros((n, 0)),
+    }
 
 
 # StackArrays field -> (its range in RANGES, the base kinds whose rows use it; None: every row).
 ARRAY_FIELDS: dict[str, tuple[str, tuple[int, ...] | None]] = {
-    "base_albedo": ("albedo", (0,)), "base_roughness": ("roughness", (1, 2)), "base_eta": ("eta", (1,)),
-    "base_k": ("k", (1,)), "base_ior": ("ior", (2,)), "coat_roughness": ("roughness", None),
-    "coat_ior": ("ior", None), "coat_albedo": ("albedo", None), "coat_thickness": ("thickness", None),
+    "base_albedo": ("albedo", (0,)),
+    "base_roughness": ("roughness", (1, 2)),
+    "base_eta": ("eta", (1,)),
+    "base_k": ("k", (1,)),
+    "base_ior": ("ior", (2,)),
+    "coat_roughness": ("roughness", None),
+    "coat_ior": ("ior", None),
+    "coat_albedo": ("albedo", None),
+    "coat_thickness": ("thickness", None),
     "coat_g": ("g", None),
 }
 
 
 def _array_shapes(sa: StackArrays) -> dict[str, tuple[int, ...]]:
     n, c = len(sa), sa.n_coatings
-    return {"base_kind": (n,), "base_albedo": (n, 3), "base_roughness": (n,), "base_eta": (n, 3), "base_k": (n, 3),
-            "base_ior": (n,), "coat_roughness": (n, c), "coat_ior": (n, c), "coat_albedo": (n, c, 3),
-            "coat_thickness": (n, c), "coat_g": (n, c)}
+    return {
+        "base_kind": (n,),
+        "base_albedo": (n, 3),
+        "base_roughness": (n,),
+        "base_eta": (n, 3),
+        "base_k": (n, 3),
+        "base_ior": (n,),
+        "coat_roughness": (n, c),
+        "coat_ior": (n, c),
+        "coat_albedo": (n, c, 3),
+        "coat_thickness": (n, c),
+        "coat_g": (n, c),
+    }
 
 
 def _validate_arrays(sa: StackArrays) -> None:
@@ -493,9 +529,7 @@ def _validate_arrays(sa: StackArrays) -> None:
         bad = ~np.isfinite(a) | (a < lo) | (a > hi)
         if np.any(bad):
             where = tuple(int(i[0]) for i in np.nonzero(bad))
-            raise ValueError(
-                f"StackArrays.{name}{list(where)} = {a[where]!r} is outside the valid range [{lo}, {hi}]"
-            )
+            raise ValueError(f"StackArrays.{name}{list(where)} = {a[where]!r} is outside the valid range [{lo}, {hi}]")
 
 
 def validate(stacks: "Stack | StackArrays") -> None:
@@ -521,8 +555,10 @@ def _clamp_arrays(arrays: StackArrays) -> tuple[StackArrays, list[str]]:
             changed &= np.isin(out.base_kind, kinds)
         if np.any(changed):
             i, k = int(np.flatnonzero(changed)[0]), int(changed.sum())
-            notes.append(f"{name}: {k} row{'s' if k != 1 else ''} clamped to the trained range [{lo}, {hi}] "
-                         f"(first: row {i}, {v[i].tolist()} -> {c[i].tolist()})")
+            notes.append(
+                f"{name}: {k} row{'s' if k != 1 else ''} clamped to the trained range [{lo}, {hi}] "
+                f"(first: row {i}, {v[i].tolist()} -> {c[i].tolist()})"
+            )
         setattr(out, name, c)
     return out, notes
 

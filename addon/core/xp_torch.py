@@ -43,8 +43,13 @@ class TorchNamespace:
         self.ndarray = torch.Tensor
         self._consts = {}
         self._dtypes = {
-            bool: torch.bool, float: torch.float64, int: torch.int64,
-            np.bool_: torch.bool, np.float64: torch.float64, np.float32: torch.float32, np.int64: torch.int64,
+            bool: torch.bool,
+            float: torch.float64,
+            int: torch.int64,
+            np.bool_: torch.bool,
+            np.float64: torch.float64,
+            np.float32: torch.float32,
+            np.int64: torch.int64,
         }
 
     # ---------------------------------------------------------------- conversion and creation
@@ -100,8 +105,12 @@ class TorchNamespace:
         return self.torch.ones(shape, dtype=self._dt(dtype) or self.torch.float64, device=self.device)
 
     def full(self, shape, value, dtype=None):
-        return self.torch.full((shape,) if isinstance(shape, int) else tuple(shape), value,
-                               dtype=self._fill_dtype(value, dtype), device=self.device)
+        return self.torch.full(
+            (shape,) if isinstance(shape, int) else tuple(shape),
+            value,
+            dtype=self._fill_dtype(value, dtype),
+            device=self.device,
+        )
 
     def zeros_like(self, a, dtype=None):
         return self.torch.zeros_like(a, dtype=self._dt(dtype))

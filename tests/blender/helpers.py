@@ -28,5 +28,7 @@ def run_operator(op, *args, **kwargs) -> OperatorReport:
     except RuntimeError as e:
         text = str(e)
         assert "Traceback" not in text, f"{op.idname()} raised an exception:\n{text}"
-        assert not any(f" failed: {t}" in text for t in ("AttributeError", "TypeError", "KeyError", "IndexError", "NameError")), text
+        assert not any(
+            f" failed: {t}" in text for t in ("AttributeError", "TypeError", "KeyError", "IndexError", "NameError")
+        ), text
         return OperatorReport(error=text)

@@ -24,9 +24,13 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "scripts"))
 import build_extension  # noqa: E402
 
-HOST = {("linux", "x86_64"): "linux-x64", ("linux", "aarch64"): "linux-arm64", ("darwin", "arm64"): "macos-arm64",
-        ("darwin", "x86_64"): "macos-x64", ("windows", "amd64"): "windows-x64"}.get(
-    (platform.system().lower(), platform.machine().lower()))
+HOST = {
+    ("linux", "x86_64"): "linux-x64",
+    ("linux", "aarch64"): "linux-arm64",
+    ("darwin", "arm64"): "macos-arm64",
+    ("darwin", "x86_64"): "macos-x64",
+    ("windows", "amd64"): "windows-x64",
+}.get((platform.system().lower(), platform.machine().lower()))
 
 
 def test_source_manifest_validates():
@@ -48,13 +52,22 @@ def test_manifest_with_wheels_keeps_tables_after_keys():
 def test_unreachable_index_is_told_apart_from_a_missing_wheel(tmp_path, monkeypatch):
     monkeypatch.setattr(build_extension, "_pip_download", lambda req, platform, folder: False)
     with pytest.raises(build_extension.RegistryUnreachable, match="package index is unreachable"):
-        build_extension.build(["linux-x64"], tmp_path / "dist", tmp_path / "cache", tmp_path / "build", log=lambda *_: None)
+        build_extension.build(
+            ["linux-x64"], tmp_path / "dist", tmp_path / "cache", tmp_path / "build", log=lambda *_: None
+        )
     # index reachable, but one platform lacks a required wheel: skipped and named
-    monkeypatch.setattr(build_extension, "_pip_download", lambda req, platform, folder: req == "packaging" and (
-        (folder / "packaging-26.0-py3-none-any.whl").write_bytes(b"") is not None))
+    monkeypatch.setattr(
+        build_extension,
+        "_pip_download",
+        lambda req, platform, folder: (
+            req == "packaging" and ((folder / "packaging-26.0-py3-none-any.whl").write_bytes(b"") is not None)
+        ),
+    )
     logs = []
     with pytest.raises(RuntimeError, match="onnxruntime"):
-        build_extension.build(["windows-arm64"], tmp_path / "dist", tmp_path / "cache2", tmp_path / "build", log=logs.append)
+        build_extension.build(
+            ["windows-arm64"], tmp_path / "dist", tmp_path / "cache2", tmp_path / "build", log=logs.append
+        )
     assert any("skipped, no zip: missing onnxruntime" in line for line in logs)
 
 
@@ -64,7 +77,9 @@ def built_zip(tmp_path_factory):
         pytest.skip(f"no extension platform for this machine ({platform.system()} {platform.machine()})")
     tmp = tmp_path_factory.mktemp("extension")
     try:
-        zips = build_extension.build([HOST], tmp / "dist", ROOT / "cache" / "wheels", tmp / "build", log=lambda *_: None)
+        zips = build_extension.build(
+            [HOST], tmp / "dist", ROOT / "cache" / "wheels", tmp / "build", log=lambda *_: None
+        )
     except build_extension.RegistryUnreachable as e:
         pytest.skip(f"package index unreachable and wheels not cached: {e}")
     assert len(zips) == 1
@@ -97,7 +112,8 @@ INSTALL_SCRIPT = textwrap.dedent(
     zip_path, ext_dir = sys.argv[1], os.environ["BLENDER_USER_EXTENSIONS"]
     def snapshot():
         ids = ("Material", "Scene", "Object", "World", "Light", "WindowManager", "Image")
-        return sorted(dir(bpy.types)) + [t + "." + k for t in ids for k in getattr(bpy.types, t).bl_rna.properties.keys()]
+        props = [t + "." + k for t in ids for k in getattr(bpy.types, t).bl_rna.properties.keys()]
+        return sorted(dir(bpy.types)) + props
     before = snapshot()
     out["install"] = sorted(bpy.ops.extensions.package_install_files(
         filepath=zip_path, repo="user_default", enable_on_install=True))
@@ -105,9 +121,11 @@ INSTALL_SCRIPT = textwrap.dedent(
     out["enabled"] = module in bpy.context.preferences.addons
     out["top_level_addon"] = "addon" in sys.modules  # the extension must not claim a global name
     out["addon_file"] = sys.modules[module + ".addon"].__file__
-    out["package_dir_on_path"] = any(os.path.basename(os.path.normpath(p)) == "neural_layered_materials" for p in sys.path)
+    out["package_dir_on_path"] = any(
+        os.path.basename(os.path.normpath(p)) == "neural_layered_materials" for p in sys.path)
     site = os.path.join(ext_dir, ".local", "lib", "python3.11", "site-packages")
-    out["wheels_installed"] = sorted(n for n in os.listdir(site) if not n.endswith("-info")) if os.path.isdir(site) else []
+    out["wheels_installed"] = (
+        sorted(n for n in os.listdir(site) if not n.endswith("-info")) if os.path.isdir(site) else [])
 
     bpy.ops.wm.read_homefile(app_template="")
     ops = bpy.ops.neural_layers
@@ -144,11 +162,17 @@ def test_zip_installs_enables_and_runs(built_zip, tmp_path):
     script.write_text(INSTALL_SCRIPT)
     env = {k: v for k, v in __import__("os").environ.items() if k not in ("PYTHONPATH",)}
     env["BLENDER_USER_EXTENSIONS"] = str(tmp_path / "extensions")
-    proc = subprocess.run([sys.executable, str(script), str(built_zip)], cwd=tmp_path, env=env,
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, str(script), str(built_zip)],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     lines = [l for l in proc.stdout.splitlines() if l.startswith("RESULT ")]
     assert proc.returncode == 0 and lines, proc.stdout[-3000:] + proc.stderr[-3000:]
-    out = json.loads(lines[-1][len("RESULT "):])
+    out = json.loads(lines[-1][len("RESULT ") :])
     assert out["install"] == ["FINISHED"] and out["enabled"]
     assert not out["package_dir_on_path"]  # imports are relative: sys.path is left alone
     assert not out["top_level_addon"]
@@ -201,10 +225,17 @@ def test_each_zip_holds_its_own_platforms_wheels_only(tmp_path, monkeypatch):
 
     monkeypatch.setattr(build_extension, "download", fake_download)
     logs = []
-    zips = build_extension.build(["linux-x64", "macos-arm64", "linux-arm64"], tmp_path / "dist", tmp_path / "cache",
-                                 tmp_path / "build", log=logs.append)
-    assert sorted(z.name for z in zips) == ["neural_layered_materials-0.1.0-linux_x64.zip",
-                                            "neural_layered_materials-0.1.0-macos_arm64.zip"]
+    zips = build_extension.build(
+        ["linux-x64", "macos-arm64", "linux-arm64"],
+        tmp_path / "dist",
+        tmp_path / "cache",
+        tmp_path / "build",
+        log=logs.append,
+    )
+    assert sorted(z.name for z in zips) == [
+        "neural_layered_materials-0.1.0-linux_x64.zip",
+        "neural_layered_materials-0.1.0-macos_arm64.zip",
+    ]
     for z in zips:
         with zipfile.ZipFile(z) as f:
             protobufs = [Path(n).name for n in f.namelist() if Path(n).name.startswith("protobuf-")]

@@ -82,9 +82,13 @@ def _small_previews(mat, **extra):
         setattr(s, k, v)
 
 
-@pytest.mark.parametrize("op, prefix, size_attr", [("preview_lobe", "Lobe", "lobe_resolution"),
-                                                   ("preview_sphere", "Sphere", "sphere_resolution")])
-def test_reference_preview_lands_in_image_editor(bpy_addon, fresh_scene, material, no_neural, op, prefix, size_attr, capfd):
+@pytest.mark.parametrize(
+    "op, prefix, size_attr",
+    [("preview_lobe", "Lobe", "lobe_resolution"), ("preview_sphere", "Sphere", "sphere_resolution")],
+)
+def test_reference_preview_lands_in_image_editor(
+    bpy_addon, fresh_scene, material, no_neural, op, prefix, size_attr, capfd
+):
     bpy = bpy_addon
     assert run_operator(bpy.ops.neural_layers.preset_apply, preset="lacquered_plastic").finished
     _small_previews(material)
@@ -128,8 +132,12 @@ def test_neural_only_method_reports_missing_models(bpy_addon, fresh_scene, mater
     bpy = bpy_addon
     assert run_operator(bpy.ops.neural_layers.preset_apply, preset="white_diffuse").finished
     _small_previews(material, preview_method="NEURAL")
-    for op in (bpy.ops.neural_layers.preview_lobe, bpy.ops.neural_layers.preview_sphere,
-               bpy.ops.neural_layers.evaluate_latent, bpy.ops.neural_layers.compare_reference):
+    for op in (
+        bpy.ops.neural_layers.preview_lobe,
+        bpy.ops.neural_layers.preview_sphere,
+        bpy.ops.neural_layers.evaluate_latent,
+        bpy.ops.neural_layers.compare_reference,
+    ):
         r = run_operator(op)
         assert r.error and "neural models not available" in r.error and "decoder_small.onnx" in r.error
 
@@ -318,8 +326,9 @@ def test_modal_preview_reports_worker_errors(bpy_addon, fresh_scene, material, m
     assert any("ERROR" in kind and "neural models not available" in msg for kind, msg in op.reports)
 
 
-def test_background_previews_leave_the_screen_alone_and_use_an_open_image_editor(bpy_addon, fresh_scene, material,
-                                                                                  no_neural):
+def test_background_previews_leave_the_screen_alone_and_use_an_open_image_editor(
+    bpy_addon, fresh_scene, material, no_neural
+):
     bpy = bpy_addon
     assert run_operator(bpy.ops.neural_layers.preset_apply, preset="lacquered_plastic").finished
     _small_previews(material)

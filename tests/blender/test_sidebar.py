@@ -33,6 +33,7 @@ class RecordingLayout:
     def __getattribute__(self, name):
         attr = object.__getattribute__(self, name)
         if callable(attr) and not name.startswith("_"):
+
             def checked(*args, **kwargs):
                 icon = kwargs.get("icon")
                 assert icon is None or icon in RecordingLayout.icons, f"unknown icon {icon!r}"
@@ -91,8 +92,9 @@ def _ctx(fresh_scene):
     return types.SimpleNamespace(object=fresh_scene.view_layer.objects.active)
 
 
-@pytest.mark.parametrize("panel", ["NLM_PT_view3d_stack", "NLM_PT_shader_stack", "NLM_PT_view3d_preview",
-                                   "NLM_PT_shader_preview"])
+@pytest.mark.parametrize(
+    "panel", ["NLM_PT_view3d_stack", "NLM_PT_shader_stack", "NLM_PT_view3d_preview", "NLM_PT_shader_preview"]
+)
 def test_panels_draw_in_every_state(bpy_addon, fresh_scene, panel):
     bpy = bpy_addon
     cls = getattr(bpy.types, panel)
@@ -116,7 +118,10 @@ def test_panels_draw_in_every_state(bpy_addon, fresh_scene, panel):
         props = [e[1] for e in draw(cls, _ctx(fresh_scene)) if e[0] == "prop"]
         assert "conductor_mode" in props and "eta" in props and "thickness" not in props
     else:
-        assert ("operator", "neural_layers.preview_lobe") in log and ("operator", "neural_layers.compare_reference") in log
+        assert ("operator", "neural_layers.preview_lobe") in log and (
+            "operator",
+            "neural_layers.compare_reference",
+        ) in log
 
     ob.active_material.neural_layers.layers[0].layer_type = "COATING"  # invalid: shows why
     log = draw(cls, _ctx(fresh_scene))

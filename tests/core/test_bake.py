@@ -83,7 +83,9 @@ def test_deduplication_gives_the_same_texels_with_fewer_encodes():
 
 def test_constant_images_bake_to_the_constant_stack_latent():
     enc = linear_encoder()
-    s = SpatialStack(wood(), {"coatings[0].roughness": np.full((5, 7), 0.1), "base.albedo": np.tile((0.45, 0.22, 0.08), (5, 7, 1))})
+    s = SpatialStack(
+        wood(), {"coatings[0].roughness": np.full((5, 7), 0.1), "base.albedo": np.tile((0.45, 0.22, 0.08), (5, 7, 1))}
+    )
     tex, stats = bake_stack(s, enc)
     z, proxy = enc(StackArrays.from_stacks([wood()]))
     assert stats.unique == 1
@@ -129,7 +131,7 @@ def test_mix_blends_latents_through_the_mask():
 
 
 def test_the_default_auto_bake_uses_the_default_size_and_records_it():
-    """"auto" (the add-on's default model size) is resolved once, by the neural runtime: the bake
+    """ "auto" (the add-on's default model size) is resolved once, by the neural runtime: the bake
     encodes with the default size's models and the texture says which."""
     from addon.core.neural import DEFAULT_SIZE, encode_stack, load_models
     from addon.core.textures.bake import neural_encoder

@@ -100,8 +100,12 @@ def test_visible_normal_sampling(alpha, below):
     np.testing.assert_allclose(np.linalg.norm(m, axis=1), 1.0, atol=1e-12)
     # m peaks at +z, where the (cos theta, phi) bins are too coarse for small alpha: bin with
     # the grid's pole on +y, which puts +z on the grid's equator
-    res = chi2(m, np.ones(N_SAMPLES, bool), lambda g: ggx.pdf_visible_normal(np.tile(w[0], (g.shape[0], 1)), g, alpha),
-               pole="y")
+    res = chi2(
+        m,
+        np.ones(N_SAMPLES, bool),
+        lambda g: ggx.pdf_visible_normal(np.tile(w[0], (g.shape[0], 1)), g, alpha),
+        pole="y",
+    )
     assert abs(res.pdf_integral - 1.0) < 2e-3
     assert res.pvalue > SIGNIFICANCE
 

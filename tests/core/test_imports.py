@@ -48,7 +48,7 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
         stack.append(m)
         for n in sorted(graph.get(m, ())):
             if state.get(n) == 1:
-                return stack[stack.index(n):] + [n]
+                return stack[stack.index(n) :] + [n]
             if n not in state:
                 found = visit(n)
                 if found:
@@ -74,8 +74,11 @@ def test_the_walker_sees_function_level_imports_and_finds_a_cycle():
 
 
 def test_no_import_cycle_in_addon_core():
-    graph = {m: {t for t in ts if t.startswith("addon.core")} for m, ts in import_graph().items()
-             if m.startswith("addon.core")}
+    graph = {
+        m: {t for t in ts if t.startswith("addon.core")}
+        for m, ts in import_graph().items()
+        if m.startswith("addon.core")
+    }
     cycle = find_cycle(graph)
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
 

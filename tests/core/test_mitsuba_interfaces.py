@@ -118,9 +118,9 @@ def test_ggx_pieces_match_mitsuba(alpha):
     D = np.array([d.eval(mi.Vector3f(*x)) for x in m])
     np.testing.assert_allclose(ggx.ndf(m, alpha), D, rtol=2e-5)
     # Mitsuba's G1 takes the microfacet normal (0 for back-facing); ours the facing test lives in the BSDF
-    G1 = np.array([d.smith_g1(mi.Vector3f(*a), mi.Vector3f(*b)) for a, b in zip(w, m)])
+    G1 = np.array([d.smith_g1(mi.Vector3f(*a), mi.Vector3f(*b)) for a, b in zip(w, m, strict=True)])
     np.testing.assert_allclose(ggx.smith_g1(w, alpha)[facing], G1[facing], rtol=2e-5)
-    P = np.array([d.pdf(mi.Vector3f(*a), mi.Vector3f(*b)) for a, b in zip(w, m)])
+    P = np.array([d.pdf(mi.Vector3f(*a), mi.Vector3f(*b)) for a, b in zip(w, m, strict=True)])
     np.testing.assert_allclose(ggx.pdf_visible_normal(w, m, alpha)[facing], P[facing], rtol=2e-5)
 
 
@@ -129,10 +129,15 @@ def test_ggx_pieces_match_mitsuba(alpha):
 
 @pytest.mark.parametrize("alpha", [0.05, 0.3, 1.0])
 def test_rough_conductor_matches_mitsuba(alpha):
-    theirs = mi.load_dict({
-        "type": "roughconductor", "distribution": "ggx", "alpha": alpha,
-        "eta": {"type": "rgb", "value": GOLD_ETA}, "k": {"type": "rgb", "value": GOLD_K},
-    })
+    theirs = mi.load_dict(
+        {
+            "type": "roughconductor",
+            "distribution": "ggx",
+            "alpha": alpha,
+            "eta": {"type": "rgb", "value": GOLD_ETA},
+            "k": {"type": "rgb", "value": GOLD_K},
+        }
+    )
     wi, wo = _pairs(int(alpha * 100), +1, +1)
     if alpha < 0.1:  # put wi near the mirror direction so the narrow lobe is sampled
         wi = normalize(wo * [-1, -1, 1] + 0.1 * np.random.default_rng(2).normal(size=wo.shape))
@@ -145,13 +150,15 @@ def test_rough_conductor_matches_mitsuba(alpha):
 
 @pytest.mark.parametrize("mode", [RADIANCE, IMPORTANCE])
 @pytest.mark.parametrize("wo_side, wi_side", [(+1, +1), (+1, -1), (-1, -1), (-1, +1)])
-@pytest.mark.parametrize("alpha, int_ior, ext_ior", [(0.05, 1.5, 1.0), (0.3, 1.5, 1.0), (1.0, 1.5, 1.0),
-                                                     (0.3, 1.4, 1.6)])
+@pytest.mark.parametrize(
+    "alpha, int_ior, ext_ior", [(0.05, 1.5, 1.0), (0.3, 1.5, 1.0), (1.0, 1.5, 1.0), (0.3, 1.4, 1.6)]
+)
 def test_rough_dielectric_matches_mitsuba(alpha, int_ior, ext_ior, wo_side, wi_side, mode):
     """Reflection and transmission, lit and seen from both sides, both transport modes;
     ``int_ior / ext_ior`` < 1 is an interface between two media (relative ior 0.875)."""
-    theirs = mi.load_dict({"type": "roughdielectric", "distribution": "ggx", "alpha": alpha,
-                           "int_ior": int_ior, "ext_ior": ext_ior})
+    theirs = mi.load_dict(
+        {"type": "roughdielectric", "distribution": "ggx", "alpha": alpha, "int_ior": int_ior, "ext_ior": ext_ior}
+    )
     ior = int_ior / ext_ior
     ours = RoughDielectric(alpha, ior)
     wi, wo = _pairs(int(alpha * 100) + 10 * wo_side + wi_side, wo_side, wi_side)

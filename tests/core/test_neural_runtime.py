@@ -97,8 +97,14 @@ def test_fused_rgb_graph_equals_scalar_graph(models):
     wo[:, 2] = np.abs(wo[:, 2])
     z = encode_layer(models, Conductor(0.1))
     fused = models.eval_brdf(z, wi, wo)
-    scalar = models._decoder.run(["f"], {"z": np.tile(z, (500, 1)), "wi": np.repeat(wi, 3, 0).astype(np.float32),
-                                         "wo": np.repeat(wo, 3, 0).astype(np.float32)})[0].reshape(500, 3)
+    scalar = models._decoder.run(
+        ["f"],
+        {
+            "z": np.tile(z, (500, 1)),
+            "wi": np.repeat(wi, 3, 0).astype(np.float32),
+            "wo": np.repeat(wo, 3, 0).astype(np.float32),
+        },
+    )[0].reshape(500, 3)
     np.testing.assert_allclose(fused, scalar, rtol=1e-4, atol=1e-6)
 
 
@@ -149,8 +155,9 @@ def test_clamps_out_of_range_with_a_warning(models):
     with pytest.warns(ClampWarning, match="ior"):
         encode_layer(models, Dielectric(0.2, ior=3.5))
     one = StackArrays.repeat(Stack(Conductor(roughness=0.002), (Coating(),)), 5)
-    arrays = StackArrays(**{f: (getattr(one, f)[:, :0] if f.startswith("coat_") else getattr(one, f))
-                            for f in StackArrays.FIELDS})
+    arrays = StackArrays(
+        **{f: (getattr(one, f)[:, :0] if f.startswith("coat_") else getattr(one, f)) for f in StackArrays.FIELDS}
+    )
     with pytest.warns(ClampWarning, match="5 rows"):
         za = encode_arrays(arrays, models)
     assert za.shape == (5, 3, 32)
@@ -208,8 +215,9 @@ def test_encoded_heldout_error_not_worse_than_the_card(size):
 
 
 def test_features_of_a_coating_are_its_interface():
-    np.testing.assert_array_equal(layer_features(Coating(0.2, 1.4, albedo=(0.5, 0.5, 0.5), thickness=2.0)),
-                                  layer_features(Dielectric(0.2, 1.4)))
+    np.testing.assert_array_equal(
+        layer_features(Coating(0.2, 1.4, albedo=(0.5, 0.5, 0.5), thickness=2.0)), layer_features(Dielectric(0.2, 1.4))
+    )
 
 
 @pytest.mark.parametrize("n", [0, 1, 2047, 2048, 2049, 9000])

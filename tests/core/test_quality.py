@@ -54,7 +54,7 @@ def test_demanding_stack_needs_more_than_the_simple_one():
     assert hard.size != SIZES[0] or not hard.met
     if hard.met:  # a larger shipped size meets it: the smallest such one
         assert SIZES.index(hard.size) > 0
-        assert all(hard.errors[s] > tol for s in SIZES[:SIZES.index(hard.size)])
+        assert all(hard.errors[s] > tol for s in SIZES[: SIZES.index(hard.size)])
     else:  # none does: the most accurate measured size, and the user is told
         assert hard.size == min(hard.errors, key=hard.errors.get)
         assert list(hard.errors) == SIZES
@@ -66,8 +66,9 @@ def test_rule_smallest_size_under_tolerance_from_cached_measurements(tmp_path):
     cache = quality.ErrorCache(tmp_path)
     errors = {"tiny": 0.30, "small": 0.12, "medium": 0.05, "paper": 0.04}
     for size, err in errors.items():
-        key = quality._key("err", DEMANDING.to_json(), size, quality._fingerprint(size), quality.LOBE_RES,
-                           quality.REFERENCE_WALKS, 0)
+        key = quality._key(
+            "err", DEMANDING.to_json(), size, quality._fingerprint(size), quality.LOBE_RES, quality.REFERENCE_WALKS, 0
+        )
         cache.put(key, err)
     reread = quality.ErrorCache(tmp_path)
     sizes = list(errors)
@@ -159,15 +160,18 @@ def test_reference_lobes_of_a_single_layer_stack_are_exact():
 # --------------------------------------------------------------------------- textures
 
 
-@pytest.mark.parametrize("fp, source, expected", [
-    (1 / 300, (2048, 2048), (512, 512)),
-    (1 / 256, (2048, 2048), (256, 256)),
-    (1 / 300, (256, 256), (256, 256)),        # never finer than the source
-    (1 / 100, (1024, 2048), (64, 128)),       # aspect kept, longer side decides
-    (1 / 100, (999, 1000), (128, 128)),       # rounded up on the short side
-    (2.0, (512, 512), (1, 1)),                # a footprint larger than the texture
-    (math.inf, (512, 512), (1, 1)),           # not seen
-])
+@pytest.mark.parametrize(
+    "fp, source, expected",
+    [
+        (1 / 300, (2048, 2048), (512, 512)),
+        (1 / 256, (2048, 2048), (256, 256)),
+        (1 / 300, (256, 256), (256, 256)),  # never finer than the source
+        (1 / 100, (1024, 2048), (64, 128)),  # aspect kept, longer side decides
+        (1 / 100, (999, 1000), (128, 128)),  # rounded up on the short side
+        (2.0, (512, 512), (1, 1)),  # a footprint larger than the texture
+        (math.inf, (512, 512), (1, 1)),  # not seen
+    ],
+)
 def test_texture_resolution_for_footprint(fp, source, expected):
     assert quality.texture_resolution_for_footprint(fp, source) == expected
 
@@ -196,8 +200,9 @@ def test_primary_footprints_of_an_unseen_material_are_infinite():
     cam = Camera.look_at((0.0, -4.0, 0.0), (0.0, 0.0, 0.0), fov_deg=40.0, width=32, height=32)
     seen = shapes.uv_sphere((0.0, 0.0, 0.0), 0.5, 16, 8, material=0)
     behind = shapes.uv_sphere((0.0, -8.0, 0.0), 0.5, 16, 8, material=1)
-    scene = Scene(cam, Mesh.concatenate([seen, behind]), [LambertMaterial(), LambertMaterial()], [], None,
-                  ["seen", "behind"])
+    scene = Scene(
+        cam, Mesh.concatenate([seen, behind]), [LambertMaterial(), LambertMaterial()], [], None, ["seen", "behind"]
+    )
     fp = quality.primary_footprints(scene)
     assert math.isfinite(fp[0]) and fp[0] > 0 and math.isinf(fp[1])
 
@@ -214,7 +219,7 @@ def test_assign_decoders_auto_gives_every_encodable_layered_material_its_decoder
     mats, choices, notes = quality.assign_decoders(scene, "auto", 0.3, res=8, walks=16, cache=quality.ErrorCache())
     assert mats[0] is scene.materials[0]  # the textured floor is not a stack
     assert set(choices) == set(scene.material_names[1:])
-    for name, m in zip(scene.material_names[1:], mats[1:]):
+    for name, m in zip(scene.material_names[1:], mats[1:], strict=True):
         c = choices[name]
         if c.size is None:
             assert isinstance(m, LayeredSpec)

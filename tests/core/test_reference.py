@@ -124,7 +124,8 @@ def test_white_furnace_with_a_white_scattering_medium():
 
 
 def test_rough_interface_loses_energy_as_the_single_scattering_model_says():
-    """The model (docs/architecture.md, Physics traps): a white base under an alpha = 0.3 coat keeps about 0.70 (not a bug)."""
+    """The model (docs/architecture.md, Physics traps): a white base under an alpha = 0.3 coat keeps about 0.70
+    (not a bug)."""
     stack = Stack(Diffuse(1.0), (Coating(roughness=0.3, ior=1.5),))
     a, se = R.albedo(stack, NORMAL, samples=20000, seed=4)
     assert np.all(np.abs(a - 0.70) < 0.03), a
@@ -136,8 +137,10 @@ def test_rough_interface_loses_energy_as_the_single_scattering_model_says():
 RECIPROCITY_STACKS = [
     Stack(Diffuse((0.8, 0.5, 0.2)), (Coating(0.3, 1.5),)),
     Stack(Conductor(0.2, **GOLD), (Coating(0.0, 1.8, (0.5, 0.7, 0.9), 0.7, -0.3), Coating(0.1, 1.3))),
-    Stack(Dielectric(0.2, 1.9), (Coating(0.3, 1.4, (0.2, 0.6, 0.9), 1.0, 0.7), Coating(0.0, 1.6, (0.9, 0.9, 0.3), 0.5),
-                                 Coating(0.25, 1.5))),
+    Stack(
+        Dielectric(0.2, 1.9),
+        (Coating(0.3, 1.4, (0.2, 0.6, 0.9), 1.0, 0.7), Coating(0.0, 1.6, (0.9, 0.9, 0.3), 0.5), Coating(0.25, 1.5)),
+    ),
     Stack(Diffuse(0.8), (Coating(0.4, 1.3, (0.9, 0.9, 0.9), 2.0, 0.6),)),
 ]
 
@@ -178,17 +181,23 @@ MULTI = {
     "1 coat, scattering": Stack(Conductor(0.3, **GOLD), (Coating(0.6, 1.5, (0.9, 0.5, 0.1), 1.0, 0.5),)),
     "2 coats, smooth top": Stack(Diffuse(0.8), (Coating(0.3, 1.4, (0.5, 0.7, 0.9), 0.7), Coating(0.0, 1.6))),
     "2 coats, rough": Stack(
-        Diffuse(0.8), (Coating(0.2, 1.3, (0.5, 0.7, 0.9), 0.7), Coating(0.4, 1.6, (0.9, 0.9, 0.3), 0.3))),
+        Diffuse(0.8), (Coating(0.2, 1.3, (0.5, 0.7, 0.9), 0.7), Coating(0.4, 1.6, (0.9, 0.9, 0.3), 0.3))
+    ),
     "2 coats, smooth low": Stack(
-        Conductor(0.2, **GOLD), (Coating(0.0, 1.8, (0.5, 0.7, 0.9), 0.7, -0.3), Coating(0.3, 1.3))),
-    "3 coats": Stack(Diffuse(0.8), (Coating(0.3, 1.4, (0.2, 0.6, 0.9), 1.0), Coating(0.2, 1.6, (0.9, 0.9, 0.3), 0.5),
-                                    Coating(0.05, 1.5))),
+        Conductor(0.2, **GOLD), (Coating(0.0, 1.8, (0.5, 0.7, 0.9), 0.7, -0.3), Coating(0.3, 1.3))
+    ),
+    "3 coats": Stack(
+        Diffuse(0.8),
+        (Coating(0.3, 1.4, (0.2, 0.6, 0.9), 1.0), Coating(0.2, 1.6, (0.9, 0.9, 0.3), 0.5), Coating(0.05, 1.5)),
+    ),
     "3 coats, rough smooth rough": Stack(
         Dielectric(0.2, 1.9),
-        (Coating(0.3, 1.4, (0.2, 0.6, 0.9), 1.0, 0.7), Coating(0.0, 1.6, (0.9, 0.9, 0.3), 0.5), Coating(0.25, 1.5))),
+        (Coating(0.3, 1.4, (0.2, 0.6, 0.9), 1.0, 0.7), Coating(0.0, 1.6, (0.9, 0.9, 0.3), 0.5), Coating(0.25, 1.5)),
+    ),
     "3 coats, all smooth": Stack(
         Diffuse(0.8),
-        (Coating(0.0, 1.4, (0.2, 0.6, 0.9), 1.0), Coating(0.0, 1.2, (0.9, 0.9, 0.3), 0.5), Coating(0.0, 1.5))),
+        (Coating(0.0, 1.4, (0.2, 0.6, 0.9), 1.0), Coating(0.0, 1.2, (0.9, 0.9, 0.3), 0.5), Coating(0.0, 1.5)),
+    ),
 }
 
 
@@ -211,10 +220,15 @@ def test_smooth_coat_over_lambertian_matches_mitsuba_plastic():
     mi = pytest.importorskip("mitsuba")
     mi.set_variant("scalar_rgb")
     albedo = (0.2, 0.5, 0.8)
-    plastic = mi.load_dict({
-        "type": "plastic", "diffuse_reflectance": {"type": "rgb", "value": list(albedo)},
-        "int_ior": 1.5, "ext_ior": 1.0, "nonlinear": True,
-    })
+    plastic = mi.load_dict(
+        {
+            "type": "plastic",
+            "diffuse_reflectance": {"type": "rgb", "value": list(albedo)},
+            "int_ior": 1.5,
+            "ext_ior": 1.0,
+            "nonlinear": True,
+        }
+    )
     wi = np.concatenate([direction(0), direction(30, 10), direction(60, 200), direction(75, 90)])
     wo = np.concatenate([direction(45, 120), direction(0), direction(20, 30), direction(70, 300)])
     ctx = mi.BSDFContext()
@@ -261,7 +275,7 @@ def test_batch_of_different_stacks_in_one_call():
     assert isinstance(packed, StackArrays) and len(packed) == 3
     f, se = R.eval_brdf(packed, wi, wo, walks=8000, seed=3)
     for i, st in enumerate(stacks):
-        fi, si = R.eval_brdf(st, wi[i:i + 1], wo[i:i + 1], walks=8000, seed=4 + i)
+        fi, si = R.eval_brdf(st, wi[i : i + 1], wo[i : i + 1], walks=8000, seed=4 + i)
         assert np.all(np.abs(f[i] - fi[0]) <= 3.0 * np.sqrt(se[i] ** 2 + si[0] ** 2)), (i, f[i], fi[0])
     # a single-row StackArrays is shared by every pair
     f1, _ = R.eval_brdf(R.pack_stacks([stacks[0]]), wi, wo, walks=4, seed=0)
@@ -303,8 +317,9 @@ def test_energy_bounded_and_finite_on_stress_cases():
         a, se = R.albedo(stack, wo, samples=3000, seed=0)
         assert np.all(np.isfinite(a)) and np.all(np.isfinite(se))
         assert np.all(a <= 1.0 + 3.0 * se + 1e-9) and np.all(a >= 0.0)
-        f, se = R.eval_brdf(stack, np.concatenate([direction(89.5), direction(0), direction(45, 180)]), wo,
-                            walks=200, seed=0)
+        f, se = R.eval_brdf(
+            stack, np.concatenate([direction(89.5), direction(0), direction(45, 180)]), wo, walks=200, seed=0
+        )
         assert np.all(np.isfinite(f)) and np.all(f >= 0.0) and np.all(np.isfinite(se))
 
 
@@ -317,8 +332,12 @@ def test_bad_stack_parameters_raise():
     with pytest.raises(ValueError, match="ior"):
         Coating(ior=0.9)
     sa = R.pack_stacks([Stack(Diffuse(0.5), (Coating(0.1, 1.5),))])
-    for field, value, match in [("coat_roughness", -0.1, "coat_roughness"), ("coat_ior", 0.9, "coat_ior"),
-                                ("coat_thickness", np.nan, "coat_thickness"), ("base_albedo", np.nan, "base_albedo")]:
+    for field, value, match in [
+        ("coat_roughness", -0.1, "coat_roughness"),
+        ("coat_ior", 0.9, "coat_ior"),
+        ("coat_thickness", np.nan, "coat_thickness"),
+        ("base_albedo", np.nan, "base_albedo"),
+    ]:
         bad = StackArrays(**{f: np.array(getattr(sa, f), copy=True) for f in StackArrays.FIELDS})
         getattr(bad, field).flat[0] = value
         with pytest.raises(ValueError, match=match):
@@ -346,8 +365,9 @@ def test_bad_directions_and_counts_raise():
     with pytest.raises(ValueError, match="rng"):
         R.sample(stack, direction(10), rng="seed")
     with pytest.raises(ValueError, match="rows"):
-        R.eval_brdf(R.pack_stacks([stack, stack]), np.repeat(direction(10), 3, axis=0),
-                    np.repeat(direction(10), 3, axis=0))
+        R.eval_brdf(
+            R.pack_stacks([stack, stack]), np.repeat(direction(10), 3, axis=0), np.repeat(direction(10), 3, axis=0)
+        )
 
 
 # --------------------------------------------------------------------------- amortised estimator
@@ -379,8 +399,10 @@ def test_vertices_under_several_rough_interfaces_connect():
     wo, mask = lobe.lobe_grid(8)
     wo = wo[mask]
     wi = np.broadcast_to(lobe.incident_direction(30.0), wo.shape)
-    for stack in (Stack(Diffuse(0.8), (Coating(0.3, 1.4), Coating(0.2, 1.6), Coating(0.05, 1.5))),
-                  Stack(Diffuse(0.8), (Coating(0.05, 1.5),))):
+    for stack in (
+        Stack(Diffuse(0.8), (Coating(0.3, 1.4), Coating(0.2, 1.6), Coating(0.05, 1.5))),
+        Stack(Diffuse(0.8), (Coating(0.05, 1.5),)),
+    ):
         f, se = R.eval_brdf(stack, wi, wo, walks=256, seed=0)
         assert np.median(se[:, 1] / f[:, 1]) < 0.12
 
@@ -406,8 +428,12 @@ def test_the_agreement_test_detects_pbrts_reverse_mis_density(monkeypatch):
 def test_eval_matches_analog_walk_high_precision(name, theta):
     stack = MULTI.get(name) or Stack(
         Conductor(0.1, eta=(0.2, 0.9, 1.1), k=(3.9, 2.4, 2.2)),
-        (Coating(0.3, 1.3, (0.9, 0.6, 0.3), 0.4, 0.3), Coating(0.1, 1.7), Coating(0.5, 1.4, (0.5, 0.9, 0.9), 0.2),
-         Coating(0.2, 1.5)),
+        (
+            Coating(0.3, 1.3, (0.9, 0.6, 0.3), 0.4, 0.3),
+            Coating(0.1, 1.7),
+            Coating(0.5, 1.4, (0.5, 0.9, 0.9), 0.2),
+            Coating(0.2, 1.5),
+        ),
     )
     wo = direction(theta, 30)
     a, sa = analog_albedo(stack, wo, 150000, seed=21)

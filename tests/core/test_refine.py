@@ -14,8 +14,10 @@ from addon.core.stack import Coating, Conductor, Stack
 # every shipped decoder size must have its numpy weights (a missing file fails, it does not skip)
 SHIPPED = [s for s in SIZES if (MODEL_DIR / f"decoder_{s}.onnx").exists()]
 # a coated metal on which the tiny decoder's encoded latent is poor (held-out lobe error ~0.3)
-COATED = Stack(Conductor(eta=(0.2, 0.4, 1.4), k=(3.9, 2.4, 1.6), roughness=0.3),
-               (Coating(roughness=0.05, ior=1.5, thickness=0.5, albedo=(0.8, 0.5, 0.3)),))
+COATED = Stack(
+    Conductor(eta=(0.2, 0.4, 1.4), k=(3.9, 2.4, 1.6), roughness=0.3),
+    (Coating(roughness=0.05, ior=1.5, thickness=0.5, albedo=(0.8, 0.5, 0.3)),),
+)
 QUICK = rf.RefineSettings(fit_groups=16, validation_groups=8, per_group=16, walks=16, steps=120)
 
 
@@ -143,7 +145,8 @@ def test_cache_key_follows_the_stack_the_settings_and_the_model_files(tmp_path):
     other = Stack(COATED.base, (Coating(roughness=0.06, ior=1.5, thickness=0.5, albedo=(0.8, 0.5, 0.3)),))
     assert rf.refine_key(other, "tiny", QUICK, tmp_path) != k
     assert rf.refine_key(COATED, "tiny", rf.RefineSettings(seed=1), tmp_path) != rf.refine_key(
-        COATED, "tiny", rf.RefineSettings(), tmp_path)
+        COATED, "tiny", rf.RefineSettings(), tmp_path
+    )
     with open(tmp_path / "layering_tiny.onnx", "ab") as fh:
         fh.write(b"\0")
     assert rf.refine_key(COATED, "tiny", QUICK, tmp_path) != k
@@ -200,7 +203,11 @@ def test_refinement_lowers_the_held_out_lobe_error_of_the_tiny_decoder():
         s = data["stacks"][i]
         z, rep = rf.refine_latent(s, "tiny", budget_s=120.0, threads=1, use_cache=False)
         for zz, out in ((encode_stack(s, models), before), (z, after)):
-            img = np.array([lobe.lobe_image(lambda wi, wo, zz=zz: models.eval_brdf(zz, wi, wo), float(t), 24)
-                            for t in data["angles"]])
+            img = np.array(
+                [
+                    lobe.lobe_image(lambda wi, wo, zz=zz: models.eval_brdf(zz, wi, wo), float(t), 24)
+                    for t in data["angles"]
+                ]
+            )
             out.append(lobe.relative_rmse(img, data["lobe"][i], image_axes=3))
     assert np.median(after) < 0.9 * np.median(before), (np.median(before), np.median(after))

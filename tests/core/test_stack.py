@@ -58,7 +58,7 @@ def test_unknown_preset_and_layer_type_are_clear():
 def test_from_f0_reproduces_normal_incidence_reflectance():
     f0 = (0.95, 0.64, 0.54)
     c = st.Conductor.from_f0(f0, roughness=0.2)
-    for target, eta, k in zip(f0, c.eta, c.k):
+    for target, eta, k in zip(f0, c.eta, c.k, strict=True):
         r = ((eta - 1) ** 2 + k**2) / ((eta + 1) ** 2 + k**2)
         assert math.isclose(r, target, rel_tol=1e-9)
 
@@ -78,16 +78,19 @@ def test_artist_roughness_mapping_round_trips():
         assert math.isclose(st.artist_roughness_from_alpha(st.alpha_from_artist_roughness(r)), r)
 
 
-@pytest.mark.parametrize("build,field", [
-    (lambda: st.Diffuse("111"), "Diffuse.albedo"),
-    (lambda: st.Diffuse(b"111"), "Diffuse.albedo"),
-    (lambda: st.Diffuse(("0.5", 0.5, 0.5)), "Diffuse.albedo[R]"),
-    (lambda: st.Conductor(roughness="0.5"), "Conductor.roughness"),
-    (lambda: st.Conductor(roughness=True), "Conductor.roughness"),
-    (lambda: st.Dielectric(ior=1.5 + 0j), "Dielectric.ior"),
-    (lambda: st.Coating(thickness=None), "Coating.thickness"),
-    (lambda: st.Coating(albedo=(True, 0.0, 0.0)), "Coating.albedo[R]"),
-])
+@pytest.mark.parametrize(
+    "build,field",
+    [
+        (lambda: st.Diffuse("111"), "Diffuse.albedo"),
+        (lambda: st.Diffuse(b"111"), "Diffuse.albedo"),
+        (lambda: st.Diffuse(("0.5", 0.5, 0.5)), "Diffuse.albedo[R]"),
+        (lambda: st.Conductor(roughness="0.5"), "Conductor.roughness"),
+        (lambda: st.Conductor(roughness=True), "Conductor.roughness"),
+        (lambda: st.Dielectric(ior=1.5 + 0j), "Dielectric.ior"),
+        (lambda: st.Coating(thickness=None), "Coating.thickness"),
+        (lambda: st.Coating(albedo=(True, 0.0, 0.0)), "Coating.albedo[R]"),
+    ],
+)
 def test_strings_bools_and_complex_numbers_are_not_parameters(build, field):
     with pytest.raises(ValueError, match=field.replace("[", r"\[").replace("]", r"\]")):
         build()
@@ -96,8 +99,13 @@ def test_strings_bools_and_complex_numbers_are_not_parameters(build, field):
 def test_numpy_numbers_are_parameters():
     import numpy as np
 
-    c = st.Coating(roughness=np.float32(0.25), ior=np.float64(1.5), albedo=np.array([0.1, 0.2, 0.3]),
-                   thickness=np.array(2.0), g=np.int64(0))
+    c = st.Coating(
+        roughness=np.float32(0.25),
+        ior=np.float64(1.5),
+        albedo=np.array([0.1, 0.2, 0.3]),
+        thickness=np.array(2.0),
+        g=np.int64(0),
+    )
     assert c.roughness == 0.25 and c.albedo == (0.1, 0.2, 0.3) and c.thickness == 2.0
     assert st.Diffuse(np.float32(0.5)).albedo == (0.5, 0.5, 0.5)
 

@@ -29,5 +29,10 @@ def bounded(max_examples: int):
     a fixed number of them, no per-example deadline, no example database."""
     from hypothesis import HealthCheck, settings
 
-    return settings(max_examples=max_examples, derandomize=True, deadline=None, database=None,
-                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much])
+    return settings(
+        max_examples=max_examples,
+        derandomize=True,
+        deadline=None,
+        database=None,
+        suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much],
+    )

@@ -48,19 +48,35 @@ def inputs(tmp_path_factory):
     out.close()
     ref = root / "reference"
     t0 = time.perf_counter()
-    assert subprocess.run([sys.executable, str(DRIVER), "--", *argv(path, ref)], capture_output=True,
-                          timeout=120).returncode == 0
+    assert (
+        subprocess.run(
+            [sys.executable, str(DRIVER), "--", *argv(path, ref)], capture_output=True, timeout=120
+        ).returncode
+        == 0
+    )
     return path, ref, time.perf_counter() - t0
 
 
 def argv(rough: Path, out: Path) -> list[str]:
-    return ["--preset", "varnished_wood", "--map", f"coatings[0].roughness={rough}:0.05:0.5", "--out", str(out),
-            "--band-rows", "4"]
+    return [
+        "--preset",
+        "varnished_wood",
+        "--map",
+        f"coatings[0].roughness={rough}:0.05:0.5",
+        "--out",
+        str(out),
+        "--band-rows",
+        "4",
+    ]
 
 
 def kill_at(rng: random.Random, phase: str, sig: int, cmd: list[str], duration: float) -> int:
-    p = subprocess.Popen([sys.executable, str(DRIVER), "--markers", "--", *cmd], stdout=subprocess.PIPE,
-                         stderr=subprocess.DEVNULL, text=True)
+    p = subprocess.Popen(
+        [sys.executable, str(DRIVER), "--markers", "--", *cmd],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
     if phase == "any time":
         time.sleep(rng.uniform(0.0, duration))
     else:

@@ -25,8 +25,30 @@ import bake as bake_cli  # noqa: E402
 from tests.faults.bake_driver import stand_in_encoder  # noqa: E402
 from tests.faults.tally import bounded, example  # noqa: E402
 
-HOSTILE = ["/../../x", "..", ".", "", "-", "--", "a b", "é", "\t", "x" * 300, "-1", "0", "1e9", "nan", "inf",
-           "3/3", "1/0", "a/b", "0.5", "small", "tiny", "bogus"]
+HOSTILE = [
+    "/../../x",
+    "..",
+    ".",
+    "",
+    "-",
+    "--",
+    "a b",
+    "é",
+    "\t",
+    "x" * 300,
+    "-1",
+    "0",
+    "1e9",
+    "nan",
+    "inf",
+    "3/3",
+    "1/0",
+    "a/b",
+    "0.5",
+    "small",
+    "tiny",
+    "bogus",
+]
 
 
 @pytest.fixture(scope="module")
@@ -46,17 +68,44 @@ def workspace(tmp_path_factory):
 
 def bake_arguments(root: Path):
     files = [str(root / n) for n in ("rough.png", "mask.png", "text.png", "missing.png")] + [str(root)]
-    value = st.one_of(st.sampled_from(HOSTILE), st.sampled_from(files), st.text(max_size=8),
-                      st.integers(-3, 50).map(str))
-    option = st.sampled_from(["--preset", "--blend", "--material", "--map", "--name", "--mix", "--mask",
-                              "--resolution", "--model", "--shard", "--band-rows", "--no-dedup", "--help", "--bogus"])
-    maps = st.builds(lambda p, f, r: f"{p}={f}{r}", st.sampled_from(["coatings[0].roughness", "base.albedo",
-                                                                    "coatings[5].g", "base.x", "nonsense"]),
-                     st.sampled_from(files), st.sampled_from(["", ":0.05:0.5", ":-1:2", ":a:b"]))
+    value = st.one_of(
+        st.sampled_from(HOSTILE), st.sampled_from(files), st.text(max_size=8), st.integers(-3, 50).map(str)
+    )
+    option = st.sampled_from(
+        [
+            "--preset",
+            "--blend",
+            "--material",
+            "--map",
+            "--name",
+            "--mix",
+            "--mask",
+            "--resolution",
+            "--model",
+            "--shard",
+            "--band-rows",
+            "--no-dedup",
+            "--help",
+            "--bogus",
+        ]
+    )
+    maps = st.builds(
+        lambda p, f, r: f"{p}={f}{r}",
+        st.sampled_from(["coatings[0].roughness", "base.albedo", "coatings[5].g", "base.x", "nonsense"]),
+        st.sampled_from(files),
+        st.sampled_from(["", ":0.05:0.5", ":-1:2", ":a:b"]),
+    )
     preset = st.sampled_from(["varnished_wood", "coated_gold", "frosted_copper", "velvet"])
-    pieces = st.lists(st.one_of(
-        st.tuples(option), st.tuples(option, value), st.tuples(st.just("--map"), maps),
-        st.tuples(st.just("--preset"), preset), st.tuples(st.just("--resolution"), value, value)), max_size=6)
+    pieces = st.lists(
+        st.one_of(
+            st.tuples(option),
+            st.tuples(option, value),
+            st.tuples(st.just("--map"), maps),
+            st.tuples(st.just("--preset"), preset),
+            st.tuples(st.just("--resolution"), value, value),
+        ),
+        max_size=6,
+    )
     return pieces.map(lambda ps: [x for p in ps for x in p])
 
 
@@ -96,12 +145,29 @@ def test_bake_command_exits_0_1_or_2_with_one_line_and_writes_only_into_out(work
 
 
 def demo_arguments():
-    value = st.one_of(st.sampled_from(HOSTILE + ["320x180", "0x0", "8x", "x8", "-4x4", "4x4"]),
-                      st.integers(-3, 20).map(str), st.text(max_size=6))
-    option = st.sampled_from(["--out", "--lobe-res", "--walks", "--seed", "--render-size", "--samples", "--bounces",
-                              "--mode", "--skip-lobes", "--help", "--bogus"])
+    value = st.one_of(
+        st.sampled_from(HOSTILE + ["320x180", "0x0", "8x", "x8", "-4x4", "4x4"]),
+        st.integers(-3, 20).map(str),
+        st.text(max_size=6),
+    )
+    option = st.sampled_from(
+        [
+            "--out",
+            "--lobe-res",
+            "--walks",
+            "--seed",
+            "--render-size",
+            "--samples",
+            "--bounces",
+            "--mode",
+            "--skip-lobes",
+            "--help",
+            "--bogus",
+        ]
+    )
     return st.lists(st.one_of(st.tuples(option), st.tuples(option, value)), max_size=6).map(
-        lambda ps: [x for p in ps for x in p])
+        lambda ps: [x for p in ps for x in p]
+    )
 
 
 @bounded(60)

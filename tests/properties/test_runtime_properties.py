@@ -24,24 +24,40 @@ def tiny():
 
 
 def arrays(shape):
-    return st.sampled_from(DTYPES).flatmap(lambda dt: hnp.arrays(
-        dt, shape, elements=hnp.from_dtype(np.dtype(dt), allow_nan=True, allow_infinity=True)
-        if np.dtype(dt).kind == "f" else None))
+    return st.sampled_from(DTYPES).flatmap(
+        lambda dt: hnp.arrays(
+            dt,
+            shape,
+            elements=hnp.from_dtype(np.dtype(dt), allow_nan=True, allow_infinity=True)
+            if np.dtype(dt).kind == "f"
+            else None,
+        )
+    )
 
 
-direction_shapes = st.one_of(st.tuples(st.integers(0, 40)).map(lambda t: (t[0], 3)), st.just((3,)),
-                             hnp.array_shapes(min_dims=1, max_dims=3, max_side=5))
+direction_shapes = st.one_of(
+    st.tuples(st.integers(0, 40)).map(lambda t: (t[0], 3)),
+    st.just((3,)),
+    hnp.array_shapes(min_dims=1, max_dims=3, max_side=5),
+)
 
 
 def well_formed(a) -> bool:
     a = np.asarray(a)
-    return a.dtype.kind in "fiub" and (a.ndim == 2 and a.shape[1] == 3 or a.shape == (3,)) and bool(
-        np.isfinite(a.astype(np.float64)).all())
+    return (
+        a.dtype.kind in "fiub"
+        and (a.ndim == 2 and a.shape[1] == 3 or a.shape == (3,))
+        and bool(np.isfinite(a.astype(np.float64)).all())
+    )
 
 
 @bounded(40)
-@given(wi=direction_shapes.flatmap(arrays), wo_same=st.booleans(), z_kind=st.sampled_from(["one", "per-row", "bad"]),
-       data=st.data())
+@given(
+    wi=direction_shapes.flatmap(arrays),
+    wo_same=st.booleans(),
+    z_kind=st.sampled_from(["one", "per-row", "bad"]),
+    data=st.data(),
+)
 @also(wi=np.array([[0.3 + 1j, 0.0, 0.9]]), wo_same=True, z_kind="one", data=None)  # complex: refused, not truncated
 @also(wi=np.zeros((0, 3)), wo_same=True, z_kind="per-row", data=None)
 def test_decoder_gives_finite_non_negative_values_or_a_clear_error(tiny, wi, wo_same, z_kind, data):
@@ -51,8 +67,9 @@ def test_decoder_gives_finite_non_negative_values_or_a_clear_error(tiny, wi, wo_
     n = np.atleast_2d(np.asarray(wi)).shape[0] if np.ndim(wi) else 0
     z0 = np.random.default_rng(0).normal(scale=0.5, size=(3, 32)).astype(np.float32)
     z = {"one": z0, "per-row": np.repeat(z0[None], n, axis=0), "bad": np.zeros((n + 1, 32))}[z_kind]
-    ok = well_formed(wi) and well_formed(wo) and np.atleast_2d(wi).shape == np.atleast_2d(wo).shape and (
-        z_kind != "bad")
+    ok = (
+        well_formed(wi) and well_formed(wo) and np.atleast_2d(wi).shape == np.atleast_2d(wo).shape and (z_kind != "bad")
+    )
     if not ok:
         with pytest.raises(ValueError, match="wi|wo|z|shape|finite|complex|real|rows"):
             models.eval_brdf(z, wi, wo)
@@ -64,8 +81,11 @@ def test_decoder_gives_finite_non_negative_values_or_a_clear_error(tiny, wi, wo_
 
 def stack_arrays(n: int, coatings: int, rng) -> StackArrays:
     names = [k for k, s in PRESETS.items() if len(s.coatings) == coatings]
-    return StackArrays.from_stacks([PRESETS[names[i % len(names)]] for i in rng.integers(0, 99, n)]) if n else (
-        StackArrays.from_stacks([PRESETS[names[0]]]).take(slice(0, 0)))
+    return (
+        StackArrays.from_stacks([PRESETS[names[i % len(names)]] for i in rng.integers(0, 99, n)])
+        if n
+        else (StackArrays.from_stacks([PRESETS[names[0]]]).take(slice(0, 0)))
+    )
 
 
 @bounded(12)
@@ -90,8 +110,12 @@ def test_batched_encoders_and_proxy_give_finite_results_for_any_batch(tiny, n, c
 def test_proxy_of_any_latent_array_is_finite_or_a_clear_error(tiny, z):
     example()
     za = np.asarray(z)
-    good = za.dtype.kind in "fiub" and za.shape[-2:] == (3, 32) and za.ndim in (2, 3) and np.isfinite(
-        za.astype(np.float64)).all()
+    good = (
+        za.dtype.kind in "fiub"
+        and za.shape[-2:] == (3, 32)
+        and za.ndim in (2, 3)
+        and np.isfinite(za.astype(np.float64)).all()
+    )
     if not good:
         with pytest.raises(ValueError, match="z"):
             tiny.proxy_params(z)

@@ -20,8 +20,12 @@ from tests.faults.tally import bounded, example
 def in_range(name: str):
     lo, hi = VALID_RANGES[name]
     # the ends of each range, and numbers of every numeric type a caller may pass
-    return st.one_of(st.sampled_from([lo, hi]), st.floats(lo, hi), st.integers(math.ceil(lo), math.floor(hi)),
-                     st.floats(lo, hi).map(np.float32).filter(lambda v: lo <= float(v) <= hi))
+    return st.one_of(
+        st.sampled_from([lo, hi]),
+        st.floats(lo, hi),
+        st.integers(math.ceil(lo), math.floor(hi)),
+        st.floats(lo, hi).map(np.float32).filter(lambda v: lo <= float(v) <= hi),
+    )
 
 
 def rgb(name: str):
@@ -33,11 +37,13 @@ bases = st.one_of(
     st.builds(Conductor, in_range("roughness"), rgb("eta"), rgb("k")),
     st.builds(Dielectric, in_range("roughness"), in_range("ior")),
 )
-coatings = st.builds(Coating, in_range("roughness"), in_range("ior"), rgb("albedo"), in_range("thickness"),
-                     in_range("g"))
+coatings = st.builds(
+    Coating, in_range("roughness"), in_range("ior"), rgb("albedo"), in_range("thickness"), in_range("g")
+)
 stacks = st.builds(Stack, bases, st.lists(coatings, max_size=2).map(tuple))
 directions = st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(0.05, 1)).filter(
-    lambda w: w[0] ** 2 + w[1] ** 2 + w[2] ** 2 > 0.01)
+    lambda w: w[0] ** 2 + w[1] ** 2 + w[2] ** 2 > 0.01
+)
 
 
 @bounded(25)
@@ -57,9 +63,15 @@ def test_any_valid_stack_has_a_finite_non_negative_reference_with_albedo_at_most
 # (constructor, field, the other arguments that make a valid layer)
 FIELDS = [
     (Diffuse, "albedo", {}),
-    (Conductor, "roughness", {}), (Conductor, "eta", {}), (Conductor, "k", {}),
-    (Dielectric, "roughness", {}), (Dielectric, "ior", {}),
-    (Coating, "roughness", {}), (Coating, "ior", {}), (Coating, "albedo", {}), (Coating, "thickness", {}),
+    (Conductor, "roughness", {}),
+    (Conductor, "eta", {}),
+    (Conductor, "k", {}),
+    (Dielectric, "roughness", {}),
+    (Dielectric, "ior", {}),
+    (Coating, "roughness", {}),
+    (Coating, "ior", {}),
+    (Coating, "albedo", {}),
+    (Coating, "thickness", {}),
     (Coating, "g", {}),
 ]
 RGB_FIELDS = {"albedo", "eta", "k"}
@@ -67,13 +79,16 @@ RGB_FIELDS = {"albedo", "eta", "k"}
 
 def out_of_range(name: str):
     lo, hi = VALID_RANGES[name]
-    return st.one_of(st.floats(max_value=lo, exclude_max=True, allow_nan=False),
-                     st.floats(min_value=hi, exclude_min=True, allow_nan=False),
-                     st.sampled_from([math.nan, math.inf, -math.inf, np.float32("nan")]))
+    return st.one_of(
+        st.floats(max_value=lo, exclude_max=True, allow_nan=False),
+        st.floats(min_value=hi, exclude_min=True, allow_nan=False),
+        st.sampled_from([math.nan, math.inf, -math.inf, np.float32("nan")]),
+    )
 
 
-NOT_NUMBERS = st.sampled_from(["0.5", "111", "", "abc", True, False, None, complex(0.5, 0.0), complex(0.5, 1.0),
-                               b"1", object(), {"r": 1}])
+NOT_NUMBERS = st.sampled_from(
+    ["0.5", "111", "", "abc", True, False, None, complex(0.5, 0.0), complex(0.5, 1.0), b"1", object(), {"r": 1}]
+)
 
 
 @st.composite
@@ -83,8 +98,12 @@ def invalid_layers(draw):
     if name in RGB_FIELDS:
         good = draw(in_range(name))
         shape = draw(st.sampled_from(["one channel", "scalar", "short", "long"]))
-        value = {"one channel": (good, bad, good), "scalar": bad, "short": (good, good),
-                 "long": (good, good, good, good)}[shape]
+        value = {
+            "one channel": (good, bad, good),
+            "scalar": bad,
+            "short": (good, good),
+            "long": (good, good, good, good),
+        }[shape]
         if shape == "scalar" and isinstance(bad, str) and len(bad) == 3:
             value = bad  # '111' must not pass as three channels
     else:
@@ -106,8 +125,10 @@ def test_any_invalid_value_is_a_value_error_naming_the_field(case):
 
 
 @bounded(20)
-@given(base=st.one_of(bases, coatings, st.sampled_from([None, 1.0, "Diffuse"])),
-       above=st.lists(st.one_of(coatings, bases, st.sampled_from([None, 0.5])), max_size=3))
+@given(
+    base=st.one_of(bases, coatings, st.sampled_from([None, 1.0, "Diffuse"])),
+    above=st.lists(st.one_of(coatings, bases, st.sampled_from([None, 0.5])), max_size=3),
+)
 def test_stacks_accept_a_base_under_coatings_and_nothing_else(base, above):
     example()
     if isinstance(base, (Diffuse, Conductor, Dielectric)) and all(isinstance(c, Coating) for c in above):

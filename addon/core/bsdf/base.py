@@ -113,9 +113,7 @@ def _check_directions(a: np.ndarray, name: str) -> None:
     off = np.abs(n - 1.0) > 2.0 * UNIT_TOLERANCE
     if np.any(off):
         bad = int(np.flatnonzero(off)[0])
-        raise ValueError(
-            f"{name} must be unit vectors, row {bad} = {a[bad].tolist()} has length {np.sqrt(n[bad]):.6g}"
-        )
+        raise ValueError(f"{name} must be unit vectors, row {bad} = {a[bad].tolist()} has length {np.sqrt(n[bad]):.6g}")
 
 
 def as_uniform(u, name: str, n: int, dims: int, check: bool = True, xp=None) -> np.ndarray:
@@ -137,8 +135,9 @@ def same_rows(name_a: str, a, name_b: str, b) -> int:
     return a.shape[0]
 
 
-def as_param(value, name: str, *, lo: float = -np.inf, hi: float = np.inf, lo_open: bool = False,
-             rgb: bool = False) -> np.ndarray:
+def as_param(
+    value, name: str, *, lo: float = -np.inf, hi: float = np.inf, lo_open: bool = False, rgb: bool = False
+) -> np.ndarray:
     """A BSDF parameter as float64: scalars -> (1,) or (N,); RGB -> (1, 3) or (N, 3).
 
     Raises ValueError naming the parameter, the bad value and the valid range. Stays in the
@@ -156,7 +155,8 @@ def as_param(value, name: str, *, lo: float = -np.inf, hi: float = np.inf, lo_op
             a = a[None, :]
         elif not (a.ndim == 2 and a.shape[1] == 3):
             raise ValueError(
-                f"{name} must be a scalar, an RGB triple (3,) or per-row (N, 3), got shape {tuple(a.shape)}")
+                f"{name} must be a scalar, an RGB triple (3,) or per-row (N, 3), got shape {tuple(a.shape)}"
+            )
     else:
         if a.ndim == 0:
             a = a[None]

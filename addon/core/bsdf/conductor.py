@@ -78,6 +78,6 @@ class RoughConductor(BSDF):
             rough_pdf = ggx.pdf_visible_normal(wo, m, alpha) / (4.0 * dwo)
         weight = F * xp.where(smooth, 1.0, rough_w)[:, None]
         pdf = xp.where(smooth, 1.0, rough_pdf)
-        valid = (wi[:, 2] * wo[:, 2] > 0.0)
+        valid = wi[:, 2] * wo[:, 2] > 0.0
         false = xp.zeros(n, dtype=bool)
         return BSDFSample.build(wi, weight, pdf, xp.copy(smooth), false, valid)

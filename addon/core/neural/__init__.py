@@ -25,9 +25,27 @@ from .models import (
 )
 
 __all__ = [
-    "AUTO", "DEFAULT_SIZE", "MODEL_DIR", "N_FEATURES", "ROLES", "SIZES", "ClampWarning", "ModelFileError", "ModelSet",
-    "arrays_features", "base_features", "clear_cache", "encode_arrays", "encode_stack", "eval_brdf", "file_digest",
-    "layer_features", "lerp", "load_models", "read_card", "resolve_size",
+    "AUTO",
+    "DEFAULT_SIZE",
+    "MODEL_DIR",
+    "N_FEATURES",
+    "ROLES",
+    "SIZES",
+    "ClampWarning",
+    "ModelFileError",
+    "ModelSet",
+    "arrays_features",
+    "base_features",
+    "clear_cache",
+    "encode_arrays",
+    "encode_stack",
+    "eval_brdf",
+    "file_digest",
+    "layer_features",
+    "lerp",
+    "load_models",
+    "read_card",
+    "resolve_size",
 ]
 
 

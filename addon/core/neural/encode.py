@@ -56,8 +56,12 @@ def encode_arrays(arrays: StackArrays, models: ModelSet | str | None = None) -> 
     z_tops = models.run_encoder(arrays_features(fixed.coating_interfaces())).reshape(n, c, 3, LATENT)
     zc = z.reshape(n * 3, LATENT)
     for j in range(c):  # bottom-up over coatings; all stacks and channels in one call each
-        zc = models.run_layering(z_tops[:, j].reshape(n * 3, LATENT), zc, fixed.coat_albedo[:, j].reshape(n * 3),
-                                 np.repeat(fixed.coat_thickness[:, j], 3))
+        zc = models.run_layering(
+            z_tops[:, j].reshape(n * 3, LATENT),
+            zc,
+            fixed.coat_albedo[:, j].reshape(n * 3),
+            np.repeat(fixed.coat_thickness[:, j], 3),
+        )
     return zc.reshape(n, 3, LATENT)
 
 

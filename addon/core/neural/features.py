@@ -16,7 +16,12 @@ from ..stack import BASE_KINDS, TRAINED_RANGES, Coating, Conductor, Dielectric, 
 
 FRESNEL_COSINES = (1.0, 0.5, 0.2, 0.05)
 FEATURE_NAMES = (
-    "is_diffuse", "is_conductor", "is_dielectric", "log_alpha", "sqrt_alpha", "albedo",
+    "is_diffuse",
+    "is_conductor",
+    "is_dielectric",
+    "log_alpha",
+    "sqrt_alpha",
+    "albedo",
     *(f"fresnel_{c:g}" for c in FRESNEL_COSINES),
 )
 N_FEATURES = len(FEATURE_NAMES)
@@ -58,8 +63,9 @@ def base_features(kind, alpha, albedo, eta, k, ior) -> np.ndarray:
 
 def arrays_features(arrays: StackArrays) -> np.ndarray:
     """Features of the bases of a ``StackArrays`` batch (coatings ignored): (N, 3, N_FEATURES)."""
-    return base_features(arrays.base_kind, arrays.base_roughness, arrays.base_albedo, arrays.base_eta,
-                         arrays.base_k, arrays.base_ior)
+    return base_features(
+        arrays.base_kind, arrays.base_roughness, arrays.base_albedo, arrays.base_eta, arrays.base_k, arrays.base_ior
+    )
 
 
 def layer_features(layer) -> np.ndarray:

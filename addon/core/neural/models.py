@@ -46,8 +46,12 @@ AUTO = "auto"
 DEFAULT_SIZE = "tiny"
 ROLES = ("decoder", "encoder", "layering", "sampling")
 # What each network was trained with (its card's ``trained_with`` must name these files of its size).
-TRAINED_WITH = {"decoder": (), "encoder": ("decoder",), "layering": ("encoder", "decoder"),
-                "sampling": ("encoder", "decoder", "layering")}
+TRAINED_WITH = {
+    "decoder": (),
+    "encoder": ("decoder",),
+    "layering": ("encoder", "decoder"),
+    "sampling": ("encoder", "decoder", "layering"),
+}
 # Floats of one hidden layer's activations per ONNX Runtime call (768 KB): the decoder's chunk is
 # that over 3 x its width, 2,048 RGB queries for the tiny decoder, 256 for the paper's, so the
 # intermediates stay in cache (measured best or near it for tiny, small and medium).
@@ -78,8 +82,9 @@ def _positive_ints(card: dict, card_path: Path) -> None:
         if key in arch:
             v = arch[key]
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ModelFileError(f"model card {card_path.name}: architecture.{key} must be a positive "
-                                     f"integer, got {v!r}")
+                raise ModelFileError(
+                    f"model card {card_path.name}: architecture.{key} must be a positive integer, got {v!r}"
+                )
     if arch.get("latent", LATENT) != LATENT:
         raise ModelFileError(f"model card {card_path.name}: latent size {arch['latent']} but the runtime's is {LATENT}")
 
@@ -87,8 +92,10 @@ def _positive_ints(card: dict, card_path: Path) -> None:
 def _digest_map(card: dict, key: str, card_path: Path) -> dict[str, str]:
     m = card.get(key)
     if not isinstance(m, dict) or not m or not all(isinstance(v, str) and len(v) == 64 for v in m.values()):
-        raise ModelFileError(f"model card {card_path.name} has no valid {key!r} (file name -> sha256); "
-                             f"re-export the model (python -m onnx_export.export ...)")
+        raise ModelFileError(
+            f"model card {card_path.name} has no valid {key!r} (file name -> sha256); "
+            f"re-export the model (python -m onnx_export.export ...)"
+        )
     return m
 
 
@@ -96,14 +103,17 @@ def _check_file(path: Path, digest: str, card_path: Path) -> None:
     if not path.is_file():
         raise FileNotFoundError(
             f"neural model file {path} is missing; export it with `python -m onnx_export.export` "
-            f"(available here: {sorted(p.name for p in path.parent.glob('*.onnx'))})")
+            f"(available here: {sorted(p.name for p in path.parent.glob('*.onnx'))})"
+        )
     data = path.read_bytes()
     if data.startswith(LFS_POINTER):
         raise ModelFileError(f"{path.name} is a Git LFS pointer, not the model: fetch the models with `git lfs pull`")
     got = hashlib.sha256(data).hexdigest()
     if got != digest:
-        raise ModelFileError(f"{path.name} does not match its card {card_path.name} (sha256 {got[:12]}..., the card "
-                             f"says {digest[:12]}...): the file was replaced, renamed from another size or damaged")
+        raise ModelFileError(
+            f"{path.name} does not match its card {card_path.name} (sha256 {got[:12]}..., the card "
+            f"says {digest[:12]}...): the file was replaced, renamed from another size or damaged"
+        )
 
 
 def read_card(role: str, size: str, model_dir: Path | str | None = None) -> dict:
@@ -121,13 +131,17 @@ def read_card(role: str, size: str, model_dir: Path | str | None = None) -> dict
     try:
         card = json.loads(card_path.read_text())
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ModelFileError(f"model card {card_path.name} is not valid JSON ({e}); restore it from the "
-                             f"repository or re-export the model") from None
+        raise ModelFileError(
+            f"model card {card_path.name} is not valid JSON ({e}); restore it from the "
+            f"repository or re-export the model"
+        ) from None
     if not isinstance(card, dict):
         raise ModelFileError(f"model card {card_path.name} must hold a JSON object, got {type(card).__name__}")
     if card.get("name") != onnx_path.stem:
-        raise ModelFileError(f"model card {card_path.name} is the card of {card.get('name')!r}, not of "
-                             f"{onnx_path.stem!r}: it was renamed from another model")
+        raise ModelFileError(
+            f"model card {card_path.name} is the card of {card.get('name')!r}, not of "
+            f"{onnx_path.stem!r}: it was renamed from another model"
+        )
     _positive_ints(card, card_path)
     own = _digest_map(card, "files", card_path)
     if onnx_path.name not in own:
@@ -143,7 +157,8 @@ def read_card(role: str, size: str, model_dir: Path | str | None = None) -> dict
             if not (d / name).is_file() or file_digest(d / name) != trained[name]:
                 raise ModelFileError(
                     f"{onnx_path.name} was trained with another {name} than the one in {d.name}/: its latents do not "
-                    f"match it; retrain {onnx_path.name} or restore the {name} it was trained with")
+                    f"match it; retrain {onnx_path.name} or restore the {name} it was trained with"
+                )
     return card
 
 
@@ -202,8 +217,9 @@ class ModelSet:
 
     def __init__(self, size: str, threads: int = 2, model_dir: Path | str | None = None):
         if size not in SIZES:
-            raise ValueError(f"unknown decoder size {size!r}; sizes are {list(SIZES)} (resolve 'auto' with "
-                             f"resolve_size first)")
+            raise ValueError(
+                f"unknown decoder size {size!r}; sizes are {list(SIZES)} (resolve 'auto' with resolve_size first)"
+            )
         if isinstance(threads, bool) or int(threads) < 1:
             raise ValueError(f"threads must be >= 1, got {threads!r}")
         self.size = size
@@ -277,8 +293,10 @@ class ModelSet:
         t = np.ascontiguousarray(thickness, dtype=np.float32).reshape(-1)
         b = zt.shape[0]
         if zt.shape != (b, LATENT) or zb.shape != (b, LATENT) or a.shape != (b,) or t.shape != (b,):
-            raise ValueError(f"run_layering needs z_top, z_bottom (B, {LATENT}), albedo, thickness (B,); got "
-                             f"{zt.shape}, {zb.shape}, {a.shape}, {t.shape}")
+            raise ValueError(
+                f"run_layering needs z_top, z_bottom (B, {LATENT}), albedo, thickness (B,); got "
+                f"{zt.shape}, {zb.shape}, {a.shape}, {t.shape}"
+            )
         session = self._load("layering")
         if b == 0:
             return np.zeros((0, LATENT), dtype=np.float32)
@@ -315,8 +333,9 @@ class ModelSet:
         elif z.ndim == 3 and z.shape[1:] == (3, LATENT) and z.shape[0] == n:
             per_row = True
         else:
-            raise ValueError(f"z must have shape (3, {LATENT}) or ({n}, 3, {LATENT}) to match {n} directions, "
-                             f"got {z.shape}")
+            raise ValueError(
+                f"z must have shape (3, {LATENT}) or ({n}, 3, {LATENT}) to match {n} directions, got {z.shape}"
+            )
         if not np.all(np.isfinite(z)):
             raise ValueError("z must be finite (the latent holds NaN or Inf)")
         out = np.empty((n, 3), dtype=np.float32)
@@ -331,9 +350,14 @@ class ModelSet:
                 f = self._rgb.run_once(["f"], {"z": z[rows] if per_row else zz, "wi": a[0], "wo": b[0]})[0]
             else:
                 m = a[0].shape[0]
-                f = self._decoder.run_once(["f"], {
-                    "z": z[rows].reshape(-1, LATENT) if per_row else np.tile(z, (m, 1)),
-                    "wi": np.repeat(a[0], 3, axis=0), "wo": np.repeat(b[0], 3, axis=0)})[0].reshape(m, 3)
+                f = self._decoder.run_once(
+                    ["f"],
+                    {
+                        "z": z[rows].reshape(-1, LATENT) if per_row else np.tile(z, (m, 1)),
+                        "wi": np.repeat(a[0], 3, axis=0),
+                        "wo": np.repeat(b[0], 3, axis=0),
+                    },
+                )[0].reshape(m, 3)
             # 0 below the horizon, and for NaN (an overflowing latent); the graph's exp is >= 0
             out[rows] = np.where(ok[:, None] & (f >= 0.0), f, 0.0)
 
@@ -372,5 +396,7 @@ def resolve_size(size: str = AUTO, model_dir: Path | str | None = None) -> str:
     for s in (DEFAULT_SIZE, *(x for x in SIZES if x != DEFAULT_SIZE)):
         if (d / file_name("decoder", s)).is_file() and (d / file_name("encoder", s)).is_file():
             return s
-    raise FileNotFoundError(f"no decoder size is shipped in {d} (looked for decoder_<size>.onnx and "
-                            f"encoder_<size>.onnx for sizes {list(SIZES)})")
+    raise FileNotFoundError(
+        f"no decoder size is shipped in {d} (looked for decoder_<size>.onnx and "
+        f"encoder_<size>.onnx for sizes {list(SIZES)})"
+    )

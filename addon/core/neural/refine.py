@@ -125,8 +125,10 @@ class NumpyDecoder:
         d = Path(model_dir) if model_dir is not None else MODEL_DIR
         path = d / f"decoder_{size}_weights.npz"
         if not path.exists():
-            raise FileNotFoundError(f"{path.name} is missing from the models folder; export it with "
-                                    f"python -m onnx_export.decoder_weights --sizes {size}")
+            raise FileNotFoundError(
+                f"{path.name} is missing from the models folder; export it with "
+                f"python -m onnx_export.decoder_weights --sizes {size}"
+            )
         with np.load(path, allow_pickle=False) as npz:
             arrays = {k: npz[k] for k in npz.files}
         onnx_path = d / f"decoder_{size}.onnx"
@@ -134,9 +136,11 @@ class NumpyDecoder:
             raise FileNotFoundError(f"{onnx_path.name} is missing from the models folder")
         digest = file_digest(onnx_path)
         if str(arrays["onnx_sha256"]) != digest:
-            raise StaleWeightsError(f"{path.name} was exported from another version of {onnx_path.name} "
-                                    f"(sha256 {str(arrays['onnx_sha256'])[:12]}..., the file is {digest[:12]}...): "
-                                    f"run python -m onnx_export.decoder_weights --sizes {size}")
+            raise StaleWeightsError(
+                f"{path.name} was exported from another version of {onnx_path.name} "
+                f"(sha256 {str(arrays['onnx_sha256'])[:12]}..., the file is {digest[:12]}...): "
+                f"run python -m onnx_export.decoder_weights --sizes {size}"
+            )
         return cls(arrays, size, dtype)
 
     def _features_product(self, wi, wo):
@@ -224,8 +228,9 @@ def refinement_pairs(stack: Stack, groups: int, per_group: int, seed: int, grazi
         raise ValueError(f"grazing_share must be in [0, 1], got {grazing_share}")
     rng = np.random.default_rng([int(seed), 0x5EF1])
     n_grazing = int(round(grazing_share * groups))
-    ct = np.concatenate([rng.uniform(GRAZING_COS[1], 1.0, groups - n_grazing),
-                         rng.uniform(GRAZING_COS[0], GRAZING_COS[1], n_grazing)])
+    ct = np.concatenate(
+        [rng.uniform(GRAZING_COS[1], 1.0, groups - n_grazing), rng.uniform(GRAZING_COS[0], GRAZING_COS[1], n_grazing)]
+    )
     phi = rng.uniform(0.0, 2.0 * np.pi, groups)
     st = np.sqrt(1.0 - ct * ct)
     wi = np.stack([st * np.cos(phi), st * np.sin(phi), ct], axis=1)
@@ -239,8 +244,11 @@ def refinement_pairs(stack: Stack, groups: int, per_group: int, seed: int, grazi
         c = u[..., 0] ** (1.0 / (n + 1.0))
         s = np.sqrt(np.maximum(1.0 - c * c, 0.0))
         p = 2.0 * np.pi * u[..., 1]
-        d = ((s * np.cos(p))[..., None] * t[:, None] + (s * np.sin(p))[..., None] * b[:, None]
-             + c[..., None] * mirror[:, None])
+        d = (
+            (s * np.cos(p))[..., None] * t[:, None]
+            + (s * np.sin(p))[..., None] * b[:, None]
+            + c[..., None] * mirror[:, None]
+        )
         wo = np.where((comp == k)[..., None], d, wo)
     cos_o = np.maximum(wo[..., 2], 0.0)
     p_cos = cos_o / np.pi
@@ -274,11 +282,19 @@ class PairSet:
         # walks start from wi and connect to every wo of the group: f(wo[g, j], wi[g]) = f(wi[g], wo[g, j])
         f, se = reference.eval_brdf_many(stack, wo, wi, walks=walks, seed=int(seed))
         # the loss's weights come from other walks (a quarter as many): independent of the targets' noise
-        level, _ = reference.eval_brdf_many(stack, wo, wi, walks=max(4, walks // 4),
-                                          seed=np.random.default_rng([int(seed), 0x1E7E1]))
+        level, _ = reference.eval_brdf_many(
+            stack, wo, wi, walks=max(4, walks // 4), seed=np.random.default_rng([int(seed), 0x1E7E1])
+        )
         rows_wi = np.repeat(wi, per_group, axis=0)
-        return cls(rows_wi, wo.reshape(-1, 3), f.reshape(-1, 3), se.reshape(-1, 3), weight.reshape(-1), groups,
-                   level.reshape(-1, 3))
+        return cls(
+            rows_wi,
+            wo.reshape(-1, 3),
+            f.reshape(-1, 3),
+            se.reshape(-1, 3),
+            weight.reshape(-1),
+            groups,
+            level.reshape(-1, 3),
+        )
 
 
 def lobe_loss(f: np.ndarray, pairs: PairSet) -> tuple[float, np.ndarray, np.ndarray]:
@@ -369,8 +385,12 @@ def model_files(stack: Stack, size: str, model_dir: Path | str | None = None) ->
 def refine_key(stack: Stack, size: str, settings: RefineSettings, model_dir=None) -> str:
     """sha256 of what the refined latent depends on: the stack's JSON, every model file, the settings."""
     h = hashlib.sha256()
-    h.update(json.dumps({"version": REFINE_VERSION, "size": size, "stack": stack.to_json(),
-                         "settings": asdict(settings)}, sort_keys=True).encode())
+    h.update(
+        json.dumps(
+            {"version": REFINE_VERSION, "size": size, "stack": stack.to_json(), "settings": asdict(settings)},
+            sort_keys=True,
+        ).encode()
+    )
     for p in model_files(stack, size, model_dir):
         if not p.exists():
             raise FileNotFoundError(f"{p.name} is missing from the models folder (needed to refine a {size} latent)")
@@ -411,8 +431,16 @@ def _adam(decoder: NumpyDecoder, z0: np.ndarray, fit: PairSet, s: RefineSettings
     return best_z.astype(np.float32), first, best, step, stopped
 
 
-def refine_latent(stack: Stack, size: str = "auto", budget_s: float = 5.0, settings: RefineSettings | None = None,
-                  threads: int = 2, model_dir=None, cache_dir: Path | str | None = None, use_cache: bool = True):
+def refine_latent(
+    stack: Stack,
+    size: str = "auto",
+    budget_s: float = 5.0,
+    settings: RefineSettings | None = None,
+    threads: int = 2,
+    model_dir=None,
+    cache_dir: Path | str | None = None,
+    use_cache: bool = True,
+):
     """``(z (3, 32) float32, RefineReport)``: the latent of ``stack`` for decoder ``size`` fitted to the
     reference (see the module docstring). ``budget_s`` bounds the whole call (reference walks and
     optimisation; the walks of the two pair sets are always made); the latent returned is the refined
@@ -438,11 +466,24 @@ def refine_latent(stack: Stack, size: str = "auto", budget_s: float = 5.0, setti
     v0, _, e0 = lobe_loss(decoder.forward(z0, val.wi, val.wo), val)
     v1, _, e1 = lobe_loss(decoder.forward(z1, val.wi, val.wo), val)
     kept = bool(v1 < v0)
-    report = RefineReport(size=size, key=key, kept=kept, validation_error_before=float(np.median(e0)),
-                          validation_error_after=float(np.median(e1)), validation_loss_before=v0,
-                          validation_loss_after=v1, fit_loss_before=float(fit0), fit_loss_after=float(fit1),
-                          steps=steps, stopped=stopped, budget_s=float(budget_s), reference_s=t1 - t0,
-                          optimise_s=t2 - t1, total_s=time.perf_counter() - t0, settings=asdict(s))
+    report = RefineReport(
+        size=size,
+        key=key,
+        kept=kept,
+        validation_error_before=float(np.median(e0)),
+        validation_error_after=float(np.median(e1)),
+        validation_loss_before=v0,
+        validation_loss_after=v1,
+        fit_loss_before=float(fit0),
+        fit_loss_after=float(fit1),
+        steps=steps,
+        stopped=stopped,
+        budget_s=float(budget_s),
+        reference_s=t1 - t0,
+        optimise_s=t2 - t1,
+        total_s=time.perf_counter() - t0,
+        settings=asdict(s),
+    )
     z = z1 if kept else z0
     if use_cache:
         _cache_put(key, z, report, cache_dir)

@@ -81,14 +81,16 @@ class ChunkedSession:
         if not path.exists():
             raise FileNotFoundError(
                 f"neural model file {path} is missing; export it with `python -m onnx_export.export` "
-                f"(available here: {sorted(p.name for p in path.parent.glob('*.onnx'))})")
+                f"(available here: {sorted(p.name for p in path.parent.glob('*.onnx'))})"
+            )
         if int(threads) < 1:
             raise ValueError(f"threads must be >= 1, got {threads!r}")
         if int(chunk) < 1:
             raise ValueError(f"chunk must be >= 1, got {chunk!r}")
         self.path, self.threads, self.chunk = path, int(threads), int(chunk)
-        self._session = ort.InferenceSession(str(path), sess_options=session_options(),
-                                             providers=["CPUExecutionProvider"])
+        self._session = ort.InferenceSession(
+            str(path), sess_options=session_options(), providers=["CPUExecutionProvider"]
+        )
 
     def run_once(self, outputs: list[str], feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
         """One ONNX Runtime call on the whole of ``feeds`` (on the calling thread)."""
@@ -107,8 +109,9 @@ class ChunkedSession:
         finally:
             _CLOCK.seconds = seconds_on_this_thread() + time.perf_counter() - t0
 
-    def run(self, outputs: list[str], rows: dict[str, np.ndarray], shared: dict[str, np.ndarray] | None = None
-            ) -> list[np.ndarray]:
+    def run(
+        self, outputs: list[str], rows: dict[str, np.ndarray], shared: dict[str, np.ndarray] | None = None
+    ) -> list[np.ndarray]:
         shared = shared or {}
         sizes = {k: v.shape[0] for k, v in rows.items()}
         n = next(iter(sizes.values()), 0)

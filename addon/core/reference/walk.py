@@ -146,8 +146,15 @@ class Layers:
         smooth = (alpha < SMOOTH_ALPHA) | (eta == 1.0)
         n0 = n[:, 0]
         return cls(
-            C=C, n=n, eta=eta, alpha=alpha, tau=tau, albedo=albedo, g=np.asarray(sa.coat_g, dtype=np.float64),
-            scatter=scatter, smooth=smooth,
+            C=C,
+            n=n,
+            eta=eta,
+            alpha=alpha,
+            tau=tau,
+            albedo=albedo,
+            g=np.asarray(sa.coat_g, dtype=np.float64),
+            scatter=scatter,
+            smooth=smooth,
             base_kind=np.asarray(sa.base_kind, dtype=np.int64),
             base_albedo=np.asarray(sa.base_albedo, dtype=np.float64),
             base_alpha=np.asarray(sa.base_roughness, dtype=np.float64),
@@ -221,8 +228,13 @@ def _sample_chain(lay: Layers, pr, wi, rng: Rng) -> Chains:
     (IMPORTANCE mode, transmission); see :class:`Chains`."""
     xp = lay.xp
     m, C = pr.shape[0], lay.C
-    ch = Chains(direction=xp.zeros((m, C + 1, 3)), weight=xp.zeros((m, C + 1, 3)), density=xp.ones((m, C + 1)),
-                splits_above=xp.zeros((m, C + 1)), rough_above=xp.zeros((m, C + 1), dtype=bool))
+    ch = Chains(
+        direction=xp.zeros((m, C + 1, 3)),
+        weight=xp.zeros((m, C + 1, 3)),
+        density=xp.ones((m, C + 1)),
+        splits_above=xp.zeros((m, C + 1)),
+        rough_above=xp.zeros((m, C + 1), dtype=bool),
+    )
     ch.direction[:, C] = -wi
     ch.weight[:, C] = 1.0
     for k in range(C - 1, -1, -1):
@@ -287,8 +299,18 @@ class _Walks:
     ``any_nondelta``: some event of the walk was not a delta event.
     """
 
-    FIELDS = ("walk", "row", "slab", "height", "direction", "throughput", "run_splits", "run_density",
-              "straight_run", "any_nondelta")
+    FIELDS = (
+        "walk",
+        "row",
+        "slab",
+        "height",
+        "direction",
+        "throughput",
+        "run_splits",
+        "run_density",
+        "straight_run",
+        "any_nondelta",
+    )
 
     def __init__(self, **fields):
         for k, v in fields.items():
@@ -380,9 +402,16 @@ class _RandomWalk:
         if nee:
             self.chains = _sample_chain(lay, xp.repeat(pr, self.M), wi.reshape(-1, 3), rng).per_walk(m, self.M)
         self.walks = _Walks(
-            walk=xp.arange(m), row=xp.copy(pr), slab=xp.full(m, C), height=xp.zeros(m), direction=-xp.copy(wo),
-            throughput=xp.ones((m, 3)), run_splits=xp.zeros(m), run_density=xp.ones(m),
-            straight_run=xp.zeros(m, dtype=bool), any_nondelta=xp.zeros(m, dtype=bool),
+            walk=xp.arange(m),
+            row=xp.copy(pr),
+            slab=xp.full(m, C),
+            height=xp.zeros(m),
+            direction=-xp.copy(wo),
+            throughput=xp.ones((m, 3)),
+            run_splits=xp.zeros(m),
+            run_density=xp.ones(m),
+            straight_run=xp.zeros(m, dtype=bool),
+            any_nondelta=xp.zeros(m, dtype=bool),
         )
         # a walk must see the stack from above
         self.walks.keep(wo[:, 2] > 0.0)
@@ -417,7 +446,10 @@ class _RandomWalk:
         warnings.warn(
             f"{len(self.walks)} reference walks were still inside the stack after MAX_DEPTH = {MAX_DEPTH} events "
             f"and were cut (throughput up to {lost:.3g} lost): the estimate is biased low; no valid stack is known "
-            "to need that many", RuntimeWarning, stacklevel=4)
+            "to need that many",
+            RuntimeWarning,
+            stacklevel=4,
+        )
 
     def roulette(self) -> None:
         """Russian roulette: a walk of low throughput ends with probability 1 - max(beta n^2),
@@ -483,16 +515,31 @@ class _RandomWalk:
         if at_interface.shape[0]:
             p = w.row[at_interface]
             k = xp.where(upward, w.slab, w.slab - 1)[at_interface]
-            groups.append(_Surface(at_interface, RoughDielectric(lay.alpha[p, k], lay.eta[p, k]), lay.smooth[p, k],
-                                   upward[at_interface], k, k + 1))
+            groups.append(
+                _Surface(
+                    at_interface,
+                    RoughDielectric(lay.alpha[p, k], lay.eta[p, k]),
+                    lay.smooth[p, k],
+                    upward[at_interface],
+                    k,
+                    k + 1,
+                )
+            )
         at_base = xp.flatnonzero(at_surface & ~upward & (w.slab == 0))
         for kind in range(len(BASE_KINDS)):
             rows = at_base[lay.base_kind[w.row[at_base]] == kind]
             if rows.shape[0]:
                 p = w.row[rows]
-                groups.append(_Surface(rows, _base_bsdf(lay, kind, p), _base_smooth(lay, p),
-                                       xp.zeros(rows.shape[0], dtype=bool), None,
-                                       xp.zeros(rows.shape[0], dtype=xp.int64)))
+                groups.append(
+                    _Surface(
+                        rows,
+                        _base_bsdf(lay, kind, p),
+                        _base_smooth(lay, p),
+                        xp.zeros(rows.shape[0], dtype=bool),
+                        None,
+                        xp.zeros(rows.shape[0], dtype=xp.int64),
+                    )
+                )
         return groups
 
     def surface_events(self, at_surface, upward, dead) -> None:
@@ -511,8 +558,9 @@ class _RandomWalk:
         if self.nee:
             rough = xp.flatnonzero(~srf.smooth)
             if rough.shape[0]:
-                self.connect(rows[rough], srf.chain_slab[rough], _SurfaceVertex(srf.bsdf.take(rough)),
-                             srf.from_below[rough])
+                self.connect(
+                    rows[rough], srf.chain_slab[rough], _SurfaceVertex(srf.bsdf.take(rough)), srf.from_below[rough]
+                )
         u = self.rng.random((rows.shape[0], 3))
         forced = xp.zeros(rows.shape[0], dtype=bool)
         if self.nee and srf.interface is not None:
@@ -557,7 +605,8 @@ class _RandomWalk:
         if cont.shape[0]:
             w_in = -bs_wo[cont]
             q = srf.bsdf.take(cont).pdf(-w_in, wnew[cont], IMPORTANCE, check=False) / (
-                lay.n[p[cont], srf.interface[cont]] ** 2 * xp.abs(w_in[:, 2]))
+                lay.n[p[cont], srf.interface[cont]] ** 2 * xp.abs(w_in[:, 2])
+            )
             with xp.errstate(divide="ignore", invalid="ignore", over="ignore"):
                 a_new[cont] = (q / w.run_density[rows[cont]]) ** 2 * (1.0 + w.run_splits[rows[cont]])
         w.run_splits[rows] = xp.where(nondelta, xp.nan_to_num(a_new, nan=xp.inf), w.run_splits[rows])
@@ -581,8 +630,9 @@ class _RandomWalk:
         if sel.shape[0] == 0:
             return
         a = vertex_of[sel]
-        link = _Link(a=a, rows=rows[a], walk=walk[sel], chain=chain[sel], slab=slab[sel],
-                     d=ch.direction[walk, chain, slab][sel])
+        link = _Link(
+            a=a, rows=rows[a], walk=walk[sel], chain=chain[sel], slab=slab[sel], d=ch.direction[walk, chain, slab][sel]
+        )
         chain_weight = chain_weight[sel]
         p = w.row[link.rows]
         w_in = w.direction[link.rows]
