@@ -153,7 +153,8 @@ def log_target(f: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Ten
 PAIR_LOSSES = ("l1", "l2", "l2rel")
 
 
-def pair_loss(pred: torch.Tensor, target: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, kind: str) -> torch.Tensor:
+def pair_loss(pred: torch.Tensor, target: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, kind: str,
+              grazing_floor: float = 1.0) -> torch.Tensor:
     """Loss of each (wi, wo) pair, compared as log1p(f cos_i cos_o):
 
     - ``l1``: |difference of logs|; its minimiser is the median of noisy targets (exact targets: fine);
@@ -161,14 +162,24 @@ def pair_loss(pred: torch.Tensor, target: torch.Tensor, wi: torch.Tensor, wo: to
     - ``l2rel``: squared first-order change of the log, ``cc (pred - target) / (1 + cc pred)`` with the
       denominator held constant in the gradient: a squared error in f weighted by the prediction only,
       so its minimiser is the MEAN of Monte Carlo targets (unbiased), scaled like the log losses.
+
+    ``grazing_floor`` < 1 divides each pair's difference by max(min(cos_i, cos_o), grazing_floor): the
+    compared quantity then scales like f cos of the steeper direction, the lobe image's value at a grazing
+    incident (or outgoing) direction, instead of carrying a second small cosine that hides the grazing
+    pairs from the loss (a network trained without it over-reflects near the horizon, where the
+    reference's f falls with the coat's Fresnel transmission). 1 (the default) leaves the loss unchanged.
     """
+    if not 0.0 < grazing_floor <= 1.0:
+        raise ValueError(f"grazing_floor must be in (0, 1], got {grazing_floor}")
     if kind == "l2rel":
         cc = torch.clamp(wi[:, 2], min=0.0) * torch.clamp(wo[:, 2], min=0.0)
         d = cc * (pred - target) / (1.0 + cc * pred.detach())
-        return d * d
-    if kind not in PAIR_LOSSES:
+    elif kind in PAIR_LOSSES:
+        d = log_target(pred, wi, wo) - log_target(target, wi, wo)
+    else:
         raise ValueError(f"unknown loss {kind!r}; expected one of {', '.join(PAIR_LOSSES)}")
-    d = log_target(pred, wi, wo) - log_target(target, wi, wo)
+    if grazing_floor < 1.0:
+        d = d / torch.clamp(torch.minimum(wi[:, 2], wo[:, 2]), min=grazing_floor)
     return d.abs() if kind == "l1" else d * d
 
 

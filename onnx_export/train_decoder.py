@@ -8,12 +8,23 @@ compares log1p(f cos_i cos_o) of the prediction and the target (``l1``: the medi
 Carlo noise, fine for exact targets; ``l2``: the mean, the right choice for noisy targets).
 Checkpoints (decoder, latents, optimiser, step) go to ``OUT/ckpt.pt`` every ``--every`` steps and
 at the end; rerunning the same command resumes from there. Progress goes to stderr.
+
+``--init`` takes another run's checkpoint, or a shipped ``decoder_<size>.onnx`` (its weights; the
+latents then come from ``--init-latents-from``): a size whose training checkpoint is gone continues
+from what it ships. ``--grazing-floor`` weights the grazing pairs (``nets.pair_loss``).
+
+The same command runs under ``torchrun --nproc_per_node N`` (DistributedDataParallel; gloo on CPU,
+NCCL on GPUs): every process draws the same batch from the same seed, takes its 1/N of the BRDF
+channels, and the averaged gradients are those of the whole batch, so N processes follow the
+one-process run (``tests/training/test_distributed.py``); process 0 logs and checkpoints.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -21,10 +32,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from addon.core.stack import StackArrays
 from onnx_export import data as datamod
 from onnx_export import layered_data
-from addon.core.stack import StackArrays
-from onnx_export.nets import PAIR_LOSSES, Decoder, cosine_lr, he_init, make_decoder, macs_per_eval, n_params, pair_loss
+from onnx_export.nets import PAIR_LOSSES, Decoder, cosine_lr, he_init, macs_per_eval, make_decoder, n_params, pair_loss
 
 
 def load_set(path: Path) -> dict:
@@ -76,6 +87,81 @@ def initial_latents(sets: list[StackArrays], size: str, materials: int | None, t
     return z.reshape(-1, 32)
 
 
+class AutoDecoder(torch.nn.Module):
+    """The decoder and the latents of the training channels as one module (what DistributedDataParallel wraps)."""
+
+    def __init__(self, dec: Decoder, latents: torch.nn.Parameter):
+        super().__init__()
+        self.dec, self.latents = dec, latents
+
+    def forward(self, units: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, pairs: int):
+        z = self.latents[units]
+        return self.dec(z.repeat_interleave(pairs, dim=0), wi, wo), (z ** 2).mean()
+
+
+def distributed() -> tuple[int, int]:
+    """(rank, world size): the process group of ``torchrun`` (WORLD_SIZE > 1), initialised here, else (0, 1)."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return 0, 1
+    import torch.distributed as dist
+
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    return dist.get_rank(), dist.get_world_size()
+
+
+def init_decoder(dec: Decoder, path: Path) -> dict:
+    """Load a shipped decoder's ONNX weights into ``dec`` (same architecture); returns the checkpoint-like
+    record of where it started (file name and sha256)."""
+    from onnx_export.export import torch_from_onnx
+
+    card = json.loads(path.with_suffix(".json").read_text())
+    src = torch_from_onnx(path, card)
+    if src.config() != dec.config():
+        raise ValueError(f"{path.name} is {src.config()}, the run trains {dec.config()}: give the size it was made for")
+    dec.load_state_dict(src.state_dict())
+    return {"file": path.name, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+            "command": card.get("training", {}).get("command")}
+
+
+def start_from(args, t: dict, dec: Decoder, latents: torch.nn.Parameter, log) -> dict | None:
+    """The starting point of ``--init-latents-from`` and ``--init`` (in that order); returns the record of
+    a shipped ONNX decoder started from (None otherwise)."""
+    n_units = latents.shape[0]
+    if args.init_latents_from:  # start in a shipped size's latent space: its encoder (+ layering network)
+        z0 = initial_latents(t["arrays"], args.init_latents_from, args.materials, args.threads)
+        latents.data.copy_(torch.from_numpy(z0))
+        log(f"latents start from the {args.init_latents_from} encoder / layering network "
+            f"(mean |z| {float(np.abs(z0).mean()):.3f})")
+    if args.init and Path(args.init).suffix == ".onnx":  # a shipped decoder: its weights (latents: see above)
+        record = init_decoder(dec, Path(args.init))
+        log(f"decoder from {args.init} (sha256 {record['sha256'][:12]})")
+        return record
+    if args.init:  # start from another run: its decoder, and its latents for the units both share
+        s0 = torch.load(args.init, weights_only=False)
+        dec.load_state_dict(s0["decoder"])
+        k = min(n_units, s0["latents"].shape[0])
+        latents.data[:k] = s0["latents"][:k]
+        if not args.init_latents_from:
+            latents.data[k:] = s0["latents"].mean(0)
+        log(f"decoder and {k} latents from {args.init}")
+    return None
+
+
+def set_losses(pred, f, wi, wo, row_set, kinds, scales, grazing_floor: float, ema_set: list) -> torch.Tensor:
+    """Mean loss of a batch whose rows come from several data sets, each with its own loss (exact targets:
+    l1; noisy: l2rel) and scale; updates each set's running mean ``ema_set`` (unscaled)."""
+    terms = torch.zeros_like(pred)
+    for i, kind in enumerate(kinds):
+        m = row_set == i
+        if m.any():
+            terms[m] = scales[i] * pair_loss(pred[m], f[m], wi[m], wo[m], kind, grazing_floor)
+            v = terms[m].mean().item() / scales[i].item()
+            ema_set[i] = v if ema_set[i] is None else 0.98 * ema_set[i] + 0.02 * v
+    return terms.mean()
+
+
 def brdf_loss(pred, target, wi, wo, kind: str) -> torch.Tensor:
     return pair_loss(pred, target, wi, wo, kind).mean()
 
@@ -97,6 +183,11 @@ def train(args, log=print) -> dict:
             or len(args.data_weights or [0] * n_sets) != n_sets:
         raise ValueError(f"--loss, --loss-scales and --data-weights take one value per --data set ({n_sets}) "
                          f"(--loss may also take one for all)")
+    rank, world = distributed()
+    if args.batch % world:
+        raise ValueError(f"--batch {args.batch} must be a multiple of the {world} processes")
+    if rank:
+        log = lambda s: None  # noqa: E731  (process 0 speaks for all)
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
@@ -108,19 +199,7 @@ def train(args, log=print) -> dict:
     if args.init_scheme == "he":
         he_init(dec)
     latents = torch.nn.Parameter(torch.randn(n_units, 32, generator=gen) * 0.01)
-    if args.init_latents_from:  # start in a shipped size's latent space: its encoder (+ layering network)
-        z0 = initial_latents(t["arrays"], args.init_latents_from, args.materials, args.threads)
-        latents.data.copy_(torch.from_numpy(z0))
-        log(f"latents start from the {args.init_latents_from} encoder / layering network "
-            f"(mean |z| {float(np.abs(z0).mean()):.3f})")
-    if args.init:  # start from another run: its decoder, and its latents for the units both share
-        s0 = torch.load(args.init, weights_only=False)
-        dec.load_state_dict(s0["decoder"])
-        k = min(n_units, s0["latents"].shape[0])
-        latents.data[:k] = s0["latents"][:k]
-        if not args.init_latents_from:
-            latents.data[k:] = s0["latents"].mean(0)
-        log(f"decoder and {k} latents from {args.init}")
+    init_record = start_from(args, t, dec, latents, log)
     # sampling weight of each unit: data set i gets the share data_weights[i] of every batch
     src = t["source"].repeat_interleave(3)
     w = torch.tensor(args.data_weights or [1.0] * len(args.data), dtype=torch.float32)
@@ -131,6 +210,7 @@ def train(args, log=print) -> dict:
     units_per_set = [int(c) for c in counts.tolist()]  # src is per unit (material * 3 + channel)
     opt = torch.optim.Adam([{"params": dec.parameters(), "lr": args.lr},
                             {"params": [latents], "lr": args.lr * args.latent_lr_scale}])
+    model = AutoDecoder(dec, latents)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "ckpt.pt"
@@ -141,7 +221,11 @@ def train(args, log=print) -> dict:
         latents.data.copy_(s["latents"])
         opt.load_state_dict(s["opt"])
         step = s["step"]
+        init_record = s.get("init_record", init_record)
         log(f"resumed from {ckpt} at step {step}")
+    if world > 1:  # gradients averaged over the processes (parameters are identical: same seed, same start)
+        model = torch.nn.parallel.DistributedDataParallel(model)
+    share = args.batch // world
     log(f"decoder {dec.config()} params {n_params(dec)} MACs/eval {macs_per_eval(dec)}; "
         f"{n_units} BRDF channels")
     t0 = time.perf_counter()
@@ -151,35 +235,36 @@ def train(args, log=print) -> dict:
         opt.param_groups[0]["lr"] = lr
         opt.param_groups[1]["lr"] = lr * args.latent_lr_scale
         units = torch.multinomial(unit_w, args.batch, replacement=True, generator=gen)
-        wi, wo, f = batch_of(t, units, args.pairs, gen)
-        z = latents[units].repeat_interleave(args.pairs, dim=0)
-        pred = dec(z, wi, wo)
+        wi, wo, f = batch_of(t, units, args.pairs, gen)  # the whole batch on every process (same generator)
+        rows = slice(rank * share * args.pairs, (rank + 1) * share * args.pairs)
+        units, wi, wo, f = units[rank * share:(rank + 1) * share], wi[rows], wo[rows], f[rows]
+        pred, z_sq = model(units, wi, wo, args.pairs)
         row_set = src[units].long().repeat_interleave(args.pairs)
-        terms = torch.zeros_like(pred)
-        for i, kind in enumerate(kinds):  # each set with its own loss (exact targets: l1; noisy: l2rel)
-            m = row_set == i
-            if m.any():
-                terms[m] = scales[i] * pair_loss(pred[m], f[m], wi[m], wo[m], kind)
-                v = terms[m].mean().item() / scales[i].item()
-                ema_set[i] = v if ema_set[i] is None else 0.98 * ema_set[i] + 0.02 * v
-        loss = terms.mean()
-        reg = args.latent_reg * (latents[units] ** 2).mean()
+        loss = set_losses(pred, f, wi, wo, row_set, kinds, scales, args.grazing_floor, ema_set)
+        reg = args.latent_reg * z_sq
         opt.zero_grad(set_to_none=True)
         (loss + reg).backward()
         if args.clip > 0:
             torch.nn.utils.clip_grad_norm_(list(dec.parameters()) + [latents], args.clip)
         opt.step()
         step += 1
-        ema = loss.item() if ema is None else 0.98 * ema + 0.02 * loss.item()
+        lv = loss.detach().clone()
+        if world > 1:  # the whole batch's loss (each process holds the mean of its share)
+            torch.distributed.all_reduce(lv)
+            lv /= world
+        ema = lv.item() if ema is None else 0.98 * ema + 0.02 * lv.item()
         if step % args.log_every == 0 or step == args.steps:
             el = time.perf_counter() - t0
             per_set = " ".join(f"{v:.5f}" for v in ema_set if v is not None) if len(kinds) > 1 else ""
             log(f"step {step}/{args.steps} loss {ema:.5f}{' (sets ' + per_set + ')' if per_set else ''} "
                 f"lr {lr:.2e} {el:.0f} s")
-        if step % args.every == 0 or step == args.steps:
+        if (step % args.every == 0 or step == args.steps) and rank == 0:
             torch.save({"decoder": dec.state_dict(), "config": dec.config(), "latents": latents.data,
-                        "opt": opt.state_dict(), "step": step, "args": vars(args) | {"data": [str(p) for p in args.data]},
-                        "loss": ema, "loss_per_set": ema_set, "units_per_set": units_per_set}, ckpt.with_suffix(".tmp"))
+                        "opt": opt.state_dict(), "step": step,
+                        "args": vars(args) | {"data": [str(p) for p in args.data]},
+                        "loss": ema, "loss_per_set": ema_set, "units_per_set": units_per_set,
+                        "init_record": init_record, "world_size": world,
+                        "channels_per_process": share}, ckpt.with_suffix(".tmp"))
             ckpt.with_suffix(".tmp").replace(ckpt)
     return {"loss": ema, "step": step, "loss_per_set": ema_set, "units_per_set": units_per_set}
 
@@ -192,7 +277,9 @@ def parser():
     ap.add_argument("--data", type=Path, nargs="+", required=True)
     ap.add_argument("--data-weights", type=float, nargs="+", default=None,
                     help="share of each --data set in a batch (default: equal shares)")
-    ap.add_argument("--init", type=Path, default=None, help="start from this checkpoint's decoder and latents")
+    ap.add_argument("--init", type=Path, default=None,
+                    help="start from this checkpoint's decoder and latents, or from a shipped "
+                         "decoder_<size>.onnx's weights")
     ap.add_argument("--init-latents-from", default=None,
                     help="start the latents from this shipped size's encoder (its latent space), then optimise them")
     ap.add_argument("--materials", type=int, default=0, help="use only the first N materials (0: all)")
@@ -211,6 +298,8 @@ def parser():
                     help="loss per --data set, or one for all (l1 for exact targets, l2rel for Monte Carlo ones)")
     ap.add_argument("--loss-scales", type=float, nargs="+", default=None,
                     help="factor on each --data set's loss (default 1 each)")
+    ap.add_argument("--grazing-floor", type=float, default=1.0,
+                    help="divide each pair's loss term by max(min(cos_i, cos_o), this) (nets.pair_loss; 1: off)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--every", type=int, default=250, help="checkpoint every N steps")
@@ -222,7 +311,10 @@ def parser():
 def main(argv=None):
     args = parser().parse_args(argv)
     res = train(args, log=lambda s: print(s, file=sys.stderr, flush=True))
-    (Path(args.out) / "train.json").write_text(json.dumps({"args": vars(args) | {"data": [str(p) for p in args.data]}, **res}, default=str))
+    if distributed()[0]:
+        return
+    record = {"args": vars(args) | {"data": [str(p) for p in args.data]}, **res}
+    (Path(args.out) / "train.json").write_text(json.dumps(record, default=str))
 
 
 if __name__ == "__main__":
