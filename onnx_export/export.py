@@ -198,7 +198,11 @@ def training_commands(ckpt: dict) -> list[str]:
         return []
     out = [command_line("onnx_export.train_decoder", a, skip=("every", "log_every"))]
     init = a.get("init")
-    if init not in (None, "None") and Path(str(init)).exists():
+    record = ckpt.get("init_record")
+    if record is not None:  # started from a shipped decoder's ONNX weights: the command that made them
+        earlier = record.get("earlier_stages", []) + ([record["command"]] if record.get("command") else [])
+        out = earlier + out
+    elif init not in (None, "None") and Path(str(init)).exists():
         out = training_commands(torch.load(str(init), weights_only=False)) + out
     return out
 
@@ -266,6 +270,8 @@ def main(argv=None):
             "data": data_cmd,
             "command": stages[-1],
             **({"earlier_stages": stages[:-1]} if len(stages) > 1 else {}),
+            **({"started_from": {k: v for k, v in dck["init_record"].items() if k != "earlier_stages"}}
+               if dck.get("init_record") else {}),
             "steps": dck["step"], "final_loss": dck.get("loss"),
             "seeds": {"data": 1, "training": targs.get("seed", 0)},
             "loss": loss_text(targs),

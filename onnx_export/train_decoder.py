@@ -121,8 +121,9 @@ def init_decoder(dec: Decoder, path: Path) -> dict:
     if src.config() != dec.config():
         raise ValueError(f"{path.name} is {src.config()}, the run trains {dec.config()}: give the size it was made for")
     dec.load_state_dict(src.state_dict())
+    tr = card.get("training", {})
     return {"file": path.name, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
-            "command": card.get("training", {}).get("command")}
+            "command": tr.get("command"), "earlier_stages": tr.get("earlier_stages", [])}
 
 
 def start_from(args, t: dict, dec: Decoder, latents: torch.nn.Parameter, log) -> dict | None:

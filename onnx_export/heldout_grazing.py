@@ -1,0 +1,138 @@
+"""Grazing references of the held-out stacks: directional albedo and f cos(theta_i) near the horizon.
+
+    python -m onnx_export.heldout_grazing --walks 256 --res 16 --view-walks 4096 --out tests/data/heldout_grazing.npz
+
+The stacks are those of ``tests/data/heldout_layered.npz`` (``heldout_layered.configs()``); the incident
+elevations ``GRAZING_ANGLES_DEG`` run from 75 to 89.5 degrees. For each stack and elevation it stores
+
+- ``albedo`` (C, A, 3): the directional albedo, the sum of a lobe image of resolution ``--res``
+  (``addon.core.lobe``; the walks start at the incident direction and connect to every pixel, by
+  reciprocity), with ``albedo_stderr`` from the walks' own spread (the pixels of one walk are correlated,
+  so the standard error of the sum is bounded by the sum of the pixels' standard errors, which is stored);
+- ``fcos`` (C, A, 3): f(wi, wo) cos(theta_i) with the viewer on the normal (wo = +z), the brightness a
+  light at that elevation gives a surface seen head-on; the walks start at the viewer and connect to all
+  incident directions at once, with ``fcos_stderr``.
+
+A network's values on the same lobe grid and directions give the grazing ratios (network / reference) that
+``tests/training/test_grazing.py`` bounds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from addon.core import lobe
+from addon.core.stack import Stack, StackArrays
+from onnx_export.heldout_layered import HELDOUT_SEED, configs
+
+GRAZING_ANGLES_DEG = (75.0, 80.0, 82.0, 85.0, 86.0, 88.0, 89.5)
+GRAZING_SEED = HELDOUT_SEED + 2000
+
+
+def grazing_albedo_reference(stacks: list[Stack], angles, walks: int, res: int, seed: int, log=print):
+    """(C, A, 3) albedo and the sum of the pixels' standard errors, from lobe images at ``angles``."""
+    from addon.core import reference
+
+    wo_grid, mask = lobe.lobe_grid(res)
+    na = len(angles)
+    inc = np.stack([lobe.incident_direction(t) for t in angles])
+    alb = np.zeros((len(stacks), na, 3))
+    err = np.zeros_like(alb)
+    t0 = time.perf_counter()
+    for c in sorted({len(s.coatings) for s in stacks}):
+        idx = [i for i, s in enumerate(stacks) if len(s.coatings) == c]
+        rows = StackArrays.from_stacks([stacks[i] for i in idx for _ in range(na)])
+        wo = np.tile(inc, (len(idx), 1))
+        wi = np.broadcast_to(wo_grid[mask], (wo.shape[0], int(mask.sum()), 3))
+        f, se = reference.eval_brdf_many(rows, wi, wo, walks=walks, seed=seed + c)
+        area = (2.0 / res) ** 2  # the grid is uniform on the projected disk: albedo = sum of f times the area
+        alb[idx] = (f.sum(axis=1) * area).reshape(len(idx), na, 3)
+        err[idx] = (se.sum(axis=1) * area).reshape(len(idx), na, 3)
+        log(f"[heldout grazing] albedo, {len(idx)} stacks with {c} coating(s), {time.perf_counter() - t0:.0f} s")
+    return alb, err
+
+
+def grazing_fcos_reference(stacks: list[Stack], angles, walks: int, seed: int):
+    """(C, A, 3) f(wi, +z) cos(theta_i) and its standard error, one walk set per stack from the viewer."""
+    from addon.core import reference
+
+    inc = np.stack([lobe.incident_direction(t) for t in angles])
+    wo = np.tile([0.0, 0.0, 1.0], (len(stacks), 1))
+    wi = np.broadcast_to(inc, (len(stacks), len(angles), 3))
+    out_f = np.zeros((len(stacks), len(angles), 3))
+    out_e = np.zeros_like(out_f)
+    for c in sorted({len(s.coatings) for s in stacks}):  # one batched call per coating count (same layout)
+        idx = [i for i, s in enumerate(stacks) if len(s.coatings) == c]
+        rows = StackArrays.from_stacks([stacks[i] for i in idx])
+        f, se = reference.eval_brdf_many(rows, wi[idx], wo[idx], walks=walks, seed=seed + 10 + c)
+        out_f[idx], out_e[idx] = f, se
+    cos_i = inc[:, 2][None, :, None]
+    return out_f * cos_i, out_e * cos_i
+
+
+def network_grazing(models, stacks: list[Stack], angles, res: int) -> tuple[np.ndarray, np.ndarray]:
+    """The runtime path's (C, A, 3) albedo on the same lobe grid and f cos(theta_i) for the viewer on the normal."""
+    from addon.core.neural import encode_arrays
+
+    z = np.zeros((len(stacks), 3, 32), np.float32)
+    for c in sorted({len(s.coatings) for s in stacks}):  # one batch per coating count
+        idx = [i for i, s in enumerate(stacks) if len(s.coatings) == c]
+        z[idx] = encode_arrays(StackArrays.from_stacks([stacks[i] for i in idx]), models)
+    alb = np.array([[lobe.albedo_from_lobe(lobe.lobe_image(lambda wi, wo, k=k: models.eval_brdf(z[k], wi, wo), t, res))
+                     for t in angles] for k in range(len(stacks))])
+    inc = np.stack([lobe.incident_direction(t) for t in angles])
+    view = np.tile([0.0, 0.0, 1.0], (len(angles), 1))
+    fcos = np.array([models.eval_brdf(z[k], inc, view) * inc[:, 2:3] for k in range(len(stacks))])
+    return alb, fcos
+
+
+def grazing_ratios(models, data: dict) -> dict:
+    """Network / reference of the albedo and of f cos(theta_i) (RGB mean), (C, A) each, with the angles."""
+    stacks = [s if isinstance(s, Stack) else Stack.from_json(str(s)) for s in data["stacks"]]
+    alb, fcos = network_grazing(models, stacks, data["angles"], int(data["res"]))
+    tiny = 1e-12
+    return {"angles": np.asarray(data["angles"]), "n_coatings": np.asarray(data["n_coatings"]),
+            "albedo": alb.mean(-1) / np.maximum(data["albedo"].mean(-1), tiny),
+            "fcos": fcos.mean(-1) / np.maximum(data["fcos"].mean(-1), tiny)}
+
+
+def load(path) -> dict:
+    d = dict(np.load(path, allow_pickle=False))
+    d["stacks"] = [Stack.from_json(str(s)) for s in d["stacks"]]
+    return d
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--walks", type=int, default=256, help="reference walks per incident direction (albedo)")
+    ap.add_argument("--res", type=int, default=16, help="lobe grid of the albedo")
+    ap.add_argument("--view-walks", type=int, default=4096, help="walks from the viewer (f cos theta_i)")
+    ap.add_argument("--out", type=Path, required=True)
+    a = ap.parse_args(argv)
+    if a.walks < 1 or a.view_walks < 1 or a.res < 2:
+        ap.error(f"--walks and --view-walks must be >= 1 and --res >= 2, got {a.walks}, {a.view_walks}, {a.res}")
+    lg = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
+    stacks = configs()
+    angles = GRAZING_ANGLES_DEG
+    fcos, fcos_se = grazing_fcos_reference(stacks, angles, a.view_walks, GRAZING_SEED)
+    lg("[heldout grazing] f cos done")
+    alb, alb_se = grazing_albedo_reference(stacks, angles, a.walks, a.res, GRAZING_SEED, log=lg)
+    cmd = "python -m onnx_export.heldout_grazing " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(a.out, albedo=alb.astype(np.float32), albedo_stderr=alb_se.astype(np.float32),
+                        fcos=fcos.astype(np.float32), fcos_stderr=fcos_se.astype(np.float32),
+                        angles=np.asarray(angles), res=np.array(a.res),
+                        n_coatings=np.array([len(s.coatings) for s in stacks]),
+                        stacks=np.array([s.to_json() for s in stacks]), command=np.array(cmd))
+    print(json.dumps({"stacks": len(stacks), "angles": list(angles), "out": str(a.out)}))
+
+
+if __name__ == "__main__":
+    main()
