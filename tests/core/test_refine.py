@@ -18,7 +18,7 @@ COATED = Stack(
     Conductor(eta=(0.2, 0.4, 1.4), k=(3.9, 2.4, 1.6), roughness=0.3),
     (Coating(roughness=0.05, ior=1.5, thickness=0.5, albedo=(0.8, 0.5, 0.3)),),
 )
-QUICK = rf.RefineSettings(fit_groups=16, validation_groups=8, per_group=16, walks=16, steps=120)
+QUICK = rf.RefineSettings(fit_groups=16, validation_groups=8, per_group=16, walks=32, steps=120)
 
 
 def _directions(rng, n, grazing=False):
