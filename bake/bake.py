@@ -339,9 +339,9 @@ def run(jobs: list[Job], out: Path, encode, model: str, shard: tuple[int, int], 
 
     The bake key of a material hashes its inputs and the model: the size and, when the encoder
     tells it (``encode.metadata["model_digest"]``), the decoder file's digest, so bands and
-    textures of a retrained model are never reused."""
+    textures of a retrained model are never reused; and the refinement budget (``--refine``)."""
     model_metadata = getattr(encode, "metadata", None) or {}
-    model_id = model_key(model, model_metadata.get("model_digest"))
+    model_id = model_key(model, model_metadata.get("model_digest"), model_metadata.get("refine_s", 0.0))
     _check_output_folder(out, jobs)
     files.remove_stale_temps(out)
     items = []
@@ -520,8 +520,6 @@ def _bake(argv: list[str], encode) -> int:
         except (OSError, ValueError, ImportError) as e:  # missing (FileNotFoundError) or damaged models
             raise BadInput(f"--model {args.model}: {e}") from None
     model = getattr(encode, "metadata", {}).get("model", args.model)  # "auto" resolved by the encoder
-    if getattr(encode, "metadata", {}).get("refine_s"):  # refined bands are not the unrefined ones: another key
-        model = f"{model}+refine{encode.metadata['refine_s']:g}"
     stats = run(jobs, args.out, encode, model, shard, args.band_rows, dedup=not args.no_dedup)
     print(f"baked {stats['bands_baked']} band(s), kept {stats['bands_skipped']}, assembled {stats['assembled']}")
     return EXIT_DONE

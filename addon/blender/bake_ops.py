@@ -108,25 +108,28 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
             res = min(res, camera_resolution(context, mat, spatial), key=lambda r: r[0] * r[1])
         size = bake_size(mat)
         path = texture_output_path(mat)
-        key = bake_key(spatial, res, bake_model_key(size))  # with the decoder's digest, as bake_state checks it
+        refine_s = float(f"{s.bake_refine:g}")  # the float32 property's 0.01 is 0.00999999977 in float64
+        key = bake_key(spatial, res, bake_model_key(size, refine_s))  # decoder digest and budget, as bake_state checks
+        refine_cache = os.path.join(os.path.dirname(path), ".refine")  # as the bake CLI's OUT/.refine
         name = mat.name
 
         def work(progress):
             t0 = time.perf_counter()
-            encode = neural_encoder(size)
+            encode = neural_encoder(size, refine_s=refine_s, refine_cache=refine_cache)
             tex, stats = bake_stack(spatial, encode, resolution=res, progress=progress,
                                     metadata={"material": name, "model": size, "key": key})
             os.makedirs(os.path.dirname(path), exist_ok=True)
             tex.write_exr(path)
-            return stats, time.perf_counter() - t0
+            return stats, time.perf_counter() - t0, (getattr(encode, "metadata", None) or {}).get("refined")
 
         def finish(context, result):
-            stats, seconds = result
+            stats, seconds, refined = result
             mat.neural_layers.texture_path = bpy.path.relpath(path) if bpy.data.filepath else path
             mat.neural_layers.texture_key = key
             mat.neural_layers.texture_size = res
-            self.report({"INFO"}, f"{name}: baked {res[1]}x{res[0]} ({stats.unique} distinct of {stats.texels} texels, "
-                                  f"{stats.texels_per_second:,.0f} texels/s) in {seconds:.1f} s -> {path}")
+            refined = "" if refined is None else f", {refined} refined"
+            self.report({"INFO"}, f"{name}: baked {res[1]}x{res[0]} ({stats.unique} distinct of {stats.texels} texels"
+                                  f"{refined}, {stats.texels_per_second:,.0f} texels/s) in {seconds:.1f} s -> {path}")
             return {"FINISHED"}
 
         return work, finish

@@ -43,11 +43,12 @@ def bake_size(mat) -> str:
         raise UserError(str(e)) from None
 
 
-def bake_model_key(size: str) -> str:
-    """The model part of the bake key of a bake with decoder ``size``: the size and the shipped decoder
-    file's digest, as the bake CLI keys its textures (``textures.bake.model_key``)."""
+def bake_model_key(size: str, refine_s: float = 0.0) -> str:
+    """The model part of the bake key of a bake with decoder ``size`` and refinement budget ``refine_s``:
+    the size, the budget and the shipped decoder file's digest, as the bake CLI keys its textures
+    (``textures.bake.model_key``)."""
     try:
-        return model_key(size, load_models(size).digest)
+        return model_key(size, load_models(size).digest, refine_s)
     except (ValueError, FileNotFoundError, ModelFileError) as e:
         raise UserError(str(e)) from None
 
@@ -69,7 +70,7 @@ def baked_texture_state(mat) -> tuple[str | None, str]:
     spatial, _ = found
     res = tuple(s.texture_size)
     try:
-        model = bake_model_key(bake_size(mat))
+        model = bake_model_key(bake_size(mat), s.bake_refine)
     except UserError as e:
         return None, str(e)
     if bake_key(spatial, res, model) != s.texture_key:

@@ -309,6 +309,16 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
         "at the render resolution (also capped by Bake Resolution and the images)",
         default=False,
     )
+    bake_refine: FloatProperty(
+        name="Refine (s)",
+        description="Seconds in all for refining the baked latents against the reference (distinct texels in "
+        "order, each at most 10 s; cached in the bake folder's .refine), as the bake command's --refine; "
+        "0 = off: the encoder's latents as they are",
+        default=0.0,
+        min=0.0,
+        soft_max=600.0,
+        unit="TIME_ABSOLUTE",
+    )
     texture_size: IntVectorProperty(
         name="Latent Texture Size", description="(height, width) the latent texture was baked at", size=2,
         default=(0, 0),

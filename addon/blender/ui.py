@@ -226,6 +226,7 @@ class _BakePanel(_LayersPanel):
         col.enabled = len(s.layers) > 0
         col.prop(s, "bake_resolution")
         col.prop(s, "bake_fit_camera")
+        col.prop(s, "bake_refine")
         col.prop(s, "bake_directory")
         col.operator("neural_layers.bake_texture", icon="RENDER_STILL")
         if s.texture_path:

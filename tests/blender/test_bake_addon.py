@@ -10,7 +10,7 @@ from tests.blender.helpers import run_operator
 ops = pytest.importorskip("bpy").ops.neural_layers
 
 
-def stand_in_encoder(size, threads=2):
+def stand_in_encoder(size, threads=2, refine_s=0.0, refine_cache=None):
     proj = np.random.default_rng(5).normal(size=(64, 98)) * 0.1
 
     def encode(arrays):
@@ -227,3 +227,31 @@ def test_a_texture_baked_with_another_decoder_file_is_out_of_date(wood, bpy_addo
     assert path is None and "out of date" in state
     assert run_operator(ops.bake_texture).finished  # baking again with it makes it current
     assert bake_ops.baked_texture_state(wood)[0] is not None
+
+
+def test_bake_refine_option_refines_the_distinct_texels_and_keys_the_bake_apart(bpy_addon, material, tmp_path):
+    """Refine (s) > 0 passes the budget to the core bake as the bake command's --refine does: the texture
+    records it and the refined count, the refinement is cached beside the texture, and the budget is part
+    of the freshness key (changing it makes the texture out of date)."""
+    from addon.blender import bake_ops
+    from addon.core.textures import LatentTexture
+
+    # not the Refine button tests' stack: refinements share one in-memory cache, whatever their budget
+    assert run_operator(ops.preset_apply, preset="lacquered_plastic").finished
+    s = material.neural_layers
+    s.bake_directory, s.model_size = str(tmp_path), "TINY"
+    assert s.bake_refine == 0.0  # off by default
+    assert run_operator(ops.bake_texture).finished
+    plain_key = s.texture_key
+    assert "refined" not in LatentTexture.read_exr(bake_ops.baked_texture_state(material)[0]).metadata
+    s.bake_refine = 0.01
+    assert bake_ops.baked_texture_state(material)[0] is None  # another budget: out of date
+    r = run_operator(ops.bake_texture)
+    assert r.finished, r.error
+    path, state = bake_ops.baked_texture_state(material)
+    assert path is not None and s.texture_key != plain_key, state
+    tex = LatentTexture.read_exr(path)
+    assert tex.metadata["refined"] == "1" and float(tex.metadata["refine_s"]) == 0.01
+    assert len(list((tmp_path / ".refine").glob("refine_*.npz"))) == 1
+    s.bake_refine = 0.0
+    assert bake_ops.baked_texture_state(material)[0] is None

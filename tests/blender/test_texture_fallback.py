@@ -14,7 +14,7 @@ ops = pytest.importorskip("bpy").ops.neural_layers
 def baked(bpy_addon, material, tmp_path, monkeypatch):
     from addon.blender import bake_ops
 
-    monkeypatch.setattr(bake_ops, "neural_encoder", lambda size, threads=2: stand_in_encoder())
+    monkeypatch.setattr(bake_ops, "neural_encoder", lambda size, threads=2, **refine: stand_in_encoder())
     assert run_operator(ops.preset_apply, preset="varnished_wood").finished
     material.neural_layers.bake_directory = str(tmp_path)
     r = run_operator(ops.bake_texture)

@@ -77,11 +77,13 @@ def _refine_rows(arrays: StackArrays, z: np.ndarray, models, left: list, cache_d
     return z
 
 
-def model_key(size: str, digest: str | None) -> str:
-    """The model part of a bake key: the decoder size and, when known, the decoder file's digest
+def model_key(size: str, digest: str | None, refine_s: float = 0.0) -> str:
+    """The model part of a bake key: the decoder size, the refinement budget when there is one
+    (refined texels are not the encoded ones) and, when known, the decoder file's digest
     (``encode.metadata["model_digest"]``, ``ModelSet.digest``), so a bake made with an earlier
-    decoder of the same size is never taken for current."""
-    return f"{size}:{digest}" if digest else size
+    decoder of the same size, or with another refinement budget, is never taken for current."""
+    name = f"{size}+refine{refine_s:g}" if refine_s else size
+    return f"{name}:{digest}" if digest else name
 
 
 def bake_key(spatial: SpatialStack, resolution: tuple[int, int], model: str,
