@@ -7,6 +7,12 @@ Runs as a plain script with the ``bpy`` module, or inside Blender:
     python bake/bake.py --blend scene.blend --material Wood --material CarPaint --out textures/
     blender -b --python bake/bake.py -- --blend scene.blend --material Wood --out textures/
 
+Driving images are read by one colour-space rule (``addon.core.textures.colour_maps``): an
+image driving a colour (albedo) is decoded from sRGB to linear when it is stored as 8- or 16-bit
+integers without a linear colour-space tag, as Blender's default "sRGB"; float images (EXR, HDR)
+are linear; every other parameter and the mask read the raw values (Blender's "Non-Color").
+``--map PATH=FILE@SPACE`` or ``--mask FILE@SPACE`` overrides it (auto, srgb, linear, non-color).
+
 Writes ``<out>/<file>.exr`` (tiled, mip-mapped, half-float latent texture) and
 ``<out>/<file>.json`` (stack, driving images, models, timings) per material, where ``<file>`` is
 the material name (or ``--name``) made safe as a file name: a name holding path separators or
@@ -47,11 +53,11 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from addon.core.stack import PRESETS, Stack, preset  # noqa: E402
-from addon.core.textures import files  # noqa: E402
+from addon.core.textures import colour_maps, files  # noqa: E402
 from addon.core.textures.bake import _texels_at, bake_key, bake_texels, model_key, neural_encoder  # noqa: E402
-from addon.core.textures.latent_texture import CHANNEL_NAMES, LatentTexture, read_image  # noqa: E402
+from addon.core.textures.latent_texture import CHANNEL_NAMES, LatentTexture, read_image_file  # noqa: E402
 from addon.core.textures.mip import resample_area  # noqa: E402
-from addon.core.textures.spatial import SpatialStack  # noqa: E402
+from addon.core.textures.spatial import SpatialStack, parse_parameter_path  # noqa: E402
 
 EXIT_DONE, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
 EXIT_SIGNAL = {signal.SIGINT: 130, signal.SIGTERM: 143}  # 128 + signal number, as shells report it
@@ -96,17 +102,34 @@ class Job:
         return arrays, _texels_at(self.mix, self.resolution)[0], m.reshape(-1, 1)
 
 
-_MAP = re.compile(r"^(?P<path>[^=]+)=(?P<file>.+?)(?::(?P<lo>[-+0-9.eE]+):(?P<hi>[-+0-9.eE]+))?$")
+_SPACE = r"(?:@(?P<space>[A-Za-z][\w-]*))?"
+_MAP = re.compile(r"^(?P<path>[^=]+)=(?P<file>.+?)" + _SPACE + r"(?::(?P<lo>[-+0-9.eE]+):(?P<hi>[-+0-9.eE]+))?$")
+_MASK = re.compile(r"^(?P<file>.+?)" + _SPACE + "$")
 
 
-def parse_map(spec: str) -> tuple[str, Path, float, float]:
-    """``PATH=FILE[:LO:HI]``: image values in [0, 1] are mapped linearly onto [LO, HI]."""
+def parse_map(spec: str) -> tuple[str, Path, float, float, str]:
+    """``PATH=FILE[@SPACE][:LO:HI]``: image values in [0, 1], decoded by the colour-space rule
+    (``colour_maps``; SPACE overrides it), are mapped linearly onto [LO, HI]."""
     m = _MAP.match(spec)
     if not m:
         raise BadInput(f"--map {spec!r} must look like 'coatings[0].roughness=rough.png' or '...=rough.png:0.01:0.5'")
     lo = float(m.group("lo")) if m.group("lo") is not None else 0.0
     hi = float(m.group("hi")) if m.group("hi") is not None else 1.0
-    return m.group("path").strip(), Path(m.group("file")), lo, hi
+    return m.group("path").strip(), Path(m.group("file")), lo, hi, _space(m.group("space"), f"--map {spec!r}")
+
+
+def _space(name: str | None, what: str) -> str:
+    try:
+        return colour_maps.colour_space(name or "auto")
+    except ValueError as e:
+        raise BadInput(f"{what}: {e}") from None
+
+
+def read_map(file: Path, field: str, space: str) -> tuple[np.ndarray, str]:
+    """A driving image's values for ``field`` by the colour-space rule, and how they were decoded."""
+    pixels, is_float, tag, alpha = read_image_file(file)
+    how = colour_maps.decoding(field, space, is_float, tag)
+    return colour_maps.decode(pixels, how, alpha), ("sRGB -> linear" if how == "srgb" else "raw")
 
 
 def parse_shard(text: str) -> tuple[int, int]:
@@ -123,13 +146,13 @@ def preset_job(args) -> list[Job]:
         raise BadInput(str(e)) from None
     maps, sources = {}, {}
     for spec in args.map or []:
-        path, file, lo, hi = parse_map(spec)
+        path, file, lo, hi, space = parse_map(spec)
         try:
-            img = read_image(file)
+            img, how = read_map(file, parse_parameter_path(stack, path)[2], space)
         except (FileNotFoundError, ValueError) as e:
             raise BadInput(f"--map {path}: {e}") from None
         maps[path] = lo + (hi - lo) * img
-        sources[path] = f"{file.name} [{lo}, {hi}]"
+        sources[path] = f"{file.name} ({how}) [{lo}, {hi}]"
     try:
         spatial = SpatialStack(stack, maps)
     except ValueError as e:
@@ -138,9 +161,12 @@ def preset_job(args) -> list[Job]:
     if args.mix or args.mask:
         if not (args.mix and args.mask):
             raise BadInput("--mix and --mask go together: --mix PRESET --mask IMAGE blends the two stacks")
+        m = _MASK.match(str(args.mask))
+        space = _space(m.group("space"), f"--mask {args.mask}")
+        args.mask = Path(m.group("file"))
         try:
             mix = SpatialStack(preset(args.mix))
-            mask = read_image(args.mask)[..., 0].astype(np.float64)
+            mask = read_map(args.mask, "mask", space)[0][..., 0].astype(np.float64)
         except (FileNotFoundError, ValueError) as e:
             raise BadInput(f"--mix/--mask: {e}") from None
         check_mask(mask, args.mask)
@@ -489,10 +515,15 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     src.add_argument("--preset", help=f"bake a preset stack: {', '.join(sorted(PRESETS))}")
     ap.add_argument("--material", action="append",
                     help="material name in --blend (repeatable; default: all with a stack)")
-    ap.add_argument("--map", action="append", help="with --preset: PATH=IMAGE[:LO:HI] drives a parameter by an image")
+    ap.add_argument("--map", action="append", help="with --preset: PATH=IMAGE[@SPACE][:LO:HI] drives a parameter by an "
+                    "image. Colour space: an image driving albedo is decoded from sRGB to linear when it is stored "
+                    "as 8/16-bit integers without a linear tag (Blender's default sRGB); float images (EXR, HDR) are "
+                    "linear; every other parameter and the mask read the values raw (Blender's Non-Color). "
+                    f"@SPACE overrides it: {', '.join(colour_maps.COLOUR_SPACES)} (e.g. base.albedo=colour.png@linear)")
     ap.add_argument("--name", help="with --preset: output name (default: the preset's)")
     ap.add_argument("--mix", help="with --preset and --mask: a second preset blended in latent space")
-    ap.add_argument("--mask", type=Path, help="with --mix: image whose first channel (0..1) blends towards --mix")
+    ap.add_argument("--mask", type=Path, help="with --mix: IMAGE[@SPACE] whose first channel (0..1, raw unless @srgb) "
+                    "blends towards --mix")
     ap.add_argument("--resolution", type=int, nargs=2, metavar=("H", "W"), help="bake resolution (<= the images')")
     ap.add_argument("--out", type=Path, required=True, help="output folder")
     ap.add_argument("--model", default="auto", help="decoder size whose latent space to bake into (auto: the "

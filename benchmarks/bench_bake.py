@@ -126,6 +126,15 @@ def main(argv=None) -> int:
     text = [
         "# Baking latent textures: speed and size",
         "",
+        "Driving images of `bake/bake.py` (`--map PATH=FILE[@SPACE][:LO:HI]`, `--mask FILE[@SPACE]`) follow one",
+        "colour-space rule (`addon.core.textures.colour_maps`), what a Blender user gets by default: an image "
+        "driving a",
+        "colour (albedo) is decoded from sRGB to linear when it is stored as 8- or 16-bit integers without a linear",
+        "colour-space tag (OpenImageIO's `oiio:ColorSpace`), as Blender's default \"sRGB\" (a byte 128 reads 0.216);",
+        "float images (EXR, HDR) are linear; every other parameter and the mask read the raw values, as Blender's",
+        "\"Non-Color\" (a byte 128 reads 0.502). `@srgb`, `@linear`, `@non-color` or `@auto` overrides the rule "
+        "per image.",
+        "",
         f"Command: `{cmd}` ({os.cpu_count()}-thread CPU, ONNX Runtime on every core; `{args.size}` encoder + "
         "layering + sampling models).",
         f"Load average just after the run ended: {os.getloadavg()[1]:.1f} over 5 minutes (shared with other jobs: "

@@ -60,8 +60,14 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     """Any image OpenImageIO reads (PNG, EXR, TIFF, JPEG, ...) as (H, W, C) float32, rows top to bottom.
 
     Values are the file's raw values (8/16-bit integers normalised to [0, 1]); no colour
-    transform is applied, since a driving image holds parameter values, not colours to display.
+    transform is applied here (``read_image_file`` also tells how the file is encoded, for the
+    colour-space rule of ``colour_maps``).
     """
+    return read_image_file(path)[0]
+
+
+def read_image_file(path: str | os.PathLike) -> tuple[np.ndarray, bool, str, int]:
+    """(raw pixels as ``read_image``, stored as floats?, the ``oiio:ColorSpace`` tag or '', alpha channel or -1)."""
     oiio = oiio_module()
     path = Path(path)
     if not path.is_file():
@@ -74,7 +80,9 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
         pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
         if pixels is None:
             raise ValueError(f"cannot read pixels of {path}: {inp.geterror()}")
-        return np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+        is_float = str(spec.format) in ("half", "float", "double")
+        return (np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels), is_float,
+                spec.get_string_attribute("oiio:ColorSpace"), spec.alpha_channel)
     finally:
         inp.close()
 
