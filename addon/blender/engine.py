@@ -10,6 +10,8 @@ the render's error line); where the neural runtime fails the reference renders i
 ``view_update`` / ``view_draw`` keep a progressive session (``addon.core.render.progressive``)
 for the viewport: 1 sample per pixel at a quarter of the resolution first, then refinement,
 restarted on every edit and every view change; ``_Viewport`` draws its newest image.
+Material thumbnails (``is_preview``) render with ``core.render.thumbnail``'s settings: a few
+samples, few bounces, the fastest decoder, no denoising, no *Auto* measurement.
 The render thread setting of the scene (Threads: Auto / Fixed) decides the cores used.
 """
 
@@ -22,6 +24,7 @@ import numpy as np
 
 from ..core.render import Cancelled, render
 from ..core.render.progressive import ProgressiveSession
+from ..core.render.thumbnail import prepare_thumbnail
 from . import render_operators, render_properties, render_ui, scene_export
 
 ENGINE_ID = "NEURAL_LAYERED"
@@ -122,7 +125,7 @@ def _write_feature_passes(passes, film) -> None:
 class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
     bl_idname = ENGINE_ID
     bl_label = "Neural Layered"
-    bl_use_preview = False
+    bl_use_preview = True  # material thumbnails (render() with is_preview)
     bl_use_shading_nodes_custom = False
 
     def __init__(self, *args, **kwargs):
@@ -154,31 +157,41 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         scene = depsgraph.scene
         props = scene.neural_render
         width, height = scene_export.render_size(scene)
-        if props.denoise:
+        if props.denoise and not self.is_preview:
             for name, channels, ids, _ in render_properties.DENOISING_PASSES:
                 self.add_pass(name, channels, ids)
         result = self.begin_result(0, 0, width, height)
         try:
-            self._render(depsgraph, scene, props, result)
+            self._render(depsgraph, scene, props, result, thumbnail=self.is_preview)
         except Exception as e:  # every failure reaches the UI, not only a console traceback
             self._fail(e)
         finally:
             self.end_result(result)
 
-    def _render(self, depsgraph, scene, props, result):
+    def _settings(self, core_scene, scene, props, thumbnail: bool):
+        """The core settings and the decoder choice's warnings (INFO lines go to ``info``)."""
+        info: list[str] = []
+        warnings: list[str] = []
+        if thumbnail:  # a material thumbnail: small, fast, nothing measured
+            settings, notes = prepare_thumbnail(core_scene, threads=props.to_core(scene=scene).threads)
+            return settings, notes, info
+        self.update_stats("", "Choosing decoders")
+        try:
+            warnings = props.assign_decoders(core_scene, info=info)
+        except Exception as e:  # the stacks stay, on the default decoder or the reference
+            warnings.append(f"decoder choice failed ({_failure(e)}); layered materials use the default decoder")
+        return props.to_core(scene=scene), warnings, info
+
+    def _render(self, depsgraph, scene, props, result, thumbnail: bool = False):
         self.update_stats("", "Exporting scene")
         info: list[str] = []
         core_scene, warnings = scene_export.export_scene(depsgraph, *scene_export.render_size(scene), info=info)
-        self.update_stats("", "Choosing decoders")
-        try:
-            warnings = warnings + props.assign_decoders(core_scene, info=info)
-        except Exception as e:  # the stacks stay, on the default decoder or the reference
-            warnings.append(f"decoder choice failed ({_failure(e)}); layered materials use the default decoder")
-        for line in info:
+        settings, notes, choice_info = self._settings(core_scene, scene, props, thumbnail)
+        warnings = warnings + notes
+        for line in info + choice_info:
             self.report({"INFO"}, line)
         for w in warnings:
             self.report({"WARNING"}, w)
-        settings = props.to_core(scene=scene)
         combined = result.layers[0].passes["Combined"]
 
         def progress(film, done, total):

@@ -404,3 +404,38 @@ def test_denoising_passes_reach_the_compositor(fresh_scene, tmp_path):
     seen = albedo.max(axis=1) > 0
     assert 0 < seen.sum() < len(seen)
     assert np.allclose(np.median(albedo[seen], axis=0), 0.8, atol=1e-3) and albedo.max() <= 0.8 + 1e-3
+
+
+def test_material_thumbnails_render_through_the_engine_with_thumbnail_settings(fresh_scene, tmp_path, monkeypatch):
+    """Headless Blender renders no material previews, so this renders F12 through the engine's own
+    code path with ``is_preview`` stood in as True (the flag Blender sets for a thumbnail)."""
+    from addon.blender import engine, stack_io
+    from addon.core.render.thumbnail import THUMBNAIL_DECODER, thumbnail_settings
+    from addon.core.stack import PRESETS
+
+    assert engine.NeuralLayeredRenderEngine.bl_use_preview
+    ctx = fresh_scene
+    small(ctx.scene, 24, 24, samples=64)
+    stack_io.stack_to_material(PRESETS["red_car_paint"], ctx.scene.objects["Cube"].active_material)
+    ctx.scene.render.engine = "NEURAL_LAYERED"
+    ctx.scene.neural_render.mode = "reference"  # a thumbnail is neural whatever the scene says
+    ctx.scene.neural_render.decoder_quality = "AUTO"
+    ctx.scene.neural_render.denoise = True
+    real = engine.render
+    seen = []
+
+    def recording(scene, settings, **kw):
+        seen.append((settings, [getattr(m, "size", None) for m in scene.materials]))
+        return real(scene, settings, **kw)
+
+    monkeypatch.setattr(engine, "render", recording)
+    monkeypatch.setattr(engine.NeuralLayeredRenderEngine, "is_preview", True, raising=False)
+    ctx.scene.render.filepath = str(tmp_path / "thumb.exr")
+    ctx.scene.render.image_settings.file_format = "OPEN_EXR"
+    bpy.ops.render.render(write_still=True)
+    (settings, sizes), = seen
+    expected = thumbnail_settings(24, 24, threads=settings.threads)
+    assert settings == expected and settings.samples < 64 and settings.mode == "neural"
+    assert THUMBNAIL_DECODER in sizes
+    px = read_image(tmp_path / "thumb.exr")
+    assert np.isfinite(px).all() and px[..., :3].max() > 0
