@@ -408,7 +408,7 @@ def test_denoising_passes_reach_the_compositor(fresh_scene, tmp_path):
 
 def test_material_thumbnails_render_through_the_engine_with_thumbnail_settings(fresh_scene, tmp_path, monkeypatch):
     """Headless Blender renders no material previews, so this renders F12 through the engine's own
-    code path with ``is_preview`` stood in as True (the flag Blender sets for a thumbnail)."""
+    code path, its thumbnail branch taken as Blender's read-only ``is_preview`` would take it."""
     from addon.blender import engine, stack_io
     from addon.core.render.thumbnail import THUMBNAIL_DECODER, thumbnail_settings
     from addon.core.stack import PRESETS
@@ -429,7 +429,9 @@ def test_material_thumbnails_render_through_the_engine_with_thumbnail_settings(f
         return real(scene, settings, **kw)
 
     monkeypatch.setattr(engine, "render", recording)
-    monkeypatch.setattr(engine.NeuralLayeredRenderEngine, "is_preview", True, raising=False)
+    cls = engine.NeuralLayeredRenderEngine
+    real_step = cls._render  # is_preview is Blender's read-only flag: stand in for it one step below
+    monkeypatch.setattr(cls, "_render", lambda self, *a, thumbnail=False: real_step(self, *a, thumbnail=True))
     ctx.scene.render.filepath = str(tmp_path / "thumb.exr")
     ctx.scene.render.image_settings.file_format = "OPEN_EXR"
     bpy.ops.render.render(write_still=True)
