@@ -171,14 +171,17 @@ def preset_job(args) -> list[Job]:
             raise BadInput(f"--mix/--mask: {e}") from None
         check_mask(mask, args.mask)
         if spatial.resolution is not None and spatial.resolution != mask.shape:
-            raise BadInput(f"--mask is {mask.shape[1]}x{mask.shape[0]} but the driving images are "
-                           f"{spatial.resolution[1]}x{spatial.resolution[0]}: they must share a resolution")
+            raise BadInput(
+                f"--mask is {mask.shape[1]}x{mask.shape[0]} but the driving images are "
+                f"{spatial.resolution[1]}x{spatial.resolution[0]}: they must share a resolution"
+            )
         sources["mask"] = f"{args.mask.name} (mixes in {args.mix})"
     native = mask.shape if mask is not None else (spatial.resolution or (1, 1))
     res = tuple(args.resolution) if args.resolution else native
     if not (1 <= res[0] <= native[0] and 1 <= res[1] <= native[1]):
-        raise BadInput(f"bake resolution {res[1]}x{res[0]} must be between 1x1 and the driving images' "
-                       f"{native[1]}x{native[0]}")
+        raise BadInput(
+            f"bake resolution {res[1]}x{res[0]} must be between 1x1 and the driving images' {native[1]}x{native[0]}"
+        )
     return [Job(args.name or args.preset, spatial, res, sources, mix, mask)]
 
 
@@ -187,8 +190,10 @@ def check_mask(mask: np.ndarray, path: Path) -> None:
     bad = ~np.isfinite(mask) | (mask < 0.0) | (mask > 1.0)
     if bad.any():
         y, x = np.argwhere(bad)[0]
-        raise BadInput(f"--mask {path}: {int(bad.sum())} texel(s) outside [0, 1], first {mask[y, x]} at "
-                       f"(x={x}, y={y}); a mask's first channel must hold finite values in [0, 1]")
+        raise BadInput(
+            f"--mask {path}: {int(bad.sum())} texel(s) outside [0, 1], first {mask[y, x]} at "
+            f"(x={x}, y={y}); a mask's first channel must hold finite values in [0, 1]"
+        )
 
 
 def material_reader(bpy):
@@ -207,8 +212,11 @@ def material_reader(bpy):
 
         blender.register()
         prop = bpy.types.Material.bl_rna.properties["neural_layers"]
-    owners = [c for c in bpy.types.PropertyGroup.__subclasses__()
-              if c.__name__ == prop.fixed_type.identifier and getattr(c, "is_registered", False)]
+    owners = [
+        c
+        for c in bpy.types.PropertyGroup.__subclasses__()
+        if c.__name__ == prop.fixed_type.identifier and getattr(c, "is_registered", False)
+    ]
     package = owners[-1].__module__.rsplit(".", 1)[0] if owners else "addon.blender"
     read = importlib.import_module(package + ".bake_inputs").spatial_stack_from_material
 
@@ -228,8 +236,10 @@ def blend_jobs(args) -> list[Job]:
     try:
         import bpy
     except ImportError:
-        raise BadInput("--blend needs Blender's Python or the bpy module (pip install bpy==5.0.1) to read "
-                       f"{args.blend.name}; --preset bakes need neither") from None
+        raise BadInput(
+            "--blend needs Blender's Python or the bpy module (pip install bpy==5.0.1) to read "
+            f"{args.blend.name}; --preset bakes need neither"
+        ) from None
 
     spatial_stack_from_material = material_reader(bpy)
     try:
@@ -299,8 +309,10 @@ def _check_output_folder(out: Path, jobs: list[Job]) -> None:
     for job in jobs:  # file systems that ignore case would still put two of them in one file
         other = seen.setdefault(job.file.casefold(), job.name)
         if other != job.name:
-            raise BadInput(f"materials {other!r} and {job.name!r} would both write {job.file}.exr on a file system "
-                           f"that ignores case; rename one (or bake them into different --out folders)")
+            raise BadInput(
+                f"materials {other!r} and {job.name!r} would both write {job.file}.exr on a file system "
+                f"that ignores case; rename one (or bake them into different --out folders)"
+            )
 
 
 def _band_folder(out: Path, job: Job) -> Path:
@@ -348,8 +360,9 @@ def _bake_band(job: Job, band: int, band_rows: int, encode, dedup: bool, cache: 
     arrays, mixed, mask = cache[job.name]
     h, w = job.resolution
     rows = slice(band * band_rows * w, min((band + 1) * band_rows, h) * w)
-    texels, st = bake_texels(arrays.take(rows), encode, dedup=dedup,
-                             progress=lambda f: bar.update(f"{job.name} band {band}", f))
+    texels, st = bake_texels(
+        arrays.take(rows), encode, dedup=dedup, progress=lambda f: bar.update(f"{job.name} band {band}", f)
+    )
     if mixed is not None:  # blend in latent space: one intermediate lobe per texel
         other, st2 = bake_texels(mixed.take(rows), encode, dedup=dedup)
         texels = ((1.0 - mask[rows]) * texels + mask[rows] * other).astype(np.float32)
@@ -359,8 +372,16 @@ def _bake_band(job: Job, band: int, band_rows: int, encode, dedup: bool, cache: 
     return texels, st
 
 
-def run(jobs: list[Job], out: Path, encode, model: str, shard: tuple[int, int], band_rows: int,
-        dedup: bool = True, log=print) -> dict:
+def run(
+    jobs: list[Job],
+    out: Path,
+    encode,
+    model: str,
+    shard: tuple[int, int],
+    band_rows: int,
+    dedup: bool = True,
+    log=print,
+) -> dict:
     """Bake this shard's items, assemble every material whose bands are all present.
 
     The bake key of a material hashes its inputs and the model: the size and, when the encoder
@@ -407,6 +428,7 @@ def run(jobs: list[Job], out: Path, encode, model: str, shard: tuple[int, int], 
         stats["seconds"] += st.seconds
     bar.close()
     for job in jobs:
+
         def rebake(band, job=job):
             return _bake_band(job, band, band_rows, encode, dedup, cache, bar)[0]
 
@@ -416,8 +438,17 @@ def run(jobs: list[Job], out: Path, encode, model: str, shard: tuple[int, int], 
     return stats
 
 
-def assemble(out: Path, job: Job, key: str, model: str, band_rows: int, stats: dict, rebake, log=print,
-             model_metadata: dict | None = None) -> bool:
+def assemble(
+    out: Path,
+    job: Job,
+    key: str,
+    model: str,
+    band_rows: int,
+    stats: dict,
+    rebake,
+    log=print,
+    model_metadata: dict | None = None,
+) -> bool:
     """Publish the material's texture if all its bands are present; True if this process published it.
 
     Several shards may get here at once: each reads the bands and publishes (atomically, the
@@ -439,8 +470,10 @@ def assemble(out: Path, job: Job, key: str, model: str, band_rows: int, stats: d
         except FileNotFoundError:
             if _fresh(out, job, key):
                 return False  # another shard published it and removed the bands
-            raise RuntimeError(f"{job.name}: its bands were removed while assembling, and no texture for these "
-                               f"inputs was published (another bake of different inputs into {out}?)") from None
+            raise RuntimeError(
+                f"{job.name}: its bands were removed while assembling, and no texture for these "
+                f"inputs was published (another bake of different inputs into {out}?)"
+            ) from None
         except ValueError as e:  # damaged after it was kept: never reused, baked again here
             log(f"{e}: baking it again")
             p.unlink(missing_ok=True)
@@ -456,8 +489,11 @@ def assemble(out: Path, job: Job, key: str, model: str, band_rows: int, stats: d
         "resolution": [w, h],
         "model": model,
         "seconds_assemble_and_write": round(time.perf_counter() - t0, 3),
-        "this_shard": {"texels": stats["texels"], "unique_texels": stats["unique"],
-                       "encode_seconds": round(stats["seconds"], 3)},
+        "this_shard": {
+            "texels": stats["texels"],
+            "unique_texels": stats["unique"],
+            "encode_seconds": round(stats["seconds"], 3),
+        },
     }
     _atomic_write_text(out / f"{job.file}.json", json.dumps(sidecar, indent=2))
     _remove_bands(out, job)
@@ -513,27 +549,43 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     src = ap.add_mutually_exclusive_group(required=True)
     src.add_argument("--blend", type=Path, help=".blend file holding the materials")
     src.add_argument("--preset", help=f"bake a preset stack: {', '.join(sorted(PRESETS))}")
-    ap.add_argument("--material", action="append",
-                    help="material name in --blend (repeatable; default: all with a stack)")
-    ap.add_argument("--map", action="append", help="with --preset: PATH=IMAGE[@SPACE][:LO:HI] drives a parameter by an "
-                    "image. Colour space: an image driving albedo is decoded from sRGB to linear when it is stored "
-                    "as 8/16-bit integers without a linear tag (Blender's default sRGB); float images (EXR, HDR) are "
-                    "linear; every other parameter and the mask read the values raw (Blender's Non-Color). "
-                    f"@SPACE overrides it: {', '.join(colour_maps.COLOUR_SPACES)} (e.g. base.albedo=colour.png@linear)")
+    ap.add_argument(
+        "--material", action="append", help="material name in --blend (repeatable; default: all with a stack)"
+    )
+    ap.add_argument(
+        "--map",
+        action="append",
+        help="with --preset: PATH=IMAGE[@SPACE][:LO:HI] drives a parameter by an "
+        "image. Colour space: an image driving albedo is decoded from sRGB to linear when it is stored "
+        "as 8/16-bit integers without a linear tag (Blender's default sRGB); float images (EXR, HDR) are "
+        "linear; every other parameter and the mask read the values raw (Blender's Non-Color). "
+        f"@SPACE overrides it: {', '.join(colour_maps.COLOUR_SPACES)} (e.g. base.albedo=colour.png@linear)",
+    )
     ap.add_argument("--name", help="with --preset: output name (default: the preset's)")
     ap.add_argument("--mix", help="with --preset and --mask: a second preset blended in latent space")
-    ap.add_argument("--mask", type=Path, help="with --mix: IMAGE[@SPACE] whose first channel (0..1, raw unless @srgb) "
-                    "blends towards --mix")
+    ap.add_argument(
+        "--mask",
+        type=Path,
+        help="with --mix: IMAGE[@SPACE] whose first channel (0..1, raw unless @srgb) blends towards --mix",
+    )
     ap.add_argument("--resolution", type=int, nargs=2, metavar=("H", "W"), help="bake resolution (<= the images')")
     ap.add_argument("--out", type=Path, required=True, help="output folder")
-    ap.add_argument("--model", default="auto", help="decoder size whose latent space to bake into (auto: the "
-                    "default size, addon.core.neural.resolve_size)")
+    ap.add_argument(
+        "--model",
+        default="auto",
+        help="decoder size whose latent space to bake into (auto: the default size, addon.core.neural.resolve_size)",
+    )
     ap.add_argument("--shard", default="0/1", help="i/n: bake every n-th work item starting at i")
     ap.add_argument("--band-rows", type=int, default=256, help="rows per work item")
     ap.add_argument("--no-dedup", action="store_true", help="encode every texel, even repeated ones")
-    ap.add_argument("--refine", type=float, default=0.0, metavar="SECONDS",
-                    help="refine the latents of distinct texels against the reference, in order, up to this many "
-                         "seconds in all (addon.core.neural.refine; cached in OUT/.refine)")
+    ap.add_argument(
+        "--refine",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="refine the latents of distinct texels against the reference, in order, up to this many "
+        "seconds in all (addon.core.neural.refine; cached in OUT/.refine)",
+    )
     return ap.parse_args(argv)
 
 
@@ -594,8 +646,9 @@ def main(argv: list[str] | None = None, encode=None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except Interrupted as e:
-        print(f"\nerror: interrupted by {e}; finished bands are kept, rerun the same command to resume",
-              file=sys.stderr)
+        print(
+            f"\nerror: interrupted by {e}; finished bands are kept, rerun the same command to resume", file=sys.stderr
+        )
         return EXIT_SIGNAL[e.signum]
     except Exception as e:  # a failed bake: one clear line, non-zero exit
         print(f"error: bake failed: {type(e).__name__}: {e}", file=sys.stderr)

@@ -48,9 +48,7 @@ def preset_lobes(out: Path, res: int, walks: int, seed: int) -> list[str]:
         write_png(lobe_dir / f"{name}.png", strip / max(peak, 1e-6))
         a, se = reference.albedo(stack, wo_normal, samples=4 * walks * 64, seed=seed)
         dt = time.perf_counter() - t0
-        rows.append(
-            f"| {name} | {a[0, 0]:.4f} | {a[0, 1]:.4f} | {a[0, 2]:.4f} | {se.max():.4f} | {dt:.1f} |"
-        )
+        rows.append(f"| {name} | {a[0, 0]:.4f} | {a[0, 1]:.4f} | {a[0, 2]:.4f} | {se.max():.4f} | {dt:.1f} |")
         print(f"  {name}: albedo {np.round(a[0], 4)} +- {se.max():.4f} ({dt:.1f} s)", flush=True)
     return rows
 
@@ -77,8 +75,11 @@ def bake_floor(out: Path):
             tex = LatentTexture.read_exr(path)  # render what was written
         except RuntimeError as e:
             print(f"  (latent texture not written: {e})")
-        print(f"Baked the floor: {tex.width}x{tex.height} texels, {stats.unique} distinct, {size} decoder, "
-              f"{time.perf_counter() - t0:.1f} s -> {path}", flush=True)
+        print(
+            f"Baked the floor: {tex.width}x{tex.height} texels, {stats.unique} distinct, {size} decoder, "
+            f"{time.perf_counter() - t0:.1f} s -> {path}",
+            flush=True,
+        )
         return tex
     print("  no decoder size ships layering + sampling networks: the floor renders as a plain texture")
     return None
@@ -165,12 +166,21 @@ def _main(argv: list[str] | None) -> int:
     ap.add_argument("--render-size", type=_size, default=(320, 180), help="demo render size WxH")
     ap.add_argument("--samples", type=int, default=16, help="demo render paths per pixel")
     ap.add_argument("--bounces", type=int, default=4, help="demo render max bounces")
-    ap.add_argument("--mode", choices=("neural", "reference"), default="neural",
-                    help="layered materials: neural decoder (reference where it cannot serve a stack) or reference")
+    ap.add_argument(
+        "--mode",
+        choices=("neural", "reference"),
+        default="neural",
+        help="layered materials: neural decoder (reference where it cannot serve a stack) or reference",
+    )
     ap.add_argument("--skip-lobes", action="store_true", help="only render the demo scene")
     args = ap.parse_args(argv)
-    for name, value, least in (("--samples", args.samples, 1), ("--bounces", args.bounces, 0),
-                               ("--lobe-res", args.lobe_res, 1), ("--walks", args.walks, 1), ("--seed", args.seed, 0)):
+    for name, value, least in (
+        ("--samples", args.samples, 1),
+        ("--bounces", args.bounces, 0),
+        ("--lobe-res", args.lobe_res, 1),
+        ("--walks", args.walks, 1),
+        ("--seed", args.seed, 0),
+    ):
         if value < least:
             raise _BadInput(f"{name} must be >= {least}, got {value}")
     try:

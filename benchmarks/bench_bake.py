@@ -132,7 +132,7 @@ def main(argv=None) -> int:
         "colour (albedo) is decoded from sRGB to linear when it is stored as 8- or 16-bit integers without a linear",
         "colour-space tag (OpenImageIO's `oiio:ColorSpace`), as Blender's default \"sRGB\" (a byte 128 reads 0.216);",
         "float images (EXR, HDR) are linear; every other parameter and the mask read the raw values, as Blender's",
-        "\"Non-Color\" (a byte 128 reads 0.502). `@srgb`, `@linear`, `@non-color` or `@auto` overrides the rule "
+        '"Non-Color" (a byte 128 reads 0.502). `@srgb`, `@linear`, `@non-color` or `@auto` overrides the rule '
         "per image.",
         "",
         f"Command: `{cmd}` ({os.cpu_count()}-thread CPU, ONNX Runtime on every core; `{args.size}` encoder + "

@@ -72,6 +72,7 @@ def render_means(scene, masks, mode: str, samples: int, seed: int, size: str | N
             if made is None:
                 raise ValueError(f"no shipped models of size {size!r} serve {m.name!r}")
             return made
+
         scene.materials = [sized(m) for m in materials]
     t = time.perf_counter()
     try:
@@ -89,20 +90,28 @@ def compare(neural: dict, reference: dict) -> dict:
         ratio = n["mean"] / max(r["mean"], 1e-12)
         rel = np.hypot(n["stderr"] / max(n["mean"], 1e-12), r["stderr"] / max(r["mean"], 1e-12))
         rgb = np.asarray(n["rgb"]) / np.maximum(np.asarray(r["rgb"]), 1e-12)
-        out[name] = {"ratio": ratio, "ratio_stderr": float(ratio * rel), "rgb_ratio": rgb.tolist(),
-                     "neural_rel_stderr": n["stderr"] / max(n["mean"], 1e-12),
-                     "reference_rel_stderr": r["stderr"] / max(r["mean"], 1e-12)}
+        out[name] = {
+            "ratio": ratio,
+            "ratio_stderr": float(ratio * rel),
+            "rgb_ratio": rgb.tolist(),
+            "neural_rel_stderr": n["stderr"] / max(n["mean"], 1e-12),
+            "reference_rel_stderr": r["stderr"] / max(r["mean"], 1e-12),
+        }
     return out
 
 
 def table(cmp: dict, runs: list[dict] | None) -> list[str]:
-    lines = ["| object | neural / reference (mean of RGB) | R / G / B | noise of neural, reference (rel. std. error) |"
-             + (" per-run ratios |" if runs else ""),
-             "|---|---|---|---|" + ("---|" if runs else "")]
+    lines = [
+        "| object | neural / reference (mean of RGB) | R / G / B | noise of neural, reference (rel. std. error) |"
+        + (" per-run ratios |" if runs else ""),
+        "|---|---|---|---|" + ("---|" if runs else ""),
+    ]
     for name, c in cmp.items():
-        row = (f"| {name} | {c['ratio']:.3f} +- {c['ratio_stderr']:.3f} | "
-               + " / ".join(f"{x:.3f}" for x in c["rgb_ratio"])
-               + f" | {c['neural_rel_stderr']:.3f}, {c['reference_rel_stderr']:.3f} |")
+        row = (
+            f"| {name} | {c['ratio']:.3f} +- {c['ratio_stderr']:.3f} | "
+            + " / ".join(f"{x:.3f}" for x in c["rgb_ratio"])
+            + f" | {c['neural_rel_stderr']:.3f}, {c['reference_rel_stderr']:.3f} |"
+        )
         if runs:
             row += " " + ", ".join(f"{r[name]['ratio']:.3f}" for r in runs) + " |"
         lines.append(row)
@@ -112,8 +121,11 @@ def table(cmp: dict, runs: list[dict] | None) -> list[str]:
 def summary(cmp: dict, exclude=("tiles",)) -> dict:
     """|ratio - 1| over the layered objects (the floor is Lambertian in both modes unless textured)."""
     dev = np.array([abs(c["ratio"] - 1.0) for name, c in cmp.items() if name not in exclude])
-    return {"median_abs_deviation": float(np.median(dev)), "max_abs_deviation": float(dev.max()),
-            "objects": [name for name in cmp if name not in exclude]}
+    return {
+        "median_abs_deviation": float(np.median(dev)),
+        "max_abs_deviation": float(dev.max()),
+        "objects": [name for name in cmp if name not in exclude],
+    }
 
 
 def main(argv=None):
@@ -125,17 +137,29 @@ def main(argv=None):
     ap.add_argument("--runs", type=int, default=1, help="independent renders per mode (seeds seed, seed + 1, ...)")
     ap.add_argument("--size", default=None, help="decoder size of the neural mode (default: the renderer's)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "fidelity.md")
-    ap.add_argument("--reference-cache", type=Path, default=None,
-                    help="JSON of the reference renders' per-object means: read when it matches, else written")
+    ap.add_argument(
+        "--reference-cache",
+        type=Path,
+        default=None,
+        help="JSON of the reference renders' per-object means: read when it matches, else written",
+    )
     a = ap.parse_args(argv)
     if a.samples < 2 or a.runs < 1 or a.width < 1 or a.height < 1:
-        ap.error(f"--samples must be >= 2 (a standard error needs two), --runs, --width, --height >= 1; got "
-                 f"{a.samples}, {a.runs}, {a.width}, {a.height}")
+        ap.error(
+            f"--samples must be >= 2 (a standard error needs two), --runs, --width, --height >= 1; got "
+            f"{a.samples}, {a.runs}, {a.width}, {a.height}"
+        )
     cmd = "python benchmarks/bench_fidelity.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
     per_run, secs = [], {"neural": 0.0, "reference": 0.0}
     defaults = RenderSettings()
-    key = {"width": a.width, "height": a.height, "samples": a.samples, "seeds": [a.seed + k for k in range(a.runs)],
-           "reference_walks": defaults.reference_walks, "max_bounces": defaults.max_bounces}
+    key = {
+        "width": a.width,
+        "height": a.height,
+        "samples": a.samples,
+        "seeds": [a.seed + k for k in range(a.runs)],
+        "reference_walks": defaults.reference_walks,
+        "max_bounces": defaults.max_bounces,
+    }
     cached = None
     if a.reference_cache is not None and a.reference_cache.exists():
         c = json.loads(a.reference_cache.read_text())
@@ -157,31 +181,45 @@ def main(argv=None):
     elif a.reference_cache is not None:
         a.reference_cache.parent.mkdir(parents=True, exist_ok=True)
         a.reference_cache.write_text(json.dumps({"key": key, "command": cmd, "runs": ref_runs}, indent=1) + "\n")
-    cmp = per_run[0] if a.runs == 1 else {
-        name: {"ratio": float(np.mean([r[name]["ratio"] for r in per_run])),
-               "ratio_stderr": float(np.std([r[name]["ratio"] for r in per_run], ddof=1) / np.sqrt(a.runs)),
-               "rgb_ratio": np.mean([r[name]["rgb_ratio"] for r in per_run], axis=0).tolist(),
-               "neural_rel_stderr": float(np.mean([r[name]["neural_rel_stderr"] for r in per_run])),
-               "reference_rel_stderr": float(np.mean([r[name]["reference_rel_stderr"] for r in per_run]))}
-        for name in per_run[0]}
+    cmp = (
+        per_run[0]
+        if a.runs == 1
+        else {
+            name: {
+                "ratio": float(np.mean([r[name]["ratio"] for r in per_run])),
+                "ratio_stderr": float(np.std([r[name]["ratio"] for r in per_run], ddof=1) / np.sqrt(a.runs)),
+                "rgb_ratio": np.mean([r[name]["rgb_ratio"] for r in per_run], axis=0).tolist(),
+                "neural_rel_stderr": float(np.mean([r[name]["neural_rel_stderr"] for r in per_run])),
+                "reference_rel_stderr": float(np.mean([r[name]["reference_rel_stderr"] for r in per_run])),
+            }
+            for name in per_run[0]
+        }
+    )
     s = summary(cmp)
     size = a.size or "the renderer's default"
-    lines = ["# Render-level fidelity: neural mode against reference mode", "",
-             f"Made by `{cmd}`: the demo scene (`addon/core/render/demo_scene.py`) at {a.width} x {a.height}, "
-             f"{a.samples} samples per pixel, default render settings otherwise, neural decoder size: {size}. "
-             "Per object: the mean radiance over the pixels whose centre sees it, neural / reference, with its "
-             "standard error (from the per-pixel variance of both renders"
-             + (f"; over {a.runs} independent runs: the spread of the per-run ratios" if a.runs > 1 else "")
-             + "). The floor (`tiles`) is the same Lambertian material in both modes: its ratio shows the noise "
-             "and the indirect light of the spheres.", "",
-             *table(cmp, per_run if a.runs > 1 else None), "",
-             f"Layered objects: median |ratio - 1| {s['median_abs_deviation']:.3f}, max {s['max_abs_deviation']:.3f} "
-             f"(target: 0.03 / 0.06). Render time: neural {secs['neural']:.0f} s, reference {secs['reference']:.0f} s "
-             f"(all runs, a shared 2-core CPU).", ""]
+    lines = [
+        "# Render-level fidelity: neural mode against reference mode",
+        "",
+        f"Made by `{cmd}`: the demo scene (`addon/core/render/demo_scene.py`) at {a.width} x {a.height}, "
+        f"{a.samples} samples per pixel, default render settings otherwise, neural decoder size: {size}. "
+        "Per object: the mean radiance over the pixels whose centre sees it, neural / reference, with its "
+        "standard error (from the per-pixel variance of both renders"
+        + (f"; over {a.runs} independent runs: the spread of the per-run ratios" if a.runs > 1 else "")
+        + "). The floor (`tiles`) is the same Lambertian material in both modes: its ratio shows the noise "
+        "and the indirect light of the spheres.",
+        "",
+        *table(cmp, per_run if a.runs > 1 else None),
+        "",
+        f"Layered objects: median |ratio - 1| {s['median_abs_deviation']:.3f}, max {s['max_abs_deviation']:.3f} "
+        f"(target: 0.03 / 0.06). Render time: neural {secs['neural']:.0f} s, reference {secs['reference']:.0f} s "
+        f"(all runs, a shared 2-core CPU).",
+        "",
+    ]
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text("\n".join(lines) + "\n")
-    a.out.with_suffix(".json").write_text(json.dumps({"command": cmd, "objects": cmp, "summary": s,
-                                                      "runs": per_run, "seconds": secs}, indent=1) + "\n")
+    a.out.with_suffix(".json").write_text(
+        json.dumps({"command": cmd, "objects": cmp, "summary": s, "runs": per_run, "seconds": secs}, indent=1) + "\n"
+    )
     print("\n".join(lines))
 
 

@@ -6,7 +6,8 @@ writes ``docs/layering.md`` (tables, with this command), ``docs/layering_lobes_<
 neural lobe images of held-out stacks) and, with ``--update-cards``, the measured speed and errors into
 ``addon/models/layering_<size>.json``. Every shipped decoder size that has a layering model is measured.
 
-    python benchmarks/bench_layering.py --errors-only --sizes paper --heldout cache/data/validation_layered.npz --out /tmp/v
+    python benchmarks/bench_layering.py --errors-only --sizes paper --heldout cache/data/validation_layered.npz \
+        --out cache/v
 
 measures the error tables alone on another set of ``onnx_export.heldout_layered`` (a validation set, a
 set of training stacks), for choosing between training rounds without looking at the held-out set.
@@ -89,12 +90,23 @@ def sampling_ratios(models, stacks, n: int) -> list[dict]:
         sigma, w = p[0]
         brdf = lambda wi, wo_, z=z[0]: models.eval_brdf(z, wi, wo_)  # noqa: E731
         rel = {}
-        for name, smp in (("proxy", proxy_sampler(sigma, w)), ("cosine", cosine_sampler()),
-                          ("ggx_top", ggx_sampler(s.coatings[-1].roughness))):
+        for name, smp in (
+            ("proxy", proxy_sampler(sigma, w)),
+            ("cosine", cosine_sampler()),
+            ("ggx_top", ggx_sampler(s.coatings[-1].roughness)),
+        ):
             mean, var = one_bounce_variance(brdf, wo, smp, n, seed=11 + i)
             rel[name] = float(np.mean(var / np.maximum(mean, 1e-12) ** 2))
-        rows.append({"config": i, "sigma": float(sigma), "w": float(w), "rel_var": rel,
-                     "cosine_over_proxy": rel["cosine"] / rel["proxy"], "ggx_over_proxy": rel["ggx_top"] / rel["proxy"]})
+        rows.append(
+            {
+                "config": i,
+                "sigma": float(sigma),
+                "w": float(w),
+                "rel_var": rel,
+                "cosine_over_proxy": rel["cosine"] / rel["proxy"],
+                "ggx_over_proxy": rel["ggx_top"] / rel["proxy"],
+            }
+        )
     return rows
 
 
@@ -134,13 +146,19 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=200, help="stacks encoded one at a time")
     ap.add_argument("--batch", type=int, default=8192, help="stacks encoded in one batched call")
     ap.add_argument("--samples", type=int, default=8192, help="samples per outgoing direction (variance)")
-    ap.add_argument("--heldout", type=Path, default=HELDOUT,
-                    help="the stacks and reference lobes (onnx_export.heldout_layered: held-out, validation or "
-                         "training-fit set)")
+    ap.add_argument(
+        "--heldout",
+        type=Path,
+        default=HELDOUT,
+        help="the stacks and reference lobes (onnx_export.heldout_layered: held-out, validation or training-fit set)",
+    )
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
     ap.add_argument("--update-cards", action="store_true")
-    ap.add_argument("--errors-only", action="store_true",
-                    help="the error tables only, no speed and no sampling (a validation set, a training-fit set)")
+    ap.add_argument(
+        "--errors-only",
+        action="store_true",
+        help="the error tables only, no speed and no sampling (a validation set, a training-fit set)",
+    )
     ap.add_argument("--sizes", nargs="+", choices=SIZES, default=None, help="decoder sizes (default: all shipped)")
     a = ap.parse_args(argv)
     if a.errors_only and a.update_cards:
@@ -153,17 +171,23 @@ def main(argv=None):
     single_path = a.heldout.with_name("heldout_single.npz")
     single_data = load(single_path) if single_path.exists() else None
     if single_data is not None and not np.allclose(single_data["angles"], data["angles"]):
-        print(f"{single_path} is measured at other elevations than {a.heldout}: no single-layer baseline row",
-              file=sys.stderr)
+        print(
+            f"{single_path} is measured at other elevations than {a.heldout}: no single-layer baseline row",
+            file=sys.stderr,
+        )
         single_data = None
     sizes = [s for s in (a.sizes or SIZES) if (MODEL_DIR / f"layering_{s}.onnx").exists()]
     if not sizes:
         ap.error(f"no layering model of size {', '.join(a.sizes or SIZES)} under {MODEL_DIR.name}/")
-    lines = ["# Layering network and sampling network: measurements", "",
-             f"Made by `{cmd}` (CPU, ONNX Runtime, {a.threads} threads on a 2-core machine whose speed varies by "
-             f"up to 1.5x between runs). {set_name} set: `{shown_path(a.heldout)}` ({len(data['stacks'])} stacks: "
-             + ", ".join(f"{n} with {c} coating{'s' * (c > 1)}" for c, n in enumerate(np.bincount(data["n_coatings"]))
-                         if n) + f"; made by `{data['command']}`).", ""]
+    lines = [
+        "# Layering network and sampling network: measurements",
+        "",
+        f"Made by `{cmd}` (CPU, ONNX Runtime, {a.threads} threads on a 2-core machine whose speed varies by "
+        f"up to 1.5x between runs). {set_name} set: `{shown_path(a.heldout)}` ({len(data['stacks'])} stacks: "
+        + ", ".join(f"{n} with {c} coating{'s' * (c > 1)}" for c, n in enumerate(np.bincount(data["n_coatings"])) if n)
+        + f"; made by `{data['command']}`).",
+        "",
+    ]
     results = {}
     for size in sizes:
         models = load_models(size, threads=a.threads)
@@ -171,72 +195,119 @@ def main(argv=None):
         single = runtime_errors(models, single_data)[0] if single_data is not None else None
         lobe_figure(res, data, size, a.out / f"layering_lobes_{size}.png")
         results[size] = {"errors": res}
-        lines += [f"## Decoder `{size}`", "", f"### {set_name} error by number of coatings (runtime path, no projection)", "",
-                  "Layers = base + coatings (a two-layer stack has one coating). Reference noise: the stored "
-                  "reference's own relative standard error, which the lobe error includes.", "",
-                  "| coatings | layers | stacks | lobe error median | lobe error p90 | reference noise median / p90 | "
-                  "albedo abs. error mean | albedo abs. error p90 |",
-                  "|---|---|---|---|---|---|---|---|"]
+        lines += [
+            f"## Decoder `{size}`",
+            "",
+            f"### {set_name} error by number of coatings (runtime path, no projection)",
+            "",
+            "Layers = base + coatings (a two-layer stack has one coating). Reference noise: the stored "
+            "reference's own relative standard error, which the lobe error includes.",
+            "",
+            "| coatings | layers | stacks | lobe error median | lobe error p90 | reference noise median / p90 | "
+            "albedo abs. error mean | albedo abs. error p90 |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
         for c, r in res.items():
             e, al, nz = r["errors"], r["albedo_error"], r["reference_noise"]
-            lines.append(f"| {c} | {c + 1} | {len(r['index'])} | {np.median(e):.3f} | {np.percentile(e, 90):.3f} | "
-                         f"{np.median(nz):.3f} / {np.percentile(nz, 90):.3f} | {al.mean():.4f} | {np.percentile(al, 90):.4f} |")
-        lines += ["", "Albedo bias by incident elevation: median over stacks of (network - reference) / reference "
-                  "of the directional albedo (RGB mean; > 0: the network reflects too much).", "",
-                  "| coatings | " + " | ".join(f"{t:g} deg" for t in data["angles"]) + " |",
-                  "|---|" + "---|" * len(data["angles"])]
-        rows = ([(f"0 (single layers, encoder + decoder; {len(single['index'])} stacks of `heldout_single.npz`)",
-                  single)] if single is not None else []) + list(res.items())
+            lines.append(
+                f"| {c} | {c + 1} | {len(r['index'])} | {np.median(e):.3f} | {np.percentile(e, 90):.3f} | "
+                f"{np.median(nz):.3f} / {np.percentile(nz, 90):.3f} | {al.mean():.4f} | {np.percentile(al, 90):.4f} |"
+            )
+        lines += [
+            "",
+            "Albedo bias by incident elevation: median over stacks of (network - reference) / reference "
+            "of the directional albedo (RGB mean; > 0: the network reflects too much).",
+            "",
+            "| coatings | " + " | ".join(f"{t:g} deg" for t in data["angles"]) + " |",
+            "|---|" + "---|" * len(data["angles"]),
+        ]
+        rows = (
+            [(f"0 (single layers, encoder + decoder; {len(single['index'])} stacks of `heldout_single.npz`)", single)]
+            if single is not None
+            else []
+        ) + list(res.items())
         for label, r in rows:
             lines.append(f"| {label} | " + " | ".join(f"{b:+.3f}" for b in np.median(r["albedo_bias"], axis=0)) + " |")
-        lines += ["", "Reciprocity: relative RMSE of the lobe decoded with the two directions swapped, f(wo, wi) "
-                  "cos(theta_o), against the lobe as measured, and the lobe error of that swapped lobe against the "
-                  "reference, median / p90 over stacks and elevations (the reference is reciprocal; the decoder "
-                  "is not by construction).", "",
-                  "| coatings | " + " | ".join(str(label).split(" (")[0] for label, _ in rows) + " |",
-                  "|---|" + "---|" * len(rows)]
+        lines += [
+            "",
+            "Reciprocity: relative RMSE of the lobe decoded with the two directions swapped, f(wo, wi) "
+            "cos(theta_o), against the lobe as measured, and the lobe error of that swapped lobe against the "
+            "reference, median / p90 over stacks and elevations (the reference is reciprocal; the decoder "
+            "is not by construction).",
+            "",
+            "| coatings | " + " | ".join(str(label).split(" (")[0] for label, _ in rows) + " |",
+            "|---|" + "---|" * len(rows),
+        ]
         for key, name in (("reciprocity", "reciprocity"), ("errors_swapped", "lobe error, directions swapped")):
-            lines.append(f"| {name} | " + " | ".join(
-                f"{np.median(r[key]):.3f} / {np.percentile(r[key], 90):.3f}" for _, r in rows) + " |")
+            lines.append(
+                f"| {name} | "
+                + " | ".join(f"{np.median(r[key]):.3f} / {np.percentile(r[key], 90):.3f}" for _, r in rows)
+                + " |"
+            )
         lines += ["", f"![lobes](layering_lobes_{size}.png)", ""]
         if a.errors_only:
             continue
         sp = speed(models, a.reps, a.batch)
         ratios = sampling_ratios(models, data["stacks"], a.samples)
         results[size] |= {"speed": sp, "ratios": ratios}
-        lines += ["### Encoding speed (stacks per second)", "",
-                  "| coatings | one stack per call | batched (one call) | batch size |", "|---|---|---|---|"]
+        lines += [
+            "### Encoding speed (stacks per second)",
+            "",
+            "| coatings | one stack per call | batched (one call) | batch size |",
+            "|---|---|---|---|",
+        ]
         for c, s in sp.items():
             lines.append(f"| {c} | {s['single_per_s']:.0f} | {s['batched_per_s']:.0f} | {s['batch']} |")
-        lines += ["", "### Sampling efficiency (variance ratio at equal sample count; > 1: the proxy is better)", "",
-                  f"{a.samples} samples per outgoing direction; relative variance averaged over cos(theta_o) = 0.3, 0.6, 0.9.",
-                  "", "| config | coatings | proxy sigma | proxy w | cosine / proxy | top GGX / proxy |", "|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "### Sampling efficiency (variance ratio at equal sample count; > 1: the proxy is better)",
+            "",
+            f"{a.samples} samples per outgoing direction; "
+            "relative variance averaged over cos(theta_o) = 0.3, 0.6, 0.9.",
+            "",
+            "| config | coatings | proxy sigma | proxy w | cosine / proxy | top GGX / proxy |",
+            "|---|---|---|---|---|---|",
+        ]
         for r in ratios:
             tag = {SPECULAR_INDEX: " (specular)", DIFFUSE_INDEX: " (diffuse)"}.get(r["config"], "")
-            lines.append(f"| {r['config']}{tag} | {len(data['stacks'][r['config']].coatings)} | {r['sigma']:.3f} | "
-                         f"{r['w']:.2f} | {r['cosine_over_proxy']:.2f} | {r['ggx_over_proxy']:.2f} |")
+            lines.append(
+                f"| {r['config']}{tag} | {len(data['stacks'][r['config']].coatings)} | {r['sigma']:.3f} | "
+                f"{r['w']:.2f} | {r['cosine_over_proxy']:.2f} | {r['ggx_over_proxy']:.2f} |"
+            )
         cr = np.array([r["cosine_over_proxy"] for r in ratios])
         gr = np.array([r["ggx_over_proxy"] for r in ratios])
-        lines += ["", f"Over all {len(ratios)} held-out stacks: cosine / proxy median {np.median(cr):.2f} "
-                  f"(proxy better on {int((cr > 1).sum())}), top GGX / proxy median {np.median(gr):.2f} "
-                  f"(proxy better on {int((gr > 1).sum())}).", ""]
+        lines += [
+            "",
+            f"Over all {len(ratios)} held-out stacks: cosine / proxy median {np.median(cr):.2f} "
+            f"(proxy better on {int((cr > 1).sum())}), top GGX / proxy median {np.median(gr):.2f} "
+            f"(proxy better on {int((gr > 1).sum())}).",
+            "",
+        ]
         if a.update_cards:
             p = MODEL_DIR / f"layering_{size}.json"
             card = json.loads(p.read_text())
-            card["speed"] = {f"coatings_{c}": {k: round(v) if k != "batch" else v for k, v in s.items()}
-                             for c, s in sp.items()} | {"threads": a.threads, "command": cmd,
-                                                        "note": "stacks encoded per second, shared CPU (noisy)"}
-            card["heldout_runtime"] = {f"coatings_{c}": {"lobe_error_median": float(np.median(r["errors"])),
-                                                        "lobe_error_p90": float(np.percentile(r["errors"], 90)),
-                                                        "albedo_abs_error_mean": float(r["albedo_error"].mean()),
-                                                        "reciprocity_median": float(np.median(r["reciprocity"])),
-                                                        "albedo_bias_median_by_angle": {
-                                                            f"{t:g}": float(b) for t, b in
-                                                            zip(data["angles"], np.median(r["albedo_bias"], axis=0))}}
-                                       for c, r in res.items()}
-            card["sampling_efficiency"] = {"specular": ratios[SPECULAR_INDEX], "diffuse": ratios[DIFFUSE_INDEX],
-                                           "median_cosine_over_proxy": float(np.median(cr)),
-                                           "median_ggx_over_proxy": float(np.median(gr))}
+            card["speed"] = {
+                f"coatings_{c}": {k: round(v) if k != "batch" else v for k, v in s.items()} for c, s in sp.items()
+            } | {"threads": a.threads, "command": cmd, "note": "stacks encoded per second, shared CPU (noisy)"}
+            card["heldout_runtime"] = {
+                f"coatings_{c}": {
+                    "lobe_error_median": float(np.median(r["errors"])),
+                    "lobe_error_p90": float(np.percentile(r["errors"], 90)),
+                    "albedo_abs_error_mean": float(r["albedo_error"].mean()),
+                    "reciprocity_median": float(np.median(r["reciprocity"])),
+                    "albedo_bias_median_by_angle": {
+                        f"{t:g}": float(b)
+                        for t, b in zip(data["angles"], np.median(r["albedo_bias"], axis=0), strict=False)
+                    },
+                }
+                for c, r in res.items()
+            }
+            card["sampling_efficiency"] = {
+                "specular": ratios[SPECULAR_INDEX],
+                "diffuse": ratios[DIFFUSE_INDEX],
+                "median_cosine_over_proxy": float(np.median(cr)),
+                "median_ggx_over_proxy": float(np.median(gr)),
+            }
             p.write_text(json.dumps(card, indent=1) + "\n")
     (a.out / "layering.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

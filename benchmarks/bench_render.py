@@ -86,8 +86,9 @@ def render_cycles(bpy, bs, width, height, samples, bounces, out_dir: Path):
 
 
 def ours(scene, samples, bounces, mode, seed=0):
-    film, stats = render(scene, RenderSettings(samples=samples, max_bounces=bounces, mode=mode, seed=seed,
-                                                reference_walks=2))
+    film, stats = render(
+        scene, RenderSettings(samples=samples, max_bounces=bounces, mode=mode, seed=seed, reference_walks=2)
+    )
     return film.mean().astype(np.float64), stats
 
 
@@ -119,11 +120,16 @@ def viewport_latency(repeats: int, size=(320, 180)) -> list[str]:
                 print("viewport", rows[-1], flush=True)
     finally:
         session.close()
-    lines = [f"## Viewport: first image after an edit ({size[0]}x{size[1]}, demo scene)", "",
-             "Seconds from `ProgressiveSession.restart` with a newly exported scene (its stacks encoded again, "
-             "as after an edit) to the first image (1 spp at a quarter of the resolution on each side) and to the "
-             "first full-resolution pass.", "",
-             "| repetition | first image s | first full pass s |", "|---|---|---|"]
+    lines = [
+        f"## Viewport: first image after an edit ({size[0]}x{size[1]}, demo scene)",
+        "",
+        "Seconds from `ProgressiveSession.restart` with a newly exported scene (its stacks encoded again, "
+        "as after an edit) to the first image (1 spp at a quarter of the resolution on each side) and to the "
+        "first full-resolution pass.",
+        "",
+        "| repetition | first image s | first full pass s |",
+        "|---|---|---|",
+    ]
     lines += [f"| {i + 1} | {a:.2f} | {b:.2f} |" for i, (a, b) in enumerate(rows)]
     return lines + [""]
 
@@ -153,39 +159,60 @@ def speed_only(args, command: str) -> int:
                 _, cyc_s = render_cycles(bpy, bs, width, height, args.samples, args.bounces, Path(tmp))
                 s = st.seconds
                 pairs.append((s["total"], cyc_s, s["rays"], s["network"], st.rest, ours_cpu, render_cycles.cpu_seconds))
-                print(size, rep, f"ours {s['total']:.2f} s ({ours_cpu:.2f} CPU s), Cycles {cyc_s:.2f} s "
-                      f"({render_cycles.cpu_seconds:.2f} CPU s), ratio {cyc_s / s['total']:.2f}", st.summary(),
-                      flush=True)
+                print(
+                    size,
+                    rep,
+                    f"ours {s['total']:.2f} s ({ours_cpu:.2f} CPU s), Cycles {cyc_s:.2f} s "
+                    f"({render_cycles.cpu_seconds:.2f} CPU s), ratio {cyc_s / s['total']:.2f}",
+                    st.summary(),
+                    flush=True,
+                )
         ratios = [p[1] / p[0] for p in pairs]
         cpu_ratios = [p[6] / p[5] for p in pairs]
         rest_share = [p[4] / p[0] for p in pairs]
-        lines = [f"## {width}x{height}, {args.samples} spp, {args.bounces} bounces ({paths:,} paths per render)", "",
-                 "| repetition | ours s | Cycles s | throughput ours / Cycles (wall) | ours CPU s | Cycles CPU s | "
-                 "ours / Cycles (CPU time) | rays s | networks s | rest s | rest share |",
-                 "|---|---|---|---|---|---|---|---|---|---|---|"]
+        lines = [
+            f"## {width}x{height}, {args.samples} spp, {args.bounces} bounces ({paths:,} paths per render)",
+            "",
+            "| repetition | ours s | Cycles s | throughput ours / Cycles (wall) | ours CPU s | Cycles CPU s | "
+            "ours / Cycles (CPU time) | rays s | networks s | rest s | rest share |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
         for i, (o, c, ra, ne, re, oc, cc) in enumerate(pairs):
-            lines.append(f"| {i + 1} | {o:.2f} | {c:.2f} | {c / o:.2f}x | {oc:.2f} | {cc:.2f} | {cc / oc:.2f}x | "
-                         f"{ra:.2f} | {ne:.2f} | {re:.2f} | {100 * re / o:.0f}% |")
-        lines += ["", f"Throughput ours / Cycles in wall time: median **{statistics.median(ratios):.2f}x** (range "
-                  f"{min(ratios):.2f}-{max(ratios):.2f}x over {len(ratios)} pairs); in CPU time (the work each "
-                  f"render needs, less sensitive to the other jobs): median **{statistics.median(cpu_ratios):.2f}x** "
-                  f"(range {min(cpu_ratios):.2f}-{max(cpu_ratios):.2f}x); the rest's share of our time: median "
-                  f"{100 * statistics.median(rest_share):.0f}% (range {100 * min(rest_share):.0f}-"
-                  f"{100 * max(rest_share):.0f}%).", ""]
+            lines.append(
+                f"| {i + 1} | {o:.2f} | {c:.2f} | {c / o:.2f}x | {oc:.2f} | {cc:.2f} | {cc / oc:.2f}x | "
+                f"{ra:.2f} | {ne:.2f} | {re:.2f} | {100 * re / o:.0f}% |"
+            )
+        lines += [
+            "",
+            f"Throughput ours / Cycles in wall time: median **{statistics.median(ratios):.2f}x** (range "
+            f"{min(ratios):.2f}-{max(ratios):.2f}x over {len(ratios)} pairs); in CPU time (the work each "
+            f"render needs, less sensitive to the other jobs): median **{statistics.median(cpu_ratios):.2f}x** "
+            f"(range {min(cpu_ratios):.2f}-{max(cpu_ratios):.2f}x); the rest's share of our time: median "
+            f"{100 * statistics.median(rest_share):.0f}% (range {100 * min(rest_share):.0f}-"
+            f"{100 * max(rest_share):.0f}%).",
+            "",
+        ]
         sections += lines
     sections += viewport_latency(args.repeats)
-    text = ["# Renderer speed: demo scene, ours vs Blender Cycles, alternating", "",
-            f"Command: `{command}`", "",
-            f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU threads, no GPU, shared with "
-            f"other jobs while measured (load average {os.getloadavg()[1]:.1f} over the last 5 minutes of the run): "
-            "each of our renders is followed by a Cycles render of the same scene in the same process, so each "
-            "ratio compares two renders that met about the same load.", "",
-            "Ours: neural mode, default settings (every core; `RenderSettings.threads = 0`). Cycles: CPU, same "
-            "resolution, samples and bounces, no denoising or adaptive sampling, Principled coat materials, wall time "
-            "of `bpy.ops.render.render` after a warm-up (scene sync included, as for a user's F12). CPU time: "
-            "`time.process_time()` of this process around each render (all its threads). Rays: embreex; "
-            "networks: ONNX Runtime batches; rest: everything else (numpy shading, sampling, bookkeeping), as "
-            "shares of our wall time (`RenderStats`).", "", *sections]
+    text = [
+        "# Renderer speed: demo scene, ours vs Blender Cycles, alternating",
+        "",
+        f"Command: `{command}`",
+        "",
+        f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPU threads, no GPU, shared with "
+        f"other jobs while measured (load average {os.getloadavg()[1]:.1f} over the last 5 minutes of the run): "
+        "each of our renders is followed by a Cycles render of the same scene in the same process, so each "
+        "ratio compares two renders that met about the same load.",
+        "",
+        "Ours: neural mode, default settings (every core; `RenderSettings.threads = 0`). Cycles: CPU, same "
+        "resolution, samples and bounces, no denoising or adaptive sampling, Principled coat materials, wall time "
+        "of `bpy.ops.render.render` after a warm-up (scene sync included, as for a user's F12). CPU time: "
+        "`time.process_time()` of this process around each render (all its threads). Rays: embreex; "
+        "networks: ONNX Runtime batches; rest: everything else (numpy shading, sampling, bookkeeping), as "
+        "shares of our wall time (`RenderStats`).",
+        "",
+        *sections,
+    ]
     (args.out / "render_speed.md").write_text("\n".join(text))
     print(f"Wrote {args.out / 'render_speed.md'}")
     return 0
@@ -206,8 +233,17 @@ def single_layer_rows(width, height, bases, samples, bounces) -> list[tuple]:
         ours(variant, 1, 1, "neural")
         _, st = ours(variant, samples, bounces, "neural")
         s = st.seconds
-        rows.append((f"ours, single-layer stacks, {label}", st.paths_per_second, s["total"], s["rays"], s["network"],
-                     s["reference"], st.rest))
+        rows.append(
+            (
+                f"ours, single-layer stacks, {label}",
+                st.paths_per_second,
+                s["total"],
+                s["rays"],
+                s["network"],
+                s["reference"],
+                st.rest,
+            )
+        )
         print(rows[-1], flush=True)
     return rows
 
@@ -248,8 +284,11 @@ def main(argv=None) -> int:
     ap.add_argument("--reference-samples", type=int, default=512)
     ap.add_argument("--budgets", default="1,2,4,8,16", help="sample counts of the equal-time curves")
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
-    ap.add_argument("--speed-only", action="store_true",
-                    help="only ours vs Cycles, alternating --repeats times per size in --sizes (docs/render_speed.md)")
+    ap.add_argument(
+        "--speed-only",
+        action="store_true",
+        help="only ours vs Cycles, alternating --repeats times per size in --sizes (docs/render_speed.md)",
+    )
     ap.add_argument("--sizes", default="480x270,640x360", help="image sizes of --speed-only")
     ap.add_argument("--repeats", type=int, default=3, help="ours/Cycles pairs per size of --speed-only")
     args = ap.parse_args(argv)
@@ -270,8 +309,17 @@ def main(argv=None) -> int:
         images[mode] = img
         s = st.seconds
         kinds = sorted(set(st.material_kinds[1:]))
-        rows.append((f"ours, {mode} mode (layered shaded by: {', '.join(kinds)})", st.paths_per_second, s["total"],
-                     s["rays"], s["network"], s["reference"], st.rest))
+        rows.append(
+            (
+                f"ours, {mode} mode (layered shaded by: {', '.join(kinds)})",
+                st.paths_per_second,
+                s["total"],
+                s["rays"],
+                s["network"],
+                s["reference"],
+                st.rest,
+            )
+        )
         print(rows[-1], flush=True)
 
     from addon.core.render.demo_scene import DEMO_PRESETS
@@ -358,8 +406,10 @@ def main(argv=None) -> int:
         "|---|---|---|---|---|---|---|",
     ]
     for name, pps, tot, rays, net, refs, rest in rows:
+
         def f(v):
             return "-" if v is None else f"{v:.2f}"
+
         lines.append(f"| {name} | {pps:,.0f} | {tot:.2f} | {f(rays)} | {f(net)} | {f(refs)} | {f(rest)} |")
     lines += [
         "",
@@ -391,8 +441,10 @@ def main(argv=None) -> int:
     ]
     for label, pts in single_curves.items():
         for sec, err, spp, st in pts:
-            lines.append(f"| {label} | {spp} | {sec:.2f} | {st.seconds['network']:.2f} | "
-                         f"{st.seconds['reference']:.2f} | {err:.3g} |")
+            lines.append(
+                f"| {label} | {spp} | {sec:.2f} | {st.seconds['network']:.2f} | "
+                f"{st.seconds['reference']:.2f} | {err:.3g} |"
+            )
     lines += [
         "",
         "![equal-time error](render_equal_time.png)",

@@ -33,8 +33,8 @@ from addon.core.bsdf import ggx
 from addon.core.bsdf.lambert import Lambertian, sample_cosine_hemisphere
 from addon.core.stack import BASE_KINDS, StackArrays
 
-KIND_PROBS = (0.2, 0.4, 0.4)
-GROUPS = 8  # layered set: outgoing directions per stack that share their reference walks  # Diffuse, Conductor, Dielectric: the glossy kinds are the hard ones
+KIND_PROBS = (0.2, 0.4, 0.4)  # Diffuse, Conductor, Dielectric: the glossy kinds are the hard ones
+GROUPS = 8  # layered set: outgoing directions per stack that share their reference walks
 
 
 # ----------------------------------------------------------------------------- parameters
@@ -57,8 +57,11 @@ def sample_single_params(rng: np.random.Generator, n: int, kind_probs=KIND_PROBS
         base_eta=eta,
         base_k=k,
         base_ior=rng.uniform(1.05, 2.0, n),
-        coat_roughness=np.zeros((n, 0)), coat_ior=np.zeros((n, 0)), coat_albedo=np.zeros((n, 0, 3)),
-        coat_thickness=np.zeros((n, 0)), coat_g=np.zeros((n, 0)),
+        coat_roughness=np.zeros((n, 0)),
+        coat_ior=np.zeros((n, 0)),
+        coat_albedo=np.zeros((n, 0, 3)),
+        coat_thickness=np.zeros((n, 0)),
+        coat_g=np.zeros((n, 0)),
     )
 
 
@@ -70,11 +73,17 @@ def sample_layered_params(rng: np.random.Generator, n: int, n_coatings: int) -> 
     clear = rng.random((n, c, 1)) < 0.3
     albedo = np.where(clear, 1.0, rng.random((n, c, 3)))
     return StackArrays(
-        base_kind=base.base_kind, base_albedo=base.base_albedo, base_roughness=base.base_roughness,
-        base_eta=base.base_eta, base_k=base.base_k, base_ior=base.base_ior,
+        base_kind=base.base_kind,
+        base_albedo=base.base_albedo,
+        base_roughness=base.base_roughness,
+        base_eta=base.base_eta,
+        base_k=base.base_k,
+        base_ior=base.base_ior,
         coat_roughness=log_uniform(rng, 0.01, 1.0, (n, c)),
         coat_ior=rng.uniform(1.05, 2.0, (n, c)),
-        coat_albedo=albedo, coat_thickness=thick, coat_g=np.zeros((n, c)),
+        coat_albedo=albedo,
+        coat_thickness=thick,
+        coat_g=np.zeros((n, c)),
     )
 
 
@@ -88,8 +97,9 @@ def uniform_hemisphere(u: np.ndarray) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1)
 
 
-def sample_directions(rng: np.random.Generator, lobe_alpha: np.ndarray, pairs: int,
-                      wi: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def sample_directions(
+    rng: np.random.Generator, lobe_alpha: np.ndarray, pairs: int, wi: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """(M, P, 3) wi and wo for M materials whose specular lobe has GGX roughness ``lobe_alpha`` (M,).
 
     ``wi`` (M, P, 3) may be given (e.g. repeated, for the amortised reference); else it is drawn.
@@ -183,8 +193,9 @@ def make_chunk(kind: str, seed: int, chunk: int, materials: int, pairs: int, wal
         f = np.zeros((materials, pairs, 3))
         stderr = np.zeros_like(f)
         for i in range(materials):  # one reference call per stack, all its direction pairs at once
-            fi, si = reference.eval_brdf_many(arrays.take([i]), wi[i].reshape(GROUPS, per, 3), first[i],
-                                              walks=walks, seed=int(rng.integers(2**31)))
+            fi, si = reference.eval_brdf_many(
+                arrays.take([i]), wi[i].reshape(GROUPS, per, 3), first[i], walks=walks, seed=int(rng.integers(2**31))
+            )
             f[i], stderr[i] = fi.reshape(pairs, 3), si.reshape(pairs, 3)
     out = {f"p_{name}": getattr(arrays, name) for name in StackArrays.FIELDS}
     out.update(wi=wi.astype(np.float32), wo=wo.astype(np.float32), f=f.astype(np.float32))
@@ -203,8 +214,17 @@ def parse_shard(text: str) -> tuple[int, int]:
     return i, n
 
 
-def generate(kind: str, out: Path, materials: int, pairs: int, chunk: int, seed: int,
-             shard: tuple[int, int] = (0, 1), walks: int = 64, log=print) -> list[Path]:
+def generate(
+    kind: str,
+    out: Path,
+    materials: int,
+    pairs: int,
+    chunk: int,
+    seed: int,
+    shard: tuple[int, int] = (0, 1),
+    walks: int = 64,
+    log=print,
+) -> list[Path]:
     """Write the chunks of this shard under ``out`` (skipping finished ones); return all paths."""
     out.mkdir(parents=True, exist_ok=True)
     n_chunks = (materials + chunk - 1) // chunk
@@ -225,8 +245,10 @@ def generate(kind: str, out: Path, materials: int, pairs: int, chunk: int, seed:
         done += 1
         el = time.perf_counter() - t0
         left = sum(1 for q in mine if not (out / f"chunk_{q:05d}.npz").exists())
-        log(f"[{kind} shard {shard[0]}/{shard[1]}] chunk {j} ({size} materials x {pairs} pairs) "
-            f"{done} new, {left} left, {el:.1f} s, eta {el / done * left:.0f} s")
+        log(
+            f"[{kind} shard {shard[0]}/{shard[1]}] chunk {j} ({size} materials x {pairs} pairs) "
+            f"{done} new, {left} left, {el:.1f} s, eta {el / done * left:.0f} s"
+        )
     return paths
 
 
@@ -239,8 +261,11 @@ def load(out: Path) -> dict:
     parts = [dict(np.load(p)) for p in paths]
     keys = [k for k in parts[0] if all(k in q for q in parts)]
     # layered chunks differ in their number of coatings: keep what is common (directions, targets, base)
-    return {k: np.concatenate([q[k] for q in parts], axis=0) for k in keys
-            if all(q[k].shape[1:] == parts[0][k].shape[1:] for q in parts)}
+    return {
+        k: np.concatenate([q[k] for q in parts], axis=0)
+        for k in keys
+        if all(q[k].shape[1:] == parts[0][k].shape[1:] for q in parts)
+    }
 
 
 def main(argv=None):
@@ -254,8 +279,17 @@ def main(argv=None):
     ap.add_argument("--shard", type=parse_shard, default=(0, 1))
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args(argv)
-    generate(a.set, a.out, a.materials, a.pairs, a.chunk, a.seed, a.shard, a.walks,
-             log=lambda s: print(s, file=sys.stderr, flush=True))
+    generate(
+        a.set,
+        a.out,
+        a.materials,
+        a.pairs,
+        a.chunk,
+        a.seed,
+        a.shard,
+        a.walks,
+        log=lambda s: print(s, file=sys.stderr, flush=True),
+    )
 
 
 if __name__ == "__main__":

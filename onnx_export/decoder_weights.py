@@ -35,8 +35,10 @@ def decoder_arrays(onnx_path: Path, card: dict) -> dict[str, np.ndarray]:
     """The npz contents for one decoder file and its model card."""
     arch = card["architecture"]
     if arch.get("features") != "iso_bumps" or arch.get("activation") != "exp":
-        raise ValueError(f"{onnx_path.name}: the numpy decoder implements features 'iso_bumps' and activation "
-                         f"'exp', the card says {arch.get('features')!r} / {arch.get('activation')!r}")
+        raise ValueError(
+            f"{onnx_path.name}: the numpy decoder implements features 'iso_bumps' and activation "
+            f"'exp', the card says {arch.get('features')!r} / {arch.get('activation')!r}"
+        )
     init = {t.name: numpy_helper.to_array(t) for t in onnx.load(str(onnx_path)).graph.initializer}
     depth = int(arch["depth"])
     out: dict[str, np.ndarray] = {}
@@ -50,8 +52,9 @@ def decoder_arrays(onnx_path: Path, card: dict) -> dict[str, np.ndarray]:
         out[f"b{i}"] = b
     expected = init["net.0.weight"].shape[1] - LATENT
     if expected != 6 + len(BUMP_SHARPNESS):
-        raise ValueError(f"{onnx_path.name}: first layer takes {expected} direction features, expected "
-                         f"{6 + len(BUMP_SHARPNESS)}")
+        raise ValueError(
+            f"{onnx_path.name}: first layer takes {expected} direction features, expected {6 + len(BUMP_SHARPNESS)}"
+        )
     out["width"] = np.array(int(arch["width"]))
     out["depth"] = np.array(depth)
     out["bump_sharpness"] = np.array(BUMP_SHARPNESS, dtype=np.float64)
@@ -89,8 +92,16 @@ def main(argv=None) -> None:
         card = json.loads(path.with_suffix(".json").read_text())
         out = a.models / f"decoder_{size}_weights.npz"
         np.savez(out, **decoder_arrays(path, card))
-        print(json.dumps({"size": size, "weights": out.name, "bytes": out.stat().st_size,
-                          "numpy_vs_onnx_max_relative_difference": forward_parity(size, a.models)}))
+        print(
+            json.dumps(
+                {
+                    "size": size,
+                    "weights": out.name,
+                    "bytes": out.stat().st_size,
+                    "numpy_vs_onnx_max_relative_difference": forward_parity(size, a.models),
+                }
+            )
+        )
 
 
 if __name__ == "__main__":

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -45,8 +44,20 @@ def latent_pair_loss(dec: Decoder, z, wi, wo, f, idx, loss: str) -> torch.Tensor
     return pair_loss(dec(zz, wi_r, wo_r), f_r, wi_r, wo_r, loss).mean()
 
 
-def project(dec: Decoder, wi, wo, f, *, init=None, steps: int = 300, lr: float = 0.02, loss: str = "l1",
-            chunk_pairs: int | None = None, seed: int = 0, log=None) -> torch.Tensor:
+def project(
+    dec: Decoder,
+    wi,
+    wo,
+    f,
+    *,
+    init=None,
+    steps: int = 300,
+    lr: float = 0.02,
+    loss: str = "l1",
+    chunk_pairs: int | None = None,
+    seed: int = 0,
+    log=None,
+) -> torch.Tensor:
     """Latents (C, 3, 32) of C tabulated RGB BRDFs given at (C, P, 3) direction pairs with values f (C, P, 3).
 
     ``init``: one latent (3, 32) for all, or one per BRDF (C, 3, 32); ``chunk_pairs``: pairs drawn per
@@ -110,8 +121,16 @@ def lobe_metrics(pred: np.ndarray, ref: np.ndarray) -> dict:
 
 
 def evaluate_projection(dec: Decoder, heldout: dict, init=None, steps: int = 300, chunk_pairs=None, log=None) -> dict:
-    z = project(dec, heldout["fit_wi"], heldout["fit_wo"], heldout["fit_f"], init=init, steps=steps,
-                chunk_pairs=chunk_pairs, log=log)
+    z = project(
+        dec,
+        heldout["fit_wi"],
+        heldout["fit_wo"],
+        heldout["fit_f"],
+        init=init,
+        steps=steps,
+        chunk_pairs=chunk_pairs,
+        log=log,
+    )
     pred = decoder_lobes(dec, z, heldout["lobe"].shape[2], heldout["angles"])
     m = lobe_metrics(pred, heldout["lobe"])
     m["z"] = z

@@ -31,22 +31,42 @@ OPSET = 17
 def export_decoder(dec: Decoder, path: Path) -> None:
     dec.eval()
     b = 8
-    args = (torch.zeros(b, 32), torch.tensor([[0.0, 0.0, 1.0]]).expand(b, 3).contiguous(),
-            torch.tensor([[0.0, 0.0, 1.0]]).expand(b, 3).contiguous())
-    torch.onnx.export(dec, args, str(path), input_names=["z", "wi", "wo"], output_names=["f"],
-                      dynamic_axes={"z": {0: "batch"}, "wi": {0: "batch"}, "wo": {0: "batch"}, "f": {0: "batch"}},
-                      opset_version=OPSET, dynamo=False)
+    args = (
+        torch.zeros(b, 32),
+        torch.tensor([[0.0, 0.0, 1.0]]).expand(b, 3).contiguous(),
+        torch.tensor([[0.0, 0.0, 1.0]]).expand(b, 3).contiguous(),
+    )
+    torch.onnx.export(
+        dec,
+        args,
+        str(path),
+        input_names=["z", "wi", "wo"],
+        output_names=["f"],
+        dynamic_axes={"z": {0: "batch"}, "wi": {0: "batch"}, "wo": {0: "batch"}, "f": {0: "batch"}},
+        opset_version=OPSET,
+        dynamo=False,
+    )
 
 
 def export_rgb_decoder(dec: Decoder, path: Path) -> None:
     """The runtime's fused graph: z (Bz, 3, 32) with Bz in {1, B}, wi, wo (B, 3) -> f (B, 3)."""
     rgb = RGBDecoder(dec).eval()
     b = 8
-    args = (torch.zeros(1, 3, 32), torch.tensor([[0.0, 0.0, 1.0]]).expand(b, 3).contiguous(),
-            torch.tensor([[0.0, 0.0, 1.0]]).expand(b, 3).contiguous())
-    torch.onnx.export(rgb, args, str(path), input_names=["z", "wi", "wo"], output_names=["f"],
-                      dynamic_axes={"z": {0: "latents"}, "wi": {0: "batch"}, "wo": {0: "batch"}, "f": {0: "batch"}},
-                      opset_version=OPSET, dynamo=False)
+    args = (
+        torch.zeros(1, 3, 32),
+        torch.tensor([[0.0, 0.0, 1.0]]).expand(b, 3).contiguous(),
+        torch.tensor([[0.0, 0.0, 1.0]]).expand(b, 3).contiguous(),
+    )
+    torch.onnx.export(
+        rgb,
+        args,
+        str(path),
+        input_names=["z", "wi", "wo"],
+        output_names=["f"],
+        dynamic_axes={"z": {0: "latents"}, "wi": {0: "batch"}, "wo": {0: "batch"}, "f": {0: "batch"}},
+        opset_version=OPSET,
+        dynamo=False,
+    )
 
 
 def rgb_decoder_parity(dec: Decoder, path: Path, n: int = 2048, seed: int = 0) -> float:
@@ -63,8 +83,15 @@ def rgb_decoder_parity(dec: Decoder, path: Path, n: int = 2048, seed: int = 0) -
         z = (rng.standard_normal((zb, 3, 32)) * 0.5).astype(np.float32)
         zr = np.broadcast_to(z, (n, 3, 32)).reshape(-1, 32)
         with torch.no_grad():
-            ref = dec(torch.from_numpy(np.ascontiguousarray(zr)), torch.from_numpy(np.repeat(wi, 3, 0)),
-                      torch.from_numpy(np.repeat(wo, 3, 0))).numpy().reshape(n, 3)
+            ref = (
+                dec(
+                    torch.from_numpy(np.ascontiguousarray(zr)),
+                    torch.from_numpy(np.repeat(wi, 3, 0)),
+                    torch.from_numpy(np.repeat(wo, 3, 0)),
+                )
+                .numpy()
+                .reshape(n, 3)
+            )
         got = s.run(["f"], {"z": z, "wi": wi, "wo": wo})[0]
         worst = max(worst, max_relative_difference(got, ref))
     return worst
@@ -72,8 +99,16 @@ def rgb_decoder_parity(dec: Decoder, path: Path, n: int = 2048, seed: int = 0) -
 
 def export_encoder(enc: Encoder, path: Path) -> None:
     enc.eval()
-    torch.onnx.export(enc, (torch.zeros(4, N_FEATURES),), str(path), input_names=["x"], output_names=["z"],
-                      dynamic_axes={"x": {0: "batch"}, "z": {0: "batch"}}, opset_version=OPSET, dynamo=False)
+    torch.onnx.export(
+        enc,
+        (torch.zeros(4, N_FEATURES),),
+        str(path),
+        input_names=["x"],
+        output_names=["z"],
+        dynamic_axes={"x": {0: "batch"}, "z": {0: "batch"}},
+        opset_version=OPSET,
+        dynamo=False,
+    )
 
 
 def random_directions(rng, n, grazing=False):
@@ -138,7 +173,9 @@ def torch_from_onnx(path: Path, card: dict) -> torch.nn.Module:
         mod: torch.nn.Module = Decoder(arch["width"], arch["depth"], arch["features"], arch["activation"])
     else:
         mod = Encoder(arch["n_features"], arch["width"], arch["depth"])
-    weights = {t.name: torch.from_numpy(numpy_helper.to_array(t).copy()) for t in onnx.load(str(path)).graph.initializer}
+    weights = {
+        t.name: torch.from_numpy(numpy_helper.to_array(t).copy()) for t in onnx.load(str(path)).graph.initializer
+    }
     mod.load_state_dict(weights)
     return mod.eval()
 
@@ -183,8 +220,12 @@ def regraph_decoder(size: str, model_dir: Path = MODEL_DIR) -> dict:
             c["trained_with"][dpath.name] = new_digest
             other.write_text(json.dumps(c, indent=1) + "\n")
             moved.append(other.name)
-    return {"decoder": dpath.name, "parity": card["onnx_runtime_vs_torch_max_relative_difference"],
-            "rgb_parity": card["rgb_graph"]["onnx_runtime_vs_torch_max_relative_difference"], "cards_moved": moved}
+    return {
+        "decoder": dpath.name,
+        "parity": card["onnx_runtime_vs_torch_max_relative_difference"],
+        "rgb_parity": card["rgb_graph"]["onnx_runtime_vs_torch_max_relative_difference"],
+        "cards_moved": moved,
+    }
 
 
 SINGLE_DATA_COMMAND = "python -m onnx_export.data --set single --materials 4096 --pairs 1024 --out cache/data/single"
@@ -213,8 +254,10 @@ def loss_text(args: dict) -> str:
     if len(kinds) == 1:
         return f"{kinds[0]} on log1p(f cos_i cos_o)"
     scales = args.get("loss_scales") or [1.0] * len(kinds)
-    return "; ".join(f"{d}: {k} x {sc}" for d, k, sc in zip(args["data"], kinds, scales)) + \
-        " (l1: on log1p(f cos_i cos_o); l2rel: onnx_export.nets.pair_loss, the mean of Monte Carlo targets)"
+    return (
+        "; ".join(f"{d}: {k} x {sc}" for d, k, sc in zip(args["data"], kinds, scales, strict=False))
+        + " (l1: on log1p(f cos_i cos_o); l2rel: onnx_export.nets.pair_loss, the mean of Monte Carlo targets)"
+    )
 
 
 def main(argv=None):
@@ -222,8 +265,11 @@ def main(argv=None):
     ap.add_argument("--size", required=True)
     ap.add_argument("--decoder", type=Path)
     ap.add_argument("--encoder", type=Path)
-    ap.add_argument("--regraph", action="store_true",
-                    help="re-export the shipped decoder graphs of --size from their own weights (regraph_decoder)")
+    ap.add_argument(
+        "--regraph",
+        action="store_true",
+        help="re-export the shipped decoder graphs of --size from their own weights (regraph_decoder)",
+    )
     ap.add_argument("--metrics", type=Path, default=None)
     ap.add_argument("--out", type=Path, default=MODEL_DIR)
     a = ap.parse_args(argv)
@@ -257,30 +303,47 @@ def main(argv=None):
 
     dcard = {
         "name": f"decoder_{a.size}",
-        "role": "neural BRDF decoder f(z_c, wi, wo) -> f_c >= 0 (1/sr, no cosine), one scalar network shared by R, G, B",
+        "role": (
+            "neural BRDF decoder f(z_c, wi, wo) -> f_c >= 0 (1/sr, no cosine), one scalar network shared by R, G, B"
+        ),
         "files": {p.name: file_digest(p) for p in (dpath, rgb_path)},
-        "inputs": {"z": "(B, 32) float32 latent of one colour channel", "wi": "(B, 3) float32 unit, toward the light",
-                   "wo": "(B, 3) float32 unit, toward the viewer"},
+        "inputs": {
+            "z": "(B, 32) float32 latent of one colour channel",
+            "wi": "(B, 3) float32 unit, toward the light",
+            "wo": "(B, 3) float32 unit, toward the viewer",
+        },
         "outputs": {"f": "(B,) float32"},
-        "architecture": {**dec.config(), "hidden": f"{dec.depth} x Linear({dec.width}) + ReLU", "latent": 32,
-                         "output": "exp(min(y, 16)), 0 below the horizon"},
+        "architecture": {
+            **dec.config(),
+            "hidden": f"{dec.depth} x Linear({dec.width}) + ReLU",
+            "latent": 32,
+            "output": "exp(min(y, 16)), 0 below the horizon",
+        },
         "parameters": n_params(dec),
         "macs_per_rgb_eval": 3 * macs_per_eval(dec),
         "training": {
             "data": data_cmd,
             "command": stages[-1],
             **({"earlier_stages": stages[:-1]} if len(stages) > 1 else {}),
-            **({"started_from": {k: v for k, v in dck["init_record"].items() if k != "earlier_stages"}}
-               if dck.get("init_record") else {}),
-            "steps": dck["step"], "final_loss": dck.get("loss"),
+            **(
+                {"started_from": {k: v for k, v in dck["init_record"].items() if k != "earlier_stages"}}
+                if dck.get("init_record")
+                else {}
+            ),
+            "steps": dck["step"],
+            "final_loss": dck.get("loss"),
             "seeds": {"data": 1, "training": targs.get("seed", 0)},
             "loss": loss_text(targs),
         },
         "onnx_runtime_vs_torch_max_relative_difference": dpar,
-        "rgb_graph": {"file": rgb_path.name, "inputs": "z (1 or B, 3, 32), wi (B, 3), wo (B, 3)", "outputs": "f (B, 3)",
-                      "note": "same weights; direction features and their first-layer product computed once per query",
-                      "macs_per_rgb_eval_one_material": macs_rgb_one_material(dec),
-                      "onnx_runtime_vs_torch_max_relative_difference": rgb_par},
+        "rgb_graph": {
+            "file": rgb_path.name,
+            "inputs": "z (1 or B, 3, 32), wi (B, 3), wo (B, 3)",
+            "outputs": "f (B, 3)",
+            "note": "same weights; direction features and their first-layer product computed once per query",
+            "macs_per_rgb_eval_one_material": macs_rgb_one_material(dec),
+            "onnx_runtime_vs_torch_max_relative_difference": rgb_par,
+        },
         "opset": OPSET,
         "latent_mean": [round(float(v), 6) for v in latents.mean(0)],
         **{k: v for k, v in metrics.items() if k.startswith(("heldout", "speed"))},
@@ -289,7 +352,10 @@ def main(argv=None):
         "name": f"encoder_{a.size}",
         "role": f"single-layer parameters -> latent of decoder_{a.size}, per colour channel",
         "files": {epath.name: file_digest(epath)},
-        "inputs": {"x": f"(B, {N_FEATURES}) float32 features (addon.core.neural.features)", "features": list(FEATURE_NAMES)},
+        "inputs": {
+            "x": f"(B, {N_FEATURES}) float32 features (addon.core.neural.features)",
+            "features": list(FEATURE_NAMES),
+        },
         "outputs": {"z": "(B, 32) float32"},
         "architecture": {**eck["config"], "hidden": f"{enc.depth} x Linear({enc.width}) + ReLU"},
         "parameters": n_params(enc),
@@ -302,7 +368,17 @@ def main(argv=None):
     }
     dpath.with_suffix(".json").write_text(json.dumps(dcard, indent=1) + "\n")
     epath.with_suffix(".json").write_text(json.dumps(ecard, indent=1) + "\n")
-    print(json.dumps({"decoder": str(dpath), "parity": dpar, "rgb_parity": rgb_par, "encoder": str(epath), "encoder_parity": epar}))
+    print(
+        json.dumps(
+            {
+                "decoder": str(dpath),
+                "parity": dpar,
+                "rgb_parity": rgb_par,
+                "encoder": str(epath),
+                "encoder_parity": epar,
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

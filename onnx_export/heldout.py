@@ -56,8 +56,12 @@ def single_configs() -> list[Stack]:
 def layered_configs() -> list[Stack]:
     """1, 2 and 3 coatings; low/high roughness; thin/thick, clear/tinted media; all base kinds."""
     rng = np.random.default_rng(HELDOUT_SEED + 1)
-    bases = [Diffuse((0.7, 0.4, 0.1)), Conductor(roughness=0.05, **GOLD), Dielectric(roughness=0.2, ior=1.6),
-             Conductor(roughness=0.4, **ALUMINIUM)]
+    bases = [
+        Diffuse((0.7, 0.4, 0.1)),
+        Conductor(roughness=0.05, **GOLD),
+        Dielectric(roughness=0.2, ior=1.6),
+        Conductor(roughness=0.4, **ALUMINIUM),
+    ]
     out = []
     for i, base in enumerate(bases):
         for rough in (0.03, 0.3):
@@ -66,16 +70,40 @@ def layered_configs() -> list[Stack]:
             tinted_thick = Coating(roughness=rough, ior=1.7, albedo=(0.2, 0.6, 0.95), thickness=3.0)
             choice = (clear, tinted_thin, tinted_thick)[(i + int(rough > 0.1)) % 3]
             out.append(Stack(base, (choice,)))
-        out.append(Stack(base, (Coating(roughness=float(rng.uniform(0.05, 0.5)), ior=1.5, albedo=tuple(rng.random(3)),
-                                        thickness=float(rng.uniform(0.2, 4.0))), Coating(roughness=0.05, ior=1.5))))
-    out.append(Stack(Diffuse((0.8, 0.8, 0.8)), (
-        Coating(roughness=0.3, ior=1.4, albedo=(0.2, 0.6, 0.9), thickness=1.0),
-        Coating(roughness=0.2, ior=1.6, albedo=(0.9, 0.9, 0.3), thickness=0.5),
-        Coating(roughness=0.05, ior=1.5))))
-    out.append(Stack(Conductor(roughness=0.2, **COPPER), (
-        Coating(roughness=0.1, ior=1.3, albedo=(0.9, 0.9, 0.9), thickness=4.0),
-        Coating(roughness=0.5, ior=1.8),
-        Coating(roughness=0.02, ior=1.5))))
+        out.append(
+            Stack(
+                base,
+                (
+                    Coating(
+                        roughness=float(rng.uniform(0.05, 0.5)),
+                        ior=1.5,
+                        albedo=tuple(rng.random(3)),
+                        thickness=float(rng.uniform(0.2, 4.0)),
+                    ),
+                    Coating(roughness=0.05, ior=1.5),
+                ),
+            )
+        )
+    out.append(
+        Stack(
+            Diffuse((0.8, 0.8, 0.8)),
+            (
+                Coating(roughness=0.3, ior=1.4, albedo=(0.2, 0.6, 0.9), thickness=1.0),
+                Coating(roughness=0.2, ior=1.6, albedo=(0.9, 0.9, 0.3), thickness=0.5),
+                Coating(roughness=0.05, ior=1.5),
+            ),
+        )
+    )
+    out.append(
+        Stack(
+            Conductor(roughness=0.2, **COPPER),
+            (
+                Coating(roughness=0.1, ior=1.3, albedo=(0.9, 0.9, 0.9), thickness=4.0),
+                Coating(roughness=0.5, ior=1.8),
+                Coating(roughness=0.02, ior=1.5),
+            ),
+        )
+    )
     return out
 
 
@@ -104,8 +132,9 @@ def make(kind: str, walks: int, res: int, pairs: int, fit_walks: int = 64, log=p
     for i, s in enumerate(stacks):  # one batched call per configuration (and elevation)
         if not s.coatings:
             brdf = stack_brdf(s, walks, HELDOUT_SEED + 17 * i)
-            wi = np.concatenate([np.broadcast_to(lobe.incident_direction(t), (int(mask.sum()), 3))
-                                 for t in lobe.INCIDENT_ANGLES_DEG])
+            wi = np.concatenate(
+                [np.broadcast_to(lobe.incident_direction(t), (int(mask.sum()), 3)) for t in lobe.INCIDENT_ANGLES_DEG]
+            )
             wo = np.tile(wo_grid[mask], (na, 1))
             f, se = brdf(wi, wo)
             f, se = f.reshape(na, -1, 3), se.reshape(na, -1, 3)
@@ -117,8 +146,13 @@ def make(kind: str, walks: int, res: int, pairs: int, fit_walks: int = 64, log=p
             f = np.zeros((na, int(mask.sum()), 3))
             se = np.zeros_like(f)
             for a, t in enumerate(lobe.INCIDENT_ANGLES_DEG):
-                fa, sa = reference.eval_brdf_many(s, wo_grid[mask][None], lobe.incident_direction(t)[None],
-                                                  walks=walks, seed=HELDOUT_SEED + 17 * i + a)
+                fa, sa = reference.eval_brdf_many(
+                    s,
+                    wo_grid[mask][None],
+                    lobe.incident_direction(t)[None],
+                    walks=walks,
+                    seed=HELDOUT_SEED + 17 * i + a,
+                )
                 f[a], se[a] = fa[0], sa[0]
         cos_o = wo_grid[mask][None, :, 2:3]
         lobe_img[i][:, mask] = f * cos_o
@@ -135,8 +169,10 @@ def make(kind: str, walks: int, res: int, pairs: int, fit_walks: int = 64, log=p
         lobe=lobe_img.reshape(c, na, res, res, 3).astype(np.float32),
         lobe_stderr=lobe_err.reshape(c, na, res, res, 3).astype(np.float32),
         angles=np.asarray(lobe.INCIDENT_ANGLES_DEG),
-        fit_wi=fit_wi.astype(np.float32), fit_wo=fit_wo.astype(np.float32),
-        fit_f=fit_f.astype(np.float32), fit_stderr=fit_se.astype(np.float32),
+        fit_wi=fit_wi.astype(np.float32),
+        fit_wo=fit_wo.astype(np.float32),
+        fit_f=fit_f.astype(np.float32),
+        fit_stderr=fit_se.astype(np.float32),
         stacks=np.array([s.to_json() for s in stacks]),
     )
 

@@ -85,8 +85,15 @@ def network_grazing(models, stacks: list[Stack], angles, res: int) -> tuple[np.n
     for c in sorted({len(s.coatings) for s in stacks}):  # one batch per coating count
         idx = [i for i, s in enumerate(stacks) if len(s.coatings) == c]
         z[idx] = encode_arrays(StackArrays.from_stacks([stacks[i] for i in idx]), models)
-    alb = np.array([[lobe.albedo_from_lobe(lobe.lobe_image(lambda wi, wo, k=k: models.eval_brdf(z[k], wi, wo), t, res))
-                     for t in angles] for k in range(len(stacks))])
+    alb = np.array(
+        [
+            [
+                lobe.albedo_from_lobe(lobe.lobe_image(lambda wi, wo, k=k: models.eval_brdf(z[k], wi, wo), t, res))
+                for t in angles
+            ]
+            for k in range(len(stacks))
+        ]
+    )
     inc = np.stack([lobe.incident_direction(t) for t in angles])
     view = np.tile([0.0, 0.0, 1.0], (len(angles), 1))
     fcos = np.array([models.eval_brdf(z[k], inc, view) * inc[:, 2:3] for k in range(len(stacks))])
@@ -98,9 +105,12 @@ def grazing_ratios(models, data: dict) -> dict:
     stacks = [s if isinstance(s, Stack) else Stack.from_json(str(s)) for s in data["stacks"]]
     alb, fcos = network_grazing(models, stacks, data["angles"], int(data["res"]))
     tiny = 1e-12
-    return {"angles": np.asarray(data["angles"]), "n_coatings": np.asarray(data["n_coatings"]),
-            "albedo": alb.mean(-1) / np.maximum(data["albedo"].mean(-1), tiny),
-            "fcos": fcos.mean(-1) / np.maximum(data["fcos"].mean(-1), tiny)}
+    return {
+        "angles": np.asarray(data["angles"]),
+        "n_coatings": np.asarray(data["n_coatings"]),
+        "albedo": alb.mean(-1) / np.maximum(data["albedo"].mean(-1), tiny),
+        "fcos": fcos.mean(-1) / np.maximum(data["fcos"].mean(-1), tiny),
+    }
 
 
 def load(path) -> dict:
@@ -126,11 +136,18 @@ def main(argv=None):
     alb, alb_se = grazing_albedo_reference(stacks, angles, a.walks, a.res, GRAZING_SEED, log=lg)
     cmd = "python -m onnx_export.heldout_grazing " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
     a.out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(a.out, albedo=alb.astype(np.float32), albedo_stderr=alb_se.astype(np.float32),
-                        fcos=fcos.astype(np.float32), fcos_stderr=fcos_se.astype(np.float32),
-                        angles=np.asarray(angles), res=np.array(a.res),
-                        n_coatings=np.array([len(s.coatings) for s in stacks]),
-                        stacks=np.array([s.to_json() for s in stacks]), command=np.array(cmd))
+    np.savez_compressed(
+        a.out,
+        albedo=alb.astype(np.float32),
+        albedo_stderr=alb_se.astype(np.float32),
+        fcos=fcos.astype(np.float32),
+        fcos_stderr=fcos_se.astype(np.float32),
+        angles=np.asarray(angles),
+        res=np.array(a.res),
+        n_coatings=np.array([len(s.coatings) for s in stacks]),
+        stacks=np.array([s.to_json() for s in stacks]),
+        command=np.array(cmd),
+    )
     print(json.dumps({"stacks": len(stacks), "angles": list(angles), "out": str(a.out)}))
 
 

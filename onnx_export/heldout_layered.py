@@ -61,15 +61,17 @@ def configs() -> list[Stack]:
     out = [
         Stack(Conductor(roughness=0.05, **GOLD), (Coating(roughness=0.3, ior=1.5),)),
         Stack(Conductor(roughness=0.3, **ALUMINIUM), (Coating(roughness=0.03, ior=1.5),)),  # specular
-        Stack(Dielectric(roughness=0.2, ior=1.6), (Coating(roughness=0.1, ior=1.3, albedo=(0.9, 0.5, 0.2),
-                                                            thickness=0.5),)),
+        Stack(
+            Dielectric(roughness=0.2, ior=1.6),
+            (Coating(roughness=0.1, ior=1.3, albedo=(0.9, 0.5, 0.2), thickness=0.5),),
+        ),
         Stack(Diffuse((0.7, 0.4, 0.1)), (Coating(roughness=0.05, ior=1.5),)),  # diffuse (coated)
-        Stack(Diffuse((0.2, 0.5, 0.8)), (Coating(roughness=0.6, ior=1.4, albedo=(0.8, 0.8, 0.8),
-                                                 thickness=1.0),)),
-        Stack(Conductor(roughness=0.02, **GOLD), (Coating(roughness=0.15, ior=1.7, albedo=(0.2, 0.6, 0.95),
-                                                          thickness=3.0),)),
-        Stack(Diffuse((0.9, 0.9, 0.9)), (Coating(roughness=0.02, ior=1.9, albedo=(0.95, 0.3, 0.3),
-                                                 thickness=4.5),)),
+        Stack(Diffuse((0.2, 0.5, 0.8)), (Coating(roughness=0.6, ior=1.4, albedo=(0.8, 0.8, 0.8), thickness=1.0),)),
+        Stack(
+            Conductor(roughness=0.02, **GOLD),
+            (Coating(roughness=0.15, ior=1.7, albedo=(0.2, 0.6, 0.95), thickness=3.0),),
+        ),
+        Stack(Diffuse((0.9, 0.9, 0.9)), (Coating(roughness=0.02, ior=1.9, albedo=(0.95, 0.3, 0.3), thickness=4.5),)),
         Stack(Dielectric(roughness=0.5, ior=1.2), (Coating(roughness=0.01, ior=1.1),)),
     ]
     rng = np.random.default_rng(HELDOUT_SEED)
@@ -151,16 +153,35 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--walks", type=int, default=256, help="reference walks per incident direction")
     ap.add_argument("--res", type=int, default=24)
-    ap.add_argument("--only-coatings", type=int, default=0,
-                    help="recompute only the stacks with this many coatings in an existing --out file (more walks "
-                         "where the reference is noisiest); the other rows are kept")
-    ap.add_argument("--validation", type=int, nargs="+", default=None, metavar="N",
-                    help="a validation set: N random stacks with one coating, N2 with two, ... (not the held-out set)")
-    ap.add_argument("--seed", type=int, default=VALIDATION_SEED,
-                    help="with --validation: the seed of the stacks and of the reference walks (another seed, "
-                         "another validation set); with --training: of the reference walks")
-    ap.add_argument("--training", nargs="+", default=None, metavar="DIR N",
-                    help="a set of training stacks: the first N stacks of each layered_data directory DIR")
+    ap.add_argument(
+        "--only-coatings",
+        type=int,
+        default=0,
+        help="recompute only the stacks with this many coatings in an existing --out file (more walks "
+        "where the reference is noisiest); the other rows are kept",
+    )
+    ap.add_argument(
+        "--validation",
+        type=int,
+        nargs="+",
+        default=None,
+        metavar="N",
+        help="a validation set: N random stacks with one coating, N2 with two, ... (not the held-out set)",
+    )
+    ap.add_argument(
+        "--seed",
+        type=int,
+        default=VALIDATION_SEED,
+        help="with --validation: the seed of the stacks and of the reference walks (another seed, "
+        "another validation set); with --training: of the reference walks",
+    )
+    ap.add_argument(
+        "--training",
+        nargs="+",
+        default=None,
+        metavar="DIR N",
+        help="a set of training stacks: the first N stacks of each layered_data directory DIR",
+    )
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args(argv)
     if a.seed != VALIDATION_SEED and not (a.validation or a.training):
@@ -171,10 +192,15 @@ def main(argv=None):
         ap.error("--validation takes counts >= 0 and makes a new file (no --only-coatings)")
     if a.training is not None:
         pairs = a.training
-        if a.validation or a.only_coatings or len(pairs) % 2 or not all(n.isdigit() and int(n) > 0 for n in pairs[1::2]):
+        if (
+            a.validation
+            or a.only_coatings
+            or len(pairs) % 2
+            or not all(n.isdigit() and int(n) > 0 for n in pairs[1::2])
+        ):
             ap.error("--training takes pairs DIR N (N > 0) and makes a new file (no --validation, --only-coatings)")
         try:
-            stacks = training_configs([(Path(d), int(n)) for d, n in zip(pairs[::2], pairs[1::2])])
+            stacks = training_configs([(Path(d), int(n)) for d, n in zip(pairs[::2], pairs[1::2], strict=False)])
         except (FileNotFoundError, ValueError) as e:
             ap.error(str(e))
     else:
@@ -196,11 +222,24 @@ def main(argv=None):
         command = np.array(cmd)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(
-        a.out, lobe=img.astype(np.float32), lobe_stderr=err.astype(np.float32),
-        angles=np.asarray(lobe.INCIDENT_ANGLES_DEG), n_coatings=np.array([len(s.coatings) for s in stacks]),
-        stacks=np.array([s.to_json() for s in stacks]), walks=walks, command=command)
-    print(json.dumps({"configs": len(stacks), "by_coatings": np.bincount([len(s.coatings) for s in stacks]).tolist(),
-                      "out": str(a.out)}))
+        a.out,
+        lobe=img.astype(np.float32),
+        lobe_stderr=err.astype(np.float32),
+        angles=np.asarray(lobe.INCIDENT_ANGLES_DEG),
+        n_coatings=np.array([len(s.coatings) for s in stacks]),
+        stacks=np.array([s.to_json() for s in stacks]),
+        walks=walks,
+        command=command,
+    )
+    print(
+        json.dumps(
+            {
+                "configs": len(stacks),
+                "by_coatings": np.bincount([len(s.coatings) for s in stacks]).tolist(),
+                "out": str(a.out),
+            }
+        )
+    )
 
 
 if __name__ == "__main__":
@@ -229,10 +268,18 @@ def runtime_errors(models, data: dict, res: int | None = None) -> dict:
     for c in sorted({len(s.coatings) for s in stacks}):
         idx = [i for i, s in enumerate(stacks) if len(s.coatings) == c]
         z = encode_arrays(StackArrays.from_stacks([stacks[i] for i in idx]), models)
-        lobes = np.array([[lobe.lobe_image(lambda wi, wo, k=k: models.eval_brdf(z[k], wi, wo), t, res)
-                           for t in angles] for k in range(len(idx))])
-        swapped = np.array([[lobe.lobe_image(lambda wi, wo, k=k: models.eval_brdf(z[k], wo, wi), t, res)
-                             for t in angles] for k in range(len(idx))])
+        lobes = np.array(
+            [
+                [lobe.lobe_image(lambda wi, wo, k=k, z=z: models.eval_brdf(z[k], wi, wo), t, res) for t in angles]
+                for k in range(len(idx))
+            ]
+        )
+        swapped = np.array(
+            [
+                [lobe.lobe_image(lambda wi, wo, k=k, z=z: models.eval_brdf(z[k], wo, wi), t, res) for t in angles]
+                for k in range(len(idx))
+            ]
+        )
         ref = data["lobe"][idx]
         err = lobe.relative_rmse(lobes, ref, image_axes=3)  # (stacks, angles)
         alb_net, alb_ref = lobe.albedo_from_lobe(lobes), lobe.albedo_from_lobe(ref)
@@ -241,6 +288,14 @@ def runtime_errors(models, data: dict, res: int | None = None) -> dict:
         noise = lobe.relative_rmse(ref + data["lobe_stderr"][idx], ref, image_axes=3)
         recip = lobe.relative_rmse(swapped, lobes, image_axes=3)
         err_sw = lobe.relative_rmse(swapped, ref, image_axes=3)
-        out[c] = {"errors": err, "albedo_error": alb, "albedo_bias": bias, "lobes": lobes, "index": idx,
-                  "reference_noise": noise, "reciprocity": recip, "errors_swapped": err_sw}
+        out[c] = {
+            "errors": err,
+            "albedo_error": alb,
+            "albedo_bias": bias,
+            "lobes": lobes,
+            "index": idx,
+            "reference_noise": noise,
+            "reciprocity": recip,
+            "errors_swapped": err_sw,
+        }
     return out

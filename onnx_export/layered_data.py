@@ -70,17 +70,32 @@ def make_chunk(seed: int, coatings: int, chunk: int, stacks: int, n_wo: int, n_w
     arrays = sample_layered_params(rng, stacks, coatings)
     wo, wi = sample_query_directions(rng, arrays.coat_roughness[:, -1], n_wo, n_wi)
     rows = arrays.take(np.repeat(np.arange(stacks), n_wo))  # one stack per (stack, wo) row: one batched call
-    f, se = reference.eval_brdf_many(rows, wi.reshape(-1, n_wi, 3), wo.reshape(-1, 3), walks=walks,
-                                     seed=int(rng.integers(2**31)))
+    f, se = reference.eval_brdf_many(
+        rows, wi.reshape(-1, n_wi, 3), wo.reshape(-1, 3), walks=walks, seed=int(rng.integers(2**31))
+    )
     out = {f"p_{name}": getattr(arrays, name) for name in StackArrays.FIELDS}
-    out.update(wo=wo.astype(np.float32), wi=wi.astype(np.float32),
-               f=f.reshape(stacks, n_wo, n_wi, 3).astype(np.float32),
-               stderr=se.reshape(stacks, n_wo, n_wi, 3).astype(np.float32), walks=np.full(stacks, walks))
+    out.update(
+        wo=wo.astype(np.float32),
+        wi=wi.astype(np.float32),
+        f=f.reshape(stacks, n_wo, n_wi, 3).astype(np.float32),
+        stderr=se.reshape(stacks, n_wo, n_wi, 3).astype(np.float32),
+        walks=np.full(stacks, walks),
+    )
     return out
 
 
-def generate(out: Path, coatings: int, stacks: int, n_wo: int, n_wi: int, walks: int, chunk: int, seed: int,
-             shard=(0, 1), log=print) -> list[Path]:
+def generate(
+    out: Path,
+    coatings: int,
+    stacks: int,
+    n_wo: int,
+    n_wi: int,
+    walks: int,
+    chunk: int,
+    seed: int,
+    shard=(0, 1),
+    log=print,
+) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     n_chunks = (stacks + chunk - 1) // chunk
     mine = list(range(shard[0], n_chunks, shard[1]))
@@ -98,8 +113,10 @@ def generate(out: Path, coatings: int, stacks: int, n_wo: int, n_wi: int, walks:
         done += 1
         el = time.perf_counter() - t0
         left = sum(1 for q in mine if not (out / f"chunk_{q:05d}.npz").exists())
-        log(f"[layering data c{coatings} shard {shard[0]}/{shard[1]}] chunk {j} ({size} stacks x {n_wo} x {n_wi} "
-            f"values, {walks} walks) {el:.0f} s, eta {el / done * left:.0f} s")
+        log(
+            f"[layering data c{coatings} shard {shard[0]}/{shard[1]}] chunk {j} ({size} stacks x {n_wo} x {n_wi} "
+            f"values, {walks} walks) {el:.0f} s, eta {el / done * left:.0f} s"
+        )
     return [out / f"chunk_{j:05d}.npz" for j in mine]
 
 
@@ -136,8 +153,10 @@ def data_command(out: Path, coatings: int | None = None, default_stacks: int = 0
         stacks = int(sum(np.load(c)["wo"].shape[0] for c in chunks))
         walks = int(first["walks"][0]) if "walks" in first else 8  # chunks from before it was recorded: the default
         if walks != 8:
-            return (f"python -m onnx_export.layered_data --coatings {coatings} --stacks {stacks} --walks {walks} "
-                    f"--out {out}")
+            return (
+                f"python -m onnx_export.layered_data --coatings {coatings} --stacks {stacks} --walks {walks} "
+                f"--out {out}"
+            )
     elif coatings is None:
         raise FileNotFoundError(f"no layering data under {out}, and no number of coatings given")
     else:
@@ -157,8 +176,18 @@ def main(argv=None):
     ap.add_argument("--shard", type=parse_shard, default=(0, 1))
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args(argv)
-    generate(a.out, a.coatings, a.stacks, a.wo, a.wi, a.walks, a.chunk, a.seed, a.shard,
-             log=lambda s: print(s, file=sys.stderr, flush=True))
+    generate(
+        a.out,
+        a.coatings,
+        a.stacks,
+        a.wo,
+        a.wi,
+        a.walks,
+        a.chunk,
+        a.seed,
+        a.shard,
+        log=lambda s: print(s, file=sys.stderr, flush=True),
+    )
 
 
 if __name__ == "__main__":

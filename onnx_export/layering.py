@@ -79,15 +79,17 @@ class LayeringNet(nn.Module):
         return {"width": self.width, "depth": self.depth}
 
 
-def compose(net: LayeringNet, z_base: torch.Tensor, z_tops: torch.Tensor, albedo: torch.Tensor,
-            thickness: torch.Tensor) -> torch.Tensor:
+def compose(
+    net: LayeringNet, z_base: torch.Tensor, z_tops: torch.Tensor, albedo: torch.Tensor, thickness: torch.Tensor
+) -> torch.Tensor:
     """Latent (S, 3, 32) of S stacks, bottom-up: z_base (S, 3, 32), z_tops (S, C, 3, 32) of the coatings'
     interfaces, albedo (S, C, 3), thickness (S, C)."""
     s = z_base.shape[0]
     z = z_base.reshape(s * 3, LATENT)
     for j in range(z_tops.shape[1]):  # a loop over coatings
-        z = net(z_tops[:, j].reshape(s * 3, LATENT), z, albedo[:, j].reshape(s * 3),
-                thickness[:, j].repeat_interleave(3))
+        z = net(
+            z_tops[:, j].reshape(s * 3, LATENT), z, albedo[:, j].reshape(s * 3), thickness[:, j].repeat_interleave(3)
+        )
     return z.reshape(s, 3, LATENT)
 
 
@@ -145,11 +147,22 @@ class StackSet:
         self.wi = torch.from_numpy(d["wi"][:n].reshape(n, p * m, 3))
         self.wo = torch.from_numpy(np.repeat(d["wo"][:n], m, axis=1))
         self.f = torch.from_numpy(d["f"][:n].reshape(n, p * m, 3))
-        self.weight = torch.from_numpy(cosine_weights(d["wi"][:n], d["wo"][:n], a.coat_roughness[:, -1]).reshape(n, p * m))
+        self.weight = torch.from_numpy(
+            cosine_weights(d["wi"][:n], d["wo"][:n], a.coat_roughness[:, -1]).reshape(n, p * m)
+        )
         self.groups = p  # outgoing directions per stack, each with m incident ones
 
-    def decoded_batch(self, net, dec, z_target: torch.Tensor | None, b: int, g: int, gen: torch.Generator,
-                      kind: str = "squared", reciprocal: bool = False) -> torch.Tensor:
+    def decoded_batch(
+        self,
+        net,
+        dec,
+        z_target: torch.Tensor | None,
+        b: int,
+        g: int,
+        gen: torch.Generator,
+        kind: str = "squared",
+        reciprocal: bool = False,
+    ) -> torch.Tensor:
         """Function-space loss of ``b`` random stacks at ``g`` of their outgoing directions each: the
         relative squared error of the cosine-weighted lobe (``decoded_lobe_loss``) between the decoder's
         values for L's latent and the decoder's values for the stack's target latent ``z_target``
@@ -179,8 +192,9 @@ class StackSet:
             with torch.no_grad():
                 target = decode_pairs(dec, z_target[s], d_in, d_out)
         sh = (b, g, m)
-        return decoded_lobe_loss(pred.reshape(*sh, 3), target.reshape(*sh, 3), wi[..., 2].reshape(sh), w.reshape(sh),
-                                 kind)
+        return decoded_lobe_loss(
+            pred.reshape(*sh, 3), target.reshape(*sh, 3), wi[..., 2].reshape(sh), w.reshape(sh), kind
+        )
 
     def batch(self, net, dec, b: int, q: int, gen: torch.Generator):
         s = torch.randint(0, self.n, (b,), generator=gen)
@@ -272,8 +286,13 @@ def heldout_error(net: LayeringNet, dec, models: ModelSet, heldout: dict, log=No
         idx = np.flatnonzero(counts == c)
         a = StackArrays.from_stacks([stacks[i] for i in idx])
         zb, zt = encoder_latents(models, a)
-        z = compose(net, torch.from_numpy(zb), torch.from_numpy(zt), torch.from_numpy(a.coat_albedo.astype(np.float32)),
-                    torch.from_numpy(a.coat_thickness.astype(np.float32)))
+        z = compose(
+            net,
+            torch.from_numpy(zb),
+            torch.from_numpy(zt),
+            torch.from_numpy(a.coat_albedo.astype(np.float32)),
+            torch.from_numpy(a.coat_thickness.astype(np.float32)),
+        )
         pred = decoder_lobes(dec, z, heldout["lobe"].shape[2], heldout["angles"])
         m = lobe_metrics(pred, heldout["lobe"][idx])
         out[f"coatings_{c}"] = {k: v for k, v in m.items() if k != "errors"} | {"configs": int(idx.size)}
@@ -282,8 +301,17 @@ def heldout_error(net: LayeringNet, dec, models: ModelSet, heldout: dict, log=No
     return out
 
 
-def lobe_bound(net: LayeringNet, dec, models: ModelSet, heldout: dict, steps: int = 400, pixels: int = 96,
-               lr: float = 0.01, seed: int = 0, log=None) -> dict:
+def lobe_bound(
+    net: LayeringNet,
+    dec,
+    models: ModelSet,
+    heldout: dict,
+    steps: int = 400,
+    pixels: int = 96,
+    lr: float = 0.01,
+    seed: int = 0,
+    log=None,
+) -> dict:
     """What the decoder could hold: the held-out lobes projected into its latent space, per number of
     coatings, by latent optimisation on the scored pixels themselves with the metric as the loss
     (``decoded_lobe_loss``, ``pixels`` random pixels of every image per step), starting from the
@@ -304,10 +332,16 @@ def lobe_bound(net: LayeringNet, dec, models: ModelSet, heldout: dict, steps: in
         a = StackArrays.from_stacks([stacks[i] for i in idx])
         zb, zt = encoder_latents(models, a)
         with torch.no_grad():
-            z0 = compose(net, torch.from_numpy(zb), torch.from_numpy(zt),
-                         torch.from_numpy(a.coat_albedo.astype(np.float32)), torch.from_numpy(a.coat_thickness.astype(np.float32)))
-        ref = torch.as_tensor(ref_all[idx].reshape(len(idx), len(angles), res * res, 3)[:, :, mask] / wo[:, 2:3],
-                              dtype=torch.float32)  # f at the pixels (S, A, npx, 3)
+            z0 = compose(
+                net,
+                torch.from_numpy(zb),
+                torch.from_numpy(zt),
+                torch.from_numpy(a.coat_albedo.astype(np.float32)),
+                torch.from_numpy(a.coat_thickness.astype(np.float32)),
+            )
+        ref = torch.as_tensor(
+            ref_all[idx].reshape(len(idx), len(angles), res * res, 3)[:, :, mask] / wo[:, 2:3], dtype=torch.float32
+        )  # f at the pixels (S, A, npx, 3)
         z = z0.clone().requires_grad_(True)
         opt = torch.optim.Adam([z], lr=lr)
         n_s, n_a = len(idx), len(angles)
@@ -319,18 +353,24 @@ def lobe_bound(net: LayeringNet, dec, models: ModelSet, heldout: dict, steps: in
             wi_b = wis[:, None, :].expand(n_a, pixels, 3).unsqueeze(0).expand(n_s, n_a, pixels, 3).reshape(n_s, -1, 3)
             pred = decode_pairs(dec, z, wi_b, wo_b).reshape(n_s, n_a, pixels, 3)
             target = ref[:, torch.arange(n_a)[:, None], pix]
-            loss = decoded_lobe_loss(pred, target, wo[pix][..., 2].expand(n_s, n_a, pixels),
-                                     torch.ones(n_s, n_a, pixels))
+            loss = decoded_lobe_loss(
+                pred, target, wo[pix][..., 2].expand(n_s, n_a, pixels), torch.ones(n_s, n_a, pixels)
+            )
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
         m = lobe_metrics(decoder_lobes(dec, z.detach(), res, angles), ref_all[idx])
         m0 = lobe_metrics(decoder_lobes(dec, z0, res, angles), ref_all[idx])
-        out[f"coatings_{c}"] = {"layering": [m0["lobe_error_median"], m0["lobe_error_p90"]],
-                                "bound": [m["lobe_error_median"], m["lobe_error_p90"]], "configs": int(idx.size)}
+        out[f"coatings_{c}"] = {
+            "layering": [m0["lobe_error_median"], m0["lobe_error_p90"]],
+            "bound": [m["lobe_error_median"], m["lobe_error_p90"]],
+            "configs": int(idx.size),
+        }
         if log:
-            log(f"{c} coatings: layering {m0['lobe_error_median']:.4f} / {m0['lobe_error_p90']:.4f}, "
-                f"bound {m['lobe_error_median']:.4f} / {m['lobe_error_p90']:.4f} (median / p90)")
+            log(
+                f"{c} coatings: layering {m0['lobe_error_median']:.4f} / {m0['lobe_error_p90']:.4f}, "
+                f"bound {m['lobe_error_median']:.4f} / {m['lobe_error_p90']:.4f} (median / p90)"
+            )
     return out
 
 
@@ -369,7 +409,7 @@ def _checkpoint_latents(ck: dict, path, data_dir: Path, n: int) -> torch.Tensor:
         raise ValueError(f"{path} was not trained on {data_dir}: its sets are {ck['args']['data']}")
     i = dirs.index(Path(data_dir).resolve())
     start = sum(ck["units_per_set"][:i])
-    z = ck["latents"][start:start + ck["units_per_set"][i]].reshape(-1, 3, LATENT)
+    z = ck["latents"][start : start + ck["units_per_set"][i]].reshape(-1, 3, LATENT)
     if z.shape[0] < n:
         raise ValueError(f"{path} holds latents of {z.shape[0]} stacks of {data_dir}, {n} needed")
     return z[:n].float()
@@ -395,8 +435,19 @@ def regress_projected(net: LayeringNet, sets: dict, targets: dict, args, gen, lo
             log(f"regress {step + 1}/{args.regress_steps} mse {loss.item():.5f} {time.perf_counter() - t0:.0f} s")
 
 
-def regress_decoded(net: LayeringNet, dec, sets: dict, targets: dict, args, gen, log, rec: dict,
-                    checkpoint=None, evaluate=None, opt_state=None) -> None:
+def regress_decoded(
+    net: LayeringNet,
+    dec,
+    sets: dict,
+    targets: dict,
+    args,
+    gen,
+    log,
+    rec: dict,
+    checkpoint=None,
+    evaluate=None,
+    opt_state=None,
+) -> None:
     """Stage 0b (``--decoded-steps``): the regression in function space. L's latent is decoded at the
     stack's direction pairs and compared as a lobe (``decoded_lobe_loss``, the held-out metric) with the
     lobe of the stack's target latent (``targets[c]``) or, where that is None, with its Monte Carlo values.
@@ -414,9 +465,12 @@ def regress_decoded(net: LayeringNet, dec, sets: dict, targets: dict, args, gen,
     for step in range(rec.get("step", 0), args.decoded_steps):
         for g in opt.param_groups:
             g["lr"] = cosine_lr(step, args.decoded_steps, args.decoded_lr, warmup=20)
-        loss = sum(data.decoded_batch(net, dec, targets[c], args.batch // len(sets), 2, gen, args.decoded_loss,
-                                      args.decoded_reciprocal)
-                   for c, data in sets.items()) / len(sets)
+        loss = sum(
+            data.decoded_batch(
+                net, dec, targets[c], args.batch // len(sets), 2, gen, args.decoded_loss, args.decoded_reciprocal
+            )
+            for c, data in sets.items()
+        ) / len(sets)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         nn.utils.clip_grad_norm_(net.parameters(), args.clip)
@@ -454,26 +508,36 @@ def decoded_stage_data(args, models: ModelSet, sets: dict) -> tuple[dict, dict]:
         if args.decoded_data:
             raise ValueError("--decoded-data gives Monte Carlo values: it goes with --decoded-target data")
         if not args.projected:
-            raise ValueError("--decoded-target latents decodes the --projected latents: give --projected, "
-                             "or --decoded-target data")
+            raise ValueError(
+                "--decoded-target latents decodes the --projected latents: give --projected, or --decoded-target data"
+            )
         return sets, projected_targets(args, models, sets, args.decoded_shrink)[0]
     coatings = args.decoded_coatings or (sorted(sets) if args.projected else [1, 2])
     for c in coatings:
         if c not in sets:
-            sets[c] = StackSet(args.c1 if c == 1 else args.c2, models, args.stacks if c == 1 else 0,
-                               use_weight=args.weighting == "cosine")
+            sets[c] = StackSet(
+                args.c1 if c == 1 else args.c2,
+                models,
+                args.stacks if c == 1 else 0,
+                use_weight=args.weighting == "cosine",
+            )
     dsets = {c: sets[c] for c in coatings}
     if args.decoded_data:  # the same stacks and directions with other values (more walks)
-        dsets = {c: StackSet(d, models, sets[c].n, use_weight=True) for c, d in zip((1, 2), args.decoded_data)
-                 if c in dsets}
+        dsets = {
+            c: StackSet(d, models, sets[c].n, use_weight=True)
+            for c, d in zip((1, 2), args.decoded_data, strict=False)
+            if c in dsets
+        }
         for c in dsets:
             if not (torch.equal(dsets[c].wi, sets[c].wi) and torch.equal(dsets[c].albedo, sets[c].albedo)):
-                raise ValueError(f"{args.decoded_data[c - 1]} does not hold the stacks and directions of the "
-                                 f"{'--c1' if c == 1 else '--c2'} data")
+                raise ValueError(
+                    f"{args.decoded_data[c - 1]} does not hold the stacks and directions of the "
+                    f"{'--c1' if c == 1 else '--c2'} data"
+                )
     return dsets, {c: None for c in dsets}
 
 
-def train(args, log=print) -> dict:
+def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to be cut into stages)
     from onnx_export.heldout_layered import load as load_heldout
 
     torch.set_num_threads(args.threads)
@@ -482,10 +546,13 @@ def train(args, log=print) -> dict:
     models = ModelSet(args.size, threads=args.threads, model_dir=args.model_dir)
     dec = frozen_decoder(args.size, Path(args.model_dir or MODEL_DIR))
     trained_with = {p.name: file_digest(p) for p in (models.encoder_path, models.decoder_path)}
-    sets = {1: StackSet(args.c1, models, args.stacks, args.weighting == "cosine")}  # two-coating data are loaded when stage 2 starts
+    sets = {
+        1: StackSet(args.c1, models, args.stacks, args.weighting == "cosine")
+    }  # two-coating data are loaded when stage 2 starts
 
     def heldout():
         return load_heldout(args.heldout) if args.heldout.exists() else None
+
     net = LayeringNet(args.width, args.depth)
     init_rec = None
     if args.init_from:  # warm start: a shipped size's layering network (same architecture)
@@ -495,8 +562,13 @@ def train(args, log=print) -> dict:
             raise ValueError(f"{src.name} is {net.width} x {net.depth}: give --width {net.width} --depth {net.depth}")
         net.train()
         prev = json.loads(src.with_suffix(".json").read_text()).get("training", {})  # how the start was made
-        init_rec = {"model": src.name, "sha256": file_digest(src), "command": prev.get("command"),
-                    "decoded": prev.get("decoded"), "init_from": prev.get("init_from")}
+        init_rec = {
+            "model": src.name,
+            "sha256": file_digest(src),
+            "command": prev.get("command"),
+            "decoded": prev.get("decoded"),
+            "init_from": prev.get("init_from"),
+        }
         log(f"starting from {src.name}")
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
     out = Path(args.out)
@@ -513,10 +585,20 @@ def train(args, log=print) -> dict:
 
     def save(step, ema, **extra):
         hist["data"] = [sets[c].command for c in sorted(sets)]  # the data this training has loaded
-        torch.save({"net": net.state_dict(), "config": net.config(), "opt": opt.state_dict(), "step": step,
-                    "trained_with": trained_with,
-                    "history": hist, "loss": ema, "args": {k: str(v) for k, v in vars(args).items()}, **extra},
-                   ckpt.with_suffix(".tmp"))
+        torch.save(
+            {
+                "net": net.state_dict(),
+                "config": net.config(),
+                "opt": opt.state_dict(),
+                "step": step,
+                "trained_with": trained_with,
+                "history": hist,
+                "loss": ema,
+                "args": {k: str(v) for k, v in vars(args).items()},
+                **extra,
+            },
+            ckpt.with_suffix(".tmp"),
+        )
         ckpt.with_suffix(".tmp").replace(ckpt)
 
     fresh_opt = False  # a stage below ran in this call: the stages after it start with a fresh optimiser
@@ -533,8 +615,12 @@ def train(args, log=print) -> dict:
         dsets, targets = decoded_stage_data(args, models, sets)
         opt_state = None
         if rec is None:
-            rec = hist["decoded"] = {"steps": args.decoded_steps, "target": args.decoded_target,
-                                     "lr": args.decoded_lr, "step": 0}
+            rec = hist["decoded"] = {
+                "steps": args.decoded_steps,
+                "target": args.decoded_target,
+                "lr": args.decoded_lr,
+                "step": 0,
+            }
             if args.decoded_loss != "squared":
                 rec["loss"] = args.decoded_loss
             if args.decoded_reciprocal:
@@ -545,19 +631,32 @@ def train(args, log=print) -> dict:
                 rec["data"] = [dsets[c].command for c in dsets]
         else:
             if rec.get("reciprocal", False) != args.decoded_reciprocal:
-                raise ValueError(f"{ckpt} holds a function-space stage "
-                                 f"{'with' if rec.get('reciprocal') else 'without'} --decoded-reciprocal: resume it "
-                                 "the same way, or train into another --out")
+                raise ValueError(
+                    f"{ckpt} holds a function-space stage "
+                    f"{'with' if rec.get('reciprocal') else 'without'} --decoded-reciprocal: resume it "
+                    "the same way, or train into another --out"
+                )
             if rec["steps"] != args.decoded_steps:  # its learning-rate schedule is that of its own length
-                raise ValueError(f"{ckpt} holds a function-space stage of {rec['steps']} steps: resume it with "
-                                 f"--decoded-steps {rec['steps']}, or train into another --out")
+                raise ValueError(
+                    f"{ckpt} holds a function-space stage of {rec['steps']} steps: resume it with "
+                    f"--decoded-steps {rec['steps']}, or train into another --out"
+                )
             opt_state = resumed["decoded_opt"]
             gen.set_state(resumed["decoded_gen"])
             log(f"function-space stage resumed at step {rec['step']}")
-        regress_decoded(net, dec, dsets, targets, args, gen, log, rec,
-                        checkpoint=lambda o: save(0, None, decoded_opt=o.state_dict(), decoded_gen=gen.get_state()),
-                        evaluate=lambda: heldout_error(net, dec, models, ho, log) if (ho := heldout()) is not None else None,
-                        opt_state=opt_state)
+        regress_decoded(
+            net,
+            dec,
+            dsets,
+            targets,
+            args,
+            gen,
+            log,
+            rec,
+            checkpoint=lambda o: save(0, None, decoded_opt=o.state_dict(), decoded_gen=gen.get_state()),
+            evaluate=lambda: heldout_error(net, dec, models, ho, log) if (ho := heldout()) is not None else None,
+            opt_state=opt_state,
+        )
         if heldout() is not None:
             rec["heldout"] = heldout_error(net, dec, models, heldout(), log)
         fresh_opt = True
@@ -579,8 +678,10 @@ def train(args, log=print) -> dict:
             sets[2] = StackSet(args.c2, models, use_weight=args.weighting == "cosine")
             log(f"stage 2: {sets[2].n} two-coating stacks")
         if stage2:  # half the batch with two coatings (the recursion), half with one (keep stage 1)
-            parts = [sets[2].batch(net, dec, args.batch // 2, args.pairs, gen),
-                     sets[1].batch(net, dec, args.batch - args.batch // 2, args.pairs, gen)]
+            parts = [
+                sets[2].batch(net, dec, args.batch // 2, args.pairs, gen),
+                sets[1].batch(net, dec, args.batch - args.batch // 2, args.pairs, gen),
+            ]
             loss = sum(layering_loss(*p, kind=args.loss) for p in parts) / 2
         else:
             loss = layering_loss(*sets[1].batch(net, dec, args.batch, args.pairs, gen), kind=args.loss)
@@ -610,10 +711,16 @@ def export_onnx(net: LayeringNet, path: Path) -> None:
     net.eval()
     b = 8
     args = (torch.zeros(b, LATENT), torch.zeros(b, LATENT), torch.zeros(b), torch.zeros(b))
-    torch.onnx.export(net, args, str(path), input_names=["z_top", "z_bottom", "albedo", "thickness"],
-                      output_names=["z"], dynamic_axes={k: {0: "batch"} for k in ("z_top", "z_bottom", "albedo",
-                                                                                 "thickness", "z")},
-                      opset_version=OPSET, dynamo=False)
+    torch.onnx.export(
+        net,
+        args,
+        str(path),
+        input_names=["z_top", "z_bottom", "albedo", "thickness"],
+        output_names=["z"],
+        dynamic_axes={k: {0: "batch"} for k in ("z_top", "z_bottom", "albedo", "thickness", "z")},
+        opset_version=OPSET,
+        dynamo=False,
+    )
 
 
 def parity(net: LayeringNet, path: Path, n: int = 4096, seed: int = 0) -> float:
@@ -623,9 +730,12 @@ def parity(net: LayeringNet, path: Path, n: int = 4096, seed: int = 0) -> float:
     from onnx_export.export import max_relative_difference
 
     rng = np.random.default_rng(seed)
-    feeds = {"z_top": (rng.standard_normal((n, LATENT)) * 0.5).astype(np.float32),
-             "z_bottom": (rng.standard_normal((n, LATENT)) * 0.5).astype(np.float32),
-             "albedo": rng.random(n).astype(np.float32), "thickness": (rng.random(n) * THICKNESS_MAX).astype(np.float32)}
+    feeds = {
+        "z_top": (rng.standard_normal((n, LATENT)) * 0.5).astype(np.float32),
+        "z_bottom": (rng.standard_normal((n, LATENT)) * 0.5).astype(np.float32),
+        "albedo": rng.random(n).astype(np.float32),
+        "thickness": (rng.random(n) * THICKNESS_MAX).astype(np.float32),
+    }
     with torch.no_grad():
         ref = net(*(torch.from_numpy(feeds[k]) for k in ("z_top", "z_bottom", "albedo", "thickness"))).numpy()
     got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(["z"], feeds)[0]
@@ -653,8 +763,13 @@ def training_data(s: dict) -> list[str]:
     decoded = hist.get("decoded") or {}
     if decoded.get("target") == "data" and a.get("decoded_data") in (None, "None"):
         return decoded["data"]
-    return [data_command(Path(d), c, n) for c, d, n in ((1, a.get("c1", "cache/data/layering_c1"), 4096),
-                                                        (2, a.get("c2", "cache/data/layering_c2"), 1536))]
+    return [
+        data_command(Path(d), c, n)
+        for c, d, n in (
+            (1, a.get("c1", "cache/data/layering_c1"), 4096),
+            (2, a.get("c2", "cache/data/layering_c2"), 1536),
+        )
+    ]
 
 
 def training_loss(s: dict) -> str:
@@ -665,12 +780,17 @@ def training_loss(s: dict) -> str:
     if "projected" in hist or "regressed" in hist:
         parts.append("MSE against the latents of --projected")
     if decoded:
-        parts.append(("the relative RMSE" if decoded.get("loss") == "rmse" else "the relative squared error")
-                     + " of the cosine-weighted lobes decoded from L's latents"
-                     + (" in both orders of the decoder's directions" if decoded.get("reciprocal") else "")
-                     + " (onnx_export.layering.decoded_lobe_loss) against "
-                     + ("the Monte Carlo values of the data in decoded.data" if decoded.get("target") == "data"
-                        else "the lobes decoded from the target latents (no step against the Monte Carlo values)"))
+        parts.append(
+            ("the relative RMSE" if decoded.get("loss") == "rmse" else "the relative squared error")
+            + " of the cosine-weighted lobes decoded from L's latents"
+            + (" in both orders of the decoder's directions" if decoded.get("reciprocal") else "")
+            + " (onnx_export.layering.decoded_lobe_loss) against "
+            + (
+                "the Monte Carlo values of the data in decoded.data"
+                if decoded.get("target") == "data"
+                else "the lobes decoded from the target latents (no step against the Monte Carlo values)"
+            )
+        )
     if s["step"]:
         parts.append(f"{a.get('loss')} through the decoder against the Monte Carlo values")
     elif not decoded:
@@ -689,39 +809,51 @@ def export(args, log=print) -> dict:
     decoded = s.get("history", {}).get("decoded") or {}
     card = {
         "name": f"layering_{args.size}",
-        "role": (f"layering network in the latent space of decoder_{args.size}/encoder_{args.size}: "
-                 "z = L(z_top_interface, z_bottom, albedo_c, thickness) per colour channel, applied bottom-up"),
+        "role": (
+            f"layering network in the latent space of decoder_{args.size}/encoder_{args.size}: "
+            "z = L(z_top_interface, z_bottom, albedo_c, thickness) per colour channel, applied bottom-up"
+        ),
         "files": {path.name: file_digest(path)},
-        "inputs": {"z_top": "(B, 32) float32 encoder latent of the coating's interface Dielectric(roughness, ior)",
-                   "z_bottom": "(B, 32) float32 latent of the base or of the lower sub-stack",
-                   "albedo": "(B,) float32 single-scattering albedo of the slab in this channel, [0, 1]",
-                   "thickness": f"(B,) float32 optical thickness, [0, {THICKNESS_MAX}]"},
+        "inputs": {
+            "z_top": "(B, 32) float32 encoder latent of the coating's interface Dielectric(roughness, ior)",
+            "z_bottom": "(B, 32) float32 latent of the base or of the lower sub-stack",
+            "albedo": "(B,) float32 single-scattering albedo of the slab in this channel, [0, 1]",
+            "thickness": f"(B,) float32 optical thickness, [0, {THICKNESS_MAX}]",
+        },
         "outputs": {"z": "(B, 32) float32"},
-        "architecture": {**net.config(), "hidden": f"{net.depth} x Linear({net.width}) + ReLU",
-                         "inputs": "z_top, z_bottom, albedo, 1 - exp(-thickness), albedo (1 - exp(-thickness)), "
-                                   "thickness / 5"},
+        "architecture": {
+            **net.config(),
+            "hidden": f"{net.depth} x Linear({net.width}) + ReLU",
+            "inputs": "z_top, z_bottom, albedo, 1 - exp(-thickness), albedo (1 - exp(-thickness)), thickness / 5",
+        },
         "parameters": n_params(net),
         "macs_per_rgb_eval": 3 * macs_per_eval(net),
         "training": {
             "data": training_data(s),
             "command": command_line("onnx_export.layering train", a, skip=("every", "log_every", "cmd", "model_dir")),
-            "steps": s["step"], "final_loss": s.get("loss"), "seeds": {"data": 11, "training": int(a.get("seed", 0))},
+            "steps": s["step"],
+            "final_loss": s.get("loss"),
+            "seeds": {"data": 11, "training": int(a.get("seed", 0))},
             "loss": training_loss(s),
-            "init_from": s.get("history", {}).get("init_from"),  # a warm start: the model it started from, and how that was made
+            "init_from": s.get("history", {}).get(
+                "init_from"
+            ),  # a warm start: the model it started from, and how that was made
             "projected_latents": s.get("history", {}).get("projected"),  # the command of a re-fit of them, if any
             "decoded": {k: v for k, v in decoded.items() if k != "heldout"} or None,
         },
-        "heldout": {**{k: v for k, v in s.get("history", {}).items() if k in ("regressed", "stage1", "stage2")},
-                    **({"decoded": decoded["heldout"]} if "heldout" in decoded else {}),
-                    "set": str(a.get("heldout", "tests/data/heldout_layered.npz")),
-                    "when": "measured at training time against the reference file of that time; "
-                            "heldout_runtime: the latest benchmark run",
-                    "metric": "relative RMSE of lobe images at 0/30/60/75 deg; albedo error = |albedo from lobe|"},
+        "heldout": {
+            **{k: v for k, v in s.get("history", {}).items() if k in ("regressed", "stage1", "stage2")},
+            **({"decoded": decoded["heldout"]} if "heldout" in decoded else {}),
+            "set": str(a.get("heldout", "tests/data/heldout_layered.npz")),
+            "when": "measured at training time against the reference file of that time; "
+            "heldout_runtime: the latest benchmark run",
+            "metric": "relative RMSE of lobe images at 0/30/60/75 deg; albedo error = |albedo from lobe|",
+        },
         "onnx_runtime_vs_torch_max_relative_difference": par,
         "opset": OPSET,
         # checkpoints from before the digests were recorded: the current files (check their dates)
-        "trained_with": s.get("trained_with") or {f"{k}_{args.size}.onnx": file_digest(MODEL_DIR / f"{k}_{args.size}.onnx")
-                                                  for k in ("encoder", "decoder")},
+        "trained_with": s.get("trained_with")
+        or {f"{k}_{args.size}.onnx": file_digest(MODEL_DIR / f"{k}_{args.size}.onnx") for k in ("encoder", "decoder")},
     }
     if args.speed:
         card["speed"] = json.loads(Path(args.speed).read_text())
@@ -739,10 +871,13 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--c2", type=Path, default=Path("cache/data/layering_c2"))
     t.add_argument("--stacks", type=int, default=0, help="use only the first N one-coating stacks (0: all)")
     t.add_argument("--heldout", type=Path, default=Path("tests/data/heldout_layered.npz"))
-    t.add_argument("--init-from", default=None,
-                   help="start from this size's layering network (read beside the encoder and decoder, --model-dir; "
-                        "e.g. a decoder whose latents began in that size's latent space, or more training of the "
-                        "shipped one); --width and --depth must be its own")
+    t.add_argument(
+        "--init-from",
+        default=None,
+        help="start from this size's layering network (read beside the encoder and decoder, --model-dir; "
+        "e.g. a decoder whose latents began in that size's latent space, or more training of the "
+        "shipped one); --width and --depth must be its own",
+    )
     t.add_argument("--width", type=int, default=128)
     t.add_argument("--depth", type=int, default=3)
     t.add_argument("--steps", type=int, default=4000)
@@ -753,38 +888,84 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--lr", type=float, default=1e-3)
     t.add_argument("--clip", type=float, default=1.0)
     t.add_argument("--loss", default="l2rel", choices=("l2rel", "l1log"))
-    t.add_argument("--weighting", default="cosine", choices=("cosine", "none"),
-                   help="per-pair weights to the cosine measure of the lobe images (see cosine_weights)")
-    t.add_argument("--projected", type=Path, default=None,
-                   help="latents of the training stacks to regress on first: an .npz of onnx_export.layering_project "
-                        "(one coating) or a decoder checkpoint trained on the layering data (one and two coatings)")
-    t.add_argument("--shrink", type=float, default=1.0,
-                   help="with a re-fitted --projected checkpoint: regress onto z0 + SHRINK (z_refit - z0), z0 the "
-                        "latents it was re-fitted from (1: the re-fitted latents)")
-    t.add_argument("--model-dir", type=Path, default=None,
-                   help="where the frozen encoder and decoder of --size are read (default: the shipped models)")
+    t.add_argument(
+        "--weighting",
+        default="cosine",
+        choices=("cosine", "none"),
+        help="per-pair weights to the cosine measure of the lobe images (see cosine_weights)",
+    )
+    t.add_argument(
+        "--projected",
+        type=Path,
+        default=None,
+        help="latents of the training stacks to regress on first: an .npz of onnx_export.layering_project "
+        "(one coating) or a decoder checkpoint trained on the layering data (one and two coatings)",
+    )
+    t.add_argument(
+        "--shrink",
+        type=float,
+        default=1.0,
+        help="with a re-fitted --projected checkpoint: regress onto z0 + SHRINK (z_refit - z0), z0 the "
+        "latents it was re-fitted from (1: the re-fitted latents)",
+    )
+    t.add_argument(
+        "--model-dir",
+        type=Path,
+        default=None,
+        help="where the frozen encoder and decoder of --size are read (default: the shipped models)",
+    )
     t.add_argument("--regress-steps", type=int, default=3000)
-    t.add_argument("--decoded-steps", type=int, default=0,
-                   help="steps of the regression in function space (after the regression onto --projected, or "
-                        "from --init-from): lobes decoded from L's latents against those of --decoded-target; "
-                        "resumable, with the held-out error every --eval-every steps")
-    t.add_argument("--decoded-shrink", type=float, default=1.0,
-                   help="the target latents of --decoded-steps, as --shrink (1: the re-fit's own)")
-    t.add_argument("--decoded-target", default="latents", choices=("latents", "data"),
-                   help="what --decoded-steps compare with: the lobes decoded from the target latents, or the "
-                        "stacks' Monte Carlo values themselves")
-    t.add_argument("--decoded-data", type=Path, nargs="+", default=None, metavar="DIR",
-                   help="with --decoded-target data: the values of the one- (and two-) coating stacks of --c1 "
-                        "(--c2) from a run of onnx_export.layered_data with more --walks (same stacks, directions)")
+    t.add_argument(
+        "--decoded-steps",
+        type=int,
+        default=0,
+        help="steps of the regression in function space (after the regression onto --projected, or "
+        "from --init-from): lobes decoded from L's latents against those of --decoded-target; "
+        "resumable, with the held-out error every --eval-every steps",
+    )
+    t.add_argument(
+        "--decoded-shrink",
+        type=float,
+        default=1.0,
+        help="the target latents of --decoded-steps, as --shrink (1: the re-fit's own)",
+    )
+    t.add_argument(
+        "--decoded-target",
+        default="latents",
+        choices=("latents", "data"),
+        help="what --decoded-steps compare with: the lobes decoded from the target latents, or the "
+        "stacks' Monte Carlo values themselves",
+    )
+    t.add_argument(
+        "--decoded-data",
+        type=Path,
+        nargs="+",
+        default=None,
+        metavar="DIR",
+        help="with --decoded-target data: the values of the one- (and two-) coating stacks of --c1 "
+        "(--c2) from a run of onnx_export.layered_data with more --walks (same stacks, directions)",
+    )
     t.add_argument("--decoded-lr", type=float, default=2e-4)
-    t.add_argument("--decoded-loss", default="squared", choices=("squared", "rmse"),
-                   help="per outgoing direction, the squared relative lobe error or its root (decoded_lobe_loss)")
-    t.add_argument("--decoded-reciprocal", action="store_true",
-                   help="decode half the groups with the directions swapped (the fixed one as the decoder's incident "
-                        "direction), so that the latents are fitted in both orders (StackSet.decoded_batch)")
-    t.add_argument("--decoded-coatings", type=int, nargs="+", default=None, choices=(1, 2),
-                   help="coating counts of the function-space stage (default: those regressed with --projected, "
-                        "else 1 and 2)")
+    t.add_argument(
+        "--decoded-loss",
+        default="squared",
+        choices=("squared", "rmse"),
+        help="per outgoing direction, the squared relative lobe error or its root (decoded_lobe_loss)",
+    )
+    t.add_argument(
+        "--decoded-reciprocal",
+        action="store_true",
+        help="decode half the groups with the directions swapped (the fixed one as the decoder's incident "
+        "direction), so that the latents are fitted in both orders (StackSet.decoded_batch)",
+    )
+    t.add_argument(
+        "--decoded-coatings",
+        type=int,
+        nargs="+",
+        default=None,
+        choices=(1, 2),
+        help="coating counts of the function-space stage (default: those regressed with --projected, else 1 and 2)",
+    )
     t.add_argument("--threads", type=int, default=1)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--every", type=int, default=250)
@@ -796,8 +977,11 @@ def parser() -> argparse.ArgumentParser:
     e.add_argument("--ckpt", type=Path, required=True)
     e.add_argument("--speed", type=Path, default=None, help="JSON of measured speed to put on the card")
     e.add_argument("--out", type=Path, default=MODEL_DIR)
-    b = sub.add_parser("bound", help="the held-out lobes projected into the decoder's latent space (an optimistic "
-                                     "bound on any layering network), beside the shipped layering network's error")
+    b = sub.add_parser(
+        "bound",
+        help="the held-out lobes projected into the decoder's latent space (an optimistic "
+        "bound on any layering network), beside the shipped layering network's error",
+    )
     b.add_argument("--size", default="paper")
     b.add_argument("--heldout", type=Path, default=Path("tests/data/heldout_layered.npz"))
     b.add_argument("--coatings", type=int, nargs="+", default=None, help="only these numbers of coatings")
@@ -826,8 +1010,9 @@ def main(argv=None):
             ho = ho | {"stacks": [ho["stacks"][i] for i in keep], "lobe": ho["lobe"][keep]}
         src = MODEL_DIR / f"layering_{a.size}.onnx"
         net = net_from_onnx(src, json.loads(src.with_suffix(".json").read_text()))
-        res = lobe_bound(net, frozen_decoder(a.size), ModelSet(a.size, threads=a.threads), ho, a.steps, a.pixels,
-                         seed=a.seed, log=lg)
+        res = lobe_bound(
+            net, frozen_decoder(a.size), ModelSet(a.size, threads=a.threads), ho, a.steps, a.pixels, seed=a.seed, log=lg
+        )
         print(json.dumps(res))
     else:
         export(a, log=lg)

@@ -37,8 +37,9 @@ from onnx_export.layering import frozen_decoder
 from onnx_export.train_decoder import load_set
 
 
-def project_set(size: str, data: Path, steps: int, chunk: int, pairs: int, loss: str, stacks: int = 0,
-                lr: float = 0.03, log=print) -> np.ndarray:
+def project_set(
+    size: str, data: Path, steps: int, chunk: int, pairs: int, loss: str, stacks: int = 0, lr: float = 0.03, log=print
+) -> np.ndarray:
     dec = frozen_decoder(size)
     d = load(data)
     n, p, m = d["wi"].shape[:3]
@@ -49,8 +50,16 @@ def project_set(size: str, data: Path, steps: int, chunk: int, pairs: int, loss:
     z = np.zeros((n, 3, 32), dtype=np.float32)
     t0 = time.perf_counter()
     for s in range(0, n, chunk):  # a loop over chunks of stacks
-        z[s:s + chunk] = project(dec, wi[s:s + chunk], wo[s:s + chunk], f[s:s + chunk], steps=steps, lr=lr,
-                                 loss=loss, chunk_pairs=pairs).numpy()
+        z[s : s + chunk] = project(
+            dec,
+            wi[s : s + chunk],
+            wo[s : s + chunk],
+            f[s : s + chunk],
+            steps=steps,
+            lr=lr,
+            loss=loss,
+            chunk_pairs=pairs,
+        ).numpy()
         log(f"projected {min(n, s + chunk)}/{n} stacks {time.perf_counter() - t0:.0f} s")
     return z
 
@@ -63,8 +72,20 @@ def mean_pair_loss(dec, wi, wo, f, z, loss: str, pairs: int = 256, seed: int = 1
     return float(latent_pair_loss(dec, z, wi, wo, f, torch.randint(0, p, (min(pairs, p),), generator=gen), loss))
 
 
-def refit_checkpoint(ckpt: Path, data: list[Path], out: Path, *, steps: int, chunk: int, pairs: int, lr: float,
-                     loss: str | None, seed: int, cmd: str = "", log=print) -> dict:
+def refit_checkpoint(
+    ckpt: Path,
+    data: list[Path],
+    out: Path,
+    *,
+    steps: int,
+    chunk: int,
+    pairs: int,
+    lr: float,
+    loss: str | None,
+    seed: int,
+    cmd: str = "",
+    log=print,
+) -> dict:
     """Re-fit the latents of the stacks of ``data`` (sets of the ``train_decoder`` checkpoint ``ckpt``)
     against its frozen decoder; write the checkpoint with them replaced to ``out``. Returns ``refit``."""
     s = torch.load(ckpt, weights_only=False)
@@ -72,13 +93,21 @@ def refit_checkpoint(ckpt: Path, data: list[Path], out: Path, *, steps: int, chu
         raise ValueError(f"{ckpt} does not record which latents belong to which data set (train it again)")
     dirs = [Path(d).resolve() for d in s["args"]["data"]]
     kinds = s["args"]["loss"] * len(dirs) if len(s["args"]["loss"]) == 1 else list(s["args"]["loss"])
-    config = {"from": str(ckpt), "data": [str(d) for d in data], "steps": steps, "pairs": pairs, "lr": lr,
-              "loss": loss, "seed": seed}
+    config = {
+        "from": str(ckpt),
+        "data": [str(d) for d in data],
+        "steps": steps,
+        "pairs": pairs,
+        "lr": lr,
+        "loss": loss,
+        "seed": seed,
+    }
     if out.exists():  # resume: the same re-fit, some chunks done
         s_out = torch.load(out, weights_only=False)
         if s_out.get("refit", {}).get("config") != config:
-            raise ValueError(f"{out} holds another re-fit ({s_out.get('refit', {}).get('config')}); "
-                             "remove it or write elsewhere")
+            raise ValueError(
+                f"{out} holds another re-fit ({s_out.get('refit', {}).get('config')}); remove it or write elsewhere"
+            )
         s = s_out
     refit = s.setdefault("refit", {"config": config, "command": cmd, "sets": {}})
     dec, _ = load_decoder(s)
@@ -93,25 +122,29 @@ def refit_checkpoint(ckpt: Path, data: list[Path], out: Path, *, steps: int, chu
         n = s["units_per_set"][i] // 3
         t = load_set(Path(d))
         wi, wo, f = (torch.from_numpy(np.ascontiguousarray(t[k][:n], dtype=np.float32)) for k in ("wi", "wo", "f"))
-        rec = refit["sets"].setdefault(str(d), {"stacks": n, "done": 0, "loss": kind, "loss_before": [],
-                                                "loss_after": []})
+        rec = refit["sets"].setdefault(
+            str(d), {"stacks": n, "done": 0, "loss": kind, "loss_before": [], "loss_after": []}
+        )
         t0 = time.perf_counter()
         while rec["done"] < n:  # a loop over chunks of stacks; each chunk is one batched projection
             a, b = rec["done"], min(n, rec["done"] + chunk)
-            z0 = s["latents"][start + 3 * a:start + 3 * b].reshape(-1, 3, 32)
+            z0 = s["latents"][start + 3 * a : start + 3 * b].reshape(-1, 3, 32)
             before = mean_pair_loss(dec, wi[a:b], wo[a:b], f[a:b], z0, kind)
-            z = project(dec, wi[a:b], wo[a:b], f[a:b], init=z0, steps=steps, lr=lr, loss=kind, chunk_pairs=pairs,
-                        seed=seed + a)
+            z = project(
+                dec, wi[a:b], wo[a:b], f[a:b], init=z0, steps=steps, lr=lr, loss=kind, chunk_pairs=pairs, seed=seed + a
+            )
             after = mean_pair_loss(dec, wi[a:b], wo[a:b], f[a:b], z, kind)
-            s["latents"][start + 3 * a:start + 3 * b] = z.reshape(-1, 32)
+            s["latents"][start + 3 * a : start + 3 * b] = z.reshape(-1, 32)
             rec["loss_before"].append(before)
             rec["loss_after"].append(after)
             rec["done"] = b
             out.parent.mkdir(parents=True, exist_ok=True)
             torch.save(s, out.with_suffix(".tmp"))
             out.with_suffix(".tmp").replace(out)
-            log(f"{d}: re-fitted {b}/{n} stacks, {kind} loss {before:.5f} -> {after:.5f}, "
-                f"{time.perf_counter() - t0:.0f} s")
+            log(
+                f"{d}: re-fitted {b}/{n} stacks, {kind} loss {before:.5f} -> {after:.5f}, "
+                f"{time.perf_counter() - t0:.0f} s"
+            )
     return refit
 
 
@@ -119,15 +152,23 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     src = ap.add_mutually_exclusive_group()
     src.add_argument("--size", default="tiny", help="a shipped decoder; latents from zero, written as .npz")
-    src.add_argument("--decoder", type=Path, default=None,
-                     help="a train_decoder checkpoint trained on --data: re-fit its latents, write a checkpoint")
+    src.add_argument(
+        "--decoder",
+        type=Path,
+        default=None,
+        help="a train_decoder checkpoint trained on --data: re-fit its latents, write a checkpoint",
+    )
     ap.add_argument("--data", type=Path, nargs="+", required=True)
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--chunk", type=int, default=512, help="stacks projected together")
     ap.add_argument("--pairs", type=int, default=128, help="direction pairs per stack per step")
     ap.add_argument("--lr", type=float, default=None, help="Adam step (default 0.03 from zero, 0.01 for a re-fit)")
-    ap.add_argument("--loss", default=None, choices=("l1", "l2", "l2rel"),
-                    help="default: l1 from zero, each set's training loss for a re-fit")
+    ap.add_argument(
+        "--loss",
+        default=None,
+        choices=("l1", "l2", "l2rel"),
+        help="default: l1 from zero, each set's training loss for a re-fit",
+    )
     ap.add_argument("--stacks", type=int, default=0, help="only the first N stacks (0: all; not with --decoder)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
@@ -140,13 +181,23 @@ def main(argv=None):
             ap.error("--stacks is for --size: a re-fit covers every stack of each set")
         a.lr = a.lr or 0.01
         cmd = command_line("onnx_export.layering_project", vars(a), skip=("threads", "size", "stacks"))
-        refit_checkpoint(a.decoder, a.data, a.out, steps=a.steps, chunk=a.chunk, pairs=a.pairs, lr=a.lr,
-                         loss=a.loss, seed=a.seed, cmd=cmd, log=log)
+        refit_checkpoint(
+            a.decoder,
+            a.data,
+            a.out,
+            steps=a.steps,
+            chunk=a.chunk,
+            pairs=a.pairs,
+            lr=a.lr,
+            loss=a.loss,
+            seed=a.seed,
+            cmd=cmd,
+            log=log,
+        )
         return
     if len(a.data) != 1:
         ap.error("--size projects one --data set at a time")
-    z = project_set(a.size, a.data[0], a.steps, a.chunk, a.pairs, a.loss or "l1", a.stacks,
-                    lr=a.lr or 0.03, log=log)
+    z = project_set(a.size, a.data[0], a.steps, a.chunk, a.pairs, a.loss or "l1", a.stacks, lr=a.lr or 0.03, log=log)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     np.savez(a.out, z=z)
 

@@ -153,8 +153,9 @@ def log_target(f: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Ten
 PAIR_LOSSES = ("l1", "l2", "l2rel")
 
 
-def pair_loss(pred: torch.Tensor, target: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, kind: str,
-              grazing_floor: float = 1.0) -> torch.Tensor:
+def pair_loss(
+    pred: torch.Tensor, target: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, kind: str, grazing_floor: float = 1.0
+) -> torch.Tensor:
     """Loss of each (wi, wo) pair, compared as log1p(f cos_i cos_o):
 
     - ``l1``: |difference of logs|; its minimiser is the median of noisy targets (exact targets: fine);

@@ -103,7 +103,7 @@ def kl_tables(models, z: np.ndarray, samples: int = 160, seed: int = 0, batch: i
     table = np.zeros((n, len(SIGMA_GRID), len(W_GRID)), dtype=np.float32)
     t0 = time.perf_counter()
     for b0 in range(0, n, batch):  # a loop over batches of materials
-        zb = z[b0:b0 + batch]
+        zb = z[b0 : b0 + batch]
         m = zb.shape[0]
         rows = m * nwo * s_tot
         ct = np.tile(np.repeat(np.asarray(WO_COS), s_tot), m)
@@ -126,7 +126,7 @@ def kl_tables(models, z: np.ndarray, samples: int = 160, seed: int = 0, batch: i
             gauss = proxy.pdf(wo, wi, s_, 0.0).reshape(m * nwo, s_tot)
             q = (1.0 - W_GRID[None, None, :]) * gauss[..., None] + W_GRID[None, None, :] * cos_pdf[..., None]
             kl = np.sum(pi[..., None] * (log_p[..., None] - np.log(np.maximum(q, 1e-300))), axis=1)  # (m*nwo, W)
-            table[b0:b0 + m, si] = kl.reshape(m, nwo, -1).mean(axis=1)
+            table[b0 : b0 + m, si] = kl.reshape(m, nwo, -1).mean(axis=1)
         if log and (b0 // batch) % 10 == 0:
             log(f"KL tables {b0 + m}/{n} {time.perf_counter() - t0:.0f} s")
     return table
@@ -159,9 +159,16 @@ def table_minimum(table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def export_onnx(net: SamplingNet, path: Path) -> None:
     net.eval()
-    torch.onnx.export(net, (torch.zeros(4, 3, LATENT),), str(path), input_names=["z"], output_names=["sigma", "w"],
-                      dynamic_axes={"z": {0: "batch"}, "sigma": {0: "batch"}, "w": {0: "batch"}},
-                      opset_version=OPSET, dynamo=False)
+    torch.onnx.export(
+        net,
+        (torch.zeros(4, 3, LATENT),),
+        str(path),
+        input_names=["z"],
+        output_names=["sigma", "w"],
+        dynamic_axes={"z": {0: "batch"}, "sigma": {0: "batch"}, "w": {0: "batch"}},
+        opset_version=OPSET,
+        dynamo=False,
+    )
 
 
 def parity(net: SamplingNet, path: Path, z: np.ndarray) -> float:
@@ -229,7 +236,8 @@ def run(args, log=print) -> dict:
     j_cos = len(W_GRID) - 1
     metrics = {
         "heldout_materials": int(z_ho.shape[0]),
-        "kl_network_mean": float(kl_net.mean()), "kl_network_median": float(np.median(kl_net)),
+        "kl_network_mean": float(kl_net.mean()),
+        "kl_network_median": float(np.median(kl_net)),
         "kl_per_material_optimum_mean": float(kl_best.mean()),
         "kl_cosine_only_mean": float(table_ho[:, 0, j_cos].mean()),
     }
@@ -240,26 +248,34 @@ def run(args, log=print) -> dict:
     card = {
         "name": f"sampling_{args.size}",
         "role": f"sampling network in the latent space of decoder_{args.size}: z (3, 32) -> (sigma, w) of the proxy "
-                "pdf (1 - w) Gaussian(sigma) over the projected half vector + w cosine lobe (addon.core.neural.proxy)",
+        "pdf (1 - w) Gaussian(sigma) over the projected half vector + w cosine lobe (addon.core.neural.proxy)",
         "files": {path.name: file_digest(path)},
         "inputs": {"z": "(B, 3, 32) float32 latent (all three channels)"},
-        "outputs": {"sigma": f"(B,) float32 in [{SIGMA_GRID[0]:.3g}, {SIGMA_GRID[-1]:.3g}]",
-                    "w": f"(B,) float32 in [{W_MIN}, 1]"},
-        "architecture": {**net.config(), "hidden": f"{net.depth} x Linear({net.width}) + ReLU",
-                         "output": "sigma = exp(log-sigmoid between the grid ends), w = 0.01 + 0.99 sigmoid"},
+        "outputs": {
+            "sigma": f"(B,) float32 in [{SIGMA_GRID[0]:.3g}, {SIGMA_GRID[-1]:.3g}]",
+            "w": f"(B,) float32 in [{W_MIN}, 1]",
+        },
+        "architecture": {
+            **net.config(),
+            "hidden": f"{net.depth} x Linear({net.width}) + ReLU",
+            "output": "sigma = exp(log-sigmoid between the grid ends), w = 0.01 + 0.99 sigmoid",
+        },
         "parameters": n_params(net),
         "macs_per_material": macs_per_eval(net),
         "training": {
             "command": command_line("onnx_export.sampling_net", vars(args), skip=("models",)),
-            "loss": "KL(BRDF cos / albedo || proxy) averaged over wo with cos(theta_o) in " + str(list(WO_COS)) +
-                    ", bilinear in a per-material table over (log sigma, w)",
-            "materials": int(z.shape[0]), "seeds": {"materials": [args.seed, 5], "training": args.seed},
+            "loss": "KL(BRDF cos / albedo || proxy) averaged over wo with cos(theta_o) in "
+            + str(list(WO_COS))
+            + ", bilinear in a per-material table over (log sigma, w)",
+            "materials": int(z.shape[0]),
+            "seeds": {"materials": [args.seed, 5], "training": args.seed},
         },
         "heldout": metrics,
         "onnx_runtime_vs_torch_max_relative_difference": par,
         "opset": OPSET,
-        "trained_with": {p.name: file_digest(p) for p in (models.encoder_path, models.decoder_path,
-                                                          models.path("layering"))},
+        "trained_with": {
+            p.name: file_digest(p) for p in (models.encoder_path, models.decoder_path, models.path("layering"))
+        },
     }
     path.with_suffix(".json").write_text(json.dumps(card, indent=1) + "\n")
     log(json.dumps({"model": str(path), "parity": par}))
@@ -280,8 +296,12 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--models", type=Path, default=MODEL_DIR, help="where the decoder, encoder and layering models "
-                    "are read and the sampling model is written")
+    ap.add_argument(
+        "--models",
+        type=Path,
+        default=MODEL_DIR,
+        help="where the decoder, encoder and layering models are read and the sampling model is written",
+    )
     a = ap.parse_args(argv)
     run(a, log=lambda s: print(s, file=sys.stderr, flush=True))
 

@@ -46,13 +46,23 @@ def load_set(path: Path) -> dict:
     if layered_data.holds_layering_data(path):
         d = layered_data.load(path)
         s, p, m = d["wi"].shape[:3]
-        return {"wi": d["wi"].reshape(s, p * m, 3), "wo": np.repeat(d["wo"], m, axis=1),
-                "f": d["f"].reshape(s, p * m, 3), "stderr": d["stderr"].reshape(s, p * m, 3), "arrays": d["arrays"]}
+        return {
+            "wi": d["wi"].reshape(s, p * m, 3),
+            "wo": np.repeat(d["wo"], m, axis=1),
+            "f": d["f"].reshape(s, p * m, 3),
+            "stderr": d["stderr"].reshape(s, p * m, 3),
+            "arrays": d["arrays"],
+        }
     d = datamod.load(path)
     n = len(d["p_base_kind"])
-    d["arrays"] = StackArrays(**{f: d[f"p_{f}"] for f in StackArrays.FIELDS if f.startswith("base_")},
-                              **{f: np.zeros((n, 0) + ((3,) if f == "coat_albedo" else ()))
-                                 for f in StackArrays.FIELDS if f.startswith("coat_")})
+    d["arrays"] = StackArrays(
+        **{f: d[f"p_{f}"] for f in StackArrays.FIELDS if f.startswith("base_")},
+        **{
+            f: np.zeros((n, 0) + ((3,) if f == "coat_albedo" else ()))
+            for f in StackArrays.FIELDS
+            if f.startswith("coat_")
+        },
+    )
     return d
 
 
@@ -69,8 +79,9 @@ def load_training_tensors(paths: list[Path], materials: int | None = None) -> di
     d["source"] = np.concatenate([np.full(p["wi"].shape[0], i, np.float32) for i, p in enumerate(parts)])
     if materials:
         d = {k: v[:materials] for k, v in d.items()}
-    return {k: torch.from_numpy(np.ascontiguousarray(v, dtype=np.float32)) for k, v in d.items()} \
-        | {"arrays": [p["arrays"] for p in parts]}
+    return {k: torch.from_numpy(np.ascontiguousarray(v, dtype=np.float32)) for k, v in d.items()} | {
+        "arrays": [p["arrays"] for p in parts]
+    }
 
 
 def initial_latents(sets: list[StackArrays], size: str, materials: int | None, threads: int) -> np.ndarray:
@@ -96,7 +107,7 @@ class AutoDecoder(torch.nn.Module):
 
     def forward(self, units: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, pairs: int):
         z = self.latents[units]
-        return self.dec(z.repeat_interleave(pairs, dim=0), wi, wo), (z ** 2).mean()
+        return self.dec(z.repeat_interleave(pairs, dim=0), wi, wo), (z**2).mean()
 
 
 def distributed() -> tuple[int, int]:
@@ -122,8 +133,12 @@ def init_decoder(dec: Decoder, path: Path) -> dict:
         raise ValueError(f"{path.name} is {src.config()}, the run trains {dec.config()}: give the size it was made for")
     dec.load_state_dict(src.state_dict())
     tr = card.get("training", {})
-    return {"file": path.name, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
-            "command": tr.get("command"), "earlier_stages": tr.get("earlier_stages", [])}
+    return {
+        "file": path.name,
+        "sha256": hashlib.sha256(path.read_bytes()).hexdigest(),
+        "command": tr.get("command"),
+        "earlier_stages": tr.get("earlier_stages", []),
+    }
 
 
 def start_from(args, t: dict, dec: Decoder, latents: torch.nn.Parameter, log) -> dict | None:
@@ -133,8 +148,10 @@ def start_from(args, t: dict, dec: Decoder, latents: torch.nn.Parameter, log) ->
     if args.init_latents_from:  # start in a shipped size's latent space: its encoder (+ layering network)
         z0 = initial_latents(t["arrays"], args.init_latents_from, args.materials, args.threads)
         latents.data.copy_(torch.from_numpy(z0))
-        log(f"latents start from the {args.init_latents_from} encoder / layering network "
-            f"(mean |z| {float(np.abs(z0).mean()):.3f})")
+        log(
+            f"latents start from the {args.init_latents_from} encoder / layering network "
+            f"(mean |z| {float(np.abs(z0).mean()):.3f})"
+        )
     if args.init and Path(args.init).suffix == ".onnx":  # a shipped decoder: its weights (latents: see above)
         record = init_decoder(dec, Path(args.init))
         log(f"decoder from {args.init} (sha256 {record['sha256'][:12]})")
@@ -180,10 +197,15 @@ def batch_of(t: dict, units: torch.Tensor, pairs: int, gen: torch.Generator):
 
 def train(args, log=print) -> dict:
     n_sets = len(args.data)
-    if len(args.loss) not in (1, n_sets) or len(args.loss_scales or [0] * n_sets) != n_sets \
-            or len(args.data_weights or [0] * n_sets) != n_sets:
-        raise ValueError(f"--loss, --loss-scales and --data-weights take one value per --data set ({n_sets}) "
-                         f"(--loss may also take one for all)")
+    if (
+        len(args.loss) not in (1, n_sets)
+        or len(args.loss_scales or [0] * n_sets) != n_sets
+        or len(args.data_weights or [0] * n_sets) != n_sets
+    ):
+        raise ValueError(
+            f"--loss, --loss-scales and --data-weights take one value per --data set ({n_sets}) "
+            f"(--loss may also take one for all)"
+        )
     rank, world = distributed()
     if args.batch % world:
         raise ValueError(f"--batch {args.batch} must be a multiple of the {world} processes")
@@ -209,8 +231,9 @@ def train(args, log=print) -> dict:
     kinds = args.loss * len(args.data) if len(args.loss) == 1 else list(args.loss)
     scales = torch.tensor(args.loss_scales or [1.0] * len(args.data), dtype=torch.float32)
     units_per_set = [int(c) for c in counts.tolist()]  # src is per unit (material * 3 + channel)
-    opt = torch.optim.Adam([{"params": dec.parameters(), "lr": args.lr},
-                            {"params": [latents], "lr": args.lr * args.latent_lr_scale}])
+    opt = torch.optim.Adam(
+        [{"params": dec.parameters(), "lr": args.lr}, {"params": [latents], "lr": args.lr * args.latent_lr_scale}]
+    )
     model = AutoDecoder(dec, latents)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -227,8 +250,7 @@ def train(args, log=print) -> dict:
     if world > 1:  # gradients averaged over the processes (parameters are identical: same seed, same start)
         model = torch.nn.parallel.DistributedDataParallel(model)
     share = args.batch // world
-    log(f"decoder {dec.config()} params {n_params(dec)} MACs/eval {macs_per_eval(dec)}; "
-        f"{n_units} BRDF channels")
+    log(f"decoder {dec.config()} params {n_params(dec)} MACs/eval {macs_per_eval(dec)}; {n_units} BRDF channels")
     t0 = time.perf_counter()
     ema, ema_set = None, [None] * len(args.data)
     while step < args.steps:
@@ -238,7 +260,7 @@ def train(args, log=print) -> dict:
         units = torch.multinomial(unit_w, args.batch, replacement=True, generator=gen)
         wi, wo, f = batch_of(t, units, args.pairs, gen)  # the whole batch on every process (same generator)
         rows = slice(rank * share * args.pairs, (rank + 1) * share * args.pairs)
-        units, wi, wo, f = units[rank * share:(rank + 1) * share], wi[rows], wo[rows], f[rows]
+        units, wi, wo, f = units[rank * share : (rank + 1) * share], wi[rows], wo[rows], f[rows]
         pred, z_sq = model(units, wi, wo, args.pairs)
         row_set = src[units].long().repeat_interleave(args.pairs)
         loss = set_losses(pred, f, wi, wo, row_set, kinds, scales, args.grazing_floor, ema_set)
@@ -257,15 +279,28 @@ def train(args, log=print) -> dict:
         if step % args.log_every == 0 or step == args.steps:
             el = time.perf_counter() - t0
             per_set = " ".join(f"{v:.5f}" for v in ema_set if v is not None) if len(kinds) > 1 else ""
-            log(f"step {step}/{args.steps} loss {ema:.5f}{' (sets ' + per_set + ')' if per_set else ''} "
-                f"lr {lr:.2e} {el:.0f} s")
+            log(
+                f"step {step}/{args.steps} loss {ema:.5f}{' (sets ' + per_set + ')' if per_set else ''} "
+                f"lr {lr:.2e} {el:.0f} s"
+            )
         if (step % args.every == 0 or step == args.steps) and rank == 0:
-            torch.save({"decoder": dec.state_dict(), "config": dec.config(), "latents": latents.data,
-                        "opt": opt.state_dict(), "step": step,
-                        "args": vars(args) | {"data": [str(p) for p in args.data]},
-                        "loss": ema, "loss_per_set": ema_set, "units_per_set": units_per_set,
-                        "init_record": init_record, "world_size": world,
-                        "channels_per_process": share}, ckpt.with_suffix(".tmp"))
+            torch.save(
+                {
+                    "decoder": dec.state_dict(),
+                    "config": dec.config(),
+                    "latents": latents.data,
+                    "opt": opt.state_dict(),
+                    "step": step,
+                    "args": vars(args) | {"data": [str(p) for p in args.data]},
+                    "loss": ema,
+                    "loss_per_set": ema_set,
+                    "units_per_set": units_per_set,
+                    "init_record": init_record,
+                    "world_size": world,
+                    "channels_per_process": share,
+                },
+                ckpt.with_suffix(".tmp"),
+            )
             ckpt.with_suffix(".tmp").replace(ckpt)
     return {"loss": ema, "step": step, "loss_per_set": ema_set, "units_per_set": units_per_set}
 
@@ -276,13 +311,24 @@ def parser():
     ap.add_argument("--width", type=int, default=0, help="override the size's width (with --depth)")
     ap.add_argument("--depth", type=int, default=0)
     ap.add_argument("--data", type=Path, nargs="+", required=True)
-    ap.add_argument("--data-weights", type=float, nargs="+", default=None,
-                    help="share of each --data set in a batch (default: equal shares)")
-    ap.add_argument("--init", type=Path, default=None,
-                    help="start from this checkpoint's decoder and latents, or from a shipped "
-                         "decoder_<size>.onnx's weights")
-    ap.add_argument("--init-latents-from", default=None,
-                    help="start the latents from this shipped size's encoder (its latent space), then optimise them")
+    ap.add_argument(
+        "--data-weights",
+        type=float,
+        nargs="+",
+        default=None,
+        help="share of each --data set in a batch (default: equal shares)",
+    )
+    ap.add_argument(
+        "--init",
+        type=Path,
+        default=None,
+        help="start from this checkpoint's decoder and latents, or from a shipped decoder_<size>.onnx's weights",
+    )
+    ap.add_argument(
+        "--init-latents-from",
+        default=None,
+        help="start the latents from this shipped size's encoder (its latent space), then optimise them",
+    )
     ap.add_argument("--materials", type=int, default=0, help="use only the first N materials (0: all)")
     ap.add_argument("--steps", type=int, default=6000)
     ap.add_argument("--batch", type=int, default=64, help="BRDF channels per step")
@@ -290,17 +336,31 @@ def parser():
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--latent-lr-scale", type=float, default=5.0)
     ap.add_argument("--latent-reg", type=float, default=1e-4)
-    ap.add_argument("--init-scheme", default="default", choices=("default", "he"),
-                    help="weight init: PyTorch's default, or He-normal (needed for the paper's 16 layers)")
+    ap.add_argument(
+        "--init-scheme",
+        default="default",
+        choices=("default", "he"),
+        help="weight init: PyTorch's default, or He-normal (needed for the paper's 16 layers)",
+    )
     ap.add_argument("--clip", type=float, default=0.0, help="clip the gradient norm to this (0: off)")
     ap.add_argument("--features", default="iso_bumps", choices=("raw", "iso", "iso_bumps"))
     ap.add_argument("--activation", default="exp", choices=("exp", "softplus"))
-    ap.add_argument("--loss", nargs="+", default=["l1"], choices=PAIR_LOSSES,
-                    help="loss per --data set, or one for all (l1 for exact targets, l2rel for Monte Carlo ones)")
-    ap.add_argument("--loss-scales", type=float, nargs="+", default=None,
-                    help="factor on each --data set's loss (default 1 each)")
-    ap.add_argument("--grazing-floor", type=float, default=1.0,
-                    help="divide each pair's loss term by max(min(cos_i, cos_o), this) (nets.pair_loss; 1: off)")
+    ap.add_argument(
+        "--loss",
+        nargs="+",
+        default=["l1"],
+        choices=PAIR_LOSSES,
+        help="loss per --data set, or one for all (l1 for exact targets, l2rel for Monte Carlo ones)",
+    )
+    ap.add_argument(
+        "--loss-scales", type=float, nargs="+", default=None, help="factor on each --data set's loss (default 1 each)"
+    )
+    ap.add_argument(
+        "--grazing-floor",
+        type=float,
+        default=1.0,
+        help="divide each pair's loss term by max(min(cos_i, cos_o), this) (nets.pair_loss; 1: off)",
+    )
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--every", type=int, default=250, help="checkpoint every N steps")

@@ -61,10 +61,12 @@ def train(args, log=print) -> dict:
     if "units_per_set" in ck and len(ck["units_per_set"]) > len(args.data):
         # a decoder trained on single-layer AND layered sets: the encoder learns the single-layer ones,
         # which come first (the layered stacks are the layering network's job)
-        latents = latents[:sum(ck["units_per_set"][:len(args.data)])]
+        latents = latents[: sum(ck["units_per_set"][: len(args.data)])]
     if x.shape[0] != latents.shape[0]:
-        raise ValueError(f"{x.shape[0]} training channels in the data but {latents.shape[0]} latents in {args.ckpt}; "
-                         f"pass the same --data (and --materials) as the decoder run")
+        raise ValueError(
+            f"{x.shape[0]} training channels in the data but {latents.shape[0]} latents in {args.ckpt}; "
+            f"pass the same --data (and --materials) as the decoder run"
+        )
     heldout = load_heldout(args.heldout)
     enc = Encoder(N_FEATURES, args.width, args.depth)
     opt = torch.optim.Adam(enc.parameters(), lr=args.lr)
@@ -99,8 +101,15 @@ def train(args, log=print) -> dict:
                 log(f"finetune {step + 1}/{args.finetune} loss {loss.item():.5f} {time.perf_counter() - t0:.0f} s")
         hist["finetuned"] = heldout_error(enc, dec, heldout)
         log(f"held-out after fine-tuning: {json.dumps(hist['finetuned'])}")
-    torch.save({"encoder": enc.state_dict(), "config": enc.config(), "history": hist,
-                "args": {k: str(v) for k, v in vars(args).items()}}, args.out)
+    torch.save(
+        {
+            "encoder": enc.state_dict(),
+            "config": enc.config(),
+            "history": hist,
+            "args": {k: str(v) for k, v in vars(args).items()},
+        },
+        args.out,
+    )
     return hist
 
 

@@ -34,8 +34,10 @@ _RGB = {"ALBEDO", "F0", "ETA", "K", "MEDIUM_ALBEDO"}
 def _map_values(item, pmap) -> np.ndarray:
     px = images.linear_pixels(pmap.image)
     if px is None:
-        raise ValueError(f"layer {item.name!r}: the image {pmap.image.name!r} driving {pmap.parameter.lower()} has "
-                         f"no pixels (missing file {pmap.image.filepath!r}?)")
+        raise ValueError(
+            f"layer {item.name!r}: the image {pmap.image.name!r} driving {pmap.parameter.lower()} has "
+            f"no pixels (missing file {pmap.image.filepath!r}?)"
+        )
     values = px[..., :3] if pmap.parameter in _RGB else px[..., :1]
     values = pmap.low + (pmap.high - pmap.low) * values.astype(np.float64)
     if pmap.parameter == "ROUGHNESS":
@@ -67,8 +69,10 @@ def spatial_stack_from_material(mat):
                 continue
             field = _FIELDS.get((pmap.parameter, item.layer_type))
             if field is None:
-                raise ValueError(f"layer {item.name!r} ({item.layer_type.title()}) has no {pmap.parameter.lower()} "
-                                 f"to drive by the image {pmap.image.name!r}")
+                raise ValueError(
+                    f"layer {item.name!r} ({item.layer_type.title()}) has no {pmap.parameter.lower()} "
+                    f"to drive by the image {pmap.image.name!r}"
+                )
             path = f"base.{field}" if index == 0 else f"coatings[{index - 1}].{field}"
             if path in maps:
                 raise ValueError(f"layer {item.name!r}: {pmap.parameter.lower()} is driven by two images")

@@ -46,8 +46,12 @@ class NLM_OT_map_add(MaterialOperator, bpy.types.Operator):
     bl_label = "Add Parameter Map"
     bl_options = {"REGISTER", "UNDO"}
 
-    parameter: EnumProperty(name="Parameter", items=MAP_PARAMETERS, default="ROUGHNESS",
-                            description="The parameter of the active layer the new map drives")
+    parameter: EnumProperty(
+        name="Parameter",
+        items=MAP_PARAMETERS,
+        default="ROUGHNESS",
+        description="The parameter of the active layer the new map drives",
+    )
 
     def execute(self, context):
         return guarded(self.bl_label, self, lambda: self._run(context))
@@ -116,8 +120,13 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
         def work(progress):
             t0 = time.perf_counter()
             encode = neural_encoder(size, refine_s=refine_s, refine_cache=refine_cache)
-            tex, stats = bake_stack(spatial, encode, resolution=res, progress=progress,
-                                    metadata={"material": name, "model": size, "key": key})
+            tex, stats = bake_stack(
+                spatial,
+                encode,
+                resolution=res,
+                progress=progress,
+                metadata={"material": name, "model": size, "key": key},
+            )
             os.makedirs(os.path.dirname(path), exist_ok=True)
             tex.write_exr(path)
             return stats, time.perf_counter() - t0, (getattr(encode, "metadata", None) or {}).get("refined")
@@ -128,8 +137,11 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
             mat.neural_layers.texture_key = key
             mat.neural_layers.texture_size = res
             refined = "" if refined is None else f", {refined} refined"
-            self.report({"INFO"}, f"{name}: baked {res[1]}x{res[0]} ({stats.unique} distinct of {stats.texels} texels"
-                                  f"{refined}, {stats.texels_per_second:,.0f} texels/s) in {seconds:.1f} s -> {path}")
+            self.report(
+                {"INFO"},
+                f"{name}: baked {res[1]}x{res[0]} ({stats.unique} distinct of {stats.texels} texels"
+                f"{refined}, {stats.texels_per_second:,.0f} texels/s) in {seconds:.1f} s -> {path}",
+            )
             return {"FINISHED"}
 
         return work, finish

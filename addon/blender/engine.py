@@ -32,13 +32,33 @@ ENGINE_ID = "NEURAL_LAYERED"
 
 def _compatible_panels():
     """Blender's own panels that make sense for this engine (output, dimensions, film...)."""
-    keep = {"RENDER_PT_format", "RENDER_PT_frame_range", "RENDER_PT_output", "RENDER_PT_color_management",
-            "RENDER_PT_dimensions", "RENDER_PT_format_presets", "RENDER_PT_encoding", "RENDER_PT_stamp",
-            "DATA_PT_context_light", "DATA_PT_light", "DATA_PT_area", "DATA_PT_spot", "DATA_PT_camera",
-            "DATA_PT_lens", "DATA_PT_camera_display", "WORLD_PT_context_world", "EEVEE_WORLD_PT_surface",
-            "EEVEE_MATERIAL_PT_context_material", "EEVEE_MATERIAL_PT_surface", "MATERIAL_PT_preview"}
-    return [p for p in bpy.types.Panel.__subclasses__()
-            if getattr(p, "COMPAT_ENGINES", None) is not None and p.__name__ in keep]
+    keep = {
+        "RENDER_PT_format",
+        "RENDER_PT_frame_range",
+        "RENDER_PT_output",
+        "RENDER_PT_color_management",
+        "RENDER_PT_dimensions",
+        "RENDER_PT_format_presets",
+        "RENDER_PT_encoding",
+        "RENDER_PT_stamp",
+        "DATA_PT_context_light",
+        "DATA_PT_light",
+        "DATA_PT_area",
+        "DATA_PT_spot",
+        "DATA_PT_camera",
+        "DATA_PT_lens",
+        "DATA_PT_camera_display",
+        "WORLD_PT_context_world",
+        "EEVEE_WORLD_PT_surface",
+        "EEVEE_MATERIAL_PT_context_material",
+        "EEVEE_MATERIAL_PT_surface",
+        "MATERIAL_PT_preview",
+    }
+    return [
+        p
+        for p in bpy.types.Panel.__subclasses__()
+        if getattr(p, "COMPAT_ENGINES", None) is not None and p.__name__ in keep
+    ]
 
 
 def _failure(e: Exception) -> str:
@@ -96,8 +116,9 @@ class _Viewport:
         if (image.generation, image.samples) != self._drawn or self._texture is None:
             h, w, _ = image.rgba.shape
             pixels = np.ascontiguousarray(image.rgba[::-1]).ravel()  # GPU rows run bottom to top
-            self._texture = gpu.types.GPUTexture((w, h), format="RGBA16F",
-                                                 data=gpu.types.Buffer("FLOAT", pixels.size, pixels))
+            self._texture = gpu.types.GPUTexture(
+                (w, h), format="RGBA16F", data=gpu.types.Buffer("FLOAT", pixels.size, pixels)
+            )
             self._drawn = (image.generation, image.samples)
         region = bpy.context.region
         gpu.state.blend_set("ALPHA_PREMULT")

@@ -103,8 +103,9 @@ def linear_pixels(image) -> np.ndarray | None:
     try:
         _to_scene_linear(image.colorspace_settings.name).applyRGB(rgb)
     except Exception as e:  # an OpenColorIO failure: say which image and space
-        raise ValueError(f"image {image.name!r}: cannot decode its colour space "
-                         f"{image.colorspace_settings.name!r} to linear ({e})") from None
+        raise ValueError(
+            f"image {image.name!r}: cannot decode its colour space {image.colorspace_settings.name!r} to linear ({e})"
+        ) from None
     px[..., :3] = rgb
     return px
 

@@ -27,12 +27,30 @@ class LayerType:
 
 LAYER_TYPES: tuple[LayerType, ...] = (
     LayerType("DIFFUSE", "Diffuse", "Base: Lambertian surface with an RGB albedo", "SHADING_SOLID", Diffuse, True),
-    LayerType("CONDUCTOR", "Conductor", "Base: rough metal (GGX), by F0 colour or by complex index eta + i k",
-              "SHADING_RENDERED", Conductor, True),
-    LayerType("DIELECTRIC", "Dielectric", "Base: rough dielectric reflection over black (GGX)", "SHADING_TEXTURE",
-              Dielectric, True),
-    LayerType("COATING", "Coating", "A rough dielectric interface over a slab of scattering medium; goes above the "
-              "base", "MOD_THICKNESS", Coating, False),
+    LayerType(
+        "CONDUCTOR",
+        "Conductor",
+        "Base: rough metal (GGX), by F0 colour or by complex index eta + i k",
+        "SHADING_RENDERED",
+        Conductor,
+        True,
+    ),
+    LayerType(
+        "DIELECTRIC",
+        "Dielectric",
+        "Base: rough dielectric reflection over black (GGX)",
+        "SHADING_TEXTURE",
+        Dielectric,
+        True,
+    ),
+    LayerType(
+        "COATING",
+        "Coating",
+        "A rough dielectric interface over a slab of scattering medium; goes above the base",
+        "MOD_THICKNESS",
+        Coating,
+        False,
+    ),
 )
 BY_ID: dict[str, LayerType] = {t.identifier: t for t in LAYER_TYPES}
 BASE_LAYER_TYPES = frozenset(t.identifier for t in LAYER_TYPES if t.is_base)
@@ -54,5 +72,7 @@ def identifier_of(layer: Layer) -> str:
     for t in LAYER_TYPES:
         if type(layer) is t.core:
             return t.identifier
-    raise ValueError(f"cannot store a layer of type {type(layer).__name__}; "
-                     f"the sidebar knows {[t.core.__name__ for t in LAYER_TYPES]}")
+    raise ValueError(
+        f"cannot store a layer of type {type(layer).__name__}; "
+        f"the sidebar knows {[t.core.__name__ for t in LAYER_TYPES]}"
+    )

@@ -94,7 +94,7 @@ class MaterialOperator:
             return mat
         ob = getattr(context, "object", None) or getattr(context, "active_object", None)
         if ob is None:
-            raise UserError("no active object: select an object with a material (or pass material=\"Name\")")
+            raise UserError('no active object: select an object with a material (or pass material="Name")')
         mat = ob.active_material
         if mat is None:
             raise UserError(f"object {ob.name!r} has no material: add one (Material Properties > New)")

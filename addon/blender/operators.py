@@ -36,8 +36,9 @@ class NLM_OT_layer_add(MaterialOperator, bpy.types.Operator):
     bl_label = "Add Layer"
     bl_options = {"REGISTER", "UNDO"}
 
-    layer_type: EnumProperty(name="Type", items=layer_types.enum_items(), default="COATING",
-                            description="The type of the new layer")
+    layer_type: EnumProperty(
+        name="Type", items=layer_types.enum_items(), default="COATING", description="The type of the new layer"
+    )
 
     def execute(self, context):
         return guarded("adding a layer", self, lambda: self._run(context))
@@ -227,8 +228,12 @@ class NLM_OT_stack_apply(MaterialOperator, bpy.types.Operator):
     bl_label = "Apply Layer Stack"
     bl_options = {"REGISTER", "UNDO"}
 
-    stack: StringProperty(name="Stack", default="", options={"SKIP_SAVE"},
-                          description="The layer stack as JSON (addon.core.stack.Stack.to_json)")
+    stack: StringProperty(
+        name="Stack",
+        default="",
+        options={"SKIP_SAVE"},
+        description="The layer stack as JSON (addon.core.stack.Stack.to_json)",
+    )
 
     def execute(self, context):
         return guarded("applying a layer stack", self, lambda: self._run(context))
@@ -248,9 +253,11 @@ PRESET_SUBDIR = "neural_layered_materials/layer_stacks"
 def preset_file_text(stack: Stack) -> str:
     """A layer preset file: Python that Blender's preset menu runs, applying ``stack`` to the
     active material. Plain JSON inside, so presets can be read, shared and edited by hand."""
-    return ("import bpy\n\n"
-            "# A Neural Layered Materials layer stack (bottom to top); applied to the active material.\n"
-            f"bpy.ops.neural_layers.stack_apply(stack={stack.to_json()!r})\n")
+    return (
+        "import bpy\n\n"
+        "# A Neural Layered Materials layer stack (bottom to top); applied to the active material.\n"
+        f"bpy.ops.neural_layers.stack_apply(stack={stack.to_json()!r})\n"
+    )
 
 
 class NLM_OT_preset_add(AddPresetBase, MaterialOperator, bpy.types.Operator):
@@ -264,10 +271,16 @@ class NLM_OT_preset_add(AddPresetBase, MaterialOperator, bpy.types.Operator):
     preset_menu = "NLM_MT_presets"
     preset_subdir = PRESET_SUBDIR
     # AddPresetBase's own switches, with tooltips
-    remove_name: BoolProperty(default=False, options={"HIDDEN", "SKIP_SAVE"},
-                              description="Remove the preset called Name instead of adding one")
-    remove_active: BoolProperty(default=False, options={"HIDDEN", "SKIP_SAVE"},
-                                description="Remove the preset applied last instead of adding one")
+    remove_name: BoolProperty(
+        default=False,
+        options={"HIDDEN", "SKIP_SAVE"},
+        description="Remove the preset called Name instead of adding one",
+    )
+    remove_active: BoolProperty(
+        default=False,
+        options={"HIDDEN", "SKIP_SAVE"},
+        description="Remove the preset applied last instead of adding one",
+    )
 
     def add(self, context, filepath):  # AddPresetBase's hook: write our own file
         mat, stack = self.target_stack(context)
@@ -356,8 +369,14 @@ class NLM_OT_preview_sphere(LongOperator, bpy.types.Operator):
             # an importance sampler (the reference's walks) gets the walk budget per pixel
             samples = k * walks if choice.sampler is not None else k
             img = preview.sphere_preview(
-                choice.brdf, res, env_samples=samples, progress=progress, chunk=choice.chunk,
-                sampler=choice.sampler, sample_chunk=choice.sample_chunk, proxy=choice.proxy,
+                choice.brdf,
+                res,
+                env_samples=samples,
+                progress=progress,
+                chunk=choice.chunk,
+                sampler=choice.sampler,
+                sample_chunk=choice.sample_chunk,
+                proxy=choice.proxy,
             )
             return img, choice, time.perf_counter() - t0
 

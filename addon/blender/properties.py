@@ -51,8 +51,9 @@ def _on_auto_latent(settings, context) -> None:
 def _range_text(key: str) -> str:
     lo, hi = TRAINED_RANGES[key]
     vlo, vhi = VALID_RANGES[key]
-    return (f"Trained range {lo:g} to {hi:g} (valid {vlo:g} to {vhi:g}; "
-            "outside the trained range the neural models clamp)")
+    return (
+        f"Trained range {lo:g} to {hi:g} (valid {vlo:g} to {vhi:g}; outside the trained range the neural models clamp)"
+    )
 
 
 MAP_PARAMETERS = [
@@ -67,13 +68,16 @@ MAP_PARAMETERS = [
 ]
 
 
-def model_size_items(auto_description: str | None = None, size_description: str = "The {size} decoder",
-                     ) -> list[tuple[str, str, str]]:
+def model_size_items(
+    auto_description: str | None = None,
+    size_description: str = "The {size} decoder",
+) -> list[tuple[str, str, str]]:
     """EnumProperty items of a decoder-size setting: Auto, then every size of the model set
     (``addon.core.neural.SIZES``), each described by ``size_description`` (``{size}`` is filled
     in) and its model card's parameter count. The render settings' Decoder uses it too."""
-    auto = auto_description or (f"The neural runtime's default size, {DEFAULT_SIZE} (or the first size shipped "
-                                "when it is not)")
+    auto = auto_description or (
+        f"The neural runtime's default size, {DEFAULT_SIZE} (or the first size shipped when it is not)"
+    )
     items = [("AUTO", "Auto", auto)]
     for size in SIZES:
         items.append((size.upper(), size.title(), _size_description(size, size_description.format(size=size))))
@@ -93,16 +97,26 @@ def _size_description(size: str, text: str) -> str:
 class NLM_ParameterMap(bpy.types.PropertyGroup):
     """An image driving one parameter of its layer: value = low + (high - low) * pixel."""
 
-    parameter: EnumProperty(name="Parameter", items=MAP_PARAMETERS, default="ROUGHNESS",
-                            description="Which parameter of the layer the image drives", update=_on_layer_changed)
-    image: PointerProperty(type=bpy.types.Image, name="Image",
-                           description="Image whose pixel values (0 to 1) drive the parameter, decoded by its "
-                           "Color Space as Cycles does: use Non-Color for data such as roughness, sRGB for colours",
-                           update=_on_layer_changed)
-    low: FloatProperty(name="Low", default=0.0, description="Parameter value where the image is 0",
-                       update=_on_layer_changed)
-    high: FloatProperty(name="High", default=1.0, description="Parameter value where the image is 1",
-                        update=_on_layer_changed)
+    parameter: EnumProperty(
+        name="Parameter",
+        items=MAP_PARAMETERS,
+        default="ROUGHNESS",
+        description="Which parameter of the layer the image drives",
+        update=_on_layer_changed,
+    )
+    image: PointerProperty(
+        type=bpy.types.Image,
+        name="Image",
+        description="Image whose pixel values (0 to 1) drive the parameter, decoded by its "
+        "Color Space as Cycles does: use Non-Color for data such as roughness, sRGB for colours",
+        update=_on_layer_changed,
+    )
+    low: FloatProperty(
+        name="Low", default=0.0, description="Parameter value where the image is 0", update=_on_layer_changed
+    )
+    high: FloatProperty(
+        name="High", default=1.0, description="Parameter value where the image is 1", update=_on_layer_changed
+    )
 
 
 class NLM_Layer(bpy.types.PropertyGroup):
@@ -215,9 +229,11 @@ class NLM_Layer(bpy.types.PropertyGroup):
         soft_max=TRAINED_RANGES["thickness"][1],
         update=_on_layer_changed,
     )
-    maps: CollectionProperty(type=NLM_ParameterMap, name="Parameter Maps",
-                             description="Images that drive parameters of this layer per texel "
-                             "(baked into a latent texture)")
+    maps: CollectionProperty(
+        type=NLM_ParameterMap,
+        name="Parameter Maps",
+        description="Images that drive parameters of this layer per texel (baked into a latent texture)",
+    )
     g: FloatProperty(
         name="Anisotropy g",
         description="Henyey-Greenstein asymmetry of the medium's scattering (-1 back, 0 isotropic, 1 forward). "
@@ -231,8 +247,12 @@ class NLM_Layer(bpy.types.PropertyGroup):
 
 class NLM_MaterialSettings(bpy.types.PropertyGroup):
     layers: CollectionProperty(type=NLM_Layer, name="Layers", description="The stack, bottom (base) to top")
-    active_index: IntProperty(name="Active Layer", default=0, min=0,
-                               description="The layer shown for editing (index into the stack, 0 = the base)")
+    active_index: IntProperty(
+        name="Active Layer",
+        default=0,
+        min=0,
+        description="The layer shown for editing (index into the stack, 0 = the base)",
+    )
     latent: FloatVectorProperty(
         name="Latent",
         description="Latent code of the stack from the neural encoder: 32 floats per RGB channel",
@@ -281,8 +301,9 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
         max=math.radians(89.0),
         subtype="ANGLE",
     )
-    lobe_resolution: IntProperty(name="Lobe Size", description="Lobe image size in pixels", default=128, min=8,
-                                 max=1024)
+    lobe_resolution: IntProperty(
+        name="Lobe Size", description="Lobe image size in pixels", default=128, min=8, max=1024
+    )
     sphere_resolution: IntProperty(
         name="Sphere Size", description="Sphere image size in pixels", default=128, min=8, max=1024
     )
@@ -320,19 +341,29 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
         unit="TIME_ABSOLUTE",
     )
     texture_size: IntVectorProperty(
-        name="Latent Texture Size", description="(height, width) the latent texture was baked at", size=2,
+        name="Latent Texture Size",
+        description="(height, width) the latent texture was baked at",
+        size=2,
         default=(0, 0),
     )
     bake_directory: StringProperty(
-        name="Bake Folder", description="Folder for baked latent textures (EXR)", default="//textures/",
-        subtype="DIR_PATH", options={"PATH_SUPPORTS_BLEND_RELATIVE"},
+        name="Bake Folder",
+        description="Folder for baked latent textures (EXR)",
+        default="//textures/",
+        subtype="DIR_PATH",
+        options={"PATH_SUPPORTS_BLEND_RELATIVE"},
     )
     texture_path: StringProperty(
-        name="Latent Texture", description="The baked latent texture the renderer uses for this material",
-        default="", subtype="FILE_PATH", options={"PATH_SUPPORTS_BLEND_RELATIVE"},
+        name="Latent Texture",
+        description="The baked latent texture the renderer uses for this material",
+        default="",
+        subtype="FILE_PATH",
+        options={"PATH_SUPPORTS_BLEND_RELATIVE"},
     )
     texture_key: StringProperty(
-        name="Latent Texture Key", description="Hash of the inputs the texture was baked from", default="",
+        name="Latent Texture Key",
+        description="Hash of the inputs the texture was baked from",
+        default="",
     )
     walks: IntProperty(
         name="Walks",

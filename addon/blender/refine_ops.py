@@ -18,17 +18,23 @@ from .operator_base import MaterialOperator, guarded
 
 
 class NLM_RefineResult(bpy.types.PropertyGroup):
-    key: StringProperty(name="Key", description="Cache key of the refinement (stack, model files, settings)",
-                        default="")
+    key: StringProperty(
+        name="Key", description="Cache key of the refinement (stack, model files, settings)", default=""
+    )
     stack_hash: StringProperty(name="Stack hash", description="Hash of the stack that was refined", default="")
     size: StringProperty(name="Decoder size", description="Decoder size of the refined latent", default="")
-    decoder_digest: StringProperty(name="Decoder digest", description="sha256 of the decoder file the latent was "
-                                   "refined for: F12 renders the refined latent only while that decoder is shipped",
-                                   default="")
-    error_before: FloatProperty(name="Error before", description="Validation lobe error of the encoded latent",
-                                default=0.0)
-    error_after: FloatProperty(name="Error after", description="Validation lobe error of the refined latent",
-                               default=0.0)
+    decoder_digest: StringProperty(
+        name="Decoder digest",
+        description="sha256 of the decoder file the latent was "
+        "refined for: F12 renders the refined latent only while that decoder is shipped",
+        default="",
+    )
+    error_before: FloatProperty(
+        name="Error before", description="Validation lobe error of the encoded latent", default=0.0
+    )
+    error_after: FloatProperty(
+        name="Error after", description="Validation lobe error of the refined latent", default=0.0
+    )
     seconds: FloatProperty(name="Seconds", description="Seconds the refinement took", default=0.0)
     kept: StringProperty(name="Kept", description="'yes' when the refined latent is the one stored", default="")
 
@@ -41,8 +47,9 @@ class NLM_OT_refine_latent(MaterialOperator, bpy.types.Operator):
     bl_label = "Refine Latent"
     bl_options = {"REGISTER", "UNDO"}
 
-    budget: FloatProperty(name="Budget (s)", description="Seconds the refinement may take", default=8.0,
-                          min=0.5, max=600.0)
+    budget: FloatProperty(
+        name="Budget (s)", description="Seconds the refinement may take", default=8.0, min=0.5, max=600.0
+    )
 
     def execute(self, context):
         return guarded("refining the latent", self, lambda: self._run(context))
@@ -68,12 +75,18 @@ class NLM_OT_refine_latent(MaterialOperator, bpy.types.Operator):
         r.seconds, r.kept = rep.total_s, "yes" if rep.kept else "no"
         how = "cached" if rep.cached else f"{rep.total_s:.1f} s"
         if rep.kept:
-            self.report({"INFO"}, f"latent of {mat.name!r} refined ({size}, {how}): validation lobe error "
-                                  f"{rep.validation_error_before:.3f} -> {rep.validation_error_after:.3f}")
+            self.report(
+                {"INFO"},
+                f"latent of {mat.name!r} refined ({size}, {how}): validation lobe error "
+                f"{rep.validation_error_before:.3f} -> {rep.validation_error_after:.3f}",
+            )
         else:
-            self.report({"WARNING"}, f"refining {mat.name!r} ({size}, {how}) did not improve on the validation "
-                                     f"pairs ({rep.validation_error_before:.3f} -> {rep.validation_error_after:.3f}): "
-                                     f"the encoded latent is kept")
+            self.report(
+                {"WARNING"},
+                f"refining {mat.name!r} ({size}, {how}) did not improve on the validation "
+                f"pairs ({rep.validation_error_before:.3f} -> {rep.validation_error_after:.3f}): "
+                f"the encoded latent is kept",
+            )
         return {"FINISHED"}
 
 

@@ -61,17 +61,25 @@ class NLM_OT_render_preview(jobs.ModalJob, bpy.types.Operator):
     bl_label = "Render Preview"
     bl_options = {"REGISTER"}
 
-    width: IntProperty(name="Width", description="Image width (0: the scene's render resolution)", default=0,
-                       min=0, max=16384)
-    height: IntProperty(name="Height", description="Image height (0: the scene's render resolution)", default=0,
-                        min=0, max=16384)
-    samples: IntProperty(name="Samples", description="Paths per pixel (0: the scene's preview samples)", default=0,
-                         min=0, max=65536)
-    use_view: BoolProperty(name="Current View", description="Render the 3D viewport's view rather than the camera",
-                           default=True)
-    filepath: StringProperty(name="File Path", description="Also write the image here (.exr or .png)", default="",
-                             subtype="FILE_PATH", options={"PATH_SUPPORTS_BLEND_RELATIVE", "SKIP_SAVE"})
-
+    width: IntProperty(
+        name="Width", description="Image width (0: the scene's render resolution)", default=0, min=0, max=16384
+    )
+    height: IntProperty(
+        name="Height", description="Image height (0: the scene's render resolution)", default=0, min=0, max=16384
+    )
+    samples: IntProperty(
+        name="Samples", description="Paths per pixel (0: the scene's preview samples)", default=0, min=0, max=65536
+    )
+    use_view: BoolProperty(
+        name="Current View", description="Render the 3D viewport's view rather than the camera", default=True
+    )
+    filepath: StringProperty(
+        name="File Path",
+        description="Also write the image here (.exr or .png)",
+        default="",
+        subtype="FILE_PATH",
+        options={"PATH_SUPPORTS_BLEND_RELATIVE", "SKIP_SAVE"},
+    )
 
     def _prepare(self, context):
         if self.filepath and Path(self.filepath).suffix.lower() not in (".exr", ".png"):
@@ -101,8 +109,9 @@ class NLM_OT_render_preview(jobs.ModalJob, bpy.types.Operator):
         old = bpy.data.images.get(IMAGE_NAME)
         if old is not None and tuple(old.size) != (rgba.shape[1], rgba.shape[0]):
             bpy.data.images.remove(old)  # a new size: start a new image rather than rescale
-        image = images.store_image(IMAGE_NAME, rgba, {"paths_per_second": stats.paths_per_second,
-                                                       "seconds": stats.seconds["total"]})
+        image = images.store_image(
+            IMAGE_NAME, rgba, {"paths_per_second": stats.paths_per_second, "seconds": stats.seconds["total"]}
+        )
         images.show_in_image_editor(context, image)
         if self.filepath:
             save_image(self.filepath, rgba)

@@ -18,11 +18,12 @@ def ensure_denoise_compositor(scene) -> str | None:
     (left alone)."""
     group = scene.compositing_node_group
     if group is not None and group.name != DENOISE_GROUP:
-        return (f"the scene already has the compositor {group.name!r}: connect its Render Layers' Denoising "
-                "Normal and Denoising Albedo to a Denoise node")
+        return (
+            f"the scene already has the compositor {group.name!r}: connect its Render Layers' Denoising "
+            "Normal and Denoising Albedo to a Denoise node"
+        )
     if group is None:
-        group = bpy.data.node_groups.get(DENOISE_GROUP) or bpy.data.node_groups.new(DENOISE_GROUP,
-                                                                                  "CompositorNodeTree")
+        group = bpy.data.node_groups.get(DENOISE_GROUP) or bpy.data.node_groups.new(DENOISE_GROUP, "CompositorNodeTree")
         scene.compositing_node_group = group
     group.nodes.clear()
     if not group.interface.items_tree:
@@ -52,25 +53,39 @@ def _denoise_changed(self, context):
 class NLM_RenderSettings(bpy.types.PropertyGroup):
     samples: IntProperty(name="Samples", description="Paths per pixel", default=64, min=1, max=65536)
     preview_samples: IntProperty(
-        name="Preview Samples", description="Paths per pixel of the Render Preview operator", default=16, min=1,
+        name="Preview Samples",
+        description="Paths per pixel of the Render Preview operator",
+        default=16,
+        min=1,
         max=65536,
     )
-    max_bounces: IntProperty(name="Max Bounces", description="Longest path, in surface bounces", default=6, min=0,
-                             max=1024)
+    max_bounces: IntProperty(
+        name="Max Bounces", description="Longest path, in surface bounces", default=6, min=0, max=1024
+    )
     seed: IntProperty(name="Seed", description="Random seed: the same seed gives the same image", default=0, min=0)
     mode: EnumProperty(
         name="Layered Materials",
         items=[
-            ("neural", "Neural", "Evaluate layered materials with the neural decoder (the reference where its "
-                                 "models are not available)"),
-            ("reference", "Reference", "Evaluate layered materials with the position-free Monte Carlo estimator "
-                                       "(slow; ground truth on average)"),
+            (
+                "neural",
+                "Neural",
+                "Evaluate layered materials with the neural decoder (the reference where its models are not available)",
+            ),
+            (
+                "reference",
+                "Reference",
+                "Evaluate layered materials with the position-free Monte Carlo estimator "
+                "(slow; ground truth on average)",
+            ),
         ],
         default="neural",
         description="How layered materials are evaluated while rendering",
     )
     reference_walks: IntProperty(
-        name="Reference Walks", description="Walks per layered-BRDF evaluation in reference mode", default=8, min=1,
+        name="Reference Walks",
+        description="Walks per layered-BRDF evaluation in reference mode",
+        default=8,
+        min=1,
         max=4096,
     )
     decoder_quality: EnumProperty(
@@ -87,29 +102,42 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
     time_budget: FloatProperty(
         name="Time Budget",
         description="Auto decoder choice: sizes whose predicted decoder time for the frame (every path on the "
-                    "material at every bounce, at the size's measured speed) is over this many seconds are not "
-                    "considered, so the paper-sized decoder is only chosen for a frame it fits",
-        default=120.0, min=1.0, soft_max=3600.0, subtype="TIME_ABSOLUTE", unit="TIME_ABSOLUTE",
+        "material at every bounce, at the size's measured speed) is over this many seconds are not "
+        "considered, so the paper-sized decoder is only chosen for a frame it fits",
+        default=120.0,
+        min=1.0,
+        soft_max=3600.0,
+        subtype="TIME_ABSOLUTE",
+        unit="TIME_ABSOLUTE",
     )
     denoise: BoolProperty(
         name="Denoise",
         description="Write Denoising Normal and Denoising Albedo passes and denoise the image with Blender's "
-                    "compositor (Denoise node, OpenImageDenoise)",
-        default=False, update=_denoise_changed,
+        "compositor (Denoise node, OpenImageDenoise)",
+        default=False,
+        update=_denoise_changed,
     )
     tolerance: FloatProperty(
         name="Tolerance",
         description="Largest relative lobe error (against the reference) the Auto decoder choice accepts",
-        default=0.2, min=0.01, max=1.0, subtype="FACTOR",
+        default=0.2,
+        min=0.01,
+        max=1.0,
+        subtype="FACTOR",
     )
 
     def to_core(self, samples: int | None = None, scene=None) -> RenderSettings:
         """Core settings; with ``scene``, its render thread setting (Blender's Threads: Auto or Fixed)
         decides how many cores the path tracer and the networks use."""
         threads = 0 if scene is None else RenderSettings.threads_for(scene.render.threads_mode, scene.render.threads)
-        return RenderSettings(samples=samples or self.samples, max_bounces=self.max_bounces, seed=self.seed,
-                              mode=self.mode, reference_walks=self.reference_walks, threads=threads)
-
+        return RenderSettings(
+            samples=samples or self.samples,
+            max_bounces=self.max_bounces,
+            seed=self.seed,
+            mode=self.mode,
+            reference_walks=self.reference_walks,
+            threads=threads,
+        )
 
     def assign_decoders(self, core_scene, samples: int | None = None, info: list | None = None) -> list[str]:
         """Put the layered materials of an exported scene on their decoders (neural mode); returns warnings.
@@ -122,10 +150,12 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
         from ..core import quality
 
         size = "auto" if self.decoder_quality == "AUTO" else self.decoder_quality.lower()
-        queries = quality.frame_decoder_queries(core_scene.camera.width * core_scene.camera.height,
-                                                samples or self.samples, self.max_bounces)
+        queries = quality.frame_decoder_queries(
+            core_scene.camera.width * core_scene.camera.height, samples or self.samples, self.max_bounces
+        )
         core_scene.materials, choices, notes = quality.assign_decoders(
-            core_scene, size, self.tolerance, budget_seconds=self.time_budget, evaluations=queries)
+            core_scene, size, self.tolerance, budget_seconds=self.time_budget, evaluations=queries
+        )
         if info is not None:
             info += [quality.choice_reason(name, c) for name, c in choices.items()]
         return notes

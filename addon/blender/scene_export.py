@@ -141,16 +141,20 @@ def _refined_latent(mat, stack, info: list[str]):
     s = mat.neural_layers
     now = preview.stack_hash(stack)
     if refined.stack_hash != now or s.latent_hash != now or s.latent_size != refined.size:
-        info.append(f"material {mat.name!r}: its refined latent is out of date (the stack or model size changed "
-                    "since Refine); rendering the stack encoded again: press Refine to refine it again")
+        info.append(
+            f"material {mat.name!r}: its refined latent is out of date (the stack or model size changed "
+            "since Refine); rendering the stack encoded again: press Refine to refine it again"
+        )
         return None
     try:
         shipped = load_models(refined.size).digest
     except (ValueError, FileNotFoundError, ModelFileError):
         shipped = None  # the renderer reports the missing models itself
     if shipped != refined.decoder_digest:
-        info.append(f"material {mat.name!r}: its latent was refined for another decoder_{refined.size}.onnx than "
-                    "the shipped one; rendering the stack encoded again: press Refine to refine it again")
+        info.append(
+            f"material {mat.name!r}: its latent was refined for another decoder_{refined.size}.onnx than "
+            "the shipped one; rendering the stack encoded again: press Refine to refine it again"
+        )
         return None
     return stack_io.latent_of(mat), refined.size
 
@@ -243,8 +247,9 @@ def _light(ob, matrix: np.ndarray, warnings: list[str]):
     if light.type == "POINT":
         return PointLight(matrix[:3, 3], light.energy, color)
     if light.type == "SPOT":
-        return SpotLight(matrix[:3, 3], light.energy, color, direction=z, spot_size=light.spot_size,
-                         blend=light.spot_blend)
+        return SpotLight(
+            matrix[:3, 3], light.energy, color, direction=z, spot_size=light.spot_size, blend=light.spot_blend
+        )
     if light.type == "SUN":
         return SunLight(z, light.energy, color)
     if light.type == "AREA":
@@ -313,8 +318,13 @@ def _world_mesh(arrays, matrix: np.ndarray) -> Mesh:
     return Mesh(world_pos, world_nrm, uvs, slots[np.clip(mat_i, 0, len(slots) - 1)])
 
 
-def export_scene(depsgraph, width: int | None = None, height: int | None = None, camera: Camera | None = None,
-                 info: list[str] | None = None):
+def export_scene(
+    depsgraph,
+    width: int | None = None,
+    height: int | None = None,
+    camera: Camera | None = None,
+    info: list[str] | None = None,
+):
     """The depsgraph's scene as a core ``Scene``; returns ``(scene, warnings)``.
 
     ``width``/``height`` default to the render resolution (with its percentage); ``camera``

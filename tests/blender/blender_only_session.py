@@ -66,8 +66,14 @@ def finite_image(path: str) -> dict:
         px = np.asarray(inp.read_image(0, 0, 0, spec.nchannels, "float"), dtype=np.float64)
     finally:
         inp.close()
-    return {"exists": True, "readable": True, "shape": [spec.height, spec.width, spec.nchannels],
-            "finite": bool(np.all(np.isfinite(px))), "max": float(np.max(px)), "mean": float(np.mean(px[..., :3]))}
+    return {
+        "exists": True,
+        "readable": True,
+        "shape": [spec.height, spec.width, spec.nchannels],
+        "finite": bool(np.all(np.isfinite(px))),
+        "max": float(np.max(px)),
+        "mean": float(np.mean(px[..., :3])),
+    }
 
 
 def image_stats(name: str) -> dict:
@@ -80,8 +86,13 @@ def image_stats(name: str) -> dict:
     px = np.empty(w * h * 4, np.float32)
     image.pixels.foreach_get(px)
     rgb = px.reshape(h, w, 4)[..., :3]
-    return {"exists": True, "size": [w, h], "finite": bool(np.all(np.isfinite(rgb))), "max": float(rgb.max()),
-            "mean": float(rgb.mean())}
+    return {
+        "exists": True,
+        "size": [w, h],
+        "finite": bool(np.all(np.isfinite(rgb))),
+        "max": float(rgb.max()),
+        "mean": float(rgb.mean()),
+    }
 
 
 def small_scene() -> None:
@@ -110,8 +121,11 @@ def panel_draw(panel: str) -> list:
 
         def __getattr__(self, name):
             def record(*args, **kwargs):
-                log.append([name] + [a for a in args if isinstance(a, (str, int))] +
-                           [f"{k}={v}" for k, v in kwargs.items() if isinstance(v, (str, int))])
+                log.append(
+                    [name]
+                    + [a for a in args if isinstance(a, (str, int))]
+                    + [f"{k}={v}" for k, v in kwargs.items() if isinstance(v, (str, int))]
+                )
                 return Layout()
 
             return record
@@ -178,8 +192,10 @@ def main() -> None:
     import bpy
 
     bpy.utils.expose_bundled_modules()  # OpenImageIO, to read outputs back as Blender would
-    RESULT["install"] = step("install", lambda: op("extensions.package_install_files", filepath=zip_path,
-                                                   repo="user_default", enable_on_install=True))
+    RESULT["install"] = step(
+        "install",
+        lambda: op("extensions.package_install_files", filepath=zip_path, repo="user_default", enable_on_install=True),
+    )
     module = "bl_ext.user_default.neural_layered_materials"
     RESULT["enabled"] = module in bpy.context.preferences.addons
     if RESULT["enabled"]:

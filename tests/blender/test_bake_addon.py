@@ -210,8 +210,9 @@ def test_materials_whose_names_differ_only_in_unsafe_characters_bake_to_differen
         paths.append(path)
         assert path == str(tmp_path / f"{safe_file_name(name)}.exr")
     assert len(set(paths)) == 3
-    assert sorted(p.name for p in tmp_path.glob("*.exr")) == sorted(f"{safe_file_name(n)}.exr"
-                                                                   for n in ("a/b", "a_b", "../../x"))
+    assert sorted(p.name for p in tmp_path.glob("*.exr")) == sorted(
+        f"{safe_file_name(n)}.exr" for n in ("a/b", "a_b", "../../x")
+    )
 
 
 def test_a_texture_baked_with_another_decoder_file_is_out_of_date(wood, bpy_addon, monkeypatch):

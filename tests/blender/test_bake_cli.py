@@ -18,7 +18,6 @@ oiio = pytest.importorskip("OpenImageIO")
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "bake"))
 import bake as bake_cli  # noqa: E402
-
 from addon.core.textures import LatentTexture  # noqa: E402
 
 
@@ -51,8 +50,17 @@ def rough_png(tmp_path):
 
 
 def bake(tmp_path, rough_png, *extra, out="out"):
-    argv = ["--preset", "varnished_wood", "--map", f"coatings[0].roughness={rough_png}:0.05:0.5",
-            "--out", str(tmp_path / out), "--band-rows", "8", *extra]
+    argv = [
+        "--preset",
+        "varnished_wood",
+        "--map",
+        f"coatings[0].roughness={rough_png}:0.05:0.5",
+        "--out",
+        str(tmp_path / out),
+        "--band-rows",
+        "8",
+        *extra,
+    ]
     return bake_cli.main(argv, encode=encoder())
 
 
@@ -76,7 +84,7 @@ def test_union_of_shards_equals_the_single_bake_and_resumes(tmp_path, rough_png)
     assert bake(tmp_path, rough_png, "--shard", "1/3", out="sharded") == 0
     a = LatentTexture.read_exr(tmp_path / "single" / "varnished_wood.exr")
     b = LatentTexture.read_exr(tmp_path / "sharded" / "varnished_wood.exr")
-    for la, lb in zip(a.levels, b.levels):
+    for la, lb in zip(a.levels, b.levels, strict=False):
         assert np.array_equal(la, lb)
     # finished outputs are skipped on a rerun
     mtime = (tmp_path / "single" / "varnished_wood.exr").stat().st_mtime_ns
@@ -87,9 +95,35 @@ def test_union_of_shards_equals_the_single_bake_and_resumes(tmp_path, rough_png)
 def test_bad_inputs_exit_with_code_2_and_a_clear_message(tmp_path, rough_png, capsys):
     cases = [
         (["--preset", "velvet", "--out", str(tmp_path)], "unknown preset"),
-        (["--preset", "varnished_wood", "--map", f"coatings[0].roughness={tmp_path / 'nope.png'}", "--out", str(tmp_path)], "not found"),
-        (["--preset", "varnished_wood", "--map", f"coatings[3].roughness={rough_png}", "--out", str(tmp_path)], "coating"),
-        (["--preset", "varnished_wood", "--map", f"coatings[0].roughness={rough_png}", "--resolution", "80", "48", "--out", str(tmp_path)], "between 1x1"),
+        (
+            [
+                "--preset",
+                "varnished_wood",
+                "--map",
+                f"coatings[0].roughness={tmp_path / 'nope.png'}",
+                "--out",
+                str(tmp_path),
+            ],
+            "not found",
+        ),
+        (
+            ["--preset", "varnished_wood", "--map", f"coatings[3].roughness={rough_png}", "--out", str(tmp_path)],
+            "coating",
+        ),
+        (
+            [
+                "--preset",
+                "varnished_wood",
+                "--map",
+                f"coatings[0].roughness={rough_png}",
+                "--resolution",
+                "80",
+                "48",
+                "--out",
+                str(tmp_path),
+            ],
+            "between 1x1",
+        ),
         (["--preset", "varnished_wood", "--shard", "3/3", "--out", str(tmp_path)], "--shard"),
         (["--blend", str(tmp_path / "missing.blend"), "--out", str(tmp_path)], "file not found"),
         (["--out", str(tmp_path)], ""),
@@ -98,12 +132,31 @@ def test_bad_inputs_exit_with_code_2_and_a_clear_message(tmp_path, rough_png, ca
         assert bake_cli.main(argv, encode=encoder()) == 2, argv
         assert message in capsys.readouterr().err
     rgb = write_png(tmp_path / "rgb.png", np.zeros((40, 24, 3)))
-    assert bake_cli.main(["--preset", "varnished_wood", "--map", f"coatings[0].roughness={rgb}", "--out", str(tmp_path)],
-                         encode=encoder()) == 2
+    assert (
+        bake_cli.main(
+            ["--preset", "varnished_wood", "--map", f"coatings[0].roughness={rgb}", "--out", str(tmp_path)],
+            encode=encoder(),
+        )
+        == 2
+    )
     assert "3 channel" in capsys.readouterr().err
     small = write_png(tmp_path / "small.png", np.zeros((8, 8)))
-    assert bake_cli.main(["--preset", "varnished_wood", "--map", f"coatings[0].roughness={rough_png}",
-                          "--map", f"coatings[0].thickness={small}", "--out", str(tmp_path)], encode=encoder()) == 2
+    assert (
+        bake_cli.main(
+            [
+                "--preset",
+                "varnished_wood",
+                "--map",
+                f"coatings[0].roughness={rough_png}",
+                "--map",
+                f"coatings[0].thickness={small}",
+                "--out",
+                str(tmp_path),
+            ],
+            encode=encoder(),
+        )
+        == 2
+    )
     assert "share a resolution" in capsys.readouterr().err
     blocked = tmp_path / "file"
     blocked.write_text("")
@@ -114,8 +167,12 @@ def test_bad_inputs_exit_with_code_2_and_a_clear_message(tmp_path, rough_png, ca
 def test_script_entry_point_reports_bad_input_with_exit_code_2(tmp_path):
     import subprocess
 
-    r = subprocess.run([sys.executable, str(ROOT / "bake" / "bake.py"), "--preset", "velvet", "--out", str(tmp_path)],
-                       capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "bake" / "bake.py"), "--preset", "velvet", "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 2 and "unknown preset 'velvet'" in r.stderr
 
 
@@ -125,10 +182,28 @@ def test_mix_through_a_mask_blends_latents(tmp_path):
     mask[:, 4] = 0.5
     m = write_png(tmp_path / "mask.png", mask)
     out = tmp_path / "mix"
-    assert bake_cli.main(["--preset", "coated_gold", "--mix", "frosted_copper", "--mask", str(m), "--out", str(out),
-                          "--band-rows", "4"], encode=encoder()) == 0
+    assert (
+        bake_cli.main(
+            [
+                "--preset",
+                "coated_gold",
+                "--mix",
+                "frosted_copper",
+                "--mask",
+                str(m),
+                "--out",
+                str(out),
+                "--band-rows",
+                "4",
+            ],
+            encode=encoder(),
+        )
+        == 0
+    )
     tex = LatentTexture.read_exr(out / "coated_gold.exr").levels[0]
     left, right, mid = tex[0, 0], tex[0, -1], tex[0, 4]
     assert not np.allclose(left, right)
     assert np.allclose(mid, 0.5 * (left + right), atol=0.02)  # half-float texels, mask 0.5 -> 128/255
-    assert bake_cli.main(["--preset", "coated_gold", "--mix", "frosted_copper", "--out", str(out)], encode=encoder()) == 2
+    assert (
+        bake_cli.main(["--preset", "coated_gold", "--mix", "frosted_copper", "--out", str(out)], encode=encoder()) == 2
+    )

@@ -26,8 +26,9 @@ def write(path, value, fmt="uint8", channels=3):
 
 
 def driving(tmp_path, *maps):
-    args = bake_cli.parse_args(["--preset", "varnished_wood", *[a for m in maps for a in ("--map", m)],
-                                "--out", str(tmp_path / "out")])
+    args = bake_cli.parse_args(
+        ["--preset", "varnished_wood", *[a for m in maps for a in ("--map", m)], "--out", str(tmp_path / "out")]
+    )
     return bake_cli.preset_job(args)[0].spatial.maps
 
 
@@ -57,8 +58,9 @@ def test_float_and_linear_tagged_albedo_read_raw_and_the_override_wins(tmp_path)
     np.testing.assert_allclose(driving(tmp_path, f"base.albedo={exr}")["base.albedo"], 0.5)
     np.testing.assert_allclose(driving(tmp_path, f"base.albedo={tagged}")["base.albedo"], 128 / 255, atol=1e-6)
     np.testing.assert_allclose(driving(tmp_path, f"base.albedo={png}@linear")["base.albedo"], 128 / 255, atol=1e-6)
-    np.testing.assert_allclose(driving(tmp_path, f"base.albedo={png}@Non-Color:0:0.5")["base.albedo"],
-                               0.5 * 128 / 255, atol=1e-6)
+    np.testing.assert_allclose(
+        driving(tmp_path, f"base.albedo={png}@Non-Color:0:0.5")["base.albedo"], 0.5 * 128 / 255, atol=1e-6
+    )
     one = write(tmp_path / "one.png", 128 / 255, channels=1)
     rough = driving(tmp_path, f"coatings[0].roughness={one}@srgb")["coatings[0].roughness"]
     np.testing.assert_allclose(rough[..., 0], 0.2158605, atol=1e-6)
@@ -66,8 +68,7 @@ def test_float_and_linear_tagged_albedo_read_raw_and_the_override_wins(tmp_path)
 
 def test_an_unknown_colour_space_exits_2_with_one_line(tmp_path, capsys):
     png = write(tmp_path / "grey.png", 0.5)
-    for argv in (["--map", f"base.albedo={png}@rec2020"],
-                 ["--mix", "frosted_copper", "--mask", f"{png}@rec2020"]):
+    for argv in (["--map", f"base.albedo={png}@rec2020"], ["--mix", "frosted_copper", "--mask", f"{png}@rec2020"]):
         assert bake_cli.main(["--preset", "varnished_wood", *argv, "--out", str(tmp_path / "o")]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and "unknown colour space 'rec2020'" in err and "srgb" in err, err

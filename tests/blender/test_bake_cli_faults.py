@@ -60,8 +60,17 @@ def rough_png(tmp_path):
 
 
 def preset_argv(rough_png, out, *extra):
-    return ["--preset", "varnished_wood", "--map", f"coatings[0].roughness={rough_png}:0.05:0.5",
-            "--out", str(out), "--band-rows", "4", *extra]
+    return [
+        "--preset",
+        "varnished_wood",
+        "--map",
+        f"coatings[0].roughness={rough_png}:0.05:0.5",
+        "--out",
+        str(out),
+        "--band-rows",
+        "4",
+        *extra,
+    ]
 
 
 def texture_bits(path):
@@ -83,8 +92,9 @@ def listing(folder):
 
 
 def driver(*argv, **kw):
-    return subprocess.Popen([sys.executable, str(DRIVER), *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, cwd=ROOT, **kw)
+    return subprocess.Popen(
+        [sys.executable, str(DRIVER), *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, **kw
+    )
 
 
 # --- item 1: .blend files -------------------------------------------------------------------------
@@ -130,12 +140,43 @@ def test_a_blend_bakes_with_the_plain_bpy_module(wood_blend, tmp_path):
     out = tmp_path / "a" / "b" / "out"
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     env["BLENDER_USER_EXTENSIONS"] = str(tmp_path / "no-extensions")
-    r = subprocess.run([sys.executable, str(ROOT / "bake" / "bake.py"), "--blend", str(wood_blend), "--out", str(out),
-                        "--model", "tiny"], capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env)
+    r = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "bake" / "bake.py"),
+            "--blend",
+            str(wood_blend),
+            "--out",
+            str(out),
+            "--model",
+            "tiny",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+        env=env,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     check_blend_outputs(out)
-    r = subprocess.run([sys.executable, str(ROOT / "bake" / "bake.py"), "--blend", str(wood_blend), "--out", str(out),
-                        "--material", "Plain", "--model", "tiny"], capture_output=True, text=True, timeout=300, env=env)
+    r = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "bake" / "bake.py"),
+            "--blend",
+            str(wood_blend),
+            "--out",
+            str(out),
+            "--material",
+            "Plain",
+            "--model",
+            "tiny",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
     assert r.returncode == 2 and "'Plain' has no layer stack" in r.stderr
 
 
@@ -172,8 +213,14 @@ def test_a_blend_bakes_inside_blender_with_the_extension_enabled(wood_blend, tmp
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     env["BLENDER_USER_EXTENSIONS"] = str(tmp_path / "extensions")
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, str(script), str(ROOT), str(wood_blend), str(out)], capture_output=True,
-                       text=True, timeout=300, cwd=tmp_path, env=env)
+    r = subprocess.run(
+        [sys.executable, str(script), str(ROOT), str(wood_blend), str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+        env=env,
+    )
     line = [x for x in r.stdout.splitlines() if x.startswith("RESULT ")]
     assert r.returncode == 0 and line, r.stdout[-2000:] + r.stderr[-2000:]
     assert line[-1] == ("RESULT 0 ['bl_ext.user_default.neural_layered_materials.addon.blender.bake_inputs'] False")
@@ -239,8 +286,25 @@ def test_a_shard_that_finds_the_bands_gone_after_another_published_succeeds(roug
 # --- item 3 (issue item 5): names choose where the command writes ------------------------------------
 
 
-HOSTILE_NAMES = ["/../../x", "../x", "..", ".", "a/b", "a_b", "a\\b", "C:\\x", "CON", "nul.txt", " x ", ".hidden",
-                 "x" * 300, "tab\there", "new\nline", "é/ü", "a:b*c?d\"e<f>g|h"]
+HOSTILE_NAMES = [
+    "/../../x",
+    "../x",
+    "..",
+    ".",
+    "a/b",
+    "a_b",
+    "a\\b",
+    "C:\\x",
+    "CON",
+    "nul.txt",
+    " x ",
+    ".hidden",
+    "x" * 300,
+    "tab\there",
+    "new\nline",
+    "é/ü",
+    'a:b*c?d"e<f>g|h',
+]
 
 
 def test_hostile_names_write_inside_out_and_stay_distinct(tmp_path):
@@ -252,8 +316,10 @@ def test_hostile_names_write_inside_out_and_stay_distinct(tmp_path):
     assert files.safe_file_name("Wood") == "Wood" and files.safe_file_name("Holz Eiche (2)") == "Holz Eiche (2)"
     out = tmp_path / "deep" / "out"
     for name in ["/../../x", "../x", "..", "a/b", "a_b"]:
-        assert bake_cli.main(["--preset", "coated_gold", "--name", name, "--out", str(out)],
-                             encode=stand_in_encoder()) == 0
+        assert (
+            bake_cli.main(["--preset", "coated_gold", "--name", name, "--out", str(out)], encode=stand_in_encoder())
+            == 0
+        )
     made = sorted(p.name for p in out.iterdir())
     assert len(made) == 10 and all(p.parent == out for p in out.iterdir())
     assert sorted(p.name for p in tmp_path.rglob("*") if p.is_file()) == made  # nothing outside --out
@@ -277,8 +343,21 @@ def test_a_mask_outside_0_1_is_bad_input_naming_file_value_and_range(tmp_path, c
     mask[2, 7] = value
     path = write_exr(tmp_path / "mask.exr", mask)
     out = tmp_path / "out"
-    code = bake_cli.main(["--preset", "coated_gold", "--mix", "frosted_copper", "--mask", str(path), "--out", str(out),
-                          "--band-rows", "2"], encode=stand_in_encoder())
+    code = bake_cli.main(
+        [
+            "--preset",
+            "coated_gold",
+            "--mix",
+            "frosted_copper",
+            "--mask",
+            str(path),
+            "--out",
+            str(out),
+            "--band-rows",
+            "2",
+        ],
+        encode=stand_in_encoder(),
+    )
     err = capsys.readouterr().err
     assert code == 2, err
     assert str(path) in err and shown in err and "[0, 1]" in err and "(x=7, y=2)" in err
@@ -408,8 +487,12 @@ def test_keyboard_interrupt_in_process_is_exit_130_without_a_traceback(rough_png
 
 
 def test_argument_errors_are_one_line(tmp_path, capsys):
-    for argv in (["--out"], ["--preset", "coated_gold", "--out", str(tmp_path), "--band-rows", "x"], ["--bogus"],
-                 ["--blend", "a.blend", "--name", "n", "--out", str(tmp_path)]):
+    for argv in (
+        ["--out"],
+        ["--preset", "coated_gold", "--out", str(tmp_path), "--band-rows", "x"],
+        ["--bogus"],
+        ["--blend", "a.blend", "--name", "n", "--out", str(tmp_path)],
+    ):
         assert bake_cli.main(argv, encode=stand_in_encoder()) == 2
         err = capsys.readouterr().err
         assert len(err.strip().splitlines()) == 1 and err.startswith("error: "), err

@@ -27,9 +27,21 @@ import blender_only  # noqa: E402
 import build_extension  # noqa: E402
 
 SESSION = Path(__file__).with_name("blender_only_session.py")
-DEFAULT_PATH_STEPS = ("preset_apply", "evaluate_latent", "preview_lobe", "preview_sphere", "compare_reference",
-                      "draw NLM_PT_view3d_stack", "draw NLM_PT_view3d_preview", "draw NLM_PT_view3d_bake",
-                      "render_preview png", "render_preview exr", "F12", "reload", "F12 after reload")
+DEFAULT_PATH_STEPS = (
+    "preset_apply",
+    "evaluate_latent",
+    "preview_lobe",
+    "preview_sphere",
+    "compare_reference",
+    "draw NLM_PT_view3d_stack",
+    "draw NLM_PT_view3d_preview",
+    "draw NLM_PT_view3d_bake",
+    "render_preview png",
+    "render_preview exr",
+    "F12",
+    "reload",
+    "F12 after reload",
+)
 
 
 @pytest.fixture(scope="module")
@@ -38,8 +50,9 @@ def session(tmp_path_factory):
         pytest.skip("the Blender-only session installs the linux-x64 zip")
     tmp = tmp_path_factory.mktemp("blender_only")
     try:
-        zips = build_extension.build(["linux-x64"], tmp / "dist", ROOT / "cache" / "wheels", tmp / "build",
-                                     log=lambda *_: None)
+        zips = build_extension.build(
+            ["linux-x64"], tmp / "dist", ROOT / "cache" / "wheels", tmp / "build", log=lambda *_: None
+        )
     except build_extension.RegistryUnreachable as e:
         pytest.skip(f"package index unreachable and wheels not cached: {e}")
     work = tmp / "work"
@@ -47,7 +60,7 @@ def session(tmp_path_factory):
     proc = blender_only.run(SESSION, [str(zips[0]), str(work)], tmp, cwd=work, timeout=600)
     lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
     assert proc.returncode == 0 and lines, proc.stdout[-4000:] + proc.stderr[-4000:]
-    result = json.loads(lines[-1][len("RESULT "):])
+    result = json.loads(lines[-1][len("RESULT ") :])
     # what Blender printed (reports, warnings, tracebacks), without the result line itself
     result["log"] = "\n".join(line for line in proc.stdout.splitlines() if not line.startswith("RESULT ")) + proc.stderr
     return result

@@ -89,8 +89,13 @@ def test_an_interrupted_write_leaves_the_previous_file_and_no_temporary(tmp_path
         created.append(name)
         return _FailingOutput(real.ImageOutput.create(name))
 
-    fake = types.SimpleNamespace(ImageSpec=real.ImageSpec, ImageOutput=types.SimpleNamespace(create=create),
-                                 FLOAT=real.FLOAT, UINT8=real.UINT8, geterror=real.geterror)
+    fake = types.SimpleNamespace(
+        ImageSpec=real.ImageSpec,
+        ImageOutput=types.SimpleNamespace(create=create),
+        FLOAT=real.FLOAT,
+        UINT8=real.UINT8,
+        geterror=real.geterror,
+    )
     monkeypatch.setattr(latent_texture, "oiio_module", lambda: fake)
     with pytest.raises(KeyboardInterrupt):
         write(path, np.full((5, 6, 3), 0.75, dtype=np.float32))
@@ -99,4 +104,3 @@ def test_an_interrupted_write_leaves_the_previous_file_and_no_temporary(tmp_path
     assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]  # ... and removed it
     expected = before if suffix == ".exr" else np.round(to_srgb(before) * 255) / 255
     np.testing.assert_allclose(read_image(path), expected, atol=1e-6)  # the previous file, round-tripped
-

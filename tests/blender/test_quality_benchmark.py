@@ -67,8 +67,13 @@ def test_render_level_pareto_front_is_the_non_dominated_set(quick_run):
         dominated = any(s2 <= sec and e2 < err and (m2, k2) != (m, spp) for m2, k2, s2, e2 in pts)
         assert ((m, spp) in front) == (not dominated), (m, spp)
     auto = r["auto"]
-    assert auto is not None and set(auto["choices"]) == {"coated_gold", "red_car_paint", "lacquered_plastic",
-                                                         "varnished_wood", "frosted_copper"}
+    assert auto is not None and set(auto["choices"]) == {
+        "coated_gold",
+        "red_car_paint",
+        "lacquered_plastic",
+        "varnished_wood",
+        "frosted_copper",
+    }
     assert auto["auto_seconds"] > 0 and auto["largest_seconds"] > 0
 
 
@@ -79,8 +84,9 @@ def test_quick_run_matches_the_committed_outputs_in_shape(quick_run):
         pytest.skip("no committed full run yet")
     full = json.loads(committed.read_text())
     assert {r["method"].split(" ")[0] for r in data["brdf"]} == {r["method"].split(" ")[0] for r in full["brdf"]}
-    assert set(data["render"]["curves"]) - {k for k in data["render"]["curves"] if k.startswith("neural")} == \
-        set(full["render"]["curves"]) - {k for k in full["render"]["curves"] if k.startswith("neural")}
+    assert set(data["render"]["curves"]) - {k for k in data["render"]["curves"] if k.startswith("neural")} == set(
+        full["render"]["curves"]
+    ) - {k for k in full["render"]["curves"] if k.startswith("neural")}
 
     def headings(text):
         return re.findall(r"^#+ .*$", text, flags=re.M)

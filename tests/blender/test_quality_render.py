@@ -12,8 +12,9 @@ from addon.core.neural import MODEL_DIR  # noqa: E402
 from addon.core.stack import PRESETS  # noqa: E402
 
 SIZES = quality.available_sizes()
-needs_layering = pytest.mark.skipif(not SIZES or not (MODEL_DIR / f"layering_{SIZES[0]}.onnx").exists(),
-                                    reason="no layering network shipped")
+needs_layering = pytest.mark.skipif(
+    not SIZES or not (MODEL_DIR / f"layering_{SIZES[0]}.onnx").exists(), reason="no layering network shipped"
+)
 
 
 def _layered_cube(ctx, preset="coated_gold"):

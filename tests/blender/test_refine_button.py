@@ -102,8 +102,12 @@ def test_f12_renders_the_refined_latent_the_preview_shows_and_ignores_a_stale_on
     info = []
     core_scene, _ = scene_export.export_scene(bpy.context.evaluated_depsgraph_get(), info=info)
     (spec,) = [m for m, n in zip(core_scene.materials, core_scene.material_names, strict=True) if n == material.name]
-    shown = preview.choose_brdf(stack_io.stack_from_material(material), "NEURAL",
-                                latent=stack_io.current_latent(material), size=stack_io.model_size(material))
+    shown = preview.choose_brdf(
+        stack_io.stack_from_material(material),
+        "NEURAL",
+        latent=stack_io.current_latent(material),
+        size=stack_io.model_size(material),
+    )
     z_shown = stack_io.current_latent(material)[0]
     made = resolve(spec, "neural")
     assert made.size == "tiny" and np.array_equal(made.z, z_shown) and not info

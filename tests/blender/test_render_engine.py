@@ -152,8 +152,7 @@ def test_render_preview_operator_fills_an_image(fresh_scene, tmp_path):
     ctx = fresh_scene
     small(ctx.scene)
     out = tmp_path / "preview.png"
-    report = run_operator(bpy.ops.neural_layers.render_preview, width=20, height=10, samples=2,
-                          filepath=str(out))
+    report = run_operator(bpy.ops.neural_layers.render_preview, width=20, height=10, samples=2, filepath=str(out))
     assert report.finished, report.error
     image = bpy.data.images["Neural Layered Render"]
     assert tuple(image.size) == (20, 10)
@@ -435,7 +434,7 @@ def test_material_thumbnails_render_through_the_engine_with_thumbnail_settings(f
     ctx.scene.render.filepath = str(tmp_path / "thumb.exr")
     ctx.scene.render.image_settings.file_format = "OPEN_EXR"
     bpy.ops.render.render(write_still=True)
-    (settings, sizes), = seen
+    ((settings, sizes),) = seen
     expected = thumbnail_settings(24, 24, threads=settings.threads)
     assert settings == expected and settings.samples < 64 and settings.mode == "neural"
     assert THUMBNAIL_DECODER in sizes

@@ -44,8 +44,14 @@ def test_register_is_idempotent_and_unregister_leaves_no_trace(bpy_addon):
         blender.register()
     assert _snapshot(bpy) == registered
     added_types = registered[0] - bare[0]
-    for name in ("NEURAL_LAYERS_OT_layer_add", "NEURAL_LAYERS_OT_preview_lobe", "NLM_UL_layers", "NLM_MT_presets",
-                 "NLM_PT_view3d_stack", "NLM_PT_shader_stack"):
+    for name in (
+        "NEURAL_LAYERS_OT_layer_add",
+        "NEURAL_LAYERS_OT_preview_lobe",
+        "NLM_UL_layers",
+        "NLM_MT_presets",
+        "NLM_PT_view3d_stack",
+        "NLM_PT_shader_stack",
+    ):
         assert name in added_types
     assert "neural_layers" in registered[1]["Material"] - bare[1]["Material"]
     assert bpy.types.NLM_PT_view3d_stack.bl_category == "Layers"
@@ -250,7 +256,8 @@ def test_enums_come_from_the_one_table_of_each_kind(bpy_addon):
 
     layer_enum = NLM_Layer.bl_rna.properties["layer_type"].enum_items
     assert [(e.identifier, e.name, e.description, e.icon) for e in layer_enum] == [
-        (t.identifier, t.label, t.description, t.icon) for t in layer_types.LAYER_TYPES]
+        (t.identifier, t.label, t.description, t.icon) for t in layer_types.LAYER_TYPES
+    ]
     add_enum = bpy.ops.neural_layers.layer_add.get_rna_type().properties["layer_type"].enum_items
     assert [e.identifier for e in add_enum] == [t.identifier for t in layer_types.LAYER_TYPES]
     sizes = NLM_MaterialSettings.bl_rna.properties["model_size"].enum_items
@@ -275,9 +282,15 @@ def test_buttons_grey_out_where_they_cannot_run(bpy_addon, fresh_scene, material
     monkeypatch.setattr(operator_base, "scripted", lambda: False)
     assert not operators.NLM_OT_layer_add.poll(no_object)
     assert operators.NLM_OT_layer_add.poll(ctx) and operators.NLM_OT_preset_apply.poll(ctx)
-    needs_stack = (operators.NLM_OT_layer_remove, operators.NLM_OT_evaluate_latent, operators.NLM_OT_preview_lobe,
-                   operators.NLM_OT_preview_sphere, operators.NLM_OT_compare_reference, bake_ops.NLM_OT_bake_texture,
-                   bake_ops.NLM_OT_map_add)
+    needs_stack = (
+        operators.NLM_OT_layer_remove,
+        operators.NLM_OT_evaluate_latent,
+        operators.NLM_OT_preview_lobe,
+        operators.NLM_OT_preview_sphere,
+        operators.NLM_OT_compare_reference,
+        bake_ops.NLM_OT_bake_texture,
+        bake_ops.NLM_OT_map_add,
+    )
     assert not any(op.poll(ctx) for op in needs_stack)
     assert "empty" in operator_base.poll_problem(ctx, "stack")
     assert run_operator(bpy.ops.neural_layers.preset_apply, preset="coated_gold").finished
@@ -294,12 +307,19 @@ def _addon_rna_structs(bpy):
     from addon.blender import bake_ops, operators, properties, refine_ops, render_operators
 
     groups = [cls.bl_rna for cls in properties._CLASSES]
-    groups += [bpy.types.Scene.bl_rna.properties["neural_render"].fixed_type,
-               bpy.types.Material.bl_rna.properties["neural_refine"].fixed_type]
-    ops = [c for m in (operators, bake_ops, render_operators, refine_ops) for c in m._CLASSES
-           if issubclass(c, bpy.types.Operator)]
-    groups += [getattr(bpy.ops, c.bl_idname.split(".")[0]).__getattr__(c.bl_idname.split(".")[1]).get_rna_type()
-               for c in ops]
+    groups += [
+        bpy.types.Scene.bl_rna.properties["neural_render"].fixed_type,
+        bpy.types.Material.bl_rna.properties["neural_refine"].fixed_type,
+    ]
+    ops = [
+        c
+        for m in (operators, bake_ops, render_operators, refine_ops)
+        for c in m._CLASSES
+        if issubclass(c, bpy.types.Operator)
+    ]
+    groups += [
+        getattr(bpy.ops, c.bl_idname.split(".")[0]).__getattr__(c.bl_idname.split(".")[1]).get_rna_type() for c in ops
+    ]
     return groups, ops
 
 

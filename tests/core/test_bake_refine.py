@@ -10,8 +10,13 @@ from addon.core.stack import Coating, Conductor, Stack, StackArrays
 from addon.core.textures.bake import bake_texels, neural_encoder
 
 QUICK = RefineSettings(fit_groups=8, validation_groups=4, per_group=16, walks=8, steps=60)
-STACKS = [Stack(Conductor(eta=(0.2, 0.4, 1.4), k=(3.9, 2.4, 1.6), roughness=r),
-                (Coating(roughness=0.05, ior=1.5, thickness=0.5, albedo=(0.8, 0.5, 0.3)),)) for r in (0.3, 0.5)]
+STACKS = [
+    Stack(
+        Conductor(eta=(0.2, 0.4, 1.4), k=(3.9, 2.4, 1.6), roughness=r),
+        (Coating(roughness=0.05, ior=1.5, thickness=0.5, albedo=(0.8, 0.5, 0.3)),),
+    )
+    for r in (0.3, 0.5)
+]
 
 
 def test_refine_budget_refines_distinct_texels_in_order_until_it_is_spent(tmp_path):
@@ -24,8 +29,12 @@ def test_refine_budget_refines_distinct_texels_in_order_until_it_is_spent(tmp_pa
     plain = encode_arrays(arrays, load_models("tiny", 1)).reshape(4, 96)
     # which distinct texel was refined (the bake's order is its deduplication's): the one whose refinement
     # is in the cache folder the bake was given; its texels hold the latent that refinement returned
-    got = [refine_latent(arrays.take(slice(i, i + 1)).stack(0), "tiny", budget_s=0.05, settings=QUICK, threads=1,
-                         cache_dir=tmp_path) for i in (0, 1)]
+    got = [
+        refine_latent(
+            arrays.take(slice(i, i + 1)).stack(0), "tiny", budget_s=0.05, settings=QUICK, threads=1, cache_dir=tmp_path
+        )
+        for i in (0, 1)
+    ]
     refined = [i for i in (0, 1) if got[i][1].cached]
     assert len(refined) == 1, [g[1].cached for g in got]
     i = refined[0]

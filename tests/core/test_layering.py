@@ -37,8 +37,12 @@ def models(request):
 
 def _stack(n_coatings: int, rng) -> Stack:
     base = (Diffuse(tuple(rng.random(3))), Conductor(0.2), Dielectric(0.3, 1.6))[n_coatings % 3]
-    coats = tuple(Coating(float(rng.uniform(0.01, 1)), float(rng.uniform(1.05, 2)), tuple(rng.random(3)),
-                          float(rng.uniform(0, 5))) for _ in range(n_coatings))
+    coats = tuple(
+        Coating(
+            float(rng.uniform(0.01, 1)), float(rng.uniform(1.05, 2)), tuple(rng.random(3)), float(rng.uniform(0, 5))
+        )
+        for _ in range(n_coatings)
+    )
     return Stack(base, coats)
 
 
@@ -95,9 +99,16 @@ def test_out_of_range_coatings_are_clamped_with_a_warning(models):
     np.testing.assert_allclose(z_out, z_in, rtol=1e-6, atol=1e-6)
 
 
-@pytest.mark.parametrize("field,value", [("coat_thickness", np.nan), ("coat_thickness", -1.0),
-                                         ("coat_albedo", np.inf), ("coat_roughness", -0.1),
-                                         ("base_albedo", np.nan)])
+@pytest.mark.parametrize(
+    "field,value",
+    [
+        ("coat_thickness", np.nan),
+        ("coat_thickness", -1.0),
+        ("coat_albedo", np.inf),
+        ("coat_roughness", -0.1),
+        ("base_albedo", np.nan),
+    ],
+)
 def test_nan_or_negative_inputs_raise(models, field, value):
     a = StackArrays.from_stacks([PRESETS["red_car_paint"]] * 3)
     arr = getattr(a, field).copy()

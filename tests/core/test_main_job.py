@@ -18,10 +18,27 @@ WITHOUT_PILLOW = (
 
 def test_main_job_writes_lobes_baked_texture_and_render(tmp_path):
     r = subprocess.run(
-        [sys.executable, "-c", WITHOUT_PILLOW, str(ROOT / "bake" / "demo.py"), "--out", str(tmp_path),
-         "--lobe-res", "8", "--walks", "2",
-         "--render-size", "32x18", "--samples", "1", "--bounces", "2"],
-        capture_output=True, text=True, timeout=600,
+        [
+            sys.executable,
+            "-c",
+            WITHOUT_PILLOW,
+            str(ROOT / "bake" / "demo.py"),
+            "--out",
+            str(tmp_path),
+            "--lobe-res",
+            "8",
+            "--walks",
+            "2",
+            "--render-size",
+            "32x18",
+            "--samples",
+            "1",
+            "--bounces",
+            "2",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert r.returncode == 0, r.stderr[-2000:]
     from addon.core.stack import PRESETS
@@ -45,6 +62,10 @@ def test_main_job_writes_lobes_baked_texture_and_render(tmp_path):
 
 
 def test_main_job_rejects_bad_arguments(tmp_path):
-    r = subprocess.run([sys.executable, str(ROOT / "bake" / "demo.py"), "--out", str(tmp_path), "--samples", "0"],
-                       capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "bake" / "demo.py"), "--out", str(tmp_path), "--samples", "0"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 2 and "--samples" in r.stderr

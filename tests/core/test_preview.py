@@ -42,8 +42,9 @@ def test_sky_distribution_is_normalised_and_matches_its_samples():
 
 def _sky_term(choice, samples, res=48):
     no_sun = preview.Environment(sun_irradiance=(0.0, 0.0, 0.0))
-    img = preview.sphere_preview(choice.brdf, res, env=no_sun, env_samples=samples, chunk=choice.chunk,
-                                 proxy=choice.proxy)
+    img = preview.sphere_preview(
+        choice.brdf, res, env=no_sun, env_samples=samples, chunk=choice.chunk, proxy=choice.proxy
+    )
     return img[..., :3][img[..., 3] > 0].mean(axis=1)
 
 
@@ -57,10 +58,13 @@ def test_neural_sphere_has_no_fireflies_at_the_default_samples():
     converged = _sky_term(choice, 256)
     assert lum.max() / np.median(lum) < 100.0, lum.max() / np.median(lum)
     assert lum.mean() == pytest.approx(converged.mean(), rel=0.05)
+
+
 def test_sphere_sun_term_matches_lambert_cosine():
     sun = np.array([-0.3, 0.5, 0.8])
-    env = preview.Environment(zenith=(0, 0, 0), horizon=(0, 0, 0), ground=(0, 0, 0), sun_direction=tuple(sun),
-                              sun_irradiance=(2.0, 1.0, 0.5))
+    env = preview.Environment(
+        zenith=(0, 0, 0), horizon=(0, 0, 0), ground=(0, 0, 0), sun_direction=tuple(sun), sun_irradiance=(2.0, 1.0, 0.5)
+    )
     res = 40
     img = preview.sphere_preview(lambert((0.5, 0.5, 0.5)), res=res, env=env, env_samples=3)
     c = (np.arange(res) + 0.5) / res * 2 - 1
@@ -143,13 +147,15 @@ def lambert_sampler(albedo, seed=1):
 
 def test_sphere_with_a_sampler_matches_the_fixed_pattern_on_average():
     white = preview.Environment(zenith=(1, 1, 1), horizon=(1, 1, 1), ground=(1, 1, 1), sun_irradiance=(0, 0, 0))
-    img = preview.sphere_preview(lambert((0.7, 0.7, 0.7)), res=24, env=white, env_samples=5,
-                                 sampler=lambert_sampler((0.7, 0.7, 0.7)))
+    img = preview.sphere_preview(
+        lambert((0.7, 0.7, 0.7)), res=24, env=white, env_samples=5, sampler=lambert_sampler((0.7, 0.7, 0.7))
+    )
     on = img[..., 3] > 0
     np.testing.assert_allclose(img[on][:, :3], 0.7, rtol=1e-5)  # furnace: weight = albedo exactly
 
-    sampled = preview.sphere_preview(lambert((0.5, 0.5, 0.5)), res=24, env_samples=256,
-                                     sampler=lambert_sampler((0.5, 0.5, 0.5)))
+    sampled = preview.sphere_preview(
+        lambert((0.5, 0.5, 0.5)), res=24, env_samples=256, sampler=lambert_sampler((0.5, 0.5, 0.5))
+    )
     pattern = preview.sphere_preview(lambert((0.5, 0.5, 0.5)), res=24, env_samples=256)
     on = sampled[..., 3] > 0
     assert sampled[on][:, :3].mean(0) == pytest.approx(pattern[on][:, :3].mean(0), rel=0.02)
@@ -185,8 +191,9 @@ def test_reference_half_of_the_comparison_has_independent_noise_per_pixel():
     walks shared by the pixels of a chunk (the amortised estimator: 21 image rows per chunk here)
     the band ratio measured 12.6; independent walks per pixel give about 1."""
     stack = PRESETS["lacquered_plastic"]
-    halves = [preview.compare_with_reference(stack, 30.0, res=48, walks=64, seed=seed).reference[..., 0]
-              for seed in (0, 1)]
+    halves = [
+        preview.compare_with_reference(stack, 30.0, res=48, walks=64, seed=seed).reference[..., 0] for seed in (0, 1)
+    ]
     assert _row_band_ratio(*halves) < 2.0
 
 

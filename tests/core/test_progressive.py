@@ -12,8 +12,7 @@ from addon.core.render.progressive import ProgressiveSession, reduced_camera
 def small_scene(sky=(0.3, 0.4, 0.5), width=24, height=16):
     cam = Camera.look_at((0.0, -3.0, 1.0), (0.0, 0.0, 0.3), width=width, height=height)
     mesh = shapes.uv_sphere((0.0, 0.0, 0.4), 0.4, segments=12, rings=6)
-    return Scene(cam, mesh, [LambertMaterial((0.7, 0.5, 0.3))], [PointLight((1.0, -2.0, 2.0), 80.0)],
-                 Environment(sky))
+    return Scene(cam, mesh, [LambertMaterial((0.7, 0.5, 0.3))], [PointLight((1.0, -2.0, 2.0), 80.0)], Environment(sky))
 
 
 def test_accumulation_equals_an_offline_render_of_the_same_samples():

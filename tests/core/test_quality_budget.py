@@ -37,8 +37,9 @@ def test_auto_never_takes_a_size_over_the_budget_even_when_none_meets_the_tolera
     scene = demo_scene(8, 6, [PRESETS["coated_gold"]])
     queries = quality.frame_decoder_queries(1920 * 1080, 64, 6)
     budget = 1.01 * quality.predicted_decoder_seconds(sizes[1], queries)
-    _, choices, notes = quality.assign_decoders(scene, "auto", 1e-4, res=8, walks=16, cache=quality.ErrorCache(),
-                                                budget_seconds=budget, evaluations=queries)
+    _, choices, notes = quality.assign_decoders(
+        scene, "auto", 1e-4, res=8, walks=256, cache=quality.ErrorCache(), budget_seconds=budget, evaluations=queries
+    )
     (choice,) = [c for c in choices.values()]
     assert choice.size in sizes[:2] and not choice.met
     assert set(choice.errors) <= set(sizes[:2])

@@ -44,17 +44,21 @@ def env_image():
 
 def mixed_scene(width=32, height=24, lights=None, env=True):
     cam = Camera.look_at((0.3, -5.0, 1.6), (0.0, 0.0, 0.5), fov_deg=40, width=width, height=height)
-    mesh = Mesh.concatenate([
-        shapes.uv_sphere((-0.6, 0.0, 0.6), 0.6, material=1, segments=24, rings=12),
-        shapes.uv_sphere((0.8, 0.2, 0.45), 0.45, material=0, segments=24, rings=12, smooth=False),
-        shapes.quad((0, 0, 0), (3, 0, 0), (0, 3, 0), material=0),
-    ])
+    mesh = Mesh.concatenate(
+        [
+            shapes.uv_sphere((-0.6, 0.0, 0.6), 0.6, material=1, segments=24, rings=12),
+            shapes.uv_sphere((0.8, 0.2, 0.45), 0.45, material=0, segments=24, rings=12, smooth=False),
+            shapes.quad((0, 0, 0), (3, 0, 0), (0, 3, 0), material=0),
+        ]
+    )
     light_m = np.array([[1, 0, 0, 1.0], [0, 1, 0, -0.8], [0, 0, 1, 2.5], [0, 0, 0, 1]])
     if lights is None:
-        lights = [AreaLight(light_m, power=150.0, size=1.5, color=(1.0, 0.9, 0.8)),
-                  PointLight((-2.0, -2.0, 2.0), power=200.0),
-                  SpotLight((2.0, -2.0, 3.0), power=400.0, direction=(-0.5, 0.5, -1.0), spot_size=0.6, blend=0.3),
-                  SunLight((0.3, 0.5, -1.0), strength=0.8, color=(1.0, 0.95, 0.9))]
+        lights = [
+            AreaLight(light_m, power=150.0, size=1.5, color=(1.0, 0.9, 0.8)),
+            PointLight((-2.0, -2.0, 2.0), power=200.0),
+            SpotLight((2.0, -2.0, 3.0), power=400.0, direction=(-0.5, 0.5, -1.0), spot_size=0.6, blend=0.3),
+            SunLight((0.3, 0.5, -1.0), strength=0.8, color=(1.0, 0.95, 0.9)),
+        ]
     mats = [LambertMaterial((0.7, 0.6, 0.5)), conductor(0.3, (0.2, 0.9, 1.1), (3.9, 2.4, 2.2))]
     return Scene(cam, mesh, mats, lights, Environment(image=env_image()) if env else None)
 
@@ -62,8 +66,9 @@ def mixed_scene(width=32, height=24, lights=None, env=True):
 def test_white_furnace_renders_the_environment_everywhere():
     cam = Camera.look_at((0, -4, 1), (0, 0, 0.3), fov_deg=45, width=24, height=24)
     # A smooth sphere resting on a flat box: concave corners force interreflection.
-    mesh = Mesh.concatenate([shapes.uv_sphere((0, 0, 0.7), 0.7, segments=24, rings=12),
-                             shapes.box((0, 0, -0.2), (1.2, 1.2, 0.2))])
+    mesh = Mesh.concatenate(
+        [shapes.uv_sphere((0, 0, 0.7), 0.7, segments=24, rings=12), shapes.box((0, 0, -0.2), (1.2, 1.2, 0.2))]
+    )
     scene = Scene(cam, mesh, [LambertMaterial((1.0, 1.0, 1.0))], [], Environment((0.5, 0.5, 0.5)))
     film, stats = render(scene, RenderSettings(samples=48, max_bounces=64, rr_depth=64))
     img, se = film.mean(), film.stderr()
@@ -87,8 +92,10 @@ def test_light_bsdf_and_mis_estimates_converge_to_the_same_image(other):
 
 def test_mis_has_less_noise_than_either_strategy_alone():
     scene = mixed_scene()
-    se = {s: render(scene, RenderSettings(samples=32, max_bounces=2, strategy=s))[0].stderr().mean()
-          for s in ("mis", "light", "bsdf")}
+    se = {
+        s: render(scene, RenderSettings(samples=32, max_bounces=2, strategy=s))[0].stderr().mean()
+        for s in ("mis", "light", "bsdf")
+    }
     assert se["mis"] < se["bsdf"]
     assert se["mis"] < 1.25 * se["light"]
 
@@ -186,8 +193,10 @@ def test_awkward_scenes_render_without_errors_or_nan():
     assert np.all(render(Scene(cam), RenderSettings(samples=1))[0].mean() == 0)
     # Degenerate triangles (zero area, repeated and NaN corners) are dropped; no uvs with a texture.
     good = shapes.uv_sphere(radius=0.8, segments=8, rings=4)
-    bad = np.array([[[0, 0, 0], [1, 1, 1], [2, 2, 2]], [[0, 0, 0], [0, 0, 0], [0, 0, 1]],
-                    [[np.nan, 0, 0], [1, 0, 0], [0, 1, 0]]], np.float32)
+    bad = np.array(
+        [[[0, 0, 0], [1, 1, 1], [2, 2, 2]], [[0, 0, 0], [0, 0, 0], [0, 0, 1]], [[np.nan, 0, 0], [1, 0, 0], [0, 1, 0]]],
+        np.float32,
+    )
     mesh = Mesh(np.concatenate([good.positions, bad]), None, None, np.zeros(len(good.positions) + 3))
     assert mesh.dropped == 3 and mesh.uvs is None
     tex = ImageTexture(np.full((4, 4, 3), np.nan))  # a broken image becomes black, not NaN
@@ -232,8 +241,9 @@ def test_bad_settings_and_inputs_say_what_is_wrong():
 
 def test_images_do_not_depend_on_the_thread_count():
     scene = mixed_scene(24, 16)
-    films = [render(scene, RenderSettings(samples=3, max_bounces=3, seed=3, chunk_paths=100, threads=n))
-             for n in (1, 3)]
+    films = [
+        render(scene, RenderSettings(samples=3, max_bounces=3, seed=3, chunk_paths=100, threads=n)) for n in (1, 3)
+    ]
     assert np.array_equal(films[0][0].mean(), films[1][0].mean())
     one, three = films[0][1], films[1][1]
     assert one.paths == three.paths == 3 * 24 * 16 and one.rays == three.rays
@@ -249,11 +259,13 @@ def test_mitsuba_renders_the_same_scene():
     width, height = 48, 32
     eye, target = (0.5, -5.0, 1.8), (0.0, 0.0, 0.5)
     cam = Camera.look_at(eye, target, fov_deg=40, width=width, height=height)
-    mesh = Mesh.concatenate([
-        shapes.uv_sphere((-0.5, 0, 0.7), 0.7, material=1, segments=48, rings=24),
-        shapes.uv_sphere((0.9, 0.3, 0.45), 0.45, material=0, segments=32, rings=16),
-        shapes.quad((0, 0, 0), (3, 0, 0), (0, 3, 0), material=0),
-    ])
+    mesh = Mesh.concatenate(
+        [
+            shapes.uv_sphere((-0.5, 0, 0.7), 0.7, material=1, segments=48, rings=24),
+            shapes.uv_sphere((0.9, 0.3, 0.45), 0.45, material=0, segments=32, rings=16),
+            shapes.quad((0, 0, 0), (3, 0, 0), (0, 3, 0), material=0),
+        ]
+    )
     light_m = np.array([[1, 0, 0, 1.0], [0, 1, 0, -0.5], [0, 0, 1, 2.5], [0, 0, 0, 1]])
     area = AreaLight(light_m, power=150.0, size=1.0, color=(1.0, 0.9, 0.7))
     sky, albedo, alpha = (0.3, 0.4, 0.5), (0.6, 0.5, 0.4), 0.25
@@ -278,23 +290,39 @@ def test_mitsuba_renders_the_same_scene():
         return m
 
     T = mi.ScalarTransform4f
-    mscene = mi.load_dict({
-        "type": "scene",
-        "integrator": {"type": "path", "max_depth": 5},  # ours counts bounces, Mitsuba vertices
-        "sensor": {"type": "perspective", "fov": 40, "fov_axis": "larger",
-                   "to_world": T().look_at(origin=list(eye), target=list(target), up=[0, 0, 1]),
-                   "film": {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
-                            "pixel_format": "rgb"},
-                   "sampler": {"type": "independent", "sample_count": 512}},
-        "sky": {"type": "constant", "radiance": rgb(sky)},
-        # Mitsuba's rectangle emits along +z: turn it over to emit downward like ours.
-        "light": {"type": "rectangle",
-                  "to_world": T().translate([1.0, -0.5, 2.5]) @ T().rotate([1, 0, 0], 180) @ T().scale([0.5, 0.5, 1]),
-                  "emitter": {"type": "area", "radiance": rgb(area.radiance)}},
-        "diffuse": mi_mesh(0, "diffuse", {"type": "diffuse", "reflectance": rgb(albedo)}),
-        "metal": mi_mesh(1, "metal", {"type": "roughconductor", "distribution": "ggx", "alpha": alpha,
-                                      "eta": rgb(eta), "k": rgb(k)}),
-    })
+    mscene = mi.load_dict(
+        {
+            "type": "scene",
+            "integrator": {"type": "path", "max_depth": 5},  # ours counts bounces, Mitsuba vertices
+            "sensor": {
+                "type": "perspective",
+                "fov": 40,
+                "fov_axis": "larger",
+                "to_world": T().look_at(origin=list(eye), target=list(target), up=[0, 0, 1]),
+                "film": {
+                    "type": "hdrfilm",
+                    "width": width,
+                    "height": height,
+                    "rfilter": {"type": "box"},
+                    "pixel_format": "rgb",
+                },
+                "sampler": {"type": "independent", "sample_count": 512},
+            },
+            "sky": {"type": "constant", "radiance": rgb(sky)},
+            # Mitsuba's rectangle emits along +z: turn it over to emit downward like ours.
+            "light": {
+                "type": "rectangle",
+                "to_world": T().translate([1.0, -0.5, 2.5]) @ T().rotate([1, 0, 0], 180) @ T().scale([0.5, 0.5, 1]),
+                "emitter": {"type": "area", "radiance": rgb(area.radiance)},
+            },
+            "diffuse": mi_mesh(0, "diffuse", {"type": "diffuse", "reflectance": rgb(albedo)}),
+            "metal": mi_mesh(
+                1,
+                "metal",
+                {"type": "roughconductor", "distribution": "ggx", "alpha": alpha, "eta": rgb(eta), "k": rgb(k)},
+            ),
+        }
+    )
     ref = np.array(mi.render(mscene), dtype=np.float64)
     ours, se = block_stats(film, 8)
     theirs = ref.reshape(4, 8, 6, 8, 3).mean(axis=(1, 3))

@@ -15,11 +15,11 @@ from addon.core.render import (
     RenderSettings,
     Scene,
     SurfaceHits,
+    neural_material,
     render,
     shapes,
 )
 from addon.core.render import materials as M
-from addon.core.render import neural_material
 from addon.core.stack import PRESETS, Coating, Conductor, Diffuse, Stack
 from tests.core.test_render import block_stats, mixed_scene
 
@@ -69,14 +69,23 @@ def test_reference_mode_matches_mitsuba_plastic():
     mi.set_variant("scalar_rgb")
     width, height = 32, 24
     eye, target = (0.0, -4.0, 1.5), (0.0, 0.0, 0.5)
-    mesh = Mesh.concatenate([shapes.uv_sphere((0, 0, 0.8), 0.8, material=1, segments=32, rings=16),
-                             shapes.quad((0, 0, 0), (3, 0, 0), (0, 3, 0), material=0)])
+    mesh = Mesh.concatenate(
+        [
+            shapes.uv_sphere((0, 0, 0.8), 0.8, material=1, segments=32, rings=16),
+            shapes.quad((0, 0, 0), (3, 0, 0), (0, 3, 0), material=0),
+        ]
+    )
     light_m = np.array([[1, 0, 0, 1.0], [0, 1, 0, -1.0], [0, 0, 1, 2.5], [0, 0, 0, 1]])
     area = AreaLight(light_m, power=100.0, size=1.0)
     sky, base = (0.4, 0.45, 0.5), (0.2, 0.5, 0.8)
     stack = Stack(Diffuse(base), (Coating(roughness=0.0, ior=1.5),))
-    scene = Scene(Camera.look_at(eye, target, fov_deg=35, width=width, height=height), mesh,
-                  [LambertMaterial((0.5, 0.5, 0.5)), LayeredSpec(stack)], [area], Environment(sky))
+    scene = Scene(
+        Camera.look_at(eye, target, fov_deg=35, width=width, height=height),
+        mesh,
+        [LambertMaterial((0.5, 0.5, 0.5)), LayeredSpec(stack)],
+        [area],
+        Environment(sky),
+    )
     film, _ = render(scene, RenderSettings(samples=48, max_bounces=3, mode="reference", reference_walks=2))
 
     def rgb(v):
@@ -96,22 +105,43 @@ def test_reference_mode_matches_mitsuba_plastic():
         return m
 
     T = mi.ScalarTransform4f
-    ref = np.array(mi.render(mi.load_dict({
-        "type": "scene",
-        "integrator": {"type": "path", "max_depth": 4},
-        "sensor": {"type": "perspective", "fov": 35, "fov_axis": "larger",
-                   "to_world": T().look_at(origin=list(eye), target=list(target), up=[0, 0, 1]),
-                   "film": {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"},
-                            "pixel_format": "rgb"},
-                   "sampler": {"type": "independent", "sample_count": 512}},
-        "sky": {"type": "constant", "radiance": rgb(sky)},
-        "light": {"type": "rectangle",
-                  "to_world": T().translate([1.0, -1.0, 2.5]) @ T().rotate([1, 0, 0], 180) @ T().scale([0.5, 0.5, 1]),
-                  "emitter": {"type": "area", "radiance": rgb(area.radiance)}},
-        "floor": mi_mesh(0, {"type": "diffuse", "reflectance": rgb((0.5, 0.5, 0.5))}),
-        "ball": mi_mesh(1, {"type": "plastic", "diffuse_reflectance": rgb(base), "int_ior": 1.5,
-                            "nonlinear": True}),
-    })), dtype=np.float64)
+    ref = np.array(
+        mi.render(
+            mi.load_dict(
+                {
+                    "type": "scene",
+                    "integrator": {"type": "path", "max_depth": 4},
+                    "sensor": {
+                        "type": "perspective",
+                        "fov": 35,
+                        "fov_axis": "larger",
+                        "to_world": T().look_at(origin=list(eye), target=list(target), up=[0, 0, 1]),
+                        "film": {
+                            "type": "hdrfilm",
+                            "width": width,
+                            "height": height,
+                            "rfilter": {"type": "box"},
+                            "pixel_format": "rgb",
+                        },
+                        "sampler": {"type": "independent", "sample_count": 512},
+                    },
+                    "sky": {"type": "constant", "radiance": rgb(sky)},
+                    "light": {
+                        "type": "rectangle",
+                        "to_world": T().translate([1.0, -1.0, 2.5])
+                        @ T().rotate([1, 0, 0], 180)
+                        @ T().scale([0.5, 0.5, 1]),
+                        "emitter": {"type": "area", "radiance": rgb(area.radiance)},
+                    },
+                    "floor": mi_mesh(0, {"type": "diffuse", "reflectance": rgb((0.5, 0.5, 0.5))}),
+                    "ball": mi_mesh(
+                        1, {"type": "plastic", "diffuse_reflectance": rgb(base), "int_ior": 1.5, "nonlinear": True}
+                    ),
+                }
+            )
+        ),
+        dtype=np.float64,
+    )
     ours, se = block_stats(film, 8)
     theirs = ref.reshape(3, 8, 4, 8, 3).mean(axis=(1, 3))
     assert np.all(np.abs(ours - theirs) < 4 * se + 0.02 * theirs), np.abs(ours - theirs) / (4 * se + 0.02 * theirs)
@@ -182,8 +212,9 @@ def test_latent_texture_material_matches_its_constant_latent():
     material = neural_material.make(COPPER)
     assert material is not None, "the shipped models must serve this stack"
     sigma, w = material.sigma, material.w
-    texels = np.concatenate([np.tile(material.z.reshape(1, 1, 96), (8, 8, 1)),
-                             np.tile([[[sigma, w]]], (8, 8, 1))], axis=2).astype(np.float32)
+    texels = np.concatenate(
+        [np.tile(material.z.reshape(1, 1, 96), (8, 8, 1)), np.tile([[[sigma, w]]], (8, 8, 1))], axis=2
+    ).astype(np.float32)
     textured = neural_material.NeuralMaterial(material.models, None, (sigma, w), LatentTexture.from_texels(texels))
     n = 300
     rng = np.random.default_rng(3)
@@ -205,8 +236,9 @@ def test_neural_and_reference_renders_of_a_layered_scene_agree():
     assert material is not None, "the shipped models must serve this stack"
     scene = mixed_scene(24, 16)
     scene.materials[1] = LayeredSpec(stack)
-    ref = block_stats(render(scene, RenderSettings(samples=32, max_bounces=2, mode="reference",
-                                                   reference_walks=2, seed=1))[0])
+    ref = block_stats(
+        render(scene, RenderSettings(samples=32, max_bounces=2, mode="reference", reference_walks=2, seed=1))[0]
+    )
     film, stats = render(scene, RenderSettings(samples=32, max_bounces=2, mode="neural", seed=2))
     assert "neural" in stats.material_kinds
     _, _, rel = compare(block_stats(film), ref)

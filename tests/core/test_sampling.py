@@ -70,8 +70,11 @@ def _variances(models, stack, n, seed):
     wo = np.stack([np.sqrt(1 - ct**2), np.zeros(3), ct], axis=1)
     brdf = lambda wi, wo_: models.eval_brdf(z, wi, wo_)  # noqa: E731
     out = {}
-    for name, smp in (("proxy", proxy_sampler(sigma, w)), ("cosine", cosine_sampler()),
-                      ("ggx_top", ggx_sampler(stack.coatings[-1].roughness))):
+    for name, smp in (
+        ("proxy", proxy_sampler(sigma, w)),
+        ("cosine", cosine_sampler()),
+        ("ggx_top", ggx_sampler(stack.coatings[-1].roughness)),
+    ):
         mean, var = one_bounce_variance(brdf, wo, smp, n, seed=seed)
         out[name] = (mean, var)
     return out

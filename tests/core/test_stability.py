@@ -29,9 +29,20 @@ def test_matrix_covers_every_method_and_case(cells):
     methods = {c.method for c in cells}
     assert methods == {"reference", "principled mapping"} | {f"neural {s}" for s in SIZES}
     names = [c.name for c in stability.cases()]
-    for required in ("alpha_to_0", "grazing", "thick_absorbing", "thick_scattering", "ior_near_1", "ior_high",
-                     "total_internal_reflection", "three_coatings", "four_coatings", "out_of_range",
-                     "nan_direction", "nan_parameter"):
+    for required in (
+        "alpha_to_0",
+        "grazing",
+        "thick_absorbing",
+        "thick_scattering",
+        "ior_near_1",
+        "ior_high",
+        "total_internal_reflection",
+        "three_coatings",
+        "four_coatings",
+        "out_of_range",
+        "nan_direction",
+        "nan_parameter",
+    ):
         assert required in names
     assert {(c.method, c.case) for c in cells} == {(m, n) for m in methods for n in names}
 
@@ -55,7 +66,8 @@ def test_auto_setting_flags_decoder_cells_clearly_over_the_tolerance(cells):
     grazing = {c.name for c in stability.cases() if max(c.angles) > 80}
     checked = 0
     for c in cells:
-        if c.method.startswith("neural") and c.error is not None and c.case not in grazing:
+        # an error of 0 is one the quick matrix's few reference walks cannot resolve (its noise is larger)
+        if c.method.startswith("neural") and c.error and c.case not in grazing:
             if c.error > 2 * tol:
                 assert c.auto == "flagged", (c.case, c.error)
                 checked += 1
@@ -105,8 +117,7 @@ def test_near_delta_lobe_is_detected_by_the_auto_setting(cells):
     assert cell.status == "warned" and any("clamped" in n for n in cell.notes)
     stack = next(c.stack for c in stability.cases() if c.name == "alpha_to_0_conductor")
     with pytest.warns(quality.QualityWarning):
-        choice = quality.choose_decoder(stack, 0.5, sizes=SIZES[:1], cache=quality.ErrorCache(),
-                                        fallback="reference")
+        choice = quality.choose_decoder(stack, 0.5, sizes=SIZES[:1], cache=quality.ErrorCache(), fallback="reference")
     assert choice.size is None and choice.errors[SIZES[0]] > 0.5
 
 

@@ -44,8 +44,10 @@ def test_a_non_finite_texture_fails_at_read_naming_level_texel_and_channel(tmp_p
 
 
 def test_a_nan_filled_texture_is_refused(tmp_path, oiio):
-    levels = [np.full(lvl.shape, np.nan, np.float32)
-              for lvl in LatentTexture.from_texels(np.zeros((8, 8, 98), np.float32)).levels]
+    levels = [
+        np.full(lvl.shape, np.nan, np.float32)
+        for lvl in LatentTexture.from_texels(np.zeros((8, 8, 98), np.float32)).levels
+    ]
     with pytest.raises(ValueError, match="latent texels must be finite"):
         LatentTexture.read_exr(raw_latent_exr(oiio, tmp_path / "nan.exr", levels))
 

@@ -23,7 +23,7 @@ def test_even_levels_are_the_mean_of_two_by_two_blocks():
     assert [lvl.shape[:2] for lvl in chain] == [(8, 16), (4, 8), (2, 4), (1, 2), (1, 1)]
     blocks = base.reshape(4, 2, 8, 2, 3).mean(axis=(1, 3))
     assert np.allclose(chain[1], blocks, atol=1e-6)
-    for fine, coarse in zip(chain, chain[1:]):
+    for fine, coarse in zip(chain, chain[1:], strict=False):
         assert np.allclose(downsample(fine.astype(np.float64)), coarse, atol=1e-6)
 
 
@@ -77,7 +77,7 @@ def test_exr_round_trip_preserves_latents_within_half_precision(tmp_path, oiio):
     assert not list(tmp_path.glob("*.partial*"))
     back = LatentTexture.read_exr(path)
     assert len(back.levels) == len(tex.levels) == 7  # 70 -> 35 -> 17 -> 8 -> 4 -> 2 -> 1
-    for a, b in zip(tex.levels, back.levels):
+    for a, b in zip(tex.levels, back.levels, strict=False):
         assert a.shape == b.shape
         assert np.allclose(a, b, rtol=1e-3, atol=1e-3)  # half: 11-bit mantissa
     assert back.metadata.get("stack") == "demo"

@@ -17,14 +17,43 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _train(out: Path, data: Path, extra_env: dict, launcher: list[str]) -> dict:
-    args = ["-m", "onnx_export.train_decoder", "--size", "tiny", "--data", str(data), "--steps", "6", "--batch", "8",
-            "--pairs", "16", "--lr", "3e-3", "--clip", "1", "--grazing-floor", "0.2", "--every", "6", "--threads", "1",
-            "--seed", "3", "--out", str(out)]
-    env = {k: v for k, v in os.environ.items() if k not in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR",
-                                                            "MASTER_PORT")}
+    args = [
+        "-m",
+        "onnx_export.train_decoder",
+        "--size",
+        "tiny",
+        "--data",
+        str(data),
+        "--steps",
+        "6",
+        "--batch",
+        "8",
+        "--pairs",
+        "16",
+        "--lr",
+        "3e-3",
+        "--clip",
+        "1",
+        "--grazing-floor",
+        "0.2",
+        "--every",
+        "6",
+        "--threads",
+        "1",
+        "--seed",
+        "3",
+        "--out",
+        str(out),
+    ]
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
+    }
     env |= {"OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)} | extra_env
-    r = subprocess.run([sys.executable, *launcher, *args], cwd=ROOT, env=env, capture_output=True, text=True,
-                       timeout=300)
+    r = subprocess.run(
+        [sys.executable, *launcher, *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     return torch.load(out / "ckpt.pt", weights_only=False)
 
@@ -42,8 +71,14 @@ def test_two_processes_under_torchrun_agree_with_one(tmp_path):
     np.testing.assert_allclose(two["latents"].numpy(), one["latents"].numpy(), rtol=1e-4, atol=1e-5)
     assert abs(two["loss"] - one["loss"]) <= 1e-4 * abs(one["loss"])
     # the runs trained: the latents left their random start (std 0.01) by more than the tolerance
-    assert float((one["latents"] - torch.randn(one["latents"].shape,
-                                               generator=torch.Generator().manual_seed(3)) * 0.01).abs().max()) > 1e-3
+    assert (
+        float(
+            (one["latents"] - torch.randn(one["latents"].shape, generator=torch.Generator().manual_seed(3)) * 0.01)
+            .abs()
+            .max()
+        )
+        > 1e-3
+    )
 
 
 def test_a_batch_the_processes_cannot_split_is_refused(tmp_path, monkeypatch):

@@ -25,6 +25,7 @@ BOUNDS = {  # far from the target: this pins what is reached so that no change m
     "paper": {"albedo_max": 7.1, "fcos_max": 23.0, "median_bias": 0.43},
 }
 
+
 def test_the_grazing_reference_is_shipped_and_falls_to_zero_at_the_horizon():
     d = load(GRAZING)
     assert list(d["angles"]) == list(GRAZING_ANGLES_DEG)
@@ -52,8 +53,9 @@ def test_no_shipped_size_over_reflects_near_the_horizon(size):
 
 def test_the_grazing_floor_divides_each_pairs_difference_by_its_smaller_cosine():
     grazing, steep = np.radians(87.0), np.radians(10.0)
-    wi = torch.tensor([[np.sin(grazing), 0.0, np.cos(grazing)], [np.sin(steep), 0.0, np.cos(steep)]],
-                      dtype=torch.float32)
+    wi = torch.tensor(
+        [[np.sin(grazing), 0.0, np.cos(grazing)], [np.sin(steep), 0.0, np.cos(steep)]], dtype=torch.float32
+    )
     wo = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
     pred, target = torch.tensor([2.0, 2.0]), torch.tensor([1.0, 1.0])
     for kind, power in (("l1", 1), ("l2", 2), ("l2rel", 2)):

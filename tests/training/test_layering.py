@@ -80,8 +80,9 @@ def test_kl_table_interpolation_is_exact_at_grid_nodes_and_the_minimum_is_found(
     table = torch.from_numpy(rng.random((4, len(smp.SIGMA_GRID), len(smp.W_GRID))).astype(np.float32))
     si = torch.tensor([0, 5, 10, 20])
     wi = torch.tensor([0, 3, 20, 7])
-    got = smp.interp_table(table, torch.from_numpy(smp.SIGMA_GRID[si.numpy()]).float(),
-                           torch.from_numpy(smp.W_GRID[wi.numpy()]).float())
+    got = smp.interp_table(
+        table, torch.from_numpy(smp.SIGMA_GRID[si.numpy()]).float(), torch.from_numpy(smp.W_GRID[wi.numpy()]).float()
+    )
     torch.testing.assert_close(got, table[torch.arange(4), si, wi], rtol=1e-4, atol=1e-5)
     t = np.ones((2, len(smp.SIGMA_GRID), len(smp.W_GRID)))
     t[0, 3, 4] = 0.1
@@ -119,9 +120,12 @@ def test_validation_set_is_seeded_drawn_like_training_and_apart_from_the_heldout
     # another seed, another validation set (stacks and walks), apart from both
     other = hl.validation_configs([3, 2], seed=626_262)
     assert not {s.to_json() for s in other} & {s.to_json() for s in a + hl.configs()}
-    hl.main(["--validation", "2", "1", "--seed", "626262", "--walks", "4", "--res", "8", "--out", str(tmp_path / "v2.npz")])
+    hl.main(
+        ["--validation", "2", "1", "--seed", "626262", "--walks", "4", "--res", "8", "--out", str(tmp_path / "v2.npz")]
+    )
     assert [s.to_json() for s in hl.load(tmp_path / "v2.npz")["stacks"]] == [
-        s.to_json() for s in hl.validation_configs([2, 1], seed=626_262)]
+        s.to_json() for s in hl.validation_configs([2, 1], seed=626_262)
+    ]
     for bad in (["--seed", "626262"], ["--validation", "2", "--seed", str(hl.HELDOUT_SEED)]):
         with pytest.raises(SystemExit):
             hl.main(bad + ["--out", str(tmp_path / "bad.npz")])
@@ -132,22 +136,38 @@ def test_training_fit_set_holds_the_first_training_stacks_in_order(tmp_path):
     from onnx_export import layered_data
 
     for c in (1, 2):
-        layered_data.generate(tmp_path / f"c{c}", coatings=c, stacks=6, n_wo=2, n_wi=8, walks=2, chunk=4, seed=3,
-                              log=lambda s: None)
+        layered_data.generate(
+            tmp_path / f"c{c}", coatings=c, stacks=6, n_wo=2, n_wi=8, walks=2, chunk=4, seed=3, log=lambda s: None
+        )
     want = [layered_data.load(tmp_path / "c1")["arrays"].stack(i) for i in range(5)]  # across both chunks
     want += [layered_data.load(tmp_path / "c2")["arrays"].stack(i) for i in range(2)]
     out = tmp_path / "fit.npz"
-    hl.main(["--training", str(tmp_path / "c1"), "5", str(tmp_path / "c2"), "2", "--walks", "4", "--res", "8",
-             "--out", str(out)])
+    hl.main(
+        [
+            "--training",
+            str(tmp_path / "c1"),
+            "5",
+            str(tmp_path / "c2"),
+            "2",
+            "--walks",
+            "4",
+            "--res",
+            "8",
+            "--out",
+            str(out),
+        ]
+    )
     d = hl.load(out)
     assert [s.to_json() for s in d["stacks"]] == [s.to_json() for s in want]
     assert d["n_coatings"].tolist() == [1] * 5 + [2] * 2 and d["lobe"].shape == (7, 4, 8, 8, 3)
     assert np.isfinite(d["lobe"]).all() and d["lobe"].max() > 0
-    for bad in (["--training", str(tmp_path / "c1"), "7"],  # more stacks than the directory holds
-                ["--training", str(tmp_path / "none"), "1"],
-                ["--training", str(tmp_path / "c1")],
-                ["--training", str(tmp_path / "c1"), "0"],
-                ["--training", str(tmp_path / "c1"), "2", "--validation", "2"]):
+    for bad in (
+        ["--training", str(tmp_path / "c1"), "7"],  # more stacks than the directory holds
+        ["--training", str(tmp_path / "none"), "1"],
+        ["--training", str(tmp_path / "c1")],
+        ["--training", str(tmp_path / "c1"), "0"],
+        ["--training", str(tmp_path / "c1"), "2", "--validation", "2"],
+    ):
         with pytest.raises(SystemExit):
             hl.main(bad + ["--out", str(tmp_path / "bad.npz")])
     assert not (tmp_path / "bad.npz").exists()
@@ -200,7 +220,9 @@ def test_reciprocal_function_space_loss_swaps_the_decoders_directions_and_nothin
     ss = _toy_stack_set()
 
     def loss(dec, reciprocal, seed=3):
-        return ss.decoded_batch(net, dec, None, 16, 2, torch.Generator().manual_seed(seed), "squared", reciprocal).item()
+        return ss.decoded_batch(
+            net, dec, None, 16, 2, torch.Generator().manual_seed(seed), "squared", reciprocal
+        ).item()
 
     def incident_cos(z, wi, wo):  # reproduces the values in the data's order only
         return wi[:, 2]

@@ -11,8 +11,8 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from addon.core.bsdf import RoughConductor, RoughDielectric  # noqa: E402
-from addon.core.neural.features import N_FEATURES  # noqa: E402
 from addon.core.neural import MODEL_DIR, SIZES, ModelSet, encode_stack  # noqa: E402
+from addon.core.neural.features import N_FEATURES  # noqa: E402
 from addon.core.stack import Conductor, Dielectric, Stack  # noqa: E402
 from onnx_export import data as datamod  # noqa: E402
 from onnx_export import export, train_decoder, train_encoder  # noqa: E402
@@ -73,21 +73,60 @@ def test_targets_are_the_bsdf_package_values_and_directions_cover_lobes():
 def test_training_code_path_smoke(tmp_path):
     datamod.generate("single", tmp_path / "data", materials=16, pairs=64, chunk=8, seed=2, log=lambda s: None)
     args = train_decoder.parser().parse_args(
-        ["--size", "tiny", "--data", str(tmp_path / "data"), "--steps", "6", "--batch", "8", "--pairs", "32",
-         "--every", "3", "--out", str(tmp_path / "run")])
+        [
+            "--size",
+            "tiny",
+            "--data",
+            str(tmp_path / "data"),
+            "--steps",
+            "6",
+            "--batch",
+            "8",
+            "--pairs",
+            "32",
+            "--every",
+            "3",
+            "--out",
+            str(tmp_path / "run"),
+        ]
+    )
     res = train_decoder.train(args, log=lambda s: None)
     assert res["step"] == 6 and np.isfinite(res["loss"])
     args.steps = 9  # resumes from the checkpoint at step 6
     logs = []
     assert train_decoder.train(args, log=logs.append)["step"] == 9
     assert any("resumed" in s for s in logs)
-    enc_args = Namespace(ckpt=tmp_path / "run" / "ckpt.pt", data=[tmp_path / "data"], materials=0, heldout=HELDOUT,
-                         width=16, depth=2, distill=5, finetune=3, batch_units=16, batch=4, pairs=16, lr=1e-3,
-                         threads=1, seed=0, out=tmp_path / "enc.pt")
+    enc_args = Namespace(
+        ckpt=tmp_path / "run" / "ckpt.pt",
+        data=[tmp_path / "data"],
+        materials=0,
+        heldout=HELDOUT,
+        width=16,
+        depth=2,
+        distill=5,
+        finetune=3,
+        batch_units=16,
+        batch=4,
+        pairs=16,
+        lr=1e-3,
+        threads=1,
+        seed=0,
+        out=tmp_path / "enc.pt",
+    )
     hist = train_encoder.train(enc_args, log=lambda s: None)
     assert np.isfinite(hist["finetuned"]["lobe_error_median"])
-    export.main(["--size", "tiny", "--decoder", str(tmp_path / "run" / "ckpt.pt"), "--encoder", str(tmp_path / "enc.pt"),
-                 "--out", str(tmp_path / "models")])
+    export.main(
+        [
+            "--size",
+            "tiny",
+            "--decoder",
+            str(tmp_path / "run" / "ckpt.pt"),
+            "--encoder",
+            str(tmp_path / "enc.pt"),
+            "--out",
+            str(tmp_path / "models"),
+        ]
+    )
     card = json.loads((tmp_path / "models" / "decoder_tiny.json").read_text())
     assert card["onnx_runtime_vs_torch_max_relative_difference"] <= 1e-4
     m = ModelSet("tiny", model_dir=tmp_path / "models")  # the exported cards name their files and digests
@@ -99,24 +138,47 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
     """Mixed training: exact single-layer targets (l1) and Monte Carlo layered ones (l2rel) in one run;
     the checkpoint says which latents belong to which set, so the encoder takes the single-layer ones
     and the layering network regresses onto the layered ones."""
-    from onnx_export import layered_data
-    from onnx_export import layering
+    from onnx_export import layered_data, layering, layering_project
     from onnx_export.layering import projected_latents
-    from onnx_export import layering_project
     from onnx_export.layering_project import refit_checkpoint
 
     datamod.generate("single", tmp_path / "single", materials=8, pairs=64, chunk=8, seed=2, log=lambda s: None)
-    layered_data.generate(tmp_path / "layering_c1", coatings=1, stacks=4, n_wo=2, n_wi=32, walks=4, chunk=4, seed=3,
-                          log=lambda s: None)
+    layered_data.generate(
+        tmp_path / "layering_c1", coatings=1, stacks=4, n_wo=2, n_wi=32, walks=4, chunk=4, seed=3, log=lambda s: None
+    )
     assert layered_data.holds_layering_data(tmp_path / "layering_c1")
     assert not layered_data.holds_layering_data(tmp_path / "single")
     lay = train_decoder.load_set(tmp_path / "layering_c1")
     assert lay["wi"].shape == (4, 64, 3) and lay["arrays"].n_coatings == 1
     np.testing.assert_array_equal(lay["wo"][:, :32], np.repeat(lay["wo"][:, :1], 32, axis=1))  # flattened per wo
     args = train_decoder.parser().parse_args(
-        ["--size", "tiny", "--data", str(tmp_path / "single"), str(tmp_path / "layering_c1"), "--data-weights", "0.5",
-         "0.5", "--loss", "l1", "l2rel", "--loss-scales", "1", "4", "--init-latents-from", "tiny", "--steps", "4",
-         "--batch", "8", "--pairs", "16", "--out", str(tmp_path / "run")])
+        [
+            "--size",
+            "tiny",
+            "--data",
+            str(tmp_path / "single"),
+            str(tmp_path / "layering_c1"),
+            "--data-weights",
+            "0.5",
+            "0.5",
+            "--loss",
+            "l1",
+            "l2rel",
+            "--loss-scales",
+            "1",
+            "4",
+            "--init-latents-from",
+            "tiny",
+            "--steps",
+            "4",
+            "--batch",
+            "8",
+            "--pairs",
+            "16",
+            "--out",
+            str(tmp_path / "run"),
+        ]
+    )
     res = train_decoder.train(args, log=lambda s: None)
     assert res["units_per_set"] == [24, 12] and all(np.isfinite(v) for v in res["loss_per_set"])
     ck = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=False)
@@ -126,8 +188,22 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
         projected_latents(tmp_path / "run" / "ckpt.pt", tmp_path / "single_elsewhere", 4)
     # the layered latents re-fitted against the frozen decoder: lower loss, everything else unchanged, resumable
     refit = tmp_path / "refit" / "ckpt.pt"
-    layering_project.main(["--decoder", str(tmp_path / "run" / "ckpt.pt"), "--data", str(tmp_path / "layering_c1"),
-                           "--steps", "40", "--chunk", "3", "--pairs", "16", "--out", str(refit)])
+    layering_project.main(
+        [
+            "--decoder",
+            str(tmp_path / "run" / "ckpt.pt"),
+            "--data",
+            str(tmp_path / "layering_c1"),
+            "--steps",
+            "40",
+            "--chunk",
+            "3",
+            "--pairs",
+            "16",
+            "--out",
+            str(refit),
+        ]
+    )
     kw = dict(steps=40, chunk=3, pairs=16, lr=0.01, loss=None, seed=0, log=lambda s: None)  # the same re-fit
     rec = torch.load(refit, weights_only=False)["refit"]["sets"][str(tmp_path / "layering_c1")]
     assert rec["done"] == 4 and rec["loss"] == "l2rel" and len(rec["loss_after"]) == 2  # chunks of 3 + 1 stacks
@@ -136,78 +212,237 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
     torch.testing.assert_close(ck2["latents"][:24], ck["latents"][:24])
     assert not torch.allclose(ck2["latents"][24:], ck["latents"][24:])
     assert all(torch.equal(ck2["decoder"][k], v) for k, v in ck["decoder"].items())
-    torch.testing.assert_close(projected_latents(refit, tmp_path / "layering_c1", 4), ck2["latents"][24:].reshape(4, 3, 32))
-    torch.testing.assert_close(projected_latents(refit, tmp_path / "layering_c1", 4, shrink=0.5),
-                               (0.5 * (ck["latents"][24:] + ck2["latents"][24:])).reshape(4, 3, 32))
+    torch.testing.assert_close(
+        projected_latents(refit, tmp_path / "layering_c1", 4), ck2["latents"][24:].reshape(4, 3, 32)
+    )
+    torch.testing.assert_close(
+        projected_latents(refit, tmp_path / "layering_c1", 4, shrink=0.5),
+        (0.5 * (ck["latents"][24:] + ck2["latents"][24:])).reshape(4, 3, 32),
+    )
     with pytest.raises(ValueError, match="not a re-fit"):
         projected_latents(tmp_path / "run" / "ckpt.pt", tmp_path / "layering_c1", 4, shrink=0.5)
-    assert refit_checkpoint(tmp_path / "run" / "ckpt.pt", [tmp_path / "layering_c1"], refit, **kw)["sets"] \
-        [str(tmp_path / "layering_c1")]["loss_after"] == rec["loss_after"]  # a rerun finds it done
+    assert (
+        refit_checkpoint(tmp_path / "run" / "ckpt.pt", [tmp_path / "layering_c1"], refit, **kw)["sets"][
+            str(tmp_path / "layering_c1")
+        ]["loss_after"]
+        == rec["loss_after"]
+    )  # a rerun finds it done
     with pytest.raises(ValueError, match="another re-fit"):
         refit_checkpoint(tmp_path / "run" / "ckpt.pt", [tmp_path / "layering_c1"], refit, **(kw | {"steps": 5}))
     with pytest.raises(ValueError, match="was not trained on"):
         refit_checkpoint(tmp_path / "run" / "ckpt.pt", [tmp_path / "single_elsewhere"], tmp_path / "r2.pt", **kw)
     with pytest.raises(ValueError, match="one value per --data set"):
-        bad = train_decoder.parser().parse_args(["--data", str(tmp_path / "single"), str(tmp_path / "layering_c1"),
-                                                 "--loss", "l1", "l2", "l2rel", "--steps", "1", "--out", str(tmp_path / "bad")])
+        bad = train_decoder.parser().parse_args(
+            [
+                "--data",
+                str(tmp_path / "single"),
+                str(tmp_path / "layering_c1"),
+                "--loss",
+                "l1",
+                "l2",
+                "l2rel",
+                "--steps",
+                "1",
+                "--out",
+                str(tmp_path / "bad"),
+            ]
+        )
         train_decoder.train(bad, log=lambda s: None)
-    enc_args = Namespace(ckpt=tmp_path / "run" / "ckpt.pt", data=[tmp_path / "single"], materials=0, heldout=HELDOUT,
-                         width=16, depth=2, distill=3, finetune=2, batch_units=16, batch=4, pairs=16, lr=1e-3,
-                         threads=1, seed=0, out=tmp_path / "enc.pt")
+    enc_args = Namespace(
+        ckpt=tmp_path / "run" / "ckpt.pt",
+        data=[tmp_path / "single"],
+        materials=0,
+        heldout=HELDOUT,
+        width=16,
+        depth=2,
+        distill=3,
+        finetune=2,
+        batch_units=16,
+        batch=4,
+        pairs=16,
+        lr=1e-3,
+        threads=1,
+        seed=0,
+        out=tmp_path / "enc.pt",
+    )
     assert np.isfinite(train_encoder.train(enc_args, log=lambda s: None)["finetuned"]["lobe_error_median"])
-    export.main(["--size", "tiny", "--decoder", str(tmp_path / "run" / "ckpt.pt"), "--encoder", str(tmp_path / "enc.pt"),
-                 "--out", str(tmp_path / "models")])
+    export.main(
+        [
+            "--size",
+            "tiny",
+            "--decoder",
+            str(tmp_path / "run" / "ckpt.pt"),
+            "--encoder",
+            str(tmp_path / "enc.pt"),
+            "--out",
+            str(tmp_path / "models"),
+        ]
+    )
     card = json.loads((tmp_path / "models" / "decoder_tiny.json").read_text())["training"]
-    assert card["data"][1] == (f"python -m onnx_export.layered_data --coatings 1 --stacks 4 --walks 4 "
-                               f"--out {tmp_path / 'layering_c1'}")
+    assert card["data"][1] == (
+        f"python -m onnx_export.layered_data --coatings 1 --stacks 4 --walks 4 --out {tmp_path / 'layering_c1'}"
+    )
     assert "l2rel x 4.0" in card["loss"] and "--loss l1 l2rel" in card["command"]
     # a layering network regressed onto the re-fitted latents, against the decoder and encoder exported above
     lay_out = tmp_path / "layering"
-    layering.main(["train", "--size", "tiny", "--c1", str(tmp_path / "layering_c1"), "--projected", str(refit), "--shrink", "0.5",
-                   "--model-dir", str(tmp_path / "models"), "--heldout", str(tmp_path / "none.npz"),
-                   "--regress-steps", "20", "--decoded-steps", "3", "--batch", "4", "--steps", "0", "--finetune", "0",
-                   "--out", str(lay_out)])
+    layering.main(
+        [
+            "train",
+            "--size",
+            "tiny",
+            "--c1",
+            str(tmp_path / "layering_c1"),
+            "--projected",
+            str(refit),
+            "--shrink",
+            "0.5",
+            "--model-dir",
+            str(tmp_path / "models"),
+            "--heldout",
+            str(tmp_path / "none.npz"),
+            "--regress-steps",
+            "20",
+            "--decoded-steps",
+            "3",
+            "--batch",
+            "4",
+            "--steps",
+            "0",
+            "--finetune",
+            "0",
+            "--out",
+            str(lay_out),
+        ]
+    )
     layering.main(["export", "--size", "tiny", "--ckpt", str(lay_out / "ckpt.pt"), "--out", str(tmp_path / "models")])
     lay_card = json.loads((tmp_path / "models" / "layering_tiny.json").read_text())["training"]
     assert lay_card["steps"] == 0 and lay_card["projected_latents"]["latents"] == str(refit)
     assert lay_card["projected_latents"]["shrink"] == 0.5
-    assert lay_card["decoded"] == {"steps": 3, "step": 3, "target": "latents", "shrink": 1.0, "lr": 2e-4} and "decoded from the target" in lay_card["loss"]
+    assert (
+        lay_card["decoded"] == {"steps": 3, "step": 3, "target": "latents", "shrink": 1.0, "lr": 2e-4}
+        and "decoded from the target" in lay_card["loss"]
+    )
     # the function-space stage against Monte Carlo values of the same stacks with more walks
-    layered_data.generate(tmp_path / "c1_more", coatings=1, stacks=4, n_wo=2, n_wi=32, walks=8, chunk=4, seed=3,
-                          log=lambda s: None)
-    layered_data.generate(tmp_path / "c1_other", coatings=1, stacks=4, n_wo=2, n_wi=32, walks=8, chunk=4, seed=5,
-                          log=lambda s: None)
-    base = ["train", "--size", "tiny", "--c1", str(tmp_path / "layering_c1"), "--projected", str(refit),
-            "--model-dir", str(tmp_path / "models"), "--heldout", str(tmp_path / "none.npz"), "--regress-steps", "5",
-            "--decoded-steps", "2", "--batch", "4", "--steps", "0", "--finetune", "0"]
-    layering.main(base + ["--decoded-target", "data", "--decoded-data", str(tmp_path / "c1_more"), "--out", str(tmp_path / "l2")])
+    layered_data.generate(
+        tmp_path / "c1_more", coatings=1, stacks=4, n_wo=2, n_wi=32, walks=8, chunk=4, seed=3, log=lambda s: None
+    )
+    layered_data.generate(
+        tmp_path / "c1_other", coatings=1, stacks=4, n_wo=2, n_wi=32, walks=8, chunk=4, seed=5, log=lambda s: None
+    )
+    base = [
+        "train",
+        "--size",
+        "tiny",
+        "--c1",
+        str(tmp_path / "layering_c1"),
+        "--projected",
+        str(refit),
+        "--model-dir",
+        str(tmp_path / "models"),
+        "--heldout",
+        str(tmp_path / "none.npz"),
+        "--regress-steps",
+        "5",
+        "--decoded-steps",
+        "2",
+        "--batch",
+        "4",
+        "--steps",
+        "0",
+        "--finetune",
+        "0",
+    ]
+    layering.main(
+        base + ["--decoded-target", "data", "--decoded-data", str(tmp_path / "c1_more"), "--out", str(tmp_path / "l2")]
+    )
     rec = torch.load(tmp_path / "l2" / "ckpt.pt", weights_only=False)["history"]["decoded"]
     assert rec["target"] == "data" and rec["data"] == [
-        f"python -m onnx_export.layered_data --coatings 1 --stacks 4 --out {tmp_path / 'c1_more'}"]
+        f"python -m onnx_export.layered_data --coatings 1 --stacks 4 --out {tmp_path / 'c1_more'}"
+    ]
     with pytest.raises(ValueError, match="does not hold the stacks"):
-        layering.main(base + ["--decoded-target", "data", "--decoded-data", str(tmp_path / "c1_other"), "--out", str(tmp_path / "l3")])
+        layering.main(
+            base
+            + ["--decoded-target", "data", "--decoded-data", str(tmp_path / "c1_other"), "--out", str(tmp_path / "l3")]
+        )
     # the stages through the decoder against the Monte Carlo values (StackSet.batch), from the same start
-    layering.main(["train", "--size", "tiny", "--c1", str(tmp_path / "layering_c1"), "--model-dir", str(tmp_path / "models"),
-                   "--heldout", str(tmp_path / "none.npz"), "--steps", "2", "--finetune", "0", "--batch", "4",
-                   "--pairs", "8", "--out", str(tmp_path / "l5")])
+    layering.main(
+        [
+            "train",
+            "--size",
+            "tiny",
+            "--c1",
+            str(tmp_path / "layering_c1"),
+            "--model-dir",
+            str(tmp_path / "models"),
+            "--heldout",
+            str(tmp_path / "none.npz"),
+            "--steps",
+            "2",
+            "--finetune",
+            "0",
+            "--batch",
+            "4",
+            "--pairs",
+            "8",
+            "--out",
+            str(tmp_path / "l5"),
+        ]
+    )
     assert torch.load(tmp_path / "l5" / "ckpt.pt", weights_only=False)["step"] == 2
     with pytest.raises(ValueError, match="goes with --decoded-target data"):
         layering.main(base + ["--decoded-data", str(tmp_path / "c1_more"), "--out", str(tmp_path / "l4")])
     assert lay_card["projected_latents"]["refit"].startswith("python -m onnx_export.layering_project --decoder")
     # more function-space steps from the exported network (no --projected), interrupted and resumed: the
     # same weights as one uninterrupted run, the start's training on record, validation along the way
-    warm = ["--size", "tiny", "--c1", str(tmp_path / "c1_more"), "--c2", str(tmp_path / "no_c2"),
-            "--model-dir", str(tmp_path / "models"),
-            "--heldout", str(HELDOUT_LAYERED), "--init-from", "tiny", "--width", "128", "--depth", "3",
-            "--regress-steps", "0", "--decoded-steps", "4", "--decoded-target", "data", "--decoded-coatings", "1",
-            "--decoded-loss", "rmse",
-            "--batch", "4", "--steps", "0", "--finetune", "0", "--every", "2", "--eval-every", "2", "--log-every", "1"]
+    warm = [
+        "--size",
+        "tiny",
+        "--c1",
+        str(tmp_path / "c1_more"),
+        "--c2",
+        str(tmp_path / "no_c2"),
+        "--model-dir",
+        str(tmp_path / "models"),
+        "--heldout",
+        str(HELDOUT_LAYERED),
+        "--init-from",
+        "tiny",
+        "--width",
+        "128",
+        "--depth",
+        "3",
+        "--regress-steps",
+        "0",
+        "--decoded-steps",
+        "4",
+        "--decoded-target",
+        "data",
+        "--decoded-coatings",
+        "1",
+        "--decoded-loss",
+        "rmse",
+        "--batch",
+        "4",
+        "--steps",
+        "0",
+        "--finetune",
+        "0",
+        "--every",
+        "2",
+        "--eval-every",
+        "2",
+        "--log-every",
+        "1",
+    ]
 
     def stop_at_step_3(line):
         if line.startswith("decoded 3/4"):
             raise KeyboardInterrupt
+
     with pytest.raises(KeyboardInterrupt):
-        layering.train(layering.parser().parse_args(["train", *warm, "--out", str(tmp_path / "w1")]), log=stop_at_step_3)
+        layering.train(
+            layering.parser().parse_args(["train", *warm, "--out", str(tmp_path / "w1")]), log=stop_at_step_3
+        )
     assert torch.load(tmp_path / "w1" / "ckpt.pt", weights_only=False)["history"]["decoded"]["step"] == 2
     with pytest.raises(ValueError, match="resume it with --decoded-steps 4"):
         layering.main(["train", *warm, "--decoded-steps", "6", "--out", str(tmp_path / "w1")])
@@ -222,9 +457,12 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
     assert rec["step"] == 4 and rec["loss"] == "rmse" and list(rec["evals"]) == ["2"] and "coatings_1" in rec["heldout"]
     assert rec["data"] == [f"python -m onnx_export.layered_data --coatings 1 --stacks 4 --out {tmp_path / 'c1_more'}"]
     assert whole["history"]["init_from"]["command"] == lay_card["command"]
-    layered_data.generate(tmp_path / "c1_more", coatings=1, stacks=8, n_wo=2, n_wi=32, walks=8, chunk=4, seed=3,
-                          log=lambda s: None)  # the data grow after the training: the card names what it used
-    layering.main(["export", "--size", "tiny", "--ckpt", str(tmp_path / "w2" / "ckpt.pt"), "--out", str(tmp_path / "models")])
+    layered_data.generate(
+        tmp_path / "c1_more", coatings=1, stacks=8, n_wo=2, n_wi=32, walks=8, chunk=4, seed=3, log=lambda s: None
+    )  # the data grow after the training: the card names what it used
+    layering.main(
+        ["export", "--size", "tiny", "--ckpt", str(tmp_path / "w2" / "ckpt.pt"), "--out", str(tmp_path / "models")]
+    )
     warm_card = json.loads((tmp_path / "models" / "layering_tiny.json").read_text())["training"]
     assert warm_card["data"] == rec["data"]
     assert warm_card["init_from"]["model"] == "layering_tiny.onnx" and warm_card["loss"].startswith("started from")
@@ -255,8 +493,13 @@ def test_decoded_lobe_loss_is_the_squared_lobe_error_of_the_metric():
     assert decoded_lobe_loss(t(target), t(target), t(d[:, 2]), t(np.ones(d.shape[0]))).item() == 0.0
     # the "rmse" kind is the metric itself, and averages it over groups (here a second, twice as wrong)
     two = lambda x, y: torch.cat([t(x), t(y)], dim=1)  # noqa: E731
-    rmse = decoded_lobe_loss(two(pred, target + 2 * (pred - target)), two(target, target), two(d[:, 2], d[:, 2]),
-                             two(np.ones(d.shape[0]), np.ones(d.shape[0])), kind="rmse").item()
+    rmse = decoded_lobe_loss(
+        two(pred, target + 2 * (pred - target)),
+        two(target, target),
+        two(d[:, 2], d[:, 2]),
+        two(np.ones(d.shape[0]), np.ones(d.shape[0])),
+        kind="rmse",
+    ).item()
     assert rmse == pytest.approx(1.5 * lobe.relative_rmse(img[0], img[1]), rel=1e-6)
     with pytest.raises(ValueError, match="expected squared or rmse"):
         decoded_lobe_loss(t(pred), t(target), t(d[:, 2]), t(np.ones(d.shape[0])), kind="l1")
@@ -323,8 +566,13 @@ def _projection_check(size):
     torch.set_num_threads(2)
     dec = export.torch_from_onnx(dpath, card)
     h = card["heldout_single"]
-    m = evaluate_projection(dec, load_heldout(HELDOUT), init=np.asarray(h["projection_init"], np.float32),
-                            steps=h["projection_steps"], chunk_pairs=h.get("projection_pairs"))
+    m = evaluate_projection(
+        dec,
+        load_heldout(HELDOUT),
+        init=np.asarray(h["projection_init"], np.float32),
+        steps=h["projection_steps"],
+        chunk_pairs=h.get("projection_pairs"),
+    )
     assert m["lobe_error_median"] <= h["lobe_error_median"] * 1.1 + 2e-3
     assert m["lobe_error_p90"] <= h["lobe_error_p90"] * 1.1 + 2e-3
 
@@ -392,13 +640,25 @@ def test_card_training_commands_parse(card, monkeypatch):
     # and rendering the parsed arguments gives the command back (no value lost or invented)
     prog = " ".join(words[2:4]) if words[3:4] == ["train"] else words[2]
     skip = [k for k in ("every", "log_every", "cmd", "models", "model_dir") if f"--{k.replace('_', '-')}" not in cmd]
-    assert command_line(prog, {k: v for k, v in parsed.items() if k in
-                               {w[2:].replace("-", "_") for w in words if w.startswith("--")}}, skip) == cmd
+    assert (
+        command_line(
+            prog,
+            {k: v for k, v in parsed.items() if k in {w[2:].replace("-", "_") for w in words if w.startswith("--")}},
+            skip,
+        )
+        == cmd
+    )
 
 
 def test_command_line_renders_stored_arguments():
     from onnx_export.cli import command_line
 
-    args = {"data": "[PosixPath('a/b'), PosixPath('c')]", "init": "None", "flag": True, "off": False,
-            "weights": [0.5, 0.5], "steps": 10}
+    args = {
+        "data": "[PosixPath('a/b'), PosixPath('c')]",
+        "init": "None",
+        "flag": True,
+        "off": False,
+        "weights": [0.5, 0.5],
+        "steps": 10,
+    }
     assert command_line("m", args) == "python -m m --data a/b c --flag --weights 0.5 0.5 --steps 10"

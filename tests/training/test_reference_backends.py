@@ -89,8 +89,9 @@ def test_eval_brdf_many_and_batches_torch_equals_numpy():
     close(s1, s0)
     wim = np.stack([directions(12, 7), directions(12, 8), directions(12, 9)], axis=1)
     f0, s0 = reference.eval_brdf_many(STACKS["conductor-3coat"], wim, wo, walks=8, seed=X.HostRng(np, 7))
-    f1, s1 = reference.eval_brdf_many(STACKS["conductor-3coat"], wim, wo, walks=8, seed=X.HostRng(TORCH, 7),
-                                      backend="torch")
+    f1, s1 = reference.eval_brdf_many(
+        STACKS["conductor-3coat"], wim, wo, walks=8, seed=X.HostRng(TORCH, 7), backend="torch"
+    )
     close(f1, f0)
     close(s1, s0)
 
@@ -136,8 +137,10 @@ def test_backend_arguments_are_checked():
 
 
 def test_core_imports_neither_torch_nor_cupy():
-    code = ("import sys; import addon.core.reference, addon.core.bsdf, addon.core.xp; "
-            "assert 'torch' not in sys.modules and 'cupy' not in sys.modules, 'imported'")
+    code = (
+        "import sys; import addon.core.reference, addon.core.bsdf, addon.core.xp; "
+        "assert 'torch' not in sys.modules and 'cupy' not in sys.modules, 'imported'"
+    )
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[2])
 
 
@@ -200,13 +203,15 @@ def test_phase_frame_fresnel_ggx_torch_equal_numpy():
     close(ggx.sample_visible_normal(t(wo), t(alpha), t(u)).numpy(), ggx.sample_visible_normal(wo, alpha, u))
     eta = np.random.default_rng(36).uniform(0.5, 2.0, n)
     close(fresnel_dielectric(t(wi[:, 2]), t(eta)).numpy(), fresnel_dielectric(wi[:, 2], eta))
-    close(fresnel_conductor(t(wi[:, 2]), t(np.array(GOLD["eta"])), t(np.array(GOLD["k"]))).numpy(),
-          fresnel_conductor(wi[:, 2], GOLD["eta"], GOLD["k"]))
+    close(
+        fresnel_conductor(t(wi[:, 2]), t(np.array(GOLD["eta"])), t(np.array(GOLD["k"]))).numpy(),
+        fresnel_conductor(wi[:, 2], GOLD["eta"], GOLD["k"]),
+    )
     r0, v0 = refract(wi, np.array([0.0, 0.0, 1.0]), eta)
     r1, v1 = refract(t(wi), t(np.array([0.0, 0.0, 1.0])), t(eta))
     close(r1.numpy(), r0)
     np.testing.assert_array_equal(v1.numpy(), v0)
-    for a, b in zip(coordinate_system(t(wo)), coordinate_system(wo)):
+    for a, b in zip(coordinate_system(t(wo)), coordinate_system(wo), strict=False):
         close(a.numpy(), b)
 
 

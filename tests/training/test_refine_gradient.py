@@ -35,8 +35,9 @@ def test_numpy_gradient_equals_torch_autograd(size):
     g_f = rng.standard_normal((n, 3))
     dec = _torch_decoder(size)
     zt = torch.tensor(z, requires_grad=True)
-    f_t = dec(zt.repeat(n, 1), torch.from_numpy(np.repeat(wi, 3, 0)).double(),
-              torch.from_numpy(np.repeat(wo, 3, 0)).double()).reshape(n, 3)
+    f_t = dec(
+        zt.repeat(n, 1), torch.from_numpy(np.repeat(wi, 3, 0)).double(), torch.from_numpy(np.repeat(wo, 3, 0)).double()
+    ).reshape(n, 3)
     (f_t * torch.from_numpy(g_f)).sum().backward()
     npd = rf.NumpyDecoder.load(size, dtype=np.float64)
     p = npd.run(z, wi, wo)
@@ -56,11 +57,14 @@ def test_refinement_loss_gradient_equals_torch_autograd():
     level = target * (1.0 + 0.2 * rng.standard_normal(target.shape))
     pairs = rf.PairSet(rows_wi, wo, target, np.zeros_like(target), w.reshape(-1), groups, level)
     dec = _torch_decoder("tiny")
-    z = (rng.standard_normal((3, 32)) * 0.3)
+    z = rng.standard_normal((3, 32)) * 0.3
     zt = torch.tensor(z, requires_grad=True)
     m = rows_wi.shape[0]
-    f_t = dec(zt.repeat(m, 1), torch.from_numpy(np.repeat(rows_wi, 3, 0)).double(),
-              torch.from_numpy(np.repeat(wo, 3, 0)).double()).reshape(m, 3)
+    f_t = dec(
+        zt.repeat(m, 1),
+        torch.from_numpy(np.repeat(rows_wi, 3, 0)).double(),
+        torch.from_numpy(np.repeat(wo, 3, 0)).double(),
+    ).reshape(m, 3)
     cos_o = torch.from_numpy(np.maximum(wo[:, 2], 0.0).astype(np.float64))[:, None]
     wt = torch.from_numpy(pairs.weight)[:, None]
     tt = torch.from_numpy(target)
@@ -81,5 +85,7 @@ def test_refinement_loss_gradient_equals_torch_autograd():
 def _coated():
     from addon.core.stack import Coating, Conductor, Stack
 
-    return Stack(Conductor(eta=(0.2, 0.4, 1.4), k=(3.9, 2.4, 1.6), roughness=0.3),
-                 (Coating(roughness=0.05, ior=1.5, thickness=0.5, albedo=(0.8, 0.5, 0.3)),))
+    return Stack(
+        Conductor(eta=(0.2, 0.4, 1.4), k=(3.9, 2.4, 1.6), roughness=0.3),
+        (Coating(roughness=0.05, ior=1.5, thickness=0.5, albedo=(0.8, 0.5, 0.3)),),
+    )

@@ -49,8 +49,9 @@ def checker_texture(size: int = 512, squares: int = 16) -> np.ndarray:
     return img.astype(np.float32)
 
 
-FLOOR_STACK = Stack(Diffuse((0.6, 0.6, 0.6)),
-                    (Coating(roughness=0.05, ior=1.5, albedo=(0.9, 0.75, 0.4), thickness=0.3),))
+FLOOR_STACK = Stack(
+    Diffuse((0.6, 0.6, 0.6)), (Coating(roughness=0.05, ior=1.5, albedo=(0.9, 0.75, 0.4), thickness=0.3),)
+)
 
 
 def floor_maps(size: int = 256, squares: int = 16) -> dict[str, np.ndarray]:
@@ -94,5 +95,4 @@ def demo_scene(width: int = 320, height: int = 180, presets=DEMO_PRESETS, floor_
     light[:3, :3] = np.array([[1, 0, 0], [0, c, -s], [0, s, c]])  # tilted toward the spheres
     lights = [AreaLight(light, power=250.0, size=1.5, color=(1.0, 0.92, 0.85))]
     cam = Camera.look_at((0.0, -5.6, 1.5), (0.0, 0.0, 0.6), fov_deg=50.0, width=width, height=height)
-    return Scene(cam, mesh, materials, lights, Environment(image=sky_image()),
-                 ["tiles"] + names)
+    return Scene(cam, mesh, materials, lights, Environment(image=sky_image()), ["tiles"] + names)

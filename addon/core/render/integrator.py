@@ -111,8 +111,10 @@ class RenderStats:
 
     def summary(self) -> str:
         s = self.seconds
-        return (f"{self.paths} paths in {s['total']:.2f} s ({self.paths_per_second:,.0f}/s): rays {s['rays']:.2f} s, "
-                f"network {s['network']:.2f} s, reference {s['reference']:.2f} s, rest {self.rest:.2f} s")
+        return (
+            f"{self.paths} paths in {s['total']:.2f} s ({self.paths_per_second:,.0f}/s): rays {s['rays']:.2f} s, "
+            f"network {s['network']:.2f} s, reference {s['reference']:.2f} s, rest {self.rest:.2f} s"
+        )
 
 
 class Tracer:
@@ -147,8 +149,12 @@ class Tracer:
             return np.zeros(n, dtype=bool)
         t0 = time.perf_counter()
         dist = np.minimum(tmax, 1e30).astype(np.float32)
-        r = self.scene.run(np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32),
-                           dists=np.ascontiguousarray(dist), query="OCCLUDED")
+        r = self.scene.run(
+            np.ascontiguousarray(o, np.float32),
+            np.ascontiguousarray(d, np.float32),
+            dists=np.ascontiguousarray(dist),
+            query="OCCLUDED",
+        )
         stats.seconds["rays"] += time.perf_counter() - t0
         stats.rays += n
         return np.asarray(r) != -1
@@ -167,8 +173,10 @@ def uv_scale(mesh) -> np.ndarray:
     if not mesh.triangle_count or mesh.uvs is None:
         return np.zeros(mesh.triangle_count)
     uv = mesh.uvs.astype(np.float64)
-    a_uv = 0.5 * np.abs((uv[:, 1, 0] - uv[:, 0, 0]) * (uv[:, 2, 1] - uv[:, 0, 1])
-                        - (uv[:, 2, 0] - uv[:, 0, 0]) * (uv[:, 1, 1] - uv[:, 0, 1]))
+    a_uv = 0.5 * np.abs(
+        (uv[:, 1, 0] - uv[:, 0, 0]) * (uv[:, 2, 1] - uv[:, 0, 1])
+        - (uv[:, 2, 0] - uv[:, 0, 0]) * (uv[:, 1, 1] - uv[:, 0, 1])
+    )
     return np.sqrt(a_uv / np.maximum(mesh.areas, 1e-30))
 
 
@@ -208,8 +216,9 @@ class _Context:
         self.scene, self.settings, self.stats = scene, settings, stats
         n_mat = max(len(scene.materials), int(scene.mesh.material_index.max()) + 1 if scene.mesh.triangle_count else 0)
         self.materials = [
-            mat.resolve(scene.materials[i] if i < len(scene.materials) else None, settings.mode,
-                        settings.reference_walks)
+            mat.resolve(
+                scene.materials[i] if i < len(scene.materials) else None, settings.mode, settings.reference_walks
+            )
             for i in range(n_mat)
         ]
         stats.material_kinds = [m.kind for m in self.materials]
@@ -250,9 +259,12 @@ class _Context:
         return np.where(prev_delta, 1.0, w)
 
 
-def render(scene: Scene, settings: RenderSettings | None = None,
-           progress: Callable[[Film, int, int], bool] | None = None,
-           film: Film | None = None) -> tuple[Film, RenderStats]:
+def render(
+    scene: Scene,
+    settings: RenderSettings | None = None,
+    progress: Callable[[Film, int, int], bool] | None = None,
+    film: Film | None = None,
+) -> tuple[Film, RenderStats]:
     """Render ``scene``; returns the film (per-pixel mean and standard error) and statistics.
 
     ``progress(film, done, total)`` is called after every pass of one sample per pixel; returning
@@ -394,8 +406,17 @@ def _camera_paths(ctx: _Context, pix: np.ndarray, rng: np.random.Generator) -> _
     cam = ctx.scene.camera
     n = len(pix)
     o, d = cam.generate_rays(pix % cam.width, pix // cam.width, rng.random((n, 2)))
-    return _Paths(np.arange(n), o, d, np.ones((n, 3)), np.ones(n), np.ones(n, dtype=bool), np.ones(n, dtype=bool),
-                  np.zeros(n), np.full(n, cam.pixel_spread))
+    return _Paths(
+        np.arange(n),
+        o,
+        d,
+        np.ones((n, 3)),
+        np.ones(n),
+        np.ones(n, dtype=bool),
+        np.ones(n, dtype=bool),
+        np.zeros(n),
+        np.full(n, cam.pixel_spread),
+    )
 
 
 def _add_emission(ctx: _Context, paths: _Paths, t: np.ndarray, miss: np.ndarray, L: np.ndarray) -> None:
@@ -440,8 +461,9 @@ def _sample_lights(ctx: _Context, hits: _Hits, u_light: np.ndarray, stats: Rende
     normal's side but not the geometric one's is discarded."""
     m = len(hits.p)
     if not ctx.nee:
-        return _LightSamples(np.zeros((m, 3)), np.zeros((m, 3)), np.ones(m), np.zeros(m, dtype=bool),
-                             np.zeros(m, dtype=bool))
+        return _LightSamples(
+            np.zeros((m, 3)), np.zeros((m, 3)), np.ones(m), np.zeros(m, dtype=bool), np.zeros(m, dtype=bool)
+        )
     wi_w, rad = np.zeros((m, 3)), np.zeros((m, 3))
     pdf, delta, dist = np.ones(m), np.zeros(m, dtype=bool), np.full(m, np.inf)
     choice = np.minimum((u_light[:, 0] * len(ctx.nee)).astype(np.int64), len(ctx.nee) - 1)
@@ -475,8 +497,17 @@ class _Scatter:
     mis: np.ndarray
 
 
-def _shade(ctx: _Context, paths: _Paths, hits: _Hits, lights: _LightSamples, u_lobe, u_dir, seeds,
-           L: np.ndarray, stats: RenderStats) -> _Scatter:
+def _shade(
+    ctx: _Context,
+    paths: _Paths,
+    hits: _Hits,
+    lights: _LightSamples,
+    u_lobe,
+    u_dir,
+    seeds,
+    L: np.ndarray,
+    stats: RenderStats,
+) -> _Scatter:
     """Scattering at the surface, one query per material: the reflected next-event light
     (MIS-weighted against BSDF sampling) goes into the image, and each hit draws the direction
     its path continues in."""
@@ -507,8 +538,9 @@ def _shade(ctx: _Context, paths: _Paths, hits: _Hits, lights: _LightSamples, u_l
     return out
 
 
-def _continue_paths(ctx: _Context, paths: _Paths, hits: _Hits, sc: _Scatter, depth: int,
-                    rng: np.random.Generator) -> _Paths:
+def _continue_paths(
+    ctx: _Context, paths: _Paths, hits: _Hits, sc: _Scatter, depth: int, rng: np.random.Generator
+) -> _Paths:
     """The next rays: throughput times the sample weight, Russian roulette from ``rr_depth``
     (survivors reweighted by 1 / q), paths that died or would cross the geometric surface on the
     wrong side dropped, origins offset off the surface; a non-specular bounce widens the cone."""
@@ -524,8 +556,17 @@ def _continue_paths(ctx: _Context, paths: _Paths, hits: _Hits, sc: _Scatter, dep
     keep = np.nonzero(ok)[0]
     o = (hits.p + hits.ng * (np.sign(cos_g) * ctx.eps)[:, None])[keep]
     spread = np.where(~sc.delta, np.maximum(paths.spread, 0.2), paths.spread)
-    return _Paths(paths.row[keep], o, frame.normalize(wi_w[keep]), thr[keep], sc.pdf[keep], sc.delta[keep],
-                  sc.mis[keep], paths.width[keep], spread[keep])
+    return _Paths(
+        paths.row[keep],
+        o,
+        frame.normalize(wi_w[keep]),
+        thr[keep],
+        sc.pdf[keep],
+        sc.delta[keep],
+        sc.mis[keep],
+        paths.width[keep],
+        spread[keep],
+    )
 
 
 def _first_hit_features(features: np.ndarray, paths: _Paths, hits: _Hits, sc: _Scatter, t: np.ndarray) -> None:
@@ -537,8 +578,9 @@ def _first_hit_features(features: np.ndarray, paths: _Paths, hits: _Hits, sc: _S
     features[paths.row, 6] = t
 
 
-def _trace_paths(ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: int
-                 ) -> tuple[np.ndarray, np.ndarray, RenderStats]:
+def _trace_paths(
+    ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: int
+) -> tuple[np.ndarray, np.ndarray, RenderStats]:
     """Radiance (N, 3) of one path per pixel of ``pix``, all paths a bounce at a time, the
     denoising features of their first hits (N, 7; see ``Film.add``), and the chunk's statistics
     (its phases in thread time)."""

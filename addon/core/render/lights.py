@@ -187,8 +187,11 @@ class AreaLight:
         if self.ellipse:  # concentric square-to-disk map (uniform area density)
             swap = np.abs(a) > np.abs(b)
             r = np.where(swap, a, b)
-            phi = np.where(swap, (math.pi / 4) * b / np.where(a == 0, 1, a),
-                           math.pi / 2 - (math.pi / 4) * a / np.where(b == 0, 1, b))
+            phi = np.where(
+                swap,
+                (math.pi / 4) * b / np.where(a == 0, 1, a),
+                math.pi / 2 - (math.pi / 4) * a / np.where(b == 0, 1, b),
+            )
             a, b = r * np.cos(phi), r * np.sin(phi)
         return self.center + a[:, None] * self.axis_u + b[:, None] * self.axis_v
 

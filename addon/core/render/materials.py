@@ -64,8 +64,15 @@ class SurfaceHits:
 class BoundMaterial(Protocol):
     """A material bound to a batch of hits (see the module docstring)."""
 
-    def shade(self, wo: np.ndarray, light_wi: np.ndarray, light_rows: np.ndarray, u_lobe: np.ndarray,
-              u: np.ndarray, need_pdf: bool) -> Shading: ...
+    def shade(
+        self,
+        wo: np.ndarray,
+        light_wi: np.ndarray,
+        light_rows: np.ndarray,
+        u_lobe: np.ndarray,
+        u: np.ndarray,
+        need_pdf: bool,
+    ) -> Shading: ...
 
 
 class Material(Protocol):
@@ -205,8 +212,9 @@ class _BoundReference(ShadeByParts):
         """f at two incident directions per row from the same walks (reference.eval_brdf_many)."""
         from .. import reference
 
-        f, _ = reference.eval_brdf_many(self.stack, np.stack([wi_a, wi_b], axis=1), wo, walks=self.walks,
-                                        seed=self.seed + 7)
+        f, _ = reference.eval_brdf_many(
+            self.stack, np.stack([wi_a, wi_b], axis=1), wo, walks=self.walks, seed=self.seed + 7
+        )
         f = np.nan_to_num(np.maximum(f, 0.0))
         return f[:, 0], f[:, 1]
 

@@ -98,12 +98,15 @@ def _texture_size(latent_texture) -> tuple[str, str | None]:
 
     meta = getattr(latent_texture, "metadata", None)
     if not isinstance(meta, dict) or "model" not in meta:
-        raise ValueError("the latent texture records no decoder size (metadata 'model'): its latent space is "
-                         "unknown; bake it with textures.bake.neural_encoder, which records it")
+        raise ValueError(
+            "the latent texture records no decoder size (metadata 'model'): its latent space is "
+            "unknown; bake it with textures.bake.neural_encoder, which records it"
+        )
     size = meta["model"]
     if size not in SIZES:
-        raise ValueError(f"the latent texture was baked for decoder size {size!r}, which is not one of "
-                         f"{list(SIZES)}; rebake it")
+        raise ValueError(
+            f"the latent texture was baked for decoder size {size!r}, which is not one of {list(SIZES)}; rebake it"
+        )
     return size, meta.get("model_digest")
 
 
@@ -139,8 +142,10 @@ def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None
         size = resolve_size(latent_size)
         z = np.asarray(z, dtype=np.float32)
         if z.size != 3 * LATENT or not np.all(np.isfinite(z)):
-            raise ValueError(f"a given latent must be 3 x {LATENT} finite numbers; got shape {z.shape}"
-                             f"{'' if np.all(np.isfinite(z)) else ' with non-finite values'}")
+            raise ValueError(
+                f"a given latent must be 3 x {LATENT} finite numbers; got shape {z.shape}"
+                f"{'' if np.all(np.isfinite(z)) else ' with non-finite values'}"
+            )
         z = z.reshape(3, LATENT)
         if requested is not None and requested != size:
             raise ValueError(f"the given latent belongs to decoder size {size!r}, not {requested!r}")
@@ -148,16 +153,22 @@ def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None
     elif latent_texture is not None:
         size, digest = _texture_size(latent_texture)
         if requested is not None and requested != size:
-            raise ValueError(f"the latent texture was baked for decoder size {size!r}, not {requested!r}: a latent "
-                             f"belongs to the latent space of its size; rebake it or pass size={size!r}")
+            raise ValueError(
+                f"the latent texture was baked for decoder size {size!r}, not {requested!r}: a latent "
+                f"belongs to the latent space of its size; rebake it or pass size={size!r}"
+            )
     else:
         size, digest = requested or resolve_size(AUTO), None
     try:
         models = load_models(size)
         if digest is not None and digest != models.digest:
-            warnings.warn(f"the latent texture was baked with another decoder_{size}.onnx (sha256 {digest[:12]}...) "
-                          f"than the shipped one ({models.digest[:12]}...): rebake it; rendering the stack with the "
-                          f"reference", NeuralFallbackWarning, stacklevel=2)
+            warnings.warn(
+                f"the latent texture was baked with another decoder_{size}.onnx (sha256 {digest[:12]}...) "
+                f"than the shipped one ({models.digest[:12]}...): rebake it; rendering the stack with the "
+                f"reference",
+                NeuralFallbackWarning,
+                stacklevel=2,
+            )
             return None
         if latent_texture is not None:
             material = NeuralMaterial(models, None, proxy_guess(stack), latent_texture)
@@ -166,8 +177,9 @@ def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None
             proxy = models.proxy_params(z)[0] if models.has("sampling") else proxy_guess(stack)
             material = NeuralMaterial(models, z, tuple(float(v) for v in proxy))
     except (FileNotFoundError, ModelFileError) as e:
-        warnings.warn(f"decoder size {size}: {e}; rendering the stack with the reference", NeuralFallbackWarning,
-                      stacklevel=2)
+        warnings.warn(
+            f"decoder size {size}: {e}; rendering the stack with the reference", NeuralFallbackWarning, stacklevel=2
+        )
         return None
     material.size = size
     return material

@@ -28,16 +28,28 @@ def principled_inputs(stack: Stack) -> dict:
         inputs["Base Color"] = (*b.albedo, 1.0)
     elif isinstance(b, Conductor):
         f0 = fresnel_conductor(np.ones(1), np.asarray(b.eta), np.asarray(b.k))[0]
-        inputs.update({"Metallic": 1.0, "Base Color": (*(float(v) for v in f0), 1.0),
-                       "Roughness": artist_roughness_from_alpha(b.roughness)})
+        inputs.update(
+            {
+                "Metallic": 1.0,
+                "Base Color": (*(float(v) for v in f0), 1.0),
+                "Roughness": artist_roughness_from_alpha(b.roughness),
+            }
+        )
     elif isinstance(b, Dielectric):
-        inputs.update({"Base Color": (0.0, 0.0, 0.0, 1.0), "IOR": b.ior,
-                       "Roughness": artist_roughness_from_alpha(b.roughness)})
+        inputs.update(
+            {"Base Color": (0.0, 0.0, 0.0, 1.0), "IOR": b.ior, "Roughness": artist_roughness_from_alpha(b.roughness)}
+        )
     if stack.coatings:
         top = stack.coatings[-1]
         tint = np.ones(3)
         for c in stack.coatings:
             tint *= np.exp(-c.thickness * (1.0 - np.asarray(c.albedo)))
-        inputs.update({"Coat Weight": 1.0, "Coat Roughness": artist_roughness_from_alpha(top.roughness),
-                       "Coat IOR": top.ior, "Coat Tint": (*(float(v) for v in tint), 1.0)})
+        inputs.update(
+            {
+                "Coat Weight": 1.0,
+                "Coat Roughness": artist_roughness_from_alpha(top.roughness),
+                "Coat IOR": top.ior,
+                "Coat Tint": (*(float(v) for v in tint), 1.0),
+            }
+        )
     return inputs

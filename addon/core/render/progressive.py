@@ -41,8 +41,13 @@ class ViewImage:
 
 def reduced_camera(camera: Camera, divisor: int) -> Camera:
     """The same view with ``divisor`` times fewer pixels on each side (at least 1 x 1)."""
-    return Camera(camera.matrix, max(1, camera.width // divisor), max(1, camera.height // divisor),
-                  camera.tan_half_fov, camera.shift)
+    return Camera(
+        camera.matrix,
+        max(1, camera.width // divisor),
+        max(1, camera.height // divisor),
+        camera.tan_half_fov,
+        camera.shift,
+    )
 
 
 class ProgressiveSession:
@@ -172,8 +177,7 @@ class ProgressiveSession:
             return lambda film, done, total: self._publish(film, generation, reduced)
 
         # Materials resolved (stacks encoded) once for both renders of the generation.
-        scene = replace(scene, materials=[resolve(m, settings.mode, settings.reference_walks)
-                                          for m in scene.materials])
+        scene = replace(scene, materials=[resolve(m, settings.mode, settings.reference_walks) for m in scene.materials])
 
         if self.preview_divisor > 1:
             small = replace(scene, camera=reduced_camera(scene.camera, self.preview_divisor))

@@ -54,8 +54,9 @@ class Camera:
         self.matrix[:3, :3] = u @ vt
 
     @classmethod
-    def look_at(cls, eye, target, up=(0.0, 0.0, 1.0), fov_deg: float = 40.0, width: int = 64,
-                height: int = 64) -> "Camera":
+    def look_at(
+        cls, eye, target, up=(0.0, 0.0, 1.0), fov_deg: float = 40.0, width: int = 64, height: int = 64
+    ) -> "Camera":
         """A camera at ``eye`` looking at ``target``; ``fov_deg`` spans the larger image side."""
         width, height = int(width), int(height)
         if width < 1 or height < 1:
@@ -129,8 +130,11 @@ class Mesh:
         t = p.shape[0]
         n = None if self.normals is None else np.asarray(self.normals, dtype=np.float32).reshape(-1, 3, 3)
         uv = None if self.uvs is None else np.asarray(self.uvs, dtype=np.float32).reshape(-1, 3, 2)
-        mi = (np.zeros(t, dtype=np.int32) if self.material_index is None
-              else np.asarray(self.material_index, dtype=np.int32).reshape(-1))
+        mi = (
+            np.zeros(t, dtype=np.int32)
+            if self.material_index is None
+            else np.asarray(self.material_index, dtype=np.int32).reshape(-1)
+        )
         for name, arr in (("normals", n), ("uvs", uv), ("material_index", mi)):
             if arr is not None and arr.shape[0] != t:
                 raise ValueError(f"Mesh.{name} has {arr.shape[0]} triangles, positions have {t}")
@@ -166,8 +170,9 @@ class Mesh:
         has_uv = any(m.uvs is not None for m in meshes)
         uvs = None
         if has_uv:
-            uvs = np.concatenate([m.uvs if m.uvs is not None else np.zeros((m.triangle_count, 3, 2), np.float32)
-                                  for m in meshes])
+            uvs = np.concatenate(
+                [m.uvs if m.uvs is not None else np.zeros((m.triangle_count, 3, 2), np.float32) for m in meshes]
+            )
         return cls(
             np.concatenate([m.positions for m in meshes]),
             np.concatenate([m.normals for m in meshes]),
@@ -202,5 +207,6 @@ class Scene:
             del top  # indices past the list fall back to a grey Lambertian
         for i, light in enumerate(self.lights):
             if not isinstance(light, (PointLight, SpotLight, SunLight, AreaLight)):
-                raise ValueError(f"lights[{i}] must be a PointLight, SpotLight, SunLight or AreaLight, "
-                                 f"got {type(light).__name__}")
+                raise ValueError(
+                    f"lights[{i}] must be a PointLight, SpotLight, SunLight or AreaLight, got {type(light).__name__}"
+                )

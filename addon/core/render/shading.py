@@ -49,7 +49,10 @@ class ShadeByProposal:
     def shade(self, wo, light_wi, light_rows, u_lobe, u, need_pdf) -> Shading:
         prop_wi, prop_pdf = self.sample_direction(wo, u_lobe, u)
         v = len(light_rows)
-        f_all = self.eval(np.concatenate([light_wi, prop_wi]), np.concatenate([wo[light_rows], wo]),
-                          np.concatenate([light_rows, np.arange(len(wo))]))
+        f_all = self.eval(
+            np.concatenate([light_wi, prop_wi]),
+            np.concatenate([wo[light_rows], wo]),
+            np.concatenate([light_rows, np.arange(len(wo))]),
+        )
         pdf = self.pdf(light_wi, wo[light_rows], light_rows) if need_pdf and v else None
         return Shading(f_all[:v], pdf, finish_sample(prop_wi, prop_pdf, f_all[v:]))

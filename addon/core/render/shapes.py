@@ -9,8 +9,14 @@ import numpy as np
 from .scene import Mesh
 
 
-def uv_sphere(center=(0.0, 0.0, 0.0), radius: float = 1.0, segments: int = 32, rings: int = 16,
-              material: int = 0, smooth: bool = True) -> Mesh:
+def uv_sphere(
+    center=(0.0, 0.0, 0.0),
+    radius: float = 1.0,
+    segments: int = 32,
+    rings: int = 16,
+    material: int = 0,
+    smooth: bool = True,
+) -> Mesh:
     """A UV sphere with smooth (or flat) normals and equirectangular uvs."""
     j, i = np.meshgrid(np.arange(rings + 1), np.arange(segments + 1), indexing="ij")
     theta = j / rings * math.pi  # polar angle from +z

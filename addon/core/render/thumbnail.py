@@ -28,8 +28,14 @@ def thumbnail_settings(width: int, height: int, threads: int = 0, seed: int = 0)
     for name, value in (("width", width), ("height", height)):
         if not 1 <= int(value) <= THUMBNAIL_MAX_SIDE:
             raise ValueError(f"a thumbnail's {name} must be 1..{THUMBNAIL_MAX_SIDE} pixels, got {value}")
-    return RenderSettings(samples=THUMBNAIL_SAMPLES, max_bounces=THUMBNAIL_BOUNCES, seed=seed, mode="neural",
-                          reference_walks=THUMBNAIL_REFERENCE_WALKS, threads=threads)
+    return RenderSettings(
+        samples=THUMBNAIL_SAMPLES,
+        max_bounces=THUMBNAIL_BOUNCES,
+        seed=seed,
+        mode="neural",
+        reference_walks=THUMBNAIL_REFERENCE_WALKS,
+        threads=threads,
+    )
 
 
 def prepare_thumbnail(scene, threads: int = 0) -> tuple[RenderSettings, list[str]]:

@@ -23,8 +23,9 @@ Encoder = Callable[[StackArrays], tuple[np.ndarray, np.ndarray]]
 Progress = Callable[[float], None]
 
 
-def neural_encoder(size: str = "auto", threads: int = 2, refine_s: float = 0.0, refine_cache=None,
-                   refine_settings=None) -> Encoder:
+def neural_encoder(
+    size: str = "auto", threads: int = 2, refine_s: float = 0.0, refine_cache=None, refine_settings=None
+) -> Encoder:
     """The neural runtime's batch encoder for decoder ``size`` ("auto": ``neural.resolve_size``): per-layer
     encoder, then the layering network bottom-up, then the sampling network for the proxy channels.
 
@@ -60,8 +61,9 @@ def neural_encoder(size: str = "auto", threads: int = 2, refine_s: float = 0.0, 
 REFINE_PER_MATERIAL_S = 10.0
 
 
-def _refine_rows(arrays: StackArrays, z: np.ndarray, models, left: list, cache_dir, settings,
-                 metadata: dict) -> np.ndarray:
+def _refine_rows(
+    arrays: StackArrays, z: np.ndarray, models, left: list, cache_dir, settings, metadata: dict
+) -> np.ndarray:
     """Refined latents for the first rows of ``arrays`` while the budget ``left[0]`` lasts."""
     from ..neural.refine import refine_latent
 
@@ -70,8 +72,14 @@ def _refine_rows(arrays: StackArrays, z: np.ndarray, models, left: list, cache_d
         if left[0] <= 0.0:
             break
         t = time.perf_counter()
-        z[i], _ = refine_latent(arrays.stack(i), models.size, budget_s=min(left[0], REFINE_PER_MATERIAL_S),
-                                settings=settings, threads=models.threads, cache_dir=cache_dir)
+        z[i], _ = refine_latent(
+            arrays.stack(i),
+            models.size,
+            budget_s=min(left[0], REFINE_PER_MATERIAL_S),
+            settings=settings,
+            threads=models.threads,
+            cache_dir=cache_dir,
+        )
         left[0] -= time.perf_counter() - t
         metadata["refined"] += 1
     return z
@@ -86,8 +94,13 @@ def model_key(size: str, digest: str | None, refine_s: float = 0.0) -> str:
     return f"{name}:{digest}" if digest else name
 
 
-def bake_key(spatial: SpatialStack, resolution: tuple[int, int], model: str,
-             mix: SpatialStack | None = None, mask: np.ndarray | None = None) -> str:
+def bake_key(
+    spatial: SpatialStack,
+    resolution: tuple[int, int],
+    model: str,
+    mix: SpatialStack | None = None,
+    mask: np.ndarray | None = None,
+) -> str:
     """A short hash of everything a bake depends on: stack(s), driving images, mask, resolution, model."""
     h = hashlib.sha256()
     if mix is not None:
@@ -240,8 +253,10 @@ def bake_mix(
         raise ValueError("the mask must hold values in [0, 1]")
     for name, s in (("first", a), ("second", b)):
         if s.resolution is not None and s.resolution != m.shape:
-            raise ValueError(f"the {name} stack's images are {s.resolution[1]}x{s.resolution[0]} but the mask is "
-                             f"{m.shape[1]}x{m.shape[0]}: they must share a resolution")
+            raise ValueError(
+                f"the {name} stack's images are {s.resolution[1]}x{s.resolution[0]} but the mask is "
+                f"{m.shape[1]}x{m.shape[0]}: they must share a resolution"
+            )
     h, w = resolution or m.shape
     if h > m.shape[0] or w > m.shape[1]:
         raise ValueError(f"bake resolution {w}x{h} must not exceed the mask's {m.shape[1]}x{m.shape[0]}")
@@ -252,10 +267,12 @@ def bake_mix(
     t0 = time.perf_counter()
     arrays_a, _ = _texels_at(a, (h, w))
     arrays_b, _ = _texels_at(b, (h, w))
-    ta, sa = bake_texels(arrays_a, encode, progress=None if progress is None else (lambda f: progress(0.5 * f)),
-                         cancel=cancel)
-    tb, sb = bake_texels(arrays_b, encode, progress=None if progress is None else (lambda f: progress(0.5 + 0.5 * f)),
-                         cancel=cancel)
+    ta, sa = bake_texels(
+        arrays_a, encode, progress=None if progress is None else (lambda f: progress(0.5 * f)), cancel=cancel
+    )
+    tb, sb = bake_texels(
+        arrays_b, encode, progress=None if progress is None else (lambda f: progress(0.5 + 0.5 * f)), cancel=cancel
+    )
     t = m.reshape(-1, 1)
     texels = ((1.0 - t) * ta + t * tb).astype(np.float32)
     meta = {"stack": a.stack.to_json(), "mix_stack": b.stack.to_json()}

@@ -81,8 +81,12 @@ def read_image_file(path: str | os.PathLike) -> tuple[np.ndarray, bool, str, int
         if pixels is None:
             raise ValueError(f"cannot read pixels of {path}: {inp.geterror()}")
         is_float = str(spec.format) in ("half", "float", "double")
-        return (np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels), is_float,
-                spec.get_string_attribute("oiio:ColorSpace"), spec.alpha_channel)
+        return (
+            np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels),
+            is_float,
+            spec.get_string_attribute("oiio:ColorSpace"),
+            spec.alpha_channel,
+        )
     finally:
         inp.close()
 
@@ -99,9 +103,7 @@ class LatentTexture:
         """Build the mip chain (box filter in latent space) from (H, W, 98) base texels."""
         texels = np.asarray(texels, dtype=np.float32)
         if texels.ndim != 3 or texels.shape[2] != len(CHANNEL_NAMES):
-            raise ValueError(
-                f"latent texels must have shape (H, W, {len(CHANNEL_NAMES)}), got {texels.shape}"
-            )
+            raise ValueError(f"latent texels must have shape (H, W, {len(CHANNEL_NAMES)}), got {texels.shape}")
         if not np.isfinite(texels).all():
             raise ValueError("latent texels must be finite")
         return cls(build_mip_chain(texels), dict(metadata or {}))
@@ -128,8 +130,10 @@ class LatentTexture:
         for i, level in enumerate(self.levels):
             big = np.abs(level) > HALF_MAX
             if big.any() or not np.isfinite(level).all():
-                raise ValueError(f"cannot write {path}: mip level {i} holds values outside the half-float range "
-                                 f"[-{HALF_MAX:g}, {HALF_MAX:g}] (largest magnitude {np.nanmax(np.abs(level)):g})")
+                raise ValueError(
+                    f"cannot write {path}: mip level {i} holds values outside the half-float range "
+                    f"[-{HALF_MAX:g}, {HALF_MAX:g}] (largest magnitude {np.nanmax(np.abs(level)):g})"
+                )
         with files.publishing(path) as tmp:
             out = oiio.ImageOutput.create(str(tmp))
             if out is None:
@@ -184,9 +188,7 @@ class LatentTexture:
                     f"{path} is not a latent texture: expected {len(CHANNEL_NAMES)} channels "
                     f"{CHANNEL_NAMES[0]} .. {CHANNEL_NAMES[-1]}, got {len(names)}: {names[:4]}..."
                 )
-            metadata = {
-                a.name[4:]: a.value for a in spec.extra_attribs if a.name.startswith("nlm:")
-            }
+            metadata = {a.name[4:]: a.value for a in spec.extra_attribs if a.name.startswith("nlm:")}
             levels = _read_levels(inp, path, [names.index(n) for n in CHANNEL_NAMES])
         finally:
             inp.close()
@@ -221,15 +223,20 @@ def _check_levels(levels: list[np.ndarray], path: Path) -> None:
     h, w = levels[0].shape[:2]
     for i, level in enumerate(levels):
         if level.shape[:2] != (h, w):
-            raise LatentTextureError(f"{path}: mip level {i} is {level.shape[1]}x{level.shape[0]}, expected {w}x{h} "
-                                     f"(each level halves the one above, rounding down)")
+            raise LatentTextureError(
+                f"{path}: mip level {i} is {level.shape[1]}x{level.shape[0]}, expected {w}x{h} "
+                f"(each level halves the one above, rounding down)"
+            )
         bad = ~np.isfinite(level)
         if bad.any():
             y, x, c = np.argwhere(bad)[0]
             raise LatentTextureError(
                 f"{path}: {int(bad.sum())} non-finite value(s) in mip level {i}, first {level[y, x, c]} at "
-                f"(x={x}, y={y}) in channel {CHANNEL_NAMES[c]}; latent texels must be finite (re-bake the texture)")
+                f"(x={x}, y={y}) in channel {CHANNEL_NAMES[c]}; latent texels must be finite (re-bake the texture)"
+            )
         h, w = max(1, h // 2), max(1, w // 2)
     if levels[-1].shape[:2] != (1, 1):
-        raise LatentTextureError(f"{path}: the mip chain stops at {levels[-1].shape[1]}x{levels[-1].shape[0]}; "
-                                 f"a latent texture's chain goes down to 1x1")
+        raise LatentTextureError(
+            f"{path}: the mip chain stops at {levels[-1].shape[1]}x{levels[-1].shape[0]}; "
+            f"a latent texture's chain goes down to 1x1"
+        )

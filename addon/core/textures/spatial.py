@@ -21,10 +21,20 @@ _PATH = re.compile(r"^(base|coatings\[(\d+)\])\.(\w+)$")
 RGB_FIELDS = {"albedo", "eta", "k"}
 
 # StackArrays attribute for each (layer kind, field).
-_BASE_ATTR = {"albedo": "base_albedo", "roughness": "base_roughness", "eta": "base_eta", "k": "base_k",
-              "ior": "base_ior"}
-_COAT_ATTR = {"roughness": "coat_roughness", "ior": "coat_ior", "albedo": "coat_albedo",
-              "thickness": "coat_thickness", "g": "coat_g"}
+_BASE_ATTR = {
+    "albedo": "base_albedo",
+    "roughness": "base_roughness",
+    "eta": "base_eta",
+    "k": "base_k",
+    "ior": "base_ior",
+}
+_COAT_ATTR = {
+    "roughness": "coat_roughness",
+    "ior": "coat_ior",
+    "albedo": "coat_albedo",
+    "thickness": "coat_thickness",
+    "g": "coat_g",
+}
 
 
 def parse_parameter_path(stack: Stack, path: str) -> tuple[str, int | None, str]:
@@ -40,8 +50,9 @@ def parse_parameter_path(stack: Stack, path: str) -> tuple[str, int | None, str]
         return "base", None, name
     i = int(m.group(2))
     if i >= len(stack.coatings):
-        raise ValueError(f"{path!r}: the stack has {len(stack.coatings)} coating(s), "
-                         f"so indices are 0..{len(stack.coatings) - 1}")
+        raise ValueError(
+            f"{path!r}: the stack has {len(stack.coatings)} coating(s), so indices are 0..{len(stack.coatings) - 1}"
+        )
     if name not in _COAT_ATTR:
         raise ValueError(f"a coating has no parameter {name!r}; it has {sorted(_COAT_ATTR)}")
     return "coating", i, name
@@ -60,8 +71,10 @@ def _as_channels(path: str, name: str, image) -> np.ndarray:
         return np.repeat(img, 3, axis=2)
     if want == 3 and img.shape[2] == 4:  # RGBA colour image: alpha does not drive anything
         return img[..., :3]
-    raise ValueError(f"image for {path} has {img.shape[2]} channel(s); {name} needs {want}"
-                     + (" (or 1 grey / 4 RGBA)" if want == 3 else ""))
+    raise ValueError(
+        f"image for {path} has {img.shape[2]} channel(s); {name} needs {want}"
+        + (" (or 1 grey / 4 RGBA)" if want == 3 else "")
+    )
 
 
 @dataclass
