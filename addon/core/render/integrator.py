@@ -47,7 +47,7 @@ class RenderSettings:
     strategy: str = "mis"
     mode: str = "neural"
     rr_depth: int = 3
-    chunk_paths: int = 1 << 16
+    chunk_paths: int = 1 << 17
     reference_walks: int = 16
     threads: int = 0  # chunks traced at once; 0: one per CPU core
 
@@ -240,11 +240,14 @@ class _Context:
         else:
             self.eps = 1e-4
         self.uv_scale = uv_scale(m)
-        # Per-triangle geometry in float64 once, so a bounce gathers without converting.
-        self.positions = m.positions.astype(np.float64)
+        self.material_of_triangle = np.asarray(m.material_index, dtype=np.int64)
+        # Per-triangle geometry in float64 once, so a bounce gathers without converting; the
+        # corners' position, normal and uv side by side (T, 3, 8), so a bounce gathers and
+        # interpolates them in one step each.
         self.face_normals = m.face_normals.astype(np.float64)
-        self.normals = m.normals.astype(np.float64)
-        self.uvs = None if m.uvs is None else m.uvs.astype(np.float64)
+        uvs = np.zeros((m.triangle_count, 3, 2)) if m.uvs is None else m.uvs
+        self.corners = np.concatenate([m.positions, m.normals, uvs], axis=2).astype(np.float64)
+        self.has_uvs = m.uvs is not None
 
     def light_weight(self, pdf_light_solid, prev_pdf, prev_delta, prev_mis):
         """Weight of emission found by BSDF sampling."""
@@ -386,7 +389,14 @@ class _Hits:
     wo: np.ndarray
     uv: np.ndarray
     footprint: np.ndarray
-    material: np.ndarray
+    groups: list  # (material index, slice of rows): the hits are sorted by material
+
+
+def _material_groups(material: np.ndarray, n_materials: int) -> list[tuple[int, slice]]:
+    """(material index, slice) of each material present in ``material`` (sorted ascending)."""
+    ends = np.cumsum(np.bincount(material, minlength=n_materials))
+    starts = ends - np.bincount(material, minlength=n_materials)
+    return [(mi, slice(int(starts[mi]), int(ends[mi]))) for mi in np.flatnonzero(ends > starts)]
 
 
 @dataclass
@@ -434,14 +444,16 @@ def _add_emission(ctx: _Context, paths: _Paths, t: np.ndarray, miss: np.ndarray,
         L[paths.row[miss]] += paths.throughput[miss] * radiance * w[:, None]
 
 
-def _surface_hits(ctx: _Context, paths: _Paths, t, prim, bu, bv) -> _Hits:
+def _surface_hits(ctx: _Context, paths: _Paths, t, prim, bu, bv, groups) -> _Hits:
     """The surface where each ray lands: interpolated position, normals and uv; a shading frame
     facing the viewer (shading normals that disagree with the geometry fall back to it); the
-    ray cone grown to the hit and its footprint in texture space."""
+    ray cone grown to the hit and its footprint in texture space. ``groups``: the rows of each
+    material (the rays come sorted by material)."""
     bary = np.stack([1.0 - bu - bv, bu, bv], axis=1)
-    p = np.einsum("ij,ijk->ik", bary, ctx.positions[prim])
+    at_hit = np.einsum("ij,ijk->ik", bary, ctx.corners[prim])  # position, normal, uv
+    p = at_hit[:, 0:3]
     ng = ctx.face_normals[prim]
-    ns = frame.normalize(np.einsum("ij,ijk->ik", bary, ctx.normals[prim]))
+    ns = frame.normalize(at_hit[:, 3:6])
     ns = np.where((frame.dot(ns, ng) > 0)[:, None], ns, ng)  # inconsistent or zero: use ng
     wo_w = -paths.d
     side = np.where(frame.dot(ng, wo_w) >= 0, 1.0, -1.0)[:, None]
@@ -449,10 +461,10 @@ def _surface_hits(ctx: _Context, paths: _Paths, t, prim, bu, bv) -> _Hits:
     ns = np.where((frame.dot(ns, wo_w) > 1e-6)[:, None], ns, ng)  # grazing: fall back to ng
     ts, tt = frame.coordinate_system(ns)
     wo = frame.to_local(wo_w, ts, tt, ns)
-    uv = np.einsum("ij,ijk->ik", bary, ctx.uvs[prim]) if ctx.uvs is not None else np.zeros((len(prim), 2))
+    uv = at_hit[:, 6:8]
     paths.width = paths.width + paths.spread * t
     footprint = texture_footprint(paths.width, frame.dot(ng, wo_w), ctx.uv_scale[prim])
-    return _Hits(p, ng, ns, ts, tt, wo, uv, footprint, ctx.scene.mesh.material_index[prim])
+    return _Hits(p, ng, ns, ts, tt, wo, uv, footprint, groups)
 
 
 def _sample_lights(ctx: _Context, hits: _Hits, u_light: np.ndarray, stats: RenderStats) -> _LightSamples:
@@ -513,12 +525,11 @@ def _shade(
     its path continues in."""
     m = len(hits.p)
     out = _Scatter(np.zeros((m, 3)), np.zeros((m, 3)), np.zeros(m), np.zeros(m, dtype=bool), np.ones(m, dtype=bool))
-    for mi in np.unique(hits.material):  # a loop over materials
-        sel = np.nonzero(hits.material == mi)[0]
+    for mi, sel in hits.groups:  # a loop over materials; each one's hits are one slice (views, no gathers)
         material = ctx.materials[mi]
         need_pdf = material.has_pdf and ctx.settings.strategy == "mis"
-        rows = np.nonzero(lights.visible[sel])[0]
-        v = sel[rows]
+        rows = np.flatnonzero(lights.visible[sel])
+        v = rows + sel.start
         t0, net0 = time.perf_counter(), session.seconds_on_this_thread()
         bound = material.bind(mat.SurfaceHits(hits.uv[sel], hits.footprint[sel], int(seeds[mi])))
         sh = bound.shade(hits.wo[sel], lights.wi[v], rows, u_lobe[sel], u_dir[sel], need_pdf)
@@ -599,11 +610,16 @@ def _trace_paths(
         _add_emission(ctx, paths, t, miss, L)
         if depth == s.max_bounces:
             break
-        hit = np.nonzero(~miss)[0]
+        hit = np.flatnonzero(~miss)
         if len(hit) == 0:
             break
+        # Sorted by material (stable), so that each material shades one contiguous slice of rows.
+        material = ctx.material_of_triangle[prim[hit]]
+        order = np.argsort(material, kind="stable")
+        hit = hit[order]
         paths = paths.take(hit)
-        hits = _surface_hits(ctx, paths, t[hit], prim[hit], bu[hit], bv[hit])
+        groups = _material_groups(material[order], len(ctx.materials))
+        hits = _surface_hits(ctx, paths, t[hit], prim[hit], bu[hit], bv[hit], groups)
         m = len(hit)
         lights = _sample_lights(ctx, hits, rng.random((m, 3)), stats)
         u_lobe, u_dir = rng.random(m), rng.random((m, 2))

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..bsdf import frame
+
 INF = np.inf
 
 
@@ -114,7 +116,7 @@ class SpotLight(PointLight):
 
     def _mask(self, wi: np.ndarray) -> np.ndarray:
         cos_edge = math.cos(self.spot_size / 2)
-        c = -(wi @ self.direction)
+        c = -frame.dot(wi, self.direction)
         smooth = (1 - cos_edge) * self.blend
         if smooth <= 0:
             return (c > cos_edge).astype(np.float64)
@@ -201,7 +203,7 @@ class AreaLight:
         dist = np.linalg.norm(d, axis=1)
         safe = np.maximum(dist, 1e-9)
         wi = d / safe[:, None]
-        cos_l = -(wi @ self.normal)
+        cos_l = -frame.dot(wi, self.normal)
         ok = cos_l > 1e-8
         pdf = np.where(ok, safe**2 / (np.where(ok, cos_l, 1.0) * self.area), 0.0)
         rad = np.where(ok[:, None], self.radiance[None, :], 0.0)
@@ -211,16 +213,16 @@ class AreaLight:
         """Distance along unit rays to the emitting side (inf where missed) and the solid-angle pdf."""
         n = len(o)
         t_out, pdf_out = np.full(n, INF), np.zeros(n)
-        denom = d @ self.normal
-        height = (self.center - o) @ self.normal
+        denom = frame.dot(d, self.normal)
+        height = frame.dot(self.center - o, self.normal)
         # Only rays arriving against the emitting normal, from its lit side, can hit it.
         idx = np.nonzero((denom < -1e-12) & (height < 0))[0]
         if len(idx) == 0:
             return t_out, pdf_out
         t = height[idx] / denom[idx]
         q = o[idx] + t[:, None] * d[idx] - self.center
-        a = (q @ self.axis_u) / (self.axis_u @ self.axis_u)
-        b = (q @ self.axis_v) / (self.axis_v @ self.axis_v)
+        a = frame.dot(q, self.axis_u) / (self.axis_u @ self.axis_u)
+        b = frame.dot(q, self.axis_v) / (self.axis_v @ self.axis_v)
         inside = (a * a + b * b <= 1) if self.ellipse else ((np.abs(a) <= 1) & (np.abs(b) <= 1))
         hit = inside & (t > 1e-6)
         idx, t = idx[hit], t[hit]

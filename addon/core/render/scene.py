@@ -104,7 +104,7 @@ class Camera:
         x = sx * self.tan_half_fov[0] + 2.0 * self.shift[0] * self.tan_half_fov[0] * big / self.width
         y = sy * self.tan_half_fov[1] + 2.0 * self.shift[1] * self.tan_half_fov[1] * big / self.height
         d_cam = np.stack([x, y, -np.ones_like(x)], axis=1)
-        d = d_cam @ self.matrix[:3, :3].T
+        d = np.einsum("ij,kj->ik", d_cam, self.matrix[:3, :3])  # einsum: no BLAS threads for 3-vectors
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         o = np.broadcast_to(self.position, d.shape).copy()
         return o, d
