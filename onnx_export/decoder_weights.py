@@ -88,20 +88,21 @@ def main(argv=None) -> None:
     ap.add_argument("--models", type=Path, default=MODEL_DIR)
     a = ap.parse_args(argv)
     for size in a.sizes:
-        path = a.models / f"decoder_{size}.onnx"
-        card = json.loads(path.with_suffix(".json").read_text())
-        out = a.models / f"decoder_{size}_weights.npz"
-        np.savez(out, **decoder_arrays(path, card))
-        print(
-            json.dumps(
-                {
-                    "size": size,
-                    "weights": out.name,
-                    "bytes": out.stat().st_size,
-                    "numpy_vs_onnx_max_relative_difference": forward_parity(size, a.models),
-                }
-            )
-        )
+        print(json.dumps(export_weights(size, a.models)))
+
+
+def export_weights(size: str, model_dir: Path = MODEL_DIR) -> dict:
+    """Write ``decoder_<size>_weights.npz`` from ``decoder_<size>.onnx`` and check the numpy forward pass."""
+    path = model_dir / f"decoder_{size}.onnx"
+    card = json.loads(path.with_suffix(".json").read_text())
+    out = model_dir / f"decoder_{size}_weights.npz"
+    np.savez(out, **decoder_arrays(path, card))
+    return {
+        "size": size,
+        "weights": out.name,
+        "bytes": out.stat().st_size,
+        "numpy_vs_onnx_max_relative_difference": forward_parity(size, model_dir),
+    }
 
 
 if __name__ == "__main__":

@@ -193,8 +193,10 @@ def regraph_decoder(size: str, model_dir: Path = MODEL_DIR) -> dict:
     Checks that every weight is bit-identical before and after, refreshes the parity figures of
     the decoder card, and moves the digest of ``decoder_<size>.onnx`` in the cards of the models
     trained against it (layering, sampling: ``trained_with``) to the new file: those models are
-    still valid, since what they were trained against is the weights."""
+    still valid, since what they were trained against is the weights. The numpy decoder's weights
+    file (``decoder_weights``), which names the ONNX file's digest, is written again too."""
     from addon.core.neural.models import file_digest
+    from onnx_export.decoder_weights import export_weights
 
     dpath = model_dir / f"decoder_{size}.onnx"
     rgb_path = model_dir / f"decoder_{size}_rgb.onnx"
@@ -220,8 +222,10 @@ def regraph_decoder(size: str, model_dir: Path = MODEL_DIR) -> dict:
             c["trained_with"][dpath.name] = new_digest
             other.write_text(json.dumps(c, indent=1) + "\n")
             moved.append(other.name)
+    weights = export_weights(size, model_dir)
     return {
         "decoder": dpath.name,
+        "numpy_weights_parity": weights["numpy_vs_onnx_max_relative_difference"],
         "parity": card["onnx_runtime_vs_torch_max_relative_difference"],
         "rgb_parity": card["rgb_graph"]["onnx_runtime_vs_torch_max_relative_difference"],
         "cards_moved": moved,
