@@ -58,8 +58,10 @@ def object_means(film, masks: dict[str, np.ndarray]) -> dict[str, dict]:
     return out
 
 
-def render_means(scene, masks, mode: str, samples: int, seed: int, size: str | None) -> tuple[dict, float]:
-    settings = RenderSettings(samples=samples, mode=mode, seed=seed)
+def render_means(
+    scene, masks, mode: str, samples: int, seed: int, size: str | None, calibrate: bool = True
+) -> tuple[dict, float]:
+    settings = RenderSettings(samples=samples, mode=mode, seed=seed, calibrate=calibrate)
     materials = scene.materials
     if size is not None and mode == "neural":  # the layered objects' neural materials of that size
         from addon.core.render import neural_material
@@ -68,7 +70,7 @@ def render_means(scene, masks, mode: str, samples: int, seed: int, size: str | N
         def sized(m):
             if not isinstance(m, LayeredSpec) or (analytic_for_stack(m.stack) is not None and m.latent_texture is None):
                 return m
-            made = neural_material.make(m.stack, m.latent_texture, size=size)
+            made = neural_material.make(m.stack, m.latent_texture, size=size, calibrate=calibrate)
             if made is None:
                 raise ValueError(f"no shipped models of size {size!r} serve {m.name!r}")
             return made
@@ -136,6 +138,11 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--runs", type=int, default=1, help="independent renders per mode (seeds seed, seed + 1, ...)")
     ap.add_argument("--size", default=None, help="decoder size of the neural mode (default: the renderer's)")
+    ap.add_argument(
+        "--no-calibrate",
+        action="store_true",
+        help="neural mode without the albedo calibration (addon.core.neural.calibrate; the renderer's default)",
+    )
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "fidelity.md")
     ap.add_argument(
         "--reference-cache",
@@ -168,7 +175,7 @@ def main(argv=None):
     for k in range(a.runs):
         scene = demo_scene(a.width, a.height)
         masks = object_masks(scene)
-        neural, dt = render_means(scene, masks, "neural", a.samples, a.seed + k, a.size)
+        neural, dt = render_means(scene, masks, "neural", a.samples, a.seed + k, a.size, not a.no_calibrate)
         secs["neural"] += dt
         if cached is None:
             ref, dt = render_means(scene, masks, "reference", a.samples, a.seed + k, None)
@@ -196,7 +203,7 @@ def main(argv=None):
         }
     )
     s = summary(cmp)
-    size = a.size or "the renderer's default"
+    size = (a.size or "the renderer's default") + (", no albedo calibration" if a.no_calibrate else ", calibrated")
     lines = [
         "# Render-level fidelity: neural mode against reference mode",
         "",

@@ -77,33 +77,41 @@ def grazing_fcos_reference(stacks: list[Stack], angles, walks: int, seed: int):
     return out_f * cos_i, out_e * cos_i
 
 
-def network_grazing(models, stacks: list[Stack], angles, res: int) -> tuple[np.ndarray, np.ndarray]:
-    """The runtime path's (C, A, 3) albedo on the same lobe grid and f cos(theta_i) for the viewer on the normal."""
+def network_grazing(
+    models, stacks: list[Stack], angles, res: int, calibrate: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """The runtime path's (C, A, 3) albedo on the same lobe grid and f cos(theta_i) for the viewer on the
+    normal; with ``calibrate``, of each stack's calibrated material (``addon.core.neural.calibrate``, as the
+    renderer evaluates it)."""
+    from addon.core.neural import calibrate as cal
     from addon.core.neural import encode_arrays
 
     z = np.zeros((len(stacks), 3, 32), np.float32)
     for c in sorted({len(s.coatings) for s in stacks}):  # one batch per coating count
         idx = [i for i, s in enumerate(stacks) if len(s.coatings) == c]
         z[idx] = encode_arrays(StackArrays.from_stacks([stacks[i] for i in idx]), models)
-    alb = np.array(
-        [
-            [
-                lobe.albedo_from_lobe(lobe.lobe_image(lambda wi, wo, k=k: models.eval_brdf(z[k], wi, wo), t, res))
-                for t in angles
-            ]
-            for k in range(len(stacks))
-        ]
-    )
+
+    def brdf(k: int):
+        if not calibrate:
+            return lambda wi, wo: models.eval_brdf(z[k], wi, wo)
+        c = cal.calibrate(stacks[k], models, z[k], models.proxy_params(z[k])[0])
+        return lambda wi, wo: c.apply(models.eval_brdf(z[k], wi, wo), wi, wo)
+
     inc = np.stack([lobe.incident_direction(t) for t in angles])
     view = np.tile([0.0, 0.0, 1.0], (len(angles), 1))
-    fcos = np.array([models.eval_brdf(z[k], inc, view) * inc[:, 2:3] for k in range(len(stacks))])
-    return alb, fcos
+    alb, fcos = [], []
+    for k in range(len(stacks)):
+        f = brdf(k)
+        alb.append([lobe.albedo_from_lobe(lobe.lobe_image(f, t, res)) for t in angles])
+        fcos.append(f(inc, view) * inc[:, 2:3])
+    return np.array(alb), np.array(fcos)
 
 
-def grazing_ratios(models, data: dict) -> dict:
-    """Network / reference of the albedo and of f cos(theta_i) (RGB mean), (C, A) each, with the angles."""
+def grazing_ratios(models, data: dict, calibrate: bool = False) -> dict:
+    """Network / reference of the albedo and of f cos(theta_i) (RGB mean), (C, A) each, with the angles;
+    ``calibrate``: of the calibrated materials."""
     stacks = [s if isinstance(s, Stack) else Stack.from_json(str(s)) for s in data["stacks"]]
-    alb, fcos = network_grazing(models, stacks, data["angles"], int(data["res"]))
+    alb, fcos = network_grazing(models, stacks, data["angles"], int(data["res"]), calibrate)
     tiny = 1e-12
     return {
         "angles": np.asarray(data["angles"]),

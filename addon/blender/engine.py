@@ -244,10 +244,10 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         core_scene, _ = scene_export.export_scene(depsgraph, region.width, region.height, camera=camera)
         props = depsgraph.scene.neural_render
         try:
-            props.assign_decoders(core_scene)
+            props.assign_decoders(core_scene, viewport=True)
         except Exception:  # the default decoder, as for F12
             pass
-        return core_scene, props.to_core(scene=depsgraph.scene)
+        return core_scene, props.to_core(scene=depsgraph.scene, viewport=True)
 
     def view_update(self, context, depsgraph):
         """An edit (stack, objects, lights, world) or the first draw: restart the progressive session."""

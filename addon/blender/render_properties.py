@@ -117,6 +117,13 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
         default=False,
         update=_denoise_changed,
     )
+    calibrate: BoolProperty(
+        name="Calibrate Albedo",
+        description="Scale each layered material's decoded reflection so that its brightness at every angle "
+        "matches the reference (about a second of reference walks per material, once per session; the "
+        "viewport and thumbnails use a calibration only once a render has made it)",
+        default=True,
+    )
     tolerance: FloatProperty(
         name="Tolerance",
         description="Largest relative lobe error (against the reference) the Auto decoder choice accepts",
@@ -126,7 +133,12 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
         subtype="FACTOR",
     )
 
-    def to_core(self, samples: int | None = None, scene=None) -> RenderSettings:
+    def calibration(self, viewport: bool = False):
+        """The core ``calibrate`` setting: True for renders, "cached" for the viewport (no reference
+        walks while the user edits), False when Calibrate Albedo is off."""
+        return ("cached" if viewport else True) if self.calibrate else False
+
+    def to_core(self, samples: int | None = None, scene=None, viewport: bool = False) -> RenderSettings:
         """Core settings; with ``scene``, its render thread setting (Blender's Threads: Auto or Fixed)
         decides how many cores the path tracer and the networks use."""
         threads = 0 if scene is None else RenderSettings.threads_for(scene.render.threads_mode, scene.render.threads)
@@ -137,10 +149,14 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
             mode=self.mode,
             reference_walks=self.reference_walks,
             threads=threads,
+            calibrate=self.calibration(viewport),
         )
 
-    def assign_decoders(self, core_scene, samples: int | None = None, info: list | None = None) -> list[str]:
-        """Put the layered materials of an exported scene on their decoders (neural mode); returns warnings.
+    def assign_decoders(
+        self, core_scene, samples: int | None = None, info: list | None = None, viewport: bool = False
+    ) -> list[str]:
+        """Put the layered materials of an exported scene on their decoders (neural mode), calibrated
+        as :meth:`calibration` says; returns warnings.
 
         *Auto* only considers the sizes whose predicted decoder time for this frame (``samples``
         per pixel, default Samples) fits Time Budget; ``info`` (a list) receives each material's
@@ -154,7 +170,12 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
             core_scene.camera.width * core_scene.camera.height, samples or self.samples, self.max_bounces
         )
         core_scene.materials, choices, notes = quality.assign_decoders(
-            core_scene, size, self.tolerance, budget_seconds=self.time_budget, evaluations=queries
+            core_scene,
+            size,
+            self.tolerance,
+            budget_seconds=self.time_budget,
+            evaluations=queries,
+            calibrate=self.calibration(viewport),
         )
         if info is not None:
             info += [quality.choice_reason(name, c) for name, c in choices.items()]

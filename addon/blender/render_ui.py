@@ -31,6 +31,7 @@ class NLM_PT_render(bpy.types.Panel):
             col.prop(props, "reference_walks")
         else:
             col.prop(props, "decoder_quality")
+            col.prop(props, "calibrate")
             if props.decoder_quality == "AUTO":
                 col.prop(props, "tolerance")
                 col.prop(props, "time_budget")

@@ -400,12 +400,13 @@ def primary_footprints(scene, stride: int = 1) -> np.ndarray:
 # --------------------------------------------------------------------------- renderer materials
 
 
-def neural_material(stack: Stack, size: str):
-    """The renderer's NeuralMaterial of ``stack`` on decoder ``size`` (``render.neural_material.make``);
-    raises FileNotFoundError when that size cannot encode the stack (a model it needs is missing)."""
+def neural_material(stack: Stack, size: str, calibrate=False):
+    """The renderer's NeuralMaterial of ``stack`` on decoder ``size`` (``render.neural_material.make``,
+    with its ``calibrate``); raises FileNotFoundError when that size cannot encode the stack (a model
+    it needs is missing)."""
     from .render import neural_material as nm
 
-    made = nm.make(stack, size=size)
+    made = nm.make(stack, size=size, calibrate=calibrate)
     if made is None:
         raise FileNotFoundError(
             f"the shipped models of decoder size {size!r} cannot encode this stack "
@@ -422,6 +423,7 @@ def assign_decoders(
     threads: int = 2,
     budget_seconds: float | None = None,
     evaluations: float = 0.0,
+    calibrate=False,
     **measure,
 ) -> tuple[list, dict, list[str]]:
     """Renderer materials for the layered materials of a core ``Scene``, each on its decoder size.
@@ -440,6 +442,8 @@ def assign_decoders(
     ``evaluations`` queries (:func:`frame_decoder_queries`) fits the budget
     (:func:`sizes_within_budget`), so no frame meets the paper-sized decoder unless its cost fits;
     when no size fits, the fastest one is used and a note says so. Fixed sizes are never changed.
+    ``calibrate`` (True, False or "cached") gives each material its albedo calibration
+    (``neural_material.make``).
     """
     from .render.materials import LayeredSpec
 
@@ -479,7 +483,7 @@ def assign_decoders(
         try:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                out.append(neural_material(spec.stack, size))
+                out.append(neural_material(spec.stack, size, calibrate))
             notes += [f"material {name!r}: {w.message}" for w in caught]
         except FileNotFoundError as e:
             notes.append(f"material {name!r}: decoder {size} cannot encode it ({e}); rendering it with the reference")

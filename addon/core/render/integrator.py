@@ -26,6 +26,7 @@ import numpy as np
 
 from ..bsdf import frame
 from ..neural import session
+from ..neural.calibrate import check_mode as calibrate_mode
 from . import materials as mat
 from .film import Film
 from .lights import AreaLight
@@ -50,6 +51,9 @@ class RenderSettings:
     chunk_paths: int = 1 << 17
     reference_walks: int = 16
     threads: int = 0  # chunks traced at once; 0: one per CPU core
+    # albedo calibration of layered stacks in neural mode (``neural.calibrate``): True, False, or
+    # "cached" (only calibrations already made this session: no reference walks)
+    calibrate: bool | str = True
 
     def __post_init__(self):
         if self.strategy not in STRATEGIES:
@@ -66,6 +70,7 @@ class RenderSettings:
             raise ValueError(f"reference_walks must be >= 1 (walks per reference estimate), got {self.reference_walks}")
         if int(self.threads) < 0:
             raise ValueError(f"threads must be >= 0 (0: one per CPU core), got {self.threads}")
+        calibrate_mode(self.calibrate)
 
     @classmethod
     def threads_for(cls, threads_mode: str, threads: int) -> int:
@@ -217,7 +222,10 @@ class _Context:
         n_mat = max(len(scene.materials), int(scene.mesh.material_index.max()) + 1 if scene.mesh.triangle_count else 0)
         self.materials = [
             mat.resolve(
-                scene.materials[i] if i < len(scene.materials) else None, settings.mode, settings.reference_walks
+                scene.materials[i] if i < len(scene.materials) else None,
+                settings.mode,
+                settings.reference_walks,
+                settings.calibrate,
             )
             for i in range(n_mat)
         ]

@@ -298,12 +298,13 @@ class LayeredSpec:
     latent: tuple | None = None
 
 
-def resolve(material, mode: str, reference_walks: int = 16):
+def resolve(material, mode: str, reference_walks: int = 16, calibrate=False):
     """A renderer material for a scene entry (material object, Stack or LayeredSpec).
 
     ``mode`` is "neural" or "reference". Single-layer stacks render exactly with their analytic
     BSDF in both modes. Layered stacks use the neural runtime in "neural" mode when it is
-    available, else the reference (see :func:`neural_available`).
+    available, else the reference (see :func:`neural_available`); ``calibrate`` is passed to
+    ``neural_material.make`` (the albedo calibration of each layered stack).
     """
     if mode not in ("neural", "reference"):
         raise ValueError(f"render mode must be 'neural' or 'reference', got {mode!r}")
@@ -323,7 +324,12 @@ def resolve(material, mode: str, reference_walks: int = 16):
     if mode == "neural":
         from . import neural_material
 
-        made = neural_material.make(stack, spec.latent_texture if spec else None, latent=spec.latent if spec else None)
+        made = neural_material.make(
+            stack,
+            spec.latent_texture if spec else None,
+            latent=spec.latent if spec else None,
+            calibrate=calibrate,
+        )
         if made is not None:
             return made
     return ReferenceLayered(stack, reference_walks)

@@ -35,8 +35,9 @@ def proxy_guess(stack: Stack) -> tuple[float, float]:
 
 
 class _BoundNeural(ShadeByProposal):
-    def __init__(self, models, z, sigma, w):
+    def __init__(self, models, z, sigma, w, calibration=None):
         self.models, self.z, self.sigma, self.w = models, z, sigma, w
+        self.calibration = calibration
 
     @staticmethod
     def _rows(a, index):
@@ -46,7 +47,8 @@ class _BoundNeural(ShadeByProposal):
 
     def eval(self, wi, wo, index=None):
         z = self._rows(self.z, index)
-        return self.models.eval_brdf(z, wi, wo).astype(np.float64)
+        f = self.models.eval_brdf(z, wi, wo).astype(np.float64)
+        return f if self.calibration is None else self.calibration.apply(f, wi, wo)
 
     def pdf(self, wi, wo, index=None):
         from ..neural import proxy
@@ -66,22 +68,26 @@ class _BoundNeural(ShadeByProposal):
 
 
 class NeuralMaterial:
-    """A stack's latent (or a latent texture) decoded by the neural runtime."""
+    """A stack's latent (or a latent texture) decoded by the neural runtime; a single latent may
+    carry its albedo calibration (``addon.core.neural.calibrate``), applied to every evaluation."""
 
     kind = "neural"
     has_pdf = True
 
-    def __init__(self, models, z=None, proxy=(0.2, 0.5), latent_texture=None):
+    def __init__(self, models, z=None, proxy=(0.2, 0.5), latent_texture=None, calibration=None):
         self.models = models
         self.z = None if z is None else np.asarray(z, dtype=np.float32).reshape(3, LATENT)
         self.sigma, self.w = float(proxy[0]), float(proxy[1])
         self.texture = latent_texture
+        self.calibration = calibration
         if self.z is None and self.texture is None:
             raise ValueError("a NeuralMaterial needs a latent z (3, 32) or a latent texture")
+        if calibration is not None and self.texture is not None:
+            raise ValueError("an albedo calibration belongs to one latent, not to a latent texture")
 
     def bind(self, hits):
         if self.texture is None:
-            return _BoundNeural(self.models, self.z, np.float64(self.sigma), np.float64(self.w))
+            return _BoundNeural(self.models, self.z, np.float64(self.sigma), np.float64(self.w), self.calibration)
         z, prox = self.texture.lookup(hits.uv, hits.footprint)
         sigma = np.asarray(prox[:, 0], dtype=np.float64)
         w = np.asarray(prox[:, 1], dtype=np.float64)
@@ -110,8 +116,13 @@ def _texture_size(latent_texture) -> tuple[str, str | None]:
     return size, meta.get("model_digest")
 
 
-def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None):
+def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None, calibrate=False):
     """A NeuralMaterial for ``stack`` (or for its latent texture), or None in the documented cases below.
+
+    ``calibrate``: True gives the material its albedo calibration against the reference
+    (``neural.calibrate``: about a second of reference walks per stack, cached for the session),
+    "cached" only one this session already made (no work: for the viewport and thumbnails), False
+    none. Latent textures are never calibrated.
 
     ``size`` picks the decoder ("auto" or None: ``neural.resolve_size``, the default size). A latent
     texture is decoded by the size it was baked for (its ``model`` metadata, checked against ``size``
@@ -133,6 +144,9 @@ def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None
 
     if not isinstance(stack, Stack):
         raise ValueError(f"make needs a Stack, got {type(stack).__name__}")
+    from ..neural.calibrate import check_mode
+
+    check_mode(calibrate)
     requested = None if size is None or size == AUTO else resolve_size(size)
     z = None
     if latent is not None:
@@ -175,7 +189,9 @@ def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None
         else:
             z = encode_stack(stack, models) if z is None else z
             proxy = models.proxy_params(z)[0] if models.has("sampling") else proxy_guess(stack)
-            material = NeuralMaterial(models, z, tuple(float(v) for v in proxy))
+            material = NeuralMaterial(
+                models, z, tuple(float(v) for v in proxy), calibration=_calibration(stack, models, z, proxy, calibrate)
+            )
     except (FileNotFoundError, ModelFileError) as e:
         warnings.warn(
             f"decoder size {size}: {e}; rendering the stack with the reference", NeuralFallbackWarning, stacklevel=2
@@ -183,3 +199,12 @@ def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None
         return None
     material.size = size
     return material
+
+
+def _calibration(stack: Stack, models, z, proxy, calibrate):
+    """The albedo calibration ``make`` gives a single latent (see its ``calibrate``)."""
+    from ..neural import calibrate as cal
+
+    if calibrate is True:
+        return cal.calibrate(stack, models, z, proxy)
+    return cal.cached(stack, models, z) if calibrate == "cached" else None

@@ -5,7 +5,8 @@ redrawn on every edit of the material, so it must cost a fraction of a second: a
 per pixel, few bounces, the fastest decoder for every layered material (a fixed size: no *Auto*
 measurement, whose reference walks cost seconds per stack), neural mode whatever the scene's
 mode says (a stack the runtime can encode never meets the reference's walks; one it cannot is
-shaded by the reference with the fewest walks), no denoising.
+shaded by the reference with the fewest walks), no denoising, and an albedo calibration only where
+this session already made one (``neural.calibrate``: it costs about a second of walks per stack).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ def thumbnail_settings(width: int, height: int, threads: int = 0, seed: int = 0)
         mode="neural",
         reference_walks=THUMBNAIL_REFERENCE_WALKS,
         threads=threads,
+        calibrate="cached",
     )
 
 
@@ -43,5 +45,5 @@ def prepare_thumbnail(scene, threads: int = 0) -> tuple[RenderSettings, list[str
     the thumbnail's settings (for its camera's size) with the decoder choice's notes."""
     from .. import quality
 
-    scene.materials, _, notes = quality.assign_decoders(scene, THUMBNAIL_DECODER)
+    scene.materials, _, notes = quality.assign_decoders(scene, THUMBNAIL_DECODER, calibrate="cached")
     return thumbnail_settings(scene.camera.width, scene.camera.height, threads=threads), notes

@@ -1,0 +1,223 @@
+"""Albedo calibration: a decoded material made as bright as the reference, angle by angle.
+
+    cal = calibrate(stack, models, z, proxy)      # seconds per material, cached
+    f = cal.apply(models.eval_brdf(z, wi, wo), wi, wo)
+
+The decoders hold layered lobes only approximately, and what an artist sees first is the error of
+the lobe's integral: the directional albedo. Measured on the presets with the tiny decoder
+(``benchmarks/bench_fidelity.py``, docs/fidelity.md): varnished wood 10-20% too bright at every
+angle, lacquered plastic 12-34% too bright towards grazing, red car paint twice as bright at 87
+degrees. That is a colour or brightness shift on every object, and a bright rim at the terminator
+under small lights.
+
+The calibration multiplies the decoded f of one material by a reciprocal, per-channel factor
+
+    f_cal(wi, wo) = c(cos theta_i) * c(cos theta_o) * f(wi, wo)
+
+with ``c`` piecewise linear in cos(theta) on the grid :data:`COSINES` (constant beyond its ends),
+chosen so that the calibrated directional albedo equals the reference's at every grid angle. The
+reference albedo comes from the position-free estimator's analog walks (``reference.albedo``, with
+its standard error); the decoded one from the decoder itself, integrated by importance sampling
+with the material's own sampling proxy mixed half and half with a cosine lobe (exact pdfs, one-sample
+MIS). Writing the decoded albedo at grid angle k as ``c_k * sum_l M_kl c_l`` (``M`` integrates the
+lobe against the grid's hat functions), ``c`` is the fixed point of ``c <- sqrt(c * A_ref / (M c))``,
+the symmetric form of matrix scaling, per channel.
+
+What it does not change: the lobe's shape at each angle (where the light goes), only how much of it
+there is. It keeps f >= 0 and reciprocity (the factor is symmetric in the two directions) and adds no
+network evaluation. It needs one latent per material: latent textures are not calibrated.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..stack import Stack
+from . import proxy
+
+# Incident cosines of the grid: normal incidence to 88.9 degrees, denser towards grazing, where the
+# decoders' albedo is furthest off and the reference changes fastest (the coat's Fresnel).
+COSINES = (1.0, 0.85, 0.7, 0.5, 0.35, 0.25, 0.17, 0.11, 0.07, 0.04, 0.02)
+# Analog walks per grid angle: the reference's relative noise is largest near normal incidence (a few
+# percent of the walks carry the coat's specular reflection), so those angles get more walks.
+WALKS = (32768, 24576, 16384, 16384, 8192, 8192, 8192, 8192, 8192, 8192, 8192)
+DECODED_SAMPLES = 8192  # importance samples of the decoded lobe per grid angle
+FACTOR_RANGE = (0.1, 10.0)  # c is kept in this range: a factor outside it means the decoder failed the stack
+ITERATIONS = 60
+
+
+@dataclass(frozen=True)
+class AlbedoCalibration:
+    """Per-channel factors ``scale`` (K, 3) at incident cosines ``cosines`` (K,), decreasing, and the
+    albedos that set them: ``reference`` (K, 3) with its standard error ``reference_stderr``, and the
+    decoded albedo before (``decoded``) and after (``calibrated``) the factors."""
+
+    cosines: np.ndarray
+    scale: np.ndarray
+    reference: np.ndarray
+    reference_stderr: np.ndarray
+    decoded: np.ndarray
+    calibrated: np.ndarray
+
+    def factor(self, cos: np.ndarray) -> np.ndarray:
+        """c(cos theta) (N, 3): linear between the grid's cosines, constant beyond them."""
+        x = np.clip(np.asarray(cos, dtype=np.float64), 0.0, 1.0)
+        xp = self.cosines[::-1]  # np.interp needs increasing abscissae
+        return np.stack([np.interp(x, xp, self.scale[::-1, ch]) for ch in range(3)], axis=-1)
+
+    def apply(self, f: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        """f (N, 3) at local directions wi, wo (N, 3) times c(cos theta_i) c(cos theta_o)."""
+        return f * (self.factor(wi[:, 2]) * self.factor(wo[:, 2])).astype(f.dtype, copy=False)
+
+
+def grid_directions(cosines=COSINES) -> np.ndarray:
+    """(K, 3) unit directions in the xz-plane at the given cosines to the normal."""
+    c = np.asarray(cosines, dtype=np.float64)
+    return np.stack([np.sqrt(np.maximum(1.0 - c * c, 0.0)), np.zeros_like(c), c], axis=1)
+
+
+def reference_albedo(stack: Stack, walks=WALKS, seed: int = 0, threads: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Directional albedo (K, 3) of ``stack`` at the grid's angles from analog walks, and its standard
+    error; the angles are shared among ``threads`` threads (the walks are numpy loops that release the GIL)."""
+    from .. import reference
+
+    dirs = grid_directions()
+    if len(walks) != len(dirs):
+        raise ValueError(f"walks must give one count per grid angle ({len(dirs)}), got {len(walks)}")
+
+    def one(k: int):
+        return reference.albedo(stack, dirs[k : k + 1], samples=int(walks[k]), seed=seed + k)
+
+    order = np.argsort(walks)[::-1]  # the longest first, so the threads finish together
+    with ThreadPoolExecutor(max_workers=max(1, int(threads))) as pool:
+        done = dict(zip(order.tolist(), pool.map(one, order.tolist()), strict=True))
+    albedo = np.concatenate([np.asarray(done[k][0]) for k in range(len(dirs))])
+    stderr = np.concatenate([np.asarray(done[k][1]) for k in range(len(dirs))])
+    return albedo, stderr
+
+
+def _hats(cos: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """(N, K) weights of linear interpolation on the decreasing ``grid`` at ``cos`` (rows sum to 1)."""
+    x = np.clip(cos, grid[-1], grid[0])
+    inc = grid[::-1]
+    j = np.clip(np.searchsorted(inc, x, side="right") - 1, 0, len(inc) - 2)
+    t = (x - inc[j]) / (inc[j + 1] - inc[j])
+    w = np.zeros((len(x), len(grid)))
+    rows = np.arange(len(x))
+    k = len(grid) - 1 - j  # index in the decreasing grid
+    w[rows, k] += 1.0 - t
+    w[rows, k - 1] += t
+    return w
+
+
+def _lobe_samples(models, z, sigma: float, w: float, cosines, samples: int, seed: int):
+    """Importance samples of the decoded lobe seen from each of ``cosines`` (outgoing): cos(theta_i)
+    (A, S) and f cos(theta_i) / pdf (A, S, 3), incident directions drawn from the material's proxy
+    and a cosine lobe half and half (one-sample MIS, balance heuristic: exact pdfs)."""
+    rng = np.random.default_rng(seed)
+    wo = np.repeat(grid_directions(cosines), samples, axis=0)
+    n = len(wo)
+    u = rng.random((n, 3))
+    wi_proxy, _ = proxy.sample(wo, sigma, w, u)
+    r = np.sqrt(u[:, 1])
+    phi = 2.0 * np.pi * u[:, 2]
+    wi_cos = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1.0 - u[:, 1], 0.0))], axis=1)
+    wi = np.where((rng.random(n) < 0.5)[:, None], wi_proxy, wi_cos)
+    cos_i = np.maximum(wi[:, 2], 0.0)
+    pdf = 0.5 * proxy.pdf(wo, wi, sigma, w) + 0.5 * cos_i / np.pi
+    f = models.eval_brdf(z, wi, wo).astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = np.where((pdf > 0)[:, None], f * (cos_i / pdf)[:, None], 0.0)
+    a = len(np.atleast_1d(cosines))
+    return cos_i.reshape(a, samples), v.reshape(a, samples, 3)
+
+
+def decoded_albedo(models, z, sigma: float, w: float, cosines, calibration=None, samples=DECODED_SAMPLES, seed=0):
+    """Directional albedo (A, 3) of the decoded lobe at ``cosines`` (outgoing), with ``calibration``'s
+    factors when given."""
+    cos_i, v = _lobe_samples(models, z, sigma, w, cosines, samples, seed)
+    if calibration is not None:
+        a = len(cos_i)
+        v = v * calibration.factor(cos_i.reshape(-1)).reshape(a, samples, 3)
+        v = v * calibration.factor(np.asarray(cosines, dtype=np.float64))[:, None, :]
+    return v.mean(axis=1)
+
+
+def decoded_albedo_matrix(models, z, sigma: float, w: float, samples: int = DECODED_SAMPLES, seed: int = 0):
+    """``M`` (K, K, 3): the decoded lobe at each grid angle (outgoing) integrated over incident
+    directions against the grid's hat functions of cos(theta_i), so that the decoded albedo with
+    factors c is ``c_k * (M c)_k``; ``M.sum(axis=1)`` is the plain decoded albedo."""
+    grid = np.asarray(COSINES)
+    cos_i, v = _lobe_samples(models, z, sigma, w, grid, samples, seed)
+    hats = _hats(cos_i.reshape(-1), grid).reshape(len(grid), samples, len(grid))
+    return np.einsum("ksl,ksc->klc", hats, v) / samples
+
+
+def solve_factors(m: np.ndarray, target: np.ndarray, iterations: int = ITERATIONS) -> np.ndarray:
+    """Per channel, c (K, 3) with c_k (M c)_k = target_k, by the iteration c <- sqrt(c target / (M c)),
+    kept in :data:`FACTOR_RANGE`."""
+    lo, hi = FACTOR_RANGE
+    c = np.ones_like(target)
+    tiny = 1e-12
+    for _ in range(iterations):
+        mc = np.einsum("klc,lc->kc", m, c)
+        c = np.clip(np.sqrt(c * np.maximum(target, tiny) / np.maximum(mc, tiny)), lo, hi)
+    return c
+
+
+MODES = (True, False, "cached")
+
+
+def check_mode(calibrate) -> bool | str:
+    """``calibrate`` if it is one of :data:`MODES` (True: calibrate, False: not, "cached": only reuse
+    a calibration made this session), else ValueError."""
+    if calibrate is True or calibrate is False or (isinstance(calibrate, str) and calibrate == "cached"):
+        return calibrate
+    raise ValueError(f"calibrate must be True, False or 'cached', got {calibrate!r}")
+
+
+_CACHE: dict[str, AlbedoCalibration] = {}
+
+
+def cache_key(stack: Stack, models, z) -> str:
+    z = np.ascontiguousarray(np.asarray(z, dtype=np.float32))
+    parts = (stack.to_json(), models.size, models.digest, hashlib.sha256(z.tobytes()).hexdigest(), WALKS, COSINES)
+    return hashlib.sha256(repr(parts).encode()).hexdigest()
+
+
+def cached(stack: Stack, models, z) -> AlbedoCalibration | None:
+    """The calibration of this stack and latent if it was made in this session, else None (no work)."""
+    return _CACHE.get(cache_key(stack, models, z))
+
+
+def calibrate(stack: Stack, models, z, proxy_params, seed: int = 0, threads: int = 2) -> AlbedoCalibration:
+    """The albedo calibration of latent ``z`` (3, 32) of ``stack`` on ``models`` (see the module
+    docstring); ``proxy_params`` (sigma, w) are the material's sampling proxy. Cached per stack,
+    model files and latent for the session."""
+    if not isinstance(stack, Stack):
+        raise ValueError(f"calibrate needs a Stack, got {type(stack).__name__}")
+    key = cache_key(stack, models, z)
+    if key in _CACHE:
+        return _CACHE[key]
+    sigma, w = (float(v) for v in proxy_params)
+    ref, ref_se = reference_albedo(stack, seed=seed, threads=threads)
+    m = decoded_albedo_matrix(models, z, sigma, w, seed=seed)
+    scale = solve_factors(m, ref)
+    out = AlbedoCalibration(
+        cosines=np.asarray(COSINES, dtype=np.float64),
+        scale=scale,
+        reference=ref,
+        reference_stderr=ref_se,
+        decoded=m.sum(axis=1),
+        calibrated=scale * np.einsum("klc,lc->kc", m, scale),
+    )
+    _CACHE[key] = out
+    return out
+
+
+def clear_cache() -> None:
+    _CACHE.clear()

@@ -1,0 +1,118 @@
+"""Albedo calibration (addon.core.neural.calibrate): what it fixes near the horizon and what it costs.
+
+    python benchmarks/bench_calibration.py --sizes tiny small --out docs/calibration.md
+
+For each decoder size, on the held-out grazing set (``tests/data/heldout_grazing.npz``, 32 held-out
+stacks with one to four coatings; ``onnx_export.heldout_grazing``), network / reference ratios with and
+without the calibration, as ``tests/training/test_grazing.py`` measures them:
+
+- the median albedo ratio at 75 and 85 degrees per coating count (the albedo bias),
+- the largest albedo ratio and the largest f cos(theta_i) ratio (viewer on the normal) at 80-89.5 degrees
+  over all stacks (the glow at the terminator);
+
+and, for the presets, the seconds one calibration takes here (reference walks and the decoded lobe).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from addon.core.neural import calibrate as cal  # noqa: E402
+from addon.core.neural import encode_stack, load_models  # noqa: E402
+from addon.core.stack import PRESETS  # noqa: E402
+from onnx_export.heldout_grazing import grazing_ratios, load  # noqa: E402
+
+GRAZING = ROOT / "tests" / "data" / "heldout_grazing.npz"
+
+
+def grazing_row(size: str, calibrate: bool) -> dict:
+    r = grazing_ratios(load_models(size), load(GRAZING), calibrate=calibrate)
+    near = r["angles"] >= 80
+    row = {"albedo_max": float(r["albedo"][:, near].max()), "fcos_max": float(r["fcos"][:, near].max())}
+    for t in (75.0, 85.0):
+        k = list(r["angles"]).index(t)
+        for c in np.unique(r["n_coatings"]):
+            row[f"median_{t:g}_{int(c)}"] = float(np.median(r["albedo"][r["n_coatings"] == c, k]))
+    row["coatings"] = [int(c) for c in np.unique(r["n_coatings"])]
+    return row
+
+
+def cost_rows(size: str) -> list[tuple[str, float]]:
+    models = load_models(size)
+    rows = []
+    for name, stack in PRESETS.items():
+        if not stack.coatings:
+            continue
+        z = encode_stack(stack, models)
+        cal.clear_cache()
+        t = time.perf_counter()
+        cal.calibrate(stack, models, z, models.proxy_params(z)[0])
+        rows.append((name, time.perf_counter() - t))
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sizes", nargs="+", default=["tiny", "small"])
+    ap.add_argument("--out", type=Path, default=ROOT / "docs" / "calibration.md")
+    a = ap.parse_args(argv)
+    command = "python benchmarks/bench_calibration.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
+    lines = [
+        "# Albedo calibration: grazing ratios and cost",
+        "",
+        f"Command: `{command}`",
+        "",
+        f"Machine: {platform.machine()}, {os.cpu_count()} CPU threads. Calibration: "
+        f"{len(cal.COSINES)} incident angles (cos theta {', '.join(f'{c:g}' for c in cal.COSINES)}), "
+        f"{sum(cal.WALKS):,} reference walks and {len(cal.COSINES) * cal.DECODED_SAMPLES:,} decoded "
+        "samples per material (`addon/core/neural/calibrate.py`).",
+        "",
+        "## Held-out grazing set: network / reference (1 = exact)",
+        "",
+        "Median albedo ratio per coating count at 75 and 85 degrees; the largest albedo and f cos(theta_i) "
+        "ratios over all 32 stacks at 80-89.5 degrees (targets: median within 5%, nothing over 2).",
+        "",
+    ]
+    for size in a.sizes:
+        rows = {flag: grazing_row(size, flag) for flag in (False, True)}
+        coats = rows[False]["coatings"]
+        head = " | ".join(f"{t:g} deg, {c} coat." for t in (75, 85) for c in coats)
+        lines += [
+            f"### {size}",
+            "",
+            f"| | {head} | largest albedo ratio | largest f cos ratio |",
+            "|---|" + "---|" * (2 * len(coats) + 2),
+        ]
+        for flag, label in ((False, "decoder"), (True, "calibrated")):
+            r = rows[flag]
+            cells = " | ".join(f"{r[f'median_{t:g}_{c}']:.3f}" for t in (75, 85) for c in coats)
+            lines.append(f"| {label} | {cells} | {r['albedo_max']:.2f} | {r['fcos_max']:.2f} |")
+            print(size, label, r, flush=True)
+        lines.append("")
+    lines += [
+        "## Cost per preset (seconds, one calibration, this machine)",
+        "",
+        "| preset | " + " | ".join(a.sizes) + " |",
+    ]
+    lines.append("|---|" + "---|" * len(a.sizes))
+    costs = {size: dict(cost_rows(size)) for size in a.sizes}
+    for name in costs[a.sizes[0]]:
+        lines.append(f"| {name} | " + " | ".join(f"{costs[s][name]:.2f}" for s in a.sizes) + " |")
+    a.out.write_text("\n".join(lines) + "\n")
+    print(f"Wrote {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

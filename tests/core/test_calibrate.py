@@ -1,0 +1,128 @@
+"""Albedo calibration of decoded materials against the reference (addon.core.neural.calibrate)."""
+
+import numpy as np
+import pytest
+
+from addon.core import reference
+from addon.core.neural import calibrate as cal
+from addon.core.neural import encode_stack, load_models
+from addon.core.render import neural_material
+from addon.core.render.integrator import RenderSettings
+from addon.core.stack import preset
+
+
+def test_factors_solve_the_symmetric_scaling_and_leave_a_matching_albedo_alone():
+    rng = np.random.default_rng(3)
+    k = len(cal.COSINES)
+    m = rng.uniform(0.01, 0.2, size=(k, k, 3))
+    c_true = rng.uniform(0.5, 2.0, size=(k, 3))
+    target = c_true * np.einsum("klc,lc->kc", m, c_true)
+    c = cal.solve_factors(m, target)
+    np.testing.assert_allclose(c * np.einsum("klc,lc->kc", m, c), target, rtol=1e-6)
+    np.testing.assert_allclose(c, c_true, rtol=1e-5)  # the positive solution is unique
+    # an albedo that already matches needs no factor
+    np.testing.assert_allclose(cal.solve_factors(m, m.sum(axis=1)), 1.0, rtol=1e-6)
+    # factors stay in range even for a target the lobe cannot reach
+    c = cal.solve_factors(m, np.full((k, 3), 1e6))
+    assert c.max() <= cal.FACTOR_RANGE[1] and c.min() >= cal.FACTOR_RANGE[0]
+
+
+def test_hat_weights_interpolate_like_the_factor():
+    grid = np.asarray(cal.COSINES)
+    x = np.concatenate([np.linspace(0.0, 1.0, 101), grid])
+    hats = cal._hats(x, grid)
+    np.testing.assert_allclose(hats.sum(axis=1), 1.0)
+    scale = np.random.default_rng(0).uniform(0.5, 2.0, size=(len(grid), 3))
+    c = cal.AlbedoCalibration(grid, scale, scale, scale, scale, scale)
+    np.testing.assert_allclose(c.factor(x), hats @ scale, rtol=1e-12)
+    # constant beyond the grid's ends (grazing beyond 88.6 degrees keeps the last factor)
+    np.testing.assert_allclose(c.factor(np.array([0.0, 0.01])), scale[[-1, -1]])
+
+
+@pytest.fixture(scope="module")
+def plastic():
+    stack = preset("lacquered_plastic")
+    models = load_models("tiny", threads=2)
+    z = encode_stack(stack, models)
+    proxy = models.proxy_params(z)[0]
+    return stack, models, z, proxy, cal.calibrate(stack, models, z, proxy)
+
+
+def test_calibrated_albedo_matches_an_independent_reference_better_than_the_decoder(plastic):
+    """The calibrated material's albedo (other importance samples than the factors were solved with)
+    against reference walks with other seeds, at angles on and between the grid's."""
+    stack, models, z, proxy, c = plastic
+    cosines = np.cos(np.radians([0.0, 40.0, 65.0, 80.0, 85.0, 88.0]))
+    ref, se = reference.albedo(stack, cal.grid_directions(cosines), samples=32768, seed=99)
+    a_cal = cal.decoded_albedo(models, z, *proxy, cosines, calibration=c, samples=32768, seed=7)
+    a_plain = cal.decoded_albedo(models, z, *proxy, cosines, samples=32768, seed=7)
+    err_cal = np.abs(a_cal / ref - 1).mean(axis=1)
+    err_plain = np.abs(a_plain / ref - 1).mean(axis=1)
+    # within a few percent at every angle (reference noise 1-2%, interpolation between grid angles)
+    assert err_cal.max() < 0.05, err_cal
+    assert err_cal.mean() < 0.3 * err_plain.mean(), (err_cal, err_plain)
+    # the decoder alone is far off towards grazing for this stack (what the calibration is for)
+    assert err_plain.max() > 0.1, err_plain
+
+
+def test_the_renderer_evaluates_the_calibrated_lobe(plastic):
+    stack, models, z, proxy, c = plastic
+    rng = np.random.default_rng(2)
+    wi = rng.normal(size=(64, 3))
+    wi[:, 2] = np.abs(wi[:, 2])
+    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+    wo = wi[::-1].copy()
+    f = neural_material.NeuralMaterial(models, z, proxy, calibration=c).bind(None).eval(wi, wo)
+    expected = models.eval_brdf(z, wi, wo) * c.factor(wi[:, 2]) * c.factor(wo[:, 2])
+    np.testing.assert_allclose(f, expected, rtol=1e-6)
+
+
+def test_calibration_keeps_reciprocity_and_non_negative_finite_values(plastic):
+    stack, models, z, proxy, c = plastic
+    rng = np.random.default_rng(5)
+    n = 4096
+    wi = rng.normal(size=(n, 3))
+    wo = rng.normal(size=(n, 3))
+    wi[:, 2] = np.abs(wi[:, 2]) * rng.choice([1.0, 1e-4], size=n)  # many at the horizon
+    wo[:, 2] = np.abs(wo[:, 2])
+    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    cal_b = neural_material.NeuralMaterial(models, z, proxy, calibration=c).bind(None)
+    plain = neural_material.NeuralMaterial(models, z, proxy).bind(None)
+    f, g = cal_b.eval(wi, wo), cal_b.eval(wo, wi)
+    assert np.isfinite(f).all() and (f >= 0).all()
+    # the factor is symmetric in the two directions: the calibrated ratio f(wi, wo) / f(wo, wi) is the decoder's
+    f0, g0 = plain.eval(wi, wo), plain.eval(wo, wi)
+    ok = (f0 > 1e-6) & (g0 > 1e-6)
+    np.testing.assert_allclose((f / g)[ok], (f0 / g0)[ok], rtol=1e-5)
+
+
+def test_make_calibrates_on_request_and_reuses_only_what_the_session_made():
+    stack = preset("frosted_copper")
+    cal.clear_cache()
+    assert neural_material.make(stack, size="tiny").calibration is None
+    assert neural_material.make(stack, size="tiny", calibrate="cached").calibration is None  # nothing made yet
+    made = neural_material.make(stack, size="tiny", calibrate=True).calibration
+    assert made is not None
+    assert neural_material.make(stack, size="tiny", calibrate="cached").calibration is made
+    # the calibration belongs to the latent: another size has its own
+    assert neural_material.make(stack, size="small", calibrate="cached").calibration is None
+
+
+def test_bad_calibrate_settings_are_refused():
+    stack = preset("frosted_copper")
+    for bad in ("yes", 1, None, "Cached"):
+        with pytest.raises(ValueError, match="calibrate must be True, False or 'cached'"):
+            neural_material.make(stack, size="tiny", calibrate=bad)
+        with pytest.raises(ValueError, match="calibrate must be True, False or 'cached'"):
+            RenderSettings(calibrate=bad)
+    with pytest.raises(ValueError, match="calibrate needs a Stack"):
+        cal.calibrate("frosted_copper", None, None, (0.1, 0.5))
+    models = load_models("tiny")
+    z = encode_stack(stack, models)
+    c = cal.calibrate(stack, models, z, models.proxy_params(z)[0])
+    from addon.core.textures import LatentTexture
+
+    tex = LatentTexture.from_texels(np.zeros((2, 2, 98), np.float32))
+    with pytest.raises(ValueError, match="not to a latent texture"):
+        neural_material.NeuralMaterial(models, None, (0.1, 0.5), tex, calibration=c)
