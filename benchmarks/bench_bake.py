@@ -142,7 +142,7 @@ def main(argv=None) -> int:
         f"Stack: `varnished_wood` driven by {args.res}x{args.res} images. Texels/s counts every texel of the",
         "texture (base level), distinct texels/s the rows the networks encoded; the mip chain is part of the bake",
         "time, the half-float EXR write is timed separately. Deduplication hashes the float32 parameter rows",
-        "(`addon.core.textures.bake.distinct_rows`) and sorts only the hashes.",
+        "(`addon.core.rows.distinct_rows`) and sorts only the hashes.",
         "",
         "| driving images | dedup | distinct texels encoded | texels/s | distinct texels/s | bake s | EXR write s | "
         "EXR MiB per megapixel |",

@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from addon.core.textures import bake
-from addon.core.textures.bake import distinct_rows
+from addon.core import rows
+from addon.core.rows import distinct_rows
 
 
 def rows_with_repeats(n=5000, distinct=37, cols=23, seed=0):
@@ -25,6 +25,30 @@ def test_distinct_rows_finds_every_distinct_row_once():
 
 def test_a_hash_collision_falls_back_to_the_exact_row_sort(monkeypatch):
     m, _ = rows_with_repeats(n=800, distinct=9)
-    monkeypatch.setattr(bake, "_FNV_PRIME", np.uint64(0))  # every row hashes to 0
+    monkeypatch.setattr(rows, "_FNV_PRIME", np.uint64(0))  # every row hashes to 0
     first, inverse = distinct_rows(m)
     assert len(first) == 9 and np.array_equal(m[first][inverse], m)
+
+
+def test_the_encoder_runs_each_distinct_feature_row_once_with_the_same_latents():
+    from addon.core.neural import load_models
+    from addon.core.neural.features import base_features
+
+    models = load_models("tiny")
+    rng = np.random.default_rng(4)
+    n = 300
+    kind = rng.integers(0, 3, size=n)
+    alpha = rng.choice([0.05, 0.2, 0.6], size=n)  # few distinct layers, repeated
+    albedo = rng.choice([0.2, 0.8], size=(n, 1)) * np.ones((1, 3))
+    x = base_features(kind, alpha, albedo, (0.2, 0.9, 1.1), (3.9, 2.4, 2.1), 1.5)
+    calls = []
+    session = models._load("encoder")
+    real = session.run
+    session.run = lambda outputs, rows, shared=None: calls.append(len(rows["x"])) or real(outputs, rows, shared)
+    try:
+        z = models.run_encoder(x)
+    finally:
+        session.run = real
+    direct = real(["z"], {"x": x.reshape(-1, x.shape[-1])})[0].reshape(n, 3, -1)
+    np.testing.assert_array_equal(z, direct)
+    assert calls == [len(distinct_rows(x.reshape(-1, x.shape[-1]))[0])] and calls[0] < 3 * 18

@@ -53,11 +53,10 @@ def base_features(kind, alpha, albedo, eta, k, ior) -> np.ndarray:
     out[:, :, 3] = np.where(rough, np.log(alpha / ALPHA_MIN) / np.log(1.0 / ALPHA_MIN), 0.0)[:, None]
     out[:, :, 4] = np.where(rough, np.sqrt(alpha), 0.0)[:, None]
     out[:, :, 5] = np.where(diffuse[:, None], albedo, 0.0)
+    rc, rd = np.flatnonzero(conductor), np.flatnonzero(dielectric)  # each Fresnel only where it applies
     for j, c in enumerate(FRESNEL_COSINES):
-        cos = np.full(n, c)
-        fc = fresnel_conductor(cos, np.maximum(eta, 1e-6), k)
-        fd = fresnel_dielectric(cos, np.maximum(ior, 1.0 + 1e-6))[:, None]
-        out[:, :, 6 + j] = np.where(conductor[:, None], fc, np.where(dielectric[:, None], fd, 0.0))
+        out[rc, :, 6 + j] = fresnel_conductor(np.full(len(rc), c), np.maximum(eta[rc], 1e-6), k[rc])
+        out[rd, :, 6 + j] = fresnel_dielectric(np.full(len(rd), c), np.maximum(ior[rd], 1.0 + 1e-6))[:, None]
     return out.astype(np.float32)
 
 

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..rows import distinct_rows
 from ..stack import LATENT
 from . import proxy
 from .features import N_FEATURES
@@ -283,8 +284,12 @@ class ModelSet:
             raise ValueError("encoder features must be finite")
         if x.shape[0] == 0:
             return np.zeros((0, 3, LATENT), dtype=np.float32)
-        z = self._load("encoder").run(["z"], {"x": x.reshape(-1, N_FEATURES)})[0]
-        return z.reshape(-1, 3, LATENT)
+        # Each distinct row once: layers repeat across texels and, for a dielectric or a diffuse
+        # grey, across the three channels (features hold no colour there).
+        rows = x.reshape(-1, N_FEATURES)
+        first, inverse = distinct_rows(rows)
+        z = self._load("encoder").run(["z"], {"x": rows[first]})[0]
+        return z[inverse].reshape(-1, 3, LATENT)
 
     def run_layering(self, z_top, z_bottom, albedo, thickness) -> np.ndarray:
         """One application of the layering network: z_top, z_bottom (B, 32), albedo, thickness (B,) -> z (B, 32)."""

@@ -1,0 +1,36 @@
+"""Distinct rows of a parameter matrix, by hashing: the deduplication of bakes and encoders."""
+
+from __future__ import annotations
+
+import numpy as np
+
+_FNV_PRIME = np.uint64(1099511628211)
+_FNV_OFFSET = np.uint64(14695981039346656037)
+
+
+def distinct_rows(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Deduplication of parameter rows: ``(first, inverse)`` with ``matrix[first]`` the distinct
+    rows (quantised to float32, the precision the encoders compute in) and
+    ``matrix[first][inverse]`` equal to every row so quantised.
+
+    Each row is hashed (FNV-1a over its float32 bit patterns, 64 bits, one vectorised step per
+    column) and only the hashes are sorted, instead of sorting whole rows lexicographically
+    (``np.unique(axis=0)``, most of a bake's time on large textures). A hash collision is caught by
+    comparing every row with its representative; then the exact row sort decides.
+    """
+    q = np.ascontiguousarray(np.asarray(matrix, dtype=np.float64).astype(np.float32))
+    if q.ndim != 2:
+        raise ValueError(f"parameter rows must be a 2-D array, got shape {q.shape}")
+    q[q == 0] = 0.0  # -0.0 and 0.0 are the same parameter
+    bits = q.view(np.uint32)
+    h = np.full(len(q), _FNV_OFFSET, dtype=np.uint64)
+    with np.errstate(over="ignore"):
+        for j in range(bits.shape[1]):  # a loop over parameter columns, not texels
+            h ^= bits[:, j]
+            h *= _FNV_PRIME
+    _, first, inverse = np.unique(h, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    if not np.array_equal(bits[first][inverse], bits):  # a collision: two rows share a hash
+        _, first, inverse = np.unique(bits, axis=0, return_index=True, return_inverse=True)
+        inverse = inverse.reshape(-1)
+    return first, inverse
