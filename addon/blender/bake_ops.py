@@ -14,6 +14,7 @@ import time
 import bpy
 from bpy.props import EnumProperty, IntProperty
 
+from ..core.render import RenderSettings
 from ..core.textures.bake import bake_key, bake_stack, neural_encoder
 from . import bake_inputs
 from .bake_state import (  # noqa: F401 (baked_texture_state: API)
@@ -116,6 +117,8 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
         key = bake_key(spatial, res, bake_model_key(size, refine_s))  # decoder digest and budget, as bake_state checks
         refine_cache = os.path.join(os.path.dirname(path), ".refine")  # as the bake CLI's OUT/.refine
         name = mat.name
+        render = context.scene.render
+        threads = RenderSettings.threads_for(render.threads_mode, render.threads)  # Blender's Threads setting
 
         def work(progress):
             t0 = time.perf_counter()
@@ -126,6 +129,7 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
                 resolution=res,
                 progress=progress,
                 metadata={"material": name, "model": size, "key": key},
+                threads=threads,
             )
             os.makedirs(os.path.dirname(path), exist_ok=True)
             tex.write_exr(path)

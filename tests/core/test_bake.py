@@ -143,3 +143,27 @@ def test_the_default_auto_bake_uses_the_default_size_and_records_it():
     assert tex.metadata["model"] == DEFAULT_SIZE and stats.unique == 1
     z = encode_stack(wood(), DEFAULT_SIZE)
     assert np.allclose(tex.levels[0][..., :96], z.reshape(96), atol=1e-6)
+
+
+def test_the_bake_uses_the_threads_it_is_given_and_their_count_changes_nothing(monkeypatch):
+    from addon.core.neural import session
+    from addon.core.textures.bake import neural_encoder
+
+    seen = []
+    real = session.ChunkedSession.map
+
+    def spy(self, fn, n):
+        seen.append(session._THREADS[-1] if session._THREADS else None)
+        return real(self, fn, n)
+
+    monkeypatch.setattr(session.ChunkedSession, "map", spy)
+    stack = preset("varnished_wood")
+    rough = np.linspace(0.02, 0.4, 64 * 64).reshape(64, 64)
+    spatial = SpatialStack(stack, {"coatings[0].roughness": rough})
+    encode = neural_encoder("tiny")
+    one, _ = bake_stack(spatial, encode, threads=1)
+    assert set(seen) == {1}
+    seen.clear()
+    two, _ = bake_stack(spatial, encode, threads=2)
+    assert set(seen) == {2}
+    np.testing.assert_array_equal(one.levels[0], two.levels[0])

@@ -186,10 +186,12 @@ def bake_stack(
     progress: Progress | None = None,
     cancel: Callable[[], bool] | None = None,
     metadata: dict | None = None,
+    threads: int = 0,
 ) -> tuple[LatentTexture, BakeStats]:
-    """Bake a spatially varying stack into a mip-mapped latent texture."""
+    """Bake a spatially varying stack into a mip-mapped latent texture; the networks run on
+    ``threads`` threads (0: every core; Blender's render thread setting in the add-on)."""
     arrays, (h, w) = spatial.texels(resolution)
-    texels, stats = bake_texels(arrays, encode, dedup=dedup, progress=progress, cancel=cancel)
+    texels, stats = bake_texels(arrays, encode, dedup=dedup, progress=progress, cancel=cancel, threads=threads)
     meta = {"stack": spatial.stack.to_json(), "maps": ",".join(sorted(spatial.maps))}
     meta.update(metadata or {})
     meta.update(getattr(encode, "metadata", {}))  # the encoder's decoder size and digest
