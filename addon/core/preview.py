@@ -175,6 +175,17 @@ def _latent_for(stack, latent, size):
     return encode_latent(stack, size)
 
 
+def _cached_calibration(stack: Stack, z: np.ndarray, size: str):
+    """The albedo calibration a render of this session made for this stack and latent, or None."""
+    from .neural import calibrate, load_models
+
+    return calibrate.cached(stack, load_models(size), z)
+
+
+def _calibrated(brdf: BrdfFn, calibration) -> BrdfFn:
+    return lambda wi, wo: calibration.apply(np.asarray(brdf(wi, wo)), np.asarray(wi), np.asarray(wo))
+
+
 def reference_sampler(stack: Stack, seed: int = 0):
     """``sampler(wo) -> (wi, weight)``: one analog walk of the reference per row (weight = f cos / pdf,
     delta reflections included); successive calls continue one seeded random stream."""
@@ -232,7 +243,12 @@ def choose_brdf(
     try:
         z, used, notes = _latent_for(stack, latent, size)
         proxy, proxy_note = neural_proxy(z, used)
-        return BrdfChoice(neural_brdf_from_latent(z, used), "NEURAL", notes + proxy_note, proxy=proxy)
+        brdf = neural_brdf_from_latent(z, used)
+        calibration = _cached_calibration(stack, z, used)
+        if calibration is not None:  # as the viewport: the calibration a render made, no walks here
+            brdf = _calibrated(brdf, calibration)
+            notes = notes + ["albedo calibration of the last render applied"]
+        return BrdfChoice(brdf, "NEURAL", notes + proxy_note, proxy=proxy)
     except NeuralUnavailable as e:
         if method == "NEURAL":
             raise

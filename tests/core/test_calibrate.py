@@ -126,3 +126,19 @@ def test_bad_calibrate_settings_are_refused():
     tex = LatentTexture.from_texels(np.zeros((2, 2, 98), np.float32))
     with pytest.raises(ValueError, match="not to a latent texture"):
         neural_material.NeuralMaterial(models, None, (0.1, 0.5), tex, calibration=c)
+
+
+def test_previews_use_the_calibration_a_render_made_and_make_none_themselves():
+    from addon.core import preview
+
+    stack = preset("varnished_wood")
+    cal.clear_cache()
+    wi = cal.grid_directions([0.9, 0.3, 0.05])
+    wo = cal.grid_directions([0.5, 0.5, 0.5])
+    before = preview.choose_brdf(stack, "NEURAL", size="tiny")
+    assert cal._CACHE == {}  # a preview computes no calibration
+    material = neural_material.make(stack, size="tiny", calibrate=True)
+    after = preview.choose_brdf(stack, "NEURAL", size="tiny")
+    expected = material.calibration.apply(np.asarray(before.brdf(wi, wo)), wi, wo)
+    np.testing.assert_allclose(after.brdf(wi, wo), expected, rtol=1e-6)
+    assert any("calibration" in n for n in after.notes)
