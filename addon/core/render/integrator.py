@@ -255,7 +255,6 @@ class _Context:
         self.face_normals = m.face_normals.astype(np.float64)
         uvs = np.zeros((m.triangle_count, 3, 2)) if m.uvs is None else m.uvs
         self.corners = np.concatenate([m.positions, m.normals, uvs], axis=2).astype(np.float64)
-        self.has_uvs = m.uvs is not None
 
     def light_weight(self, pdf_light_solid, prev_pdf, prev_delta, prev_mis):
         """Weight of emission found by BSDF sampling."""
@@ -402,8 +401,9 @@ class _Hits:
 
 def _material_groups(material: np.ndarray, n_materials: int) -> list[tuple[int, slice]]:
     """(material index, slice) of each material present in ``material`` (sorted ascending)."""
-    ends = np.cumsum(np.bincount(material, minlength=n_materials))
-    starts = ends - np.bincount(material, minlength=n_materials)
+    counts = np.bincount(material, minlength=n_materials)
+    ends = np.cumsum(counts)
+    starts = ends - counts
     return [(mi, slice(int(starts[mi]), int(ends[mi]))) for mi in np.flatnonzero(ends > starts)]
 
 
