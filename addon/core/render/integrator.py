@@ -274,6 +274,7 @@ def render(
     settings: RenderSettings | None = None,
     progress: Callable[[Film, int, int], bool] | None = None,
     film: Film | None = None,
+    pixels: np.ndarray | None = None,
 ) -> tuple[Film, RenderStats]:
     """Render ``scene``; returns the film (per-pixel mean and standard error) and statistics.
 
@@ -286,6 +287,9 @@ def render(
     Runtime release the GIL in their loops), and the networks run their batches on as many.
     Chunks draw their random numbers from their own (pass, chunk) key and are added to the film
     in order, so the image does not depend on the thread count.
+
+    ``pixels`` (flat indices, row 0 at the top) restricts the render to those pixels (a render
+    region of any shape: the rest of the film gets no sample); default every pixel.
     """
     settings = settings or RenderSettings()
     cam = scene.camera
@@ -295,13 +299,23 @@ def render(
     film = film or Film(cam.width, cam.height)
     start_pass = film.passes
     npix = cam.width * cam.height
+    if pixels is None:
+        pixels = np.arange(npix)
+    else:
+        pixels = np.asarray(pixels)
+        if pixels.ndim != 1 or pixels.dtype.kind not in "iu" or len(pixels) == 0:
+            raise ValueError(
+                f"pixels must be a non-empty 1-D array of pixel indices, got {pixels.dtype} {pixels.shape}"
+            )
+        if pixels.min() < 0 or pixels.max() >= npix or len(np.unique(pixels)) != len(pixels):
+            raise ValueError(f"pixels must be distinct indices in [0, {npix}) (width x height of the camera)")
     chunk = int(settings.chunk_paths)
-    starts = list(range(0, npix, chunk))
+    starts = list(range(0, len(pixels), chunk))
     tasks = [(k, c) for k in range(settings.samples) for c in range(len(starts))]
 
     def trace(task):
         k, c = task
-        pix = np.arange(starts[c], min(npix, starts[c] + chunk))
+        pix = pixels[starts[c] : starts[c] + chunk]
         return pix, _trace_paths(ctx, pix, start_pass + k, c)
 
     workers = min(settings.thread_count, len(tasks))
