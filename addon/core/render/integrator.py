@@ -592,7 +592,7 @@ def _continue_paths(
     return _Paths(
         paths.row[keep],
         o,
-        frame.normalize(wi_w[keep]),
+        wi_w[keep],  # unit: a unit local direction in an orthonormal frame
         thr[keep],
         sc.pdf[keep],
         sc.delta[keep],

@@ -52,9 +52,10 @@ def build_mip_chain(base: np.ndarray) -> list[np.ndarray]:
     """All levels from ``base`` (H, W, C) down to 1 x 1, as float32 arrays."""
     if base.ndim != 3 or base.shape[0] < 1 or base.shape[1] < 1:
         raise ValueError(f"a mip chain needs an (H, W, C) array, got shape {base.shape}")
-    levels = [np.asarray(base, dtype=np.float32)]
+    levels = [np.ascontiguousarray(base, dtype=np.float32)]
     while levels[-1].shape[0] > 1 or levels[-1].shape[1] > 1:
-        levels.append(downsample(levels[-1]))  # float32: the texture is stored as half floats
+        # float32: the texture is stored as half floats; contiguous, so a lookup's flat view is no copy
+        levels.append(np.ascontiguousarray(downsample(levels[-1])))
     return levels
 
 
@@ -65,7 +66,7 @@ def _bilinear(level: np.ndarray, uv: np.ndarray) -> np.ndarray:
     weights: the texture is stored as half floats, so float64 arithmetic would only double the
     memory traffic of the renderer's widest arrays (98 channels per hit for a latent texture)."""
     h, w, c = level.shape
-    flat = level.reshape(h * w, c)
+    flat = level.reshape(h * w, c)  # a view: the chain's levels are contiguous (build_mip_chain)
     x = uv[:, 0] * w - 0.5
     y = (1.0 - uv[:, 1]) * h - 0.5  # row 0 is the top of the image
     x0 = np.floor(x)
