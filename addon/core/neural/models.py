@@ -188,16 +188,15 @@ def _directions(w, name: str) -> np.ndarray:
 
 
 def _unit_or_up(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """float32 unit directions of rows ``w`` and whether each is usable: nonzero and above the
-    horizon; unusable rows become +z (their output is zeroed). Normalised in float32, the
-    precision the networks compute in (one rounding of each component, 6e-8 relative)."""
-    u = np.array(w, dtype=np.float32)  # a copy: normalised in place
-    n2 = np.einsum("ij,ij->i", u, u)
-    ok = (n2 > 0.0) & (u[:, 2] > 0.0) & np.isfinite(n2)
-    u *= (1.0 / np.sqrt(np.where(ok, n2, np.float32(1.0))))[:, None]
+    """float32 unit directions of rows ``w`` (normalised in float64) and whether each is usable:
+    nonzero and above the horizon; unusable rows become +z (their output is zeroed)."""
+    w = np.asarray(w, dtype=np.float64)
+    n2 = np.einsum("ij,ij->i", w, w)
+    ok = (n2 > 0.0) & (w[:, 2] > 0.0) & np.isfinite(n2)
+    u = w * (1.0 / np.sqrt(np.where(ok, n2, 1.0)))[:, None]
     if not ok.all():
         u[~ok] = (0.0, 0.0, 1.0)
-    return u, ok
+    return u.astype(np.float32), ok
 
 
 def latents(z, name: str = "z") -> np.ndarray:
