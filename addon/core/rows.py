@@ -13,12 +13,15 @@ def distinct_rows(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     rows (quantised to float32, the precision the encoders compute in) and
     ``matrix[first][inverse]`` equal to every row so quantised.
 
+    ``first`` is ascending (each distinct row's first occurrence), so rows that are all distinct give
+    ``first`` and ``inverse`` equal to ``arange(n)`` and a caller can skip both gathers.
+
     Each row is hashed (FNV-1a over its float32 bit patterns, 64 bits, one vectorised step per
     column) and only the hashes are sorted, instead of sorting whole rows lexicographically
     (``np.unique(axis=0)``, most of a bake's time on large textures). A hash collision is caught by
-    comparing every row with its representative; then the exact row sort decides.
+    comparing every repeated row with its representative; then the exact row sort decides.
     """
-    q = np.ascontiguousarray(np.asarray(matrix, dtype=np.float64).astype(np.float32))
+    q = np.array(matrix, dtype=np.float32)  # a copy (a float64 matrix rounds as through float64)
     if q.ndim != 2:
         raise ValueError(f"parameter rows must be a 2-D array, got shape {q.shape}")
     q[q == 0] = 0.0  # -0.0 and 0.0 are the same parameter
@@ -30,7 +33,17 @@ def distinct_rows(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             h *= _FNV_PRIME
     _, first, inverse = np.unique(h, return_index=True, return_inverse=True)
     inverse = inverse.reshape(-1)
-    if not np.array_equal(bits[first][inverse], bits):  # a collision: two rows share a hash
+    rep = first[inverse]  # each row's representative
+    repeated = np.flatnonzero(rep != np.arange(len(q)))
+    if not np.array_equal(bits[rep[repeated]], bits[repeated]):  # a collision: two rows share a hash
         _, first, inverse = np.unique(bits, axis=0, return_index=True, return_inverse=True)
         inverse = inverse.reshape(-1)
-    return first, inverse
+    return _ascending(first, inverse)
+
+
+def _ascending(first: np.ndarray, inverse: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The same deduplication with the distinct rows in order of first occurrence."""
+    order = np.argsort(first, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return first[order], rank[inverse]

@@ -52,3 +52,13 @@ def test_the_encoder_runs_each_distinct_feature_row_once_with_the_same_latents()
     direct = real(["z"], {"x": x.reshape(-1, x.shape[-1])})[0].reshape(n, 3, -1)
     np.testing.assert_array_equal(z, direct)
     assert calls == [len(distinct_rows(x.reshape(-1, x.shape[-1]))[0])] and calls[0] < 3 * 18
+
+
+def test_distinct_rows_come_in_order_of_first_occurrence():
+    m, _ = rows_with_repeats(n=400, distinct=11, seed=2)
+    first, inverse = distinct_rows(m)
+    assert np.all(np.diff(first) > 0) and first[0] == 0
+    assert np.array_equal(m[first][inverse], m)
+    unique = np.random.default_rng(3).random((300, 5))  # all distinct: the identity, nothing to gather
+    first, inverse = distinct_rows(unique)
+    assert np.array_equal(first, np.arange(300)) and np.array_equal(inverse, np.arange(300))

@@ -152,11 +152,14 @@ def bake_texels(
 def _bake_texels(arrays, encode, dedup, batch, progress, cancel) -> tuple[np.ndarray, BakeStats]:
     t0 = time.perf_counter()
     n = len(arrays)
+    inverse = None  # None: every row is its own (no gather at the end)
+    todo = arrays
     if dedup:
         first, inverse = distinct_rows(arrays.to_matrix())
-        todo = arrays.take(first)
-    else:
-        todo, inverse = arrays, np.arange(n)
+        if len(first) < n:
+            todo = arrays.take(first)
+        else:  # all distinct: first and inverse are arange(n)
+            inverse = None
     m = len(todo)
     out = np.empty((m, len(CHANNEL_NAMES)), dtype=np.float32)
     for start in range(0, m, batch):  # a loop over batches, not texels
@@ -174,7 +177,7 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel) -> tuple[np.nda
             progress(min(1.0, (start + len(part)) / m))
     if not np.isfinite(out).all():
         raise ValueError("the encoder returned non-finite latents")
-    return out[inverse], BakeStats(texels=n, unique=m, seconds=time.perf_counter() - t0)
+    return (out if inverse is None else out[inverse]), BakeStats(texels=n, unique=m, seconds=time.perf_counter() - t0)
 
 
 def bake_stack(
