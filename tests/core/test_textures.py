@@ -98,3 +98,12 @@ def test_reading_a_non_latent_exr_is_a_clear_error(tmp_path, oiio):
         LatentTexture.read_exr(tmp_path / "missing.exr")
     with pytest.raises(ValueError, match="shape"):
         LatentTexture.from_texels(np.zeros((4, 4, 3)))
+
+
+def test_even_levels_take_the_2x2_mean_bit_for_bit_as_the_general_box_filter():
+    from addon.core.textures import mip
+
+    rng = np.random.default_rng(1)
+    for shape in ((64, 32, 98), (2, 2, 3), (16, 4, 1)):
+        x = rng.normal(size=shape).astype(np.float32)
+        np.testing.assert_array_equal(mip.downsample(x), mip.resample_area(x, shape[0] // 2, shape[1] // 2))

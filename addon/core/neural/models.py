@@ -55,9 +55,10 @@ TRAINED_WITH = {
 }
 # Floats of one hidden layer's activations per ONNX Runtime call (768 KB): the decoder's chunk is
 # that over 3 x its width, 2,048 RGB queries for the tiny decoder, 256 for the paper's, so the
-# intermediates stay in cache (measured best or near it for tiny, small and medium).
+# intermediates stay in cache (measured best or near it for tiny, small and medium); the other
+# networks' chunks are that over their width (1,536 rows for the 128-wide encoder and layering
+# network: 10% more layering throughput than 4,096 rows, benchmarks/bench_bake.py).
 DECODER_CHUNK_FLOATS = 196_608
-ENCODER_CHUNK = 4096
 LFS_POINTER = b"version https://git-lfs"
 
 
@@ -238,7 +239,7 @@ class ModelSet:
         # the fused RGB graph (same weights) is faster; the scalar graph is the reference interface
         rgb = self.model_dir / f"decoder_{size}_rgb.onnx"
         self._rgb = _session(rgb, self.threads, chunk) if rgb.name in self.card("decoder")["files"] else None
-        self._load("encoder", ENCODER_CHUNK)
+        self._load("encoder")
 
     def path(self, role: str) -> Path:
         return self.model_dir / file_name(role, self.size)
@@ -249,8 +250,11 @@ class ModelSet:
             self.cards[role] = read_card(role, self.size, self.model_dir)
         return self.cards[role]
 
-    def _load(self, role: str, chunk: int = 4096) -> ChunkedSession:
+    def _load(self, role: str, chunk: int | None = None) -> ChunkedSession:
         if role not in self._sessions:
+            if chunk is None:  # the activations of a call in cache (DECODER_CHUNK_FLOATS)
+                width = self.card(role).get("architecture", {}).get("width") or 128
+                chunk = max(128, DECODER_CHUNK_FLOATS // int(width))
             self.card(role)
             self._sessions[role] = _session(self.path(role), self.threads, chunk)
         return self._sessions[role]
@@ -260,7 +264,7 @@ class ModelSet:
         for role in roles:
             if role not in ROLES:
                 raise ValueError(f"unknown network role {role!r}; roles are {list(ROLES)}")
-            self._load(role, ENCODER_CHUNK if role == "encoder" else 4096)
+            self._load(role)
         return self
 
     def has(self, role: str) -> bool:

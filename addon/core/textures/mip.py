@@ -25,7 +25,11 @@ def box_weights(n: int, m: int | None = None) -> np.ndarray:
 
 def downsample(level: np.ndarray) -> np.ndarray:
     """Box-filter one (H, W, C) level to the next one."""
-    return resample_area(level, max(1, level.shape[0] // 2), max(1, level.shape[1] // 2))
+    h, w = level.shape[:2]
+    if h % 2 == 0 and w % 2 == 0:  # 2 x 2 means: the same sums as resample_area's taps, no gathers
+        rows = 0.5 * (level[0::2] + level[1::2])
+        return 0.5 * (rows[:, 0::2] + rows[:, 1::2])
+    return resample_area(level, max(1, h // 2), max(1, w // 2))
 
 
 def _reduce_rows(image: np.ndarray, weights: np.ndarray) -> np.ndarray:
