@@ -287,12 +287,18 @@ class ModelSet:
             raise ValueError("encoder features must be finite")
         if x.shape[0] == 0:
             return np.zeros((0, 3, LATENT), dtype=np.float32)
-        # Each distinct row once: layers repeat across texels and, for a dielectric or a diffuse
-        # grey, across the three channels (features hold no colour there).
-        rows = x.reshape(-1, N_FEATURES)
-        first, inverse = distinct_rows(rows)
-        z = self._load("encoder").run(["z"], {"x": rows[first]})[0]
-        return z[inverse].reshape(-1, 3, LATENT)
+        # Each distinct layer once (layers repeat across texels), and one channel of a layer whose
+        # three channels have the same features (a dielectric interface, a grey base: no colour).
+        first, inverse = distinct_rows(x.reshape(len(x), -1))
+        layers = x[first]
+        grey = (layers[:, 0] == layers[:, 1]).all(axis=1) & (layers[:, 0] == layers[:, 2]).all(axis=1)
+        rows = np.concatenate([layers[grey, 0], layers[~grey].reshape(-1, N_FEATURES)])
+        z_rows = self._load("encoder").run(["z"], {"x": rows})[0]
+        z = np.empty((len(layers), 3, LATENT), dtype=np.float32)
+        n_grey = int(grey.sum())
+        z[grey] = z_rows[:n_grey, None, :]
+        z[~grey] = z_rows[n_grey:].reshape(-1, 3, LATENT)
+        return z[inverse] if len(first) < len(x) else z
 
     def run_layering(self, z_top, z_bottom, albedo, thickness) -> np.ndarray:
         """One application of the layering network: z_top, z_bottom (B, 32), albedo, thickness (B,) -> z (B, 32)."""
