@@ -72,9 +72,23 @@ def true_albedo_rows(size: str, angles=(75.0, 85.0), walks: int = 32768) -> dict
     for flag, rows in ratios.items():
         r = np.array(rows)
         out[flag] = {
-            (t, int(cc)): float(np.median(r[n_coat == cc, i])) for i, t in enumerate(angles) for cc in np.unique(n_coat)
+            f"median_{t:g}_{int(cc)}": float(np.median(r[n_coat == cc, i]))
+            for i, t in enumerate(angles)
+            for cc in np.unique(n_coat)
         }
         out[flag]["max"] = float(r.max())
+    return out
+
+
+def ratio_table(rows: dict, coats: list[int], extra_heads: list[str], extra_keys: list[str]) -> list[str]:
+    """A markdown table of the decoder's and the calibrated rows: medians at 75 and 85 degrees per coating
+    count, then the ``extra_keys`` columns."""
+    head = " | ".join(f"{t:g} deg, {c} coat." for t in (75, 85) for c in coats)
+    out = [f"| | {head} | " + " | ".join(extra_heads) + " |", "|---|" + "---|" * (2 * len(coats) + len(extra_heads))]
+    for flag, label in ((False, "decoder"), (True, "calibrated")):
+        r = rows[flag]
+        cells = " | ".join(f"{r[f'median_{t:g}_{c}']:.3f}" for t in (75, 85) for c in coats)
+        out.append(f"| {label} | {cells} | " + " | ".join(f"{r[k]:.2f}" for k in extra_keys) + " |")
     return out
 
 
@@ -117,34 +131,19 @@ def main(argv=None) -> int:
     for size in a.sizes:
         rows = {flag: grazing_row(size, flag) for flag in (False, True)}
         coats = rows[False]["coatings"]
-        head = " | ".join(f"{t:g} deg, {c} coat." for t in (75, 85) for c in coats)
-        lines += [
-            f"### {size}",
-            "",
-            f"| | {head} | largest albedo ratio | largest f cos ratio |",
-            "|---|" + "---|" * (2 * len(coats) + 2),
-        ]
-        for flag, label in ((False, "decoder"), (True, "calibrated")):
-            r = rows[flag]
-            cells = " | ".join(f"{r[f'median_{t:g}_{c}']:.3f}" for t in (75, 85) for c in coats)
-            lines.append(f"| {label} | {cells} | {r['albedo_max']:.2f} | {r['fcos_max']:.2f} |")
-            print(size, label, r, flush=True)
-        lines.append("")
+        lines += [f"### {size}", ""]
+        lines += ratio_table(rows, coats, ["largest albedo ratio", "largest f cos ratio"], ["albedo_max", "fcos_max"])
         true = true_albedo_rows(size)
         lines += [
+            "",
             "Directional albedo integrated in full (importance-sampled decoded lobe, analog-walk reference with "
             "other seeds than the calibration's; not the 16 x 16 lobe grid above, which samples sharp grazing "
             f"lobes at a few points), {size}, median decoded / reference:",
             "",
-            f"| | {head} | largest ratio at 75 / 85 deg |",
-            "|---|" + "---|" * (2 * len(coats) + 1),
+            *ratio_table(true, coats, ["largest ratio at 75 / 85 deg"], ["max"]),
+            "",
         ]
-        for flag, label in ((False, "decoder"), (True, "calibrated")):
-            r = true[flag]
-            cells = " | ".join(f"{r[(t, c)]:.3f}" for t in (75.0, 85.0) for c in coats)
-            lines.append(f"| {label} | {cells} | {r['max']:.2f} |")
-            print(size, label, "true albedo", r, flush=True)
-        lines.append("")
+        print(size, rows, true, flush=True)
     lines += [
         "## Cost per preset (seconds, one calibration, this machine)",
         "",
