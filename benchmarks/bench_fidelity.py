@@ -220,10 +220,11 @@ def main(argv=None):
     for name, (neural, ref) in objects.items():  # the object's own, longer renders replace its row
         for r in per_run:
             r[name] = compare(neural, ref["means"])[name]
-    if a.reference_cache is not None:
+    extra = {name: o[1] for name, o in objects.items()}
+    old = (cached or {}).get("objects", {})
+    rendered = cached is None or any(old.get(name) != ref for name, ref in extra.items())
+    if a.reference_cache is not None and rendered:  # a cache that was only read stays as it is
         a.reference_cache.parent.mkdir(parents=True, exist_ok=True)
-        extra = {name: o[1] for name, o in objects.items()}
-        old = (cached or {}).get("objects", {})
         a.reference_cache.write_text(
             json.dumps({"key": key, "command": cmd, "runs": ref_runs, "objects": {**old, **extra}}, indent=1) + "\n"
         )
