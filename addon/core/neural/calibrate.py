@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..bsdf.lambert import sample_cosine_hemisphere
 from ..stack import Stack
 from . import proxy
 
@@ -124,9 +125,7 @@ def _lobe_samples(models, z, sigma: float, w: float, cosines, samples: int, seed
     n = len(wo)
     u = rng.random((n, 3))
     wi_proxy, _ = proxy.sample(wo, sigma, w, u)
-    r = np.sqrt(u[:, 1])
-    phi = 2.0 * np.pi * u[:, 2]
-    wi_cos = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1.0 - u[:, 1], 0.0))], axis=1)
+    wi_cos = sample_cosine_hemisphere(u[:, 1:])
     wi = np.where((rng.random(n) < 0.5)[:, None], wi_proxy, wi_cos)
     cos_i = np.maximum(wi[:, 2], 0.0)
     pdf = 0.5 * proxy.pdf(wo, wi, sigma, w) + 0.5 * cos_i / np.pi
