@@ -609,9 +609,9 @@ def _bake(argv: list[str], encode) -> int:
 
 
 @contextlib.contextmanager
-def _signals_interrupt():
-    """SIGINT and SIGTERM raise :class:`Interrupted` (once: a second signal during the clean-up is ignored)."""
-    fired = []
+def _signals_interrupt(fired: list):
+    """SIGINT and SIGTERM raise :class:`Interrupted` (once: a second signal during the clean-up is ignored);
+    ``fired`` receives the signal number."""
 
     def handler(signum, frame):
         if not fired:
@@ -634,8 +634,9 @@ def _signals_interrupt():
 def main(argv: list[str] | None = None, encode=None) -> int:
     if argv is None:
         argv = sys.argv[sys.argv.index("--") + 1 :] if "--" in sys.argv else sys.argv[1:]
+    fired: list = []
     try:
-        with _signals_interrupt():
+        with _signals_interrupt(fired):
             try:
                 return _bake(argv, encode)
             except KeyboardInterrupt:
@@ -651,6 +652,10 @@ def main(argv: list[str] | None = None, encode=None) -> int:
         )
         return EXIT_SIGNAL[e.signum]
     except Exception as e:  # a failed bake: one clear line, non-zero exit
+        if fired:  # it failed because a signal cut a step short (an interrupted write, say): report the signal
+            name = signal.Signals(fired[0]).name
+            print(f"\nerror: interrupted by {name} ({type(e).__name__}: {e}); finished bands are kept", file=sys.stderr)
+            return EXIT_SIGNAL[fired[0]]
         print(f"error: bake failed: {type(e).__name__}: {e}", file=sys.stderr)
         return EXIT_FAILED
 
