@@ -33,7 +33,8 @@ them. Against data, the stage also runs without ``--projected``, from a trained 
 
 Checkpoints go to ``OUT/ckpt.pt`` (resumable, the function-space stage too); the held-out lobe error
 (``tests/data/heldout_layered.npz``) is measured at the end of each stage and every ``--eval-every``
-steps.
+steps. ``train`` runs unchanged under ``torchrun --nproc_per_node N`` (``onnx_export.distributed``): each
+process takes its 1/N of the stacks of every batch, and process 0 measures, logs and checkpoints.
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ from addon.core.neural.features import arrays_features
 from addon.core.neural.models import ModelSet, file_digest
 from addon.core.stack import TRAINED_RANGES, StackArrays
 from onnx_export.cli import command_line
+from onnx_export.distributed import ONE_PROCESS, Processes, processes, quiet_unless_main
 from onnx_export.layered_data import data_command
 from onnx_export.nets import LATENT, cosine_lr, macs_per_eval, mlp, n_params, pair_loss
 
@@ -162,6 +164,7 @@ class StackSet:
         gen: torch.Generator,
         kind: str = "squared",
         reciprocal: bool = False,
+        procs: Processes = ONE_PROCESS,
     ) -> torch.Tensor:
         """Function-space loss of ``b`` random stacks at ``g`` of their outgoing directions each: the
         relative squared error of the cosine-weighted lobe (``decoded_lobe_loss``) between the decoder's
@@ -173,16 +176,21 @@ class StackSet:
         renderer's calls, hold the incident direction fixed instead. The decoder's inputs are not
         symmetric in its two directions, so a latent fitted in one order is not fitted in the other:
         with ``reciprocal`` a random half of the groups is decoded with the two directions swapped,
-        against the same values (the reference BRDF is reciprocal), so both orders are trained."""
+        against the same values (the reference BRDF is reciprocal), so both orders are trained.
+
+        Every process draws all ``b`` stacks and computes the loss of its share of them (``procs``)."""
         n, pm = self.wi.shape[:2]
         m = pm // self.groups
         s = torch.randint(0, self.n, (b,), generator=gen)
         grp = torch.randint(0, self.groups, (b, g), generator=gen)
+        swap = (torch.rand((b, g), generator=gen) < 0.5) if reciprocal else None
+        mine = procs.rows(b)
+        s, grp, b = s[mine], grp[mine], mine.stop - mine.start
         idx = (grp.unsqueeze(-1) * m + torch.arange(m)).reshape(b, g * m)  # every incident direction of a group
         wi, wo, w = self.wi[s[:, None], idx], self.wo[s[:, None], idx], self.weight[s[:, None], idx]
         d_in, d_out = wi, wo  # the decoder's incident and outgoing directions
         if reciprocal:
-            swap = (torch.rand((b, g), generator=gen) < 0.5).repeat_interleave(m, dim=1).unsqueeze(-1)
+            swap = swap[mine].repeat_interleave(m, dim=1).unsqueeze(-1)
             d_in, d_out = torch.where(swap, wo, wi), torch.where(swap, wi, wo)
         z = compose(net, self.z_base[s], self.z_tops[s], self.albedo[s], self.thickness[s])
         pred = decode_pairs(dec, z, d_in, d_out)
@@ -196,10 +204,14 @@ class StackSet:
             pred.reshape(*sh, 3), target.reshape(*sh, 3), wi[..., 2].reshape(sh), w.reshape(sh), kind
         )
 
-    def batch(self, net, dec, b: int, q: int, gen: torch.Generator):
+    def batch(self, net, dec, b: int, q: int, gen: torch.Generator, procs: Processes = ONE_PROCESS):
+        """Decoded values, targets, directions and weights of ``q`` pairs of ``b`` random stacks (this
+        process's share of them: every process draws all ``b``)."""
         s = torch.randint(0, self.n, (b,), generator=gen)
-        z = compose(net, self.z_base[s], self.z_tops[s], self.albedo[s], self.thickness[s])  # (b, 3, 32)
         idx = torch.randint(0, self.wi.shape[1], (b, q), generator=gen)
+        mine = procs.rows(b)
+        s, idx, b = s[mine], idx[mine], mine.stop - mine.start
+        z = compose(net, self.z_base[s], self.z_tops[s], self.albedo[s], self.thickness[s])  # (b, 3, 32)
         wi = self.wi[s[:, None], idx]  # (b, q, 3)
         wo = self.wo[s[:, None], idx]
         f = self.f[s[:, None], idx]  # (b, q, 3)
@@ -260,15 +272,16 @@ def cosine_weights(wi: np.ndarray, wo: np.ndarray, lobe_alpha: np.ndarray) -> np
     return (cos_pdf / mix).reshape(s, p, m).astype(np.float32)
 
 
-def layering_loss(pred, target, wi, wo, weight, kind: str) -> torch.Tensor:
+def layering_loss(pred, target, wi, wo, weight, kind: str, procs: Processes = ONE_PROCESS) -> torch.Tensor:
     """Mean per-pair loss (``nets.pair_loss``; ``l1log`` is its ``l1``), weighted per pair when
-    ``weight`` is given (then normalised by its mean)."""
+    ``weight`` is given (then normalised by its mean over the whole batch: with several processes, the
+    mean over them of this process's share is the whole batch's loss)."""
     if kind not in ("l2rel", "l1log"):
         raise ValueError(f"unknown layering loss {kind!r}; expected l2rel or l1log")
     e = pair_loss(pred, target, wi, wo, "l1" if kind == "l1log" else kind)
     if weight is None:
         return e.mean()
-    return (weight * e).sum() / weight.sum().clamp(min=1e-12)
+    return (weight * e).sum() / (procs.total(weight.sum()) / procs.world).clamp(min=1e-12)
 
 
 # ----------------------------------------------------------------------------- held-out error
@@ -415,7 +428,9 @@ def _checkpoint_latents(ck: dict, path, data_dir: Path, n: int) -> torch.Tensor:
     return z[:n].float()
 
 
-def regress_projected(net: LayeringNet, sets: dict, targets: dict, args, gen, log) -> None:
+def regress_projected(
+    net: LayeringNet, sets: dict, targets: dict, args, gen, log, procs: Processes = ONE_PROCESS
+) -> None:
     """Stage 0 (``--projected``): MSE of L's output against the stacks' projected latents, over every
     coating count that has them (so the recursion is regressed too)."""
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
@@ -425,14 +440,15 @@ def regress_projected(net: LayeringNet, sets: dict, targets: dict, args, gen, lo
             g["lr"] = cosine_lr(step, args.regress_steps, args.lr, warmup=20)
         loss = 0.0
         for c, data in sets.items():
-            s = torch.randint(0, data.n, (512,), generator=gen)
+            s = torch.randint(0, data.n, (512,), generator=gen)[procs.rows(512, "the regression's batch")]
             z = compose(net, data.z_base[s], data.z_tops[s], data.albedo[s], data.thickness[s])
             loss = loss + ((z - targets[c][s]) ** 2).mean() / len(sets)
         opt.zero_grad(set_to_none=True)
         loss.backward()
+        procs.average_gradients(net.parameters())
         opt.step()
         if (step + 1) % 500 == 0:
-            log(f"regress {step + 1}/{args.regress_steps} mse {loss.item():.5f} {time.perf_counter() - t0:.0f} s")
+            log(f"regress {step + 1}/{args.regress_steps} mse {procs.mean(loss):.5f} {time.perf_counter() - t0:.0f} s")
 
 
 def regress_decoded(
@@ -447,6 +463,7 @@ def regress_decoded(
     checkpoint=None,
     evaluate=None,
     opt_state=None,
+    procs: Processes = ONE_PROCESS,
 ) -> None:
     """Stage 0b (``--decoded-steps``): the regression in function space. L's latent is decoded at the
     stack's direction pairs and compared as a lobe (``decoded_lobe_loss``, the held-out metric) with the
@@ -467,15 +484,25 @@ def regress_decoded(
             g["lr"] = cosine_lr(step, args.decoded_steps, args.decoded_lr, warmup=20)
         loss = sum(
             data.decoded_batch(
-                net, dec, targets[c], args.batch // len(sets), 2, gen, args.decoded_loss, args.decoded_reciprocal
+                net,
+                dec,
+                targets[c],
+                args.batch // len(sets),
+                2,
+                gen,
+                args.decoded_loss,
+                args.decoded_reciprocal,
+                procs,
             )
             for c, data in sets.items()
         ) / len(sets)
         opt.zero_grad(set_to_none=True)
         loss.backward()
+        procs.average_gradients(net.parameters())
         nn.utils.clip_grad_norm_(net.parameters(), args.clip)
         opt.step()
-        ema = loss.item() if ema is None else 0.95 * ema + 0.05 * loss.item()
+        lv = procs.mean(loss)
+        ema = lv if ema is None else 0.95 * ema + 0.05 * lv
         done = step + 1
         if done % args.log_every == 0:
             log(f"decoded {done}/{args.decoded_steps} lobe loss {ema:.5f} {time.perf_counter() - t0:.0f} s")
@@ -540,6 +567,8 @@ def decoded_stage_data(args, models: ModelSet, sets: dict) -> tuple[dict, dict]:
 def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to be cut into stages)
     from onnx_export.heldout_layered import load as load_heldout
 
+    procs = processes()
+    log = quiet_unless_main(log, procs)
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
@@ -550,8 +579,8 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
         1: StackSet(args.c1, models, args.stacks, args.weighting == "cosine")
     }  # two-coating data are loaded when stage 2 starts
 
-    def heldout():
-        return load_heldout(args.heldout) if args.heldout.exists() else None
+    def heldout():  # measured by process 0 only
+        return load_heldout(args.heldout) if procs.main and args.heldout.exists() else None
 
     net = LayeringNet(args.width, args.depth)
     init_rec = None
@@ -584,6 +613,8 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
     total = args.steps + args.finetune
 
     def save(step, ema, **extra):
+        if not procs.main:
+            return
         hist["data"] = [sets[c].command for c in sorted(sets)]  # the data this training has loaded
         torch.save(
             {
@@ -595,6 +626,7 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
                 "history": hist,
                 "loss": ema,
                 "args": {k: str(v) for k, v in vars(args).items()},
+                "world_size": procs.world,
                 **extra,
             },
             ckpt.with_suffix(".tmp"),
@@ -605,7 +637,7 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
     if args.projected and step == 0 and "regressed" not in hist:
         targets, refit = projected_targets(args, models, sets, args.shrink)
         hist["projected"] = {"latents": str(args.projected), "refit": refit, "shrink": args.shrink}
-        regress_projected(net, sets, targets, args, gen, log)
+        regress_projected(net, sets, targets, args, gen, log, procs)
         if heldout() is not None:
             hist["regressed"] = heldout_error(net, dec, models, heldout(), log)
         fresh_opt = True
@@ -656,6 +688,7 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
             checkpoint=lambda o: save(0, None, decoded_opt=o.state_dict(), decoded_gen=gen.get_state()),
             evaluate=lambda: heldout_error(net, dec, models, ho, log) if (ho := heldout()) is not None else None,
             opt_state=opt_state,
+            procs=procs,
         )
         if heldout() is not None:
             rec["heldout"] = heldout_error(net, dec, models, heldout(), log)
@@ -679,18 +712,21 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
             log(f"stage 2: {sets[2].n} two-coating stacks")
         if stage2:  # half the batch with two coatings (the recursion), half with one (keep stage 1)
             parts = [
-                sets[2].batch(net, dec, args.batch // 2, args.pairs, gen),
-                sets[1].batch(net, dec, args.batch - args.batch // 2, args.pairs, gen),
+                sets[2].batch(net, dec, args.batch // 2, args.pairs, gen, procs),
+                sets[1].batch(net, dec, args.batch - args.batch // 2, args.pairs, gen, procs),
             ]
-            loss = sum(layering_loss(*p, kind=args.loss) for p in parts) / 2
+            loss = sum(layering_loss(*p, kind=args.loss, procs=procs) for p in parts) / 2
         else:
-            loss = layering_loss(*sets[1].batch(net, dec, args.batch, args.pairs, gen), kind=args.loss)
+            part = sets[1].batch(net, dec, args.batch, args.pairs, gen, procs)
+            loss = layering_loss(*part, kind=args.loss, procs=procs)
         opt.zero_grad(set_to_none=True)
         loss.backward()
+        procs.average_gradients(net.parameters())
         nn.utils.clip_grad_norm_(net.parameters(), args.clip)
         opt.step()
         step += 1
-        ema = loss.item() if ema is None else 0.98 * ema + 0.02 * loss.item()
+        lv = procs.mean(loss)
+        ema = lv if ema is None else 0.98 * ema + 0.02 * lv
         if step % args.log_every == 0:
             log(f"step {step}/{total} loss {ema:.5f} lr {lr:.2e} {time.perf_counter() - t0:.0f} s")
         end_of_stage = step == args.steps or step == total
@@ -997,7 +1033,8 @@ def main(argv=None):
     lg = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
     if a.cmd == "train":
         res = train(a, log=lg)
-        (Path(a.out) / "train.json").write_text(json.dumps(res, default=str, indent=1))
+        if processes().main:
+            (Path(a.out) / "train.json").write_text(json.dumps(res, default=str, indent=1))
     elif a.cmd == "bound":
         from onnx_export.heldout_layered import load as load_heldout
 

@@ -24,6 +24,11 @@ trained to minimise the bilinearly interpolated KL of its own output: the KL los
 second implementation of the proxy's formula in torch. The table's minimum is the best proxy a
 per-material fit could reach; both are reported. Latents come from the runtime encoders and layering
 network (``addon.core.neural.encode``) of random stacks with 0 to 3 coatings.
+
+The same command runs under ``torchrun --nproc_per_node N`` (``onnx_export.distributed``): the tables,
+most of the work, are split by batches of materials (each process skips the random numbers of the
+others' batches, so the tables are those of one process), the training takes 1/N of every batch, and
+process 0 writes the tables, the model and its card.
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ from torch import nn
 
 from addon.core.neural import proxy
 from onnx_export.cli import command_line
+from onnx_export.distributed import ONE_PROCESS, Processes, processes, quiet_unless_main
 from onnx_export.nets import LATENT, macs_per_eval, mlp, n_params
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"
@@ -92,8 +98,19 @@ def material_latents(arrays_list, models) -> np.ndarray:
     return np.concatenate([encode_arrays(a, models) for a in arrays_list])
 
 
-def kl_tables(models, z: np.ndarray, samples: int = 160, seed: int = 0, batch: int = 48, log=None):
-    """KL (N, len(SIGMA_GRID), len(W_GRID)) of each material's target against the proxy grid."""
+def kl_tables(
+    models,
+    z: np.ndarray,
+    samples: int = 160,
+    seed: int = 0,
+    batch: int = 48,
+    log=None,
+    procs: Processes = ONE_PROCESS,
+):
+    """KL (N, len(SIGMA_GRID), len(W_GRID)) of each material's target against the proxy grid.
+
+    With several processes each computes every N-th batch of materials, advancing its generator past the
+    random numbers of the batches it skips, and the tables are summed: the result is one process's."""
     rng = np.random.default_rng(seed)
     n = z.shape[0]
     nwo = len(WO_COS)
@@ -106,6 +123,9 @@ def kl_tables(models, z: np.ndarray, samples: int = 160, seed: int = 0, batch: i
         zb = z[b0 : b0 + batch]
         m = zb.shape[0]
         rows = m * nwo * s_tot
+        if (b0 // batch) % procs.world != procs.rank:  # another process's batch: skip its 3 x rows doubles
+            rng.bit_generator.advance(3 * rows)
+            continue
         ct = np.tile(np.repeat(np.asarray(WO_COS), s_tot), m)
         wo = np.stack([np.sqrt(1 - ct * ct), np.zeros_like(ct), ct], axis=1)
         comp = np.tile(np.repeat(np.arange(k), per), m * nwo)
@@ -129,6 +149,8 @@ def kl_tables(models, z: np.ndarray, samples: int = 160, seed: int = 0, batch: i
             table[b0 : b0 + m, si] = kl.reshape(m, nwo, -1).mean(axis=1)
         if log and (b0 // batch) % 10 == 0:
             log(f"KL tables {b0 + m}/{n} {time.perf_counter() - t0:.0f} s")
+    if procs.world > 1:
+        table = procs.total(torch.from_numpy(table)).numpy()
     return table
 
 
@@ -195,6 +217,9 @@ def net_from_onnx(path: Path, card: dict) -> SamplingNet:
 def run(args, log=print) -> dict:
     from addon.core.neural.models import ModelSet, file_digest
 
+    procs = processes()
+    mine = procs.rows(args.batch)
+    log = quiet_unless_main(log, procs)
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     out = Path(args.out)
@@ -207,11 +232,12 @@ def run(args, log=print) -> dict:
     else:
         rng = np.random.default_rng([args.seed, 5])
         z = material_latents(random_arrays(rng, args.materials), models)
-        table = kl_tables(models, z, args.samples, seed=args.seed, log=log)
+        table = kl_tables(models, z, args.samples, seed=args.seed, log=log, procs=procs)
         rng_ho = np.random.default_rng([args.seed, 6])  # held-out materials
         z_ho = material_latents(random_arrays(rng_ho, args.heldout), models)
-        table_ho = kl_tables(models, z_ho, args.samples, seed=args.seed + 1, log=log)
-        np.savez(cache, z=z, table=table, z_ho=z_ho, table_ho=table_ho)
+        table_ho = kl_tables(models, z_ho, args.samples, seed=args.seed + 1, log=log, procs=procs)
+        if procs.main:
+            np.savez(cache, z=z, table=table, z_ho=z_ho, table_ho=table_ho)
     net = SamplingNet(args.width, args.depth)
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
     zt, tt = torch.from_numpy(z), torch.from_numpy(table)
@@ -220,14 +246,17 @@ def run(args, log=print) -> dict:
     for step in range(args.steps):
         for g in opt.param_groups:
             g["lr"] = args.lr * (0.05 + 0.95 * 0.5 * (1 + np.cos(np.pi * step / args.steps)))
-        idx = torch.randint(0, zt.shape[0], (args.batch,), generator=gen)
+        idx = torch.randint(0, zt.shape[0], (args.batch,), generator=gen)[mine]
         s, w = net(zt[idx])
         loss = interp_table(tt[idx], s, w).mean()
         opt.zero_grad()
         loss.backward()
+        procs.average_gradients(net.parameters())
         opt.step()
         if (step + 1) % 500 == 0:
-            log(f"step {step + 1}/{args.steps} KL {loss.item():.4f} {time.perf_counter() - t0:.0f} s")
+            log(f"step {step + 1}/{args.steps} KL {procs.mean(loss):.4f} {time.perf_counter() - t0:.0f} s")
+    if not procs.main:
+        return {}
     net.eval()
     with torch.no_grad():
         s_ho, w_ho = net(torch.from_numpy(z_ho))

@@ -13,10 +13,10 @@ at the end; rerunning the same command resumes from there. Progress goes to stde
 latents then come from ``--init-latents-from``): a size whose training checkpoint is gone continues
 from what it ships. ``--grazing-floor`` weights the grazing pairs (``nets.pair_loss``).
 
-The same command runs under ``torchrun --nproc_per_node N`` (DistributedDataParallel; gloo on CPU,
-NCCL on GPUs): every process draws the same batch from the same seed, takes its 1/N of the BRDF
-channels, and the averaged gradients are those of the whole batch, so N processes follow the
-one-process run (``tests/training/test_distributed.py``); process 0 logs and checkpoints.
+The same command runs under ``torchrun --nproc_per_node N`` (``onnx_export.distributed``): every
+process draws the same batch from the same seed, takes its 1/N of the BRDF channels, and the averaged
+gradients are those of the whole batch, so N processes follow the one-process run; process 0 logs and
+checkpoints.
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -35,6 +34,7 @@ import torch
 from addon.core.stack import StackArrays
 from onnx_export import data as datamod
 from onnx_export import layered_data
+from onnx_export.distributed import processes, quiet_unless_main
 from onnx_export.nets import PAIR_LOSSES, Decoder, cosine_lr, he_init, macs_per_eval, make_decoder, n_params, pair_loss
 
 
@@ -108,18 +108,6 @@ class AutoDecoder(torch.nn.Module):
     def forward(self, units: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, pairs: int):
         z = self.latents[units]
         return self.dec(z.repeat_interleave(pairs, dim=0), wi, wo), (z**2).mean()
-
-
-def distributed() -> tuple[int, int]:
-    """(rank, world size): the process group of ``torchrun`` (WORLD_SIZE > 1), initialised here, else (0, 1)."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
-        return 0, 1
-    import torch.distributed as dist
-
-    if not dist.is_initialized():
-        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
-    return dist.get_rank(), dist.get_world_size()
 
 
 def init_decoder(dec: Decoder, path: Path) -> dict:
@@ -206,11 +194,9 @@ def train(args, log=print) -> dict:
             f"--loss, --loss-scales and --data-weights take one value per --data set ({n_sets}) "
             f"(--loss may also take one for all)"
         )
-    rank, world = distributed()
-    if args.batch % world:
-        raise ValueError(f"--batch {args.batch} must be a multiple of the {world} processes")
-    if rank:
-        log = lambda s: None  # noqa: E731  (process 0 speaks for all)
+    procs = processes()
+    mine = procs.rows(args.batch)  # this process's BRDF channels of every batch
+    log = quiet_unless_main(log, procs)
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
@@ -247,9 +233,6 @@ def train(args, log=print) -> dict:
         step = s["step"]
         init_record = s.get("init_record", init_record)
         log(f"resumed from {ckpt} at step {step}")
-    if world > 1:  # gradients averaged over the processes (parameters are identical: same seed, same start)
-        model = torch.nn.parallel.DistributedDataParallel(model)
-    share = args.batch // world
     log(f"decoder {dec.config()} params {n_params(dec)} MACs/eval {macs_per_eval(dec)}; {n_units} BRDF channels")
     t0 = time.perf_counter()
     ema, ema_set = None, [None] * len(args.data)
@@ -259,23 +242,21 @@ def train(args, log=print) -> dict:
         opt.param_groups[1]["lr"] = lr * args.latent_lr_scale
         units = torch.multinomial(unit_w, args.batch, replacement=True, generator=gen)
         wi, wo, f = batch_of(t, units, args.pairs, gen)  # the whole batch on every process (same generator)
-        rows = slice(rank * share * args.pairs, (rank + 1) * share * args.pairs)
-        units, wi, wo, f = units[rank * share : (rank + 1) * share], wi[rows], wo[rows], f[rows]
+        rows = slice(mine.start * args.pairs, mine.stop * args.pairs)
+        units, wi, wo, f = units[mine], wi[rows], wo[rows], f[rows]
         pred, z_sq = model(units, wi, wo, args.pairs)
         row_set = src[units].long().repeat_interleave(args.pairs)
         loss = set_losses(pred, f, wi, wo, row_set, kinds, scales, args.grazing_floor, ema_set)
         reg = args.latent_reg * z_sq
         opt.zero_grad(set_to_none=True)
         (loss + reg).backward()
+        procs.average_gradients(model.parameters())
         if args.clip > 0:
             torch.nn.utils.clip_grad_norm_(list(dec.parameters()) + [latents], args.clip)
         opt.step()
         step += 1
-        lv = loss.detach().clone()
-        if world > 1:  # the whole batch's loss (each process holds the mean of its share)
-            torch.distributed.all_reduce(lv)
-            lv /= world
-        ema = lv.item() if ema is None else 0.98 * ema + 0.02 * lv.item()
+        lv = procs.mean(loss)  # the whole batch's loss (each process holds the mean of its share)
+        ema = lv if ema is None else 0.98 * ema + 0.02 * lv
         if step % args.log_every == 0 or step == args.steps:
             el = time.perf_counter() - t0
             per_set = " ".join(f"{v:.5f}" for v in ema_set if v is not None) if len(kinds) > 1 else ""
@@ -283,7 +264,7 @@ def train(args, log=print) -> dict:
                 f"step {step}/{args.steps} loss {ema:.5f}{' (sets ' + per_set + ')' if per_set else ''} "
                 f"lr {lr:.2e} {el:.0f} s"
             )
-        if (step % args.every == 0 or step == args.steps) and rank == 0:
+        if (step % args.every == 0 or step == args.steps) and procs.main:
             torch.save(
                 {
                     "decoder": dec.state_dict(),
@@ -296,8 +277,8 @@ def train(args, log=print) -> dict:
                     "loss_per_set": ema_set,
                     "units_per_set": units_per_set,
                     "init_record": init_record,
-                    "world_size": world,
-                    "channels_per_process": share,
+                    "world_size": procs.world,
+                    "channels_per_process": mine.stop - mine.start,
                 },
                 ckpt.with_suffix(".tmp"),
             )
@@ -372,7 +353,7 @@ def parser():
 def main(argv=None):
     args = parser().parse_args(argv)
     res = train(args, log=lambda s: print(s, file=sys.stderr, flush=True))
-    if distributed()[0]:
+    if not processes().main:
         return
     record = {"args": vars(args) | {"data": [str(p) for p in args.data]}, **res}
     (Path(args.out) / "train.json").write_text(json.dumps(record, default=str))

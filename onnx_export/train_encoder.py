@@ -8,6 +8,9 @@ training BRDF channels (MSE in latent space). Stage 2 (``--finetune`` steps): tr
 end to end through the frozen decoder on the BRDF loss, so that latent-space error that does not
 matter for the BRDF is not paid for and error that does is. Both stages are measured on the
 held-out set (lobe error of the encoded latents, no projection).
+
+The same command runs under ``torchrun --nproc_per_node N`` (``onnx_export.distributed``): each process
+takes its 1/N of every batch, the gradients are averaged, and process 0 measures, logs and saves.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import numpy as np
 import torch
 
 from addon.core.neural.features import N_FEATURES, arrays_features
+from onnx_export.distributed import processes, quiet_unless_main
 from onnx_export.evaluate import decoder_lobes, load_decoder, lobe_metrics
 from onnx_export.heldout import load as load_heldout
 from onnx_export.nets import Encoder
@@ -50,6 +54,9 @@ def heldout_error(enc, dec, heldout) -> dict:
 
 
 def train(args, log=print) -> dict:
+    procs = processes()
+    mine_units, mine = procs.rows(args.batch_units, "--batch-units"), procs.rows(args.batch)
+    log = quiet_unless_main(log, procs)
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
@@ -75,15 +82,17 @@ def train(args, log=print) -> dict:
     for step in range(args.distill):
         for g in opt.param_groups:
             g["lr"] = args.lr * (0.05 + 0.95 * 0.5 * (1 + np.cos(np.pi * step / args.distill)))
-        idx = torch.randint(0, x.shape[0], (args.batch_units,), generator=gen)
+        idx = torch.randint(0, x.shape[0], (args.batch_units,), generator=gen)[mine_units]
         loss = ((enc(x[idx]) - latents[idx]) ** 2).mean()
         opt.zero_grad()
         loss.backward()
+        procs.average_gradients(enc.parameters())
         opt.step()
         if (step + 1) % 500 == 0:
-            log(f"distill {step + 1}/{args.distill} mse {loss.item():.5f} {time.perf_counter() - t0:.0f} s")
-    hist["distilled"] = heldout_error(enc, dec, heldout)
-    log(f"held-out after distillation: {json.dumps(hist['distilled'])}")
+            log(f"distill {step + 1}/{args.distill} mse {procs.mean(loss):.5f} {time.perf_counter() - t0:.0f} s")
+    if procs.main:
+        hist["distilled"] = heldout_error(enc, dec, heldout)
+        log(f"held-out after distillation: {json.dumps(hist['distilled'])}")
     if args.finetune:
         t = load_training_tensors(args.data, args.materials)
         opt = torch.optim.Adam(enc.parameters(), lr=args.lr * 0.3)
@@ -91,22 +100,29 @@ def train(args, log=print) -> dict:
             for g in opt.param_groups:
                 g["lr"] = args.lr * 0.3 * (0.05 + 0.95 * 0.5 * (1 + np.cos(np.pi * step / args.finetune)))
             units = torch.randint(0, x.shape[0], (args.batch,), generator=gen)
-            wi, wo, f = batch_of(t, units, args.pairs, gen)
+            wi, wo, f = batch_of(t, units, args.pairs, gen)  # the whole batch on every process
+            rows = slice(mine.start * args.pairs, mine.stop * args.pairs)
+            units, wi, wo, f = units[mine], wi[rows], wo[rows], f[rows]
             z = enc(x[units]).repeat_interleave(args.pairs, dim=0)
             loss = brdf_loss(dec(z, wi, wo), f, wi, wo, "l1")
             opt.zero_grad()
             loss.backward()
+            procs.average_gradients(enc.parameters())
             opt.step()
             if (step + 1) % 100 == 0:
-                log(f"finetune {step + 1}/{args.finetune} loss {loss.item():.5f} {time.perf_counter() - t0:.0f} s")
-        hist["finetuned"] = heldout_error(enc, dec, heldout)
-        log(f"held-out after fine-tuning: {json.dumps(hist['finetuned'])}")
+                log(f"finetune {step + 1}/{args.finetune} loss {procs.mean(loss):.5f} {time.perf_counter() - t0:.0f} s")
+        if procs.main:
+            hist["finetuned"] = heldout_error(enc, dec, heldout)
+            log(f"held-out after fine-tuning: {json.dumps(hist['finetuned'])}")
+    if not procs.main:
+        return hist
     torch.save(
         {
             "encoder": enc.state_dict(),
             "config": enc.config(),
             "history": hist,
             "args": {k: str(v) for k, v in vars(args).items()},
+            "world_size": procs.world,
         },
         args.out,
     )
@@ -132,7 +148,8 @@ def main(argv=None):
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args(argv)
     hist = train(a, log=lambda s: print(s, file=sys.stderr, flush=True))
-    print(json.dumps(hist))
+    if processes().main:
+        print(json.dumps(hist))
 
 
 if __name__ == "__main__":
