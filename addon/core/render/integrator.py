@@ -299,7 +299,8 @@ def render(
     film = film or Film(cam.width, cam.height)
     start_pass = film.passes
     npix = cam.width * cam.height
-    if pixels is None:
+    whole = pixels is None  # every pixel: each chunk is a run of consecutive pixels
+    if whole:
         pixels = np.arange(npix)
     else:
         pixels = np.asarray(pixels)
@@ -316,7 +317,7 @@ def render(
     def trace(task):
         k, c = task
         pix = pixels[starts[c] : starts[c] + chunk]
-        return pix, _trace_paths(ctx, pix, start_pass + k, c)
+        return (slice(starts[c], starts[c] + len(pix)) if whole else pix), _trace_paths(ctx, pix, start_pass + k, c)
 
     workers = min(settings.thread_count, len(tasks))
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="render") if workers > 1 else None
