@@ -12,7 +12,8 @@ incident elevations of docs/architecture.md, Measurement, all four images togeth
 (``eval_brdf_many``, by reciprocity) for layered ones, with the estimator's own noise taken out
 (error^2 = max(||pred - ref||^2 - ||stderr||^2, 0) / ||ref||^2, as independent noise adds its
 variance). The stack is encoded as the renderer encodes it (encoder + layering network, values
-clamped to the trained range), so clamping costs show up in the error. Sizes are tried from the
+clamped to the trained range), so clamping costs show up in the error; with ``calibrate`` the
+material carries the albedo calibration a render gives it (``addon.core.neural.calibrate``). Sizes are tried from the
 fewest parameters up and the first one under the tolerance is chosen; when none is, the choice
 falls back (``fallback``) to the most accurate size or to the reference, and a
 :class:`QualityWarning` says so. Errors are cached per (stack, size, model files, settings) in
@@ -134,8 +135,10 @@ def reference_lobes(stack: Stack, res: int = LOBE_RES, walks: int = REFERENCE_WA
     return out
 
 
-def decoder_lobes(stack: Stack, size: str, res: int = LOBE_RES, threads: int = 2) -> np.ndarray:
-    """Lobe images (4, res, res, 3) of ``stack`` encoded and decoded by one decoder size.
+def decoder_lobes(stack: Stack, size: str, res: int = LOBE_RES, threads: int = 2, calibrate=False) -> np.ndarray:
+    """Lobe images (4, res, res, 3) of ``stack`` encoded and decoded by one decoder size, with the
+    material's albedo calibration when ``calibrate`` asks for it (True, or "cached": only one a render
+    has made), as the renderer shades it.
 
     Raises FileNotFoundError when a model the stack needs is not shipped (e.g. no layering
     network for this size); ClampWarnings of the encoding are passed on.
@@ -143,10 +146,16 @@ def decoder_lobes(stack: Stack, size: str, res: int = LOBE_RES, threads: int = 2
     from .neural import encode_stack, load_models
 
     models = load_models(size, threads=threads)
-    z = encode_stack(stack, models)
-    return np.stack(
-        [lobe.lobe_image(lambda wi, wo: models.eval_brdf(z, wi, wo), t, res) for t in lobe.INCIDENT_ANGLES_DEG]
-    )
+    if calibrate:
+        bound = neural_material(stack, size, calibrate).bind(None)
+        f = bound.eval
+    else:
+        z = encode_stack(stack, models)
+
+        def f(wi, wo):
+            return models.eval_brdf(z, wi, wo)
+
+    return np.stack([lobe.lobe_image(f, t, res) for t in lobe.INCIDENT_ANGLES_DEG])
 
 
 def noise_corrected_error(pred: np.ndarray, ref: np.ndarray, ref_stderr: np.ndarray | None = None) -> float:
@@ -198,20 +207,34 @@ def measured_error(
     seed: int = 0,
     cache: ErrorCache | None = None,
     threads: int = 2,
+    calibrate=False,
 ) -> float:
     """The measured lobe error of ``size`` on ``stack`` (see the module docstring); ``inf`` when
-    the size cannot encode the stack (a model it needs is missing)."""
+    the size cannot encode the stack (a model it needs is missing). ``calibrate`` measures the
+    material as the renderer shades it with that setting (:func:`decoder_lobes`)."""
     if not isinstance(stack, Stack):
         raise ValueError(f"measured_error needs a Stack, got {type(stack).__name__}")
+    from .neural import ModelFileError
+    from .neural.calibrate import WALKS, cached, check_mode
+
+    calibrate = check_mode(calibrate)
     cache = _DEFAULT_CACHE if cache is None else cache
-    key = _key("err", stack.to_json(), size, _fingerprint(size), res, walks, seed)
+    if calibrate == "cached":  # measured calibrated only once a render has made the calibration
+        from .neural import encode_stack, load_models
+
+        try:
+            models = load_models(size, threads=threads)
+            calibrate = cached(stack, models, encode_stack(stack, models)) is not None
+        except (FileNotFoundError, ModelFileError):
+            return math.inf
+    key = _key("err", stack.to_json(), size, _fingerprint(size), res, walks, seed) + (
+        f"-calibrated-{WALKS}" if calibrate else ""
+    )
     hit = cache.get(key)
     if hit is not None:
         return hit
-    from .neural import ModelFileError
-
     try:
-        pred = decoder_lobes(stack, size, res, threads)
+        pred = decoder_lobes(stack, size, res, threads, calibrate)
     except (FileNotFoundError, ModelFileError):
         return math.inf  # not cached: the missing or damaged model may be shipped (repaired) later
     ref, se = reference_lobes(stack, res, walks, seed)
@@ -231,8 +254,10 @@ def choose_decoder(
     cache: ErrorCache | None = None,
     cache_dir=None,
     threads: int = 2,
+    calibrate=False,
 ) -> DecoderChoice:
-    """The smallest decoder size whose measured error on ``stack`` is at most ``tolerance``.
+    """The smallest decoder size whose measured error on ``stack`` is at most ``tolerance``, measured
+    as the renderer shades the material with ``calibrate`` (:func:`measured_error`).
 
     ``tolerance`` is a relative lobe RMSE (0.2 = 20%). Sizes default to the shipped ones, fewest
     parameters first; they are measured in that order and the search stops at the first fit.
@@ -258,7 +283,7 @@ def choose_decoder(
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         for s in sizes:
-            errors[s] = measured_error(stack, s, res, walks, seed, cache, threads)
+            errors[s] = measured_error(stack, s, res, walks, seed, cache, threads, calibrate)
             if errors[s] <= tol:
                 break
     for w in caught:
@@ -443,7 +468,7 @@ def assign_decoders(
     (:func:`sizes_within_budget`), so no frame meets the paper-sized decoder unless its cost fits;
     when no size fits, the fastest one is used and a note says so. Fixed sizes are never changed.
     ``calibrate`` (True, False or "cached") gives each material its albedo calibration
-    (``neural_material.make``).
+    (``neural_material.make``), and "auto" measures the errors of the materials so calibrated.
     """
     from .render.materials import LayeredSpec
 
@@ -469,7 +494,13 @@ def assign_decoders(
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 choice = choose_decoder(
-                    spec.stack, tolerance, sizes=sizes, fallback=fallback, threads=threads, **measure
+                    spec.stack,
+                    tolerance,
+                    sizes=sizes,
+                    fallback=fallback,
+                    threads=threads,
+                    calibrate=calibrate,
+                    **measure,
                 )
             size = choice.size
             choices[name] = choice

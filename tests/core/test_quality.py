@@ -113,6 +113,34 @@ def test_layered_stacks_get_a_measured_error():
     assert math.isfinite(err) and err > 0.0
 
 
+def test_auto_measures_the_material_as_the_renderer_shades_it_calibrated():
+    """A default render shades the calibrated material, so Auto measures that one: its lobe images
+    carry the reference's brightness at each incidence (the decoder alone's is off), "cached"
+    measures it only once a render has made the calibration, and each has its own cache entry."""
+    from addon.core.neural import calibrate as cal
+
+    stack = PRESETS["varnished_wood"]  # the decoder alone renders it about 13% too bright
+    cal.clear_cache()
+    cache = quality.ErrorCache()
+    plain = quality.measured_error(stack, "tiny", cache=cache)
+    assert quality.measured_error(stack, "tiny", cache=cache, calibrate="cached") == plain  # none made yet
+    calibrated = quality.measured_error(stack, "tiny", cache=cache, calibrate=True)
+    assert quality.measured_error(stack, "tiny", cache=cache, calibrate="cached") == calibrated
+    assert len(cache.data) == 2 and calibrated != plain
+    ref, _ = quality.reference_lobes(stack)
+    brightness = {  # per incidence: the lobe image's sum (the albedo) against the reference's
+        c: quality.decoder_lobes(stack, "tiny", calibrate=c).sum(axis=(1, 2, 3)) / ref.sum(axis=(1, 2, 3))
+        for c in (False, True)
+    }
+    assert np.abs(brightness[True] - 1).max() < 0.08, brightness[True]  # lobe grid and reference noise: 2-5%
+    assert np.abs(brightness[False] - 1).max() > 2 * np.abs(brightness[True] - 1).max(), brightness
+    assert quality.choose_decoder(stack, calibrated * 1.01, sizes=["tiny"], cache=cache, calibrate=True).errors == {
+        "tiny": calibrated
+    }
+    with pytest.raises(ValueError, match="calibrate must be"):
+        quality.measured_error(stack, "tiny", cache=cache, calibrate="yes")
+
+
 def test_out_of_range_parameters_are_clamped_and_the_note_is_kept():
     stack = Stack(Dielectric(roughness=0.3, ior=3.0))  # above the trained ior range [1.05, 2]
     c = quality.choose_decoder(stack, 100.0, cache=quality.ErrorCache())
