@@ -19,8 +19,11 @@ SHIPPED = [s for s in SIZES if (MODEL_DIR / f"layering_{s}.onnx").exists()]
 # f cos(theta_i) (viewer on the normal) over every held-out stack at 80-89.5 degrees, and the largest
 # |median albedo bias| at 75 and 85 degrees over the coating counts. The target is 2 and 0.05.
 BOUNDS = {  # far from the target: this pins what is reached so that no change makes it worse unnoticed
-    "tiny": {"albedo_max": 13.0, "fcos_max": 34.0, "median_bias": 0.47},
-    "small": {"albedo_max": 12.0, "fcos_max": 57.0, "median_bias": 0.45},
+    "tiny": {"albedo_max": 9.0, "fcos_max": 23.0, "median_bias": 0.47},
+    # small's layering network trained longer on twice the stacks: the largest ratios fell (11.9 -> 9.9,
+    # 56 -> 37), the two-coating median at 85 degrees rose (1.44 -> 1.50); the calibration a render
+    # applies takes it to 1.38 (docs/layering_training.md)
+    "small": {"albedo_max": 10.5, "fcos_max": 38.0, "median_bias": 0.51},
     "medium": {"albedo_max": 22.1, "fcos_max": 77.0, "median_bias": 0.76},
     "paper": {"albedo_max": 7.1, "fcos_max": 23.0, "median_bias": 0.43},
 }
