@@ -510,7 +510,7 @@ def _sample_lights(ctx: _Context, hits: _Hits, u_light: np.ndarray, stats: Rende
         wi_w[sel], rad[sel], pdf[sel] = ls.wi, ls.radiance, ls.pdf
         dist[sel], delta[sel] = ls.dist, ls.delta
     cos_g = frame.dot(wi_w, hits.ng)
-    useful = (pdf > 0) & (rad.max(axis=1) > 0) & (cos_g != 0)
+    useful = (pdf > 0) & (frame.max_component(rad) > 0) & (cos_g != 0)
     org = hits.p + hits.ng * (np.sign(cos_g) * ctx.eps)[:, None]
     tmax = np.where(np.isinf(dist), np.inf, dist * (1 - 1e-4) - ctx.eps)
     unseen = np.zeros(m, dtype=bool)
@@ -581,10 +581,10 @@ def _continue_paths(
     s = ctx.settings
     wi_w = frame.to_world(sc.wi, hits.ts, hits.tt, hits.ns)
     cos_g = frame.dot(wi_w, hits.ng)
-    ok = (sc.weight.max(axis=1) > 0) & (np.sign(cos_g) == np.sign(sc.wi[:, 2])) & (cos_g != 0)
+    ok = (frame.max_component(sc.weight) > 0) & (np.sign(cos_g) == np.sign(sc.wi[:, 2])) & (cos_g != 0)
     thr = paths.throughput * sc.weight
     if depth + 1 >= s.rr_depth:
-        q = np.clip(thr.max(axis=1), 0.05, 1.0)
+        q = np.clip(frame.max_component(thr), 0.05, 1.0)
         ok &= rng.random(len(thr)) < q
         thr = thr / q[:, None]
     keep = np.nonzero(ok)[0]
@@ -651,7 +651,7 @@ def _trace_paths(
         if depth == 0:
             _first_hit_features(features, paths, hits, sc, t[hit])
         paths = _continue_paths(ctx, paths, hits, sc, depth, rng)
-    bad = ~np.isfinite(L).all(axis=1)
+    bad = ~np.isfinite(L[:, 0] + L[:, 1] + L[:, 2])  # inf - inf is nan: any non-finite channel
     if bad.any():
         stats.nonfinite += int(bad.sum())
         L[bad] = 0.0
