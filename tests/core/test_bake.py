@@ -104,6 +104,49 @@ def test_progress_and_cancel():
         bake_texels(arrays, linear_encoder(), batch=3, cancel=lambda: True)
 
 
+def test_a_concurrent_encoder_encodes_batches_side_by_side_with_the_same_texels():
+    """``encode.concurrent``: ``threads`` batches are in flight at once (one's numpy work overlaps
+    another's networks), never more; the texels, the progress and a cancellation are as with one."""
+    import threading
+    import time
+
+    arrays = StackArrays.repeat(preset("three_layer"), 40)
+    arrays.coat_thickness[:, 0] = np.linspace(0, 1, 40)
+    inner = linear_encoder()
+    lock, state = threading.Lock(), {"now": 0, "most": 0, "calls": 0}
+
+    def encode(a):
+        with lock:
+            state["now"] += 1
+            state["most"] = max(state["most"], state["now"])
+            state["calls"] += 1
+        time.sleep(0.02)
+        with lock:
+            out = inner(a)  # the stand-in draws its projection lazily: not thread-safe by itself
+            state["now"] -= 1
+        return out
+
+    one, _ = bake_texels(arrays, encode, batch=4, threads=3)  # not marked concurrent: one batch at a time
+    assert state["most"] == 1
+    encode.concurrent = True
+    seen = []
+    state.update(most=0, calls=0)
+    three, stats = bake_texels(arrays, encode, batch=4, threads=3, progress=seen.append)
+    assert state["most"] == 3 and state["calls"] == 10 and stats.unique == 40
+    np.testing.assert_array_equal(three, one)
+    assert seen == sorted(seen) and seen[-1] == 1.0 and len(seen) == 10
+    calls = []
+
+    def stop_after_two():
+        calls.append(1)
+        return len(calls) > 2
+
+    state.update(calls=0)
+    with pytest.raises(BakeCancelled, match="of 40 distinct texels"):
+        bake_texels(arrays, encode, batch=4, threads=3, cancel=stop_after_two)
+    assert state["calls"] == 2 and state["now"] == 0  # nothing started after the cancel, nothing left running
+
+
 def test_an_encoder_returning_the_wrong_shape_is_reported():
     arrays = StackArrays.repeat(wood(), 2)
     with pytest.raises(ValueError, match="expected"):

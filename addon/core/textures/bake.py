@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable
 
@@ -54,6 +55,7 @@ def neural_encoder(
         return z, models.proxy_params(z)
 
     encode.metadata = {"model": models.size, "model_digest": models.digest}
+    encode.concurrent = refine_s == 0  # batches may run side by side (a refinement spends one budget in order)
     if refine_s > 0:
         encode.metadata.update(refine_s=float(refine_s), refined=0)
     return encode
@@ -142,14 +144,20 @@ def bake_texels(
     threads: int = 0,
 ) -> tuple[np.ndarray, BakeStats]:
     """(N, 98) float32 texels (latents then proxy channels) for N stacks; the networks run on
-    ``threads`` threads (0: every core; ``addon.core.neural.session.threads_in_force``)."""
+    ``threads`` threads (0: every core; ``addon.core.neural.session.threads_in_force``).
+
+    An encoder that says so (``encode.concurrent``, the neural runtime's without refinement) encodes
+    ``threads`` batches side by side, so that one batch's numpy work (features, the layer dedup) overlaps
+    another's networks; the texels do not depend on it."""
     from ..neural.session import threads_in_force
 
-    with threads_in_force(int(threads) or (os.cpu_count() or 1)):
-        return _bake_texels(arrays, encode, dedup, batch, progress, cancel)
+    n_threads = int(threads) or (os.cpu_count() or 1)
+    workers = n_threads if getattr(encode, "concurrent", False) else 1
+    with threads_in_force(n_threads):
+        return _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers)
 
 
-def _bake_texels(arrays, encode, dedup, batch, progress, cancel) -> tuple[np.ndarray, BakeStats]:
+def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1) -> tuple[np.ndarray, BakeStats]:
     t0 = time.perf_counter()
     n = len(arrays)
     inverse = None  # None: every row is its own (no gather at the end)
@@ -162,9 +170,8 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel) -> tuple[np.nda
             inverse = None
     m = len(todo)
     out = np.empty((m, len(CHANNEL_NAMES)), dtype=np.float32)
-    for start in range(0, m, batch):  # a loop over batches, not texels
-        if cancel is not None and cancel():
-            raise BakeCancelled(f"bake cancelled after {start} of {m} distinct texels")
+
+    def encode_batch(start: int) -> int:
         part = todo.take(slice(start, start + batch))
         z, proxy = encode(part)
         z = np.asarray(z, dtype=np.float32).reshape(len(part), -1)
@@ -173,8 +180,28 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel) -> tuple[np.nda
             raise ValueError(f"encoder returned latents {z.shape} and proxy {proxy.shape}; expected (N, 96) and (N, 2)")
         out[start : start + len(part), :96] = z
         out[start : start + len(part), 96:] = proxy
-        if progress is not None:
-            progress(min(1.0, (start + len(part)) / m))
+        return start + len(part)
+
+    starts = list(range(0, m, batch))
+    workers = max(1, min(int(workers), len(starts)))
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="bake") if workers > 1 else None
+    try:
+        pending = []  # batches in flight, oldest first: at most ``workers``
+        for i, start in enumerate(starts + [None]):  # a loop over batches, not texels
+            if start is not None and cancel is not None and cancel():
+                raise BakeCancelled(
+                    f"bake cancelled after {starts[i - len(pending)] if pending else start} of {m} distinct texels"
+                )
+            if start is not None:
+                pending.append(pool.submit(encode_batch, start) if pool else encode_batch(start))
+            while pending and (start is None or len(pending) >= workers):
+                done = pending.pop(0)
+                end = done.result() if pool else done
+                if progress is not None:
+                    progress(min(1.0, end / m))
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
     if not np.isfinite(out).all():
         raise ValueError("the encoder returned non-finite latents")
     return (out if inverse is None else out[inverse]), BakeStats(texels=n, unique=m, seconds=time.perf_counter() - t0)
