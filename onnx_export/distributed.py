@@ -4,8 +4,7 @@
 
 One scheme serves all of them (data parallelism, as DistributedDataParallel does it):
 
-- every process draws the *whole* batch from the same seed, so the random generators stay in step and
-  a resumed run draws what the uninterrupted one would;
+- every process draws the *whole* batch from the same seed, so the random generators stay in step;
 - each process computes the loss of its equal share of the batch (``Processes.rows``), a mean over that
   share, so the mean over processes is the whole batch's loss;
 - after ``backward`` the gradients are averaged over the processes (``Processes.average_gradients``,
@@ -71,18 +70,6 @@ class Processes:
         """Mean over the processes of a scalar tensor (a loss to log)."""
         return float(self.total(x)) / self.world
 
-    def gather(self, x: torch.Tensor) -> list[torch.Tensor]:
-        """Every process's tensor of the same shape, in rank order."""
-        if self.world == 1:
-            return [x]
-        out = [torch.empty_like(x) for _ in range(self.world)]
-        torch.distributed.all_gather(out, x.contiguous())
-        return out
-
-    def barrier(self) -> None:
-        if self.world > 1:
-            torch.distributed.barrier()
-
 
 ONE_PROCESS = Processes()
 
@@ -91,7 +78,7 @@ def processes() -> Processes:
     """The process group of ``torchrun`` (``WORLD_SIZE`` > 1), initialised on first use, else one process."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world <= 1:
-        return Processes()
+        return ONE_PROCESS
     import torch.distributed as dist
 
     if not dist.is_initialized():
