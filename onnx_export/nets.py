@@ -202,25 +202,40 @@ class RGBDecoder(nn.Module):
     direction features and their first-layer product are computed once per query instead of
     once per channel, and for one material the latent's first-layer product is computed once
     for the whole batch: same weights, same values as ``Decoder`` row by row.
+
+    Unlike ``Decoder`` the directions need not be unit length: the graph normalises them (in
+    float32; a zero direction counts as below the horizon), so the runtime hands its directions
+    over as they are. The direction term of the first layer is produced for the three channels
+    by one product with the direction weights repeated three times ((B, 3W), 2-D), since ONNX
+    Runtime adds a 2-D bias far faster than it broadcasts (B, 1, W) against (1, 3, W).
     """
 
     def __init__(self, dec: Decoder):
         super().__init__()
         self.dec = dec
         first = dec.net[0]
+        self.width = first.weight.shape[0]
         self.w_z = nn.Parameter(first.weight[:, :LATENT].detach().clone())
-        self.w_d = nn.Parameter(first.weight[:, LATENT:].detach().clone())
+        self.register_buffer("w_d3", first.weight[:, LATENT:].detach().repeat(3, 1))  # (3W, F)
         self.b = nn.Parameter(first.bias.detach().clone())
         self.rest = dec.net[2:]  # after the first Linear + ReLU
 
     def forward(self, z: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
-        zc = torch.matmul(z, self.w_z.t()) + self.b  # (Bz, 3, W)
-        d = torch.matmul(direction_features(wi, wo, self.dec.features), self.w_d.t())  # (B, W)
-        h = torch.relu(d.unsqueeze(1) + zc).reshape(-1, self.w_z.shape[0])  # (B * 3, W)
+        above = ((wi[:, 2] > 0.0) & (wo[:, 2] > 0.0)).to(wi.dtype).unsqueeze(1)
+        wi, wo = unit_rows(wi), unit_rows(wo)
+        zc = (torch.matmul(z, self.w_z.t()) + self.b).reshape(z.shape[0], 3 * self.width)  # (Bz, 3W)
+        d = torch.matmul(direction_features(wi, wo, self.dec.features), self.w_d3.t())  # (B, 3W)
+        h = torch.relu(d + zc).reshape(-1, self.width)  # (B * 3, W)
         y = self.rest(h).reshape(-1, 3)  # 2-D rows: the exporter emits Gemm, which fuses bias and ReLU
         if self.dec.activation == "exp":
             f = torch.exp(torch.clamp(y, max=MAX_LOG_F))
         else:
             f = nn.functional.softplus(y)
-        above = ((wi[:, 2] > 0.0) & (wo[:, 2] > 0.0)).unsqueeze(1)
-        return torch.where(above, f, torch.zeros_like(f))
+        return f * above  # f is finite (clamped), so this is 0 below the horizon
+
+
+def unit_rows(w: torch.Tensor) -> torch.Tensor:
+    """Rows of ``w`` (B, 3) scaled to unit length (computed on the components as rows, as
+    ``direction_features`` is); zero rows stay zero."""
+    a = w.t()
+    return (a * torch.rsqrt(torch.clamp(a[0] * a[0] + a[1] * a[1] + a[2] * a[2], min=1e-30))).t()

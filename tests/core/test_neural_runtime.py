@@ -77,6 +77,20 @@ def test_eval_finite_nonnegative_everywhere(models):
     assert np.all(np.isfinite(fz)) and np.all(fz >= 0.0)
 
 
+def test_direction_lengths_float32_cannot_square_give_the_unit_directions_values(models):
+    """The RGB graph normalises in float32; lengths whose square under- or overflows there are
+    scaled on the way in, so any finite nonzero length gives the value of the unit direction."""
+    rng = np.random.default_rng(3)
+    wi, wo = _dirs(rng, 400), _dirs(rng, 400)
+    wi[:, 2], wo[:, 2] = np.abs(wi[:, 2]) + 0.05, np.abs(wo[:, 2]) + 0.05
+    z = encode_layer(models, Conductor(0.1))
+    unit = models.eval_brdf(z, wi, wo)
+    assert unit.max() > 0.0
+    scale_i = np.repeat([1e-20, 1e25, 3e-15, 1e17], 100)[:, None]
+    scale_o = np.repeat([1e22, 1e-30, 1.0, 1e-16], 100)[:, None]
+    np.testing.assert_allclose(models.eval_brdf(z, wi * scale_i, wo * scale_o), unit, rtol=2e-5, atol=1e-7)
+
+
 def test_per_row_latents_match_single(models):
     rng = np.random.default_rng(1)
     wi, wo = _dirs(rng, 300), _dirs(rng, 300)

@@ -53,12 +53,13 @@ TRAINED_WITH = {
     "layering": ("encoder", "decoder"),
     "sampling": ("encoder", "decoder", "layering"),
 }
-# Floats of one hidden layer's activations per ONNX Runtime call (768 KB): the decoder's chunk is
-# that over 3 x its width, 2,048 RGB queries for the tiny decoder, 256 for the paper's, so the
-# intermediates stay in cache (measured best or near it for tiny, small and medium); the other
-# networks' chunks are that over their width (1,536 rows for the 128-wide encoder and layering
+# Floats of one hidden layer's activations per ONNX Runtime call (1.5 MB): the decoder's chunk is
+# that over 3 x its width, 4,096 RGB queries for the tiny decoder, 512 for the paper's: half
+# that ran 3-10% slower for tiny, small and medium since the graph normalises its directions
+# (more element-wise work per call to amortise), twice that slower again. The other networks'
+# chunks are half of it over their width (1,536 rows for the 128-wide encoder and layering
 # network: 10% more layering throughput than 4,096 rows, benchmarks/bench_bake.py).
-DECODER_CHUNK_FLOATS = 196_608
+DECODER_CHUNK_FLOATS = 393_216
 LFS_POINTER = b"version https://git-lfs"
 
 
@@ -200,6 +201,23 @@ def _unit_or_up(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u.astype(np.float32), ok
 
 
+# Squared lengths float32 holds with room for the graph's own normalisation (|w|^2 in float32,
+# clamped at 1e-30): rows outside are scaled to unit length here first, in float64.
+_FLOAT32_SQUARED_LENGTH = (1e-28, 1e36)
+
+
+def _float32_rows(w: np.ndarray) -> np.ndarray:
+    """Finite float64 directions ``w`` as float32 rows for the RGB decoder graph, which normalises
+    them itself: only lengths that would underflow or overflow in float32 are scaled first."""
+    lo, hi = _FLOAT32_SQUARED_LENGTH
+    n2 = np.einsum("ij,ij->i", w, w)
+    odd = ((n2 < lo) & (n2 > 0.0)) | (n2 > hi)
+    if odd.any():
+        w = w.copy()
+        w[odd] /= np.sqrt(n2[odd])[:, None]
+    return w.astype(np.float32)
+
+
 def latents(z, name: str = "z") -> np.ndarray:
     """``z`` as float32 latents (N, 3, 32) ((3, 32) becomes (1, 3, 32)); complex, NaN or Inf raise."""
     if np.iscomplexobj(z):
@@ -254,7 +272,7 @@ class ModelSet:
         if role not in self._sessions:
             if chunk is None:  # the activations of a call in cache (DECODER_CHUNK_FLOATS)
                 width = self.card(role).get("architecture", {}).get("width") or 128
-                chunk = max(128, DECODER_CHUNK_FLOATS // int(width))
+                chunk = max(128, DECODER_CHUNK_FLOATS // (2 * int(width)))
             self.card(role)
             self._sessions[role] = _session(self.path(role), self.threads, chunk)
         return self._sessions[role]
@@ -359,22 +377,23 @@ class ModelSet:
         zz = z[None]
 
         def chunk(rows: slice) -> None:  # runs on the session's threads, one chunk of rows each
+            if self._rgb is not None:  # the graph normalises and masks the horizon itself
+                feeds = {"z": z[rows] if per_row else zz, "wi": _float32_rows(wi[rows]), "wo": _float32_rows(wo[rows])}
+                f = self._rgb.run_once(["f"], feeds)[0]
+                np.fmax(f, 0.0, out=out[rows])  # fmax: NaN (an overflowing latent) gives 0
+                return
             a, b = _unit_or_up(wi[rows]), _unit_or_up(wo[rows])
-            ok = a[1] & b[1]
-            if self._rgb is not None:
-                f = self._rgb.run_once(["f"], {"z": z[rows] if per_row else zz, "wi": a[0], "wo": b[0]})[0]
-            else:
-                m = a[0].shape[0]
-                f = self._decoder.run_once(
-                    ["f"],
-                    {
-                        "z": z[rows].reshape(-1, LATENT) if per_row else np.tile(z, (m, 1)),
-                        "wi": np.repeat(a[0], 3, axis=0),
-                        "wo": np.repeat(b[0], 3, axis=0),
-                    },
-                )[0].reshape(m, 3)
+            m = a[0].shape[0]
+            f = self._decoder.run_once(
+                ["f"],
+                {
+                    "z": z[rows].reshape(-1, LATENT) if per_row else np.tile(z, (m, 1)),
+                    "wi": np.repeat(a[0], 3, axis=0),
+                    "wo": np.repeat(b[0], 3, axis=0),
+                },
+            )[0].reshape(m, 3)
             # 0 below the horizon, and for NaN (an overflowing latent); the graph's exp is >= 0
-            out[rows] = np.where(ok[:, None] & (f >= 0.0), f, 0.0)
+            out[rows] = np.where((a[1] & b[1])[:, None] & (f >= 0.0), f, 0.0)
 
         (self._rgb or self._decoder).map(chunk, n)
         return out
