@@ -56,6 +56,7 @@ from onnx_export.cli import command_line
 from onnx_export.distributed import ONE_PROCESS, Processes, processes, quiet_unless_main
 from onnx_export.layered_data import data_command
 from onnx_export.nets import LATENT, cosine_lr, macs_per_eval, mlp, n_params, pair_loss
+from onnx_export.remainder import top_reflection
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"
 OPSET = 17
@@ -129,7 +130,11 @@ def frozen_decoder(size: str, model_dir: Path = MODEL_DIR):
 class StackSet:
     """Training tensors of one coating count: encoder latents, medium parameters and reference values."""
 
-    def __init__(self, path: Path, models: ModelSet, stacks: int = 0, use_weight: bool = False):
+    def __init__(
+        self, path: Path, models: ModelSet, stacks: int = 0, use_weight: bool = False, remainder: bool = False
+    ):
+        """``remainder``: the values are each stack's BRDF minus its exact top-interface reflection
+        (the decoder holds the rest: ``onnx_export.remainder``)."""
         self.use_weight = use_weight
         from onnx_export.layered_data import load
 
@@ -148,7 +153,12 @@ class StackSet:
         p, m = d["wi"].shape[1:3]
         self.wi = torch.from_numpy(d["wi"][:n].reshape(n, p * m, 3))
         self.wo = torch.from_numpy(np.repeat(d["wo"][:n], m, axis=1))
-        self.f = torch.from_numpy(d["f"][:n].reshape(n, p * m, 3))
+        f = d["f"][:n].reshape(n, p * m, 3)
+        if remainder:
+            f = (f - top_reflection(a, d["wi"][:n].reshape(n, p * m, 3), np.repeat(d["wo"][:n], m, axis=1))).astype(
+                np.float32
+            )
+        self.f = torch.from_numpy(f)
         self.weight = torch.from_numpy(
             cosine_weights(d["wi"][:n], d["wo"][:n], a.coat_roughness[:, -1]).reshape(n, p * m)
         )
@@ -288,9 +298,11 @@ def layering_loss(pred, target, wi, wo, weight, kind: str, procs: Processes = ON
 
 
 @torch.no_grad()
-def heldout_error(net: LayeringNet, dec, models: ModelSet, heldout: dict, log=None) -> dict:
-    """Lobe error of the layered latents per number of coatings, as onnx_export.evaluate measures it."""
+def heldout_error(net: LayeringNet, dec, models: ModelSet, heldout: dict, log=None, remainder: bool = False) -> dict:
+    """Lobe error of the layered latents per number of coatings, as onnx_export.evaluate measures it
+    (``remainder``: of the exact top-interface reflection plus the decoded lobe)."""
     from onnx_export.evaluate import decoder_lobes, lobe_metrics
+    from onnx_export.remainder import top_lobes
 
     stacks = heldout["stacks"]
     counts = np.array([len(s.coatings) for s in stacks])
@@ -307,6 +319,8 @@ def heldout_error(net: LayeringNet, dec, models: ModelSet, heldout: dict, log=No
             torch.from_numpy(a.coat_thickness.astype(np.float32)),
         )
         pred = decoder_lobes(dec, z, heldout["lobe"].shape[2], heldout["angles"])
+        if remainder:
+            pred = pred + top_lobes(a, heldout["lobe"].shape[2], heldout["angles"])
         m = lobe_metrics(pred, heldout["lobe"][idx])
         out[f"coatings_{c}"] = {k: v for k, v in m.items() if k != "errors"} | {"configs": int(idx.size)}
     if log:
@@ -324,13 +338,19 @@ def lobe_bound(
     lr: float = 0.01,
     seed: int = 0,
     log=None,
+    remainder: bool = False,
 ) -> dict:
     """What the decoder could hold: the held-out lobes projected into its latent space, per number of
     coatings, by latent optimisation on the scored pixels themselves with the metric as the loss
     (``decoded_lobe_loss``, ``pixels`` random pixels of every image per step), starting from the
-    layering network's latents. An optimistic bound on any layering network in this latent space."""
+    layering network's latents. An optimistic bound on any layering network in this latent space.
+
+    ``remainder``: the decoder holds the remainder design's rest of the BRDF: the projection's
+    target is each held-out lobe minus the exact top-interface reflection (``remainder.top_lobes``),
+    and what is scored is that reflection plus the decoded lobe, against the whole reference."""
     from addon.core import lobe
     from onnx_export.evaluate import decoder_lobes, lobe_metrics
+    from onnx_export.remainder import top_lobes
 
     stacks, ref_all, angles = heldout["stacks"], heldout["lobe"], heldout["angles"]
     res = ref_all.shape[2]
@@ -352,9 +372,11 @@ def lobe_bound(
                 torch.from_numpy(a.coat_albedo.astype(np.float32)),
                 torch.from_numpy(a.coat_thickness.astype(np.float32)),
             )
+        top = top_lobes(a, res, angles) if remainder else np.zeros_like(ref_all[idx])
         ref = torch.as_tensor(
-            ref_all[idx].reshape(len(idx), len(angles), res * res, 3)[:, :, mask] / wo[:, 2:3], dtype=torch.float32
-        )  # f at the pixels (S, A, npx, 3)
+            (ref_all[idx] - top).reshape(len(idx), len(angles), res * res, 3)[:, :, mask] / wo[:, 2:3],
+            dtype=torch.float32,
+        )  # f (of the remainder) at the pixels (S, A, npx, 3)
         z = z0.clone().requires_grad_(True)
         opt = torch.optim.Adam([z], lr=lr)
         n_s, n_a = len(idx), len(angles)
@@ -372,8 +394,8 @@ def lobe_bound(
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-        m = lobe_metrics(decoder_lobes(dec, z.detach(), res, angles), ref_all[idx])
-        m0 = lobe_metrics(decoder_lobes(dec, z0, res, angles), ref_all[idx])
+        m = lobe_metrics(top + decoder_lobes(dec, z.detach(), res, angles), ref_all[idx])
+        m0 = lobe_metrics(top + decoder_lobes(dec, z0, res, angles), ref_all[idx])
         out[f"coatings_{c}"] = {
             "layering": [m0["lobe_error_median"], m0["lobe_error_p90"]],
             "bound": [m["lobe_error_median"], m["lobe_error_p90"]],
@@ -524,7 +546,7 @@ def projected_targets(args, models: ModelSet, sets: dict, shrink: float) -> tupl
         refit = ck.get("refit", {}).get("command")
         if Path(args.c2).resolve() in [Path(d).resolve() for d in ck["args"]["data"]]:
             if 2 not in sets:
-                sets[2] = StackSet(args.c2, models, use_weight=args.weighting == "cosine")
+                sets[2] = StackSet(args.c2, models, use_weight=args.weighting == "cosine", remainder=args.remainder)
             targets[2] = projected_latents(args.projected, args.c2, sets[2].n, shrink)
     return targets, refit
 
@@ -547,11 +569,12 @@ def decoded_stage_data(args, models: ModelSet, sets: dict) -> tuple[dict, dict]:
                 models,
                 args.stacks if c == 1 else 0,
                 use_weight=args.weighting == "cosine",
+                remainder=args.remainder,
             )
     dsets = {c: sets[c] for c in coatings}
     if args.decoded_data:  # the same stacks and directions with other values (more walks)
         dsets = {
-            c: StackSet(d, models, sets[c].n, use_weight=True)
+            c: StackSet(d, models, sets[c].n, use_weight=True, remainder=args.remainder)
             for c, d in zip((1, 2), args.decoded_data, strict=False)
             if c in dsets
         }
@@ -573,10 +596,17 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
     models = ModelSet(args.size, threads=args.threads, model_dir=args.model_dir)
-    dec = frozen_decoder(args.size, Path(args.model_dir or MODEL_DIR))
+    if args.decoder_ckpt is not None:  # a train_decoder checkpoint not (yet) exported
+        from onnx_export.evaluate import load_decoder
+
+        dec = load_decoder(args.decoder_ckpt)[0]
+        for prm in dec.parameters():
+            prm.requires_grad_(False)
+    else:
+        dec = frozen_decoder(args.size, Path(args.model_dir or MODEL_DIR))
     trained_with = {p.name: file_digest(p) for p in (models.encoder_path, models.decoder_path)}
     sets = {
-        1: StackSet(args.c1, models, args.stacks, args.weighting == "cosine")
+        1: StackSet(args.c1, models, args.stacks, args.weighting == "cosine", remainder=args.remainder)
     }  # two-coating data are loaded when stage 2 starts
 
     def heldout():  # measured by process 0 only
@@ -639,7 +669,7 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
         hist["projected"] = {"latents": str(args.projected), "refit": refit, "shrink": args.shrink}
         regress_projected(net, sets, targets, args, gen, log, procs)
         if heldout() is not None:
-            hist["regressed"] = heldout_error(net, dec, models, heldout(), log)
+            hist["regressed"] = heldout_error(net, dec, models, heldout(), log, remainder=args.remainder)
         fresh_opt = True
         save(0, None)  # --steps 0 --finetune 0 (and no --decoded-steps): the regressed network is the result
     rec = hist.get("decoded")
@@ -686,12 +716,16 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
             log,
             rec,
             checkpoint=lambda o: save(0, None, decoded_opt=o.state_dict(), decoded_gen=gen.get_state()),
-            evaluate=lambda: heldout_error(net, dec, models, ho, log) if (ho := heldout()) is not None else None,
+            evaluate=lambda: (
+                heldout_error(net, dec, models, ho, log, remainder=args.remainder)
+                if (ho := heldout()) is not None
+                else None
+            ),
             opt_state=opt_state,
             procs=procs,
         )
         if heldout() is not None:
-            rec["heldout"] = heldout_error(net, dec, models, heldout(), log)
+            rec["heldout"] = heldout_error(net, dec, models, heldout(), log, remainder=args.remainder)
         fresh_opt = True
         save(0, None)
     if fresh_opt:
@@ -708,7 +742,7 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
         for g in opt.param_groups:
             g["lr"] = lr
         if stage2 and 2 not in sets:
-            sets[2] = StackSet(args.c2, models, use_weight=args.weighting == "cosine")
+            sets[2] = StackSet(args.c2, models, use_weight=args.weighting == "cosine", remainder=args.remainder)
             log(f"stage 2: {sets[2].n} two-coating stacks")
         if stage2:  # half the batch with two coatings (the recursion), half with one (keep stage 1)
             parts = [
@@ -731,7 +765,7 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
             log(f"step {step}/{total} loss {ema:.5f} lr {lr:.2e} {time.perf_counter() - t0:.0f} s")
         end_of_stage = step == args.steps or step == total
         if (end_of_stage or (args.eval_every and step % args.eval_every == 0)) and (ho := heldout()) is not None:
-            m = heldout_error(net, dec, models, ho, log)
+            m = heldout_error(net, dec, models, ho, log, remainder=args.remainder)
             hist[f"step_{step}"] = m
             if end_of_stage:
                 hist["stage2" if stage2 else "stage1"] = m
@@ -950,6 +984,19 @@ def parser() -> argparse.ArgumentParser:
         default=None,
         help="where the frozen encoder and decoder of --size are read (default: the shipped models)",
     )
+    t.add_argument(
+        "--decoder-ckpt",
+        type=Path,
+        default=None,
+        help="decode through this train_decoder checkpoint instead of --size's exported decoder (the "
+        "encoder stays --size's); for comparing decoders before one is exported",
+    )
+    t.add_argument(
+        "--remainder",
+        action="store_true",
+        help="the decoder holds the remainder (train_decoder --remainder): the targets are the stacks' BRDFs "
+        "minus the exact top-interface reflection, and the held-out lobes are scored with it added back",
+    )
     t.add_argument("--regress-steps", type=int, default=3000)
     t.add_argument(
         "--decoded-steps",
@@ -1025,6 +1072,18 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--pixels", type=int, default=96, help="random pixels of each lobe image per step")
     b.add_argument("--threads", type=int, default=1)
     b.add_argument("--seed", type=int, default=0)
+    b.add_argument(
+        "--decoder-ckpt",
+        type=Path,
+        default=None,
+        help="a train_decoder checkpoint to project into instead of the shipped decoder of --size",
+    )
+    b.add_argument(
+        "--remainder",
+        action="store_true",
+        help="the decoder holds the remainder (train_decoder --remainder): project the held-out lobes minus "
+        "the exact top-interface reflection, score that reflection plus the decoded lobe",
+    )
     return ap
 
 
@@ -1047,8 +1106,24 @@ def main(argv=None):
             ho = ho | {"stacks": [ho["stacks"][i] for i in keep], "lobe": ho["lobe"][keep]}
         src = MODEL_DIR / f"layering_{a.size}.onnx"
         net = net_from_onnx(src, json.loads(src.with_suffix(".json").read_text()))
+        if a.decoder_ckpt is not None:
+            from onnx_export.evaluate import load_decoder
+
+            dec = load_decoder(a.decoder_ckpt)[0]
+            for prm in dec.parameters():
+                prm.requires_grad_(False)
+        else:
+            dec = frozen_decoder(a.size)
         res = lobe_bound(
-            net, frozen_decoder(a.size), ModelSet(a.size, threads=a.threads), ho, a.steps, a.pixels, seed=a.seed, log=lg
+            net,
+            dec,
+            ModelSet(a.size, threads=a.threads),
+            ho,
+            a.steps,
+            a.pixels,
+            seed=a.seed,
+            log=lg,
+            remainder=a.remainder,
         )
         print(json.dumps(res))
     else:

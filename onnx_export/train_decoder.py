@@ -36,6 +36,7 @@ from onnx_export import data as datamod
 from onnx_export import layered_data
 from onnx_export.distributed import processes, quiet_unless_main
 from onnx_export.nets import PAIR_LOSSES, Decoder, cosine_lr, he_init, macs_per_eval, make_decoder, n_params, pair_loss
+from onnx_export.remainder import top_reflection
 
 
 def load_set(path: Path) -> dict:
@@ -66,13 +67,17 @@ def load_set(path: Path) -> dict:
     return d
 
 
-def load_training_tensors(paths: list[Path], materials: int | None = None) -> dict:
+def load_training_tensors(paths: list[Path], materials: int | None = None, remainder: bool = False) -> dict:
     """wi, wo, f (M, P, 3) of all data sets, cut to the smallest number of pairs P of any set
     (pairs are in random order), plus ``source`` (M,): which set each material came from, and
-    ``arrays``: each set's StackArrays (not cut to ``materials``)."""
+    ``arrays``: each set's StackArrays (not cut to ``materials``). ``remainder``: the targets of
+    layered stacks are their BRDF minus the exact top-interface reflection (``remainder.py``)."""
     parts = [load_set(p) for p in paths]
     pmin = min(p["wi"].shape[1] for p in parts)
     parts = [{k: (v[:, :pmin] if k in ("wi", "wo", "f", "stderr") else v) for k, v in p.items()} for p in parts]
+    if remainder:
+        for p in parts:
+            p["f"] = p["f"] - top_reflection(p["arrays"], p["wi"], p["wo"])
     d = {k: np.concatenate([p[k] for p in parts]) for k in ("wi", "wo", "f") if all(k in p for p in parts)}
     if "stderr" in parts[0] or any("stderr" in p for p in parts):
         d["stderr"] = np.concatenate([p.get("stderr", np.zeros_like(p["f"])) for p in parts])
@@ -200,7 +205,7 @@ def train(args, log=print) -> dict:
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
-    t = load_training_tensors(args.data, args.materials)
+    t = load_training_tensors(args.data, args.materials, remainder=getattr(args, "remainder", False))
     n_units = t["wi"].shape[0] * 3
     dec = make_decoder(args.size, features=args.features, activation=args.activation)
     if args.width:
@@ -341,6 +346,11 @@ def parser():
         type=float,
         default=1.0,
         help="divide each pair's loss term by max(min(cos_i, cos_o), this) (nets.pair_loss; 1: off)",
+    )
+    ap.add_argument(
+        "--remainder",
+        action="store_true",
+        help="train on the remainder: each layered stack's BRDF minus its exact top-interface reflection",
     )
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
