@@ -97,11 +97,16 @@ def network_grazing(
         c = cal.calibrate(stacks[k], models, z[k], models.proxy_params(z[k])[0])
         return lambda wi, wo: c.apply(models.eval_brdf(z[k], wi, wo), wi, wo)
 
+    return brdf_grazing([brdf(k) for k in range(len(stacks))], angles, res)
+
+
+def brdf_grazing(brdfs, angles, res: int) -> tuple[np.ndarray, np.ndarray]:
+    """(C, A, 3) albedo on the lobe grid and f cos(theta_i) for the viewer on the normal of BRDFs
+    ``brdfs`` (one ``f(wi, wo) -> (N, 3)`` per stack), at the incident angles ``angles``."""
     inc = np.stack([lobe.incident_direction(t) for t in angles])
     view = np.tile([0.0, 0.0, 1.0], (len(angles), 1))
     alb, fcos = [], []
-    for k in range(len(stacks)):
-        f = brdf(k)
+    for f in brdfs:
         alb.append([lobe.albedo_from_lobe(lobe.lobe_image(f, t, res)) for t in angles])
         fcos.append(f(inc, view) * inc[:, 2:3])
     return np.array(alb), np.array(fcos)
@@ -111,7 +116,11 @@ def grazing_ratios(models, data: dict, calibrate: bool = False) -> dict:
     """Network / reference of the albedo and of f cos(theta_i) (RGB mean), (C, A) each, with the angles;
     ``calibrate``: of the calibrated materials."""
     stacks = [s if isinstance(s, Stack) else Stack.from_json(str(s)) for s in data["stacks"]]
-    alb, fcos = network_grazing(models, stacks, data["angles"], int(data["res"]), calibrate)
+    return ratios_to_reference(data, *network_grazing(models, stacks, data["angles"], int(data["res"]), calibrate))
+
+
+def ratios_to_reference(data: dict, alb: np.ndarray, fcos: np.ndarray) -> dict:
+    """The measured albedo and f cos (C, A, 3) over the reference's (RGB means), with the angles."""
     tiny = 1e-12
     return {
         "angles": np.asarray(data["angles"]),

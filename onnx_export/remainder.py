@@ -55,3 +55,88 @@ def top_lobes(arrays: StackArrays, res: int, angles) -> np.ndarray:
         f = top_reflection(arrays, wi, np.broadcast_to(wo_m, (s, npx, 3)))
         out[:, a][:, mask] = f * wo_m[None, :, 2:3]
     return out.reshape(s, len(angles), res, res, 3)
+
+
+def torch_path_brdfs(layering_ckpt, decoder_ckpt, stacks, size: str = "tiny", remainder: bool = False) -> list:
+    """One ``f(wi, wo) -> (N, 3)`` per stack through a layering network and a decoder still in their
+    training checkpoints (torch), the encoder of ``size`` giving the layering network's inputs as in
+    ``layering train``; ``remainder``: plus the exact top-interface reflection."""
+    import torch
+
+    from addon.core.neural import load_models
+    from onnx_export.evaluate import load_decoder
+    from onnx_export.layering import LayeringNet, compose, encoder_latents
+
+    ck = torch.load(layering_ckpt, weights_only=False)
+    net = LayeringNet(**ck["config"])
+    net.load_state_dict(ck["net"])
+    net.eval()
+    dec = load_decoder(decoder_ckpt)[0]
+    models = load_models(size, threads=1)
+    z = torch.zeros(len(stacks), 3, 32)
+    for c in sorted({len(s.coatings) for s in stacks}):
+        idx = [i for i, s in enumerate(stacks) if len(s.coatings) == c]
+        a = StackArrays.from_stacks([stacks[i] for i in idx])
+        zb, zt = encoder_latents(models, a)
+        with torch.no_grad():
+            z[idx] = compose(
+                net,
+                torch.from_numpy(zb),
+                torch.from_numpy(zt),
+                torch.from_numpy(a.coat_albedo.astype(np.float32)),
+                torch.from_numpy(a.coat_thickness.astype(np.float32)),
+            )
+
+    def brdf(k: int):
+        arrays = StackArrays.from_stacks([stacks[k]])
+
+        def f(wi, wo):
+            n = len(wi)
+            with torch.no_grad():
+                t = lambda v: torch.as_tensor(np.repeat(np.asarray(v, np.float32), 3, 0))  # noqa: E731
+                out = dec(z[k].repeat(n, 1), t(wi), t(wo)).reshape(n, 3).double().numpy()
+            return out + top_reflection(arrays, wi[None], wo[None])[0] if remainder else out
+
+        return f
+
+    return [brdf(k) for k in range(len(stacks))]
+
+
+def grazing_summary(ratios: dict) -> dict:
+    """The issue's grazing figures of ``heldout_grazing.ratios_to_reference``: the largest albedo and
+    f cos ratios at 80-89.5 degrees, and the median albedo ratio at 75 and 85 degrees per coating count."""
+    ang = list(ratios["angles"])
+    near = ratios["angles"] >= 80
+    out = {"albedo_max": float(ratios["albedo"][:, near].max()), "fcos_max": float(ratios["fcos"][:, near].max())}
+    for t in (75.0, 85.0):
+        for c in np.unique(ratios["n_coatings"]):
+            out[f"albedo_median_{t:g}deg_{int(c)}coat"] = float(
+                np.median(ratios["albedo"][ratios["n_coatings"] == c, ang.index(t)])
+            )
+    return out
+
+
+def main(argv=None) -> None:
+    import argparse
+    import json
+    from pathlib import Path
+
+    from onnx_export import heldout_grazing as hg
+
+    ap = argparse.ArgumentParser(
+        description="grazing ratios (docs/layering_training.md) of a layering network and decoder checkpoint"
+    )
+    ap.add_argument("--layering-ckpt", type=Path, required=True)
+    ap.add_argument("--decoder-ckpt", type=Path, required=True)
+    ap.add_argument("--size", default="tiny", help="the encoder that feeds the layering network")
+    ap.add_argument("--remainder", action="store_true", help="the decoder holds the remainder: add the top lobe")
+    ap.add_argument("--grazing", type=Path, default=Path("tests/data/heldout_grazing.npz"))
+    a = ap.parse_args(argv)
+    data = hg.load(a.grazing)
+    brdfs = torch_path_brdfs(a.layering_ckpt, a.decoder_ckpt, data["stacks"], a.size, a.remainder)
+    alb, fcos = hg.brdf_grazing(brdfs, data["angles"], int(data["res"]))
+    print(json.dumps(grazing_summary(hg.ratios_to_reference(data, alb, fcos))))
+
+
+if __name__ == "__main__":
+    main()
