@@ -274,3 +274,20 @@ def test_chunked_session_rejects_bad_settings(tmp_path):
         ChunkedSession(MODEL_DIR / "decoder_tiny_rgb.onnx", threads=0)
     with pytest.raises(ValueError, match="chunk"):
         ChunkedSession(MODEL_DIR / "decoder_tiny_rgb.onnx", chunk=0)
+
+
+def test_batched_encoding_of_shared_and_distinct_layers_equals_each_stack_alone(models):
+    """encode_arrays computes the features of each distinct base and interface once: stacks that share a
+    base (or a coat) get exactly the latent they get alone, whether their batch repeats layers or not."""
+    bases = [Conductor(0.2, (0.2, 0.4, 1.4), (3.9, 2.4, 1.6)), Diffuse((0.6, 0.3, 0.1))]
+    stacks = [
+        Stack(bases[b], (Coating(roughness=r, ior=1.5, albedo=(0.9, 0.8, 0.7), thickness=t),))
+        for b, r, t in [(0, 0.1, 0.5), (0, 0.1, 0.5), (1, 0.3, 0.5), (0, 0.1, 1.0), (1, 0.05, 0.2), (0, 0.3, 1.0)]
+    ]
+    batch = encode_arrays(StackArrays.from_stacks(stacks), models)
+    alone = np.stack([encode_stack(s, models) for s in stacks])
+    np.testing.assert_allclose(batch, alone, rtol=1e-6, atol=1e-7)
+    np.testing.assert_array_equal(batch[0], batch[1])  # the same stack twice
+    bare = encode_arrays(StackArrays.from_stacks([Stack(b) for b in [bases[0]] * 3 + [bases[1]]]), models)
+    np.testing.assert_array_equal(bare[0], bare[2])
+    np.testing.assert_allclose(bare[3], encode_stack(Stack(bases[1]), models), rtol=1e-6, atol=1e-7)

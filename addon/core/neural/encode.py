@@ -25,6 +25,7 @@ import warnings
 
 import numpy as np
 
+from ..rows import distinct_rows
 from ..stack import LATENT, ClampWarning, Stack, StackArrays, clamp_to_trained, validate
 from .features import arrays_features
 from .models import ModelSet, load_models
@@ -50,10 +51,10 @@ def encode_arrays(arrays: StackArrays, models: ModelSet | str | None = None) -> 
     for note in notes:
         warnings.warn(note, ClampWarning, stacklevel=3)
     n, c = len(fixed), fixed.n_coatings
-    z = models.run_encoder(arrays_features(fixed))
+    z = _layer_latents(fixed, models)
     if c == 0 or n == 0:
         return z if c == 0 else np.zeros((0, 3, LATENT), dtype=np.float32)
-    z_tops = models.run_encoder(arrays_features(fixed.coating_interfaces())).reshape(n, c, 3, LATENT)
+    z_tops = _layer_latents(fixed.coating_interfaces(), models).reshape(n, c, 3, LATENT)
     zc = z.reshape(n * 3, LATENT)
     for j in range(c):  # bottom-up over coatings; all stacks and channels in one call each
         zc = models.run_layering(
@@ -63,6 +64,26 @@ def encode_arrays(arrays: StackArrays, models: ModelSet | str | None = None) -> 
             np.repeat(fixed.coat_thickness[:, j], 3),
         )
     return zc.reshape(n, 3, LATENT)
+
+
+def _layer_latents(arrays: StackArrays, models: ModelSet) -> np.ndarray:
+    """Encoder latents (N, 3, 32) of the bases of ``arrays`` (coatings ignored), the features of each
+    distinct base computed once: in a texture most texels share their base (or a coat's interface), and
+    its features cost more than the rows' hash (``rows.distinct_rows``)."""
+    params = np.column_stack(
+        [
+            arrays.base_kind,
+            arrays.base_roughness,
+            arrays.base_albedo,
+            arrays.base_eta,
+            arrays.base_k,
+            arrays.base_ior,
+        ]
+    )
+    first, inverse = distinct_rows(params)
+    if len(first) == len(params):  # all distinct: no gathers
+        return models.run_encoder(arrays_features(arrays))
+    return models.run_encoder(arrays_features(arrays.take(first)))[inverse]
 
 
 def encode_stack(stack: Stack, models: ModelSet | str | None = None) -> np.ndarray:
