@@ -422,10 +422,11 @@ class StackArrays:
     def take(self, index) -> "StackArrays":
         return StackArrays(**{f: getattr(self, f)[index] for f in self.FIELDS})
 
-    def to_matrix(self) -> np.ndarray:
-        """(N, P) float matrix of every field, for deduplication and hashing."""
+    def to_matrix(self, dtype=np.float64) -> np.ndarray:
+        """(N, P) matrix of every field, for deduplication and hashing (``dtype`` float32: what
+        ``rows.distinct_rows`` compares, without the float64 copy)."""
         n = len(self)
-        return np.concatenate([getattr(self, f).reshape(n, -1).astype(np.float64) for f in self.FIELDS], axis=1)
+        return np.concatenate([getattr(self, f).reshape(n, -1) for f in self.FIELDS], axis=1, dtype=dtype)
 
     def unique(self) -> "tuple[StackArrays, np.ndarray]":
         """Distinct rows and the inverse index (rows == unique.take(inverse))."""

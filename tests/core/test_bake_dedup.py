@@ -1,6 +1,8 @@
 """The bake's deduplication of parameter rows (hash of the float32 rows, exact fallback)."""
 
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from addon.core import rows
 from addon.core.rows import distinct_rows
@@ -62,3 +64,33 @@ def test_distinct_rows_come_in_order_of_first_occurrence():
     unique = np.random.default_rng(3).random((300, 5))  # all distinct: the identity, nothing to gather
     first, inverse = distinct_rows(unique)
     assert np.array_equal(first, np.arange(300)) and np.array_equal(inverse, np.arange(300))
+
+
+def test_constant_columns_and_degenerate_shapes():
+    m, _ = rows_with_repeats(n=600, distinct=13, cols=3, seed=5)
+    wide = np.concatenate([np.full((600, 4), 0.25), m[:, :1], np.full((600, 2), -0.0), m[:, 1:]], axis=1)
+    first, inverse = distinct_rows(wide)
+    assert len(first) == 13 and np.array_equal(wide[first][inverse], wide)
+    same = np.tile([1.0, -0.0, 3.0], (50, 1))
+    same[7, 1] = 0.0  # -0.0 and 0.0 in a column that is constant as a parameter
+    first, inverse = distinct_rows(same)
+    assert np.array_equal(first, [0]) and np.array_equal(inverse, np.zeros(50))
+    first, inverse = distinct_rows(np.zeros((0, 4)))
+    assert first.shape == (0,) and inverse.shape == (0,)
+
+
+@given(
+    st.integers(1, 60).flatmap(
+        lambda n: st.lists(
+            st.lists(st.sampled_from([0.0, -0.0, 0.5, 1.0, 2.0]), min_size=n, max_size=n), min_size=1, max_size=5
+        )
+    )
+)
+@settings(max_examples=200, deadline=None)
+def test_distinct_rows_agrees_with_the_exact_row_sort(columns):
+    m = np.array(columns).T  # rows of few values: many repeats, constant columns, signed zeros
+    first, inverse = distinct_rows(m)
+    exact = np.unique(m + 0.0, axis=0)  # + 0.0 turns -0.0 into 0.0
+    assert len(first) == len(exact)
+    assert np.all(np.diff(first) > 0) and first[0] == 0
+    assert np.array_equal(m[first][inverse] + 0.0, m + 0.0)

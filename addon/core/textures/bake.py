@@ -163,7 +163,7 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1) -> t
     inverse = None  # None: every row is its own (no gather at the end)
     todo = arrays
     if dedup:
-        first, inverse = distinct_rows(arrays.to_matrix())
+        first, inverse = distinct_rows(arrays.to_matrix(np.float32))
         if len(first) < n:
             todo = arrays.take(first)
         else:  # all distinct: first and inverse are arange(n)
