@@ -299,8 +299,13 @@ def main(argv=None):
     if a.decoder is None or a.encoder is None:
         ap.error("--decoder and --encoder are required (or --regraph)")
     a.out.mkdir(parents=True, exist_ok=True)
-    dec, latents = load_decoder(a.decoder)
     dck = torch.load(a.decoder, weights_only=False)
+    if dck.get("args", {}).get("remainder"):  # the runtime would decode it as a whole BRDF
+        ap.error(
+            f"{a.decoder} was trained on remainders (train_decoder --remainder): the runtime does not add the "
+            "exact top lobe yet, so it cannot ship (docs/layering_training.md, 'Exact top coat + neural remainder')"
+        )
+    dec, latents = load_decoder(dck)
     eck = torch.load(a.encoder, weights_only=False)
     enc = Encoder(**eck["config"])
     enc.load_state_dict(eck["encoder"])

@@ -72,3 +72,16 @@ def test_remainder_targets_of_the_trainers_are_the_brdf_minus_the_top_reflection
     a, b = StackSet(tmp_path / "c1", models), StackSet(tmp_path / "c1", models, remainder=True)
     np.testing.assert_allclose(b.f.numpy(), rem["f"].numpy(), rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(a.f.numpy(), whole["f"].numpy())
+
+
+def test_a_remainder_decoder_is_refused_by_the_export(tmp_path):
+    """The runtime decodes every shipped decoder as a whole BRDF: a remainder checkpoint must not ship."""
+    import torch
+
+    from onnx_export import export
+
+    ck = tmp_path / "ckpt.pt"
+    torch.save({"args": {"remainder": True}}, ck)
+    with pytest.raises(SystemExit):
+        export.main(["--size", "tiny", "--decoder", str(ck), "--encoder", str(ck), "--out", str(tmp_path)])
+    assert not list(tmp_path.glob("*.onnx"))
