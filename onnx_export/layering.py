@@ -870,6 +870,12 @@ def training_loss(s: dict) -> str:
 
 def export(args, log=print) -> dict:
     s = torch.load(args.ckpt, weights_only=False)
+    targs = s.get("args", {})
+    if targs.get("remainder") in (True, "True") or targs.get("decoder_ckpt") not in (None, "None"):
+        raise SystemExit(
+            f"{args.ckpt} was trained through a decoder checkpoint (--decoder-ckpt) or on remainders (--remainder): "
+            "its latents belong to a decoder that is not shipped, so it cannot ship either"
+        )
     net = LayeringNet(**s["config"])
     net.load_state_dict(s["net"])
     path = Path(args.out) / f"layering_{args.size}.onnx"

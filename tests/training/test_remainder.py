@@ -85,3 +85,16 @@ def test_a_remainder_decoder_is_refused_by_the_export(tmp_path):
     with pytest.raises(SystemExit):
         export.main(["--size", "tiny", "--decoder", str(ck), "--encoder", str(ck), "--out", str(tmp_path)])
     assert not list(tmp_path.glob("*.onnx"))
+
+
+@pytest.mark.parametrize("args", [{"remainder": "True", "decoder_ckpt": "None"}, {"decoder_ckpt": "cache/x.pt"}])
+def test_a_layering_network_of_an_unshipped_decoder_is_refused_by_its_export(tmp_path, args):
+    import torch
+
+    from onnx_export import layering
+
+    ck = tmp_path / "ckpt.pt"
+    torch.save({"args": args, "config": {"width": 128, "depth": 3}}, ck)
+    with pytest.raises(SystemExit):
+        layering.main(["export", "--size", "tiny", "--ckpt", str(ck), "--out", str(tmp_path)])
+    assert not list(tmp_path.glob("*.onnx"))
