@@ -98,8 +98,12 @@ def main(argv=None) -> int:
     models = load_models(args.size)
     texel = tex.levels[0]
     z = {t: texel[0, int(round(t * 8)), :96].reshape(3, 32) for t in (0.0, 0.5, 1.0)}
+    top = {t: texel[0, int(round(t * 8)), 98:] for t in z}  # the top-coat channels (a remainder decoder's top lobe)
     theta = 45.0
-    lobes = {t: lobe.lobe_image(lambda wi, wo, zz=zz: models.eval_brdf(zz, wi, wo), theta, 96) for t, zz in z.items()}
+    lobes = {
+        t: lobe.lobe_image(lambda wi, wo, zz=zz, tt=top[t]: models.eval_brdf(zz, wi, wo, tt), theta, 96)
+        for t, zz in z.items()
+    }
     brdf_mix = 0.5 * (lobes[0.0] + lobes[1.0])
     import matplotlib
 

@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from addon.core.neural import calibrate as cal  # noqa: E402
-from addon.core.neural import encode_stack, load_models  # noqa: E402
+from addon.core.neural import encode_stack, load_models, top_coat  # noqa: E402
 from addon.core.stack import PRESETS  # noqa: E402
 from onnx_export.heldout_grazing import grazing_ratios, load  # noqa: E402
 
@@ -65,7 +65,9 @@ def true_albedo_rows(size: str, angles=(75.0, 85.0), walks: int = 32768) -> dict
         c = cal.calibrate(stack, models, z, proxy)
         ref, _ = reference.albedo(stack, cal.grid_directions(cosines), samples=walks, seed=1000 + k)
         for flag in (False, True):
-            dec = cal.decoded_albedo(models, z, *proxy, cosines, calibration=c if flag else None, seed=77)
+            dec = cal.decoded_albedo(
+                models, z, *proxy, cosines, calibration=c if flag else None, seed=77, top=top_coat(stack)
+            )
             ratios[flag].append(dec.mean(-1) / np.maximum(ref.mean(-1), 1e-12))
     n_coat = np.asarray(data["n_coatings"])
     out = {}

@@ -41,13 +41,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from addon.core import lobe  # noqa: E402
-from addon.core.neural import MODEL_DIR, SIZES, encode_arrays, encode_stack, load_models  # noqa: E402
+from addon.core.neural import MODEL_DIR, SIZES, encode_arrays, encode_stack, load_models, top_coat  # noqa: E402
 from addon.core.stack import StackArrays  # noqa: E402
 from benchmarks.sampling_efficiency import (  # noqa: E402
     cosine_sampler,
     ggx_sampler,
+    material_sampler,
     one_bounce_variance,
-    proxy_sampler,
 )
 from onnx_export.data import sample_layered_params  # noqa: E402
 from onnx_export.heldout_layered import DIFFUSE_INDEX, SPECULAR_INDEX, load, runtime_errors  # noqa: E402
@@ -88,10 +88,11 @@ def sampling_ratios(models, stacks, n: int) -> list[dict]:
         z = encode_arrays(StackArrays.from_stacks([s]), models)
         p = models.proxy_params(z)
         sigma, w = p[0]
-        brdf = lambda wi, wo_, z=z[0]: models.eval_brdf(z, wi, wo_)  # noqa: E731
+        top = top_coat(s)
+        brdf = lambda wi, wo_, z=z[0]: models.eval_brdf(z, wi, wo_, top)  # noqa: E731
         rel = {}
-        for name, smp in (
-            ("proxy", proxy_sampler(sigma, w)),
+        for name, smp in (  # "proxy": the renderer's sampler (with the exact top lobe's for a remainder decoder)
+            ("proxy", material_sampler(models, sigma, w, top)),
             ("cosine", cosine_sampler()),
             ("ggx_top", ggx_sampler(s.coatings[-1].roughness)),
         ):

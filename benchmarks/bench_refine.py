@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from addon.core import lobe  # noqa: E402
-from addon.core.neural import encode_stack, load_models  # noqa: E402
+from addon.core.neural import encode_stack, load_models, top_coat  # noqa: E402
 from addon.core.neural.refine import RefineSettings, refine_latent  # noqa: E402
 from addon.core.stack import ClampWarning, Stack  # noqa: E402
 
@@ -42,8 +42,9 @@ SECTION = "## Refinement"
 
 def lobe_errors(models, z, stack_index: int, data: dict) -> np.ndarray:
     res = data["lobe"].shape[2]
+    top = top_coat(data["stacks"][stack_index])  # a remainder decoder's exact top lobe
     lobes = np.array(
-        [lobe.lobe_image(lambda wi, wo: models.eval_brdf(z, wi, wo), float(t), res) for t in data["angles"]]
+        [lobe.lobe_image(lambda wi, wo: models.eval_brdf(z, wi, wo, top), float(t), res) for t in data["angles"]]
     )
     return lobe.relative_rmse(lobes, data["lobe"][stack_index], image_axes=3)
 

@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from addon.core import lobe, preview  # noqa: E402
-from addon.core.neural import encode_stack, lerp, load_models  # noqa: E402
+from addon.core.neural import encode_stack, lerp, load_models, top_coat  # noqa: E402
 from addon.core.stack import Coating, Conductor, Diffuse, Stack  # noqa: E402
 
 GOLD = dict(eta=(0.143, 0.374, 1.442), k=(3.983, 2.385, 1.603))
@@ -47,13 +47,14 @@ def main(argv=None):
     models = load_models(a.size, threads=2)
     za = encode_stack(MATERIAL_A, models)
     zb = encode_stack(MATERIAL_B, models)
+    ta, tb = top_coat(MATERIAL_A), top_coat(MATERIAL_B)  # a remainder decoder's exact top lobes, lerped as a texture's
 
     def latent_brdf(t):
         z = lerp(za, zb, t)
-        return lambda wi, wo: models.eval_brdf(z, wi, wo)
+        return lambda wi, wo: models.eval_brdf(z, wi, wo, (1 - t) * ta + t * tb)
 
     def blend_brdf(t):
-        return lambda wi, wo: (1 - t) * models.eval_brdf(za, wi, wo) + t * models.eval_brdf(zb, wi, wo)
+        return lambda wi, wo: (1 - t) * models.eval_brdf(za, wi, wo, ta) + t * models.eval_brdf(zb, wi, wo, tb)
 
     rows = {"latent lerp": latent_brdf, "linear BRDF blend": blend_brdf}
     lobes = {k: [lobe.lobe_image(fn(t), 30.0, a.res) for t in TS] for k, fn in rows.items()}

@@ -52,6 +52,15 @@ def proxy_sampler(sigma: float, w: float):
     return lambda wo, u: proxy.sample(wo, sigma, w, u)
 
 
+def material_sampler(models, sigma: float, w: float, top=None):
+    """The renderer's sampler of a neural material as a ``one_bounce_variance`` sampler: the proxy, mixed
+    with exact samples of the top lobe for a remainder decoder (``render.neural_material``)."""
+    from addon.core.render.neural_material import _BoundNeural
+
+    bound = _BoundNeural(models, np.zeros((3, 32), np.float32), np.float64(sigma), np.float64(w), top=top)
+    return lambda wo, u: bound.sample_direction(wo, u[:, 0], u[:, 1:])
+
+
 def cosine_sampler():
     """Cosine-weighted hemisphere sampling (the proxy with w = 1)."""
     return lambda wo, u: proxy.sample(wo, 1.0, 1.0, u)

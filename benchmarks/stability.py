@@ -284,15 +284,16 @@ def neural_cell(size: str, case: Case, res: int, walks: int) -> Cell:
 
 
 def _decoder_lobes(stack: Stack, size: str, res: int, angles):
-    from addon.core.neural import encode_stack, load_models
+    from addon.core.neural import encode_stack, load_models, top_coat
 
     m = load_models(size)
     try:
         z = encode_stack(stack, m)
     except (FileNotFoundError, NotImplementedError):
         return None
+    top = top_coat(stack)
     t0 = time.perf_counter()
-    imgs = np.stack([lobe.lobe_image(lambda wi, wo: m.eval_brdf(z, wi, wo), th, res) for th in angles])
+    imgs = np.stack([lobe.lobe_image(lambda wi, wo: m.eval_brdf(z, wi, wo, top), th, res) for th in angles])
     n = len(angles) * int(lobe.lobe_grid(res)[1].sum())
     return imgs, (time.perf_counter() - t0) / n
 

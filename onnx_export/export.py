@@ -300,11 +300,8 @@ def main(argv=None):
         ap.error("--decoder and --encoder are required (or --regraph)")
     a.out.mkdir(parents=True, exist_ok=True)
     dck = torch.load(a.decoder, weights_only=False)
-    if dck.get("args", {}).get("remainder"):  # the runtime would decode it as a whole BRDF
-        ap.error(
-            f"{a.decoder} was trained on remainders (train_decoder --remainder): the runtime does not add the "
-            "exact top lobe yet, so it cannot ship (docs/layering_training.md, 'Exact top coat + neural remainder')"
-        )
+    # trained on remainders (train_decoder --remainder): the card says so, and the runtime adds the exact top lobe
+    remainder = dck.get("args", {}).get("remainder") in (True, "True")
     dec, latents = load_decoder(dck)
     eck = torch.load(a.encoder, weights_only=False)
     enc = Encoder(**eck["config"])
@@ -330,7 +327,14 @@ def main(argv=None):
         "name": f"decoder_{a.size}",
         "role": (
             "neural BRDF decoder f(z_c, wi, wo) -> f_c >= 0 (1/sr, no cosine), one scalar network shared by R, G, B"
+            + (
+                "; it holds the remainder of a layered stack's BRDF (the light that entered the top coat): the "
+                "runtime adds the exact top-interface reflection (addon.core.neural.top_lobe)"
+                if remainder
+                else ""
+            )
         ),
+        "remainder": remainder,
         "files": {p.name: file_digest(p) for p in (dpath, rgb_path)},
         "inputs": {
             "z": "(B, 32) float32 latent of one colour channel",

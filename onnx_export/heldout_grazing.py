@@ -84,18 +84,20 @@ def network_grazing(
     normal; with ``calibrate``, of each stack's calibrated material (``addon.core.neural.calibrate``, as the
     renderer evaluates it)."""
     from addon.core.neural import calibrate as cal
-    from addon.core.neural import encode_arrays
+    from addon.core.neural import encode_arrays, top_coats
 
     z = np.zeros((len(stacks), 3, 32), np.float32)
+    top = np.zeros((len(stacks), 2))
     for c in sorted({len(s.coatings) for s in stacks}):  # one batch per coating count
         idx = [i for i, s in enumerate(stacks) if len(s.coatings) == c]
-        z[idx] = encode_arrays(StackArrays.from_stacks([stacks[i] for i in idx]), models)
+        arrays = StackArrays.from_stacks([stacks[i] for i in idx])
+        z[idx], top[idx] = encode_arrays(arrays, models), top_coats(arrays)
 
     def brdf(k: int):
         if not calibrate:
-            return lambda wi, wo: models.eval_brdf(z[k], wi, wo)
+            return lambda wi, wo: models.eval_brdf(z[k], wi, wo, top[k])
         c = cal.calibrate(stacks[k], models, z[k], models.proxy_params(z[k])[0])
-        return lambda wi, wo: c.apply(models.eval_brdf(z[k], wi, wo), wi, wo)
+        return lambda wi, wo: models.eval_brdf(z[k], wi, wo, top[k], c)
 
     return brdf_grazing([brdf(k) for k in range(len(stacks))], angles, res)
 

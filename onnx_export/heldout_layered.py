@@ -258,7 +258,7 @@ def runtime_errors(models, data: dict, res: int | None = None) -> dict:
     reciprocal; the decoder is not by construction), "errors_swapped": (configs, angles) the relative RMSE
     of that swapped lobe against the reference}}.
     """
-    from addon.core.neural import encode_arrays
+    from addon.core.neural import encode_arrays, top_coats
 
     stacks = data["stacks"]
     stacks = [s if isinstance(s, Stack) else Stack.from_json(str(s)) for s in stacks]
@@ -267,16 +267,23 @@ def runtime_errors(models, data: dict, res: int | None = None) -> dict:
     out = {}
     for c in sorted({len(s.coatings) for s in stacks}):
         idx = [i for i, s in enumerate(stacks) if len(s.coatings) == c]
-        z = encode_arrays(StackArrays.from_stacks([stacks[i] for i in idx]), models)
+        arrays = StackArrays.from_stacks([stacks[i] for i in idx])
+        z, top = encode_arrays(arrays, models), top_coats(arrays)  # top: a remainder decoder's exact top lobe
         lobes = np.array(
             [
-                [lobe.lobe_image(lambda wi, wo, k=k, z=z: models.eval_brdf(z[k], wi, wo), t, res) for t in angles]
+                [
+                    lobe.lobe_image(lambda wi, wo, k=k, z=z, top=top: models.eval_brdf(z[k], wi, wo, top[k]), t, res)
+                    for t in angles
+                ]
                 for k in range(len(idx))
             ]
         )
         swapped = np.array(
             [
-                [lobe.lobe_image(lambda wi, wo, k=k, z=z: models.eval_brdf(z[k], wo, wi), t, res) for t in angles]
+                [
+                    lobe.lobe_image(lambda wi, wo, k=k, z=z, top=top: models.eval_brdf(z[k], wo, wi, top[k]), t, res)
+                    for t in angles
+                ]
                 for k in range(len(idx))
             ]
         )

@@ -871,10 +871,20 @@ def training_loss(s: dict) -> str:
 def export(args, log=print) -> dict:
     s = torch.load(args.ckpt, weights_only=False)
     targs = s.get("args", {})
-    if targs.get("remainder") in (True, "True") or targs.get("decoder_ckpt") not in (None, "None"):
+    if targs.get("decoder_ckpt") not in (None, "None"):
         raise SystemExit(
-            f"{args.ckpt} was trained through a decoder checkpoint (--decoder-ckpt) or on remainders (--remainder): "
-            "its latents belong to a decoder that is not shipped, so it cannot ship either"
+            f"{args.ckpt} was trained through a decoder checkpoint (--decoder-ckpt): its latents belong to a "
+            "decoder that is not shipped, so it cannot ship either"
+        )
+    from addon.core.neural.models import read_card
+
+    on_remainder = targs.get("remainder") in (True, "True")
+    decoder_remainder = read_card("decoder", args.size, Path(args.out)).get("remainder", False) is True
+    if on_remainder != decoder_remainder:
+        raise SystemExit(
+            f"{args.ckpt} was trained on {'remainders' if on_remainder else 'whole BRDFs'} but decoder_{args.size} "
+            f"holds {'remainders' if decoder_remainder else 'whole BRDFs'} (its card's 'remainder'): retrain it "
+            f"{'without' if on_remainder else 'with'} --remainder"
         )
     net = LayeringNet(**s["config"])
     net.load_state_dict(s["net"])

@@ -18,29 +18,23 @@ from __future__ import annotations
 import numpy as np
 
 from addon.core import lobe
-from addon.core.bsdf import RoughDielectric
+from addon.core.neural.top_lobe import eval_top, top_coats
 from addon.core.stack import StackArrays
 
 
 def top_reflection(arrays: StackArrays, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
     """f (S, P, 3) of the top interface's reflection for stacks ``arrays`` (S rows) at the pairs
-    ``wi``, ``wo`` (S, P, 3) (unit, local frame). Stacks without coatings give 0 (the base is the
-    whole BRDF); a smooth top interface gives 0 (its mirror is a delta lobe, not part of f)."""
+    ``wi``, ``wo`` (S, P, 3) (unit, local frame): the runtime's lobe (``addon.core.neural.top_lobe``).
+    Stacks without coatings give 0 (the base is the whole BRDF); a smooth top interface gives 0 (its
+    mirror is a delta lobe, not part of f)."""
     wi = np.asarray(wi, dtype=np.float64)
     wo = np.asarray(wo, dtype=np.float64)
     s, p = wi.shape[:2]
     if wi.shape != (s, p, 3) or wo.shape != (s, p, 3) or len(arrays) != s:
         raise ValueError(f"wi, wo must be (S, P, 3) for {len(arrays)} stacks, got {wi.shape} and {wo.shape}")
-    out = np.zeros((s, p, 3))
-    n_coats = np.asarray(arrays.coat_roughness).shape[1]
-    if n_coats == 0:
-        return out
-    alpha = np.repeat(np.asarray(arrays.coat_roughness, dtype=np.float64)[:, -1], p)
-    ior = np.repeat(np.asarray(arrays.coat_ior, dtype=np.float64)[:, -1], p)
-    f = RoughDielectric(alpha, ior, reflection_only=True).eval(wi.reshape(-1, 3), wo.reshape(-1, 3), check=False)
-    f = np.asarray(f, dtype=np.float64).reshape(s * p, -1)
-    out[:] = np.broadcast_to(f, (s * p, 3)).reshape(s, p, 3)
-    return out
+    top = np.repeat(top_coats(arrays), p, axis=0)
+    f = eval_top(top, wi.reshape(-1, 3), wo.reshape(-1, 3))
+    return np.repeat(f.reshape(s, p, 1), 3, axis=2)
 
 
 def top_lobes(arrays: StackArrays, res: int, angles) -> np.ndarray:

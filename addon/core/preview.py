@@ -125,11 +125,14 @@ def encode_latent(stack: Stack, size: str = "auto") -> tuple[np.ndarray, str, li
     return z, size, notes
 
 
-def neural_brdf_from_latent(z: np.ndarray, size: str = "auto") -> BrdfFn:
-    """``brdf(wi, wo)`` of the neural decoder of ``size`` for a latent ``(3, 32)`` of that size."""
+def neural_brdf_from_latent(z: np.ndarray, size: str = "auto", top=None, calibration=None) -> BrdfFn:
+    """``brdf(wi, wo)`` of the neural decoder of ``size`` for a latent ``(3, 32)`` of that size, with
+    the stack's top coating ``top`` (alpha, ior: a remainder decoder adds its exact lobe) and an albedo
+    calibration of the decoded part, as the renderer evaluates it (``ModelSet.eval_brdf``)."""
     neural = _neural_module()
     z = np.asarray(z, dtype=np.float32).reshape(3, LATENT)
-    return lambda wi, wo: neural.eval_brdf(z, wi, wo, size=size)
+    models = neural.load_models(size)
+    return lambda wi, wo: models.eval_brdf(z, wi, wo, top, calibration)
 
 
 def neural_proxy(z: np.ndarray, size: str) -> tuple[Optional[tuple[float, float]], list[str]]:
@@ -182,8 +185,11 @@ def _cached_calibration(stack: Stack, z: np.ndarray, size: str):
     return calibrate.cached(stack, load_models(size), z)
 
 
-def _calibrated(brdf: BrdfFn, calibration) -> BrdfFn:
-    return lambda wi, wo: calibration.apply(np.asarray(brdf(wi, wo)), np.asarray(wi), np.asarray(wo))
+def _top_coat(stack: Stack) -> np.ndarray:
+    """The stack's top coating (alpha, ior) for a remainder decoder's exact top lobe."""
+    from .neural.top_lobe import top_coat
+
+    return top_coat(stack)
 
 
 def reference_sampler(stack: Stack, seed: int = 0):
@@ -243,10 +249,9 @@ def choose_brdf(
     try:
         z, used, notes = _latent_for(stack, latent, size)
         proxy, proxy_note = neural_proxy(z, used)
-        brdf = neural_brdf_from_latent(z, used)
         calibration = _cached_calibration(stack, z, used)
+        brdf = neural_brdf_from_latent(z, used, _top_coat(stack), calibration)
         if calibration is not None:  # as the viewport: the calibration a render made, no walks here
-            brdf = _calibrated(brdf, calibration)
             notes = notes + ["albedo calibration of the last render applied"]
         return BrdfChoice(brdf, "NEURAL", notes + proxy_note, proxy=proxy)
     except NeuralUnavailable as e:
@@ -521,7 +526,7 @@ def compare_with_reference(
     are wall-clock seconds of each method's evaluation alone (encoding excluded).
     """
     z, used, notes = _latent_for(stack, latent, size)
-    neural = neural_brdf_from_latent(z, used)
+    neural = neural_brdf_from_latent(z, used, _top_coat(stack))
     t0 = time.perf_counter()
     img_n = lobe_preview(neural, theta_i_deg, res, _scaled(progress, 0.0, 0.1))
     t1 = time.perf_counter()

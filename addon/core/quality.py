@@ -143,7 +143,7 @@ def decoder_lobes(stack: Stack, size: str, res: int = LOBE_RES, threads: int = 2
     Raises FileNotFoundError when a model the stack needs is not shipped (e.g. no layering
     network for this size); ClampWarnings of the encoding are passed on.
     """
-    from .neural import encode_stack, load_models
+    from .neural import encode_stack, load_models, top_coat
 
     models = load_models(size, threads=threads)
     if calibrate:
@@ -152,8 +152,10 @@ def decoder_lobes(stack: Stack, size: str, res: int = LOBE_RES, threads: int = 2
     else:
         z = encode_stack(stack, models)
 
+        top = top_coat(stack)
+
         def f(wi, wo):
-            return models.eval_brdf(z, wi, wo)
+            return models.eval_brdf(z, wi, wo, top)
 
     return np.stack([lobe.lobe_image(f, t, res) for t in lobe.INCIDENT_ANGLES_DEG])
 

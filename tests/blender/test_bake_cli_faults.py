@@ -403,7 +403,7 @@ def test_bands_of_other_inputs_are_not_reused_and_are_cleaned(rough_png, tmp_pat
 
 
 def test_a_texture_written_to_a_folder_name_is_an_error_and_leaves_nothing(tmp_path):
-    tex = LatentTexture.from_texels(np.zeros((2, 3, 98), np.float32))
+    tex = LatentTexture.from_texels(np.zeros((2, 3, 100), np.float32))
     (tmp_path / "folder.exr").mkdir()
     with pytest.raises(IsADirectoryError, match="is a folder"):
         tex.write_exr(tmp_path / "folder.exr")
@@ -414,7 +414,7 @@ def test_a_texture_written_to_a_folder_name_is_an_error_and_leaves_nothing(tmp_p
 
 def test_a_failed_texture_write_leaves_the_old_file_and_no_temporary(tmp_path, monkeypatch):
     path = tmp_path / "t.exr"
-    LatentTexture.from_texels(np.zeros((2, 3, 98), np.float32)).write_exr(path)
+    LatentTexture.from_texels(np.zeros((2, 3, 100), np.float32)).write_exr(path)
     before = path.read_bytes()
 
     def fail(*a, **k):
@@ -422,7 +422,7 @@ def test_a_failed_texture_write_leaves_the_old_file_and_no_temporary(tmp_path, m
 
     monkeypatch.setattr(LatentTexture, "_write_levels", fail)
     with pytest.raises(KeyboardInterrupt):
-        LatentTexture.from_texels(np.ones((2, 3, 98), np.float32)).write_exr(path)
+        LatentTexture.from_texels(np.ones((2, 3, 100), np.float32)).write_exr(path)
     assert path.read_bytes() == before and listing(tmp_path) == ["t.exr"]
 
 

@@ -91,7 +91,7 @@ def test_bake_refuses_in_an_unsaved_file_and_bakes_in_a_saved_one(session):
     assert saved["texture_path"].startswith("//textures/"), saved["texture_path"]
     for key in ("texture", "texture after reload"):
         assert saved[key]["exists"] and saved[key]["readable"] and saved[key]["finite"], (key, saved[key])
-        assert saved[key]["shape"][2] == 98  # 3 x 32 latent channels and the 2 sampling-proxy channels
+        assert saved[key]["shape"][2] == 100  # 3 x 32 latent channels, 2 sampling-proxy and 2 top-coat channels
 
 
 @pytest.mark.parametrize("label", ["unsaved", "saved"])

@@ -91,7 +91,9 @@ def test_constant_images_bake_to_the_constant_stack_latent():
     assert stats.unique == 1
     for level in tex.levels:
         assert np.allclose(level[..., :96], z.reshape(96), atol=1e-4)
-        assert np.allclose(level[..., 96:], proxy.reshape(2), atol=1e-4)
+        assert np.allclose(level[..., 96:98], proxy.reshape(2), atol=1e-4)
+        # the top coating's roughness (set by its map) and index, for a remainder decoder's exact top lobe
+        assert np.allclose(level[..., 98:], (0.1, wood().coatings[-1].ior), atol=1e-4)
 
 
 def test_progress_and_cancel():
@@ -163,7 +165,12 @@ def test_mix_blends_latents_through_the_mask():
     tex, stats = bake_mix(a, b, mask, enc)
     za, pa = enc(StackArrays.from_stacks([wood()]))
     zb, pb = enc(StackArrays.from_stacks([preset("coated_gold")]))
-    ends = np.concatenate([za.reshape(-1), pa.reshape(-1)]), np.concatenate([zb.reshape(-1), pb.reshape(-1)])
+    from addon.core.neural import top_coat
+
+    ends = tuple(
+        np.concatenate([z.reshape(-1), p.reshape(-1), top_coat(st)])
+        for z, p, st in ((za, pa, wood()), (zb, pb, preset("coated_gold")))
+    )
     base = tex.levels[0]
     assert np.allclose(base[:, 0], ends[0], atol=1e-4) and np.allclose(base[:, -1], ends[1], atol=1e-4)
     assert np.allclose(base[1, 2], 0.5 * (ends[0] + ends[1]), atol=1e-4)

@@ -206,14 +206,23 @@ def test_demo_scene_renders_in_both_modes_without_nan():
         assert set(stats.material_kinds[1:]) <= {"neural", "reference"}
 
 
-def test_latent_texture_material_matches_its_constant_latent():
+@pytest.mark.parametrize("stack", [COPPER, PRESETS["coated_gold"]], ids=["copper", "coated_gold"])
+def test_latent_texture_material_matches_its_constant_latent(stack):
+    """A texture of one latent (with its proxy and top-coat channels) shades as that latent does:
+    evaluation and the sampler's pdf (for a remainder decoder: the exact top lobe's mixture too)."""
+    from addon.core.neural import top_coat
     from addon.core.textures import LatentTexture
 
-    material = neural_material.make(COPPER)
+    material = neural_material.make(stack)
     assert material is not None, "the shipped models must serve this stack"
     sigma, w = material.sigma, material.w
     texels = np.concatenate(
-        [np.tile(material.z.reshape(1, 1, 96), (8, 8, 1)), np.tile([[[sigma, w]]], (8, 8, 1))], axis=2
+        [
+            np.tile(material.z.reshape(1, 1, 96), (8, 8, 1)),
+            np.tile([[[sigma, w]]], (8, 8, 1)),
+            np.tile(top_coat(stack).reshape(1, 1, 2), (8, 8, 1)),
+        ],
+        axis=2,
     ).astype(np.float32)
     textured = neural_material.NeuralMaterial(material.models, None, (sigma, w), LatentTexture.from_texels(texels))
     n = 300

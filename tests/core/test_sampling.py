@@ -3,13 +3,13 @@
 import numpy as np
 import pytest
 
-from addon.core.neural import SIZES, encode_arrays, encode_stack, load_models, proxy
+from addon.core.neural import SIZES, encode_arrays, encode_stack, load_models, proxy, top_coat
 from addon.core.stack import Coating, Conductor, Diffuse, Stack, StackArrays
 from benchmarks.sampling_efficiency import (
     cosine_sampler,
     ggx_sampler,
+    material_sampler,
     one_bounce_variance,
-    proxy_sampler,
     sky_radiance,
 )
 from tests.stats import chi2_direction_test
@@ -63,15 +63,40 @@ def test_proxy_sample_agrees_with_its_pdf_at_the_networks_parameters(models, whi
     assert p > 1e-3, (which, sigma, w, stat, p)
 
 
+@pytest.mark.parametrize("which", ["specular", "diffuse"])
+def test_the_renderers_sampler_agrees_with_its_pdf(models, which):
+    """The renderer's sampler of a neural material (for a remainder decoder: the proxy mixed with exact
+    samples of the top lobe) draws directions by the density its pdf gives (chi-square test)."""
+    from addon.core.render.neural_material import _BoundNeural
+
+    stack = SPECULAR if which == "specular" else DIFFUSE
+    z = encode_stack(stack, models)
+    sigma, w = models.proxy_params(z)[0]
+    bound = _BoundNeural(models, z, np.float64(sigma), np.float64(w), top=top_coat(stack))
+    wo = np.array([0.5, 0.0, np.sqrt(0.75)])
+
+    def sample_fn(n, rng):
+        u = rng.random((n, 3))
+        wi, pdf = bound.sample_direction(np.broadcast_to(wo, (n, 3)).copy(), u[:, 0], u[:, 1:])
+        return np.where((pdf > 0)[:, None], wi, np.nan)
+
+    def pdf_fn(wi):
+        return bound.pdf(wi, np.broadcast_to(wo, wi.shape).copy())
+
+    stat, p = chi2_direction_test(sample_fn, pdf_fn, n=100_000, seed=4)
+    assert p > 1e-3, (which, stat, p)
+
+
 def _variances(models, stack, n, seed):
     z = encode_stack(stack, models)
     sigma, w = models.proxy_params(z)[0]
     ct = np.array([0.3, 0.6, 0.9])
     wo = np.stack([np.sqrt(1 - ct**2), np.zeros(3), ct], axis=1)
-    brdf = lambda wi, wo_: models.eval_brdf(z, wi, wo_)  # noqa: E731
+    top = top_coat(stack)
+    brdf = lambda wi, wo_: models.eval_brdf(z, wi, wo_, top)  # noqa: E731
     out = {}
-    for name, smp in (
-        ("proxy", proxy_sampler(sigma, w)),
+    for name, smp in (  # "proxy": the renderer's sampler (mixed with the exact top lobe's for a remainder decoder)
+        ("proxy", material_sampler(models, sigma, w, top)),
         ("cosine", cosine_sampler()),
         ("ggx_top", ggx_sampler(stack.coatings[-1].roughness)),
     ):

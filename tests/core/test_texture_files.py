@@ -16,11 +16,12 @@ def oiio():
 
 
 def raw_latent_exr(oiio, path, levels):
-    """A 98-channel EXR holding ``levels`` as they are (no checks), like a damaged or foreign writer."""
+    """An EXR holding ``levels`` as they are (no checks), like a damaged or foreign writer; the channels are
+    named as a latent texture's first ones (all of them for 100 channels, 98: a file from before the top coat)."""
     out = oiio.ImageOutput.create(str(path))
     for i, level in enumerate(levels):
         spec = oiio.ImageSpec(level.shape[1], level.shape[0], level.shape[2], "half")
-        spec.channelnames = tuple(CHANNEL_NAMES)
+        spec.channelnames = tuple(CHANNEL_NAMES[: level.shape[2]])
         if len(levels) > 1:
             spec.tile_width = spec.tile_height = 64
             if i == 0:
@@ -35,7 +36,7 @@ def raw_latent_exr(oiio, path, levels):
 
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
 def test_a_non_finite_texture_fails_at_read_naming_level_texel_and_channel(tmp_path, oiio, bad):
-    levels = LatentTexture.from_texels(np.zeros((4, 6, 98), np.float32)).levels
+    levels = LatentTexture.from_texels(np.zeros((4, 6, 100), np.float32)).levels
     levels[1] = levels[1].copy()
     levels[1][1, 2, 97] = bad
     path = raw_latent_exr(oiio, tmp_path / "bad.exr", levels)
@@ -46,14 +47,14 @@ def test_a_non_finite_texture_fails_at_read_naming_level_texel_and_channel(tmp_p
 def test_a_nan_filled_texture_is_refused(tmp_path, oiio):
     levels = [
         np.full(lvl.shape, np.nan, np.float32)
-        for lvl in LatentTexture.from_texels(np.zeros((8, 8, 98), np.float32)).levels
+        for lvl in LatentTexture.from_texels(np.zeros((8, 8, 100), np.float32)).levels
     ]
     with pytest.raises(ValueError, match="latent texels must be finite"):
         LatentTexture.read_exr(raw_latent_exr(oiio, tmp_path / "nan.exr", levels))
 
 
 def test_a_mip_chain_that_stops_early_is_refused(tmp_path, oiio):
-    path = raw_latent_exr(oiio, tmp_path / "flat.exr", [np.zeros((4, 4, 98), np.float32)])
+    path = raw_latent_exr(oiio, tmp_path / "flat.exr", [np.zeros((4, 4, 100), np.float32)])
     with pytest.raises(LatentTextureError, match="stops at 4x4"):
         LatentTexture.read_exr(path)
 
@@ -62,7 +63,7 @@ def test_a_mip_chain_that_stops_early_is_refused(tmp_path, oiio):
 def test_a_truncated_texture_is_refused(tmp_path, keep):
     path = tmp_path / "t.exr"
     rng = np.random.default_rng(0)
-    LatentTexture.from_texels(rng.normal(size=(70, 50, 98)).astype(np.float32)).write_exr(path)
+    LatentTexture.from_texels(rng.normal(size=(70, 50, 100)).astype(np.float32)).write_exr(path)
     data = path.read_bytes()
     path.write_bytes(data[: int(len(data) * keep)])
     with pytest.raises(LatentTextureError, match=str(path)):
@@ -70,7 +71,7 @@ def test_a_truncated_texture_is_refused(tmp_path, keep):
 
 
 def test_values_a_half_float_cannot_hold_are_refused_at_write(tmp_path):
-    texels = np.zeros((2, 2, 98), np.float32)
+    texels = np.zeros((2, 2, 100), np.float32)
     texels[1, 1, 5] = 1e5  # would be stored as inf
     with pytest.raises(ValueError, match="half-float range"):
         LatentTexture.from_texels(texels).write_exr(tmp_path / "big.exr")

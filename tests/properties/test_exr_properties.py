@@ -18,7 +18,7 @@ from tests.faults.tally import bounded, example, fault
 def valid_file(tmp_path_factory):
     oiio_module()
     path = tmp_path_factory.mktemp("exr") / "valid.exr"
-    texels = np.random.default_rng(4).normal(size=(21, 34, 98)).astype(np.float32)
+    texels = np.random.default_rng(4).normal(size=(21, 34, 100)).astype(np.float32)
     LatentTexture.from_texels(texels, {"key": "0123456789abcdef"}).write_exr(path)
     return path, path.read_bytes()
 

@@ -74,27 +74,86 @@ def test_remainder_targets_of_the_trainers_are_the_brdf_minus_the_top_reflection
     np.testing.assert_allclose(a.f.numpy(), whole["f"].numpy())
 
 
-def test_a_remainder_decoder_is_refused_by_the_export(tmp_path):
-    """The runtime decodes every shipped decoder as a whole BRDF: a remainder checkpoint must not ship."""
+def test_a_remainder_decoder_exports_with_its_card_saying_so_and_the_runtime_adds_the_top_lobe(tmp_path):
+    """train_decoder --remainder -> export: the card says ``"remainder": true``, and the runtime's
+    evaluation is the decoded remainder plus the exact top lobe of the stack's top coating."""
+    import json
+    from argparse import Namespace
+    from pathlib import Path
+
+    from addon.core.neural import ModelSet, encode_stack, top_coat
+    from addon.core.neural.top_lobe import eval_top
+    from onnx_export import data as datamod
+    from onnx_export import export, layered_data, train_decoder, train_encoder
+
+    datamod.generate("single", tmp_path / "single", materials=16, pairs=64, chunk=8, seed=2, log=lambda s: None)
+    layered_data.generate(tmp_path / "c1", coatings=1, stacks=8, n_wo=2, n_wi=32, walks=2, chunk=8, seed=3, log=str)
+    args = train_decoder.parser().parse_args(
+        ["--size", "tiny", "--data", str(tmp_path / "single"), str(tmp_path / "c1"), "--data-weights", "0.5", "0.5"]
+        + ["--loss", "l1", "l2rel", "--steps", "4", "--batch", "8", "--pairs", "32", "--remainder"]
+        + ["--out", str(tmp_path / "run")]
+    )
+    train_decoder.train(args, log=lambda s: None)
+    enc_args = Namespace(
+        ckpt=tmp_path / "run" / "ckpt.pt",
+        data=[tmp_path / "single"],
+        materials=0,
+        heldout=Path(__file__).resolve().parents[1] / "data" / "heldout_single.npz",
+        width=16,
+        depth=2,
+        distill=3,
+        finetune=0,
+        batch_units=16,
+        batch=4,
+        pairs=16,
+        lr=1e-3,
+        threads=1,
+        seed=0,
+        out=tmp_path / "enc.pt",
+    )
+    train_encoder.train(enc_args, log=lambda s: None)
+    out = tmp_path / "models"
+    export.main(["--size", "tiny", "--decoder", str(enc_args.ckpt), "--encoder", str(enc_args.out), "--out", str(out)])
+    card = json.loads((out / "decoder_tiny.json").read_text())
+    assert card["remainder"] is True and "remainder" in card["role"]
+    m = ModelSet("tiny", model_dir=out)
+    assert m.remainder
+    stack = Stack(Diffuse((0.5, 0.5, 0.5)))  # no layering network exported here: a single layer's latent
+    z = encode_stack(stack, m)
+    rng = np.random.default_rng(6)
+    wi, wo = _pairs(rng, 64), _pairs(rng, 64)
+    top = top_coat(Stack(base=Diffuse((0.5, 0.5, 0.5)), coatings=(Coating(roughness=0.2, ior=1.5),)))
+    np.testing.assert_allclose(
+        m.eval_brdf(z, wi, wo, top) - m.eval_brdf(z, wi, wo), np.repeat(eval_top(top, wi, wo)[:, None], 3, 1), rtol=1e-4
+    )
+
+
+@pytest.mark.parametrize(
+    "args, decoder_remainder",
+    [
+        ({"remainder": "True", "decoder_ckpt": "None"}, False),  # a remainder network, a whole-BRDF decoder
+        ({"decoder_ckpt": "None"}, True),  # a whole-BRDF network, a remainder decoder
+        ({"decoder_ckpt": "cache/x.pt"}, False),  # trained through a decoder that is not shipped
+    ],
+)
+def test_a_layering_network_that_does_not_match_the_shipped_decoder_is_refused_by_its_export(
+    tmp_path, args, decoder_remainder
+):
+    import json
+    import shutil
+
     import torch
 
-    from onnx_export import export
-
-    ck = tmp_path / "ckpt.pt"
-    torch.save({"args": {"remainder": True}}, ck)
-    with pytest.raises(SystemExit):
-        export.main(["--size", "tiny", "--decoder", str(ck), "--encoder", str(ck), "--out", str(tmp_path)])
-    assert not list(tmp_path.glob("*.onnx"))
-
-
-@pytest.mark.parametrize("args", [{"remainder": "True", "decoder_ckpt": "None"}, {"decoder_ckpt": "cache/x.pt"}])
-def test_a_layering_network_of_an_unshipped_decoder_is_refused_by_its_export(tmp_path, args):
-    import torch
-
+    from addon.core.neural import MODEL_DIR
     from onnx_export import layering
 
+    for name in ("decoder_small.onnx", "decoder_small_rgb.onnx"):
+        shutil.copy(MODEL_DIR / name, tmp_path / name)
+    card = json.loads((MODEL_DIR / "decoder_small.json").read_text())
+    card["remainder"] = decoder_remainder
+    (tmp_path / "decoder_small.json").write_text(json.dumps(card))
     ck = tmp_path / "ckpt.pt"
     torch.save({"args": args, "config": {"width": 128, "depth": 3}}, ck)
     with pytest.raises(SystemExit):
-        layering.main(["export", "--size", "tiny", "--ckpt", str(ck), "--out", str(tmp_path)])
-    assert not list(tmp_path.glob("*.onnx"))
+        layering.main(["export", "--size", "small", "--ckpt", str(ck), "--out", str(tmp_path)])
+    assert not list(tmp_path.glob("layering*"))

@@ -2,7 +2,8 @@
 
 ``models.py`` loads the model set of a decoder size (decoder, encoder, layering and sampling networks,
 checked against their cards, one cache); ``encode.py`` turns stacks into latents (``encode_stack``,
-``encode_arrays``); ``proxy.py`` is the sampling proxy. ``docs/decoders.md`` lists the sizes and their
+``encode_arrays``); ``proxy.py`` is the sampling proxy; ``top_lobe.py`` the exact top-interface lobe a
+remainder decoder adds (``top_coat``, ``top_coats``). ``docs/decoders.md`` lists the sizes and their
 measurements; ``docs/architecture.md`` ("Neural runtime") the data path.
 """
 
@@ -23,11 +24,13 @@ from .models import (
     read_card,
     resolve_size,
 )
+from .top_lobe import NO_TOP, top_coat, top_coats
 
 __all__ = [
     "AUTO",
     "DEFAULT_SIZE",
     "MODEL_DIR",
+    "NO_TOP",
     "N_FEATURES",
     "ROLES",
     "SIZES",
@@ -46,9 +49,12 @@ __all__ = [
     "load_models",
     "read_card",
     "resolve_size",
+    "top_coat",
+    "top_coats",
 ]
 
 
-def eval_brdf(z, wi, wo, size: str = AUTO):
-    """f (N, 3) of latent(s) ``z`` of decoder ``size`` (see ``ModelSet.eval_brdf``)."""
-    return load_models(size).eval_brdf(z, wi, wo)
+def eval_brdf(z, wi, wo, size: str = AUTO, top=None):
+    """f (N, 3) of latent(s) ``z`` of decoder ``size``, with the top coating ``top`` (alpha, ior) of a
+    remainder decoder's exact top lobe (see ``ModelSet.eval_brdf``)."""
+    return load_models(size).eval_brdf(z, wi, wo, top)

@@ -26,6 +26,10 @@ the symmetric form of matrix scaling, per channel.
 What it does not change: the lobe's shape at each angle (where the light goes), only how much of it
 there is. It keeps f >= 0 and reciprocity (the factor is symmetric in the two directions) and adds no
 network evaluation. It needs one latent per material: latent textures are not calibrated.
+
+With a remainder decoder (``ModelSet.remainder``) the factors scale only the decoded remainder: the exact
+top lobe (``top_lobe``) stays as it is, and the target of the decoded part is the reference albedo less
+the top lobe's own (``top_lobe.top_albedo``).
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ import numpy as np
 
 from ..bsdf.lambert import sample_cosine_hemisphere
 from ..stack import Stack
-from . import proxy
+from . import proxy, top_lobe
 
 # Incident cosines of the grid: normal incidence to 88.9 degrees, denser towards grazing, where the
 # decoders' albedo is furthest off and the reference changes fastest (the coat's Fresnel).
@@ -63,6 +67,7 @@ class AlbedoCalibration:
     reference_stderr: np.ndarray
     decoded: np.ndarray
     calibrated: np.ndarray
+    top: np.ndarray | None = None  # (K, 3) albedo of the exact top lobe (remainder decoders), in both of the above
 
     def factor(self, cos: np.ndarray) -> np.ndarray:
         """c(cos theta) (N, 3): linear between the grid's cosines, constant beyond them."""
@@ -71,7 +76,7 @@ class AlbedoCalibration:
         return np.stack([np.interp(x, xp, self.scale[::-1, ch]) for ch in range(3)], axis=-1)
 
     def apply(self, f: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
-        """f (N, 3) at local directions wi, wo (N, 3) times c(cos theta_i) c(cos theta_o)."""
+        """f (N, 3) at local unit directions wi, wo (N, 3) times c(cos theta_i) c(cos theta_o) (f: the decoded part)."""
         return f * (self.factor(wi[:, 2]) * self.factor(wo[:, 2])).astype(f.dtype, copy=False)
 
 
@@ -136,15 +141,20 @@ def _lobe_samples(models, z, sigma: float, w: float, cosines, samples: int, seed
     return cos_i.reshape(a, samples), v.reshape(a, samples, 3)
 
 
-def decoded_albedo(models, z, sigma: float, w: float, cosines, calibration=None, samples=DECODED_SAMPLES, seed=0):
+def decoded_albedo(
+    models, z, sigma: float, w: float, cosines, calibration=None, samples=DECODED_SAMPLES, seed=0, top=None
+):
     """Directional albedo (A, 3) of the decoded lobe at ``cosines`` (outgoing), with ``calibration``'s
-    factors when given."""
+    factors when given, plus the exact top lobe's of a remainder decoder when ``top`` (alpha, ior) is given."""
     cos_i, v = _lobe_samples(models, z, sigma, w, cosines, samples, seed)
     if calibration is not None:
         a = len(cos_i)
         v = v * calibration.factor(cos_i.reshape(-1)).reshape(a, samples, 3)
         v = v * calibration.factor(np.asarray(cosines, dtype=np.float64))[:, None, :]
-    return v.mean(axis=1)
+    out = v.mean(axis=1)
+    if top is not None and models.remainder:
+        out = out + top_lobe.top_albedo(top, cosines, samples, seed)[:, None]
+    return out
 
 
 def decoded_albedo_matrix(models, z, sigma: float, w: float, samples: int = DECODED_SAMPLES, seed: int = 0):
@@ -197,7 +207,8 @@ def cached(stack: Stack, models, z) -> AlbedoCalibration | None:
 def calibrate(stack: Stack, models, z, proxy_params, seed: int = 0) -> AlbedoCalibration:
     """The albedo calibration of latent ``z`` (3, 32) of ``stack`` on ``models`` (see the module
     docstring); ``proxy_params`` (sigma, w) are the material's sampling proxy. Cached per stack,
-    model files and latent for the session."""
+    model files and latent for the session. A remainder decoder's factors scale the decoded part only,
+    towards the reference less the stack's exact top lobe."""
     if not isinstance(stack, Stack):
         raise ValueError(f"calibrate needs a Stack, got {type(stack).__name__}")
     key = cache_key(stack, models, z)
@@ -206,14 +217,18 @@ def calibrate(stack: Stack, models, z, proxy_params, seed: int = 0) -> AlbedoCal
     sigma, w = (float(v) for v in proxy_params)
     ref, ref_se = reference_albedo(stack, seed=seed)
     m = decoded_albedo_matrix(models, z, sigma, w, seed=seed)
-    scale = solve_factors(m, ref)
+    top = np.zeros_like(ref)
+    if getattr(models, "remainder", False):
+        top[:] = top_lobe.top_albedo(top_lobe.top_coat(stack), COSINES, DECODED_SAMPLES, seed)[:, None]
+    scale = solve_factors(m, np.maximum(ref - top, 0.0))
     out = AlbedoCalibration(
         cosines=np.asarray(COSINES, dtype=np.float64),
         scale=scale,
         reference=ref,
         reference_stderr=ref_se,
-        decoded=m.sum(axis=1),
-        calibrated=scale * np.einsum("klc,lc->kc", m, scale),
+        decoded=top + m.sum(axis=1),
+        calibrated=top + scale * np.einsum("klc,lc->kc", m, scale),
+        top=top,
     )
     _CACHE[key] = out
     return out

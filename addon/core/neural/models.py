@@ -1,7 +1,7 @@
 """The model set of one decoder size: its four ONNX networks, their cards, one loader and one cache.
 
     models = load_models("tiny")                   # cached per (size, threads)
-    f = models.eval_brdf(z, wi, wo)                # (N, 3) f in 1/sr, without the cosine
+    f = models.eval_brdf(z, wi, wo, top)           # (N, 3) f in 1/sr, without the cosine
     sigma_w = models.proxy_params(z)               # (N, 2) proxy parameters of the sampling network
 
 Every decoder size has its own latent space, so a size ships as a set of files in ``addon/models``:
@@ -20,6 +20,11 @@ those beside it raises :class:`ModelFileError` naming the file and what is wrong
 raises ``FileNotFoundError``. The decoder and encoder load with the set; the layering and sampling
 networks when first used (a single-layer stack needs neither).
 
+A decoder whose card says ``"remainder": true`` holds the *remainder* of a layered stack's BRDF, the
+light that entered the top coat; ``eval_brdf`` adds the exact reflection at the top interface
+(``top_lobe``) given the stack's top coating (``top``: alpha, ior). Other decoders hold the whole BRDF
+and ``top`` changes nothing.
+
 ``resolve_size`` turns the model-size setting ("auto" or a size) into a size, for every consumer.
 """
 
@@ -33,7 +38,7 @@ import numpy as np
 
 from ..rows import distinct_rows
 from ..stack import LATENT
-from . import proxy
+from . import proxy, top_lobe
 from .features import N_FEATURES
 from .session import ChunkedSession
 
@@ -258,6 +263,8 @@ class ModelSet:
         rgb = self.model_dir / f"decoder_{size}_rgb.onnx"
         self._rgb = _session(rgb, self.threads, chunk) if rgb.name in self.card("decoder")["files"] else None
         self._load("encoder")
+        # the decoder holds the remainder design's rest of the BRDF: eval_brdf adds the exact top lobe
+        self.remainder = self.card("decoder").get("remainder", False) is True
 
     def path(self, role: str) -> Path:
         return self.model_dir / file_name(role, self.size)
@@ -347,9 +354,13 @@ class ModelSet:
         out[:, 1] = np.clip(out[:, 1], 0.0, 1.0)
         return out
 
-    def eval_brdf(self, z, wi, wo) -> np.ndarray:
+    def eval_brdf(self, z, wi, wo, top=None, calibration=None) -> np.ndarray:
         """f (N, 3) in 1/sr (no cosine) for one material ``z`` (3, 32) or per-row latents (N, 3, 32).
 
+        ``top``: the material's top coating (alpha, ior) as (2,) or per row (N, 2) (``top_lobe``; None
+        or :data:`top_lobe.NO_TOP` for a stack without coatings). A remainder decoder's f is the decoded
+        remainder plus the exact top lobe; for a whole-BRDF decoder ``top`` changes nothing.
+        ``calibration`` (``calibrate.AlbedoCalibration``): its factors scale the decoded part.
         Directions need not be unit length (they are normalised); zero-length directions and
         directions at or below the horizon give 0.
         """
@@ -396,6 +407,12 @@ class ModelSet:
             out[rows] = np.where((a[1] & b[1])[:, None] & (f >= 0.0), f, 0.0)
 
         (self._rgb or self._decoder).map(chunk, n)
+        if calibration is not None:
+            out = calibration.apply(out, wi, wo)
+        if self.remainder and top is not None:
+            t = top_lobe.as_top(top, n)
+            if top_lobe.has_top(t).any():
+                out += top_lobe.eval_top(t, wi, wo)[:, None].astype(np.float32)
         return out
 
 

@@ -30,6 +30,9 @@ The validation error is the same quantity on the validation pairs; against noisy
 their noise, equally before and after (for a squared error, E|f - t|^2 = |f - E t|^2 + var t), so the
 comparison is fair.
 
+With a remainder decoder (``ModelSet.remainder``) the fitted values are the decoded remainder plus the
+stack's exact top lobe (``top_lobe``), the sum the renderer evaluates; the lobe has no latent to fit.
+
 Gradients: one closed-form backward pass of the decoder's MLP in numpy (``NumpyDecoder``), from the
 weights exported beside each ONNX decoder (``decoder_<size>_weights.npz``, written by
 ``python -m onnx_export.decoder_weights``, which records the sha256 of the ONNX file it read: weights
@@ -58,11 +61,12 @@ import numpy as np
 from ..stack import LATENT, Stack
 from .encode import encode_stack
 from .models import MODEL_DIR, SIZES, _unit_or_up, file_digest, load_models, resolve_size
+from .top_lobe import NO_TOP, eval_top, top_coat
 
 # Lobe values up to about this many times the group's mean count as absolute errors (the lobe metric), above
 # it as relative ones: a highlight a few pixels wide keeps its weight, a smooth coat's spike does not
 PEAK_RATIO = 30.0
-REFINE_VERSION = 4  # part of the cache key: bump when the procedure changes what it returns
+REFINE_VERSION = 5  # part of the cache key: bump when the procedure changes what it returns
 GRAZING_COS = (float(np.cos(np.radians(89.5))), float(np.cos(np.radians(80.0))))
 
 
@@ -399,7 +403,8 @@ def refine_key(stack: Stack, size: str, settings: RefineSettings, model_dir=None
     return h.hexdigest()
 
 
-def _adam(decoder: NumpyDecoder, z0: np.ndarray, fit: PairSet, s: RefineSettings, deadline: float):
+def _adam(decoder: NumpyDecoder, z0: np.ndarray, fit: PairSet, s: RefineSettings, deadline: float, top_f=0.0):
+    """Adam on the latent; ``top_f`` (P, 3): the exact top lobe a remainder decoder's output is added to."""
     dprod = decoder.directions(fit.wi, fit.wo)
     z = z0.astype(np.float64).copy()
     m = np.zeros_like(z)
@@ -410,7 +415,7 @@ def _adam(decoder: NumpyDecoder, z0: np.ndarray, fit: PairSet, s: RefineSettings
     stopped, step = "steps", 0
     for step in range(1, s.steps + 1):
         p = decoder.run(z, directions_product=dprod)
-        loss, grad_f, _ = lobe_loss(p.f, fit)
+        loss, grad_f, _ = lobe_loss(p.f + top_f, fit)
         first = loss if first is None else first
         if loss < best * (1.0 - 1e-3):
             since = 0
@@ -457,14 +462,19 @@ def refine_latent(
         return cached
     t0 = time.perf_counter()
     decoder = NumpyDecoder.load(size, model_dir)
-    z0 = np.asarray(encode_stack(stack, load_models(size, threads, model_dir)), dtype=np.float32)
+    models = load_models(size, threads, model_dir)
+    z0 = np.asarray(encode_stack(stack, models), dtype=np.float32)
     fit = PairSet.measure(stack, s.fit_groups, s.per_group, s.walks, seed=2 * s.seed)
     val = PairSet.measure(stack, s.validation_groups, s.per_group, s.walks, seed=2 * s.seed + 1)
     t1 = time.perf_counter()
-    z1, fit0, fit1, steps, stopped = _adam(decoder, z0, fit, s, t0 + float(budget_s))
+    # a remainder decoder holds the BRDF less the exact top lobe: the fit is of their sum
+    top = top_coat(stack) if models.remainder else NO_TOP
+    top_fit = eval_top(top, fit.wi, fit.wo)[:, None]
+    top_val = eval_top(top, val.wi, val.wo)[:, None]
+    z1, fit0, fit1, steps, stopped = _adam(decoder, z0, fit, s, t0 + float(budget_s), top_fit)
     t2 = time.perf_counter()
-    v0, _, e0 = lobe_loss(decoder.forward(z0, val.wi, val.wo), val)
-    v1, _, e1 = lobe_loss(decoder.forward(z1, val.wi, val.wo), val)
+    v0, _, e0 = lobe_loss(decoder.forward(z0, val.wi, val.wo) + top_val, val)
+    v1, _, e1 = lobe_loss(decoder.forward(z1, val.wi, val.wo) + top_val, val)
     kept = bool(v1 < v0)
     report = RefineReport(
         size=size,

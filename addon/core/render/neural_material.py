@@ -18,6 +18,7 @@ import warnings
 
 import numpy as np
 
+from ..neural import proxy, top_lobe
 from ..stack import LATENT, Stack
 from .shading import ShadeByProposal, finish_sample
 
@@ -35,9 +36,14 @@ def proxy_guess(stack: Stack) -> tuple[float, float]:
 
 
 class _BoundNeural(ShadeByProposal):
-    def __init__(self, models, z, sigma, w, calibration=None):
+    """A neural material at the hits of one bounce. ``top`` (the top coating's (alpha, ior), shared
+    (2,) or per hit (N, 2)) is None for a whole-BRDF decoder; for a remainder decoder the sampler mixes
+    exact samples of the top lobe (share ``top_lobe.top_share`` of wo) with the proxy's."""
+
+    def __init__(self, models, z, sigma, w, calibration=None, top=None):
         self.models, self.z, self.sigma, self.w = models, z, sigma, w
         self.calibration = calibration
+        self.top = top if getattr(models, "remainder", False) else None
 
     @staticmethod
     def _rows(a, index):
@@ -45,21 +51,39 @@ class _BoundNeural(ShadeByProposal):
         shared = np.ndim(a) == 0 or (np.ndim(a) == 2)
         return a if index is None or shared else a[index]
 
+    def _top_rows(self, index, n):
+        """The top coatings (n, 2) of the rows ``index`` (all when None); None without a top lobe."""
+        if self.top is None:
+            return None
+        shared = np.ndim(self.top) == 1
+        return top_lobe.as_top(self.top if index is None or shared else self.top[index], n)
+
     def eval(self, wi, wo, index=None):
         z = self._rows(self.z, index)
-        f = self.models.eval_brdf(z, wi, wo).astype(np.float64)
-        return f if self.calibration is None else self.calibration.apply(f, wi, wo)
+        top = self._top_rows(index, len(wi))
+        return self.models.eval_brdf(z, wi, wo, top, self.calibration).astype(np.float64)
 
     def pdf(self, wi, wo, index=None):
-        from ..neural import proxy
-
-        return proxy.pdf(wo, wi, self._rows(self.sigma, index), self._rows(self.w, index))
+        p = proxy.pdf(wo, wi, self._rows(self.sigma, index), self._rows(self.w, index))
+        top = self._top_rows(index, len(wi))
+        if top is None:
+            return p
+        share = top_lobe.top_share(top, wo)
+        return (1.0 - share) * p + share * top_lobe.pdf_top(top, wi, wo)
 
     def sample_direction(self, wo, u_lobe, u):
-        from ..neural import proxy
-
-        wi, pdf = proxy.sample(wo, self.sigma, self.w, np.concatenate([u_lobe[:, None], u], axis=1))
-        return wi, pdf
+        top = self._top_rows(None, len(wo))
+        if top is None:
+            return proxy.sample(wo, self.sigma, self.w, np.concatenate([u_lobe[:, None], u], axis=1))
+        share = top_lobe.top_share(top, wo)
+        pick_top = u_lobe < share
+        with np.errstate(invalid="ignore", divide="ignore"):  # u_lobe rescaled for the proxy's own choice
+            u_proxy = np.where(pick_top, 0.0, np.clip((u_lobe - share) / (1.0 - share), 0.0, 1.0 - 1e-12))
+        wi, _ = proxy.sample(wo, self.sigma, self.w, np.concatenate([u_proxy[:, None], u], axis=1))
+        rows = np.flatnonzero(pick_top)
+        if len(rows):
+            wi[rows] = top_lobe.sample_top(top[rows], wo[rows], u[rows])[0]
+        return wi, self.pdf(wi, wo)
 
     def sample(self, wo, u_lobe, u):
         """Self-contained sampling (one decoder batch of its own); the integrator uses ``shade``."""
@@ -74,9 +98,11 @@ class NeuralMaterial:
     kind = "neural"
     has_pdf = True
 
-    def __init__(self, models, z=None, proxy=(0.2, 0.5), latent_texture=None, calibration=None):
+    def __init__(self, models, z=None, proxy=(0.2, 0.5), latent_texture=None, calibration=None, top=None):
         self.models = models
         self.z = None if z is None else np.asarray(z, dtype=np.float32).reshape(3, LATENT)
+        # the stack's top coating (alpha, ior) for a remainder decoder's exact top lobe (top_lobe.top_coat)
+        self.top = None if top is None else top_lobe.as_top(top, 1)[0]
         self.sigma, self.w = float(proxy[0]), float(proxy[1])
         self.texture = latent_texture
         self.calibration = calibration
@@ -87,11 +113,13 @@ class NeuralMaterial:
 
     def bind(self, hits):
         if self.texture is None:
-            return _BoundNeural(self.models, self.z, np.float64(self.sigma), np.float64(self.w), self.calibration)
-        z, prox = self.texture.lookup(hits.uv, hits.footprint)
+            return _BoundNeural(
+                self.models, self.z, np.float64(self.sigma), np.float64(self.w), self.calibration, self.top
+            )
+        z, prox, top = self.texture.lookup(hits.uv, hits.footprint)
         sigma = np.asarray(prox[:, 0], dtype=np.float64)
         w = np.asarray(prox[:, 1], dtype=np.float64)
-        return _BoundNeural(self.models, z, sigma, w)
+        return _BoundNeural(self.models, z, sigma, w, top=top)
 
 
 class NeuralFallbackWarning(UserWarning):
@@ -189,8 +217,13 @@ def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None
         else:
             z = encode_stack(stack, models) if z is None else z
             proxy = models.proxy_params(z)[0] if models.has("sampling") else proxy_guess(stack)
+            top = top_lobe.top_coat(stack)
             material = NeuralMaterial(
-                models, z, tuple(float(v) for v in proxy), calibration=_calibration(stack, models, z, proxy, calibrate)
+                models,
+                z,
+                tuple(float(v) for v in proxy),
+                calibration=_calibration(stack, models, z, proxy, calibrate),
+                top=top,
             )
     except (FileNotFoundError, ModelFileError) as e:
         warnings.warn(

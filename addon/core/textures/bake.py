@@ -1,4 +1,5 @@
-"""Baking: per-texel stacks -> per-texel latents (+ sampling-proxy parameters) -> LatentTexture.
+"""Baking: per-texel stacks -> per-texel latents (+ sampling-proxy parameters, + the top coating's
+roughness and index) -> LatentTexture.
 
 The encoder is any callable ``encode(StackArrays) -> (latents (N, 3, 32), proxy (N, 2))``; the
 neural runtime provides the real one. Identical parameter tuples are encoded once
@@ -16,6 +17,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..neural.top_lobe import top_coats
 from ..rows import distinct_rows
 from ..stack import StackArrays
 from .latent_texture import CHANNEL_NAMES, LatentTexture
@@ -143,7 +145,7 @@ def bake_texels(
     cancel: Callable[[], bool] | None = None,
     threads: int = 0,
 ) -> tuple[np.ndarray, BakeStats]:
-    """(N, 98) float32 texels (latents then proxy channels) for N stacks; the networks run on
+    """(N, 100) float32 texels (latents, proxy, top coating channels) for N stacks; the networks run on
     ``threads`` threads (0: every core; ``addon.core.neural.session.threads_in_force``).
 
     An encoder that says so (``encode.concurrent``, the neural runtime's without refinement) encodes
@@ -179,7 +181,8 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1) -> t
         if z.shape[1] != 96 or proxy.shape[1] != 2:
             raise ValueError(f"encoder returned latents {z.shape} and proxy {proxy.shape}; expected (N, 96) and (N, 2)")
         out[start : start + len(part), :96] = z
-        out[start : start + len(part), 96:] = proxy
+        out[start : start + len(part), 96:98] = proxy
+        out[start : start + len(part), 98:] = top_coats(part)  # what a remainder decoder's top lobe needs
         return start + len(part)
 
     starts = list(range(0, m, batch))

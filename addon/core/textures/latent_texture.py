@@ -1,7 +1,11 @@
-"""Latent textures: per-texel latent codes (3 x 32) plus the two sampling-proxy channels.
+"""Latent textures: per-texel latent codes (3 x 32), the two sampling-proxy channels and the top coating's two.
 
-Channel layout (docs/architecture.md, Conventions): ``z.R.00 .. z.R.31, z.G.00 .. z.B.31, proxy.sigma, proxy.w``,
-98 channels in all. Stored as a tiled, mip-mapped, half-float OpenEXR through OpenImageIO.
+Channel layout (docs/architecture.md, Conventions): ``z.R.00 .. z.R.31, z.G.00 .. z.B.31, proxy.sigma, proxy.w,
+top.alpha, top.ior``, 100 channels in all. The top coating's roughness and index are what a remainder
+decoder's exact top lobe needs (``addon.core.neural.top_lobe``); a file written before they existed (98
+channels) reads with every texel uncoated (``top_lobe.NO_TOP``).
+
+Stored as a tiled, mip-mapped, half-float OpenEXR through OpenImageIO.
 OpenImageIO ships inside Blender and the bpy wheel; inside Blender's Python (or after
 ``bpy.utils.expose_bundled_modules()``) it is importable as ``OpenImageIO``.
 """
@@ -14,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..neural.top_lobe import NO_TOP
 from ..stack import LATENT as LATENT_DIM
 from . import files
 from .mip import build_mip_chain, trilinear_lookup
@@ -21,7 +26,8 @@ from .mip import build_mip_chain, trilinear_lookup
 CHANNELS = 3
 LATENT_CHANNELS = [f"z.{c}.{i:02d}" for c in "RGB" for i in range(LATENT_DIM)]
 PROXY_CHANNELS = ["proxy.sigma", "proxy.w"]
-CHANNEL_NAMES = LATENT_CHANNELS + PROXY_CHANNELS
+TOP_CHANNELS = ["top.alpha", "top.ior"]
+CHANNEL_NAMES = LATENT_CHANNELS + PROXY_CHANNELS + TOP_CHANNELS
 TILE = 64
 HALF_MAX = 65504.0  # largest finite half float: the EXR stores texels as halves
 
@@ -93,14 +99,14 @@ def read_image_file(path: str | os.PathLike) -> tuple[np.ndarray, bool, str, int
 
 @dataclass
 class LatentTexture:
-    """A mip chain of (H, W, 98) latent texels; ``levels[0]`` is the finest."""
+    """A mip chain of (H, W, 100) latent texels; ``levels[0]`` is the finest."""
 
     levels: list[np.ndarray]
     metadata: dict = field(default_factory=dict)
 
     @classmethod
     def from_texels(cls, texels: np.ndarray, metadata: dict | None = None) -> "LatentTexture":
-        """Build the mip chain (box filter in latent space) from (H, W, 98) base texels."""
+        """Build the mip chain (box filter in latent space) from (H, W, 100) base texels."""
         texels = np.asarray(texels, dtype=np.float32)
         if texels.ndim != 3 or texels.shape[2] != len(CHANNEL_NAMES):
             raise ValueError(f"latent texels must have shape (H, W, {len(CHANNEL_NAMES)}), got {texels.shape}")
@@ -116,11 +122,13 @@ class LatentTexture:
     def height(self) -> int:
         return self.levels[0].shape[0]
 
-    def lookup(self, uv: np.ndarray, footprint) -> tuple[np.ndarray, np.ndarray]:
-        """Latents (N, 3, 32) and proxy parameters (N, 2) at uv with a footprint in uv units."""
+    def lookup(self, uv: np.ndarray, footprint) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Latents (N, 3, 32), proxy parameters (N, 2) and top coatings (N, 2: alpha, ior) at uv with a
+        footprint in uv units."""
         v = trilinear_lookup(self.levels, uv, footprint)
-        z = v[:, : CHANNELS * LATENT_DIM].reshape(-1, CHANNELS, LATENT_DIM)
-        return z, v[:, CHANNELS * LATENT_DIM :]
+        k = CHANNELS * LATENT_DIM
+        z = v[:, :k].reshape(-1, CHANNELS, LATENT_DIM)
+        return z, v[:, k : k + 2], v[:, k + 2 :]
 
     def write_exr(self, path: str | os.PathLike) -> None:
         """Write a tiled, mip-mapped, half-float EXR, published atomically (see ``files.publishing``):
@@ -183,13 +191,20 @@ class LatentTexture:
             spec = inp.spec()
             names = list(spec.channelnames)
             # OpenEXR stores channels sorted by name: map them back to the layout by name.
-            if sorted(names) != sorted(CHANNEL_NAMES):
+            before_top = sorted(names) == sorted(LATENT_CHANNELS + PROXY_CHANNELS)
+            if sorted(names) != sorted(CHANNEL_NAMES) and not before_top:
                 raise LatentTextureError(
                     f"{path} is not a latent texture: expected {len(CHANNEL_NAMES)} channels "
                     f"{CHANNEL_NAMES[0]} .. {CHANNEL_NAMES[-1]}, got {len(names)}: {names[:4]}..."
                 )
             metadata = {a.name[4:]: a.value for a in spec.extra_attribs if a.name.startswith("nlm:")}
-            levels = _read_levels(inp, path, [names.index(n) for n in CHANNEL_NAMES])
+            wanted = CHANNEL_NAMES[: len(names)]
+            levels = _read_levels(inp, path, [names.index(n) for n in wanted])
+            if before_top:  # written before the top-coat channels: every texel uncoated
+                levels = [
+                    np.concatenate([lv, np.broadcast_to(np.float32(NO_TOP), lv.shape[:2] + (2,))], axis=2)
+                    for lv in levels
+                ]
         finally:
             inp.close()
         _check_levels(levels, path)
@@ -205,10 +220,10 @@ def _read_levels(inp, path: Path, order: list[int]) -> list[np.ndarray]:
     level = 0
     while inp.seek_subimage(0, level):
         lspec = inp.spec_dimensions(0, level)
-        pixels = inp.read_image(0, level, 0, len(CHANNEL_NAMES), "float")
-        if pixels is None or np.size(pixels) != lspec.height * lspec.width * len(CHANNEL_NAMES):
+        pixels = inp.read_image(0, level, 0, len(order), "float")
+        if pixels is None or np.size(pixels) != lspec.height * lspec.width * len(order):
             raise LatentTextureError(f"cannot read mip level {level} of {path} (damaged file?): {inp.geterror()}")
-        arr = np.asarray(pixels, dtype=np.float32).reshape(lspec.height, lspec.width, len(CHANNEL_NAMES))
+        arr = np.asarray(pixels, dtype=np.float32).reshape(lspec.height, lspec.width, len(order))
         levels.append(np.ascontiguousarray(arr[..., order]))
         level += 1
     if inp.has_error:

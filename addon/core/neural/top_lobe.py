@@ -1,0 +1,154 @@
+"""The exact top coat of the remainder design: the first reflection at a stack's top interface.
+
+    top = top_coats(arrays)                   # (N, 2) float64: alpha, ior of each stack's top coating
+    f = eval_top(top, wi, wo)                 # (N,) f of that reflection, 1/sr, no cosine
+    wi, pdf = sample_top(top, wo, u)          # GGX visible-normal samples of it
+    s = top_share(top, wo)                    # the share of samples a material gives it
+
+A layered stack's BRDF is the sum of the light reflected at its top interface, a rough dielectric
+lobe (GGX, Fresnel) that is known in closed form, and the rest: the light that entered the coat. A
+decoder of the *remainder* design (its card says ``"remainder": true``) holds only the rest;
+``ModelSet.eval_brdf`` adds this lobe for it, and the renderer's sampler mixes exact samples of it with
+the proxy. The lobe is ``RoughDielectric(alpha, ior, reflection_only=True)`` with the top coating's
+roughness and index, the reference walk's own top event (``addon.core.reference.walk``), so it is the
+reference's first reflection exactly; the training targets of such a decoder are each stack's
+reference BRDF minus this lobe (``onnx_export.remainder``).
+
+A stack without coatings has no top lobe (its base is the whole BRDF): its row is :data:`NO_TOP`, an
+index-matched interface, which reflects nothing. A smooth top interface reflects a delta lobe, which is
+not part of f either (0 here, as in ``RoughDielectric``). Parameters are those the decoder was trained
+with: a stack clamped to the trained ranges (``stack.clamp_to_trained``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..bsdf.base import SMOOTH_ALPHA
+from ..bsdf.dielectric import INDEX_MATCHED_TOL, RoughDielectric
+from ..bsdf.fresnel import fresnel_dielectric
+from ..stack import Stack, StackArrays, clamp_to_trained
+
+# (alpha, ior) of a stack without coatings: index-matched, no reflection
+NO_TOP = (0.0, 1.0)
+# The share of the renderer's samples the top lobe gets is the Fresnel reflectance at the outgoing
+# direction against a remainder taken as TOP_SHARE_REST of the light, kept in TOP_SHARE_RANGE: about
+# 0.14 at normal incidence for an index of 1.5, 0.5 where F = 0.2, and most samples towards grazing,
+# where the coat reflects nearly everything. Any share keeps a render unbiased (the mixture's pdf is
+# exact); it only shapes noise.
+TOP_SHARE_REST = 0.25
+TOP_SHARE_RANGE = (0.05, 0.9)
+
+
+def top_coats(arrays: StackArrays) -> np.ndarray:
+    """(N, 2) float64 ``alpha, ior`` of each stack's top coating, in the trained ranges (the values
+    the decoder saw); :data:`NO_TOP` for stacks without coatings."""
+    if not isinstance(arrays, StackArrays):
+        raise ValueError(f"top_coats needs StackArrays, got {type(arrays).__name__}")
+    out = np.tile(np.asarray(NO_TOP, dtype=np.float64), (len(arrays), 1))
+    if arrays.n_coatings == 0 or len(arrays) == 0:
+        return out
+    fixed, _notes = clamp_to_trained(arrays)  # encode_arrays warns about the clamp once
+    out[:, 0] = np.asarray(fixed.coat_roughness, dtype=np.float64)[:, -1]
+    out[:, 1] = np.asarray(fixed.coat_ior, dtype=np.float64)[:, -1]
+    return out
+
+
+def top_coat(stack: Stack) -> np.ndarray:
+    """(2,) ``alpha, ior`` of one stack's top coating (see :func:`top_coats`)."""
+    if not isinstance(stack, Stack):
+        raise ValueError(f"top_coat needs a Stack, got {type(stack).__name__}")
+    return top_coats(StackArrays.from_stacks([stack]))[0]
+
+
+def as_top(top, n: int) -> np.ndarray:
+    """``top`` as (n, 2) float64 rows: one (2,) pair for every row, or (n, 2) per row; checked."""
+    if np.iscomplexobj(top):
+        raise ValueError("top must be real (alpha, ior) pairs, got complex values")
+    t = np.asarray(top, dtype=np.float64)
+    if t.shape == (2,):
+        t = np.broadcast_to(t, (n, 2))
+    if t.shape != (n, 2):
+        raise ValueError(f"top must have shape (2,) or ({n}, 2) (alpha, ior per row), got {t.shape}")
+    if not np.all(np.isfinite(t)) or (t[:, 0] < 0).any() or (t[:, 1] <= 0).any():
+        raise ValueError("top must hold finite alpha >= 0 and ior > 0")
+    return t
+
+
+def has_top(top: np.ndarray) -> np.ndarray:
+    """(N,) bool: rows whose interface reflects (not index-matched)."""
+    return np.abs(top[:, 1] - 1.0) >= INDEX_MATCHED_TOL
+
+
+def _unit(w: np.ndarray) -> np.ndarray:
+    w = np.asarray(w, dtype=np.float64)
+    n = np.sqrt(np.einsum("ij,ij->i", w, w))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where((n > 0)[:, None], w / np.where(n > 0, n, 1.0)[:, None], 0.0)
+
+
+def _lobe(top: np.ndarray) -> RoughDielectric:
+    return RoughDielectric(top[:, 0], top[:, 1], reflection_only=True)
+
+
+def eval_top(top, wi, wo) -> np.ndarray:
+    """(N,) float64 f of the top interface's reflection at directions ``wi``, ``wo`` (N, 3), any
+    length (normalised here; zero-length or below-horizon rows give 0)."""
+    wi, wo = _unit(wi), _unit(wo)
+    t = as_top(top, len(wi))
+    f = np.zeros(len(wi))
+    rows = np.flatnonzero(has_top(t) & (wi[:, 2] > 0) & (wo[:, 2] > 0))
+    if len(rows):
+        f[rows] = _lobe(t[rows]).eval(wi[rows], wo[rows], check=False)[:, 0]
+    return f
+
+
+def pdf_top(top, wi, wo) -> np.ndarray:
+    """(N,) solid-angle density of :func:`sample_top` choosing ``wi`` given ``wo`` (unit, local frame)."""
+    t = as_top(top, len(wi))
+    p = np.zeros(len(wi))
+    rows = np.flatnonzero(has_top(t) & (wi[:, 2] > 0) & (wo[:, 2] > 0))
+    if len(rows):
+        p[rows] = _lobe(t[rows]).pdf(wi[rows], wo[rows], check=False)
+    return p
+
+
+def sample_top(top, wo, u) -> tuple[np.ndarray, np.ndarray]:
+    """Incident directions (N, 3) of the top lobe seen from ``wo`` (unit, local frame), by its GGX
+    visible normals, with their density (N,) (0 where no sample: no top, a smooth top, a sample below
+    the horizon); ``u`` (N, 2) uniform in [0, 1)."""
+    n = len(wo)
+    t = as_top(top, n)
+    wi = np.tile(np.array([0.0, 0.0, 1.0]), (n, 1))
+    pdf = np.zeros(n)
+    rows = np.flatnonzero(has_top(t) & (wo[:, 2] > 0))
+    if len(rows):
+        s = _lobe(t[rows]).sample(wo[rows], np.zeros(len(rows)), u[rows], check=False)
+        ok = s.valid & ~s.delta
+        wi[rows[ok]] = s.wi[ok]
+        pdf[rows[ok]] = s.pdf[ok]
+    return wi, pdf
+
+
+def top_share(top, wo) -> np.ndarray:
+    """(N,) probability that the renderer samples the top lobe at outgoing ``wo`` (0 without one)."""
+    t = as_top(top, len(wo))
+    f = fresnel_dielectric(np.clip(np.asarray(wo)[:, 2], 0.0, 1.0), t[:, 1])
+    lo, hi = TOP_SHARE_RANGE
+    with np.errstate(invalid="ignore", divide="ignore"):
+        share = np.clip(f / (f + TOP_SHARE_REST * (1.0 - f)), lo, hi)
+    smooth = t[:, 0] < SMOOTH_ALPHA
+    return np.where(has_top(t) & ~smooth, share, 0.0)
+
+
+def top_albedo(top, cosines, samples: int = 8192, seed: int = 0) -> np.ndarray:
+    """(A,) directional albedo of one top lobe ``top`` (2,) at outgoing ``cosines`` (A,), by its own
+    importance samples (weight F G2 / G1 per sample)."""
+    t = as_top(top, 1)
+    c = np.atleast_1d(np.asarray(cosines, dtype=np.float64))
+    if not has_top(t)[0] or t[0, 0] < SMOOTH_ALPHA:
+        return np.zeros(len(c))
+    wo = np.repeat(np.stack([np.sqrt(np.maximum(1 - c * c, 0)), np.zeros_like(c), c], axis=1), samples, axis=0)
+    u = np.random.default_rng(seed).random((len(wo), 2))
+    s = _lobe(np.broadcast_to(t, (len(wo), 2))).sample(wo, np.zeros(len(wo)), u, check=False)
+    return s.weight[:, 0].reshape(len(c), samples).mean(axis=1)

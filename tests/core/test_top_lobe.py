@@ -1,0 +1,151 @@
+"""The exact top lobe of the remainder design (addon/core/neural/top_lobe.py) and its consumers:
+the decoder's evaluation, the renderer's mixture sampler, the latent texture's top-coat channels."""
+
+import numpy as np
+import pytest
+
+from addon.core.bsdf import RoughDielectric
+from addon.core.neural import NO_TOP, SIZES, load_models, read_card, top_coat, top_coats
+from addon.core.neural import top_lobe as tl
+from addon.core.render.neural_material import _BoundNeural
+from addon.core.stack import PRESETS, Coating, Conductor, Diffuse, Stack, StackArrays
+
+
+def hemisphere(rng, n):
+    u = rng.random((n, 2))
+    z = u[:, 0]
+    r = np.sqrt(1 - z * z)
+    return np.stack([r * np.cos(2 * np.pi * u[:, 1]), r * np.sin(2 * np.pi * u[:, 1]), z], axis=1)
+
+
+def test_top_coat_is_the_top_coating_in_the_trained_range_and_none_without_coatings():
+    gold = PRESETS["coated_gold"]
+    assert np.allclose(top_coat(gold), (gold.coatings[-1].roughness, gold.coatings[-1].ior))
+    bare = Stack(Diffuse((0.5, 0.5, 0.5)))
+    assert np.array_equal(top_coat(bare), NO_TOP)
+    two = Stack(
+        Conductor(roughness=0.2, eta=(0.2, 0.9, 1.1), k=(3.9, 2.4, 2.2)),
+        [Coating(roughness=0.3, ior=1.4, thickness=0.5), Coating(roughness=0.05, ior=1.6, thickness=0.2)],
+    )
+    assert np.allclose(top_coat(two), (0.05, 1.6))  # the last coating is the top one
+    rows = top_coats(StackArrays.from_stacks([two, two]))
+    assert rows.shape == (2, 2) and np.allclose(rows, (0.05, 1.6))
+    assert np.array_equal(top_coats(StackArrays.from_stacks([bare])), [NO_TOP])
+
+
+def test_the_top_lobe_is_the_rough_dielectric_reflection_at_any_direction_length():
+    rng = np.random.default_rng(0)
+    wi, wo = hemisphere(rng, 500), hemisphere(rng, 500)
+    top = np.column_stack([rng.uniform(0.02, 0.6, 500), rng.uniform(1.2, 2.0, 500)])
+    f = tl.eval_top(top, wi * 3.0, wo * 0.01)
+    want = RoughDielectric(top[:, 0], top[:, 1], reflection_only=True).eval(wi, wo)[:, 0]
+    assert np.allclose(f, want, rtol=1e-12)
+    assert (f > 0).mean() > 0.9
+    below = wi * np.array([1, 1, -1])
+    assert not tl.eval_top(top, below, wo).any() and not tl.eval_top(NO_TOP, wi, wo).any()
+    with pytest.raises(ValueError, match="alpha >= 0 and ior > 0"):
+        tl.eval_top((0.1, -1.5), wi[:1], wo[:1])
+    with pytest.raises(ValueError, match="shape"):
+        tl.eval_top(np.ones((3, 2)), wi, wo)
+
+
+@pytest.mark.parametrize("alpha", [0.05, 0.3])
+def test_top_samples_carry_their_density_and_estimate_the_lobe_albedo(alpha):
+    rng = np.random.default_rng(1)
+    n = 200_000
+    wo = np.tile([[np.sin(1.0), 0.0, np.cos(1.0)]], (n, 1))
+    top = (alpha, 1.5)
+    wi, pdf = tl.sample_top(top, wo, rng.random((n, 2)))
+    ok = pdf > 0
+    assert ok.mean() > 0.9
+    assert np.allclose(pdf[ok], tl.pdf_top(top, wi[ok], wo[ok]), rtol=1e-9)
+    # E[f cos / pdf] over the samples is the albedo; uniform hemisphere samples give it independently
+    est = np.where(ok, tl.eval_top(top, wi, wo) * wi[:, 2] / np.where(ok, pdf, 1.0), 0.0).mean()
+    wu = hemisphere(rng, n)
+    uniform = (tl.eval_top(top, wu, wo) * wu[:, 2]).mean() * 2 * np.pi
+    assert est == pytest.approx(uniform, rel=0.05 if alpha < 0.1 else 0.02)
+    assert tl.top_albedo(top, [np.cos(1.0)], samples=n, seed=3)[0] == pytest.approx(est, rel=0.02)
+    # the density integrates to the share of samples above the horizon
+    assert (tl.pdf_top(top, wu, wo)).mean() * 2 * np.pi == pytest.approx(ok.mean(), rel=0.05)
+
+
+def test_the_top_share_follows_fresnel_and_is_zero_without_a_top_lobe():
+    wo = np.array([[0.0, 0.0, 1.0], [np.sin(1.4), 0.0, np.cos(1.4)], [np.sin(1.55), 0.0, np.cos(1.55)]])
+    s = tl.top_share((0.1, 1.5), wo)
+    assert np.all(np.diff(s) > 0) and s[0] == pytest.approx(0.04 / (0.04 + 0.25 * 0.96), rel=1e-2)
+    assert s.max() <= tl.TOP_SHARE_RANGE[1]
+    assert not tl.top_share(NO_TOP, wo).any() and not tl.top_share((0.0, 1.5), wo).any()
+
+
+class _SamplerOnly:
+    """What the mixture sampler reads of a model set (its pdf needs no network)."""
+
+    remainder = True
+
+
+@pytest.mark.parametrize("per_hit", [False, True])
+def test_the_renderers_mixture_sampler_is_consistent_with_its_pdf(per_hit):
+    """Exact top-lobe samples mixed with the proxy: every sample's density is the mixture's pdf there,
+    and that pdf integrates to the share of samples that land above the horizon."""
+    rng = np.random.default_rng(2)
+    n = 100_000
+    wo = np.tile([[np.sin(0.9), 0.0, np.cos(0.9)]], (n, 1))
+    top = np.tile([0.08, 1.5], (n, 1)) if per_hit else np.array([0.08, 1.5])
+    sig, w = (np.full(n, 0.3), np.full(n, 0.4)) if per_hit else (np.float64(0.3), np.float64(0.4))
+    bound = _BoundNeural(_SamplerOnly(), np.zeros((3, 32), np.float32), sig, w, top=top)
+    wi, pdf = bound.sample_direction(wo, rng.random(n), rng.random((n, 2)))
+    ok = (pdf > 0) & (wi[:, 2] > 0)
+    assert np.allclose(pdf[ok], bound.pdf(wi[ok], wo[ok], np.flatnonzero(ok)), rtol=1e-9)
+    share = tl.top_share(np.array([[0.08, 1.5]]), wo[:1])[0]
+    assert 0.05 < share < 0.9
+    # the samples near the top lobe's mirror direction come from both strategies
+    wu = hemisphere(rng, n)
+    total = bound.pdf(wu, wo, np.arange(n)).mean() * 2 * np.pi
+    assert total == pytest.approx(ok.mean(), rel=0.03)
+
+
+def test_without_a_remainder_decoder_the_sampler_is_the_proxy():
+    class Whole:
+        remainder = False
+
+    bound = _BoundNeural(Whole(), np.zeros((3, 32), np.float32), np.float64(0.3), np.float64(0.4), top=(0.1, 1.5))
+    assert bound.top is None
+
+
+@pytest.mark.parametrize("size", SIZES)
+def test_a_remainder_decoder_adds_the_exact_top_lobe_and_a_whole_one_does_not(size):
+    models = load_models(size, threads=1)
+    assert models.remainder is (read_card("decoder", size).get("remainder", False) is True)
+    gold = PRESETS["coated_gold"]
+    from addon.core.neural import encode_stack
+
+    z = encode_stack(gold, models)
+    rng = np.random.default_rng(4)
+    wi, wo = hemisphere(rng, 256), hemisphere(rng, 256)
+    diff = models.eval_brdf(z, wi, wo, top_coat(gold)) - models.eval_brdf(z, wi, wo)
+    want = tl.eval_top(top_coat(gold), wi, wo)[:, None] if models.remainder else 0.0
+    assert np.allclose(diff, want, rtol=1e-5, atol=1e-6)
+
+
+def test_top_coat_channels_survive_the_exr_and_old_files_read_uncoated(tmp_path):
+    pytest.importorskip("bpy")
+    from addon.core.textures import CHANNEL_NAMES, LatentTexture
+    from addon.core.textures.latent_texture import oiio_module
+
+    rng = np.random.default_rng(5)
+    texels = rng.normal(size=(8, 8, len(CHANNEL_NAMES))).astype(np.float32)
+    texels[..., -2:] = (0.125, 1.5)
+    path = tmp_path / "t.exr"
+    LatentTexture.from_texels(texels).write_exr(path)
+    back = LatentTexture.read_exr(path)
+    assert np.allclose(back.levels[0][..., -2:], (0.125, 1.5))
+    _z, _proxy, top = back.lookup(rng.random((10, 2)), np.full(10, 0.01))
+    assert np.allclose(top, (0.125, 1.5))
+    # a file written before the top-coat channels (98 channels)
+    from tests.core.test_texture_files import raw_latent_exr
+
+    levels = LatentTexture.from_texels(texels).levels
+    old = raw_latent_exr(oiio_module(), tmp_path / "old.exr", [lv[..., :98] for lv in levels])
+    legacy = LatentTexture.read_exr(old)
+    assert np.allclose(legacy.levels[0][..., :98], levels[0][..., :98], atol=1e-2)
+    assert np.array_equal(legacy.levels[-1][..., 98:], np.broadcast_to(np.float32(NO_TOP), (1, 1, 2)))
