@@ -302,6 +302,7 @@ def main(argv=None):
     dck = torch.load(a.decoder, weights_only=False)
     # trained on remainders (train_decoder --remainder): the card says so, and the runtime adds the exact top lobe
     remainder = dck.get("args", {}).get("remainder") in (True, "True")
+    transmission = remainder and dck.get("args", {}).get("top_transmission") in (True, "True")
     dec, latents = load_decoder(dck)
     eck = torch.load(a.encoder, weights_only=False)
     enc = Encoder(**eck["config"])
@@ -333,8 +334,14 @@ def main(argv=None):
                 if remainder
                 else ""
             )
+            + (
+                ", its output times the top coat's Fresnel transmission in and out (top_lobe.remainder_scale)"
+                if transmission
+                else ""
+            )
         ),
         "remainder": remainder,
+        "top_transmission": transmission,
         "files": {p.name: file_digest(p) for p in (dpath, rgb_path)},
         "inputs": {
             "z": "(B, 32) float32 latent of one colour channel",

@@ -56,7 +56,7 @@ from onnx_export.cli import command_line
 from onnx_export.distributed import ONE_PROCESS, Processes, processes, quiet_unless_main
 from onnx_export.layered_data import data_command
 from onnx_export.nets import LATENT, cosine_lr, macs_per_eval, mlp, n_params, pair_loss
-from onnx_export.remainder import top_reflection
+from onnx_export.remainder import remainder_scales, top_reflection
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"
 OPSET = 17
@@ -131,10 +131,17 @@ class StackSet:
     """Training tensors of one coating count: encoder latents, medium parameters and reference values."""
 
     def __init__(
-        self, path: Path, models: ModelSet, stacks: int = 0, use_weight: bool = False, remainder: bool = False
+        self,
+        path: Path,
+        models: ModelSet,
+        stacks: int = 0,
+        use_weight: bool = False,
+        remainder: bool = False,
+        transmission: bool = False,
     ):
         """``remainder``: the values are each stack's BRDF minus its exact top-interface reflection
-        (the decoder holds the rest: ``onnx_export.remainder``)."""
+        (the decoder holds the rest: ``onnx_export.remainder``); ``transmission``: the decoder's values are
+        multiplied by the top coat's transmission in and out (``scale``) before they are compared."""
         self.use_weight = use_weight
         from onnx_export.layered_data import load
 
@@ -159,6 +166,10 @@ class StackSet:
                 np.float32
             )
         self.f = torch.from_numpy(f)
+        self.scale = None
+        if transmission:
+            wi_all, wo_all = d["wi"][:n].reshape(n, p * m, 3), np.repeat(d["wo"][:n], m, axis=1)
+            self.scale = torch.from_numpy(remainder_scales(a, wi_all, wo_all).astype(np.float32))  # (n, p m, 1)
         self.weight = torch.from_numpy(
             cosine_weights(d["wi"][:n], d["wo"][:n], a.coat_roughness[:, -1]).reshape(n, p * m)
         )
@@ -209,6 +220,10 @@ class StackSet:
         else:
             with torch.no_grad():
                 target = decode_pairs(dec, z_target[s], d_in, d_out)
+        if self.scale is not None:  # reciprocal: the same factor for swapped directions
+            pred = pred * self.scale[s[:, None], idx]
+            if z_target is not None:
+                target = target * self.scale[s[:, None], idx]
         sh = (b, g, m)
         return decoded_lobe_loss(
             pred.reshape(*sh, 3), target.reshape(*sh, 3), wi[..., 2].reshape(sh), w.reshape(sh), kind
@@ -225,7 +240,10 @@ class StackSet:
         wi = self.wi[s[:, None], idx]  # (b, q, 3)
         wo = self.wo[s[:, None], idx]
         f = self.f[s[:, None], idx]  # (b, q, 3)
-        pred = decode_pairs(dec, z, wi, wo).permute(0, 2, 1).reshape(-1)  # (b, 3, q) flattened, as f below
+        pred = decode_pairs(dec, z, wi, wo)
+        if self.scale is not None:
+            pred = pred * self.scale[s[:, None], idx]
+        pred = pred.permute(0, 2, 1).reshape(-1)  # (b, 3, q) flattened, as f below
         wi_r = wi.unsqueeze(1).expand(b, 3, q, 3).reshape(-1, 3)
         wo_r = wo.unsqueeze(1).expand(b, 3, q, 3).reshape(-1, 3)
         wt = self.weight[s[:, None], idx].unsqueeze(1).expand(b, 3, q).reshape(-1) if self.use_weight else None
@@ -298,11 +316,14 @@ def layering_loss(pred, target, wi, wo, weight, kind: str, procs: Processes = ON
 
 
 @torch.no_grad()
-def heldout_error(net: LayeringNet, dec, models: ModelSet, heldout: dict, log=None, remainder: bool = False) -> dict:
+def heldout_error(
+    net: LayeringNet, dec, models: ModelSet, heldout: dict, log=None, remainder: bool = False, transmission=False
+) -> dict:
     """Lobe error of the layered latents per number of coatings, as onnx_export.evaluate measures it
-    (``remainder``: of the exact top-interface reflection plus the decoded lobe)."""
+    (``remainder``: of the exact top-interface reflection plus the decoded lobe, ``transmission``: times
+    the top coat's transmission)."""
     from onnx_export.evaluate import decoder_lobes, lobe_metrics
-    from onnx_export.remainder import top_lobes
+    from onnx_export.remainder import scale_lobes, top_lobes
 
     stacks = heldout["stacks"]
     counts = np.array([len(s.coatings) for s in stacks])
@@ -319,6 +340,8 @@ def heldout_error(net: LayeringNet, dec, models: ModelSet, heldout: dict, log=No
             torch.from_numpy(a.coat_thickness.astype(np.float32)),
         )
         pred = decoder_lobes(dec, z, heldout["lobe"].shape[2], heldout["angles"])
+        if transmission:
+            pred = pred * scale_lobes(a, heldout["lobe"].shape[2], heldout["angles"])
         if remainder:
             pred = pred + top_lobes(a, heldout["lobe"].shape[2], heldout["angles"])
         m = lobe_metrics(pred, heldout["lobe"][idx])
@@ -339,6 +362,7 @@ def lobe_bound(
     seed: int = 0,
     log=None,
     remainder: bool = False,
+    transmission: bool = False,
 ) -> dict:
     """What the decoder could hold: the held-out lobes projected into its latent space, per number of
     coatings, by latent optimisation on the scored pixels themselves with the metric as the loss
@@ -347,10 +371,11 @@ def lobe_bound(
 
     ``remainder``: the decoder holds the remainder design's rest of the BRDF: the projection's
     target is each held-out lobe minus the exact top-interface reflection (``remainder.top_lobes``),
-    and what is scored is that reflection plus the decoded lobe, against the whole reference."""
+    and what is scored is that reflection plus the decoded lobe, against the whole reference;
+    ``transmission``: the decoded lobe is times the top coat's transmission (``remainder.scale_lobes``)."""
     from addon.core import lobe
     from onnx_export.evaluate import decoder_lobes, lobe_metrics
-    from onnx_export.remainder import top_lobes
+    from onnx_export.remainder import scale_lobes, top_lobes
 
     stacks, ref_all, angles = heldout["stacks"], heldout["lobe"], heldout["angles"]
     res = ref_all.shape[2]
@@ -373,6 +398,8 @@ def lobe_bound(
                 torch.from_numpy(a.coat_thickness.astype(np.float32)),
             )
         top = top_lobes(a, res, angles) if remainder else np.zeros_like(ref_all[idx])
+        sc_img = scale_lobes(a, res, angles) if transmission else np.ones(ref_all[idx].shape[:-1] + (1,))
+        sc = torch.as_tensor(sc_img.reshape(len(idx), len(angles), res * res, 1)[:, :, mask], dtype=torch.float32)
         ref = torch.as_tensor(
             (ref_all[idx] - top).reshape(len(idx), len(angles), res * res, 3)[:, :, mask] / wo[:, 2:3],
             dtype=torch.float32,
@@ -387,6 +414,7 @@ def lobe_bound(
             wo_b = wo[pix].unsqueeze(0).expand(n_s, n_a, pixels, 3).reshape(n_s, -1, 3)
             wi_b = wis[:, None, :].expand(n_a, pixels, 3).unsqueeze(0).expand(n_s, n_a, pixels, 3).reshape(n_s, -1, 3)
             pred = decode_pairs(dec, z, wi_b, wo_b).reshape(n_s, n_a, pixels, 3)
+            pred = pred * sc[:, torch.arange(n_a)[:, None], pix]
             target = ref[:, torch.arange(n_a)[:, None], pix]
             loss = decoded_lobe_loss(
                 pred, target, wo[pix][..., 2].expand(n_s, n_a, pixels), torch.ones(n_s, n_a, pixels)
@@ -394,8 +422,8 @@ def lobe_bound(
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-        m = lobe_metrics(top + decoder_lobes(dec, z.detach(), res, angles), ref_all[idx])
-        m0 = lobe_metrics(top + decoder_lobes(dec, z0, res, angles), ref_all[idx])
+        m = lobe_metrics(top + sc_img * decoder_lobes(dec, z.detach(), res, angles), ref_all[idx])
+        m0 = lobe_metrics(top + sc_img * decoder_lobes(dec, z0, res, angles), ref_all[idx])
         out[f"coatings_{c}"] = {
             "layering": [m0["lobe_error_median"], m0["lobe_error_p90"]],
             "bound": [m["lobe_error_median"], m["lobe_error_p90"]],
@@ -546,7 +574,13 @@ def projected_targets(args, models: ModelSet, sets: dict, shrink: float) -> tupl
         refit = ck.get("refit", {}).get("command")
         if Path(args.c2).resolve() in [Path(d).resolve() for d in ck["args"]["data"]]:
             if 2 not in sets:
-                sets[2] = StackSet(args.c2, models, use_weight=args.weighting == "cosine", remainder=args.remainder)
+                sets[2] = StackSet(
+                    args.c2,
+                    models,
+                    use_weight=args.weighting == "cosine",
+                    remainder=args.remainder,
+                    transmission=args.top_transmission,
+                )
             targets[2] = projected_latents(args.projected, args.c2, sets[2].n, shrink)
     return targets, refit
 
@@ -574,7 +608,9 @@ def decoded_stage_data(args, models: ModelSet, sets: dict) -> tuple[dict, dict]:
     dsets = {c: sets[c] for c in coatings}
     if args.decoded_data:  # the same stacks and directions with other values (more walks)
         dsets = {
-            c: StackSet(d, models, sets[c].n, use_weight=True, remainder=args.remainder)
+            c: StackSet(
+                d, models, sets[c].n, use_weight=True, remainder=args.remainder, transmission=args.top_transmission
+            )
             for c, d in zip((1, 2), args.decoded_data, strict=False)
             if c in dsets
         }
@@ -606,7 +642,14 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
         dec = frozen_decoder(args.size, Path(args.model_dir or MODEL_DIR))
     trained_with = {p.name: file_digest(p) for p in (models.encoder_path, models.decoder_path)}
     sets = {
-        1: StackSet(args.c1, models, args.stacks, args.weighting == "cosine", remainder=args.remainder)
+        1: StackSet(
+            args.c1,
+            models,
+            args.stacks,
+            args.weighting == "cosine",
+            remainder=args.remainder,
+            transmission=args.top_transmission,
+        )
     }  # two-coating data are loaded when stage 2 starts
 
     def heldout():  # measured by process 0 only
@@ -669,7 +712,9 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
         hist["projected"] = {"latents": str(args.projected), "refit": refit, "shrink": args.shrink}
         regress_projected(net, sets, targets, args, gen, log, procs)
         if heldout() is not None:
-            hist["regressed"] = heldout_error(net, dec, models, heldout(), log, remainder=args.remainder)
+            hist["regressed"] = heldout_error(
+                net, dec, models, heldout(), log, remainder=args.remainder, transmission=args.top_transmission
+            )
         fresh_opt = True
         save(0, None)  # --steps 0 --finetune 0 (and no --decoded-steps): the regressed network is the result
     rec = hist.get("decoded")
@@ -717,7 +762,7 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
             rec,
             checkpoint=lambda o: save(0, None, decoded_opt=o.state_dict(), decoded_gen=gen.get_state()),
             evaluate=lambda: (
-                heldout_error(net, dec, models, ho, log, remainder=args.remainder)
+                heldout_error(net, dec, models, ho, log, remainder=args.remainder, transmission=args.top_transmission)
                 if (ho := heldout()) is not None
                 else None
             ),
@@ -725,7 +770,9 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
             procs=procs,
         )
         if heldout() is not None:
-            rec["heldout"] = heldout_error(net, dec, models, heldout(), log, remainder=args.remainder)
+            rec["heldout"] = heldout_error(
+                net, dec, models, heldout(), log, remainder=args.remainder, transmission=args.top_transmission
+            )
         fresh_opt = True
         save(0, None)
     if fresh_opt:
@@ -742,7 +789,13 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
         for g in opt.param_groups:
             g["lr"] = lr
         if stage2 and 2 not in sets:
-            sets[2] = StackSet(args.c2, models, use_weight=args.weighting == "cosine", remainder=args.remainder)
+            sets[2] = StackSet(
+                args.c2,
+                models,
+                use_weight=args.weighting == "cosine",
+                remainder=args.remainder,
+                transmission=args.top_transmission,
+            )
             log(f"stage 2: {sets[2].n} two-coating stacks")
         if stage2:  # half the batch with two coatings (the recursion), half with one (keep stage 1)
             parts = [
@@ -765,7 +818,7 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
             log(f"step {step}/{total} loss {ema:.5f} lr {lr:.2e} {time.perf_counter() - t0:.0f} s")
         end_of_stage = step == args.steps or step == total
         if (end_of_stage or (args.eval_every and step % args.eval_every == 0)) and (ho := heldout()) is not None:
-            m = heldout_error(net, dec, models, ho, log, remainder=args.remainder)
+            m = heldout_error(net, dec, models, ho, log, remainder=args.remainder, transmission=args.top_transmission)
             hist[f"step_{step}"] = m
             if end_of_stage:
                 hist["stage2" if stage2 else "stage1"] = m
@@ -879,7 +932,15 @@ def export(args, log=print) -> dict:
     from addon.core.neural.models import read_card
 
     on_remainder = targs.get("remainder") in (True, "True")
-    decoder_remainder = read_card("decoder", args.size, Path(args.out)).get("remainder", False) is True
+    dcard = read_card("decoder", args.size, Path(args.out))
+    decoder_remainder = dcard.get("remainder", False) is True
+    on_transmission = targs.get("top_transmission") in (True, "True")
+    if on_transmission != (dcard.get("top_transmission", False) is True):
+        raise SystemExit(
+            f"{args.ckpt} was trained {'with' if on_transmission else 'without'} the top coat's transmission "
+            f"(--top-transmission) but decoder_{args.size} {'is not' if on_transmission else 'is'} scaled by it "
+            "(its card's 'top_transmission'): retrain it to match"
+        )
     if on_remainder != decoder_remainder:
         raise SystemExit(
             f"{args.ckpt} was trained on {'remainders' if on_remainder else 'whole BRDFs'} but decoder_{args.size} "
@@ -1013,6 +1074,12 @@ def parser() -> argparse.ArgumentParser:
         help="the decoder holds the remainder (train_decoder --remainder): the targets are the stacks' BRDFs "
         "minus the exact top-interface reflection, and the held-out lobes are scored with it added back",
     )
+    t.add_argument(
+        "--top-transmission",
+        action="store_true",
+        help="with --remainder: the decoder's values are times the top coat's transmission in and out "
+        "(train_decoder --top-transmission)",
+    )
     t.add_argument("--regress-steps", type=int, default=3000)
     t.add_argument(
         "--decoded-steps",
@@ -1100,6 +1167,12 @@ def parser() -> argparse.ArgumentParser:
         help="the decoder holds the remainder (train_decoder --remainder): project the held-out lobes minus "
         "the exact top-interface reflection, score that reflection plus the decoded lobe",
     )
+    b.add_argument(
+        "--top-transmission",
+        action="store_true",
+        help="with --remainder: the decoder's values are times the top coat's transmission in and out "
+        "(train_decoder --top-transmission)",
+    )
     return ap
 
 
@@ -1140,6 +1213,7 @@ def main(argv=None):
             seed=a.seed,
             log=lg,
             remainder=a.remainder,
+            transmission=a.top_transmission,
         )
         print(json.dumps(res))
     else:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from addon.core import lobe
-from addon.core.neural.top_lobe import eval_top, top_coats
+from addon.core.neural.top_lobe import eval_top, remainder_scale, top_coats
 from addon.core.stack import StackArrays
 
 
@@ -37,6 +37,27 @@ def top_reflection(arrays: StackArrays, wi: np.ndarray, wo: np.ndarray) -> np.nd
     return np.repeat(f.reshape(s, p, 1), 3, axis=2)
 
 
+def remainder_scales(arrays: StackArrays, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+    """(S, P, 1) the top coat's transmission in and out (``top_lobe.remainder_scale``) at the pairs ``wi``,
+    ``wo`` (S, P, 3): what a ``--top-transmission`` decoder's output is multiplied by; 1 without coatings."""
+    wi = np.asarray(wi, dtype=np.float64)
+    s, p = wi.shape[:2]
+    top = np.repeat(top_coats(arrays), p, axis=0)
+    return remainder_scale(top, wi.reshape(-1, 3), np.asarray(wo, dtype=np.float64).reshape(-1, 3)).reshape(s, p, 1)
+
+
+def scale_lobes(arrays: StackArrays, res: int, angles) -> np.ndarray:
+    """(S, A, res, res, 1) :func:`remainder_scales` on the lobe grid of each incident angle (1 off the disk)."""
+    wo_grid, mask = lobe.lobe_grid(res)
+    wo_m = wo_grid[mask]
+    s, npx = len(arrays), wo_m.shape[0]
+    out = np.ones((s, len(angles), res * res, 1))
+    for a, t in enumerate(angles):
+        wi = np.broadcast_to(lobe.incident_direction(t), (s, npx, 3))
+        out[:, a][:, mask] = remainder_scales(arrays, wi, np.broadcast_to(wo_m, (s, npx, 3)))
+    return out.reshape(s, len(angles), res, res, 1)
+
+
 def top_lobes(arrays: StackArrays, res: int, angles) -> np.ndarray:
     """(S, A, res, res, 3) lobe images (f cos(theta_o), as ``addon.core.lobe``) of the top
     interface's reflection, for the held-out set's incident angles."""
@@ -51,10 +72,13 @@ def top_lobes(arrays: StackArrays, res: int, angles) -> np.ndarray:
     return out.reshape(s, len(angles), res, res, 3)
 
 
-def torch_path_brdfs(layering_ckpt, decoder_ckpt, stacks, size: str = "tiny", remainder: bool = False) -> list:
+def torch_path_brdfs(
+    layering_ckpt, decoder_ckpt, stacks, size: str = "tiny", remainder: bool = False, transmission: bool = False
+) -> list:
     """One ``f(wi, wo) -> (N, 3)`` per stack through a layering network and a decoder still in their
     training checkpoints (torch), the encoder of ``size`` giving the layering network's inputs as in
-    ``layering train``; ``remainder``: plus the exact top-interface reflection."""
+    ``layering train``; ``remainder``: plus the exact top-interface reflection (``transmission``: the
+    decoded part times the top coat's transmission)."""
     import torch
 
     from addon.core.neural import load_models
@@ -89,6 +113,8 @@ def torch_path_brdfs(layering_ckpt, decoder_ckpt, stacks, size: str = "tiny", re
             with torch.no_grad():
                 t = lambda v: torch.as_tensor(np.repeat(np.asarray(v, np.float32), 3, 0))  # noqa: E731
                 out = dec(z[k].repeat(n, 1), t(wi), t(wo)).reshape(n, 3).double().numpy()
+            if transmission:
+                out = out * remainder_scales(arrays, wi[None], wo[None])[0]
             return out + top_reflection(arrays, wi[None], wo[None])[0] if remainder else out
 
         return f
@@ -124,10 +150,13 @@ def main(argv=None) -> None:
     ap.add_argument("--decoder-ckpt", type=Path, required=True)
     ap.add_argument("--size", default="tiny", help="the encoder that feeds the layering network")
     ap.add_argument("--remainder", action="store_true", help="the decoder holds the remainder: add the top lobe")
+    ap.add_argument(
+        "--top-transmission", action="store_true", help="the decoded remainder is times the top coat's transmission"
+    )
     ap.add_argument("--grazing", type=Path, default=Path("tests/data/heldout_grazing.npz"))
     a = ap.parse_args(argv)
     data = hg.load(a.grazing)
-    brdfs = torch_path_brdfs(a.layering_ckpt, a.decoder_ckpt, data["stacks"], a.size, a.remainder)
+    brdfs = torch_path_brdfs(a.layering_ckpt, a.decoder_ckpt, data["stacks"], a.size, a.remainder, a.top_transmission)
     alb, fcos = hg.brdf_grazing(brdfs, data["angles"], int(data["res"]))
     print(json.dumps(grazing_summary(hg.ratios_to_reference(data, alb, fcos))))
 

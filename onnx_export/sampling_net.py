@@ -92,6 +92,14 @@ def random_arrays(rng: np.random.Generator, n: int):
     return out
 
 
+def material_tops(arrays_list) -> np.ndarray:
+    """(N, 2) top coatings of the materials of ``material_latents`` (a remainder decoder's proxy is fitted
+    to the decoded remainder, which the top coat's transmission scales for a ``top_transmission`` one)."""
+    from addon.core.neural import top_coats
+
+    return np.concatenate([top_coats(a) for a in arrays_list])
+
+
 def material_latents(arrays_list, models) -> np.ndarray:
     from addon.core.neural import encode_arrays
 
@@ -106,8 +114,11 @@ def kl_tables(
     batch: int = 48,
     log=None,
     procs: Processes = ONE_PROCESS,
+    top: np.ndarray | None = None,
 ):
-    """KL (N, len(SIGMA_GRID), len(W_GRID)) of each material's target against the proxy grid.
+    """KL (N, len(SIGMA_GRID), len(W_GRID)) of each material's target against the proxy grid; ``top``
+    (N, 2): the materials' top coatings, for a remainder decoder (its proxy samples the remainder: the
+    renderer samples the exact top lobe itself).
 
     With several processes each computes every N-th batch of materials, advancing its generator past the
     random numbers of the batches it skips, and the tables are summed: the result is one process's."""
@@ -133,7 +144,9 @@ def kl_tables(
         wmix = np.array([c[1] for c in MIXTURE])[comp]
         wi, _ = proxy.sample(wo, sig, wmix, rng.random((rows, 3)))
         g = np.mean([proxy.pdf(wo, wi, s_, w_) for s_, w_ in MIXTURE], axis=0)
-        f = models.eval_brdf(np.repeat(zb, nwo * s_tot, axis=0), wi, wo).astype(np.float64).mean(axis=1)
+        tb = None if top is None else np.repeat(top[b0 : b0 + batch], nwo * s_tot, axis=0)
+        f = models.eval_brdf(np.repeat(zb, nwo * s_tot, axis=0), wi, wo, tb, with_top_lobe=False)
+        f = f.astype(np.float64).mean(axis=1)
         ok = (g > 0) & (wi[:, 2] > 0)
         fc = (f * np.maximum(wi[:, 2], 0.0)).reshape(m * nwo, s_tot)
         r = np.where(ok.reshape(m * nwo, s_tot), fc / np.where(ok, g, 1.0).reshape(m * nwo, s_tot), 0.0)
@@ -231,11 +244,15 @@ def run(args, log=print) -> dict:
         z, table, z_ho, table_ho = d["z"], d["table"], d["z_ho"], d["table_ho"]
     else:
         rng = np.random.default_rng([args.seed, 5])
-        z = material_latents(random_arrays(rng, args.materials), models)
-        table = kl_tables(models, z, args.samples, seed=args.seed, log=log, procs=procs)
+        arrays = random_arrays(rng, args.materials)
+        z = material_latents(arrays, models)
+        table = kl_tables(models, z, args.samples, seed=args.seed, log=log, procs=procs, top=material_tops(arrays))
         rng_ho = np.random.default_rng([args.seed, 6])  # held-out materials
-        z_ho = material_latents(random_arrays(rng_ho, args.heldout), models)
-        table_ho = kl_tables(models, z_ho, args.samples, seed=args.seed + 1, log=log, procs=procs)
+        arrays_ho = random_arrays(rng_ho, args.heldout)
+        z_ho = material_latents(arrays_ho, models)
+        table_ho = kl_tables(
+            models, z_ho, args.samples, seed=args.seed + 1, log=log, procs=procs, top=material_tops(arrays_ho)
+        )
         if procs.main:
             np.savez(cache, z=z, table=table, z_ho=z_ho, table_ho=table_ho)
     net = SamplingNet(args.width, args.depth)

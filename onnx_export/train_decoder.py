@@ -36,7 +36,7 @@ from onnx_export import data as datamod
 from onnx_export import layered_data
 from onnx_export.distributed import processes, quiet_unless_main
 from onnx_export.nets import PAIR_LOSSES, Decoder, cosine_lr, he_init, macs_per_eval, make_decoder, n_params, pair_loss
-from onnx_export.remainder import top_reflection
+from onnx_export.remainder import remainder_scales, top_reflection
 
 
 def load_set(path: Path) -> dict:
@@ -67,18 +67,28 @@ def load_set(path: Path) -> dict:
     return d
 
 
-def load_training_tensors(paths: list[Path], materials: int | None = None, remainder: bool = False) -> dict:
+def load_training_tensors(
+    paths: list[Path], materials: int | None = None, remainder: bool = False, transmission: bool = False
+) -> dict:
     """wi, wo, f (M, P, 3) of all data sets, cut to the smallest number of pairs P of any set
     (pairs are in random order), plus ``source`` (M,): which set each material came from, and
     ``arrays``: each set's StackArrays (not cut to ``materials``). ``remainder``: the targets of
-    layered stacks are their BRDF minus the exact top-interface reflection (``remainder.py``)."""
+    layered stacks are their BRDF minus the exact top-interface reflection (``remainder.py``);
+    ``transmission``: ``scale`` (M, P) is the top coat's transmission in and out of each pair, what the
+    decoder's output is multiplied by before the loss (``top_lobe.remainder_scale``; 1 without coatings)."""
     parts = [load_set(p) for p in paths]
     pmin = min(p["wi"].shape[1] for p in parts)
     parts = [{k: (v[:, :pmin] if k in ("wi", "wo", "f", "stderr") else v) for k, v in p.items()} for p in parts]
     if remainder:
         for p in parts:
             p["f"] = p["f"] - top_reflection(p["arrays"], p["wi"], p["wo"])
-    d = {k: np.concatenate([p[k] for p in parts]) for k in ("wi", "wo", "f") if all(k in p for p in parts)}
+    if transmission:
+        if not remainder:
+            raise ValueError("the top coat's transmission scales a remainder: it needs --remainder")
+        for p in parts:
+            p["scale"] = remainder_scales(p["arrays"], p["wi"], p["wo"])[..., 0]
+    keys = ("wi", "wo", "f", "scale")
+    d = {k: np.concatenate([p[k] for p in parts]) for k in keys if all(k in p for p in parts)}
     if "stderr" in parts[0] or any("stderr" in p for p in parts):
         d["stderr"] = np.concatenate([p.get("stderr", np.zeros_like(p["f"])) for p in parts])
     d["source"] = np.concatenate([np.full(p["wi"].shape[0], i, np.float32) for i, p in enumerate(parts)])
@@ -185,6 +195,8 @@ def batch_of(t: dict, units: torch.Tensor, pairs: int, gen: torch.Generator):
     wi = t["wi"][m[:, None], idx].reshape(-1, 3)
     wo = t["wo"][m[:, None], idx].reshape(-1, 3)
     f = t["f"][m[:, None], idx, c[:, None]].reshape(-1)
+    if "scale" in t:  # the decoder's output times the top coat's transmission (--top-transmission)
+        return wi, wo, f, t["scale"][m[:, None], idx].reshape(-1)
     return wi, wo, f
 
 
@@ -205,7 +217,12 @@ def train(args, log=print) -> dict:
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
-    t = load_training_tensors(args.data, args.materials, remainder=getattr(args, "remainder", False))
+    t = load_training_tensors(
+        args.data,
+        args.materials,
+        remainder=getattr(args, "remainder", False),
+        transmission=getattr(args, "top_transmission", False),
+    )
     n_units = t["wi"].shape[0] * 3
     dec = make_decoder(args.size, features=args.features, activation=args.activation)
     if args.width:
@@ -246,10 +263,12 @@ def train(args, log=print) -> dict:
         opt.param_groups[0]["lr"] = lr
         opt.param_groups[1]["lr"] = lr * args.latent_lr_scale
         units = torch.multinomial(unit_w, args.batch, replacement=True, generator=gen)
-        wi, wo, f = batch_of(t, units, args.pairs, gen)  # the whole batch on every process (same generator)
+        wi, wo, f, *scale = batch_of(t, units, args.pairs, gen)  # the whole batch on every process (same generator)
         rows = slice(mine.start * args.pairs, mine.stop * args.pairs)
         units, wi, wo, f = units[mine], wi[rows], wo[rows], f[rows]
         pred, z_sq = model(units, wi, wo, args.pairs)
+        if scale:
+            pred = pred * scale[0][rows]
         row_set = src[units].long().repeat_interleave(args.pairs)
         loss = set_losses(pred, f, wi, wo, row_set, kinds, scales, args.grazing_floor, ema_set)
         reg = args.latent_reg * z_sq
@@ -351,6 +370,12 @@ def parser():
         "--remainder",
         action="store_true",
         help="train on the remainder: each layered stack's BRDF minus its exact top-interface reflection",
+    )
+    ap.add_argument(
+        "--top-transmission",
+        action="store_true",
+        help="with --remainder: the decoder's output is multiplied by the top coat's Fresnel transmission in and "
+        "out (addon.core.neural.top_lobe.remainder_scale), a structural prior that vanishes at the horizon",
     )
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)

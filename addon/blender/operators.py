@@ -377,6 +377,7 @@ class NLM_OT_preview_sphere(LongOperator, bpy.types.Operator):
                 sampler=choice.sampler,
                 sample_chunk=choice.sample_chunk,
                 proxy=choice.proxy,
+                proposal=choice.proposal,
             )
             return img, choice, time.perf_counter() - t0
 

@@ -210,6 +210,9 @@ class BrdfChoice:
     sampler: Optional[Callable] = None  # importance sampling of f cos, where the method has one
     sample_chunk: int = 16384  # rows per sampler call (one walk each)
     proxy: Optional[tuple[float, float]] = None  # (sigma, w) of the sampling proxy, where the method has one
+    # the renderer's sampler of the material (``sample_direction``, ``pdf``): the proxy, mixed with exact
+    # samples of the top lobe for a remainder decoder
+    proposal: Optional[object] = None
 
 
 def reference_chunk(walks: int) -> int:
@@ -253,7 +256,13 @@ def choose_brdf(
         brdf = neural_brdf_from_latent(z, used, _top_coat(stack), calibration)
         if calibration is not None:  # as the viewport: the calibration a render made, no walks here
             notes = notes + ["albedo calibration of the last render applied"]
-        return BrdfChoice(brdf, "NEURAL", notes + proxy_note, proxy=proxy)
+        proposal = None
+        if proxy is not None:
+            from .render.neural_material import NeuralMaterial
+
+            models = _neural_module().load_models(used)
+            proposal = NeuralMaterial(models, z, proxy, top=_top_coat(stack)).bind(None)
+        return BrdfChoice(brdf, "NEURAL", notes + proxy_note, proxy=proxy, proposal=proposal)
     except NeuralUnavailable as e:
         if method == "NEURAL":
             raise
@@ -364,10 +373,11 @@ DEFAULT_ENVIRONMENT = Environment()
 SamplerFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
-def _mis_sky_samples(brdf, env, proxy, wo, s, t, n, k, rng, chunk, progress):
+def _mis_sky_samples(brdf, env, proxy, wo, s, t, n, k, rng, chunk, progress, proposal=None):
     """Sky directions (local frame) and their weights f cos / (balance-heuristic density) for the
     rows of ``wo`` (pixel-major, ``k`` rows per pixel): the first ceil(k / 2) rows of each pixel
-    from the proxy, the others from the sky's distribution."""
+    from the material's ``proposal`` (its ``sample_direction`` and ``pdf``) or else the proxy, the
+    others from the sky's distribution."""
     from .bsdf.frame import to_local, to_world
     from .neural import proxy as proxy_pdf
 
@@ -384,10 +394,13 @@ def _mis_sky_samples(brdf, env, proxy, wo, s, t, n, k, rng, chunk, progress):
     shift = np.repeat(rng.random((rows // k, 2)), k, axis=0)
     u1 = (index + shift[:, 0]) / count
     u2 = np.mod(index * 0.6180339887498949 + shift[:, 1], 1.0)
-    wi_brdf, _ = proxy_pdf.sample(wo, sigma, w, np.stack([rng.random(rows), u1, u2], axis=1))
+    if proposal is not None:
+        wi_brdf, _ = proposal.sample_direction(wo, rng.random(rows), np.stack([u1, u2], axis=1))
+    else:
+        wi_brdf, _ = proxy_pdf.sample(wo, sigma, w, np.stack([rng.random(rows), u1, u2], axis=1))
     d_sky, _ = env.sample_sky(np.stack([u1, u2], axis=1))
     wi = np.where(from_brdf[:, None], wi_brdf, to_local(d_sky, s, t, n))
-    p_brdf = proxy_pdf.pdf(wo, wi, sigma, w)
+    p_brdf = proposal.pdf(wi, wo) if proposal is not None else proxy_pdf.pdf(wo, wi, sigma, w)
     p_sky = env.sky_pdf(to_world(wi, s, t, n))
     # balance heuristic over both strategies' sample counts; each pixel's k rows are averaged
     # later, so the weight is scaled by k
@@ -411,6 +424,7 @@ def sphere_preview(
     seed: int = 0,
     sample_chunk: int = 16384,
     proxy: Optional[tuple[float, float]] = None,
+    proposal: Optional[object] = None,
 ) -> np.ndarray:
     """(res, res, 4) image of a unit sphere seen orthographically, shaded with ``brdf``.
 
@@ -425,6 +439,8 @@ def sphere_preview(
       distribution (:meth:`Environment.sample_sky`). The proxy puts directions into a glossy
       lobe that a cosine pattern would miss with all but a few pixels' samples (the fireflies
       of a neural car-paint sphere at 8 samples), the sky strategy covers what the proxy does not.
+      ``proposal`` (``BrdfChoice.proposal``, the renderer's sampler of the material: for a remainder
+      decoder the proxy mixed with exact samples of the top lobe) takes the proxy's place when given.
 
     Deterministic for a given ``seed``. Alpha is 1 on the sphere, 0 elsewhere (RGB 0 there).
     """
@@ -475,6 +491,7 @@ def sphere_preview(
             rng,
             chunk,
             env_progress,
+            proposal,
         )
     rep = lambda a: np.repeat(a, k, axis=0)  # noqa: E731
     world = to_world(np.asarray(wi_env, dtype=np.float64), rep(s), rep(t), rep(n))

@@ -142,7 +142,8 @@ def test_auto_measures_the_material_as_the_renderer_shades_it_calibrated():
             r = quality.reference_lobes(st)[0].sum(axis=(1, 2, 3))
             for c in off:
                 off[c].append(np.abs(quality.decoder_lobes(st, "tiny", calibrate=c).sum(axis=(1, 2, 3)) / r - 1))
-    assert np.mean(off[True]) < 0.8 * np.mean(off[False]), (np.mean(off[True]), np.mean(off[False]))
+    # (the calibration scales a remainder decoder's decoded part only: its exact top lobe was right already)
+    assert np.mean(off[True]) < 0.95 * np.mean(off[False]), (np.mean(off[True]), np.mean(off[False]))
     with pytest.raises(ValueError, match="calibrate must be"):
         quality.measured_error(stack, "tiny", cache=cache, calibrate="yes")
 

@@ -69,6 +69,43 @@ def test_top_samples_carry_their_density_and_estimate_the_lobe_albedo(alpha):
     assert (tl.pdf_top(top, wu, wo)).mean() * 2 * np.pi == pytest.approx(ok.mean(), rel=0.05)
 
 
+@pytest.mark.parametrize("alpha", [0.01, 0.1, 0.4])
+def test_the_transmission_is_what_the_walks_interface_lets_in(alpha):
+    """The table against the interface's own sampler: in importance mode the weight of a transmitted
+    sample is f |cos| / pdf, so its mean over samples (reflected ones counting 0) is the share let in."""
+    from addon.core.bsdf.base import IMPORTANCE
+
+    rng = np.random.default_rng(8)
+    n = 200_000
+    cosines = np.array([1.0, 0.6, 0.25, 0.1, 0.03])
+    for ior in (1.3, 1.5, 1.9):
+        for c in cosines:
+            wo = np.tile([np.sqrt(1 - c * c), 0.0, c], (n, 1))
+            s = RoughDielectric(alpha, ior).sample(wo, rng.random(n), rng.random((n, 2)), mode=IMPORTANCE)
+            mc = np.where(s.transmission, s.weight[:, 0], 0.0).mean()
+            got = tl.transmission(np.array([[alpha, ior]]), np.array([c]))[0]
+            assert got == pytest.approx(mc, abs=0.01), (alpha, ior, c, got, mc)
+
+
+def test_the_remainder_scale_is_reciprocal_one_without_a_coat_and_zero_at_the_horizon():
+    from addon.core.bsdf.fresnel import fresnel_dielectric
+
+    rng = np.random.default_rng(7)
+    wi, wo = hemisphere(rng, 400), hemisphere(rng, 400)
+    top = np.column_stack([rng.uniform(0.02, 0.6, 400), rng.uniform(1.2, 2.0, 400)])
+    s = tl.remainder_scale(top, wi * 2.0, wo)
+    assert np.allclose(s, tl.transmission(top, wi[:, 2]) * tl.transmission(top, wo[:, 2]), rtol=1e-12)
+    assert np.allclose(s, tl.remainder_scale(top, wo, wi), rtol=1e-12)
+    assert np.all((s > 0) & (s < 1))
+    horizon = np.tile([[1.0, 0.0, 0.0]], (400, 1))
+    assert np.allclose(tl.remainder_scale(top, horizon, wo), 0.0, atol=1e-12)
+    assert np.array_equal(tl.remainder_scale(NO_TOP, wi, wo), np.ones(400))  # uncoated: no factor
+    # a nearly smooth coat lets in 1 - F away from grazing
+    c = np.array([1.0, 0.7, 0.4])
+    smooth = tl.transmission(np.tile([0.01, 1.5], (3, 1)), c)
+    assert np.allclose(smooth, 1 - fresnel_dielectric(c, 1.5), atol=0.01)
+
+
 def test_the_top_share_follows_fresnel_and_is_zero_without_a_top_lobe():
     wo = np.array([[0.0, 0.0, 1.0], [np.sin(1.4), 0.0, np.cos(1.4)], [np.sin(1.55), 0.0, np.cos(1.55)]])
     s = tl.top_share((0.1, 1.5), wo)
@@ -122,9 +159,29 @@ def test_a_remainder_decoder_adds_the_exact_top_lobe_and_a_whole_one_does_not(si
     z = encode_stack(gold, models)
     rng = np.random.default_rng(4)
     wi, wo = hemisphere(rng, 256), hemisphere(rng, 256)
-    diff = models.eval_brdf(z, wi, wo, top_coat(gold)) - models.eval_brdf(z, wi, wo)
-    want = tl.eval_top(top_coat(gold), wi, wo)[:, None] if models.remainder else 0.0
-    assert np.allclose(diff, want, rtol=1e-5, atol=1e-6)
+    decoded = models.eval_brdf(z, wi, wo)  # the decoder alone (no top coating given)
+    top = top_coat(gold)
+    want = decoded
+    if models.top_transmission:
+        want = want * tl.remainder_scale(top, wi, wo)[:, None]
+    if models.remainder:
+        want = want + tl.eval_top(top, wi, wo)[:, None]
+    assert np.allclose(models.eval_brdf(z, wi, wo, top), want, rtol=1e-5, atol=1e-6)
+    assert models.top_transmission <= models.remainder
+    if models.remainder:  # the remainder alone, what the sampling network is fitted to
+        assert np.allclose(
+            models.eval_brdf(z, wi, wo, top, with_top_lobe=False),
+            want - tl.eval_top(top, wi, wo)[:, None],
+            rtol=1e-4,
+            atol=1e-6,
+        )
+
+
+def test_the_default_size_is_a_remainder_decoder():
+    """The default size ships the exact top coat + neural remainder design (docs/layering_training.md)."""
+    from addon.core.neural import DEFAULT_SIZE
+
+    assert load_models(DEFAULT_SIZE, threads=1).remainder
 
 
 def test_top_coat_channels_survive_the_exr_and_old_files_read_uncoated(tmp_path):

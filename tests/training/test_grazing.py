@@ -19,7 +19,10 @@ SHIPPED = [s for s in SIZES if (MODEL_DIR / f"layering_{s}.onnx").exists()]
 # f cos(theta_i) (viewer on the normal) over every held-out stack at 80-89.5 degrees, and the largest
 # |median albedo bias| at 75 and 85 degrees over the coating counts. The issue's target is 2 and 0.05.
 BOUNDS = {  # far from the target: this pins what is reached so that no change makes it worse unnoticed
-    "tiny": {"albedo_max": 9.0, "fcos_max": 23.0, "median_bias": 0.47},
+    # tiny on the remainder design with the top coat's transmission (docs/layering_training.md, "The
+    # exact top coat ... shipped"): largest ratios 9.0 -> 5.4 and 23 -> 11.1, median bias 0.47 -> 0.11
+    # (four coatings at 75 degrees; one to three coatings within 0.05)
+    "tiny": {"albedo_max": 5.5, "fcos_max": 11.5, "median_bias": 0.12},
     # small's layering network trained longer on twice the stacks: the largest ratios fell (11.9 -> 9.9,
     # 56 -> 37), the two-coating median at 85 degrees rose (1.44 -> 1.50); the calibration a render
     # applies takes it to 1.38 (docs/layering_training.md)

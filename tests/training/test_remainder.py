@@ -74,15 +74,17 @@ def test_remainder_targets_of_the_trainers_are_the_brdf_minus_the_top_reflection
     np.testing.assert_allclose(a.f.numpy(), whole["f"].numpy())
 
 
-def test_a_remainder_decoder_exports_with_its_card_saying_so_and_the_runtime_adds_the_top_lobe(tmp_path):
-    """train_decoder --remainder -> export: the card says ``"remainder": true``, and the runtime's
-    evaluation is the decoded remainder plus the exact top lobe of the stack's top coating."""
+@pytest.mark.parametrize("transmission", [False, True])
+def test_a_remainder_decoder_exports_with_its_card_saying_so_and_the_runtime_adds_the_top_lobe(tmp_path, transmission):
+    """train_decoder --remainder [--top-transmission] -> export: the card says ``"remainder": true`` (and
+    ``"top_transmission"``), and the runtime's evaluation is the decoded remainder (times the top coat's
+    transmission) plus the exact top lobe of the stack's top coating."""
     import json
     from argparse import Namespace
     from pathlib import Path
 
     from addon.core.neural import ModelSet, encode_stack, top_coat
-    from addon.core.neural.top_lobe import eval_top
+    from addon.core.neural.top_lobe import eval_top, remainder_scale
     from onnx_export import data as datamod
     from onnx_export import export, layered_data, train_decoder, train_encoder
 
@@ -92,6 +94,7 @@ def test_a_remainder_decoder_exports_with_its_card_saying_so_and_the_runtime_add
         ["--size", "tiny", "--data", str(tmp_path / "single"), str(tmp_path / "c1"), "--data-weights", "0.5", "0.5"]
         + ["--loss", "l1", "l2rel", "--steps", "4", "--batch", "8", "--pairs", "32", "--remainder"]
         + ["--out", str(tmp_path / "run")]
+        + (["--top-transmission"] if transmission else [])
     )
     train_decoder.train(args, log=lambda s: None)
     enc_args = Namespace(
@@ -115,29 +118,32 @@ def test_a_remainder_decoder_exports_with_its_card_saying_so_and_the_runtime_add
     out = tmp_path / "models"
     export.main(["--size", "tiny", "--decoder", str(enc_args.ckpt), "--encoder", str(enc_args.out), "--out", str(out)])
     card = json.loads((out / "decoder_tiny.json").read_text())
-    assert card["remainder"] is True and "remainder" in card["role"]
+    assert card["remainder"] is True and "remainder" in card["role"] and card["top_transmission"] is transmission
     m = ModelSet("tiny", model_dir=out)
-    assert m.remainder
+    assert m.remainder and m.top_transmission is transmission
     stack = Stack(Diffuse((0.5, 0.5, 0.5)))  # no layering network exported here: a single layer's latent
     z = encode_stack(stack, m)
     rng = np.random.default_rng(6)
     wi, wo = _pairs(rng, 64), _pairs(rng, 64)
     top = top_coat(Stack(base=Diffuse((0.5, 0.5, 0.5)), coatings=(Coating(roughness=0.2, ior=1.5),)))
+    scale = remainder_scale(top, wi, wo)[:, None] if transmission else 1.0
     np.testing.assert_allclose(
-        m.eval_brdf(z, wi, wo, top) - m.eval_brdf(z, wi, wo), np.repeat(eval_top(top, wi, wo)[:, None], 3, 1), rtol=1e-4
+        m.eval_brdf(z, wi, wo, top), scale * m.eval_brdf(z, wi, wo) + eval_top(top, wi, wo)[:, None], rtol=1e-4
     )
 
 
 @pytest.mark.parametrize(
-    "args, decoder_remainder",
+    "args, decoder_remainder, decoder_transmission",
     [
-        ({"remainder": "True", "decoder_ckpt": "None"}, False),  # a remainder network, a whole-BRDF decoder
-        ({"decoder_ckpt": "None"}, True),  # a whole-BRDF network, a remainder decoder
-        ({"decoder_ckpt": "cache/x.pt"}, False),  # trained through a decoder that is not shipped
+        ({"remainder": "True", "decoder_ckpt": "None"}, False, False),  # a remainder network, a whole-BRDF decoder
+        ({"decoder_ckpt": "None"}, True, False),  # a whole-BRDF network, a remainder decoder
+        ({"remainder": "True", "top_transmission": "True", "decoder_ckpt": "None"}, True, False),  # unscaled decoder
+        ({"remainder": "True", "decoder_ckpt": "None"}, True, True),  # a decoder scaled by the transmission
+        ({"decoder_ckpt": "cache/x.pt"}, False, False),  # trained through a decoder that is not shipped
     ],
 )
 def test_a_layering_network_that_does_not_match_the_shipped_decoder_is_refused_by_its_export(
-    tmp_path, args, decoder_remainder
+    tmp_path, args, decoder_remainder, decoder_transmission
 ):
     import json
     import shutil
@@ -151,6 +157,7 @@ def test_a_layering_network_that_does_not_match_the_shipped_decoder_is_refused_b
         shutil.copy(MODEL_DIR / name, tmp_path / name)
     card = json.loads((MODEL_DIR / "decoder_small.json").read_text())
     card["remainder"] = decoder_remainder
+    card["top_transmission"] = decoder_transmission
     (tmp_path / "decoder_small.json").write_text(json.dumps(card))
     ck = tmp_path / "ckpt.pt"
     torch.save({"args": args, "config": {"width": 128, "depth": 3}}, ck)

@@ -121,7 +121,7 @@ def _hats(cos: np.ndarray, grid: np.ndarray) -> np.ndarray:
     return w
 
 
-def _lobe_samples(models, z, sigma: float, w: float, cosines, samples: int, seed: int):
+def _lobe_samples(models, z, sigma: float, w: float, cosines, samples: int, seed: int, top=None):
     """Importance samples of the decoded lobe seen from each of ``cosines`` (outgoing): cos(theta_i)
     (A, S) and f cos(theta_i) / pdf (A, S, 3), incident directions drawn from the material's proxy
     and a cosine lobe half and half (one-sample MIS, balance heuristic: exact pdfs)."""
@@ -134,7 +134,8 @@ def _lobe_samples(models, z, sigma: float, w: float, cosines, samples: int, seed
     wi = np.where((rng.random(n) < 0.5)[:, None], wi_proxy, wi_cos)
     cos_i = np.maximum(wi[:, 2], 0.0)
     pdf = 0.5 * proxy.pdf(wo, wi, sigma, w) + 0.5 * cos_i / np.pi
-    f = models.eval_brdf(z, wi, wo).astype(np.float64)
+    # the decoded part as the renderer scales it (a top_transmission decoder's remainder), without the top lobe
+    f = models.eval_brdf(z, wi, wo, top, with_top_lobe=False).astype(np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         v = np.where((pdf > 0)[:, None], f * (cos_i / pdf)[:, None], 0.0)
     a = len(np.atleast_1d(cosines))
@@ -146,7 +147,7 @@ def decoded_albedo(
 ):
     """Directional albedo (A, 3) of the decoded lobe at ``cosines`` (outgoing), with ``calibration``'s
     factors when given, plus the exact top lobe's of a remainder decoder when ``top`` (alpha, ior) is given."""
-    cos_i, v = _lobe_samples(models, z, sigma, w, cosines, samples, seed)
+    cos_i, v = _lobe_samples(models, z, sigma, w, cosines, samples, seed, top)
     if calibration is not None:
         a = len(cos_i)
         v = v * calibration.factor(cos_i.reshape(-1)).reshape(a, samples, 3)
@@ -157,12 +158,12 @@ def decoded_albedo(
     return out
 
 
-def decoded_albedo_matrix(models, z, sigma: float, w: float, samples: int = DECODED_SAMPLES, seed: int = 0):
+def decoded_albedo_matrix(models, z, sigma: float, w: float, samples: int = DECODED_SAMPLES, seed: int = 0, top=None):
     """``M`` (K, K, 3): the decoded lobe at each grid angle (outgoing) integrated over incident
     directions against the grid's hat functions of cos(theta_i), so that the decoded albedo with
     factors c is ``c_k * (M c)_k``; ``M.sum(axis=1)`` is the plain decoded albedo."""
     grid = np.asarray(COSINES)
-    cos_i, v = _lobe_samples(models, z, sigma, w, grid, samples, seed)
+    cos_i, v = _lobe_samples(models, z, sigma, w, grid, samples, seed, top)
     hats = _hats(cos_i.reshape(-1), grid).reshape(len(grid), samples, len(grid))
     return np.einsum("ksl,ksc->klc", hats, v) / samples
 
@@ -216,10 +217,11 @@ def calibrate(stack: Stack, models, z, proxy_params, seed: int = 0) -> AlbedoCal
         return _CACHE[key]
     sigma, w = (float(v) for v in proxy_params)
     ref, ref_se = reference_albedo(stack, seed=seed)
-    m = decoded_albedo_matrix(models, z, sigma, w, seed=seed)
+    coat = top_lobe.top_coat(stack)
+    m = decoded_albedo_matrix(models, z, sigma, w, seed=seed, top=coat)
     top = np.zeros_like(ref)
     if getattr(models, "remainder", False):
-        top[:] = top_lobe.top_albedo(top_lobe.top_coat(stack), COSINES, DECODED_SAMPLES, seed)[:, None]
+        top[:] = top_lobe.top_albedo(coat, COSINES, DECODED_SAMPLES, seed)[:, None]
     scale = solve_factors(m, np.maximum(ref - top, 0.0))
     out = AlbedoCalibration(
         cosines=np.asarray(COSINES, dtype=np.float64),

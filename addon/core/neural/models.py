@@ -265,6 +265,8 @@ class ModelSet:
         self._load("encoder")
         # the decoder holds the remainder design's rest of the BRDF: eval_brdf adds the exact top lobe
         self.remainder = self.card("decoder").get("remainder", False) is True
+        # ... divided by the top coat's Fresnel transmission in and out (top_lobe.remainder_scale)
+        self.top_transmission = self.remainder and self.card("decoder").get("top_transmission", False) is True
 
     def path(self, role: str) -> Path:
         return self.model_dir / file_name(role, self.size)
@@ -354,12 +356,13 @@ class ModelSet:
         out[:, 1] = np.clip(out[:, 1], 0.0, 1.0)
         return out
 
-    def eval_brdf(self, z, wi, wo, top=None, calibration=None) -> np.ndarray:
+    def eval_brdf(self, z, wi, wo, top=None, calibration=None, with_top_lobe: bool = True) -> np.ndarray:
         """f (N, 3) in 1/sr (no cosine) for one material ``z`` (3, 32) or per-row latents (N, 3, 32).
 
         ``top``: the material's top coating (alpha, ior) as (2,) or per row (N, 2) (``top_lobe``; None
         or :data:`top_lobe.NO_TOP` for a stack without coatings). A remainder decoder's f is the decoded
-        remainder plus the exact top lobe; for a whole-BRDF decoder ``top`` changes nothing.
+        remainder (times the top coat's transmission for a ``top_transmission`` decoder) plus the exact top
+        lobe (``with_top_lobe=False``: the remainder alone); for a whole-BRDF decoder ``top`` changes nothing.
         ``calibration`` (``calibrate.AlbedoCalibration``): its factors scale the decoded part.
         Directions need not be unit length (they are normalised); zero-length directions and
         directions at or below the horizon give 0.
@@ -412,7 +415,10 @@ class ModelSet:
         if self.remainder and top is not None:
             t = top_lobe.as_top(top, n)
             if top_lobe.has_top(t).any():
-                out += top_lobe.eval_top(t, wi, wo)[:, None].astype(np.float32)
+                if self.top_transmission:
+                    out *= top_lobe.remainder_scale(t, wi, wo)[:, None].astype(np.float32)
+                if with_top_lobe:
+                    out += top_lobe.eval_top(t, wi, wo)[:, None].astype(np.float32)
         return out
 
 

@@ -61,7 +61,7 @@ import numpy as np
 from ..stack import LATENT, Stack
 from .encode import encode_stack
 from .models import MODEL_DIR, SIZES, _unit_or_up, file_digest, load_models, resolve_size
-from .top_lobe import NO_TOP, eval_top, top_coat
+from .top_lobe import NO_TOP, eval_top, remainder_scale, top_coat
 
 # Lobe values up to about this many times the group's mean count as absolute errors (the lobe metric), above
 # it as relative ones: a highlight a few pixels wide keeps its weight, a smooth coat's spike does not
@@ -403,8 +403,11 @@ def refine_key(stack: Stack, size: str, settings: RefineSettings, model_dir=None
     return h.hexdigest()
 
 
-def _adam(decoder: NumpyDecoder, z0: np.ndarray, fit: PairSet, s: RefineSettings, deadline: float, top_f=0.0):
-    """Adam on the latent; ``top_f`` (P, 3): the exact top lobe a remainder decoder's output is added to."""
+def _adam(
+    decoder: NumpyDecoder, z0: np.ndarray, fit: PairSet, s: RefineSettings, deadline: float, top_f=0.0, scale=1.0
+):
+    """Adam on the latent; a remainder decoder's value is ``scale * f + top_f`` (the top coat's transmission
+    (P, 1) and its exact top lobe (P, 1))."""
     dprod = decoder.directions(fit.wi, fit.wo)
     z = z0.astype(np.float64).copy()
     m = np.zeros_like(z)
@@ -415,7 +418,7 @@ def _adam(decoder: NumpyDecoder, z0: np.ndarray, fit: PairSet, s: RefineSettings
     stopped, step = "steps", 0
     for step in range(1, s.steps + 1):
         p = decoder.run(z, directions_product=dprod)
-        loss, grad_f, _ = lobe_loss(p.f + top_f, fit)
+        loss, grad_f, _ = lobe_loss(scale * p.f + top_f, fit)
         first = loss if first is None else first
         if loss < best * (1.0 - 1e-3):
             since = 0
@@ -429,7 +432,7 @@ def _adam(decoder: NumpyDecoder, z0: np.ndarray, fit: PairSet, s: RefineSettings
         if time.perf_counter() > deadline:
             stopped = "budget"
             break
-        g = decoder.backward(p, grad_f)
+        g = decoder.backward(p, scale * grad_f)
         m = 0.9 * m + 0.1 * g
         v = 0.999 * v + 0.001 * g * g
         z -= s.lr * (m / (1 - 0.9**step)) / (np.sqrt(v / (1 - 0.999**step)) + 1e-8)
@@ -471,10 +474,13 @@ def refine_latent(
     top = top_coat(stack) if models.remainder else NO_TOP
     top_fit = eval_top(top, fit.wi, fit.wo)[:, None]
     top_val = eval_top(top, val.wi, val.wo)[:, None]
-    z1, fit0, fit1, steps, stopped = _adam(decoder, z0, fit, s, t0 + float(budget_s), top_fit)
+    one = models.top_transmission
+    sc_fit = remainder_scale(top, fit.wi, fit.wo)[:, None] if one else 1.0
+    sc_val = remainder_scale(top, val.wi, val.wo)[:, None] if one else 1.0
+    z1, fit0, fit1, steps, stopped = _adam(decoder, z0, fit, s, t0 + float(budget_s), top_fit, sc_fit)
     t2 = time.perf_counter()
-    v0, _, e0 = lobe_loss(decoder.forward(z0, val.wi, val.wo) + top_val, val)
-    v1, _, e1 = lobe_loss(decoder.forward(z1, val.wi, val.wo) + top_val, val)
+    v0, _, e0 = lobe_loss(sc_val * decoder.forward(z0, val.wi, val.wo) + top_val, val)
+    v1, _, e1 = lobe_loss(sc_val * decoder.forward(z1, val.wi, val.wo) + top_val, val)
     kept = bool(v1 < v0)
     report = RefineReport(
         size=size,

@@ -14,6 +14,16 @@ roughness and index, the reference walk's own top event (``addon.core.reference.
 reference's first reflection exactly; the training targets of such a decoder are each stack's
 reference BRDF minus this lobe (``onnx_export.remainder``).
 
+The light that entered the coat crossed the top interface twice, in along ``wi`` and out along ``wo``, so
+near the horizon, where the interface reflects nearly everything, the remainder falls to 0 with its
+transmission. A decoder whose card also says ``"top_transmission": true`` holds the remainder divided by
+that factor, ``remainder_scale(top, wi, wo) = T(cos theta_i) T(cos theta_o)``, with ``T`` the share of
+the light the top interface lets into the coat in the reference walk's own interface model
+(``transmission``: 1 - F at the macro normal for a smooth coat; for a rough one more near grazing, where
+tilted microfacets let light in). The factor is a structural prior that makes the decoded remainder fall
+towards grazing as the reference's does and is reciprocal, and the network learns a function without
+that steep fall.
+
 A stack without coatings has no top lobe (its base is the whole BRDF): its row is :data:`NO_TOP`, an
 index-matched interface, which reflects nothing. A smooth top interface reflects a delta lobe, which is
 not part of f either (0 here, as in ``RoughDielectric``). Parameters are those the decoder was trained
@@ -22,10 +32,14 @@ with: a stack clamped to the trained ranges (``stack.clamp_to_trained``).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
+from ..bsdf import ggx
 from ..bsdf.base import SMOOTH_ALPHA
 from ..bsdf.dielectric import INDEX_MATCHED_TOL, RoughDielectric
+from ..bsdf.frame import dot, refract
 from ..bsdf.fresnel import fresnel_dielectric
 from ..stack import Stack, StackArrays, clamp_to_trained
 
@@ -128,6 +142,77 @@ def sample_top(top, wo, u) -> tuple[np.ndarray, np.ndarray]:
         wi[rows[ok]] = s.wi[ok]
         pdf[rows[ok]] = s.pdf[ok]
     return wi, pdf
+
+
+# The grid of the top interface's transmittance table (transmission): outgoing cosines denser towards
+# grazing, roughness (geometric: the table changes fastest for smooth coats) and index over the trained
+# ranges (stack.TRAINED_RANGES; values beyond are clamped).
+TRANSMITTANCE_COS = 1e-3 + (1.0 - 1e-3) * np.linspace(0.0, 1.0, 33) ** 2
+TRANSMITTANCE_ALPHA = np.geomspace(0.01, 1.0, 21)
+TRANSMITTANCE_IOR = np.linspace(1.0, 2.0, 11)
+TRANSMITTANCE_STRATA = 16  # 16 x 16 stratified visible normals per cell: the estimator varies little
+
+
+@functools.lru_cache(maxsize=1)
+def transmittance_table() -> np.ndarray:
+    """(cos, alpha, ior) table of the share of the light arriving from ``cos`` that the top interface lets
+    into the coat, in the reference walk's interface model (``RoughDielectric``: GGX visible normals,
+    Fresnel, height-correlated Smith): the mean of (1 - F) G2 / G1 over refracted visible-normal samples,
+    at stratified midpoints, deterministic; made once per process (well under a second)."""
+    k = TRANSMITTANCE_STRATA
+    g = (np.arange(k) + 0.5) / k
+    u = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
+    c = TRANSMITTANCE_COS
+    n_c, n_a, n_u = len(c), len(TRANSMITTANCE_ALPHA), len(u)
+    wo = np.repeat(np.stack([np.sqrt(1.0 - c * c), np.zeros_like(c), c], axis=1), n_a * n_u, axis=0)
+    alpha = np.repeat(np.tile(TRANSMITTANCE_ALPHA, n_c), n_u)
+    m = ggx.sample_visible_normal(wo, alpha, np.tile(u, (n_c * n_a, 1)))
+    out = np.empty((n_c, n_a, len(TRANSMITTANCE_IOR)))
+    for j, ior in enumerate(TRANSMITTANCE_IOR):  # a loop over 11 table slices, each one vectorised pass
+        eta = np.full(len(wo), ior)
+        wt, ok = refract(wo, m, eta)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            t = (1.0 - fresnel_dielectric(dot(wo, m), eta)) * ggx.smith_g2(wt, wo, alpha) / ggx.smith_g1(wo, alpha)
+        t = np.where(ok & (wt[:, 2] < 0.0) & np.isfinite(t), t, 0.0)
+        out[:, :, j] = t.reshape(n_c, n_a, n_u).mean(axis=2)
+    return out
+
+
+def _axis(grid: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Lower cell index and weight of linear interpolation of ``x`` on the increasing ``grid`` (clamped)."""
+    x = np.clip(x, grid[0], grid[-1])
+    i = np.clip(np.searchsorted(grid, x, side="right") - 1, 0, len(grid) - 2)
+    return i, (x - grid[i]) / (grid[i + 1] - grid[i])
+
+
+def transmission(top, cos) -> np.ndarray:
+    """(N,) the share of the light arriving from cosine ``cos`` (N,) that the top coatings ``top`` (N, 2)
+    let into the coat (trilinear in :func:`transmittance_table`): 1 without a top interface (NO_TOP), 0 at
+    and below the horizon."""
+    t = as_top(top, len(cos))
+    c = np.asarray(cos, dtype=np.float64)
+    table = transmittance_table()
+    (ic, fc), (ia, fa), (ii, fi) = (
+        _axis(TRANSMITTANCE_COS, c),
+        _axis(TRANSMITTANCE_ALPHA, t[:, 0]),
+        _axis(TRANSMITTANCE_IOR, t[:, 1]),
+    )
+    out = np.zeros(len(t))
+    for dc in (0, 1):  # the 8 corners of each row's cell
+        for da in (0, 1):
+            for di in (0, 1):
+                w = (fc if dc else 1 - fc) * (fa if da else 1 - fa) * (fi if di else 1 - fi)
+                out += w * table[ic + dc, ia + da, ii + di]
+    out = np.where(c > 0.0, np.clip(out, 0.0, 1.0), 0.0)
+    return np.where(has_top(t), out, 1.0)
+
+
+def remainder_scale(top, wi, wo) -> np.ndarray:
+    """(N,) the structural factor T(cos theta_i) T(cos theta_o) of a ``top_transmission`` decoder's
+    remainder (module docstring); directions of any length."""
+    wi, wo = _unit(wi), _unit(wo)
+    t = as_top(top, len(wi))
+    return transmission(t, wi[:, 2]) * transmission(t, wo[:, 2])
 
 
 def top_share(top, wo) -> np.ndarray:
