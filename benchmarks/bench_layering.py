@@ -264,7 +264,12 @@ def main(argv=None):
             "### Sampling efficiency (variance ratio at equal sample count; > 1: the proxy is better)",
             "",
             f"{a.samples} samples per outgoing direction; "
-            "relative variance averaged over cos(theta_o) = 0.3, 0.6, 0.9.",
+            'relative variance averaged over cos(theta_o) = 0.3, 0.6, 0.9. "proxy": the renderer\'s sampler '
+            + (
+                "(a remainder decoder: the proxy, fitted to the remainder, mixed with exact samples of the top lobe)."
+                if models.remainder
+                else "(the proxy alone)."
+            ),
             "",
             "| config | coatings | proxy sigma | proxy w | cosine / proxy | top GGX / proxy |",
             "|---|---|---|---|---|---|",

@@ -45,10 +45,10 @@ from .session import ChunkedSession
 MODEL_DIR = Path(__file__).resolve().parents[2] / "models"
 SIZES = ("tiny", "small", "medium", "paper")
 AUTO = "auto"
-# The size the renderer, the previews and the bakes use when the setting is "auto": the fastest, the
-# only one above 1 M RGB evaluations per second on the 2-core development machine (docs/decoders.md:
-# tiny 1.78 M/s, small 0.87 M/s); larger sizes are chosen explicitly or per material by the render
-# quality setting (``addon.core.quality``).
+# The size the renderer, the previews and the bakes use when the setting is "auto": the fastest
+# (docs/decoders_bench.md, 2-core development machine: tiny 3.8 M, small 1.7 M RGB evaluations per
+# second); larger sizes are chosen explicitly or per material by the render quality setting
+# (``addon.core.quality``).
 DEFAULT_SIZE = "tiny"
 ROLES = ("decoder", "encoder", "layering", "sampling")
 # What each network was trained with (its card's ``trained_with`` must name these files of its size).
