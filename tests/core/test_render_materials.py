@@ -268,7 +268,7 @@ def _baked(stack, size, **metadata):
 
 def test_a_baked_texture_is_decoded_with_the_size_it_was_baked_for():
     """bake_stack records the decoder size and digest; make decodes with that size, not the default."""
-    from addon.core.neural import encode_stack, load_models
+    from addon.core.neural import encode_stack, load_models, top_coat
 
     stack = PRESETS["coated_gold"]
     tex = _baked(stack, "small")
@@ -279,8 +279,9 @@ def test_a_baked_texture_is_decoded_with_the_size_it_was_baked_for():
     wi = np.tile([[0.0, 0.0, 1.0]], (4, 1))
     got = material.bind(hits).eval(wi, wi, np.arange(4))
     small = load_models("small")
-    want = small.eval_brdf(encode_stack(stack, small), wi, wi)
-    np.testing.assert_allclose(got, want, rtol=2e-3, atol=1e-4)  # the texture holds the latent at half precision
+    want = small.eval_brdf(encode_stack(stack, small), wi, wi, top_coat(stack))
+    # the texture holds the latent and the top coating at half precision
+    np.testing.assert_allclose(got, want, rtol=2e-3, atol=1e-4)
 
 
 def test_make_raises_on_textures_it_cannot_place_and_on_unknown_sizes():

@@ -413,12 +413,13 @@ class ModelSet:
         if calibration is not None:
             out = calibration.apply(out, wi, wo)
         if self.remainder and top is not None:
-            t = top_lobe.as_top(top, n)
-            if top_lobe.has_top(t).any():
+            t = top_lobe._checked(top, n)  # (2,): one top coating for every row, the scalar path
+            if top_lobe.has_top(t.reshape(-1, 2)).any():
+                ui, uo = top_lobe._unit(wi), top_lobe._unit(wo)
                 if self.top_transmission:
-                    out *= top_lobe.remainder_scale(t, wi, wo)[:, None].astype(np.float32)
+                    out *= top_lobe.remainder_scale(t, ui, uo, unit=True)[:, None].astype(np.float32)
                 if with_top_lobe:
-                    out += top_lobe.eval_top(t, wi, wo)[:, None].astype(np.float32)
+                    out += top_lobe.eval_top(t, ui, uo, unit=True)[:, None].astype(np.float32)
         return out
 
 

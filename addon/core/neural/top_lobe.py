@@ -77,14 +77,19 @@ def top_coat(stack: Stack) -> np.ndarray:
 
 def as_top(top, n: int) -> np.ndarray:
     """``top`` as (n, 2) float64 rows: one (2,) pair for every row, or (n, 2) per row; checked."""
+    t = _checked(top, n)
+    return np.broadcast_to(t, (n, 2)) if t.shape == (2,) else t
+
+
+def _checked(top, n: int) -> np.ndarray:
+    """``top`` as float64, (2,) (one pair for every row: every function here then works on scalars) or
+    (n, 2); finite, alpha >= 0 and ior > 0, else ValueError."""
     if np.iscomplexobj(top):
         raise ValueError("top must be real (alpha, ior) pairs, got complex values")
     t = np.asarray(top, dtype=np.float64)
-    if t.shape == (2,):
-        t = np.broadcast_to(t, (n, 2))
-    if t.shape != (n, 2):
+    if t.shape != (2,) and t.shape != (n, 2):
         raise ValueError(f"top must have shape (2,) or ({n}, 2) (alpha, ior per row), got {t.shape}")
-    if not np.all(np.isfinite(t)) or (t[:, 0] < 0).any() or (t[:, 1] <= 0).any():
+    if not np.all(np.isfinite(t)) or (t[..., 0] < 0).any() or (t[..., 1] <= 0).any():
         raise ValueError("top must hold finite alpha >= 0 and ior > 0")
     return t
 
@@ -102,29 +107,35 @@ def _unit(w: np.ndarray) -> np.ndarray:
 
 
 def _lobe(top: np.ndarray) -> RoughDielectric:
-    return RoughDielectric(top[:, 0], top[:, 1], reflection_only=True)
+    return RoughDielectric(top[..., 0], top[..., 1], reflection_only=True)
 
 
-def eval_top(top, wi, wo) -> np.ndarray:
-    """(N,) float64 f of the top interface's reflection at directions ``wi``, ``wo`` (N, 3), any
-    length (normalised here; zero-length or below-horizon rows give 0)."""
-    wi, wo = _unit(wi), _unit(wo)
-    t = as_top(top, len(wi))
-    f = np.zeros(len(wi))
-    rows = np.flatnonzero(has_top(t) & (wi[:, 2] > 0) & (wo[:, 2] > 0))
+def _pairs(t: np.ndarray, wi: np.ndarray, wo: np.ndarray, rule) -> np.ndarray:
+    """``rule(lobe, wi, wo)`` (N,) on the rows with a top interface and both directions above the horizon,
+    0 elsewhere; one call on all rows for a shared top (``t`` (2,))."""
+    up = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+    if t.ndim == 1:
+        if not has_top(t[None])[0]:
+            return np.zeros(len(wi))
+        return np.where(up, rule(_lobe(t), wi, wo), 0.0)
+    out = np.zeros(len(wi))
+    rows = np.flatnonzero(has_top(t) & up)
     if len(rows):
-        f[rows] = _lobe(t[rows]).eval(wi[rows], wo[rows], check=False)[:, 0]
-    return f
+        out[rows] = rule(_lobe(t[rows]), wi[rows], wo[rows])
+    return out
+
+
+def eval_top(top, wi, wo, unit: bool = False) -> np.ndarray:
+    """(N,) float64 f of the top interface's reflection at directions ``wi``, ``wo`` (N, 3), any
+    length (normalised here unless ``unit``; zero-length or below-horizon rows give 0)."""
+    if not unit:
+        wi, wo = _unit(wi), _unit(wo)
+    return _pairs(_checked(top, len(wi)), wi, wo, lambda b, i, o: b.eval(i, o, check=False)[:, 0])
 
 
 def pdf_top(top, wi, wo) -> np.ndarray:
     """(N,) solid-angle density of :func:`sample_top` choosing ``wi`` given ``wo`` (unit, local frame)."""
-    t = as_top(top, len(wi))
-    p = np.zeros(len(wi))
-    rows = np.flatnonzero(has_top(t) & (wi[:, 2] > 0) & (wo[:, 2] > 0))
-    if len(rows):
-        p[rows] = _lobe(t[rows]).pdf(wi[rows], wo[rows], check=False)
-    return p
+    return _pairs(_checked(top, len(wi)), wi, wo, lambda b, i, o: b.pdf(i, o, check=False))
 
 
 def sample_top(top, wo, u) -> tuple[np.ndarray, np.ndarray]:
@@ -132,12 +143,17 @@ def sample_top(top, wo, u) -> tuple[np.ndarray, np.ndarray]:
     visible normals, with their density (N,) (0 where no sample: no top, a smooth top, a sample below
     the horizon); ``u`` (N, 2) uniform in [0, 1)."""
     n = len(wo)
-    t = as_top(top, n)
+    t = _checked(top, n)
     wi = np.tile(np.array([0.0, 0.0, 1.0]), (n, 1))
     pdf = np.zeros(n)
-    rows = np.flatnonzero(has_top(t) & (wo[:, 2] > 0))
+    if t.ndim == 1:  # one top for every row: scalar parameters, no gathers
+        rows = np.flatnonzero(wo[:, 2] > 0) if has_top(t[None])[0] else np.zeros(0, dtype=np.int64)
+        lobe = _lobe(t)
+    else:
+        rows = np.flatnonzero(has_top(t) & (wo[:, 2] > 0))
+        lobe = _lobe(t[rows])
     if len(rows):
-        s = _lobe(t[rows]).sample(wo[rows], np.zeros(len(rows)), u[rows], check=False)
+        s = lobe.sample(wo[rows], np.zeros(len(rows)), u[rows], check=False)
         ok = s.valid & ~s.delta
         wi[rows[ok]] = s.wi[ok]
         pdf[rows[ok]] = s.pdf[ok]
@@ -187,10 +203,27 @@ def _axis(grid: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def transmission(top, cos) -> np.ndarray:
     """(N,) the share of the light arriving from cosine ``cos`` (N,) that the top coatings ``top`` (N, 2)
-    let into the coat (trilinear in :func:`transmittance_table`): 1 without a top interface (NO_TOP), 0 at
-    and below the horizon."""
-    t = as_top(top, len(cos))
+    let into the coat (trilinear in :func:`transmittance_table`; one pair (2,) for all rows: linear in
+    its cosine curve, the same values): 1 without a top interface (NO_TOP), 0 at and below the horizon."""
     c = np.asarray(cos, dtype=np.float64)
+    t = _checked(top, len(c))
+    if t.ndim == 1:
+        if not has_top(t[None])[0]:
+            return np.ones(len(c))
+        curve = _transmission_curve(float(t[0]), float(t[1]))
+        return np.where(c > 0.0, np.interp(c, TRANSMITTANCE_COS, curve), 0.0)
+    out = np.where(c > 0.0, np.clip(_trilinear(t, c), 0.0, 1.0), 0.0)
+    return np.where(has_top(t), out, 1.0)
+
+
+@functools.lru_cache(maxsize=256)
+def _transmission_curve(alpha: float, ior: float) -> np.ndarray:
+    """T at every cosine of the table's grid for one top coating (a material's, cached)."""
+    t = np.tile([alpha, ior], (len(TRANSMITTANCE_COS), 1))
+    return np.clip(_trilinear(t, TRANSMITTANCE_COS), 0.0, 1.0)
+
+
+def _trilinear(t: np.ndarray, c: np.ndarray) -> np.ndarray:
     table = transmittance_table()
     (ic, fc), (ia, fa), (ii, fi) = (
         _axis(TRANSMITTANCE_COS, c),
@@ -203,21 +236,22 @@ def transmission(top, cos) -> np.ndarray:
             for di in (0, 1):
                 w = (fc if dc else 1 - fc) * (fa if da else 1 - fa) * (fi if di else 1 - fi)
                 out += w * table[ic + dc, ia + da, ii + di]
-    out = np.where(c > 0.0, np.clip(out, 0.0, 1.0), 0.0)
-    return np.where(has_top(t), out, 1.0)
+    return out
 
 
-def remainder_scale(top, wi, wo) -> np.ndarray:
+def remainder_scale(top, wi, wo, unit: bool = False) -> np.ndarray:
     """(N,) the structural factor T(cos theta_i) T(cos theta_o) of a ``top_transmission`` decoder's
-    remainder (module docstring); directions of any length."""
-    wi, wo = _unit(wi), _unit(wo)
-    t = as_top(top, len(wi))
-    return transmission(t, wi[:, 2]) * transmission(t, wo[:, 2])
+    remainder (module docstring); directions of any length (normalised here unless ``unit``)."""
+    if not unit:
+        wi, wo = _unit(wi), _unit(wo)
+    return transmission(top, wi[:, 2]) * transmission(top, wo[:, 2])
 
 
 def top_share(top, wo) -> np.ndarray:
     """(N,) probability that the renderer samples the top lobe at outgoing ``wo`` (0 without one)."""
-    t = as_top(top, len(wo))
+    t = _checked(top, len(wo))
+    if t.ndim == 1:
+        t = t[None]
     f = fresnel_dielectric(np.clip(np.asarray(wo)[:, 2], 0.0, 1.0), t[:, 1])
     lo, hi = TOP_SHARE_RANGE
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -52,11 +52,12 @@ class _BoundNeural(ShadeByProposal):
         return a if index is None or shared else a[index]
 
     def _top_rows(self, index, n):
-        """The top coatings (n, 2) of the rows ``index`` (all when None); None without a top lobe."""
+        """The top coatings of the rows ``index`` (all when None): the material's one pair (2,) or per hit
+        (n, 2); None without a top lobe."""
         if self.top is None:
             return None
         shared = np.ndim(self.top) == 1
-        return top_lobe.as_top(self.top if index is None or shared else self.top[index], n)
+        return self.top if index is None or shared else self.top[index]
 
     def eval(self, wi, wo, index=None):
         z = self._rows(self.z, index)
@@ -79,11 +80,17 @@ class _BoundNeural(ShadeByProposal):
         pick_top = u_lobe < share
         with np.errstate(invalid="ignore", divide="ignore"):  # u_lobe rescaled for the proxy's own choice
             u_proxy = np.where(pick_top, 0.0, np.clip((u_lobe - share) / (1.0 - share), 0.0, 1.0 - 1e-12))
-        wi, _ = proxy.sample(wo, self.sigma, self.w, np.concatenate([u_proxy[:, None], u], axis=1))
+        # the proxy's density at its own samples comes with them; at the top lobe's only it is computed
+        wi, p_proxy = proxy.sample(wo, self.sigma, self.w, np.concatenate([u_proxy[:, None], u], axis=1))
         rows = np.flatnonzero(pick_top)
+        missed = np.zeros(len(wo), dtype=bool)
         if len(rows):
-            wi[rows] = top_lobe.sample_top(top[rows], wo[rows], u[rows])[0]
-        return wi, self.pdf(wi, wo)
+            wi_top, p_top = top_lobe.sample_top(top if np.ndim(top) == 1 else top[rows], wo[rows], u[rows])
+            wi[rows] = wi_top
+            p_proxy[rows] = proxy.pdf(wo[rows], wi_top, self._rows(self.sigma, rows), self._rows(self.w, rows))
+            missed[rows] = p_top <= 0.0  # no top-lobe sample there (below the horizon): a zero-weight sample
+        pdf = (1.0 - share) * p_proxy + share * top_lobe.pdf_top(top, wi, wo)
+        return wi, np.where(missed, 0.0, pdf)
 
     def sample(self, wo, u_lobe, u):
         """Self-contained sampling (one decoder batch of its own); the integrator uses ``shade``."""
