@@ -1203,17 +1203,19 @@ def main(argv=None):
                 prm.requires_grad_(False)
         else:
             dec = frozen_decoder(a.size)
+        models = ModelSet(a.size, threads=a.threads)
+        shipped = a.decoder_ckpt is None  # the shipped decoder: its card says which design it holds
         res = lobe_bound(
             net,
             dec,
-            ModelSet(a.size, threads=a.threads),
+            models,
             ho,
             a.steps,
             a.pixels,
             seed=a.seed,
             log=lg,
-            remainder=a.remainder,
-            transmission=a.top_transmission,
+            remainder=a.remainder or (shipped and models.remainder),
+            transmission=a.top_transmission or (shipped and models.top_transmission),
         )
         print(json.dumps(res))
     else:

@@ -131,8 +131,7 @@ def neural_brdf_from_latent(z: np.ndarray, size: str = "auto", top=None, calibra
     calibration of the decoded part, as the renderer evaluates it (``ModelSet.eval_brdf``)."""
     neural = _neural_module()
     z = np.asarray(z, dtype=np.float32).reshape(3, LATENT)
-    models = neural.load_models(size)
-    return lambda wi, wo: models.eval_brdf(z, wi, wo, top, calibration)
+    return lambda wi, wo: neural.eval_brdf(z, wi, wo, size=size, top=top, calibration=calibration)
 
 
 def neural_proxy(z: np.ndarray, size: str) -> tuple[Optional[tuple[float, float]], list[str]]:

@@ -58,7 +58,7 @@ def test_main_job_writes_lobes_baked_texture_and_render(tmp_path):
     from addon.core.textures import LatentTexture
 
     tex = LatentTexture.read_exr(tmp_path / "varnished_tiles.exr")
-    assert tex.levels[0].shape[2] == 98 and np.isfinite(tex.levels[0]).all()
+    assert tex.levels[0].shape[2] == 100 and np.isfinite(tex.levels[0]).all()
 
 
 def test_main_job_rejects_bad_arguments(tmp_path):

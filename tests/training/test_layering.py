@@ -211,6 +211,7 @@ def _toy_stack_set(s=6, groups=4, m=8, seed=0):
     ss.wo = unit((s, groups)).repeat_interleave(m, dim=1)
     ss.f = ss.wi[..., 2:3].expand(s, groups * m, 3).contiguous()
     ss.weight = torch.rand(s, groups * m, generator=g) + 0.5
+    ss.scale = None  # no top-coat transmission factor (StackSet(..., transmission=True) sets one)
     return ss
 
 

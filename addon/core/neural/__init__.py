@@ -54,7 +54,7 @@ __all__ = [
 ]
 
 
-def eval_brdf(z, wi, wo, size: str = AUTO, top=None):
+def eval_brdf(z, wi, wo, size: str = AUTO, top=None, calibration=None):
     """f (N, 3) of latent(s) ``z`` of decoder ``size``, with the top coating ``top`` (alpha, ior) of a
-    remainder decoder's exact top lobe (see ``ModelSet.eval_brdf``)."""
-    return load_models(size).eval_brdf(z, wi, wo, top)
+    remainder decoder's exact top lobe and an albedo calibration (see ``ModelSet.eval_brdf``)."""
+    return load_models(size).eval_brdf(z, wi, wo, top, calibration)
