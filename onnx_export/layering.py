@@ -250,6 +250,13 @@ class StackSet:
         return pred, f.permute(0, 2, 1).reshape(-1), wi_r, wo_r, wt
 
 
+def stack_set(args, models: ModelSet, path: Path, stacks: int = 0, use_weight: bool | None = None) -> StackSet:
+    """A StackSet of ``path`` for ``layering train``: its weighting (``--weighting``, unless ``use_weight``)
+    and the decoder's design (``--remainder``, ``--top-transmission``) from ``args``."""
+    weight = args.weighting == "cosine" if use_weight is None else use_weight
+    return StackSet(path, models, stacks, weight, remainder=args.remainder, transmission=args.top_transmission)
+
+
 def decode_pairs(dec, z: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
     """RGB decoder values (b, q, 3) of latents z (b, 3, 32) at b x q direction pairs wi, wo (b, q, 3)."""
     b, q = wi.shape[:2]
@@ -574,13 +581,7 @@ def projected_targets(args, models: ModelSet, sets: dict, shrink: float) -> tupl
         refit = ck.get("refit", {}).get("command")
         if Path(args.c2).resolve() in [Path(d).resolve() for d in ck["args"]["data"]]:
             if 2 not in sets:
-                sets[2] = StackSet(
-                    args.c2,
-                    models,
-                    use_weight=args.weighting == "cosine",
-                    remainder=args.remainder,
-                    transmission=args.top_transmission,
-                )
+                sets[2] = stack_set(args, models, args.c2)
             targets[2] = projected_latents(args.projected, args.c2, sets[2].n, shrink)
     return targets, refit
 
@@ -598,19 +599,11 @@ def decoded_stage_data(args, models: ModelSet, sets: dict) -> tuple[dict, dict]:
     coatings = args.decoded_coatings or (sorted(sets) if args.projected else [1, 2])
     for c in coatings:
         if c not in sets:
-            sets[c] = StackSet(
-                args.c1 if c == 1 else args.c2,
-                models,
-                args.stacks if c == 1 else 0,
-                use_weight=args.weighting == "cosine",
-                remainder=args.remainder,
-            )
+            sets[c] = stack_set(args, models, args.c1 if c == 1 else args.c2, args.stacks if c == 1 else 0)
     dsets = {c: sets[c] for c in coatings}
     if args.decoded_data:  # the same stacks and directions with other values (more walks)
         dsets = {
-            c: StackSet(
-                d, models, sets[c].n, use_weight=True, remainder=args.remainder, transmission=args.top_transmission
-            )
+            c: stack_set(args, models, d, sets[c].n, use_weight=True)
             for c, d in zip((1, 2), args.decoded_data, strict=False)
             if c in dsets
         }
@@ -641,16 +634,7 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
     else:
         dec = frozen_decoder(args.size, Path(args.model_dir or MODEL_DIR))
     trained_with = {p.name: file_digest(p) for p in (models.encoder_path, models.decoder_path)}
-    sets = {
-        1: StackSet(
-            args.c1,
-            models,
-            args.stacks,
-            args.weighting == "cosine",
-            remainder=args.remainder,
-            transmission=args.top_transmission,
-        )
-    }  # two-coating data are loaded when stage 2 starts
+    sets = {1: stack_set(args, models, args.c1, args.stacks)}  # two-coating data are loaded when stage 2 starts
 
     def heldout():  # measured by process 0 only
         return load_heldout(args.heldout) if procs.main and args.heldout.exists() else None
@@ -789,13 +773,7 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
         for g in opt.param_groups:
             g["lr"] = lr
         if stage2 and 2 not in sets:
-            sets[2] = StackSet(
-                args.c2,
-                models,
-                use_weight=args.weighting == "cosine",
-                remainder=args.remainder,
-                transmission=args.top_transmission,
-            )
+            sets[2] = stack_set(args, models, args.c2)
             log(f"stage 2: {sets[2].n} two-coating stacks")
         if stage2:  # half the batch with two coatings (the recursion), half with one (keep stage 1)
             parts = [

@@ -46,30 +46,32 @@ def remainder_scales(arrays: StackArrays, wi: np.ndarray, wo: np.ndarray) -> np.
     return remainder_scale(top, wi.reshape(-1, 3), np.asarray(wo, dtype=np.float64).reshape(-1, 3)).reshape(s, p, 1)
 
 
-def scale_lobes(arrays: StackArrays, res: int, angles) -> np.ndarray:
-    """(S, A, res, res, 1) :func:`remainder_scales` on the lobe grid of each incident angle (1 off the disk)."""
+def _on_lobe_grid(arrays: StackArrays, res: int, angles, values, fill: float, channels: int) -> np.ndarray:
+    """(S, A, res, res, channels) ``values(wi, wo)`` (S, P, channels) on the lobe grid of each incident
+    angle (``addon.core.lobe``), ``fill`` off the disk."""
     wo_grid, mask = lobe.lobe_grid(res)
     wo_m = wo_grid[mask]
     s, npx = len(arrays), wo_m.shape[0]
-    out = np.ones((s, len(angles), res * res, 1))
-    for a, t in enumerate(angles):
+    out = np.full((s, len(angles), res * res, channels), fill)
+    for a, t in enumerate(angles):  # a loop over the few incident angles
         wi = np.broadcast_to(lobe.incident_direction(t), (s, npx, 3))
-        out[:, a][:, mask] = remainder_scales(arrays, wi, np.broadcast_to(wo_m, (s, npx, 3)))
-    return out.reshape(s, len(angles), res, res, 1)
+        out[:, a][:, mask] = values(wi, np.broadcast_to(wo_m, (s, npx, 3)))
+    return out.reshape(s, len(angles), res, res, channels)
+
+
+def scale_lobes(arrays: StackArrays, res: int, angles) -> np.ndarray:
+    """(S, A, res, res, 1) :func:`remainder_scales` on the lobe grid of each incident angle (1 off the disk)."""
+    return _on_lobe_grid(arrays, res, angles, lambda wi, wo: remainder_scales(arrays, wi, wo), 1.0, 1)
 
 
 def top_lobes(arrays: StackArrays, res: int, angles) -> np.ndarray:
     """(S, A, res, res, 3) lobe images (f cos(theta_o), as ``addon.core.lobe``) of the top
     interface's reflection, for the held-out set's incident angles."""
-    wo_grid, mask = lobe.lobe_grid(res)
-    wo_m = wo_grid[mask]
-    s, npx = len(arrays), wo_m.shape[0]
-    out = np.zeros((s, len(angles), res * res, 3))
-    for a, t in enumerate(angles):
-        wi = np.broadcast_to(lobe.incident_direction(t), (s, npx, 3))
-        f = top_reflection(arrays, wi, np.broadcast_to(wo_m, (s, npx, 3)))
-        out[:, a][:, mask] = f * wo_m[None, :, 2:3]
-    return out.reshape(s, len(angles), res, res, 3)
+
+    def image(wi, wo):
+        return top_reflection(arrays, wi, wo) * wo[..., 2:3]
+
+    return _on_lobe_grid(arrays, res, angles, image, 0.0, 3)
 
 
 def torch_path_brdfs(

@@ -70,6 +70,27 @@ def test_targets_are_the_bsdf_package_values_and_directions_cover_lobes():
 # ----------------------------------------------------------------------------- training smoke run
 
 
+def smoke_encoder_args(ckpt, data, out, distill: int = 5, finetune: int = 3) -> Namespace:
+    """train_encoder arguments for a few steps of a tiny encoder (the smoke runs of the trainers)."""
+    return Namespace(
+        ckpt=ckpt,
+        data=[data],
+        materials=0,
+        heldout=HELDOUT,
+        width=16,
+        depth=2,
+        distill=distill,
+        finetune=finetune,
+        batch_units=16,
+        batch=4,
+        pairs=16,
+        lr=1e-3,
+        threads=1,
+        seed=0,
+        out=out,
+    )
+
+
 def test_training_code_path_smoke(tmp_path):
     datamod.generate("single", tmp_path / "data", materials=16, pairs=64, chunk=8, seed=2, log=lambda s: None)
     args = train_decoder.parser().parse_args(
@@ -96,23 +117,7 @@ def test_training_code_path_smoke(tmp_path):
     logs = []
     assert train_decoder.train(args, log=logs.append)["step"] == 9
     assert any("resumed" in s for s in logs)
-    enc_args = Namespace(
-        ckpt=tmp_path / "run" / "ckpt.pt",
-        data=[tmp_path / "data"],
-        materials=0,
-        heldout=HELDOUT,
-        width=16,
-        depth=2,
-        distill=5,
-        finetune=3,
-        batch_units=16,
-        batch=4,
-        pairs=16,
-        lr=1e-3,
-        threads=1,
-        seed=0,
-        out=tmp_path / "enc.pt",
-    )
+    enc_args = smoke_encoder_args(tmp_path / "run" / "ckpt.pt", tmp_path / "data", tmp_path / "enc.pt")
     hist = train_encoder.train(enc_args, log=lambda s: None)
     assert np.isfinite(hist["finetuned"]["lobe_error_median"])
     export.main(

@@ -80,13 +80,12 @@ def test_a_remainder_decoder_exports_with_its_card_saying_so_and_the_runtime_add
     ``"top_transmission"``), and the runtime's evaluation is the decoded remainder (times the top coat's
     transmission) plus the exact top lobe of the stack's top coating."""
     import json
-    from argparse import Namespace
-    from pathlib import Path
 
     from addon.core.neural import ModelSet, encode_stack, top_coat
     from addon.core.neural.top_lobe import eval_top, remainder_scale
     from onnx_export import data as datamod
     from onnx_export import export, layered_data, train_decoder, train_encoder
+    from tests.training.test_neural_training import smoke_encoder_args
 
     datamod.generate("single", tmp_path / "single", materials=16, pairs=64, chunk=8, seed=2, log=lambda s: None)
     layered_data.generate(tmp_path / "c1", coatings=1, stacks=8, n_wo=2, n_wi=32, walks=2, chunk=8, seed=3, log=str)
@@ -97,23 +96,7 @@ def test_a_remainder_decoder_exports_with_its_card_saying_so_and_the_runtime_add
         + (["--top-transmission"] if transmission else [])
     )
     train_decoder.train(args, log=lambda s: None)
-    enc_args = Namespace(
-        ckpt=tmp_path / "run" / "ckpt.pt",
-        data=[tmp_path / "single"],
-        materials=0,
-        heldout=Path(__file__).resolve().parents[1] / "data" / "heldout_single.npz",
-        width=16,
-        depth=2,
-        distill=3,
-        finetune=0,
-        batch_units=16,
-        batch=4,
-        pairs=16,
-        lr=1e-3,
-        threads=1,
-        seed=0,
-        out=tmp_path / "enc.pt",
-    )
+    enc_args = smoke_encoder_args(tmp_path / "run" / "ckpt.pt", tmp_path / "single", tmp_path / "enc.pt", 3, 0)
     train_encoder.train(enc_args, log=lambda s: None)
     out = tmp_path / "models"
     export.main(["--size", "tiny", "--decoder", str(enc_args.ckpt), "--encoder", str(enc_args.out), "--out", str(out)])
