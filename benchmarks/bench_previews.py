@@ -30,15 +30,7 @@ SPHERE_PRESETS = ("red_car_paint", "lacquered_plastic", "coated_gold", "white_di
 
 def sky_term(choice, res: int, samples: int) -> np.ndarray:
     no_sun = preview.Environment(sun_irradiance=(0.0, 0.0, 0.0))
-    img = preview.sphere_preview(
-        choice.brdf,
-        res,
-        env=no_sun,
-        env_samples=samples,
-        chunk=choice.chunk,
-        proxy=choice.proxy,
-        proposal=choice.proposal,
-    )
+    img = preview.choice_sphere(choice, res, env=no_sun, env_samples=samples)
     return img[..., :3][img[..., 3] > 0].mean(axis=1)
 
 

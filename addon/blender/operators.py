@@ -368,17 +368,7 @@ class NLM_OT_preview_sphere(LongOperator, bpy.types.Operator):
             choice = preview.choose_brdf(stack, method, latent=latent, size=size, walks=walks)
             # an importance sampler (the reference's walks) gets the walk budget per pixel
             samples = k * walks if choice.sampler is not None else k
-            img = preview.sphere_preview(
-                choice.brdf,
-                res,
-                env_samples=samples,
-                progress=progress,
-                chunk=choice.chunk,
-                sampler=choice.sampler,
-                sample_chunk=choice.sample_chunk,
-                proxy=choice.proxy,
-                proposal=choice.proposal,
-            )
+            img = preview.choice_sphere(choice, res, env_samples=samples, progress=progress)
             return img, choice, time.perf_counter() - t0
 
         def finish(context, result):

@@ -412,6 +412,21 @@ def _mis_sky_samples(brdf, env, proxy, wo, s, t, n, k, rng, chunk, progress, pro
     return wi, weight
 
 
+def choice_sphere(choice: BrdfChoice, res: int = 128, **kwargs) -> np.ndarray:
+    """:func:`sphere_preview` of a :class:`BrdfChoice`, with everything the choice carries for it (its row
+    chunk, sampler, proxy and proposal); ``kwargs``: the other arguments of ``sphere_preview``."""
+    return sphere_preview(
+        choice.brdf,
+        res,
+        chunk=choice.chunk,
+        sampler=choice.sampler,
+        sample_chunk=choice.sample_chunk,
+        proxy=choice.proxy,
+        proposal=choice.proposal,
+        **kwargs,
+    )
+
+
 def sphere_preview(
     brdf: BrdfFn,
     res: int = 128,

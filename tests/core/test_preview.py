@@ -41,17 +41,9 @@ def test_sky_distribution_is_normalised_and_matches_its_samples():
 
 
 def _sky_term(choice, samples, res=48):
-    no_sun = preview.Environment(sun_irradiance=(0.0, 0.0, 0.0))
-    img = preview.sphere_preview(
-        choice.brdf,
-        res,
-        env=no_sun,
-        env_samples=samples,
-        chunk=choice.chunk,
-        proxy=choice.proxy,
-        proposal=choice.proposal,
-    )
-    return img[..., :3][img[..., 3] > 0].mean(axis=1)
+    from benchmarks.bench_previews import sky_term
+
+    return sky_term(choice, res, samples)
 
 
 def test_neural_sphere_has_no_fireflies_at_the_default_samples():
