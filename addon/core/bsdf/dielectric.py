@@ -76,37 +76,50 @@ class RoughDielectric(BSDF):
 
     def eval(self, wi, wo, mode=RADIANCE, check=True) -> np.ndarray:
         wi, wo, xp = self._inputs(wi, wo, mode, check)
-        n = wi.shape[0]
-        alpha, ior, smooth = self._rows(n, xp)
-        m, etap, refl, ok, dwi, dwo = self._half(wi, wo, ior, xp)
-        ci, co = wi[:, 2], wo[:, 2]
-        with xp.errstate(invalid="ignore", divide="ignore"):
-            F = fresnel_dielectric(dwo, ior)
-            dg = ggx.ndf(m, alpha) * ggx.smith_g2(wi, wo, alpha)
-            fr = dg * F / xp.abs(4.0 * ci * co)
-            denom = (dwi + dwo / etap) ** 2 * ci * co
-            ft = dg * (1.0 - F) * xp.abs(dwi * dwo / denom)
-            if mode == RADIANCE:
-                ft = ft / (etap * etap)
-        if self.reflection_only:
-            ft = xp.zeros_like(ft)
-        f = xp.where(refl, fr, ft)
-        f = xp.where(ok & ~smooth & xp.isfinite(f), f, 0.0)
+        f, _ = self._eval_pdf(wi, wo, mode, xp, want_pdf=False)
         return xp.repeat(f[:, None], 3, axis=1)
 
     def pdf(self, wi, wo, mode=RADIANCE, check=True) -> np.ndarray:
         wi, wo, xp = self._inputs(wi, wo, mode, check)
+        return self._eval_pdf(wi, wo, mode, xp, want_f=False)[1]
+
+    def eval_pdf(self, wi, wo, mode=RADIANCE, check=True) -> tuple[np.ndarray, np.ndarray]:
+        """``eval`` (as (N,): the interface is grey) and ``pdf`` together, from one half vector, Fresnel
+        term and microfacet density: what a caller that needs both (MIS) pays once."""
+        wi, wo, xp = self._inputs(wi, wo, mode, check)
+        return self._eval_pdf(wi, wo, mode, xp)
+
+    def _eval_pdf(self, wi, wo, mode, xp, want_f=True, want_pdf=True):
+        """(f (N,) or None, pdf (N,) or None): the one implementation of both (class docstring)."""
         n = wi.shape[0]
         alpha, ior, smooth = self._rows(n, xp)
         m, etap, refl, ok, dwi, dwo = self._half(wi, wo, ior, xp)
+        ci, co = wi[:, 2], wo[:, 2]
+        live = ok & ~smooth
+        f = p = None
         with xp.errstate(invalid="ignore", divide="ignore"):
-            R = fresnel_dielectric(dwo, ior)
-            T = xp.zeros_like(R) if self.reflection_only else 1.0 - R
-            pvis = ggx.pdf_visible_normal(wo, m, alpha)
-            pr = pvis / (4.0 * xp.abs(dwo)) * R / (R + T)
-            pt = pvis * xp.abs(dwi) / (dwi + dwo / etap) ** 2 * T / (R + T)
-        p = xp.where(refl, pr, pt)
-        return xp.where(ok & ~smooth & xp.isfinite(p), p, 0.0)
+            F = fresnel_dielectric(dwo, ior)
+            d = ggx.ndf(m, alpha)
+            if want_f:
+                dg = d * ggx.smith_g2(wi, wo, alpha)
+                f = dg * F / xp.abs(4.0 * ci * co)
+                if not self.reflection_only:
+                    denom = (dwi + dwo / etap) ** 2 * ci * co
+                    ft = dg * (1.0 - F) * xp.abs(dwi * dwo / denom)
+                    if mode == RADIANCE:
+                        ft = ft / (etap * etap)
+                    f = xp.where(refl, f, ft)
+                f = xp.where(live & refl if self.reflection_only else live, f, 0.0)
+                f = xp.where(xp.isfinite(f), f, 0.0)
+            if want_pdf:
+                pvis = ggx.pdf_visible_normal(wo, m, alpha, d=d)
+                p = pvis / (4.0 * xp.abs(dwo))  # reflection_only: R / (R + T) = 1
+                if not self.reflection_only:
+                    pt = pvis * xp.abs(dwi) / (dwi + dwo / etap) ** 2
+                    p = xp.where(refl, p * F, pt * (1.0 - F))
+                p = xp.where(live & refl if self.reflection_only else live, p, 0.0)
+                p = xp.where(xp.isfinite(p), p, 0.0)
+        return f, p
 
     def sample(self, wo, u_lobe, u, mode=RADIANCE, check=True) -> BSDFSample:
         wo, u_lobe, u, xp = self._sample_inputs(wo, u_lobe, u, mode, check)

@@ -85,13 +85,14 @@ def sample_visible_normal(w: np.ndarray, alpha, u: np.ndarray) -> np.ndarray:
     return xp.where(n > 0.0, m, xp.asarray([0.0, 0.0, 1.0]))
 
 
-def pdf_visible_normal(w: np.ndarray, m: np.ndarray, alpha) -> np.ndarray:
+def pdf_visible_normal(w: np.ndarray, m: np.ndarray, alpha, d=None) -> np.ndarray:
     """Density of :func:`sample_visible_normal`: G1(w) max(0, w'.m) D(m) / |cos w|, with w' = w
-    mirrored to the upper hemisphere (so for w below the surface the facing test is -w.m > 0)."""
+    mirrored to the upper hemisphere (so for w below the surface the facing test is -w.m > 0).
+    ``d``: D(m) when the caller has it already (:func:`ndf`)."""
     xp = namespace(w, m, alpha)
     cz = w[..., 2]
     sign = xp.where(cz < 0.0, -1.0, 1.0)
     wm = xp.maximum(0.0, sign * dot(w, m))
     with xp.errstate(invalid="ignore", divide="ignore"):
-        p = smith_g1(w, alpha) * wm * ndf(m, alpha) / xp.abs(cz)
+        p = smith_g1(w, alpha) * wm * (ndf(m, alpha) if d is None else d) / xp.abs(cz)
     return xp.where((cz != 0.0) & xp.isfinite(p), p, 0.0)

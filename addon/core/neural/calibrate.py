@@ -72,8 +72,11 @@ class AlbedoCalibration:
     def factor(self, cos: np.ndarray) -> np.ndarray:
         """c(cos theta) (N, 3): linear between the grid's cosines, constant beyond them."""
         x = np.clip(np.asarray(cos, dtype=np.float64), 0.0, 1.0)
-        xp = self.cosines[::-1]  # np.interp needs increasing abscissae
-        return np.stack([np.interp(x, xp, self.scale[::-1, ch]) for ch in range(3)], axis=-1)
+        grid, scale = self.cosines[::-1], self.scale[::-1]  # increasing abscissae
+        x = np.clip(x, grid[0], grid[-1])  # constant beyond the grid
+        i = np.clip(np.searchsorted(grid, x, side="right") - 1, 0, len(grid) - 2)
+        w = ((x - grid[i]) / (grid[i + 1] - grid[i]))[:, None]  # one search for the three channels
+        return scale[i] * (1.0 - w) + scale[i + 1] * w
 
     def apply(self, f: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
         """f (N, 3) at local unit directions wi, wo (N, 3) times c(cos theta_i) c(cos theta_o) (f: the decoded part)."""

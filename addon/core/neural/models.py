@@ -356,7 +356,9 @@ class ModelSet:
         out[:, 1] = np.clip(out[:, 1], 0.0, 1.0)
         return out
 
-    def eval_brdf(self, z, wi, wo, top=None, calibration=None, with_top_lobe: bool = True) -> np.ndarray:
+    def eval_brdf(
+        self, z, wi, wo, top=None, calibration=None, with_top_lobe=True, top_pdf: bool = False, unit: bool = False
+    ):
         """f (N, 3) in 1/sr (no cosine) for one material ``z`` (3, 32) or per-row latents (N, 3, 32).
 
         ``top``: the material's top coating (alpha, ior) as (2,) or per row (N, 2) (``top_lobe``; None
@@ -364,8 +366,11 @@ class ModelSet:
         remainder (times the top coat's transmission for a ``top_transmission`` decoder) plus the exact top
         lobe (``with_top_lobe=False``: the remainder alone); for a whole-BRDF decoder ``top`` changes nothing.
         ``calibration`` (``calibrate.AlbedoCalibration``): its factors scale the decoded part.
-        Directions need not be unit length (they are normalised); zero-length directions and
-        directions at or below the horizon give 0.
+        Directions need not be unit length (they are normalised; ``unit``: the caller's are unit already);
+        zero-length directions and directions at or below the horizon give 0.
+
+        ``top_pdf``: return ``(f, p)`` with ``p`` (N,) float64 the density of ``top_lobe.sample_top`` at the
+        same pairs (0 without a top lobe), from the same evaluation of the lobe (the renderer's MIS needs both).
         """
         wi = _directions(wi, "wi")
         wo = _directions(wo, "wo")
@@ -410,17 +415,30 @@ class ModelSet:
             out[rows] = np.where((a[1] & b[1])[:, None] & (f >= 0.0), f, 0.0)
 
         (self._rgb or self._decoder).map(chunk, n)
+        t = top_lobe._checked(top, n) if self.remainder and top is not None else None  # (2,): shared, scalar path
+        t = t if t is not None and top_lobe.has_top(t.reshape(-1, 2)).any() else None
+        if calibration is not None or t is not None:
+            ui, uo = (wi, wo) if unit else (top_lobe._unit(wi), top_lobe._unit(wo))
         if calibration is not None:
-            out = calibration.apply(out, wi, wo)
-        if self.remainder and top is not None:
-            t = top_lobe._checked(top, n)  # (2,): one top coating for every row, the scalar path
-            if top_lobe.has_top(t.reshape(-1, 2)).any():
-                ui, uo = top_lobe._unit(wi), top_lobe._unit(wo)
-                if self.top_transmission:
-                    out *= top_lobe.remainder_scale(t, ui, uo, unit=True)[:, None].astype(np.float32)
-                if with_top_lobe:
-                    out += top_lobe.eval_top(t, ui, uo, unit=True)[:, None].astype(np.float32)
-        return out
+            out = calibration.apply(out, ui, uo)
+        p_top = np.zeros(n) if top_pdf else None
+        if t is not None:
+            p_top = self._top_lobe(out, t, ui, uo, with_top_lobe, top_pdf)
+        return (out, p_top) if top_pdf else out
+
+    def _top_lobe(self, out, t, ui, uo, with_top_lobe: bool, top_pdf: bool):
+        """``eval_brdf``'s top coat on the decoded ``out`` (in place): the transmission factor of a
+        ``top_transmission`` decoder and the exact lobe; returns the lobe's density when ``top_pdf``."""
+        if self.top_transmission:
+            out *= top_lobe.remainder_scale(t, ui, uo, unit=True)[:, None].astype(np.float32)
+        if not with_top_lobe:
+            return top_lobe.pdf_top(t, ui, uo) if top_pdf else None
+        if top_pdf:
+            f_top, p_top = top_lobe.eval_pdf_top(t, ui, uo)
+        else:
+            f_top, p_top = top_lobe.eval_top(t, ui, uo, unit=True), None
+        out += f_top[:, None].astype(np.float32)
+        return p_top
 
 
 _CACHE: dict[tuple[str, int, Path], ModelSet] = {}

@@ -59,6 +59,13 @@ def sample(wo: np.ndarray, sigma, w, u: np.ndarray) -> tuple[np.ndarray, np.ndar
     ``u[:, 0]`` picks the lobe, ``u[:, 1:]`` place the direction. Samples that fall below
     the horizon (possible for the Gaussian lobe at grazing ``wo``) come back with pdf 0.
     """
+    wi = sample_directions(wo, sigma, w, u)
+    return wi, pdf(wo, wi, sigma, w)
+
+
+def sample_directions(wo: np.ndarray, sigma, w, u: np.ndarray) -> np.ndarray:
+    """The directions of :func:`sample` without their density (for a caller that evaluates :func:`pdf`
+    on them together with other directions)."""
     wo = np.asarray(wo, dtype=np.float64)
     u = np.asarray(u, dtype=np.float64)
     if wo.ndim != 2 or wo.shape[1] != 3 or u.shape != (wo.shape[0], 3):
@@ -76,4 +83,4 @@ def sample(wo: np.ndarray, sigma, w, u: np.ndarray) -> tuple[np.ndarray, np.ndar
     wi_c = np.stack([rc * np.cos(phi), rc * np.sin(phi), np.sqrt(np.maximum(1.0 - u[:, 1], 0.0))], axis=1)
     wi = np.where((u[:, 0] < m)[:, None], wi_c, wi_g)
     wi /= np.maximum(np.linalg.norm(wi, axis=1, keepdims=True), 1e-12)
-    return wi, pdf(wo, wi, s, m)
+    return wi

@@ -39,7 +39,7 @@ import numpy as np
 from ..bsdf import ggx
 from ..bsdf.base import SMOOTH_ALPHA
 from ..bsdf.dielectric import INDEX_MATCHED_TOL, RoughDielectric
-from ..bsdf.frame import dot, refract
+from ..bsdf.frame import dot, reflect, refract
 from ..bsdf.fresnel import fresnel_dielectric
 from ..stack import Stack, StackArrays, clamp_to_trained
 
@@ -110,19 +110,22 @@ def _lobe(top: np.ndarray) -> RoughDielectric:
     return RoughDielectric(top[..., 0], top[..., 1], reflection_only=True)
 
 
-def _pairs(t: np.ndarray, wi: np.ndarray, wo: np.ndarray, rule) -> np.ndarray:
-    """``rule(lobe, wi, wo)`` (N,) on the rows with a top interface and both directions above the horizon,
-    0 elsewhere; one call on all rows for a shared top (``t`` (2,))."""
+def _pairs(t: np.ndarray, wi: np.ndarray, wo: np.ndarray, rule, outputs: int = 1):
+    """``rule(lobe, wi, wo)`` (N,) (or a tuple of ``outputs`` (N,) arrays) on the rows with a top interface
+    and both directions above the horizon, 0 elsewhere; one call on all rows for a shared top (``t`` (2,))."""
     up = (wi[:, 2] > 0) & (wo[:, 2] > 0)
+    outs = tuple(np.zeros(len(wi)) for _ in range(outputs))
     if t.ndim == 1:
-        if not has_top(t[None])[0]:
-            return np.zeros(len(wi))
-        return np.where(up, rule(_lobe(t), wi, wo), 0.0)
-    out = np.zeros(len(wi))
-    rows = np.flatnonzero(has_top(t) & up)
-    if len(rows):
-        out[rows] = rule(_lobe(t[rows]), wi[rows], wo[rows])
-    return out
+        if has_top(t[None])[0]:
+            got = rule(_lobe(t), wi, wo)
+            outs = tuple(np.where(up, g, 0.0) for g in (got if outputs > 1 else (got,)))
+    else:
+        rows = np.flatnonzero(has_top(t) & up)
+        if len(rows):
+            got = rule(_lobe(t[rows]), wi[rows], wo[rows])
+            for o, g in zip(outs, got if outputs > 1 else (got,), strict=True):
+                o[rows] = g
+    return outs if outputs > 1 else outs[0]
 
 
 def eval_top(top, wi, wo, unit: bool = False) -> np.ndarray:
@@ -138,26 +141,31 @@ def pdf_top(top, wi, wo) -> np.ndarray:
     return _pairs(_checked(top, len(wi)), wi, wo, lambda b, i, o: b.pdf(i, o, check=False))
 
 
+def eval_pdf_top(top, wi, wo) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`eval_top` and :func:`pdf_top` of unit directions together (one half vector, Fresnel term and
+    microfacet density for both): the renderer's query, which needs f and the sampling density at once."""
+    return _pairs(_checked(top, len(wi)), wi, wo, lambda b, i, o: b.eval_pdf(i, o, check=False), outputs=2)
+
+
 def sample_top(top, wo, u) -> tuple[np.ndarray, np.ndarray]:
     """Incident directions (N, 3) of the top lobe seen from ``wo`` (unit, local frame), by its GGX
     visible normals, with their density (N,) (0 where no sample: no top, a smooth top, a sample below
     the horizon); ``u`` (N, 2) uniform in [0, 1)."""
-    n = len(wo)
-    t = _checked(top, n)
-    wi = np.tile(np.array([0.0, 0.0, 1.0]), (n, 1))
-    pdf = np.zeros(n)
-    if t.ndim == 1:  # one top for every row: scalar parameters, no gathers
-        rows = np.flatnonzero(wo[:, 2] > 0) if has_top(t[None])[0] else np.zeros(0, dtype=np.int64)
-        lobe = _lobe(t)
-    else:
-        rows = np.flatnonzero(has_top(t) & (wo[:, 2] > 0))
-        lobe = _lobe(t[rows])
-    if len(rows):
-        s = lobe.sample(wo[rows], np.zeros(len(rows)), u[rows], check=False)
-        ok = s.valid & ~s.delta
-        wi[rows[ok]] = s.wi[ok]
-        pdf[rows[ok]] = s.pdf[ok]
-    return wi, pdf
+    t = _checked(top, len(wo))
+    wi, ok = sample_top_directions(t, wo, u)
+    wi = np.where(ok[:, None], wi, np.array([0.0, 0.0, 1.0]))
+    return wi, np.where(ok, pdf_top(t, wi, wo), 0.0)
+
+
+def sample_top_directions(top, wo, u) -> tuple[np.ndarray, np.ndarray]:
+    """The directions of :func:`sample_top` (the mirror of ``wo`` about a visible normal of the interface's
+    GGX distribution, as ``RoughDielectric.sample`` reflects) and whether each is a sample (a rough top, both
+    directions above the horizon); without their density, for a caller that evaluates it with the lobe."""
+    t = _checked(top, len(wo))
+    rough = has_top(t.reshape(-1, 2)) & (t.reshape(-1, 2)[:, 0] >= SMOOTH_ALPHA)
+    m = ggx.sample_visible_normal(wo, t[..., 0], u)
+    wi = reflect(wo, m)
+    return wi, rough & (wo[:, 2] > 0) & (wi[:, 2] > 0)
 
 
 # The grid of the top interface's transmittance table (transmission): outgoing cosines denser towards

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..neural import proxy, top_lobe
 from ..stack import LATENT, Stack
-from .shading import ShadeByProposal, finish_sample
+from .shading import ShadeByProposal, Shading, finish_sample
 
 
 def proxy_guess(stack: Stack) -> tuple[float, float]:
@@ -64,33 +64,68 @@ class _BoundNeural(ShadeByProposal):
         top = self._top_rows(index, len(wi))
         return self.models.eval_brdf(z, wi, wo, top, self.calibration).astype(np.float64)
 
-    def pdf(self, wi, wo, index=None):
+    def _mixture(self, wi, wo, index, share, p_top):
+        """The sampler's density: the proxy's, mixed with the top lobe's ``p_top`` by ``share``."""
         p = proxy.pdf(wo, wi, self._rows(self.sigma, index), self._rows(self.w, index))
+        return p if share is None else (1.0 - share) * p + share * p_top
+
+    def pdf(self, wi, wo, index=None):
         top = self._top_rows(index, len(wi))
         if top is None:
-            return p
-        share = top_lobe.top_share(top, wo)
-        return (1.0 - share) * p + share * top_lobe.pdf_top(top, wi, wo)
+            return self._mixture(wi, wo, index, None, None)
+        return self._mixture(wi, wo, index, top_lobe.top_share(top, wo), top_lobe.pdf_top(top, wi, wo))
 
-    def sample_direction(self, wo, u_lobe, u):
+    def _propose(self, wo, u_lobe, u):
+        """Directions of the mixture sampler (the top lobe with probability ``share``, else the proxy),
+        ``share`` (None without a top lobe) and the rows whose top-lobe sample failed (below the horizon:
+        zero-weight samples)."""
         top = self._top_rows(None, len(wo))
         if top is None:
-            return proxy.sample(wo, self.sigma, self.w, np.concatenate([u_lobe[:, None], u], axis=1))
+            u3 = np.concatenate([u_lobe[:, None], u], axis=1)
+            return proxy.sample_directions(wo, self.sigma, self.w, u3), None, None
         share = top_lobe.top_share(top, wo)
         pick_top = u_lobe < share
         with np.errstate(invalid="ignore", divide="ignore"):  # u_lobe rescaled for the proxy's own choice
             u_proxy = np.where(pick_top, 0.0, np.clip((u_lobe - share) / (1.0 - share), 0.0, 1.0 - 1e-12))
-        # the proxy's density at its own samples comes with them; at the top lobe's only it is computed
-        wi, p_proxy = proxy.sample(wo, self.sigma, self.w, np.concatenate([u_proxy[:, None], u], axis=1))
+        wi = proxy.sample_directions(wo, self.sigma, self.w, np.concatenate([u_proxy[:, None], u], axis=1))
         rows = np.flatnonzero(pick_top)
         missed = np.zeros(len(wo), dtype=bool)
         if len(rows):
-            wi_top, p_top = top_lobe.sample_top(top if np.ndim(top) == 1 else top[rows], wo[rows], u[rows])
+            wi_top, ok = top_lobe.sample_top_directions(top if np.ndim(top) == 1 else top[rows], wo[rows], u[rows])
             wi[rows] = wi_top
-            p_proxy[rows] = proxy.pdf(wo[rows], wi_top, self._rows(self.sigma, rows), self._rows(self.w, rows))
-            missed[rows] = p_top <= 0.0  # no top-lobe sample there (below the horizon): a zero-weight sample
-        pdf = (1.0 - share) * p_proxy + share * top_lobe.pdf_top(top, wi, wo)
+            missed[rows] = ~ok
+        return wi, share, missed
+
+    def sample_direction(self, wo, u_lobe, u):
+        wi, share, missed = self._propose(wo, u_lobe, u)
+        if share is None:
+            return wi, self._mixture(wi, wo, None, None, None)
+        pdf = self._mixture(wi, wo, None, share, top_lobe.pdf_top(self._top_rows(None, len(wo)), wi, wo))
         return wi, np.where(missed, 0.0, pdf)
+
+    def shade(self, wo, light_wi, light_rows, u_lobe, u, need_pdf):
+        """The bounce's query in one pass: proposals and next-event directions through one decoder batch,
+        and, with a top lobe, its f and density at all of them from one evaluation of the lobe."""
+        if self.top is None:
+            return super().shade(wo, light_wi, light_rows, u_lobe, u, need_pdf)
+        prop_wi, share, missed = self._propose(wo, u_lobe, u)
+        v, n = len(light_rows), len(wo)
+        index = np.concatenate([light_rows, np.arange(n)])
+        wi_all, wo_all = np.concatenate([light_wi, prop_wi]), wo[index]
+        f, p_top = self.models.eval_brdf(
+            self._rows(self.z, index),
+            wi_all,
+            wo_all,
+            self._top_rows(index, len(index)),
+            self.calibration,
+            top_pdf=True,
+            unit=True,
+        )
+        keep = slice(0, None) if need_pdf and v else slice(v, None)  # the lights' density only when asked
+        pdf = self._mixture(wi_all[keep], wo_all[keep], index[keep], share[index[keep]], p_top[keep])
+        prop_pdf = np.where(missed, 0.0, pdf[-n:] if n else pdf[:0])
+        f = f.astype(np.float64)
+        return Shading(f[:v], pdf[:v] if need_pdf and v else None, finish_sample(prop_wi, prop_pdf, f[v:]))
 
     def sample(self, wo, u_lobe, u):
         """Self-contained sampling (one decoder batch of its own); the integrator uses ``shade``."""
