@@ -33,8 +33,11 @@ them. Against data, the stage also runs without ``--projected``, from a trained 
 
 Checkpoints go to ``OUT/ckpt.pt`` (resumable, the function-space stage too); the held-out lobe error
 (``tests/data/heldout_layered.npz``) is measured at the end of each stage and every ``--eval-every``
-steps. ``train`` runs unchanged under ``torchrun --nproc_per_node N`` (``onnx_export.distributed``): each
-process takes its 1/N of the stacks of every batch, and process 0 measures, logs and checkpoints.
+steps. With ``--keep-best`` (and a validation set as ``--heldout``) ``OUT/best.pt`` keeps the network of
+the best of those evaluations (``selection_score``): a later stage that loses what an earlier one reached
+does not take it away. ``train`` runs unchanged under ``torchrun --nproc_per_node N``
+(``onnx_export.distributed``): each process takes its 1/N of the stacks of every batch, and process 0
+measures, logs and checkpoints.
 """
 
 from __future__ import annotations
@@ -323,6 +326,14 @@ def layering_loss(pred, target, wi, wo, weight, kind: str, procs: Processes = ON
 
 
 @torch.no_grad()
+def selection_score(metrics: dict) -> float:
+    """What ``--keep-best`` minimises over the evaluations of a run: the mean over coating counts of the
+    median plus the 90th percentile of the lobe error (``heldout_error``'s dict), so that neither a better
+    median bought with a worse tail nor the reverse counts as progress."""
+    per = [d["lobe_error_median"] + d["lobe_error_p90"] for d in metrics.values()]
+    return float(np.mean(per))
+
+
 def heldout_error(
     net: LayeringNet, dec, models: ModelSet, heldout: dict, log=None, remainder: bool = False, transmission=False
 ) -> dict:
@@ -669,9 +680,11 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
         log(f"resumed from {ckpt} at step {step}")
     total = args.steps + args.finetune
 
-    def save(step, ema, **extra):
+    def save(step, ema, best: bool = False, **extra):
+        """``OUT/ckpt.pt`` (``best``: ``OUT/best.pt``), written whole or not at all."""
         if not procs.main:
             return
+        path = out / "best.pt" if best else ckpt
         hist["data"] = [sets[c].command for c in sorted(sets)]  # the data this training has loaded
         torch.save(
             {
@@ -686,9 +699,9 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
                 "world_size": procs.world,
                 **extra,
             },
-            ckpt.with_suffix(".tmp"),
+            path.with_suffix(".tmp"),
         )
-        ckpt.with_suffix(".tmp").replace(ckpt)
+        path.with_suffix(".tmp").replace(path)
 
     fresh_opt = False  # a stage below ran in this call: the stages after it start with a fresh optimiser
     if args.projected and step == 0 and "regressed" not in hist:
@@ -800,6 +813,9 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
             hist[f"step_{step}"] = m
             if end_of_stage:
                 hist["stage2" if stage2 else "stage1"] = m
+            if args.keep_best and selection_score(m) < hist.get("best", {}).get("score", np.inf):
+                hist["best"] = {"step": step, "score": selection_score(m)}
+                save(step, ema, best=True)  # OUT/best.pt, the network of the best evaluation so far
         if step % args.every == 0 or end_of_stage:
             save(step, ema)
     return {"loss": ema, "step": step, "history": hist}
@@ -1114,6 +1130,12 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--every", type=int, default=250)
     t.add_argument("--eval-every", type=int, default=1000, help="held-out error every N steps (0: stage ends only)")
+    t.add_argument(
+        "--keep-best",
+        action="store_true",
+        help="also keep OUT/best.pt, the network of the evaluation with the lowest selection_score (use a "
+        "validation set as --heldout, never the held-out set the figures are reported on)",
+    )
     t.add_argument("--log-every", type=int, default=50)
     t.add_argument("--out", type=Path, required=True)
     e = sub.add_parser("export")

@@ -667,3 +667,49 @@ def test_command_line_renders_stored_arguments():
         "steps": 10,
     }
     assert command_line("m", args) == "python -m m --data a/b c --flag --weights 0.5 0.5 --steps 10"
+
+
+def test_keep_best_keeps_the_network_of_the_best_evaluation(tmp_path, monkeypatch):
+    """``layering train --keep-best``: OUT/best.pt holds the network of the evaluation with the lowest
+    selection score, even when a later stage ends worse; without the flag no best.pt is written."""
+    from onnx_export import layered_data, layering
+
+    for c in (1, 2):
+        layered_data.generate(tmp_path / f"c{c}", c, 8, 2, 8, 2, 8, seed=11, log=lambda s: None)
+    # scripted evaluations (median, p90 per coating count) at steps 2, 4 (the end of stage 1) and 6 (the end)
+    script = iter([(0.30, 0.60), (0.10, 0.20), (0.20, 0.30)])
+
+    def scripted(*args, **kwargs):
+        med, p90 = next(script)
+        return {f"coatings_{c}": {"lobe_error_median": med, "lobe_error_p90": p90} for c in (1, 2)}
+
+    monkeypatch.setattr(layering, "heldout_error", scripted)
+    base = [
+        "train",
+        "--size",
+        "tiny",
+        "--init-from",
+        "tiny",
+        "--c1",
+        str(tmp_path / "c1"),
+        "--c2",
+        str(tmp_path / "c2"),
+    ]
+    base += ["--heldout", str(HELDOUT_LAYERED), "--steps", "4", "--finetune", "2", "--batch", "4", "--pairs", "8"]
+    base += ["--eval-every", "2", "--every", "1", "--lr", "3e-3", "--seed", "1"]
+    layering.train(
+        layering.parser().parse_args([*base, "--keep-best", "--out", str(tmp_path / "k")]), log=lambda s: None
+    )
+    best = torch.load(tmp_path / "k" / "best.pt", weights_only=False)
+    last = torch.load(tmp_path / "k" / "ckpt.pt", weights_only=False)
+    assert best["step"] == 4 and last["step"] == 6  # the later stage ended worse (0.5 against 0.3)
+    assert best["history"]["best"] == {"step": 4, "score": pytest.approx(0.30)}
+    two = {
+        "coatings_1": {"lobe_error_median": 0.1, "lobe_error_p90": 0.3},
+        "coatings_2": {"lobe_error_median": 0.2, "lobe_error_p90": 0.6},
+    }
+    assert layering.selection_score(two) == pytest.approx(0.6)  # the mean of 0.4 and 0.8
+    assert any(not torch.equal(best["net"][k], v) for k, v in last["net"].items())
+    script = iter([(0.3, 0.6)] * 3)
+    layering.train(layering.parser().parse_args([*base, "--out", str(tmp_path / "n")]), log=lambda s: None)
+    assert not (tmp_path / "n" / "best.pt").exists()
