@@ -66,7 +66,7 @@ def test_decoder_gives_finite_non_negative_values_or_a_clear_error(tiny, wi, wo_
     wo = wi if wo_same or data is None else data.draw(direction_shapes.flatmap(arrays), label="wo")
     n = np.atleast_2d(np.asarray(wi)).shape[0] if np.ndim(wi) else 0
     z0 = np.random.default_rng(0).normal(scale=0.5, size=(3, 32)).astype(np.float32)
-    z = {"one": z0, "per-row": np.repeat(z0[None], n, axis=0), "bad": np.zeros((n + 1, 32))}[z_kind]
+    z = {"one": z0, "per-row": np.repeat(z0[None], n, axis=0), "bad": np.zeros((n + 1, 3, 31))}[z_kind]
     ok = (
         well_formed(wi) and well_formed(wo) and np.atleast_2d(wi).shape == np.atleast_2d(wo).shape and (z_kind != "bad")
     )

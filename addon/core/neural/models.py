@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..bsdf.frame import dot
 from ..rows import distinct_rows
 from ..stack import LATENT
 from . import proxy, top_lobe
@@ -198,7 +199,7 @@ def _unit_or_up(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """float32 unit directions of rows ``w`` (normalised in float64) and whether each is usable:
     nonzero and above the horizon; unusable rows become +z (their output is zeroed)."""
     w = np.asarray(w, dtype=np.float64)
-    n2 = np.einsum("ij,ij->i", w, w)
+    n2 = dot(w, w)
     ok = (n2 > 0.0) & (w[:, 2] > 0.0) & np.isfinite(n2)
     u = w * (1.0 / np.sqrt(np.where(ok, n2, 1.0)))[:, None]
     if not ok.all():
@@ -215,7 +216,7 @@ def _float32_rows(w: np.ndarray) -> np.ndarray:
     """Finite float64 directions ``w`` as float32 rows for the RGB decoder graph, which normalises
     them itself: only lengths that would underflow or overflow in float32 are scaled first."""
     lo, hi = _FLOAT32_SQUARED_LENGTH
-    n2 = np.einsum("ij,ij->i", w, w)
+    n2 = dot(w, w)
     odd = ((n2 < lo) & (n2 > 0.0)) | (n2 > hi)
     if odd.any():
         w = w.copy()

@@ -58,6 +58,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..bsdf.frame import dot
 from ..stack import LATENT, Stack
 from .encode import encode_stack
 from .models import MODEL_DIR, SIZES, _unit_or_up, file_digest, load_models, resolve_size
@@ -83,7 +84,7 @@ def direction_features(wi: np.ndarray, wo: np.ndarray, bump_sharpness) -> np.nda
     1 - cos(theta_h)), tested against the ONNX graph through the decoder's output."""
     wi = np.asarray(wi, dtype=np.float64)
     wo = np.asarray(wo, dtype=np.float64)
-    dio = np.einsum("ij,ij->i", wi, wo)
+    dio = dot(wi, wo)
     s = wi + wo
     sxy = s[:, 0] ** 2 + s[:, 1] ** 2
     sn = np.sqrt(np.maximum(sxy + s[:, 2] ** 2, 1e-12))

@@ -101,7 +101,7 @@ def has_top(top: np.ndarray) -> np.ndarray:
 
 def _unit(w: np.ndarray) -> np.ndarray:
     w = np.asarray(w, dtype=np.float64)
-    n = np.sqrt(np.einsum("ij,ij->i", w, w))
+    n = np.sqrt(dot(w, w))
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where((n > 0)[:, None], w / np.where(n > 0, n, 1.0)[:, None], 0.0)
 

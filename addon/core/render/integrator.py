@@ -208,7 +208,7 @@ def camera_hits(scene: Scene, px, py) -> tuple[np.ndarray, np.ndarray]:
     hit = prim >= 0
     if hit.any():
         ng = scene.mesh.face_normals[prim[hit]].astype(np.float64)
-        cos_o = np.einsum("ij,ij->i", ng, d[hit])
+        cos_o = frame.dot(ng, d[hit])
         f = texture_footprint(t[hit] * cam.pixel_spread, cos_o, uv_scale(scene.mesh)[prim[hit]])
         fp[hit] = np.where(f > 0, f, np.inf)
     return prim, fp
