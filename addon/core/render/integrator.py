@@ -282,9 +282,11 @@ def render(
     False stops the render (raising :class:`Cancelled`, with the partial film attached as
     ``exc.film``). Pass a ``film`` to continue accumulating into it (progressive refinement).
 
-    Each pass is cut into chunks of ``chunk_paths`` pixels; ``settings.thread_count`` chunks
-    (of this pass or the next) are traced at once on a pool of threads (numpy, embreex and ONNX
-    Runtime release the GIL in their loops), and the networks run their batches on as many.
+    Each pass is cut into equal chunks of at most ``chunk_paths`` pixels; ``settings.thread_count``
+    chunks (of this pass or the next) are traced at once on a pool of threads (numpy, embreex and ONNX
+    Runtime release the GIL in their loops), with as many more queued, so that a thread whose chunk ends
+    first starts the next while the film takes the chunks in order; the networks run their batches on as
+    many threads.
     Chunks draw their random numbers from their own (pass, chunk) key and are added to the film
     in order, so the image does not depend on the thread count.
 
@@ -310,7 +312,8 @@ def render(
             )
         if pixels.min() < 0 or pixels.max() >= npix or len(np.unique(pixels)) != len(pixels):
             raise ValueError(f"pixels must be distinct indices in [0, {npix}) (width x height of the camera)")
-    chunk = int(settings.chunk_paths)
+    # chunks of equal size (at most chunk_paths): unequal ones leave a thread idle at the end of every pass
+    chunk = -(-len(pixels) // -(-len(pixels) // int(settings.chunk_paths)))
     starts = list(range(0, len(pixels), chunk))
     tasks = [(k, c) for k in range(settings.samples) for c in range(len(starts))]
 
@@ -323,7 +326,7 @@ def render(
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="render") if workers > 1 else None
     with session.threads_in_force(settings.thread_count):  # the networks' threads too
         try:
-            results = _ordered(pool, trace, tasks, workers)
+            results = _ordered(pool, trace, tasks, 2 * workers)
             for k, c in tasks:
                 pix, (L, features, piece) = next(results)
                 film.add(pix, L, features)
@@ -344,8 +347,8 @@ def render(
 
 
 def _ordered(pool, fn, tasks, ahead: int):
-    """``fn(task)`` for each task, in order; with a pool, at most ``ahead`` tasks in flight (a
-    cancelled render does not leave a queue of passes behind)."""
+    """``fn(task)`` for each task, in order; with a pool, at most ``ahead`` tasks submitted and not yet
+    consumed (a cancelled render does not leave a queue of passes behind)."""
     if pool is None:
         yield from map(fn, tasks)
         return
