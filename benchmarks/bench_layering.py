@@ -19,7 +19,9 @@ set of training stacks), for choosing between training rounds without looking at
   lobe images at 0/30/60/75 degrees (median, 90th percentile), the absolute directional-albedo error,
   and its sign per incident elevation (the albedo bias: median relative error, > 0 too bright), with
   the single-layer held-out materials through the encoder and decoder alone as the baseline row, and
-  the reciprocity of the decoded lobes (the lobe with the decoder's two directions swapped against it).
+  the reciprocity of the decoded lobes (the lobe with the decoder's two directions swapped against it);
+  and the lobe error of the same latents with their albedo calibration, the renderer's default for a
+  material's own latent (``heldout_layered.runtime_errors(..., calibrated=True)``).
 - Sampling efficiency: variance of the one-sample estimate of the radiance reflected from an analytic
   environment (``benchmarks/sampling_efficiency.sky_radiance``) at equal sample count, for cosine sampling
   and for the top interface's GGX lobe, divided by the proxy's (sigma, w from the sampling network).
@@ -193,6 +195,7 @@ def main(argv=None):
     for size in sizes:
         models = load_models(size, threads=a.threads)
         res = runtime_errors(models, data)
+        calibrated = runtime_errors(models, data, calibrated=True)
         single = runtime_errors(models, single_data)[0] if single_data is not None else None
         lobe_figure(res, data, size, a.out / f"layering_lobes_{size}.png")
         results[size] = {"errors": res}
@@ -213,6 +216,22 @@ def main(argv=None):
             lines.append(
                 f"| {c} | {c + 1} | {len(r['index'])} | {np.median(e):.3f} | {np.percentile(e, 90):.3f} | "
                 f"{np.median(nz):.3f} / {np.percentile(nz, 90):.3f} | {al.mean():.4f} | {np.percentile(al, 90):.4f} |"
+            )
+        lines += [
+            "",
+            "Calibrated: the same latents decoded with each stack's albedo calibration, as the renderer decodes "
+            "a material's own latent by default (`neural_material.make(..., calibrate=True)`: about a second of "
+            "reference walks per stack, `addon.core.neural.calibrate`; latent textures are not calibrated).",
+            "",
+            "| coatings | layers | stacks | calibrated lobe error median | calibrated lobe error p90 | "
+            "albedo abs. error mean | albedo abs. error p90 |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for c, r in calibrated.items():
+            e, al = r["errors"], r["albedo_error"]
+            lines.append(
+                f"| {c} | {c + 1} | {len(r['index'])} | {np.median(e):.3f} | {np.percentile(e, 90):.3f} | "
+                f"{al.mean():.4f} | {np.percentile(al, 90):.4f} |"
             )
         lines += [
             "",
@@ -299,6 +318,8 @@ def main(argv=None):
                 f"coatings_{c}": {
                     "lobe_error_median": float(np.median(r["errors"])),
                     "lobe_error_p90": float(np.percentile(r["errors"], 90)),
+                    "calibrated_lobe_error_median": float(np.median(calibrated[c]["errors"])),
+                    "calibrated_lobe_error_p90": float(np.percentile(calibrated[c]["errors"], 90)),
                     "albedo_abs_error_mean": float(r["albedo_error"].mean()),
                     "reciprocity_median": float(np.median(r["reciprocity"])),
                     "albedo_bias_median_by_angle": {

@@ -246,8 +246,31 @@ if __name__ == "__main__":
     main()
 
 
-def runtime_errors(models, data: dict, res: int | None = None) -> dict:
+def _calibrations(models, stacks: list, z: np.ndarray) -> list:
+    """The albedo calibration the renderer gives each stack's latent (``neural_material.make``): against the
+    reference, with the size's sampling proxy."""
+    from addon.core.neural import calibrate
+    from addon.core.render.neural_material import proxy_guess
+
+    proxies = models.proxy_params(z) if models.has("sampling") else [proxy_guess(s) for s in stacks]
+    return [calibrate.calibrate(s, models, z[k], proxies[k]) for k, s in enumerate(stacks)]
+
+
+def _lobes(models, z, top, calibration, angles, res: int, swap: bool = False) -> np.ndarray:
+    """(angles, R, R, 3) lobe images of one latent (``swap``: the decoder's two directions exchanged)."""
+
+    def f(wi, wo):
+        return models.eval_brdf(z, wo if swap else wi, wi if swap else wo, top, calibration)
+
+    return np.array([lobe.lobe_image(f, t, res) for t in angles])
+
+
+def runtime_errors(models, data: dict, res: int | None = None, calibrated: bool = False) -> dict:
     """Held-out lobe errors of the RUNTIME path (ONNX encoders + layering + decoder) per coating count.
+
+    ``calibrated``: each stack's latent decoded with its albedo calibration, as the renderer decodes a
+    material's own latent by default (``neural_material.make(..., calibrate=True)``: about a second of
+    reference walks per stack, ``addon.core.neural.calibrate``); latent textures are not calibrated.
 
     Returns {n_coatings: {"errors": (configs, angles) relative RMSE, "albedo_error": (configs, angles, 3)
     |albedo - reference albedo|, "albedo_bias": (configs, angles) (albedo - reference) / reference of the
@@ -269,24 +292,10 @@ def runtime_errors(models, data: dict, res: int | None = None) -> dict:
         idx = [i for i, s in enumerate(stacks) if len(s.coatings) == c]
         arrays = StackArrays.from_stacks([stacks[i] for i in idx])
         z, top = encode_arrays(arrays, models), top_coats(arrays)  # top: a remainder decoder's exact top lobe
-        lobes = np.array(
-            [
-                [
-                    lobe.lobe_image(lambda wi, wo, k=k, z=z, top=top: models.eval_brdf(z[k], wi, wo, top[k]), t, res)
-                    for t in angles
-                ]
-                for k in range(len(idx))
-            ]
-        )
-        swapped = np.array(
-            [
-                [
-                    lobe.lobe_image(lambda wi, wo, k=k, z=z, top=top: models.eval_brdf(z[k], wo, wi, top[k]), t, res)
-                    for t in angles
-                ]
-                for k in range(len(idx))
-            ]
-        )
+        cal = _calibrations(models, [stacks[i] for i in idx], z) if calibrated else [None] * len(idx)
+
+        lobes = np.array([_lobes(models, z[k], top[k], cal[k], angles, res) for k in range(len(idx))])
+        swapped = np.array([_lobes(models, z[k], top[k], cal[k], angles, res, swap=True) for k in range(len(idx))])
         ref = data["lobe"][idx]
         err = lobe.relative_rmse(lobes, ref, image_axes=3)  # (stacks, angles)
         alb_net, alb_ref = lobe.albedo_from_lobe(lobes), lobe.albedo_from_lobe(ref)
