@@ -49,6 +49,55 @@ def test_the_top_lobe_is_the_rough_dielectric_reflection_at_any_direction_length
         tl.eval_top(np.ones((3, 2)), wi, wo)
 
 
+def test_eval_pdf_is_eval_and_pdf_from_one_half_vector():
+    """``RoughDielectric.eval_pdf`` (and the top lobe's ``eval_pdf_top``) give what ``eval`` and ``pdf`` give
+    apart, for reflection, transmission and both sides of the interface."""
+    rng = np.random.default_rng(4)
+    n = 400
+    wi = hemisphere(rng, n)
+    wi[:, 2] *= np.where(rng.random(n) < 0.5, 1.0, -1.0)  # reflection and transmission pairs
+    wo = hemisphere(rng, n)
+    alpha, ior = rng.uniform(0.02, 0.6, n), rng.uniform(0.7, 2.0, n)
+    for only in (False, True):
+        for mode in ("radiance", "importance"):
+            b = RoughDielectric(alpha, ior, reflection_only=only)
+            f, p = b.eval_pdf(wi, wo, mode)
+            np.testing.assert_allclose(f, b.eval(wi, wo, mode)[:, 0], rtol=1e-12, atol=0)
+            np.testing.assert_allclose(p, b.pdf(wi, wo, mode), rtol=1e-12, atol=0)
+            assert (f > 0).any() and (p > 0).any()
+    top = np.column_stack([alpha, np.maximum(ior, 1.1)])
+    f, p = tl.eval_pdf_top(top, wi, wo)
+    np.testing.assert_allclose(f, tl.eval_top(top, wi, wo), rtol=1e-12)
+    np.testing.assert_allclose(p, tl.pdf_top(top, wi, wo), rtol=1e-12)
+
+
+@pytest.mark.parametrize("per_hit", [False, True])
+def test_the_one_pass_shade_is_eval_pdf_and_sample_direction_together(per_hit):
+    """``_BoundNeural.shade`` of a remainder material (one decoder batch and one top-lobe evaluation for the
+    proposals and the next-event directions) returns what ``eval``, ``pdf`` and ``sample_direction`` give."""
+    m = load_models("tiny", threads=1)
+    assert m.remainder
+    rng = np.random.default_rng(5)
+    n = 2000
+    wo = hemisphere(rng, n)
+    z = rng.normal(scale=0.5, size=(n, 3, 32)).astype(np.float32) if per_hit else rng.normal(scale=0.5, size=(3, 32))
+    top = np.tile([0.1, 1.5], (n, 1)) if per_hit else np.array([0.1, 1.5])
+    sig, w = (np.full(n, 0.2), np.full(n, 0.5)) if per_hit else (np.float64(0.2), np.float64(0.5))
+    bound = _BoundNeural(m, np.asarray(z, np.float32), sig, w, top=top)
+    rows = np.flatnonzero(rng.random(n) < 0.6)
+    light_wi = hemisphere(rng, len(rows))
+    u_lobe, u = rng.random(n), rng.random((n, 2))
+    sh = bound.shade(wo, light_wi, rows, u_lobe, u, need_pdf=True)
+    np.testing.assert_allclose(sh.f_light, bound.eval(light_wi, wo[rows], rows), rtol=1e-6)
+    np.testing.assert_allclose(sh.pdf_light, bound.pdf(light_wi, wo[rows], rows), rtol=1e-9)
+    wi, pdf = bound.sample_direction(wo, u_lobe, u)
+    ok = sh.sample.valid
+    assert ok.mean() > 0.8
+    np.testing.assert_allclose(sh.sample.wi[ok], wi[ok], rtol=1e-12)
+    np.testing.assert_allclose(sh.sample.pdf[ok], pdf[ok], rtol=1e-9)
+    assert bound.shade(wo, light_wi, rows, u_lobe, u, need_pdf=False).pdf_light is None
+
+
 @pytest.mark.parametrize("alpha", [0.05, 0.3])
 def test_top_samples_carry_their_density_and_estimate_the_lobe_albedo(alpha):
     rng = np.random.default_rng(1)
