@@ -313,7 +313,8 @@ def render(
         if pixels.min() < 0 or pixels.max() >= npix or len(np.unique(pixels)) != len(pixels):
             raise ValueError(f"pixels must be distinct indices in [0, {npix}) (width x height of the camera)")
     # chunks of equal size (at most chunk_paths): unequal ones leave a thread idle at the end of every pass
-    chunk = -(-len(pixels) // -(-len(pixels) // int(settings.chunk_paths)))
+    n_chunks = -(-len(pixels) // int(settings.chunk_paths))  # ceiling division
+    chunk = -(-len(pixels) // n_chunks)
     starts = list(range(0, len(pixels), chunk))
     tasks = [(k, c) for k in range(settings.samples) for c in range(len(starts))]
 
