@@ -20,9 +20,10 @@ SHIPPED = [s for s in SIZES if (MODEL_DIR / f"layering_{s}.onnx").exists()]
 # |median albedo bias| at 75 and 85 degrees over the coating counts. The issue's target is 2 and 0.05.
 BOUNDS = {  # far from the target: this pins what is reached so that no change makes it worse unnoticed
     # tiny on the remainder design with the top coat's transmission (docs/layering_training.md, "The
-    # exact top coat ... shipped"): largest ratios 9.0 -> 5.4 and 23 -> 11.1, median bias 0.47 -> 0.11
-    # (four coatings at 75 degrees; one to three coatings within 0.05)
-    "tiny": {"albedo_max": 5.5, "fcos_max": 11.5, "median_bias": 0.12},
+    # exact top coat ... shipped"), layering network of the validation-chosen round: largest ratios
+    # 9.0 -> 5.48 and 23 -> 9.5 (both stack 7, near-black), median bias 0.47 -> 0.11 (four coatings at
+    # 75 degrees; one to three coatings within 0.04)
+    "tiny": {"albedo_max": 5.6, "fcos_max": 10.0, "median_bias": 0.12},
     # small on the remainder design with the top coat's transmission: 10.5 -> 1.84, 38 -> 3.3, largest
     # median bias 0.51 -> 0.11 (four coatings at 75 degrees; one to three coatings within 0.055)
     "small": {"albedo_max": 1.9, "fcos_max": 3.4, "median_bias": 0.12},
