@@ -253,23 +253,7 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
             ]
         )
         train_decoder.train(bad, log=lambda s: None)
-    enc_args = Namespace(
-        ckpt=tmp_path / "run" / "ckpt.pt",
-        data=[tmp_path / "single"],
-        materials=0,
-        heldout=HELDOUT,
-        width=16,
-        depth=2,
-        distill=3,
-        finetune=2,
-        batch_units=16,
-        batch=4,
-        pairs=16,
-        lr=1e-3,
-        threads=1,
-        seed=0,
-        out=tmp_path / "enc.pt",
-    )
+    enc_args = smoke_encoder_args(tmp_path / "run" / "ckpt.pt", tmp_path / "single", tmp_path / "enc.pt", 3, 2)
     assert np.isfinite(train_encoder.train(enc_args, log=lambda s: None)["finetuned"]["lobe_error_median"])
     export.main(
         [
