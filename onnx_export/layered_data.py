@@ -1,4 +1,4 @@
-"""Training data of the layering network: stacks with 1 or 2 coatings and reference BRDF values.
+"""Training data of the layering network: stacks with 1, 2 or 3 coatings and reference BRDF values.
 
     python -m onnx_export.layered_data --coatings 1 --stacks 3072 --out cache/data/layering_c1
     python -m onnx_export.layered_data --coatings 2 --stacks 1024 --out cache/data/layering_c2

@@ -11,7 +11,8 @@ and ``thickness`` its optical thickness. The decoder and the encoder are frozen 
 ONNX files of the decoder size), so the layering network lives in their latent space.
 
 Training (stage 1) uses stacks with one coating, stage 2 (``--finetune`` steps) adds stacks with two
-coatings, for which the network is applied twice, so that the recursion is trained end to end. The
+coatings (and, with ``--c3``, three), for which the network is applied two (three) times, so that the
+recursion is trained end to end: each coating count takes an equal share of every stage-2 batch. The
 loss goes THROUGH THE FROZEN DECODER against reference values f(wi, wo) (``onnx_export.layered_data``,
 a few walks each, so the targets are noisy):
 
@@ -251,6 +252,19 @@ class StackSet:
         wo_r = wo.unsqueeze(1).expand(b, 3, q, 3).reshape(-1, 3)
         wt = self.weight[s[:, None], idx].unsqueeze(1).expand(b, 3, q).reshape(-1) if self.use_weight else None
         return pred, f.permute(0, 2, 1).reshape(-1), wi_r, wo_r, wt
+
+
+def coating_data(args, c: int) -> Path:
+    """The data directory of ``layering train`` with ``c`` coatings (``--c1``, ``--c2``, ``--c3``)."""
+    path = {1: args.c1, 2: args.c2, 3: getattr(args, "c3", None)}.get(c)
+    if path is None:
+        raise ValueError(f"no data of stacks with {c} coatings: give --c{c}" if c == 3 else f"no --c{c} data")
+    return Path(path)
+
+
+def recursion_counts(args) -> list[int]:
+    """The coating counts above one that stage 2 trains: 2, and 3 with ``--c3``."""
+    return [2, 3] if getattr(args, "c3", None) else [2]
 
 
 def stack_set(args, models: ModelSet, path: Path, stacks: int = 0, use_weight: bool | None = None) -> StackSet:
@@ -610,7 +624,7 @@ def decoded_stage_data(args, models: ModelSet, sets: dict) -> tuple[dict, dict]:
     coatings = args.decoded_coatings or (sorted(sets) if args.projected else [1, 2])
     for c in coatings:
         if c not in sets:
-            sets[c] = stack_set(args, models, args.c1 if c == 1 else args.c2, args.stacks if c == 1 else 0)
+            sets[c] = stack_set(args, models, coating_data(args, c), args.stacks if c == 1 else 0)
     dsets = {c: sets[c] for c in coatings}
     if args.decoded_data:  # the same stacks and directions with other values (more walks)
         dsets = {
@@ -785,15 +799,17 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
             lr = cosine_lr(step, args.steps, args.lr)
         for g in opt.param_groups:
             g["lr"] = lr
-        if stage2 and 2 not in sets:
-            sets[2] = stack_set(args, models, args.c2)
-            log(f"stage 2: {sets[2].n} two-coating stacks")
-        if stage2:  # half the batch with two coatings (the recursion), half with one (keep stage 1)
-            parts = [
-                sets[2].batch(net, dec, args.batch // 2, args.pairs, gen, procs),
-                sets[1].batch(net, dec, args.batch - args.batch // 2, args.pairs, gen, procs),
-            ]
-            loss = sum(layering_loss(*p, kind=args.loss, procs=procs) for p in parts) / 2
+        if stage2:
+            for c in recursion_counts(args):
+                if c not in sets:
+                    sets[c] = stack_set(args, models, coating_data(args, c))
+                    log(f"stage 2: {sets[c].n} stacks with {c} coatings")
+        if stage2:  # equal shares of the batch: the recursion (2, 3 coatings), and one coating (keep stage 1)
+            deeper = recursion_counts(args)
+            share = args.batch // (len(deeper) + 1)
+            parts = [sets[c].batch(net, dec, share, args.pairs, gen, procs) for c in deeper]
+            parts.append(sets[1].batch(net, dec, args.batch - share * len(deeper), args.pairs, gen, procs))
+            loss = sum(layering_loss(*p, kind=args.loss, procs=procs) for p in parts) / len(parts)
         else:
             part = sets[1].batch(net, dec, args.batch, args.pairs, gen, procs)
             loss = layering_loss(*part, kind=args.loss, procs=procs)
@@ -1010,6 +1026,13 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--size", default="tiny")
     t.add_argument("--c1", type=Path, default=Path("cache/data/layering_c1"))
     t.add_argument("--c2", type=Path, default=Path("cache/data/layering_c2"))
+    t.add_argument(
+        "--c3",
+        type=Path,
+        default=None,
+        help="stacks with three coatings (onnx_export.layered_data --coatings 3): stage 2 trains the recursion "
+        "three deep as well",
+    )
     t.add_argument("--stacks", type=int, default=0, help="use only the first N one-coating stacks (0: all)")
     t.add_argument("--heldout", type=Path, default=Path("tests/data/heldout_layered.npz"))
     t.add_argument(

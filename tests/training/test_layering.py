@@ -236,3 +236,30 @@ def test_reciprocal_function_space_loss_swaps_the_decoders_directions_and_nothin
     assert all(v > 0.0 for v in swapped)  # some group of 32 was swapped in every batch
     # targets, weights and cosines stay with their pairs: a reciprocal decoder does not see the swap
     assert loss(symmetric, True) == pytest.approx(loss(symmetric, False), rel=1e-6)
+
+
+def test_stage_two_trains_each_coating_count_with_an_equal_share_of_the_batch(tmp_path, monkeypatch):
+    """With --c3 the recursion is trained three deep too: every stage-2 step draws stacks with three, two
+    and one coating in equal shares, and the run records the three data sets it read."""
+    from onnx_export import layered_data
+
+    for c in (1, 2, 3):
+        layered_data.generate(tmp_path / f"c{c}", c, 4, 2, 8, 2, 4, seed=11, log=lambda s: None)
+    drawn = []
+    batch = lay.StackSet.batch
+
+    def recorded(self, net, dec, b, *rest, **kw):
+        drawn.append((self.z_tops.shape[1], b))
+        return batch(self, net, dec, b, *rest, **kw)
+
+    monkeypatch.setattr(lay.StackSet, "batch", recorded)
+    args = ["train", "--size", "tiny", "--init-from", "tiny", "--heldout", str(tmp_path / "none.npz")]
+    args += ["--c1", str(tmp_path / "c1"), "--c2", str(tmp_path / "c2"), "--c3", str(tmp_path / "c3")]
+    args += ["--steps", "1", "--finetune", "2", "--batch", "7", "--pairs", "4", "--out", str(tmp_path / "run")]
+    res = lay.train(lay.parser().parse_args(args), log=lambda s: None)
+    assert res["step"] == 3 and np.isfinite(res["loss"])
+    assert drawn == [(1, 7)] + [(2, 2), (3, 2), (1, 3)] * 2
+    data = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=False)["history"]["data"]
+    assert [f"--coatings {c}" in d for d, c in zip(data, (1, 2, 3), strict=True)] == [True] * 3
+    with pytest.raises(ValueError, match="--c3"):
+        lay.coating_data(lay.parser().parse_args(["train", "--out", str(tmp_path / "x")]), 3)
