@@ -324,13 +324,16 @@ def cosine_weights(wi: np.ndarray, wo: np.ndarray, lobe_alpha: np.ndarray) -> np
     return (cos_pdf / mix).reshape(s, p, m).astype(np.float32)
 
 
-def layering_loss(pred, target, wi, wo, weight, kind: str, procs: Processes = ONE_PROCESS) -> torch.Tensor:
-    """Mean per-pair loss (``nets.pair_loss``; ``l1log`` is its ``l1``), weighted per pair when
-    ``weight`` is given (then normalised by its mean over the whole batch: with several processes, the
-    mean over them of this process's share is the whole batch's loss)."""
+def layering_loss(
+    pred, target, wi, wo, weight, kind: str, procs: Processes = ONE_PROCESS, grazing_floor: float = 1.0
+) -> torch.Tensor:
+    """Mean per-pair loss (``nets.pair_loss``; ``l1log`` is its ``l1``; ``grazing_floor`` < 1 weights the
+    grazing pairs as there), weighted per pair when ``weight`` is given (then normalised by its mean over
+    the whole batch: with several processes, the mean over them of this process's share is the whole
+    batch's loss)."""
     if kind not in ("l2rel", "l1log"):
         raise ValueError(f"unknown layering loss {kind!r}; expected l2rel or l1log")
-    e = pair_loss(pred, target, wi, wo, "l1" if kind == "l1log" else kind)
+    e = pair_loss(pred, target, wi, wo, "l1" if kind == "l1log" else kind, grazing_floor)
     if weight is None:
         return e.mean()
     return (weight * e).sum() / (procs.total(weight.sum()) / procs.world).clamp(min=1e-12)
@@ -809,10 +812,10 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
             share = args.batch // (len(deeper) + 1)
             parts = [sets[c].batch(net, dec, share, args.pairs, gen, procs) for c in deeper]
             parts.append(sets[1].batch(net, dec, args.batch - share * len(deeper), args.pairs, gen, procs))
-            loss = sum(layering_loss(*p, kind=args.loss, procs=procs) for p in parts) / len(parts)
+            loss = sum(layering_loss(*p, args.loss, procs, args.grazing_floor) for p in parts) / len(parts)
         else:
             part = sets[1].batch(net, dec, args.batch, args.pairs, gen, procs)
-            loss = layering_loss(*part, kind=args.loss, procs=procs)
+            loss = layering_loss(*part, args.loss, procs, args.grazing_floor)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         procs.average_gradients(net.parameters())
@@ -925,7 +928,9 @@ def training_loss(s: dict) -> str:
             )
         )
     if s["step"]:
-        parts.append(f"{a.get('loss')} through the decoder against the Monte Carlo values")
+        floor = float(a.get("grazing_floor", 1.0))
+        weighted = f", grazing pairs weighted (--grazing-floor {floor:g})" if floor < 1.0 else ""
+        parts.append(f"{a.get('loss')} through the decoder against the Monte Carlo values{weighted}")
     elif not decoded:
         parts.append("(stage 0 only: no step through the decoder)")
     return ", then ".join(parts)
@@ -1051,6 +1056,13 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--pairs", type=int, default=128, help="direction pairs per stack per step")
     t.add_argument("--lr", type=float, default=1e-3)
     t.add_argument("--clip", type=float, default=1.0)
+    t.add_argument(
+        "--grazing-floor",
+        type=float,
+        default=1.0,
+        help="< 1: each pair's loss term divided by max(min(cos_i, cos_o), FLOOR), so that grazing pairs count "
+        "like the lobe-image values they are (nets.pair_loss); 1: unweighted",
+    )
     t.add_argument("--loss", default="l2rel", choices=("l2rel", "l1log"))
     t.add_argument(
         "--weighting",

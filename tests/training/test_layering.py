@@ -263,3 +263,20 @@ def test_stage_two_trains_each_coating_count_with_an_equal_share_of_the_batch(tm
     assert [f"--coatings {c}" in d for d, c in zip(data, (1, 2, 3), strict=True)] == [True] * 3
     with pytest.raises(ValueError, match="--c3"):
         lay.coating_data(lay.parser().parse_args(["train", "--out", str(tmp_path / "x")]), 3)
+
+
+def test_layering_loss_weights_grazing_pairs_as_the_pair_loss_does():
+    from onnx_export.nets import pair_loss
+
+    grazing, steep = np.radians(86.0), np.radians(20.0)
+    wi = torch.tensor([[np.sin(grazing), 0.0, np.cos(grazing)], [np.sin(steep), 0.0, np.cos(steep)]]).float()
+    wo = torch.tensor([[0.0, 0.6, 0.8], [0.0, 0.6, 0.8]])
+    pred, target = torch.tensor([0.5, 0.5]), torch.tensor([0.25, 0.25])
+    plain = lay.layering_loss(pred, target, wi, wo, None, "l2rel")
+    floored = lay.layering_loss(pred, target, wi, wo, None, "l2rel", grazing_floor=0.1)
+    assert floored.item() == pytest.approx(pair_loss(pred, target, wi, wo, "l2rel", 0.1).mean().item())
+    assert plain.item() == pytest.approx(pair_loss(pred, target, wi, wo, "l2rel").mean().item())
+    assert floored > plain  # the grazing pair's term is divided by its floored cosine, squared
+    args = lay.parser().parse_args(["train", "--grazing-floor", "0.1", "--out", "x"])
+    card = {"args": {k: str(v) for k, v in vars(args).items()}, "history": {}, "step": 10}
+    assert "--grazing-floor 0.1" in lay.training_loss(card)
