@@ -258,7 +258,7 @@ def coating_data(args, c: int) -> Path:
     """The data directory of ``layering train`` with ``c`` coatings (``--c1``, ``--c2``, ``--c3``)."""
     path = {1: args.c1, 2: args.c2, 3: getattr(args, "c3", None)}.get(c)
     if path is None:
-        raise ValueError(f"no data of stacks with {c} coatings: give --c{c}" if c == 3 else f"no --c{c} data")
+        raise ValueError(f"no data of stacks with {c} coatings: give --c{c} (layering train takes --c1 to --c3)")
     return Path(path)
 
 
@@ -802,13 +802,12 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
             lr = cosine_lr(step, args.steps, args.lr)
         for g in opt.param_groups:
             g["lr"] = lr
-        if stage2:
-            for c in recursion_counts(args):
+        if stage2:  # equal shares of the batch: the recursion (2, 3 coatings), and one coating (keep stage 1)
+            deeper = recursion_counts(args)
+            for c in deeper:
                 if c not in sets:
                     sets[c] = stack_set(args, models, coating_data(args, c))
                     log(f"stage 2: {sets[c].n} stacks with {c} coatings")
-        if stage2:  # equal shares of the batch: the recursion (2, 3 coatings), and one coating (keep stage 1)
-            deeper = recursion_counts(args)
             share = args.batch // (len(deeper) + 1)
             parts = [sets[c].batch(net, dec, share, args.pairs, gen, procs) for c in deeper]
             parts.append(sets[1].batch(net, dec, args.batch - share * len(deeper), args.pairs, gen, procs))
