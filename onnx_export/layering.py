@@ -267,6 +267,26 @@ def recursion_counts(args) -> list[int]:
     return [2, 3] if getattr(args, "c3", None) else [2]
 
 
+def stage2_shares(args) -> dict[int, tuple[int, float]]:
+    """Stacks per batch and loss weight of each coating count in stage 2, the recursion's counts first:
+    equal shares, or ``--c3-share`` of the batch (and of the loss) for three coatings and the rest split
+    equally between one and two."""
+    deeper = recursion_counts(args)
+    share3 = getattr(args, "c3_share", None)
+    if share3 is None:
+        n = args.batch // (len(deeper) + 1)
+        sizes = {c: n for c in deeper} | {1: args.batch - n * len(deeper)}
+        return {c: (b, 1.0 / len(sizes)) for c, b in sizes.items()}
+    if 3 not in deeper:
+        raise ValueError("--c3-share needs --c3")
+    if not 0.0 < share3 < 1.0:
+        raise ValueError(f"--c3-share must be in (0, 1), got {share3}")
+    n3 = max(1, round(args.batch * share3))
+    n2 = (args.batch - n3) // 2
+    rest = (1.0 - share3) / 2
+    return {2: (n2, rest), 3: (n3, share3), 1: (args.batch - n3 - n2, rest)}
+
+
 def stack_set(args, models: ModelSet, path: Path, stacks: int = 0, use_weight: bool | None = None) -> StackSet:
     """A StackSet of ``path`` for ``layering train``: its weighting (``--weighting``, unless ``use_weight``)
     and the decoder's design (``--remainder``, ``--top-transmission``) from ``args``."""
@@ -808,10 +828,13 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
                 if c not in sets:
                     sets[c] = stack_set(args, models, coating_data(args, c))
                     log(f"stage 2: {sets[c].n} stacks with {c} coatings")
-            share = args.batch // (len(deeper) + 1)
-            parts = [sets[c].batch(net, dec, share, args.pairs, gen, procs) for c in deeper]
-            parts.append(sets[1].batch(net, dec, args.batch - share * len(deeper), args.pairs, gen, procs))
-            loss = sum(layering_loss(*p, args.loss, procs, args.grazing_floor) for p in parts) / len(parts)
+            loss = sum(
+                w
+                * layering_loss(
+                    *sets[c].batch(net, dec, b, args.pairs, gen, procs), args.loss, procs, args.grazing_floor
+                )
+                for c, (b, w) in stage2_shares(args).items()
+            )
         else:
             part = sets[1].batch(net, dec, args.batch, args.pairs, gen, procs)
             loss = layering_loss(*part, args.loss, procs, args.grazing_floor)
@@ -1036,6 +1059,13 @@ def parser() -> argparse.ArgumentParser:
         default=None,
         help="stacks with three coatings (onnx_export.layered_data --coatings 3): stage 2 trains the recursion "
         "three deep as well",
+    )
+    t.add_argument(
+        "--c3-share",
+        type=float,
+        default=None,
+        help="with --c3: this fraction of each stage-2 batch (and of its loss) has three coatings, the rest is "
+        "split equally between one and two (default: equal shares of the three)",
     )
     t.add_argument("--stacks", type=int, default=0, help="use only the first N one-coating stacks (0: all)")
     t.add_argument("--heldout", type=Path, default=Path("tests/data/heldout_layered.npz"))

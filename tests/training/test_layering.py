@@ -280,3 +280,22 @@ def test_layering_loss_weights_grazing_pairs_as_the_pair_loss_does():
     args = lay.parser().parse_args(["train", "--grazing-floor", "0.1", "--out", "x"])
     card = {"args": {k: str(v) for k, v in vars(args).items()}, "history": {}, "step": 10}
     assert "--grazing-floor 0.1" in lay.training_loss(card)
+
+
+def test_a_three_coating_share_sets_its_stacks_and_loss_weight_and_the_rest_is_split_evenly():
+    def shares(*extra):
+        return lay.stage2_shares(lay.parser().parse_args(["train", "--batch", "8", *extra, "--out", "x"]))
+
+    assert shares() == {2: (4, 0.5), 1: (4, 0.5)}
+    assert shares("--c3", "c3") == {
+        2: (2, pytest.approx(1 / 3)),
+        3: (2, pytest.approx(1 / 3)),
+        1: (4, pytest.approx(1 / 3)),
+    }
+    assert shares("--c3", "c3", "--c3-share", "0.25") == {2: (3, 0.375), 3: (2, 0.25), 1: (3, 0.375)}
+    for c, (b, w) in shares("--c3", "c3", "--c3-share", "0.1").items():
+        assert b >= 1 and w > 0, (c, b, w)  # a small share still draws one stack
+    with pytest.raises(ValueError, match="needs --c3"):
+        shares("--c3-share", "0.2")
+    with pytest.raises(ValueError, match=r"must be in \(0, 1\)"):
+        shares("--c3", "c3", "--c3-share", "1.0")
