@@ -283,6 +283,8 @@ def stage2_shares(args) -> dict[int, tuple[int, float]]:
         raise ValueError(f"--c3-share must be in (0, 1), got {share3}")
     n3 = max(1, round(args.batch * share3))
     n2 = (args.batch - n3) // 2
+    if n2 < 1:
+        raise ValueError(f"--batch {args.batch} leaves no stacks with one or two coatings at --c3-share {share3}")
     rest = (1.0 - share3) / 2
     return {2: (n2, rest), 3: (n3, share3), 1: (args.batch - n3 - n2, rest)}
 
@@ -667,6 +669,8 @@ def decoded_stage_data(args, models: ModelSet, sets: dict) -> tuple[dict, dict]:
 def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to be cut into stages)
     from onnx_export.heldout_layered import load as load_heldout
 
+    if args.finetune:
+        stage2_shares(args)  # a bad --c3-share fails now, not after stage 1
     procs = processes()
     log = quiet_unless_main(log, procs)
     torch.set_num_threads(args.threads)

@@ -299,3 +299,12 @@ def test_a_three_coating_share_sets_its_stacks_and_loss_weight_and_the_rest_is_s
         shares("--c3-share", "0.2")
     with pytest.raises(ValueError, match=r"must be in \(0, 1\)"):
         shares("--c3", "c3", "--c3-share", "1.0")
+
+
+def test_a_bad_three_coating_share_fails_before_any_training_step(tmp_path):
+    args = lay.parser().parse_args(
+        ["train", "--c3", "c3", "--c3-share", "0.9", "--batch", "3", "--finetune", "5", "--out", str(tmp_path / "r")]
+    )
+    with pytest.raises(ValueError, match="leaves no stacks with one or two coatings"):
+        lay.train(args, log=lambda s: None)
+    assert not (tmp_path / "r").exists()  # nothing was loaded, trained or written
