@@ -67,11 +67,13 @@ PACKAGES: list[tuple[str, str]] = [
     ("flatbuffers", "a dependency of onnxruntime"),
     ("protobuf", "a dependency of onnxruntime"),
     ("embreex", "the path tracer's ray casting; there is no fallback ray caster"),
+    ("numba", "the renderer's compiled loops (addon/core/kernels.py)"),
+    ("llvmlite", "numba's compiler"),
 ]
 # A pure-Python wheel every platform gets: when even this cannot be downloaded, the package index
 # is unreachable (pip's own connection errors are not always printed).
 PROBE = "packaging"
-PINNED_FROM_ENV = ("onnxruntime", "embreex")  # ship the versions the tests run against
+PINNED_FROM_ENV = ("onnxruntime", "embreex", "numba", "llvmlite")  # ship the versions the tests run against
 NEVER_BUNDLE = ("numpy",)
 
 

@@ -24,7 +24,9 @@ from typing import Callable
 
 import numpy as np
 
+from .. import kernels
 from ..bsdf import frame
+from ..kernels import texture_footprint  # noqa: F401  (the renderer's footprint, re-exported)
 from ..neural import session
 from ..neural.calibrate import check_mode as calibrate_mode
 from . import materials as mat
@@ -185,13 +187,6 @@ def uv_scale(mesh) -> np.ndarray:
     return np.sqrt(a_uv / np.maximum(mesh.areas, 1e-30))
 
 
-def texture_footprint(width, cos_o, tri_uv_scale) -> np.ndarray:
-    """Footprint in uv units of a ray cone of ``width`` (world units) hitting a surface at
-    |cos| ``cos_o`` (floored at 0.05: grazing hits do not blow up) on triangles of uv scale
-    ``tri_uv_scale``: the width stretched by 1 / sqrt(cos) (the mean of its two axes)."""
-    return width / np.sqrt(np.maximum(np.abs(cos_o), 0.05)) * tri_uv_scale
-
-
 def camera_hits(scene: Scene, px, py) -> tuple[np.ndarray, np.ndarray]:
     """Primary rays through the centres of pixels (``px``, ``py``): the triangle each hits (-1 for
     none) and the texture footprint there (uv units; ``inf`` on a miss or a triangle without uvs),
@@ -203,15 +198,33 @@ def camera_hits(scene: Scene, px, py) -> tuple[np.ndarray, np.ndarray]:
     if not scene.mesh.triangle_count or not len(px):
         return np.full(len(px), -1, dtype=np.int64), fp
     o, d = cam.generate_rays(px, py, np.full((len(px), 2), 0.5))
-    t, prim, _, _ = Tracer(scene.mesh).intersect(o, d, RenderStats())
+    t, prim, bu, bv = Tracer(scene.mesh).intersect(o, d, RenderStats())
     prim = np.asarray(prim, dtype=np.int64)
-    hit = prim >= 0
-    if hit.any():
-        ng = scene.mesh.face_normals[prim[hit]].astype(np.float64)
-        cos_o = frame.dot(ng, d[hit])
-        f = texture_footprint(t[hit] * cam.pixel_spread, cos_o, uv_scale(scene.mesh)[prim[hit]])
+    hit = np.flatnonzero(prim >= 0)
+    if len(hit):
+        corners, face_normals, tri_uv_scale = _triangle_arrays(scene.mesh)
+        f = kernels.surface_hits(
+            corners,
+            face_normals,
+            tri_uv_scale,
+            prim[hit],
+            bu[hit],
+            bv[hit],
+            d[hit],
+            t[hit],
+            np.zeros(len(hit)),
+            np.full(len(hit), cam.pixel_spread),
+        )[5]
         fp[hit] = np.where(f > 0, f, np.inf)
     return prim, fp
+
+
+def _triangle_arrays(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-triangle geometry in float64, as ``kernels.surface_hits`` reads it: the corners' position,
+    normal and uv side by side (T, 3, 8), the face normals (T, 3) and the uv scale (T,)."""
+    uvs = np.zeros((mesh.triangle_count, 3, 2)) if mesh.uvs is None else mesh.uvs
+    corners = np.ascontiguousarray(np.concatenate([mesh.positions, mesh.normals, uvs], axis=2), dtype=np.float64)
+    return corners, np.ascontiguousarray(mesh.face_normals, dtype=np.float64), uv_scale(mesh)
 
 
 class _Context:
@@ -247,14 +260,8 @@ class _Context:
             self.eps = 1e-4 * (1.0 + float(np.abs(p).max()))
         else:
             self.eps = 1e-4
-        self.uv_scale = uv_scale(m)
         self.material_of_triangle = np.asarray(m.material_index, dtype=np.int64)
-        # Per-triangle geometry in float64 once, so a bounce gathers without converting; the
-        # corners' position, normal and uv side by side (T, 3, 8), so a bounce gathers and
-        # interpolates them in one step each.
-        self.face_normals = m.face_normals.astype(np.float64)
-        uvs = np.zeros((m.triangle_count, 3, 2)) if m.uvs is None else m.uvs
-        self.corners = np.concatenate([m.positions, m.normals, uvs], axis=2).astype(np.float64)
+        self.corners, self.face_normals, self.uv_scale = _triangle_arrays(m)
 
     def light_weight(self, pdf_light_solid, prev_pdf, prev_delta, prev_mis):
         """Weight of emission found by BSDF sampling."""
@@ -476,21 +483,11 @@ def _surface_hits(ctx: _Context, paths: _Paths, t, prim, bu, bv, groups) -> _Hit
     facing the viewer (shading normals that disagree with the geometry fall back to it); the
     ray cone grown to the hit and its footprint in texture space. ``groups``: the rows of each
     material (the rays come sorted by material)."""
-    bary = np.stack([1.0 - bu - bv, bu, bv], axis=1)
-    at_hit = np.einsum("ij,ijk->ik", bary, ctx.corners[prim])  # position, normal, uv
-    p = at_hit[:, 0:3]
-    ng = ctx.face_normals[prim]
-    ns = frame.normalize(at_hit[:, 3:6])
-    ns = np.where((frame.dot(ns, ng) > 0)[:, None], ns, ng)  # inconsistent or zero: use ng
-    wo_w = -paths.d
-    side = np.where(frame.dot(ng, wo_w) >= 0, 1.0, -1.0)[:, None]
-    ng, ns = ng * side, ns * side
-    ns = np.where((frame.dot(ns, wo_w) > 1e-6)[:, None], ns, ng)  # grazing: fall back to ng
+    p, ng, ns, uv, paths.width, footprint = kernels.surface_hits(
+        ctx.corners, ctx.face_normals, ctx.uv_scale, prim, bu, bv, paths.d, t, paths.width, paths.spread
+    )
     ts, tt = frame.coordinate_system(ns)
-    wo = frame.to_local(wo_w, ts, tt, ns)
-    uv = at_hit[:, 6:8]
-    paths.width = paths.width + paths.spread * t
-    footprint = texture_footprint(paths.width, frame.dot(ng, wo_w), ctx.uv_scale[prim])
+    wo = frame.to_local(-paths.d, ts, tt, ns)
     return _Hits(p, ng, ns, ts, tt, wo, uv, footprint, groups)
 
 

@@ -21,7 +21,7 @@ import numpy as np
 from ..neural.top_lobe import NO_TOP
 from ..stack import LATENT as LATENT_DIM
 from . import files
-from .mip import build_mip_chain, trilinear_lookup
+from .mip import MipChain, build_mip_chain, trilinear_lookup
 
 CHANNELS = 3
 LATENT_CHANNELS = [f"z.{c}.{i:02d}" for c in "RGB" for i in range(LATENT_DIM)]
@@ -99,10 +99,14 @@ def read_image_file(path: str | os.PathLike) -> tuple[np.ndarray, bool, str, int
 
 @dataclass
 class LatentTexture:
-    """A mip chain of (H, W, 100) latent texels; ``levels[0]`` is the finest."""
+    """A mip chain of (H, W, 100) latent texels; ``levels[0]`` is the finest (held as a ``MipChain``)."""
 
     levels: list[np.ndarray]
     metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if not isinstance(self.levels, MipChain):
+            self.levels = MipChain(self.levels)
 
     @classmethod
     def from_texels(cls, texels: np.ndarray, metadata: dict | None = None) -> "LatentTexture":

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import kernels
+
 
 def box_weights(n: int, m: int | None = None) -> np.ndarray:
     """(m, n) matrix averaging n texels into m (default max(1, n // 2)) by area (rows sum to 1)."""
@@ -52,47 +54,38 @@ def resample_area(image: np.ndarray, height: int, width: int) -> np.ndarray:
     return _reduce_rows(tmp.transpose(1, 0, 2), box_weights(w, width)).transpose(1, 0, 2)
 
 
-def build_mip_chain(base: np.ndarray) -> list[np.ndarray]:
-    """All levels from ``base`` (H, W, C) down to 1 x 1, as float32 arrays."""
+class MipChain(list):
+    """The levels of a mip chain (finest first, each (H, W, C) float32) as views into one flat buffer,
+    which the compiled lookup reads: ``flat``, each level's ``offsets`` into it, ``heights`` and
+    ``widths``. Writing into a level writes into the buffer."""
+
+    def __init__(self, levels):
+        levels = [np.asarray(level, dtype=np.float32) for level in levels]
+        if not levels or any(level.ndim != 3 for level in levels):
+            raise ValueError("a mip chain needs one or more (H, W, C) levels")
+        if len({level.shape[2] for level in levels}) != 1:
+            raise ValueError(f"the levels of a mip chain need one channel count, got {[lv.shape for lv in levels]}")
+        sizes = [level.size for level in levels]
+        self.flat = np.empty(sum(sizes), dtype=np.float32)
+        self.offsets = np.concatenate([[0], np.cumsum(sizes[:-1])]).astype(np.int64)
+        self.heights = np.array([level.shape[0] for level in levels], dtype=np.int64)
+        self.widths = np.array([level.shape[1] for level in levels], dtype=np.int64)
+        views = []
+        for level, start in zip(levels, self.offsets, strict=True):
+            view = self.flat[start : start + level.size].reshape(level.shape)
+            view[...] = level
+            views.append(view)
+        super().__init__(views)
+
+
+def build_mip_chain(base: np.ndarray) -> MipChain:
+    """All levels from ``base`` (H, W, C) down to 1 x 1, float32, in one :class:`MipChain`."""
     if base.ndim != 3 or base.shape[0] < 1 or base.shape[1] < 1:
         raise ValueError(f"a mip chain needs an (H, W, C) array, got shape {base.shape}")
     levels = [np.ascontiguousarray(base, dtype=np.float32)]
     while levels[-1].shape[0] > 1 or levels[-1].shape[1] > 1:
-        # float32: the texture is stored as half floats; contiguous, so a lookup's flat view is no copy
-        levels.append(np.ascontiguousarray(downsample(levels[-1])))
-    return levels
-
-
-def _bilinear(level: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Bilinear lookup (N, C) float32 with repeat addressing; uv (N, 2) with v = 0 at the bottom row.
-
-    The four taps are gathered as rows of the level flattened to (H * W, C) and blended with float32
-    weights: the texture is stored as half floats, so float64 arithmetic would only double the
-    memory traffic of the renderer's widest arrays (98 channels per hit for a latent texture)."""
-    h, w, c = level.shape
-    flat = level.reshape(h * w, c)  # a view: the chain's levels are contiguous (build_mip_chain)
-    x = uv[:, 0] * w - 0.5
-    y = (1.0 - uv[:, 1]) * h - 0.5  # row 0 is the top of the image
-    x0 = np.floor(x)
-    y0 = np.floor(y)
-    fx = (x - x0).astype(np.float32)[:, None]
-    fy = (y - y0).astype(np.float32)[:, None]
-    x0 = x0.astype(np.int64) % w
-    y0 = y0.astype(np.int64) % h
-    x1 = (x0 + 1) % w
-    r0 = y0 * w
-    r1 = ((y0 + 1) % h) * w
-    gx = 1.0 - fx
-    out = flat.take(r0 + x0, axis=0).astype(np.float32, copy=False)
-    out *= gx
-    out += flat.take(r0 + x1, axis=0) * fx
-    out *= 1.0 - fy
-    bottom = flat.take(r1 + x0, axis=0).astype(np.float32, copy=False)
-    bottom *= gx
-    bottom += flat.take(r1 + x1, axis=0) * fx
-    bottom *= fy
-    out += bottom
-    return out
+        levels.append(downsample(levels[-1]))  # float32: the texture is stored as half floats
+    return MipChain(levels)
 
 
 def mip_level_for_footprint(footprint: np.ndarray, width: int, height: int, n_levels: int) -> np.ndarray:
@@ -102,10 +95,15 @@ def mip_level_for_footprint(footprint: np.ndarray, width: int, height: int, n_le
 
 
 def trilinear_lookup(levels: list[np.ndarray], uv: np.ndarray, footprint: np.ndarray | float) -> np.ndarray:
-    """Trilinear lookup (N, C) at uv (N, 2) with footprint (N,) or scalar in uv units.
+    """Trilinear lookup (N, C) float32 at uv (N, 2) (v = 0 at the bottom row, repeat addressing) with
+    footprint (N,) or scalar in uv units.
 
-    The level is log2 of the footprint in texels of level 0; the two nearest levels are looked
-    up bilinearly and blended. Non-finite uv or footprints raise ``ValueError``.
+    The level is log2 of the footprint in texels of level 0; the two nearest levels are looked up
+    bilinearly and blended, in float32 (the texture is stored as half floats: float64 arithmetic would
+    only double the memory traffic of the renderer's widest arrays, 100 channels per hit for a latent
+    texture), in one compiled pass over the rows (``kernels.trilinear``). ``levels`` is best a
+    :class:`MipChain` (what :func:`build_mip_chain` returns): any other list is packed on every call.
+    Non-finite uv or footprints raise ``ValueError``.
     """
     uv = np.asarray(uv, dtype=np.float64)
     if uv.ndim != 2 or uv.shape[1] != 2:
@@ -113,26 +111,9 @@ def trilinear_lookup(levels: list[np.ndarray], uv: np.ndarray, footprint: np.nda
     fp = np.broadcast_to(np.asarray(footprint, dtype=np.float64), (uv.shape[0],))
     if not (np.isfinite(uv).all() and np.isfinite(fp).all()):
         raise ValueError("uv and footprint must be finite")
-    h, w, c = levels[0].shape
-    lod = mip_level_for_footprint(fp, w, h, len(levels))
-    lo = np.floor(lod).astype(np.int64)
-    t = (lod - lo).astype(np.float32)[:, None]
-    if len(lo) == 0:
-        return np.zeros((0, c), dtype=np.float32)
-    if (lo == lo[0]).all():  # one pair of levels for every row: no gather and scatter of rows
-        return _blend(levels, int(lo[0]), uv, t)
-    out = np.empty((uv.shape[0], c), dtype=np.float32)
-    for k in np.unique(lo):  # a loop over mip levels, not texels
-        sel = np.flatnonzero(lo == k)
-        out[sel] = _blend(levels, int(k), uv[sel], t[sel])
+    chain = levels if isinstance(levels, MipChain) else MipChain(levels)
+    h, w, c = chain[0].shape
+    lod = mip_level_for_footprint(fp, w, h, len(chain))
+    out = np.zeros((uv.shape[0], c), dtype=np.float32)
+    kernels.trilinear(chain.flat, chain.offsets, chain.heights, chain.widths, c, uv, lod, out)
     return out
-
-
-def _blend(levels: list[np.ndarray], k: int, uv: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Level ``k`` and the next one (the last level: itself) looked up at uv, mixed by ``t`` (N, 1)."""
-    a = _bilinear(levels[k], uv)
-    if k + 1 >= len(levels):
-        return a
-    a *= 1.0 - t
-    a += _bilinear(levels[k + 1], uv) * t
-    return a
