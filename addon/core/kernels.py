@@ -132,3 +132,333 @@ def surface_hits(corners, face_normals, uv_scale, prim, bu, bv, d, t, width, spr
         width_out[i] = w
         footprint[i] = texture_footprint(w, cos_g, uv_scale[k])
     return p, ng, ns, uv, width_out, footprint
+
+
+# --- lights ------------------------------------------------------------------------------------
+#
+# Every light the renderer samples is a row of a light table: its kind and 16 float parameters
+# (``lights.Light.table_row``). The environment's image, pixel probabilities and cdf travel beside
+# the table (empty for a scene without an image).
+
+POINT, SPOT, SUN, AREA_RECT, AREA_ELLIPSE, ENV_CONSTANT, ENV_IMAGE = range(7)
+N_PARAMS = 16
+_INV_4PI = 1.0 / (4.0 * math.pi)
+
+
+@njit(inline="always", **_JIT)
+def _equirect_uv(x, y, z):
+    """Blender's equirectangular mapping: world direction -> (u, v) in [0, 1]^2, v = 1 at +z."""
+    return -math.atan2(y, x) / (2.0 * math.pi) + 0.5, math.atan2(z, math.hypot(x, y)) / math.pi + 0.5
+
+
+@njit(inline="always", **_JIT)
+def _equirect_direction(u, v):
+    phi = -(u - 0.5) * 2.0 * math.pi
+    el = (v - 0.5) * math.pi
+    c = math.cos(el)
+    return c * math.cos(phi), c * math.sin(phi), math.sin(el)
+
+
+@njit(**_JIT)
+def equirect_uv(d):
+    """(N, 2) equirectangular uv of world directions d (N, 3)."""
+    out = np.empty((len(d), 2))
+    for i in range(len(d)):
+        out[i, 0], out[i, 1] = _equirect_uv(d[i, 0], d[i, 1], d[i, 2])
+    return out
+
+
+@njit(**_JIT)
+def equirect_direction(uv):
+    """(N, 3) world directions of equirectangular uv (N, 2)."""
+    out = np.empty((len(uv), 3))
+    for i in range(len(uv)):
+        out[i, 0], out[i, 1], out[i, 2] = _equirect_direction(uv[i, 0], uv[i, 1])
+    return out
+
+
+@njit(inline="always", **_JIT)
+def _env_pdf(pixel_p, h, w, y, x, dx, dy):
+    """Solid-angle pdf of the environment's sampling inside pixel (y, x) toward (dx, dy, .)."""
+    sin_t = max(math.hypot(dx, dy), 1e-8)
+    return pixel_p[y * w + x] * (w * h) / (2.0 * math.pi * math.pi * sin_t)
+
+
+@njit(inline="always", **_JIT)
+def _env_lookup(kind, prm, image, pixel_p, dx, dy, dz):
+    """Radiance arriving from world direction (dx, dy, dz) and the pdf of sampling it."""
+    if kind == ENV_CONSTANT:
+        return prm[3], prm[4], prm[5], _INV_4PI
+    h, w = image.shape[0], image.shape[1]
+    u, v = _equirect_uv(dx, dy, dz)
+    x = min(max(int(u * w), 0), w - 1)
+    y = min(max(int((1.0 - v) * h), 0), h - 1)
+    return image[y, x, 0], image[y, x, 1], image[y, x, 2], _env_pdf(pixel_p, h, w, y, x, dx, dy)
+
+
+@njit(**_JIT)
+def environment_radiance(kind, prm, image, pixel_p, d):
+    """Radiance (N, 3) from world directions d (N, 3) and the solid-angle pdf (N,) of sampling them."""
+    n = len(d)
+    rad = np.empty((n, 3))
+    pdf = np.empty(n)
+    for i in range(n):
+        rad[i, 0], rad[i, 1], rad[i, 2], pdf[i] = _env_lookup(kind, prm, image, pixel_p, d[i, 0], d[i, 1], d[i, 2])
+    return rad, pdf
+
+
+@njit(inline="always", **_JIT)
+def _sample_light(kind, prm, image, pixel_p, cdf, px, py, pz, u0, u1):
+    """One sample of a light from point (px, py, pz): direction toward it (unit), distance (inf for
+    the sun and the environment), arriving radiance (for delta lights the intensity / distance^2 or
+    the irradiance), solid-angle pdf (1 for delta lights) and whether it is a delta light."""
+    inf = np.inf
+    if kind == POINT or kind == SPOT:
+        dx, dy, dz = prm[0] - px, prm[1] - py, prm[2] - pz
+        dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+        safe = max(dist, 1e-9)
+        wx, wy, wz = dx / safe, dy / safe, dz / safe
+        mask = 1.0
+        if kind == SPOT:  # Blender's smoothstep over the cone's edge
+            c = -(wx * prm[6] + wy * prm[7] + wz * prm[8])
+            cos_edge, smooth = prm[9], prm[10]
+            if smooth <= 0.0:
+                mask = 1.0 if c > cos_edge else 0.0
+            else:
+                s = min(max((c - cos_edge) / smooth, 0.0), 1.0)
+                mask = s * s * (3.0 - 2.0 * s)
+        scale = mask / max(safe, 1e-4) ** 2
+        return wx, wy, wz, dist, prm[3] * scale, prm[4] * scale, prm[5] * scale, 1.0, True
+    if kind == SUN:
+        return prm[0], prm[1], prm[2], inf, prm[3], prm[4], prm[5], 1.0, True
+    if kind == AREA_RECT or kind == AREA_ELLIPSE:
+        a = 2.0 * u0 - 1.0
+        b = 2.0 * u1 - 1.0
+        if kind == AREA_ELLIPSE:  # concentric square-to-disk map (uniform area density)
+            if abs(a) > abs(b):
+                r, phi = a, (math.pi / 4.0) * b / a
+            else:
+                r, phi = b, math.pi / 2.0 - (math.pi / 4.0) * a / (b if b != 0.0 else 1.0)
+            a, b = r * math.cos(phi), r * math.sin(phi)
+        dx = prm[0] + a * prm[3] + b * prm[6] - px
+        dy = prm[1] + a * prm[4] + b * prm[7] - py
+        dz = prm[2] + a * prm[5] + b * prm[8] - pz
+        dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+        safe = max(dist, 1e-9)
+        wx, wy, wz = dx / safe, dy / safe, dz / safe
+        cos_l = -(wx * prm[9] + wy * prm[10] + wz * prm[11])
+        if cos_l > 1e-8:
+            return wx, wy, wz, dist, prm[12], prm[13], prm[14], safe * safe / (cos_l * prm[15]), False
+        return wx, wy, wz, dist, 0.0, 0.0, 0.0, 0.0, False
+    if kind == ENV_CONSTANT:
+        z = 1.0 - 2.0 * u0
+        r = math.sqrt(max(0.0, 1.0 - z * z))
+        phi = 2.0 * math.pi * u1
+        return r * math.cos(phi), r * math.sin(phi), z, inf, prm[3], prm[4], prm[5], _INV_4PI, False
+    # ENV_IMAGE: one uniform picks the pixel through the cdf, the second jitters inside it; the
+    # direction lies inside the chosen pixel, so its radiance and density are that pixel's.
+    h, w = image.shape[0], image.shape[1]
+    idx = min(np.searchsorted(cdf, u0, side="right"), h * w - 1)
+    lo = cdf[idx - 1] if idx > 0 else 0.0
+    width = max(cdf[idx] - lo, 1e-300)
+    fx = min(max((u0 - lo) / width, 0.0), 1.0 - 1e-9)
+    y, x = idx // w, idx % w
+    wx, wy, wz = _equirect_direction((x + fx) / w, 1.0 - (y + u1) / h)
+    pdf = _env_pdf(pixel_p, h, w, y, x, wx, wy)
+    return wx, wy, wz, inf, image[y, x, 0], image[y, x, 1], image[y, x, 2], pdf, False
+
+
+@njit(**_JIT)
+def sample_light(kind, prm, image, pixel_p, cdf, p, u):
+    """One light's samples from points p (N, 3) with uniforms u (N, 2): directions (N, 3), distances,
+    radiance (N, 3), pdfs (the fields of ``lights.LightSample``, its delta flag aside)."""
+    n = len(p)
+    wi = np.empty((n, 3))
+    dist = np.empty(n)
+    rad = np.empty((n, 3))
+    pdf = np.empty(n)
+    for i in range(n):
+        wi[i, 0], wi[i, 1], wi[i, 2], dist[i], rad[i, 0], rad[i, 1], rad[i, 2], pdf[i], _ = _sample_light(
+            kind, prm, image, pixel_p, cdf, p[i, 0], p[i, 1], p[i, 2], u[i, 0], u[i, 1]
+        )
+    return wi, dist, rad, pdf
+
+
+@njit(**_JIT)
+def sample_lights(kinds, params, image, pixel_p, cdf, p, ng, u, eps):
+    """Next-event estimation's light samples: one light of the table per hit, chosen uniformly by
+    u[:, 0] (its remainder is not reused), a point on it from u[:, 1:3]. Returns the world direction
+    (N, 3), radiance (N, 3), pdf, delta flag, the cosine to the geometric normal ``ng``, whether the
+    sample can contribute at all (``useful``: pdf, radiance and that cosine non-zero), and the shadow
+    ray: origin offset by ``eps`` off the surface on the light's side, and its length (inf to the
+    sun or the sky; else short of the light by a relative 1e-4 and ``eps``)."""
+    n = len(p)
+    n_lights = len(kinds)
+    wi = np.empty((n, 3))
+    rad = np.empty((n, 3))
+    pdf = np.empty(n)
+    delta = np.empty(n, dtype=np.bool_)
+    cos_g = np.empty(n)
+    useful = np.empty(n, dtype=np.bool_)
+    org = np.empty((n, 3))
+    tmax = np.empty(n)
+    for i in range(n):
+        j = min(int(u[i, 0] * n_lights), n_lights - 1)
+        wx, wy, wz, dist, r0, r1, r2, pd, dl = _sample_light(
+            kinds[j], params[j], image, pixel_p, cdf, p[i, 0], p[i, 1], p[i, 2], u[i, 1], u[i, 2]
+        )
+        c = wx * ng[i, 0] + wy * ng[i, 1] + wz * ng[i, 2]
+        wi[i, 0], wi[i, 1], wi[i, 2] = wx, wy, wz
+        rad[i, 0], rad[i, 1], rad[i, 2] = r0, r1, r2
+        pdf[i], delta[i], cos_g[i] = pd, dl, c
+        useful[i] = pd > 0.0 and max(r0, r1, r2) > 0.0 and c != 0.0
+        off = eps if c > 0.0 else (-eps if c < 0.0 else 0.0)
+        for k in range(3):
+            org[i, k] = p[i, k] + ng[i, k] * off
+        tmax[i] = np.inf if math.isinf(dist) else dist * (1.0 - 1e-4) - eps
+    return wi, rad, pdf, delta, cos_g, useful, org, tmax
+
+
+@njit(inline="always", **_JIT)
+def _intersect_area(prm, ellipse, ox, oy, oz, dx, dy, dz):
+    """Distance along a unit ray to an area light's emitting side (inf where missed) and the
+    solid-angle pdf of sampling that point."""
+    nx, ny, nz = prm[9], prm[10], prm[11]
+    denom = dx * nx + dy * ny + dz * nz
+    height = (prm[0] - ox) * nx + (prm[1] - oy) * ny + (prm[2] - oz) * nz
+    # Only rays arriving against the emitting normal, from its lit side, can hit it.
+    if not (denom < -1e-12 and height < 0.0):
+        return np.inf, 0.0
+    t = height / denom
+    qx, qy, qz = ox + t * dx - prm[0], oy + t * dy - prm[1], oz + t * dz - prm[2]
+    a = (qx * prm[3] + qy * prm[4] + qz * prm[5]) / (prm[3] * prm[3] + prm[4] * prm[4] + prm[5] * prm[5])
+    b = (qx * prm[6] + qy * prm[7] + qz * prm[8]) / (prm[6] * prm[6] + prm[7] * prm[7] + prm[8] * prm[8])
+    inside = (a * a + b * b <= 1.0) if ellipse else (abs(a) <= 1.0 and abs(b) <= 1.0)
+    if not (inside and t > 1e-6):
+        return np.inf, 0.0
+    return t, t * t / (-denom * prm[15])
+
+
+@njit(**_JIT)
+def intersect_area(prm, ellipse, o, d):
+    """:func:`_intersect_area` for rays o, d (N, 3): distances and pdfs (N,)."""
+    n = len(o)
+    t = np.empty(n)
+    pdf = np.empty(n)
+    for i in range(n):
+        t[i], pdf[i] = _intersect_area(prm, ellipse, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2])
+    return t, pdf
+
+
+# --- multiple importance sampling and path bookkeeping ------------------------------------------
+
+MIS, LIGHT_ONLY, BSDF_ONLY = range(3)  # the integrator's strategies, in its STRATEGIES order
+
+
+@njit(inline="always", **_JIT)
+def _power_heuristic(a, b):
+    a2, b2 = a * a, b * b
+    return a2 / (a2 + b2) if a2 + b2 > 0.0 else 0.0
+
+
+@njit(inline="always", **_JIT)
+def _emission_weight(strategy, p_select, pdf_light, prev_pdf, prev_delta, prev_mis):
+    """Weight of emission a BSDF-sampled ray finds, against next-event estimation's sample of it."""
+    if strategy == BSDF_ONLY:
+        return 1.0
+    if prev_delta:
+        return 1.0
+    if strategy == LIGHT_ONLY or not prev_mis:  # without a BSDF pdf, next-event estimation alone
+        return 0.0
+    return _power_heuristic(prev_pdf, p_select * pdf_light)
+
+
+@njit(**_JIT)
+def add_emission(
+    area_params, area_ellipse, env_kind, env_prm, image, pixel_p, strategy, p_select,
+    o, d, t, row, throughput, prev_pdf, prev_delta, prev_mis, L,
+):  # fmt: skip
+    """Add to ``L[row]`` the emission rays (o, d) reach before distance ``t``: every area light in
+    front of the surface, and the environment where the ray escapes (t = inf; ``env_kind`` < 0: no
+    environment), each weighted by how the ray was sampled (:func:`_emission_weight`)."""
+    for i in range(len(o)):
+        ox, oy, oz, dx, dy, dz = o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2]
+        r = row[i]
+        for j in range(len(area_params)):
+            tl, pdf_l = _intersect_area(area_params[j], area_ellipse[j], ox, oy, oz, dx, dy, dz)
+            if tl < t[i]:
+                w = _emission_weight(strategy, p_select, pdf_l, prev_pdf[i], prev_delta[i], prev_mis[i])
+                prm = area_params[j]
+                for k in range(3):
+                    L[r, k] += throughput[i, k] * prm[12 + k] * w
+        if env_kind >= 0 and math.isinf(t[i]):
+            r0, r1, r2, pdf_e = _env_lookup(env_kind, env_prm, image, pixel_p, dx, dy, dz)
+            w = _emission_weight(strategy, p_select, pdf_e, prev_pdf[i], prev_delta[i], prev_mis[i])
+            L[r, 0] += throughput[i, 0] * r0 * w
+            L[r, 1] += throughput[i, 1] * r1 * w
+            L[r, 2] += throughput[i, 2] * r2 * w
+
+
+@njit(**_JIT)
+def add_direct(L, row, throughput, f, cos_l, radiance, pdf_select, delta, pdf_bsdf, weighted):
+    """Add next-event estimation's contribution f |cos| L / pdf to ``L[row]``, with ``pdf_select`` the
+    light sample's pdf times the probability of choosing its light; ``weighted``: against BSDF
+    sampling by the power heuristic (``pdf_bsdf``), delta lights excepted."""
+    for i in range(len(row)):
+        w = 1.0
+        if weighted and not delta[i]:
+            w = _power_heuristic(pdf_select[i], pdf_bsdf[i])
+        s = cos_l[i] * w / pdf_select[i]
+        r = row[i]
+        for k in range(3):
+            L[r, k] += throughput[i, k] * f[i, k] * s * radiance[i, k]
+
+
+@njit(**_JIT)
+def continue_paths(wi, wi_z, weight, pdf, delta, mis, p, ng, row, throughput, width, spread, u_rr, roulette, eps):
+    """The next rays of the paths at a bounce: throughput times the sample weight, with Russian
+    roulette where ``roulette`` (survival probability the largest throughput component, clipped to
+    [0.05, 1], drawn against ``u_rr``; survivors reweighted by 1 / q); paths whose sample is zero or
+    would leave through the wrong side of the geometric surface (``wi`` world, ``wi_z`` its local z)
+    are dropped. The survivors' origins are offset by ``eps`` off the surface on their side, and a
+    non-specular bounce widens the ray cone's spread to at least 0.2.
+    Returns row, origin, direction, throughput, pdf, delta, mis, width, spread of the survivors."""
+    n = len(row)
+    keep = np.empty(n, dtype=np.bool_)
+    scale = np.empty(n)
+    side = np.empty(n)
+    count = 0
+    for i in range(n):
+        c = wi[i, 0] * ng[i, 0] + wi[i, 1] * ng[i, 1] + wi[i, 2] * ng[i, 2]
+        same_side = (c > 0.0 and wi_z[i] > 0.0) or (c < 0.0 and wi_z[i] < 0.0)
+        ok = max(weight[i, 0], weight[i, 1], weight[i, 2]) > 0.0 and same_side
+        s = 1.0
+        if ok and roulette:
+            q = max(throughput[i, 0] * weight[i, 0], throughput[i, 1] * weight[i, 1], throughput[i, 2] * weight[i, 2])
+            q = min(max(q, 0.05), 1.0)
+            ok = u_rr[i] < q
+            s = 1.0 / q
+        keep[i], scale[i], side[i] = ok, s, (eps if c > 0.0 else -eps)
+        count += ok
+    o_row = np.empty(count, dtype=row.dtype)
+    o_org = np.empty((count, 3))
+    o_dir = np.empty((count, 3))
+    o_thr = np.empty((count, 3))
+    o_pdf = np.empty(count)
+    o_delta = np.empty(count, dtype=np.bool_)
+    o_mis = np.empty(count, dtype=np.bool_)
+    o_width = np.empty(count)
+    o_spread = np.empty(count)
+    j = 0
+    for i in range(n):
+        if not keep[i]:
+            continue
+        o_row[j] = row[i]
+        for k in range(3):
+            o_org[j, k] = p[i, k] + ng[i, k] * side[i]
+            o_dir[j, k] = wi[i, k]
+            o_thr[j, k] = throughput[i, k] * weight[i, k] * scale[i]
+        o_pdf[j], o_delta[j], o_mis[j], o_width[j] = pdf[i], delta[i], mis[i], width[i]
+        o_spread[j] = spread[i] if delta[i] else max(spread[i], 0.2)
+        j += 1
+    return o_row, o_org, o_dir, o_thr, o_pdf, o_delta, o_mis, o_width, o_spread

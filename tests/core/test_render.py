@@ -128,6 +128,36 @@ def test_light_units_follow_blender_conventions():
     assert np.all(outside == 0)
 
 
+@pytest.mark.parametrize("ellipse", [False, True])
+def test_area_light_samples_are_what_its_intersection_finds(ellipse):
+    """The sampled points lie on the light (a ray toward each hits it at that distance, with the same
+    pdf), and E[L cos / pdf] over the samples is the light's irradiance as the intersection sees it
+    (uniform directions over the hemisphere as the estimator)."""
+    m = np.eye(4)
+    m[:3, :3] = [[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]  # local -z is world -x: it faces the origin
+    m[:3, 3] = (1.0, 0.2, 0.1)
+    light = AreaLight(m, power=50.0, size=0.8, size_y=0.5, ellipse=ellipse)
+    rng = np.random.default_rng(3)
+    n = 100_000
+    p = np.zeros((n, 3))
+    ls = light.sample(p, rng.random((n, 2)))
+    t, pdf = light.intersect(p, ls.wi)
+    assert np.all(ls.pdf > 0)
+    np.testing.assert_allclose(t, ls.dist, rtol=1e-9)
+    np.testing.assert_allclose(pdf, ls.pdf, rtol=1e-9)
+    # irradiance at the origin on a surface facing the light (normal +x), two ways
+    by_light = (ls.radiance[:, 0] * ls.wi[:, 0] / ls.pdf).mean()
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d[:, 0] = np.abs(d[:, 0])
+    t, _ = light.intersect(p, d)
+    by_rays = (np.isfinite(t) * light.radiance[0] * d[:, 0]).mean() * 2 * math.pi
+    assert abs(by_light / by_rays - 1) < 0.03
+    # rays from behind the light, or pointing away, miss it
+    assert np.isinf(light.intersect(np.array([[2.0, 0.2, 0.1]]), np.array([[-1.0, 0.0, 0.0]]))[0]).all()
+    assert np.isinf(light.intersect(np.zeros((1, 3)), np.array([[-1.0, 0.0, 0.0]]))[0]).all()
+
+
 def test_environment_importance_sampling_matches_its_pdf():
     env = Environment(image=env_image(), strength=2.0)
     rng = np.random.default_rng(0)

@@ -31,7 +31,7 @@ from ..neural import session
 from ..neural.calibrate import check_mode as calibrate_mode
 from . import materials as mat
 from .film import Film
-from .lights import AreaLight
+from .lights import NO_IMAGE, AreaLight
 from .scene import Scene
 
 STRATEGIES = ("mis", "light", "bsdf")
@@ -167,13 +167,6 @@ class Tracer:
         return np.asarray(r) != -1
 
 
-def _power_heuristic(a, b):
-    a2, b2 = a * a, b * b
-    with np.errstate(invalid="ignore", divide="ignore"):
-        w = a2 / (a2 + b2)
-    return np.where(a2 + b2 > 0, w, 0.0)
-
-
 def uv_scale(mesh) -> np.ndarray:
     """(triangles,) uv units per world unit of each triangle: sqrt(uv area / world area); 0 for a
     mesh without uvs (no texture footprint)."""
@@ -254,6 +247,18 @@ class _Context:
             nee += self.area + ([self.env] if self.env is not None else [])
         self.nee = nee
         self.p_select = 1.0 / len(nee) if nee else 0.0
+        # The light tables the kernels read: next-event estimation's lights, the area lights that
+        # rays can hit, the environment (kind -1: none) and its image arrays.
+        rows = [li.table_row() for li in nee]
+        self.nee_kinds = np.array([k for k, _ in rows], dtype=np.int64)
+        self.nee_params = np.array([r for _, r in rows]).reshape(len(rows), kernels.N_PARAMS)
+        self.area_params = np.array([li.table_row()[1] for li in self.area]).reshape(len(self.area), kernels.N_PARAMS)
+        self.area_ellipse = np.array([li.ellipse for li in self.area], dtype=np.bool_)
+        self.env_kind, self.env_params = (
+            self.env.table_row() if self.env is not None else (-1, np.zeros(kernels.N_PARAMS))
+        )
+        self.env_arrays = self.env.image_arrays() if self.env is not None else NO_IMAGE
+        self.strategy_code = STRATEGIES.index(settings.strategy)
         m = scene.mesh
         if m.triangle_count:
             p = m.positions.astype(np.float64)
@@ -262,18 +267,6 @@ class _Context:
             self.eps = 1e-4
         self.material_of_triangle = np.asarray(m.material_index, dtype=np.int64)
         self.corners, self.face_normals, self.uv_scale = _triangle_arrays(m)
-
-    def light_weight(self, pdf_light_solid, prev_pdf, prev_delta, prev_mis):
-        """Weight of emission found by BSDF sampling."""
-        s = self.settings.strategy
-        if s == "bsdf":
-            return np.ones_like(prev_pdf)
-        if s == "light":
-            return prev_delta.astype(np.float64)
-        w = _power_heuristic(prev_pdf, self.p_select * pdf_light_solid)
-        # Without a BSDF pdf (reference materials) next-event estimation alone carries it.
-        w = np.where(prev_mis, w, 0.0)
-        return np.where(prev_delta, 1.0, w)
 
 
 def render(
@@ -463,19 +456,17 @@ def _camera_paths(ctx: _Context, pix: np.ndarray, rng: np.random.Generator) -> _
     )
 
 
-def _add_emission(ctx: _Context, paths: _Paths, t: np.ndarray, miss: np.ndarray, L: np.ndarray) -> None:
-    """Emission the rays reach: area lights in front of the first surface, the sky where they
-    escape, weighted against next-event estimation by how each ray was sampled."""
-    for light in ctx.area:
-        tl, pdf_l = light.intersect(paths.o, paths.d)
-        m = tl < t
-        if m.any():
-            w = ctx.light_weight(pdf_l[m], paths.pdf[m], paths.delta[m], paths.mis[m])
-            L[paths.row[m]] += paths.throughput[m] * light.radiance * w[:, None]
-    if ctx.env is not None and miss.any():
-        radiance, pdf = ctx.env.radiance_and_pdf(paths.d[miss])
-        w = ctx.light_weight(pdf, paths.pdf[miss], paths.delta[miss], paths.mis[miss])
-        L[paths.row[miss]] += paths.throughput[miss] * radiance * w[:, None]
+def _add_emission(ctx: _Context, paths: _Paths, t: np.ndarray, L: np.ndarray) -> None:
+    """Emission the rays reach: area lights in front of the first surface (distance ``t``), the sky
+    where they escape (t = inf), weighted against next-event estimation by how each ray was sampled."""
+    if len(ctx.area_params) == 0 and ctx.env_kind < 0:
+        return
+    image, pixel_p, _ = ctx.env_arrays
+    kernels.add_emission(
+        ctx.area_params, ctx.area_ellipse, ctx.env_kind, ctx.env_params, image, pixel_p,
+        ctx.strategy_code, ctx.p_select,
+        paths.o, paths.d, t, paths.row, paths.throughput, paths.pdf, paths.delta, paths.mis, L,
+    )  # fmt: skip
 
 
 def _surface_hits(ctx: _Context, paths: _Paths, t, prim, bu, bv, groups) -> _Hits:
@@ -500,20 +491,10 @@ def _sample_lights(ctx: _Context, hits: _Hits, u_light: np.ndarray, stats: Rende
         return _LightSamples(
             np.zeros((m, 3)), np.zeros((m, 3)), np.ones(m), np.zeros(m, dtype=bool), np.zeros(m, dtype=bool)
         )
-    wi_w, rad = np.zeros((m, 3)), np.zeros((m, 3))
-    pdf, delta, dist = np.ones(m), np.zeros(m, dtype=bool), np.full(m, np.inf)
-    choice = np.minimum((u_light[:, 0] * len(ctx.nee)).astype(np.int64), len(ctx.nee) - 1)
-    for j, light in enumerate(ctx.nee):
-        sel = np.nonzero(choice == j)[0]
-        if len(sel) == 0:
-            continue
-        ls = light.sample(hits.p[sel], u_light[sel, 1:])
-        wi_w[sel], rad[sel], pdf[sel] = ls.wi, ls.radiance, ls.pdf
-        dist[sel], delta[sel] = ls.dist, ls.delta
-    cos_g = frame.dot(wi_w, hits.ng)
-    useful = (pdf > 0) & (frame.max_component(rad) > 0) & (cos_g != 0)
-    org = hits.p + hits.ng * (np.sign(cos_g) * ctx.eps)[:, None]
-    tmax = np.where(np.isinf(dist), np.inf, dist * (1 - 1e-4) - ctx.eps)
+    image, pixel_p, cdf = ctx.env_arrays
+    wi_w, rad, pdf, delta, cos_g, useful, org, tmax = kernels.sample_lights(
+        ctx.nee_kinds, ctx.nee_params, image, pixel_p, cdf, hits.p, hits.ng, u_light, ctx.eps
+    )
     unseen = np.zeros(m, dtype=bool)
     idx = np.nonzero(useful)[0]
     unseen[idx] = ctx.tracer.occluded(org[idx], wi_w[idx], tmax[idx], stats)
@@ -561,12 +542,11 @@ def _shade(
         if material.kind == "reference":
             stats.seconds["reference"] += time.perf_counter() - t0
         if len(v):
-            lw = np.ones(len(v))
-            if need_pdf:
-                lw = np.where(lights.delta[v], 1.0, _power_heuristic(ctx.p_select * lights.pdf[v], sh.pdf_light))
-            cos_l = np.abs(lights.wi[v, 2])
-            contrib = sh.f_light * (cos_l * lw / (ctx.p_select * lights.pdf[v]))[:, None] * lights.radiance[v]
-            L[paths.row[v]] += paths.throughput[v] * contrib
+            pdf_bsdf = sh.pdf_light if need_pdf else lights.pdf[v]
+            kernels.add_direct(
+                L, paths.row[v], paths.throughput[v], sh.f_light, np.abs(lights.wi[v, 2]), lights.radiance[v],
+                ctx.p_select * lights.pdf[v], lights.delta[v], pdf_bsdf, need_pdf,
+            )  # fmt: skip
         bs = sh.sample
         out.wi[sel], out.weight[sel], out.pdf[sel], out.delta[sel] = bs.wi, bs.weight, bs.pdf, bs.delta
         out.mis[sel] = material.has_pdf
@@ -579,29 +559,15 @@ def _continue_paths(
     """The next rays: throughput times the sample weight, Russian roulette from ``rr_depth``
     (survivors reweighted by 1 / q), paths that died or would cross the geometric surface on the
     wrong side dropped, origins offset off the surface; a non-specular bounce widens the cone."""
-    s = ctx.settings
-    wi_w = frame.to_world(sc.wi, hits.ts, hits.tt, hits.ns)
-    cos_g = frame.dot(wi_w, hits.ng)
-    ok = (frame.max_component(sc.weight) > 0) & (np.sign(cos_g) == np.sign(sc.wi[:, 2])) & (cos_g != 0)
-    thr = paths.throughput * sc.weight
-    if depth + 1 >= s.rr_depth:
-        q = np.clip(frame.max_component(thr), 0.05, 1.0)
-        ok &= rng.random(len(thr)) < q
-        thr = thr / q[:, None]
-    keep = np.nonzero(ok)[0]
-    o = (hits.p + hits.ng * (np.sign(cos_g) * ctx.eps)[:, None])[keep]
-    spread = np.where(~sc.delta, np.maximum(paths.spread, 0.2), paths.spread)
+    roulette = depth + 1 >= ctx.settings.rr_depth
+    u_rr = rng.random(len(paths.row)) if roulette else np.empty(0)
+    wi_w = frame.to_world(sc.wi, hits.ts, hits.tt, hits.ns)  # unit: a unit local direction in an orthonormal frame
     return _Paths(
-        paths.row[keep],
-        o,
-        wi_w[keep],  # unit: a unit local direction in an orthonormal frame
-        thr[keep],
-        sc.pdf[keep],
-        sc.delta[keep],
-        sc.mis[keep],
-        paths.width[keep],
-        spread[keep],
-    )
+        *kernels.continue_paths(
+            wi_w, sc.wi[:, 2], sc.weight, sc.pdf, sc.delta, sc.mis, hits.p, hits.ng, paths.row, paths.throughput,
+            paths.width, paths.spread, u_rr, roulette, ctx.eps,
+        )
+    )  # fmt: skip
 
 
 def _first_hit_features(features: np.ndarray, paths: _Paths, hits: _Hits, sc: _Scatter, t: np.ndarray) -> None:
@@ -631,7 +597,7 @@ def _trace_paths(
         rng = np.random.default_rng([s.seed, pass_index, chunk_index, depth + 1])
         t, prim, bu, bv = ctx.tracer.intersect(paths.o, paths.d, stats)
         miss = prim < 0
-        _add_emission(ctx, paths, t, miss, L)
+        _add_emission(ctx, paths, t, L)
         if depth == s.max_bounces:
             break
         hit = np.flatnonzero(~miss)

@@ -21,9 +21,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..bsdf import frame
+from .. import kernels
+from ..kernels import N_PARAMS
 
 INF = np.inf
+# The environment arrays of a light table without an image (the kernels' argument types stay fixed).
+NO_IMAGE = (np.zeros((1, 1, 3)), np.ones(1), np.ones(1))
 
 
 @dataclass
@@ -79,16 +82,13 @@ class PointLight:
     def intensity(self) -> np.ndarray:
         return self.color * self.power / (4 * math.pi)
 
-    def _mask(self, wi: np.ndarray) -> np.ndarray:
-        return np.ones(len(wi))
+    def table_row(self) -> tuple[int, np.ndarray]:
+        row = np.zeros(N_PARAMS)
+        row[0:3], row[3:6] = self.position, self.intensity
+        return kernels.POINT, row
 
     def sample(self, p: np.ndarray, u: np.ndarray) -> LightSample:
-        d = self.position - p
-        dist = np.linalg.norm(d, axis=1)
-        safe = np.maximum(dist, 1e-9)
-        wi = d / safe[:, None]
-        rad = self.intensity[None, :] * (self._mask(wi) / np.maximum(safe, 1e-4) ** 2)[:, None]
-        return LightSample(wi, dist, rad, np.ones(len(p)), True)
+        return _sample(self, p, u)
 
     def estimated_power(self) -> float:
         return float(self.power * self.color.mean())
@@ -114,14 +114,11 @@ class SpotLight(PointLight):
         if not (0 <= self.blend <= 1):
             raise ValueError(f"SpotLight.blend must be in [0, 1], got {self.blend}")
 
-    def _mask(self, wi: np.ndarray) -> np.ndarray:
+    def table_row(self) -> tuple[int, np.ndarray]:
+        _, row = super().table_row()
         cos_edge = math.cos(self.spot_size / 2)
-        c = -frame.dot(wi, self.direction)
-        smooth = (1 - cos_edge) * self.blend
-        if smooth <= 0:
-            return (c > cos_edge).astype(np.float64)
-        t = np.clip((c - cos_edge) / smooth, 0.0, 1.0)
-        return t * t * (3 - 2 * t)
+        row[6:9], row[9], row[10] = self.direction, cos_edge, (1 - cos_edge) * self.blend
+        return kernels.SPOT, row
 
 
 @dataclass
@@ -137,11 +134,13 @@ class SunLight:
         self.strength = _power(self.strength, "SunLight.strength")
         self.color = _rgb(self.color, "SunLight.color")
 
+    def table_row(self) -> tuple[int, np.ndarray]:
+        row = np.zeros(N_PARAMS)
+        row[0:3], row[3:6] = -self.direction, self.color * self.strength
+        return kernels.SUN, row
+
     def sample(self, p: np.ndarray, u: np.ndarray) -> LightSample:
-        n = len(p)
-        wi = np.broadcast_to(-self.direction, (n, 3)).copy()
-        rad = np.broadcast_to(self.color * self.strength, (n, 3)).copy()
-        return LightSample(wi, np.full(n, INF), rad, np.ones(n), True)
+        return _sample(self, p, u)
 
     def estimated_power(self) -> float:
         return float(self.strength * self.color.mean() * 10.0)
@@ -183,52 +182,19 @@ class AreaLight:
         self.area = full * (math.pi / 4 if self.ellipse else 1.0)
         self.radiance = self.color * self.power / (math.pi * self.area)
 
-    def _point(self, u: np.ndarray) -> np.ndarray:
-        a = 2 * u[:, 0] - 1
-        b = 2 * u[:, 1] - 1
-        if self.ellipse:  # concentric square-to-disk map (uniform area density)
-            swap = np.abs(a) > np.abs(b)
-            r = np.where(swap, a, b)
-            phi = np.where(
-                swap,
-                (math.pi / 4) * b / np.where(a == 0, 1, a),
-                math.pi / 2 - (math.pi / 4) * a / np.where(b == 0, 1, b),
-            )
-            a, b = r * np.cos(phi), r * np.sin(phi)
-        return self.center + a[:, None] * self.axis_u + b[:, None] * self.axis_v
+    def table_row(self) -> tuple[int, np.ndarray]:
+        row = np.zeros(N_PARAMS)
+        row[0:3], row[3:6], row[6:9] = self.center, self.axis_u, self.axis_v
+        row[9:12], row[12:15], row[15] = self.normal, self.radiance, self.area
+        return (kernels.AREA_ELLIPSE if self.ellipse else kernels.AREA_RECT), row
 
     def sample(self, p: np.ndarray, u: np.ndarray) -> LightSample:
-        q = self._point(u)
-        d = q - p
-        dist = np.linalg.norm(d, axis=1)
-        safe = np.maximum(dist, 1e-9)
-        wi = d / safe[:, None]
-        cos_l = -frame.dot(wi, self.normal)
-        ok = cos_l > 1e-8
-        pdf = np.where(ok, safe**2 / (np.where(ok, cos_l, 1.0) * self.area), 0.0)
-        rad = np.where(ok[:, None], self.radiance[None, :], 0.0)
-        return LightSample(wi, dist, rad, pdf, False)
+        return _sample(self, p, u)
 
     def intersect(self, o: np.ndarray, d: np.ndarray):
         """Distance along unit rays to the emitting side (inf where missed) and the solid-angle pdf."""
-        n = len(o)
-        t_out, pdf_out = np.full(n, INF), np.zeros(n)
-        denom = frame.dot(d, self.normal)
-        height = frame.dot(self.center - o, self.normal)
-        # Only rays arriving against the emitting normal, from its lit side, can hit it.
-        idx = np.nonzero((denom < -1e-12) & (height < 0))[0]
-        if len(idx) == 0:
-            return t_out, pdf_out
-        t = height[idx] / denom[idx]
-        q = o[idx] + t[:, None] * d[idx] - self.center
-        a = frame.dot(q, self.axis_u) / (self.axis_u @ self.axis_u)
-        b = frame.dot(q, self.axis_v) / (self.axis_v @ self.axis_v)
-        inside = (a * a + b * b <= 1) if self.ellipse else ((np.abs(a) <= 1) & (np.abs(b) <= 1))
-        hit = inside & (t > 1e-6)
-        idx, t = idx[hit], t[hit]
-        t_out[idx] = t
-        pdf_out[idx] = t * t / (-denom[idx] * self.area)
-        return t_out, pdf_out
+        _, row = self.table_row()
+        return kernels.intersect_area(row, self.ellipse, _rows3(o), _rows3(d))
 
     def estimated_power(self) -> float:
         return float(self.power * self.color.mean())
@@ -236,16 +202,24 @@ class AreaLight:
 
 def direction_to_equirect(d: np.ndarray) -> np.ndarray:
     """Blender's equirectangular mapping: world direction -> (u, v) in [0, 1]^2, v = 1 at +z."""
-    u = -np.arctan2(d[:, 1], d[:, 0]) / (2 * math.pi) + 0.5
-    v = np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1])) / math.pi + 0.5
-    return np.stack([u, v], axis=1)
+    return kernels.equirect_uv(_rows3(d))
 
 
 def equirect_to_direction(uv: np.ndarray) -> np.ndarray:
-    phi = -(uv[:, 0] - 0.5) * 2 * math.pi
-    el = (uv[:, 1] - 0.5) * math.pi
-    c = np.cos(el)
-    return np.stack([c * np.cos(phi), c * np.sin(phi), np.sin(el)], axis=1)
+    return kernels.equirect_direction(np.ascontiguousarray(uv, dtype=np.float64))
+
+
+def _rows3(a) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float64).reshape(-1, 3)
+
+
+def _sample(light, p: np.ndarray, u: np.ndarray) -> LightSample:
+    """``light.sample``: the light table's sampling loop on this one light."""
+    kind, row = light.table_row()
+    image, pixel_p, cdf = light.image_arrays() if isinstance(light, Environment) else NO_IMAGE
+    u = np.ascontiguousarray(u, dtype=np.float64).reshape(len(p), 2)
+    wi, dist, rad, pdf = kernels.sample_light(kind, row, image, pixel_p, cdf, _rows3(p), u)
+    return LightSample(wi, dist, rad, pdf, kind in (kernels.POINT, kernels.SPOT, kernels.SUN))
 
 
 class Environment:
@@ -285,12 +259,14 @@ class Environment:
             return not (self.image > 0).any()
         return not (self.constant > 0).any()
 
-    def _pixel(self, d: np.ndarray):
-        h, w, _ = self.image.shape
-        uv = direction_to_equirect(d)
-        x = np.clip((uv[:, 0] * w).astype(np.int64), 0, w - 1)
-        y = np.clip(((1 - uv[:, 1]) * h).astype(np.int64), 0, h - 1)
-        return y, x
+    def table_row(self) -> tuple[int, np.ndarray]:
+        row = np.zeros(N_PARAMS)
+        row[3:6] = self.constant
+        return (kernels.ENV_CONSTANT if self.image is None else kernels.ENV_IMAGE), row
+
+    def image_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The image, pixel probabilities and cdf the kernels read (placeholders without an image)."""
+        return NO_IMAGE if self.image is None else (self.image, self.pixel_p, self.cdf)
 
     def radiance(self, d: np.ndarray) -> np.ndarray:
         """Radiance (N, 3) arriving from world directions d (pointing away from the scene)."""
@@ -302,37 +278,12 @@ class Environment:
     def radiance_and_pdf(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Radiance (N, 3) from world directions d and the solid-angle pdf (N,) of :meth:`sample`
         choosing them, from one pixel lookup."""
-        if self.image is None:
-            return np.broadcast_to(self.constant, (len(d), 3)).copy(), np.full(len(d), 1 / (4 * math.pi))
-        y, x = self._pixel(d)
-        return self.image[y, x], self._pdf_at(y, x, d)
-
-    def _pdf_at(self, y: np.ndarray, x: np.ndarray, d: np.ndarray) -> np.ndarray:
-        h, w, _ = self.image.shape
-        sin_t = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-8)
-        return self.pixel_p[y * w + x] * (w * h) / (2 * math.pi**2 * sin_t)
+        kind, row = self.table_row()
+        image, pixel_p, _ = self.image_arrays()
+        return kernels.environment_radiance(kind, row, image, pixel_p, _rows3(d))
 
     def sample(self, p: np.ndarray, u: np.ndarray) -> LightSample:
-        n = len(p)
-        if self.image is None:
-            z = 1 - 2 * u[:, 0]
-            r = np.sqrt(np.maximum(0.0, 1 - z * z))
-            phi = 2 * math.pi * u[:, 1]
-            wi = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-            rad, pdf = self.radiance_and_pdf(wi)
-        else:
-            h, w, _ = self.image.shape
-            # One uniform picks the pixel through the cdf; the second jitters inside it.
-            idx = np.minimum(np.searchsorted(self.cdf, u[:, 0], side="right"), h * w - 1)
-            lo = np.where(idx > 0, self.cdf[idx - 1], 0.0)
-            width = np.maximum(self.cdf[idx] - lo, 1e-300)
-            fx = np.clip((u[:, 0] - lo) / width, 0.0, 1.0 - 1e-9)
-            y, x = np.divmod(idx, w)
-            uv = np.stack([(x + fx) / w, 1 - (y + u[:, 1]) / h], axis=1)
-            wi = equirect_to_direction(uv)
-            # The direction lies inside the chosen pixel: its radiance and density are that pixel's.
-            rad, pdf = self.image[y, x], self._pdf_at(y, x, wi)
-        return LightSample(wi, np.full(n, INF), rad, pdf, False)
+        return _sample(self, p, u)
 
     def estimated_power(self) -> float:
         if self.image is None:
