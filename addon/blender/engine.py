@@ -22,7 +22,7 @@ from dataclasses import replace
 import bpy
 import numpy as np
 
-from ..core.render import Cancelled, render
+from ..core.render import Cancelled, render, warm_up
 from ..core.render.progressive import ProgressiveSession
 from ..core.render.thumbnail import prepare_thumbnail
 from . import render_operators, render_properties, render_ui, scene_export
@@ -272,6 +272,9 @@ _panels: list = []
 
 
 def register() -> None:
+    # The renderer's compiled loops: compiled (first run after installing, ~10 s) or loaded from
+    # their disk cache on a background thread, so that the first render does not wait for them.
+    warm_up.warm_up_in_background()
     render_properties.register()
     bpy.utils.register_class(NeuralLayeredRenderEngine)
     for panel in _compatible_panels():

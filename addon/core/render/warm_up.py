@@ -1,0 +1,63 @@
+"""Compile (or load from numba's disk cache) every loop of ``addon.core.kernels`` before a user waits
+on it, by rendering a tiny scene that holds every light kind, an image texture and both kinds of
+environment.
+
+The first render after installing would otherwise spend about ten seconds compiling (the loops are
+then cached on disk, and a later process loads them in a fraction of a second). The Blender add-on
+calls :func:`warm_up_in_background` when it registers; the compile runs on a daemon thread while the
+user works, and a render that starts meanwhile waits only for what is still compiling.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+
+_started = threading.Event()
+
+
+def warm_scene(environment_image: bool):
+    """A 4 x 4 pixel scene with a textured quad, a sphere, every light kind, and a sky (an image or
+    a constant colour)."""
+    from . import shapes
+    from .lights import AreaLight, Environment, PointLight, SpotLight, SunLight
+    from .materials import ImageTexture, LambertMaterial
+    from .scene import Camera, Mesh, Scene
+
+    floor = shapes.quad((0.0, 0.0, 0.0), (2.0, 0.0, 0.0), (0.0, 2.0, 0.0), material=0)
+    ball = shapes.uv_sphere((0.0, 0.0, 0.5), 0.5, 8, 4, material=1)
+    texture = ImageTexture(np.random.default_rng(0).random((4, 4, 3)))
+    materials = [LambertMaterial((0.8, 0.8, 0.8), texture), LambertMaterial((0.5, 0.5, 0.5))]
+    rect, disk = np.eye(4), np.eye(4)
+    rect[:3, 3], disk[:3, 3] = (0.0, 0.0, 3.0), (1.0, 0.0, 3.0)
+    lights = [
+        PointLight((0.0, 1.0, 2.0), 10.0),
+        SpotLight((0.0, -1.0, 2.0), 10.0, direction=(0.0, 0.0, -1.0), spot_size=math.radians(60.0)),
+        SunLight((0.3, 0.2, -1.0), 1.0),
+        AreaLight(rect, 10.0, size=0.5),
+        AreaLight(disk, 10.0, size=0.5, ellipse=True),
+    ]
+    sky = np.full((4, 8, 3), 0.2) if environment_image else None
+    env = Environment(color=(0.1, 0.1, 0.1), image=sky)
+    cam = Camera.look_at((0.0, -3.0, 1.5), (0.0, 0.0, 0.3), fov_deg=60.0, width=4, height=4)
+    return Scene(cam, Mesh.concatenate([floor, ball]), materials, lights, env, ["floor", "ball"])
+
+
+def warm_up() -> None:
+    """Render the warm-up scenes once each (one thread, one sample, analytic materials)."""
+    from .integrator import RenderSettings, render
+
+    for image in (True, False):
+        render(warm_scene(image), RenderSettings(samples=1, max_bounces=3, rr_depth=1, threads=1))
+
+
+def warm_up_in_background() -> threading.Thread | None:
+    """Start :func:`warm_up` on a daemon thread, once per process (None when already started)."""
+    if _started.is_set():
+        return None
+    _started.set()
+    thread = threading.Thread(target=warm_up, name="compile-render-kernels", daemon=True)
+    thread.start()
+    return thread
