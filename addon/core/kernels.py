@@ -462,3 +462,44 @@ def continue_paths(wi, wi_z, weight, pdf, delta, mis, p, ng, row, throughput, wi
         o_spread[j] = spread[i] if delta[i] else max(spread[i], 0.2)
         j += 1
     return o_row, o_org, o_dir, o_thr, o_pdf, o_delta, o_mis, o_width, o_spread
+
+
+@njit(**_JIT)
+def hits_by_material(prim, material_of_triangle, n_materials):
+    """The rays that hit a triangle (``prim`` >= 0), ordered by the material of the triangle (stable:
+    a counting sort), and where each material's rows start (``n_materials + 1`` offsets)."""
+    counts = np.zeros(n_materials + 1, dtype=np.int64)
+    for i in range(len(prim)):
+        if prim[i] >= 0:
+            counts[material_of_triangle[prim[i]] + 1] += 1
+    starts = np.cumsum(counts)
+    fill = starts[:-1].copy()
+    order = np.empty(starts[-1], dtype=np.int64)
+    for i in range(len(prim)):
+        if prim[i] >= 0:
+            m = material_of_triangle[prim[i]]
+            order[fill[m]] = i
+            fill[m] += 1
+    return order, starts
+
+
+@njit(**_JIT)
+def take_paths(keep, row, o, d, throughput, pdf, delta, mis, width, spread):
+    """The paths' fields (``integrator._Paths``, in order) at rows ``keep``, in one pass."""
+    n = len(keep)
+    o_row = np.empty(n, dtype=row.dtype)
+    o_o = np.empty((n, 3))
+    o_d = np.empty((n, 3))
+    o_thr = np.empty((n, 3))
+    o_pdf = np.empty(n)
+    o_delta = np.empty(n, dtype=np.bool_)
+    o_mis = np.empty(n, dtype=np.bool_)
+    o_width = np.empty(n)
+    o_spread = np.empty(n)
+    for j in range(n):
+        i = keep[j]
+        o_row[j] = row[i]
+        for k in range(3):
+            o_o[j, k], o_d[j, k], o_thr[j, k] = o[i, k], d[i, k], throughput[i, k]
+        o_pdf[j], o_delta[j], o_mis[j], o_width[j], o_spread[j] = pdf[i], delta[i], mis[i], width[i], spread[i]
+    return o_row, o_o, o_d, o_thr, o_pdf, o_delta, o_mis, o_width, o_spread

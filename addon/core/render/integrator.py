@@ -399,7 +399,7 @@ class _Paths:
     spread: np.ndarray
 
     def take(self, keep: np.ndarray) -> "_Paths":
-        return _Paths(*(v[keep] for v in vars(self).values()))  # every field, in order
+        return _Paths(*kernels.take_paths(keep, *vars(self).values()))  # every field, in order
 
 
 @dataclass
@@ -416,14 +416,6 @@ class _Hits:
     uv: np.ndarray
     footprint: np.ndarray
     groups: list  # (material index, slice of rows): the hits are sorted by material
-
-
-def _material_groups(material: np.ndarray, n_materials: int) -> list[tuple[int, slice]]:
-    """(material index, slice) of each material present in ``material`` (sorted ascending)."""
-    counts = np.bincount(material, minlength=n_materials)
-    ends = np.cumsum(counts)
-    starts = ends - counts
-    return [(mi, slice(int(starts[mi]), int(ends[mi]))) for mi in np.flatnonzero(ends > starts)]
 
 
 @dataclass
@@ -596,19 +588,15 @@ def _trace_paths(
             break
         rng = np.random.default_rng([s.seed, pass_index, chunk_index, depth + 1])
         t, prim, bu, bv = ctx.tracer.intersect(paths.o, paths.d, stats)
-        miss = prim < 0
         _add_emission(ctx, paths, t, L)
         if depth == s.max_bounces:
             break
-        hit = np.flatnonzero(~miss)
+        # Sorted by material (stable), so that each material shades one contiguous slice of rows.
+        hit, starts = kernels.hits_by_material(prim, ctx.material_of_triangle, len(ctx.materials))
         if len(hit) == 0:
             break
-        # Sorted by material (stable), so that each material shades one contiguous slice of rows.
-        material = ctx.material_of_triangle[prim[hit]]
-        order = np.argsort(material, kind="stable")
-        hit = hit[order]
         paths = paths.take(hit)
-        groups = _material_groups(material[order], len(ctx.materials))
+        groups = [(mi, slice(int(starts[mi]), int(starts[mi + 1]))) for mi in np.flatnonzero(np.diff(starts))]
         hits = _surface_hits(ctx, paths, t[hit], prim[hit], bu[hit], bv[hit], groups)
         m = len(hit)
         lights = _sample_lights(ctx, hits, rng.random((m, 3)), stats)
