@@ -57,13 +57,16 @@ class BSDFSample:
     def build(cls, wi, weight, pdf, delta, transmission, valid) -> "BSDFSample":
         """Assemble a sample, zeroing every row that is invalid or not finite."""
         xp = namespace(wi, weight, pdf)
+        # Column by column rather than reductions over rows of three (a loop per row in numpy): the
+        # sum of a row is finite exactly when every entry is (inf - inf and nan + x are nan), short
+        # of overflow, which a unit direction or a sample weight does not reach.
         valid = (
             valid
             & (pdf > 0.0)
             & xp.isfinite(pdf)
-            & xp.all(xp.isfinite(weight), axis=-1)
-            & xp.all(xp.isfinite(wi), axis=-1)
-            & xp.all(weight >= 0.0, axis=-1)
+            & xp.isfinite(weight[..., 0] + weight[..., 1] + weight[..., 2])
+            & xp.isfinite(wi[..., 0] + wi[..., 1] + wi[..., 2])
+            & (xp.minimum(xp.minimum(weight[..., 0], weight[..., 1]), weight[..., 2]) >= 0.0)
         )
         v3 = valid[:, None]
         return cls(

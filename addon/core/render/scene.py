@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from ..bsdf import frame
 from .lights import AreaLight, Environment, PointLight, SpotLight, SunLight
 
 Light = PointLight | SpotLight | SunLight | AreaLight
@@ -105,7 +106,7 @@ class Camera:
         y = sy * self.tan_half_fov[1] + 2.0 * self.shift[1] * self.tan_half_fov[1] * big / self.height
         d_cam = np.stack([x, y, -np.ones_like(x)], axis=1)
         d = np.einsum("ij,kj->ik", d_cam, self.matrix[:3, :3])  # einsum: no BLAS threads for 3-vectors
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        d /= np.sqrt(frame.dot(d, d))[:, None]
         o = np.broadcast_to(self.position, d.shape).copy()
         return o, d
 
