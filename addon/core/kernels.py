@@ -503,3 +503,97 @@ def take_paths(keep, row, o, d, throughput, pdf, delta, mis, width, spread):
             o_o[j, k], o_d[j, k], o_thr[j, k] = o[i, k], d[i, k], throughput[i, k]
         o_pdf[j], o_delta[j], o_mis[j], o_width[j], o_spread[j] = pdf[i], delta[i], mis[i], width[i], spread[i]
     return o_row, o_o, o_d, o_thr, o_pdf, o_delta, o_mis, o_width, o_spread
+
+
+# --- the sampling proxy (addon.core.neural.proxy) -----------------------------------------------
+
+
+@njit(inline="always", **_JIT)
+def _disk_mass(sigma):
+    """Mass of the isotropic 2D Gaussian inside the unit disk: 1 - exp(-1 / (2 sigma^2))."""
+    return -math.expm1(-0.5 / (sigma * sigma))
+
+
+@njit(**_JIT)
+def proxy_pdf(wo, wi, sigma, w):
+    """Solid-angle density (N,) of the proxy choosing ``wi`` given ``wo`` (``neural.proxy.pdf``), with
+    per-row ``sigma`` (>= SIGMA_MIN) and cosine-lobe weight ``w`` (in [0, 1]); 0 below the horizon."""
+    n = len(wo)
+    out = np.empty(n)
+    for i in range(n):
+        if not (wo[i, 2] > 0.0 and wi[i, 2] > 0.0):
+            out[i] = 0.0
+            continue
+        hx, hy, hz = wi[i, 0] + wo[i, 0], wi[i, 1] + wo[i, 1], wi[i, 2] + wo[i, 2]
+        hn = max(math.sqrt(hx * hx + hy * hy + hz * hz), 1e-12)
+        hx, hy, hz = hx / hn, hy / hn, hz / hn
+        s = sigma[i]
+        p_disk = math.exp(-0.5 * (hx * hx + hy * hy) / (s * s)) / (2.0 * math.pi * s * s * _disk_mass(s))
+        p_h = p_disk * max(hz, 0.0)
+        wo_h = abs(wo[i, 0] * hx + wo[i, 1] * hy + wo[i, 2] * hz)
+        p_gauss = p_h / (4.0 * wo_h) if wo_h > 1e-9 else 0.0
+        out[i] = (1.0 - w[i]) * p_gauss + w[i] * max(wi[i, 2], 0.0) / math.pi
+    return out
+
+
+@njit(**_JIT)
+def proxy_directions(wo, sigma, w, u):
+    """Directions (N, 3) the proxy samples given ``wo`` (``neural.proxy.sample_directions``): u[:, 0]
+    picks the lobe (the cosine lobe below ``w``), u[:, 1:] place the direction: the Gaussian lobe's
+    half vector by a truncated Rayleigh radius in the projected disk (wo mirrored about it), the
+    cosine lobe by Malley's method."""
+    n = len(wo)
+    out = np.empty((n, 3))
+    for i in range(n):
+        phi = 2.0 * math.pi * u[i, 2]
+        c, s_phi = math.cos(phi), math.sin(phi)
+        if u[i, 0] < w[i]:
+            rc = math.sqrt(u[i, 1])
+            x, y, z = rc * c, rc * s_phi, math.sqrt(max(1.0 - u[i, 1], 0.0))
+        else:
+            s = sigma[i]
+            r = min(s * math.sqrt(-2.0 * math.log1p(-u[i, 1] * _disk_mass(s))), 1.0)
+            hx, hy, hz = r * c, r * s_phi, math.sqrt(max(1.0 - r * r, 0.0))
+            d = 2.0 * (wo[i, 0] * hx + wo[i, 1] * hy + wo[i, 2] * hz)
+            x, y, z = d * hx - wo[i, 0], d * hy - wo[i, 1], d * hz - wo[i, 2]
+        norm = max(math.sqrt(x * x + y * y + z * z), 1e-12)
+        out[i, 0], out[i, 1], out[i, 2] = x / norm, y / norm, z / norm
+    return out
+
+
+# --- the albedo calibration (addon.core.neural.calibrate) ---------------------------------------
+
+
+@njit(inline="always", **_JIT)
+def _segment(grid, x):
+    """Index i and weight t of ``x`` between ``grid[i]`` and ``grid[i + 1]`` (``grid`` increasing),
+    constant beyond its ends."""
+    last = len(grid) - 1
+    x = min(max(x, grid[0]), grid[last])
+    i = min(max(np.searchsorted(grid, x, side="right") - 1, 0), last - 1)
+    return i, (x - grid[i]) / (grid[i + 1] - grid[i])
+
+
+@njit(**_JIT)
+def piecewise_linear(x, grid, table):
+    """(N, C): ``table`` (K, C) at ``x`` (N,), linear between the increasing abscissae ``grid`` (K,),
+    constant beyond them."""
+    out = np.empty((len(x), table.shape[1]))
+    for n in range(len(x)):
+        i, t = _segment(grid, x[n])
+        for c in range(table.shape[1]):
+            out[n, c] = table[i, c] * (1.0 - t) + table[i + 1, c] * t
+    return out
+
+
+@njit(**_JIT)
+def scale_by_two_factors(f, x, y, grid, table):
+    """``f`` (N, C) times the piecewise-linear factors (:func:`piecewise_linear`) at ``x`` and at ``y``,
+    in place."""
+    for n in range(len(f)):
+        i, s = _segment(grid, x[n])
+        j, t = _segment(grid, y[n])
+        for c in range(f.shape[1]):
+            a = table[i, c] * (1.0 - s) + table[i + 1, c] * s
+            b = table[j, c] * (1.0 - t) + table[j + 1, c] * t
+            f[n, c] *= a * b

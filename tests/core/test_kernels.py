@@ -1,29 +1,43 @@
 """The renderer's compiled loops (addon/core/kernels.py): compiled before a user waits on them."""
 
-import numba
+import json
+import subprocess
+import sys
+from pathlib import Path
 
+ROOT = Path(__file__).resolve().parents[2]
+
+# Run in a fresh interpreter: in the test process other tests may have compiled loops already.
+_SCRIPT = """
+import json, sys
+import numba
 from addon.core import kernels
 from addon.core.render import RenderSettings, render
 from addon.core.render.demo_scene import demo_scene
 from addon.core.render.warm_up import warm_up
 
+def signatures():
+    return {name: len(obj.signatures) for name, obj in vars(kernels).items()
+            if isinstance(obj, numba.core.registry.CPUDispatcher)}
 
-def _signatures() -> dict[str, int]:
-    return {
-        name: len(obj.signatures)
-        for name, obj in vars(kernels).items()
-        if isinstance(obj, numba.core.registry.CPUDispatcher)
-    }
+warm_up()
+before = signatures()
+scene = demo_scene(16, 9)
+for strategy in ("mis", "light", "bsdf"):
+    render(scene, RenderSettings(samples=1, max_bounces=3, threads=2, strategy=strategy))
+json.dump({"before": before, "after": signatures()}, sys.stdout)
+"""
 
 
 def test_the_warm_up_compiles_every_loop_a_render_of_the_demo_scene_runs():
-    """After the warm-up, rendering the demo scene (neural materials, an image texture, the sky, an
-    area light, every strategy) compiles nothing more: the types the warm-up scene passes are the
-    ones a real render passes."""
-    warm_up()
-    before = _signatures()
-    assert before["surface_hits"] and before["sample_lights"] and before["trilinear"]
-    scene = demo_scene(16, 9)
-    for strategy in ("mis", "light", "bsdf"):
-        render(scene, RenderSettings(samples=1, max_bounces=3, threads=2, strategy=strategy, calibrate=False))
-    assert _signatures() == before
+    """After the warm-up, rendering the demo scene with default settings (neural materials with their
+    albedo calibration and sampling proxy, an image texture, the sky, an area light; every strategy)
+    compiles nothing more: the types the warm-up passes are the ones a real render passes."""
+    run = subprocess.run(
+        [sys.executable, "-c", _SCRIPT], cwd=ROOT, capture_output=True, text=True, timeout=600, check=True
+    )
+    got = json.loads(run.stdout.strip().splitlines()[-1])
+    before, after = got["before"], got["after"]
+    for name in ("surface_hits", "sample_lights", "trilinear", "proxy_pdf", "proxy_directions", "scale_by_two_factors"):
+        assert before[name] >= 1, f"the warm-up did not compile {name}"
+    assert after == before

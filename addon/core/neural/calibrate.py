@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import kernels
 from ..bsdf.lambert import sample_cosine_hemisphere
 from ..stack import Stack
 from . import proxy, top_lobe
@@ -71,16 +72,21 @@ class AlbedoCalibration:
 
     def factor(self, cos: np.ndarray) -> np.ndarray:
         """c(cos theta) (N, 3): linear between the grid's cosines, constant beyond them."""
-        x = np.clip(np.asarray(cos, dtype=np.float64), 0.0, 1.0)
-        grid, scale = self.cosines[::-1], self.scale[::-1]  # increasing abscissae
-        x = np.clip(x, grid[0], grid[-1])  # constant beyond the grid
-        i = np.clip(np.searchsorted(grid, x, side="right") - 1, 0, len(grid) - 2)
-        w = ((x - grid[i]) / (grid[i + 1] - grid[i]))[:, None]  # one search for the three channels
-        return scale[i] * (1.0 - w) + scale[i + 1] * w
+        x = np.clip(np.asarray(cos, dtype=np.float64).reshape(-1), 0.0, 1.0)
+        return kernels.piecewise_linear(x, *self._increasing())
 
     def apply(self, f: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
         """f (N, 3) at local unit directions wi, wo (N, 3) times c(cos theta_i) c(cos theta_o) (f: the decoded part)."""
-        return f * (self.factor(wi[:, 2]) * self.factor(wo[:, 2])).astype(f.dtype, copy=False)
+        out = np.array(f, dtype=np.float64)
+        cos_i = np.clip(np.ascontiguousarray(wi[:, 2], dtype=np.float64), 0.0, 1.0)
+        cos_o = np.clip(np.ascontiguousarray(wo[:, 2], dtype=np.float64), 0.0, 1.0)
+        kernels.scale_by_two_factors(out, cos_i, cos_o, *self._increasing())
+        return out.astype(np.asarray(f).dtype, copy=False)
+
+    def _increasing(self) -> tuple[np.ndarray, np.ndarray]:
+        """The grid's cosines increasing (the kernels' order) and the factors in the same order."""
+        grid = np.ascontiguousarray(self.cosines[::-1], dtype=np.float64)
+        return grid, np.ascontiguousarray(self.scale[::-1], dtype=np.float64)
 
 
 def grid_directions(cosines=COSINES) -> np.ndarray:

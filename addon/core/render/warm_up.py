@@ -46,11 +46,20 @@ def warm_scene(environment_image: bool):
 
 
 def warm_up() -> None:
-    """Render the warm-up scenes once each (one thread, one sample, analytic materials)."""
+    """Render the warm-up scenes once each (one thread, one sample, analytic materials), and run the
+    neural materials' loops (the sampling proxy, the albedo calibration) on a few rows, with the
+    argument types a render passes."""
+    from .. import kernels
+    from ..neural import proxy
     from .integrator import RenderSettings, render
 
     for image in (True, False):
         render(warm_scene(image), RenderSettings(samples=1, max_bounces=3, rr_depth=1, threads=1))
+    wo = np.array([[0.0, 0.6, 0.8], [0.6, 0.0, 0.8]])
+    proxy.sample(wo, np.array([0.2, 0.3]), 0.5, np.full((2, 3), 0.5))
+    grid, table = np.array([0.0, 1.0]), np.ones((2, 3))
+    kernels.piecewise_linear(wo[:, 2].copy(), grid, table)
+    kernels.scale_by_two_factors(np.ones((2, 3)), wo[:, 2].copy(), wo[:, 2].copy(), grid, table)
 
 
 def warm_up_in_background() -> threading.Thread | None:
