@@ -597,3 +597,30 @@ def scale_by_two_factors(f, x, y, grid, table):
             a = table[i, c] * (1.0 - s) + table[i + 1, c] * s
             b = table[j, c] * (1.0 - t) + table[j + 1, c] * t
             f[n, c] *= a * b
+
+
+# --- the camera ----------------------------------------------------------------------------------
+
+
+@njit(**_JIT)
+def camera_rays(px, py, jitter, matrix, width, height, tan_x, tan_y, shift_x, shift_y):
+    """World rays of a pinhole camera (``render.scene.Camera``) through pixels (px, py) (row 0 at the
+    top) offset by ``jitter`` (N, 2) in [0, 1)^2: origins and unit directions (N, 3). ``matrix``: the
+    camera's (4, 4) object-to-world, looking along its local -z; ``shift``: Blender's lens shift in
+    units of the larger image side."""
+    n = len(px)
+    o = np.empty((n, 3))
+    d = np.empty((n, 3))
+    big = max(width, height)
+    off_x = 2.0 * shift_x * tan_x * big / width
+    off_y = 2.0 * shift_y * tan_y * big / height
+    for i in range(n):
+        x = ((px[i] + jitter[i, 0]) / width * 2.0 - 1.0) * tan_x + off_x
+        y = (1.0 - (py[i] + jitter[i, 1]) / height * 2.0) * tan_y + off_y
+        dx = matrix[0, 0] * x + matrix[0, 1] * y - matrix[0, 2]
+        dy = matrix[1, 0] * x + matrix[1, 1] * y - matrix[1, 2]
+        dz = matrix[2, 0] * x + matrix[2, 1] * y - matrix[2, 2]
+        norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+        d[i, 0], d[i, 1], d[i, 2] = dx / norm, dy / norm, dz / norm
+        o[i, 0], o[i, 1], o[i, 2] = matrix[0, 3], matrix[1, 3], matrix[2, 3]
+    return o, d

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from ..bsdf import frame
+from .. import kernels
 from .lights import AreaLight, Environment, PointLight, SpotLight, SunLight
 
 Light = PointLight | SpotLight | SunLight | AreaLight
@@ -99,16 +99,16 @@ class Camera:
 
         Returns origins (N, 3) and unit directions (N, 3), float64.
         """
-        sx = (px + jitter[:, 0]) / self.width * 2.0 - 1.0
-        sy = 1.0 - (py + jitter[:, 1]) / self.height * 2.0
-        big = max(self.width, self.height)
-        x = sx * self.tan_half_fov[0] + 2.0 * self.shift[0] * self.tan_half_fov[0] * big / self.width
-        y = sy * self.tan_half_fov[1] + 2.0 * self.shift[1] * self.tan_half_fov[1] * big / self.height
-        d_cam = np.stack([x, y, -np.ones_like(x)], axis=1)
-        d = np.einsum("ij,kj->ik", d_cam, self.matrix[:3, :3])  # einsum: no BLAS threads for 3-vectors
-        d /= np.sqrt(frame.dot(d, d))[:, None]
-        o = np.broadcast_to(self.position, d.shape).copy()
-        return o, d
+        return kernels.camera_rays(
+            np.ascontiguousarray(px, dtype=np.float64),
+            np.ascontiguousarray(py, dtype=np.float64),
+            np.ascontiguousarray(jitter, dtype=np.float64),
+            self.matrix,
+            self.width,
+            self.height,
+            *self.tan_half_fov,
+            *(float(v) for v in self.shift),
+        )
 
 
 @dataclass
