@@ -5,6 +5,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from addon.core import kernels
+
 ROOT = Path(__file__).resolve().parents[2]
 
 # Run in a fresh interpreter: in the test process other tests may have compiled loops already.
@@ -41,3 +47,39 @@ def test_the_warm_up_compiles_every_loop_a_render_of_the_demo_scene_runs():
     for name in ("surface_hits", "sample_lights", "trilinear", "proxy_pdf", "proxy_directions", "scale_by_two_factors"):
         assert before[name] >= 1, f"the warm-up did not compile {name}"
     assert after == before
+
+
+def test_hits_by_material_is_a_stable_sort_of_the_hits_with_each_materials_start():
+    @settings(max_examples=60, deadline=None)
+    @given(st.lists(st.integers(-1, 7), max_size=200), st.integers(1, 4))
+    def check(prims, n_materials):
+        prim = np.array(prims, dtype=np.int64)
+        material_of_triangle = np.arange(8, dtype=np.int64) % n_materials
+        order, starts = kernels.hits_by_material(prim, material_of_triangle, n_materials)
+        hit = np.flatnonzero(prim >= 0)
+        material = material_of_triangle[prim[hit]]
+        np.testing.assert_array_equal(order, hit[np.argsort(material, kind="stable")])
+        counts = np.bincount(material, minlength=n_materials)
+        np.testing.assert_array_equal(starts, np.concatenate([[0], np.cumsum(counts)]))
+
+    check()
+
+
+def test_take_paths_gathers_every_field_as_fancy_indexing_does():
+    rng = np.random.default_rng(2)
+    n = 50
+    fields = (
+        np.arange(n),
+        rng.random((n, 3)),
+        rng.random((n, 3)),
+        rng.random((n, 3)),
+        rng.random(n),
+        rng.random(n) < 0.5,
+        rng.random(n) < 0.5,
+        rng.random(n),
+        rng.random(n),
+    )
+    keep = np.flatnonzero(rng.random(n) < 0.6)[::-1].copy()
+    for got, field in zip(kernels.take_paths(keep, *fields), fields, strict=True):
+        np.testing.assert_array_equal(got, field[keep])
+        assert got.dtype == field.dtype
