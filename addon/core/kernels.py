@@ -414,6 +414,22 @@ def add_direct(L, row, throughput, f, cos_l, radiance, pdf_select, delta, pdf_bs
             L[r, k] += throughput[i, k] * f[i, k] * s * radiance[i, k]
 
 
+@njit(inline="always", **_JIT)
+def _empty_paths(n, row):
+    """Arrays for ``n`` paths' fields (``integrator._Paths``, in order); ``row`` gives the rows' dtype."""
+    return (
+        np.empty(n, dtype=row.dtype),
+        np.empty((n, 3)),
+        np.empty((n, 3)),
+        np.empty((n, 3)),
+        np.empty(n),
+        np.empty(n, dtype=np.bool_),
+        np.empty(n, dtype=np.bool_),
+        np.empty(n),
+        np.empty(n),
+    )
+
+
 @njit(**_JIT)
 def continue_paths(wi, wi_z, weight, pdf, delta, mis, p, ng, row, throughput, width, spread, u_rr, roulette, eps):
     """The next rays of the paths at a bounce: throughput times the sample weight, with Russian
@@ -440,15 +456,7 @@ def continue_paths(wi, wi_z, weight, pdf, delta, mis, p, ng, row, throughput, wi
             s = 1.0 / q
         keep[i], scale[i], side[i] = ok, s, (eps if c > 0.0 else -eps)
         count += ok
-    o_row = np.empty(count, dtype=row.dtype)
-    o_org = np.empty((count, 3))
-    o_dir = np.empty((count, 3))
-    o_thr = np.empty((count, 3))
-    o_pdf = np.empty(count)
-    o_delta = np.empty(count, dtype=np.bool_)
-    o_mis = np.empty(count, dtype=np.bool_)
-    o_width = np.empty(count)
-    o_spread = np.empty(count)
+    o_row, o_org, o_dir, o_thr, o_pdf, o_delta, o_mis, o_width, o_spread = _empty_paths(count, row)
     j = 0
     for i in range(n):
         if not keep[i]:
@@ -487,15 +495,7 @@ def hits_by_material(prim, material_of_triangle, n_materials):
 def take_paths(keep, row, o, d, throughput, pdf, delta, mis, width, spread):
     """The paths' fields (``integrator._Paths``, in order) at rows ``keep``, in one pass."""
     n = len(keep)
-    o_row = np.empty(n, dtype=row.dtype)
-    o_o = np.empty((n, 3))
-    o_d = np.empty((n, 3))
-    o_thr = np.empty((n, 3))
-    o_pdf = np.empty(n)
-    o_delta = np.empty(n, dtype=np.bool_)
-    o_mis = np.empty(n, dtype=np.bool_)
-    o_width = np.empty(n)
-    o_spread = np.empty(n)
+    o_row, o_o, o_d, o_thr, o_pdf, o_delta, o_mis, o_width, o_spread = _empty_paths(n, row)
     for j in range(n):
         i = keep[j]
         o_row[j] = row[i]
