@@ -281,7 +281,8 @@ def test_camera_hits_give_the_renderers_footprint_on_a_facing_quad():
     """A 2 x 2 quad (uvs span [0, 1]: 0.5 uv units per world unit) 4 units in front of the camera:
     the footprint at the image centre is 4 x pixel spread x 0.5; tilting the quad by 60 degrees
     stretches it by 1 / sqrt(cos 60); a miss is -1 / inf."""
-    from addon.core.render.integrator import camera_hits, texture_footprint
+    from addon.core.kernels import texture_footprint
+    from addon.core.render.integrator import camera_hits
 
     cam = Camera.look_at((0.0, -4.0, 0.0), (0.0, 0.0, 0.0), fov_deg=30.0, width=33, height=33)
     facing = shapes.quad((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0))

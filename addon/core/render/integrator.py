@@ -26,7 +26,6 @@ import numpy as np
 
 from .. import kernels
 from ..bsdf import frame
-from ..kernels import texture_footprint  # noqa: F401  (the renderer's footprint, re-exported)
 from ..neural import session
 from ..neural.calibrate import check_mode as calibrate_mode
 from . import materials as mat
