@@ -285,6 +285,7 @@ def register() -> None:
 
 
 def unregister() -> None:
+    warm_up.wait_for_background()
     render_ui.unregister()
     render_operators.unregister()
     for panel in _panels:

@@ -16,6 +16,7 @@ import threading
 import numpy as np
 
 _started = threading.Event()
+_thread: threading.Thread | None = None
 
 
 def warm_scene(environment_image: bool):
@@ -64,9 +65,18 @@ def warm_up() -> None:
 
 def warm_up_in_background() -> threading.Thread | None:
     """Start :func:`warm_up` on a daemon thread, once per process (None when already started)."""
+    global _thread
     if _started.is_set():
         return None
     _started.set()
-    thread = threading.Thread(target=warm_up, name="compile-render-kernels", daemon=True)
-    thread.start()
-    return thread
+    _thread = threading.Thread(target=warm_up, name="compile-render-kernels", daemon=True)
+    _thread.start()
+    return _thread
+
+
+def wait_for_background(timeout: float | None = None) -> None:
+    """Wait until the background warm-up (if any) has finished. The add-on calls it when it is
+    disabled: the thread imports the extension's modules, and a thread still running would put them
+    back after disabling forgot them."""
+    if _thread is not None:
+        _thread.join(timeout)
