@@ -207,11 +207,17 @@ def environment_radiance(kind, prm, image, pixel_p, d):
     return rad, pdf
 
 
+@njit(**_JIT)
+def is_delta(kind):
+    """Whether lights of ``kind`` are delta lights (a point, a spot, the sun): no area to hit, pdf 1."""
+    return kind == POINT or kind == SPOT or kind == SUN
+
+
 @njit(inline="always", **_JIT)
 def _sample_light(kind, prm, image, pixel_p, cdf, px, py, pz, u0, u1):
     """One sample of a light from point (px, py, pz): direction toward it (unit), distance (inf for
     the sun and the environment), arriving radiance (for delta lights the intensity / distance^2 or
-    the irradiance), solid-angle pdf (1 for delta lights) and whether it is a delta light."""
+    the irradiance) and solid-angle pdf (1 for delta lights)."""
     inf = np.inf
     if kind == POINT or kind == SPOT:
         dx, dy, dz = prm[0] - px, prm[1] - py, prm[2] - pz
@@ -228,9 +234,9 @@ def _sample_light(kind, prm, image, pixel_p, cdf, px, py, pz, u0, u1):
                 s = min(max((c - cos_edge) / smooth, 0.0), 1.0)
                 mask = s * s * (3.0 - 2.0 * s)
         scale = mask / max(safe, 1e-4) ** 2
-        return wx, wy, wz, dist, prm[3] * scale, prm[4] * scale, prm[5] * scale, 1.0, True
+        return wx, wy, wz, dist, prm[3] * scale, prm[4] * scale, prm[5] * scale, 1.0
     if kind == SUN:
-        return prm[0], prm[1], prm[2], inf, prm[3], prm[4], prm[5], 1.0, True
+        return prm[0], prm[1], prm[2], inf, prm[3], prm[4], prm[5], 1.0
     if kind == AREA_RECT or kind == AREA_ELLIPSE:
         a = 2.0 * u0 - 1.0
         b = 2.0 * u1 - 1.0
@@ -248,13 +254,13 @@ def _sample_light(kind, prm, image, pixel_p, cdf, px, py, pz, u0, u1):
         wx, wy, wz = dx / safe, dy / safe, dz / safe
         cos_l = -(wx * prm[9] + wy * prm[10] + wz * prm[11])
         if cos_l > 1e-8:
-            return wx, wy, wz, dist, prm[12], prm[13], prm[14], safe * safe / (cos_l * prm[15]), False
-        return wx, wy, wz, dist, 0.0, 0.0, 0.0, 0.0, False
+            return wx, wy, wz, dist, prm[12], prm[13], prm[14], safe * safe / (cos_l * prm[15])
+        return wx, wy, wz, dist, 0.0, 0.0, 0.0, 0.0
     if kind == ENV_CONSTANT:
         z = 1.0 - 2.0 * u0
         r = math.sqrt(max(0.0, 1.0 - z * z))
         phi = 2.0 * math.pi * u1
-        return r * math.cos(phi), r * math.sin(phi), z, inf, prm[3], prm[4], prm[5], _INV_4PI, False
+        return r * math.cos(phi), r * math.sin(phi), z, inf, prm[3], prm[4], prm[5], _INV_4PI
     # ENV_IMAGE: one uniform picks the pixel through the cdf, the second jitters inside it; the
     # direction lies inside the chosen pixel, so its radiance and density are that pixel's.
     h, w = image.shape[0], image.shape[1]
@@ -265,7 +271,7 @@ def _sample_light(kind, prm, image, pixel_p, cdf, px, py, pz, u0, u1):
     y, x = idx // w, idx % w
     wx, wy, wz = _equirect_direction((x + fx) / w, 1.0 - (y + u1) / h)
     pdf = _env_pdf(pixel_p, h, w, y, x, wx, wy)
-    return wx, wy, wz, inf, image[y, x, 0], image[y, x, 1], image[y, x, 2], pdf, False
+    return wx, wy, wz, inf, image[y, x, 0], image[y, x, 1], image[y, x, 2], pdf
 
 
 @njit(**_JIT)
@@ -278,7 +284,7 @@ def sample_light(kind, prm, image, pixel_p, cdf, p, u):
     rad = np.empty((n, 3))
     pdf = np.empty(n)
     for i in range(n):
-        wi[i, 0], wi[i, 1], wi[i, 2], dist[i], rad[i, 0], rad[i, 1], rad[i, 2], pdf[i], _ = _sample_light(
+        wi[i, 0], wi[i, 1], wi[i, 2], dist[i], rad[i, 0], rad[i, 1], rad[i, 2], pdf[i] = _sample_light(
             kind, prm, image, pixel_p, cdf, p[i, 0], p[i, 1], p[i, 2], u[i, 0], u[i, 1]
         )
     return wi, dist, rad, pdf
@@ -304,13 +310,13 @@ def sample_lights(kinds, params, image, pixel_p, cdf, p, ng, u, eps):
     tmax = np.empty(n)
     for i in range(n):
         j = min(int(u[i, 0] * n_lights), n_lights - 1)
-        wx, wy, wz, dist, r0, r1, r2, pd, dl = _sample_light(
+        wx, wy, wz, dist, r0, r1, r2, pd = _sample_light(
             kinds[j], params[j], image, pixel_p, cdf, p[i, 0], p[i, 1], p[i, 2], u[i, 1], u[i, 2]
         )
         c = wx * ng[i, 0] + wy * ng[i, 1] + wz * ng[i, 2]
         wi[i, 0], wi[i, 1], wi[i, 2] = wx, wy, wz
         rad[i, 0], rad[i, 1], rad[i, 2] = r0, r1, r2
-        pdf[i], delta[i], cos_g[i] = pd, dl, c
+        pdf[i], delta[i], cos_g[i] = pd, is_delta(kinds[j]), c
         useful[i] = pd > 0.0 and max(r0, r1, r2) > 0.0 and c != 0.0
         off = eps if c > 0.0 else (-eps if c < 0.0 else 0.0)
         for k in range(3):
@@ -574,6 +580,11 @@ def _segment(grid, x):
     return i, (x - grid[i]) / (grid[i + 1] - grid[i])
 
 
+@njit(inline="always", **_JIT)
+def _lerp(table, i, t, c):
+    return table[i, c] * (1.0 - t) + table[i + 1, c] * t
+
+
 @njit(**_JIT)
 def piecewise_linear(x, grid, table):
     """(N, C): ``table`` (K, C) at ``x`` (N,), linear between the increasing abscissae ``grid`` (K,),
@@ -582,7 +593,7 @@ def piecewise_linear(x, grid, table):
     for n in range(len(x)):
         i, t = _segment(grid, x[n])
         for c in range(table.shape[1]):
-            out[n, c] = table[i, c] * (1.0 - t) + table[i + 1, c] * t
+            out[n, c] = _lerp(table, i, t, c)
     return out
 
 
@@ -594,9 +605,7 @@ def scale_by_two_factors(f, x, y, grid, table):
         i, s = _segment(grid, x[n])
         j, t = _segment(grid, y[n])
         for c in range(f.shape[1]):
-            a = table[i, c] * (1.0 - s) + table[i + 1, c] * s
-            b = table[j, c] * (1.0 - t) + table[j + 1, c] * t
-            f[n, c] *= a * b
+            f[n, c] *= _lerp(table, i, s, c) * _lerp(table, j, t, c)
 
 
 # --- the camera ----------------------------------------------------------------------------------

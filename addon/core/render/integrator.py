@@ -533,7 +533,7 @@ def _shade(
         if material.kind == "reference":
             stats.seconds["reference"] += time.perf_counter() - t0
         if len(v):
-            pdf_bsdf = sh.pdf_light if need_pdf else lights.pdf[v]
+            pdf_bsdf = sh.pdf_light if need_pdf else np.empty(0)  # read only when weighted
             kernels.add_direct(
                 L, paths.row[v], paths.throughput[v], sh.f_light, np.abs(lights.wi[v, 2]), lights.radiance[v],
                 ctx.p_select * lights.pdf[v], lights.delta[v], pdf_bsdf, need_pdf,

@@ -219,7 +219,7 @@ def _sample(light, p: np.ndarray, u: np.ndarray) -> LightSample:
     image, pixel_p, cdf = light.image_arrays() if isinstance(light, Environment) else NO_IMAGE
     u = np.ascontiguousarray(u, dtype=np.float64).reshape(len(p), 2)
     wi, dist, rad, pdf = kernels.sample_light(kind, row, image, pixel_p, cdf, _rows3(p), u)
-    return LightSample(wi, dist, rad, pdf, kind in (kernels.POINT, kernels.SPOT, kernels.SUN))
+    return LightSample(wi, dist, rad, pdf, bool(kernels.is_delta(kind)))
 
 
 class Environment:
@@ -265,7 +265,8 @@ class Environment:
         return (kernels.ENV_CONSTANT if self.image is None else kernels.ENV_IMAGE), row
 
     def image_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The image, pixel probabilities and cdf the kernels read (placeholders without an image)."""
+        """The image, pixel probabilities and cdf the kernels read; for a constant colour ``NO_IMAGE``,
+        arrays of the same types that the loops never read."""
         return NO_IMAGE if self.image is None else (self.image, self.pixel_p, self.cdf)
 
     def radiance(self, d: np.ndarray) -> np.ndarray:
