@@ -153,6 +153,11 @@ def test_area_light_samples_are_what_its_intersection_finds(ellipse):
     t, _ = light.intersect(p, d)
     by_rays = (np.isfinite(t) * light.radiance[0] * d[:, 0]).mean() * 2 * math.pi
     assert abs(by_light / by_rays - 1) < 0.03
+    # rows of the wrong shape are a clear error, not a silent reshape
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        light.intersect(np.zeros((4, 2)), np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="one pair of uniforms per point"):
+        light.sample(np.zeros((4, 3)), np.zeros((3, 2)))
     # rays from behind the light, or pointing away, miss it
     assert np.isinf(light.intersect(np.array([[2.0, 0.2, 0.1]]), np.array([[-1.0, 0.0, 0.0]]))[0]).all()
     assert np.isinf(light.intersect(np.zeros((1, 3)), np.array([[-1.0, 0.0, 0.0]]))[0]).all()

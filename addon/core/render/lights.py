@@ -194,7 +194,7 @@ class AreaLight:
     def intersect(self, o: np.ndarray, d: np.ndarray):
         """Distance along unit rays to the emitting side (inf where missed) and the solid-angle pdf."""
         _, row = self.table_row()
-        return kernels.intersect_area(row, self.ellipse, _rows3(o), _rows3(d))
+        return kernels.intersect_area(row, self.ellipse, _rows(o), _rows(d))
 
     def estimated_power(self) -> float:
         return float(self.power * self.color.mean())
@@ -202,23 +202,29 @@ class AreaLight:
 
 def direction_to_equirect(d: np.ndarray) -> np.ndarray:
     """Blender's equirectangular mapping: world direction -> (u, v) in [0, 1]^2, v = 1 at +z."""
-    return kernels.equirect_uv(_rows3(d))
+    return kernels.equirect_uv(_rows(d))
 
 
 def equirect_to_direction(uv: np.ndarray) -> np.ndarray:
-    return kernels.equirect_direction(np.ascontiguousarray(uv, dtype=np.float64))
+    return kernels.equirect_direction(_rows(uv, 2))
 
 
-def _rows3(a) -> np.ndarray:
-    return np.ascontiguousarray(a, dtype=np.float64).reshape(-1, 3)
+def _rows(a, columns: int = 3) -> np.ndarray:
+    """``a`` as contiguous float64 rows of ``columns`` (the kernels' layout); a clear error otherwise."""
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != columns:
+        raise ValueError(f"expected an (N, {columns}) array, got shape {a.shape}")
+    return a
 
 
 def _sample(light, p: np.ndarray, u: np.ndarray) -> LightSample:
     """``light.sample``: the light table's sampling loop on this one light."""
     kind, row = light.table_row()
     image, pixel_p, cdf = light.image_arrays() if isinstance(light, Environment) else NO_IMAGE
-    u = np.ascontiguousarray(u, dtype=np.float64).reshape(len(p), 2)
-    wi, dist, rad, pdf = kernels.sample_light(kind, row, image, pixel_p, cdf, _rows3(p), u)
+    p, u = _rows(p), _rows(u, 2)
+    if len(u) != len(p):
+        raise ValueError(f"one pair of uniforms per point: got {len(u)} for {len(p)}")
+    wi, dist, rad, pdf = kernels.sample_light(kind, row, image, pixel_p, cdf, p, u)
     return LightSample(wi, dist, rad, pdf, bool(kernels.is_delta(kind)))
 
 
@@ -281,7 +287,7 @@ class Environment:
         choosing them, from one pixel lookup."""
         kind, row = self.table_row()
         image, pixel_p, _ = self.image_arrays()
-        return kernels.environment_radiance(kind, row, image, pixel_p, _rows3(d))
+        return kernels.environment_radiance(kind, row, image, pixel_p, _rows(d))
 
     def sample(self, p: np.ndarray, u: np.ndarray) -> LightSample:
         return _sample(self, p, u)
