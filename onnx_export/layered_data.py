@@ -1,4 +1,4 @@
-"""Training data of the layering network: stacks with 1, 2 or 3 coatings and reference BRDF values.
+"""Training data of the layering network: stacks with 1 to 4 coatings and reference BRDF values.
 
     python -m onnx_export.layered_data --coatings 1 --stacks 3072 --out cache/data/layering_c1
     python -m onnx_export.layered_data --coatings 2 --stacks 1024 --out cache/data/layering_c2
@@ -166,7 +166,7 @@ def data_command(out: Path, coatings: int | None = None, default_stacks: int = 0
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--coatings", type=int, default=1, choices=(1, 2, 3))
+    ap.add_argument("--coatings", type=int, default=1, choices=(1, 2, 3, 4))
     ap.add_argument("--stacks", type=int, default=3072)
     ap.add_argument("--wo", type=int, default=16, help="outgoing directions per stack")
     ap.add_argument("--wi", type=int, default=64, help="incident directions per outgoing direction")

@@ -11,8 +11,8 @@ and ``thickness`` its optical thickness. The decoder and the encoder are frozen 
 ONNX files of the decoder size), so the layering network lives in their latent space.
 
 Training (stage 1) uses stacks with one coating, stage 2 (``--finetune`` steps) adds stacks with two
-coatings (and, with ``--c3``, three), for which the network is applied two (three) times, so that the
-recursion is trained end to end: each coating count takes an equal share of every stage-2 batch. The
+coatings (and, with ``--c3`` and ``--c4``, three and four), for which the network is applied as many
+times, so that the recursion is trained end to end: each coating count takes an equal share of every stage-2 batch. The
 loss goes THROUGH THE FROZEN DECODER against reference values f(wi, wo) (``onnx_export.layered_data``,
 a few walks each, so the targets are noisy):
 
@@ -255,22 +255,22 @@ class StackSet:
 
 
 def coating_data(args, c: int) -> Path:
-    """The data directory of ``layering train`` with ``c`` coatings (``--c1``, ``--c2``, ``--c3``)."""
-    path = {1: args.c1, 2: args.c2, 3: getattr(args, "c3", None)}.get(c)
+    """The data directory of ``layering train`` with ``c`` coatings (``--c1`` to ``--c4``)."""
+    path = {1: args.c1, 2: args.c2, 3: getattr(args, "c3", None), 4: getattr(args, "c4", None)}.get(c)
     if path is None:
-        raise ValueError(f"no data of stacks with {c} coatings: give --c{c} (layering train takes --c1 to --c3)")
+        raise ValueError(f"no data of stacks with {c} coatings: give --c{c} (layering train takes --c1 to --c4)")
     return Path(path)
 
 
 def recursion_counts(args) -> list[int]:
-    """The coating counts above one that stage 2 trains: 2, and 3 with ``--c3``."""
-    return [2, 3] if getattr(args, "c3", None) else [2]
+    """The coating counts above one that stage 2 trains: 2, and 3 with ``--c3``, 4 with ``--c4``."""
+    return [2] + [c for c in (3, 4) if getattr(args, f"c{c}", None)]
 
 
 def stage2_shares(args) -> dict[int, tuple[int, float]]:
     """Stacks per batch and loss weight of each coating count in stage 2, the recursion's counts first:
     equal shares, or ``--c3-share`` of the batch (and of the loss) for three coatings and the rest split
-    equally between one and two."""
+    equally between the other counts."""
     deeper = recursion_counts(args)
     share3 = getattr(args, "c3_share", None)
     if share3 is None:
@@ -281,12 +281,13 @@ def stage2_shares(args) -> dict[int, tuple[int, float]]:
         raise ValueError("--c3-share needs --c3")
     if not 0.0 < share3 < 1.0:
         raise ValueError(f"--c3-share must be in (0, 1), got {share3}")
+    others = [c for c in deeper if c != 3]
     n3 = max(1, round(args.batch * share3))
-    n2 = (args.batch - n3) // 2
-    if n2 < 1:
-        raise ValueError(f"--batch {args.batch} leaves no stacks with one or two coatings at --c3-share {share3}")
-    rest = (1.0 - share3) / 2
-    return {2: (n2, rest), 3: (n3, share3), 1: (args.batch - n3 - n2, rest)}
+    n = (args.batch - n3) // (len(others) + 1)
+    if n < 1:
+        raise ValueError(f"--batch {args.batch} leaves no stacks with the other coating counts at --c3-share {share3}")
+    rest = (1.0 - share3) / (len(others) + 1)
+    return {c: (n, rest) for c in others} | {3: (n3, share3), 1: (args.batch - n3 - n * len(others), rest)}
 
 
 def stack_set(args, models: ModelSet, path: Path, stacks: int = 0, use_weight: bool | None = None) -> StackSet:
@@ -826,7 +827,7 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
             lr = cosine_lr(step, args.steps, args.lr)
         for g in opt.param_groups:
             g["lr"] = lr
-        if stage2:  # equal shares of the batch: the recursion (2, 3 coatings), and one coating (keep stage 1)
+        if stage2:  # equal shares of the batch: the recursion (2 to 4 coatings), and one coating (keep stage 1)
             deeper = recursion_counts(args)
             for c in deeper:
                 if c not in sets:
@@ -1069,7 +1070,14 @@ def parser() -> argparse.ArgumentParser:
         type=float,
         default=None,
         help="with --c3: this fraction of each stage-2 batch (and of its loss) has three coatings, the rest is "
-        "split equally between one and two (default: equal shares of the three)",
+        "split equally between the other counts (default: equal shares)",
+    )
+    t.add_argument(
+        "--c4",
+        type=Path,
+        default=None,
+        help="stacks with four coatings (onnx_export.layered_data --coatings 4): stage 2 trains the recursion "
+        "four deep as well",
     )
     t.add_argument("--stacks", type=int, default=0, help="use only the first N one-coating stacks (0: all)")
     t.add_argument("--heldout", type=Path, default=Path("tests/data/heldout_layered.npz"))

@@ -239,11 +239,11 @@ def test_reciprocal_function_space_loss_swaps_the_decoders_directions_and_nothin
 
 
 def test_stage_two_trains_each_coating_count_with_an_equal_share_of_the_batch(tmp_path, monkeypatch):
-    """With --c3 the recursion is trained three deep too: every stage-2 step draws stacks with three, two
-    and one coating in equal shares, and the run records the three data sets it read."""
+    """With --c3 and --c4 the recursion is trained three and four deep too: every stage-2 step draws stacks
+    with four, three, two and one coating in equal shares, and the run records the data sets it read."""
     from onnx_export import layered_data
 
-    for c in (1, 2, 3):
+    for c in (1, 2, 3, 4):
         layered_data.generate(tmp_path / f"c{c}", c, 4, 2, 8, 2, 4, seed=11, log=lambda s: None)
     drawn = []
     batch = lay.StackSet.batch
@@ -255,14 +255,17 @@ def test_stage_two_trains_each_coating_count_with_an_equal_share_of_the_batch(tm
     monkeypatch.setattr(lay.StackSet, "batch", recorded)
     args = ["train", "--size", "tiny", "--init-from", "tiny", "--heldout", str(tmp_path / "none.npz")]
     args += ["--c1", str(tmp_path / "c1"), "--c2", str(tmp_path / "c2"), "--c3", str(tmp_path / "c3")]
-    args += ["--steps", "1", "--finetune", "2", "--batch", "7", "--pairs", "4", "--out", str(tmp_path / "run")]
+    args += ["--c4", str(tmp_path / "c4")]
+    args += ["--steps", "1", "--finetune", "2", "--batch", "9", "--pairs", "4", "--out", str(tmp_path / "run")]
     res = lay.train(lay.parser().parse_args(args), log=lambda s: None)
     assert res["step"] == 3 and np.isfinite(res["loss"])
-    assert drawn == [(1, 7)] + [(2, 2), (3, 2), (1, 3)] * 2
+    assert drawn == [(1, 9)] + [(2, 2), (3, 2), (4, 2), (1, 3)] * 2
     data = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=False)["history"]["data"]
-    assert [f"--coatings {c}" in d for d, c in zip(data, (1, 2, 3), strict=True)] == [True] * 3
+    assert [f"--coatings {c}" in d for d, c in zip(data, (1, 2, 3, 4), strict=True)] == [True] * 4
     with pytest.raises(ValueError, match="--c3"):
         lay.coating_data(lay.parser().parse_args(["train", "--out", str(tmp_path / "x")]), 3)
+    with pytest.raises(ValueError, match="--c4"):
+        lay.coating_data(lay.parser().parse_args(["train", "--out", str(tmp_path / "x")]), 4)
 
 
 def test_layering_loss_weights_grazing_pairs_as_the_pair_loss_does():
@@ -295,8 +298,14 @@ def test_a_three_coating_share_sets_its_stacks_and_loss_weight_and_the_rest_is_s
     assert shares("--c3", "c3", "--c3-share", "0.25") == {2: (3, 0.375), 3: (2, 0.25), 1: (3, 0.375)}
     for c, (b, w) in shares("--c3", "c3", "--c3-share", "0.1").items():
         assert b >= 1 and w > 0, (c, b, w)  # a small share still draws one stack
+    assert shares("--c3", "c3", "--c4", "c4") == {c: (2, 0.25) for c in (2, 3, 4, 1)}
+    four = shares("--c3", "c3", "--c4", "c4", "--c3-share", "0.25")
+    assert four == {2: (2, 0.25), 4: (2, 0.25), 3: (2, 0.25), 1: (2, 0.25)}
+    assert sum(b for b, _ in shares("--c3", "c3", "--c4", "c4", "--c3-share", "0.5").values()) == 8
     with pytest.raises(ValueError, match="needs --c3"):
         shares("--c3-share", "0.2")
+    with pytest.raises(ValueError, match="needs --c3"):
+        shares("--c4", "c4", "--c3-share", "0.2")
     with pytest.raises(ValueError, match=r"must be in \(0, 1\)"):
         shares("--c3", "c3", "--c3-share", "1.0")
 
@@ -305,6 +314,6 @@ def test_a_bad_three_coating_share_fails_before_any_training_step(tmp_path):
     args = lay.parser().parse_args(
         ["train", "--c3", "c3", "--c3-share", "0.9", "--batch", "3", "--finetune", "5", "--out", str(tmp_path / "r")]
     )
-    with pytest.raises(ValueError, match="leaves no stacks with one or two coatings"):
+    with pytest.raises(ValueError, match="leaves no stacks with the other coating counts"):
         lay.train(args, log=lambda s: None)
     assert not (tmp_path / "r").exists()  # nothing was loaded, trained or written
