@@ -137,7 +137,7 @@ def surface_hits(corners, face_normals, uv_scale, prim, bu, bv, d, t, width, spr
 # --- lights ------------------------------------------------------------------------------------
 #
 # Every light the renderer samples is a row of a light table: its kind and 16 float parameters
-# (``lights.Light.table_row``). The environment's image, pixel probabilities and cdf travel beside
+# (``lights.Light.table_row``). The environment's image, pixel probabilities and alias table travel beside
 # the table (empty for a scene without an image).
 
 POINT, SPOT, SUN, AREA_RECT, AREA_ELLIPSE, ENV_CONSTANT, ENV_IMAGE = range(7)
@@ -197,6 +197,40 @@ def _env_lookup(kind, prm, image, pixel_p, dx, dy, dz):
 
 
 @njit(**_JIT)
+def alias_table(p):
+    """Walker's alias table of the probabilities ``p`` (N,), summing to 1 (Vose's O(N) construction):
+    cell i keeps i with probability ``keep[i]`` and gives the rest to ``alias[i]``, so that a uniform
+    cell and one comparison draw index k with probability p[k]. Sampling costs the same for any N,
+    where a binary search over a cdf costs log2(N) dependent, mispredicted steps."""
+    n = len(p)
+    scaled = p * n
+    keep = np.ones(n)
+    alias = np.arange(n)
+    small = np.empty(n, dtype=np.int64)
+    large = np.empty(n, dtype=np.int64)
+    ns = nl = 0
+    for i in range(n):
+        if scaled[i] < 1.0:
+            small[ns] = i
+            ns += 1
+        else:
+            large[nl] = i
+            nl += 1
+    while ns > 0 and nl > 0:
+        ns -= 1
+        s = small[ns]
+        g = large[nl - 1]
+        keep[s] = scaled[s]
+        alias[s] = g
+        scaled[g] = (scaled[g] + scaled[s]) - 1.0
+        if scaled[g] < 1.0:  # g moves to the small list
+            nl -= 1
+            small[ns] = g
+            ns += 1
+    return keep, alias  # cells left on either list keep themselves: their mass is 1 up to rounding
+
+
+@njit(**_JIT)
 def environment_radiance(kind, prm, image, pixel_p, d):
     """Radiance (N, 3) from world directions d (N, 3) and the solid-angle pdf (N,) of sampling them."""
     n = len(d)
@@ -214,7 +248,7 @@ def is_delta(kind):
 
 
 @njit(inline="always", **_JIT)
-def _sample_light(kind, prm, image, pixel_p, cdf, px, py, pz, u0, u1):
+def _sample_light(kind, prm, image, pixel_p, alias_p, alias_i, px, py, pz, u0, u1):
     """One sample of a light from point (px, py, pz): direction toward it (unit), distance (inf for
     the sun and the environment), arriving radiance (for delta lights the intensity / distance^2 or
     the irradiance) and solid-angle pdf (1 for delta lights)."""
@@ -261,13 +295,20 @@ def _sample_light(kind, prm, image, pixel_p, cdf, px, py, pz, u0, u1):
         r = math.sqrt(max(0.0, 1.0 - z * z))
         phi = 2.0 * math.pi * u1
         return r * math.cos(phi), r * math.sin(phi), z, inf, prm[3], prm[4], prm[5], _INV_4PI
-    # ENV_IMAGE: one uniform picks the pixel through the cdf, the second jitters inside it; the
-    # direction lies inside the chosen pixel, so its radiance and density are that pixel's.
+    # ENV_IMAGE: one uniform picks the pixel through the alias table (its remainder, rescaled, is the
+    # jitter across the pixel), the second jitters down it; the direction lies inside the chosen
+    # pixel, so its radiance and density are that pixel's.
     h, w = image.shape[0], image.shape[1]
-    idx = min(np.searchsorted(cdf, u0, side="right"), h * w - 1)
-    lo = cdf[idx - 1] if idx > 0 else 0.0
-    width = max(cdf[idx] - lo, 1e-300)
-    fx = min(max((u0 - lo) / width, 0.0), 1.0 - 1e-9)
+    n = h * w
+    s = u0 * n
+    cell = min(int(s), n - 1)
+    f = min(max(s - cell, 0.0), 1.0)
+    keep = alias_p[cell]
+    if f < keep:
+        idx, fx = cell, f / keep
+    else:
+        idx, fx = alias_i[cell], (f - keep) / max(1.0 - keep, 1e-300)
+    fx = min(max(fx, 0.0), 1.0 - 1e-9)
     y, x = idx // w, idx % w
     wx, wy, wz = _equirect_direction((x + fx) / w, 1.0 - (y + u1) / h)
     pdf = _env_pdf(pixel_p, h, w, y, x, wx, wy)
@@ -275,7 +316,7 @@ def _sample_light(kind, prm, image, pixel_p, cdf, px, py, pz, u0, u1):
 
 
 @njit(**_JIT)
-def sample_light(kind, prm, image, pixel_p, cdf, p, u):
+def sample_light(kind, prm, image, pixel_p, alias_p, alias_i, p, u):
     """One light's samples from points p (N, 3) with uniforms u (N, 2): directions (N, 3), distances,
     radiance (N, 3), pdfs (the fields of ``lights.LightSample``, its delta flag aside)."""
     n = len(p)
@@ -285,13 +326,13 @@ def sample_light(kind, prm, image, pixel_p, cdf, p, u):
     pdf = np.empty(n)
     for i in range(n):
         wi[i, 0], wi[i, 1], wi[i, 2], dist[i], rad[i, 0], rad[i, 1], rad[i, 2], pdf[i] = _sample_light(
-            kind, prm, image, pixel_p, cdf, p[i, 0], p[i, 1], p[i, 2], u[i, 0], u[i, 1]
+            kind, prm, image, pixel_p, alias_p, alias_i, p[i, 0], p[i, 1], p[i, 2], u[i, 0], u[i, 1]
         )
     return wi, dist, rad, pdf
 
 
 @njit(**_JIT)
-def sample_lights(kinds, params, image, pixel_p, cdf, p, ng, u, eps):
+def sample_lights(kinds, params, image, pixel_p, alias_p, alias_i, p, ng, u, eps):
     """Next-event estimation's light samples: one light of the table per hit, chosen uniformly by
     u[:, 0] (its remainder is not reused), a point on it from u[:, 1:3]. Returns the world direction
     (N, 3), radiance (N, 3), pdf, delta flag, the cosine to the geometric normal ``ng``, whether the
@@ -311,7 +352,7 @@ def sample_lights(kinds, params, image, pixel_p, cdf, p, ng, u, eps):
     for i in range(n):
         j = min(int(u[i, 0] * n_lights), n_lights - 1)
         wx, wy, wz, dist, r0, r1, r2, pd = _sample_light(
-            kinds[j], params[j], image, pixel_p, cdf, p[i, 0], p[i, 1], p[i, 2], u[i, 1], u[i, 2]
+            kinds[j], params[j], image, pixel_p, alias_p, alias_i, p[i, 0], p[i, 1], p[i, 2], u[i, 1], u[i, 2]
         )
         c = wx * ng[i, 0] + wy * ng[i, 1] + wz * ng[i, 2]
         wi[i, 0], wi[i, 1], wi[i, 2] = wx, wy, wz

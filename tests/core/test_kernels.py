@@ -83,3 +83,50 @@ def test_take_paths_gathers_every_field_as_fancy_indexing_does():
     for got, field in zip(kernels.take_paths(keep, *fields), fields, strict=True):
         np.testing.assert_array_equal(got, field[keep])
         assert got.dtype == field.dtype
+
+
+def _alias_masses(keep, alias):
+    """The probability of each index under the alias table: its own cell's share plus what other
+    cells give it."""
+    n = len(keep)
+    return (keep + np.bincount(alias, weights=1.0 - keep, minlength=n)) / n
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(st.one_of(st.just(0.0), st.floats(1e-12, 1.0), st.floats(1.0, 1e6)), min_size=1, max_size=300).filter(
+        lambda w: sum(w) > 0
+    )
+)
+def test_the_alias_table_gives_each_index_its_probability(weights):
+    p = np.asarray(weights) / np.sum(weights)
+    keep, alias = kernels.alias_table(p)
+    assert ((keep >= 0.0) & (keep <= 1.0 + 1e-12)).all()
+    assert ((alias >= 0) & (alias < len(p))).all()
+    np.testing.assert_allclose(_alias_masses(keep, alias), p, rtol=1e-9, atol=1e-12)
+    assert (_alias_masses(keep, alias)[p == 0.0] <= 1e-12).all()  # a black pixel is never drawn
+
+
+def test_environment_samples_fall_in_each_pixel_as_often_as_its_probability_and_uniformly_inside_it():
+    """The sky's importance sampling through the alias table: pixel frequencies match ``pixel_p``
+    (chi-square), and the one uniform that picks the cell also places the direction across the pixel
+    uniformly (the rescaled remainder on either side of the cell's threshold)."""
+    from scipy import stats
+
+    from addon.core.render.lights import Environment, direction_to_equirect
+
+    rng = np.random.default_rng(3)
+    image = rng.random((8, 16, 3)) ** 4
+    image[2, 5] = 0.0  # a black pixel
+    env = Environment(image=image)
+    n = 400_000
+    ls = env.sample(np.zeros((n, 3)), rng.random((n, 2)))
+    uv = direction_to_equirect(ls.wi)
+    x = np.minimum((uv[:, 0] * 16).astype(int), 15)
+    y = np.minimum(((1.0 - uv[:, 1]) * 8).astype(int), 7)
+    counts = np.bincount(y * 16 + x, minlength=128)
+    assert counts[2 * 16 + 5] == 0
+    seen = env.pixel_p > 0
+    assert stats.chisquare(counts[seen], n * env.pixel_p[seen] / env.pixel_p[seen].sum()).pvalue > 1e-3
+    across = uv[:, 0] * 16 - np.floor(uv[:, 0] * 16)  # the position across each pixel
+    assert stats.kstest(across, "uniform").pvalue > 1e-3

@@ -452,7 +452,7 @@ def _add_emission(ctx: _Context, paths: _Paths, t: np.ndarray, L: np.ndarray) ->
     where they escape (t = inf), weighted against next-event estimation by how each ray was sampled."""
     if len(ctx.area_params) == 0 and ctx.env_kind < 0:
         return
-    image, pixel_p, _ = ctx.env_arrays
+    image, pixel_p = ctx.env_arrays[:2]
     kernels.add_emission(
         ctx.area_params, ctx.area_ellipse, ctx.env_kind, ctx.env_params, image, pixel_p,
         ctx.strategy_code, ctx.p_select,
@@ -482,9 +482,9 @@ def _sample_lights(ctx: _Context, hits: _Hits, u_light: np.ndarray, stats: Rende
         return _LightSamples(
             np.zeros((m, 3)), np.zeros((m, 3)), np.ones(m), np.zeros(m, dtype=bool), np.zeros(m, dtype=bool)
         )
-    image, pixel_p, cdf = ctx.env_arrays
+    image, pixel_p, alias_p, alias_i = ctx.env_arrays
     wi_w, rad, pdf, delta, cos_g, useful, org, tmax = kernels.sample_lights(
-        ctx.nee_kinds, ctx.nee_params, image, pixel_p, cdf, hits.p, hits.ng, u_light, ctx.eps
+        ctx.nee_kinds, ctx.nee_params, image, pixel_p, alias_p, alias_i, hits.p, hits.ng, u_light, ctx.eps
     )
     unseen = np.zeros(m, dtype=bool)
     idx = np.nonzero(useful)[0]

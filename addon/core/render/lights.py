@@ -26,7 +26,7 @@ from ..kernels import N_PARAMS
 
 INF = np.inf
 # The environment arrays of a light table without an image (the kernels' argument types stay fixed).
-NO_IMAGE = (np.zeros((1, 1, 3)), np.ones(1), np.ones(1))
+NO_IMAGE = (np.zeros((1, 1, 3)), np.ones(1), np.ones(1), np.zeros(1, dtype=np.int64))
 
 
 @dataclass
@@ -220,11 +220,11 @@ def _rows(a, columns: int = 3) -> np.ndarray:
 def _sample(light, p: np.ndarray, u: np.ndarray) -> LightSample:
     """``light.sample``: the light table's sampling loop on this one light."""
     kind, row = light.table_row()
-    image, pixel_p, cdf = light.image_arrays() if isinstance(light, Environment) else NO_IMAGE
+    image, pixel_p, alias_p, alias_i = light.image_arrays() if isinstance(light, Environment) else NO_IMAGE
     p, u = _rows(p), _rows(u, 2)
     if len(u) != len(p):
         raise ValueError(f"one pair of uniforms per point: got {len(u)} for {len(p)}")
-    wi, dist, rad, pdf = kernels.sample_light(kind, row, image, pixel_p, cdf, p, u)
+    wi, dist, rad, pdf = kernels.sample_light(kind, row, image, pixel_p, alias_p, alias_i, p, u)
     return LightSample(wi, dist, rad, pdf, bool(kernels.is_delta(kind)))
 
 
@@ -255,8 +255,7 @@ class Environment:
                 weight = np.ones((h, w)) * np.sin(theta)[:, None]
                 total = weight.sum()
             self.pixel_p = (weight / total).ravel()
-            self.cdf = np.cumsum(self.pixel_p)
-            self.cdf /= self.cdf[-1]
+            self.alias_p, self.alias_i = kernels.alias_table(self.pixel_p)
         self.constant = self.color * self.strength
 
     @property
@@ -270,10 +269,10 @@ class Environment:
         row[3:6] = self.constant
         return (kernels.ENV_CONSTANT if self.image is None else kernels.ENV_IMAGE), row
 
-    def image_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The image, pixel probabilities and cdf the kernels read; for a constant colour ``NO_IMAGE``,
-        arrays of the same types that the loops never read."""
-        return NO_IMAGE if self.image is None else (self.image, self.pixel_p, self.cdf)
+    def image_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The image, pixel probabilities and alias table (``kernels.alias_table``) the kernels read; for a
+        constant colour ``NO_IMAGE``, arrays of the same types that the loops never read."""
+        return NO_IMAGE if self.image is None else (self.image, self.pixel_p, self.alias_p, self.alias_i)
 
     def radiance(self, d: np.ndarray) -> np.ndarray:
         """Radiance (N, 3) arriving from world directions d (pointing away from the scene)."""
@@ -286,7 +285,7 @@ class Environment:
         """Radiance (N, 3) from world directions d and the solid-angle pdf (N,) of :meth:`sample`
         choosing them, from one pixel lookup."""
         kind, row = self.table_row()
-        image, pixel_p, _ = self.image_arrays()
+        image, pixel_p = self.image_arrays()[:2]
         return kernels.environment_radiance(kind, row, image, pixel_p, _rows(d))
 
     def sample(self, p: np.ndarray, u: np.ndarray) -> LightSample:
