@@ -150,6 +150,64 @@ def mse(a, b):
     return float(((a - b) ** 2).mean())
 
 
+def rest_split(width: int, height: int, samples: int, bounces: int, repeats: int) -> list[str]:
+    """Where "the rest" goes, on one thread: every compiled loop of ``addon.core.kernels`` timed on its
+    own (each entry point wrapped with a timer for these renders), beside the renderer's rays and
+    networks; what is left is the numpy BSDFs, shading frames and the integrator's Python. With that
+    last part at no cost, the rest would still be the loops' share of what remains: a floor on how
+    far compiling the BSDFs alone could take it."""
+    import collections
+
+    from addon.core import kernels
+
+    scene = demo_scene(width, height)
+    settings = RenderSettings(samples=samples, max_bounces=bounces, threads=1)
+    render(scene, RenderSettings(samples=1, max_bounces=1, threads=1))  # warm-up
+    spent = collections.Counter()
+    originals = {n: f for n, f in vars(kernels).items() if hasattr(f, "py_func") and not n.startswith("_")}
+
+    def timed(name, f):
+        def call(*a, **k):
+            t = time.perf_counter()
+            try:
+                return f(*a, **k)
+            finally:
+                spent[name] += time.perf_counter() - t
+
+        return call
+
+    total = rays = net = 0.0
+    try:
+        for name, f in originals.items():
+            setattr(kernels, name, timed(name, f))
+        for _ in range(repeats):
+            _, st = render(scene, settings)
+            total, rays, net = total + st.seconds["total"], rays + st.seconds["rays"], net + st.seconds["network"]
+    finally:
+        for name, f in originals.items():
+            setattr(kernels, name, f)
+    loops = sum(spent.values())
+    other = total - rays - net - loops
+    floor = 100 * loops / (rays + net + loops)
+    share = lambda x: f"{100 * x / total:.1f}%"  # noqa: E731
+    lines = [
+        f"## Where the rest goes ({width}x{height}, {samples} spp, {bounces} bounces, one thread, {repeats} renders)",
+        "",
+        "| part | share of render time |",
+        "|---|---|",
+        f"| rays (embreex) | {share(rays)} |",
+        f"| networks (ONNX Runtime) | {share(net)} |",
+        f"| compiled loops (`addon/core/kernels.py`), all | {share(loops)} |",
+        *(f"| - `{n}` | {share(v)} |" for n, v in spent.most_common() if v >= 0.005 * total),
+        f"| numpy BSDFs, shading frames and the integrator's Python | {share(other)} |",
+        "",
+        f"Were the last row free, the rest would be the loops alone: {floor:.0f}% of the time"
+        + (", above the 35% target, which then needs the loops faster too." if floor > 35 else "."),
+        "",
+    ]
+    return lines
+
+
 def viewport_latency(repeats: int, size=(320, 180)) -> list[str]:
     """Seconds from an edit (``ProgressiveSession.restart`` with a freshly exported demo scene, its
     stacks still to encode) to the viewport's first image (1 spp at a quarter of the resolution)
@@ -197,6 +255,7 @@ def speed_only(args, command: str) -> int:
     import bpy
 
     sections = []
+    first_size = tuple(int(v) for v in args.sizes.split(",")[0].split("x"))
     for size in args.sizes.split(","):
         width, height = (int(v) for v in size.split("x"))
         scene = demo_scene(width, height)
@@ -247,6 +306,7 @@ def speed_only(args, command: str) -> int:
             "",
         ]
         sections += lines
+    sections += rest_split(*first_size, args.samples, args.bounces, args.repeats)
     sections += viewport_latency(args.repeats)
     text = [
         "# Renderer speed: demo scene, ours vs Blender Cycles, alternating",
