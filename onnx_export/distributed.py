@@ -20,6 +20,7 @@ reduces CUDA tensors only, so a CUDA machine would need the trainers moved to th
 
 from __future__ import annotations
 
+import atexit
 import os
 from dataclasses import dataclass
 
@@ -83,7 +84,26 @@ def processes() -> Processes:
 
     if not dist.is_initialized():
         dist.init_process_group("gloo")
+        atexit.register(_leave_group)
     return Processes(dist.get_rank(), dist.get_world_size())
+
+
+def _leave_group() -> None:
+    """At exit, wait for the other processes (process 0 ends later: it evaluates and writes) and destroy
+    the group while the interpreter is whole. A process that leaves with its gloo connections open while
+    a peer still uses them can abort ("terminate called without an active exception", SIGABRT) and
+    fail a run that had finished. The wait is bounded, so a process that failed does not hang here."""
+    from datetime import timedelta
+
+    import torch.distributed as dist
+
+    if not dist.is_initialized():
+        return
+    try:
+        dist.monitored_barrier(timeout=timedelta(seconds=120))
+    except RuntimeError:
+        pass  # a peer failed or left: nothing to wait for
+    dist.destroy_process_group()
 
 
 def quiet_unless_main(log, procs: Processes):
