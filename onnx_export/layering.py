@@ -375,11 +375,18 @@ def selection_score(metrics: dict) -> float:
 
 
 def heldout_error(
-    net: LayeringNet, dec, models: ModelSet, heldout: dict, log=None, remainder: bool = False, transmission=False
+    net: LayeringNet,
+    dec,
+    models: ModelSet,
+    heldout: dict,
+    log=None,
+    remainder: bool = False,
+    transmission=False,
+    keep_errors: bool = False,
 ) -> dict:
     """Lobe error of the layered latents per number of coatings, as onnx_export.evaluate measures it
     (``remainder``: of the exact top-interface reflection plus the decoded lobe, ``transmission``: times
-    the top coat's transmission)."""
+    the top coat's transmission); ``keep_errors``: with each count's (stacks, elevations) errors too."""
     from onnx_export.evaluate import decoder_lobes, lobe_metrics
     from onnx_export.remainder import scale_lobes, top_lobes
 
@@ -403,9 +410,10 @@ def heldout_error(
         if remainder:
             pred = pred + top_lobes(a, heldout["lobe"].shape[2], heldout["angles"])
         m = lobe_metrics(pred, heldout["lobe"][idx])
-        out[f"coatings_{c}"] = {k: v for k, v in m.items() if k != "errors"} | {"configs": int(idx.size)}
+        out[f"coatings_{c}"] = {k: v for k, v in m.items() if k != "errors" or keep_errors} | {"configs": int(idx.size)}
     if log:
-        log("held-out: " + json.dumps({k: {q: round(v, 4) for q, v in d.items()} for k, d in out.items()}))
+        shown = {k: {q: round(v, 4) for q, v in d.items() if q != "errors"} for k, d in out.items()}
+        log("held-out: " + json.dumps(shown))
     return out
 
 

@@ -1,6 +1,7 @@
 """Layering and sampling networks (torch): ONNX parity of the shipped models, the losses, the KL table."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -317,3 +318,19 @@ def test_a_bad_three_coating_share_fails_before_any_training_step(tmp_path):
     with pytest.raises(ValueError, match="leaves no stacks with the other coating counts"):
         lay.train(args, log=lambda s: None)
     assert not (tmp_path / "r").exists()  # nothing was loaded, trained or written
+
+
+def test_the_paired_bootstrap_of_the_shipping_rule_sees_ties_and_clear_differences():
+    """benchmarks/compare_layering.py: a network against itself differs by exactly 0 in every resample;
+    one worse on every stack is worse in every resample; unpaired arrays are an error."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import compare_layering as cmp
+
+    errors = np.random.default_rng(0).random((40, 4)) * 0.2
+    assert cmp.paired_bootstrap(errors, errors, 200, 0) == (0.0, 0.0, 0.0)
+    d, sd, worse = cmp.paired_bootstrap(errors, errors + 0.01, 200, 0)
+    assert d == pytest.approx(0.02) and worse == 1.0 and sd < 1e-9  # +0.01 on each of median and p90
+    with pytest.raises(ValueError, match="one shape"):
+        cmp.paired_bootstrap(errors, errors[:30], 10, 0)
