@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..formula import formula, isfinite, maximum, negate, sqrt, where
 from . import ggx
 from .base import BSDF, RADIANCE, SMOOTH_ALPHA, BSDFSample, as_param, rows
-from .frame import dot, reflect, refract
-from .fresnel import fresnel_dielectric
+from .frame import refracted
+from .fresnel import fresnel_dielectric_cos
 
 # |ior - 1| below this is index-matched: Fresnel reflectance is < 1e-15 there, and the
 # generalised half vector of rough transmission loses all precision to cancellation.
@@ -55,33 +56,16 @@ class RoughDielectric(BSDF):
         self.reflection_only = bool(reflection_only)
 
     def _rows(self, n, xp):
-        alpha = rows(self.alpha, n, "alpha", xp)
-        ior = rows(self.ior, n, "ior", xp)
-        return alpha, ior, (alpha < SMOOTH_ALPHA) | (xp.abs(ior - 1.0) < INDEX_MATCHED_TOL)
-
-    def _half(self, wi, wo, ior, xp):
-        """Generalised half vector m (facing +z), etap, reflect flag and the row mask where
-        the microfacet configuration is possible (pbrt-v4 DielectricBxDF::f)."""
-        ci, co = wi[:, 2], wo[:, 2]
-        refl = ci * co > 0.0
-        etap = xp.where(refl, 1.0, xp.where(co > 0.0, ior, 1.0 / ior))
-        h = wi * etap[:, None] + wo
-        h *= xp.where(h[:, 2] < 0.0, -1.0, 1.0)[:, None]
-        hn = xp.sqrt(dot(h, h))
-        with xp.errstate(invalid="ignore", divide="ignore"):
-            m = h / hn[:, None]
-        dwi, dwo = dot(wi, m), dot(wo, m)
-        ok = (ci != 0.0) & (co != 0.0) & (hn > 0.0) & (dwi * ci > 0.0) & (dwo * co > 0.0)
-        return m, etap, refl, ok, dwi, dwo
+        return rows(self.alpha, n, "alpha", xp), rows(self.ior, n, "ior", xp)
 
     def eval(self, wi, wo, mode=RADIANCE, check=True) -> np.ndarray:
         wi, wo, xp = self._inputs(wi, wo, mode, check)
-        f, _ = self._eval_pdf(wi, wo, mode, xp, want_pdf=False)
+        f, _ = self._eval_pdf(wi, wo, mode, xp)
         return xp.repeat(f[:, None], 3, axis=1)
 
     def pdf(self, wi, wo, mode=RADIANCE, check=True) -> np.ndarray:
         wi, wo, xp = self._inputs(wi, wo, mode, check)
-        return self._eval_pdf(wi, wo, mode, xp, want_f=False)[1]
+        return self._eval_pdf(wi, wo, mode, xp)[1]
 
     def eval_pdf(self, wi, wo, mode=RADIANCE, check=True) -> tuple[np.ndarray, np.ndarray]:
         """``eval`` (as (N,): the interface is grey) and ``pdf`` together, from one half vector, Fresnel
@@ -89,69 +73,100 @@ class RoughDielectric(BSDF):
         wi, wo, xp = self._inputs(wi, wo, mode, check)
         return self._eval_pdf(wi, wo, mode, xp)
 
-    def _eval_pdf(self, wi, wo, mode, xp, want_f=True, want_pdf=True):
-        """(f (N,) or None, pdf (N,) or None): the one implementation of both (class docstring)."""
-        n = wi.shape[0]
-        alpha, ior, smooth = self._rows(n, xp)
-        m, etap, refl, ok, dwi, dwo = self._half(wi, wo, ior, xp)
-        ci, co = wi[:, 2], wo[:, 2]
-        live = ok & ~smooth
-        f = p = None
+    def _eval_pdf(self, wi, wo, mode, xp):
+        alpha, ior = self._rows(wi.shape[0], xp)
         with xp.errstate(invalid="ignore", divide="ignore"):
-            F = fresnel_dielectric(dwo, ior)
-            d = ggx.ndf(m, alpha)
-            if want_f:
-                dg = d * ggx.smith_g2(wi, wo, alpha)
-                f = dg * F / xp.abs(4.0 * ci * co)
-                if not self.reflection_only:
-                    denom = (dwi + dwo / etap) ** 2 * ci * co
-                    ft = dg * (1.0 - F) * xp.abs(dwi * dwo / denom)
-                    if mode == RADIANCE:
-                        ft = ft / (etap * etap)
-                    f = xp.where(refl, f, ft)
-                f = xp.where(live & refl if self.reflection_only else live, f, 0.0)
-                f = xp.where(xp.isfinite(f), f, 0.0)
-            if want_pdf:
-                pvis = ggx.pdf_visible_normal(wo, m, alpha, d=d)
-                p = pvis / (4.0 * xp.abs(dwo))  # reflection_only: R / (R + T) = 1
-                if not self.reflection_only:
-                    pt = pvis * xp.abs(dwi) / (dwi + dwo / etap) ** 2
-                    p = xp.where(refl, p * F, pt * (1.0 - F))
-                p = xp.where(live & refl if self.reflection_only else live, p, 0.0)
-                p = xp.where(xp.isfinite(p), p, 0.0)
-        return f, p
+            return rough_dielectric_eval_pdf(
+                wi[:, 0], wi[:, 1], wi[:, 2], wo[:, 0], wo[:, 1], wo[:, 2],
+                alpha, ior, mode == RADIANCE, self.reflection_only,
+            )  # fmt: skip
 
     def sample(self, wo, u_lobe, u, mode=RADIANCE, check=True) -> BSDFSample:
         wo, u_lobe, u, xp = self._sample_inputs(wo, u_lobe, u, mode, check)
-        n = wo.shape[0]
-        alpha, ior, smooth = self._rows(n, xp)
-        # smooth rows use the geometric normal; rough rows a visible microfacet normal
-        m = ggx.sample_visible_normal(wo, alpha, u)
-        m = xp.where(smooth[:, None], xp.asarray([0.0, 0.0, 1.0]), m)
-        dwo = dot(wo, m)
-        R = fresnel_dielectric(dwo, ior)
-        T = xp.zeros_like(R) if self.reflection_only else 1.0 - R
+        alpha, ior = self._rows(wo.shape[0], xp)
         with xp.errstate(invalid="ignore", divide="ignore"):
-            p_refl = R / (R + T)
-        choose_r = u_lobe < p_refl
-
-        wr = reflect(wo, m)
-        wt, tir_free = refract(wo, m, ior)
-        etap = xp.where(dwo > 0.0, ior, 1.0 / ior)
-        wi = xp.where(choose_r[:, None], wr, wt)
-        dwi = dot(wi, m)
-        ci, co = wi[:, 2], wo[:, 2]
-        valid = xp.where(choose_r, ci * co > 0.0, tir_free & (ci * co < 0.0)) & (co != 0.0)
-
-        scale_t = 1.0 / (etap * etap) if mode == RADIANCE else xp.ones(n)
-        with xp.errstate(invalid="ignore", divide="ignore"):
-            pvis = ggx.pdf_visible_normal(wo, m, alpha)
-            pdf_r = pvis / (4.0 * xp.abs(dwo)) * p_refl
-            pdf_t = pvis * xp.abs(dwi) / (dwi + dwo / etap) ** 2 * (1.0 - p_refl)
-            g = ggx.smith_g2(wi, wo, alpha) / ggx.smith_g1(wo, alpha)
-        # both lobes have f |cos| / pdf = (R + T) g (times the radiance scale for transmission)
-        lobe_w = (R + T) * xp.where(choose_r, 1.0, scale_t)
-        weight = lobe_w * xp.where(smooth, 1.0, g)
-        pdf = xp.where(smooth, xp.where(choose_r, p_refl, 1.0 - p_refl), xp.where(choose_r, pdf_r, pdf_t))
+            x, y, z, weight, pdf, delta, reflected, valid = rough_dielectric_sample(
+                wo[:, 0], wo[:, 1], wo[:, 2], alpha, ior, u_lobe, u[:, 0], u[:, 1],
+                mode == RADIANCE, self.reflection_only,
+            )  # fmt: skip
+        wi = xp.stack([x, y, z], axis=-1)
         weight = xp.repeat(weight[:, None], 3, axis=1)
-        return BSDFSample.build(wi, weight, pdf, xp.copy(smooth), ~choose_r, valid)
+        return BSDFSample.build(wi, weight, pdf, delta, negate(reflected), valid)
+
+
+@formula
+def is_smooth(alpha, ior):
+    """Rows of delta lobes: a smooth interface or an index-matched one (class docstring)."""
+    return (alpha < SMOOTH_ALPHA) | (abs(ior - 1.0) < INDEX_MATCHED_TOL)
+
+
+@formula
+def rough_dielectric_eval_pdf(ix, iy, iz, ox, oy, oz, alpha, ior, radiance, reflection_only):
+    """(f, pdf) of :class:`RoughDielectric` at wi, wo (components) for one interface (alpha, ior):
+    the one implementation of both (class docstring); ``radiance``: RADIANCE mode, else IMPORTANCE.
+
+    The generalised half vector m (facing +z) of pbrt-v4's ``DielectricBxDF::f``: m ~ wi etap + wo, with
+    etap = 1 for reflection, ior when wo is above, 1 / ior below."""
+    refl = iz * oz > 0.0
+    etap = where(refl, 1.0, where(oz > 0.0, ior, 1.0 / ior))
+    hx, hy, hz = ix * etap + ox, iy * etap + oy, iz * etap + oz
+    s = where(hz < 0.0, -1.0, 1.0)
+    hn = sqrt(hx * hx + hy * hy + hz * hz)
+    mx, my, mz = hx * s / hn, hy * s / hn, hz * s / hn
+    dwi = ix * mx + iy * my + iz * mz
+    dwo = ox * mx + oy * my + oz * mz
+    ok = (iz != 0.0) & (oz != 0.0) & (hn > 0.0) & (dwi * iz > 0.0) & (dwo * oz > 0.0)
+    live = ok & negate(is_smooth(alpha, ior))
+    a = maximum(alpha, ggx.MIN_ALPHA)
+    F = fresnel_dielectric_cos(dwo, ior)
+    d = ggx.ndf_cos(mz, a)
+    dg = d * ggx.g2_cos(iz, oz, a)
+    f = dg * F / abs(4.0 * iz * oz)
+    pvis = ggx.visible_normal_pdf(oz, dwo, d, a)
+    p = pvis / (4.0 * abs(dwo))  # reflection_only: R / (R + T) = 1
+    if reflection_only:
+        live = live & refl
+    else:
+        half = dwi + dwo / etap
+        ft = dg * (1.0 - F) * abs(dwi * dwo / (half * half * iz * oz))
+        if radiance:
+            ft = ft / (etap * etap)
+        f = where(refl, f, ft)
+        p = where(refl, p * F, pvis * abs(dwi) / (half * half) * (1.0 - F))
+    f = where(live, f, 0.0)
+    p = where(live, p, 0.0)
+    return where(isfinite(f), f, 0.0), where(isfinite(p), p, 0.0)
+
+
+@formula
+def rough_dielectric_sample(ox, oy, oz, alpha, ior, u_lobe, u0, u1, radiance, reflection_only):
+    """(wix, wiy, wiz, weight, pdf, delta, reflected, valid): one sample of :class:`RoughDielectric` seen
+    from wo (components), before :meth:`BSDFSample.build`'s checks. Smooth rows use the geometric normal,
+    rough rows a visible microfacet normal; reflection is chosen with probability R / (R + T) (T = 0 for
+    ``reflection_only``), so both lobes have f |cos| / pdf = (R + T) G2 / G1 (times 1 / etap^2 for radiance
+    transmission)."""
+    smooth = is_smooth(alpha, ior)
+    a = maximum(alpha, ggx.MIN_ALPHA)
+    mx, my, mz = ggx.visible_normal(ox, oy, oz, a, u0, u1)
+    mx, my, mz = where(smooth, 0.0, mx), where(smooth, 0.0, my), where(smooth, 1.0, mz)
+    dwo = ox * mx + oy * my + oz * mz
+    R = fresnel_dielectric_cos(dwo, ior)
+    T = R * 0.0 if reflection_only else 1.0 - R
+    p_refl = R / (R + T)
+    choose_r = u_lobe < p_refl
+    tx, ty, tz, tir_free = refracted(ox, oy, oz, mx, my, mz, ior)
+    ix = where(choose_r, 2.0 * dwo * mx - ox, tx)
+    iy = where(choose_r, 2.0 * dwo * my - oy, ty)
+    iz = where(choose_r, 2.0 * dwo * mz - oz, tz)
+    dwi = ix * mx + iy * my + iz * mz
+    valid = where(choose_r, iz * oz > 0.0, tir_free & (iz * oz < 0.0)) & (oz != 0.0)
+    etap = where(dwo > 0.0, ior, 1.0 / ior)
+    scale_t = 1.0 / (etap * etap) if radiance else etap * 0.0 + 1.0
+    pvis = ggx.visible_normal_pdf(oz, dwo, ggx.ndf_cos(mz, a), a)
+    half = dwi + dwo / etap
+    pdf_r = pvis / (4.0 * abs(dwo)) * p_refl
+    pdf_t = pvis * abs(dwi) / (half * half) * (1.0 - p_refl)
+    g = ggx.g2_cos(iz, oz, a) / ggx.g1_cos(oz, a)
+    weight = (R + T) * where(choose_r, 1.0, scale_t) * where(smooth, 1.0, g)
+    pdf = where(smooth, where(choose_r, p_refl, 1.0 - p_refl), where(choose_r, pdf_r, pdf_t))
+    return ix, iy, iz, weight, pdf, smooth, choose_r, valid

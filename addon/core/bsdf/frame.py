@@ -1,13 +1,15 @@
 """Directions and shading frames.
 
 All functions take direction arrays of shape ``(N, 3)`` (a single ``(3,)`` vector also works
-where noted) and work row by row. The local shading frame has the normal at +z.
+where noted) and work row by row. The local shading frame has the normal at +z. ``refracted`` and
+``basis`` are the formulas (``addon.core.formula``) the compiled loops share.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from ..formula import copysign, formula, maximum, sqrt, where
 from ..xp import namespace
 
 
@@ -50,6 +52,23 @@ def reflect(w: np.ndarray, n: np.ndarray) -> np.ndarray:
     return 2.0 * dot(w, n)[..., None] * n - w
 
 
+@formula
+def refracted(wx, wy, wz, nx, ny, nz, eta):
+    """(tx, ty, tz, valid): the formula of :func:`refract` on components."""
+    c = wx * nx + wy * ny + wz * nz
+    flip = c < 0.0
+    e = where(flip, 1.0 / eta, eta)
+    s = where(flip, -1.0, 1.0)
+    c = abs(c)
+    sin2_t = maximum(0.0, 1.0 - c * c) / (e * e)
+    valid = sin2_t < 1.0
+    k = c / e - sqrt(maximum(0.0, 1.0 - sin2_t))
+    tx = -wx / e + k * nx * s
+    ty = -wy / e + k * ny * s
+    tz = -wz / e + k * nz * s
+    return where(valid, tx, 0.0), where(valid, ty, 0.0), where(valid, tz, 0.0), valid
+
+
 def refract(w: np.ndarray, n: np.ndarray, eta) -> tuple[np.ndarray, np.ndarray]:
     """Refract ``w`` (pointing away from the surface) through the interface with normal ``n``.
 
@@ -61,18 +80,18 @@ def refract(w: np.ndarray, n: np.ndarray, eta) -> tuple[np.ndarray, np.ndarray]:
     """
     xp = namespace(w, n, eta)
     eta = xp.asarray(eta, dtype=xp.float64)
-    c = dot(w, n)
-    flip = c < 0.0
-    eta = xp.where(flip, 1.0 / eta, eta)
-    c = xp.abs(c)
-    n = xp.where(flip[..., None], -n, n)
-    sin2_i = xp.maximum(0.0, 1.0 - c * c)
-    sin2_t = sin2_i / (eta * eta)
-    valid = sin2_t < 1.0
-    cos_t = xp.sqrt(xp.maximum(0.0, 1.0 - sin2_t))
-    wt = -w / eta[..., None] + (c / eta - cos_t)[..., None] * n
-    wt = xp.where(valid[..., None], wt, 0.0)
-    return wt, valid
+    with xp.errstate(invalid="ignore", divide="ignore"):
+        tx, ty, tz, valid = refracted(w[..., 0], w[..., 1], w[..., 2], n[..., 0], n[..., 1], n[..., 2], eta)
+    return xp.stack([tx, ty, tz], axis=-1), valid
+
+
+@formula
+def basis(nx, ny, nz):
+    """(sx, sy, sz, tx, ty, tz): the tangents of :func:`coordinate_system` for the unit normal n."""
+    sign = copysign(1.0, nz)
+    a = -1.0 / (sign + nz)
+    b = nx * ny * a
+    return 1.0 + sign * nx * nx * a, sign * b, -sign * nx, b, sign + ny * ny * a, -ny
 
 
 def coordinate_system(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -82,13 +101,8 @@ def coordinate_system(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     xp = namespace(n)
     n = xp.asarray(n, dtype=xp.float64)
-    x, y, z = n[..., 0], n[..., 1], n[..., 2]
-    sign = xp.copysign(1.0, z)
-    a = -1.0 / (sign + z)
-    b = x * y * a
-    s = xp.stack([1.0 + sign * x * x * a, sign * b, -sign * x], axis=-1)
-    t = xp.stack([b, sign + y * y * a, -y], axis=-1)
-    return s, t
+    sx, sy, sz, tx, ty, tz = basis(n[..., 0], n[..., 1], n[..., 2])
+    return xp.stack([sx, sy, sz], axis=-1), xp.stack([tx, ty, tz], axis=-1)
 
 
 def to_local(v: np.ndarray, s: np.ndarray, t: np.ndarray, n: np.ndarray) -> np.ndarray:

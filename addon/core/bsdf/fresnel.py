@@ -4,7 +4,22 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..formula import clip, formula, isfinite, maximum, sqrt, where
 from ..xp import namespace
+
+
+@formula
+def fresnel_dielectric_cos(cos_i, eta):
+    """The formula of :func:`fresnel_dielectric` (one cosine, one relative index)."""
+    c = clip(cos_i, -1.0, 1.0)
+    e = where(c < 0.0, 1.0 / eta, eta)
+    c = abs(c)
+    sin2_t = (1.0 - c * c) / (e * e)
+    cos_t = sqrt(maximum(0.0, 1.0 - sin2_t))
+    r_parl = (e * c - cos_t) / (e * c + cos_t)
+    r_perp = (c - e * cos_t) / (c + e * cos_t)
+    r = 0.5 * (r_parl * r_parl + r_perp * r_perp)
+    return where(sin2_t >= 1.0, 1.0, where(isfinite(r), r, 1.0))
 
 
 def fresnel_dielectric(cos_i, eta) -> np.ndarray:
@@ -15,19 +30,8 @@ def fresnel_dielectric(cos_i, eta) -> np.ndarray:
     internal reflection gives 1. Shapes broadcast; returns float64.
     """
     xp = namespace(cos_i, eta)
-    cos_i = xp.clip(xp.asarray(cos_i, dtype=xp.float64), -1.0, 1.0)
-    eta = xp.asarray(eta, dtype=xp.float64)
-    inside = cos_i < 0.0
-    eta = xp.where(inside, 1.0 / eta, eta)
-    cos_i = xp.abs(cos_i)
-    sin2_t = (1.0 - cos_i * cos_i) / (eta * eta)
-    tir = sin2_t >= 1.0
-    cos_t = xp.sqrt(xp.maximum(0.0, 1.0 - sin2_t))
     with xp.errstate(invalid="ignore", divide="ignore"):
-        r_parl = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
-        r_perp = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
-    r = 0.5 * (r_parl * r_parl + r_perp * r_perp)
-    return xp.where(tir, 1.0, xp.where(xp.isfinite(r), r, 1.0))
+        return fresnel_dielectric_cos(xp.asarray(cos_i, dtype=xp.float64), xp.asarray(eta, dtype=xp.float64))
 
 
 def fresnel_conductor(cos_i, eta, k) -> np.ndarray:

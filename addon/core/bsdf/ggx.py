@@ -4,14 +4,21 @@ Masking is Smith's with the height-correlated G2 of pbrt-v4 (Heitz 2014): Mitsub
 separable G1(wi) G1(wo) instead. Visible normals are sampled with the spherical caps of
 Dupuy & Benyoub 2023 ("Sampling Visible GGX Normals with Spherical Caps").
 
+Each quantity is one :func:`~addon.core.formula.formula` over cosines and components (``*_cos``,
+``visible_normal``), which the renderer's compiled loops call with scalars; the functions over
+direction arrays (``ndf``, ``smith_g2``, ...) apply those formulas to columns.
+
 ``alpha`` is clamped to >= ``MIN_ALPHA`` so that near-specular lobes stay finite; callers that
 want a true delta lobe test ``alpha < SMOOTH_ALPHA`` themselves (see ``base.py``).
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from ..formula import clip, cos, formula, isfinite, maximum, sin, sqrt, where
 from ..xp import namespace
 from .frame import dot
 
@@ -22,13 +29,74 @@ def _alpha(alpha, xp=np) -> np.ndarray:
     return xp.maximum(xp.asarray(alpha, dtype=xp.float64), MIN_ALPHA)
 
 
+# --- the formulas (cosines and components; alpha already clamped) ---------------------------------
+
+
+@formula
+def ndf_cos(mz, alpha):
+    """D(m) from m's cosine (see :func:`ndf`)."""
+    a2 = alpha * alpha
+    d = mz * mz * (a2 - 1.0) + 1.0
+    return where(mz > 0.0, a2 / (math.pi * d * d), 0.0)
+
+
+@formula
+def lambda_cos(wz, alpha):
+    """Smith's Lambda from w's cosine (see :func:`smith_lambda`)."""
+    a2 = alpha * alpha
+    c2 = wz * wz
+    x = a2 * (1.0 - c2) / c2
+    lam = x / (2.0 * (1.0 + sqrt(1.0 + x)))
+    return where(c2 > 0.0, lam, math.inf)
+
+
+@formula
+def g1_cos(wz, alpha):
+    return 1.0 / (1.0 + lambda_cos(wz, alpha))
+
+
+@formula
+def g2_cos(iz, oz, alpha):
+    return 1.0 / (1.0 + lambda_cos(iz, alpha) + lambda_cos(oz, alpha))
+
+
+@formula
+def visible_normal(wx, wy, wz, alpha, u0, u1):
+    """(mx, my, mz): a visible normal from w for uniforms (u0, u1) (see :func:`sample_visible_normal`)."""
+    sign = where(wz < 0.0, -1.0, 1.0)
+    # stretch the (upper-hemisphere) view direction to the unit-roughness configuration
+    sx = wx * sign * alpha
+    sy = wy * sign * alpha
+    sz = abs(wz)
+    inv = 1.0 / sqrt(sx * sx + sy * sy + sz * sz)
+    sx, sy, sz = sx * inv, sy * inv, sz * inv
+    # sample the spherical cap z in (-sz, 1]
+    phi = 2.0 * math.pi * u0
+    z = (1.0 - u1) * (1.0 + sz) - sz
+    sin_t = sqrt(clip(1.0 - z * z, 0.0, 1.0))
+    mx = (sin_t * cos(phi) + sx) * alpha
+    my = (sin_t * sin(phi) + sy) * alpha
+    mz = maximum(z + sz, 0.0)
+    n = sqrt(mx * mx + my * my + mz * mz)
+    ok = n > 0.0
+    return where(ok, mx / n, 0.0), where(ok, my / n, 0.0), where(ok, mz / n, 1.0)
+
+
+@formula
+def visible_normal_pdf(wz, w_dot_m, d, alpha):
+    """Density of :func:`visible_normal` from w's cosine, w.m and D(m) (see :func:`pdf_visible_normal`)."""
+    sign = where(wz < 0.0, -1.0, 1.0)
+    p = g1_cos(wz, alpha) * maximum(0.0, sign * w_dot_m) * d / abs(wz)
+    return where((wz != 0.0) & isfinite(p), p, 0.0)
+
+
+# --- over direction arrays ---------------------------------------------------------------------
+
+
 def ndf(m: np.ndarray, alpha) -> np.ndarray:
     """D(m) in 1/sr (projected-area normalised: integral of D(m) cos(m) dm = 1); 0 for m.z <= 0."""
     xp = namespace(m, alpha)
-    a2 = _alpha(alpha, xp) ** 2
-    c2 = m[..., 2] ** 2
-    d = c2 * (a2 - 1.0) + 1.0
-    return xp.where(m[..., 2] > 0.0, a2 / (xp.pi * d * d), 0.0)
+    return ndf_cos(m[..., 2], _alpha(alpha, xp))
 
 
 def smith_lambda(w: np.ndarray, alpha) -> np.ndarray:
@@ -38,12 +106,8 @@ def smith_lambda(w: np.ndarray, alpha) -> np.ndarray:
     Depends on |cos w| only, so directions below the surface are mirrored.
     """
     xp = namespace(w, alpha)
-    a2 = _alpha(alpha, xp) ** 2
-    c2 = w[..., 2] ** 2
     with xp.errstate(divide="ignore", invalid="ignore"):
-        x = a2 * (1.0 - c2) / c2
-        lam = x / (2.0 * (1.0 + xp.sqrt(1.0 + x)))
-    return xp.where(c2 > 0.0, lam, xp.inf)
+        return lambda_cos(w[..., 2], _alpha(alpha, xp))
 
 
 def smith_g1(w: np.ndarray, alpha) -> np.ndarray:
@@ -63,26 +127,9 @@ def sample_visible_normal(w: np.ndarray, alpha, u: np.ndarray) -> np.ndarray:
     (the distribution is symmetric), so m always faces +z. ``u`` is (N, 2) in [0, 1).
     """
     xp = namespace(w, alpha, u)
-    a = _alpha(alpha, xp)
-    sign = xp.where(w[..., 2] < 0.0, -1.0, 1.0)
-    # stretch the (upper-hemisphere) view direction to the unit-roughness configuration
-    wx = w[..., 0] * sign * a
-    wy = w[..., 1] * sign * a
-    wz = xp.abs(w[..., 2])
-    inv = 1.0 / xp.sqrt(wx * wx + wy * wy + wz * wz)
-    wx, wy, wz = wx * inv, wy * inv, wz * inv
-    # sample the spherical cap z in (-wz, 1]
-    phi = 2.0 * xp.pi * u[..., 0]
-    z = (1.0 - u[..., 1]) * (1.0 + wz) - wz
-    sin_t = xp.sqrt(xp.clip(1.0 - z * z, 0.0, 1.0))
-    hx = sin_t * xp.cos(phi) + wx
-    hy = sin_t * xp.sin(phi) + wy
-    hz = z + wz
-    m = xp.stack([hx * a, hy * a, xp.maximum(hz, 0.0)], axis=-1)
-    n = xp.sqrt(dot(m, m))[..., None]
     with xp.errstate(invalid="ignore", divide="ignore"):
-        m = m / n
-    return xp.where(n > 0.0, m, xp.asarray([0.0, 0.0, 1.0]))
+        m = visible_normal(w[..., 0], w[..., 1], w[..., 2], _alpha(alpha, xp), u[..., 0], u[..., 1])
+    return xp.stack(m, axis=-1)
 
 
 def pdf_visible_normal(w: np.ndarray, m: np.ndarray, alpha, d=None) -> np.ndarray:
@@ -90,9 +137,6 @@ def pdf_visible_normal(w: np.ndarray, m: np.ndarray, alpha, d=None) -> np.ndarra
     mirrored to the upper hemisphere (so for w below the surface the facing test is -w.m > 0).
     ``d``: D(m) when the caller has it already (:func:`ndf`)."""
     xp = namespace(w, m, alpha)
-    cz = w[..., 2]
-    sign = xp.where(cz < 0.0, -1.0, 1.0)
-    wm = xp.maximum(0.0, sign * dot(w, m))
+    a = _alpha(alpha, xp)
     with xp.errstate(invalid="ignore", divide="ignore"):
-        p = smith_g1(w, alpha) * wm * (ndf(m, alpha) if d is None else d) / xp.abs(cz)
-    return xp.where((cz != 0.0) & xp.isfinite(p), p, 0.0)
+        return visible_normal_pdf(w[..., 2], dot(w, m), ndf_cos(m[..., 2], a) if d is None else d, a)
