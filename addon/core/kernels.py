@@ -23,6 +23,8 @@ import math
 import numpy as np
 from numba import njit
 
+from .bsdf.frame import basis
+
 _JIT = dict(nogil=True, cache=True, error_model="numpy")
 
 
@@ -94,11 +96,16 @@ def surface_hits(corners, face_normals, uv_scale, prim, bu, bv, d, t, width, spr
     interpolated one, normalised; where it is zero or disagrees with the geometric normal, the
     geometric one. Both are turned toward the viewer, and a shading normal the viewer sees at
     grazing (cos <= 1e-6) falls back to the geometric one.
-    Returns p, ng, ns (N, 3), uv (N, 2), width, footprint (N,)."""
+    The shading frame is ``frame.basis`` of the shading normal, and ``wo`` the direction back along the ray
+    in it. Returns p, ng, ns (N, 3), uv (N, 2), width, footprint (N,), the tangents ts, tt (N, 3) and wo (N, 3).
+    """
     n = len(prim)
     p = np.empty((n, 3))
     ng = np.empty((n, 3))
     ns = np.empty((n, 3))
+    ts = np.empty((n, 3))
+    tt = np.empty((n, 3))
+    wo = np.empty((n, 3))
     uv = np.empty((n, 2))
     width_out = np.empty(n)
     footprint = np.empty(n)
@@ -128,10 +135,16 @@ def surface_hits(corners, face_normals, uv_scale, prim, bu, bv, d, t, width, spr
             sx, sy, sz = gx, gy, gz
         ng[i, 0], ng[i, 1], ng[i, 2] = gx, gy, gz
         ns[i, 0], ns[i, 1], ns[i, 2] = sx, sy, sz
+        ax, ay, az, bx, by, bz = basis(sx, sy, sz)
+        ts[i, 0], ts[i, 1], ts[i, 2] = ax, ay, az
+        tt[i, 0], tt[i, 1], tt[i, 2] = bx, by, bz
+        wo[i, 0] = ox * ax + oy * ay + oz * az
+        wo[i, 1] = ox * bx + oy * by + oz * bz
+        wo[i, 2] = ox * sx + oy * sy + oz * sz
         w = width[i] + spread[i] * t[i]
         width_out[i] = w
         footprint[i] = texture_footprint(w, cos_g, uv_scale[k])
-    return p, ng, ns, uv, width_out, footprint
+    return p, ng, ns, uv, width_out, footprint, ts, tt, wo
 
 
 # --- lights ------------------------------------------------------------------------------------
@@ -332,16 +345,18 @@ def sample_light(kind, prm, image, pixel_p, alias_p, alias_i, p, u):
 
 
 @njit(**_JIT)
-def sample_lights(kinds, params, image, pixel_p, alias_p, alias_i, p, ng, u, eps):
+def sample_lights(kinds, params, image, pixel_p, alias_p, alias_i, p, ng, ts, tt, ns, u, eps):
     """Next-event estimation's light samples: one light of the table per hit, chosen uniformly by
     u[:, 0] (its remainder is not reused), a point on it from u[:, 1:3]. Returns the world direction
     (N, 3), radiance (N, 3), pdf, delta flag, the cosine to the geometric normal ``ng``, whether the
     sample can contribute at all (``useful``: pdf, radiance and that cosine non-zero), and the shadow
     ray: origin offset by ``eps`` off the surface on the light's side, and its length (inf to the
-    sun or the sky; else short of the light by a relative 1e-4 and ``eps``)."""
+    sun or the sky; else short of the light by a relative 1e-4 and ``eps``), and the direction in the
+    shading frame (ts, tt, ns) last."""
     n = len(p)
     n_lights = len(kinds)
     wi = np.empty((n, 3))
+    wi_local = np.empty((n, 3))
     rad = np.empty((n, 3))
     pdf = np.empty(n)
     delta = np.empty(n, dtype=np.bool_)
@@ -356,6 +371,9 @@ def sample_lights(kinds, params, image, pixel_p, alias_p, alias_i, p, ng, u, eps
         )
         c = wx * ng[i, 0] + wy * ng[i, 1] + wz * ng[i, 2]
         wi[i, 0], wi[i, 1], wi[i, 2] = wx, wy, wz
+        wi_local[i, 0] = wx * ts[i, 0] + wy * ts[i, 1] + wz * ts[i, 2]
+        wi_local[i, 1] = wx * tt[i, 0] + wy * tt[i, 1] + wz * tt[i, 2]
+        wi_local[i, 2] = wx * ns[i, 0] + wy * ns[i, 1] + wz * ns[i, 2]
         rad[i, 0], rad[i, 1], rad[i, 2] = r0, r1, r2
         pdf[i], delta[i], cos_g[i] = pd, is_delta(kinds[j]), c
         useful[i] = pd > 0.0 and max(r0, r1, r2) > 0.0 and c != 0.0
@@ -363,7 +381,7 @@ def sample_lights(kinds, params, image, pixel_p, alias_p, alias_i, p, ng, u, eps
         for k in range(3):
             org[i, k] = p[i, k] + ng[i, k] * off
         tmax[i] = np.inf if math.isinf(dist) else dist * (1.0 - 1e-4) - eps
-    return wi, rad, pdf, delta, cos_g, useful, org, tmax
+    return wi, rad, pdf, delta, cos_g, useful, org, tmax, wi_local
 
 
 @njit(inline="always", **_JIT)
@@ -478,22 +496,28 @@ def _empty_paths(n, row):
 
 
 @njit(**_JIT)
-def continue_paths(wi, wi_z, weight, pdf, delta, mis, p, ng, row, throughput, width, spread, u_rr, roulette, eps):
+def continue_paths(
+    wi_local, ts, tt, ns, weight, pdf, delta, mis, p, ng, row, throughput, width, spread, u_rr, roulette, eps
+):
     """The next rays of the paths at a bounce: throughput times the sample weight, with Russian
     roulette where ``roulette`` (survival probability the largest throughput component, clipped to
     [0.05, 1], drawn against ``u_rr``; survivors reweighted by 1 / q); paths whose sample is zero or
-    would leave through the wrong side of the geometric surface (``wi`` world, ``wi_z`` its local z)
-    are dropped. The survivors' origins are offset by ``eps`` off the surface on their side, and a
-    non-specular bounce widens the ray cone's spread to at least 0.2.
+    would leave through the wrong side of the geometric surface (``wi_local`` in the shading frame
+    (ts, tt, ns), taken to world space here) are dropped. The survivors' origins are offset by ``eps``
+    off the surface on their side, and a non-specular bounce widens the ray cone's spread to at least 0.2.
     Returns row, origin, direction, throughput, pdf, delta, mis, width, spread of the survivors."""
     n = len(row)
     keep = np.empty(n, dtype=np.bool_)
     scale = np.empty(n)
     side = np.empty(n)
+    wi = np.empty((n, 3))
     count = 0
     for i in range(n):
+        lx, ly, lz = wi_local[i, 0], wi_local[i, 1], wi_local[i, 2]
+        for k in range(3):
+            wi[i, k] = lx * ts[i, k] + ly * tt[i, k] + lz * ns[i, k]
         c = wi[i, 0] * ng[i, 0] + wi[i, 1] * ng[i, 1] + wi[i, 2] * ng[i, 2]
-        same_side = (c > 0.0 and wi_z[i] > 0.0) or (c < 0.0 and wi_z[i] < 0.0)
+        same_side = (c > 0.0 and lz > 0.0) or (c < 0.0 and lz < 0.0)
         ok = max(weight[i, 0], weight[i, 1], weight[i, 2]) > 0.0 and same_side
         s = 1.0
         if ok and roulette:

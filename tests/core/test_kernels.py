@@ -130,3 +130,28 @@ def test_environment_samples_fall_in_each_pixel_as_often_as_its_probability_and_
     assert stats.chisquare(counts[seen], n * env.pixel_p[seen] / env.pixel_p[seen].sum()).pvalue > 1e-3
     across = uv[:, 0] * 16 - np.floor(uv[:, 0] * 16)  # the position across each pixel
     assert stats.kstest(across, "uniform").pvalue > 1e-3
+
+
+def test_the_shading_frame_at_a_hit_is_the_bsdf_package_basis_and_wo_the_ray_back_in_it():
+    """surface_hits builds the frame with the formula ``frame.coordinate_system`` applies to arrays, and
+    wo is ``to_local`` of the reversed ray: one formula, compiled and in numpy, agreeing to rounding."""
+    from addon.core.bsdf import frame
+
+    rng = np.random.default_rng(5)
+    n = 400
+    corners = np.zeros((n, 3, 8))
+    corners[:, :, :3] = rng.normal(size=(n, 3, 3))
+    corners[:, :, 3:6] = rng.normal(size=(n, 3, 3)) + np.array([0.0, 0.0, 2.0])  # mostly along +z
+    corners[:, :, 6:8] = rng.random((n, 3, 2))
+    face = np.tile([0.0, 0.0, 1.0], (n, 1))
+    d = frame.normalize(rng.normal(size=(n, 3)) - np.array([0.0, 0.0, 2.0]))
+    bu, bv = rng.random(n) * 0.5, rng.random(n) * 0.5
+    out = kernels.surface_hits(
+        corners, face, np.ones(n), np.arange(n), bu, bv, d, np.ones(n), np.zeros(n), np.full(n, 1e-3)
+    )
+    ns, ts, tt, wo = out[2], out[6], out[7], out[8]
+    s, t = frame.coordinate_system(ns)
+    np.testing.assert_allclose(ts, s, atol=1e-12)
+    np.testing.assert_allclose(tt, t, atol=1e-12)
+    np.testing.assert_allclose(wo, frame.to_local(-d, s, t, ns), atol=1e-12)
+    np.testing.assert_allclose(np.einsum("ij,ij->i", wo, wo), 1.0, atol=1e-12)

@@ -25,7 +25,6 @@ from typing import Callable
 import numpy as np
 
 from .. import kernels
-from ..bsdf import frame
 from ..neural import session
 from ..neural.calibrate import check_mode as calibrate_mode
 from . import materials as mat
@@ -465,11 +464,9 @@ def _surface_hits(ctx: _Context, paths: _Paths, t, prim, bu, bv, groups) -> _Hit
     facing the viewer (shading normals that disagree with the geometry fall back to it); the
     ray cone grown to the hit and its footprint in texture space. ``groups``: the rows of each
     material (the rays come sorted by material)."""
-    p, ng, ns, uv, paths.width, footprint = kernels.surface_hits(
+    p, ng, ns, uv, paths.width, footprint, ts, tt, wo = kernels.surface_hits(
         ctx.corners, ctx.face_normals, ctx.uv_scale, prim, bu, bv, paths.d, t, paths.width, paths.spread
     )
-    ts, tt = frame.coordinate_system(ns)
-    wo = frame.to_local(-paths.d, ts, tt, ns)
     return _Hits(p, ng, ns, ts, tt, wo, uv, footprint, groups)
 
 
@@ -483,13 +480,13 @@ def _sample_lights(ctx: _Context, hits: _Hits, u_light: np.ndarray, stats: Rende
             np.zeros((m, 3)), np.zeros((m, 3)), np.ones(m), np.zeros(m, dtype=bool), np.zeros(m, dtype=bool)
         )
     image, pixel_p, alias_p, alias_i = ctx.env_arrays
-    wi_w, rad, pdf, delta, cos_g, useful, org, tmax = kernels.sample_lights(
-        ctx.nee_kinds, ctx.nee_params, image, pixel_p, alias_p, alias_i, hits.p, hits.ng, u_light, ctx.eps
-    )
+    wi_w, rad, pdf, delta, cos_g, useful, org, tmax, wi = kernels.sample_lights(
+        ctx.nee_kinds, ctx.nee_params, image, pixel_p, alias_p, alias_i, hits.p, hits.ng, hits.ts, hits.tt, hits.ns,
+        u_light, ctx.eps,
+    )  # fmt: skip
     unseen = np.zeros(m, dtype=bool)
     idx = np.nonzero(useful)[0]
     unseen[idx] = ctx.tracer.occluded(org[idx], wi_w[idx], tmax[idx], stats)
-    wi = frame.to_local(wi_w, hits.ts, hits.tt, hits.ns)
     visible = useful & ~unseen & (np.sign(wi[:, 2]) == np.sign(cos_g))
     return _LightSamples(wi, rad, pdf, delta, visible)
 
@@ -552,11 +549,10 @@ def _continue_paths(
     wrong side dropped, origins offset off the surface; a non-specular bounce widens the cone."""
     roulette = depth + 1 >= ctx.settings.rr_depth
     u_rr = rng.random(len(paths.row)) if roulette else np.empty(0)
-    wi_w = frame.to_world(sc.wi, hits.ts, hits.tt, hits.ns)  # unit: a unit local direction in an orthonormal frame
     return _Paths(
         *kernels.continue_paths(
-            wi_w, sc.wi[:, 2], sc.weight, sc.pdf, sc.delta, sc.mis, hits.p, hits.ng, paths.row, paths.throughput,
-            paths.width, paths.spread, u_rr, roulette, ctx.eps,
+            sc.wi, hits.ts, hits.tt, hits.ns, sc.weight, sc.pdf, sc.delta, sc.mis, hits.p, hits.ng, paths.row,
+            paths.throughput, paths.width, paths.spread, u_rr, roulette, ctx.eps,
         )
     )  # fmt: skip
 
