@@ -23,7 +23,10 @@ import math
 import numpy as np
 from numba import njit
 
+from .bsdf.dielectric import INDEX_MATCHED_TOL, rough_dielectric_eval_pdf
 from .bsdf.frame import basis
+from .bsdf.ggx import MIN_ALPHA, visible_normal
+from .neural.top_lobe import top_share_cos
 
 _JIT = dict(nogil=True, cache=True, error_model="numpy")
 
@@ -585,6 +588,21 @@ def _disk_mass(sigma):
     return -math.expm1(-0.5 / (sigma * sigma))
 
 
+@njit(inline="always", **_JIT)
+def _proxy_pdf(ox, oy, oz, ix, iy, iz, s, w):
+    """The proxy's density at wi (ix, iy, iz) given wo (ox, oy, oz) for parameters (s, w) (``proxy_pdf``)."""
+    if not (oz > 0.0 and iz > 0.0):
+        return 0.0
+    hx, hy, hz = ix + ox, iy + oy, iz + oz
+    hn = max(math.sqrt(hx * hx + hy * hy + hz * hz), 1e-12)
+    hx, hy, hz = hx / hn, hy / hn, hz / hn
+    p_disk = math.exp(-0.5 * (hx * hx + hy * hy) / (s * s)) / (2.0 * math.pi * s * s * _disk_mass(s))
+    p_h = p_disk * max(hz, 0.0)
+    wo_h = abs(ox * hx + oy * hy + oz * hz)
+    p_gauss = p_h / (4.0 * wo_h) if wo_h > 1e-9 else 0.0
+    return (1.0 - w) * p_gauss + w * max(iz, 0.0) / math.pi
+
+
 @njit(**_JIT)
 def proxy_pdf(wo, wi, sigma, w):
     """Solid-angle density (N,) of the proxy choosing ``wi`` given ``wo`` (``neural.proxy.pdf``), with
@@ -592,19 +610,25 @@ def proxy_pdf(wo, wi, sigma, w):
     n = len(wo)
     out = np.empty(n)
     for i in range(n):
-        if not (wo[i, 2] > 0.0 and wi[i, 2] > 0.0):
-            out[i] = 0.0
-            continue
-        hx, hy, hz = wi[i, 0] + wo[i, 0], wi[i, 1] + wo[i, 1], wi[i, 2] + wo[i, 2]
-        hn = max(math.sqrt(hx * hx + hy * hy + hz * hz), 1e-12)
-        hx, hy, hz = hx / hn, hy / hn, hz / hn
-        s = sigma[i]
-        p_disk = math.exp(-0.5 * (hx * hx + hy * hy) / (s * s)) / (2.0 * math.pi * s * s * _disk_mass(s))
-        p_h = p_disk * max(hz, 0.0)
-        wo_h = abs(wo[i, 0] * hx + wo[i, 1] * hy + wo[i, 2] * hz)
-        p_gauss = p_h / (4.0 * wo_h) if wo_h > 1e-9 else 0.0
-        out[i] = (1.0 - w[i]) * p_gauss + w[i] * max(wi[i, 2], 0.0) / math.pi
+        out[i] = _proxy_pdf(wo[i, 0], wo[i, 1], wo[i, 2], wi[i, 0], wi[i, 1], wi[i, 2], sigma[i], w[i])
     return out
+
+
+@njit(inline="always", **_JIT)
+def _proxy_direction(ox, oy, oz, s, w, u0, u1, u2):
+    """One direction of ``proxy_directions`` for wo (ox, oy, oz), parameters (s, w) and uniforms u0..u2."""
+    phi = 2.0 * math.pi * u2
+    c, s_phi = math.cos(phi), math.sin(phi)
+    if u0 < w:
+        rc = math.sqrt(u1)
+        x, y, z = rc * c, rc * s_phi, math.sqrt(max(1.0 - u1, 0.0))
+    else:
+        r = min(s * math.sqrt(-2.0 * math.log1p(-u1 * _disk_mass(s))), 1.0)
+        hx, hy, hz = r * c, r * s_phi, math.sqrt(max(1.0 - r * r, 0.0))
+        d = 2.0 * (ox * hx + oy * hy + oz * hz)
+        x, y, z = d * hx - ox, d * hy - oy, d * hz - oz
+    norm = max(math.sqrt(x * x + y * y + z * z), 1e-12)
+    return x / norm, y / norm, z / norm
 
 
 @njit(**_JIT)
@@ -616,19 +640,75 @@ def proxy_directions(wo, sigma, w, u):
     n = len(wo)
     out = np.empty((n, 3))
     for i in range(n):
-        phi = 2.0 * math.pi * u[i, 2]
-        c, s_phi = math.cos(phi), math.sin(phi)
-        if u[i, 0] < w[i]:
-            rc = math.sqrt(u[i, 1])
-            x, y, z = rc * c, rc * s_phi, math.sqrt(max(1.0 - u[i, 1], 0.0))
+        out[i, 0], out[i, 1], out[i, 2] = _proxy_direction(
+            wo[i, 0], wo[i, 1], wo[i, 2], sigma[i], w[i], u[i, 0], u[i, 1], u[i, 2]
+        )
+    return out
+
+
+# --- the exact top coat of remainder decoders (addon.core.neural.top_lobe) -----------------------
+
+
+@njit(**_JIT)
+def top_lobe_eval_pdf(wi, wo, top):
+    """f (N,) and the sampling density (N,) of the top interface's reflection (``top_lobe.eval_pdf_top``) at
+    unit local directions: ``top`` (1, 2) one (alpha, ior) for every row, or (N, 2) per row; 0 where the
+    interface is index-matched or a direction is at or below the horizon."""
+    n = len(wi)
+    f = np.zeros(n)
+    p = np.zeros(n)
+    shared = top.shape[0] == 1
+    for i in range(n):
+        j = 0 if shared else i
+        a, ior = top[j, 0], top[j, 1]
+        if not (wi[i, 2] > 0.0 and wo[i, 2] > 0.0 and abs(ior - 1.0) >= INDEX_MATCHED_TOL):
+            continue
+        f[i], p[i] = rough_dielectric_eval_pdf(
+            wi[i, 0], wi[i, 1], wi[i, 2], wo[i, 0], wo[i, 1], wo[i, 2], a, ior, True, True
+        )
+    return f, p
+
+
+@njit(**_JIT)
+def propose_with_top(wo, u_lobe, u, sigma, w, top):
+    """The sampler of a remainder decoder's material (``render.neural_material``): at each row the top lobe
+    with probability ``top_lobe.top_share`` of wo (the mirror of wo about a GGX visible normal, as
+    ``top_lobe.sample_top_directions``), else the proxy (``proxy_directions``, its lobe chosen by u_lobe
+    rescaled past the share). ``top`` is (1, 2) or (N, 2) as in ``top_lobe_eval_pdf``; ``sigma``, ``w`` (N,).
+    Returns the directions (N, 3), the share (N,) and the rows whose top-lobe sample failed (below the
+    horizon: zero-weight samples)."""
+    n = len(wo)
+    wi = np.empty((n, 3))
+    share = np.empty(n)
+    missed = np.zeros(n, dtype=np.bool_)
+    shared = top.shape[0] == 1
+    for i in range(n):
+        j = 0 if shared else i
+        a, ior = top[j, 0], top[j, 1]
+        ox, oy, oz = wo[i, 0], wo[i, 1], wo[i, 2]
+        sh = top_share_cos(oz, a, ior)
+        share[i] = sh
+        if u_lobe[i] < sh:
+            mx, my, mz = visible_normal(ox, oy, oz, max(a, MIN_ALPHA), u[i, 0], u[i, 1])
+            d = 2.0 * (ox * mx + oy * my + oz * mz)
+            x, y, z = d * mx - ox, d * my - oy, d * mz - oz
+            missed[i] = not (oz > 0.0 and z > 0.0)
         else:
-            s = sigma[i]
-            r = min(s * math.sqrt(-2.0 * math.log1p(-u[i, 1] * _disk_mass(s))), 1.0)
-            hx, hy, hz = r * c, r * s_phi, math.sqrt(max(1.0 - r * r, 0.0))
-            d = 2.0 * (wo[i, 0] * hx + wo[i, 1] * hy + wo[i, 2] * hz)
-            x, y, z = d * hx - wo[i, 0], d * hy - wo[i, 1], d * hz - wo[i, 2]
-        norm = max(math.sqrt(x * x + y * y + z * z), 1e-12)
-        out[i, 0], out[i, 1], out[i, 2] = x / norm, y / norm, z / norm
+            v = min(max((u_lobe[i] - sh) / (1.0 - sh), 0.0), 1.0 - 1e-12)
+            x, y, z = _proxy_direction(ox, oy, oz, sigma[i], w[i], v, u[i, 0], u[i, 1])
+        wi[i, 0], wi[i, 1], wi[i, 2] = x, y, z
+    return wi, share, missed
+
+
+@njit(**_JIT)
+def mixture_pdf(wo, wi, sigma, w, share, p_top):
+    """The density of ``propose_with_top`` at wi: the proxy's (``proxy_pdf``) mixed with the top lobe's
+    ``p_top`` by ``share``, all per row (N,)."""
+    n = len(wo)
+    out = np.empty(n)
+    for i in range(n):
+        p = _proxy_pdf(wo[i, 0], wo[i, 1], wo[i, 2], wi[i, 0], wi[i, 1], wi[i, 2], sigma[i], w[i])
+        out[i] = (1.0 - share[i]) * p + share[i] * p_top[i]
     return out
 
 

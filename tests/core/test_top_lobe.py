@@ -255,3 +255,30 @@ def test_top_coat_channels_survive_the_exr_and_old_files_read_uncoated(tmp_path)
     legacy = LatentTexture.read_exr(old)
     assert np.allclose(legacy.levels[0][..., :98], levels[0][..., :98], atol=1e-2)
     assert np.array_equal(legacy.levels[-1][..., 98:], np.broadcast_to(np.float32(NO_TOP), (1, 1, 2)))
+
+
+@pytest.mark.parametrize("per_hit", [False, True])
+def test_the_compiled_proposal_is_the_top_lobe_sampler_where_it_picks_it_and_the_proxy_elsewhere(per_hit):
+    """``kernels.propose_with_top`` (one pass over the rows) against the array functions it fuses: the top
+    lobe's ``sample_top_directions`` on the rows whose u_lobe falls under ``top_share``, the proxy with u_lobe
+    rescaled past the share on the others."""
+    from addon.core import kernels
+    from addon.core.neural import proxy
+
+    rng = np.random.default_rng(11)
+    n = 5000
+    wo = hemisphere(rng, n)
+    top = np.column_stack([rng.uniform(0.0005, 0.5, n), rng.uniform(0.9, 2.0, n)]) if per_hit else np.array([0.1, 1.5])
+    sigma, w = rng.uniform(0.05, 0.5, n), rng.uniform(0.0, 1.0, n)
+    u_lobe, u = rng.random(n), rng.random((n, 2))
+    wi, share, missed = kernels.propose_with_top(wo, u_lobe, u, sigma, w, np.reshape(top, (-1, 2)))
+    np.testing.assert_allclose(share, tl.top_share(top, wo), rtol=1e-12, atol=0)
+    pick = u_lobe < share
+    assert 0.05 < pick.mean() < 0.9
+    t_rows = top[pick] if per_hit else top
+    want, ok = tl.sample_top_directions(t_rows, wo[pick], u[pick])
+    np.testing.assert_allclose(wi[pick], want, rtol=1e-12, atol=1e-15)
+    assert np.array_equal(missed[pick], ~ok) and not missed[~pick].any()
+    v = np.clip((u_lobe - share) / (1 - share), 0.0, 1.0 - 1e-12)
+    want = proxy.sample_directions(wo[~pick], sigma[~pick], w[~pick], np.column_stack([v, u])[~pick])
+    np.testing.assert_allclose(wi[~pick], want, rtol=1e-12, atol=1e-15)

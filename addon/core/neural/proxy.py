@@ -23,7 +23,9 @@ from .. import kernels
 SIGMA_MIN = 1e-3
 
 
-def _params(sigma, w, n: int) -> tuple[np.ndarray, np.ndarray]:
+def params(sigma, w, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Proxy parameters (shared or (n,)) as (n,) float64 rows, sigma floored at SIGMA_MIN and w in [0, 1];
+    ValueError unless finite."""
     s = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (n,))
     m = np.broadcast_to(np.asarray(w, dtype=np.float64), (n,))
     if not (np.isfinite(s).all() and np.isfinite(m).all()):
@@ -44,7 +46,7 @@ def pdf(wo: np.ndarray, wi: np.ndarray, sigma, w) -> np.ndarray:
     wo, wi = _rows(wo, "wo"), _rows(wi, "wi")
     if wi.shape != wo.shape:
         raise ValueError(f"wo and wi must have the same shape, got {wo.shape} and {wi.shape}")
-    s, m = _params(sigma, w, wo.shape[0])
+    s, m = params(sigma, w, wo.shape[0])
     return kernels.proxy_pdf(wo, wi, s, m)
 
 
@@ -65,5 +67,5 @@ def sample_directions(wo: np.ndarray, sigma, w, u: np.ndarray) -> np.ndarray:
     u = np.ascontiguousarray(u, dtype=np.float64)
     if u.shape != (wo.shape[0], 3):
         raise ValueError(f"wo must be (N, 3) and u (N, 3), got {wo.shape} and {u.shape}")
-    s, m = _params(sigma, w, wo.shape[0])
+    s, m = params(sigma, w, wo.shape[0])
     return kernels.proxy_directions(wo, s, m, u)

@@ -40,7 +40,8 @@ from ..bsdf import ggx
 from ..bsdf.base import SMOOTH_ALPHA
 from ..bsdf.dielectric import INDEX_MATCHED_TOL, RoughDielectric
 from ..bsdf.frame import dot, reflect, refract
-from ..bsdf.fresnel import fresnel_dielectric
+from ..bsdf.fresnel import fresnel_dielectric, fresnel_dielectric_cos
+from ..formula import clip, formula, where
 from ..stack import Stack, StackArrays, clamp_to_trained
 
 # (alpha, ior) of a stack without coatings: index-matched, no reflection
@@ -143,8 +144,21 @@ def pdf_top(top, wi, wo) -> np.ndarray:
 
 def eval_pdf_top(top, wi, wo) -> tuple[np.ndarray, np.ndarray]:
     """:func:`eval_top` and :func:`pdf_top` of unit directions together (one half vector, Fresnel term and
-    microfacet density for both): the renderer's query, which needs f and the sampling density at once."""
-    return _pairs(_checked(top, len(wi)), wi, wo, lambda b, i, o: b.eval_pdf(i, o, check=False), outputs=2)
+    microfacet density for both): the renderer's query, which needs f and the sampling density at once,
+    in one compiled pass (``kernels.top_lobe_eval_pdf``, the same formula as ``RoughDielectric``)."""
+    from .. import kernels  # here: the kernels import this module's formulas
+
+    return kernels.top_lobe_eval_pdf(_rows3(wi), _rows3(wo), top_table(top, len(wi)))
+
+
+def _rows3(w) -> np.ndarray:
+    return np.ascontiguousarray(w, dtype=np.float64)
+
+
+def top_table(top, n: int) -> np.ndarray:
+    """``top`` checked as the compiled loops take it: (1, 2) for one pair shared by ``n`` rows, else (n, 2);
+    contiguous, writable float64 (one type, so the loops are compiled once)."""
+    return np.require(_checked(top, n).reshape(-1, 2), np.float64, ["C", "W"])
 
 
 def sample_top(top, wo, u) -> tuple[np.ndarray, np.ndarray]:
@@ -255,17 +269,22 @@ def remainder_scale(top, wi, wo, unit: bool = False) -> np.ndarray:
     return transmission(top, wi[:, 2]) * transmission(top, wo[:, 2])
 
 
+@formula
+def top_share_cos(co, alpha, ior):
+    """The formula of :func:`top_share` for one outgoing cosine and top coating."""
+    f = fresnel_dielectric_cos(clip(co, 0.0, 1.0), ior)
+    share = clip(f / (f + TOP_SHARE_REST * (1.0 - f)), TOP_SHARE_RANGE[0], TOP_SHARE_RANGE[1])
+    rough = (abs(ior - 1.0) >= INDEX_MATCHED_TOL) & (alpha >= SMOOTH_ALPHA)
+    return where(rough, share, 0.0)
+
+
 def top_share(top, wo) -> np.ndarray:
     """(N,) probability that the renderer samples the top lobe at outgoing ``wo`` (0 without one)."""
     t = _checked(top, len(wo))
     if t.ndim == 1:
         t = t[None]
-    f = fresnel_dielectric(np.clip(np.asarray(wo)[:, 2], 0.0, 1.0), t[:, 1])
-    lo, hi = TOP_SHARE_RANGE
     with np.errstate(invalid="ignore", divide="ignore"):
-        share = np.clip(f / (f + TOP_SHARE_REST * (1.0 - f)), lo, hi)
-    smooth = t[:, 0] < SMOOTH_ALPHA
-    return np.where(has_top(t) & ~smooth, share, 0.0)
+        return top_share_cos(np.asarray(wo)[:, 2], t[:, 0], t[:, 1])
 
 
 def top_albedo(top, cosines, samples: int = 8192, seed: int = 0) -> np.ndarray:

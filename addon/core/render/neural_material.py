@@ -18,6 +18,7 @@ import warnings
 
 import numpy as np
 
+from .. import kernels
 from ..neural import proxy, top_lobe
 from ..stack import LATENT, Stack
 from .shading import ShadeByProposal, Shading, finish_sample
@@ -33,6 +34,11 @@ def proxy_guess(stack: Stack) -> tuple[float, float]:
     alpha = float(getattr(top, "roughness", 1.0))
     diffuse_below = not hasattr(stack.base, "roughness") or stack.base.roughness > 0.3
     return max(alpha, 0.02), (0.5 if diffuse_below or stack.coatings else 0.1)
+
+
+def _float64(a) -> np.ndarray:
+    """``a`` as the compiled loops take it: contiguous float64."""
+    return np.ascontiguousarray(a, dtype=np.float64)
 
 
 class _BoundNeural(ShadeByProposal):
@@ -66,8 +72,11 @@ class _BoundNeural(ShadeByProposal):
 
     def _mixture(self, wi, wo, index, share, p_top):
         """The sampler's density: the proxy's, mixed with the top lobe's ``p_top`` by ``share``."""
-        p = proxy.pdf(wo, wi, self._rows(self.sigma, index), self._rows(self.w, index))
-        return p if share is None else (1.0 - share) * p + share * p_top
+        sigma, w = self._rows(self.sigma, index), self._rows(self.w, index)
+        if share is None:
+            return proxy.pdf(wo, wi, sigma, w)
+        sigma, w = proxy.params(sigma, w, len(wi))
+        return kernels.mixture_pdf(_float64(wo), _float64(wi), sigma, w, _float64(share), _float64(p_top))
 
     def pdf(self, wi, wo, index=None):
         top = self._top_rows(index, len(wi))
@@ -78,23 +87,14 @@ class _BoundNeural(ShadeByProposal):
     def _propose(self, wo, u_lobe, u):
         """Directions of the mixture sampler (the top lobe with probability ``share``, else the proxy),
         ``share`` (None without a top lobe) and the rows whose top-lobe sample failed (below the horizon:
-        zero-weight samples)."""
+        zero-weight samples): one compiled pass (``kernels.propose_with_top``)."""
         top = self._top_rows(None, len(wo))
         if top is None:
             u3 = np.concatenate([u_lobe[:, None], u], axis=1)
             return proxy.sample_directions(wo, self.sigma, self.w, u3), None, None
-        share = top_lobe.top_share(top, wo)
-        pick_top = u_lobe < share
-        with np.errstate(invalid="ignore", divide="ignore"):  # u_lobe rescaled for the proxy's own choice
-            u_proxy = np.where(pick_top, 0.0, np.clip((u_lobe - share) / (1.0 - share), 0.0, 1.0 - 1e-12))
-        wi = proxy.sample_directions(wo, self.sigma, self.w, np.concatenate([u_proxy[:, None], u], axis=1))
-        rows = np.flatnonzero(pick_top)
-        missed = np.zeros(len(wo), dtype=bool)
-        if len(rows):
-            wi_top, ok = top_lobe.sample_top_directions(top if np.ndim(top) == 1 else top[rows], wo[rows], u[rows])
-            wi[rows] = wi_top
-            missed[rows] = ~ok
-        return wi, share, missed
+        sigma, w = proxy.params(self.sigma, self.w, len(wo))
+        t = top_lobe.top_table(top, len(wo))
+        return kernels.propose_with_top(_float64(wo), _float64(u_lobe), _float64(u), sigma, w, t)
 
     def sample_direction(self, wo, u_lobe, u):
         wi, share, missed = self._propose(wo, u_lobe, u)

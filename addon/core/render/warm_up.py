@@ -48,8 +48,8 @@ def warm_scene(environment_image: bool):
 
 def warm_up() -> None:
     """Render the warm-up scenes once each (one thread, one sample, analytic materials), and run the
-    neural materials' loops (the sampling proxy, the albedo calibration) on a few rows, with the
-    argument types a render passes."""
+    neural materials' loops (the sampling proxy, the albedo calibration, the exact top coat) on a few rows,
+    with the argument types a render passes."""
     from .. import kernels
     from ..neural import proxy
     from .integrator import RenderSettings, render
@@ -61,6 +61,10 @@ def warm_up() -> None:
     grid, table = np.array([0.0, 1.0]), np.ones((2, 3))
     kernels.piecewise_linear(wo[:, 2].copy(), grid, table)
     kernels.scale_by_two_factors(np.ones((2, 3)), wo[:, 2].copy(), wo[:, 2].copy(), grid, table)
+    top, half = np.array([[0.1, 1.5]]), np.full(2, 0.5)  # a remainder decoder's exact top coat
+    wi, share, _missed = kernels.propose_with_top(wo, half, np.full((2, 2), 0.5), half, half, top)
+    _f, p_top = kernels.top_lobe_eval_pdf(wi, wo, top)
+    kernels.mixture_pdf(wo, wi, half, half, share, p_top)
 
 
 def warm_up_in_background() -> threading.Thread | None:
