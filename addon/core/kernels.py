@@ -23,9 +23,11 @@ import math
 import numpy as np
 from numba import njit
 
+from .bsdf.base import sample_ok
 from .bsdf.dielectric import INDEX_MATCHED_TOL, rough_dielectric_eval_pdf
 from .bsdf.frame import basis
 from .bsdf.ggx import MIN_ALPHA, visible_normal
+from .bsdf.lambert import lambert_f, lambert_pdf, lambert_sample
 from .neural.top_lobe import top_share_cos
 
 _JIT = dict(nogil=True, cache=True, error_model="numpy")
@@ -577,6 +579,67 @@ def take_paths(keep, row, o, d, throughput, pdf, delta, mis, width, spread):
             o_o[j, k], o_d[j, k], o_thr[j, k] = o[i, k], d[i, k], throughput[i, k]
         o_pdf[j], o_delta[j], o_mis[j], o_width[j], o_spread[j] = pdf[i], delta[i], mis[i], width[i], spread[i]
     return o_row, o_o, o_d, o_thr, o_pdf, o_delta, o_mis, o_width, o_spread
+
+
+# --- the shading of a bounce ----------------------------------------------------------------------
+
+
+@njit(inline="always", **_JIT)
+def _keep_sample(wi, weight, pdf, valid, i, x, y, z, w0, w1, w2, p, ok):
+    """Row i of a sample's arrays: the sample where ``bsdf.base.sample_ok`` passes it, else zeros (as
+    ``BSDFSample.build``). Returns whether it passed."""
+    ok = sample_ok(ok, p, w0, w1, w2, x, y, z)
+    if not ok:
+        x = y = z = w0 = w1 = w2 = p = 0.0
+    wi[i, 0], wi[i, 1], wi[i, 2] = x, y, z
+    weight[i, 0], weight[i, 1], weight[i, 2] = w0, w1, w2
+    pdf[i], valid[i] = p, ok
+    return ok
+
+
+@njit(**_JIT)
+def lambert_shade(albedo, wo, light_wi, light_rows, u):
+    """A Lambertian's answer to a bounce (``render.materials``): f (V, 3) and pdf (V,) at the next-event
+    directions ``light_wi`` of rows ``light_rows``, and one cosine-weighted sample per hit (wi, weight,
+    pdf, valid, as ``Lambertian.sample``; ``u`` (N, 2)). ``albedo`` is (1, 3) shared or (N, 3) per hit."""
+    n, v = len(wo), len(light_rows)
+    shared = albedo.shape[0] == 1
+    f = np.empty((v, 3))
+    pdf_light = np.empty(v)
+    for k in range(v):
+        i = light_rows[k]
+        j = 0 if shared else i
+        iz, oz = light_wi[k, 2], wo[i, 2]
+        for c in range(3):
+            f[k, c] = lambert_f(iz, oz, albedo[j, c])
+        pdf_light[k] = lambert_pdf(iz, oz)
+    wi = np.empty((n, 3))
+    weight = np.empty((n, 3))
+    pdf = np.empty(n)
+    valid = np.empty(n, dtype=np.bool_)
+    for i in range(n):
+        j = 0 if shared else i
+        x, y, z, p, ok = lambert_sample(wo[i, 2], u[i, 0], u[i, 1])
+        _keep_sample(wi, weight, pdf, valid, i, x, y, z, albedo[j, 0], albedo[j, 1], albedo[j, 2], p, ok)
+    return f, pdf_light, wi, weight, pdf, valid
+
+
+@njit(**_JIT)
+def finish_proposals(wi, pdf, f):
+    """A sample from proposed directions ``wi`` (N, 3), their density and the evaluated f (N, 3)
+    (``render.shading.finish_sample``): weight f |cos| / pdf where the pdf is positive and wi above the
+    horizon. Returns wi, weight, pdf, valid, zeroed where invalid."""
+    n = len(wi)
+    out_wi = np.empty((n, 3))
+    weight = np.empty((n, 3))
+    out_pdf = np.empty(n)
+    valid = np.empty(n, dtype=np.bool_)
+    for i in range(n):
+        x, y, z, p = wi[i, 0], wi[i, 1], wi[i, 2], pdf[i]
+        s = abs(z) / p
+        ok = p > 0.0 and z > 0.0
+        _keep_sample(out_wi, weight, out_pdf, valid, i, x, y, z, f[i, 0] * s, f[i, 1] * s, f[i, 2] * s, p, ok)
+    return out_wi, weight, out_pdf, valid
 
 
 # --- the sampling proxy (addon.core.neural.proxy) -----------------------------------------------

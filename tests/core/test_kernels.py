@@ -155,3 +155,38 @@ def test_the_shading_frame_at_a_hit_is_the_bsdf_package_basis_and_wo_the_ray_bac
     np.testing.assert_allclose(tt, t, atol=1e-12)
     np.testing.assert_allclose(wo, frame.to_local(-d, s, t, ns), atol=1e-12)
     np.testing.assert_allclose(np.einsum("ij,ij->i", wo, wo), 1.0, atol=1e-12)
+
+
+def test_the_compiled_lambert_shade_is_the_lambertian_bsdf_and_finish_proposals_is_build():
+    """A Lambertian's bounce in one pass (``kernels.lambert_shade``) against the class's eval, pdf and sample
+    (per-hit albedo; directions on both sides), and ``finish_proposals`` against ``BSDFSample.build``."""
+    from addon.core.bsdf import BSDFSample, Lambertian, frame
+
+    rng = np.random.default_rng(9)
+    n = 3000
+    wo = frame.normalize(rng.normal(size=(n, 3)))
+    albedo = rng.random((n, 3))
+    rows = np.flatnonzero(rng.random(n) < 0.7)
+    light_wi = frame.normalize(rng.normal(size=(len(rows), 3)))
+    u = rng.random((n, 2))
+    f, pdf, wi, weight, p, valid = kernels.lambert_shade(albedo, wo, light_wi, rows, u)
+    b = Lambertian(albedo)
+    np.testing.assert_allclose(f, b.take(rows).eval(light_wi, wo[rows]), rtol=1e-15)
+    np.testing.assert_allclose(pdf, b.take(rows).pdf(light_wi, wo[rows]), rtol=1e-15)
+    s = b.sample(wo, rng.random(n), u)
+    assert valid.all() and np.array_equal(valid, s.valid)
+    np.testing.assert_allclose(wi, s.wi, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(weight, s.weight, rtol=1e-15)
+    np.testing.assert_allclose(p, s.pdf, rtol=1e-12)
+    # proposals, some with zero or negative pdf, below the horizon or with a non-finite f
+    pdf_in = np.where(rng.random(n) < 0.1, 0.0, rng.random(n))
+    f_in = rng.random((n, 3))
+    f_in[rng.random(n) < 0.05, 1] = np.inf
+    got = kernels.finish_proposals(wo, pdf_in, f_in)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        weight = f_in * (np.abs(wo[:, 2]) / pdf_in)[:, None]
+    ok = (pdf_in > 0) & (wo[:, 2] > 0)
+    want = BSDFSample.build(wo, np.where(ok[:, None], weight, 0.0), pdf_in, ok, ok, ok)
+    assert 0.2 < want.valid.mean() < 0.6
+    for a, b_ in zip(got, (want.wi, want.weight, want.pdf, want.valid), strict=True):
+        np.testing.assert_array_equal(a, b_)

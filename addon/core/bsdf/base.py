@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..formula import formula, isfinite, minimum
 from ..xp import namespace, to_numpy
 from .frame import dot
 
@@ -55,18 +56,10 @@ class BSDFSample:
 
     @classmethod
     def build(cls, wi, weight, pdf, delta, transmission, valid) -> "BSDFSample":
-        """Assemble a sample, zeroing every row that is invalid or not finite."""
+        """Assemble a sample, zeroing every row that is invalid or not finite (:func:`sample_ok`)."""
         xp = namespace(wi, weight, pdf)
-        # Column by column rather than reductions over rows of three (a loop per row in numpy): the
-        # sum of a row is finite exactly when every entry is (inf - inf and nan + x are nan), short
-        # of overflow, which a unit direction or a sample weight does not reach.
-        valid = (
-            valid
-            & (pdf > 0.0)
-            & xp.isfinite(pdf)
-            & xp.isfinite(weight[..., 0] + weight[..., 1] + weight[..., 2])
-            & xp.isfinite(wi[..., 0] + wi[..., 1] + wi[..., 2])
-            & (xp.minimum(xp.minimum(weight[..., 0], weight[..., 1]), weight[..., 2]) >= 0.0)
+        valid = sample_ok(
+            valid, pdf, weight[..., 0], weight[..., 1], weight[..., 2], wi[..., 0], wi[..., 1], wi[..., 2]
         )
         v3 = valid[:, None]
         return cls(
@@ -77,6 +70,21 @@ class BSDFSample:
             transmission=transmission & valid,
             valid=valid,
         )
+
+
+@formula
+def sample_ok(valid, pdf, w0, w1, w2, x, y, z):
+    """Whether a sample (direction x, y, z; weight w0..w2; pdf) counts: ``valid`` and a positive finite pdf,
+    a finite direction and a finite non-negative weight. Sums stand for the finiteness of each entry (inf -
+    inf and nan + x are nan), short of overflow, which a unit direction or a sample weight does not reach."""
+    return (
+        valid
+        & (pdf > 0.0)
+        & isfinite(pdf)
+        & isfinite(w0 + w1 + w2)
+        & isfinite(x + y + z)
+        & (minimum(minimum(w0, w1), w2) >= 0.0)
+    )
 
 
 # ----------------------------------------------------------------------------- validation

@@ -2,27 +2,35 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from ..formula import cos, formula, maximum, sin, sqrt, where
 from ..xp import namespace
 from .base import BSDF, RADIANCE, BSDFSample, as_param, rows
+
+
+@formula
+def cosine_direction(u0, u1):
+    """(x, y, z): the formula of :func:`sample_cosine_hemisphere` for one pair of uniforms."""
+    ox = 2.0 * u0 - 1.0
+    oy = 2.0 * u1 - 1.0
+    use_x = abs(ox) > abs(oy)
+    r = where(use_x, ox, oy)
+    theta = where(use_x, (math.pi / 4.0) * (oy / ox), math.pi / 2.0 - (math.pi / 4.0) * (ox / oy))
+    theta = where((ox == 0.0) & (oy == 0.0), 0.0, theta)
+    x = r * cos(theta)
+    y = r * sin(theta)
+    return x, y, sqrt(maximum(0.0, 1.0 - x * x - y * y))
 
 
 def sample_cosine_hemisphere(u: np.ndarray) -> np.ndarray:
     """Cosine-weighted directions on the upper hemisphere (Malley's method on a concentric
     disk, Shirley & Chiu 1997); density cos(theta) / pi. ``u`` (N, 2) -> (N, 3)."""
     xp = namespace(u)
-    ox = 2.0 * u[:, 0] - 1.0
-    oy = 2.0 * u[:, 1] - 1.0
-    use_x = xp.abs(ox) > xp.abs(oy)
     with xp.errstate(divide="ignore", invalid="ignore"):
-        r = xp.where(use_x, ox, oy)
-        theta = xp.where(use_x, (xp.pi / 4.0) * (oy / ox), xp.pi / 2.0 - (xp.pi / 4.0) * (ox / oy))
-    theta = xp.where((ox == 0.0) & (oy == 0.0), 0.0, theta)
-    x = r * xp.cos(theta)
-    y = r * xp.sin(theta)
-    z = xp.sqrt(xp.maximum(0.0, 1.0 - x * x - y * y))
-    return xp.stack([x, y, z], axis=-1)
+        return xp.stack(cosine_direction(u[:, 0], u[:, 1]), axis=-1)
 
 
 class Lambertian(BSDF):
@@ -39,22 +47,39 @@ class Lambertian(BSDF):
 
     def eval(self, wi, wo, mode=RADIANCE, check=True) -> np.ndarray:
         wi, wo, xp = self._inputs(wi, wo, mode, check)
-        n = wi.shape[0]
-        ok = (wi[:, 2] * wo[:, 2] > 0.0)[:, None]
-        return xp.where(ok, rows(self.albedo, n, "albedo", xp) / xp.pi, 0.0)
+        albedo = rows(self.albedo, wi.shape[0], "albedo", xp)
+        return lambert_f(wi[:, 2:3], wo[:, 2:3], albedo)
 
     def pdf(self, wi, wo, mode=RADIANCE, check=True) -> np.ndarray:
         wi, wo, xp = self._inputs(wi, wo, mode, check)
-        ok = wi[:, 2] * wo[:, 2] > 0.0
-        return xp.where(ok, xp.abs(wi[:, 2]) / xp.pi, 0.0)
+        return lambert_pdf(wi[:, 2], wo[:, 2])
 
     def sample(self, wo, u_lobe, u, mode=RADIANCE, check=True) -> BSDFSample:
         wo, u_lobe, u, xp = self._sample_inputs(wo, u_lobe, u, mode, check)
         n = wo.shape[0]
-        wi = sample_cosine_hemisphere(u)
-        wi[:, 2] *= xp.where(wo[:, 2] < 0.0, -1.0, 1.0)
-        pdf = xp.abs(wi[:, 2]) / xp.pi
-        valid = (wo[:, 2] != 0.0) & (wi[:, 2] != 0.0)
+        with xp.errstate(divide="ignore", invalid="ignore"):
+            x, y, z, pdf, valid = lambert_sample(wo[:, 2], u[:, 0], u[:, 1])
         weight = xp.array(rows(self.albedo, n, "albedo", xp), dtype=xp.float64)
         false = xp.zeros(n, dtype=bool)
-        return BSDFSample.build(wi, weight, pdf, false, false, valid)
+        return BSDFSample.build(xp.stack([x, y, z], axis=-1), weight, pdf, false, false, valid)
+
+
+@formula
+def lambert_f(iz, oz, albedo):
+    """f = albedo / pi for wi and wo on the same side (their cosines iz, oz), else 0."""
+    return where(iz * oz > 0.0, albedo / math.pi, 0.0)
+
+
+@formula
+def lambert_pdf(iz, oz):
+    """The density of :func:`lambert_sample` at a direction of cosine iz, given oz."""
+    return where(iz * oz > 0.0, abs(iz) / math.pi, 0.0)
+
+
+@formula
+def lambert_sample(oz, u0, u1):
+    """(x, y, z, pdf, valid): a cosine-weighted direction on wo's side (wo's cosine oz); the weight is the
+    albedo."""
+    x, y, z = cosine_direction(u0, u1)
+    z = z * where(oz < 0.0, -1.0, 1.0)
+    return x, y, z, abs(z) / math.pi, (oz != 0.0) & (z != 0.0)

@@ -41,11 +41,12 @@ from typing import Protocol
 
 import numpy as np
 
+from .. import kernels
 from ..bsdf import Lambertian, RoughConductor, RoughDielectric
 from ..bsdf.base import SMOOTH_ALPHA, BSDFSample
 from ..stack import Conductor, Dielectric, Diffuse, Stack
 from ..textures.mip import build_mip_chain, trilinear_lookup
-from .shading import ShadeByParts, Shading, finish_sample
+from .shading import ShadeByParts, Shading, finish_sample, float64_rows
 
 
 @dataclass
@@ -103,6 +104,17 @@ class _BoundBSDF(ShadeByParts):
 
     def sample(self, wo, u_lobe, u):
         return self.bsdf.sample(wo, u_lobe, u, check=False)
+
+    def shade(self, wo, light_wi, light_rows, u_lobe, u, need_pdf) -> Shading:
+        if not isinstance(self.bsdf, Lambertian):
+            return super().shade(wo, light_wi, light_rows, u_lobe, u, need_pdf)
+        albedo = np.require(self.bsdf.albedo, np.float64, ["C", "W"])  # one compiled pass (kernels.lambert_shade)
+        rows = np.ascontiguousarray(light_rows, dtype=np.int64)
+        f, pdf, wi, weight, p, valid = kernels.lambert_shade(
+            albedo, float64_rows(wo), float64_rows(light_wi), rows, float64_rows(u)
+        )
+        false = np.zeros(len(wo), dtype=bool)
+        return Shading(f, pdf if need_pdf and len(light_rows) else None, BSDFSample(wi, weight, p, false, false, valid))
 
 
 class ImageTexture:

@@ -21,7 +21,7 @@ import numpy as np
 from .. import kernels
 from ..neural import proxy, top_lobe
 from ..stack import LATENT, Stack
-from .shading import ShadeByProposal, Shading, finish_sample
+from .shading import ShadeByProposal, Shading, finish_sample, float64_rows
 
 
 def proxy_guess(stack: Stack) -> tuple[float, float]:
@@ -34,11 +34,6 @@ def proxy_guess(stack: Stack) -> tuple[float, float]:
     alpha = float(getattr(top, "roughness", 1.0))
     diffuse_below = not hasattr(stack.base, "roughness") or stack.base.roughness > 0.3
     return max(alpha, 0.02), (0.5 if diffuse_below or stack.coatings else 0.1)
-
-
-def _float64(a) -> np.ndarray:
-    """``a`` as the compiled loops take it: contiguous float64."""
-    return np.ascontiguousarray(a, dtype=np.float64)
 
 
 class _BoundNeural(ShadeByProposal):
@@ -76,7 +71,8 @@ class _BoundNeural(ShadeByProposal):
         if share is None:
             return proxy.pdf(wo, wi, sigma, w)
         sigma, w = proxy.params(sigma, w, len(wi))
-        return kernels.mixture_pdf(_float64(wo), _float64(wi), sigma, w, _float64(share), _float64(p_top))
+        wo, wi, share, p_top = (float64_rows(a) for a in (wo, wi, share, p_top))
+        return kernels.mixture_pdf(wo, wi, sigma, w, share, p_top)
 
     def pdf(self, wi, wo, index=None):
         top = self._top_rows(index, len(wi))
@@ -94,7 +90,7 @@ class _BoundNeural(ShadeByProposal):
             return proxy.sample_directions(wo, self.sigma, self.w, u3), None, None
         sigma, w = proxy.params(self.sigma, self.w, len(wo))
         t = top_lobe.top_table(top, len(wo))
-        return kernels.propose_with_top(_float64(wo), _float64(u_lobe), _float64(u), sigma, w, t)
+        return kernels.propose_with_top(float64_rows(wo), float64_rows(u_lobe), float64_rows(u), sigma, w, t)
 
     def sample_direction(self, wo, u_lobe, u):
         wi, share, missed = self._propose(wo, u_lobe, u)

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import kernels
 from ..bsdf.base import BSDFSample
 
 
@@ -22,13 +23,15 @@ class Shading:
 
 
 def finish_sample(wi, pdf, f) -> BSDFSample:
-    """A BSDFSample from proposed directions, their pdf and the evaluated f."""
-    n = len(wi)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        weight = f * (np.abs(wi[:, 2]) / pdf)[:, None]
-    false = np.zeros(n, dtype=bool)
-    valid = (pdf > 0) & (wi[:, 2] > 0)
-    return BSDFSample.build(wi, np.where(valid[:, None], weight, 0.0), pdf, false, false, valid)
+    """A BSDFSample from proposed directions, their pdf and the evaluated f (``kernels.finish_proposals``)."""
+    wi, weight, pdf, valid = kernels.finish_proposals(float64_rows(wi), float64_rows(pdf), float64_rows(f))
+    false = np.zeros(len(wi), dtype=bool)
+    return BSDFSample(wi, weight, pdf, false, false.copy(), valid)
+
+
+def float64_rows(a) -> np.ndarray:
+    """``a`` as the compiled loops take it: contiguous float64."""
+    return np.ascontiguousarray(a, dtype=np.float64)
 
 
 class ShadeByParts:

@@ -64,7 +64,8 @@ def warm_up() -> None:
     top, half = np.array([[0.1, 1.5]]), np.full(2, 0.5)  # a remainder decoder's exact top coat
     wi, share, _missed = kernels.propose_with_top(wo, half, np.full((2, 2), 0.5), half, half, top)
     _f, p_top = kernels.top_lobe_eval_pdf(wi, wo, top)
-    kernels.mixture_pdf(wo, wi, half, half, share, p_top)
+    pdf = kernels.mixture_pdf(wo, wi, half, half, share, p_top)
+    kernels.finish_proposals(wi, pdf, np.ones((2, 3)))
 
 
 def warm_up_in_background() -> threading.Thread | None:
