@@ -352,41 +352,49 @@ def sample_light(kind, prm, image, pixel_p, alias_p, alias_i, p, u):
 @njit(**_JIT)
 def sample_lights(kinds, params, image, pixel_p, alias_p, alias_i, p, ng, ts, tt, ns, u, eps):
     """Next-event estimation's light samples: one light of the table per hit, chosen uniformly by
-    u[:, 0] (its remainder is not reused), a point on it from u[:, 1:3]. Returns the world direction
-    (N, 3), radiance (N, 3), pdf, delta flag, the cosine to the geometric normal ``ng``, whether the
-    sample can contribute at all (``useful``: pdf, radiance and that cosine non-zero), and the shadow
-    ray: origin offset by ``eps`` off the surface on the light's side, and its length (inf to the
-    sun or the sky; else short of the light by a relative 1e-4 and ``eps``), and the direction in the
-    shading frame (ts, tt, ns) last."""
+    u[:, 0] (its remainder is not reused), a point on it from u[:, 1:3]. Returns, per hit, the direction
+    in the shading frame (ts, tt, ns), the radiance (N, 3), pdf, delta flag and whether the sample can
+    contribute (``useful``: pdf and radiance non-zero, and the direction on the same side of the geometric
+    normal ``ng`` as of the shading normal, so light never leaks through the surface); and the shadow rays
+    of the useful samples only: their rows, origins offset by ``eps`` off the surface on the light's side,
+    world directions and lengths (inf to the sun or the sky; else short of the light by a relative 1e-4
+    and ``eps``)."""
     n = len(p)
     n_lights = len(kinds)
-    wi = np.empty((n, 3))
     wi_local = np.empty((n, 3))
     rad = np.empty((n, 3))
     pdf = np.empty(n)
     delta = np.empty(n, dtype=np.bool_)
-    cos_g = np.empty(n)
     useful = np.empty(n, dtype=np.bool_)
+    rows = np.empty(n, dtype=np.int64)
     org = np.empty((n, 3))
+    d = np.empty((n, 3))
     tmax = np.empty(n)
+    m = 0
     for i in range(n):
         j = min(int(u[i, 0] * n_lights), n_lights - 1)
         wx, wy, wz, dist, r0, r1, r2, pd = _sample_light(
             kinds[j], params[j], image, pixel_p, alias_p, alias_i, p[i, 0], p[i, 1], p[i, 2], u[i, 1], u[i, 2]
         )
         c = wx * ng[i, 0] + wy * ng[i, 1] + wz * ng[i, 2]
-        wi[i, 0], wi[i, 1], wi[i, 2] = wx, wy, wz
+        lz = wx * ns[i, 0] + wy * ns[i, 1] + wz * ns[i, 2]
         wi_local[i, 0] = wx * ts[i, 0] + wy * ts[i, 1] + wz * ts[i, 2]
         wi_local[i, 1] = wx * tt[i, 0] + wy * tt[i, 1] + wz * tt[i, 2]
-        wi_local[i, 2] = wx * ns[i, 0] + wy * ns[i, 1] + wz * ns[i, 2]
+        wi_local[i, 2] = lz
         rad[i, 0], rad[i, 1], rad[i, 2] = r0, r1, r2
-        pdf[i], delta[i], cos_g[i] = pd, is_delta(kinds[j]), c
-        useful[i] = pd > 0.0 and max(r0, r1, r2) > 0.0 and c != 0.0
-        off = eps if c > 0.0 else (-eps if c < 0.0 else 0.0)
-        for k in range(3):
-            org[i, k] = p[i, k] + ng[i, k] * off
-        tmax[i] = np.inf if math.isinf(dist) else dist * (1.0 - 1e-4) - eps
-    return wi, rad, pdf, delta, cos_g, useful, org, tmax, wi_local
+        pdf[i], delta[i] = pd, is_delta(kinds[j])
+        same_side = (c > 0.0 and lz > 0.0) or (c < 0.0 and lz < 0.0)
+        ok = pd > 0.0 and max(r0, r1, r2) > 0.0 and same_side
+        useful[i] = ok
+        if ok:
+            off = eps if c > 0.0 else -eps
+            rows[m] = i
+            for k in range(3):
+                org[m, k] = p[i, k] + ng[i, k] * off
+            d[m, 0], d[m, 1], d[m, 2] = wx, wy, wz
+            tmax[m] = np.inf if math.isinf(dist) else dist * (1.0 - 1e-4) - eps
+            m += 1
+    return wi_local, rad, pdf, delta, useful, rows[:m], org[:m], d[:m], tmax[:m]
 
 
 @njit(inline="always", **_JIT)
@@ -470,18 +478,22 @@ def add_emission(
 
 
 @njit(**_JIT)
-def add_direct(L, row, throughput, f, cos_l, radiance, pdf_select, delta, pdf_bsdf, weighted):
-    """Add next-event estimation's contribution f |cos| L / pdf to ``L[row]``, with ``pdf_select`` the
-    light sample's pdf times the probability of choosing its light; ``weighted``: against BSDF
-    sampling by the power heuristic (``pdf_bsdf``), delta lights excepted."""
-    for i in range(len(row)):
+def add_direct(L, hits, row, throughput, f, light_wi, radiance, p_select, light_pdf, delta, pdf_bsdf, weighted):
+    """Add next-event estimation's contribution f |cos| L / pdf of the hits ``hits`` (V,) to their paths'
+    pixels ``L[row[hit]]``: ``f`` (V, 3) at the light directions, the rest per hit (``light_wi`` local, the
+    light sample's radiance, pdf and delta flag), the pdf times ``p_select``, the probability of choosing
+    its light; ``weighted``: against BSDF sampling by the power heuristic (``pdf_bsdf`` (V,)), delta lights
+    excepted."""
+    for k in range(len(hits)):
+        i = hits[k]
+        pdf_light = p_select * light_pdf[i]
         w = 1.0
         if weighted and not delta[i]:
-            w = _power_heuristic(pdf_select[i], pdf_bsdf[i])
-        s = cos_l[i] * w / pdf_select[i]
+            w = _power_heuristic(pdf_light, pdf_bsdf[k])
+        s = abs(light_wi[i, 2]) * w / pdf_light
         r = row[i]
-        for k in range(3):
-            L[r, k] += throughput[i, k] * f[i, k] * s * radiance[i, k]
+        for c in range(3):
+            L[r, c] += throughput[i, c] * f[k, c] * s * radiance[i, c]
 
 
 @njit(inline="always", **_JIT)
@@ -730,6 +742,78 @@ def top_lobe_eval_pdf(wi, wo, top):
             wi[i, 0], wi[i, 1], wi[i, 2], wo[i, 0], wo[i, 1], wo[i, 2], a, ior, True, True
         )
     return f, p
+
+
+@njit(inline="always", **_JIT)
+def _transmission(table, cos_grid, c, ia, fa, ii, fi):
+    """The top interface's transmittance at cosine ``c`` (``top_lobe.transmission``): trilinear in ``table``
+    (cos, alpha, ior) with the coating's alpha and ior cells (ia, fa), (ii, fi) found already, clipped to
+    [0, 1]; 0 at and below the horizon."""
+    if not c > 0.0:
+        return 0.0
+    ic, fc = _segment(cos_grid, c)
+    out = 0.0
+    for dc in range(2):  # the 8 corners of the cell
+        wc = fc if dc else 1.0 - fc
+        for da in range(2):
+            wa = wc * (fa if da else 1.0 - fa)
+            for di in range(2):
+                out += wa * (fi if di else 1.0 - fi) * table[ic + dc, ia + da, ii + di]
+    return min(max(out, 0.0), 1.0)
+
+
+@njit(**_JIT)
+def transmission_rows(top, cos, table, cos_grid, alpha_grid, ior_grid):
+    """(N,) ``top_lobe.transmission``: the share of the light arriving from ``cos`` (N,) that the top coatings
+    ``top`` ((1, 2) shared or (N, 2)) let into the coat; 1 for an index-matched row (no top interface)."""
+    n = len(cos)
+    out = np.empty(n)
+    shared = top.shape[0] == 1
+    for i in range(n):
+        j = 0 if shared else i
+        if abs(top[j, 1] - 1.0) < INDEX_MATCHED_TOL:
+            out[i] = 1.0
+            continue
+        ia, fa = _segment(alpha_grid, top[j, 0])
+        ii, fi = _segment(ior_grid, top[j, 1])
+        out[i] = _transmission(table, cos_grid, cos[i], ia, fa, ii, fi)
+    return out
+
+
+@njit(**_JIT)
+def top_coat(out, wi, wo, top, table, cos_grid, alpha_grid, ior_grid, scale, add_lobe):
+    """A remainder decoder's exact top coat on its decoded ``out`` (N, 3) float32, in place
+    (``ModelSet.eval_brdf``): with ``scale``, times the transmission factor T(cos theta_i) T(cos theta_o)
+    (``transmission_rows``); with ``add_lobe``, plus the top lobe's f (``top_lobe_eval_pdf``). Returns the
+    lobe's sampling density (N,). ``top`` (1, 2) or (N, 2); unit local directions."""
+    n = len(wi)
+    p = np.zeros(n)
+    shared = top.shape[0] == 1
+    ia, fa = _segment(alpha_grid, top[0, 0])
+    ii, fi = _segment(ior_grid, top[0, 1])
+    for i in range(n):
+        j = 0 if shared else i
+        a, ior = top[j, 0], top[j, 1]
+        if abs(ior - 1.0) < INDEX_MATCHED_TOL:
+            continue
+        if not shared:
+            ia, fa = _segment(alpha_grid, a)
+            ii, fi = _segment(ior_grid, ior)
+        if scale:
+            s = np.float32(
+                _transmission(table, cos_grid, wi[i, 2], ia, fa, ii, fi)
+                * _transmission(table, cos_grid, wo[i, 2], ia, fa, ii, fi)
+            )
+            for c in range(3):
+                out[i, c] = out[i, c] * s
+        if wi[i, 2] > 0.0 and wo[i, 2] > 0.0:
+            f, p[i] = rough_dielectric_eval_pdf(
+                wi[i, 0], wi[i, 1], wi[i, 2], wo[i, 0], wo[i, 1], wo[i, 2], a, ior, True, True
+            )
+            if add_lobe:
+                for c in range(3):
+                    out[i, c] = out[i, c] + np.float32(f)
+    return p
 
 
 @njit(**_JIT)

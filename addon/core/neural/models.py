@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import kernels
 from ..bsdf.frame import dot
 from ..rows import distinct_rows
 from ..stack import LATENT
@@ -429,17 +430,12 @@ class ModelSet:
 
     def _top_lobe(self, out, t, ui, uo, with_top_lobe: bool, top_pdf: bool):
         """``eval_brdf``'s top coat on the decoded ``out`` (in place): the transmission factor of a
-        ``top_transmission`` decoder and the exact lobe; returns the lobe's density when ``top_pdf``."""
-        if self.top_transmission:
-            out *= top_lobe.remainder_scale(t, ui, uo, unit=True)[:, None].astype(np.float32)
-        if not with_top_lobe:
-            return top_lobe.pdf_top(t, ui, uo) if top_pdf else None
-        if top_pdf:
-            f_top, p_top = top_lobe.eval_pdf_top(t, ui, uo)
-        else:
-            f_top, p_top = top_lobe.eval_top(t, ui, uo, unit=True), None
-        out += f_top[:, None].astype(np.float32)
-        return p_top
+        ``top_transmission`` decoder and the exact lobe, in one compiled pass (``kernels.top_coat``); returns
+        the lobe's density when ``top_pdf``."""
+        ui, uo = np.ascontiguousarray(ui, dtype=np.float64), np.ascontiguousarray(uo, dtype=np.float64)
+        rows = top_lobe.top_table(t, len(ui))
+        p = kernels.top_coat(out, ui, uo, rows, *top_lobe.transmittance_grids(), self.top_transmission, with_top_lobe)
+        return p if top_pdf else None
 
 
 _CACHE: dict[tuple[str, int, Path], ModelSet] = {}

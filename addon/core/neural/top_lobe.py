@@ -216,49 +216,23 @@ def transmittance_table() -> np.ndarray:
     return out
 
 
-def _axis(grid: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Lower cell index and weight of linear interpolation of ``x`` on the increasing ``grid`` (clamped)."""
-    x = np.clip(x, grid[0], grid[-1])
-    i = np.clip(np.searchsorted(grid, x, side="right") - 1, 0, len(grid) - 2)
-    return i, (x - grid[i]) / (grid[i + 1] - grid[i])
-
-
 def transmission(top, cos) -> np.ndarray:
-    """(N,) the share of the light arriving from cosine ``cos`` (N,) that the top coatings ``top`` (N, 2)
-    let into the coat (trilinear in :func:`transmittance_table`; one pair (2,) for all rows: linear in
-    its cosine curve, the same values): 1 without a top interface (NO_TOP), 0 at and below the horizon."""
-    c = np.asarray(cos, dtype=np.float64)
-    t = _checked(top, len(c))
-    if t.ndim == 1:
-        if not has_top(t[None])[0]:
-            return np.ones(len(c))
-        curve = _transmission_curve(float(t[0]), float(t[1]))
-        return np.where(c > 0.0, np.interp(c, TRANSMITTANCE_COS, curve), 0.0)
-    out = np.where(c > 0.0, np.clip(_trilinear(t, c), 0.0, 1.0), 0.0)
-    return np.where(has_top(t), out, 1.0)
+    """(N,) the share of the light arriving from cosine ``cos`` (N,) that the top coatings ``top`` (N, 2), or
+    one pair (2,) for all rows, let into the coat (trilinear in :func:`transmittance_table`, one compiled pass:
+    ``kernels.transmission_rows``): 1 without a top interface (NO_TOP), 0 at and below the horizon."""
+    from .. import kernels  # here: the kernels import this module's formulas
+
+    c = np.ascontiguousarray(cos, dtype=np.float64).reshape(-1)
+    return kernels.transmission_rows(top_table(top, len(c)), c, *transmittance_grids())
 
 
-@functools.lru_cache(maxsize=256)
-def _transmission_curve(alpha: float, ior: float) -> np.ndarray:
-    """T at every cosine of the table's grid for one top coating (a material's, cached)."""
-    t = np.tile([alpha, ior], (len(TRANSMITTANCE_COS), 1))
-    return np.clip(_trilinear(t, TRANSMITTANCE_COS), 0.0, 1.0)
-
-
-def _trilinear(t: np.ndarray, c: np.ndarray) -> np.ndarray:
-    table = transmittance_table()
-    (ic, fc), (ia, fa), (ii, fi) = (
-        _axis(TRANSMITTANCE_COS, c),
-        _axis(TRANSMITTANCE_ALPHA, t[:, 0]),
-        _axis(TRANSMITTANCE_IOR, t[:, 1]),
+@functools.lru_cache(maxsize=1)
+def transmittance_grids() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The table and its cosine, alpha and ior grids as the compiled loops take them (contiguous float64)."""
+    return tuple(
+        np.ascontiguousarray(a, dtype=np.float64)
+        for a in (transmittance_table(), TRANSMITTANCE_COS, TRANSMITTANCE_ALPHA, TRANSMITTANCE_IOR)
     )
-    out = np.zeros(len(t))
-    for dc in (0, 1):  # the 8 corners of each row's cell
-        for da in (0, 1):
-            for di in (0, 1):
-                w = (fc if dc else 1 - fc) * (fa if da else 1 - fa) * (fi if di else 1 - fi)
-                out += w * table[ic + dc, ia + da, ii + di]
-    return out
 
 
 def remainder_scale(top, wi, wo, unit: bool = False) -> np.ndarray:

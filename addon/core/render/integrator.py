@@ -31,6 +31,7 @@ from . import materials as mat
 from .film import Film
 from .lights import NO_IMAGE, AreaLight
 from .scene import Scene
+from .shading import float64_rows
 
 STRATEGIES = ("mis", "light", "bsdf")
 MODES = ("neural", "reference")
@@ -480,14 +481,11 @@ def _sample_lights(ctx: _Context, hits: _Hits, u_light: np.ndarray, stats: Rende
             np.zeros((m, 3)), np.zeros((m, 3)), np.ones(m), np.zeros(m, dtype=bool), np.zeros(m, dtype=bool)
         )
     image, pixel_p, alias_p, alias_i = ctx.env_arrays
-    wi_w, rad, pdf, delta, cos_g, useful, org, tmax, wi = kernels.sample_lights(
+    wi, rad, pdf, delta, visible, rows, org, d, tmax = kernels.sample_lights(
         ctx.nee_kinds, ctx.nee_params, image, pixel_p, alias_p, alias_i, hits.p, hits.ng, hits.ts, hits.tt, hits.ns,
         u_light, ctx.eps,
     )  # fmt: skip
-    unseen = np.zeros(m, dtype=bool)
-    idx = np.nonzero(useful)[0]
-    unseen[idx] = ctx.tracer.occluded(org[idx], wi_w[idx], tmax[idx], stats)
-    visible = useful & ~unseen & (np.sign(wi[:, 2]) == np.sign(cos_g))
+    visible[rows[ctx.tracer.occluded(org, d, tmax, stats)]] = False
     return _LightSamples(wi, rad, pdf, delta, visible)
 
 
@@ -532,8 +530,8 @@ def _shade(
         if len(v):
             pdf_bsdf = sh.pdf_light if need_pdf else np.empty(0)  # read only when weighted
             kernels.add_direct(
-                L, paths.row[v], paths.throughput[v], sh.f_light, np.abs(lights.wi[v, 2]), lights.radiance[v],
-                ctx.p_select * lights.pdf[v], lights.delta[v], pdf_bsdf, need_pdf,
+                L, v, paths.row, paths.throughput, float64_rows(sh.f_light), lights.wi, lights.radiance,
+                ctx.p_select, lights.pdf, lights.delta, pdf_bsdf, need_pdf,
             )  # fmt: skip
         bs = sh.sample
         out.wi[sel], out.weight[sel], out.pdf[sel], out.delta[sel] = bs.wi, bs.weight, bs.pdf, bs.delta

@@ -51,7 +51,7 @@ def warm_up() -> None:
     neural materials' loops (the sampling proxy, the albedo calibration, the exact top coat) on a few rows,
     with the argument types a render passes."""
     from .. import kernels
-    from ..neural import proxy
+    from ..neural import proxy, top_lobe
     from .integrator import RenderSettings, render
 
     for image in (True, False):
@@ -66,6 +66,9 @@ def warm_up() -> None:
     _f, p_top = kernels.top_lobe_eval_pdf(wi, wo, top)
     pdf = kernels.mixture_pdf(wo, wi, half, half, share, p_top)
     kernels.finish_proposals(wi, pdf, np.ones((2, 3)))
+    grids = top_lobe.transmittance_grids()
+    kernels.top_coat(np.ones((2, 3), dtype=np.float32), wi, wo, top, *grids, True, True)
+    kernels.transmission_rows(top, wo[:, 2].copy(), *grids)
 
 
 def warm_up_in_background() -> threading.Thread | None:
