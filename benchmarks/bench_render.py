@@ -153,9 +153,10 @@ def mse(a, b):
 def rest_split(width: int, height: int, samples: int, bounces: int, repeats: int) -> list[str]:
     """Where "the rest" goes, on one thread: every compiled loop of ``addon.core.kernels`` timed on its
     own (each entry point wrapped with a timer for these renders), beside the renderer's rays and
-    networks; what is left is the numpy BSDFs, shading frames and the integrator's Python. With that
-    last part at no cost, the rest would still be the loops' share of what remains: a floor on how
-    far compiling the BSDFs alone could take it."""
+    networks; what is left is numpy and the integrator's Python (random numbers, argument checks, the
+    per-material loop, texture and decoder input preparation). With that last part at no cost, the rest
+    would still be the loops' share of what remains: a floor on how far moving more numpy into loops
+    could take it."""
     import collections
 
     from addon.core import kernels
@@ -199,7 +200,7 @@ def rest_split(width: int, height: int, samples: int, bounces: int, repeats: int
         f"| networks (ONNX Runtime) | {share(net)} |",
         f"| compiled loops (`addon/core/kernels.py`), all | {share(loops)} |",
         *(f"| - `{n}` | {share(v)} |" for n, v in spent.most_common() if v >= 0.005 * total),
-        f"| numpy BSDFs, shading frames and the integrator's Python | {share(other)} |",
+        f"| numpy and the integrator's Python | {share(other)} |",
         "",
         f"Were the last row free, the rest would be the loops alone: {floor:.0f}% of the time"
         + (", above the 35% target, which then needs the loops faster too." if floor > 35 else "."),

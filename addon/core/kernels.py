@@ -3,9 +3,10 @@
 The wavefront renderer spends most of its time outside rays and networks in long chains of small
 numpy operations per bounce: each one streams whole arrays through memory and allocates its
 temporaries. The loops here do one pass over the rows for such a chain, with scalars in registers.
-They hold only the renderer's own bookkeeping and geometry (texture taps, the surface at a hit, the
-lights, path continuation); the BSDF formulas, which training and the reference share through the
-array namespace (``addon.core.xp``), stay in ``addon.core.bsdf`` in numpy.
+They hold the renderer's bookkeeping and geometry (texture taps, the surface at a hit, the lights,
+path continuation) and the shading of a bounce; the BSDF formulas they evaluate are those of
+``addon.core.bsdf`` and ``addon.core.neural.top_lobe``, written once as formulas
+(``addon.core.formula``) that numpy, torch and these loops all run.
 
 Every kernel:
 
@@ -925,3 +926,48 @@ def camera_rays(px, py, jitter, matrix, width, height, tan_x, tan_y, shift_x, sh
         d[i, 0], d[i, 1], d[i, 2] = dx / norm, dy / norm, dz / norm
         o[i, 0], o[i, 1], o[i, 2] = matrix[0, 3], matrix[1, 3], matrix[2, 3]
     return o, d
+
+
+# --- the disk cache and the formulas compiled into the loops -------------------------------------
+
+# The sources of the formulas (``addon.core.formula``) the loops above compile in, relative to this folder.
+FORMULA_SOURCES = ("formula.py", "bsdf/*.py", "neural/top_lobe.py")
+_FORMULA_STAMP = "kernels.formulas"
+
+
+def formula_digest() -> str:
+    """sha256 of the formula sources the loops compile in (``FORMULA_SOURCES``)."""
+    import hashlib
+    from pathlib import Path
+
+    here = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for pattern in FORMULA_SOURCES:
+        for path in sorted(here.glob(pattern)):
+            h.update(path.relative_to(here).as_posix().encode() + b"\0" + path.read_bytes())
+    return h.hexdigest()
+
+
+def _drop_stale_cache() -> None:
+    """numba keys a cached loop on this file's time stamp and the loop's own bytecode only, not on the
+    formulas from other files compiled into it: after a formula changed, the cache would load the old
+    machine code. So the formulas' digest is kept beside the cache, and when it differs every cached loop
+    of this module is dropped (and compiled again on first use). Best effort: a cache folder that cannot be
+    written is left as it is (numba then does not cache there either)."""
+    from pathlib import Path
+
+    try:
+        cache = Path(surface_hits._cache.cache_path)
+        stamp = cache / _FORMULA_STAMP
+        digest = formula_digest()
+        if stamp.is_file() and stamp.read_text() == digest:
+            return
+        for stale in cache.glob(f"{__name__.rsplit('.', 1)[-1]}.*.nb[ic]"):
+            stale.unlink(missing_ok=True)
+        cache.mkdir(parents=True, exist_ok=True)
+        stamp.write_text(digest)
+    except OSError:
+        pass
+
+
+_drop_stale_cache()

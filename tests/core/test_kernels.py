@@ -190,3 +190,37 @@ def test_the_compiled_lambert_shade_is_the_lambertian_bsdf_and_finish_proposals_
     assert 0.2 < want.valid.mean() < 0.6
     for a, b_ in zip(got, (want.wi, want.weight, want.pdf, want.valid), strict=True):
         np.testing.assert_array_equal(a, b_)
+
+
+_LAMBERT = """
+import sys
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+from addon.core import kernels
+w = np.array([[0.0, 0.0, 1.0]])
+f = kernels.lambert_shade(np.ones((1, 3)), w, w, np.zeros(1, dtype=np.int64), np.full((1, 2), 0.5))[0]
+print(f[0, 0] * np.pi)
+"""
+
+
+def test_a_changed_formula_is_compiled_again_and_never_loaded_stale_from_the_cache(tmp_path):
+    """numba's disk cache keys a loop on kernels.py alone; a formula edited in another file must still
+    reach the loop (``kernels._drop_stale_cache``): a copy of the add-on, run, its Lambert formula doubled,
+    run again."""
+    import shutil
+
+    shutil.copytree(ROOT / "addon", tmp_path / "addon", ignore=shutil.ignore_patterns("__pycache__", "models"))
+
+    def run():
+        out = subprocess.run(
+            [sys.executable, "-c", _LAMBERT, str(tmp_path)], capture_output=True, text=True, timeout=600, check=True
+        )
+        return float(out.stdout.strip().splitlines()[-1])
+
+    assert run() == 1.0
+    assert list((tmp_path / "addon" / "core" / "__pycache__").glob("kernels.lambert_shade*.nbc"))
+    src = tmp_path / "addon" / "core" / "bsdf" / "lambert.py"
+    text = src.read_text()
+    assert "albedo / math.pi, 0.0)" in text
+    src.write_text(text.replace("albedo / math.pi, 0.0)", "2.0 * albedo / math.pi, 0.0)"))
+    assert run() == 2.0
