@@ -29,7 +29,7 @@ from .bsdf.dielectric import INDEX_MATCHED_TOL, rough_dielectric_eval_pdf
 from .bsdf.frame import basis
 from .bsdf.ggx import MIN_ALPHA, visible_normal
 from .bsdf.lambert import lambert_f, lambert_pdf, lambert_sample
-from .neural.top_lobe import top_share_cos
+from .neural.top_share import top_share_cos
 
 _JIT = dict(nogil=True, cache=True, error_model="numpy")
 
@@ -931,7 +931,7 @@ def camera_rays(px, py, jitter, matrix, width, height, tan_x, tan_y, shift_x, sh
 # --- the disk cache and the formulas compiled into the loops -------------------------------------
 
 # The sources of the formulas (``addon.core.formula``) the loops above compile in, relative to this folder.
-FORMULA_SOURCES = ("formula.py", "bsdf/*.py", "neural/top_lobe.py")
+FORMULA_SOURCES = ("formula.py", "bsdf/*.py", "neural/top_share.py")
 _FORMULA_STAMP = "kernels.formulas"
 
 

@@ -36,23 +36,17 @@ import functools
 
 import numpy as np
 
+from .. import kernels
 from ..bsdf import ggx
 from ..bsdf.base import SMOOTH_ALPHA
 from ..bsdf.dielectric import INDEX_MATCHED_TOL, RoughDielectric
 from ..bsdf.frame import dot, reflect, refract
-from ..bsdf.fresnel import fresnel_dielectric, fresnel_dielectric_cos
-from ..formula import clip, formula, where
+from ..bsdf.fresnel import fresnel_dielectric
 from ..stack import Stack, StackArrays, clamp_to_trained
+from .top_share import TOP_SHARE_RANGE, TOP_SHARE_REST, top_share_cos  # noqa: F401 (TOP_SHARE_*: this module's API)
 
 # (alpha, ior) of a stack without coatings: index-matched, no reflection
 NO_TOP = (0.0, 1.0)
-# The share of the renderer's samples the top lobe gets is the Fresnel reflectance at the outgoing
-# direction against a remainder taken as TOP_SHARE_REST of the light, kept in TOP_SHARE_RANGE: about
-# 0.14 at normal incidence for an index of 1.5, 0.5 where F = 0.2, and most samples towards grazing,
-# where the coat reflects nearly everything. Any share keeps a render unbiased (the mixture's pdf is
-# exact); it only shapes noise.
-TOP_SHARE_REST = 0.25
-TOP_SHARE_RANGE = (0.05, 0.9)
 
 
 def top_coats(arrays: StackArrays) -> np.ndarray:
@@ -146,8 +140,6 @@ def eval_pdf_top(top, wi, wo) -> tuple[np.ndarray, np.ndarray]:
     """:func:`eval_top` and :func:`pdf_top` of unit directions together (one half vector, Fresnel term and
     microfacet density for both): the renderer's query, which needs f and the sampling density at once,
     in one compiled pass (``kernels.top_lobe_eval_pdf``, the same formula as ``RoughDielectric``)."""
-    from .. import kernels  # here: the kernels import this module's formulas
-
     return kernels.top_lobe_eval_pdf(_rows3(wi), _rows3(wo), top_table(top, len(wi)))
 
 
@@ -220,8 +212,6 @@ def transmission(top, cos) -> np.ndarray:
     """(N,) the share of the light arriving from cosine ``cos`` (N,) that the top coatings ``top`` (N, 2), or
     one pair (2,) for all rows, let into the coat (trilinear in :func:`transmittance_table`, one compiled pass:
     ``kernels.transmission_rows``): 1 without a top interface (NO_TOP), 0 at and below the horizon."""
-    from .. import kernels  # here: the kernels import this module's formulas
-
     c = np.ascontiguousarray(cos, dtype=np.float64).reshape(-1)
     return kernels.transmission_rows(top_table(top, len(c)), c, *transmittance_grids())
 
@@ -241,15 +231,6 @@ def remainder_scale(top, wi, wo, unit: bool = False) -> np.ndarray:
     if not unit:
         wi, wo = _unit(wi), _unit(wo)
     return transmission(top, wi[:, 2]) * transmission(top, wo[:, 2])
-
-
-@formula
-def top_share_cos(co, alpha, ior):
-    """The formula of :func:`top_share` for one outgoing cosine and top coating."""
-    f = fresnel_dielectric_cos(clip(co, 0.0, 1.0), ior)
-    share = clip(f / (f + TOP_SHARE_REST * (1.0 - f)), TOP_SHARE_RANGE[0], TOP_SHARE_RANGE[1])
-    rough = (abs(ior - 1.0) >= INDEX_MATCHED_TOL) & (alpha >= SMOOTH_ALPHA)
-    return where(rough, share, 0.0)
 
 
 def top_share(top, wo) -> np.ndarray:

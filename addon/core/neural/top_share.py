@@ -1,0 +1,30 @@
+"""The share of a remainder material's samples the renderer gives its exact top lobe (``top_lobe.top_share``).
+
+The share is the Fresnel reflectance at the outgoing direction against a remainder taken as
+TOP_SHARE_REST of the light, kept in TOP_SHARE_RANGE: about 0.14 at normal incidence for an index of
+1.5, 0.5 where F = 0.2, and most samples towards grazing, where the coat reflects nearly everything. Any
+share keeps a render unbiased (the mixture's pdf is exact); it only shapes noise.
+
+A module of its own because it is a formula (``addon.core.formula``) that the compiled loops
+(``addon.core.kernels``) call, while ``top_lobe`` calls those loops.
+"""
+
+from __future__ import annotations
+
+from ..bsdf.base import SMOOTH_ALPHA
+from ..bsdf.dielectric import INDEX_MATCHED_TOL
+from ..bsdf.fresnel import fresnel_dielectric_cos
+from ..formula import clip, formula, where
+
+TOP_SHARE_REST = 0.25
+TOP_SHARE_RANGE = (0.05, 0.9)
+
+
+@formula
+def top_share_cos(co, alpha, ior):
+    """The share of samples for the top lobe at outgoing cosine ``co`` of a top coating (alpha, ior): 0
+    without a rough top interface (index-matched, or smooth: its reflection is a delta, not in f)."""
+    f = fresnel_dielectric_cos(clip(co, 0.0, 1.0), ior)
+    share = clip(f / (f + TOP_SHARE_REST * (1.0 - f)), TOP_SHARE_RANGE[0], TOP_SHARE_RANGE[1])
+    rough = (abs(ior - 1.0) >= INDEX_MATCHED_TOL) & (alpha >= SMOOTH_ALPHA)
+    return where(rough, share, 0.0)
