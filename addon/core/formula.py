@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba.extending import overload, register_jitable
 
 from .xp import namespace
@@ -47,8 +48,9 @@ def where(c, a, b):
 
 
 def negate(c):
-    """Logical not (``~`` on a boolean array; Python's ``~True`` is -2, so formulas use this)."""
-    return ~c
+    """Logical not, elementwise (Python's ``~True`` is -2, so formulas use this, never ``~``)."""
+    xp = namespace(c)
+    return xp.logical_not(c) if xp is np else ~c
 
 
 def sqrt(x):
