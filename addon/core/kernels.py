@@ -26,7 +26,7 @@ from numba import njit
 
 from .bsdf.base import sample_ok
 from .bsdf.dielectric import INDEX_MATCHED_TOL, rough_dielectric_eval_pdf
-from .bsdf.frame import basis
+from .bsdf.frame import basis, reflected
 from .bsdf.ggx import MIN_ALPHA, visible_normal
 from .bsdf.lambert import lambert_f, lambert_pdf, lambert_sample
 from .neural.top_share import top_share_cos
@@ -701,8 +701,7 @@ def _proxy_direction(ox, oy, oz, s, w, u0, u1, u2):
     else:
         r = min(s * math.sqrt(-2.0 * math.log1p(-u1 * _disk_mass(s))), 1.0)
         hx, hy, hz = r * c, r * s_phi, math.sqrt(max(1.0 - r * r, 0.0))
-        d = 2.0 * (ox * hx + oy * hy + oz * hz)
-        x, y, z = d * hx - ox, d * hy - oy, d * hz - oz
+        x, y, z = reflected(ox, oy, oz, hx, hy, hz)
     norm = max(math.sqrt(x * x + y * y + z * z), 1e-12)
     return x / norm, y / norm, z / norm
 
@@ -838,8 +837,7 @@ def propose_with_top(wo, u_lobe, u, sigma, w, top):
         share[i] = sh
         if u_lobe[i] < sh:
             mx, my, mz = visible_normal(ox, oy, oz, max(a, MIN_ALPHA), u[i, 0], u[i, 1])
-            d = 2.0 * (ox * mx + oy * my + oz * mz)
-            x, y, z = d * mx - ox, d * my - oy, d * mz - oz
+            x, y, z = reflected(ox, oy, oz, mx, my, mz)
             missed[i] = not (oz > 0.0 and z > 0.0)
         else:
             v = min(max((u_lobe[i] - sh) / (1.0 - sh), 0.0), 1.0 - 1e-12)

@@ -8,7 +8,7 @@ import numpy as np
 from ..formula import formula, isfinite, maximum, negate, sqrt, where
 from . import ggx
 from .base import BSDF, RADIANCE, SMOOTH_ALPHA, BSDFSample, as_param, rows
-from .frame import refracted
+from .frame import reflected, refracted
 from .fresnel import fresnel_dielectric_cos
 
 # |ior - 1| below this is index-matched: Fresnel reflectance is < 1e-15 there, and the
@@ -155,9 +155,8 @@ def rough_dielectric_sample(ox, oy, oz, alpha, ior, u_lobe, u0, u1, radiance, re
     p_refl = R / (R + T)
     choose_r = u_lobe < p_refl
     tx, ty, tz, tir_free = refracted(ox, oy, oz, mx, my, mz, ior)
-    ix = where(choose_r, 2.0 * dwo * mx - ox, tx)
-    iy = where(choose_r, 2.0 * dwo * my - oy, ty)
-    iz = where(choose_r, 2.0 * dwo * mz - oz, tz)
+    rx, ry, rz = reflected(ox, oy, oz, mx, my, mz)
+    ix, iy, iz = where(choose_r, rx, tx), where(choose_r, ry, ty), where(choose_r, rz, tz)
     dwi = ix * mx + iy * my + iz * mz
     valid = where(choose_r, iz * oz > 0.0, tir_free & (iz * oz < 0.0)) & (oz != 0.0)
     etap = where(dwo > 0.0, ior, 1.0 / ior)

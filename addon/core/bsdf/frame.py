@@ -1,8 +1,8 @@
 """Directions and shading frames.
 
 All functions take direction arrays of shape ``(N, 3)`` (a single ``(3,)`` vector also works
-where noted) and work row by row. The local shading frame has the normal at +z. ``refracted`` and
-``basis`` are the formulas (``addon.core.formula``) the compiled loops share.
+where noted) and work row by row. The local shading frame has the normal at +z. ``reflected``,
+``refracted`` and ``basis`` are the formulas (``addon.core.formula``) the compiled loops share.
 """
 
 from __future__ import annotations
@@ -47,9 +47,17 @@ def normalize(v: np.ndarray) -> np.ndarray:
     return xp.where(n > 0.0, out, 0.0)
 
 
+@formula
+def reflected(wx, wy, wz, nx, ny, nz):
+    """(x, y, z): the formula of :func:`reflect` on components."""
+    d = 2.0 * (wx * nx + wy * ny + wz * nz)
+    return d * nx - wx, d * ny - wy, d * nz - wz
+
+
 def reflect(w: np.ndarray, n: np.ndarray) -> np.ndarray:
     """Mirror ``w`` about ``n``: both point away from the surface, ``2 (w.n) n - w``."""
-    return 2.0 * dot(w, n)[..., None] * n - w
+    x, y, z = reflected(w[..., 0], w[..., 1], w[..., 2], n[..., 0], n[..., 1], n[..., 2])
+    return namespace(w, n).stack([x, y, z], axis=-1)
 
 
 @formula
