@@ -25,11 +25,11 @@ import numpy as np
 from numba import njit
 
 from .bsdf.base import sample_ok
-from .bsdf.dielectric import INDEX_MATCHED_TOL, rough_dielectric_eval_pdf
+from .bsdf.dielectric import INDEX_MATCHED_TOL
 from .bsdf.frame import basis, reflected
 from .bsdf.ggx import MIN_ALPHA, visible_normal
 from .bsdf.lambert import lambert_f, lambert_pdf, lambert_sample
-from .neural.top_share import top_share_cos
+from .neural.top_formulas import top_reflection, top_share_cos
 
 _JIT = dict(nogil=True, cache=True, error_model="numpy")
 
@@ -735,12 +735,7 @@ def top_lobe_eval_pdf(wi, wo, top):
     shared = top.shape[0] == 1
     for i in range(n):
         j = 0 if shared else i
-        a, ior = top[j, 0], top[j, 1]
-        if not (wi[i, 2] > 0.0 and wo[i, 2] > 0.0 and abs(ior - 1.0) >= INDEX_MATCHED_TOL):
-            continue
-        f[i], p[i] = rough_dielectric_eval_pdf(
-            wi[i, 0], wi[i, 1], wi[i, 2], wo[i, 0], wo[i, 1], wo[i, 2], a, ior, True, True
-        )
+        f[i], p[i] = top_reflection(wi[i, 0], wi[i, 1], wi[i, 2], wo[i, 0], wo[i, 1], wo[i, 2], top[j, 0], top[j, 1])
     return f, p
 
 
@@ -806,13 +801,10 @@ def top_coat(out, wi, wo, top, table, cos_grid, alpha_grid, ior_grid, scale, add
             )
             for c in range(3):
                 out[i, c] = out[i, c] * s
-        if wi[i, 2] > 0.0 and wo[i, 2] > 0.0:
-            f, p[i] = rough_dielectric_eval_pdf(
-                wi[i, 0], wi[i, 1], wi[i, 2], wo[i, 0], wo[i, 1], wo[i, 2], a, ior, True, True
-            )
-            if add_lobe:
-                for c in range(3):
-                    out[i, c] = out[i, c] + np.float32(f)
+        f, p[i] = top_reflection(wi[i, 0], wi[i, 1], wi[i, 2], wo[i, 0], wo[i, 1], wo[i, 2], a, ior)
+        if add_lobe and f != 0.0:
+            for c in range(3):
+                out[i, c] = out[i, c] + np.float32(f)
     return p
 
 
@@ -929,7 +921,7 @@ def camera_rays(px, py, jitter, matrix, width, height, tan_x, tan_y, shift_x, sh
 # --- the disk cache and the formulas compiled into the loops -------------------------------------
 
 # The sources of the formulas (``addon.core.formula``) the loops above compile in, relative to this folder.
-FORMULA_SOURCES = ("formula.py", "bsdf/*.py", "neural/top_share.py")
+FORMULA_SOURCES = ("formula.py", "bsdf/*.py", "neural/top_formulas.py")
 _FORMULA_STAMP = "kernels.formulas"
 
 

@@ -43,7 +43,7 @@ from ..bsdf.dielectric import INDEX_MATCHED_TOL, RoughDielectric
 from ..bsdf.frame import dot, reflect, refract
 from ..bsdf.fresnel import fresnel_dielectric
 from ..stack import Stack, StackArrays, clamp_to_trained
-from .top_share import TOP_SHARE_RANGE, TOP_SHARE_REST, top_share_cos  # noqa: F401 (TOP_SHARE_*: this module's API)
+from .top_formulas import TOP_SHARE_RANGE, TOP_SHARE_REST, top_share_cos  # noqa: F401 (TOP_SHARE_*: this module's API)
 
 # (alpha, ior) of a stack without coatings: index-matched, no reflection
 NO_TOP = (0.0, 1.0)
@@ -105,35 +105,17 @@ def _lobe(top: np.ndarray) -> RoughDielectric:
     return RoughDielectric(top[..., 0], top[..., 1], reflection_only=True)
 
 
-def _pairs(t: np.ndarray, wi: np.ndarray, wo: np.ndarray, rule, outputs: int = 1):
-    """``rule(lobe, wi, wo)`` (N,) (or a tuple of ``outputs`` (N,) arrays) on the rows with a top interface
-    and both directions above the horizon, 0 elsewhere; one call on all rows for a shared top (``t`` (2,))."""
-    up = (wi[:, 2] > 0) & (wo[:, 2] > 0)
-    outs = tuple(np.zeros(len(wi)) for _ in range(outputs))
-    if t.ndim == 1:
-        if has_top(t[None])[0]:
-            got = rule(_lobe(t), wi, wo)
-            outs = tuple(np.where(up, g, 0.0) for g in (got if outputs > 1 else (got,)))
-    else:
-        rows = np.flatnonzero(has_top(t) & up)
-        if len(rows):
-            got = rule(_lobe(t[rows]), wi[rows], wo[rows])
-            for o, g in zip(outs, got if outputs > 1 else (got,), strict=True):
-                o[rows] = g
-    return outs if outputs > 1 else outs[0]
-
-
 def eval_top(top, wi, wo, unit: bool = False) -> np.ndarray:
     """(N,) float64 f of the top interface's reflection at directions ``wi``, ``wo`` (N, 3), any
     length (normalised here unless ``unit``; zero-length or below-horizon rows give 0)."""
     if not unit:
         wi, wo = _unit(wi), _unit(wo)
-    return _pairs(_checked(top, len(wi)), wi, wo, lambda b, i, o: b.eval(i, o, check=False)[:, 0])
+    return eval_pdf_top(top, wi, wo)[0]
 
 
 def pdf_top(top, wi, wo) -> np.ndarray:
     """(N,) solid-angle density of :func:`sample_top` choosing ``wi`` given ``wo`` (unit, local frame)."""
-    return _pairs(_checked(top, len(wi)), wi, wo, lambda b, i, o: b.pdf(i, o, check=False))
+    return eval_pdf_top(top, wi, wo)[1]
 
 
 def eval_pdf_top(top, wi, wo) -> tuple[np.ndarray, np.ndarray]:
