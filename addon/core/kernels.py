@@ -93,9 +93,10 @@ def texture_footprint(width, cos_o, tri_uv_scale):
 
 
 @njit(**_JIT)
-def surface_hits(corners, face_normals, uv_scale, prim, bu, bv, d, t, width, spread):
-    """The surface where rays ``d`` (unit, world) land on triangles ``prim`` at barycentrics (bu, bv)
-    and distance ``t``: position, geometric and shading normals, uv, the ray cone's width there
+def surface_hits(corners, face_normals, uv_scale, hit, prim, bu, bv, d, t, width, spread):
+    """The surface where rays ``d`` (unit, world) land: ray ``hit[i]`` of the intersection's results (the
+    triangles ``prim``, barycentrics (bu, bv) and distances ``t`` of every ray) for row i of ``d``, ``width``
+    and ``spread``. Position, geometric and shading normals, uv, the ray cone's width there
     (``width + spread * t``) and its footprint in uv units.
 
     ``corners`` (T, 3, 8): each corner's position, normal and uv. The shading normal is the
@@ -103,9 +104,10 @@ def surface_hits(corners, face_normals, uv_scale, prim, bu, bv, d, t, width, spr
     geometric one. Both are turned toward the viewer, and a shading normal the viewer sees at
     grazing (cos <= 1e-6) falls back to the geometric one.
     The shading frame is ``frame.basis`` of the shading normal, and ``wo`` the direction back along the ray
-    in it. Returns p, ng, ns (N, 3), uv (N, 2), width, footprint (N,), the tangents ts, tt (N, 3) and wo (N, 3).
+    in it. Returns p, ng, ns (N, 3), uv (N, 2), width, footprint (N,), the tangents ts, tt (N, 3), wo (N, 3)
+    and the distance (N,).
     """
-    n = len(prim)
+    n = len(hit)
     p = np.empty((n, 3))
     ng = np.empty((n, 3))
     ns = np.empty((n, 3))
@@ -115,9 +117,12 @@ def surface_hits(corners, face_normals, uv_scale, prim, bu, bv, d, t, width, spr
     uv = np.empty((n, 2))
     width_out = np.empty(n)
     footprint = np.empty(n)
+    dist = np.empty(n)
     for i in range(n):
-        k = prim[i]
-        b1, b2 = bu[i], bv[i]
+        h = hit[i]
+        k = prim[h]
+        b1, b2 = bu[h], bv[h]
+        dist[i] = t[h]
         b0 = 1.0 - b1 - b2
         c0, c1, c2 = corners[k, 0], corners[k, 1], corners[k, 2]
         for j in range(3):
@@ -147,10 +152,22 @@ def surface_hits(corners, face_normals, uv_scale, prim, bu, bv, d, t, width, spr
         wo[i, 0] = ox * ax + oy * ay + oz * az
         wo[i, 1] = ox * bx + oy * by + oz * bz
         wo[i, 2] = ox * sx + oy * sy + oz * sz
-        w = width[i] + spread[i] * t[i]
+        w = width[i] + spread[i] * t[h]
         width_out[i] = w
         footprint[i] = texture_footprint(w, cos_g, uv_scale[k])
-    return p, ng, ns, uv, width_out, footprint, ts, tt, wo
+    return p, ng, ns, uv, width_out, footprint, ts, tt, wo, dist
+
+
+@njit(**_JIT)
+def first_hit_features(features, row, weight, ns, dist):
+    """What a denoiser is guided by, into ``features[row]`` (``render.film``): the first sample's weight
+    clipped to [0, 1] (its mean is the directional albedo), the world shading normal and the depth."""
+    for i in range(len(row)):
+        r = row[i]
+        for k in range(3):
+            features[r, k] = min(max(weight[i, k], 0.0), 1.0)
+            features[r, 3 + k] = ns[i, k]
+        features[r, 6] = dist[i]
 
 
 # --- lights ------------------------------------------------------------------------------------

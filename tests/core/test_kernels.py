@@ -146,10 +146,13 @@ def test_the_shading_frame_at_a_hit_is_the_bsdf_package_basis_and_wo_the_ray_bac
     face = np.tile([0.0, 0.0, 1.0], (n, 1))
     d = frame.normalize(rng.normal(size=(n, 3)) - np.array([0.0, 0.0, 2.0]))
     bu, bv = rng.random(n) * 0.5, rng.random(n) * 0.5
-    out = kernels.surface_hits(
-        corners, face, np.ones(n), np.arange(n), bu, bv, d, np.ones(n), np.zeros(n), np.full(n, 1e-3)
-    )
+    hit, dist = rng.permutation(n), rng.uniform(0.5, 2.0, n)  # the rays' rows in the intersection's results
+    out = kernels.surface_hits(corners, face, np.ones(n), hit, np.arange(n), bu, bv, d, dist, np.zeros(n), np.ones(n))
     ns, ts, tt, wo = out[2], out[6], out[7], out[8]
+    np.testing.assert_array_equal(out[9], dist[hit])
+    np.testing.assert_array_equal(out[4], dist[hit])  # the cone's width: 0 + 1 x the distance
+    b = np.stack([1 - bu[hit] - bv[hit], bu[hit], bv[hit]], axis=1)
+    np.testing.assert_allclose(out[0], np.einsum("ik,ikj->ij", b, corners[hit, :, :3]), rtol=1e-12)
     s, t = frame.coordinate_system(ns)
     np.testing.assert_allclose(ts, s, atol=1e-12)
     np.testing.assert_allclose(tt, t, atol=1e-12)

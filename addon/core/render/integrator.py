@@ -199,11 +199,12 @@ def camera_hits(scene: Scene, px, py) -> tuple[np.ndarray, np.ndarray]:
             corners,
             face_normals,
             tri_uv_scale,
-            prim[hit],
-            bu[hit],
-            bv[hit],
+            hit,
+            prim,
+            bu,
+            bv,
             d[hit],
-            t[hit],
+            t,
             np.zeros(len(hit)),
             np.full(len(hit), cam.pixel_spread),
         )[5]
@@ -414,6 +415,7 @@ class _Hits:
     wo: np.ndarray
     uv: np.ndarray
     footprint: np.ndarray
+    dist: np.ndarray  # the ray's length to the hit
     groups: list  # (material index, slice of rows): the hits are sorted by material
 
 
@@ -460,15 +462,16 @@ def _add_emission(ctx: _Context, paths: _Paths, t: np.ndarray, L: np.ndarray) ->
     )  # fmt: skip
 
 
-def _surface_hits(ctx: _Context, paths: _Paths, t, prim, bu, bv, groups) -> _Hits:
+def _surface_hits(ctx: _Context, paths: _Paths, hit, t, prim, bu, bv, groups) -> _Hits:
     """The surface where each ray lands: interpolated position, normals and uv; a shading frame
     facing the viewer (shading normals that disagree with the geometry fall back to it); the
     ray cone grown to the hit and its footprint in texture space. ``groups``: the rows of each
-    material (the rays come sorted by material)."""
-    p, ng, ns, uv, paths.width, footprint, ts, tt, wo = kernels.surface_hits(
-        ctx.corners, ctx.face_normals, ctx.uv_scale, prim, bu, bv, paths.d, t, paths.width, paths.spread
+    material (the rays come sorted by material). ``hit``: the rows of the intersection's results
+    (``t``, ``prim``, ``bu``, ``bv``, one per ray traced) that ``paths`` now holds, in its order."""
+    p, ng, ns, uv, paths.width, footprint, ts, tt, wo, dist = kernels.surface_hits(
+        ctx.corners, ctx.face_normals, ctx.uv_scale, hit, prim, bu, bv, paths.d, t, paths.width, paths.spread
     )
-    return _Hits(p, ng, ns, ts, tt, wo, uv, footprint, groups)
+    return _Hits(p, ng, ns, ts, tt, wo, uv, footprint, dist, groups)
 
 
 def _sample_lights(ctx: _Context, hits: _Hits, u_light: np.ndarray, stats: RenderStats) -> _LightSamples:
@@ -555,15 +558,6 @@ def _continue_paths(
     )  # fmt: skip
 
 
-def _first_hit_features(features: np.ndarray, paths: _Paths, hits: _Hits, sc: _Scatter, t: np.ndarray) -> None:
-    """What a denoiser is guided by, at the camera rays' hits: the albedo (the first sample's
-    weight f |cos| / pdf, clipped to [0, 1]: its mean is the directional albedo), the world
-    shading normal, and the depth."""
-    features[paths.row, :3] = np.clip(sc.weight, 0.0, 1.0)
-    features[paths.row, 3:6] = hits.ns
-    features[paths.row, 6] = t
-
-
 def _trace_paths(
     ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: int
 ) -> tuple[np.ndarray, np.ndarray, RenderStats]:
@@ -590,14 +584,14 @@ def _trace_paths(
             break
         paths = paths.take(hit)
         groups = [(mi, slice(int(starts[mi]), int(starts[mi + 1]))) for mi in np.flatnonzero(np.diff(starts))]
-        hits = _surface_hits(ctx, paths, t[hit], prim[hit], bu[hit], bv[hit], groups)
+        hits = _surface_hits(ctx, paths, hit, t, prim, bu, bv, groups)
         m = len(hit)
         lights = _sample_lights(ctx, hits, rng.random((m, 3)), stats)
         u_lobe, u_dir = rng.random(m), rng.random((m, 2))
         seeds = rng.integers(0, 2**31, size=len(ctx.materials))
         sc = _shade(ctx, paths, hits, lights, u_lobe, u_dir, seeds, L, stats)
         if depth == 0:
-            _first_hit_features(features, paths, hits, sc, t[hit])
+            kernels.first_hit_features(features, paths.row, sc.weight, hits.ns, hits.dist)
         paths = _continue_paths(ctx, paths, hits, sc, depth, rng)
     bad = ~np.isfinite(L[:, 0] + L[:, 1] + L[:, 2])  # inf - inf is nan: any non-finite channel
     if bad.any():
