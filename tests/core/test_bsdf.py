@@ -486,3 +486,20 @@ def test_float32_input_and_unchecked_path_agree():
     np.testing.assert_allclose(b.eval(wi.astype(np.float32), wo.astype(np.float32)), ref, rtol=2e-3, atol=1e-6)
     np.testing.assert_array_equal(b.eval(wi, wo, check=False), ref)
     assert b.eval(wi[0], wo[0]).shape == (1, 3)
+
+
+def test_a_lambertian_of_valid_rows_is_the_checked_one():
+    """``Lambertian.of_valid_rows`` (the renderer's per-hit textures, valid by construction) skips the
+    checks only: eval, pdf and sample are those of ``Lambertian(albedo)``."""
+    rng = np.random.default_rng(12)
+    n = 500
+    albedo = rng.random((n, 3))
+    wi, wo = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+    wi /= np.linalg.norm(wi, axis=1)[:, None]
+    wo /= np.linalg.norm(wo, axis=1)[:, None]
+    fast, checked = Lambertian.of_valid_rows(albedo), Lambertian(albedo)
+    np.testing.assert_array_equal(fast.eval(wi, wo), checked.eval(wi, wo))
+    np.testing.assert_array_equal(fast.pdf(wi, wo), checked.pdf(wi, wo))
+    u_lobe, u = rng.random(n), rng.random((n, 2))
+    np.testing.assert_array_equal(fast.sample(wo, u_lobe, u).weight, checked.sample(wo, u_lobe, u).weight)
+    np.testing.assert_array_equal(fast.take(np.arange(0, n, 2)).albedo, albedo[::2])

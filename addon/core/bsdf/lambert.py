@@ -45,6 +45,15 @@ class Lambertian(BSDF):
     def __init__(self, albedo):
         self.albedo = as_param(albedo, "Lambertian.albedo", lo=0.0, hi=1.0, rgb=True)
 
+    @classmethod
+    def of_valid_rows(cls, albedo: np.ndarray) -> "Lambertian":
+        """A Lambertian over per-row albedos (N, 3) that are float64 and in [0, 1] by construction (the
+        renderer's clipped texture lookups): the same object as ``Lambertian(albedo)`` without its checks,
+        which cost several passes over every hit of every bounce."""
+        out = object.__new__(cls)
+        out.albedo = albedo
+        return out
+
     def eval(self, wi, wo, mode=RADIANCE, check=True) -> np.ndarray:
         wi, wo, xp = self._inputs(wi, wo, mode, check)
         albedo = rows(self.albedo, wi.shape[0], "albedo", xp)

@@ -148,8 +148,8 @@ class LambertMaterial:
     def bind(self, hits: SurfaceHits):
         if self.texture is None:
             return self._const
-        albedo = np.clip(self.texture.lookup(hits.uv, hits.footprint).astype(np.float64), 0.0, 1.0)
-        return _BoundBSDF(Lambertian(albedo * self.color))
+        albedo = np.clip(self.texture.lookup(hits.uv, hits.footprint), 0.0, 1.0) * self.color  # float64, in [0, 1]
+        return _BoundBSDF(Lambertian.of_valid_rows(albedo))
 
 
 class BSDFMaterial:
