@@ -800,6 +800,8 @@ def top_coat(out, wi, wo, top, table, cos_grid, alpha_grid, ior_grid, scale, add
     lobe's sampling density (N,). ``top`` (1, 2) or (N, 2); unit local directions."""
     n = len(wi)
     p = np.zeros(n)
+    if n == 0:
+        return p
     shared = top.shape[0] == 1
     ia, fa = _segment(alpha_grid, top[0, 0])
     ii, fi = _segment(ior_grid, top[0, 1])
