@@ -34,6 +34,11 @@ from .neural.top_formulas import top_reflection, top_share_cos
 _JIT = dict(nogil=True, cache=True, error_model="numpy")
 
 
+def float64_rows(a) -> np.ndarray:
+    """``a`` as the loops take their float arrays: contiguous float64 (no copy when it is already)."""
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
 # --- mip chains --------------------------------------------------------------------------------
 
 

@@ -432,7 +432,7 @@ class ModelSet:
         """``eval_brdf``'s top coat on the decoded ``out`` (in place): the transmission factor of a
         ``top_transmission`` decoder and the exact lobe, in one compiled pass (``kernels.top_coat``); returns
         the lobe's density when ``top_pdf``."""
-        ui, uo = np.ascontiguousarray(ui, dtype=np.float64), np.ascontiguousarray(uo, dtype=np.float64)
+        ui, uo = kernels.float64_rows(ui), kernels.float64_rows(uo)
         rows = top_lobe.top_table(t, len(ui))
         p = kernels.top_coat(out, ui, uo, rows, *top_lobe.transmittance_grids(), self.top_transmission, with_top_lobe)
         return p if top_pdf else None

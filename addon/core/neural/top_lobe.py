@@ -122,11 +122,7 @@ def eval_pdf_top(top, wi, wo) -> tuple[np.ndarray, np.ndarray]:
     """:func:`eval_top` and :func:`pdf_top` of unit directions together (one half vector, Fresnel term and
     microfacet density for both): the renderer's query, which needs f and the sampling density at once,
     in one compiled pass (``kernels.top_lobe_eval_pdf``, the same formula as ``RoughDielectric``)."""
-    return kernels.top_lobe_eval_pdf(_rows3(wi), _rows3(wo), top_table(top, len(wi)))
-
-
-def _rows3(w) -> np.ndarray:
-    return np.ascontiguousarray(w, dtype=np.float64)
+    return kernels.top_lobe_eval_pdf(kernels.float64_rows(wi), kernels.float64_rows(wo), top_table(top, len(wi)))
 
 
 def top_table(top, n: int) -> np.ndarray:
@@ -194,7 +190,7 @@ def transmission(top, cos) -> np.ndarray:
     """(N,) the share of the light arriving from cosine ``cos`` (N,) that the top coatings ``top`` (N, 2), or
     one pair (2,) for all rows, let into the coat (trilinear in :func:`transmittance_table`, one compiled pass:
     ``kernels.transmission_rows``): 1 without a top interface (NO_TOP), 0 at and below the horizon."""
-    c = np.ascontiguousarray(cos, dtype=np.float64).reshape(-1)
+    c = kernels.float64_rows(cos).reshape(-1)
     return kernels.transmission_rows(top_table(top, len(c)), c, *transmittance_grids())
 
 
@@ -202,7 +198,7 @@ def transmission(top, cos) -> np.ndarray:
 def transmittance_grids() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The table and its cosine, alpha and ior grids as the compiled loops take them (contiguous float64)."""
     return tuple(
-        np.ascontiguousarray(a, dtype=np.float64)
+        kernels.float64_rows(a)
         for a in (transmittance_table(), TRANSMITTANCE_COS, TRANSMITTANCE_ALPHA, TRANSMITTANCE_IOR)
     )
 

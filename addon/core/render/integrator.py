@@ -31,7 +31,6 @@ from . import materials as mat
 from .film import Film
 from .lights import NO_IMAGE, AreaLight
 from .scene import Scene
-from .shading import float64_rows
 
 STRATEGIES = ("mis", "light", "bsdf")
 MODES = ("neural", "reference")
@@ -533,7 +532,7 @@ def _shade(
         if len(v):
             pdf_bsdf = sh.pdf_light if need_pdf else np.empty(0)  # read only when weighted
             kernels.add_direct(
-                L, v, paths.row, paths.throughput, float64_rows(sh.f_light), lights.wi, lights.radiance,
+                L, v, paths.row, paths.throughput, kernels.float64_rows(sh.f_light), lights.wi, lights.radiance,
                 ctx.p_select, lights.pdf, lights.delta, pdf_bsdf, need_pdf,
             )  # fmt: skip
         bs = sh.sample

@@ -46,7 +46,7 @@ from ..bsdf import Lambertian, RoughConductor, RoughDielectric
 from ..bsdf.base import SMOOTH_ALPHA, BSDFSample
 from ..stack import Conductor, Dielectric, Diffuse, Stack
 from ..textures.mip import build_mip_chain, trilinear_lookup
-from .shading import ShadeByParts, Shading, finish_sample, float64_rows
+from .shading import ShadeByParts, Shading, finish_sample
 
 
 @dataclass
@@ -111,7 +111,7 @@ class _BoundBSDF(ShadeByParts):
         albedo = np.require(self.bsdf.albedo, np.float64, ["C", "W"])  # one compiled pass (kernels.lambert_shade)
         rows = np.ascontiguousarray(light_rows, dtype=np.int64)
         f, pdf, wi, weight, p, valid = kernels.lambert_shade(
-            albedo, float64_rows(wo), float64_rows(light_wi), rows, float64_rows(u)
+            albedo, kernels.float64_rows(wo), kernels.float64_rows(light_wi), rows, kernels.float64_rows(u)
         )
         false = np.zeros(len(wo), dtype=bool)
         return Shading(f, pdf if need_pdf and len(light_rows) else None, BSDFSample(wi, weight, p, false, false, valid))

@@ -21,7 +21,7 @@ import numpy as np
 from .. import kernels
 from ..neural import proxy, top_lobe
 from ..stack import LATENT, Stack
-from .shading import ShadeByProposal, Shading, finish_sample, float64_rows
+from .shading import ShadeByProposal, Shading, finish_sample
 
 
 def proxy_guess(stack: Stack) -> tuple[float, float]:
@@ -71,7 +71,7 @@ class _BoundNeural(ShadeByProposal):
         if share is None:
             return proxy.pdf(wo, wi, sigma, w)
         sigma, w = proxy.params(sigma, w, len(wi))
-        wo, wi, share, p_top = (float64_rows(a) for a in (wo, wi, share, p_top))
+        wo, wi, share, p_top = (kernels.float64_rows(a) for a in (wo, wi, share, p_top))
         return kernels.mixture_pdf(wo, wi, sigma, w, share, p_top)
 
     def pdf(self, wi, wo, index=None):
@@ -90,7 +90,7 @@ class _BoundNeural(ShadeByProposal):
             return proxy.sample_directions(wo, self.sigma, self.w, u3), None, None
         sigma, w = proxy.params(self.sigma, self.w, len(wo))
         t = top_lobe.top_table(top, len(wo))
-        return kernels.propose_with_top(float64_rows(wo), float64_rows(u_lobe), float64_rows(u), sigma, w, t)
+        return kernels.propose_with_top(*(kernels.float64_rows(a) for a in (wo, u_lobe, u)), sigma, w, t)
 
     def sample_direction(self, wo, u_lobe, u):
         wi, share, missed = self._propose(wo, u_lobe, u)

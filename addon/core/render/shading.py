@@ -24,14 +24,9 @@ class Shading:
 
 def finish_sample(wi, pdf, f) -> BSDFSample:
     """A BSDFSample from proposed directions, their pdf and the evaluated f (``kernels.finish_proposals``)."""
-    wi, weight, pdf, valid = kernels.finish_proposals(float64_rows(wi), float64_rows(pdf), float64_rows(f))
+    wi, weight, pdf, valid = kernels.finish_proposals(*(kernels.float64_rows(a) for a in (wi, pdf, f)))
     false = np.zeros(len(wi), dtype=bool)
     return BSDFSample(wi, weight, pdf, false, false.copy(), valid)
-
-
-def float64_rows(a) -> np.ndarray:
-    """``a`` as the compiled loops take it: contiguous float64."""
-    return np.ascontiguousarray(a, dtype=np.float64)
 
 
 class ShadeByParts:
