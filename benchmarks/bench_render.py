@@ -24,6 +24,7 @@ machine are noisy; the command and machine facts are written into the output.
 from __future__ import annotations
 
 import argparse
+import inspect
 import os
 import platform
 import sys
@@ -150,13 +151,17 @@ def mse(a, b):
     return float(((a - b) ** 2).mean())
 
 
+# Each loop's rows: its first argument of these names (hits, rays, paths), for the ns-per-row column.
+BATCH_ARGUMENTS = ("hit", "hits", "p", "o", "wo", "row", "keep", "px", "uv")
+
+
 def rest_split(width: int, height: int, samples: int, bounces: int, repeats: int) -> list[str]:
     """Where "the rest" goes, on one thread: every compiled loop of ``addon.core.kernels`` timed on its
     own (each entry point wrapped with a timer for these renders), beside the renderer's rays and
     networks; what is left is numpy and the integrator's Python (random numbers, argument checks, the
     per-material loop, texture and decoder input preparation). With that last part at no cost, the rest
     would still be the loops' share of what remains: a floor on how far moving more numpy into loops
-    could take it."""
+    could take it. Beside each share, the seconds per row the part processed (rays: per ray traced)."""
     import collections
 
     from addon.core import kernels
@@ -164,26 +169,37 @@ def rest_split(width: int, height: int, samples: int, bounces: int, repeats: int
     scene = demo_scene(width, height)
     settings = RenderSettings(samples=samples, max_bounces=bounces, threads=1)
     render(scene, RenderSettings(samples=1, max_bounces=1, threads=1))  # warm-up
-    spent = collections.Counter()
+    spent, rows = collections.Counter(), collections.Counter()
     originals = {n: f for n, f in vars(kernels).items() if hasattr(f, "py_func") and not n.startswith("_")}
 
+    def batch_arg(f):
+        """Position of the argument whose length is the loop's rows (hits, rays or paths), or None."""
+        names = list(inspect.signature(f.py_func).parameters)
+        return next((names.index(n) for n in BATCH_ARGUMENTS if n in names), None)
+
     def timed(name, f):
+        k_rows = batch_arg(f)
+
         def call(*a, **k):
             t = time.perf_counter()
             try:
                 return f(*a, **k)
             finally:
                 spent[name] += time.perf_counter() - t
+                if k_rows is not None:
+                    rows[name] += len(a[k_rows])
 
         return call
 
     total = rays = net = 0.0
+    n_rays = 0
     try:
         for name, f in originals.items():
             setattr(kernels, name, timed(name, f))
         for _ in range(repeats):
             _, st = render(scene, settings)
             total, rays, net = total + st.seconds["total"], rays + st.seconds["rays"], net + st.seconds["network"]
+            n_rays += st.rays
     finally:
         for name, f in originals.items():
             setattr(kernels, name, f)
@@ -191,16 +207,17 @@ def rest_split(width: int, height: int, samples: int, bounces: int, repeats: int
     other = total - rays - net - loops
     floor = 100 * loops / (rays + net + loops)
     share = lambda x: f"{100 * x / total:.1f}%"  # noqa: E731
+    per_row = lambda sec, n: f"{1e9 * sec / n:.0f}" if n else ""  # noqa: E731
     lines = [
         f"## Where the rest goes ({width}x{height}, {samples} spp, {bounces} bounces, one thread, {repeats} renders)",
         "",
-        "| part | share of render time |",
-        "|---|---|",
-        f"| rays (embreex) | {share(rays)} |",
-        f"| networks (ONNX Runtime) | {share(net)} |",
-        f"| compiled loops (`addon/core/kernels.py`), all | {share(loops)} |",
-        *(f"| - `{n}` | {share(v)} |" for n, v in spent.most_common() if v >= 0.005 * total),
-        f"| numpy and the integrator's Python | {share(other)} |",
+        "| part | share of render time | ns per row (hit, ray or path) |",
+        "|---|---|---|",
+        f"| rays (embreex) | {share(rays)} | {per_row(rays, n_rays)} |",
+        f"| networks (ONNX Runtime) | {share(net)} | |",
+        f"| compiled loops (`addon/core/kernels.py`), all | {share(loops)} | |",
+        *(f"| - `{n}` | {share(v)} | {per_row(v, rows[n])} |" for n, v in spent.most_common() if v >= 0.005 * total),
+        f"| numpy and the integrator's Python | {share(other)} | |",
         "",
         f"Were the last row free, the rest would be the loops alone: {floor:.0f}% of the time"
         + (", above the 35% target, which then needs the loops faster too." if floor > 35 else "."),
