@@ -142,10 +142,13 @@ class StackSet:
         use_weight: bool = False,
         remainder: bool = False,
         transmission: bool = False,
+        level_floor: float = 0.0,
     ):
         """``remainder``: the values are each stack's BRDF minus its exact top-interface reflection
         (the decoder holds the rest: ``onnx_export.remainder``); ``transmission``: the decoder's values are
-        multiplied by the top coat's transmission in and out (``scale``) before they are compared."""
+        multiplied by the top coat's transmission in and out (``scale``) before they are compared;
+        ``level_floor`` > 0: each stack's pairs weigh 1 / max(level, level_floor x the median level)^2
+        (``stack_levels``), so that a stack's loss scales like its relative lobe error."""
         self.use_weight = use_weight
         from onnx_export.layered_data import load
 
@@ -177,6 +180,7 @@ class StackSet:
         self.weight = torch.from_numpy(
             cosine_weights(d["wi"][:n], d["wo"][:n], a.coat_roughness[:, -1]).reshape(n, p * m)
         )
+        self.stack_weight = level_weights(stack_levels(self.f, self.wi, self.wo, self.weight), level_floor)
         self.groups = p  # outgoing directions per stack, each with m incident ones
 
     def decoded_batch(
@@ -250,7 +254,11 @@ class StackSet:
         pred = pred.permute(0, 2, 1).reshape(-1)  # (b, 3, q) flattened, as f below
         wi_r = wi.unsqueeze(1).expand(b, 3, q, 3).reshape(-1, 3)
         wo_r = wo.unsqueeze(1).expand(b, 3, q, 3).reshape(-1, 3)
-        wt = self.weight[s[:, None], idx].unsqueeze(1).expand(b, 3, q).reshape(-1) if self.use_weight else None
+        wt = self.weight[s[:, None], idx] if self.use_weight else None
+        if self.stack_weight is not None:
+            sw = self.stack_weight[s][:, None].expand(b, q)
+            wt = sw if wt is None else wt * sw
+        wt = wt.unsqueeze(1).expand(b, 3, q).reshape(-1) if wt is not None else None
         return pred, f.permute(0, 2, 1).reshape(-1), wi_r, wo_r, wt
 
 
@@ -291,10 +299,40 @@ def stage2_shares(args) -> dict[int, tuple[int, float]]:
 
 
 def stack_set(args, models: ModelSet, path: Path, stacks: int = 0, use_weight: bool | None = None) -> StackSet:
-    """A StackSet of ``path`` for ``layering train``: its weighting (``--weighting``, unless ``use_weight``)
-    and the decoder's design (``--remainder``, ``--top-transmission``) from ``args``."""
+    """A StackSet of ``path`` for ``layering train``: its weighting (``--weighting``, unless ``use_weight``;
+    ``--level-floor``) and the decoder's design (``--remainder``, ``--top-transmission``) from ``args``."""
     weight = args.weighting == "cosine" if use_weight is None else use_weight
-    return StackSet(path, models, stacks, weight, remainder=args.remainder, transmission=args.top_transmission)
+    return StackSet(
+        path,
+        models,
+        stacks,
+        weight,
+        remainder=args.remainder,
+        transmission=args.top_transmission,
+        level_floor=getattr(args, "level_floor", 0.0),
+    )
+
+
+def stack_levels(f: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """(S,) each stack's level: the RMS over its pairs (S, P) and colour channels of the compared value
+    f cos_i cos_o (``nets.pair_loss``), each pair weighted by ``weight`` (S, P) (``cosine_weights``).
+
+    The pair loss is an absolute error for values well under 1, so without a per-stack scale a stack whose
+    BRDF is a hundredth of another's counts ten thousand times less, however wrong its lobe is; the lobe
+    error the held-out tables report is relative per lobe. Dividing each stack's terms by its level
+    squared makes them alike."""
+    cc = wi[..., 2].clamp(min=0.0) * wo[..., 2].clamp(min=0.0)
+    v = (cc.unsqueeze(-1) * f) ** 2
+    return ((weight.unsqueeze(-1) * v).sum((1, 2)) / (3.0 * weight.sum(1).clamp(min=1e-12))).sqrt()
+
+
+def level_weights(level: torch.Tensor, floor: float) -> torch.Tensor | None:
+    """(S,) 1 / max(level, ``floor`` x the median level)^2 (``stack_levels``), or None for ``floor`` <= 0.
+    The floor keeps a stack whose values are all but zero (a clear coat on a black base) from taking the
+    batch: it weighs at most 1 / floor^2 times a stack of the median level."""
+    if floor <= 0.0:
+        return None
+    return 1.0 / torch.clamp(level, min=float(floor * level.median())) ** 2
 
 
 def decode_pairs(dec, z: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
@@ -965,6 +1003,8 @@ def training_loss(s: dict) -> str:
     if s["step"]:
         floor = float(a.get("grazing_floor", 1.0))
         weighted = f", grazing pairs weighted (--grazing-floor {floor:g})" if floor < 1.0 else ""
+        level = float(a.get("level_floor", 0.0))
+        weighted += f", each stack by its level (--level-floor {level:g})" if level > 0.0 else ""
         parts.append(f"{a.get('loss')} through the decoder against the Monte Carlo values{weighted}")
     elif not decoded:
         parts.append("(stage 0 only: no step through the decoder)")
@@ -1111,6 +1151,14 @@ def parser() -> argparse.ArgumentParser:
         default=1.0,
         help="< 1: each pair's loss term divided by max(min(cos_i, cos_o), FLOOR), so that grazing pairs count "
         "like the lobe-image values they are (nets.pair_loss); 1: unweighted",
+    )
+    t.add_argument(
+        "--level-floor",
+        type=float,
+        default=0.0,
+        help="> 0: each stack's pairs weighted by 1 / max(level, FLOOR x the median level)^2, its level the RMS "
+        "of its values f cos_i cos_o (stack_levels), so that near-black stacks count by their relative error "
+        "as the held-out lobe error does; 0: off",
     )
     t.add_argument("--loss", default="l2rel", choices=("l2rel", "l1log"))
     t.add_argument(

@@ -213,6 +213,7 @@ def _toy_stack_set(s=6, groups=4, m=8, seed=0):
     ss.f = ss.wi[..., 2:3].expand(s, groups * m, 3).contiguous()
     ss.weight = torch.rand(s, groups * m, generator=g) + 0.5
     ss.scale = None  # no top-coat transmission factor (StackSet(..., transmission=True) sets one)
+    ss.stack_weight = None  # no per-stack level weights (StackSet(..., level_floor=F) sets them)
     return ss
 
 
@@ -334,3 +335,33 @@ def test_the_paired_bootstrap_of_the_shipping_rule_sees_ties_and_clear_differenc
     assert d == pytest.approx(0.02) and worse == 1.0 and sd < 1e-9  # +0.01 on each of median and p90
     with pytest.raises(ValueError, match="one shape"):
         cmp.paired_bootstrap(errors, errors[:30], 10, 0)
+
+
+def test_stack_levels_scale_with_the_values_and_level_weights_make_a_dim_stack_count_like_a_bright_one():
+    ss = _toy_stack_set(s=3)
+    for name in ("wi", "wo", "f", "weight"):  # three copies of stack 0's lobe
+        setattr(ss, name, getattr(ss, name)[:1].expand(3, *getattr(ss, name).shape[1:]).clone())
+    ss.f = ss.f * torch.tensor([1.0, 0.01, 1e-6])[:, None, None]  # the same lobe, a hundredth, all but black
+    level = lay.stack_levels(ss.f, ss.wi, ss.wo, ss.weight)
+    cc = ss.wi[..., 2] * ss.wo[..., 2]
+    rms0 = ((ss.weight[0] * (cc[0] * ss.f[0, :, 0]) ** 2).sum() / ss.weight[0].sum()).sqrt()
+    assert level[0].item() == pytest.approx(rms0.item(), rel=1e-5)
+    assert level[1].item() == pytest.approx(0.01 * level[0].item(), rel=1e-5)
+    assert lay.level_weights(level, 0.0) is None
+    w = lay.level_weights(level, 0.05)  # median level: stack 1's; the floor: 0.05 of it
+    assert w[1].item() == pytest.approx(1.0 / level[1].item() ** 2, rel=1e-5)
+    assert w[0].item() == pytest.approx(1e-4 * w[1].item(), rel=1e-4)  # a relative error weighs alike
+    assert w[2].item() == pytest.approx(w[1].item() / 0.05**2, rel=1e-5)  # floored, not 1e10 times
+
+    # the batch carries each row's stack weight times its cosine weight, into layering_loss
+    ss.use_weight, ss.weight = True, torch.ones_like(ss.weight)
+    ss.stack_weight = w
+    net = lay.LayeringNet(16, 2)
+    dec = lambda z, wi, wo: wi[:, 2] * 0.0 + 1.0  # noqa: E731
+    gen = torch.Generator().manual_seed(5)
+    pred, f, wi, wo, wt = ss.batch(net, dec, 7, 4, gen)
+    s = torch.randint(0, ss.n, (7,), generator=torch.Generator().manual_seed(5))
+    assert torch.equal(wt, w[s].repeat_interleave(3 * 4))
+    args = lay.parser().parse_args(["train", "--level-floor", "0.1", "--out", "x"])
+    card = {"args": {k: str(v) for k, v in vars(args).items()}, "history": {}, "step": 10}
+    assert "--level-floor 0.1" in lay.training_loss(card)
