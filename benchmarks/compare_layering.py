@@ -10,7 +10,9 @@ compares; for each candidate, a paired bootstrap over the stacks of (median + p9
 p90, base): its standard deviation and how often the candidate comes out worse. With ``--grazing``, the
 grazing test's three figures (tests/training/test_grazing.py) of each candidate exported beside copies
 of the shipped models: the largest albedo and f cos ratio at 80-89.5 degrees and the largest median
-albedo bias at 75 / 85 degrees.
+albedo bias at 75 / 85 degrees. ``--model-dirs`` adds candidates that are whole model sets (decoder,
+encoder, layering and sampling networks of the size, e.g. after a decoder round): each is measured with
+its own decoder and encoder, the base with those of ``--base-dir``.
 """
 
 from __future__ import annotations
@@ -91,6 +93,13 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--resamples", type=int, default=2000)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--model-dirs",
+        type=Path,
+        nargs="+",
+        default=[],
+        help="candidate model sets: directories holding the size's decoder, encoder and layering network",
+    )
     ap.add_argument("ckpts", type=Path, nargs="*", help="layering train checkpoints (best.pt or ckpt.pt)")
     a = ap.parse_args(argv)
     if a.resamples < 1:
@@ -98,22 +107,33 @@ def main(argv=None) -> int:
     for c in a.ckpts:
         if not c.is_file():
             ap.error(f"no checkpoint {c}")
+    for d in [a.base_dir, *a.model_dirs]:
+        if not (d / f"layering_{a.size}.json").is_file():
+            ap.error(f"no layering network of size {a.size} under {d}")
     torch.set_num_threads(1)
-    models = ModelSet(a.size, threads=1)
-    dec = layering.frozen_decoder(a.size, Path(MODEL_DIR))
-    card_path = a.base_dir / f"layering_{a.size}.json"
-    if not card_path.is_file():
-        ap.error(f"no layering network of size {a.size} under {a.base_dir}")
-    shipped = layering.net_from_onnx(card_path.with_suffix(".onnx"), json.loads(card_path.read_text()))
-    remainder = bool(models.remainder)
-    transmission = bool(models.top_transmission)
     val = load_heldout(a.validation)
-    nets = {"base": shipped} | {str(c): load_net(c) for c in a.ckpts}
+
+    def model_set(d: Path):
+        """The layering network, frozen decoder and ModelSet of size ``a.size`` under ``d``."""
+        card = d / f"layering_{a.size}.json"
+        net = layering.net_from_onnx(card.with_suffix(".onnx"), json.loads(card.read_text()))
+        return net, layering.frozen_decoder(a.size, d), ModelSet(a.size, threads=1, model_dir=d)
+
+    shipped = model_set(Path(MODEL_DIR))
+    runs = {"base": model_set(a.base_dir)}
+    runs |= {str(c): (load_net(c), *shipped[1:]) for c in a.ckpts}
+    runs |= {str(d): model_set(d) for d in a.model_dirs}
     results = {}
-    for name, net in nets.items():
+    for name, (net, dec, models) in runs.items():
         with torch.no_grad():
             results[name] = layering.heldout_error(
-                net, dec, models, val, remainder=remainder, transmission=transmission, keep_errors=True
+                net,
+                dec,
+                models,
+                val,
+                remainder=bool(models.remainder),
+                transmission=bool(models.top_transmission),
+                keep_errors=True,
             )
     counts = sorted(results["base"])
     print(f"{a.validation}: median / p90 (sum) per coating count")
@@ -137,6 +157,8 @@ def main(argv=None) -> int:
                 args = ["export", "--size", a.size, "--ckpt", str(c), "--out", str(model_dir)]
                 layering.export(layering.parser().parse_args(args), log=lambda s: None)
                 print(f"{c}:", ", ".join(f"{v:.3f}" for v in grazing_figures(a.size, model_dir)))
+        for d in a.model_dirs:
+            print(f"{d}:", ", ".join(f"{v:.3f}" for v in grazing_figures(a.size, d)))
     return 0
 
 

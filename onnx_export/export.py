@@ -271,12 +271,19 @@ def training_commands(ckpt: dict) -> list[str]:
 def loss_text(args: dict) -> str:
     kinds = args.get("loss")
     kinds = kinds if isinstance(kinds, (list, tuple)) else [kinds]
+    level = float(args.get("level_floor") or 0.0)
+    weighted = (
+        f"; materials dimmer than the median weighted as bright (--level-floor {level:g}, nets.level_weights)"
+        if level > 0.0
+        else ""
+    )
     if len(kinds) == 1:
-        return f"{kinds[0]} on log1p(f cos_i cos_o)"
+        return f"{kinds[0]} on log1p(f cos_i cos_o){weighted}"
     scales = args.get("loss_scales") or [1.0] * len(kinds)
     return (
         "; ".join(f"{d}: {k} x {sc}" for d, k, sc in zip(args["data"], kinds, scales, strict=False))
         + " (l1: on log1p(f cos_i cos_o); l2rel: onnx_export.nets.pair_loss, the mean of Monte Carlo targets)"
+        + weighted
     )
 
 

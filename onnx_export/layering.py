@@ -59,7 +59,7 @@ from addon.core.stack import TRAINED_RANGES, StackArrays
 from onnx_export.cli import command_line
 from onnx_export.distributed import ONE_PROCESS, Processes, processes, quiet_unless_main
 from onnx_export.layered_data import data_command
-from onnx_export.nets import LATENT, cosine_lr, macs_per_eval, mlp, n_params, pair_loss
+from onnx_export.nets import LATENT, cosine_lr, level_weights, macs_per_eval, mlp, n_params, pair_loss, stack_levels
 from onnx_export.remainder import remainder_scales, top_reflection
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"
@@ -147,8 +147,8 @@ class StackSet:
         """``remainder``: the values are each stack's BRDF minus its exact top-interface reflection
         (the decoder holds the rest: ``onnx_export.remainder``); ``transmission``: the decoder's values are
         multiplied by the top coat's transmission in and out (``scale``) before they are compared;
-        ``level_floor`` > 0: each stack's pairs weigh 1 / max(level, level_floor x the median level)^2
-        (``stack_levels``), so that a stack's loss scales like its relative lobe error."""
+        ``level_floor`` > 0: each stack's pairs weigh 1 / clip(level, level_floor x m, m)^2, m the median
+        level (``nets.level_weights``), so that a dim stack's loss scales like its relative lobe error."""
         self.use_weight = use_weight
         from onnx_export.layered_data import load
 
@@ -311,28 +311,6 @@ def stack_set(args, models: ModelSet, path: Path, stacks: int = 0, use_weight: b
         transmission=args.top_transmission,
         level_floor=getattr(args, "level_floor", 0.0),
     )
-
-
-def stack_levels(f: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-    """(S,) each stack's level: the RMS over its pairs (S, P) and colour channels of the compared value
-    f cos_i cos_o (``nets.pair_loss``), each pair weighted by ``weight`` (S, P) (``cosine_weights``).
-
-    The pair loss is an absolute error for values well under 1, so without a per-stack scale a stack whose
-    BRDF is a hundredth of another's counts ten thousand times less, however wrong its lobe is; the lobe
-    error the held-out tables report is relative per lobe. Dividing each stack's terms by its level
-    squared makes them alike."""
-    cc = wi[..., 2].clamp(min=0.0) * wo[..., 2].clamp(min=0.0)
-    v = (cc.unsqueeze(-1) * f) ** 2
-    return ((weight.unsqueeze(-1) * v).sum((1, 2)) / (3.0 * weight.sum(1).clamp(min=1e-12))).sqrt()
-
-
-def level_weights(level: torch.Tensor, floor: float) -> torch.Tensor | None:
-    """(S,) 1 / max(level, ``floor`` x the median level)^2 (``stack_levels``), or None for ``floor`` <= 0.
-    The floor keeps a stack whose values are all but zero (a clear coat on a black base) from taking the
-    batch: it weighs at most 1 / floor^2 times a stack of the median level."""
-    if floor <= 0.0:
-        return None
-    return 1.0 / torch.clamp(level, min=float(floor * level.median())) ** 2
 
 
 def decode_pairs(dec, z: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
@@ -1004,7 +982,7 @@ def training_loss(s: dict) -> str:
         floor = float(a.get("grazing_floor", 1.0))
         weighted = f", grazing pairs weighted (--grazing-floor {floor:g})" if floor < 1.0 else ""
         level = float(a.get("level_floor", 0.0))
-        weighted += f", each stack by its level (--level-floor {level:g})" if level > 0.0 else ""
+        weighted += f", dim stacks weighted as bright (--level-floor {level:g})" if level > 0.0 else ""
         parts.append(f"{a.get('loss')} through the decoder against the Monte Carlo values{weighted}")
     elif not decoded:
         parts.append("(stage 0 only: no step through the decoder)")
@@ -1156,9 +1134,9 @@ def parser() -> argparse.ArgumentParser:
         "--level-floor",
         type=float,
         default=0.0,
-        help="> 0: each stack's pairs weighted by 1 / max(level, FLOOR x the median level)^2, its level the RMS "
-        "of its values f cos_i cos_o (stack_levels), so that near-black stacks count by their relative error "
-        "as the held-out lobe error does; 0: off",
+        help="> 0: each stack dimmer than the median weighted as if it were as bright, down to FLOOR x the median "
+        "level (nets.level_weights; its level the RMS of its values f cos_i cos_o), so that near-black stacks count "
+        "by their relative error as the held-out lobe error does; 0: off",
     )
     t.add_argument("--loss", default="l2rel", choices=("l2rel", "l1log"))
     t.add_argument(

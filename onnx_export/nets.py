@@ -188,6 +188,35 @@ def pair_loss(
     return d.abs() if kind == "l1" else d * d
 
 
+def stack_levels(f: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """(S,) each stack's level: the RMS over its pairs (S, P) and colour channels of the compared value
+    f cos_i cos_o (``pair_loss``), each pair weighted by ``weight`` (S, P) (``layering.cosine_weights``, or
+    ones).
+
+    The pair loss is an absolute error for values well under 1, so without a per-stack scale a stack whose
+    BRDF is a hundredth of another's counts ten thousand times less, however wrong its lobe is; the lobe
+    error the held-out tables report is relative per lobe. Dividing each stack's terms by its level
+    squared makes them alike."""
+    cc = wi[..., 2].clamp(min=0.0) * wo[..., 2].clamp(min=0.0)
+    v = (cc.unsqueeze(-1) * f) ** 2
+    return ((weight.unsqueeze(-1) * v).sum((1, 2)) / (3.0 * weight.sum(1).clamp(min=1e-12))).sqrt()
+
+
+def level_weights(level: torch.Tensor, floor: float) -> torch.Tensor | None:
+    """(S,) 1 / clip(level, ``floor`` x m, m)^2 with m the median level (``stack_levels``), or None for
+    ``floor`` <= 0.
+
+    A stack dimmer than the median weighs as if it were as bright, so its relative error counts like
+    the median stack's; the floor keeps one whose values are all but zero (a clear coat on a black base)
+    from taking the batch: it weighs at most 1 / floor^2 times the median stack. Stacks brighter than the
+    median keep their weight: their large values are compared on a log scale already (``pair_loss``), and
+    weighing them down as well cost the bright single layers their fit."""
+    if floor <= 0.0:
+        return None
+    m = float(level.median())
+    return 1.0 / torch.clamp(level, min=floor * m, max=m) ** 2
+
+
 def cosine_lr(step: int, steps: int, base: float, floor: float = 0.05, warmup: int = 100) -> float:
     if step < warmup:
         return base * (step + 1) / warmup

@@ -35,7 +35,18 @@ from addon.core.stack import StackArrays
 from onnx_export import data as datamod
 from onnx_export import layered_data
 from onnx_export.distributed import processes, quiet_unless_main
-from onnx_export.nets import PAIR_LOSSES, Decoder, cosine_lr, he_init, macs_per_eval, make_decoder, n_params, pair_loss
+from onnx_export.nets import (
+    PAIR_LOSSES,
+    Decoder,
+    cosine_lr,
+    he_init,
+    level_weights,
+    macs_per_eval,
+    make_decoder,
+    n_params,
+    pair_loss,
+    stack_levels,
+)
 from onnx_export.remainder import remainder_scales, top_reflection
 
 
@@ -170,17 +181,38 @@ def start_from(args, t: dict, dec: Decoder, latents: torch.nn.Parameter, log) ->
     return None
 
 
-def set_losses(pred, f, wi, wo, row_set, kinds, scales, grazing_floor: float, ema_set: list) -> torch.Tensor:
+def set_losses(
+    pred, f, wi, wo, row_set, kinds, scales, grazing_floor: float, ema_set: list, row_weight=None
+) -> torch.Tensor:
     """Mean loss of a batch whose rows come from several data sets, each with its own loss (exact targets:
-    l1; noisy: l2rel) and scale; updates each set's running mean ``ema_set`` (unscaled)."""
+    l1; noisy: l2rel) and scale, each row's term times ``row_weight`` when given (``unit_level_weights``);
+    updates each set's running mean ``ema_set`` (unscaled)."""
     terms = torch.zeros_like(pred)
     for i, kind in enumerate(kinds):
         m = row_set == i
         if m.any():
             terms[m] = scales[i] * pair_loss(pred[m], f[m], wi[m], wo[m], kind, grazing_floor)
+            if row_weight is not None:
+                terms[m] = terms[m] * row_weight[m]
             v = terms[m].mean().item() / scales[i].item()
             ema_set[i] = v if ema_set[i] is None else 0.98 * ema_set[i] + 0.02 * v
     return terms.mean()
+
+
+def unit_level_weights(t: dict, floor: float) -> torch.Tensor | None:
+    """(units,) the loss weight of each BRDF channel (material * 3 + channel) for ``--level-floor``: its
+    material's ``nets.level_weights`` within its own data set (levels of the targets as compared, the
+    remainder for ``--remainder``), scaled so that each set's channels weigh 1 on average and the sets'
+    shares of the loss stay as ``--data-weights`` and ``--loss-scales`` set them; None for ``floor`` <= 0."""
+    if floor <= 0.0:
+        return None
+    w = torch.empty(t["f"].shape[0])
+    for i in torch.unique(t["source"]):
+        m = t["source"] == i
+        lv = stack_levels(t["f"][m], t["wi"][m], t["wo"][m], torch.ones(t["f"][m].shape[:2]))
+        wm = level_weights(lv, floor)
+        w[m] = wm / wm.mean()
+    return w.repeat_interleave(3)
 
 
 def brdf_loss(pred, target, wi, wo, kind: str) -> torch.Tensor:
@@ -239,6 +271,7 @@ def train(args, log=print) -> dict:
     kinds = args.loss * len(args.data) if len(args.loss) == 1 else list(args.loss)
     scales = torch.tensor(args.loss_scales or [1.0] * len(args.data), dtype=torch.float32)
     units_per_set = [int(c) for c in counts.tolist()]  # src is per unit (material * 3 + channel)
+    unit_level_w = unit_level_weights(t, getattr(args, "level_floor", 0.0))
     opt = torch.optim.Adam(
         [{"params": dec.parameters(), "lr": args.lr}, {"params": [latents], "lr": args.lr * args.latent_lr_scale}]
     )
@@ -270,7 +303,8 @@ def train(args, log=print) -> dict:
         if scale:
             pred = pred * scale[0][rows]
         row_set = src[units].long().repeat_interleave(args.pairs)
-        loss = set_losses(pred, f, wi, wo, row_set, kinds, scales, args.grazing_floor, ema_set)
+        row_w = None if unit_level_w is None else unit_level_w[units].repeat_interleave(args.pairs)
+        loss = set_losses(pred, f, wi, wo, row_set, kinds, scales, args.grazing_floor, ema_set, row_w)
         reg = args.latent_reg * z_sq
         opt.zero_grad(set_to_none=True)
         (loss + reg).backward()
@@ -365,6 +399,14 @@ def parser():
         type=float,
         default=1.0,
         help="divide each pair's loss term by max(min(cos_i, cos_o), this) (nets.pair_loss; 1: off)",
+    )
+    ap.add_argument(
+        "--level-floor",
+        type=float,
+        default=0.0,
+        help="> 0: each material dimmer than its set's median weighted as if it were as bright, down to FLOOR x the "
+        "median level (nets.level_weights; its level the RMS of its f cos_i cos_o), so that near-black materials "
+        "count by their relative error; 0: off",
     )
     ap.add_argument(
         "--remainder",

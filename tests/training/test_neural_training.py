@@ -518,6 +518,27 @@ def test_pair_loss_kinds_and_bad_kind():
         pair_loss(pred, target, up, up, "huber")
 
 
+def test_decoder_level_weights_make_a_dim_material_count_by_its_relative_error_within_its_set():
+    g = torch.Generator().manual_seed(0)
+    wi = torch.nn.functional.normalize(torch.rand(6, 16, 3, generator=g) + 0.1, dim=-1)
+    wo = torch.nn.functional.normalize(torch.rand(6, 16, 3, generator=g) + 0.1, dim=-1)
+    wi[1:3], wo[1:3], wi[4:], wo[4:] = wi[:1], wo[:1], wi[3:4], wo[3:4]  # materials 0-2 and 3-5 alike
+    f = torch.rand(6, 16, 3, generator=g) + 0.5
+    f[1:3], f[4:] = f[:1], f[3:4]
+    f = f * torch.tensor([1.0, 0.1, 0.01, 1.0, 1.0, 1.0])[:, None, None]  # set 0: a tenth, a hundredth
+    t = {"f": f, "wi": wi, "wo": wo, "source": torch.tensor([0.0, 0, 0, 1, 1, 1])}
+    assert train_decoder.unit_level_weights(t, 0.0) is None
+    w = train_decoder.unit_level_weights(t, 0.5).reshape(6, 3)
+    assert (w == w[:, :1]).all()  # the three channels of a material alike
+    w = w[:, 0]
+    torch.testing.assert_close(w[:3].mean(), torch.tensor(1.0))  # each set weighs as --data-weights says
+    torch.testing.assert_close(w[3:], torch.ones(3))  # a set of equal materials: unchanged
+    # the median material (a tenth) and the brighter one weigh alike; the hundredth is floored at half the median
+    torch.testing.assert_close(w[:3], torch.tensor([0.5, 0.5, 2.0]), rtol=1e-4, atol=0)
+    a = train_decoder.parser().parse_args(["--data", "x", "--level-floor", "0.05", "--out", "y"])
+    assert "--level-floor 0.05" in export.loss_text(vars(a) | {"data": ["x"]})
+
+
 # ----------------------------------------------------------------------------- shipped models
 
 
