@@ -195,8 +195,8 @@ def stack_levels(f: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor, weight: to
 
     The pair loss is an absolute error for values well under 1, so without a per-stack scale a stack whose
     BRDF is a hundredth of another's counts ten thousand times less, however wrong its lobe is; the lobe
-    error the held-out tables report is relative per lobe. Dividing each stack's terms by its level
-    squared makes them alike."""
+    error the held-out tables report is relative per lobe. ``level_weights`` turns the levels into the
+    per-stack weights that make them alike."""
     cc = wi[..., 2].clamp(min=0.0) * wo[..., 2].clamp(min=0.0)
     v = (cc.unsqueeze(-1) * f) ** 2
     return ((weight.unsqueeze(-1) * v).sum((1, 2)) / (3.0 * weight.sum(1).clamp(min=1e-12))).sqrt()
