@@ -62,7 +62,41 @@ def test_calibrated_albedo_matches_an_independent_reference_better_than_the_deco
     err_plain = np.abs(a_plain / ref - 1).mean(axis=1)
     # within a few percent at every angle (reference noise 1-2%, interpolation between grid angles)
     assert err_cal.max() < 0.05, err_cal
-    assert err_cal.mean() < 0.5 * err_plain.mean(), (err_cal, err_plain)
+    # the decoder is 1.7% off on average here, and the calibration leaves gaps within two of its walks'
+    # standard errors (about 1% of this albedo near normal incidence) as they are: it removes about half
+    assert err_cal.mean() < 0.6 * err_plain.mean(), (err_cal, err_plain)
+
+
+def test_shrunk_targets_keep_the_decoded_albedo_within_the_noise_and_the_reference_beyond_it():
+    decoded = np.full((4, 3), 0.2)
+    stderr = np.full((4, 3), 0.01)
+    gaps = np.array([0.0, 0.015, 0.1, 1.0])[:, None] * np.array([1.0, -1.0, 0.5])
+    out = cal.shrink_target(decoded + gaps, decoded, stderr, k=2.0)
+    np.testing.assert_allclose(out[:2], decoded[:2])  # within 2 sigma: the decoder stands
+    moved = (out - decoded)[2:] / gaps[2:]
+    assert (moved > 0.8).all() and (moved <= 1.0).all()  # clear gaps are followed (garrote, nearly unbiased)
+    assert moved[1, 0] > moved[0, 0]  # the further off, the closer to the reference
+    np.testing.assert_allclose(cal.shrink_target(decoded + gaps, decoded, stderr, k=0.0), decoded + gaps)
+    with pytest.raises(ValueError, match="noise threshold"):
+        cal.shrink_target(decoded, decoded, stderr, k=-1.0)
+
+
+def test_remainder_calibration_targets_the_light_below_the_top_interface():
+    """A remainder decoder's target comes from the walks without the top interface's first reflections:
+    those walks carry the exact top lobe's albedo, and what is left is far less noisy than the difference
+    of the full albedo and the top lobe's."""
+    from addon.core.neural.top_lobe import top_albedo
+
+    stack = preset("lacquered_plastic")
+    ref, se, below, below_se = cal.reference_albedo(stack, seed=3, below_top=True)
+    top = top_albedo(top_coat(stack), cal.COSINES, 65536, 0)[:, None]
+    np.testing.assert_array_less(np.abs(ref - below - top), 4 * se + 0.002)
+    assert (below_se < se).all()
+    # a coating-free stack has no top lobe: the light below the top is all of it
+    single = preset("frosted_copper")
+    single = type(single)(base=single.base, coatings=())
+    a, a_se, b, b_se = cal.reference_albedo(single, walks=[64] * len(cal.COSINES), seed=1, below_top=True)
+    np.testing.assert_array_equal(a, b)
 
 
 def test_the_renderer_evaluates_the_calibrated_lobe(plastic):

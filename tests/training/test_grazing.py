@@ -73,6 +73,29 @@ def test_no_shipped_size_over_reflects_near_the_horizon(size):
             assert abs(bias) <= b["median_bias"], (t, int(c), bias)
 
 
+# The same, calibrated, as the renderer decodes a material's own latent by default (the calibration's
+# target is the light below the top interface, shrunk within its noise: docs/calibration.md). The issue's
+# albedo target, 2, is met by every size; f cos(theta_i) is not (conductors under a coloured or rough coat,
+# about 2x at every angle from 75 degrees on, and stack 7 at 89.5 degrees).
+CALIBRATED_BOUNDS = {
+    "tiny": {"albedo_max": 1.35, "fcos_max": 3.8},
+    "small": {"albedo_max": 1.45, "fcos_max": 3.4},
+    "medium": {"albedo_max": 1.6, "fcos_max": 4.0},
+    "paper": {"albedo_max": 1.5, "fcos_max": 3.4},
+}
+
+
+@pytest.mark.parametrize(
+    "size", [pytest.param(s, marks=pytest.mark.slow) if s == "paper" else s for s in SHIPPED]
+)  # paper's 32 calibrations take over two minutes on two cores
+def test_calibrated_materials_stay_within_twice_the_reference_albedo_near_the_horizon(size):
+    r = grazing_ratios(load_models(size, threads=2), load(GRAZING), calibrate=True)
+    b = CALIBRATED_BOUNDS[size]
+    near = r["angles"] >= 80
+    assert r["albedo"][:, near].max() <= min(b["albedo_max"], 2.0), r["albedo"][:, near].max()
+    assert r["fcos"][:, near].max() <= b["fcos_max"], r["fcos"][:, near].max()
+
+
 def test_the_grazing_floor_divides_each_pairs_difference_by_its_smaller_cosine():
     grazing, steep = np.radians(87.0), np.radians(10.0)
     wi = torch.tensor(

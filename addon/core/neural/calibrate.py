@@ -28,8 +28,15 @@ there is. It keeps f >= 0 and reciprocity (the factor is symmetric in the two di
 network evaluation. It needs one latent per material: latent textures are not calibrated.
 
 With a remainder decoder (``ModelSet.remainder``) the factors scale only the decoded remainder: the exact
-top lobe (``top_lobe``) stays as it is, and the target of the decoded part is the reference albedo less
-the top lobe's own (``top_lobe.top_albedo``).
+top lobe (``top_lobe``) stays as it is, and the target of the decoded part is the albedo of the light
+that entered the top interface, from the same walks with the top interface's first reflections left out
+(``reference.albedo(..., below_top=True)``). The reference albedo less the top lobe's would be the same
+in expectation, but carries the noise of the walks the coat reflects: at grazing on a near-black
+remainder under a bright clear coat, the difference of 0.1-0.7 and 0.1-0.7 with a standard error of
+0.005-0.008, as large as the remainder itself (docs/calibration.md).
+
+The factors follow the reference only where it is clear of its own noise: each angle's target is
+shrunk towards the decoded albedo where it is within two of the walks' standard errors (:func:`shrink_target`).
 """
 
 from __future__ import annotations
@@ -54,6 +61,9 @@ WALKS = (16384, 12288, 8192, 8192, 4096, 4096, 4096, 4096, 4096, 4096, 4096)
 DECODED_SAMPLES = 8192  # importance samples of the decoded lobe per grid angle
 FACTOR_RANGE = (0.1, 10.0)  # c is kept in this range: a factor outside it means the decoder failed the stack
 ITERATIONS = 60
+# A calibration target moves the factors only by as much as it differs from the decoded albedo beyond this
+# many of the reference's standard errors (:func:`shrink_target`).
+NOISE_THRESHOLD = 2.0
 
 
 @dataclass(frozen=True)
@@ -95,12 +105,13 @@ def grid_directions(cosines=COSINES) -> np.ndarray:
     return np.stack([np.sqrt(np.maximum(1.0 - c * c, 0.0)), np.zeros_like(c), c], axis=1)
 
 
-def reference_albedo(stack: Stack, walks=WALKS, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def reference_albedo(stack: Stack, walks=WALKS, seed: int = 0, below_top: bool = False) -> tuple[np.ndarray, ...]:
     """Directional albedo (K, 3) of ``stack`` at the grid's angles from analog walks, and its standard
-    error. One estimator call for all angles (each angle's direction repeated ``walks[k] / q`` times
-    with q walks each, q the counts' greatest common divisor): the walks of every angle advance in the
-    same vectorised loop, about twice as fast as one call per angle, and faster than threads (the
-    walks' many small numpy steps hold the GIL)."""
+    error; ``below_top``: also the albedo of the light that entered the top interface and its standard
+    error (``reference.albedo``'s ``below_top``), four arrays. One estimator call for all angles (each
+    angle's direction repeated ``walks[k] / q`` times with q walks each, q the counts' greatest common
+    divisor): the walks of every angle advance in the same vectorised loop, about twice as fast as one
+    call per angle, and faster than threads (the walks' many small numpy steps hold the GIL)."""
     from .. import reference
 
     dirs = grid_directions()
@@ -109,11 +120,14 @@ def reference_albedo(stack: Stack, walks=WALKS, seed: int = 0) -> tuple[np.ndarr
         raise ValueError(f"walks must give one positive count per grid angle ({len(dirs)}), got {walks.tolist()}")
     q = int(np.gcd.reduce(walks))
     reps = walks // q
-    albedo, stderr = reference.albedo(stack, np.repeat(dirs, reps, axis=0), samples=q, seed=seed)
+    parts = reference.albedo(stack, np.repeat(dirs, reps, axis=0), samples=q, seed=seed, below_top=below_top)
     angle = np.repeat(np.arange(len(dirs)), reps)
-    mean = np.stack([np.bincount(angle, albedo[:, c]) for c in range(3)], axis=1) / reps[:, None]
-    var = np.stack([np.bincount(angle, stderr[:, c] ** 2) for c in range(3)], axis=1) / (reps * reps)[:, None]
-    return mean, np.sqrt(var)
+    out = []
+    for albedo, stderr in zip(parts[::2], parts[1::2], strict=True):
+        mean = np.stack([np.bincount(angle, albedo[:, c]) for c in range(3)], axis=1) / reps[:, None]
+        var = np.stack([np.bincount(angle, stderr[:, c] ** 2) for c in range(3)], axis=1) / (reps * reps)[:, None]
+        out += [mean, np.sqrt(var)]
+    return tuple(out)
 
 
 def _hats(cos: np.ndarray, grid: np.ndarray) -> np.ndarray:
@@ -189,6 +203,21 @@ def solve_factors(m: np.ndarray, target: np.ndarray, iterations: int = ITERATION
     return c
 
 
+def shrink_target(target: np.ndarray, decoded: np.ndarray, stderr: np.ndarray, k: float = NOISE_THRESHOLD):
+    """``target`` (K, 3) shrunk towards ``decoded`` (K, 3) by ``k`` standard errors ``stderr`` (the
+    non-negative garrote): where the two differ by less than k sigma the decoded albedo stands, beyond it
+    the gap g keeps g (1 - (k sigma / g)^2), nearly all of it once it is clear of the noise (a soft
+    threshold would keep g - k sigma, a bias of k sigma on every clear gap). So a factor moves where the
+    reference says it should, not with the walks' noise on a near-black material."""
+    if k < 0:
+        raise ValueError(f"the noise threshold must be >= 0 standard errors, got {k}")
+    gap = np.asarray(target, dtype=np.float64) - decoded
+    noise = k * np.asarray(stderr, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        keep = np.where(np.abs(gap) > noise, 1.0 - (noise / gap) ** 2, 0.0)
+    return decoded + gap * keep
+
+
 MODES = (True, False, "cached")
 
 
@@ -205,7 +234,15 @@ _CACHE: dict[str, AlbedoCalibration] = {}
 
 def cache_key(stack: Stack, models, z) -> str:
     z = np.ascontiguousarray(np.asarray(z, dtype=np.float32))
-    parts = (stack.to_json(), models.size, models.digest, hashlib.sha256(z.tobytes()).hexdigest(), WALKS, COSINES)
+    parts = (
+        stack.to_json(),
+        models.size,
+        models.digest,
+        hashlib.sha256(z.tobytes()).hexdigest(),
+        WALKS,
+        COSINES,
+        NOISE_THRESHOLD,
+    )
     return hashlib.sha256(repr(parts).encode()).hexdigest()
 
 
@@ -225,13 +262,16 @@ def calibrate(stack: Stack, models, z, proxy_params, seed: int = 0) -> AlbedoCal
     if key in _CACHE:
         return _CACHE[key]
     sigma, w = (float(v) for v in proxy_params)
-    ref, ref_se = reference_albedo(stack, seed=seed)
+    remainder = bool(getattr(models, "remainder", False))
+    ref, ref_se, *below = reference_albedo(stack, seed=seed, below_top=remainder)
     coat = top_lobe.top_coat(stack)
     m = decoded_albedo_matrix(models, z, sigma, w, seed=seed, top=coat)
     top = np.zeros_like(ref)
-    if getattr(models, "remainder", False):
+    target, target_se = ref, ref_se
+    if remainder:
         top[:] = top_lobe.top_albedo(coat, COSINES, DECODED_SAMPLES, seed)[:, None]
-    scale = solve_factors(m, np.maximum(ref - top, 0.0))
+        target, target_se = below
+    scale = solve_factors(m, np.maximum(shrink_target(target, m.sum(axis=1), target_se), 0.0))
     out = AlbedoCalibration(
         cosines=np.asarray(COSINES, dtype=np.float64),
         scale=scale,

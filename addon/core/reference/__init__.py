@@ -204,8 +204,13 @@ def sample(stack, wo, rng, with_flags: bool = False, backend=None, device=None):
     return (out(out_wi), out(out_w), out(out_s)) if with_flags else (out(out_wi), out(out_w))
 
 
-def albedo(stack, wo, samples: int = 4096, seed: int = 0, backend=None, device=None):
-    """Directional albedo (N, 3) seen from ``wo`` (all paths) and its standard error (N, 3)."""
+def albedo(stack, wo, samples: int = 4096, seed: int = 0, backend=None, device=None, below_top: bool = False):
+    """Directional albedo (N, 3) seen from ``wo`` (all paths) and its standard error (N, 3).
+
+    ``below_top``: also the albedo of the light that entered the stack, every path but a first reflection
+    at the top interface (the exact top lobe of a remainder decoder), and its standard error, from the
+    same walks: four arrays. It is what a remainder decoder holds, estimated without the noise of the top
+    reflection's walks (for a coating-free stack, the whole albedo)."""
     wo = as_directions(wo, "wo")
     k = _count(samples, "samples")
     n = wo.shape[0]
@@ -213,13 +218,19 @@ def albedo(stack, wo, samples: int = 4096, seed: int = 0, backend=None, device=N
     wo = xp.asarray(wo)
     lay, prow = _layers_and_rows(stack, n, xp)
     rng = _rng(seed, xp)
-    sums = xp.zeros((n, 3))
-    sq = xp.zeros((n, 3))
+    sums, sq = xp.zeros((n, 3)), xp.zeros((n, 3))
+    sums_below, sq_below = xp.zeros((n, 3)), xp.zeros((n, 3))
     total = n * k
     for r0 in range(0, total, CHUNK_WALKS):
         r = xp.arange(r0, min(total, r0 + CHUNK_WALKS))
         pair = r // k
-        _, w, _ = run_walks(lay, prow[pair], wo[pair], None, rng, nee=False)
+        first = []
+        _, w, _ = run_walks(lay, prow[pair], wo[pair], None, rng, nee=False, first_exits=first)
         _accumulate(sums, sq, pair, w)
+        if below_top:
+            _accumulate(sums_below, sq_below, pair, xp.where(first[0][:, None], 0.0, w))
     f, se = _finish(sums, sq, k)
-    return out(f), out(se)
+    if not below_top:
+        return out(f), out(se)
+    f_below, se_below = _finish(sums_below, sq_below, k)
+    return out(f), out(se), out(f_below), out(se_below)

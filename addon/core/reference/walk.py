@@ -399,6 +399,8 @@ class _RandomWalk:
         self.exit_direction[:, 2] = 1.0
         self.exit_weight = xp.zeros((m, 3))
         self.exit_specular = xp.zeros(m, dtype=bool)
+        self.exit_first = xp.zeros(m, dtype=bool)  # left at the first event (reflected by the top interface)
+        self.depth = 0
         if nee:
             self.chains = _sample_chain(lay, xp.repeat(pr, self.M), wi.reshape(-1, 3), rng).per_walk(m, self.M)
         self.walks = _Walks(
@@ -421,6 +423,7 @@ class _RandomWalk:
         ends in a medium or a surface event, until every walk has left the stack or ended."""
         xp = self.xp
         for depth in range(MAX_DEPTH):
+            self.depth = depth
             if len(self.walks) == 0:
                 break
             if depth > RR_START:
@@ -696,10 +699,13 @@ class _RandomWalk:
             self.exit_direction[wid] = w.direction[exits]
             self.exit_weight[wid] = w.throughput[exits]
             self.exit_specular[wid] = ~w.any_nondelta[exits]
+            self.exit_first[wid] = self.depth == 0
         dead[exits] = True
 
 
-def run_walks(lay: Layers, pr, wo, wi, rng: Rng, nee: bool, alive_per_event: list | None = None):
+def run_walks(
+    lay: Layers, pr, wo, wi, rng: Rng, nee: bool, alive_per_event: list | None = None, first_exits: list | None = None
+):
     """Walk ``len(pr)`` independent walks, walk ``r`` for stack row ``pr[r]`` seen from ``wo[r]``.
 
     With ``nee`` (``wi`` of shape (m, M, 3) given): returns the per-walk estimates of
@@ -709,5 +715,11 @@ def run_walks(lay: Layers, pr, wo, wi, rng: Rng, nee: bool, alive_per_event: lis
     Arrays (``lay``, ``pr``, ``wo``, ``wi``) are in the namespace ``lay.xp``; ``rng`` draws there.
     ``alive_per_event``: a list that receives the number of walks still inside after each event
     (for measuring walk lengths).
+    ``first_exits`` (analog walk): a list that receives the (m,) flags of the walks that left at their first
+    event: with coatings, those the top interface reflected, the paths of the exact top lobe.
     """
-    return _RandomWalk(lay, pr, wo, wi, rng, nee).run(alive_per_event)
+    walk = _RandomWalk(lay, pr, wo, wi, rng, nee)
+    out = walk.run(alive_per_event)
+    if first_exits is not None:
+        first_exits.append(walk.exit_first & (walk.C > 0))
+    return out
