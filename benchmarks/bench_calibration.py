@@ -125,7 +125,10 @@ def main(argv=None) -> int:
         f"Machine: {platform.machine()}, {os.cpu_count()} CPU threads. Calibration: "
         f"{len(cal.COSINES)} incident angles (cos theta {', '.join(f'{c:g}' for c in cal.COSINES)}), "
         f"{sum(cal.WALKS):,} reference walks and {len(cal.COSINES) * cal.DECODED_SAMPLES:,} decoded "
-        "samples per material (`addon/core/neural/calibrate.py`).",
+        "samples per material (`addon/core/neural/calibrate.py`); a remainder decoder's target is the albedo of "
+        "the light that entered the top interface (the walks without the top's first reflections), each target "
+        f"kept at the decoded albedo where the two are within {cal.NOISE_THRESHOLD:g} of the walks' standard "
+        "errors.",
         "",
         "## Held-out grazing set: network / reference (1 = exact)",
         "",

@@ -61,6 +61,16 @@ def object_means(film, masks: dict[str, np.ndarray]) -> dict[str, dict]:
 def render_means(
     scene, masks, mode: str, samples: int, seed: int, size: str | None, calibrate: bool = True, pixels=None
 ) -> tuple[dict, float]:
+    """Per-object means (:func:`object_means`) of one render and its seconds (:func:`render_film`)."""
+    film, secs = render_film(scene, mode, samples, seed, size, calibrate, pixels)
+    return object_means(film, masks), secs
+
+
+def render_film(
+    scene, mode: str, samples: int, seed: int, size: str | None, calibrate: bool = True, pixels=None
+) -> tuple[object, float]:
+    """The film of ``scene`` rendered in ``mode`` with default settings but the sample count and seed (and
+    in neural mode the layered objects' decoder ``size``, when given, and the calibration), and its seconds."""
     settings = RenderSettings(samples=samples, mode=mode, seed=seed, calibrate=calibrate)
     materials = scene.materials
     if size is not None and mode == "neural":  # the layered objects' neural materials of that size
@@ -81,7 +91,7 @@ def render_means(
         film, _ = render(scene, settings, pixels=pixels)
     finally:
         scene.materials = materials
-    return object_means(film, masks), time.perf_counter() - t
+    return film, time.perf_counter() - t
 
 
 def object_passes(a, key: dict, cached: dict | None, masks: dict, secs: dict) -> dict:

@@ -217,7 +217,7 @@ def measured_error(
     if not isinstance(stack, Stack):
         raise ValueError(f"measured_error needs a Stack, got {type(stack).__name__}")
     from .neural import ModelFileError
-    from .neural.calibrate import WALKS, cached, check_mode
+    from .neural.calibrate import cached, check_mode, settings_key
 
     calibrate = check_mode(calibrate)
     cache = _DEFAULT_CACHE if cache is None else cache
@@ -230,7 +230,7 @@ def measured_error(
         except (FileNotFoundError, ModelFileError):
             return math.inf
     key = _key("err", stack.to_json(), size, _fingerprint(size), res, walks, seed) + (
-        f"-calibrated-{WALKS}" if calibrate else ""
+        f"-calibrated-{settings_key()}" if calibrate else ""
     )
     hit = cache.get(key)
     if hit is not None:

@@ -232,17 +232,15 @@ def check_mode(calibrate) -> bool | str:
 _CACHE: dict[str, AlbedoCalibration] = {}
 
 
+def settings_key() -> str:
+    """What a calibration depends on besides the stack, the model files and the latent: part of every key
+    under which calibrated figures are kept (here, and ``quality``'s measured errors on disk)."""
+    return f"walks{list(WALKS)}-cosines{list(COSINES)}-target-below-top-shrink{NOISE_THRESHOLD:g}"
+
+
 def cache_key(stack: Stack, models, z) -> str:
     z = np.ascontiguousarray(np.asarray(z, dtype=np.float32))
-    parts = (
-        stack.to_json(),
-        models.size,
-        models.digest,
-        hashlib.sha256(z.tobytes()).hexdigest(),
-        WALKS,
-        COSINES,
-        NOISE_THRESHOLD,
-    )
+    parts = (stack.to_json(), models.size, models.digest, hashlib.sha256(z.tobytes()).hexdigest(), settings_key())
     return hashlib.sha256(repr(parts).encode()).hexdigest()
 
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..stack import PRESETS, Coating, Diffuse, Stack
 from . import shapes
-from .lights import AreaLight, Environment
+from .lights import AreaLight, Environment, PointLight
 from .materials import ImageTexture, LambertMaterial, LayeredSpec
 from .scene import Camera, Mesh, Scene
 
@@ -96,3 +96,45 @@ def demo_scene(width: int = 320, height: int = 180, presets=DEMO_PRESETS, floor_
     lights = [AreaLight(light, power=250.0, size=1.5, color=(1.0, 0.92, 0.85))]
     cam = Camera.look_at((0.0, -5.6, 1.5), (0.0, 0.0, 0.6), fov_deg=50.0, width=width, height=height)
     return Scene(cam, mesh, materials, lights, Environment(image=sky_image()), ["tiles"] + names)
+
+
+TERMINATOR_PRESETS = ("coated_gold", "red_car_paint")
+TERMINATOR_LIGHT = (
+    6.0,
+    -0.8,
+    0.5,
+)  # nearly level with the spheres' centres, to their right, a little towards the camera
+
+
+def terminator_scene(width: int = 160, height: int = 90, presets=TERMINATOR_PRESETS) -> Scene:
+    """Spheres of the given presets on a grey floor under one point light from the side, no sky: the
+    scene in which a decoder that reflects too much at grazing light draws a bright line along each
+    sphere's terminator (``benchmarks/bench_terminator.py``). The light is nearly level with the spheres
+    and a little in front of them, so the terminator runs down each sphere just left of its middle as the
+    camera sees it, where the viewer is near the normal."""
+    stacks = [PRESETS[p] if isinstance(p, str) else p for p in presets]
+    names = [p if isinstance(p, str) else f"stack{i}" for i, p in enumerate(presets)]
+    n = len(stacks)
+    spacing = 1.2
+    meshes = [
+        shapes.uv_sphere(((i - (n - 1) / 2) * spacing, 0.0, SPHERE_RADIUS), SPHERE_RADIUS, 96, 48, material=i + 1)
+        for i in range(n)
+    ]
+    meshes.append(shapes.quad((0, 10.0, 0), (20.0, 0, 0), (0, 20.0, 0), material=0))
+    materials = [LambertMaterial((0.18, 0.18, 0.18))] + [
+        LayeredSpec(st, None, name) for st, name in zip(stacks, names, strict=True)
+    ]
+    cam = Camera.look_at((0.0, -3.2, 0.9), (0.0, 0.0, SPHERE_RADIUS), fov_deg=40.0, width=width, height=height)
+    lights = [PointLight(TERMINATOR_LIGHT, power=600.0)]
+    return Scene(cam, Mesh.concatenate(meshes), materials, lights, Environment(), ["floor"] + names)
+
+
+def sphere_centres(scene: Scene, names) -> dict[str, np.ndarray]:
+    """Centres of the spheres of :func:`terminator_scene` (or :func:`demo_scene`), by material name: the
+    middle of their triangles' bounding box."""
+    mesh = scene.mesh
+    out = {}
+    for name in names:
+        p = mesh.positions[mesh.material_index == scene.material_names.index(name)].reshape(-1, 3)
+        out[name] = 0.5 * (p.min(axis=0) + p.max(axis=0)).astype(np.float64)
+    return out
