@@ -887,32 +887,17 @@ def _segment(grid, x):
     return i, (x - grid[i]) / (grid[i + 1] - grid[i])
 
 
-@njit(inline="always", **_JIT)
-def _lerp(table, i, t, c):
-    return table[i, c] * (1.0 - t) + table[i + 1, c] * t
-
-
 @njit(**_JIT)
-def piecewise_linear(x, grid, table):
-    """(N, C): ``table`` (K, C) at ``x`` (N,), linear between the increasing abscissae ``grid`` (K,),
-    constant beyond them."""
-    out = np.empty((len(x), table.shape[1]))
-    for n in range(len(x)):
-        i, t = _segment(grid, x[n])
-        for c in range(table.shape[1]):
-            out[n, c] = _lerp(table, i, t, c)
-    return out
-
-
-@njit(**_JIT)
-def scale_by_two_factors(f, x, y, grid, table):
-    """``f`` (N, C) times the piecewise-linear factors (:func:`piecewise_linear`) at ``x`` and at ``y``,
-    in place."""
+def scale_by_table(f, x, y, grid, table):
+    """``f`` (N, C) times ``table`` (K, K, C) at (``x``, ``y``) (N,) each, bilinear between the
+    increasing abscissae ``grid`` (K,) on both axes, constant beyond them; in place."""
     for n in range(len(f)):
         i, s = _segment(grid, x[n])
         j, t = _segment(grid, y[n])
         for c in range(f.shape[1]):
-            f[n, c] *= _lerp(table, i, s, c) * _lerp(table, j, t, c)
+            low = table[i, j, c] * (1.0 - s) + table[i + 1, j, c] * s
+            high = table[i, j + 1, c] * (1.0 - s) + table[i + 1, j + 1, c] * s
+            f[n, c] *= low * (1.0 - t) + high * t
 
 
 # --- the camera ----------------------------------------------------------------------------------

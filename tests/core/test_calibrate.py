@@ -31,13 +31,45 @@ def test_factors_solve_the_symmetric_scaling_and_leave_a_matching_albedo_alone()
 def test_hat_weights_interpolate_like_the_factor():
     grid = np.asarray(cal.COSINES)
     x = np.concatenate([np.linspace(0.0, 1.0, 101), grid])
-    hats = cal._hats(x, grid)
-    np.testing.assert_allclose(hats.sum(axis=1), 1.0)
-    scale = np.random.default_rng(0).uniform(0.5, 2.0, size=(len(grid), 3))
-    c = cal.AlbedoCalibration(grid, scale, scale, scale, scale, scale)
-    np.testing.assert_allclose(c.factor(x), hats @ scale, rtol=1e-12)
+    y = np.random.default_rng(1).permutation(x)
+    hats_x, hats_y = cal._hats(x, grid), cal._hats(y, grid)
+    np.testing.assert_allclose(hats_x.sum(axis=1), 1.0)
+    rng = np.random.default_rng(0)
+    scale = rng.uniform(0.5, 2.0, size=(len(grid), 3))
+    separable = scale[:, None, :] * scale[None, :, :]
+
+    def calibration(table):
+        return cal.AlbedoCalibration(grid, scale, table, scale, scale, scale, scale)
+
+    # a separable table is the product of the two piecewise-linear factors
+    c = calibration(separable)
+    np.testing.assert_allclose(c.factor(x, y), (hats_x @ scale) * (hats_y @ scale), rtol=1e-12)
+    # any table: bilinear in the hats, and symmetric when the table is
+    d = rng.uniform(0.5, 1.5, size=separable.shape)
+    table = separable * (d + d.transpose(1, 0, 2)) / 2
+    c = calibration(table)
+    np.testing.assert_allclose(c.factor(x, y), np.einsum("nk,nl,klc->nc", hats_x, hats_y, table), rtol=1e-12)
+    np.testing.assert_allclose(c.factor(x, y), c.factor(y, x), rtol=1e-12)
     # constant beyond the grid's ends (grazing beyond 88.6 degrees keeps the last factor)
-    np.testing.assert_allclose(c.factor(np.array([0.0, 0.01])), scale[[-1, -1]])
+    np.testing.assert_allclose(c.factor(np.array([0.0, 0.01]), np.array([1.0, 1.0])), table[[-1, -1], 0])
+
+
+def test_the_table_follows_the_binned_reference_where_it_is_clear_of_the_noise_and_nowhere_else():
+    rng = np.random.default_rng(4)
+    k = len(cal.COSINES)
+    pairs = rng.uniform(0.001, 0.02, size=(k, k, k, 3))
+    moments = cal.DecodedMoments(pairs, np.zeros((k, k, 3)))
+    scale = rng.uniform(0.8, 1.2, size=(k, 3))
+    d = rng.uniform(-0.3, 0.3, size=(k, k, 3))
+    truth = scale[:, None, :] * scale[None, :, :] * (1.0 + (d + d.transpose(1, 0, 2)) / 2)
+    target = cal.table_energy(pairs, truth)
+    # a precise reference: the table is found (the small pull of the regulariser aside)
+    table = cal.solve_table(moments, scale, target, 1e-5 * target)
+    np.testing.assert_allclose(table, truth, rtol=0.02)
+    np.testing.assert_array_equal(table, table.transpose(1, 0, 2))
+    # a reference whose every bin is within its noise: the separable factors stand
+    loose = cal.solve_table(moments, scale, target, 10.0 * target)
+    np.testing.assert_allclose(loose, scale[:, None, :] * scale[None, :, :], rtol=1e-9)
 
 
 @pytest.fixture(scope="module")
@@ -84,19 +116,22 @@ def test_shrunk_targets_keep_the_decoded_albedo_within_the_noise_and_the_referen
 def test_remainder_calibration_targets_the_light_below_the_top_interface():
     """A remainder decoder's target comes from the walks without the top interface's first reflections:
     those walks carry the exact top lobe's albedo, and what is left is far less noisy than the difference
-    of the full albedo and the top lobe's."""
+    of the full albedo and the top lobe's. The parts by exit direction add up to the whole."""
     from addon.core.neural.top_lobe import top_albedo
 
     stack = preset("lacquered_plastic")
-    ref, se, below, below_se = cal.reference_albedo(stack, seed=3, below_top=True)
+    ref = cal.reference_parts(stack, seed=3)
     top = top_albedo(top_coat(stack), cal.COSINES, 65536, 0)[:, None]
-    np.testing.assert_array_less(np.abs(ref - below - top), 4 * se + 0.002)
-    assert (below_se < se).all()
+    np.testing.assert_array_less(np.abs(ref.albedo - ref.below_top - top), 4 * ref.albedo_stderr + 0.002)
+    assert (ref.below_top_stderr < ref.albedo_stderr).all()
+    np.testing.assert_allclose(ref.by_exit.sum(axis=1), ref.albedo, rtol=1e-9)
+    np.testing.assert_allclose(ref.below_top_by_exit.sum(axis=1), ref.below_top, rtol=1e-9)
     # a coating-free stack has no top lobe: the light below the top is all of it
     single = preset("frosted_copper")
     single = type(single)(base=single.base, coatings=())
-    a, a_se, b, b_se = cal.reference_albedo(single, walks=[64] * len(cal.COSINES), seed=1, below_top=True)
-    np.testing.assert_array_equal(a, b)
+    one = cal.reference_parts(single, walks=[64] * len(cal.COSINES), seed=1)
+    np.testing.assert_array_equal(one.albedo, one.below_top)
+    np.testing.assert_array_equal(one.by_exit, one.below_top_by_exit)
 
 
 def test_the_renderer_evaluates_the_calibrated_lobe(plastic):
@@ -108,7 +143,7 @@ def test_the_renderer_evaluates_the_calibrated_lobe(plastic):
     wo = wi[::-1].copy()
     top = top_coat(stack)
     f = neural_material.NeuralMaterial(models, z, proxy, calibration=c, top=top).bind(None).eval(wi, wo)
-    expected = models.eval_brdf(z, wi, wo) * c.factor(wi[:, 2]) * c.factor(wo[:, 2])
+    expected = models.eval_brdf(z, wi, wo) * c.factor(wi[:, 2], wo[:, 2])
     if models.top_transmission:  # the structural prior of the decoded remainder
         expected = expected * remainder_scale(top, wi, wo)[:, None]
     if models.remainder:  # the factors scale the decoded remainder; the exact top lobe is added as it is

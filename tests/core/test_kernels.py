@@ -44,7 +44,7 @@ def test_the_warm_up_compiles_every_loop_a_render_of_the_demo_scene_runs():
     )
     got = json.loads(run.stdout.strip().splitlines()[-1])
     before, after = got["before"], got["after"]
-    for name in ("surface_hits", "sample_lights", "trilinear", "proxy_pdf", "proxy_directions", "scale_by_two_factors"):
+    for name in ("surface_hits", "sample_lights", "trilinear", "proxy_pdf", "proxy_directions", "scale_by_table"):
         assert before[name] >= 1, f"the warm-up did not compile {name}"
     assert after == before
 

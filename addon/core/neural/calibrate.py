@@ -68,35 +68,42 @@ NOISE_THRESHOLD = 2.0
 
 @dataclass(frozen=True)
 class AlbedoCalibration:
-    """Per-channel factors ``scale`` (K, 3) at incident cosines ``cosines`` (K,), decreasing, and the
-    albedos that set them: ``reference`` (K, 3) with its standard error ``reference_stderr``, and the
-    decoded albedo before (``decoded``) and after (``calibrated``) the factors."""
+    """The factor ``table`` (K, K, 3) on incident x outgoing cosines ``cosines`` (K,), decreasing, symmetric
+    in its first two axes; ``scale`` (K, 3), the separable factors it starts from (``table`` is their
+    outer product where the reference says nothing more); and the albedos that set them: ``reference``
+    (K, 3) with its standard error ``reference_stderr``, and the decoded albedo before (``decoded``) and
+    after (``calibrated``) the factors."""
 
     cosines: np.ndarray
     scale: np.ndarray
+    table: np.ndarray
     reference: np.ndarray
     reference_stderr: np.ndarray
     decoded: np.ndarray
     calibrated: np.ndarray
     top: np.ndarray | None = None  # (K, 3) albedo of the exact top lobe (remainder decoders), in both of the above
 
-    def factor(self, cos: np.ndarray) -> np.ndarray:
-        """c(cos theta) (N, 3): linear between the grid's cosines, constant beyond them."""
-        x = np.clip(np.asarray(cos, dtype=np.float64).reshape(-1), 0.0, 1.0)
-        return kernels.piecewise_linear(x, *self._increasing())
+    def factor(self, cos_i: np.ndarray, cos_o: np.ndarray) -> np.ndarray:
+        """The factor (N, 3) at pairs of cosines (N,): bilinear between the grid's, constant beyond them."""
+        x = np.clip(np.asarray(cos_i, dtype=np.float64).reshape(-1), 0.0, 1.0)
+        y = np.clip(np.asarray(cos_o, dtype=np.float64).reshape(-1), 0.0, 1.0)
+        out = np.ones((len(x), 3))
+        kernels.scale_by_table(out, x, y, *self._increasing())
+        return out
 
     def apply(self, f: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
-        """f (N, 3) at local unit directions wi, wo (N, 3) times c(cos theta_i) c(cos theta_o) (f: the decoded part)."""
+        """f (N, 3) at local unit directions wi, wo (N, 3) times the factor at (cos theta_i, cos theta_o)
+        (f: the decoded part)."""
         out = np.array(f, dtype=np.float64)
         cos_i = np.clip(np.ascontiguousarray(wi[:, 2], dtype=np.float64), 0.0, 1.0)
         cos_o = np.clip(np.ascontiguousarray(wo[:, 2], dtype=np.float64), 0.0, 1.0)
-        kernels.scale_by_two_factors(out, cos_i, cos_o, *self._increasing())
+        kernels.scale_by_table(out, cos_i, cos_o, *self._increasing())
         return out.astype(np.asarray(f).dtype, copy=False)
 
     def _increasing(self) -> tuple[np.ndarray, np.ndarray]:
-        """The grid's cosines increasing (the kernels' order) and the factors in the same order."""
+        """The grid's cosines increasing (the kernels' order) and the table in the same order."""
         grid = np.ascontiguousarray(self.cosines[::-1], dtype=np.float64)
-        return grid, np.ascontiguousarray(self.scale[::-1], dtype=np.float64)
+        return grid, np.ascontiguousarray(self.table[::-1, ::-1], dtype=np.float64)
 
 
 def grid_directions(cosines=COSINES) -> np.ndarray:
@@ -105,29 +112,43 @@ def grid_directions(cosines=COSINES) -> np.ndarray:
     return np.stack([np.sqrt(np.maximum(1.0 - c * c, 0.0)), np.zeros_like(c), c], axis=1)
 
 
-def reference_albedo(stack: Stack, walks=WALKS, seed: int = 0, below_top: bool = False) -> tuple[np.ndarray, ...]:
-    """Directional albedo (K, 3) of ``stack`` at the grid's angles from analog walks, and its standard
-    error; ``below_top``: also the albedo of the light that entered the top interface and its standard
-    error (``reference.albedo``'s ``below_top``), four arrays. One estimator call for all angles (each
-    angle's direction repeated ``walks[k] / q`` times with q walks each, q the counts' greatest common
-    divisor): the walks of every angle advance in the same vectorised loop, about twice as fast as one
-    call per angle, and faster than threads (the walks' many small numpy steps hold the GIL)."""
+def reference_parts(stack: Stack, walks=WALKS, seed: int = 0):
+    """``reference.AlbedoParts`` of ``stack`` at the grid's angles (K rows), the parts by exit direction
+    split over the grid's hat functions of the exit cosine ((K, K, 3): outgoing angle, exit cosine),
+    from analog walks. One estimator call for all angles (each angle's direction repeated
+    ``walks[k] / q`` times with q walks each, q the counts' greatest common divisor): the walks of every
+    angle advance in the same vectorised loop, about twice as fast as one call per angle, and faster
+    than threads (the walks' many small numpy steps hold the GIL)."""
     from .. import reference
 
     dirs = grid_directions()
+    grid = np.asarray(COSINES)
     walks = np.asarray(walks, dtype=np.int64)
     if walks.shape != (len(dirs),) or (walks < 1).any():
         raise ValueError(f"walks must give one positive count per grid angle ({len(dirs)}), got {walks.tolist()}")
     q = int(np.gcd.reduce(walks))
     reps = walks // q
-    parts = reference.albedo(stack, np.repeat(dirs, reps, axis=0), samples=q, seed=seed, below_top=below_top)
+    parts = reference.albedo_parts(
+        stack,
+        np.repeat(dirs, reps, axis=0),
+        samples=q,
+        seed=seed,
+        exit_bins=lambda wi: _hats(np.clip(wi[:, 2], 0.0, 1.0), grid),
+    )
     angle = np.repeat(np.arange(len(dirs)), reps)
-    out = []
-    for albedo, stderr in zip(parts[::2], parts[1::2], strict=True):
-        mean = np.stack([np.bincount(angle, albedo[:, c]) for c in range(3)], axis=1) / reps[:, None]
-        var = np.stack([np.bincount(angle, stderr[:, c] ** 2) for c in range(3)], axis=1) / (reps * reps)[:, None]
-        out += [mean, np.sqrt(var)]
-    return tuple(out)
+
+    def per_angle(mean, stderr):
+        m, v = np.zeros((len(dirs),) + mean.shape[1:]), np.zeros((len(dirs),) + mean.shape[1:])
+        np.add.at(m, angle, mean)
+        np.add.at(v, angle, stderr**2)
+        r = reps.reshape((-1,) + (1,) * (mean.ndim - 1))
+        return m / r, np.sqrt(v) / r
+
+    fields = ("albedo", "below_top", "by_exit", "below_top_by_exit")
+    out = {}
+    for name in fields:
+        out[name], out[f"{name}_stderr"] = per_angle(getattr(parts, name), getattr(parts, f"{name}_stderr"))
+    return type(parts)(**out)
 
 
 def _hats(cos: np.ndarray, grid: np.ndarray) -> np.ndarray:
@@ -173,22 +194,53 @@ def decoded_albedo(
     cos_i, v = _lobe_samples(models, z, sigma, w, cosines, samples, seed, top)
     if calibration is not None:
         a = len(cos_i)
-        v = v * calibration.factor(cos_i.reshape(-1)).reshape(a, samples, 3)
-        v = v * calibration.factor(np.asarray(cosines, dtype=np.float64))[:, None, :]
+        cos_o = np.repeat(np.asarray(cosines, dtype=np.float64), samples)
+        v = v * calibration.factor(cos_i.reshape(-1), cos_o).reshape(a, samples, 3)
     out = v.mean(axis=1)
     if top is not None and models.remainder:
         out = out + top_lobe.top_albedo(top, cosines, samples, seed)[:, None]
     return out
 
 
+@dataclass(frozen=True)
+class DecodedMoments:
+    """The decoded lobe at each grid angle k (outgoing) integrated over incident directions against the
+    grid's hat functions of cos(theta_i): ``pairs`` (K, K, K, 3), [k, l, m] against hat l times hat m,
+    so that with a factor table S the decoded energy in bin l is ``sum_m S[m, k] pairs[k, l, m]``;
+    ``m`` (K, K, 3), its sum over l (the separable form: albedo ``c_k (m c)_k``); ``bins`` (K, K, 3),
+    its sum over m (the energy in each bin of cos theta_i) and their standard error ``bins_stderr``."""
+
+    pairs: np.ndarray
+    bins_stderr: np.ndarray
+
+    @property
+    def m(self) -> np.ndarray:
+        return self.pairs.sum(axis=1)
+
+    @property
+    def bins(self) -> np.ndarray:
+        return self.pairs.sum(axis=2)
+
+
+def decoded_moments(
+    models, z, sigma: float, w: float, samples: int = DECODED_SAMPLES, seed: int = 0, top=None
+) -> DecodedMoments:
+    """:class:`DecodedMoments` from ``samples`` importance samples per grid angle."""
+    grid = np.asarray(COSINES)
+    k = len(grid)
+    cos_i, v = _lobe_samples(models, z, sigma, w, grid, samples, seed, top)
+    hats = _hats(cos_i.reshape(-1), grid).reshape(k, samples, k)
+    pairs = np.einsum("ksl,ksm,ksc->klmc", hats, hats, v) / samples
+    second = np.einsum("ksl,ksc->klc", hats * hats, v * v) / samples
+    var = np.maximum(second - pairs.sum(axis=2) ** 2, 0.0) / samples
+    return DecodedMoments(pairs, np.sqrt(var))
+
+
 def decoded_albedo_matrix(models, z, sigma: float, w: float, samples: int = DECODED_SAMPLES, seed: int = 0, top=None):
     """``M`` (K, K, 3): the decoded lobe at each grid angle (outgoing) integrated over incident
     directions against the grid's hat functions of cos(theta_i), so that the decoded albedo with
     factors c is ``c_k * (M c)_k``; ``M.sum(axis=1)`` is the plain decoded albedo."""
-    grid = np.asarray(COSINES)
-    cos_i, v = _lobe_samples(models, z, sigma, w, grid, samples, seed, top)
-    hats = _hats(cos_i.reshape(-1), grid).reshape(len(grid), samples, len(grid))
-    return np.einsum("ksl,ksc->klc", hats, v) / samples
+    return decoded_moments(models, z, sigma, w, samples, seed, top).m
 
 
 def solve_factors(m: np.ndarray, target: np.ndarray, iterations: int = ITERATIONS) -> np.ndarray:
@@ -218,6 +270,53 @@ def shrink_target(target: np.ndarray, decoded: np.ndarray, stderr: np.ndarray, k
     return decoded + gap * keep
 
 
+def table_energy(pairs: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """(K, K, 3): the decoded energy at each grid angle k in each bin l of cos theta_i with the factor
+    ``table`` (K, K, 3): ``sum_m table[m, k] pairs[k, l, m]``."""
+    return np.einsum("mkc,klmc->klc", table, pairs)
+
+
+def solve_table(
+    moments: DecodedMoments,
+    scale: np.ndarray,
+    target: np.ndarray,
+    target_stderr: np.ndarray,
+    stderr_floor=0.0,
+    k: float = NOISE_THRESHOLD,
+) -> np.ndarray:
+    """The symmetric factor table (K, K, 3) that brings the decoded energy of each (outgoing angle, bin of
+    cos theta_i) to ``target`` (K, K, 3), the reference's, where the reference says so: each target is
+    first shrunk (:func:`shrink_target`) towards the separable factors' energy by ``k`` standard errors
+    (the walks' and the decoded samples', at least ``stderr_floor``: a bin no walk left through has a
+    standard error of 0 but is known only to about one walk's weight), then the table is
+    S = outer(scale, scale) (1 + D) with D the
+    least-squares solution of the noise-weighted misfit plus ``sum D^2`` (a bin the reference does not
+    pin keeps the separable factor). The energy is linear in S, so one solve per channel is exact."""
+    kk = len(scale)
+    base = scale[:, None, :] * scale[None, :, :]
+    e0 = table_energy(moments.pairs, base)
+    sigma2 = np.maximum(target_stderr**2 + moments.bins_stderr**2, np.square(stderr_floor) + 1e-30)
+    goal = shrink_target(target, e0, np.sqrt(sigma2), k)
+    iu, ju = np.triu_indices(kk)
+    index = np.zeros((kk, kk), dtype=np.int64)
+    index[iu, ju] = np.arange(len(iu))
+    index[ju, iu] = index[iu, ju]
+    table = np.empty_like(base)
+    for c in range(3):
+        # row (k, l), column D[m, k] (= D[k, m]): d energy[k, l] / d D[m, k] = base[m, k] pairs[k, l, m]
+        grad = base[:, :, c].T[:, None, :] * moments.pairs[:, :, :, c]  # [k, l, m]
+        a = np.zeros((kk * kk, len(iu)))
+        rows = np.arange(kk * kk)
+        for m in range(kk):
+            np.add.at(a, (rows, np.repeat(index[:, m], kk)), grad[:, :, m].reshape(-1))
+        wsqrt = 1.0 / np.sqrt(sigma2[:, :, c]).reshape(-1)
+        r = (goal[:, :, c] - e0[:, :, c]).reshape(-1)
+        aw = a * wsqrt[:, None]
+        d = np.linalg.solve(aw.T @ aw + np.eye(len(iu)), aw.T @ (r * wsqrt))
+        table[:, :, c] = base[:, :, c] * (1.0 + d[index])
+    return np.clip(table, *FACTOR_RANGE)
+
+
 MODES = (True, False, "cached")
 
 
@@ -235,7 +334,7 @@ _CACHE: dict[str, AlbedoCalibration] = {}
 def settings_key() -> str:
     """What a calibration depends on besides the stack, the model files and the latent: part of every key
     under which calibrated figures are kept (here, and ``quality``'s measured errors on disk)."""
-    return f"walks{list(WALKS)}-cosines{list(COSINES)}-target-below-top-shrink{NOISE_THRESHOLD:g}"
+    return f"walks{list(WALKS)}-cosines{list(COSINES)}-target-below-top-shrink{NOISE_THRESHOLD:g}-table"
 
 
 def cache_key(stack: Stack, models, z) -> str:
@@ -261,22 +360,29 @@ def calibrate(stack: Stack, models, z, proxy_params, seed: int = 0) -> AlbedoCal
         return _CACHE[key]
     sigma, w = (float(v) for v in proxy_params)
     remainder = bool(getattr(models, "remainder", False))
-    ref, ref_se, *below = reference_albedo(stack, seed=seed, below_top=remainder)
+    ref = reference_parts(stack, seed=seed)
     coat = top_lobe.top_coat(stack)
-    m = decoded_albedo_matrix(models, z, sigma, w, seed=seed, top=coat)
-    top = np.zeros_like(ref)
-    target, target_se = ref, ref_se
-    if remainder:
+    moments = decoded_moments(models, z, sigma, w, seed=seed, top=coat)
+    top = np.zeros_like(ref.albedo)
+    if remainder:  # the decoded part's target: the light that entered the top interface
         top[:] = top_lobe.top_albedo(coat, COSINES, DECODED_SAMPLES, seed)[:, None]
-        target, target_se = below
+        target, target_se = ref.below_top, ref.below_top_stderr
+        bins, bins_se = ref.below_top_by_exit, ref.below_top_by_exit_stderr
+    else:
+        target, target_se = ref.albedo, ref.albedo_stderr
+        bins, bins_se = ref.by_exit, ref.by_exit_stderr
+    m = moments.m
     scale = solve_factors(m, np.maximum(shrink_target(target, m.sum(axis=1), target_se), 0.0))
+    one_walk = target / np.asarray(WALKS, dtype=np.float64)[:, None]  # (K, 3): one walk's share of the albedo
+    table = solve_table(moments, scale, bins, bins_se, stderr_floor=one_walk[:, None, :])
     out = AlbedoCalibration(
         cosines=np.asarray(COSINES, dtype=np.float64),
         scale=scale,
-        reference=ref,
-        reference_stderr=ref_se,
+        table=table,
+        reference=ref.albedo,
+        reference_stderr=ref.albedo_stderr,
         decoded=top + m.sum(axis=1),
-        calibrated=top + scale * np.einsum("klc,lc->kc", m, scale),
+        calibrated=top + table_energy(moments.pairs, table).sum(axis=1),
         top=top,
     )
     _CACHE[key] = out

@@ -38,6 +38,8 @@ white base under an alpha = 0.3 coat has an albedo well below 1. That is the mod
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .. import xp as xpmod
@@ -204,13 +206,8 @@ def sample(stack, wo, rng, with_flags: bool = False, backend=None, device=None):
     return (out(out_wi), out(out_w), out(out_s)) if with_flags else (out(out_wi), out(out_w))
 
 
-def albedo(stack, wo, samples: int = 4096, seed: int = 0, backend=None, device=None, below_top: bool = False):
-    """Directional albedo (N, 3) seen from ``wo`` (all paths) and its standard error (N, 3).
-
-    ``below_top``: also the albedo of the light that entered the stack, every path but a first reflection
-    at the top interface (the exact top lobe of a remainder decoder), and its standard error, from the
-    same walks: four arrays. It is what a remainder decoder holds, estimated without the noise of the top
-    reflection's walks (for a coating-free stack, the whole albedo)."""
+def albedo(stack, wo, samples: int = 4096, seed: int = 0, backend=None, device=None):
+    """Directional albedo (N, 3) seen from ``wo`` (all paths) and its standard error (N, 3)."""
     wo = as_directions(wo, "wo")
     k = _count(samples, "samples")
     n = wo.shape[0]
@@ -218,19 +215,67 @@ def albedo(stack, wo, samples: int = 4096, seed: int = 0, backend=None, device=N
     wo = xp.asarray(wo)
     lay, prow = _layers_and_rows(stack, n, xp)
     rng = _rng(seed, xp)
-    sums, sq = xp.zeros((n, 3)), xp.zeros((n, 3))
-    sums_below, sq_below = xp.zeros((n, 3)), xp.zeros((n, 3))
+    sums = xp.zeros((n, 3))
+    sq = xp.zeros((n, 3))
     total = n * k
     for r0 in range(0, total, CHUNK_WALKS):
         r = xp.arange(r0, min(total, r0 + CHUNK_WALKS))
         pair = r // k
-        first = []
-        _, w, _ = run_walks(lay, prow[pair], wo[pair], None, rng, nee=False, first_exits=first)
+        _, w, _ = run_walks(lay, prow[pair], wo[pair], None, rng, nee=False)
         _accumulate(sums, sq, pair, w)
-        if below_top:
-            _accumulate(sums_below, sq_below, pair, xp.where(first[0][:, None], 0.0, w))
     f, se = _finish(sums, sq, k)
-    if not below_top:
-        return out(f), out(se)
-    f_below, se_below = _finish(sums_below, sq_below, k)
-    return out(f), out(se), out(f_below), out(se_below)
+    return out(f), out(se)
+
+
+@dataclass(frozen=True)
+class AlbedoParts:
+    """The directional albedo seen from N directions, whole and in parts, each with its standard error:
+    ``albedo`` (N, 3), all paths; ``below_top`` (N, 3), every path but a first reflection at the top
+    interface (the light that entered the stack: what a remainder decoder holds; for a coating-free
+    stack, all of it); ``by_exit`` and ``below_top_by_exit`` (N, B, 3), the two split over the B weights
+    ``exit_bins`` gives each exit direction (weights summing to 1 split them whole)."""
+
+    albedo: np.ndarray
+    albedo_stderr: np.ndarray
+    below_top: np.ndarray
+    below_top_stderr: np.ndarray
+    by_exit: np.ndarray | None = None
+    by_exit_stderr: np.ndarray | None = None
+    below_top_by_exit: np.ndarray | None = None
+    below_top_by_exit_stderr: np.ndarray | None = None
+
+
+def albedo_parts(stack, wo, samples: int = 4096, seed: int = 0, exit_bins=None) -> AlbedoParts:
+    """:class:`AlbedoParts` of ``stack`` seen from ``wo`` (N, 3), from ``samples`` analog walks each (the
+    same walks for every part). ``exit_bins``: a function of the walks' exit directions (m, 3) giving
+    their (m, B) bin weights, for ``by_exit``. The first reflections at the top interface carry the
+    walks' largest noise under a bright coat; ``below_top`` is free of it."""
+    wo = as_directions(wo, "wo")
+    k = _count(samples, "samples")
+    n = wo.shape[0]
+    lay, prow = _layers_and_rows(stack, n)
+    rng = _rng(seed)
+    sums, sq = np.zeros((n, 3)), np.zeros((n, 3))
+    below, below_sq = np.zeros((n, 3)), np.zeros((n, 3))
+    binned = binned_sq = None
+    total = n * k
+    for r0 in range(0, total, CHUNK_WALKS):
+        pair = np.arange(r0, min(total, r0 + CHUNK_WALKS)) // k
+        first = []
+        wi, w, _ = run_walks(lay, prow[pair], wo[pair], None, rng, nee=False, first_exits=first)
+        _accumulate(sums, sq, pair, w)
+        w_below = np.where(first[0][:, None], 0.0, w)
+        _accumulate(below, below_sq, pair, w_below)
+        if exit_bins is not None:
+            b = np.asarray(exit_bins(wi), dtype=np.float64)
+            est = np.concatenate([b[:, :, None] * w[:, None, :], b[:, :, None] * w_below[:, None, :]], axis=1)
+            est = est.reshape(len(pair), -1)
+            if binned is None:
+                binned, binned_sq = np.zeros((n, est.shape[1])), np.zeros((n, est.shape[1]))
+            _accumulate(binned, binned_sq, pair, est)
+    f, se = _finish(sums, sq, k)
+    f_below, se_below = _finish(below, below_sq, k)
+    if binned is None:
+        return AlbedoParts(f, se, f_below, se_below)
+    f_bins, se_bins = (np.split(a.reshape(n, -1, 3), 2, axis=1) for a in _finish(binned, binned_sq, k))
+    return AlbedoParts(f, se, f_below, se_below, f_bins[0], se_bins[0], f_bins[1], se_bins[1])
