@@ -9,7 +9,8 @@ is better), each scored as ``benchmarks/bench_layering.py`` scores the runtime p
 lobe images at 0/30/60/75 degrees against the stored reference lobes (``addon.core.lobe``), which the
 refinement never sees. Per number of coatings: median and p90 over stacks and elevations, how many
 refined latents were kept, and the wall time per material (reference walks + optimisation). Writes
-the section "Refinement" of ``docs/layering.md`` (the rest of the file is left as it is) and, with
+the section "Refinement" of ``docs/refine.md`` (the rest of the file is left as it is; a page of its own,
+since ``bench_layering.py`` rewrites docs/layering.md whole) and, with
 ``--json``, the per-stack figures (``--from-json`` writes the section from such a file).
 """
 
@@ -36,7 +37,7 @@ from addon.core.neural.refine import RefineSettings, refine_latent  # noqa: E402
 from addon.core.stack import ClampWarning, Stack  # noqa: E402
 
 HELDOUT = ROOT / "tests" / "data" / "heldout_layered.npz"
-DOC = ROOT / "docs" / "layering.md"
+DOC = ROOT / "docs" / "refine.md"
 SECTION = "## Refinement"
 
 
@@ -173,7 +174,7 @@ def section(results: dict, command: str, settings: RefineSettings, budget: float
 
 
 def write_section(text: str, path: Path = DOC) -> None:
-    doc = path.read_text() if path.exists() else ""
+    doc = path.read_text() if path.exists() else "# Refining a material's latent on demand: measurements\n"
     pattern = re.compile(rf"^{re.escape(SECTION)}\n.*?(?=^## |\Z)", re.S | re.M)
     if pattern.search(doc):
         doc = pattern.sub(lambda _: text, doc, count=1)
@@ -190,7 +191,7 @@ def main(argv=None) -> None:
     ap.add_argument("--stacks", type=int, default=0, help="only the first N held-out stacks (0: all)")
     ap.add_argument("--heldout", type=Path, default=HELDOUT)
     ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--no-doc", action="store_true", help="do not write docs/layering.md")
+    ap.add_argument("--no-doc", action="store_true", help="do not write docs/refine.md")
     ap.add_argument(
         "--from-json",
         type=Path,

@@ -47,6 +47,7 @@ from addon.core.render.demo_scene import (  # noqa: E402
     terminator_scene,
 )
 from addon.core.render.integrator import RenderSettings, camera_hits  # noqa: E402
+from addon.core.stack import PRESETS  # noqa: E402
 
 # Bands of the angle between the normal and the light (degrees).
 BAND_EDGES = (0.0, 60.0, 75.0, 80.0, 84.0, 87.0, 90.0)
@@ -155,6 +156,39 @@ def summary(cmp: dict, lows: dict[str, float]) -> dict:
     }
 
 
+# The lobe at the terminator: coated gold lit at LOBE_THETA_I degrees, seen from these (elevation, azimuth)
+# pairs in degrees (azimuth 0: on the light's side, 180: towards the mirror direction).
+LOBE_THETA_I = 83.0
+LOBE_VIEWS = ((0, 0), (25, 0), (25, 90), (25, 180), (45, 0), (45, 90), (45, 180))
+LOBE_WALKS = 65536
+
+
+def lobe_directions():
+    """(wi, wo) (P, 3) each, local frame: the light at :data:`LOBE_THETA_I`, the views of :data:`LOBE_VIEWS`."""
+    ti = np.radians(LOBE_THETA_I)
+    wi = np.tile([np.sin(ti), 0.0, np.cos(ti)], (len(LOBE_VIEWS), 1))
+    t, p = (np.radians([v[k] for v in LOBE_VIEWS]) for k in (0, 1))
+    wo = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], axis=1)
+    return wi, wo
+
+
+def lobe_reference(stack, walks: int = LOBE_WALKS) -> tuple[np.ndarray, np.ndarray]:
+    """The reference's f (P,) (RGB mean) at :func:`lobe_directions` and its standard error."""
+    from addon.core import reference
+
+    f, se = reference.eval_brdf(stack, *lobe_directions(), walks=walks, seed=11)
+    return f.mean(axis=1), np.sqrt((se**2).mean(axis=1) / 3)
+
+
+def lobe_ratios(stack, size, calibrate: bool, ref: np.ndarray) -> list[float]:
+    """The rendered material's f over the reference's at :func:`lobe_directions` (RGB means)."""
+    from addon.core.render import neural_material
+
+    material = neural_material.make(stack, size=size, calibrate=calibrate)
+    f = material.bind(None).eval(*lobe_directions())
+    return (f.mean(axis=1) / np.maximum(ref, 1e-12)).tolist()
+
+
 def band_table(results: list[dict], bands: list[str]) -> list[str]:
     """One row per configuration and sphere: the ratio in each band."""
     spheres = list(dict.fromkeys(b.split(", ")[0] for b in bands))
@@ -165,6 +199,30 @@ def band_table(results: list[dict], bands: list[str]) -> list[str]:
             cells = [f"{r['bands'][f'{sph}, {n}']['ratio']:.2f}" if f"{sph}, {n}" in r["bands"] else "" for n in names]
             lines.append(f"| {r['label']} | {sph} | " + " | ".join(cells) + " |")
     return lines
+
+
+def lobe_table(results: list[dict], ref, se, walks: int) -> list[str]:
+    """The section of coated gold's lobe at the terminator (none with ``--no-lobe``)."""
+    if ref is None:
+        return []
+    views = [f"{t} / {p}" for t, p in LOBE_VIEWS]
+    rel = [e / max(x, 1e-12) for x, e in zip(ref, se, strict=True)]
+    return [
+        f"## Coated gold's lobe at {LOBE_THETA_I:g} degrees",
+        "",
+        f"f(wi, wo) of the rendered material over the reference's (RGB means), the light at {LOBE_THETA_I:g} "
+        "degrees from the normal, the viewer at the elevation / azimuth of each column in degrees (azimuth 0: "
+        f"on the light's side, 180: towards its mirror direction). Reference: {walks:,} walks per pair; "
+        "its value and relative standard error in the last rows. The band ratios above average these over "
+        "the pixels' view directions.",
+        "",
+        "| neural mode | " + " | ".join(views) + " |",
+        "|---|" + "---|" * len(views),
+        *(f"| {r['label']} | " + " | ".join(f"{x:.2f}" for x in r["lobe"]) + " |" for r in results),
+        "| reference f | " + " | ".join(f"{x:.4f}" for x in ref) + " |",
+        "| reference rel. std. error | " + " | ".join(f"{x:.3f}" for x in rel) + " |",
+        "",
+    ]
 
 
 def main(argv=None):
@@ -178,11 +236,21 @@ def main(argv=None):
     )
     ap.add_argument("--no-calibrate", action="store_true", help="neural mode without the albedo calibration only")
     ap.add_argument("--uncalibrated-too", action="store_true", help="each size calibrated and without calibration")
+    ap.add_argument(
+        "--no-lobe",
+        dest="lobe",
+        action="store_false",
+        help="skip the table of coated gold's lobe at the terminator (its reference walks take a minute)",
+    )
+    ap.add_argument("--lobe-walks", type=int, default=LOBE_WALKS, help="reference walks per pair of that table")
     ap.add_argument("--reference-cache", type=Path, default=None, help="NPZ of the reference render (read or written)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "terminator.md")
     a = ap.parse_args(argv)
-    if a.samples < 2 or a.width < 8 or a.height < 8:
-        ap.error(f"--samples must be >= 2 and --width, --height >= 8; got {a.samples}, {a.width}, {a.height}")
+    if a.samples < 2 or a.width < 8 or a.height < 8 or a.lobe_walks < 2:
+        ap.error(
+            f"--samples and --lobe-walks must be >= 2 and --width, --height >= 8; got {a.samples}, {a.lobe_walks}, "
+            f"{a.width}, {a.height}"
+        )
     cmd = "python benchmarks/bench_terminator.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
     scene = terminator_scene(a.width, a.height)
     angles = light_angles(scene, TERMINATOR_PRESETS)
@@ -202,6 +270,8 @@ def main(argv=None):
     ref_mean, ref_se, secs_ref = reference_film(scene, pixels, a, key)
     ref = object_means(_Film(ref_mean, ref_se), masks)
     calibrations = [False] if a.no_calibrate else ([True, False] if a.uncalibrated_too else [True])
+    gold = PRESETS[TERMINATOR_PRESETS[0]]
+    lobe_ref, lobe_se = lobe_reference(gold, a.lobe_walks) if a.lobe else (None, None)
     results, first_image = [], None
     for size in a.sizes:
         for calibrate in calibrations:
@@ -210,7 +280,14 @@ def main(argv=None):
             cmp = compare(neural, ref)
             label = (size or "default size") + (", calibrated" if calibrate else ", decoder alone")
             results.append(
-                {"label": label, "bands": cmp, "neural": neural, "summary": summary(cmp, lows), "seconds": secs}
+                {
+                    "label": label,
+                    "bands": cmp,
+                    "neural": neural,
+                    "summary": summary(cmp, lows),
+                    "seconds": secs,
+                    "lobe": lobe_ratios(gold, size, calibrate, lobe_ref) if a.lobe else None,
+                }
             )
             first_image = film.mean() if first_image is None else first_image
             print(f"{label}: done", file=sys.stderr, flush=True)
@@ -245,6 +322,7 @@ def main(argv=None):
         "",
         *band_table(results, list(masks)),
         "",
+        *lobe_table(results, lobe_ref, lobe_se, a.lobe_walks),
         f"## {r0['label']}, in full",
         "",
         *table(r0["bands"], ref),

@@ -34,13 +34,15 @@ def test_light_angles_are_those_of_the_spheres_normals_and_every_band_is_seen():
 
 def test_a_small_run_writes_its_tables_and_image_and_reuses_the_cached_reference(tmp_path, monkeypatch):
     cache = tmp_path / "ref.npz"
-    args = ["--width", "40", "--height", "24", "--samples", "2", "--reference-cache", str(cache)]
+    args = ["--width", "40", "--height", "24", "--samples", "2", "--lobe-walks", "64", "--reference-cache", str(cache)]
     bt.main([*args, "--out", str(tmp_path / "a.md")])
     text = (tmp_path / "a.md").read_text()
     assert "`python benchmarks/bench_terminator.py --width 40" in text and "80-84 deg" in text
+    assert "## Coated gold's lobe at 83 degrees" in text
     data = json.loads((tmp_path / "a.json").read_text())
     assert [r["label"] for r in data["results"]] == ["default size, calibrated"]
     assert np.isfinite([b["ratio"] for b in data["results"][0]["bands"].values()]).all()
+    assert len(data["results"][0]["lobe"]) == len(bt.LOBE_VIEWS) and np.isfinite(data["results"][0]["lobe"]).all()
     assert (tmp_path / "a.png").stat().st_size > 0 and cache.exists()
     modes = []
     real = bt.render_film

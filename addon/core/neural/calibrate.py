@@ -1,6 +1,6 @@
 """Albedo calibration: a decoded material made as bright as the reference, angle by angle.
 
-    cal = calibrate(stack, models, z, proxy)      # seconds per material, cached
+    cal = calibrate(stack, models, z, proxy)      # about a second per material, cached
     f = cal.apply(models.eval_brdf(z, wi, wo), wi, wo)
 
 The decoders hold layered lobes only approximately, and what an artist sees first is the error of
@@ -12,31 +12,42 @@ under small lights.
 
 The calibration multiplies the decoded f of one material by a reciprocal, per-channel factor
 
-    f_cal(wi, wo) = c(cos theta_i) * c(cos theta_o) * f(wi, wo)
+    f_cal(wi, wo) = S(cos theta_i, cos theta_o) * f(wi, wo)
 
-with ``c`` piecewise linear in cos(theta) on the grid :data:`COSINES` (constant beyond its ends),
-chosen so that the calibrated directional albedo equals the reference's at every grid angle. The
-reference albedo comes from the position-free estimator's analog walks (``reference.albedo``, with
-its standard error); the decoded one from the decoder itself, integrated by importance sampling
-with the material's own sampling proxy mixed half and half with a cosine lobe (exact pdfs, one-sample
-MIS). Writing the decoded albedo at grid angle k as ``c_k * sum_l M_kl c_l`` (``M`` integrates the
-lobe against the grid's hat functions), ``c`` is the fixed point of ``c <- sqrt(c * A_ref / (M c))``,
-the symmetric form of matrix scaling, per channel.
+with ``S`` a symmetric table on the grid :data:`COSINES` x :data:`COSINES`, bilinear between its
+nodes (constant beyond the grid's ends). It is found in two steps, from the same reference walks
+(the position-free estimator's analog walks, ``reference.albedo_parts``, with their standard errors)
+and the same decoded samples (the decoder itself, integrated by importance sampling with the
+material's own sampling proxy mixed half and half with a cosine lobe: exact pdfs, one-sample MIS):
 
-What it does not change: the lobe's shape at each angle (where the light goes), only how much of it
-there is. It keeps f >= 0 and reciprocity (the factor is symmetric in the two directions) and adds no
-network evaluation. It needs one latent per material: latent textures are not calibrated.
+1. A separable start, S = c(cos theta_i) c(cos theta_o), that makes the decoded directional albedo
+   equal to the reference's at every grid angle. Writing the decoded albedo at grid angle k as
+   ``c_k * sum_l M_kl c_l`` (``M`` integrates the lobe against the grid's hat functions), ``c`` is
+   the fixed point of ``c <- sqrt(c * A_ref / (M c))``, the symmetric form of matrix scaling.
+2. The table itself (:func:`solve_table`): the walks of each grid angle, binned by the cosine they
+   leave at, say where that angle's light goes; S = c c (1 + D) with the symmetric D that brings the
+   decoded energy of every (angle, exit bin) to the reference's, in least squares weighted by the noise
+   of both, plus sum D^2, so that a bin the reference does not pin keeps the separable factor. A
+   separable factor matches each angle's albedo by scaling all of its light alike: where the decoder
+   holds too little of a lobe's grazing forward light and too much towards the normal, it brightened
+   the terminator of coated gold under a level light (docs/terminator.md).
+
+What it does not change: the lobe's azimuthal shape and its shape within a bin (where exactly the light
+goes), only how much of it leaves at each pair of elevations. It keeps f >= 0 and reciprocity (the table
+is symmetric) and adds no network evaluation. It needs one latent per material: latent textures are not
+calibrated.
 
 With a remainder decoder (``ModelSet.remainder``) the factors scale only the decoded remainder: the exact
 top lobe (``top_lobe``) stays as it is, and the target of the decoded part is the albedo of the light
 that entered the top interface, from the same walks with the top interface's first reflections left out
-(``reference.albedo(..., below_top=True)``). The reference albedo less the top lobe's would be the same
-in expectation, but carries the noise of the walks the coat reflects: at grazing on a near-black
-remainder under a bright clear coat, the difference of 0.1-0.7 and 0.1-0.7 with a standard error of
-0.005-0.008, as large as the remainder itself (docs/calibration.md).
+(``reference.albedo_parts``: ``below_top``, ``below_top_by_exit``). The reference albedo less the top
+lobe's would be the same in expectation, but carries the noise of the walks the coat reflects: at
+grazing on a near-black remainder under a bright clear coat, the difference of 0.1-0.7 and 0.1-0.7 with
+a standard error of 0.005-0.008, as large as the remainder itself (docs/calibration.md).
 
-The factors follow the reference only where it is clear of its own noise: each angle's target is
-shrunk towards the decoded albedo where it is within two of the walks' standard errors (:func:`shrink_target`).
+The factors follow the reference only where it is clear of its own noise: each target (an angle's
+albedo, a bin's energy) is shrunk towards the decoded one where the two are within two standard errors
+(:func:`shrink_target`).
 """
 
 from __future__ import annotations
