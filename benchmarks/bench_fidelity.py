@@ -117,6 +117,20 @@ def object_passes(a, key: dict, cached: dict | None, masks: dict, secs: dict) ->
     return out
 
 
+def reference_key(width: int, height: int, samples: int, seeds: list[int]) -> dict:
+    """What a reference render of the same scene depends on (the key of a reference cache): the image,
+    the samples and seeds, and the renderer's reference settings."""
+    defaults = RenderSettings()
+    return {
+        "width": width,
+        "height": height,
+        "samples": samples,
+        "seeds": list(seeds),
+        "reference_walks": defaults.reference_walks,
+        "max_bounces": defaults.max_bounces,
+    }
+
+
 def compare(neural: dict, reference: dict) -> dict:
     """Per object: neural / reference of the mean radiance (channel mean and per channel) and its noise."""
     out = {}
@@ -199,15 +213,7 @@ def main(argv=None):
         )
     cmd = "python benchmarks/bench_fidelity.py " + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:]))
     per_run, secs = [], {"neural": 0.0, "reference": 0.0}
-    defaults = RenderSettings()
-    key = {
-        "width": a.width,
-        "height": a.height,
-        "samples": a.samples,
-        "seeds": [a.seed + k for k in range(a.runs)],
-        "reference_walks": defaults.reference_walks,
-        "max_bounces": defaults.max_bounces,
-    }
+    key = reference_key(a.width, a.height, a.samples, [a.seed + k for k in range(a.runs)])
     cached = None
     if a.reference_cache is not None and a.reference_cache.exists():
         c = json.loads(a.reference_cache.read_text())

@@ -36,7 +36,7 @@ for _p in (ROOT, ROOT / "benchmarks"):  # the add-on, and bench_fidelity beside 
     if str(_p) not in sys.path:
         sys.path.insert(0, str(_p))
 
-from bench_fidelity import compare, object_means, render_film  # noqa: E402
+from bench_fidelity import compare, object_means, reference_key, render_film  # noqa: E402
 
 from addon.core.render import write_png  # noqa: E402
 from addon.core.render.demo_scene import (  # noqa: E402
@@ -46,7 +46,7 @@ from addon.core.render.demo_scene import (  # noqa: E402
     sphere_centres,
     terminator_scene,
 )
-from addon.core.render.integrator import RenderSettings, camera_hits  # noqa: E402
+from addon.core.render.integrator import camera_hits  # noqa: E402
 from addon.core.stack import PRESETS  # noqa: E402
 
 # Bands of the angle between the normal and the light (degrees).
@@ -256,14 +256,8 @@ def main(argv=None):
     angles = light_angles(scene, TERMINATOR_PRESETS)
     masks, lows = band_masks(angles)
     pixels = np.flatnonzero(np.any(list(masks.values()), axis=0))  # the spheres' lit sides only
-    defaults = RenderSettings()
     key = {
-        "width": a.width,
-        "height": a.height,
-        "samples": a.samples,
-        "seed": a.seed,
-        "reference_walks": defaults.reference_walks,
-        "max_bounces": defaults.max_bounces,
+        **reference_key(a.width, a.height, a.samples, [a.seed]),
         "presets": list(TERMINATOR_PRESETS),
         "light": list(TERMINATOR_LIGHT),
     }

@@ -73,15 +73,15 @@ def test_no_shipped_size_over_reflects_near_the_horizon(size):
             assert abs(bias) <= b["median_bias"], (t, int(c), bias)
 
 
-# The same, calibrated, as the renderer decodes a material's own latent by default (the calibration's
-# target is the light below the top interface, shrunk within its noise: docs/calibration.md). The issue's
-# albedo target, 2, is met by every size; f cos(theta_i) is not (conductors under a coloured or rough coat,
-# about 2x at every angle from 75 degrees on, and stack 7 at 89.5 degrees).
+# The same, calibrated, as the renderer decodes a material's own latent by default (a factor table over
+# incident and outgoing elevations, towards the light below the top interface, each target shrunk within its
+# noise: docs/calibration.md). The albedo target, 2, is met by every size; f cos(theta_i) with the
+# viewer on the normal reaches 2.0 (tiny) to 3.4 (paper), the separable calibration's 3.3-3.9 before.
 CALIBRATED_BOUNDS = {
-    "tiny": {"albedo_max": 1.35, "fcos_max": 3.8},
-    "small": {"albedo_max": 1.45, "fcos_max": 3.4},
-    "medium": {"albedo_max": 1.6, "fcos_max": 4.0},
-    "paper": {"albedo_max": 1.5, "fcos_max": 3.4},
+    "tiny": {"albedo_max": 1.35, "fcos_max": 2.2},
+    "small": {"albedo_max": 1.45, "fcos_max": 2.8},
+    "medium": {"albedo_max": 1.55, "fcos_max": 3.0},
+    "paper": {"albedo_max": 1.55, "fcos_max": 3.5},
 }
 
 
