@@ -439,3 +439,22 @@ def test_eval_matches_analog_walk_high_precision(name, theta):
     a, sa = analog_albedo(stack, wo, 150000, seed=21)
     e, se = eval_albedo(stack, wo, 150000, seed=22)
     assert np.all(np.abs(a - e) <= 3.0 * np.sqrt(sa**2 + se**2)), (a, e, sa, se)
+
+
+def test_albedo_parts_are_the_albedos_walks_split_without_changing_them():
+    stack = Stack(Diffuse((0.8, 0.5, 0.2)), (Coating(roughness=0.2, ior=1.5, albedo=(1.0, 1.0, 1.0), thickness=0.0),))
+    wo = np.array([[0.0, 0.0, 1.0], [0.8, 0.0, 0.6], [0.99, 0.0, 0.141]])
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    f, se = R.albedo(stack, wo, samples=2048, seed=5)
+    halves = lambda wi: np.stack([wi[:, 2] >= 0.5, wi[:, 2] < 0.5], axis=1).astype(float)  # noqa: E731
+    parts = R.albedo_parts(stack, wo, samples=2048, seed=5, exit_bins=halves)
+    np.testing.assert_allclose(parts.albedo, f, rtol=1e-12)  # the same walks
+    np.testing.assert_allclose(parts.albedo_stderr, se, rtol=1e-12)
+    np.testing.assert_allclose(parts.by_exit.sum(axis=1), parts.albedo, rtol=1e-12)
+    np.testing.assert_allclose(parts.below_top_by_exit.sum(axis=1), parts.below_top, rtol=1e-12)
+    # what the top interface reflects first is a part of the whole; where the base is dark (blue), the
+    # light below the top is far less noisy than the whole, whose noise is then the coat's reflections
+    assert (parts.below_top < parts.albedo).all()
+    assert (parts.below_top_stderr[:, 2] < 0.6 * parts.albedo_stderr[:, 2]).all()
+    # more reflected at grazing, so less of the light below the top there
+    assert parts.below_top[2].mean() / parts.albedo[2].mean() < parts.below_top[0].mean() / parts.albedo[0].mean()

@@ -218,8 +218,8 @@ class DecodedMoments:
     """The decoded lobe at each grid angle k (outgoing) integrated over incident directions against the
     grid's hat functions of cos(theta_i): ``pairs`` (K, K, K, 3), [k, l, m] against hat l times hat m,
     so that with a factor table S the decoded energy in bin l is ``sum_m S[m, k] pairs[k, l, m]``;
-    ``m`` (K, K, 3), its sum over l (the separable form: albedo ``c_k (m c)_k``); ``bins`` (K, K, 3),
-    its sum over m (the energy in each bin of cos theta_i) and their standard error ``bins_stderr``."""
+    ``m`` (K, K, 3), its sum over l (the separable form: albedo ``c_k (m c)_k``); ``bins_stderr``
+    (K, K, 3), the standard error of its sum over m (the energy in each bin of cos theta_i)."""
 
     pairs: np.ndarray
     bins_stderr: np.ndarray
@@ -227,10 +227,6 @@ class DecodedMoments:
     @property
     def m(self) -> np.ndarray:
         return self.pairs.sum(axis=1)
-
-    @property
-    def bins(self) -> np.ndarray:
-        return self.pairs.sum(axis=2)
 
 
 def decoded_moments(
@@ -247,13 +243,6 @@ def decoded_moments(
     return DecodedMoments(pairs, np.sqrt(var))
 
 
-def decoded_albedo_matrix(models, z, sigma: float, w: float, samples: int = DECODED_SAMPLES, seed: int = 0, top=None):
-    """``M`` (K, K, 3): the decoded lobe at each grid angle (outgoing) integrated over incident
-    directions against the grid's hat functions of cos(theta_i), so that the decoded albedo with
-    factors c is ``c_k * (M c)_k``; ``M.sum(axis=1)`` is the plain decoded albedo."""
-    return decoded_moments(models, z, sigma, w, samples, seed, top).m
-
-
 def solve_factors(m: np.ndarray, target: np.ndarray, iterations: int = ITERATIONS) -> np.ndarray:
     """Per channel, c (K, 3) with c_k (M c)_k = target_k, by the iteration c <- sqrt(c target / (M c)),
     kept in :data:`FACTOR_RANGE`."""
@@ -267,8 +256,8 @@ def solve_factors(m: np.ndarray, target: np.ndarray, iterations: int = ITERATION
 
 
 def shrink_target(target: np.ndarray, decoded: np.ndarray, stderr: np.ndarray, k: float = NOISE_THRESHOLD):
-    """``target`` (K, 3) shrunk towards ``decoded`` (K, 3) by ``k`` standard errors ``stderr`` (the
-    non-negative garrote): where the two differ by less than k sigma the decoded albedo stands, beyond it
+    """``target`` shrunk towards ``decoded`` (same shape) by ``k`` standard errors ``stderr`` (the
+    non-negative garrote): where the two differ by less than k sigma the decoded value stands, beyond it
     the gap g keeps g (1 - (k sigma / g)^2), nearly all of it once it is clear of the noise (a soft
     threshold would keep g - k sigma, a bias of k sigma on every clear gap). So a factor moves where the
     reference says it should, not with the walks' noise on a near-black material."""
@@ -300,9 +289,9 @@ def solve_table(
     first shrunk (:func:`shrink_target`) towards the separable factors' energy by ``k`` standard errors
     (the walks' and the decoded samples', at least ``stderr_floor``: a bin no walk left through has a
     standard error of 0 but is known only to about one walk's weight), then the table is
-    S = outer(scale, scale) (1 + D) with D the
-    least-squares solution of the noise-weighted misfit plus ``sum D^2`` (a bin the reference does not
-    pin keeps the separable factor). The energy is linear in S, so one solve per channel is exact."""
+    S = outer(scale, scale) (1 + D) with D the least-squares solution of the noise-weighted misfit plus
+    ``sum D^2`` (a bin the reference does not pin keeps the separable factor). The energy is linear in
+    S, so one solve per channel is exact."""
     kk = len(scale)
     base = scale[:, None, :] * scale[None, :, :]
     e0 = table_energy(moments.pairs, base)
