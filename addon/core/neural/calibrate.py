@@ -237,8 +237,10 @@ def decoded_moments(
     k = len(grid)
     cos_i, v = _lobe_samples(models, z, sigma, w, grid, samples, seed, top)
     hats = _hats(cos_i.reshape(-1), grid).reshape(k, samples, k)
-    pairs = np.einsum("ksl,ksm,ksc->klmc", hats, hats, v) / samples
-    second = np.einsum("ksl,ksc->klc", hats * hats, v * v) / samples
+    # [k, l, m, c] = sum_s hats[k, s, l] hats[k, s, m] v[k, s, c], as one batched matrix product
+    weighted = (hats[:, :, :, None] * v[:, :, None, :]).reshape(k, samples, k * 3)
+    pairs = np.matmul(hats.transpose(0, 2, 1), weighted).reshape(k, k, k, 3) / samples
+    second = np.matmul((hats * hats).transpose(0, 2, 1), v * v) / samples
     var = np.maximum(second - pairs.sum(axis=2) ** 2, 0.0) / samples
     return DecodedMoments(pairs, np.sqrt(var))
 
