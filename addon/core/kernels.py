@@ -888,12 +888,14 @@ def _segment(grid, x):
 
 
 @njit(**_JIT)
-def scale_by_table(f, x, y, grid, table):
-    """``f`` (N, C) times ``table`` (K, K, C) at (``x``, ``y``) (N,) each, bilinear between the
-    increasing abscissae ``grid`` (K,) on both axes, constant beyond them; in place."""
+def scale_by_table(f, x, y, grid, tables, which):
+    """``f`` (N, C) times ``tables[which[n]]`` (T, K, K, C) at (``x``, ``y``) (N,) each, bilinear between
+    the increasing abscissae ``grid`` (K,) on both axes, constant beyond them; in place. An empty
+    ``which`` means table 0 for every row."""
     for n in range(len(f)):
         i, s = _segment(grid, x[n])
         j, t = _segment(grid, y[n])
+        table = tables[which[n] if len(which) else 0]
         for c in range(f.shape[1]):
             low = table[i, j, c] * (1.0 - s) + table[i + 1, j, c] * s
             high = table[i, j + 1, c] * (1.0 - s) + table[i + 1, j + 1, c] * s

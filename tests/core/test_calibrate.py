@@ -196,7 +196,7 @@ def test_bad_calibrate_settings_are_refused():
     from addon.core.textures import LatentTexture
 
     tex = LatentTexture.from_texels(np.zeros((2, 2, 100), np.float32))
-    with pytest.raises(ValueError, match="not to a latent texture"):
+    with pytest.raises(ValueError, match="a latent texture takes a TextureCalibration"):
         neural_material.NeuralMaterial(models, None, (0.1, 0.5), tex, calibration=c)
 
 

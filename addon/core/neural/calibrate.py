@@ -34,8 +34,8 @@ material's own sampling proxy mixed half and half with a cosine lobe: exact pdfs
 
 What it does not change: the lobe's azimuthal shape and its shape within a bin (where exactly the light
 goes), only how much of it leaves at each pair of elevations. It keeps f >= 0 and reciprocity (the table
-is symmetric) and adds no network evaluation. It needs one latent per material: latent textures are not
-calibrated.
+is symmetric) and adds no network evaluation. It needs one latent per material; a latent texture is
+calibrated per cluster of its texels (``textures.calibration``, with :func:`calibrate_texels`).
 
 With a remainder decoder (``ModelSet.remainder``) the factors scale only the decoded remainder: the exact
 top lobe (``top_lobe``) stays as it is, and the target of the decoded part is the albedo of the light
@@ -59,7 +59,7 @@ import numpy as np
 
 from .. import kernels
 from ..bsdf.lambert import sample_cosine_hemisphere
-from ..stack import Stack
+from ..stack import Stack, StackArrays
 from . import proxy, top_lobe
 
 # Incident cosines of the grid: normal incidence to 88.9 degrees, denser towards grazing, where the
@@ -96,6 +96,34 @@ class AlbedoCalibration:
 
     def factor(self, cos_i: np.ndarray, cos_o: np.ndarray) -> np.ndarray:
         """The factor (N, 3) at pairs of cosines (N,): bilinear between the grid's, constant beyond them."""
+        return self.rows().factor(cos_i, cos_o)
+
+    def apply(self, f: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
+        """f (N, 3) at local unit directions wi, wo (N, 3) times the factor at (cos theta_i, cos theta_o)
+        (f: the decoded part)."""
+        return self.rows().apply(f, wi, wo)
+
+    def rows(self) -> "RowCalibration":
+        """This table for every row."""
+        return RowCalibration(self.cosines, self.table[None], np.zeros(0, dtype=np.int64))
+
+
+@dataclass(frozen=True)
+class RowCalibration:
+    """Factor tables (T, K, K, 3) on decreasing ``cosines`` (K,) and, per row, the one that applies
+    (``which`` (N,); empty: table 0 for every row): a latent texture's calibration at a bounce's hits
+    (``textures.calibration``), or one material's (:meth:`AlbedoCalibration.rows`)."""
+
+    cosines: np.ndarray
+    tables: np.ndarray
+    which: np.ndarray
+
+    def take(self, index) -> "RowCalibration":
+        """The calibration of the rows ``index``."""
+        return self if len(self.which) == 0 else RowCalibration(self.cosines, self.tables, self.which[index])
+
+    def factor(self, cos_i: np.ndarray, cos_o: np.ndarray) -> np.ndarray:
+        """The factor (N, 3) at pairs of cosines (N,): bilinear between the grid's, constant beyond them."""
         x = np.clip(np.asarray(cos_i, dtype=np.float64).reshape(-1), 0.0, 1.0)
         y = np.clip(np.asarray(cos_o, dtype=np.float64).reshape(-1), 0.0, 1.0)
         out = np.ones((len(x), 3))
@@ -103,18 +131,20 @@ class AlbedoCalibration:
         return out
 
     def apply(self, f: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
-        """f (N, 3) at local unit directions wi, wo (N, 3) times the factor at (cos theta_i, cos theta_o)
-        (f: the decoded part)."""
+        """f (N, 3) at local unit directions wi, wo (N, 3) times each row's factor at (cos theta_i, cos theta_o)."""
         out = np.array(f, dtype=np.float64)
+        if len(self.which) not in (0, len(out)):
+            raise ValueError(f"the calibration has {len(self.which)} rows, f has {len(out)}")
         cos_i = np.clip(np.ascontiguousarray(wi[:, 2], dtype=np.float64), 0.0, 1.0)
         cos_o = np.clip(np.ascontiguousarray(wo[:, 2], dtype=np.float64), 0.0, 1.0)
         kernels.scale_by_table(out, cos_i, cos_o, *self._increasing())
         return out.astype(np.asarray(f).dtype, copy=False)
 
-    def _increasing(self) -> tuple[np.ndarray, np.ndarray]:
-        """The grid's cosines increasing (the kernels' order) and the table in the same order."""
+    def _increasing(self):
+        """The grid's cosines increasing (the kernel's order), the tables in the same order, and ``which``."""
         grid = np.ascontiguousarray(self.cosines[::-1], dtype=np.float64)
-        return grid, np.ascontiguousarray(self.table[::-1, ::-1], dtype=np.float64)
+        tables = np.ascontiguousarray(self.tables[:, ::-1, ::-1], dtype=np.float64)
+        return grid, tables, np.ascontiguousarray(self.which, dtype=np.int64)
 
 
 def grid_directions(cosines=COSINES) -> np.ndarray:
@@ -123,37 +153,47 @@ def grid_directions(cosines=COSINES) -> np.ndarray:
     return np.stack([np.sqrt(np.maximum(1.0 - c * c, 0.0)), np.zeros_like(c), c], axis=1)
 
 
-def reference_parts(stack: Stack, walks=WALKS, seed: int = 0):
-    """``reference.AlbedoParts`` of ``stack`` at the grid's angles (K rows), the parts by exit direction
-    split over the grid's hat functions of the exit cosine ((K, K, 3): outgoing angle, exit cosine),
-    from analog walks. One estimator call for all angles (each angle's direction repeated
-    ``walks[k] / q`` times with q walks each, q the counts' greatest common divisor): the walks of every
-    angle advance in the same vectorised loop, about twice as fast as one call per angle, and faster
-    than threads (the walks' many small numpy steps hold the GIL)."""
+def reference_parts(stacks, walks=WALKS, seed: int = 0):
+    """``reference.AlbedoParts`` at the grid's angles (K rows), the parts by exit direction split over the
+    grid's hat functions of the exit cosine ((K, K, 3): outgoing angle, exit cosine), from analog walks.
+
+    ``stacks``: one ``Stack``, or ``StackArrays`` of R rows (a sample of a latent texture's texels): then
+    the parts of their mean, each row walked with 1/R of ``walks``, so the mean is about as noisy as one
+    stack's parts. One estimator call for all angles and rows (each angle's direction repeated
+    ``walks[k] / q`` times per row with q / R walks each, q the counts' greatest common divisor): the walks
+    advance in the same vectorised loop, about twice as fast as one call per angle, and faster than threads
+    (the walks' many small numpy steps hold the GIL)."""
     from .. import reference
 
+    arrays = stacks if isinstance(stacks, StackArrays) else StackArrays.from_stacks([stacks])
+    if len(arrays) < 1:
+        raise ValueError("reference_parts needs at least one stack")
     dirs = grid_directions()
     grid = np.asarray(COSINES)
     walks = np.asarray(walks, dtype=np.int64)
     if walks.shape != (len(dirs),) or (walks < 1).any():
         raise ValueError(f"walks must give one positive count per grid angle ({len(dirs)}), got {walks.tolist()}")
+    r = len(arrays)
     q = int(np.gcd.reduce(walks))
     reps = walks // q
+    per_row = np.repeat(dirs, reps, axis=0)
+    rows = arrays if r == 1 else arrays.take(np.repeat(np.arange(r), len(per_row)))
     parts = reference.albedo_parts(
-        stack,
-        np.repeat(dirs, reps, axis=0),
-        samples=q,
+        rows,
+        np.tile(per_row, (r, 1)),
+        samples=max(1, q // r),
         seed=seed,
         exit_bins=lambda wi: _hats(np.clip(wi[:, 2], 0.0, 1.0), grid),
     )
-    angle = np.repeat(np.arange(len(dirs)), reps)
+    angle = np.tile(np.repeat(np.arange(len(dirs)), reps), r)
+    count = reps * r
 
     def per_angle(mean, stderr):
         m, v = np.zeros((len(dirs),) + mean.shape[1:]), np.zeros((len(dirs),) + mean.shape[1:])
         np.add.at(m, angle, mean)
         np.add.at(v, angle, stderr**2)
-        r = reps.reshape((-1,) + (1,) * (mean.ndim - 1))
-        return m / r, np.sqrt(v) / r
+        c = count.reshape((-1,) + (1,) * (mean.ndim - 1))
+        return m / c, np.sqrt(v) / c
 
     fields = ("albedo", "below_top", "by_exit", "below_top_by_exit")
     out = {}
@@ -361,13 +401,46 @@ def calibrate(stack: Stack, models, z, proxy_params, seed: int = 0) -> AlbedoCal
     if key in _CACHE:
         return _CACHE[key]
     sigma, w = (float(v) for v in proxy_params)
-    remainder = bool(getattr(models, "remainder", False))
-    ref = reference_parts(stack, seed=seed)
     coat = top_lobe.top_coat(stack)
     moments = decoded_moments(models, z, sigma, w, seed=seed, top=coat)
+    top = top_lobe.top_albedo(coat, COSINES, DECODED_SAMPLES, seed)
+    out = _solve(reference_parts(stack, seed=seed), moments, top, bool(getattr(models, "remainder", False)))
+    _CACHE[key] = out
+    return out
+
+
+def calibrate_texels(arrays: StackArrays, models, z, proxy_params, tops, seed: int = 0) -> AlbedoCalibration:
+    """One calibration for a sample of a latent texture's texels: their stacks ``arrays`` (R rows), baked
+    latents ``z`` (R, 3, 32), proxies (R, 2) and top coatings ``tops`` (R, 2). The factor table brings the
+    *mean* of the R decoded lobes to the mean of their references, energy by energy (every target and
+    decoded sum below is a mean over the rows, each row with 1/R of the walks and of the decoded samples,
+    so it costs about what one material's calibration costs). A texture whose texels share their decoder's
+    error (the same coats over a varying base colour, say) is corrected like one material; what differs from
+    texel to texel is corrected on average only (``benchmarks/bench_calibration.py --texture``)."""
+    z = np.asarray(z, dtype=np.float32).reshape(-1, 3, 32)
+    prox = np.asarray(proxy_params, dtype=np.float64).reshape(-1, 2)
+    tops = top_lobe.as_top(tops, len(z))
+    if not (len(arrays) == len(z) == len(prox) == len(tops)) or len(z) == 0:
+        raise ValueError(
+            f"calibrate_texels needs as many stacks, latents, proxies and top coatings (at least one); got "
+            f"{len(arrays)}, {len(z)}, {len(prox)}, {len(tops)}"
+        )
+    r = len(z)
+    per = max(1, DECODED_SAMPLES // r)
+    each = [decoded_moments(models, z[j], *prox[j], samples=per, seed=seed + j, top=tops[j]) for j in range(r)]
+    moments = DecodedMoments(
+        np.mean([m.pairs for m in each], axis=0), np.sqrt(np.sum([m.bins_stderr**2 for m in each], axis=0)) / r
+    )  # a loop over the R sampled materials, not over texels
+    top = np.mean([top_lobe.top_albedo(t, COSINES, per, seed) for t in tops], axis=0)
+    return _solve(reference_parts(arrays, seed=seed), moments, top, bool(getattr(models, "remainder", False)))
+
+
+def _solve(ref, moments: DecodedMoments, top_albedo: np.ndarray, remainder: bool) -> AlbedoCalibration:
+    """The calibration from the reference's parts ``ref`` and the decoded ``moments`` (both at the grid's
+    angles); ``top_albedo`` (K,), the exact top lobe's albedo, counts only for a remainder decoder."""
     top = np.zeros_like(ref.albedo)
     if remainder:  # the decoded part's target: the light that entered the top interface
-        top[:] = top_lobe.top_albedo(coat, COSINES, DECODED_SAMPLES, seed)[:, None]
+        top[:] = top_albedo[:, None]
         target, target_se = ref.below_top, ref.below_top_stderr
         bins, bins_se = ref.below_top_by_exit, ref.below_top_by_exit_stderr
     else:
@@ -377,7 +450,7 @@ def calibrate(stack: Stack, models, z, proxy_params, seed: int = 0) -> AlbedoCal
     scale = solve_factors(m, np.maximum(shrink_target(target, m.sum(axis=1), target_se), 0.0))
     one_walk = target / np.asarray(WALKS, dtype=np.float64)[:, None]  # (K, 3): one walk's share of the albedo
     table = solve_table(moments, scale, bins, bins_se, stderr_floor=one_walk[:, None, :])
-    out = AlbedoCalibration(
+    return AlbedoCalibration(
         cosines=np.asarray(COSINES, dtype=np.float64),
         scale=scale,
         table=table,
@@ -387,8 +460,6 @@ def calibrate(stack: Stack, models, z, proxy_params, seed: int = 0) -> AlbedoCal
         calibrated=top + table_energy(moments.pairs, table).sum(axis=1),
         top=top,
     )
-    _CACHE[key] = out
-    return out
 
 
 def clear_cache() -> None:

@@ -59,7 +59,7 @@ def warm_up() -> None:
     wo = np.array([[0.0, 0.6, 0.8], [0.6, 0.0, 0.8]])
     proxy.sample(wo, np.array([0.2, 0.3]), 0.5, np.full((2, 3), 0.5))
     grid, table = np.array([0.0, 1.0]), np.ones((2, 2, 3))
-    kernels.scale_by_table(np.ones((2, 3)), wo[:, 2].copy(), wo[:, 2].copy(), grid, table)
+    kernels.scale_by_table(np.ones((2, 3)), wo[:, 2].copy(), wo[:, 2].copy(), grid, table[None], np.zeros(0, np.int64))
     top, half = np.array([[0.1, 1.5]]), np.full(2, 0.5)  # a remainder decoder's exact top coat
     wi, share, _missed = kernels.propose_with_top(wo, half, np.full((2, 2), 0.5), half, half, top)
     _f, p_top = kernels.top_lobe_eval_pdf(wi, wo, top)
