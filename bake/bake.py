@@ -55,6 +55,7 @@ if str(ROOT) not in sys.path:
 from addon.core.stack import PRESETS, Stack, preset  # noqa: E402
 from addon.core.textures import colour_maps, files  # noqa: E402
 from addon.core.textures.bake import _texels_at, bake_key, bake_texels, model_key, neural_encoder  # noqa: E402
+from addon.core.textures.calibration import calibrate_baked  # noqa: E402
 from addon.core.textures.latent_texture import CHANNEL_NAMES, LatentTexture, read_image_file  # noqa: E402
 from addon.core.textures.mip import resample_area  # noqa: E402
 from addon.core.textures.spatial import SpatialStack, parse_parameter_path  # noqa: E402
@@ -381,14 +382,19 @@ def run(
     band_rows: int,
     dedup: bool = True,
     log=print,
+    calibrate: bool = True,
 ) -> dict:
     """Bake this shard's items, assemble every material whose bands are all present.
 
     The bake key of a material hashes its inputs and the model: the size and, when the encoder
     tells it (``encode.metadata["model_digest"]``), the decoder file's digest, so bands and
-    textures of a retrained model are never reused; and the refinement budget (``--refine``)."""
+    textures of a retrained model are never reused; the refinement budget (``--refine``); and whether the
+    textures are calibrated (``calibrate``, with an encoder that carries its models: ``neural_encoder``'s)."""
     model_metadata = getattr(encode, "metadata", None) or {}
-    model_id = model_key(model, model_metadata.get("model_digest"), model_metadata.get("refine_s", 0.0))
+    models = getattr(encode, "models", None) if calibrate else None
+    model_id = model_key(
+        model, model_metadata.get("model_digest"), model_metadata.get("refine_s", 0.0), calibrated=models is not None
+    )
     _check_output_folder(out, jobs)
     files.remove_stale_temps(out)
     items = []
@@ -432,7 +438,7 @@ def run(
         def rebake(band, job=job):
             return _bake_band(job, band, band_rows, encode, dedup, cache, bar)[0]
 
-        if assemble(out, job, job.key(model_id), model, band_rows, stats, rebake, log, model_metadata):
+        if assemble(out, job, job.key(model_id), model, band_rows, stats, rebake, log, model_metadata, models, cache):
             stats["assembled"].append(job.name)
             log(f"{job.name}: wrote {out / (job.file + '.exr')} ({job.resolution[1]}x{job.resolution[0]})")
     return stats
@@ -448,6 +454,8 @@ def assemble(
     rebake,
     log=print,
     model_metadata: dict | None = None,
+    models=None,
+    cache: dict | None = None,
 ) -> bool:
     """Publish the material's texture if all its bands are present; True if this process published it.
 
@@ -455,6 +463,9 @@ def assemble(
     same texels); bands are removed only after a publish, so a shard that finds one gone checks
     that the texture it was about to write is there. A band found damaged is baked again by
     ``rebake(band) -> texels``. ``model_metadata`` (the encoder's decoder size and digest) goes into the texture.
+    With ``models`` (the encoder's), a material without a mix gets its albedo calibration
+    (``textures.calibration``) from its texels and stacks (``cache``: ``run``'s, holding them when this
+    process baked bands of it).
     """
     folder = _band_folder(out, job)
     h, w = job.resolution
@@ -480,6 +491,12 @@ def assemble(
             parts.append(rebake(b))
     texels = np.concatenate(parts).reshape(h, w, -1)
     meta = {"stack": job.spatial.stack.to_json(), "model": model, "key": key, **(model_metadata or {})}
+    calibration_s = None
+    if models is not None and job.mix is None:  # a blended texel's latent is no stack's: nothing to walk
+        t = time.perf_counter()
+        arrays = ((cache or {}).get(job.name) or job.texels())[0]
+        meta["calibration"] = calibrate_baked(arrays, texels.reshape(h * w, -1), models).to_text()
+        calibration_s = round(time.perf_counter() - t, 3)
     LatentTexture.from_texels(texels, meta).write_exr(out / f"{job.file}.exr")
     sidecar = {
         "key": key,
@@ -489,6 +506,7 @@ def assemble(
         "resolution": [w, h],
         "model": model,
         "seconds_assemble_and_write": round(time.perf_counter() - t0, 3),
+        "seconds_calibration": calibration_s,
         "this_shard": {
             "texels": stats["texels"],
             "unique_texels": stats["unique"],
@@ -579,6 +597,12 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     ap.add_argument("--band-rows", type=int, default=256, help="rows per work item")
     ap.add_argument("--no-dedup", action="store_true", help="encode every texel, even repeated ones")
     ap.add_argument(
+        "--no-calibrate",
+        action="store_true",
+        help="leave out each texture's albedo calibration against the reference (addon.core.textures.calibration: "
+        "about a second per cluster of texels, at most 8, when a material is assembled)",
+    )
+    ap.add_argument(
         "--refine",
         type=float,
         default=0.0,
@@ -603,7 +627,9 @@ def _bake(argv: list[str], encode) -> int:
         except (OSError, ValueError, ImportError) as e:  # missing (FileNotFoundError) or damaged models
             raise BadInput(f"--model {args.model}: {e}") from None
     model = getattr(encode, "metadata", {}).get("model", args.model)  # "auto" resolved by the encoder
-    stats = run(jobs, args.out, encode, model, shard, args.band_rows, dedup=not args.no_dedup)
+    stats = run(
+        jobs, args.out, encode, model, shard, args.band_rows, dedup=not args.no_dedup, calibrate=not args.no_calibrate
+    )
     print(f"baked {stats['bands_baked']} band(s), kept {stats['bands_skipped']}, assembled {stats['assembled']}")
     return EXIT_DONE
 

@@ -72,7 +72,7 @@ def main(argv=None) -> int:
             times = []
             for _ in range(2):  # the first bake of a case also pays ONNX Runtime's first calls at its batch sizes
                 t0 = time.perf_counter()
-                tex, stats = bake_stack(spatial, encode, dedup=dedup)
+                tex, stats = bake_stack(spatial, encode, dedup=dedup, calibrate=False)  # encoding only
                 times.append(time.perf_counter() - t0)
             first_s, bake_s = times
             with tempfile.TemporaryDirectory() as d:
@@ -152,7 +152,9 @@ def main(argv=None) -> int:
         "time, the half-float EXR write is timed separately. Each case is baked twice: the rates are the",
         "second bake's; the first bake (its seconds beside them) also pays ONNX Runtime's first calls at batch",
         "sizes the process has not run yet. Deduplication hashes the float32 parameter rows that vary",
-        "(`addon.core.rows.distinct_rows`) and sorts only the hashes.",
+        "(`addon.core.rows.distinct_rows`) and sorts only the hashes. These bakes leave out the texture's albedo",
+        "calibration (`bake_stack(..., calibrate=False)`), which by default adds about a second per cluster of",
+        "texels, at most eight ([texture_calibration.md](texture_calibration.md)).",
         "",
         "| driving images | dedup | distinct texels encoded | texels/s | distinct texels/s | bake s | first bake s | "
         "EXR write s | EXR MiB per megapixel |",

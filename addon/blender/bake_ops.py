@@ -141,10 +141,11 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
             mat.neural_layers.texture_key = key
             mat.neural_layers.texture_size = res
             refined = "" if refined is None else f", {refined} refined"
+            calibrated = f", calibrated in {stats.clusters} cluster(s)" if stats.clusters else ""
             self.report(
                 {"INFO"},
                 f"{name}: baked {res[1]}x{res[0]} ({stats.unique} distinct of {stats.texels} texels"
-                f"{refined}, {stats.texels_per_second:,.0f} texels/s) in {seconds:.1f} s -> {path}",
+                f"{refined}, {stats.texels_per_second:,.0f} texels/s{calibrated}) in {seconds:.1f} s -> {path}",
             )
             return {"FINISHED"}
 

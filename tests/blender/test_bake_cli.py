@@ -207,3 +207,21 @@ def test_mix_through_a_mask_blends_latents(tmp_path):
     assert (
         bake_cli.main(["--preset", "coated_gold", "--mix", "frosted_copper", "--out", str(out)], encode=encoder()) == 2
     )
+
+
+def test_the_real_encoders_textures_carry_their_calibration_and_no_calibrate_leaves_it_out(tmp_path, rough_png):
+    """With the shipped networks (no stand-in), an assembled texture stores its albedo calibration, one table
+    per cluster of texels; ``--no-calibrate`` bakes the same texels without one, keyed apart."""
+    from addon.core.textures.calibration import TextureCalibration
+
+    argv = ["--preset", "varnished_wood", "--map", f"coatings[0].roughness={rough_png}:0.05:0.5", "--model", "tiny"]
+    assert bake_cli.main([*argv, "--out", str(tmp_path / "cal")]) == 0
+    tex = LatentTexture.read_exr(tmp_path / "cal" / "varnished_wood.exr")
+    calibration = TextureCalibration.from_text(tex.metadata["calibration"])
+    assert len(calibration.tables) == 2 and calibration.is_current()  # two roughness values, two clusters
+    side = json.loads((tmp_path / "cal" / "varnished_wood.json").read_text())
+    assert side["seconds_calibration"] > 0
+    assert bake_cli.main([*argv, "--no-calibrate", "--out", str(tmp_path / "cal")]) == 0  # not "up to date"
+    plain = LatentTexture.read_exr(tmp_path / "cal" / "varnished_wood.exr")
+    assert "calibration" not in plain.metadata and plain.metadata["key"] != tex.metadata["key"]
+    np.testing.assert_array_equal(plain.levels[0], tex.levels[0])

@@ -60,10 +60,16 @@ class _BoundNeural(ShadeByProposal):
         shared = np.ndim(self.top) == 1
         return self.top if index is None or shared else self.top[index]
 
+    def _calibration_rows(self, index):
+        """The calibration of the rows ``index`` (all when None): a material's one table as it is, a latent
+        texture's per-hit choice (``calibrate.RowCalibration``) restricted to them."""
+        c = self.calibration
+        return c if index is None or not hasattr(c, "take") else c.take(index)
+
     def eval(self, wi, wo, index=None):
         z = self._rows(self.z, index)
         top = self._top_rows(index, len(wi))
-        return self.models.eval_brdf(z, wi, wo, top, self.calibration).astype(np.float64)
+        return self.models.eval_brdf(z, wi, wo, top, self._calibration_rows(index)).astype(np.float64)
 
     def _mixture(self, wi, wo, index, share, p_top):
         """The sampler's density: the proxy's, mixed with the top lobe's ``p_top`` by ``share``."""
@@ -113,7 +119,7 @@ class _BoundNeural(ShadeByProposal):
             wi_all,
             wo_all,
             self._top_rows(index, len(index)),
-            self.calibration,
+            self._calibration_rows(index),
             top_pdf=True,
             unit=True,
         )
@@ -130,8 +136,9 @@ class _BoundNeural(ShadeByProposal):
 
 
 class NeuralMaterial:
-    """A stack's latent (or a latent texture) decoded by the neural runtime; a single latent may
-    carry its albedo calibration (``addon.core.neural.calibrate``), applied to every evaluation."""
+    """A stack's latent (or a latent texture) decoded by the neural runtime, with its albedo calibration
+    when it has one, applied to every evaluation: a single latent's ``calibrate.AlbedoCalibration``, a
+    latent texture's ``textures.calibration.TextureCalibration`` (a table per cluster of its texels)."""
 
     kind = "neural"
     has_pdf = True
@@ -146,8 +153,11 @@ class NeuralMaterial:
         self.calibration = calibration
         if self.z is None and self.texture is None:
             raise ValueError("a NeuralMaterial needs a latent z (3, 32) or a latent texture")
-        if calibration is not None and self.texture is not None:
-            raise ValueError("an albedo calibration belongs to one latent, not to a latent texture")
+        if calibration is not None and (self.texture is not None) != hasattr(calibration, "centroids"):
+            raise ValueError(
+                "a latent texture takes a TextureCalibration and a single latent an AlbedoCalibration, got "
+                f"{type(calibration).__name__} for a {'latent texture' if self.texture is not None else 'latent'}"
+            )
 
     def bind(self, hits):
         if self.texture is None:
@@ -157,7 +167,8 @@ class NeuralMaterial:
         z, prox, top = self.texture.lookup(hits.uv, hits.footprint)
         sigma = np.asarray(prox[:, 0], dtype=np.float64)
         w = np.asarray(prox[:, 1], dtype=np.float64)
-        return _BoundNeural(self.models, z, sigma, w, top=top)
+        calibration = None if self.calibration is None else self.calibration.at(z)
+        return _BoundNeural(self.models, z, sigma, w, calibration, top)
 
 
 class NeuralFallbackWarning(UserWarning):
@@ -188,7 +199,8 @@ def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None
     ``calibrate``: True gives the material its albedo calibration against the reference
     (``neural.calibrate``: about a second of reference walks per stack, cached for the session),
     "cached" only one this session already made (no work: for the viewport and thumbnails), False
-    none. Latent textures are never calibrated.
+    none. A latent texture brings the calibration its bake made (``textures.calibration``; none when it was
+    baked without one or with other calibration settings, with a warning to rebake), for True and "cached".
 
     ``size`` picks the decoder ("auto" or None: ``neural.resolve_size``, the default size). A latent
     texture is decoded by the size it was baked for (its ``model`` metadata, checked against ``size``
@@ -251,7 +263,8 @@ def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None
             )
             return None
         if latent_texture is not None:
-            material = NeuralMaterial(models, None, proxy_guess(stack), latent_texture)
+            calibration = _texture_calibration(latent_texture) if calibrate else None
+            material = NeuralMaterial(models, None, proxy_guess(stack), latent_texture, calibration)
         else:
             z = encode_stack(stack, models) if z is None else z
             proxy = models.proxy_params(z)[0] if models.has("sampling") else proxy_guess(stack)
@@ -279,3 +292,30 @@ def _calibration(stack: Stack, models, z, proxy, calibrate):
     if calibrate is True:
         return cal.calibrate(stack, models, z, proxy)
     return cal.cached(stack, models, z) if calibrate == "cached" else None
+
+
+class StaleCalibrationWarning(UserWarning):
+    """A latent texture's stored calibration is not used: made with other calibration settings, or unreadable."""
+
+
+def _texture_calibration(latent_texture):
+    """The calibration a latent texture's bake stored in its metadata (``calibration``), or None."""
+    from ..textures.calibration import TextureCalibration
+
+    text = (getattr(latent_texture, "metadata", None) or {}).get("calibration")
+    if not text:
+        return None
+    try:
+        calibration = TextureCalibration.from_text(text)
+    except ValueError as e:
+        why = f"cannot be read ({e})"
+    else:
+        if calibration.is_current():
+            return calibration
+        why = "was made with other calibration settings than this version's"
+    warnings.warn(
+        f"the latent texture's albedo calibration {why}; rendering it uncalibrated: rebake it",
+        StaleCalibrationWarning,
+        stacklevel=3,
+    )
+    return None

@@ -25,6 +25,8 @@ from .spatial import SpatialStack
 
 Encoder = Callable[[StackArrays], tuple[np.ndarray, np.ndarray]]
 Progress = Callable[[float], None]
+ENCODE_SHARE = 0.3  # of a calibrated bake's progress bar: the encoding (the calibration takes the rest)
+BATCH = 65536  # texels per encoder call
 
 
 def neural_encoder(
@@ -57,6 +59,7 @@ def neural_encoder(
         return z, models.proxy_params(z)
 
     encode.metadata = {"model": models.size, "model_digest": models.digest}
+    encode.models = models  # what bake_stack calibrates the texture's texels against
     encode.concurrent = refine_s == 0  # batches may run side by side (a refinement spends one budget in order)
     if refine_s > 0:
         encode.metadata.update(refine_s=float(refine_s), refined=0)
@@ -90,12 +93,18 @@ def _refine_rows(
     return z
 
 
-def model_key(size: str, digest: str | None, refine_s: float = 0.0) -> str:
+def model_key(size: str, digest: str | None, refine_s: float = 0.0, calibrated: bool = False) -> str:
     """The model part of a bake key: the decoder size, the refinement budget when there is one
     (refined texels are not the encoded ones) and, when known, the decoder file's digest
     (``encode.metadata["model_digest"]``, ``ModelSet.digest``), so a bake made with an earlier
-    decoder of the same size, or with another refinement budget, is never taken for current."""
+    decoder of the same size, or with another refinement budget, is never taken for current;
+    ``calibrated``: the texture carries its albedo calibration, keyed by the calibration's settings
+    (``calibrate.settings_key``), so a bake without one, or with other settings, is baked again."""
     name = f"{size}+refine{refine_s:g}" if refine_s else size
+    if calibrated:
+        from ..neural.calibrate import settings_key
+
+        name += "+calibrated-" + hashlib.sha256(settings_key().encode()).hexdigest()[:8]
     return f"{name}:{digest}" if digest else name
 
 
@@ -128,7 +137,9 @@ class BakeCancelled(Exception):
 class BakeStats:
     texels: int
     unique: int
-    seconds: float
+    seconds: float  # encoding the texels
+    calibration_seconds: float = 0.0  # the texture's calibration (``bake_stack``), when it has one
+    clusters: int = 0  # its factor tables
 
     @property
     def texels_per_second(self) -> float:
@@ -140,7 +151,7 @@ def bake_texels(
     encode: Encoder,
     *,
     dedup: bool = True,
-    batch: int = 65536,
+    batch: int = BATCH,
     progress: Progress | None = None,
     cancel: Callable[[], bool] | None = None,
     threads: int = 0,
@@ -151,15 +162,26 @@ def bake_texels(
     An encoder that says so (``encode.concurrent``, the neural runtime's without refinement) encodes
     ``threads`` batches side by side, so that one batch's numpy work (features, the layer dedup) overlaps
     another's networks; the texels do not depend on it."""
+    texels, stats, _distinct = _bake_in_threads(arrays, encode, dedup, batch, progress, cancel, threads)
+    return texels, stats
+
+
+def _thread_count(threads: int) -> int:
+    """The threads a bake runs its networks on: ``threads``, or every core for 0."""
+    return int(threads) or (os.cpu_count() or 1)
+
+
+def _bake_in_threads(arrays, encode, dedup, batch, progress, cancel, threads):
     from ..neural.session import threads_in_force
 
-    n_threads = int(threads) or (os.cpu_count() or 1)
+    n_threads = _thread_count(threads)
     workers = n_threads if getattr(encode, "concurrent", False) else 1
     with threads_in_force(n_threads):
         return _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers)
 
 
-def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1) -> tuple[np.ndarray, BakeStats]:
+def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1):
+    """``bake_texels``' texels and stats, and the distinct rows it encoded: ``(stacks, texels, counts)``."""
     t0 = time.perf_counter()
     n = len(arrays)
     inverse = None  # None: every row is its own (no gather at the end)
@@ -207,7 +229,9 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1) -> t
             pool.shutdown(wait=True, cancel_futures=True)
     if not np.isfinite(out).all():
         raise ValueError("the encoder returned non-finite latents")
-    return (out if inverse is None else out[inverse]), BakeStats(texels=n, unique=m, seconds=time.perf_counter() - t0)
+    counts = np.ones(m) if inverse is None else np.bincount(inverse, minlength=m).astype(np.float64)
+    stats = BakeStats(texels=n, unique=m, seconds=time.perf_counter() - t0)
+    return (out if inverse is None else out[inverse]), stats, (todo, out, counts)
 
 
 def bake_stack(
@@ -220,14 +244,40 @@ def bake_stack(
     cancel: Callable[[], bool] | None = None,
     metadata: dict | None = None,
     threads: int = 0,
+    calibrate: bool = True,
 ) -> tuple[LatentTexture, BakeStats]:
     """Bake a spatially varying stack into a mip-mapped latent texture; the networks run on
-    ``threads`` threads (0: every core; Blender's render thread setting in the add-on)."""
+    ``threads`` threads (0: every core; Blender's render thread setting in the add-on).
+
+    ``calibrate``: the texture's albedo calibration (``textures.calibration``: its distinct texels clustered
+    by latent, a factor table per cluster against the reference, about a second per cluster) goes into its
+    metadata (``calibration``), which the renderer applies; only with an encoder that carries its models
+    (``neural_encoder``'s). ``progress`` runs to 1 over both parts."""
     arrays, (h, w) = spatial.texels(resolution)
-    texels, stats = bake_texels(arrays, encode, dedup=dedup, progress=progress, cancel=cancel, threads=threads)
+    models = getattr(encode, "models", None) if calibrate else None
+    share = 1.0 if models is None else ENCODE_SHARE
+    texels, stats, (rows, distinct, counts) = _bake_in_threads(
+        arrays, encode, dedup, BATCH, None if progress is None else (lambda f: progress(share * f)), cancel, threads
+    )
     meta = {"stack": spatial.stack.to_json(), "maps": ",".join(sorted(spatial.maps))}
     meta.update(metadata or {})
     meta.update(getattr(encode, "metadata", {}))  # the encoder's decoder size and digest
+    if models is not None:
+        from ..neural.session import threads_in_force
+        from .calibration import calibrate_texture
+
+        def step(fraction):
+            if cancel is not None and cancel():
+                raise BakeCancelled("bake cancelled during the texture's calibration")
+            if progress is not None:
+                progress(share + (1.0 - share) * fraction)
+
+        t = time.perf_counter()
+        step(0.0)
+        with threads_in_force(_thread_count(threads)):
+            calibration = calibrate_texture(rows, distinct, counts, models, step)
+        meta["calibration"] = calibration.to_text()
+        stats = BakeStats(stats.texels, stats.unique, stats.seconds, time.perf_counter() - t, len(calibration.tables))
     return LatentTexture.from_texels(texels.reshape(h, w, -1), meta), stats
 
 

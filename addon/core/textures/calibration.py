@@ -1,0 +1,184 @@
+"""The albedo calibration of a latent texture: its texels clustered by latent, one factor table per cluster.
+
+A single material is calibrated against the reference once (``neural.calibrate``: a factor table over
+incident and outgoing elevations, about a second of reference walks). A latent texture holds a latent
+per texel, so one table cannot serve it: a shared table moves each texel's albedo error by a few percent
+of the 5-70% the decoder leaves on some texels, where their own tables would leave 3-13%
+(docs/calibration.md, "Latent textures"). A table per texel costs a second per distinct texel.
+
+So the bake (``bake.bake_stack``) clusters the distinct texels by latent (:func:`cluster_latents`:
+k-means, weighted by how many texels share a row, at most :data:`MAX_CLUSTERS`), calibrates each
+cluster once on a sample of its texels (``calibrate.calibrate_texels``: the table that brings the
+cluster's mean lobe to the mean of their references) and stores the centroids and the tables in the
+texture's metadata (:meth:`TextureCalibration.to_text`). The renderer gives each hit the table of the
+centroid nearest its looked-up latent (:meth:`TextureCalibration.at`): filtered texels between two
+clusters take the nearer one's.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..neural import calibrate as cal
+from ..stack import LATENT, StackArrays
+
+MAX_CLUSTERS = 8  # tables per texture: calibrations cost about a second each
+SAMPLES_PER_CLUSTER = 8  # texels of a cluster walked for its table (each with 1/8 of one calibration's walks)
+KMEANS_ITERATIONS = 30
+SEED = 0
+
+
+def cluster_latents(z: np.ndarray, weights: np.ndarray, k: int = MAX_CLUSTERS, seed: int = SEED):
+    """k-means of latents ``z`` (M, D) weighted by ``weights`` (M,): ``(centroids (k', D), labels (M,))``
+    with k' = min(k, M); seeded k-means++ start, then Lloyd's iterations (all rows at once per step)."""
+    x = np.asarray(z, dtype=np.float64).reshape(len(z), -1)
+    wt = np.asarray(weights, dtype=np.float64)
+    if len(x) == 0 or wt.shape != (len(x),) or (wt < 0).any() or wt.sum() <= 0:
+        raise ValueError(f"cluster_latents needs rows and as many non-negative weights, got {x.shape}, {wt.shape}")
+    k = max(1, min(int(k), len(x)))
+    rng = np.random.default_rng(seed)
+    sq = np.einsum("md,md->m", x, x)
+    centres = [x[rng.choice(len(x), p=wt / wt.sum())]]
+    d2 = np.maximum(sq - 2.0 * x @ centres[0] + centres[0] @ centres[0], 0.0)
+    for _ in range(1, k):  # k-means++: a loop over the k centres, each a pass over all rows
+        p = wt * d2
+        if p.sum() <= 0:  # fewer distinct latents than k
+            break
+        c = x[rng.choice(len(x), p=p / p.sum())]
+        centres.append(c)
+        d2 = np.minimum(d2, np.maximum(sq - 2.0 * x @ c + c @ c, 0.0))
+    c = np.array(centres)
+    labels = np.zeros(len(x), dtype=np.int64)
+    for _ in range(KMEANS_ITERATIONS):
+        labels = _nearest(x, sq, c)
+        mass = np.bincount(labels, weights=wt, minlength=len(c))
+        sums = np.zeros_like(c)
+        np.add.at(sums, labels, x * wt[:, None])
+        moved = np.where(mass[:, None] > 0, sums / np.maximum(mass, 1e-300)[:, None], c)
+        if np.allclose(moved, c, rtol=0.0, atol=1e-7):
+            break
+        c = moved
+    keep = np.bincount(labels, minlength=len(c)) > 0
+    c = c[keep]
+    return c, _nearest(x, sq, c)
+
+
+def _nearest(x: np.ndarray, sq: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """Index of the nearest of ``centres`` (k, D) for each row of ``x`` (M, D) with norms ``sq`` (M,)."""
+    d2 = sq[:, None] - 2.0 * x @ centres.T + np.einsum("kd,kd->k", centres, centres)[None, :]
+    return np.argmin(d2, axis=1)
+
+
+@dataclass(frozen=True)
+class TextureCalibration:
+    """Factor tables (T, K, K, 3) on ``cosines`` (K,) and the latent centroids (T, 3 * LATENT) that
+    choose them; ``settings``: ``calibrate.settings_key()`` of the calibrations."""
+
+    cosines: np.ndarray
+    centroids: np.ndarray
+    tables: np.ndarray
+    settings: str
+
+    def at(self, z: np.ndarray) -> cal.RowCalibration:
+        """The calibration of rows with latents ``z`` (N, 3, LATENT): each row the table of its nearest centroid."""
+        x = np.asarray(z, dtype=np.float64).reshape(len(z), -1)
+        c = np.asarray(self.centroids, dtype=np.float64)
+        which = _nearest(x, np.einsum("md,md->m", x, x), c) if len(c) > 1 else np.zeros(len(x), np.int64)
+        return cal.RowCalibration(self.cosines, self.tables, which)
+
+    def to_text(self) -> str:
+        """The calibration as one line of JSON (the arrays as base64 float32), for the texture's metadata."""
+
+        def packed(a):
+            return base64.b64encode(np.ascontiguousarray(a, dtype="<f4").tobytes()).decode("ascii")
+
+        return json.dumps(
+            {
+                "settings": self.settings,
+                "shape": list(self.tables.shape),
+                "cosines": [float(v) for v in self.cosines],
+                "centroids": packed(self.centroids),
+                "tables": packed(self.tables),
+            },
+            separators=(",", ":"),
+        )
+
+    @classmethod
+    def from_text(cls, text: str) -> "TextureCalibration":
+        """The calibration :meth:`to_text` wrote; ValueError for anything else."""
+        try:
+            d = json.loads(text)
+            t, k, k2, c = (int(v) for v in d["shape"])
+            cosines = np.asarray(d["cosines"], dtype=np.float64)
+            centroids = np.frombuffer(base64.b64decode(d["centroids"]), dtype="<f4").reshape(t, 3 * LATENT)
+            tables = np.frombuffer(base64.b64decode(d["tables"]), dtype="<f4").reshape(t, k, k2, c)
+            settings = str(d["settings"])
+        except (ValueError, KeyError, TypeError) as e:
+            raise ValueError(f"not a latent texture's calibration: {e}") from None
+        if k != k2 or c != 3 or cosines.shape != (k,) or t < 1:
+            raise ValueError(f"not a latent texture's calibration: tables {d['shape']}, {len(cosines)} cosines")
+        if not (np.isfinite(tables).all() and np.isfinite(centroids).all()) or (tables < 0).any():
+            raise ValueError("not a latent texture's calibration: non-finite or negative values")
+        return cls(cosines, centroids.astype(np.float64), tables.astype(np.float64), settings)
+
+    def is_current(self) -> bool:
+        """Whether it was made with this version's calibration settings (else a renderer ignores it)."""
+        return self.settings == cal.settings_key()
+
+
+def calibrate_texture(
+    arrays: StackArrays, texels: np.ndarray, counts: np.ndarray, models, progress=None, seed: int = SEED
+) -> TextureCalibration:
+    """The calibration of a texture's distinct texels: their stacks ``arrays`` (M rows), baked channels
+    ``texels`` (M, 100: latents, proxy, top coating; ``latent_texture.CHANNEL_NAMES``) and how many texels
+    each stands for (``counts``). ``progress(fraction)`` after each cluster."""
+    texels = np.asarray(texels, dtype=np.float32)
+    counts = np.asarray(counts, dtype=np.float64)
+    if len(arrays) != len(texels) or counts.shape != (len(texels),) or len(texels) == 0:
+        raise ValueError(
+            f"calibrate_texture needs as many stacks, texels and counts (at least one); got {len(arrays)}, "
+            f"{len(texels)}, {counts.shape}"
+        )
+    k = 3 * LATENT
+    z = texels[:, :k]
+    centroids, labels = cluster_latents(z, counts, MAX_CLUSTERS, seed)
+    tables = []
+    for j in range(len(centroids)):  # one calibration per cluster (at most MAX_CLUSTERS), not per texel
+        members = np.flatnonzero(labels == j)
+        pick = members[_stratified(counts[members], SAMPLES_PER_CLUSTER)]
+        calibration = cal.calibrate_texels(
+            arrays.take(pick),
+            models,
+            z[pick].reshape(-1, 3, LATENT),
+            texels[pick, k : k + 2],
+            texels[pick, k + 2 : k + 4],
+            seed=seed + j,
+        )
+        tables.append(calibration.table)
+        if progress is not None:
+            progress((j + 1) / len(centroids))
+    cosines = np.asarray(cal.COSINES, dtype=np.float64)
+    return TextureCalibration(cosines, centroids, np.array(tables), cal.settings_key())
+
+
+def _stratified(weights: np.ndarray, n: int) -> np.ndarray:
+    """``n`` indices into ``weights`` at evenly spaced points of their cumulative sum (systematic
+    sampling: a row holding a share s of the weight is drawn about n s times)."""
+    cum = np.cumsum(weights)
+    points = (np.arange(n) + 0.5) * cum[-1] / n
+    return np.minimum(np.searchsorted(cum, points, side="right"), len(weights) - 1)
+
+
+def calibrate_baked(arrays: StackArrays, texels: np.ndarray, models, progress=None) -> TextureCalibration:
+    """:func:`calibrate_texture` of baked texels (N, 100) and their stacks (N rows, repeats allowed: the
+    distinct rows are found first, as the bake finds them)."""
+    from ..rows import distinct_rows
+
+    texels = np.asarray(texels, dtype=np.float32).reshape(len(arrays), -1)
+    first, inverse = distinct_rows(arrays.to_matrix(np.float32))
+    counts = np.bincount(inverse, minlength=len(first)).astype(np.float64)
+    return calibrate_texture(arrays.take(first), texels[first], counts, models, progress)
