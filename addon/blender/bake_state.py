@@ -55,24 +55,31 @@ def bake_model_key(size: str, refine_s: float = 0.0) -> str:
 
 def baked_texture_state(mat) -> tuple[str | None, str]:
     """(path of a current baked texture or None, a line for the user about its state)."""
+    path, state, _ = current_texture(mat)
+    return path, state
+
+
+def current_texture(mat):
+    """``baked_texture_state`` and the material's spatially varying stack the current texture was baked
+    from (``textures.spatial.SpatialStack``, its maps read; None when there is no current texture)."""
     s = mat.neural_layers
     if not s.texture_path:
-        return None, "not baked"
+        return None, "not baked", None
     path = bpy.path.abspath(s.texture_path)
     if not os.path.isfile(path):
-        return None, f"baked texture missing: {path}"
+        return None, f"baked texture missing: {path}", None
     try:
         found = bake_inputs.spatial_stack_from_material(mat)
     except ValueError as e:
-        return None, str(e)
+        return None, str(e), None
     if found is None:
-        return None, "no layer stack"
+        return None, "no layer stack", None
     spatial, _ = found
     res = tuple(s.texture_size)
     try:
         model = bake_model_key(bake_size(mat), s.bake_refine)
     except UserError as e:
-        return None, str(e)
+        return None, str(e), None
     if bake_key(spatial, res, model) != s.texture_key:
-        return None, "baked texture is out of date: bake again"
-    return path, f"baked: {os.path.basename(path)}"
+        return None, "baked texture is out of date: bake again", None
+    return path, f"baked: {os.path.basename(path)}", spatial

@@ -109,21 +109,23 @@ def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial:
 
 
 def _baked_texture(mat, warnings: list[str]):
-    """The material's baked latent texture if it is current, else None (with a warning if it is stale)."""
+    """``(texture, spatial)``: the material's baked latent texture if it is current and the spatially
+    varying stack it was baked from (what reference mode shades), else ``(None, None)`` (with a warning if
+    it is stale)."""
     if not mat.neural_layers.texture_path:
-        return None
+        return None, None
     from ..core.textures import LatentTexture
     from . import bake_state
 
-    path, state = bake_state.baked_texture_state(mat)
+    path, state, spatial = bake_state.current_texture(mat)
     if path is None:
         warnings.append(f"material {mat.name!r}: {state}; rendering its constant stack")
-        return None
+        return None, None
     try:
-        return LatentTexture.read_exr(path)
+        return LatentTexture.read_exr(path), spatial
     except (OSError, ValueError, RuntimeError) as e:
         warnings.append(f"material {mat.name!r}: cannot read its latent texture ({e}); rendering its constant stack")
-        return None
+        return None, None
 
 
 def _refined_latent(mat, stack, info: list[str]):
@@ -174,9 +176,10 @@ def export_material(mat, warnings: list[str], info: list[str] | None = None):
     except ValueError as e:
         warnings.append(f"material {mat.name!r}: {e}; rendering it as a Lambertian")
     if stack is not None:
-        texture = _baked_texture(mat, warnings)
+        texture, spatial = _baked_texture(mat, warnings)
         latent = _refined_latent(mat, stack, [] if info is None else info) if texture is None else None
-        return LayeredSpec(stack, texture, mat.name, latent=latent)
+        spatial = spatial if spatial is not None and spatial.stack == stack else None
+        return LayeredSpec(stack, texture, mat.name, latent=latent, spatial=spatial)
     return unmanaged_material(mat, warnings)
 
 

@@ -70,6 +70,14 @@ def test_bake_writes_the_texture_and_the_renderer_uses_it_while_current(wood, bp
     spec = scene_export.export_material(wood, warnings)
     assert spec.latent_texture is not None and not warnings
     assert (spec.latent_texture.height, spec.latent_texture.width) == (8, 16)
+    # reference mode shades the same spatially varying stack, texel by texel (the maps the bake read)
+    from addon.core.render.materials import ReferenceLayered, resolve
+
+    assert spec.spatial is not None and spec.spatial.stack == spec.stack
+    np.testing.assert_allclose(spec.spatial.maps["coatings[0].roughness"][0, [0, 15], 0], [0.1**2, 0.6**2], rtol=1e-5)
+    assert (
+        isinstance(resolve(spec, "reference"), ReferenceLayered) and resolve(spec, "reference").spatial is spec.spatial
+    )
     # editing the stack makes the texture stale: the renderer warns and uses the constant stack
     wood.neural_layers.layers[1].thickness = 1.0
     assert bake_ops.baked_texture_state(wood)[0] is None

@@ -1,5 +1,7 @@
 """Renderer materials: reference mode, neural materials, resolution of stacks, textures."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -345,3 +347,57 @@ def test_a_given_latent_is_decoded_as_it_is_and_keeps_its_size_through_the_decod
     scene = Scene(scene.camera, scene.mesh, [spec], scene.lights, scene.environment, ["gold"])
     materials, choices, _ = quality.assign_decoders(scene, "small")
     assert materials == [spec] and not choices
+
+
+def test_spatial_stacks_are_addressed_as_latent_textures_are():
+    """``SpatialStack.stacks_at`` (reference mode's per-hit stacks) picks the texel a latent texture of the
+    same maps holds at that uv: repeat addressing, v = 0 at the bottom row."""
+    from addon.core.textures.spatial import SpatialStack
+
+    rough = np.arange(12, dtype=np.float32).reshape(3, 4) * 0.05 + 0.05
+    spatial = SpatialStack(PRESETS["coated_gold"], {"coatings[0].roughness": rough})
+    row, col = np.divmod(np.arange(12), 4)
+    uv = np.stack([(col + 0.5) / 4, 1.0 - (row + 0.5) / 3], axis=1)
+    np.testing.assert_allclose(spatial.stacks_at(uv).coat_roughness[:, 0], rough.reshape(-1))
+    np.testing.assert_allclose(spatial.stacks_at(uv + [[2.0, -1.0]]).coat_roughness[:, 0], rough.reshape(-1))
+    # the latent texture's bilinear tap at a texel centre is that texel alone
+    from addon.core.textures import LatentTexture
+
+    texels = np.zeros((3, 4, 100), np.float32)
+    texels[..., 0] = rough
+    tap = LatentTexture.from_texels(texels).lookup(uv, np.zeros(12))[0][:, 0, 0]
+    np.testing.assert_allclose(tap, rough.reshape(-1), rtol=1e-3)
+    assert len(SpatialStack(PRESETS["coated_gold"]).stacks_at(uv)) == 12  # a constant stack
+    with pytest.raises(ValueError, match="uv must be finite"):
+        spatial.stacks_at(np.array([[np.nan, 0.0]]))
+
+
+def test_reference_mode_shades_each_hit_with_its_texels_stack():
+    """A latent-textured material in reference mode: each hit's f is the estimator's for its own texel's
+    stack (a glossy and a rough coat on the two halves), not the constant stack's; a smooth texel anywhere
+    turns on the sampler's delta part; a spatial stack of another stack is refused."""
+    from addon.core.textures.spatial import SpatialStack
+
+    stack = PRESETS["coated_gold"]
+    rough = np.full((2, 2), 0.05, np.float32)
+    rough[:, 1] = 0.5
+    spatial = SpatialStack(stack, {"coatings[0].roughness": rough})
+    material = M.resolve(LayeredSpec(stack, None, "gold", spatial=spatial), "reference", reference_walks=64)
+    assert isinstance(material, ReferenceLayered) and material.spatial is spatial and material.q == 1.0
+    n = 4000
+    uv = np.where((np.arange(n) % 2 == 0)[:, None], [[0.25, 0.5]], [[0.75, 0.5]])  # left, right, left, ...
+    wi = np.tile([[0.3, 0.0, 0.954]], (n, 1))
+    wo = np.tile([[-0.3, 0.0, 0.954]], (n, 1))  # near the specular direction: the coats differ most here
+    f = material.bind(SurfaceHits(uv, np.zeros(n), seed=5)).eval(wi, wo).mean(axis=1)
+    for half, r in ((0, 0.05), (1, 0.5)):
+        own = ReferenceLayered(Stack(stack.base, (dataclasses.replace(stack.coatings[0], roughness=r),)), 64)
+        g = own.bind(SurfaceHits(uv[:2000], np.zeros(2000), seed=9)).eval(wi[:2000], wo[:2000]).mean(axis=1)
+        mine = f[half::2]
+        se = np.sqrt(mine.var() / len(mine) + g.var() / len(g))
+        assert abs(mine.mean() - g.mean()) < 4 * se, (half, mine.mean(), g.mean(), se)
+    assert f[0::2].mean() > 3 * f[1::2].mean()  # the glossy half's highlight, the rough half's spread
+    smooth = rough.copy()
+    smooth[0, 0] = 0.0
+    assert ReferenceLayered(stack, 4, SpatialStack(stack, {"coatings[0].roughness": smooth})).q == 0.5
+    with pytest.raises(ValueError, match="must vary its own stack"):
+        ReferenceLayered(PRESETS["red_car_paint"], 4, spatial)

@@ -13,6 +13,7 @@ import math
 import numpy as np
 
 from ..stack import PRESETS, Coating, Diffuse, Stack
+from ..textures.spatial import SpatialStack
 from . import shapes
 from .lights import AreaLight, Environment, PointLight
 from .materials import ImageTexture, LambertMaterial, LayeredSpec
@@ -69,8 +70,8 @@ def floor_maps(size: int = 256, squares: int = 16) -> dict[str, np.ndarray]:
 def demo_scene(width: int = 320, height: int = 180, presets=DEMO_PRESETS, floor_texture=None) -> Scene:
     """Spheres of the given presets (names, or Stack objects) in a row on a tiled floor, a sky and
     a soft area light. With ``floor_texture`` (a latent texture baked from ``FLOOR_STACK`` and
-    :func:`floor_maps`) the floor is a varnished, spatially varying layered material; without it
-    a Lambertian with the tile texture."""
+    :func:`floor_maps`) the floor is a varnished, spatially varying layered material (in reference mode
+    its stacks texel by texel, from the same maps); without it a Lambertian with the tile texture."""
     presets = list(presets)
     stacks = [PRESETS[p] if isinstance(p, str) else p for p in presets]
     names = [p if isinstance(p, str) else f"stack{i}" for i, p in enumerate(presets)]
@@ -87,7 +88,9 @@ def demo_scene(width: int = 320, height: int = 180, presets=DEMO_PRESETS, floor_
     if floor_texture is None:
         tiles = LambertMaterial((1.0, 1.0, 1.0), ImageTexture(checker_texture()))
     else:
-        tiles = LayeredSpec(FLOOR_STACK, floor_texture, "varnished_tiles")
+        tiles = LayeredSpec(
+            FLOOR_STACK, floor_texture, "varnished_tiles", spatial=SpatialStack(FLOOR_STACK, floor_maps())
+        )
     materials = [tiles] + [LayeredSpec(st, None, name) for st, name in zip(stacks, names, strict=True)]
     light = np.eye(4)
     light[:3, 3] = (1.5, -1.5, 3.0)

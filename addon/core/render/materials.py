@@ -199,14 +199,21 @@ class _BoundReference(ShadeByParts):
     only its delta-only (specular) paths, which carry that component exactly.
     """
 
-    def __init__(self, stack: Stack, walks: int, seed: int, sigma: float, w: float, q: float):
+    def __init__(self, stack, walks: int, seed: int, sigma: float, w: float, q: float):
+        # ``stack``: one Stack, or StackArrays with a row per hit (a spatially varying stack's texels)
         self.stack, self.walks, self.seed = stack, walks, seed
         self.sigma, self.w, self.q = sigma, w, q
+
+    def _stacks(self, index):
+        """The stack of the rows ``index`` (all when None): the material's one, or those hits' own."""
+        return self.stack if index is None or isinstance(self.stack, Stack) else self.stack.take(index)
 
     def eval(self, wi, wo, index=None):
         from .. import reference
 
-        f, _ = reference.eval_brdf(self.stack, wi, wo, walks=self.walks, seed=self.seed)
+        if len(wi) == 0:
+            return np.zeros((0, 3))
+        f, _ = reference.eval_brdf(self._stacks(index), wi, wo, walks=self.walks, seed=self.seed)
         return np.nan_to_num(np.maximum(f, 0.0))
 
     def shade(self, wo, light_wi, light_rows, u_lobe, u, need_pdf) -> Shading:
@@ -250,14 +257,14 @@ class _BoundReference(ShadeByParts):
         r = np.nonzero(rough)[0]
         if len(r):
             wi, p = self.sample_direction(wo[r], u_lobe[r] / self.q, u[r])
-            f, _ = reference.eval_brdf(self.stack, wi, wo[r], walks=self.walks, seed=self.seed + 1)
+            f, _ = reference.eval_brdf(self._stacks(r), wi, wo[r], walks=self.walks, seed=self.seed + 1)
             bs = finish_sample(wi, self.q * p, np.nan_to_num(np.maximum(f, 0.0)))
             out_wi[r], out_w[r], out_pdf[r] = bs.wi, bs.weight, bs.pdf
         d = np.nonzero(~rough)[0]
         if len(d):
             # The analog walk draws its own numbers from a stream keyed by the bounce's seed.
             rng = np.random.default_rng([self.seed, 1])
-            wi, weight, specular = reference.sample(self.stack, wo[d], rng, with_flags=True)
+            wi, weight, specular = reference.sample(self._stacks(d), wo[d], rng, with_flags=True)
             keep = np.asarray(specular, dtype=bool)
             weight = np.nan_to_num(np.maximum(np.asarray(weight, dtype=np.float64), 0.0)) / (1 - self.q)
             out_wi[d] = np.where(keep[:, None], wi, 0.0)
@@ -283,17 +290,30 @@ class ReferenceLayered:
     kind = "reference"
     has_pdf = True
 
-    def __init__(self, stack: Stack, walks: int = 16):
+    def __init__(self, stack: Stack, walks: int = 16, spatial=None):
         if walks < 1:
             raise ValueError(f"reference walks must be >= 1, got {walks}")
+        if spatial is not None and spatial.stack != stack:
+            raise ValueError("a reference material's spatially varying stack must vary its own stack")
         from .neural_material import proxy_guess
 
-        self.stack, self.walks = stack, int(walks)
+        self.stack, self.walks, self.spatial = stack, int(walks), spatial
         self.sigma, self.w = proxy_guess(stack)
-        self.q = 0.5 if _top_is_smooth(stack) else 1.0
+        # a delta component wherever a texel's top is smooth (its roughness may be one of the maps)
+        smooth = _top_is_smooth(stack) if spatial is None else _any_top_smooth(spatial)
+        self.q = 0.5 if smooth else 1.0
 
     def bind(self, hits: SurfaceHits):
-        return _BoundReference(self.stack, self.walks, hits.seed, self.sigma, self.w, self.q)
+        stack = self.stack if self.spatial is None else self.spatial.stacks_at(hits.uv)
+        return _BoundReference(stack, self.walks, hits.seed, self.sigma, self.w, self.q)
+
+
+def _any_top_smooth(spatial) -> bool:
+    """Whether any texel of a spatially varying stack has a smooth top interface."""
+    arrays, _ = spatial.texels()
+    if arrays.n_coatings:
+        return bool((arrays.coat_roughness[:, -1] < SMOOTH_ALPHA).any())
+    return not isinstance(spatial.stack.base, Diffuse) and bool((arrays.base_roughness < SMOOTH_ALPHA).any())
 
 
 @dataclass
@@ -302,12 +322,15 @@ class LayeredSpec:
 
     ``latent``, when given, is ``(z (3, 32), size)``: a latent of ``stack`` for decoder ``size``
     (a refined one, say) that neural mode decodes instead of encoding the stack again; like a latent
-    texture it fixes the material's decoder size."""
+    texture it fixes the material's decoder size. ``spatial`` (``textures.spatial.SpatialStack`` of
+    ``stack``): the per-texel stacks the latent texture was baked from, which reference mode shades hit
+    by hit (without it, reference mode shades ``stack`` everywhere)."""
 
     stack: Stack
     latent_texture: object | None = None
     name: str = ""
     latent: tuple | None = None
+    spatial: object | None = None
 
 
 def resolve(material, mode: str, reference_walks: int = 16, calibrate=False):
@@ -344,4 +367,4 @@ def resolve(material, mode: str, reference_walks: int = 16, calibrate=False):
         )
         if made is not None:
             return made
-    return ReferenceLayered(stack, reference_walks)
+    return ReferenceLayered(stack, reference_walks, spatial=spec.spatial if spec else None)

@@ -83,6 +83,7 @@ class SpatialStack:
 
     stack: Stack
     maps: dict[str, np.ndarray] = field(default_factory=dict)
+    _rows: StackArrays | None = field(default=None, init=False, repr=False, compare=False)  # stacks_at's texels
 
     def __post_init__(self):
         checked: dict[str, np.ndarray] = {}
@@ -122,6 +123,21 @@ class SpatialStack:
             return h, w
         scale = max_side / max(h, w)
         return max(1, round(h * scale)), max(1, round(w * scale))
+
+    def stacks_at(self, uv: np.ndarray) -> StackArrays:
+        """The stacks (N rows) of the texels at ``uv`` (N, 2), nearest texel of the images' resolution, with a
+        latent texture's addressing (repeat, v = 0 at the bottom row): the per-hit stacks of reference mode."""
+        uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+        if not np.isfinite(uv).all():
+            raise ValueError("uv must be finite")
+        if self.resolution is None:
+            return StackArrays.repeat(self.stack, len(uv))
+        h, w = self.resolution
+        if self._rows is None:
+            self._rows = self.texels()[0]
+        col = np.floor(uv[:, 0] * w).astype(np.int64) % w
+        row = np.floor((1.0 - uv[:, 1]) * h).astype(np.int64) % h
+        return self._rows.take(row * w + col)
 
     def texels(self, resolution: tuple[int, int] | None = None) -> tuple[StackArrays, tuple[int, int]]:
         """One stack per texel (rows top to bottom) and the (height, width) used.
