@@ -54,7 +54,14 @@ if str(ROOT) not in sys.path:
 
 from addon.core.stack import PRESETS, Stack, preset  # noqa: E402
 from addon.core.textures import colour_maps, files  # noqa: E402
-from addon.core.textures.bake import _texels_at, bake_key, bake_texels, model_key, neural_encoder  # noqa: E402
+from addon.core.textures.bake import (  # noqa: E402
+    _texels_at,
+    bake_key,
+    bake_texels,
+    model_key,
+    neural_encoder,
+    record_filter_levels,
+)
 from addon.core.textures.calibration import calibrate_baked  # noqa: E402
 from addon.core.textures.latent_texture import CHANNEL_NAMES, LatentTexture, read_image_file  # noqa: E402
 from addon.core.textures.mip import resample_area  # noqa: E402
@@ -465,7 +472,8 @@ def assemble(
     ``rebake(band) -> texels``. ``model_metadata`` (the encoder's decoder size and digest) goes into the texture.
     With ``models`` (the encoder's), a material without a mix gets its albedo calibration
     (``textures.calibration``) from its texels and stacks (``cache``: ``run``'s, holding them when this
-    process baked bands of it).
+    process baked bands of it), and every texture the count of mip levels it may be filtered across
+    (``textures.filtering``).
     """
     folder = _band_folder(out, job)
     h, w = job.resolution
@@ -497,7 +505,10 @@ def assemble(
         arrays = ((cache or {}).get(job.name) or job.texels())[0]
         meta["calibration"] = calibrate_baked(arrays, texels.reshape(h * w, -1), models).to_text()
         calibration_s = round(time.perf_counter() - t, 3)
-    LatentTexture.from_texels(texels, meta).write_exr(out / f"{job.file}.exr")
+    tex = LatentTexture.from_texels(texels, meta)
+    if models is not None:  # the mip levels the renderer may filter across (textures.filtering)
+        record_filter_levels(tex, models)
+    tex.write_exr(out / f"{job.file}.exr")
     sidecar = {
         "key": key,
         "material": job.name,

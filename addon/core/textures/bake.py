@@ -245,6 +245,7 @@ def bake_stack(
     metadata: dict | None = None,
     threads: int = 0,
     calibrate: bool = True,
+    check_filtering: bool = True,
 ) -> tuple[LatentTexture, BakeStats]:
     """Bake a spatially varying stack into a mip-mapped latent texture; the networks run on
     ``threads`` threads (0: every core; Blender's render thread setting in the add-on).
@@ -252,7 +253,9 @@ def bake_stack(
     ``calibrate``: the texture's albedo calibration (``textures.calibration``: its distinct texels clustered
     by latent, a factor table per cluster against the reference, about a second per cluster) goes into its
     metadata (``calibration``), which the renderer applies; only with an encoder that carries its models
-    (``neural_encoder``'s). ``progress`` runs to 1 over both parts."""
+    (``neural_encoder``'s). ``progress`` runs to 1 over both parts. ``check_filtering``: with such an
+    encoder, the mip levels whose latents decode like the average of their texels are measured
+    (``textures.filtering``) and recorded (``filter_levels``), so the renderer filters no further."""
     arrays, (h, w) = spatial.texels(resolution)
     models = getattr(encode, "models", None) if calibrate else None
     share = 1.0 if models is None else ENCODE_SHARE
@@ -278,7 +281,21 @@ def bake_stack(
             calibration = calibrate_texture(rows, distinct, counts, models, step)
         meta["calibration"] = calibration.to_text()
         stats = BakeStats(stats.texels, stats.unique, stats.seconds, time.perf_counter() - t, len(calibration.tables))
-    return LatentTexture.from_texels(texels.reshape(h, w, -1), meta), stats
+    tex = LatentTexture.from_texels(texels.reshape(h, w, -1), meta)
+    encoder_models = getattr(encode, "models", None)
+    if check_filtering and encoder_models is not None:
+        record_filter_levels(tex, encoder_models, threads)
+    return tex, stats
+
+
+def record_filter_levels(tex: LatentTexture, models, threads: int = 0) -> None:
+    """``tex.metadata["filter_levels"]``: how many of its levels decode like the average of their texels
+    (``textures.filtering.filterable_levels``, on ``threads`` threads)."""
+    from ..neural.session import threads_in_force
+    from .filtering import filterable_levels
+
+    with threads_in_force(_thread_count(threads)):
+        tex.metadata["filter_levels"] = filterable_levels(models, tex.levels)[0]
 
 
 def bake_mix(

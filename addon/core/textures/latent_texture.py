@@ -119,6 +119,12 @@ class LatentTexture:
         return cls(build_mip_chain(texels), dict(metadata or {}))
 
     @property
+    def filter_levels(self) -> int:
+        """How many levels (finest first) lookups use: the bake's measurement (``textures.filtering``, the
+        metadata's ``filter_levels``), else all of them."""
+        return max(1, min(int(self.metadata.get("filter_levels", len(self.levels))), len(self.levels)))
+
+    @property
     def width(self) -> int:
         return self.levels[0].shape[1]
 
@@ -128,8 +134,8 @@ class LatentTexture:
 
     def lookup(self, uv: np.ndarray, footprint) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Latents (N, 3, 32), proxy parameters (N, 2) and top coatings (N, 2: alpha, ior) at uv with a
-        footprint in uv units."""
-        v = trilinear_lookup(self.levels, uv, footprint)
+        footprint in uv units, on the levels the bake found filterable (``filter_levels``)."""
+        v = trilinear_lookup(self.levels, uv, footprint, self.filter_levels)
         k = CHANNELS * LATENT_DIM
         z = v[:, :k].reshape(-1, CHANNELS, LATENT_DIM)
         return z, v[:, k : k + 2], v[:, k + 2 :]
@@ -212,6 +218,10 @@ class LatentTexture:
         finally:
             inp.close()
         _check_levels(levels, path)
+        if not str(metadata.get("filter_levels", "1")).isdigit() or int(metadata.get("filter_levels", 1)) < 1:
+            raise LatentTextureError(
+                f"{path}: filter_levels must be a positive count, got {metadata['filter_levels']!r}"
+            )
         return cls(levels, metadata)
 
 

@@ -94,9 +94,12 @@ def mip_level_for_footprint(footprint: np.ndarray, width: int, height: int, n_le
     return np.clip(np.log2(texels), 0.0, n_levels - 1)
 
 
-def trilinear_lookup(levels: list[np.ndarray], uv: np.ndarray, footprint: np.ndarray | float) -> np.ndarray:
+def trilinear_lookup(
+    levels: list[np.ndarray], uv: np.ndarray, footprint: np.ndarray | float, n_levels: int | None = None
+) -> np.ndarray:
     """Trilinear lookup (N, C) float32 at uv (N, 2) (v = 0 at the bottom row, repeat addressing) with
-    footprint (N,) or scalar in uv units.
+    footprint (N,) or scalar in uv units, on the first ``n_levels`` levels (default all: a coarser footprint
+    stays on the last of them).
 
     The level is log2 of the footprint in texels of level 0; the two nearest levels are looked up
     bilinearly and blended, in float32 (the texture is stored as half floats: float64 arithmetic would
@@ -113,7 +116,8 @@ def trilinear_lookup(levels: list[np.ndarray], uv: np.ndarray, footprint: np.nda
         raise ValueError("uv and footprint must be finite")
     chain = levels if isinstance(levels, MipChain) else MipChain(levels)
     h, w, c = chain[0].shape
-    lod = mip_level_for_footprint(fp, w, h, len(chain))
+    usable = len(chain) if n_levels is None else max(1, min(int(n_levels), len(chain)))
+    lod = mip_level_for_footprint(fp, w, h, usable)
     out = np.zeros((uv.shape[0], c), dtype=np.float32)
     kernels.trilinear(chain.flat, chain.offsets, chain.heights, chain.widths, c, uv, lod, out)
     return out

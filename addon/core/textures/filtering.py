@@ -1,0 +1,93 @@
+"""How far a latent texture may be filtered in latent space: the mip levels whose averaged latents decode
+to the average of what their texels decode to.
+
+A mip level holds the box-filtered *latents* of the level below (``mip.downsample``), and the renderer
+decodes the level a ray's footprint asks for. Averaging latents is averaging the BRDFs only where the
+averaged texels are alike: the demo's varnished tiles (a glossy coat on the light tiles, a rough one on the
+dark tiles and the grout) rendered 9-13% too dark seen at 80-90 degrees, where the footprint reaches the
+levels that mix tile and grout, and within 1% looked up on the finest level only
+(docs/texture_calibration.md). Filtering after shading (decoding each texel a ray meets and letting the
+pixel's samples average them, as reference mode does) has no such bias, only the noise of the texture's
+detail, which the samples of a pixel average out.
+
+So the bake measures the chain (:func:`filterable_levels`): at each level, 2 x 2 blocks of the level below
+(a crop of at most :data:`CROP` texels a side) are decoded at :data:`PAIRS` of directions texel by texel
+and averaged, and compared with the decoding of their averaged latent. The first level whose mean
+difference exceeds :data:`TOLERANCE` of the mean value ends the usable chain; the texture records how many
+levels the renderer may use (``filter_levels`` in its metadata; ``LatentTexture.lookup`` clamps the level
+of detail to them), and finer footprints than that are left to the pixel's samples.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .mip import downsample
+
+TOLERANCE = 0.02  # mean |decoded average latent - average decoded| over the mean decoded value
+CROP = 128  # texels a side of the block of each level that is measured
+SEED = 0
+
+
+def _pairs() -> tuple[np.ndarray, np.ndarray]:
+    """(wi, wo) unit directions (P, 3) each: the viewer at 0, 45, 70, 80 and 86 degrees, each with the light
+    at its mirror direction, at the normal, and at 60 degrees on the viewer's side (backscatter)."""
+    wi, wo = [], []
+    for view in np.radians([0.0, 45.0, 70.0, 80.0, 86.0]):
+        o = np.array([np.sin(view), 0.0, np.cos(view)])
+        for light in (
+            np.array([-o[0], 0.0, o[2]]),  # the mirror direction
+            np.array([0.0, 0.0, 1.0]),
+            np.array([np.sin(np.radians(60.0)), 0.0, np.cos(np.radians(60.0))]),
+        ):
+            wi.append(light)
+            wo.append(o)
+    return np.array(wi), np.array(wo)
+
+
+PAIRS = _pairs()
+
+
+def decoded(models, texels: np.ndarray) -> np.ndarray:
+    """f cos(theta_i) (N, P, 3) of texels (N, 100: latents, proxy, top coating) at :data:`PAIRS`, as the
+    renderer evaluates them (top lobe included, no calibration)."""
+    wi, wo = PAIRS
+    n, p = len(texels), len(wi)
+    z = np.repeat(texels[:, :96].reshape(n, 3, 32), p, axis=0)
+    top = np.repeat(texels[:, 98:100].astype(np.float64), p, axis=0)
+    f = models.eval_brdf(z, np.tile(wi, (n, 1)), np.tile(wo, (n, 1)), top, unit=True)
+    return (np.asarray(f, dtype=np.float64) * np.tile(wi[:, 2], n)[:, None]).reshape(n, p, 3)
+
+
+def level_error(models, level: np.ndarray, seed: int = SEED) -> float:
+    """Mean |decode(2 x 2 averaged latents) - average of the decoded 2 x 2 texels| over the mean decoded
+    value, on a crop of ``level`` (H, W, 100) of at most :data:`CROP` texels a side, the larger of two: the
+    blocks the next level averages, and the blocks one texel over, which a bilinear tap between two of
+    those blends (repeat addressing)."""
+    h, w = level.shape[:2]
+    ch, cw = max(1, min(CROP, h - h % 2)), max(1, min(CROP, w - w % 2))
+    rng = np.random.default_rng(seed)
+    y0 = 2 * rng.integers(0, (h - ch) // 2 + 1)
+    x0 = 2 * rng.integers(0, (w - cw) // 2 + 1)
+    errors = []
+    for shift in (0, 1):  # a loop over the two alignments of the blocks
+        rows = (y0 + shift + np.arange(ch)) % h
+        cols = (x0 + shift + np.arange(cw)) % w
+        crop = np.asarray(level[np.ix_(rows, cols)], dtype=np.float32)
+        averaged = downsample(crop)  # the latents of the blocks, averaged
+        each = decoded(models, crop.reshape(-1, crop.shape[2])).reshape(ch, cw, -1)
+        want = downsample(each)  # the texels' decoded values averaged the same way
+        got = decoded(models, averaged.reshape(-1, crop.shape[2])).reshape(want.shape)
+        errors.append(float(np.abs(got - want).mean() / max(np.abs(want).mean(), 1e-12)))
+    return max(errors)
+
+
+def filterable_levels(models, levels, tolerance: float = TOLERANCE) -> tuple[int, list[float]]:
+    """How many levels of the chain ``levels`` (finest first) decode like the average of their texels, and
+    each measured level's error (:func:`level_error`), in order until the first one over ``tolerance``."""
+    errors = []
+    for k in range(1, len(levels)):  # a loop over mip levels, each one batch of decodes
+        errors.append(level_error(models, levels[k - 1], SEED + k))
+        if errors[-1] > tolerance:
+            return k, errors
+    return len(levels), errors

@@ -1,0 +1,64 @@
+"""How far a latent texture may be filtered in latent space (addon.core.textures.filtering), and the lookup
+that stops there."""
+
+import numpy as np
+import pytest
+
+from addon.core.stack import preset
+from addon.core.textures import LatentTexture
+from addon.core.textures import filtering as F
+from addon.core.textures.bake import bake_stack, neural_encoder
+from addon.core.textures.latent_texture import LatentTextureError
+from addon.core.textures.spatial import SpatialStack
+
+
+@pytest.fixture(scope="module")
+def encode():
+    return neural_encoder("tiny", threads=2)
+
+
+def _bake(encode, rough, **kw):
+    return bake_stack(SpatialStack(preset("coated_gold"), {"coatings[0].roughness": rough}), encode, threads=2, **kw)[0]
+
+
+def test_alike_texels_filter_to_the_last_level_and_unlike_ones_not_at_all(encode):
+    flat = np.full((16, 16), 0.3, np.float32)
+    tex = _bake(encode, flat)
+    assert tex.metadata["filter_levels"] == len(tex.levels) == 5
+    # a glossy and a rough coat in stripes two texels wide: the next level's blocks hold one coat each,
+    # but a bilinear tap between two of them blends the stripes, which decodes to neither average
+    stripes = np.where((np.arange(16) // 2) % 2 == 0, 0.02, 0.6).astype(np.float32)[None, :].repeat(16, 0)
+    n, errors = F.filterable_levels(encode.models, _bake(encode, stripes, check_filtering=False).levels)
+    assert n == 1 and errors[0] > 10 * F.TOLERANCE
+    assert F.level_error(encode.models, tex.levels[0]) < 1e-4  # one latent: its average is itself
+    # stripes as wide as the texture's blocks at every level below the last few: those levels filter
+    wide = np.where((np.arange(16) // 8) % 2 == 0, 0.2, 0.22).astype(np.float32)[None, :].repeat(16, 0)
+    assert F.filterable_levels(encode.models, _bake(encode, wide, check_filtering=False).levels)[0] >= 3
+
+
+def test_the_lookup_stops_at_the_filterable_levels_and_the_count_survives_the_file(encode, tmp_path):
+    stripes = np.where(np.arange(16) % 2 == 0, 0.02, 0.6).astype(np.float32)[None, :].repeat(16, 0)
+    tex = _bake(encode, stripes)
+    assert tex.metadata["filter_levels"] == 1 and tex.filter_levels == 1
+    uv = np.array([[0.5 / 16, 0.5], [1.5 / 16, 0.5]])  # texel centres of a glossy and a rough column
+    far = np.full(2, 4.0)  # a footprint wider than the texture: the coarsest level, were it allowed
+    z, _, top = tex.lookup(uv, far)
+    np.testing.assert_allclose(top[:, 0], tex.levels[0][8, [0, 1], 98], rtol=1e-3)  # level 0's texels
+    everything = LatentTexture(tex.levels, {})  # a texture without the measurement: every level
+    assert everything.filter_levels == len(tex.levels)
+    np.testing.assert_allclose(everything.lookup(uv, far)[2][:, 0], tex.levels[-1][0, 0, 98], rtol=1e-3)
+    tex.write_exr(tmp_path / "t.exr")
+    back = LatentTexture.read_exr(tmp_path / "t.exr")
+    assert back.filter_levels == 1
+    for bad in ("0", "x", "-2"):
+        LatentTexture(tex.levels, {**tex.metadata, "filter_levels": bad}).write_exr(tmp_path / "bad.exr")
+        with pytest.raises(LatentTextureError, match="filter_levels must be a positive count"):
+            LatentTexture.read_exr(tmp_path / "bad.exr")
+
+
+def test_the_pairs_cover_normal_to_grazing_views_with_unit_directions():
+    wi, wo = F.PAIRS
+    np.testing.assert_allclose(np.linalg.norm(wi, axis=1), 1.0)
+    np.testing.assert_allclose(np.linalg.norm(wo, axis=1), 1.0)
+    assert (wi[:, 2] > 0).all() and (wo[:, 2] > 0).all()
+    assert np.degrees(np.arccos(wo[:, 2].min())) == pytest.approx(86.0)
