@@ -221,7 +221,8 @@ def main(argv=None):
             "",
             "Calibrated: the same latents decoded with each stack's albedo calibration, as the renderer decodes "
             "a material's own latent by default (`neural_material.make(..., calibrate=True)`: about a second of "
-            "reference walks per stack, `addon.core.neural.calibrate`; latent textures are not calibrated).",
+            "reference walks per stack, `addon.core.neural.calibrate`; latent textures are calibrated by clusters "
+            "of texels, docs/texture_calibration.md).",
             "",
             "| coatings | layers | stacks | calibrated lobe error median | calibrated lobe error p90 | "
             "albedo abs. error mean | albedo abs. error p90 |",
