@@ -228,3 +228,19 @@ def test_bakes_without_calibration_and_a_cancel_during_it(baked):
     assert fractions and max(fractions) <= 0.3 + 1e-9  # the encoding's share of the bar, nothing after
     # a calibrated bake is keyed apart from an uncalibrated one (and from other calibration settings)
     assert model_key("tiny", "d", calibrated=True) != model_key("tiny", "d")
+
+
+def test_a_texture_of_more_distinct_texels_than_the_clustering_takes_is_sampled_by_texel_count(monkeypatch, baked):
+    """Above ``MAX_ROWS`` distinct texels the clusters come from a sample weighted by texel count: the
+    clusters of the two halves are found all the same, each texel still choosing its own half's table."""
+    _, _, models = baked
+    monkeypatch.setattr(tc, "MAX_ROWS", 20)
+    rough = np.linspace(0.02, 0.05, 16 * 8, dtype=np.float32).reshape(8, 16)  # 128 distinct texels
+    rough[:, 8:] += 0.4
+    spatial = SpatialStack(preset("coated_gold"), {"coatings[0].roughness": rough})
+    encode = neural_encoder("tiny", threads=2)
+    tex, stats = bake_stack(spatial, encode, threads=2, check_filtering=False)
+    calibration = tc.TextureCalibration.from_text(tex.metadata["calibration"])
+    assert stats.unique == 128 and 2 <= len(calibration.tables) <= tc.MAX_CLUSTERS
+    which = calibration.at(tex.levels[0].reshape(-1, 100)[:, :96].reshape(-1, 3, 32)).which.reshape(8, 16)
+    assert not set(which[:, :8].ravel()) & set(which[:, 8:].ravel())  # no table serves both halves

@@ -29,6 +29,9 @@ from ..stack import LATENT, StackArrays
 MAX_CLUSTERS = 8  # tables per texture: calibrations cost about a second each
 SAMPLES_PER_CLUSTER = 8  # texels of a cluster walked for its table (each with 1/8 of one calibration's walks)
 KMEANS_ITERATIONS = 30
+# distinct texels the clustering sees at most: a larger texture is sampled by texel count (a 2048 x 2048 bake of
+# smooth maps has millions of distinct texels, and its latents in float64 would take gigabytes)
+MAX_ROWS = 65536
 SEED = 0
 
 
@@ -55,9 +58,10 @@ def cluster_latents(z: np.ndarray, weights: np.ndarray, k: int = MAX_CLUSTERS, s
     labels = np.zeros(len(x), dtype=np.int64)
     for _ in range(KMEANS_ITERATIONS):
         labels = _nearest(x, sq, c)
-        mass = np.bincount(labels, weights=wt, minlength=len(c))
-        sums = np.zeros_like(c)
-        np.add.at(sums, labels, x * wt[:, None])
+        member = np.zeros((len(x), len(c)))
+        member[np.arange(len(x)), labels] = wt  # each row's weight in its cluster's column
+        mass = member.sum(axis=0)
+        sums = member.T @ x
         moved = np.where(mass[:, None] > 0, sums / np.maximum(mass, 1e-300)[:, None], c)
         if np.allclose(moved, c, rtol=0.0, atol=1e-7):
             break
@@ -143,6 +147,9 @@ def calibrate_texture(
             f"calibrate_texture needs as many stacks, texels and counts (at least one); got {len(arrays)}, "
             f"{len(texels)}, {counts.shape}"
         )
+    if len(texels) > MAX_ROWS:  # a systematic sample by texel count; a row drawn m times weighs m
+        pick, weight = np.unique(_stratified(counts, MAX_ROWS), return_counts=True)
+        arrays, texels, counts = arrays.take(pick), texels[pick], weight.astype(np.float64)
     k = 3 * LATENT
     z = texels[:, :k]
     centroids, labels = cluster_latents(z, counts, MAX_CLUSTERS, seed)
