@@ -78,6 +78,7 @@ def bake_floor(out: Path):
         print(
             f"Baked the floor: {tex.width}x{tex.height} texels, {stats.unique} distinct, {size} decoder, "
             f"calibrated in {stats.clusters} cluster(s) ({stats.calibration_seconds:.1f} s), "
+            f"filtered across {tex.filter_levels} of {len(tex.levels)} mip levels, "
             f"{time.perf_counter() - t0:.1f} s -> {path}",
             flush=True,
         )

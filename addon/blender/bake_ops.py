@@ -133,10 +133,11 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
             )
             os.makedirs(os.path.dirname(path), exist_ok=True)
             tex.write_exr(path)
-            return stats, time.perf_counter() - t0, (getattr(encode, "metadata", None) or {}).get("refined")
+            refined = (getattr(encode, "metadata", None) or {}).get("refined")
+            return stats, time.perf_counter() - t0, refined, (tex.filter_levels, len(tex.levels))
 
         def finish(context, result):
-            stats, seconds, refined = result
+            stats, seconds, refined, (filtered, levels) = result
             mat.neural_layers.texture_path = bpy.path.relpath(path) if bpy.data.filepath else path
             mat.neural_layers.texture_key = key
             mat.neural_layers.texture_size = res
@@ -145,7 +146,8 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
             self.report(
                 {"INFO"},
                 f"{name}: baked {res[1]}x{res[0]} ({stats.unique} distinct of {stats.texels} texels"
-                f"{refined}, {stats.texels_per_second:,.0f} texels/s{calibrated}) in {seconds:.1f} s -> {path}",
+                f"{refined}, {stats.texels_per_second:,.0f} texels/s{calibrated}, filtered across {filtered} of "
+                f"{levels} mip levels) in {seconds:.1f} s -> {path}",
             )
             return {"FINISHED"}
 

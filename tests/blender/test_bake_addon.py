@@ -133,6 +133,12 @@ def test_bake_with_the_shipped_models_at_the_default_auto_size(bpy_addon, materi
     assert tex.metadata["model"] == DEFAULT_SIZE and tex.metadata["model_digest"] == models.digest
     z = encode_stack(preset("lacquered_plastic"), models)
     assert np.allclose(tex.levels[0][0, 0, :96], z.reshape(-1), atol=2e-3)
+    # the bake calibrated the texture (one stack: one cluster) and found every level filterable (one latent)
+    from addon.core.textures.calibration import TextureCalibration
+
+    assert len(TextureCalibration.from_text(tex.metadata["calibration"]).tables) == 1
+    assert tex.filter_levels == len(tex.levels)
+    assert neural_material.make(preset("lacquered_plastic"), tex, calibrate=True).calibration is not None
     assert neural_material.make(preset("lacquered_plastic"), tex).models.size == DEFAULT_SIZE
 
 
