@@ -62,3 +62,16 @@ def test_the_pairs_cover_normal_to_grazing_views_with_unit_directions():
     np.testing.assert_allclose(np.linalg.norm(wo, axis=1), 1.0)
     assert (wi[:, 2] > 0).all() and (wo[:, 2] > 0).all()
     assert np.degrees(np.arccos(wo[:, 2].min())) == pytest.approx(86.0)
+
+
+def test_a_mix_of_two_stacks_records_its_filterable_levels_too(encode):
+    from addon.core.textures.bake import bake_mix
+
+    mask = np.zeros((16, 16))
+    mask[:, 8:] = 1.0  # gold on the left, copper on the right: their averaged latent decodes to neither
+    tex, _ = bake_mix(SpatialStack(preset("coated_gold")), SpatialStack(preset("frosted_copper")), mask, encode)
+    assert tex.filter_levels == 1 and "calibration" not in tex.metadata
+    tex, _ = bake_mix(
+        SpatialStack(preset("coated_gold")), SpatialStack(preset("frosted_copper")), mask, encode, check_filtering=False
+    )
+    assert "filter_levels" not in tex.metadata and tex.filter_levels == len(tex.levels)

@@ -308,11 +308,13 @@ def bake_mix(
     progress: Progress | None = None,
     cancel: Callable[[], bool] | None = None,
     metadata: dict | None = None,
+    check_filtering: bool = True,
 ) -> tuple[LatentTexture, BakeStats]:
     """Blend two (spatially varying) stacks through ``mask`` (H, W) in [0, 1] in latent space.
 
     Each texel's latent is (1 - m) z_a + m z_b (and likewise the proxy parameters): a blended
     texel has one intermediate lobe, where blending the two BRDF values would give two lobes.
+    Not calibrated (a blended latent is no stack's); ``check_filtering`` as for :func:`bake_stack`.
     The stacks may differ in everything, including their number of coatings.
     """
     m = np.asarray(mask, dtype=np.float64)
@@ -350,7 +352,10 @@ def bake_mix(
     meta.update(metadata or {})
     meta.update(getattr(encode, "metadata", {}))  # the encoder's decoder size and digest
     stats = BakeStats(texels=h * w, unique=sa.unique + sb.unique, seconds=time.perf_counter() - t0)
-    return LatentTexture.from_texels(texels.reshape(h, w, -1), meta), stats
+    tex = LatentTexture.from_texels(texels.reshape(h, w, -1), meta)
+    if check_filtering and getattr(encode, "models", None) is not None:
+        record_filter_levels(tex, encode.models)
+    return tex, stats
 
 
 def _texels_at(spatial: SpatialStack, resolution: tuple[int, int]):
