@@ -416,7 +416,7 @@ def calibrate_texels(arrays: StackArrays, models, z, proxy_params, tops, seed: i
     decoded sum below is a mean over the rows, each row with 1/R of the walks and of the decoded samples,
     so it costs about what one material's calibration costs). A texture whose texels share their decoder's
     error (the same coats over a varying base colour, say) is corrected like one material; what differs from
-    texel to texel is corrected on average only (``benchmarks/bench_calibration.py --texture``)."""
+    texel to texel is corrected on average only (``benchmarks/bench_texture_calibration.py``)."""
     z = np.asarray(z, dtype=np.float32).reshape(-1, 3, 32)
     prox = np.asarray(proxy_params, dtype=np.float64).reshape(-1, 2)
     tops = top_lobe.as_top(tops, len(z))

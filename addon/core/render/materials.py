@@ -300,20 +300,13 @@ class ReferenceLayered:
         self.stack, self.walks, self.spatial = stack, int(walks), spatial
         self.sigma, self.w = proxy_guess(stack)
         # a delta component wherever a texel's top is smooth (its roughness may be one of the maps)
-        smooth = _top_is_smooth(stack) if spatial is None else _any_top_smooth(spatial)
+        alpha = None if spatial is None else spatial.top_roughness_range()
+        smooth = _top_is_smooth(stack) if spatial is None else alpha is not None and alpha[0] < SMOOTH_ALPHA
         self.q = 0.5 if smooth else 1.0
 
     def bind(self, hits: SurfaceHits):
         stack = self.stack if self.spatial is None else self.spatial.stacks_at(hits.uv)
         return _BoundReference(stack, self.walks, hits.seed, self.sigma, self.w, self.q)
-
-
-def _any_top_smooth(spatial) -> bool:
-    """Whether any texel of a spatially varying stack has a smooth top interface."""
-    arrays, _ = spatial.texels()
-    if arrays.n_coatings:
-        return bool((arrays.coat_roughness[:, -1] < SMOOTH_ALPHA).any())
-    return not isinstance(spatial.stack.base, Diffuse) and bool((arrays.base_roughness < SMOOTH_ALPHA).any())
 
 
 @dataclass

@@ -83,7 +83,6 @@ class SpatialStack:
 
     stack: Stack
     maps: dict[str, np.ndarray] = field(default_factory=dict)
-    _rows: StackArrays | None = field(default=None, init=False, repr=False, compare=False)  # stacks_at's texels
 
     def __post_init__(self):
         checked: dict[str, np.ndarray] = {}
@@ -130,14 +129,36 @@ class SpatialStack:
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
         if not np.isfinite(uv).all():
             raise ValueError("uv must be finite")
+        arrays = StackArrays.repeat(self.stack, len(uv))
         if self.resolution is None:
-            return StackArrays.repeat(self.stack, len(uv))
+            return arrays
         h, w = self.resolution
-        if self._rows is None:
-            self._rows = self.texels()[0]
         col = np.floor(uv[:, 0] * w).astype(np.int64) % w
         row = np.floor((1.0 - uv[:, 1]) * h).astype(np.int64) % h
-        return self._rows.take(row * w + col)
+        for path, img in self.maps.items():  # a loop over the driving images, each gathered at every hit
+            self._assign(arrays, path, img[row, col])
+        return arrays
+
+    def top_roughness_range(self) -> tuple[float, float] | None:
+        """(least, greatest) GGX alpha of the top interface over the texels; None for a diffuse base
+        without coatings (no interface)."""
+        top = f"coatings[{len(self.stack.coatings) - 1}].roughness" if self.stack.coatings else "base.roughness"
+        if top in self.maps:
+            return float(self.maps[top].min()), float(self.maps[top].max())
+        layer = self.stack.coatings[-1] if self.stack.coatings else self.stack.base
+        alpha = getattr(layer, "roughness", None)
+        return None if alpha is None else (float(alpha), float(alpha))
+
+    def _assign(self, arrays: StackArrays, path: str, values: np.ndarray) -> None:
+        """Set the parameter ``path`` of every row of ``arrays`` from ``values`` (N, channels)."""
+        kind, i, name = parse_parameter_path(self.stack, path)
+        values = values.reshape(len(arrays), -1)
+        if name not in RGB_FIELDS:
+            values = values[:, 0]
+        if kind == "base":
+            getattr(arrays, _BASE_ATTR[name])[:] = values
+        else:
+            getattr(arrays, _COAT_ATTR[name])[:, i] = values
 
     def texels(self, resolution: tuple[int, int] | None = None) -> tuple[StackArrays, tuple[int, int]]:
         """One stack per texel (rows top to bottom) and the (height, width) used.
@@ -153,14 +174,5 @@ class SpatialStack:
             )
         arrays = StackArrays.repeat(self.stack, h * w)
         for path, img in self.maps.items():
-            kind, i, name = parse_parameter_path(self.stack, path)
-            if (h, w) != img.shape[:2]:
-                img = resample_area(img, h, w)
-            values = img.reshape(h * w, -1)
-            if name not in RGB_FIELDS:
-                values = values[:, 0]
-            if kind == "base":
-                getattr(arrays, _BASE_ATTR[name])[:] = values
-            else:
-                getattr(arrays, _COAT_ATTR[name])[:, i] = values
+            self._assign(arrays, path, img if (h, w) == img.shape[:2] else resample_area(img, h, w))
         return arrays, (h, w)
