@@ -295,7 +295,7 @@ def _neural_variant(scene_fn, size: str):
     from addon.core.render.materials import LayeredSpec
 
     scene = scene_fn()
-    mats, _, _ = quality.assign_decoders(scene, size)
+    mats, _, _ = quality.assign_decoders(scene, size, calibrate=True)  # as the renderer's default
     if any(isinstance(m, LayeredSpec) and m.stack.coatings for m in mats):
         return None
     scene.materials = mats
@@ -305,7 +305,9 @@ def _neural_variant(scene_fn, size: str):
 def _auto_variant(scene_fn, tolerance: float, res: int, walks: int):
     """The demo scene under the auto setting (``quality.assign_decoders``); returns it and the choices."""
     scene = scene_fn()
-    scene.materials, choices, _ = quality.assign_decoders(scene, "auto", tolerance, res=res, walks=walks)
+    scene.materials, choices, _ = quality.assign_decoders(
+        scene, "auto", tolerance, res=res, walks=walks, calibrate=True
+    )
     return scene, {k: {"size": c.size, "errors": c.errors, "met": c.met} for k, c in choices.items()}
 
 
@@ -605,7 +607,9 @@ def markdown(data: dict, command: str) -> str:
         "",
         f"Demo scene (`addon.core.render.demo_scene`) at {w}x{h}, {r['bounces']} bounces; error = MSE of linear "
         f"radiance against a {r['reference_spp']}-spp reference-mode render ({r['reference_seconds']:.0f} s). Neural "
-        "rows force every layered material onto one decoder size; Cycles renders the same geometry, lights and sky "
+        "rows force every layered material onto one decoder size, calibrated as the renderer calibrates by default "
+        "(`addon.core.neural.calibrate`; made once per material and session before the timed renders); Cycles "
+        "renders the same geometry, lights and sky "
         "with the Principled coat approximation (its error does not vanish with samples: it is another material "
         "model).",
         "",
