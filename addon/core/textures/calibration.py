@@ -88,11 +88,15 @@ class TextureCalibration:
     settings: str
 
     def at(self, z: np.ndarray) -> cal.RowCalibration:
-        """The calibration of rows with latents ``z`` (N, 3, LATENT): each row the table of its nearest centroid."""
-        x = np.asarray(z, dtype=np.float64).reshape(len(z), -1)
-        c = np.asarray(self.centroids, dtype=np.float64)
-        which = _nearest(x, np.einsum("md,md->m", x, x), c) if len(c) > 1 else np.zeros(len(x), np.int64)
-        return cal.RowCalibration(self.cosines, self.tables, which)
+        """The calibration of rows with latents ``z`` (N, 3, LATENT): each row the table of its nearest centroid
+        (once per bounce and material: one float32 product with the centroids; a row's own norm does not
+        change which centroid is nearest)."""
+        if len(self.centroids) == 1:
+            return cal.RowCalibration(self.cosines, self.tables, np.zeros(len(z), np.int64))
+        x = np.asarray(z, dtype=np.float32).reshape(len(z), -1)
+        c = np.asarray(self.centroids, dtype=np.float32)
+        d = np.einsum("kd,kd->k", c, c)[None, :] - 2.0 * (x @ c.T)
+        return cal.RowCalibration(self.cosines, self.tables, np.argmin(d, axis=1))
 
     def to_text(self) -> str:
         """The calibration as one line of JSON (the arrays as base64 float32), for the texture's metadata."""
