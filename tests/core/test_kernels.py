@@ -227,3 +227,30 @@ def test_a_changed_formula_is_compiled_again_and_never_loaded_stale_from_the_cac
     assert "albedo / math.pi, 0.0)" in text
     src.write_text(text.replace("albedo / math.pi, 0.0)", "2.0 * albedo / math.pi, 0.0)"))
     assert run() == 2.0
+
+
+def test_nearest_rows_picks_the_centre_of_least_squared_distance():
+    rng = np.random.default_rng(5)
+    centres = rng.normal(size=(6, 96)).astype(np.float32)
+    x = (centres[rng.integers(0, 6, 400)] + 0.3 * rng.normal(size=(400, 96))).astype(np.float32)
+    d2 = ((x[:, None, :].astype(np.float64) - centres[None].astype(np.float64)) ** 2).sum(axis=2)
+    np.testing.assert_array_equal(kernels.nearest_rows(x, centres), np.argmin(d2, axis=1))
+    assert len(kernels.nearest_rows(np.zeros((0, 96), np.float32), centres)) == 0
+
+
+def test_trilinear_writes_every_row_whatever_the_output_held():
+    """The lookup's output array is passed uninitialised (``textures.mip.trilinear_lookup``): the loop must
+    write each row, not add to it, on one level and between two."""
+    rng = np.random.default_rng(6)
+    c = 100
+    levels = [rng.random((8, 8, c)).astype(np.float32), rng.random((4, 4, c)).astype(np.float32)]
+    flat = np.concatenate([lv.ravel() for lv in levels])
+    offsets = np.array([0, levels[0].size])
+    heights = widths = np.array([8, 4])
+    uv = rng.random((50, 2))
+    lod = np.concatenate([np.zeros(25), rng.random(25)])  # level 0 alone, then blends of both
+    clean, dirty = np.zeros((50, c), np.float32), np.full((50, c), np.nan, np.float32)
+    for out in (clean, dirty):
+        kernels.trilinear(flat, offsets, heights, widths, c, uv, lod, out)
+    np.testing.assert_array_equal(dirty, clean)
+    assert np.isfinite(clean).all() and clean.min() >= 0.0 and clean.max() <= 1.0

@@ -48,7 +48,8 @@ def warm_scene(environment_image: bool):
 
 def warm_up() -> None:
     """Render the warm-up scenes once each (one thread, one sample, analytic materials), and run the
-    neural materials' loops (the sampling proxy, the albedo calibration, the exact top coat) on a few rows,
+    neural materials' loops (the sampling proxy, the albedo calibration and a latent texture's choice of
+    table, the exact top coat) on a few rows,
     with the argument types a render passes."""
     from .. import kernels
     from ..neural import proxy, top_lobe
@@ -68,6 +69,7 @@ def warm_up() -> None:
     grids = top_lobe.transmittance_grids()
     kernels.top_coat(np.ones((2, 3), dtype=np.float32), wi, wo, top, *grids, True, True)
     kernels.transmission_rows(top, wo[:, 2].copy(), *grids)
+    kernels.nearest_rows(np.zeros((2, 96), np.float32), np.ones((3, 96), np.float32))  # a latent texture's tables
 
 
 def warm_up_in_background() -> threading.Thread | None:

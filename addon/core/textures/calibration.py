@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import kernels
 from ..neural import calibrate as cal
 from ..stack import LATENT, StackArrays
 
@@ -89,14 +90,12 @@ class TextureCalibration:
 
     def at(self, z: np.ndarray) -> cal.RowCalibration:
         """The calibration of rows with latents ``z`` (N, 3, LATENT): each row the table of its nearest centroid
-        (once per bounce and material: one float32 product with the centroids; a row's own norm does not
-        change which centroid is nearest)."""
+        (once per bounce and material, in float32: ``kernels.nearest_rows``)."""
         if len(self.centroids) == 1:
             return cal.RowCalibration(self.cosines, self.tables, np.zeros(len(z), np.int64))
-        x = np.asarray(z, dtype=np.float32).reshape(len(z), -1)
-        c = np.asarray(self.centroids, dtype=np.float32)
-        d = np.einsum("kd,kd->k", c, c)[None, :] - 2.0 * (x @ c.T)
-        return cal.RowCalibration(self.cosines, self.tables, np.argmin(d, axis=1))
+        x = np.ascontiguousarray(z, dtype=np.float32).reshape(len(z), -1)
+        c = np.ascontiguousarray(self.centroids, dtype=np.float32)
+        return cal.RowCalibration(self.cosines, self.tables, kernels.nearest_rows(x, c))
 
     def to_text(self) -> str:
         """The calibration as one line of JSON (the arrays as base64 float32), for the texture's metadata."""
