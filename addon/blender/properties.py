@@ -48,6 +48,15 @@ def _on_auto_latent(settings, context) -> None:
     _on_layer_changed(settings, context)
 
 
+def _on_texture_changed(settings, context) -> None:
+    """The baked texture a material renders changed (a bake finished, or Clear): tag the material, so that the
+    evaluated copies the viewport and the render operators read get the new path and key (a property set from
+    Python alone does not reach them)."""
+    material = settings.id_data
+    if isinstance(material, bpy.types.Material):
+        material.update_tag()
+
+
 def _range_text(key: str) -> str:
     lo, hi = TRAINED_RANGES[key]
     vlo, vhi = VALID_RANGES[key]
@@ -359,11 +368,13 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
         default="",
         subtype="FILE_PATH",
         options={"PATH_SUPPORTS_BLEND_RELATIVE"},
+        update=_on_texture_changed,
     )
     texture_key: StringProperty(
         name="Latent Texture Key",
         description="Hash of the inputs the texture was baked from",
         default="",
+        update=_on_texture_changed,
     )
     walks: IntProperty(
         name="Walks",

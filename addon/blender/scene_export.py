@@ -15,6 +15,8 @@ Diffuse BSDF, or the viewport colour), textured when an Image Texture node drive
 from __future__ import annotations
 
 import math
+import os
+import threading
 
 import numpy as np
 
@@ -122,10 +124,33 @@ def _baked_texture(mat, warnings: list[str]):
         warnings.append(f"material {mat.name!r}: {state}; rendering its constant stack")
         return None, None
     try:
-        return LatentTexture.read_exr(path), spatial
+        return _read_texture(path, LatentTexture.read_exr), spatial
     except (OSError, ValueError, RuntimeError) as e:
         warnings.append(f"material {mat.name!r}: cannot read its latent texture ({e}); rendering its constant stack")
         return None, None
+
+
+# Latent textures read, by absolute path: (the file's identity, the texture). The viewport exports the scene
+# again at every edit and every view change, and reading a 1024 x 1024 texture takes seconds.
+_TEXTURES: dict[str, tuple[tuple[int, int, int], object]] = {}
+_USED: set[str] = set()  # the paths this export read or reused (export_scene keeps only those)
+_LOCK = threading.Lock()  # F12 exports on Blender's render thread, the viewport on the main one
+
+
+def _read_texture(path: str, read):
+    """``read(path)``, once per version of the file: a texture is read again when the file's inode, size or
+    modification time differ (a bake publishes a new file by renaming it into place)."""
+    st = os.stat(path)
+    identity = (st.st_ino, st.st_size, st.st_mtime_ns)
+    with _LOCK:
+        _USED.add(path)
+        held = _TEXTURES.get(path)
+    if held is not None and held[0] == identity:
+        return held[1]
+    texture = read(path)
+    with _LOCK:
+        _TEXTURES[path] = (identity, texture)
+    return texture
 
 
 def _refined_latent(mat, stack, info: list[str]):
@@ -336,6 +361,8 @@ def export_scene(
     """
     scene = depsgraph.scene
     warnings: list[str] = []
+    with _LOCK:
+        _USED.clear()
     if width is None or height is None:
         width, height = render_size(scene)
     if camera is None:
@@ -382,4 +409,7 @@ def export_scene(
     if mesh.uvs is None and any(isinstance(m, LambertMaterial) and m.texture is not None for m in materials):
         warnings.append("textured materials on meshes without UV maps sample the texture at uv (0, 0)")
     out = Scene(camera, mesh, materials, lights, _world(scene.world, warnings), names)
+    with _LOCK:
+        for path in set(_TEXTURES) - _USED:  # textures no material renders any more: let them go
+            del _TEXTURES[path]
     return out, warnings

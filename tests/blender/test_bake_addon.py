@@ -86,6 +86,53 @@ def test_bake_writes_the_texture_and_the_renderer_uses_it_while_current(wood, bp
     assert run_operator(ops.texture_clear).finished and wood.neural_layers.texture_path == ""
 
 
+def _evaluated_spec(bpy):
+    """The cube's material as the viewport and the render operators export it: from the evaluated depsgraph."""
+    from addon.blender import scene_export
+
+    bpy.context.view_layer.update()
+    scene, warnings = scene_export.export_scene(bpy.context.evaluated_depsgraph_get(), 8, 8)
+    return scene.materials[0], warnings
+
+
+def test_the_evaluated_depsgraph_sees_a_bake_and_a_clear(wood, bpy_addon):
+    """The bake sets the material's texture path and key from Python, which alone does not reach the evaluated
+    copies: the viewport kept rendering the constant stack after a bake until another edit."""
+    assert _evaluated_spec(bpy_addon)[0].latent_texture is None
+    assert run_operator(ops.bake_texture).finished
+    spec, warnings = _evaluated_spec(bpy_addon)
+    assert spec.latent_texture is not None and not warnings
+    assert run_operator(ops.texture_clear).finished
+    assert _evaluated_spec(bpy_addon)[0].latent_texture is None
+
+
+def test_a_texture_is_read_once_per_version_of_its_file(wood, bpy_addon, monkeypatch):
+    """The viewport exports the scene at every edit and view change; a 1024 x 1024 texture takes seconds to read,
+    so the export reads each file once, again when the file changes, and lets go of it once unused."""
+    from addon.blender import scene_export
+    from addon.core.textures import LatentTexture
+
+    reads = []
+    real = LatentTexture.read_exr.__func__
+
+    def counting(cls, path):
+        reads.append(path)
+        return real(cls, path)
+
+    monkeypatch.setattr(LatentTexture, "read_exr", classmethod(counting))
+    assert run_operator(ops.bake_texture).finished
+    first = _evaluated_spec(bpy_addon)[0].latent_texture
+    assert _evaluated_spec(bpy_addon)[0].latent_texture is first and len(reads) == 1
+    wood.neural_layers.layers[1].maps[0].high = 0.7  # new maps: the bake writes a new file in place
+    assert run_operator(ops.bake_texture).finished
+    second = _evaluated_spec(bpy_addon)[0].latent_texture
+    assert second is not first and len(reads) == 2
+    assert list(scene_export._TEXTURES) == [reads[-1]]
+    assert run_operator(ops.texture_clear).finished
+    _evaluated_spec(bpy_addon)
+    assert scene_export._TEXTURES == {}
+
+
 def test_bake_resolution_is_capped_by_the_images_and_images_must_match(wood, bpy_addon):
     from addon.blender import bake_ops
     from addon.core.textures import LatentTexture
