@@ -284,38 +284,51 @@ def baked_floor(width: int, height: int, samples: int, bounces: int, repeats: in
 def viewport_latency(repeats: int, size=(320, 180)) -> list[str]:
     """Seconds from an edit (``ProgressiveSession.restart`` with a freshly exported demo scene, its
     stacks still to encode) to the viewport's first image (1 spp at a quarter of the resolution)
-    and to the first full-resolution pass, default settings."""
+    and to the first full-resolution pass, default settings; and from a view change (``move_camera``:
+    the viewport's navigation, nothing exported or encoded again) to its first image."""
     from addon.core.render.progressive import ProgressiveSession
+    from addon.core.render.scene import Camera
 
     session = ProgressiveSession(RenderSettings(samples=4, max_bounces=4), preview_divisor=4)
     rows = []
+
+    def first_images(start):
+        first = {}
+        t0 = time.perf_counter()
+        session.on_image = lambda im, t0=t0, first=first: first.setdefault(im.reduced, time.perf_counter() - t0)
+        start()
+        session.wait(samples=1, timeout=300)
+        session.cancel()
+        while not session.idle:
+            time.sleep(0.01)
+        return first.get(True, float("nan")), first.get(False, float("nan"))
+
     try:
         for rep in range(repeats + 1):  # the first one loads the models (once per Blender session)
             scene = demo_scene(*size)
-            first = {}
-            t0 = time.perf_counter()
-            session.on_image = lambda im, t0=t0, first=first: first.setdefault(im.reduced, time.perf_counter() - t0)
-            session.restart(scene)
-            session.wait(samples=1, timeout=300)
-            session.cancel()
-            while not session.idle:
-                time.sleep(0.01)
+            edit = first_images(lambda scene=scene: session.restart(scene))
+            orbit = Camera.look_at(
+                (0.5 + 0.1 * rep, -5.5, 1.6), (0.0, 0.0, 0.6), fov_deg=50.0, width=size[0], height=size[1]
+            )
+            moved = first_images(lambda orbit=orbit: session.move_camera(orbit))
             if rep:
-                rows.append((first.get(True, float("nan")), first.get(False, float("nan"))))
+                rows.append(edit + moved)
                 print("viewport", rows[-1], flush=True)
     finally:
         session.close()
     lines = [
-        f"## Viewport: first image after an edit ({size[0]}x{size[1]}, demo scene)",
+        f"## Viewport: first image after an edit or a view change ({size[0]}x{size[1]}, demo scene)",
         "",
         "Seconds from `ProgressiveSession.restart` with a newly exported scene (its stacks encoded again, "
         "as after an edit) to the first image (1 spp at a quarter of the resolution on each side) and to the "
-        "first full-resolution pass.",
+        "first full-resolution pass; and from `ProgressiveSession.move_camera` (the viewport's navigation: the "
+        "add-on exports nothing again when only the view moved) to the same two.",
         "",
-        "| repetition | first image s | first full pass s |",
-        "|---|---|---|",
+        "| repetition | edit: first image s | edit: first full pass s | view change: first image s | "
+        "view change: first full pass s |",
+        "|---|---|---|---|---|",
     ]
-    lines += [f"| {i + 1} | {a:.2f} | {b:.2f} |" for i, (a, b) in enumerate(rows)]
+    lines += [f"| {i + 1} | {a:.2f} | {b:.2f} | {c:.2f} | {d:.2f} |" for i, (a, b, c, d) in enumerate(rows)]
     return lines + [""]
 
 

@@ -66,6 +66,12 @@ def _failure(e: Exception) -> str:
     return str(e) if isinstance(e, ValueError) else f"{type(e).__name__}: {e}"
 
 
+def _view_camera(context):
+    """The 3D viewport's view as a core camera (its lens, the region's size)."""
+    region = context.region
+    return scene_export.view_camera(context.region_data, context.space_data.lens, region.width, region.height)
+
+
 def _view_key(context) -> tuple:
     """What makes a viewport image stale without an edit: the view matrix, lens and region size."""
     r3d, region = context.region_data, context.region
@@ -89,6 +95,10 @@ class _Viewport:
     def restart(self, core_scene, settings, key) -> None:
         self.key = key
         self.session.restart(core_scene, settings)
+
+    def move_camera(self, camera, key) -> None:
+        self.key = key
+        self.session.move_camera(camera)
 
     def _poll(self):
         if self.session is None:
@@ -239,9 +249,8 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
     # ------------------------------------------------------------------ 3D viewport (Rendered mode)
 
     def _view_scene(self, context, depsgraph):
-        region, space = context.region, context.space_data
-        camera = scene_export.view_camera(context.region_data, space.lens, region.width, region.height)
-        core_scene, _ = scene_export.export_scene(depsgraph, region.width, region.height, camera=camera)
+        region = context.region
+        core_scene, _ = scene_export.export_scene(depsgraph, region.width, region.height, camera=_view_camera(context))
         props = depsgraph.scene.neural_render
         try:
             props.assign_decoders(core_scene, viewport=True)
@@ -261,8 +270,15 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         self._viewport.restart(core_scene, settings, _view_key(context))
 
     def view_draw(self, context, depsgraph):
-        """Draw the newest image; a moved view (navigation does not call view_update) restarts."""
-        if self._viewport is None or self._viewport.key != _view_key(context):
+        """Draw the newest image; a moved view (navigation does not call view_update) restarts: from the new
+        camera alone when the region kept its size (nothing exported again), else as after an edit."""
+        key, vp = _view_key(context), self._viewport
+        if vp is not None and vp.key is not None and vp.key != key and vp.key[2:] == key[2:]:
+            try:
+                vp.move_camera(_view_camera(context), key)
+            except Exception as e:
+                self.report({"ERROR"}, _failure(e))
+        elif vp is None or vp.key != key:
             self.view_update(context, depsgraph)
         if self._viewport is not None and self._viewport.session is not None:
             self._viewport.draw(self, depsgraph.scene)

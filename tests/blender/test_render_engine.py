@@ -440,3 +440,43 @@ def test_material_thumbnails_render_through_the_engine_with_thumbnail_settings(f
     assert THUMBNAIL_DECODER in sizes
     px = read_image(tmp_path / "thumb.exr")
     assert np.isfinite(px).all() and px[..., :3].max() > 0
+
+
+def test_viewport_navigation_moves_the_camera_and_an_edit_or_a_resize_exports_again(bpy_addon, monkeypatch):
+    """view_draw with a moved view: the session renders its last scene from the new camera (no export);
+    the same with another region size, or with no session yet, goes through view_update (an export)."""
+    from types import SimpleNamespace
+
+    from addon.blender import engine, scene_export
+
+    monkeypatch.setattr(scene_export, "view_camera", lambda r3d, lens, w, h: ("camera", r3d.view_matrix, w, h))
+    calls = []
+
+    class Viewport:
+        key = None
+        session = None
+
+        def move_camera(self, camera, key):
+            calls.append(("move", camera))
+            self.key = key
+
+    def context(matrix, width=40):
+        return SimpleNamespace(
+            region_data=SimpleNamespace(view_matrix=matrix),
+            space_data=SimpleNamespace(lens=50.0),
+            region=SimpleNamespace(width=width, height=30),
+        )
+
+    fake = SimpleNamespace(_viewport=None, report=lambda kind, text: calls.append(("report", text)))
+    fake.view_update = lambda ctx, dg: calls.append(("update", ctx.region.width))
+    view_draw = engine.NeuralLayeredRenderEngine.view_draw
+    view_draw(fake, context(((1, 0), (0, 1))), None)
+    assert calls == [("update", 40)]  # no session yet: an export
+    fake._viewport = Viewport()
+    fake._viewport.key = engine._view_key(context(((1, 0), (0, 1))))
+    view_draw(fake, context(((1, 0), (0, 1))), None)
+    assert calls == [("update", 40)]  # nothing moved: only drawn
+    view_draw(fake, context(((0, 1), (1, 0))), None)
+    assert calls[-1] == ("move", ("camera", ((0, 1), (1, 0)), 40, 30))
+    view_draw(fake, context(((0, 1), (1, 0)), width=80), None)
+    assert calls[-1] == ("update", 80)  # another size: Auto's decoder choice may change, so export again

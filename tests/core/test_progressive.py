@@ -90,3 +90,48 @@ def test_reduced_camera_and_bad_divisor():
     assert (reduced_camera(cam, 1000).width, reduced_camera(cam, 1000).height) == (1, 1)
     with pytest.raises(ValueError, match="preview_divisor"):
         ProgressiveSession(RenderSettings(), preview_divisor=0)
+
+
+def test_move_camera_renders_the_last_scene_from_the_new_view():
+    """The viewport's navigation: the scene of the last restart, its materials as resolved then, from another
+    camera; the image is the offline render of that view."""
+    settings = RenderSettings(samples=2, max_bounces=2, seed=3)
+    scene = small_scene()
+    moved = Camera.look_at((1.5, -2.5, 1.2), (0.0, 0.0, 0.3), width=24, height=16)
+    session = ProgressiveSession(settings, preview_divisor=1)
+    try:
+        with pytest.raises(ValueError, match="call restart first"):
+            session.move_camera(moved)
+        session.restart(scene)
+        session.wait()
+        resolved = session._last.materials
+        assert resolved[0] is scene.materials[0]  # a renderer material resolves to itself
+        generation = session.move_camera(moved)
+        image = session.wait()
+    finally:
+        session.close()
+    assert image.generation == generation == 2
+    offline, _ = render(Scene(moved, scene.mesh, scene.materials, scene.lights, scene.environment), settings)
+    assert np.array_equal(image.rgba, offline.rgba())
+
+
+def test_layered_materials_are_calibrated_as_an_offline_render_calibrates_them():
+    """The session resolves the scene's stacks with the settings' calibration, as ``render`` does: its image is
+    the offline render's (it used to leave them uncalibrated)."""
+    from addon.core.render.materials import LayeredSpec
+    from addon.core.stack import preset
+
+    base = small_scene(width=12, height=8)
+    scene = Scene(
+        base.camera, base.mesh, [LayeredSpec(preset("coated_gold"), None, "gold")], base.lights, base.environment
+    )
+    settings = RenderSettings(samples=2, max_bounces=2, seed=5, calibrate=True)
+    session = ProgressiveSession(settings, preview_divisor=1)
+    try:
+        session.restart(scene)
+        image = session.wait()
+        assert session._last.materials[0].calibration is not None
+    finally:
+        session.close()
+    offline, _ = render(scene, settings)
+    assert np.array_equal(image.rgba, offline.rgba())

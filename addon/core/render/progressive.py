@@ -10,8 +10,9 @@ stops at its next pass (``render``'s progress callback), so a cancelled pass cos
 pass of the old scene. The full-resolution accumulation is the offline render of the same
 settings: the same passes with the same random numbers (``render(..., film=...)``).
 
-The viewport glue (``addon/blender/engine.py``) only calls ``restart`` from ``view_update`` and
-draws :meth:`ProgressiveSession.latest` from ``view_draw``.
+The viewport glue (``addon/blender/engine.py``) calls ``restart`` from ``view_update`` (an edit), ``move_camera``
+when only the view moved (navigation: the scene is not exported again), and draws
+:meth:`ProgressiveSession.latest` from ``view_draw``.
 """
 
 from __future__ import annotations
@@ -68,6 +69,7 @@ class ProgressiveSession:
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
         self._scene: Scene | None = None
+        self._last: Scene | None = None  # the scene of the last restart (its materials resolved once rendered)
         self._generation = 0
         self._image: ViewImage | None = None
         self._closed = False
@@ -81,13 +83,27 @@ class ProgressiveSession:
         """Render ``scene`` from scratch (the running render stops at its next pass); returns the
         new generation."""
         with self._lock:
-            self._scene = scene
-            if settings is not None:
-                self.settings = settings
-            self._generation += 1
-            self.error = None
-            self._wake.notify_all()
-            return self._generation
+            self._last = scene
+            return self._start(scene, settings)
+
+    def move_camera(self, camera: Camera) -> int:
+        """Render the scene of the last :meth:`restart` again from ``camera``, with the same settings (the
+        viewport's navigation: nothing else changed, so nothing is exported or resolved again; its materials
+        as the last generation resolved them); returns the new generation."""
+        with self._lock:
+            if self._last is None:
+                raise ValueError("move_camera needs a scene: call restart first")
+            return self._start(replace(self._last, camera=camera), None)
+
+    def _start(self, scene: Scene, settings: RenderSettings | None) -> int:
+        """A new generation rendering ``scene`` (the lock held)."""
+        self._scene = scene
+        if settings is not None:
+            self.settings = settings
+        self._generation += 1
+        self.error = None
+        self._wake.notify_all()
+        return self._generation
 
     def cancel(self) -> None:
         """Stop rendering (the current pass is the last); the newest image stays available."""
@@ -176,8 +192,13 @@ class ProgressiveSession:
         def progress(reduced):
             return lambda film, done, total: self._publish(film, generation, reduced)
 
-        # Materials resolved (stacks encoded) once for both renders of the generation.
-        scene = replace(scene, materials=[resolve(m, settings.mode, settings.reference_walks) for m in scene.materials])
+        # Materials resolved (stacks encoded, calibrated as the settings say, as ``render`` would) once for both
+        # renders of the generation, and kept for the camera moves that follow.
+        materials = [resolve(m, settings.mode, settings.reference_walks, settings.calibrate) for m in scene.materials]
+        scene = replace(scene, materials=materials)
+        with self._lock:
+            if generation == self._generation and self._last is not None:
+                self._last = replace(self._last, materials=materials)
 
         if self.preview_divisor > 1:
             small = replace(scene, camera=reduced_camera(scene.camera, self.preview_divisor))
