@@ -1,6 +1,7 @@
 """Progressive sessions (the viewport's renderer): first image, accumulation, restart, cancel."""
 
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -134,4 +135,31 @@ def test_layered_materials_are_calibrated_as_an_offline_render_calibrates_them()
     finally:
         session.close()
     offline, _ = render(scene, settings)
+    assert np.array_equal(image.rgba, offline.rgba())
+
+
+def test_the_viewport_calibrates_what_cached_left_out_after_its_first_image():
+    """``calibrate="cached"`` (the viewport's setting) makes no reference walks before the first image; the
+    session then calibrates the materials that had none and renders the full-resolution passes as a
+    calibrating offline render does."""
+    from addon.core.render.materials import LayeredSpec, resolve
+    from addon.core.stack import preset
+
+    plastic = preset("lacquered_plastic")  # with a coat roughness no other test calibrates in this session
+    stack = replace(plastic, coatings=[replace(plastic.coatings[0], roughness=0.0731)] + list(plastic.coatings[1:]))
+    base = small_scene(width=12, height=8)
+    spec = LayeredSpec(stack, None, "plastic")
+    scene = Scene(base.camera, base.mesh, [spec], base.lights, base.environment)
+    settings = RenderSettings(samples=2, max_bounces=2, seed=6, calibrate="cached")
+    assert resolve(spec, "neural", calibrate="cached").calibration is None  # nothing made yet
+    seen = []
+    session = ProgressiveSession(settings, preview_divisor=2, on_image=seen.append)
+    try:
+        session.restart(scene)
+        image = session.wait()
+        material = session._last.materials[0]
+    finally:
+        session.close()
+    assert seen[0].reduced and material.calibration is not None and material.uncalibrated_stack is None
+    offline, _ = render(scene, replace(settings, calibrate=True))
     assert np.array_equal(image.rgba, offline.rgba())

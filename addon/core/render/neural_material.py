@@ -14,6 +14,7 @@ bounce.
 
 from __future__ import annotations
 
+import copy
 import warnings
 
 import numpy as np
@@ -151,6 +152,7 @@ class NeuralMaterial:
         self.sigma, self.w = float(proxy[0]), float(proxy[1])
         self.texture = latent_texture
         self.calibration = calibration
+        self.uncalibrated_stack = None  # set by ``make`` for "cached" without a calibration: see ``calibrated``
         if self.z is None and self.texture is None:
             raise ValueError("a NeuralMaterial needs a latent z (3, 32) or a latent texture")
         if calibration is not None and (self.texture is not None) != hasattr(calibration, "centroids"):
@@ -158,6 +160,20 @@ class NeuralMaterial:
                 "a latent texture takes a TextureCalibration and a single latent an AlbedoCalibration, got "
                 f"{type(calibration).__name__} for a {'latent texture' if self.texture is not None else 'latent'}"
             )
+
+    def calibrated(self) -> "NeuralMaterial":
+        """This material with the calibration ``make`` left out when asked for "cached" only and none was made
+        yet (``uncalibrated_stack``): made now (about a second of reference walks, then cached for the session),
+        in a copy; the material itself when nothing is left out. The viewport's session calls it after its
+        first image (``progressive``)."""
+        if self.uncalibrated_stack is None:
+            return self
+        from ..neural import calibrate as cal
+
+        out = copy.copy(self)
+        out.calibration = cal.calibrate(self.uncalibrated_stack, self.models, self.z, (self.sigma, self.w))
+        out.uncalibrated_stack = None
+        return out
 
     def bind(self, hits):
         if self.texture is None:
@@ -276,6 +292,8 @@ def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None
                 calibration=_calibration(stack, models, z, proxy, calibrate),
                 top=top,
             )
+            if calibrate == "cached" and material.calibration is None:
+                material.uncalibrated_stack = stack
     except (FileNotFoundError, ModelFileError) as e:
         warnings.warn(
             f"decoder size {size}: {e}; rendering the stack with the reference", NeuralFallbackWarning, stacklevel=2

@@ -188,6 +188,26 @@ class ProgressiveSession:
                 if generation == self._generation:
                     self._scene = None  # done: wait for the next restart
 
+    def _calibrate_pending(self, scene: Scene, generation: int) -> Scene | None:
+        """The scene with the calibrations its materials left out (``calibrate="cached"``, the viewport's: no
+        reference walks before the first image) made now, after the first image and before the full-resolution
+        passes, so that those render as F12 does (``NeuralMaterial.calibrated``; about a second per changed
+        stack, once per session). None when a restart came meanwhile."""
+        materials = list(scene.materials)
+        pending = [i for i, m in enumerate(materials) if getattr(m, "uncalibrated_stack", None) is not None]
+        for i in pending:
+            if not self._current(generation):
+                return None
+            materials[i] = materials[i].calibrated()
+        if not pending:
+            return scene
+        with self._lock:
+            if generation != self._generation:
+                return None
+            if self._last is not None:  # camera moves keep the calibrated materials
+                self._last = replace(self._last, materials=materials)
+        return replace(scene, materials=materials)
+
     def _render_generation(self, scene: Scene, settings: RenderSettings, generation: int) -> None:
         def progress(reduced):
             return lambda film, done, total: self._publish(film, generation, reduced)
@@ -207,6 +227,9 @@ class ProgressiveSession:
             except Cancelled:
                 return
         if not self._current(generation):
+            return
+        scene = self._calibrate_pending(scene, generation)
+        if scene is None:
             return
         try:
             render(scene, settings, progress=progress(False))
