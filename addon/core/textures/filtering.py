@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..rows import distinct_rows
 from .mip import downsample
 
 TOLERANCE = 0.02  # mean |decoded average latent - average decoded| over the mean decoded value
@@ -50,7 +51,11 @@ PAIRS = _pairs()
 
 def decoded(models, texels: np.ndarray) -> np.ndarray:
     """f cos(theta_i) (N, P, 3) of texels (N, 100: latents, proxy, top coating) at :data:`PAIRS`, as the
-    renderer evaluates them (top lobe included, no calibration)."""
+    renderer evaluates them (top lobe included, no calibration); each distinct texel decoded once (a crop of a
+    painted or tiled texture holds a few, where it has thousands of texels)."""
+    first, inverse = distinct_rows(texels)
+    if len(first) < len(texels):
+        return decoded(models, texels[first])[inverse]
     wi, wo = PAIRS
     n, p = len(texels), len(wi)
     z = np.repeat(texels[:, :96].reshape(n, 3, 32), p, axis=0)
