@@ -298,9 +298,20 @@ def register() -> None:
         _panels.append(panel)
     render_operators.register()
     render_ui.register()
+    if _forget_textures not in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.append(_forget_textures)
+
+
+@bpy.app.handlers.persistent
+def _forget_textures(*_args) -> None:
+    """Another file was opened: the latent textures the last one's exports kept go."""
+    scene_export.forget_textures()
 
 
 def unregister() -> None:
+    if _forget_textures in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.remove(_forget_textures)
+    scene_export.forget_textures()
     warm_up.wait_for_background()
     render_ui.unregister()
     render_operators.unregister()

@@ -153,6 +153,13 @@ def _read_texture(path: str, read):
     return texture
 
 
+def forget_textures() -> None:
+    """Let go of every latent texture the exports keep (another file was opened, or the add-on is disabled)."""
+    with _LOCK:
+        _TEXTURES.clear()
+        _USED.clear()
+
+
 def _refined_latent(mat, stack, info: list[str]):
     """``(z, size)`` of the material's refined latent (the sidebar's *Refine*) while it is current: refined
     from this stack, stored for the size it was refined for, with the decoder file it was refined for

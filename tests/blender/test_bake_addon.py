@@ -131,6 +131,10 @@ def test_a_texture_is_read_once_per_version_of_its_file(wood, bpy_addon, monkeyp
     assert run_operator(ops.texture_clear).finished
     _evaluated_spec(bpy_addon)
     assert scene_export._TEXTURES == {}
+    assert run_operator(ops.bake_texture).finished and _evaluated_spec(bpy_addon)[0].latent_texture is not None
+    assert scene_export._TEXTURES
+    bpy_addon.ops.wm.read_homefile(app_template="")  # another file: its exports start afresh
+    assert scene_export._TEXTURES == {}
 
 
 def test_bake_resolution_is_capped_by_the_images_and_images_must_match(wood, bpy_addon):
