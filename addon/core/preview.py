@@ -178,7 +178,7 @@ def _latent_for(stack, latent, size):
 
 
 def _cached_calibration(stack: Stack, z: np.ndarray, size: str):
-    """The albedo calibration a render of this session made for this stack and latent, or None."""
+    """The albedo calibration a render or the viewport made this session for this stack and latent, or None."""
     from .neural import calibrate, load_models
 
     return calibrate.cached(stack, load_models(size), z)
@@ -253,7 +253,7 @@ def choose_brdf(
         proxy, proxy_note = neural_proxy(z, used)
         calibration = _cached_calibration(stack, z, used)
         brdf = neural_brdf_from_latent(z, used, _top_coat(stack), calibration)
-        if calibration is not None:  # as the viewport: the calibration a render made, no walks here
+        if calibration is not None:  # as thumbnails: the calibration a render or the viewport made, no walks here
             notes = notes + ["albedo calibration of the last render applied"]
         proposal = None
         if proxy is not None:
