@@ -16,7 +16,7 @@ from bpy.props import EnumProperty, IntProperty
 
 from ..core.render import RenderSettings
 from ..core.textures.bake import bake_key, bake_stack, neural_encoder
-from . import bake_inputs
+from . import bake_inputs, stack_io
 from .bake_state import (  # noqa: F401 (baked_texture_state: API)
     bake_model_key,
     bake_size,
@@ -65,6 +65,7 @@ class NLM_OT_map_add(MaterialOperator, bpy.types.Operator):
         item = s.layers[s.active_index]
         pmap = item.maps.add()
         pmap.parameter = self.parameter
+        stack_io.tag_changed(mat)  # the texture baked from the maps is now out of date
         return {"FINISHED"}
 
 
@@ -90,6 +91,7 @@ class NLM_OT_map_remove(MaterialOperator, bpy.types.Operator):
         if not (0 <= self.index < len(item.maps)):
             raise UserError(f"layer {item.name!r} has {len(item.maps)} map(s); there is no map {self.index}")
         item.maps.remove(self.index)
+        stack_io.tag_changed(mat)  # the texture baked from the maps is now out of date
         return {"FINISHED"}
 
 

@@ -49,12 +49,14 @@ def _on_auto_latent(settings, context) -> None:
 
 
 def _on_texture_changed(settings, context) -> None:
-    """The baked texture a material renders changed (a bake finished, or Clear): tag the material, so that the
-    evaluated copies the viewport and the render operators read get the new path and key (a property set from
-    Python alone does not reach them)."""
+    """Which baked texture a material renders may have changed (a bake finished, Clear, or the bake's refine
+    budget, part of the texture's key): tag the material, so that the evaluated copies the viewport and the
+    render operators read get the new values (a property without an update callback tags nothing)."""
     material = settings.id_data
     if isinstance(material, bpy.types.Material):
-        material.update_tag()
+        from . import stack_io
+
+        stack_io.tag_changed(material)
 
 
 def _range_text(key: str) -> str:
@@ -348,6 +350,7 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
         min=0.0,
         soft_max=600.0,
         unit="TIME_ABSOLUTE",
+        update=_on_texture_changed,  # the bake key holds the budget: a change makes the texture stale
     )
     texture_size: IntVectorProperty(
         name="Latent Texture Size",

@@ -73,6 +73,7 @@ class NLM_OT_refine_latent(MaterialOperator, bpy.types.Operator):
         r.decoder_digest = load_models(size).digest
         r.error_before, r.error_after = rep.validation_error_before, rep.validation_error_after
         r.seconds, r.kept = rep.total_s, "yes" if rep.kept else "no"
+        stack_io.tag_changed(mat)  # the viewport and the render operators' evaluated copies: another latent now
         how = "cached" if rep.cached else f"{rep.total_s:.1f} s"
         if rep.kept:
             self.report(

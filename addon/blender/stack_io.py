@@ -116,6 +116,14 @@ def write_layer(item, layer: Layer) -> None:
         item.g = layer.g
 
 
+def tag_changed(mat) -> None:
+    """Tell the depsgraph that ``mat`` changed (its evaluated copy is made again, the viewport updates): a
+    property set from Python or by an operator tags its ID only when it has an update callback."""
+    original = getattr(mat, "original", mat)
+    if original is not None and hasattr(original, "update_tag"):
+        original.update_tag()
+
+
 @contextmanager
 def bulk_edit(mat):
     """Edit several layer fields at once: the latent is refreshed once, at the end."""
@@ -195,12 +203,16 @@ def current_latent(mat):
 
 
 def on_stack_changed(mat) -> None:
-    """Called after every edit of the stack: recompute the latent when automatic and possible.
+    """Called after every edit of the stack: tag the material, and recompute the latent when automatic and
+    possible.
 
-    Failures leave the latent stale (its hash no longer matches); the evaluate operator reports why.
+    The tag tells the depsgraph, and so the viewport and the evaluated copies the render operators export,
+    that the material changed: removing or moving a layer from Python (the sidebar's operators) tags nothing
+    by itself. Failures leave the latent stale (its hash no longer matches); the evaluate operator reports why.
     """
     if _suspend_updates:
         return
+    tag_changed(mat)
     s = settings(mat)
     if not s.auto_latent:
         return

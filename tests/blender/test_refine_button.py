@@ -23,6 +23,9 @@ def test_refine_stores_the_refined_latent_and_its_measurements(bpy_addon, materi
     assert r.finished, r.error
     res = material.neural_refine
     assert res.size == "tiny" and len(res.key) == 64 and res.kept in ("yes", "no") and res.seconds > 0.0
+    # the material is tagged: its evaluated copy (what the viewport is told changed) has the result too
+    bpy.context.view_layer.update()
+    assert material.evaluated_get(bpy.context.evaluated_depsgraph_get()).neural_refine.key == res.key
     assert stack_io.latent_is_current(material) and material.neural_layers.latent_size == "tiny"
     stored = stack_io.latent_of(material)
     # the same stack, models and settings: the core's cached result is the stored latent

@@ -372,3 +372,33 @@ def test_users_save_share_and_apply_their_own_layer_presets(bpy_addon, material,
     assert not files[0].exists()
     r = run_operator(bpy.ops.neural_layers.stack_apply, stack="{not json")
     assert not r.finished and "not a layer stack" in r.error
+
+
+def test_every_stack_edit_reaches_the_evaluated_material(bpy_addon, material):
+    """What the viewport and the render operators export is the evaluated copy of a material, made again only
+    when the material is tagged. An operator that removes a layer or a map from Python tags nothing by itself:
+    the viewport kept showing the removed layer until another edit."""
+    bpy = bpy_addon
+    ops = bpy.ops.neural_layers
+
+    def stack(s):
+        return [(l.layer_type, round(l.roughness, 4), len(l.maps)) for l in s.layers]
+
+    def evaluated():
+        bpy.context.view_layer.update()
+        return material.evaluated_get(bpy.context.evaluated_depsgraph_get()).neural_layers
+
+    edits = [
+        (ops.preset_apply, {"preset": "coated_gold"}),
+        (ops.layer_add, {}),
+        (ops.layer_duplicate, {}),
+        (ops.layer_move, {"direction": "DOWN"}),
+        (ops.layer_remove, {}),
+        (ops.map_add, {"parameter": "ROUGHNESS"}),
+        (ops.map_remove, {}),
+    ]
+    for op, kwargs in edits:
+        assert run_operator(op, **kwargs).finished, op
+        assert stack(evaluated()) == stack(material.neural_layers), op
+    material.neural_layers.bake_refine = 3.0  # part of a baked texture's key
+    assert evaluated().bake_refine == 3.0
