@@ -15,7 +15,7 @@ import bpy
 from bpy.props import EnumProperty, IntProperty
 
 from ..core.render import RenderSettings
-from ..core.textures.bake import bake_key, bake_stack, neural_encoder
+from ..core.textures.bake import bake_key, bake_stack, check_bake_memory, neural_encoder
 from . import bake_inputs, stack_io
 from .bake_state import (  # noqa: F401 (baked_texture_state: API)
     bake_model_key,
@@ -113,6 +113,10 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
         res = spatial.resolution_for_max_side(s.bake_resolution)
         if s.bake_fit_camera:
             res = min(res, camera_resolution(context, mat, spatial), key=lambda r: r[0] * r[1])
+        try:
+            check_bake_memory(*res)
+        except ValueError as e:
+            raise UserError(f"{e}: lower Bake Resolution or turn on Fit to Camera") from None
         size = bake_size(mat)
         path = texture_output_path(mat)
         refine_s = float(f"{s.bake_refine:g}")  # the float32 property's 0.01 is 0.00999999977 in float64

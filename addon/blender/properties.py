@@ -30,6 +30,7 @@ from bpy.props import (
 
 from ..core.neural.models import DEFAULT_SIZE, MODEL_DIR, SIZES
 from ..core.stack import TRAINED_RANGES, VALID_RANGES
+from ..core.textures.bake import DEFAULT_MAX_SIDE
 from . import layer_types
 
 _ALPHA_LO, _ALPHA_HI = TRAINED_RANGES["roughness"]
@@ -329,9 +330,10 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
     # latent texture bake
     bake_resolution: IntProperty(
         name="Bake Resolution",
-        description="Largest side of the baked latent texture in texels; 0 = the driving images' resolution "
-        "(a bake is never finer than its images)",
-        default=0,
+        description="Largest side of the baked latent texture in texels (a bake is never finer than its images); "
+        "0 = the driving images' resolution. A bake takes about 2 kB of memory per texel at its peak: 2 GB at "
+        "1024, 8 GB at 2048, 32 GB at 4096",
+        default=DEFAULT_MAX_SIDE,
         min=0,
         max=16384,
     )

@@ -156,6 +156,18 @@ def test_bake_resolution_is_capped_by_the_images_and_images_must_match(wood, bpy
     assert r.error and "share a resolution" in r.error
 
 
+def test_bake_resolution_defaults_to_2048_and_a_bake_too_large_for_memory_is_refused(wood, bpy_addon, monkeypatch):
+    """The default Bake Resolution caps the driving images at 2048 texels a side (a 4096 x 4096 bake takes about
+    30 GB); a bake larger than three quarters of the computer's memory is refused with what fits."""
+    from addon.core.textures import bake
+
+    assert wood.neural_layers.bake_resolution == bake.DEFAULT_MAX_SIDE == 2048
+    monkeypatch.setattr(bake, "physical_memory_bytes", lambda: 200 * 2**10)  # 200 kB: 8 x 16 texels do not fit
+    r = run_operator(ops.bake_texture)
+    assert r.error and "8 texels takes about" in r.error and "lower Bake Resolution" in r.error, r.error
+    assert wood.neural_layers.texture_path == ""
+
+
 def test_duplicating_a_layer_copies_its_maps(wood):
     wood.neural_layers.active_index = 1
     assert run_operator(ops.layer_duplicate).finished

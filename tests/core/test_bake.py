@@ -217,3 +217,24 @@ def test_the_bake_uses_the_threads_it_is_given_and_their_count_changes_nothing(m
     two, _ = bake_stack(spatial, encode, threads=2)
     assert set(seen) == {2}
     np.testing.assert_array_equal(one.levels[0], two.levels[0])
+
+
+def test_a_bake_too_large_for_this_computer_is_refused_before_any_work(monkeypatch):
+    """Baking takes about BAKE_BYTES_PER_TEXEL at its peak; where that is over three quarters of the computer's
+    memory the bake says so, with the side that fits, instead of ending in the system's out-of-memory."""
+    from addon.core.textures import bake
+
+    gib = 2**30
+    bake.check_bake_memory(2048, 2048, physical=16 * gib)  # 7.4 GB of 16: fine
+    with pytest.raises(ValueError, match=r"4096 x 4096 texels takes about 29\.7 GB .* 16\.0 GB: bake at most 2048"):
+        bake.check_bake_memory(4096, 4096, physical=16 * gib)
+    assert bake.physical_memory_bytes() > gib  # readable here (Linux)
+    monkeypatch.setattr(bake, "physical_memory_bytes", lambda: None)
+    bake.check_bake_memory(65536, 65536)  # memory unknown: nothing checked
+
+    calls = []
+    monkeypatch.setattr(bake, "physical_memory_bytes", lambda: 64 * 2**10)  # 64 kB
+    spatial = SpatialStack(wood(), {"coatings[0].roughness": np.full((8, 8), 0.2)})
+    with pytest.raises(ValueError, match="8 x 8 texels takes about"):
+        bake_stack(spatial, lambda arrays: calls.append(arrays))
+    assert calls == []  # nothing encoded

@@ -27,6 +27,69 @@ Encoder = Callable[[StackArrays], tuple[np.ndarray, np.ndarray]]
 Progress = Callable[[float], None]
 ENCODE_SHARE = 0.3  # of a calibrated bake's progress bar: the encoding (the calibration takes the rest)
 BATCH = 65536  # texels per encoder call
+# Peak memory of a bake per texel of its base level, measured: the largest resident size
+# (resource.getrusage's ru_maxrss) of a process running bake_stack(SpatialStack(preset("varnished_wood"),
+# benchmarks/bench_bake.driving_images(res)), neural_encoder("tiny")), every texel distinct, calibrated and its
+# levels measured, less the process before it: 1.98 GB at 1024 x 1024 (1.9 kB a texel), 7.2 GB at 2048 x 2048
+# (1.7 kB). The texture itself keeps 533 B per texel (100 float32 channels and
+# the mip chain); the bake holds the parameter rows, the encoded texels and the chain being built besides.
+BAKE_BYTES_PER_TEXEL = 1900
+DEFAULT_MAX_SIDE = 2048  # the add-on's default Bake Resolution: about 8 GB at the peak of a 2048 x 2048 bake
+
+
+def estimated_bake_bytes(height: int, width: int) -> int:
+    """About how much memory baking a ``height`` x ``width`` texture takes at its peak (``BAKE_BYTES_PER_TEXEL``)."""
+    return int(height) * int(width) * BAKE_BYTES_PER_TEXEL
+
+
+def physical_memory_bytes() -> int | None:
+    """This computer's physical memory, or None where it cannot be read (Linux and macOS: ``os.sysconf``;
+    Windows: ``GlobalMemoryStatusEx``)."""
+    try:
+        if hasattr(os, "sysconf") and "SC_PHYS_PAGES" in os.sysconf_names:
+            return int(os.sysconf("SC_PHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+        if os.name == "nt":
+            import ctypes
+
+            class _Status(ctypes.Structure):
+                _fields_ = [
+                    ("length", ctypes.c_ulong),
+                    ("load", ctypes.c_ulong),
+                    ("total_phys", ctypes.c_ulonglong),
+                    ("avail_phys", ctypes.c_ulonglong),
+                    ("total_page", ctypes.c_ulonglong),
+                    ("avail_page", ctypes.c_ulonglong),
+                    ("total_virtual", ctypes.c_ulonglong),
+                    ("avail_virtual", ctypes.c_ulonglong),
+                    ("avail_extended", ctypes.c_ulonglong),
+                ]
+
+            status = _Status()
+            status.length = ctypes.sizeof(_Status)
+            if ctypes.windll.kernel32.GlobalMemoryStatusEx(ctypes.byref(status)):
+                return int(status.total_phys)
+    except (OSError, ValueError, AttributeError):
+        pass
+    return None
+
+
+def check_bake_memory(height: int, width: int, physical: int | None = None) -> None:
+    """ValueError, with the numbers and what to do, when baking ``height`` x ``width`` texels would take more than
+    three quarters of this computer's memory (``physical``: its size; default read with
+    :func:`physical_memory_bytes`; nothing is checked where it cannot be read)."""
+    physical = physical_memory_bytes() if physical is None else physical
+    need = estimated_bake_bytes(height, width)
+    if physical is None or need <= 0.75 * physical:
+        return
+    side = max(height, width)
+    fits = side
+    while fits > 1 and estimated_bake_bytes(round(height * fits / side), round(width * fits / side)) > 0.75 * physical:
+        fits //= 2
+    raise ValueError(
+        f"baking {width} x {height} texels takes about {need / 2**30:.1f} GB of memory and this computer has "
+        f"{physical / 2**30:.1f} GB: bake at most {fits} texels a side (about "
+        f"{estimated_bake_bytes(round(height * fits / side), round(width * fits / side)) / 2**30:.1f} GB)"
+    )
 
 
 def neural_encoder(
@@ -255,7 +318,11 @@ def bake_stack(
     metadata (``calibration``), which the renderer applies; only with an encoder that carries its models
     (``neural_encoder``'s). ``progress`` runs to 1 over both parts. ``check_filtering``: with such an
     encoder, the mip levels whose latents decode like the average of their texels are measured
-    (``textures.filtering``) and recorded (``filter_levels``), so the renderer filters no further."""
+    (``textures.filtering``) and recorded (``filter_levels``), so the renderer filters no further.
+
+    ValueError before any work when the bake would take more than three quarters of this computer's memory
+    (:func:`check_bake_memory`)."""
+    check_bake_memory(*(resolution or spatial.resolution or (1, 1)))  # a clear error, not the system's out-of-memory
     arrays, (h, w) = spatial.texels(resolution)
     models = getattr(encode, "models", None) if calibrate else None
     share = 1.0 if models is None else ENCODE_SHARE
