@@ -400,7 +400,7 @@ def bake_mix(
     h, w = resolution or m.shape
     if h > m.shape[0] or w > m.shape[1]:
         raise ValueError(f"bake resolution {w}x{h} must not exceed the mask's {m.shape[1]}x{m.shape[0]}")
-    check_bake_memory(h, w)  # two stacks' texels: about as much as one calibrated bake_stack's peak
+    check_bake_memory(h, w)  # bake_stack's estimate per texel (a mix holds two stacks' texels; not measured apart)
     from .mip import resample_area
 
     if (h, w) != m.shape:
