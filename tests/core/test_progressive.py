@@ -139,8 +139,8 @@ def test_layered_materials_are_calibrated_as_an_offline_render_calibrates_them()
 
 
 def test_the_viewport_calibrates_what_cached_left_out_after_its_first_image():
-    """``calibrate="cached"`` (the viewport's setting) makes no reference walks before the first image; the
-    session then calibrates the materials that had none and renders the full-resolution passes as a
+    """``calibrate="cached"`` (the viewport's setting) makes no reference walks before the first images; after
+    the first full-resolution pass the session calibrates the materials that had none and accumulates as a
     calibrating offline render does."""
     from addon.core.render.materials import LayeredSpec, resolve
     from addon.core.stack import preset
@@ -161,5 +161,8 @@ def test_the_viewport_calibrates_what_cached_left_out_after_its_first_image():
     finally:
         session.close()
     assert seen[0].reduced and material.calibration is not None and material.uncalibrated_stack is None
+    # one full-resolution pass uncalibrated (an edit that comes now does not wait for walks), then the calibrated
+    # accumulation from its first sample
+    assert [im.samples for im in seen if not im.reduced] == [1, 1, 2]
     offline, _ = render(scene, replace(settings, calibrate=True))
     assert np.array_equal(image.rgba, offline.rgba())
