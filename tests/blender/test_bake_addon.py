@@ -157,8 +157,8 @@ def test_bake_resolution_is_capped_by_the_images_and_images_must_match(wood, bpy
 
 
 def test_bake_resolution_defaults_to_2048_and_a_bake_too_large_for_memory_is_refused(wood, bpy_addon, monkeypatch):
-    """The default Bake Resolution caps the driving images at 2048 texels a side (a 4096 x 4096 bake takes about
-    30 GB); a bake larger than three quarters of the computer's memory is refused with what fits."""
+    """The default Bake Resolution caps the driving images at 2048 texels a side (a 4096 x 4096 bake takes up to
+    25 GB); a bake larger than three quarters of the computer's memory is refused with what fits."""
     from addon.core.textures import bake
 
     assert wood.neural_layers.bake_resolution == bake.DEFAULT_MAX_SIDE == 2048

@@ -21,6 +21,7 @@ from ..neural.top_lobe import top_coats
 from ..rows import distinct_rows
 from ..stack import StackArrays
 from .latent_texture import CHANNEL_NAMES, LatentTexture
+from .mip import MipChain
 from .spatial import SpatialStack
 
 Encoder = Callable[[StackArrays], tuple[np.ndarray, np.ndarray]]
@@ -30,11 +31,11 @@ BATCH = 65536  # texels per encoder call
 # Peak memory of a bake per texel of its base level, measured: the largest resident size
 # (resource.getrusage's ru_maxrss) of a process running bake_stack(SpatialStack(preset("varnished_wood"),
 # benchmarks/bench_bake.driving_images(res)), neural_encoder("tiny")), every texel distinct, calibrated and its
-# levels measured, less the process before it: 1.98 GB at 1024 x 1024 (1.9 kB a texel), 7.2 GB at 2048 x 2048
-# (1.7 kB). The texture itself keeps 533 B per texel (100 float32 channels and
-# the mip chain); the bake holds the parameter rows, the encoded texels and the chain being built besides.
-BAKE_BYTES_PER_TEXEL = 1900
-DEFAULT_MAX_SIDE = 2048  # the add-on's default Bake Resolution: about 8 GB at the peak of a 2048 x 2048 bake
+# levels measured, less the process before it: 1.59 GB at 1024 x 1024 (1.5 kB a texel), 5.0 GB at 2048 x 2048
+# (1.2 kB). The texture itself keeps 533 B per texel (100 float32 channels and the mip chain); the bake holds
+# the parameter rows and the distinct texels besides (the texels go straight into the chain's base level).
+BAKE_BYTES_PER_TEXEL = 1600
+DEFAULT_MAX_SIDE = 2048  # the add-on's default Bake Resolution: about 5 GB at the peak of a 2048 x 2048 bake
 
 
 def estimated_bake_bytes(height: int, width: int) -> int:
@@ -234,17 +235,19 @@ def _thread_count(threads: int) -> int:
     return int(threads) or (os.cpu_count() or 1)
 
 
-def _bake_in_threads(arrays, encode, dedup, batch, progress, cancel, threads):
+def _bake_in_threads(arrays, encode, dedup, batch, progress, cancel, threads, gather=True):
     from ..neural.session import threads_in_force
 
     n_threads = _thread_count(threads)
     workers = n_threads if getattr(encode, "concurrent", False) else 1
     with threads_in_force(n_threads):
-        return _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers)
+        return _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers, gather)
 
 
-def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1):
-    """``bake_texels``' texels and stats, and the distinct rows it encoded: ``(stacks, texels, counts)``."""
+def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1, gather=True):
+    """``bake_texels``' texels and stats, and the distinct rows it encoded: ``(stacks, texels, counts)``. Without
+    ``gather`` the first is ``(distinct texels, inverse)`` instead (None: every row its own), for a caller that
+    gathers them where they go (``bake_stack``: into the mip chain's base, with no texture-sized copy between)."""
     t0 = time.perf_counter()
     n = len(arrays)
     inverse = None  # None: every row is its own (no gather at the end)
@@ -294,7 +297,8 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1):
         raise ValueError("the encoder returned non-finite latents")
     counts = np.ones(m) if inverse is None else np.bincount(inverse, minlength=m).astype(np.float64)
     stats = BakeStats(texels=n, unique=m, seconds=time.perf_counter() - t0)
-    return (out if inverse is None else out[inverse]), stats, (todo, out, counts)
+    texels = (out if inverse is None else out[inverse]) if gather else (out, inverse)
+    return texels, stats, (todo, out, counts)
 
 
 def bake_stack(
@@ -326,9 +330,17 @@ def bake_stack(
     arrays, (h, w) = spatial.texels(resolution)
     models = getattr(encode, "models", None) if calibrate else None
     share = 1.0 if models is None else ENCODE_SHARE
-    texels, stats, (rows, distinct, counts) = _bake_in_threads(
-        arrays, encode, dedup, BATCH, None if progress is None else (lambda f: progress(share * f)), cancel, threads
+    (distinct, inverse), stats, (rows, _, counts) = _bake_in_threads(
+        arrays,
+        encode,
+        dedup,
+        BATCH,
+        None if progress is None else (lambda f: progress(share * f)),
+        cancel,
+        threads,
+        gather=False,
     )
+    del arrays  # the distinct rows (``rows``) are what the calibration needs
     meta = {"stack": spatial.stack.to_json(), "maps": ",".join(sorted(spatial.maps))}
     meta.update(metadata or {})
     meta.update(getattr(encode, "metadata", {}))  # the encoder's decoder size and digest
@@ -348,7 +360,17 @@ def bake_stack(
             calibration = calibrate_texture(rows, distinct, counts, models, step)
         meta["calibration"] = calibration.to_text()
         stats = BakeStats(stats.texels, stats.unique, stats.seconds, time.perf_counter() - t, len(calibration.tables))
-    tex = LatentTexture.from_texels(texels.reshape(h, w, -1), meta)
+    del rows, counts
+    # Each texel gathered straight into the chain's base level, then the levels below it in place: the bake's peak
+    # holds the distinct texels and the chain, no texture-sized copy besides (BAKE_BYTES_PER_TEXEL).
+    chain = MipChain.empty(h, w, distinct.shape[1])
+    base = chain[0].reshape(h * w, -1)
+    if inverse is None:
+        base[...] = distinct
+    else:
+        np.take(distinct, inverse, axis=0, out=base)
+    del distinct, inverse
+    tex = LatentTexture(chain.fill(), meta)  # the encoder's texels are finite (``_bake_texels`` checks)
     encoder_models = getattr(encode, "models", None)
     if check_filtering and encoder_models is not None:
         record_filter_levels(tex, encoder_models, threads)

@@ -65,27 +65,65 @@ class MipChain(list):
             raise ValueError("a mip chain needs one or more (H, W, C) levels")
         if len({level.shape[2] for level in levels}) != 1:
             raise ValueError(f"the levels of a mip chain need one channel count, got {[lv.shape for lv in levels]}")
-        sizes = [level.size for level in levels]
+        self._allocate([level.shape for level in levels])
+        for view, level in zip(self, levels, strict=True):
+            view[...] = level
+
+    def _allocate(self, shapes) -> None:
+        sizes = [int(np.prod(shape)) for shape in shapes]
         self.flat = np.empty(sum(sizes), dtype=np.float32)
         self.offsets = np.concatenate([[0], np.cumsum(sizes[:-1])]).astype(np.int64)
-        self.heights = np.array([level.shape[0] for level in levels], dtype=np.int64)
-        self.widths = np.array([level.shape[1] for level in levels], dtype=np.int64)
-        views = []
-        for level, start in zip(levels, self.offsets, strict=True):
-            view = self.flat[start : start + level.size].reshape(level.shape)
-            view[...] = level
-            views.append(view)
+        self.heights = np.array([shape[0] for shape in shapes], dtype=np.int64)
+        self.widths = np.array([shape[1] for shape in shapes], dtype=np.int64)
+        views = [
+            self.flat[start : start + size].reshape(shape)
+            for start, size, shape in zip(self.offsets, sizes, shapes, strict=True)
+        ]
         super().__init__(views)
+
+    @classmethod
+    def empty(cls, height: int, width: int, channels: int) -> "MipChain":
+        """An uninitialised chain for an (height, width, channels) base: every level down to 1 x 1 (round-down
+        sizes). Write the base into ``chain[0]``, then :meth:`fill`."""
+        if height < 1 or width < 1 or channels < 1:
+            raise ValueError(f"a mip chain needs a base of at least 1 x 1 x 1, got {height} x {width} x {channels}")
+        shapes = [(height, width, channels)]
+        while shapes[-1][0] > 1 or shapes[-1][1] > 1:
+            shapes.append((max(1, shapes[-1][0] // 2), max(1, shapes[-1][1] // 2), channels))
+        chain = cls.__new__(cls)
+        chain._allocate(shapes)
+        return chain
+
+    def fill(self) -> "MipChain":
+        """Every level from the one above it (``downsample``), in place; returns the chain."""
+        for k in range(1, len(self)):
+            _downsample_into(self[k - 1], self[k])
+        return self
+
+
+def _downsample_into(level: np.ndarray, out: np.ndarray) -> None:
+    """``out[...] = downsample(level)`` with no level-sized temporaries for even sizes (a bake's base level can
+    take gigabytes): the same operations in the same order, so the same values."""
+    h, w = level.shape[:2]
+    if h % 2 or w % 2:
+        out[...] = downsample(level)
+        return
+    # downsample's 0.5 * (rows[:, 0::2] + rows[:, 1::2]) with rows = 0.5 * (level[0::2] + level[1::2])
+    np.add(level[0::2, 0::2], level[1::2, 0::2], out=out)
+    out *= 0.5
+    right = level[0::2, 1::2] + level[1::2, 1::2]
+    right *= 0.5
+    out += right
+    out *= 0.5
 
 
 def build_mip_chain(base: np.ndarray) -> MipChain:
     """All levels from ``base`` (H, W, C) down to 1 x 1, float32, in one :class:`MipChain`."""
     if base.ndim != 3 or base.shape[0] < 1 or base.shape[1] < 1:
         raise ValueError(f"a mip chain needs an (H, W, C) array, got shape {base.shape}")
-    levels = [np.ascontiguousarray(base, dtype=np.float32)]
-    while levels[-1].shape[0] > 1 or levels[-1].shape[1] > 1:
-        levels.append(downsample(levels[-1]))  # float32: the texture is stored as half floats
-    return MipChain(levels)
+    chain = MipChain.empty(*base.shape)
+    chain[0][...] = base  # float32: the texture is stored as half floats
+    return chain.fill()
 
 
 def mip_level_for_footprint(footprint: np.ndarray, width: int, height: int, n_levels: int) -> np.ndarray:
