@@ -46,11 +46,56 @@ def driving_images(res: int, seed: int = 0) -> dict[str, np.ndarray]:
     }
 
 
+_PEAK_SCRIPT = """
+import sys
+sys.path.insert(0, {root!r})
+from benchmarks.bench_bake import driving_images
+from addon.core.stack import preset
+from addon.core.textures.bake import bake_stack, neural_encoder
+from addon.core.textures.spatial import SpatialStack
+
+def high_water():  # this process's largest resident size so far, kB (ru_maxrss would count the parent's too)
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:"))
+
+encode = neural_encoder({size!r})
+spatial = SpatialStack(preset("varnished_wood"), driving_images({side}))
+before = high_water()
+tex, stats = bake_stack(spatial, encode)
+print(before, high_water(), stats.unique)
+"""
+
+
+def peak_memory(side: int, size: str) -> tuple[float, float, int]:
+    """The bake's peak memory at ``side`` x ``side`` (default settings, every texel distinct but a few): the
+    largest resident size of a fresh process (``VmHWM``, Linux) before and after ``bake_stack``, in bytes, and
+    the distinct texels."""
+    import subprocess
+
+    run = subprocess.run(
+        [sys.executable, "-c", _PEAK_SCRIPT.format(root=str(ROOT), size=size, side=side)],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=3600,
+    )
+    before, after, unique = run.stdout.split()[-3:]
+    return float(before) * 1024, float(after) * 1024, int(unique)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", default="tiny", help="decoder size (its encoder/layering/sampling models are used)")
     ap.add_argument("--res", type=int, default=512, help="texture side in texels")
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
+    ap.add_argument(
+        "--peak-memory",
+        type=int,
+        nargs="*",
+        default=[1024, 2048],
+        metavar="SIDE",
+        help="texture sides whose bake's peak memory is measured, each in a fresh process (none: skip)",
+    )
     args = ap.parse_args(argv)
     import bpy
 
@@ -100,6 +145,16 @@ def main(argv=None) -> int:
         )
         print(defaults[-1], flush=True)
 
+    peaks = []
+    if args.peak_memory and sys.platform.startswith("linux"):  # /proc/self/status
+        for side in args.peak_memory:
+            before, after, unique = peak_memory(side, args.size)
+            peaks.append(
+                f"| {side} x {side} | {unique:,} | {before / 2**30:.2f} | {after / 2**30:.2f} | "
+                f"{(after - before) / 2**30:.2f} | {(after - before) / side**2:,.0f} |"
+            )
+            print(peaks[-1], flush=True)
+
     # Blending two stacks through a mask: the lobe of a half-way texel.
     a, b = preset("coated_gold"), preset("frosted_copper")
     mask = np.tile(np.linspace(0.0, 1.0, 9), (4, 1))
@@ -141,7 +196,9 @@ def main(argv=None) -> int:
     fig.tight_layout()
     fig.savefig(args.out / "bake_mix_lobes.png", dpi=110)
 
-    cmd = f"python benchmarks/bench_bake.py --size {args.size} --res {args.res}"
+    cmd = f"python benchmarks/bench_bake.py --size {args.size} --res {args.res}" + (
+        f" --peak-memory {' '.join(map(str, args.peak_memory))}" if args.peak_memory else " --peak-memory"
+    )
     text = [
         "# Baking latent textures: speed and size",
         "",
@@ -189,6 +246,15 @@ def main(argv=None) -> int:
         "filter levels and the rest s | filterable levels | distinct texels/s |",
         "|---|---|---|---|---|---|---|---|",
         *defaults,
+        "",
+        "Peak memory of a bake with the default settings, each side in a fresh process (`--peak-memory`): the "
+        "largest resident size before `bake_stack` (the models, the maps) and after it. "
+        "`textures.bake.BAKE_BYTES_PER_TEXEL`, which the bake's memory check uses, is the larger per-texel "
+        "figure.",
+        "",
+        "| texture | distinct texels | process before GB | peak GB | the bake's GB | bytes per texel |",
+        "|---|---|---|---|---|---|",
+        *peaks,
         "",
         "![latent vs BRDF blending](bake_mix_lobes.png)",
         "",

@@ -28,12 +28,11 @@ Encoder = Callable[[StackArrays], tuple[np.ndarray, np.ndarray]]
 Progress = Callable[[float], None]
 ENCODE_SHARE = 0.3  # of a calibrated bake's progress bar: the encoding (the calibration takes the rest)
 BATCH = 65536  # texels per encoder call
-# Peak memory of a bake per texel of its base level, measured: the largest resident size
-# (resource.getrusage's ru_maxrss) of a process running bake_stack(SpatialStack(preset("varnished_wood"),
-# benchmarks/bench_bake.driving_images(res)), neural_encoder("tiny")), every texel distinct, calibrated and its
-# levels measured, less the process before it: 1.59 GB at 1024 x 1024 (1.5 kB a texel), 5.0 GB at 2048 x 2048
-# (1.2 kB). The texture itself keeps 533 B per texel (100 float32 channels and the mip chain); the bake holds
-# the parameter rows and the distinct texels besides (the texels go straight into the chain's base level).
+# Peak memory of a bake per texel of its base level, measured by ``benchmarks/bench_bake.py --peak-memory``
+# (docs/bake.md): the largest resident size of a fresh process baking varnished wood under smooth maps (every
+# texel distinct but a few, calibrated, its levels measured), less the process before the bake. The texture
+# itself keeps 533 B per texel (100 float32 channels and the mip chain); the bake holds the parameter rows and
+# the distinct texels besides (the texels go straight into the chain's base level).
 BAKE_BYTES_PER_TEXEL = 1600
 DEFAULT_MAX_SIDE = 2048  # the add-on's default Bake Resolution: about 5 GB at the peak of a 2048 x 2048 bake
 
