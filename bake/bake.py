@@ -64,7 +64,7 @@ from addon.core.textures.bake import (  # noqa: E402
 )
 from addon.core.textures.calibration import calibrate_baked  # noqa: E402
 from addon.core.textures.latent_texture import CHANNEL_NAMES, LatentTexture, read_image_file  # noqa: E402
-from addon.core.textures.mip import resample_area  # noqa: E402
+from addon.core.textures.mip import MipChain, resample_area  # noqa: E402
 from addon.core.textures.spatial import SpatialStack, parse_parameter_path  # noqa: E402
 
 EXIT_DONE, EXIT_FAILED, EXIT_BAD_INPUT = 0, 1, 2
@@ -482,10 +482,13 @@ def assemble(
     if _fresh(out, job, key) or not all(p.is_file() for p in paths):
         return False
     t0 = time.perf_counter()
-    parts = []
+    # The bands go straight into the mip chain's base level (no texture-sized copy besides the chain).
+    chain = MipChain.empty(h, w, len(CHANNEL_NAMES))
+    texels = chain[0].reshape(h * w, -1)
     for b, p in enumerate(paths):
+        rows = slice(b * band_rows * w, (b * band_rows + _band_rows(job, b, band_rows)) * w)
         try:
-            parts.append(_load_band(p, _band_rows(job, b, band_rows), w))
+            texels[rows] = _load_band(p, _band_rows(job, b, band_rows), w)
         except FileNotFoundError:
             if _fresh(out, job, key):
                 return False  # another shard published it and removed the bands
@@ -496,16 +499,15 @@ def assemble(
         except ValueError as e:  # damaged after it was kept: never reused, baked again here
             log(f"{e}: baking it again")
             p.unlink(missing_ok=True)
-            parts.append(rebake(b))
-    texels = np.concatenate(parts).reshape(h, w, -1)
+            texels[rows] = rebake(b)
     meta = {"stack": job.spatial.stack.to_json(), "model": model, "key": key, **(model_metadata or {})}
     calibration_s = None
     if models is not None and job.mix is None:  # a blended texel's latent is no stack's: nothing to walk
         t = time.perf_counter()
         arrays = ((cache or {}).get(job.name) or job.texels())[0]
-        meta["calibration"] = calibrate_baked(arrays, texels.reshape(h * w, -1), models).to_text()
+        meta["calibration"] = calibrate_baked(arrays, texels, models).to_text()
         calibration_s = round(time.perf_counter() - t, 3)
-    tex = LatentTexture.from_texels(texels, meta)
+    tex = LatentTexture(chain.fill(), meta)  # every band finite: _load_band and _bake_band check
     if models is not None:  # the mip levels the renderer may filter across (textures.filtering)
         record_filter_levels(tex, models)
     tex.write_exr(out / f"{job.file}.exr")
