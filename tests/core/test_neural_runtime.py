@@ -103,6 +103,22 @@ def test_per_row_latents_match_single(models):
     np.testing.assert_allclose(f[150:], models.eval_brdf(zb, wi[150:], wo[150:]), rtol=1e-5, atol=1e-7)
 
 
+def test_latents_by_row_index_equal_the_gathered_latents(models):
+    """``z_rows`` (the renderer's query of a latent texture's hits) decodes ``z[z_rows]`` without gathering it
+    first: the same values, chunk by chunk; rows outside z are refused."""
+    rng = np.random.default_rng(4)
+    n = 9000  # more than one chunk of the runtime
+    wi, wo = _dirs(rng, n), _dirs(rng, n)
+    wi[:, 2], wo[:, 2] = np.abs(wi[:, 2]), np.abs(wo[:, 2])
+    z = np.stack([encode_layer(models, Diffuse(a)) for a in (0.2, 0.5, 0.8)] * 10)  # (30, 3, 32)
+    rows = rng.integers(0, len(z), n)
+    np.testing.assert_array_equal(models.eval_brdf(z, wi, wo, z_rows=rows), models.eval_brdf(z[rows], wi, wo))
+    with pytest.raises(ValueError, match="z_rows must index"):
+        models.eval_brdf(z, wi[:2], wo[:2], z_rows=np.array([0, 30]))
+    with pytest.raises(ValueError, match="z_rows must be 2 integer rows"):
+        models.eval_brdf(z, wi[:2], wo[:2], z_rows=np.array([0.0, 1.0]))
+
+
 def test_fused_rgb_graph_equals_scalar_graph(models):
     assert models._rgb is not None, f"decoder_{models.size}_rgb.onnx is not shipped"
     rng = np.random.default_rng(2)

@@ -225,6 +225,29 @@ def _float32_rows(w: np.ndarray) -> np.ndarray:
     return w.astype(np.float32)
 
 
+def _latents_of_rows(z, n: int, z_rows) -> tuple[np.ndarray, bool, np.ndarray | None]:
+    """``eval_brdf``'s latents for ``n`` rows: ``(z float32, per row?, z_rows)``, checked (module docstring of
+    ``eval_brdf``: one (3, 32), one per row (n, 3, 32), or rows ``z_rows`` (n,) of (M, 3, 32))."""
+    if np.iscomplexobj(z):
+        raise ValueError("z must be real, got complex values")
+    z = np.asarray(z, dtype=np.float32)
+    if z_rows is not None:
+        z_rows = np.asarray(z_rows)
+        if z.ndim != 3 or z.shape[1:] != (3, LATENT) or z_rows.shape != (n,) or z_rows.dtype.kind not in "iu":
+            raise ValueError(
+                f"z_rows must be {n} integer rows of z (M, 3, {LATENT}); got {z_rows.dtype} {z_rows.shape} for z "
+                f"{z.shape}"
+            )
+        if n and (z_rows.min() < 0 or z_rows.max() >= len(z)):
+            raise ValueError(f"z_rows must index z's {len(z)} rows, got {z_rows.min()}..{z_rows.max()}")
+        return z, True, z_rows
+    if z.shape == (3, LATENT):
+        return z, False, None
+    if z.ndim == 3 and z.shape[1:] == (3, LATENT) and z.shape[0] == n:
+        return z, True, None
+    raise ValueError(f"z must have shape (3, {LATENT}) or ({n}, 3, {LATENT}) to match {n} directions, got {z.shape}")
+
+
 def latents(z, name: str = "z") -> np.ndarray:
     """``z`` as float32 latents (N, 3, 32) ((3, 32) becomes (1, 3, 32)); complex, NaN or Inf raise."""
     if np.iscomplexobj(z):
@@ -359,9 +382,21 @@ class ModelSet:
         return out
 
     def eval_brdf(
-        self, z, wi, wo, top=None, calibration=None, with_top_lobe=True, top_pdf: bool = False, unit: bool = False
+        self,
+        z,
+        wi,
+        wo,
+        top=None,
+        calibration=None,
+        with_top_lobe=True,
+        top_pdf: bool = False,
+        unit: bool = False,
+        z_rows=None,
     ):
-        """f (N, 3) in 1/sr (no cosine) for one material ``z`` (3, 32) or per-row latents (N, 3, 32).
+        """f (N, 3) in 1/sr (no cosine) for one material ``z`` (3, 32) or per-row latents (N, 3, 32); with
+        ``z_rows`` (N,) the latents ``z[z_rows]`` of M (M, 3, 32), gathered a chunk at a time, not first (the
+        renderer's query of a latent texture's hits: each hit's latent for its next-event and its sampled
+        direction).
 
         ``top``: the material's top coating (alpha, ior) as (2,) or per row (N, 2) (``top_lobe``; None
         or :data:`top_lobe.NO_TOP` for a stack without coatings). A remainder decoder's f is the decoded
@@ -379,17 +414,7 @@ class ModelSet:
         if wi.shape[0] != wo.shape[0]:
             raise ValueError(f"wi has {wi.shape[0]} rows but wo has {wo.shape[0]}")
         n = wi.shape[0]
-        if np.iscomplexobj(z):
-            raise ValueError("z must be real, got complex values")
-        z = np.asarray(z, dtype=np.float32)
-        if z.shape == (3, LATENT):
-            per_row = False
-        elif z.ndim == 3 and z.shape[1:] == (3, LATENT) and z.shape[0] == n:
-            per_row = True
-        else:
-            raise ValueError(
-                f"z must have shape (3, {LATENT}) or ({n}, 3, {LATENT}) to match {n} directions, got {z.shape}"
-            )
+        z, per_row, z_rows = _latents_of_rows(z, n, z_rows)
         if not np.all(np.isfinite(z)):
             raise ValueError("z must be finite (the latent holds NaN or Inf)")
         out = np.empty((n, 3), dtype=np.float32)
@@ -397,9 +422,16 @@ class ModelSet:
             return out
         zz = z[None]
 
+        def latents(rows: slice) -> np.ndarray:
+            return z[z_rows[rows]] if z_rows is not None else z[rows]
+
         def chunk(rows: slice) -> None:  # runs on the session's threads, one chunk of rows each
             if self._rgb is not None:  # the graph normalises and masks the horizon itself
-                feeds = {"z": z[rows] if per_row else zz, "wi": _float32_rows(wi[rows]), "wo": _float32_rows(wo[rows])}
+                feeds = {
+                    "z": latents(rows) if per_row else zz,
+                    "wi": _float32_rows(wi[rows]),
+                    "wo": _float32_rows(wo[rows]),
+                }
                 f = self._rgb.run_once(["f"], feeds)[0]
                 np.fmax(f, 0.0, out=out[rows])  # fmax: NaN (an overflowing latent) gives 0
                 return
@@ -408,7 +440,7 @@ class ModelSet:
             f = self._decoder.run_once(
                 ["f"],
                 {
-                    "z": z[rows].reshape(-1, LATENT) if per_row else np.tile(z, (m, 1)),
+                    "z": latents(rows).reshape(-1, LATENT) if per_row else np.tile(z, (m, 1)),
                     "wi": np.repeat(a[0], 3, axis=0),
                     "wo": np.repeat(b[0], 3, axis=0),
                 },

@@ -53,6 +53,14 @@ class _BoundNeural(ShadeByProposal):
         shared = np.ndim(a) == 0 or (np.ndim(a) == 2)
         return a if index is None or shared else a[index]
 
+    def _latents(self, index) -> dict:
+        """``eval_brdf``'s latent arguments for the rows ``index`` (all when None): the material's one latent, or
+        a latent texture's per-hit latents with the rows to take (gathered a chunk at a time by the runtime,
+        not copied here first)."""
+        if index is None or np.ndim(self.z) == 2:
+            return {"z": self.z}
+        return {"z": self.z, "z_rows": index}
+
     def _top_rows(self, index, n):
         """The top coatings of the rows ``index`` (all when None): the material's one pair (2,) or per hit
         (n, 2); None without a top lobe."""
@@ -68,9 +76,10 @@ class _BoundNeural(ShadeByProposal):
         return c if index is None or not hasattr(c, "take") else c.take(index)
 
     def eval(self, wi, wo, index=None):
-        z = self._rows(self.z, index)
         top = self._top_rows(index, len(wi))
-        return self.models.eval_brdf(z, wi, wo, top, self._calibration_rows(index)).astype(np.float64)
+        return self.models.eval_brdf(
+            wi=wi, wo=wo, top=top, calibration=self._calibration_rows(index), **self._latents(index)
+        ).astype(np.float64)
 
     def _mixture(self, wi, wo, index, share, p_top):
         """The sampler's density: the proxy's, mixed with the top lobe's ``p_top`` by ``share``."""
@@ -116,13 +125,13 @@ class _BoundNeural(ShadeByProposal):
         index = np.concatenate([light_rows, np.arange(n)])
         wi_all, wo_all = np.concatenate([light_wi, prop_wi]), wo[index]
         f, p_top = self.models.eval_brdf(
-            self._rows(self.z, index),
-            wi_all,
-            wo_all,
-            self._top_rows(index, len(index)),
-            self._calibration_rows(index),
+            wi=wi_all,
+            wo=wo_all,
+            top=self._top_rows(index, len(index)),
+            calibration=self._calibration_rows(index),
             top_pdf=True,
             unit=True,
+            **self._latents(index),
         )
         keep = slice(0, None) if need_pdf and v else slice(v, None)  # the lights' density only when asked
         pdf = self._mixture(wi_all[keep], wo_all[keep], index[keep], share[index[keep]], p_top[keep])
