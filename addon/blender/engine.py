@@ -121,6 +121,10 @@ class _Viewport:
         if error is not None and error is not self._reported:  # once per failure, not per redraw
             engine.report({"ERROR"}, _failure(error))
             self._reported = error
+        failed = self.session.calibration_failure
+        if failed is not None and failed is not self._reported:
+            engine.report({"WARNING"}, f"albedo calibration failed ({_failure(failed)}); viewing it uncalibrated")
+            self._reported = failed
         if image is None:
             return
         if (image.generation, image.samples) != self._drawn or self._texture is None:

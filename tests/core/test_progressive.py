@@ -166,3 +166,32 @@ def test_the_viewport_calibrates_what_cached_left_out_after_its_first_image():
     assert [im.samples for im in seen if not im.reduced] == [1, 1, 2]
     offline, _ = render(scene, replace(settings, calibrate=True))
     assert np.array_equal(image.rgba, offline.rgba())
+
+
+def test_a_calibration_that_fails_leaves_the_view_rendering_uncalibrated(monkeypatch):
+    """The viewport's calibration runs reference walks the user did not ask for: if it fails, the view goes on
+    with the material uncalibrated (what it showed before the calibration existed) and keeps the failure for a
+    warning, instead of stopping with an error."""
+    from addon.core.render import neural_material
+    from addon.core.render.materials import LayeredSpec
+    from addon.core.stack import preset
+
+    def failing(self):
+        raise ValueError("walks failed")
+
+    monkeypatch.setattr(neural_material.NeuralMaterial, "calibrated", failing)
+    plastic = preset("lacquered_plastic")
+    stack = replace(plastic, coatings=[replace(plastic.coatings[0], roughness=0.0913)] + list(plastic.coatings[1:]))
+    base = small_scene(width=12, height=8)
+    scene = Scene(base.camera, base.mesh, [LayeredSpec(stack, None, "plastic")], base.lights, base.environment)
+    settings = RenderSettings(samples=2, max_bounces=2, seed=7, calibrate="cached")
+    session = ProgressiveSession(settings, preview_divisor=2)
+    try:
+        session.restart(scene)
+        image = session.wait()
+    finally:
+        session.close()
+    assert session.error is None and "walks failed" in str(session.calibration_failure)
+    assert image.samples == 2 and np.isfinite(image.rgba).all()
+    offline, _ = render(scene, replace(settings, calibrate=False))
+    assert np.array_equal(image.rgba, offline.rgba())

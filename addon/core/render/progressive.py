@@ -17,6 +17,7 @@ when only the view moved (navigation: the scene is not exported again), and draw
 
 from __future__ import annotations
 
+import copy
 import threading
 from dataclasses import dataclass, replace
 
@@ -66,6 +67,8 @@ class ProgressiveSession:
         self.preview_divisor = int(preview_divisor)
         self.on_image, self.on_error = on_image, on_error
         self.error: Exception | None = None
+        # the last calibration that failed (the view renders that material uncalibrated): for a warning
+        self.calibration_failure: Exception | None = None
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
         self._scene: Scene | None = None
@@ -199,7 +202,12 @@ class ProgressiveSession:
         for i in pending:
             if not self._current(generation):
                 return None
-            materials[i] = materials[i].calibrated()
+            try:
+                materials[i] = materials[i].calibrated()
+            except (ValueError, ArithmeticError, RuntimeError) as e:  # the view goes on, uncalibrated, and says so
+                self.calibration_failure = e
+                materials[i] = copy.copy(materials[i])
+                materials[i].uncalibrated_stack = None  # not tried again by camera moves
         if not pending:
             return scene
         with self._lock:
