@@ -121,7 +121,7 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
         name="Calibrate Albedo",
         description="Scale each layered material's decoded reflection so that its brightness at every angle "
         "matches the reference (about a second of reference walks per material, once per session; the "
-        "viewport makes it after its first image, thumbnails use one only once made)",
+        "viewport makes it after its first full pass, thumbnails use one only once made)",
         default=True,
     )
     tolerance: FloatProperty(
@@ -135,8 +135,8 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
 
     def calibration(self, viewport: bool = False):
         """The core ``calibrate`` setting: True for renders, "cached" for the viewport (no reference walks
-        before its first image; its session makes them after it) and thumbnails, False when Calibrate Albedo
-        is off."""
+        before its first images; its session makes them after its first full pass) and thumbnails, False when
+        Calibrate Albedo is off."""
         return ("cached" if viewport else True) if self.calibrate else False
 
     def to_core(self, samples: int | None = None, scene=None, viewport: bool = False) -> RenderSettings:
