@@ -367,7 +367,7 @@ def bake_stack(
     if inverse is None:
         base[...] = distinct
     else:
-        np.take(distinct, inverse, axis=0, out=base)
+        np.take(distinct, inverse, axis=0, out=base, mode="clip")  # "raise" would buffer the output
     del distinct, inverse
     tex = LatentTexture(chain.fill(), meta)  # the encoder's texels are finite (``_bake_texels`` checks)
     encoder_models = getattr(encode, "models", None)

@@ -209,12 +209,7 @@ class LatentTexture:
                 )
             metadata = {a.name[4:]: a.value for a in spec.extra_attribs if a.name.startswith("nlm:")}
             wanted = CHANNEL_NAMES[: len(names)]
-            levels = _read_levels(inp, path, [names.index(n) for n in wanted])
-            if before_top:  # written before the top-coat channels: every texel uncoated
-                levels = [
-                    np.concatenate([lv, np.broadcast_to(np.float32(NO_TOP), lv.shape[:2] + (2,))], axis=2)
-                    for lv in levels
-                ]
+            levels = _read_levels(inp, path, [names.index(n) for n in wanted], spec.height, spec.width)
         finally:
             inp.close()
         _check_levels(levels, path)
@@ -229,20 +224,45 @@ class LatentTextureError(ValueError):
     """A file that is not a valid latent texture (damaged, other content, non-finite texels)."""
 
 
-def _read_levels(inp, path: Path, order: list[int]) -> list[np.ndarray]:
-    levels = []
+def _read_levels(inp, path: Path, order: list[int], height: int, width: int) -> MipChain:
+    """The file's levels, read straight into a :class:`MipChain` for a (height, width) base (the levels a chain of
+    that base has; a file with others is refused), channels in ``CHANNEL_NAMES`` order from the file's ``order``.
+    A file written before the top-coat channels existed gets them as uncoated (``NO_TOP``)."""
+    if height < 1 or width < 1:
+        raise LatentTextureError(f"{path} holds no image levels")
+    chain = MipChain.empty(height, width, len(CHANNEL_NAMES))
     level = 0
     while inp.seek_subimage(0, level):
         lspec = inp.spec_dimensions(0, level)
+        if level >= len(chain):
+            raise LatentTextureError(
+                f"{path}: mip level {level} ({lspec.width}x{lspec.height}) comes after the 1x1 level a latent "
+                "texture's chain ends at"
+            )
+        h, w = chain[level].shape[:2]
+        if (lspec.height, lspec.width) != (h, w):
+            raise LatentTextureError(
+                f"{path}: mip level {level} is {lspec.width}x{lspec.height}, expected {w}x{h} "
+                "(each level halves the one above, rounding down)"
+            )
         pixels = inp.read_image(0, level, 0, len(order), "float")
         if pixels is None or np.size(pixels) != lspec.height * lspec.width * len(order):
             raise LatentTextureError(f"cannot read mip level {level} of {path} (damaged file?): {inp.geterror()}")
         arr = np.asarray(pixels, dtype=np.float32).reshape(lspec.height, lspec.width, len(order))
-        levels.append(np.take(arr, order, axis=2))  # contiguous; arr[..., order] is not, and copies twice as slowly
+        if len(order) == len(CHANNEL_NAMES):  # mode "clip": "raise" would buffer the output
+            np.take(arr, order, axis=2, out=chain[level], mode="clip")
+        else:  # written before the top-coat channels: every texel uncoated
+            chain[level][..., : len(order)] = np.take(arr, order, axis=2)
+            chain[level][..., len(order) :] = NO_TOP
         level += 1
     if inp.has_error:
         raise LatentTextureError(f"cannot read {path} (damaged file?): {inp.geterror()}")
-    return levels
+    if level < len(chain):
+        last = chain[level - 1].shape[:2] if level else (height, width)
+        raise LatentTextureError(
+            f"{path}: the mip chain stops at {last[1]}x{last[0]}; a latent texture's chain goes down to 1x1"
+        )
+    return chain
 
 
 def _check_levels(levels: list[np.ndarray], path: Path) -> None:
