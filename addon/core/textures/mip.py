@@ -25,13 +25,27 @@ def box_weights(n: int, m: int | None = None) -> np.ndarray:
     return overlap / (n / m)
 
 
-def downsample(level: np.ndarray) -> np.ndarray:
-    """Box-filter one (H, W, C) level to the next one."""
+def downsample(level: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Box-filter one (H, W, C) level to the next one, into ``out`` when given (a mip chain's next level: for even
+    sizes no level-sized temporary, where a bake's base level can take gigabytes)."""
     h, w = level.shape[:2]
-    if h % 2 == 0 and w % 2 == 0:  # 2 x 2 means: the same sums as resample_area's taps, no gathers
-        rows = 0.5 * (level[0::2] + level[1::2])
-        return 0.5 * (rows[:, 0::2] + rows[:, 1::2])
-    return resample_area(level, max(1, h // 2), max(1, w // 2))
+    if h % 2 or w % 2:
+        small = resample_area(level, max(1, h // 2), max(1, w // 2))
+        if out is None:
+            return small
+        out[...] = small
+        return out
+    if out is None:
+        out = np.empty((h // 2, w // 2) + level.shape[2:], dtype=level.dtype if level.dtype.kind == "f" else np.float64)
+    # 2 x 2 means, the same sums as resample_area's taps, no gathers: 0.5 * (0.5 (a + b) + 0.5 (c + d)), a and b
+    # the left column of each block, c and d the right one
+    np.add(level[0::2, 0::2], level[1::2, 0::2], out=out)
+    out *= 0.5
+    right = np.add(level[0::2, 1::2], level[1::2, 1::2], dtype=out.dtype)
+    right *= 0.5
+    out += right
+    out *= 0.5
+    return out
 
 
 def _reduce_rows(image: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -97,24 +111,8 @@ class MipChain(list):
     def fill(self) -> "MipChain":
         """Every level from the one above it (``downsample``), in place; returns the chain."""
         for k in range(1, len(self)):
-            _downsample_into(self[k - 1], self[k])
+            downsample(self[k - 1], out=self[k])
         return self
-
-
-def _downsample_into(level: np.ndarray, out: np.ndarray) -> None:
-    """``out[...] = downsample(level)`` with no level-sized temporaries for even sizes (a bake's base level can
-    take gigabytes): the same operations in the same order, so the same values."""
-    h, w = level.shape[:2]
-    if h % 2 or w % 2:
-        out[...] = downsample(level)
-        return
-    # downsample's 0.5 * (rows[:, 0::2] + rows[:, 1::2]) with rows = 0.5 * (level[0::2] + level[1::2])
-    np.add(level[0::2, 0::2], level[1::2, 0::2], out=out)
-    out *= 0.5
-    right = level[0::2, 1::2] + level[1::2, 1::2]
-    right *= 0.5
-    out += right
-    out *= 0.5
 
 
 def build_mip_chain(base: np.ndarray) -> MipChain:
