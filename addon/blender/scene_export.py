@@ -116,7 +116,6 @@ def _baked_texture(mat, warnings: list[str]):
     it is stale)."""
     if not mat.neural_layers.texture_path:
         return None, None
-    from ..core.textures import LatentTexture
     from . import bake_state
 
     path, state, spatial = bake_state.current_texture(mat)
@@ -124,7 +123,7 @@ def _baked_texture(mat, warnings: list[str]):
         warnings.append(f"material {mat.name!r}: {state}; rendering its constant stack")
         return None, None
     try:
-        return _read_texture(path, LatentTexture.read_exr), spatial
+        return _read_texture(path), spatial
     except (OSError, ValueError, RuntimeError) as e:
         warnings.append(f"material {mat.name!r}: cannot read its latent texture ({e}); rendering its constant stack")
         return None, None
@@ -137,9 +136,11 @@ _USED: set[str] = set()  # the paths this export read or reused (export_scene ke
 _LOCK = threading.Lock()  # F12 exports on Blender's render thread, the viewport on the main one
 
 
-def _read_texture(path: str, read):
-    """``read(path)``, once per version of the file: a texture is read again when the file's inode, size or
+def _read_texture(path: str):
+    """The latent texture at ``path``, read once per version of the file: again when the file's inode, size or
     modification time differ (a bake publishes a new file by renaming it into place)."""
+    from ..core.textures import LatentTexture
+
     st = os.stat(path)
     identity = (st.st_ino, st.st_size, st.st_mtime_ns)
     with _LOCK:
@@ -147,7 +148,7 @@ def _read_texture(path: str, read):
         held = _TEXTURES.get(path)
     if held is not None and held[0] == identity:
         return held[1]
-    texture = read(path)
+    texture = LatentTexture.read_exr(path)
     with _LOCK:
         _TEXTURES[path] = (identity, texture)
     return texture
