@@ -349,6 +349,56 @@ def viewport_latency(repeats: int, size=(320, 180)) -> list[str]:
     return lines + [""]
 
 
+def viewport_drag(drags: int, size=(320, 180), steps: int = 40, interval: float = 0.05) -> list[str]:
+    """A slider dragged in the viewport: ``steps`` restarts ``interval`` seconds apart, each with a new coat
+    roughness on the first sphere (a stack not calibrated yet), the add-on's viewport settings. Counts the
+    restarts whose first image came before the next restart, and the seconds from the last one to its image."""
+    from addon.core.render.progressive import ProgressiveSession
+    from addon.core.stack import preset
+
+    session = ProgressiveSession(RenderSettings(samples=4, max_bounces=4, calibrate="cached"), preview_divisor=4)
+    gold = preset("coated_gold")
+
+    def scene(roughness):
+        coat = replace(gold.coatings[0], roughness=roughness)
+        return demo_scene(*size, presets=[replace(gold, coatings=[coat]), *DEMO_PRESETS[1:]])
+
+    rows = []
+    try:
+        session.restart(demo_scene(*size))  # the models loaded, the other spheres calibrated
+        session.wait(timeout=600)
+        for drag in range(drags):
+            scenes = [scene(0.2 + 0.001 * (drag * (steps + 1) + k)) for k in range(steps + 1)]
+            shown = 0
+            for k, sc in enumerate(scenes):
+                seen = []
+                t0 = time.perf_counter()
+                session.on_image = lambda im, seen=seen, t0=t0: seen.append(time.perf_counter() - t0)
+                session.restart(sc)
+                if k == steps:  # the drag ends: the last edit's first image
+                    session.wait(samples=1, timeout=600)
+                    last = seen[0] if seen else float("nan")
+                else:
+                    time.sleep(interval)
+                    shown += bool(seen)
+            rows.append((shown, last))
+            print("drag", rows[-1], flush=True)
+    finally:
+        session.close()
+    lines = [
+        f"## Viewport: a slider dragged ({size[0]}x{size[1]}, demo scene)",
+        "",
+        f"{steps} restarts {interval * 1000:.0f} ms apart, each with a new coat roughness on the first sphere (a stack "
+        "not calibrated yet), the viewport's settings: how many restarts showed their first image before the next "
+        "one, and the seconds from the last restart (the drag's end) to its first image.",
+        "",
+        "| drag | restarts with an image in time | last image s |",
+        "|---|---|---|",
+    ]
+    lines += [f"| {i + 1} | {a} of {steps} | {b:.2f} |" for i, (a, b) in enumerate(rows)]
+    return lines + [""]
+
+
 def speed_only(args, command: str) -> int:
     """Ours (neural mode, default settings) and Cycles on the demo scene, alternating in this
     process ``--repeats`` times per size: the ratio of each pair, their median and spread, and
@@ -412,6 +462,7 @@ def speed_only(args, command: str) -> int:
     sections += baked_floor(*first_size, args.samples, args.bounces, args.repeats)
     sections += rest_split(*first_size, args.samples, args.bounces, args.repeats)
     sections += viewport_latency(args.repeats)
+    sections += viewport_drag(args.repeats)
     text = [
         "# Renderer speed: demo scene, ours vs Blender Cycles, alternating",
         "",
