@@ -399,6 +399,64 @@ def viewport_drag(drags: int, size=(320, 180), steps: int = 40, interval: float 
     return lines + [""]
 
 
+def viewport_edit_during_calibration(repeats: int, size=(320, 180), decoders=("tiny", "paper")) -> list[str]:
+    """An edit that comes while the viewport calibrates the stack of the edit before it: seconds from the restart
+    to the new scene's first image, per decoder size. The first sphere's stack is edited (a coat roughness not
+    calibrated yet, the material made with ``calibrate="cached"`` for the size); once its first full-resolution
+    pass is shown the session calibrates it, and ``delay`` seconds into that the stack is edited again."""
+    from addon.core.render.neural_material import make
+    from addon.core.render.progressive import ProgressiveSession
+    from addon.core.stack import preset
+
+    gold = preset("coated_gold")
+    delay = 0.1
+    rows = []
+    for decoder in decoders:
+        session = ProgressiveSession(RenderSettings(samples=4, max_bounces=4, calibrate="cached"), preview_divisor=4)
+
+        def scene(roughness, decoder=decoder):
+            stack = replace(gold, coatings=[replace(gold.coatings[0], roughness=roughness)])
+            first = make(stack, size=decoder, calibrate="cached")
+            return replace(demo_scene(*size), materials=[first, *demo_scene(*size).materials[1:]])
+
+        try:
+            session.restart(demo_scene(*size))  # the models loaded, the other spheres calibrated
+            session.wait(timeout=600)
+            times = []
+            for rep in range(repeats + 1):  # the first one loads the size's models
+                full = []
+                session.on_image = lambda im, full=full: full.append(im) if not im.reduced else None
+                session.restart(scene(0.31 + 0.002 * rep))
+                end = time.monotonic() + 600
+                while not full and time.monotonic() < end:
+                    time.sleep(0.002)
+                time.sleep(delay)  # the calibration of that stack under way
+                seen = []
+                t0 = time.perf_counter()
+                session.on_image = lambda im, seen=seen, t0=t0: seen.append(time.perf_counter() - t0)
+                session.restart(scene(0.41 + 0.002 * rep))
+                session.wait(samples=1, timeout=600)
+                if rep:
+                    times.append(seen[0] if seen else float("nan"))
+                print("edit during calibration", decoder, times[-1:] if rep else "warm-up", flush=True)
+            session.cancel()
+        finally:
+            session.close()
+        rows.append((decoder, times))
+    lines = [
+        f"## Viewport: an edit during a calibration ({size[0]}x{size[1]}, demo scene)",
+        "",
+        "Seconds from an edit to its first image when the edit comes while the session calibrates the stack of the "
+        f"edit before it ({delay:.1f} s after that edit's first full-resolution pass, when its calibration starts), "
+        "with the first sphere's material on each decoder size.",
+        "",
+        "| decoder | " + " | ".join(f"repetition {i + 1} s" for i in range(repeats)) + " |",
+        "|---|" + "---|" * repeats,
+    ]
+    lines += [f"| {d} | " + " | ".join(f"{v:.2f}" for v in t) + " |" for d, t in rows]
+    return lines + [""]
+
+
 def speed_only(args, command: str) -> int:
     """Ours (neural mode, default settings) and Cycles on the demo scene, alternating in this
     process ``--repeats`` times per size: the ratio of each pair, their median and spread, and
@@ -463,6 +521,7 @@ def speed_only(args, command: str) -> int:
     sections += rest_split(*first_size, args.samples, args.bounces, args.repeats)
     sections += viewport_latency(args.repeats)
     sections += viewport_drag(args.repeats)
+    sections += viewport_edit_during_calibration(args.repeats)
     text = [
         "# Renderer speed: demo scene, ours vs Blender Cycles, alternating",
         "",

@@ -244,3 +244,47 @@ def test_calibrated_albedo_of_held_out_stacks_is_within_five_percent_near_grazin
     assert np.all(np.abs(np.median(after, axis=0) - 1) < 0.05), np.median(after, axis=0)
     assert after.max() < 1.25 and after.min() > 0.8, after
     assert np.abs(after - 1).mean() < 0.5 * np.abs(before - 1).mean(), (after, before)
+
+
+def test_a_calibration_stops_at_its_step_and_caches_nothing(plastic):
+    """``step`` is called between the parts of a calibration (the viewport stops a stale one there): before each
+    call of the decoder and each event of the reference walks. A step that raises stops the calibration, which
+    caches nothing; a step that does not changes no figure."""
+    stack, models, z, proxy, made = plastic
+    decoder_calls = -(-len(cal.COSINES) * cal.DECODED_SAMPLES // cal.STEP_ROWS)
+
+    class Stop(Exception):
+        pass
+
+    def stop_at(k):
+        calls = []
+
+        def step():
+            calls.append(1)
+            if len(calls) == k:
+                raise Stop
+
+        return step, calls
+
+    walks = []
+    real_parts = cal.reference_parts
+
+    def counting_parts(*args, **kwargs):
+        walks.append(1)
+        return real_parts(*args, **kwargs)
+
+    z = np.nextafter(z, np.float32(np.inf))  # a latent of its own: the fixture's calibration stays in the cache
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(cal, "reference_parts", counting_parts)
+        for k, walked in ((3, False), (decoder_calls + 2, True)):  # while decoding; at the walks' second event
+            step, calls = stop_at(k)
+            with pytest.raises(Stop):
+                cal.calibrate(stack, models, z, proxy, step=step)
+            assert len(calls) == k and bool(walks) == walked
+            assert cal.cached(stack, models, z) is None
+    steps = []
+    again = cal.calibrate(stack, models, z, proxy, step=lambda: steps.append(1))
+    assert cal.cached(stack, models, z) is again
+    assert len(steps) > decoder_calls + 2  # the walks' events too
+    np.testing.assert_allclose(again.table, made.table, rtol=1e-4)  # the latent moved by one float32 step
+    np.testing.assert_allclose(again.calibrated, made.calibrated, rtol=1e-4)

@@ -75,6 +75,9 @@ ITERATIONS = 60
 # A calibration target moves the factors only by as much as it differs from the decoded albedo beyond this
 # many of the reference's standard errors (:func:`shrink_target`).
 NOISE_THRESHOLD = 2.0
+# Decoded rows per network call while a calibration integrates its lobe, with ``step`` called between calls:
+# the granularity at which a calibration can be stopped (0.17 s of paper's 1.8 s of decoding, 2 threads).
+STEP_ROWS = 8192
 
 
 @dataclass(frozen=True)
@@ -153,7 +156,7 @@ def grid_directions(cosines=COSINES) -> np.ndarray:
     return np.stack([np.sqrt(np.maximum(1.0 - c * c, 0.0)), np.zeros_like(c), c], axis=1)
 
 
-def reference_parts(stacks, walks=WALKS, seed: int = 0):
+def reference_parts(stacks, walks=WALKS, seed: int = 0, step=None):
     """``reference.AlbedoParts`` at the grid's angles (K rows), the parts by exit direction split over the
     grid's hat functions of the exit cosine ((K, K, 3): outgoing angle, exit cosine), from analog walks.
 
@@ -162,7 +165,7 @@ def reference_parts(stacks, walks=WALKS, seed: int = 0):
     stack's parts. One estimator call for all angles and rows (each angle's direction repeated
     ``walks[k] / q`` times per row with q / R walks each, q the counts' greatest common divisor): the walks
     advance in the same vectorised loop, about twice as fast as one call per angle, and faster than threads
-    (the walks' many small numpy steps hold the GIL)."""
+    (the walks' many small numpy steps hold the GIL). ``step``: see :func:`calibrate`."""
     from .. import reference
 
     arrays = stacks if isinstance(stacks, StackArrays) else StackArrays.from_stacks([stacks])
@@ -184,6 +187,7 @@ def reference_parts(stacks, walks=WALKS, seed: int = 0):
         samples=max(1, q // r),
         seed=seed,
         exit_bins=lambda wi: _hats(np.clip(wi[:, 2], 0.0, 1.0), grid),
+        step=step,
     )
     angle = np.tile(np.repeat(np.arange(len(dirs)), reps), r)
     count = reps * r
@@ -216,10 +220,11 @@ def _hats(cos: np.ndarray, grid: np.ndarray) -> np.ndarray:
     return w
 
 
-def _lobe_samples(models, z, sigma: float, w: float, cosines, samples: int, seed: int, top=None):
+def _lobe_samples(models, z, sigma: float, w: float, cosines, samples: int, seed: int, top=None, step=None):
     """Importance samples of the decoded lobe seen from each of ``cosines`` (outgoing): cos(theta_i)
     (A, S) and f cos(theta_i) / pdf (A, S, 3), incident directions drawn from the material's proxy
-    and a cosine lobe half and half (one-sample MIS, balance heuristic: exact pdfs)."""
+    and a cosine lobe half and half (one-sample MIS, balance heuristic: exact pdfs). ``step()`` (optional)
+    is called before each :data:`STEP_ROWS` rows are decoded; it stops the work by raising."""
     rng = np.random.default_rng(seed)
     wo = np.repeat(grid_directions(cosines), samples, axis=0)
     n = len(wo)
@@ -230,7 +235,13 @@ def _lobe_samples(models, z, sigma: float, w: float, cosines, samples: int, seed
     cos_i = np.maximum(wi[:, 2], 0.0)
     pdf = 0.5 * proxy.pdf(wo, wi, sigma, w) + 0.5 * cos_i / np.pi
     # the decoded part as the renderer scales it (a top_transmission decoder's remainder), without the top lobe
-    f = models.eval_brdf(z, wi, wo, top, with_top_lobe=False).astype(np.float64)
+    f = np.empty((n, 3))
+    per_call = STEP_ROWS if step is not None else max(n, 1)  # without ``step``, one call
+    for r0 in range(0, n, per_call):
+        if step is not None:
+            step()
+        rows = slice(r0, r0 + per_call)
+        f[rows] = models.eval_brdf(z, wi[rows], wo[rows], top, with_top_lobe=False)
     with np.errstate(divide="ignore", invalid="ignore"):
         v = np.where((pdf > 0)[:, None], f * (cos_i / pdf)[:, None], 0.0)
     a = len(np.atleast_1d(cosines))
@@ -270,12 +281,13 @@ class DecodedMoments:
 
 
 def decoded_moments(
-    models, z, sigma: float, w: float, samples: int = DECODED_SAMPLES, seed: int = 0, top=None
+    models, z, sigma: float, w: float, samples: int = DECODED_SAMPLES, seed: int = 0, top=None, step=None
 ) -> DecodedMoments:
-    """:class:`DecodedMoments` from ``samples`` importance samples per grid angle."""
+    """:class:`DecodedMoments` from ``samples`` importance samples per grid angle (``step``: see
+    :func:`_lobe_samples`)."""
     grid = np.asarray(COSINES)
     k = len(grid)
-    cos_i, v = _lobe_samples(models, z, sigma, w, grid, samples, seed, top)
+    cos_i, v = _lobe_samples(models, z, sigma, w, grid, samples, seed, top, step)
     hats = _hats(cos_i.reshape(-1), grid).reshape(k, samples, k)
     # [k, l, m, c] = sum_s hats[k, s, l] hats[k, s, m] v[k, s, c], as one batched matrix product
     weighted = (hats[:, :, :, None] * v[:, :, None, :]).reshape(k, samples, k * 3)
@@ -390,11 +402,15 @@ def cached(stack: Stack, models, z) -> AlbedoCalibration | None:
     return _CACHE.get(cache_key(stack, models, z))
 
 
-def calibrate(stack: Stack, models, z, proxy_params, seed: int = 0) -> AlbedoCalibration:
+def calibrate(stack: Stack, models, z, proxy_params, seed: int = 0, step=None) -> AlbedoCalibration:
     """The albedo calibration of latent ``z`` (3, 32) of ``stack`` on ``models`` (see the module
     docstring); ``proxy_params`` (sigma, w) are the material's sampling proxy. Cached per stack,
     model files and latent for the session. A remainder decoder's factors scale the decoded part only,
-    towards the reference less the stack's exact top lobe."""
+    towards the reference less the stack's exact top lobe.
+
+    ``step()`` (optional) is called between parts of the work (every :data:`STEP_ROWS` decoded rows, and
+    before each event of the reference walks): raising there stops the calibration, which then caches nothing. The
+    viewport stops a calibration so when an edit makes its stack stale."""
     if not isinstance(stack, Stack):
         raise ValueError(f"calibrate needs a Stack, got {type(stack).__name__}")
     key = cache_key(stack, models, z)
@@ -402,21 +418,22 @@ def calibrate(stack: Stack, models, z, proxy_params, seed: int = 0) -> AlbedoCal
         return _CACHE[key]
     sigma, w = (float(v) for v in proxy_params)
     coat = top_lobe.top_coat(stack)
-    moments = decoded_moments(models, z, sigma, w, seed=seed, top=coat)
+    moments = decoded_moments(models, z, sigma, w, seed=seed, top=coat, step=step)
     top = top_lobe.top_albedo(coat, COSINES, DECODED_SAMPLES, seed)
-    out = _solve(reference_parts(stack, seed=seed), moments, top, bool(getattr(models, "remainder", False)))
+    out = _solve(reference_parts(stack, seed=seed, step=step), moments, top, bool(getattr(models, "remainder", False)))
     _CACHE[key] = out
     return out
 
 
-def calibrate_texels(arrays: StackArrays, models, z, proxy_params, tops, seed: int = 0) -> AlbedoCalibration:
+def calibrate_texels(arrays: StackArrays, models, z, proxy_params, tops, seed: int = 0, step=None) -> AlbedoCalibration:
     """One calibration for a sample of a latent texture's texels: their stacks ``arrays`` (R rows), baked
     latents ``z`` (R, 3, 32), proxies (R, 2) and top coatings ``tops`` (R, 2). The factor table brings the
     *mean* of the R decoded lobes to the mean of their references, energy by energy (every target and
     decoded sum below is a mean over the rows, each row with 1/R of the walks and of the decoded samples,
     so it costs about what one material's calibration costs). A texture whose texels share their decoder's
     error (the same coats over a varying base colour, say) is corrected like one material; what differs from
-    texel to texel is corrected on average only (``benchmarks/bench_texture_calibration.py``)."""
+    texel to texel is corrected on average only (``benchmarks/bench_texture_calibration.py``). ``step``: as
+    :func:`calibrate`'s."""
     z = np.asarray(z, dtype=np.float32).reshape(-1, 3, 32)
     prox = np.asarray(proxy_params, dtype=np.float64).reshape(-1, 2)
     tops = top_lobe.as_top(tops, len(z))
@@ -427,12 +444,16 @@ def calibrate_texels(arrays: StackArrays, models, z, proxy_params, tops, seed: i
         )
     r = len(z)
     per = max(1, DECODED_SAMPLES // r)
-    each = [decoded_moments(models, z[j], *prox[j], samples=per, seed=seed + j, top=tops[j]) for j in range(r)]
+    each = [
+        decoded_moments(models, z[j], *prox[j], samples=per, seed=seed + j, top=tops[j], step=step) for j in range(r)
+    ]
     moments = DecodedMoments(
         np.mean([m.pairs for m in each], axis=0), np.sqrt(np.sum([m.bins_stderr**2 for m in each], axis=0)) / r
     )  # a loop over the R sampled materials, not over texels
     top = np.mean([top_lobe.top_albedo(t, COSINES, per, seed) for t in tops], axis=0)
-    return _solve(reference_parts(arrays, seed=seed), moments, top, bool(getattr(models, "remainder", False)))
+    return _solve(
+        reference_parts(arrays, seed=seed, step=step), moments, top, bool(getattr(models, "remainder", False))
+    )
 
 
 def _solve(ref, moments: DecodedMoments, top_albedo: np.ndarray, remainder: bool) -> AlbedoCalibration:

@@ -245,11 +245,12 @@ class AlbedoParts:
     below_top_by_exit_stderr: np.ndarray | None = None
 
 
-def albedo_parts(stack, wo, samples: int = 4096, seed: int = 0, exit_bins=None) -> AlbedoParts:
+def albedo_parts(stack, wo, samples: int = 4096, seed: int = 0, exit_bins=None, step=None) -> AlbedoParts:
     """:class:`AlbedoParts` of ``stack`` seen from ``wo`` (N, 3), from ``samples`` analog walks each (the
     same walks for every part). ``exit_bins``: a function of the walks' exit directions (m, 3) giving
     their (m, B) bin weights, for ``by_exit``. The first reflections at the top interface carry the
-    walks' largest noise under a bright coat; ``below_top`` is free of it."""
+    walks' largest noise under a bright coat; ``below_top`` is free of it. ``step()`` (optional) is called
+    before each event of the walks; raising there stops them."""
     wo = as_directions(wo, "wo")
     k = _count(samples, "samples")
     n = wo.shape[0]
@@ -262,7 +263,7 @@ def albedo_parts(stack, wo, samples: int = 4096, seed: int = 0, exit_bins=None) 
     for r0 in range(0, total, CHUNK_WALKS):
         pair = np.arange(r0, min(total, r0 + CHUNK_WALKS)) // k
         first = []
-        wi, w, _ = run_walks(lay, prow[pair], wo[pair], None, rng, nee=False, first_exits=first)
+        wi, w, _ = run_walks(lay, prow[pair], wo[pair], None, rng, nee=False, first_exits=first, step=step)
         _accumulate(sums, sq, pair, w)
         w_below = np.where(first[0][:, None], 0.0, w)
         _accumulate(below, below_sq, pair, w_below)

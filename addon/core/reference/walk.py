@@ -418,14 +418,17 @@ class _RandomWalk:
         # a walk must see the stack from above
         self.walks.keep(wo[:, 2] > 0.0)
 
-    def run(self, alive_per_event: list | None = None):
+    def run(self, alive_per_event: list | None = None, step=None):
         """The event loop: after the first events Russian roulette, then a free flight that
-        ends in a medium or a surface event, until every walk has left the stack or ended."""
+        ends in a medium or a surface event, until every walk has left the stack or ended.
+        ``step()`` (optional) is called before each event; it stops the walks by raising."""
         xp = self.xp
         for depth in range(MAX_DEPTH):
             self.depth = depth
             if len(self.walks) == 0:
                 break
+            if step is not None:
+                step()
             if depth > RR_START:
                 self.roulette()
                 if len(self.walks) == 0:
@@ -704,7 +707,15 @@ class _RandomWalk:
 
 
 def run_walks(
-    lay: Layers, pr, wo, wi, rng: Rng, nee: bool, alive_per_event: list | None = None, first_exits: list | None = None
+    lay: Layers,
+    pr,
+    wo,
+    wi,
+    rng: Rng,
+    nee: bool,
+    alive_per_event: list | None = None,
+    first_exits: list | None = None,
+    step=None,
 ):
     """Walk ``len(pr)`` independent walks, walk ``r`` for stack row ``pr[r]`` seen from ``wo[r]``.
 
@@ -717,9 +728,10 @@ def run_walks(
     (for measuring walk lengths).
     ``first_exits`` (analog walk): a list that receives the (m,) flags of the walks that left at their first
     event: with coatings, those the top interface reflected, the paths of the exact top lobe.
+    ``step()`` (optional) is called before each event; raising there stops the walks.
     """
     walk = _RandomWalk(lay, pr, wo, wi, rng, nee)
-    out = walk.run(alive_per_event)
+    out = walk.run(alive_per_event, step)
     if first_exits is not None:
         first_exits.append(walk.exit_first & (walk.C > 0))
     return out

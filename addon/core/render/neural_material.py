@@ -170,17 +170,18 @@ class NeuralMaterial:
                 f"{type(calibration).__name__} for a {'latent texture' if self.texture is not None else 'latent'}"
             )
 
-    def calibrated(self) -> "NeuralMaterial":
+    def calibrated(self, step=None) -> "NeuralMaterial":
         """This material with the calibration ``make`` left out when asked for "cached" only and none was made
         yet (``uncalibrated_stack``): made now (about a second of reference walks, then cached for the session),
         in a copy; the material itself when nothing is left out. The viewport's session calls it after its
-        first image (``progressive``)."""
+        first full-resolution pass (``progressive``), with a ``step`` that stops it on an edit
+        (``calibrate.calibrate``)."""
         if self.uncalibrated_stack is None:
             return self
         from ..neural import calibrate as cal
 
         out = copy.copy(self)
-        out.calibration = cal.calibrate(self.uncalibrated_stack, self.models, self.z, (self.sigma, self.w))
+        out.calibration = cal.calibrate(self.uncalibrated_stack, self.models, self.z, (self.sigma, self.w), step=step)
         out.uncalibrated_stack = None
         return out
 

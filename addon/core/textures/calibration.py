@@ -142,7 +142,8 @@ def calibrate_texture(
 ) -> TextureCalibration:
     """The calibration of a texture's distinct texels: their stacks ``arrays`` (M rows), baked channels
     ``texels`` (M, 100: latents, proxy, top coating; ``latent_texture.CHANNEL_NAMES``) and how many texels
-    each stands for (``counts``). ``progress(fraction)`` after each cluster."""
+    each stands for (``counts``). ``progress(fraction)`` after each cluster, and between the parts of one
+    (``calibrate.calibrate``'s ``step``: a bake's cancel raises there)."""
     texels = np.asarray(texels, dtype=np.float32)
     counts = np.asarray(counts, dtype=np.float64)
     if len(arrays) != len(texels) or counts.shape != (len(texels),) or len(texels) == 0:
@@ -167,6 +168,7 @@ def calibrate_texture(
             texels[pick, k : k + 2],
             texels[pick, k + 2 : k + 4],
             seed=seed + j,
+            step=None if progress is None else (lambda j=j: progress(j / len(centroids))),
         )
         tables.append(calibration.table)
         if progress is not None:
