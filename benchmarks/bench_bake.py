@@ -62,25 +62,47 @@ encode = neural_encoder({size!r})
 spatial = SpatialStack(preset("varnished_wood"), driving_images({side}))
 before = high_water()
 tex, stats = bake_stack(spatial, encode)
-print(before, high_water(), stats.unique)
+peak = high_water()
+tex.write_exr({exr!r})
+print(before, peak, stats.unique)
+"""
+
+_READ_SCRIPT = """
+import sys, time
+sys.path.insert(0, {root!r})
+from benchmarks.bench_bake import high_water
+from addon.core.textures import LatentTexture
+
+before = high_water()
+t0 = time.perf_counter()
+tex = LatentTexture.read_exr({exr!r})
+print(time.perf_counter() - t0, before, high_water(), tex.levels.flat.nbytes)
 """
 
 
-def peak_memory(side: int, size: str) -> tuple[float, float, int]:
+def peak_memory(side: int, size: str) -> tuple[float, float, int, tuple[float, float, float, int]]:
     """The bake's peak memory at ``side`` x ``side`` (default settings, every texel distinct but a few): the
     largest resident size of a fresh process (``VmHWM``, Linux) before and after ``bake_stack``, in bytes, and
-    the distinct texels."""
+    the distinct texels; then the texture written and read back in another fresh process (as a render reads
+    it): seconds of ``read_exr``, the resident size before and after, and the bytes of the chain it holds."""
     import subprocess
 
-    run = subprocess.run(
-        [sys.executable, "-c", _PEAK_SCRIPT.format(root=str(ROOT), size=size, side=side)],
-        capture_output=True,
-        text=True,
-        check=True,
-        timeout=3600,
-    )
-    before, after, unique = run.stdout.split()[-3:]
-    return float(before) * 1024, float(after) * 1024, int(unique)
+    def fresh(script: str, **fields) -> list[str]:
+        run = subprocess.run(
+            [sys.executable, "-c", script.format(root=str(ROOT), **fields)],
+            capture_output=True,
+            text=True,
+            check=True,
+            timeout=3600,
+        )
+        return run.stdout.split()
+
+    with tempfile.TemporaryDirectory() as tmp:
+        exr = str(Path(tmp) / "texture.exr")
+        before, after, unique = fresh(_PEAK_SCRIPT, size=size, side=side, exr=exr)[-3:]
+        seconds, read_before, read_after, held = fresh(_READ_SCRIPT, exr=exr)[-4:]
+    read = (float(seconds), float(read_before) * 1024, float(read_after) * 1024, int(held))
+    return float(before) * 1024, float(after) * 1024, int(unique), read
 
 
 def main(argv=None) -> int:
@@ -148,10 +170,11 @@ def main(argv=None) -> int:
     peaks = []
     if args.peak_memory and sys.platform.startswith("linux"):  # /proc/self/status
         for side in args.peak_memory:
-            before, after, unique = peak_memory(side, args.size)
+            before, after, unique, (read_s, read_before, read_after, held) = peak_memory(side, args.size)
             peaks.append(
                 f"| {side} x {side} | {unique:,} | {before / 2**30:.2f} | {after / 2**30:.2f} | "
-                f"{(after - before) / 2**30:.2f} | {(after - before) / side**2:,.0f} |"
+                f"{(after - before) / 2**30:.2f} | {(after - before) / side**2:,.0f} | {read_s:.2f} | "
+                f"{(read_after - read_before) / 2**30:.2f} | {held / 2**30:.2f} |"
             )
             print(peaks[-1], flush=True)
 
@@ -250,10 +273,13 @@ def main(argv=None) -> int:
         "Peak memory of a bake with the default settings, each side in a fresh process (`--peak-memory`): the "
         "largest resident size before `bake_stack` (the models, the maps) and after it. "
         "`textures.bake.BAKE_BYTES_PER_TEXEL`, which the bake's memory check uses, is the larger per-texel "
-        "figure.",
+        "figure. Then the texture written and read back in another fresh process, as a render reads it "
+        "(`LatentTexture.read_exr`): its seconds, what the read added to the process at its peak, and the chain "
+        "it holds (half floats, as the file stores them).",
         "",
-        "| texture | distinct texels | process before GB | peak GB | the bake's GB | bytes per texel |",
-        "|---|---|---|---|---|---|",
+        "| texture | distinct texels | process before GB | peak GB | the bake's GB | bytes per texel | read s | "
+        "read peak GB | texture held GB |",
+        "|---|---|---|---|---|---|---|---|---|",
         *peaks,
         "",
         "![latent vs BRDF blending](bake_mix_lobes.png)",

@@ -46,6 +46,7 @@ def test_the_warm_up_compiles_every_loop_a_render_of_the_demo_scene_runs():
     before, after = got["before"], got["after"]
     for name in ("surface_hits", "sample_lights", "trilinear", "proxy_pdf", "proxy_directions", "scale_by_table"):
         assert before[name] >= 1, f"the warm-up did not compile {name}"
+    assert before["trilinear"] >= 2, "the warm-up did not compile the taps of a half-float latent texture"
     assert after == before
 
 
@@ -254,3 +255,25 @@ def test_trilinear_writes_every_row_whatever_the_output_held():
         kernels.trilinear(flat, offsets, heights, widths, c, uv, lod, out)
     np.testing.assert_array_equal(dirty, clean)
     assert np.isfinite(clean).all() and clean.min() >= 0.0 and clean.max() <= 1.0
+
+
+def test_half_floats_convert_exactly_in_the_compiled_loops():
+    """Every finite half float, as a latent texture read from its file holds it, converts to the float32 numpy
+    gives, sign of zero included: by the CPU where it can (``NATIVE_HALF``) and in integer operations elsewhere."""
+    import numba
+
+    bits = np.arange(1 << 16, dtype=np.uint16)
+    bits = bits[np.isfinite(bits.view(np.float16))]
+    want = bits.view(np.float16).astype(np.float32)
+    converters = [kernels._half_bits_to_float32] + ([kernels._half_to_float32] if kernels.NATIVE_HALF else [])
+    for convert in converters:
+
+        @numba.njit
+        def all_of(b, convert=convert):
+            out = np.empty(len(b), np.float32)
+            for i in range(len(b)):
+                out[i] = convert(b[i])
+            return out
+
+        got = all_of(bits)
+        assert np.array_equal(got.view(np.uint32), want.view(np.uint32)), convert

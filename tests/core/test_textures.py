@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from addon.core.textures import CHANNEL_NAMES, LatentTexture, box_weights, build_mip_chain, trilinear_lookup
-from addon.core.textures.mip import downsample
+from addon.core.textures.mip import MipChain, downsample
 
 
 @pytest.mark.parametrize("n", [1, 2, 5, 8, 13])
@@ -88,6 +88,31 @@ def test_lookup_matches_a_per_corner_oracle_across_levels_and_wrapping(shape):
     np.testing.assert_array_equal(trilinear_lookup(list(chain), uv, fp), got)
 
 
+@pytest.mark.parametrize("shape", [(16, 16, 3), (13, 7, 5), (1, 9, 100)])
+def test_a_half_float_chain_looks_up_what_a_float32_chain_of_its_values_does(shape):
+    """A texture read from its file is held in half floats (half the memory); its lookup converts them as it
+    reads, exactly: the result is a float32 chain's of the same values, bit for bit (subnormal halves, -0 and
+    the largest half included)."""
+    rng = np.random.default_rng(6)
+    levels = [lv.astype(np.float16) for lv in build_mip_chain((rng.standard_normal(shape) * 4).astype(np.float32))]
+    levels[0][0, :4, 0] = [3e-7, -2e-6, -0.0, 65504.0]  # subnormal halves, -0, the largest half
+    half = MipChain(levels, dtype=np.float16)
+    wide = MipChain(levels)
+    assert half.dtype == np.float16 and wide.dtype == np.float32 and 2 * half.flat.nbytes == wide.flat.nbytes
+    uv = rng.uniform(-2.0, 3.0, (500, 2))
+    uv[:8] = np.stack([(np.arange(8) % 4 + 0.5) / shape[1], np.full(8, 1.0 - 0.5 / shape[0])], axis=1)  # near them
+    fp = np.concatenate([np.full(8, 1e-6), 2.0 ** rng.uniform(-8.0, 1.0, 492)])
+    got = trilinear_lookup(half, uv, fp)
+    np.testing.assert_array_equal(got.view(np.uint32), trilinear_lookup(wide, uv, fp).view(np.uint32))
+
+
+def test_a_mip_chain_holds_float32_or_half_floats_and_fills_only_float32():
+    with pytest.raises(ValueError, match="float32 or float16"):
+        MipChain.empty(4, 4, 2, dtype=np.float64)
+    with pytest.raises(ValueError, match="half-float chain"):
+        MipChain.empty(4, 4, 2, dtype=np.float16).fill()
+
+
 def test_lookup_rejects_bad_input():
     chain = build_mip_chain(np.zeros((4, 4, 1)))
     with pytest.raises(ValueError, match="uv"):
@@ -115,9 +140,10 @@ def test_exr_round_trip_preserves_latents_within_half_precision(tmp_path, oiio):
     assert not list(tmp_path.glob("*.partial*"))
     back = LatentTexture.read_exr(path)
     assert len(back.levels) == len(tex.levels) == 7  # 70 -> 35 -> 17 -> 8 -> 4 -> 2 -> 1
+    assert back.levels.dtype == np.float16  # held as the file stores it
     for a, b in zip(tex.levels, back.levels, strict=False):
         assert a.shape == b.shape
-        assert np.allclose(a, b, rtol=1e-3, atol=1e-3)  # half: 11-bit mantissa
+        np.testing.assert_array_equal(b, a.astype(np.float16))  # each level rounded to half, nothing else
     assert back.metadata.get("stack") == "demo"
     spec = oiio.ImageInput.open(str(path)).spec()
     assert sorted(spec.channelnames) == sorted(CHANNEL_NAMES)

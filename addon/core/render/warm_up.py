@@ -49,10 +49,11 @@ def warm_scene(environment_image: bool):
 def warm_up() -> None:
     """Render the warm-up scenes once each (one thread, one sample, analytic materials), and run the
     neural materials' loops (the sampling proxy, the albedo calibration and a latent texture's choice of
-    table, the exact top coat) on a few rows,
+    table and its half-float taps, the exact top coat) on a few rows,
     with the argument types a render passes."""
     from .. import kernels
     from ..neural import proxy, top_lobe
+    from ..textures.mip import MipChain, trilinear_lookup
     from .integrator import RenderSettings, render
 
     for image in (True, False):
@@ -70,6 +71,8 @@ def warm_up() -> None:
     kernels.top_coat(np.ones((2, 3), dtype=np.float32), wi, wo, top, *grids, True, True)
     kernels.transmission_rows(top, wo[:, 2].copy(), *grids)
     kernels.nearest_rows(np.zeros((2, 96), np.float32), np.ones((3, 96), np.float32))  # a latent texture's tables
+    # a latent texture read from its file: half floats (the image texture above took the float32 loop)
+    trilinear_lookup(MipChain([np.zeros((1, 1, 100))], dtype=np.float16), np.zeros((2, 2)), 0.0)
 
 
 def warm_up_in_background() -> threading.Thread | None:

@@ -99,7 +99,8 @@ def read_image_file(path: str | os.PathLike) -> tuple[np.ndarray, bool, str, int
 
 @dataclass
 class LatentTexture:
-    """A mip chain of (H, W, 100) latent texels; ``levels[0]`` is the finest (held as a ``MipChain``)."""
+    """A mip chain of (H, W, 100) latent texels; ``levels[0]`` is the finest (held as a ``MipChain``: float32 as
+    baked, half floats as read from a file, which stores halves)."""
 
     levels: list[np.ndarray]
     metadata: dict = field(default_factory=dict)
@@ -183,7 +184,8 @@ class LatentTexture:
 
     @classmethod
     def read_exr(cls, path: str | os.PathLike) -> "LatentTexture":
-        """Read a latent texture EXR written by :meth:`write_exr` (all mip levels).
+        """Read a latent texture EXR written by :meth:`write_exr` (all mip levels), into a half-float chain: the
+        file's values exactly, in half the memory of float32.
 
         Raises ``FileNotFoundError`` for a missing file and :class:`LatentTextureError` (a
         ``ValueError``) for anything else that is not a valid latent texture: not an image,
@@ -230,7 +232,7 @@ def _read_levels(inp, path: Path, order: list[int], height: int, width: int) -> 
     A file written before the top-coat channels existed gets them as uncoated (``NO_TOP``)."""
     if height < 1 or width < 1:
         raise LatentTextureError(f"{path} holds no image levels")
-    chain = MipChain.empty(height, width, len(CHANNEL_NAMES))
+    chain = MipChain.empty(height, width, len(CHANNEL_NAMES), dtype=np.float16)
     level = 0
     while inp.seek_subimage(0, level):
         lspec = inp.spec_dimensions(0, level)
@@ -245,10 +247,10 @@ def _read_levels(inp, path: Path, order: list[int], height: int, width: int) -> 
                 f"{path}: mip level {level} is {lspec.width}x{lspec.height}, expected {w}x{h} "
                 "(each level halves the one above, rounding down)"
             )
-        pixels = inp.read_image(0, level, 0, len(order), "float")
+        pixels = inp.read_image(0, level, 0, len(order), "half")
         if pixels is None or np.size(pixels) != lspec.height * lspec.width * len(order):
             raise LatentTextureError(f"cannot read mip level {level} of {path} (damaged file?): {inp.geterror()}")
-        arr = np.asarray(pixels, dtype=np.float32).reshape(lspec.height, lspec.width, len(order))
+        arr = np.asarray(pixels, dtype=np.float16).reshape(lspec.height, lspec.width, len(order))
         if len(order) == len(CHANNEL_NAMES):  # mode "clip": "raise" would buffer the output
             np.take(arr, order, axis=2, out=chain[level], mode="clip")
         else:  # written before the top-coat channels: every texel uncoated

@@ -69,23 +69,31 @@ def resample_area(image: np.ndarray, height: int, width: int) -> np.ndarray:
 
 
 class MipChain(list):
-    """The levels of a mip chain (finest first, each (H, W, C) float32) as views into one flat buffer,
-    which the compiled lookup reads: ``flat``, each level's ``offsets`` into it, ``heights`` and
-    ``widths``. Writing into a level writes into the buffer."""
+    """The levels of a mip chain (finest first, each (H, W, C) float32, or float16) as views into one flat
+    buffer, which the compiled lookup reads: ``flat``, each level's ``offsets`` into it, ``heights`` and
+    ``widths``. Writing into a level writes into the buffer.
 
-    def __init__(self, levels):
-        levels = [np.asarray(level, dtype=np.float32) for level in levels]
+    A texture read from its file is held in half floats, as the file stores it (``LatentTexture.read_exr``):
+    the same values in half the memory (1.1 GB for 2048 x 2048 x 100 channels with its levels), which the
+    lookup converts as it reads them. A bake's chain is float32 until it is written."""
+
+    DTYPES = (np.float32, np.float16)
+
+    def __init__(self, levels, dtype=np.float32):
+        levels = [np.asarray(level) for level in levels]
         if not levels or any(level.ndim != 3 for level in levels):
             raise ValueError("a mip chain needs one or more (H, W, C) levels")
         if len({level.shape[2] for level in levels}) != 1:
             raise ValueError(f"the levels of a mip chain need one channel count, got {[lv.shape for lv in levels]}")
-        self._allocate([level.shape for level in levels])
+        self._allocate([level.shape for level in levels], dtype)
         for view, level in zip(self, levels, strict=True):
             view[...] = level
 
-    def _allocate(self, shapes) -> None:
+    def _allocate(self, shapes, dtype=np.float32) -> None:
+        if np.dtype(dtype) not in [np.dtype(d) for d in self.DTYPES]:
+            raise ValueError(f"a mip chain holds float32 or float16 texels, got {np.dtype(dtype)}")
         sizes = [int(np.prod(shape)) for shape in shapes]
-        self.flat = np.empty(sum(sizes), dtype=np.float32)
+        self.flat = np.empty(sum(sizes), dtype=dtype)
         self.offsets = np.concatenate([[0], np.cumsum(sizes[:-1])]).astype(np.int64)
         self.heights = np.array([shape[0] for shape in shapes], dtype=np.int64)
         self.widths = np.array([shape[1] for shape in shapes], dtype=np.int64)
@@ -95,21 +103,33 @@ class MipChain(list):
         ]
         super().__init__(views)
 
+    @property
+    def dtype(self) -> np.dtype:
+        return self.flat.dtype
+
+    @property
+    def kernel_flat(self) -> np.ndarray:
+        """``flat`` as the compiled lookup takes it: float32, or half floats as their bit patterns (uint16)."""
+        return self.flat.view(np.uint16) if self.flat.dtype == np.float16 else self.flat
+
     @classmethod
-    def empty(cls, height: int, width: int, channels: int) -> "MipChain":
+    def empty(cls, height: int, width: int, channels: int, dtype=np.float32) -> "MipChain":
         """An uninitialised chain for an (height, width, channels) base: every level down to 1 x 1 (round-down
-        sizes). Write the base into ``chain[0]``, then :meth:`fill`."""
+        sizes), of ``dtype`` (float32 or float16). Write the base into ``chain[0]``, then :meth:`fill`."""
         if height < 1 or width < 1 or channels < 1:
             raise ValueError(f"a mip chain needs a base of at least 1 x 1 x 1, got {height} x {width} x {channels}")
         shapes = [(height, width, channels)]
         while shapes[-1][0] > 1 or shapes[-1][1] > 1:
             shapes.append((max(1, shapes[-1][0] // 2), max(1, shapes[-1][1] // 2), channels))
         chain = cls.__new__(cls)
-        chain._allocate(shapes)
+        chain._allocate(shapes, dtype)
         return chain
 
     def fill(self) -> "MipChain":
-        """Every level from the one above it (``downsample``), in place; returns the chain."""
+        """Every level from the one above it (``downsample``), in place; returns the chain. In float32 (a bake's
+        chain); a half-float chain holds the levels its file stored, and is refused."""
+        if self.dtype != np.float32:
+            raise ValueError("fill computes the levels of a float32 chain; a half-float chain is read with its levels")
         for k in range(1, len(self)):
             downsample(self[k - 1], out=self[k])
         return self
@@ -140,7 +160,8 @@ def trilinear_lookup(
     The level is log2 of the footprint in texels of level 0; the two nearest levels are looked up
     bilinearly and blended, in float32 (the texture is stored as half floats: float64 arithmetic would
     only double the memory traffic of the renderer's widest arrays, 100 channels per hit for a latent
-    texture), in one compiled pass over the rows (``kernels.trilinear``). ``levels`` is best a
+    texture), in one compiled pass over the rows (``kernels.trilinear``; a half-float chain is converted as it is
+    read, exactly). ``levels`` is best a
     :class:`MipChain` (what :func:`build_mip_chain` returns): any other list is packed on every call.
     Non-finite uv or footprints raise ``ValueError``.
     """
@@ -155,5 +176,5 @@ def trilinear_lookup(
     usable = len(chain) if n_levels is None else max(1, min(int(n_levels), len(chain)))
     lod = mip_level_for_footprint(fp, w, h, usable)
     out = np.empty((uv.shape[0], c), dtype=np.float32)  # every row written by the loop
-    kernels.trilinear(chain.flat, chain.offsets, chain.heights, chain.widths, c, uv, lod, out)
+    kernels.trilinear(chain.kernel_flat, chain.offsets, chain.heights, chain.widths, c, uv, lod, out)
     return out
