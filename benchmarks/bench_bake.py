@@ -46,17 +46,20 @@ def driving_images(res: int, seed: int = 0) -> dict[str, np.ndarray]:
     }
 
 
+def high_water() -> int:
+    """This process's largest resident size so far, kB (Linux ``VmHWM``; ``ru_maxrss`` would count the parent's
+    too in a forked child)."""
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:"))
+
+
 _PEAK_SCRIPT = """
 import sys
 sys.path.insert(0, {root!r})
-from benchmarks.bench_bake import driving_images
+from benchmarks.bench_bake import driving_images, high_water
 from addon.core.stack import preset
 from addon.core.textures.bake import bake_stack, neural_encoder
 from addon.core.textures.spatial import SpatialStack
-
-def high_water():  # this process's largest resident size so far, kB (ru_maxrss would count the parent's too)
-    with open("/proc/self/status") as f:
-        return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:"))
 
 encode = neural_encoder({size!r})
 spatial = SpatialStack(preset("varnished_wood"), driving_images({side}))

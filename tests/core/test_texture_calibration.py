@@ -244,3 +244,23 @@ def test_a_texture_of_more_distinct_texels_than_the_clustering_takes_is_sampled_
     assert stats.unique == 128 and 2 <= len(calibration.tables) <= tc.MAX_CLUSTERS
     which = calibration.at(tex.levels[0].reshape(-1, 100)[:, :96].reshape(-1, 3, 32)).which.reshape(8, 16)
     assert not set(which[:, :8].ravel()) & set(which[:, 8:].ravel())  # no table serves both halves
+
+
+def test_a_cancel_stops_a_bake_inside_a_clusters_calibration(monkeypatch, baked):
+    """Esc during a bake's calibration stops it inside the cluster being calibrated (the calibration's ``step``:
+    between decoder calls and walk events), not after that cluster's walks."""
+    from addon.core.neural import calibrate as cal
+
+    encode = neural_encoder("tiny", threads=2)
+    solved = []
+    real_solve = cal._solve
+    monkeypatch.setattr(cal, "_solve", lambda *a, **k: solved.append(1) or real_solve(*a, **k))
+    calls = []
+
+    def cancel():
+        calls.append(1)
+        return len(calls) > 4  # the encoding's batch, the calibration's start, then two of its steps
+
+    with pytest.raises(BakeCancelled, match="calibration"):
+        bake_stack(_two_halves(), encode, cancel=cancel)
+    assert len(calls) == 5 and not solved  # stopped before the first cluster was solved
