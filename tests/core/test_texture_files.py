@@ -100,3 +100,30 @@ def test_safe_file_names_keep_plain_names_and_separate_the_rest():
     assert files.safe_file_name("").startswith("unnamed-")
     with pytest.raises(TypeError, match="must be a string"):
         files.safe_file_name(None)
+
+
+def test_a_texture_is_read_band_by_band_as_at_once(monkeypatch, tmp_path, oiio):
+    """A level is read in bands of whole tiles (only a band is held besides the texture): the same texels as one
+    band, a non-finite texel in a later band named at its row, and an untiled (scanline) file read too."""
+    from addon.core.textures import latent_texture
+
+    rng = np.random.default_rng(4)
+    texels = rng.normal(size=(150, 20, 100)).astype(np.float32)
+    path = tmp_path / "tall.exr"
+    LatentTexture.from_texels(texels).write_exr(path)
+    whole = LatentTexture.read_exr(path)
+    monkeypatch.setattr(latent_texture, "READ_BAND_BYTES", 1)  # one row of 64-texel tiles per band: 3 bands
+    banded = LatentTexture.read_exr(path)
+    for a, b in zip(whole.levels, banded.levels, strict=True):
+        np.testing.assert_array_equal(a.view(np.uint16), b.view(np.uint16))
+    np.testing.assert_array_equal(banded.levels[0], texels.astype(np.float16))
+
+    levels = [np.asarray(level, np.float32) for level in banded.levels]
+    levels[0][130, 3, 97] = np.nan
+    bad = raw_latent_exr(oiio, tmp_path / "bad.exr", levels)
+    with pytest.raises(LatentTextureError, match=r"in mip level 0.*\(x=3, y=130\).*proxy\.w"):
+        LatentTexture.read_exr(bad)
+
+    one = raw_latent_exr(oiio, tmp_path / "one.exr", [np.full((1, 1, 100), 0.25, np.float32)])  # untiled
+    assert oiio.ImageInput.open(str(one)).spec().tile_width == 0
+    np.testing.assert_array_equal(LatentTexture.read_exr(one).levels[0], np.full((1, 1, 100), 0.25, np.float16))

@@ -30,6 +30,7 @@ TOP_CHANNELS = ["top.alpha", "top.ior"]
 CHANNEL_NAMES = LATENT_CHANNELS + PROXY_CHANNELS + TOP_CHANNELS
 TILE = 64
 HALF_MAX = 65504.0  # largest finite half float: the EXR stores texels as halves
+READ_BAND_BYTES = 64 << 20  # rows of a level read at once (``_read_level``)
 
 
 def oiio_module():
@@ -214,7 +215,6 @@ class LatentTexture:
             levels = _read_levels(inp, path, [names.index(n) for n in wanted], spec.height, spec.width)
         finally:
             inp.close()
-        _check_levels(levels, path)
         if not str(metadata.get("filter_levels", "1")).isdigit() or int(metadata.get("filter_levels", 1)) < 1:
             raise LatentTextureError(
                 f"{path}: filter_levels must be a positive count, got {metadata['filter_levels']!r}"
@@ -247,15 +247,7 @@ def _read_levels(inp, path: Path, order: list[int], height: int, width: int) -> 
                 f"{path}: mip level {level} is {lspec.width}x{lspec.height}, expected {w}x{h} "
                 "(each level halves the one above, rounding down)"
             )
-        pixels = inp.read_image(0, level, 0, len(order), "half")
-        if pixels is None or np.size(pixels) != lspec.height * lspec.width * len(order):
-            raise LatentTextureError(f"cannot read mip level {level} of {path} (damaged file?): {inp.geterror()}")
-        arr = np.asarray(pixels, dtype=np.float16).reshape(lspec.height, lspec.width, len(order))
-        if len(order) == len(CHANNEL_NAMES):  # mode "clip": "raise" would buffer the output
-            np.take(arr, order, axis=2, out=chain[level], mode="clip")
-        else:  # written before the top-coat channels: every texel uncoated
-            chain[level][..., : len(order)] = np.take(arr, order, axis=2)
-            chain[level][..., len(order) :] = NO_TOP
+        _read_level(inp, path, level, lspec, order, chain[level])
         level += 1
     if inp.has_error:
         raise LatentTextureError(f"cannot read {path} (damaged file?): {inp.geterror()}")
@@ -267,27 +259,35 @@ def _read_levels(inp, path: Path, order: list[int], height: int, width: int) -> 
     return chain
 
 
-def _check_levels(levels: list[np.ndarray], path: Path) -> None:
-    """The chain's sizes are the round-down mip sizes of level 0, and every texel is finite."""
-    if not levels:
-        raise LatentTextureError(f"{path} holds no image levels")
-    h, w = levels[0].shape[:2]
-    for i, level in enumerate(levels):
-        if level.shape[:2] != (h, w):
-            raise LatentTextureError(
-                f"{path}: mip level {i} is {level.shape[1]}x{level.shape[0]}, expected {w}x{h} "
-                f"(each level halves the one above, rounding down)"
+def _read_level(inp, path: Path, level: int, lspec, order: list[int], out: np.ndarray) -> None:
+    """Mip level ``level`` into ``out`` (h, w, 100) half floats, in bands of whole tiles (or scanlines) of about
+    :data:`READ_BAND_BYTES`: the file's channels come sorted by name, so each band is read, reordered into ``out``
+    and checked finite there; only a band, not the whole level, is held besides the chain."""
+    h, w, n = lspec.height, lspec.width, len(order)
+    tile = lspec.tile_height if lspec.tile_width else 1
+    band_rows = max(1, READ_BAND_BYTES // (w * n * 2) // tile) * tile
+    for y in range(0, h, band_rows):
+        end = min(h, y + band_rows)
+        if lspec.tile_width:
+            pixels = inp.read_tiles(
+                0, level, lspec.x, lspec.x + w, lspec.y + y, lspec.y + end, lspec.z, lspec.z + 1, 0, n, "half"
             )
-        bad = ~np.isfinite(level)
-        if bad.any():
-            y, x, c = np.argwhere(bad)[0]
+        else:
+            pixels = inp.read_scanlines(0, level, lspec.y + y, lspec.y + end, lspec.z, 0, n, "half")
+        if pixels is None or np.size(pixels) != (end - y) * w * n:
+            raise LatentTextureError(f"cannot read mip level {level} of {path} (damaged file?): {inp.geterror()}")
+        band = np.asarray(pixels, dtype=np.float16).reshape(end - y, w, n)
+        if n == len(CHANNEL_NAMES):  # mode "clip": "raise" would buffer the output
+            np.take(band, order, axis=2, out=out[y:end], mode="clip")
+        else:  # written before the top-coat channels: every texel uncoated
+            out[y:end, :, :n] = np.take(band, order, axis=2)
+            out[y:end, :, n:] = NO_TOP
+        rows = out[y:end]
+        if not np.isfinite(rows).all():  # a band at a time: a level-sized mask took 0.4 GB at 2048 x 2048
+            bad = ~np.isfinite(rows)
+            row, x, c = np.argwhere(bad)[0]
             raise LatentTextureError(
-                f"{path}: {int(bad.sum())} non-finite value(s) in mip level {i}, first {level[y, x, c]} at "
-                f"(x={x}, y={y}) in channel {CHANNEL_NAMES[c]}; latent texels must be finite (re-bake the texture)"
+                f"{path}: {int(bad.sum())} non-finite value(s) in mip level {level}, first {rows[row, x, c]} at "
+                f"(x={x}, y={y + row}) in channel {CHANNEL_NAMES[c]}; latent texels must be finite (re-bake the "
+                "texture)"
             )
-        h, w = max(1, h // 2), max(1, w // 2)
-    if levels[-1].shape[:2] != (1, 1):
-        raise LatentTextureError(
-            f"{path}: the mip chain stops at {levels[-1].shape[1]}x{levels[-1].shape[0]}; "
-            f"a latent texture's chain goes down to 1x1"
-        )
