@@ -90,16 +90,20 @@ class RenderSettings:
 class RenderStats:
     """Wall time per phase (seconds) and counts. ``network`` is time waiting on the networks
     (ONNX Runtime batches), ``reference`` inside position-free estimators, ``rays`` the embreex
-    time, ``total`` the render's wall time.
+    time, ``setup`` the scene's preparation before the first path (materials resolved: stacks encoded
+    and, on a session's first render of a stack, calibrated; the ray-tracing structure and the light
+    tables), ``total`` the render's wall time.
 
     Chunks of paths are traced on several threads at once; each thread's time splits into the
     phases and the rest, and the phase times here are those splits summed over the threads and
-    scaled by wall time / thread time (``thread_seconds``), so the phases and the rest add up
-    to ``total`` whatever the thread count."""
+    scaled by the tracing's wall time (``total`` less ``setup``) / thread time (``thread_seconds``), so
+    the phases and the rest (``setup`` included) add up to ``total`` whatever the thread count."""
 
     paths: int = 0
     rays: int = 0
-    seconds: dict = field(default_factory=lambda: {"rays": 0.0, "network": 0.0, "reference": 0.0, "total": 0.0})
+    seconds: dict = field(
+        default_factory=lambda: {"rays": 0.0, "network": 0.0, "reference": 0.0, "setup": 0.0, "total": 0.0}
+    )
     nonfinite: int = 0
     material_kinds: list = field(default_factory=list)  # per material index: analytic/neural/reference
     thread_seconds: float = 0.0  # summed wall time of the threads that traced the chunks
@@ -118,7 +122,8 @@ class RenderStats:
         s = self.seconds
         return (
             f"{self.paths} paths in {s['total']:.2f} s ({self.paths_per_second:,.0f}/s): rays {s['rays']:.2f} s, "
-            f"network {s['network']:.2f} s, reference {s['reference']:.2f} s, rest {self.rest:.2f} s"
+            f"network {s['network']:.2f} s, reference {s['reference']:.2f} s, rest {self.rest:.2f} s (of which "
+            f"setup {s['setup']:.2f} s: materials, calibrations, scene)"
         )
 
 
@@ -297,6 +302,7 @@ def render(
     stats = RenderStats()
     t_start = time.perf_counter()
     ctx = _Context(scene, settings, stats)
+    stats.seconds["setup"] = time.perf_counter() - t_start
     film = film or Film(cam.width, cam.height)
     start_pass = film.passes
     npix = cam.width * cam.height
@@ -374,9 +380,11 @@ def _merge_stats(stats: RenderStats, piece: RenderStats) -> None:
 
 
 def _finish_stats(stats: RenderStats, wall: float) -> None:
-    """Phases in wall time: each thread-time phase scaled by wall / thread time (the class docstring)."""
+    """Phases in wall time: each thread-time phase scaled by the tracing's wall time / thread time (the class
+    docstring)."""
     stats.seconds["total"] = wall
-    scale = wall / stats.thread_seconds if stats.thread_seconds > 0 else 0.0
+    tracing = max(0.0, wall - stats.seconds["setup"])
+    scale = tracing / stats.thread_seconds if stats.thread_seconds > 0 else 0.0
     for key in _PHASES:
         stats.seconds[key] = stats.thread_phases[key] * scale
 
