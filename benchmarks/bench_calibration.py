@@ -122,8 +122,8 @@ def grid_coverage(angles=(75.0, 85.0), walks: int = 32768) -> list[str]:
         "",
         "The grid holds well under the lobe's whole energy at grazing, and from one stack to the next anything "
         "from a few percent to all of it: the specular peaks fall between its points. The tables' first rows "
-        "(network / reference on that grid, above) therefore compare the two lobes at those points, a check of the lobes' "
-        "shape; the directional albedo, what the albedo targets are about, is the second table of each size "
+        "(network / reference on that grid, above) therefore compare the two lobes at those points, a check of "
+        "the lobes' shape; the directional albedo, what the albedo targets are about, is the second table of each size "
         "(integrated in full).",
         "",
     ]
