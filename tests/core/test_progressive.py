@@ -16,6 +16,18 @@ def small_scene(sky=(0.3, 0.4, 0.5), width=24, height=16):
     return Scene(cam, mesh, [LambertMaterial((0.7, 0.5, 0.3))], [PointLight((1.0, -2.0, 2.0), 80.0)], Environment(sky))
 
 
+def plastic_scene(roughness: float) -> Scene:
+    """A small scene with its sphere in lacquered plastic of a coat ``roughness`` of its own (one that no other
+    test calibrates in this session)."""
+    from addon.core.render.materials import LayeredSpec
+    from addon.core.stack import preset
+
+    plastic = preset("lacquered_plastic")
+    stack = replace(plastic, coatings=[replace(plastic.coatings[0], roughness=roughness)] + list(plastic.coatings[1:]))
+    base = small_scene(width=12, height=8)
+    return Scene(base.camera, base.mesh, [LayeredSpec(stack, None, "plastic")], base.lights, base.environment)
+
+
 def test_accumulation_equals_an_offline_render_of_the_same_samples():
     scene = small_scene()
     settings = RenderSettings(samples=5, max_bounces=3, seed=4)
@@ -142,14 +154,10 @@ def test_the_viewport_calibrates_what_cached_left_out_after_its_first_image():
     """``calibrate="cached"`` (the viewport's setting) makes no reference walks before the first images; after
     the first full-resolution pass the session calibrates the materials that had none and accumulates as a
     calibrating offline render does."""
-    from addon.core.render.materials import LayeredSpec, resolve
-    from addon.core.stack import preset
+    from addon.core.render.materials import resolve
 
-    plastic = preset("lacquered_plastic")  # with a coat roughness no other test calibrates in this session
-    stack = replace(plastic, coatings=[replace(plastic.coatings[0], roughness=0.0731)] + list(plastic.coatings[1:]))
-    base = small_scene(width=12, height=8)
-    spec = LayeredSpec(stack, None, "plastic")
-    scene = Scene(base.camera, base.mesh, [spec], base.lights, base.environment)
+    scene = plastic_scene(0.0731)
+    spec = scene.materials[0]
     settings = RenderSettings(samples=2, max_bounces=2, seed=6, calibrate="cached")
     assert resolve(spec, "neural", calibrate="cached").calibration is None  # nothing made yet
     seen = []
@@ -173,17 +181,12 @@ def test_a_calibration_that_fails_leaves_the_view_rendering_uncalibrated(monkeyp
     with the material uncalibrated (what it showed before the calibration existed) and keeps the failure for a
     warning, instead of stopping with an error."""
     from addon.core.render import neural_material
-    from addon.core.render.materials import LayeredSpec
-    from addon.core.stack import preset
 
     def failing(self, step=None):
         raise ValueError("walks failed")
 
     monkeypatch.setattr(neural_material.NeuralMaterial, "calibrated", failing)
-    plastic = preset("lacquered_plastic")
-    stack = replace(plastic, coatings=[replace(plastic.coatings[0], roughness=0.0913)] + list(plastic.coatings[1:]))
-    base = small_scene(width=12, height=8)
-    scene = Scene(base.camera, base.mesh, [LayeredSpec(stack, None, "plastic")], base.lights, base.environment)
+    scene = plastic_scene(0.0913)
     settings = RenderSettings(samples=2, max_bounces=2, seed=7, calibrate="cached")
     session = ProgressiveSession(settings, preview_divisor=2)
     try:
@@ -205,8 +208,6 @@ def test_a_restart_stops_the_calibration_of_the_scene_before_it(monkeypatch):
 
     from addon.core.render import neural_material
     from addon.core.render.integrator import Cancelled
-    from addon.core.render.materials import LayeredSpec
-    from addon.core.stack import preset
 
     started, stopped_by = threading.Event(), []
 
@@ -223,10 +224,7 @@ def test_a_restart_stops_the_calibration_of_the_scene_before_it(monkeypatch):
         raise AssertionError("the calibration was not stopped")
 
     monkeypatch.setattr(neural_material.NeuralMaterial, "calibrated", endless)
-    plastic = preset("lacquered_plastic")
-    stack = replace(plastic, coatings=[replace(plastic.coatings[0], roughness=0.0871)] + list(plastic.coatings[1:]))
-    base = small_scene(width=12, height=8)
-    layered = Scene(base.camera, base.mesh, [LayeredSpec(stack, None, "plastic")], base.lights, base.environment)
+    layered = plastic_scene(0.0871)
     settings = RenderSettings(samples=2, max_bounces=2, seed=8, calibrate="cached")
     session = ProgressiveSession(settings, preview_divisor=2)
     try:
