@@ -129,6 +129,61 @@ def grid_coverage(angles=(75.0, 85.0), walks: int = 32768) -> list[str]:
     ]
 
 
+_SESSION_SCRIPT = """
+import sys
+sys.path.insert(0, {root!r})
+from addon.core.neural import calibrate
+from addon.core.render import RenderSettings, render
+from addon.core.render.demo_scene import demo_scene
+
+if {folder!r}:
+    calibrate.use_disk_cache({folder!r})
+_, stats = render(demo_scene(64, 36), RenderSettings(samples=1, max_bounces=2))
+print(stats.seconds["setup"], stats.seconds["total"])
+"""
+
+
+def session_rows(repeats: int = 3) -> list[str]:
+    """The first render of the demo scene in a new session (a fresh process, 64 x 36, 1 spp), whose setup makes
+    the five spheres' calibrations: without a disk cache, with an empty one (filled by that render), and with
+    the one a session before filled (the add-on's: its extension's user folder)."""
+    import subprocess
+    import tempfile
+
+    def first_render(folder: str) -> tuple[float, float]:
+        run = subprocess.run(
+            [sys.executable, "-c", _SESSION_SCRIPT.format(root=str(ROOT), folder=folder)],
+            capture_output=True,
+            text=True,
+            check=True,
+            timeout=1200,
+        )
+        setup, total = run.stdout.split()[-2:]
+        return float(setup), float(total)
+
+    rows = {"no disk cache": [], "empty disk cache (filled by this render)": [], "the disk cache a session filled": []}
+    for _ in range(repeats):
+        with tempfile.TemporaryDirectory() as tmp:
+            rows["no disk cache"].append(first_render(""))
+            rows["empty disk cache (filled by this render)"].append(first_render(tmp))
+            rows["the disk cache a session filled"].append(first_render(tmp))
+    lines = [
+        "## A new session's first render",
+        "",
+        "The demo scene's first render in a fresh process (64 x 36, 1 spp, 2 bounces; the setup makes the five "
+        f"spheres' calibrations), {repeats} times each, alternating: seconds of setup and of the whole render. "
+        "`calibrate.use_disk_cache` keeps calibrations on disk; the add-on gives it the extension's user folder.",
+        "",
+        "| calibrations | setup s | render s |",
+        "|---|---|---|",
+    ]
+    for name, values in rows.items():
+        setup = ", ".join(f"{v[0]:.2f}" for v in values)
+        total = ", ".join(f"{v[1]:.2f}" for v in values)
+        lines.append(f"| {name} | {setup} | {total} |")
+    return lines + [""]
+
+
 def ratio_table(rows: dict, coats: list[int], extra_heads: list[str], extra_keys: list[str]) -> list[str]:
     """A markdown table of the decoder's and the calibrated rows: medians at 75 and 85 degrees per coating
     count, then the ``extra_keys`` columns."""
@@ -201,6 +256,8 @@ def main(argv=None) -> int:
         print(size, rows, true, flush=True)
     lines += grid_coverage()
     print("\n".join(lines[-12:]), flush=True)
+    lines += session_rows()
+    print("\n".join(lines[-8:]), flush=True)
     lines += [
         "## Cost per preset (seconds, one calibration, this machine)",
         "",

@@ -40,6 +40,10 @@ def register() -> None:
         for module in reversed(done):
             module.unregister()
         raise
+    from ..core.neural import calibrate
+
+    # albedo calibrations kept across sessions: a scene's first render in a new session walks no reference again
+    calibrate.use_disk_cache(extension_folder("calibrations"))
     _registered = True
 
 
@@ -47,6 +51,23 @@ def unregister() -> None:
     global _registered
     if not _registered:
         return
+    from ..core.neural import calibrate
+
+    calibrate.use_disk_cache(None)
     for module in reversed(_MODULES):
         module.unregister()
     _registered = False
+
+
+def extension_folder(name: str) -> str | None:
+    """The extension's own user folder ``name`` (Blender keeps it across sessions and upgrades), made if missing; None
+    when the add-on is not installed as an extension (registered from a checkout)."""
+    import bpy
+
+    parts = (__package__ or "").split(".")
+    if parts[0] != "bl_ext" or len(parts) < 3:  # an installed extension is the package bl_ext.<repository>.<id>
+        return None
+    try:
+        return bpy.utils.extension_path_user(".".join(parts[:3]), path=name, create=True)
+    except (ValueError, AttributeError, OSError):
+        return None

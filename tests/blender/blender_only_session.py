@@ -28,6 +28,9 @@ def blocked_imports() -> dict:
     return {name: importlib.util.find_spec(name) is not None for name in ("PIL", "scipy", "torch", "addon", "pytest")}
 
 
+MODULE = "bl_ext.user_default.neural_layered_materials"
+
+
 def step(name: str, fn) -> object:
     try:
         value = fn()
@@ -170,6 +173,8 @@ def session(label: str, work: str, saved: bool) -> None:
     scene.render.filepath = os.path.join(work, f"{label} f12.png")
     step(f"{label}: F12", lambda: op("render.render", write_still=True))
     out["F12"] = finite_image(scene.render.filepath)
+    calibrations = bpy.utils.extension_path_user(MODULE, path="calibrations")
+    out["calibrations on disk"] = sorted(os.listdir(calibrations)) if os.path.isdir(calibrations) else None
 
     if not saved:
         bpy.ops.wm.save_as_mainfile(filepath=blend)
@@ -196,8 +201,7 @@ def main() -> None:
         "install",
         lambda: op("extensions.package_install_files", filepath=zip_path, repo="user_default", enable_on_install=True),
     )
-    module = "bl_ext.user_default.neural_layered_materials"
-    RESULT["enabled"] = module in bpy.context.preferences.addons
+    RESULT["enabled"] = MODULE in bpy.context.preferences.addons
     if RESULT["enabled"]:
         cwd = os.path.join(work, "cwd")
         os.makedirs(cwd, exist_ok=True)

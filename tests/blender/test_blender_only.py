@@ -106,3 +106,11 @@ def test_every_output_exists_and_is_finite(session, label):
     assert out["reloaded layers"] == 3
     icons = [e for e in out["NLM_PT_view3d_preview"] if e[0] == "template_icon"]
     assert len(icons) == 3, out["NLM_PT_view3d_preview"]  # lobe, sphere and comparison, in the sidebar too
+
+
+def test_the_renders_calibrations_are_kept_in_the_extensions_user_folder(session):
+    """A render's albedo calibrations are stored in the extension's own user folder (Blender's
+    ``extension_path_user``), so that a later session's first render of the same stacks walks no reference."""
+    for label in ("unsaved", "saved"):
+        names = session["outputs"][label]["calibrations on disk"]
+        assert names and all(n.startswith("calibration_") and n.endswith(".npz") for n in names), names

@@ -288,3 +288,46 @@ def test_a_calibration_stops_at_its_step_and_caches_nothing(plastic):
     assert len(steps) > decoder_calls + 2  # the walks' events too
     np.testing.assert_allclose(again.table, made.table, rtol=1e-4)  # the latent moved by one float32 step
     np.testing.assert_allclose(again.calibrated, made.calibrated, rtol=1e-4)
+
+
+def test_calibrations_on_disk_serve_a_later_session_and_a_damaged_one_is_made_again(plastic, tmp_path, monkeypatch):
+    """With a disk cache (the add-on's: its extension's user folder) a calibration made once is found by a later
+    session (an empty memory cache) without walks, as ``cached`` (the viewport's and thumbnails' mode) and as
+    ``calibrate``; a damaged file is a miss, made again; the folder keeps the most recently used entries."""
+    stack, models, z, proxy, _made = plastic
+    z = np.nextafter(z, np.float32(-np.inf))  # a latent of its own
+    monkeypatch.setattr(cal, "_CACHE", {})
+    monkeypatch.setattr(cal, "_DISK", {"folder": None})
+    cal.use_disk_cache(tmp_path / "calibrations")
+    first = cal.calibrate(stack, models, z, proxy)
+    (entry,) = (tmp_path / "calibrations").glob("calibration_*.npz")
+
+    walks = []
+    real_parts = cal.reference_parts
+    monkeypatch.setattr(cal, "reference_parts", lambda *a, **k: walks.append(1) or real_parts(*a, **k))
+    monkeypatch.setattr(cal, "_CACHE", {})  # a new session
+    again = cal.cached(stack, models, z)
+    assert again is not None and cal.calibrate(stack, models, z, proxy) is again and not walks
+    for name in ("table", "scale", "reference", "reference_stderr", "decoded", "calibrated", "top"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(first, name))
+
+    entry.write_bytes(b"not a calibration")
+    monkeypatch.setattr(cal, "_CACHE", {})
+    assert cal.cached(stack, models, z) is None
+    remade = cal.calibrate(stack, models, z, proxy)
+    assert len(walks) == 1 and np.array_equal(remade.table, first.table)
+    monkeypatch.setattr(cal, "_CACHE", {})
+    assert cal.cached(stack, models, z) is not None  # written again, whole
+
+    monkeypatch.setattr(cal, "MAX_DISK_ENTRIES", 2)
+    for k in range(3):
+        cal._to_disk(f"{k:064x}", first)
+    kept = sorted(p.name for p in (tmp_path / "calibrations").glob("calibration_*.npz"))
+    assert len(kept) == 2 and f"calibration_{0:064x}.npz" not in kept
+
+    plain = tmp_path / "plain"
+    plain.write_text("a file, not a folder")
+    cal.use_disk_cache(plain)  # nothing can be stored there: the calibration is still made and used
+    monkeypatch.setattr(cal, "_CACHE", {})
+    assert cal.calibrate(stack, models, z, proxy) is not None and plain.is_file()
+    cal.use_disk_cache(None)

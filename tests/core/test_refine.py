@@ -125,6 +125,10 @@ def test_refinement_fits_the_reference_better_on_separate_validation_pairs_and_i
     z3, rep3 = rf.refine_latent(COATED, "tiny", budget_s=30.0, settings=QUICK, threads=1, cache_dir=tmp_path)
     assert rep3.cached and np.array_equal(z3, z) and rep3.key == rep.key
     assert len(list(tmp_path.glob("refine_*.npz"))) == 1 and not list(tmp_path.glob(".refine_*"))
+    # a file damaged on disk is a miss (refined again), not an error
+    next(tmp_path.glob("refine_*.npz")).write_bytes(b"damaged")
+    rf._MEMORY.clear()
+    assert rf._cache_get(rep.key, tmp_path) is None
 
 
 def test_a_refinement_that_is_worse_on_validation_is_not_kept():

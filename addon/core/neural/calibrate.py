@@ -53,7 +53,9 @@ albedo, a bin's energy) is shrunk towards the decoded one where the two are with
 from __future__ import annotations
 
 import hashlib
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -383,6 +385,69 @@ def check_mode(calibrate) -> bool | str:
 
 
 _CACHE: dict[str, AlbedoCalibration] = {}
+_DISK: dict = {"folder": None}  # see ``use_disk_cache``
+# Calibrations kept on disk at most (the most recently used; about 5 kB each).
+MAX_DISK_ENTRIES = 4096
+_FIELDS = ("cosines", "scale", "table", "reference", "reference_stderr", "decoded", "calibrated")
+
+
+def use_disk_cache(folder) -> None:
+    """Keep every calibration in ``folder`` too (one small file each, the :data:`MAX_DISK_ENTRIES` most recently
+    used), where a later session finds it instead of walking the reference again: the add-on gives its
+    extension's user folder, so a scene's first render in a new Blender session, its viewport and its thumbnails
+    have their calibrations at once. None: this session's memory only (the default)."""
+    _DISK["folder"] = None if folder is None else Path(folder)
+
+
+def _disk_path(key: str) -> Path | None:
+    folder = _DISK["folder"]
+    return None if folder is None else folder / f"calibration_{key}.npz"
+
+
+def _from_disk(key: str) -> AlbedoCalibration | None:
+    """The calibration stored under ``key``, or None (none stored, or a file that is damaged or of another
+    layout: a miss, made again)."""
+    from ..textures import files
+
+    path = _disk_path(key)
+    arrays = None if path is None else files.load_arrays(path)
+    if arrays is None or any(name not in arrays for name in _FIELDS):
+        return None
+    k = len(COSINES)
+    shapes = {"cosines": (k,), "table": (k, k, 3)}
+    if any(arrays[n].shape != shapes.get(n, (k, 3)) for n in _FIELDS) or not np.array_equal(
+        arrays["cosines"], np.asarray(COSINES, dtype=np.float64)
+    ):
+        return None
+    if "top" in arrays and arrays["top"].shape != (k, 3):
+        return None
+    try:
+        os.utime(path)  # most recently used: kept when the folder is pruned
+    except OSError:
+        pass
+    return AlbedoCalibration(**{n: arrays[n] for n in _FIELDS}, top=arrays.get("top"))
+
+
+def _to_disk(key: str, calibration: AlbedoCalibration) -> None:
+    """Store ``calibration`` under ``key`` and prune the folder to :data:`MAX_DISK_ENTRIES`; a folder that cannot be
+    written only loses the entry (the calibration itself is made and used)."""
+    from ..textures import files
+
+    path = _disk_path(key)
+    if path is None:
+        return
+    arrays = {n: np.asarray(getattr(calibration, n), dtype=np.float64) for n in _FIELDS}
+    if calibration.top is not None:
+        arrays["top"] = np.asarray(calibration.top, dtype=np.float64)
+    try:
+        files.save_arrays(path, **arrays)
+        entries = list(path.parent.glob("calibration_*.npz"))
+        if len(entries) > MAX_DISK_ENTRIES:
+            entries.sort(key=lambda p: p.stat().st_mtime)
+            for old in entries[: len(entries) - MAX_DISK_ENTRIES]:
+                old.unlink(missing_ok=True)
+    except OSError:
+        pass
 
 
 def settings_key() -> str:
@@ -398,30 +463,39 @@ def cache_key(stack: Stack, models, z) -> str:
 
 
 def cached(stack: Stack, models, z) -> AlbedoCalibration | None:
-    """The calibration of this stack and latent if it was made in this session, else None (no work)."""
-    return _CACHE.get(cache_key(stack, models, z))
+    """The calibration of this stack and latent if it was made in this session or is on disk
+    (:func:`use_disk_cache`), else None (no walks)."""
+    key = cache_key(stack, models, z)
+    hit = _CACHE.get(key)
+    if hit is None:
+        hit = _from_disk(key)
+        if hit is not None:
+            _CACHE[key] = hit
+    return hit
 
 
 def calibrate(stack: Stack, models, z, proxy_params, seed: int = 0, step=None) -> AlbedoCalibration:
     """The albedo calibration of latent ``z`` (3, 32) of ``stack`` on ``models`` (see the module
     docstring); ``proxy_params`` (sigma, w) are the material's sampling proxy. Cached per stack,
-    model files and latent for the session. A remainder decoder's factors scale the decoded part only,
-    towards the reference less the stack's exact top lobe.
+    model files and latent for the session, and on disk with :func:`use_disk_cache`. A remainder decoder's
+    factors scale the decoded part only, towards the reference less the stack's exact top lobe.
 
     ``step()`` (optional) is called between parts of the work (every :data:`STEP_ROWS` decoded rows, and
     before each event of the reference walks): raising there stops the calibration, which then caches nothing. The
     viewport stops a calibration so when an edit makes its stack stale."""
     if not isinstance(stack, Stack):
         raise ValueError(f"calibrate needs a Stack, got {type(stack).__name__}")
+    hit = cached(stack, models, z)
+    if hit is not None:
+        return hit
     key = cache_key(stack, models, z)
-    if key in _CACHE:
-        return _CACHE[key]
     sigma, w = (float(v) for v in proxy_params)
     coat = top_lobe.top_coat(stack)
     moments = decoded_moments(models, z, sigma, w, seed=seed, top=coat, step=step)
     top = top_lobe.top_albedo(coat, COSINES, DECODED_SAMPLES, seed)
     out = _solve(reference_parts(stack, seed=seed, step=step), moments, top, bool(getattr(models, "remainder", False)))
     _CACHE[key] = out
+    _to_disk(key, out)
     return out
 
 
@@ -484,4 +558,5 @@ def _solve(ref, moments: DecodedMoments, top_albedo: np.ndarray, remainder: bool
 
 
 def clear_cache() -> None:
+    """Forget this session's calibrations (those on disk stay: :func:`use_disk_cache`)."""
     _CACHE.clear()

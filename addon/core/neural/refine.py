@@ -508,12 +508,13 @@ def refine_latent(
 
 
 def _cache_get(key: str, cache_dir):
+    from ..textures import files
+
     hit = _MEMORY.get(key)
     if hit is None and cache_dir is not None:
-        path = Path(cache_dir) / f"refine_{key}.npz"
-        if path.exists():
-            with np.load(path, allow_pickle=False) as npz:
-                hit = (npz["z"].astype(np.float32), RefineReport(**json.loads(str(npz["report"]))))
+        npz = files.load_arrays(Path(cache_dir) / f"refine_{key}.npz")
+        if npz is not None and "z" in npz and "report" in npz:
+            hit = (npz["z"].astype(np.float32), RefineReport(**json.loads(str(npz["report"]))))
             _MEMORY[key] = hit
     if hit is None:
         return None
@@ -522,10 +523,8 @@ def _cache_get(key: str, cache_dir):
 
 
 def _cache_put(key: str, z: np.ndarray, report: RefineReport, cache_dir) -> None:
+    from ..textures import files
+
     _MEMORY[key] = (z.copy(), report)
-    if cache_dir is not None:
-        d = Path(cache_dir)
-        d.mkdir(parents=True, exist_ok=True)
-        tmp = d / f".refine_{key}.{time.monotonic_ns()}.npz"
-        np.savez(tmp, z=z, report=np.array(json.dumps(report.to_dict())))
-        tmp.replace(d / f"refine_{key}.npz")  # atomic publish: concurrent bakes never read half a file
+    if cache_dir is not None:  # published atomically: concurrent bakes never read half a file
+        files.save_arrays(Path(cache_dir) / f"refine_{key}.npz", z=z, report=np.array(json.dumps(report.to_dict())))

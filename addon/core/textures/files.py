@@ -18,8 +18,11 @@ import re
 import secrets
 import socket
 import unicodedata
+import zipfile
 from pathlib import Path
 from typing import Iterator
+
+import numpy as np
 
 _HOST = re.sub(r"[^A-Za-z0-9]", "-", socket.gethostname())[:40] or "host"
 _TEMP = re.compile(r"^\.(?P<final>.+)\.(?P<host>[A-Za-z0-9-]+)-(?P<pid>\d+)-(?P<token>[0-9a-f]{8})\.partial(\.\w+)?$")
@@ -82,6 +85,25 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> None:
     with publishing(path) as tmp:
         with open(tmp, "wb") as f:
             f.write(data)
+
+
+def save_arrays(path: str | os.PathLike, **arrays) -> None:
+    """``np.savez`` of ``arrays`` at ``path`` (its folder made), published as :func:`publishing` does: a reader
+    (another process, a later session) sees the previous file or the complete new one. For cache entries."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with publishing(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+
+
+def load_arrays(path: str | os.PathLike) -> dict | None:
+    """The arrays of an ``.npz`` file (:func:`save_arrays`), or None when it is missing or cannot be read (a cache
+    entry damaged on disk is a miss, not an error)."""
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return {name: npz[name] for name in npz.files}
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile):
+        return None
 
 
 def _process_gone(host: str, pid: int) -> bool:
