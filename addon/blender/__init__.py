@@ -40,10 +40,13 @@ def register() -> None:
         for module in reversed(done):
             module.unregister()
         raise
+    from ..core import quality
     from ..core.neural import calibrate
 
-    # albedo calibrations kept across sessions: a scene's first render in a new session walks no reference again
+    # albedo calibrations and Auto's measured errors kept across sessions: a scene's first render in a new
+    # session walks no reference again for the stacks a session before rendered
     calibrate.use_disk_cache(extension_folder("calibrations"))
+    quality.use_disk_cache(extension_folder("quality"))
     _registered = True
 
 
@@ -51,9 +54,11 @@ def unregister() -> None:
     global _registered
     if not _registered:
         return
+    from ..core import quality
     from ..core.neural import calibrate
 
     calibrate.use_disk_cache(None)
+    quality.use_disk_cache(None)
     for module in reversed(_MODULES):
         module.unregister()
     _registered = False

@@ -190,15 +190,26 @@ class ErrorCache:
         return self.data.get(key)
 
     def put(self, key: str, value: float) -> None:
+        from .textures import files
+
         self.data[key] = float(value)
-        if self.path is not None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = self.path.with_suffix(".tmp")
-            tmp.write_text(json.dumps(self.data, indent=0, sort_keys=True))
-            tmp.replace(self.path)
+        if self.path is not None:  # published atomically: another session never reads half a file
+            try:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                files.write_bytes(self.path, json.dumps(self.data, indent=0, sort_keys=True).encode())
+            except OSError:
+                pass  # a folder that cannot be written loses the entry on disk, not the measurement
 
 
 _DEFAULT_CACHE = ErrorCache()
+
+
+def use_disk_cache(folder) -> None:
+    """Keep the measured errors that ``choose_decoder`` and ``assign_decoders`` make without a cache of their own
+    in ``folder`` too (``decoder_errors.json``), where a later session finds them: the add-on gives its extension's
+    user folder, so *Auto* chooses at once for the stacks a session before measured. None: memory only."""
+    global _DEFAULT_CACHE
+    _DEFAULT_CACHE = ErrorCache(folder)
 
 
 def measured_error(

@@ -175,6 +175,8 @@ def session(label: str, work: str, saved: bool) -> None:
     out["F12"] = finite_image(scene.render.filepath)
     calibrations = bpy.utils.extension_path_user(MODULE, path="calibrations")
     out["calibrations on disk"] = sorted(os.listdir(calibrations)) if os.path.isdir(calibrations) else None
+    errors = os.path.join(bpy.utils.extension_path_user(MODULE, path="quality"), "decoder_errors.json")
+    out["measured errors on disk"] = len(json.load(open(errors))) if os.path.isfile(errors) else None
 
     if not saved:
         bpy.ops.wm.save_as_mainfile(filepath=blend)

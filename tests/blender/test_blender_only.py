@@ -108,9 +108,11 @@ def test_every_output_exists_and_is_finite(session, label):
     assert len(icons) == 3, out["NLM_PT_view3d_preview"]  # lobe, sphere and comparison, in the sidebar too
 
 
-def test_the_renders_calibrations_are_kept_in_the_extensions_user_folder(session):
-    """A render's albedo calibrations are stored in the extension's own user folder (Blender's
-    ``extension_path_user``), so that a later session's first render of the same stacks walks no reference."""
+def test_the_renders_calibrations_and_measured_errors_are_kept_in_the_extensions_user_folder(session):
+    """A render's albedo calibrations and *Auto*'s measured errors are stored in the extension's own user folder
+    (Blender's ``extension_path_user``), so that a later session's first render of the same stacks walks no
+    reference."""
     for label in ("unsaved", "saved"):
         names = session["outputs"][label]["calibrations on disk"]
         assert names and all(n.startswith("calibration_") and n.endswith(".npz") for n in names), names
+        assert session["outputs"][label]["measured errors on disk"], session["outputs"][label]

@@ -93,6 +93,31 @@ def test_measured_errors_are_cached_on_disk_and_a_damaged_cache_is_ignored(tmp_p
     assert quality.ErrorCache(tmp_path).data == {}
 
 
+def test_the_default_cache_kept_on_disk_serves_a_later_session(tmp_path, monkeypatch):
+    """``use_disk_cache`` (the add-on's: its extension's user folder) keeps what Auto measures without a cache of
+    its own: a later session (the cache read again) chooses without measuring; an unwritable folder only loses
+    the file."""
+    monkeypatch.setattr(quality, "_DEFAULT_CACHE", quality.ErrorCache())
+    quality.use_disk_cache(tmp_path / "quality")
+    try:
+        first = quality.choose_decoder(SIMPLE, 0.5)
+        assert (tmp_path / "quality" / "decoder_errors.json").is_file()
+        quality.use_disk_cache(tmp_path / "quality")  # a new session
+
+        def no_measuring(*args, **kwargs):
+            raise AssertionError("measured again")
+
+        monkeypatch.setattr(quality, "decoder_lobes", no_measuring)
+        assert quality.choose_decoder(SIMPLE, 0.5).errors == first.errors
+        plain = tmp_path / "plain"
+        plain.write_text("a file, not a folder")
+        quality.use_disk_cache(plain)
+        quality._DEFAULT_CACHE.put("key", 0.1)
+        assert quality._DEFAULT_CACHE.get("key") == 0.1 and plain.is_file()
+    finally:
+        quality.use_disk_cache(None)
+
+
 def test_sizes_that_cannot_encode_the_stack_fall_back_to_the_reference(tmp_path, monkeypatch):
     """A size whose models are not shipped (or cannot encode the stack) is never chosen, nor cached."""
     from addon.core.neural import models
