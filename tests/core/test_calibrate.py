@@ -297,7 +297,7 @@ def test_calibrations_on_disk_serve_a_later_session_and_a_damaged_one_is_made_ag
     stack, models, z, proxy, _made = plastic
     z = np.nextafter(z, np.float32(-np.inf))  # a latent of its own
     monkeypatch.setattr(cal, "_CACHE", {})
-    monkeypatch.setattr(cal, "_DISK", {"folder": None})
+    monkeypatch.setattr(cal, "_DISK_FOLDER", None)
     cal.use_disk_cache(tmp_path / "calibrations")
     first = cal.calibrate(stack, models, z, proxy)
     (entry,) = (tmp_path / "calibrations").glob("calibration_*.npz")

@@ -385,7 +385,7 @@ def check_mode(calibrate) -> bool | str:
 
 
 _CACHE: dict[str, AlbedoCalibration] = {}
-_DISK: dict = {"folder": None}  # see ``use_disk_cache``
+_DISK_FOLDER: Path | None = None  # see ``use_disk_cache``
 # Calibrations kept on disk at most (the most recently used; 6.6 kB each, 27 MB in all).
 MAX_DISK_ENTRIES = 4096
 _FIELDS = ("cosines", "scale", "table", "reference", "reference_stderr", "decoded", "calibrated")
@@ -396,12 +396,12 @@ def use_disk_cache(folder) -> None:
     used), where a later session finds it instead of walking the reference again: the add-on gives its
     extension's user folder, so a scene's first render in a new Blender session, its viewport and its thumbnails
     have their calibrations at once. None: this session's memory only (the default)."""
-    _DISK["folder"] = None if folder is None else Path(folder)
+    global _DISK_FOLDER
+    _DISK_FOLDER = None if folder is None else Path(folder)
 
 
 def _disk_path(key: str) -> Path | None:
-    folder = _DISK["folder"]
-    return None if folder is None else folder / f"calibration_{key}.npz"
+    return None if _DISK_FOLDER is None else _DISK_FOLDER / f"calibration_{key}.npz"
 
 
 def _from_disk(key: str) -> AlbedoCalibration | None:
