@@ -195,8 +195,8 @@ class ProgressiveSession:
         """The scene with the calibrations its materials left out (``calibrate="cached"``, the viewport's: no
         reference walks before the first images) made now, after the first full-resolution pass, so that the
         accumulation that follows renders as F12 does (``NeuralMaterial.calibrated``; 0.4 s per changed stack
-        with tiny, about 2.5 s with paper, once per session). A restart that comes meanwhile stops the
-        calibration at its next step (``calibrate.STEP_ROWS`` decoded rows, or the reference walks that end it):
+        with tiny, about 2.5 s with paper, the first time a stack is rendered). A restart that comes meanwhile stops
+        the calibration at its next step (``calibrate.STEP_ROWS`` decoded rows, or an event of the reference walks):
         the new scene never waits for the old one's walks. None when a restart came."""
         materials = list(scene.materials)
         pending = [i for i, m in enumerate(materials) if getattr(m, "uncalibrated_stack", None) is not None]
