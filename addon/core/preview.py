@@ -178,7 +178,8 @@ def _latent_for(stack, latent, size):
 
 
 def _cached_calibration(stack: Stack, z: np.ndarray, size: str):
-    """The albedo calibration a render or the viewport made this session for this stack and latent, or None."""
+    """The albedo calibration a render or the viewport made for this stack and latent (this session, or kept on
+    disk: ``calibrate.use_disk_cache``), or None."""
     from .neural import calibrate, load_models
 
     return calibrate.cached(stack, load_models(size), z)

@@ -378,7 +378,7 @@ MODES = (True, False, "cached")
 
 def check_mode(calibrate) -> bool | str:
     """``calibrate`` if it is one of :data:`MODES` (True: calibrate, False: not, "cached": only reuse
-    a calibration made this session), else ValueError."""
+    a calibration already made: this session's, or one kept on disk), else ValueError."""
     if calibrate is True or calibrate is False or (isinstance(calibrate, str) and calibrate == "cached"):
         return calibrate
     raise ValueError(f"calibrate must be True, False or 'cached', got {calibrate!r}")

@@ -52,7 +52,7 @@ class RenderSettings:
     reference_walks: int = 16
     threads: int = 0  # chunks traced at once; 0: one per CPU core
     # albedo calibration of layered stacks in neural mode (``neural.calibrate``): True, False, or
-    # "cached" (only calibrations already made this session: no reference walks)
+    # "cached" (only calibrations already made, this session or kept on disk: no reference walks)
     calibrate: bool | str = True
 
     def __post_init__(self):

@@ -172,10 +172,10 @@ class NeuralMaterial:
 
     def calibrated(self, step=None) -> "NeuralMaterial":
         """This material with the calibration ``make`` left out when asked for "cached" only and none was made
-        yet (``uncalibrated_stack``): made now (about a second of reference walks, then cached for the session),
-        in a copy; the material itself when nothing is left out. The viewport's session calls it after its
-        first full-resolution pass (``progressive``), with a ``step`` that stops it on an edit
-        (``calibrate.calibrate``)."""
+        yet (``uncalibrated_stack``): made now (about a second of reference walks, then cached, in memory and on
+        disk with ``calibrate.use_disk_cache``), in a copy; the material itself when nothing is left out. The
+        viewport's session calls it after its first full-resolution pass (``progressive``), with a ``step`` that
+        stops it on an edit (``calibrate.calibrate``)."""
         if self.uncalibrated_stack is None:
             return self
         from ..neural import calibrate as cal
@@ -223,10 +223,11 @@ def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None
     """A NeuralMaterial for ``stack`` (or for its latent texture), or None in the documented cases below.
 
     ``calibrate``: True gives the material its albedo calibration against the reference
-    (``neural.calibrate``: about a second of reference walks per stack, cached for the session),
-    "cached" only one this session already made (no work: for the viewport and thumbnails), False
-    none. A latent texture brings the calibration its bake made (``textures.calibration``; none when it was
-    baked without one or with other calibration settings, with a warning to rebake), for True and "cached".
+    (``neural.calibrate``: about a second of reference walks per stack, cached in memory and, with
+    ``calibrate.use_disk_cache``, on disk), "cached" only one already made (no work: for the viewport and
+    thumbnails), False none. A latent texture brings the calibration its bake made (``textures.calibration``;
+    none when it was baked without one or with other calibration settings, with a warning to rebake), for True
+    and "cached".
 
     ``size`` picks the decoder ("auto" or None: ``neural.resolve_size``, the default size). A latent
     texture is decoded by the size it was baked for (its ``model`` metadata, checked against ``size``

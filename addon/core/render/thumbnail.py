@@ -6,7 +6,7 @@ per pixel, few bounces, the fastest decoder for every layered material (a fixed 
 measurement, whose reference walks cost seconds per stack), neural mode whatever the scene's
 mode says (a stack the runtime can encode never meets the reference's walks; one it cannot is
 shaded by the reference with the fewest walks), no denoising, and an albedo calibration only where
-this session already made one (``neural.calibrate``: it costs about a second of walks per stack).
+one was already made (this session, or kept on disk) (``neural.calibrate``: it costs about a second of walks per stack).
 """
 
 from __future__ import annotations
