@@ -32,6 +32,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import threading
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -180,6 +181,7 @@ class ErrorCache:
     def __init__(self, cache_dir=None):
         self.path = Path(cache_dir) / "decoder_errors.json" if cache_dir is not None else None
         self.data: dict[str, float] = {}
+        self._lock = threading.Lock()  # the viewport and an F12 render may measure at once
         if self.path is not None and self.path.exists():
             try:
                 self.data = {k: float(v) for k, v in json.loads(self.path.read_text()).items()}
@@ -192,11 +194,14 @@ class ErrorCache:
     def put(self, key: str, value: float) -> None:
         from .textures import files
 
-        self.data[key] = float(value)
-        if self.path is not None:  # published atomically: another session never reads half a file
-            try:
+        with self._lock:
+            self.data[key] = float(value)
+            if self.path is None:
+                return
+            text = json.dumps(self.data, indent=0, sort_keys=True)
+            try:  # published atomically: another session never reads half a file
                 self.path.parent.mkdir(parents=True, exist_ok=True)
-                files.write_bytes(self.path, json.dumps(self.data, indent=0, sort_keys=True).encode())
+                files.write_bytes(self.path, text.encode())
             except OSError:
                 pass  # a folder that cannot be written loses the entry on disk, not the measurement
 

@@ -332,3 +332,31 @@ def test_a_size_with_a_damaged_card_is_not_available_and_says_why(tmp_path):
     (tmp_path / "decoder_tiny.json").write_text("{")
     with pytest.warns(quality.QualityWarning, match="decoder size tiny is not available: .*decoder_tiny.json"):
         assert quality.available_sizes(tmp_path) == ["small"]
+
+
+def test_a_disk_backed_error_cache_keeps_every_entry_put_from_two_threads(tmp_path, monkeypatch):
+    """The viewport and an F12 render may measure at once: an entry put while another thread is still writing its
+    file reaches the file. Thread A's write is held until thread B's put has returned (or 0.5 s have passed): without
+    the cache's lock, A's older snapshot would replace B's newer file and B's entry would be lost on disk."""
+    import threading
+
+    from addon.core.textures import files
+
+    real_write = files.write_bytes
+    a_writing, b_done = threading.Event(), threading.Event()
+
+    def held_write(path, data):
+        if threading.current_thread().name == "A":
+            a_writing.set()
+            b_done.wait(0.5)
+        real_write(path, data)
+
+    monkeypatch.setattr(files, "write_bytes", held_write)
+    cache = quality.ErrorCache(tmp_path)
+    a = threading.Thread(target=cache.put, args=("a", 1.0), name="A")
+    a.start()
+    assert a_writing.wait(5.0)
+    cache.put("b", 2.0)
+    b_done.set()
+    a.join()
+    assert quality.ErrorCache(tmp_path).data == {"a": 1.0, "b": 2.0}
