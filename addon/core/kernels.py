@@ -848,13 +848,25 @@ def top_lobe_eval_pdf(wi, wo, top):
 
 
 @njit(inline="always", **_JIT)
+def _alpha_cell(alpha_grid, a):
+    """The transmittance table's cell of roughness ``a`` (its grid is geometric: ``top_lobe.TRANSMITTANCE_ALPHA``)."""
+    return _segment_near(alpha_grid, a, _spacing_guess(alpha_grid, a, 1))
+
+
+@njit(inline="always", **_JIT)
+def _ior_cell(ior_grid, ior):
+    """The transmittance table's cell of index ``ior`` (its grid is even: ``top_lobe.TRANSMITTANCE_IOR``)."""
+    return _segment_near(ior_grid, ior, _spacing_guess(ior_grid, ior, 0))
+
+
+@njit(inline="always", **_JIT)
 def _transmission(table, cos_grid, c, ia, fa, ii, fi):
     """The top interface's transmittance at cosine ``c`` (``top_lobe.transmission``): trilinear in ``table``
     (cos, alpha, ior) with the coating's alpha and ior cells (ia, fa), (ii, fi) found already, clipped to
     [0, 1]; 0 at and below the horizon."""
     if not c > 0.0:
         return 0.0
-    ic, fc = _segment(cos_grid, c)
+    ic, fc = _segment_near(cos_grid, c, _spacing_guess(cos_grid, c, 2))
     out = 0.0
     for dc in range(2):  # the 8 corners of the cell
         wc = fc if dc else 1.0 - fc
@@ -877,8 +889,8 @@ def transmission_rows(top, cos, table, cos_grid, alpha_grid, ior_grid):
         if abs(top[j, 1] - 1.0) < INDEX_MATCHED_TOL:
             out[i] = 1.0
             continue
-        ia, fa = _segment(alpha_grid, top[j, 0])
-        ii, fi = _segment(ior_grid, top[j, 1])
+        ia, fa = _alpha_cell(alpha_grid, top[j, 0])
+        ii, fi = _ior_cell(ior_grid, top[j, 1])
         out[i] = _transmission(table, cos_grid, cos[i], ia, fa, ii, fi)
     return out
 
@@ -894,16 +906,16 @@ def top_coat(out, wi, wo, top, table, cos_grid, alpha_grid, ior_grid, scale, add
     if n == 0:
         return p
     shared = top.shape[0] == 1
-    ia, fa = _segment(alpha_grid, top[0, 0])
-    ii, fi = _segment(ior_grid, top[0, 1])
+    ia, fa = _alpha_cell(alpha_grid, top[0, 0])
+    ii, fi = _ior_cell(ior_grid, top[0, 1])
     for i in range(n):
         j = 0 if shared else i
         a, ior = top[j, 0], top[j, 1]
         if abs(ior - 1.0) < INDEX_MATCHED_TOL:
             continue
         if not shared:
-            ia, fa = _segment(alpha_grid, a)
-            ii, fi = _segment(ior_grid, ior)
+            ia, fa = _alpha_cell(alpha_grid, a)
+            ii, fi = _ior_cell(ior_grid, ior)
         if scale:
             s = np.float32(
                 _transmission(table, cos_grid, wi[i, 2], ia, fa, ii, fi)
@@ -964,13 +976,34 @@ def mixture_pdf(wo, wi, sigma, w, share, p_top):
 
 
 @njit(inline="always", **_JIT)
-def _segment(grid, x):
-    """Index i and weight t of ``x`` between ``grid[i]`` and ``grid[i + 1]`` (``grid`` increasing),
-    constant beyond its ends."""
+def _segment_near(grid, x, guess):
+    """Index i and weight t of ``x`` between ``grid[i]`` and ``grid[i + 1]`` (``grid`` increasing), constant beyond
+    its ends: walked from a guess of the index (a float) to the cell that holds ``x``. The cell and the weight do
+    not depend on the guess; where it comes from the grid's own spacing (:func:`_spacing_guess`) the walk takes a
+    step or two, cheaper than a binary search's unpredictable branches (the exact top coat 25-35% faster, the
+    calibration's tables 15%)."""
     last = len(grid) - 1
     x = min(max(x, grid[0]), grid[last])
-    i = min(max(np.searchsorted(grid, x, side="right") - 1, 0), last - 1)
+    i = min(max(int(guess), 0), last - 1)
+    while i > 0 and grid[i] > x:
+        i -= 1
+    while i < last - 1 and grid[i + 1] <= x:
+        i += 1
     return i, (x - grid[i]) / (grid[i + 1] - grid[i])
+
+
+@njit(inline="always", **_JIT)
+def _spacing_guess(grid, x, spacing):
+    """Where ``x`` falls in ``grid`` (a fractional index) if the grid is spaced as ``spacing`` says: 0 evenly, 1
+    geometrically, 2 quadratically from its first node (``top_lobe``'s transmittance grids: ior, alpha, cosine)."""
+    last = len(grid) - 1
+    g0, g1 = grid[0], grid[last]
+    if not (x > g0):
+        return 0.0
+    if spacing == 1:
+        return last * math.log(x / g0) / math.log(g1 / g0)
+    t = (x - g0) / (g1 - g0)
+    return last * (math.sqrt(t) if spacing == 2 else t)
 
 
 @njit(**_JIT)
@@ -978,9 +1011,9 @@ def scale_by_table(f, x, y, grid, tables, which):
     """``f`` (N, C) times ``tables[which[n]]`` (T, K, K, C) at (``x``, ``y``) (N,) each, bilinear between
     the increasing abscissae ``grid`` (K,) on both axes, constant beyond them; in place. An empty
     ``which`` means table 0 for every row."""
-    for n in range(len(f)):
-        i, s = _segment(grid, x[n])
-        j, t = _segment(grid, y[n])
+    for n in range(len(f)):  # the calibration's cosines are close to quadratic: guesses within two cells
+        i, s = _segment_near(grid, x[n], _spacing_guess(grid, x[n], 2))
+        j, t = _segment_near(grid, y[n], _spacing_guess(grid, y[n], 2))
         table = tables[which[n] if len(which) else 0]
         for c in range(f.shape[1]):
             low = table[i, j, c] * (1.0 - s) + table[i + 1, j, c] * s

@@ -277,3 +277,44 @@ def test_half_floats_convert_exactly_in_the_compiled_loops():
 
         got = all_of(bits)
         assert np.array_equal(got.view(np.uint32), want.view(np.uint32)), convert
+
+
+def test_a_grid_cell_found_from_a_guess_is_the_binary_searchs_whatever_the_guess():
+    """The transmittance and calibration lookups walk to a value's grid cell from a guess made from the grid's
+    spacing: the cell and weight are the binary search's (what the lookups used before) for any guess, on the
+    shipped grids, at their nodes and beyond their ends."""
+    import numba
+
+    from addon.core.neural import calibrate, top_lobe
+
+    @numba.njit
+    def cells(grid, xs, guesses, spacing):
+        out = np.empty((len(xs), 3))
+        for n in range(len(xs)):
+            for k, guess in enumerate((guesses[n], kernels._spacing_guess(grid, xs[n], spacing))):
+                i, t = kernels._segment_near(grid, xs[n], guess)
+                if k == 0:
+                    out[n, 0], out[n, 1] = i, t
+                else:
+                    out[n, 2] = i
+        return out
+
+    rng = np.random.default_rng(11)
+    grids = [
+        (np.asarray(top_lobe.TRANSMITTANCE_IOR, float), 0),
+        (np.asarray(top_lobe.TRANSMITTANCE_ALPHA, float), 1),
+        (np.asarray(top_lobe.TRANSMITTANCE_COS, float), 2),
+        (np.asarray(calibrate.COSINES, float)[::-1].copy(), 2),
+        (np.sort(rng.random(9)), 2),  # a grid of no particular spacing
+    ]
+    for grid, spacing in grids:
+        span = grid[-1] - grid[0]
+        xs = np.concatenate([rng.uniform(grid[0] - span, grid[-1] + span, 2000), grid, [-np.inf, np.inf]])
+        guesses = rng.uniform(-5.0, len(grid) + 5.0, len(xs))
+        got = cells(grid, xs, guesses, spacing)
+        x = np.clip(xs, grid[0], grid[-1])
+        i = np.clip(np.searchsorted(grid, x, side="right") - 1, 0, len(grid) - 2)
+        t = (x - grid[i]) / (grid[i + 1] - grid[i])
+        np.testing.assert_array_equal(got[:, 0], i)
+        np.testing.assert_array_equal(got[:, 1], t)
+        np.testing.assert_array_equal(got[:, 2], i)
