@@ -22,7 +22,7 @@ sys.path.insert(0, str(ROOT))
 
 from addon.core import lobe  # noqa: E402
 from addon.core.stack import preset  # noqa: E402
-from addon.core.textures.bake import bake_mix, bake_stack, neural_encoder  # noqa: E402
+from addon.core.textures.bake import BAKE_BYTES_PER_TEXEL, bake_mix, bake_stack, neural_encoder  # noqa: E402
 from addon.core.textures.spatial import SpatialStack  # noqa: E402
 
 
@@ -275,8 +275,9 @@ def main(argv=None) -> int:
         "",
         "Peak memory of a bake with the default settings, each side in a fresh process (`--peak-memory`): the "
         "largest resident size before `bake_stack` (the models, the maps) and after it. "
-        "`textures.bake.BAKE_BYTES_PER_TEXEL`, which the bake's memory check uses, is the larger per-texel "
-        "figure. Then the texture written and read back in another fresh process, as a render reads it "
+        f"The bake's memory check counts `textures.bake.BAKE_BYTES_PER_TEXEL` = {BAKE_BYTES_PER_TEXEL:,} bytes a "
+        "texel, above the larger figure here (a margin for other stacks and maps). Then the texture written and "
+        "read back in another fresh process, as a render reads it "
         "(`LatentTexture.read_exr`): its seconds, what the read added to the process at its peak, and the chain "
         "it holds (half floats, as the file stores them).",
         "",
