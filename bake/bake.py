@@ -482,13 +482,14 @@ def assemble(
     if _fresh(out, job, key) or not all(p.is_file() for p in paths):
         return False
     t0 = time.perf_counter()
-    # The bands go straight into the mip chain's base level (no texture-sized copy besides the chain).
-    chain = MipChain.empty(h, w, len(CHANNEL_NAMES))
+    # The bands go straight into the base level of a half-float mip chain, the values the file stores (no
+    # texture-sized copy besides the chain).
+    chain = MipChain.empty(h, w, len(CHANNEL_NAMES), dtype=np.float16)
     texels = chain[0].reshape(h * w, -1)
     for b, p in enumerate(paths):
-        rows = slice(b * band_rows * w, (b * band_rows + _band_rows(job, b, band_rows)) * w)
+        start = b * band_rows * w
         try:
-            texels[rows] = _load_band(p, _band_rows(job, b, band_rows), w)
+            chain.write_texels(start, _load_band(p, _band_rows(job, b, band_rows), w))
         except FileNotFoundError:
             if _fresh(out, job, key):
                 return False  # another shard published it and removed the bands
@@ -499,7 +500,7 @@ def assemble(
         except ValueError as e:  # damaged after it was kept: never reused, baked again here
             log(f"{e}: baking it again")
             p.unlink(missing_ok=True)
-            texels[rows] = rebake(b)
+            chain.write_texels(start, rebake(b))
     meta = {"stack": job.spatial.stack.to_json(), "model": model, "key": key, **(model_metadata or {})}
     calibration_s = None
     if models is not None and job.mix is None:  # a blended texel's latent is no stack's: nothing to walk
@@ -507,7 +508,7 @@ def assemble(
         arrays = ((cache or {}).get(job.name) or job.texels())[0]
         meta["calibration"] = calibrate_baked(arrays, texels, models).to_text()
         calibration_s = round(time.perf_counter() - t, 3)
-    tex = LatentTexture(chain.fill(), meta)  # every band finite: _load_band and _bake_band check
+    tex = LatentTexture(chain.fill(), meta)
     if models is not None:  # the mip levels the renderer may filter across (textures.filtering)
         record_filter_levels(tex, models)
     tex.write_exr(out / f"{job.file}.exr")

@@ -65,9 +65,9 @@ encode = neural_encoder({size!r})
 spatial = SpatialStack(preset("varnished_wood"), driving_images({side}))
 before = high_water()
 tex, stats = bake_stack(spatial, encode)
-peak = high_water()
+baked = high_water()
 tex.write_exr({exr!r})
-print(before, peak, stats.unique)
+print(before, baked, high_water(), stats.unique)
 """
 
 _READ_SCRIPT = """
@@ -83,11 +83,11 @@ print(time.perf_counter() - t0, before, high_water(), tex.levels.flat.nbytes)
 """
 
 
-def peak_memory(side: int, size: str) -> tuple[float, float, int, tuple[float, float, float, int]]:
+def peak_memory(side: int, size: str) -> tuple[float, float, float, int, tuple[float, float, float, int]]:
     """The bake's peak memory at ``side`` x ``side`` (default settings, every texel distinct but a few): the
-    largest resident size of a fresh process (``VmHWM``, Linux) before and after ``bake_stack``, in bytes, and
-    the distinct texels; then the texture written and read back in another fresh process (as a render reads
-    it): seconds of ``read_exr``, the resident size before and after, and the bytes of the chain it holds."""
+    largest resident size of a fresh process (``VmHWM``, Linux) before ``bake_stack``, after it and after writing
+    its file, in bytes, and the distinct texels; then the texture read back in another fresh process (as a render
+    reads it): seconds of ``read_exr``, the resident size before and after, and the bytes of the chain it holds."""
     import subprocess
 
     def fresh(script: str, **fields) -> list[str]:
@@ -102,10 +102,10 @@ def peak_memory(side: int, size: str) -> tuple[float, float, int, tuple[float, f
 
     with tempfile.TemporaryDirectory() as tmp:
         exr = str(Path(tmp) / "texture.exr")
-        before, after, unique = fresh(_PEAK_SCRIPT, size=size, side=side, exr=exr)[-3:]
+        before, baked, written, unique = fresh(_PEAK_SCRIPT, size=size, side=side, exr=exr)[-4:]
         seconds, read_before, read_after, held = fresh(_READ_SCRIPT, exr=exr)[-4:]
     read = (float(seconds), float(read_before) * 1024, float(read_after) * 1024, int(held))
-    return float(before) * 1024, float(after) * 1024, int(unique), read
+    return float(before) * 1024, float(baked) * 1024, float(written) * 1024, int(unique), read
 
 
 def main(argv=None) -> int:
@@ -173,11 +173,11 @@ def main(argv=None) -> int:
     peaks = []
     if args.peak_memory and sys.platform.startswith("linux"):  # /proc/self/status
         for side in args.peak_memory:
-            before, after, unique, (read_s, read_before, read_after, held) = peak_memory(side, args.size)
+            before, baked, written, unique, (read_s, read_before, read_after, held) = peak_memory(side, args.size)
             peaks.append(
-                f"| {side} x {side} | {unique:,} | {before / 2**30:.2f} | {after / 2**30:.2f} | "
-                f"{(after - before) / 2**30:.2f} | {(after - before) / side**2:,.0f} | {read_s:.2f} | "
-                f"{(read_after - read_before) / 2**30:.2f} | {held / 2**30:.2f} |"
+                f"| {side} x {side} | {unique:,} | {before / 2**30:.2f} | {baked / 2**30:.2f} | "
+                f"{written / 2**30:.2f} | {(written - before) / 2**30:.2f} | {(written - before) / side**2:,.0f} | "
+                f"{read_s:.2f} | {(read_after - read_before) / 2**30:.2f} | {held / 2**30:.2f} |"
             )
             print(peaks[-1], flush=True)
 
@@ -274,16 +274,19 @@ def main(argv=None) -> int:
         *defaults,
         "",
         "Peak memory of a bake with the default settings, each side in a fresh process (`--peak-memory`): the "
-        "largest resident size before `bake_stack` (the models, the maps) and after it. "
+        "largest resident size before `bake_stack` (the models, the maps), after it, and after its file is written "
+        "(`write_exr`, as the sidebar's bake and `bake/bake.py` do); the bake's GB and bytes per texel are that last "
+        "peak less the first. The bake holds its texture in half floats, the values its file stores "
+        "(`MipChain.fill` reduces each level in float32 a band of rows at a time). "
         f"The bake's memory check counts `textures.bake.BAKE_BYTES_PER_TEXEL` = {BAKE_BYTES_PER_TEXEL:,} bytes a "
-        "texel, above the larger figure here (a margin for other stacks and maps). Then the texture written and "
-        "read back in another fresh process, as a render reads it "
+        "texel, above the larger figure here (a margin for other stacks and maps). Then the texture read back in "
+        "another fresh process, as a render reads it "
         "(`LatentTexture.read_exr`): its seconds, what the read added to the process at its peak, and the chain "
         "it holds (half floats, as the file stores them).",
         "",
-        "| texture | distinct texels | process before GB | peak GB | the bake's GB | bytes per texel | read s | "
-        "read peak GB | texture held GB |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| texture | distinct texels | process before GB | peak baked GB | peak written GB | the bake's GB | "
+        "bytes per texel | read s | read peak GB | texture held GB |",
+        "|---|---|---|---|---|---|---|---|---|---|",
         *peaks,
         "",
         "![latent vs BRDF blending](bake_mix_lobes.png)",

@@ -89,11 +89,12 @@ def test_constant_images_bake_to_the_constant_stack_latent():
     tex, stats = bake_stack(s, enc)
     z, proxy = enc(StackArrays.from_stacks([wood()]))
     assert stats.unique == 1
-    for level in tex.levels:
-        assert np.allclose(level[..., :96], z.reshape(96), atol=1e-4)
-        assert np.allclose(level[..., 96:98], proxy.reshape(2), atol=1e-4)
+    half = np.float16
+    for level in tex.levels:  # every level the stack's latent as the file stores it (half floats), exactly
+        assert (level[..., :96] == z.reshape(96).astype(half)).all()
+        assert (level[..., 96:98] == proxy.reshape(2).astype(half)).all()
         # the top coating's roughness (set by its map) and index, for a remainder decoder's exact top lobe
-        assert np.allclose(level[..., 98:], (0.1, wood().coatings[-1].ior), atol=1e-4)
+        assert (level[..., 98:] == np.array((0.1, wood().coatings[-1].ior), np.float32).astype(half)).all()
 
 
 def test_progress_and_cancel():
@@ -155,6 +156,11 @@ def test_an_encoder_returning_the_wrong_shape_is_reported():
         bake_texels(arrays, lambda a: (np.zeros((len(a), 3, 16)), np.zeros((len(a), 2))))
 
 
+def _within_half_rounding(texels, want) -> bool:
+    """``texels`` (half floats) are ``want`` rounded to half: within half a unit of a half's last place."""
+    return np.allclose(texels.astype(np.float64), want, rtol=2.0**-11, atol=2.0**-25)
+
+
 def test_mix_blends_latents_through_the_mask():
     from addon.core.textures.bake import bake_mix
 
@@ -171,9 +177,9 @@ def test_mix_blends_latents_through_the_mask():
         np.concatenate([z.reshape(-1), p.reshape(-1), top_coat(st)])
         for z, p, st in ((za, pa, wood()), (zb, pb, preset("coated_gold")))
     )
-    base = tex.levels[0]
-    assert np.allclose(base[:, 0], ends[0], atol=1e-4) and np.allclose(base[:, -1], ends[1], atol=1e-4)
-    assert np.allclose(base[1, 2], 0.5 * (ends[0] + ends[1]), atol=1e-4)
+    base = tex.levels[0]  # half floats, as the file stores them
+    assert _within_half_rounding(base[:, 0], ends[0]) and _within_half_rounding(base[:, -1], ends[1])
+    assert _within_half_rounding(base[1, 2], 0.5 * (ends[0] + ends[1]))
     with pytest.raises(ValueError, match="share a resolution"):
         bake_mix(SpatialStack(wood(), {"coatings[0].roughness": np.full((4, 4), 0.1)}), b, mask, enc)
     with pytest.raises(ValueError, match=r"\[0, 1\]"):
@@ -192,7 +198,7 @@ def test_the_default_auto_bake_uses_the_default_size_and_records_it():
     tex, stats = bake_stack(SpatialStack(wood(), maps), encode, metadata={"model": "auto"})
     assert tex.metadata["model"] == DEFAULT_SIZE and stats.unique == 1
     z = encode_stack(wood(), DEFAULT_SIZE)
-    assert np.allclose(tex.levels[0][..., :96], z.reshape(96), atol=1e-6)
+    assert _within_half_rounding(tex.levels[0][..., :96], z.reshape(96))
 
 
 def test_the_bake_uses_the_threads_it_is_given_and_their_count_changes_nothing(monkeypatch):
@@ -241,8 +247,9 @@ def test_a_bake_too_large_for_this_computer_is_refused_before_any_work(monkeypat
 
 
 def test_bake_stack_gathers_its_texels_into_the_chain_as_the_texels_and_their_mips():
-    """bake_stack writes each texel straight into the mip chain's base (no texture-sized copy between): the
-    chain is the box-filtered chain of bake_texels' texels, with repeated texels and with every one distinct."""
+    """bake_stack writes each texel straight into the base of a half-float mip chain (no texture-sized copy
+    between): the chain is the box-filtered chain of bake_texels' texels, with repeated texels and with every one
+    distinct."""
     from addon.core.textures import build_mip_chain
 
     rng = np.random.default_rng(3)
@@ -250,6 +257,7 @@ def test_bake_stack_gathers_its_texels_into_the_chain_as_the_texels_and_their_mi
         spatial = SpatialStack(wood(), {"coatings[0].roughness": rough})
         tex, stats = bake_stack(spatial, linear_encoder(), calibrate=False, check_filtering=False)
         texels, _ = bake_texels(spatial.texels()[0], linear_encoder())
-        want = build_mip_chain(texels.reshape(12, 10, -1))
+        want = build_mip_chain(texels.reshape(12, 10, -1), dtype=np.float16)
+        assert tex.levels.dtype == np.float16  # as its file stores it
         assert len(tex.levels) == len(want) and all(np.array_equal(a, b) for a, b in zip(tex.levels, want, strict=True))
     assert stats.unique == 120

@@ -106,11 +106,49 @@ def test_a_half_float_chain_looks_up_what_a_float32_chain_of_its_values_does(sha
     np.testing.assert_array_equal(got.view(np.uint32), trilinear_lookup(wide, uv, fp).view(np.uint32))
 
 
-def test_a_mip_chain_holds_float32_or_half_floats_and_fills_only_float32():
+def test_a_mip_chain_holds_float32_or_half_floats():
     with pytest.raises(ValueError, match="float32 or float16"):
         MipChain.empty(4, 4, 2, dtype=np.float64)
-    with pytest.raises(ValueError, match="half-float chain"):
-        MipChain.empty(4, 4, 2, dtype=np.float16).fill()
+
+
+@pytest.mark.parametrize("shape", [(16, 24, 3), (13, 7, 5), (9, 1, 2), (1, 9, 4)])
+def test_fill_in_bands_gives_the_whole_levels_box_filter(shape, monkeypatch):
+    """``fill`` reduces a level a band of rows at a time: with bands of one or two rows, a float32 chain's levels
+    are, bit for bit, those of ``downsample`` over each whole level (odd sizes' fractional taps included); a
+    half-float chain's are the same float32 sums of its own level above, rounded to half once."""
+    from addon.core.textures import mip
+
+    base = (np.random.default_rng(7).standard_normal(shape) * 3).astype(np.float32)
+    whole = [base]
+    while whole[-1].shape[0] > 1 or whole[-1].shape[1] > 1:
+        whole.append(downsample(whole[-1]))
+    monkeypatch.setattr(mip, "BAND_BYTES", 1)  # one output row a band
+    chain = build_mip_chain(base)
+    assert [lv.shape for lv in chain] == [lv.shape for lv in whole]
+    for got, want in zip(chain, whole, strict=True):
+        np.testing.assert_array_equal(got, want.astype(np.float32))
+    half = build_mip_chain(base, dtype=np.float16)
+    assert half.dtype == np.float16
+    for fine, coarse in zip(half, half[1:], strict=False):
+        np.testing.assert_array_equal(coarse, downsample(fine.astype(np.float32)).astype(np.float16))
+    for a, b in zip(half, chain, strict=True):  # within a half's rounding per level of the float32 chain
+        np.testing.assert_allclose(a.astype(np.float32), b, rtol=4e-3, atol=4e-3)
+
+
+def test_a_half_float_chain_refuses_texels_a_half_cannot_hold_and_writes_none_of_them():
+    chain = MipChain.empty(2, 3, 2, dtype=np.float16)
+    chain.write_texels(0, np.arange(12, dtype=np.float32).reshape(6, 2))
+    before = chain.flat.copy()
+    for bad in (7e4, -1e5, np.inf, np.nan):
+        values = np.ones((2, 2), np.float32)
+        values[1, 0] = bad
+        with pytest.raises(ValueError, match="half-float range"):
+            chain.write_texels(2, values)
+        np.testing.assert_array_equal(chain.flat, before)
+    chain.write_texels(4, np.full((2, 2), 65504.0))  # the largest half fits
+    assert chain[0][1, 2, 1] == 65504.0 and chain[0][0, 2, 0] == 4.0
+    with pytest.raises(ValueError, match="half-float range"):
+        LatentTexture.from_texels(np.full((2, 2, len(CHANNEL_NAMES)), 1e5, np.float32))
 
 
 def test_lookup_rejects_bad_input():
@@ -131,7 +169,7 @@ def oiio():
         pytest.skip(str(e))
 
 
-def test_exr_round_trip_preserves_latents_within_half_precision(tmp_path, oiio):
+def test_exr_round_trip_gives_back_the_half_float_chain_bit_for_bit(tmp_path, oiio):
     rng = np.random.default_rng(2)
     texels = rng.normal(size=(37, 70, len(CHANNEL_NAMES))).astype(np.float32)
     tex = LatentTexture.from_texels(texels, metadata={"stack": "demo"})
@@ -140,10 +178,8 @@ def test_exr_round_trip_preserves_latents_within_half_precision(tmp_path, oiio):
     assert not list(tmp_path.glob("*.partial*"))
     back = LatentTexture.read_exr(path)
     assert len(back.levels) == len(tex.levels) == 7  # 70 -> 35 -> 17 -> 8 -> 4 -> 2 -> 1
-    assert back.levels.dtype == np.float16  # held as the file stores it
-    for a, b in zip(tex.levels, back.levels, strict=False):
-        assert a.shape == b.shape
-        np.testing.assert_array_equal(b, a.astype(np.float16))  # each level rounded to half, nothing else
+    assert tex.levels.dtype == back.levels.dtype == np.float16  # built, written and read as the file stores it
+    np.testing.assert_array_equal(back.levels.flat.view(np.uint16), tex.levels.flat.view(np.uint16))
     assert back.metadata.get("stack") == "demo"
     spec = oiio.ImageInput.open(str(path)).spec()
     assert sorted(spec.channelnames) == sorted(CHANNEL_NAMES)

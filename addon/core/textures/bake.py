@@ -35,6 +35,7 @@ BATCH = 65536  # texels per encoder call
 # the distinct texels besides (the texels go straight into the chain's base level). Measured 1,023-1,548 B over
 # runs at 1024 and 2048 texels a side; the check counts a margin above them.
 BAKE_BYTES_PER_TEXEL = 1600
+GATHER_TEXELS = 1 << 16  # texels gathered into the chain at once (26 MB of float32 latents)
 DEFAULT_MAX_SIDE = 2048  # the add-on's default Bake Resolution: about 5 GB at the peak of a 2048 x 2048 bake
 
 
@@ -361,16 +362,15 @@ def bake_stack(
         meta["calibration"] = calibration.to_text()
         stats = BakeStats(stats.texels, stats.unique, stats.seconds, time.perf_counter() - t, len(calibration.tables))
     del rows, counts
-    # Each texel gathered straight into the chain's base level, then the levels below it in place: the bake's peak
-    # holds the distinct texels and the chain, no texture-sized copy besides (BAKE_BYTES_PER_TEXEL).
-    chain = MipChain.empty(h, w, distinct.shape[1])
-    base = chain[0].reshape(h * w, -1)
-    if inverse is None:
-        base[...] = distinct
-    else:
-        np.take(distinct, inverse, axis=0, out=base, mode="clip")  # "raise" would buffer the output
+    # The texels gathered a band at a time into the base level of a half-float chain (the values the texture's file
+    # stores), then the levels below it in place: the bake's peak holds the distinct texels and the chain, no
+    # texture-sized copy besides (BAKE_BYTES_PER_TEXEL).
+    chain = MipChain.empty(h, w, distinct.shape[1], dtype=np.float16)
+    for start in range(0, h * w, GATHER_TEXELS):  # a loop over bands of texels
+        rows = slice(start, min(h * w, start + GATHER_TEXELS))
+        chain.write_texels(start, distinct[rows] if inverse is None else distinct[inverse[rows]])
     del distinct, inverse
-    tex = LatentTexture(chain.fill(), meta)  # the encoder's texels are finite (``_bake_texels`` checks)
+    tex = LatentTexture(chain.fill(), meta)
     encoder_models = getattr(encode, "models", None)
     if check_filtering and encoder_models is not None:
         record_filter_levels(tex, encoder_models, threads)

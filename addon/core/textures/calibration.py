@@ -190,7 +190,7 @@ def calibrate_baked(arrays: StackArrays, texels: np.ndarray, models, progress=No
     distinct rows are found first, as the bake finds them)."""
     from ..rows import distinct_rows
 
-    texels = np.asarray(texels, dtype=np.float32).reshape(len(arrays), -1)
     first, inverse = distinct_rows(arrays.to_matrix(np.float32))
     counts = np.bincount(inverse, minlength=len(first)).astype(np.float64)
-    return calibrate_texture(arrays.take(first), texels[first], counts, models, progress)
+    distinct = np.asarray(texels).reshape(len(arrays), -1)[first].astype(np.float32)  # half floats: no full copy
+    return calibrate_texture(arrays.take(first), distinct, counts, models, progress)

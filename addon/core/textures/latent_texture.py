@@ -21,7 +21,7 @@ import numpy as np
 from ..neural.top_lobe import NO_TOP
 from ..stack import LATENT as LATENT_DIM
 from . import files
-from .mip import MipChain, build_mip_chain, trilinear_lookup
+from .mip import HALF_MAX, MipChain, build_mip_chain, trilinear_lookup
 
 CHANNELS = 3
 LATENT_CHANNELS = [f"z.{c}.{i:02d}" for c in "RGB" for i in range(LATENT_DIM)]
@@ -29,7 +29,6 @@ PROXY_CHANNELS = ["proxy.sigma", "proxy.w"]
 TOP_CHANNELS = ["top.alpha", "top.ior"]
 CHANNEL_NAMES = LATENT_CHANNELS + PROXY_CHANNELS + TOP_CHANNELS
 TILE = 64
-HALF_MAX = 65504.0  # largest finite half float: the EXR stores texels as halves
 READ_BAND_BYTES = 64 << 20  # rows of a level read at once (``_read_level``)
 
 
@@ -100,8 +99,9 @@ def read_image_file(path: str | os.PathLike) -> tuple[np.ndarray, bool, str, int
 
 @dataclass
 class LatentTexture:
-    """A mip chain of (H, W, 100) latent texels; ``levels[0]`` is the finest (held as a ``MipChain``: float32 as
-    baked, half floats as read from a file, which stores halves)."""
+    """A mip chain of (H, W, 100) latent texels; ``levels[0]`` is the finest, held as a ``MipChain`` of half floats
+    (baked, read from a file or built :meth:`from_texels`: the values its file stores), or float32 where a list of
+    levels is given."""
 
     levels: list[np.ndarray]
     metadata: dict = field(default_factory=dict)
@@ -112,13 +112,14 @@ class LatentTexture:
 
     @classmethod
     def from_texels(cls, texels: np.ndarray, metadata: dict | None = None) -> "LatentTexture":
-        """Build the mip chain (box filter in latent space) from (H, W, 100) base texels."""
+        """Build the mip chain (box filter in latent space) from (H, W, 100) base texels, in half floats (ValueError
+        for a texel beyond their range)."""
         texels = np.asarray(texels, dtype=np.float32)
         if texels.ndim != 3 or texels.shape[2] != len(CHANNEL_NAMES):
             raise ValueError(f"latent texels must have shape (H, W, {len(CHANNEL_NAMES)}), got {texels.shape}")
         if not np.isfinite(texels).all():
             raise ValueError("latent texels must be finite")
-        return cls(build_mip_chain(texels), dict(metadata or {}))
+        return cls(build_mip_chain(texels, dtype=np.float16), dict(metadata or {}))
 
     @property
     def filter_levels(self) -> int:
@@ -148,12 +149,13 @@ class LatentTexture:
         oiio = oiio_module()
         path = Path(path)
         for i, level in enumerate(self.levels):
-            big = np.abs(level) > HALF_MAX
-            if big.any() or not np.isfinite(level).all():
-                raise ValueError(
-                    f"cannot write {path}: mip level {i} holds values outside the half-float range "
-                    f"[-{HALF_MAX:g}, {HALF_MAX:g}] (largest magnitude {np.nanmax(np.abs(level)):g})"
-                )
+            for rows in range(0, level.shape[0], TILE):  # bands of rows: no level-sized temporaries
+                band = level[rows : rows + TILE]
+                if not (np.abs(band) <= HALF_MAX).all():  # nan as well
+                    raise ValueError(
+                        f"cannot write {path}: mip level {i} holds values outside the half-float range "
+                        f"[-{HALF_MAX:g}, {HALF_MAX:g}] (largest magnitude {np.nanmax(np.abs(band)):g})"
+                    )
         with files.publishing(path) as tmp:
             out = oiio.ImageOutput.create(str(tmp))
             if out is None:
@@ -180,7 +182,8 @@ class LatentTexture:
                 spec.attribute("openexr:roundingmode", 0)  # ROUND_DOWN
             if not out.open(str(tmp), spec, mode):
                 raise RuntimeError(f"cannot write {path}: {out.geterror()}")
-            if not out.write_image(np.ascontiguousarray(level, dtype=np.float32)):
+            pixels = level if level.dtype == np.float16 else np.ascontiguousarray(level, dtype=np.float32)
+            if not out.write_image(pixels):  # a half-float level as it is held, bit for bit
                 raise RuntimeError(f"cannot write level {i} of {path}: {out.geterror()}")
 
     @classmethod

@@ -12,6 +12,8 @@ import numpy as np
 
 from .. import kernels
 
+HALF_MAX = 65504.0  # the largest finite half float: a latent texture's texels are halves
+
 
 def box_weights(n: int, m: int | None = None) -> np.ndarray:
     """(m, n) matrix averaging n texels into m (default max(1, n // 2)) by area (rows sum to 1)."""
@@ -73,9 +75,10 @@ class MipChain(list):
     buffer, which the compiled lookup reads: ``flat``, each level's ``offsets`` into it, ``heights`` and
     ``widths``. Writing into a level writes into the buffer.
 
-    A texture read from its file is held in half floats, as the file stores it (``LatentTexture.read_exr``):
-    the same values in half the memory (1.1 GB for 2048 x 2048 x 100 channels with its levels), which the
-    lookup converts as it reads them. A bake's chain is float32 until it is written."""
+    A latent texture is held in half floats, as its file stores it, whether baked (``textures.bake``) or read
+    (``LatentTexture.read_exr``): the values the file holds, in half the memory (1.1 GB for 2048 x 2048 x 100
+    channels with its levels), which the lookup converts as it reads them. Its levels are computed in float32
+    from the level above, a band of rows at a time (:meth:`fill`), and rounded once."""
 
     DTYPES = (np.float32, np.float16)
 
@@ -125,22 +128,65 @@ class MipChain(list):
         chain._allocate(shapes, dtype)
         return chain
 
+    def write_texels(self, start: int, values: np.ndarray) -> None:
+        """Rows ``start`` .. ``start + len(values)`` of the base level's texels (row-major, (H * W, C) as
+        flattened) from ``values`` (N, C), rounded to the chain's type. ValueError for a value a half-float chain
+        cannot hold (non-finite, or beyond the largest half, 65504), before anything of ``values`` is written."""
+        values = np.asarray(values)
+        if self.dtype == np.float16:
+            big = ~(np.abs(values) <= HALF_MAX)  # nan as well
+            if big.any():
+                worst = values[big][0]
+                raise ValueError(
+                    f"latent texels must be finite and within the half-float range [-{HALF_MAX:g}, {HALF_MAX:g}] "
+                    f"their texture is stored in, got {worst:g}"
+                )
+        h, w, c = self[0].shape
+        self.flat[start * c : (start + len(values)) * c].reshape(len(values), c)[...] = values
+
     def fill(self) -> "MipChain":
-        """Every level from the one above it (``downsample``), in place; returns the chain. In float32 (a bake's
-        chain); a half-float chain holds the levels its file stored, and is refused."""
-        if self.dtype != np.float32:
-            raise ValueError("fill computes the levels of a float32 chain; a half-float chain is read with its levels")
+        """Every level from the one above it, in place; returns the chain. Each is box-filtered (``downsample``,
+        ``resample_area``) in float32 a band of rows at a time (``BAND_BYTES`` of the level above), then stored
+        in the chain's type: a half-float chain needs no float32 copy of a level."""
         for k in range(1, len(self)):
-            downsample(self[k - 1], out=self[k])
+            _downsample_in_bands(self[k - 1], self[k])
         return self
 
 
-def build_mip_chain(base: np.ndarray) -> MipChain:
-    """All levels from ``base`` (H, W, C) down to 1 x 1, float32, in one :class:`MipChain`."""
+BAND_BYTES = 64 << 20  # the float32 rows of a level that :meth:`MipChain.fill` reduces at once
+
+
+def _downsample_in_bands(level: np.ndarray, out: np.ndarray) -> None:
+    """``out`` = the next level of ``level`` (``downsample``'s values: the same sums, a band of output rows at a
+    time, each from the input rows it covers converted to float32)."""
+    (h, w), (m, n) = level.shape[:2], out.shape[:2]
+    even = h % 2 == 0 and w % 2 == 0
+    row_weights = None if even else box_weights(h, m)
+    col_weights = None if even else box_weights(w, n)
+    step = max(1, BAND_BYTES // max(1, 2 * level[0].size * 4))  # output rows per band: about two input rows each
+    for a in range(0, m, step):  # a loop over bands of rows, not texels
+        b = min(m, a + step)
+        if even:
+            src = level[2 * a : 2 * b].astype(np.float32, copy=False)
+            if out.dtype == np.float32:
+                downsample(src, out=out[a:b])
+            else:
+                out[a:b] = downsample(src)
+            continue
+        weights = row_weights[a:b]
+        covered = np.flatnonzero(weights.any(axis=0))
+        lo, hi = int(covered[0]), int(covered[-1]) + 1
+        rows = _reduce_rows(level[lo:hi].astype(np.float32, copy=False), weights[:, lo:hi])
+        out[a:b] = _reduce_rows(rows.transpose(1, 0, 2), col_weights).transpose(1, 0, 2)
+
+
+def build_mip_chain(base: np.ndarray, dtype=np.float32) -> MipChain:
+    """All levels from ``base`` (H, W, C) down to 1 x 1, in one :class:`MipChain` of ``dtype`` (float32, or
+    float16: ValueError for a value a half cannot hold)."""
     if base.ndim != 3 or base.shape[0] < 1 or base.shape[1] < 1:
         raise ValueError(f"a mip chain needs an (H, W, C) array, got shape {base.shape}")
-    chain = MipChain.empty(*base.shape)
-    chain[0][...] = base  # float32: the texture is stored as half floats
+    chain = MipChain.empty(*base.shape, dtype=dtype)
+    chain.write_texels(0, base.reshape(-1, base.shape[2]))
     return chain.fill()
 
 
