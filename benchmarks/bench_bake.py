@@ -22,7 +22,7 @@ sys.path.insert(0, str(ROOT))
 
 from addon.core import lobe  # noqa: E402
 from addon.core.stack import preset  # noqa: E402
-from addon.core.textures.bake import BAKE_BYTES_PER_TEXEL, bake_mix, bake_stack, neural_encoder  # noqa: E402
+from addon.core.textures.bake import BAKE_BYTES_PER_TEXEL, BAKE_FIXED_BYTES, bake_mix, bake_stack, neural_encoder  # noqa: E402
 from addon.core.textures.spatial import SpatialStack  # noqa: E402
 
 
@@ -70,6 +70,24 @@ tex.write_exr({exr!r})
 print(before, baked, high_water(), stats.unique)
 """
 
+_MIX_SCRIPT = """
+import sys
+sys.path.insert(0, {root!r})
+import numpy as np
+from benchmarks.bench_bake import driving_images, high_water
+from addon.core.stack import preset
+from addon.core.textures.bake import bake_mix, neural_encoder
+from addon.core.textures.spatial import SpatialStack
+
+encode = neural_encoder({size!r})
+wood = SpatialStack(preset("varnished_wood"), driving_images({side}))
+mask = np.tile(np.linspace(0.0, 1.0, {side}), ({side}, 1))
+before = high_water()
+tex, stats = bake_mix(wood, SpatialStack(preset("coated_gold")), mask, encode)
+tex.write_exr({exr!r})
+print(before, high_water())
+"""
+
 _READ_SCRIPT = """
 import sys, time
 sys.path.insert(0, {root!r})
@@ -83,10 +101,11 @@ print(time.perf_counter() - t0, before, high_water(), tex.levels.flat.nbytes)
 """
 
 
-def peak_memory(side: int, size: str) -> tuple[float, float, float, int, tuple[float, float, float, int]]:
+def peak_memory(side: int, size: str) -> dict:
     """The bake's peak memory at ``side`` x ``side`` (default settings, every texel distinct but a few): the
     largest resident size of a fresh process (``VmHWM``, Linux) before ``bake_stack``, after it and after writing
-    its file, in bytes, and the distinct texels; then the texture read back in another fresh process (as a render
+    its file, in bytes, and the distinct texels; a mix's (``bake_mix`` of those texels with a constant stack through
+    a ramp, its file written), before and after, in another; then the texture read back in a third (as a render
     reads it): seconds of ``read_exr``, the resident size before and after, and the bytes of the chain it holds."""
     import subprocess
 
@@ -104,8 +123,15 @@ def peak_memory(side: int, size: str) -> tuple[float, float, float, int, tuple[f
         exr = str(Path(tmp) / "texture.exr")
         before, baked, written, unique = fresh(_PEAK_SCRIPT, size=size, side=side, exr=exr)[-4:]
         seconds, read_before, read_after, held = fresh(_READ_SCRIPT, exr=exr)[-4:]
-    read = (float(seconds), float(read_before) * 1024, float(read_after) * 1024, int(held))
-    return float(before) * 1024, float(baked) * 1024, float(written) * 1024, int(unique), read
+        mix_before, mix_after = fresh(_MIX_SCRIPT, size=size, side=side, exr=exr)[-2:]
+    kib = dict(before=before, baked=baked, written=written, read_before=read_before, read_after=read_after)
+    kib.update(mix_before=mix_before, mix_after=mix_after)
+    return {
+        **{key: float(value) * 1024 for key, value in kib.items()},
+        "unique": int(unique),
+        "read_s": float(seconds),
+        "held": int(held),
+    }
 
 
 def main(argv=None) -> int:
@@ -173,11 +199,13 @@ def main(argv=None) -> int:
     peaks = []
     if args.peak_memory and sys.platform.startswith("linux"):  # /proc/self/status
         for side in args.peak_memory:
-            before, baked, written, unique, (read_s, read_before, read_after, held) = peak_memory(side, args.size)
+            m = peak_memory(side, args.size)
+            gb = {key: value / 2**30 for key, value in m.items() if key not in ("unique", "read_s")}
+            bake_bytes = m["written"] - m["before"]
             peaks.append(
-                f"| {side} x {side} | {unique:,} | {before / 2**30:.2f} | {baked / 2**30:.2f} | "
-                f"{written / 2**30:.2f} | {(written - before) / 2**30:.2f} | {(written - before) / side**2:,.0f} | "
-                f"{read_s:.2f} | {(read_after - read_before) / 2**30:.2f} | {held / 2**30:.2f} |"
+                f"| {side} x {side} | {m['unique']:,} | {gb['before']:.2f} | {gb['baked']:.2f} | {gb['written']:.2f} | "
+                f"{bake_bytes / 2**30:.2f} | {bake_bytes / side**2:,.0f} | {gb['mix_after'] - gb['mix_before']:.2f} | "
+                f"{m['read_s']:.2f} | {gb['read_after'] - gb['read_before']:.2f} | {gb['held']:.2f} |"
             )
             print(peaks[-1], flush=True)
 
@@ -277,16 +305,19 @@ def main(argv=None) -> int:
         "largest resident size before `bake_stack` (the models, the maps), after it, and after its file is written "
         "(`write_exr`, as the sidebar's bake and `bake/bake.py` do); the bake's GB and bytes per texel are that last "
         "peak less the first. The bake holds its texture in half floats, the values its file stores "
-        "(`MipChain.fill` reduces each level in float32 a band of rows at a time). "
-        f"The bake's memory check counts `textures.bake.BAKE_BYTES_PER_TEXEL` = {BAKE_BYTES_PER_TEXEL:,} bytes a "
-        "texel, above the larger figure here (a margin for other stacks and maps). Then the texture read back in "
+        "(`MipChain.fill` reduces each level in float32 a band of rows at a time), and its distinct texels in half "
+        "floats too. The mix's GB: `bake_mix` of the same texels with coated gold through a ramp, its file written, "
+        "in its own process (the same check guards it). "
+        f"The bake's memory check counts `textures.bake.BAKE_FIXED_BYTES` = {BAKE_FIXED_BYTES / 2**30:.1f} GB and "
+        f"`BAKE_BYTES_PER_TEXEL` = {BAKE_BYTES_PER_TEXEL:,} bytes a texel, above each bake's GB here (a margin for "
+        "other stacks and maps, and for bakes whose texels are all distinct). Then the texture read back in "
         "another fresh process, as a render reads it "
         "(`LatentTexture.read_exr`): its seconds, what the read added to the process at its peak, and the chain "
         "it holds (half floats, as the file stores them).",
         "",
         "| texture | distinct texels | process before GB | peak baked GB | peak written GB | the bake's GB | "
-        "bytes per texel | read s | read peak GB | texture held GB |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "bytes per texel | the mix's GB | read s | read peak GB | texture held GB |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
         *peaks,
         "",
         "![latent vs BRDF blending](bake_mix_lobes.png)",

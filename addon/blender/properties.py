@@ -331,8 +331,8 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
     bake_resolution: IntProperty(
         name="Bake Resolution",
         description="Largest side of the baked latent texture in texels (a bake is never finer than its images); "
-        "0 = the driving images' resolution. A bake takes up to 1.6 kB of memory per texel at its peak: 1.6 GB at "
-        "1024, 5-7 GB at 2048, 20-27 GB at 4096",
+        "0 = the driving images' resolution. A bake's peak memory: about 0.9 GB at 1024, 2 GB at 2048, 5.5-8 GB "
+        "at 4096",
         default=DEFAULT_MAX_SIDE,
         min=0,
         max=16384,

@@ -21,27 +21,31 @@ from ..neural.top_lobe import top_coats
 from ..rows import distinct_rows
 from ..stack import StackArrays
 from .latent_texture import CHANNEL_NAMES, LatentTexture
-from .mip import MipChain
+from .mip import MipChain, check_half_range
 from .spatial import SpatialStack
 
 Encoder = Callable[[StackArrays], tuple[np.ndarray, np.ndarray]]
 Progress = Callable[[float], None]
 ENCODE_SHARE = 0.3  # of a calibrated bake's progress bar: the encoding (the calibration takes the rest)
 BATCH = 65536  # texels per encoder call
-# Peak memory of a bake per texel of its base level, measured by ``benchmarks/bench_bake.py --peak-memory``
-# (docs/bake.md): the largest resident size of a fresh process baking varnished wood under smooth maps (every
-# texel distinct but a few, calibrated, its levels measured), less the process before the bake. The texture
-# itself keeps 533 B per texel (100 float32 channels and the mip chain); the bake holds the parameter rows and
-# the distinct texels besides (the texels go straight into the chain's base level). Measured 1,023-1,548 B over
-# runs at 1024 and 2048 texels a side; the check counts a margin above them.
-BAKE_BYTES_PER_TEXEL = 1600
+# Peak memory of a bake, measured by ``benchmarks/bench_bake.py --peak-memory`` (docs/bake.md): the largest
+# resident size of a fresh process baking varnished wood under smooth maps (every texel distinct but a few,
+# calibrated, its levels measured) and writing its file, less the process before the bake. The bake holds its
+# texture in half floats, 267 B per texel with the mip chain, and its distinct texels in half floats besides (200 B
+# each), and half a gigabyte whatever the size (the parameter rows, the calibration's walks, the levels'
+# measurement). Measured 0.85 GB at 1024 texels a side, 1.97 GB at 2048 and 5.48 GB at 4096 (382 and 300 B a texel
+# more: the share of distinct texels falls from 96% to 62%); a mix (``bake_mix``) took as much. The check counts a
+# margin above each, and about what a bake of every texel distinct would hold.
+BAKE_FIXED_BYTES = 512 << 20
+BAKE_BYTES_PER_TEXEL = 500
 GATHER_TEXELS = 1 << 16  # texels gathered into the chain at once (26 MB of float32 latents)
-DEFAULT_MAX_SIDE = 2048  # the add-on's default Bake Resolution: about 5 GB at the peak of a 2048 x 2048 bake
+DEFAULT_MAX_SIDE = 2048  # the add-on's default Bake Resolution: about 2 GB at the peak of a 2048 x 2048 bake
 
 
 def estimated_bake_bytes(height: int, width: int) -> int:
-    """About how much memory baking a ``height`` x ``width`` texture takes at its peak (``BAKE_BYTES_PER_TEXEL``)."""
-    return int(height) * int(width) * BAKE_BYTES_PER_TEXEL
+    """About how much memory baking a ``height`` x ``width`` texture takes at its peak (``BAKE_FIXED_BYTES`` and
+    ``BAKE_BYTES_PER_TEXEL``)."""
+    return BAKE_FIXED_BYTES + int(height) * int(width) * BAKE_BYTES_PER_TEXEL
 
 
 def physical_memory_bytes() -> int | None:
@@ -248,7 +252,8 @@ def _bake_in_threads(arrays, encode, dedup, batch, progress, cancel, threads, ga
 def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1, gather=True):
     """``bake_texels``' texels and stats, and the distinct rows it encoded: ``(stacks, texels, counts)``. Without
     ``gather`` the first is ``(distinct texels, inverse)`` instead (None: every row its own), for a caller that
-    gathers them where they go (``bake_stack``: into the mip chain's base, with no texture-sized copy between)."""
+    gathers them where they go (``bake_stack``: into the mip chain's base, with no texture-sized copy between); the
+    distinct texels are then half floats, the values the texture stores (ValueError for one a half cannot hold)."""
     t0 = time.perf_counter()
     n = len(arrays)
     inverse = None  # None: every row is its own (no gather at the end)
@@ -260,7 +265,7 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1, gath
         else:  # all distinct: first and inverse are arange(n)
             inverse = None
     m = len(todo)
-    out = np.empty((m, len(CHANNEL_NAMES)), dtype=np.float32)
+    out = np.empty((m, len(CHANNEL_NAMES)), dtype=np.float32 if gather else np.float16)
 
     def encode_batch(start: int) -> int:
         part = todo.take(slice(start, start + batch))
@@ -269,9 +274,14 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1, gath
         proxy = np.asarray(proxy, dtype=np.float32).reshape(len(part), -1)
         if z.shape[1] != 96 or proxy.shape[1] != 2:
             raise ValueError(f"encoder returned latents {z.shape} and proxy {proxy.shape}; expected (N, 96) and (N, 2)")
-        out[start : start + len(part), :96] = z
-        out[start : start + len(part), 96:98] = proxy
-        out[start : start + len(part), 98:] = top_coats(part)  # what a remainder decoder's top lobe needs
+        texels = np.concatenate(
+            [z, proxy, top_coats(part)], axis=1, dtype=np.float32
+        )  # top coat: for a remainder decoder
+        if not np.isfinite(texels).all():
+            raise ValueError("the encoder returned non-finite latents")
+        if out.dtype == np.float16:
+            check_half_range(texels, "the encoder's latents")
+        out[start : start + len(part)] = texels
         return start + len(part)
 
     starts = list(range(0, m, batch))
@@ -294,8 +304,6 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1, gath
     finally:
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
-    if not np.isfinite(out).all():
-        raise ValueError("the encoder returned non-finite latents")
     counts = np.ones(m) if inverse is None else np.bincount(inverse, minlength=m).astype(np.float64)
     stats = BakeStats(texels=n, unique=m, seconds=time.perf_counter() - t0)
     texels = (out if inverse is None else out[inverse]) if gather else (out, inverse)
@@ -367,14 +375,20 @@ def bake_stack(
     # texture-sized copy besides (BAKE_BYTES_PER_TEXEL).
     chain = MipChain.empty(h, w, distinct.shape[1], dtype=np.float16)
     for start in range(0, h * w, GATHER_TEXELS):  # a loop over bands of texels
-        rows = slice(start, min(h * w, start + GATHER_TEXELS))
-        chain.write_texels(start, distinct[rows] if inverse is None else distinct[inverse[rows]])
+        chain.write_texels(start, _band_of_texels(distinct, inverse, start))
     del distinct, inverse
     tex = LatentTexture(chain.fill(), meta)
     encoder_models = getattr(encode, "models", None)
     if check_filtering and encoder_models is not None:
         record_filter_levels(tex, encoder_models, threads)
     return tex, stats
+
+
+def _band_of_texels(distinct: np.ndarray, inverse: np.ndarray | None, start: int) -> np.ndarray:
+    """Texels ``start`` .. ``start + GATHER_TEXELS`` of a texture from its distinct texels and ``inverse`` (None:
+    every texel distinct), as ``_bake_texels`` returns them without gathering."""
+    rows = slice(start, start + GATHER_TEXELS)
+    return distinct[rows] if inverse is None else distinct[inverse[rows]]
 
 
 def record_filter_levels(tex: LatentTexture, models, threads: int = 0) -> None:
@@ -422,27 +436,32 @@ def bake_mix(
     h, w = resolution or m.shape
     if h > m.shape[0] or w > m.shape[1]:
         raise ValueError(f"bake resolution {w}x{h} must not exceed the mask's {m.shape[1]}x{m.shape[0]}")
-    check_bake_memory(h, w)  # bake_stack's estimate per texel (a mix holds two stacks' texels; not measured apart)
+    check_bake_memory(h, w)  # bake_stack's estimate: a mix holds two stacks' distinct texels, in half floats
     from .mip import resample_area
 
     if (h, w) != m.shape:
         m = resample_area(m[..., None], h, w)[..., 0]
     t0 = time.perf_counter()
-    arrays_a, _ = _texels_at(a, (h, w))
-    arrays_b, _ = _texels_at(b, (h, w))
-    ta, sa = bake_texels(
-        arrays_a, encode, progress=None if progress is None else (lambda f: progress(0.5 * f)), cancel=cancel
-    )
-    tb, sb = bake_texels(
-        arrays_b, encode, progress=None if progress is None else (lambda f: progress(0.5 + 0.5 * f)), cancel=cancel
-    )
-    t = m.reshape(-1, 1)
-    texels = ((1.0 - t) * ta + t * tb).astype(np.float32)
+    baked = []
+    for i, spatial in enumerate((a, b)):  # each stack's distinct texels, in half floats, and where they go
+        arrays, _ = _texels_at(spatial, (h, w))
+        part = None if progress is None else (lambda f, i=i: progress(0.5 * (i + f)))
+        texels, stats, _ = _bake_in_threads(arrays, encode, True, BATCH, part, cancel, 0, gather=False)
+        baked.append((texels, stats))
+        del arrays
+    ((da, ia), sa), ((db, ib), sb) = baked
+    t = m.reshape(-1, 1).astype(np.float32)
+    chain = MipChain.empty(h, w, len(CHANNEL_NAMES), dtype=np.float16)
+    for start in range(0, h * w, GATHER_TEXELS):  # blended a band of texels at a time, into the chain's base
+        mix = t[start : start + GATHER_TEXELS]
+        ta, tb = (_band_of_texels(d, i, start).astype(np.float32) for d, i in ((da, ia), (db, ib)))
+        chain.write_texels(start, (1.0 - mix) * ta + mix * tb)
+    del baked, da, ia, db, ib
     meta = {"stack": a.stack.to_json(), "mix_stack": b.stack.to_json()}
     meta.update(metadata or {})
     meta.update(getattr(encode, "metadata", {}))  # the encoder's decoder size and digest
     stats = BakeStats(texels=h * w, unique=sa.unique + sb.unique, seconds=time.perf_counter() - t0)
-    tex = LatentTexture.from_texels(texels.reshape(h, w, -1), meta)
+    tex = LatentTexture(chain.fill(), meta)
     if check_filtering and getattr(encode, "models", None) is not None:
         record_filter_levels(tex, encode.models)
     return tex, stats

@@ -144,7 +144,7 @@ def calibrate_texture(
     ``texels`` (M, 100: latents, proxy, top coating; ``latent_texture.CHANNEL_NAMES``) and how many texels
     each stands for (``counts``). ``progress(fraction)`` after each cluster, and between the parts of one
     (``calibrate.calibrate``'s ``step``: a bake's cancel raises there)."""
-    texels = np.asarray(texels, dtype=np.float32)
+    texels = np.asarray(texels)
     counts = np.asarray(counts, dtype=np.float64)
     if len(arrays) != len(texels) or counts.shape != (len(texels),) or len(texels) == 0:
         raise ValueError(
@@ -154,6 +154,7 @@ def calibrate_texture(
     if len(texels) > MAX_ROWS:  # a systematic sample by texel count; a row drawn m times weighs m
         pick, weight = np.unique(_stratified(counts, MAX_ROWS), return_counts=True)
         arrays, texels, counts = arrays.take(pick), texels[pick], weight.astype(np.float64)
+    texels = texels.astype(np.float32)  # a bake's are half floats: converted once sampled
     k = 3 * LATENT
     z = texels[:, :k]
     centroids, labels = cluster_latents(z, counts, MAX_CLUSTERS, seed)
@@ -192,5 +193,5 @@ def calibrate_baked(arrays: StackArrays, texels: np.ndarray, models, progress=No
 
     first, inverse = distinct_rows(arrays.to_matrix(np.float32))
     counts = np.bincount(inverse, minlength=len(first)).astype(np.float64)
-    distinct = np.asarray(texels).reshape(len(arrays), -1)[first].astype(np.float32)  # half floats: no full copy
+    distinct = np.asarray(texels).reshape(len(arrays), -1)[first]  # half floats, converted where sampled
     return calibrate_texture(arrays.take(first), distinct, counts, models, progress)

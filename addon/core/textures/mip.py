@@ -134,13 +134,7 @@ class MipChain(list):
         cannot hold (non-finite, or beyond the largest half, 65504), before anything of ``values`` is written."""
         values = np.asarray(values)
         if self.dtype == np.float16:
-            big = ~(np.abs(values) <= HALF_MAX)  # nan as well
-            if big.any():
-                worst = values[big][0]
-                raise ValueError(
-                    f"latent texels must be finite and within the half-float range [-{HALF_MAX:g}, {HALF_MAX:g}] "
-                    f"their texture is stored in, got {worst:g}"
-                )
+            check_half_range(values, "latent texels")
         h, w, c = self[0].shape
         self.flat[start * c : (start + len(values)) * c].reshape(len(values), c)[...] = values
 
@@ -151,6 +145,19 @@ class MipChain(list):
         for k in range(1, len(self)):
             _downsample_in_bands(self[k - 1], self[k])
         return self
+
+
+def check_half_range(values: np.ndarray, what: str) -> None:
+    """ValueError naming ``what`` unless every value is finite and fits a half float (a latent texture's type)."""
+    if values.dtype == np.float16:
+        bad = ~np.isfinite(values)
+    else:
+        bad = ~(np.abs(values) <= HALF_MAX)  # nan as well
+    if bad.any():
+        raise ValueError(
+            f"{what} must be finite and within the half-float range [-{HALF_MAX:g}, {HALF_MAX:g}] their texture is "
+            f"stored in, got {values[bad][0]:g}"
+        )
 
 
 BAND_BYTES = 64 << 20  # the float32 rows of a level that :meth:`MipChain.fill` reduces at once
