@@ -171,6 +171,24 @@ def trilinear(flat, offsets, heights, widths, channels, uv, lod, out):
             _bilinear_tap(flat, offsets[k + 1], heights[k + 1], widths[k + 1], channels, u, v, t, row, True)
 
 
+@njit(**_JIT)
+def take_half_channels(src, order, out):
+    """``out[i, k] = src[i, order[k]]`` for half floats held as their bit patterns (uint16; src (N, C), out (N,
+    len(order)), both C-contiguous): a file's channels, stored sorted by name, in a latent texture's order. One
+    pass, which also finds the texels that are not finite (exponent bits all set: inf or nan). Returns how many
+    values are not, and the row and column in ``out`` of the first (-1, -1 for none)."""
+    bad, first_row, first_col = 0, -1, -1
+    for i in range(src.shape[0]):
+        for k in range(order.shape[0]):
+            bits = src[i, order[k]]
+            out[i, k] = bits
+            if bits & 0x7C00 == 0x7C00:
+                if bad == 0:
+                    first_row, first_col = i, k
+                bad += 1
+    return bad, first_row, first_col
+
+
 # --- surfaces ----------------------------------------------------------------------------------
 
 

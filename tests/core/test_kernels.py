@@ -318,3 +318,22 @@ def test_a_grid_cell_found_from_a_guess_is_the_binary_searchs_whatever_the_guess
         np.testing.assert_array_equal(got[:, 0], i)
         np.testing.assert_array_equal(got[:, 1], t)
         np.testing.assert_array_equal(got[:, 2], i)
+
+
+def test_take_half_channels_reorders_and_counts_what_is_not_finite():
+    """The read's channel reorder: numpy's take of the same bit patterns, and the count and first place (in the
+    output's order) of the halves that are inf or nan, whatever their sign and payload; finite ones (the largest
+    half, subnormals, -0) are not counted."""
+    rng = np.random.default_rng(11)
+    src = rng.integers(0, 2**16, size=(300, 7), dtype=np.uint16)
+    src[(src & 0x7C00) == 0x7C00] &= 0x3FFF  # every value finite first
+    src[0, :4] = np.array([65504.0, 6e-8, -0.0, -65504.0], np.float16).view(np.uint16)
+    order = np.array([6, 2, 0, 5, 1], dtype=np.int64)
+    out = np.zeros((300, 5), np.uint16)
+    assert kernels.take_half_channels(src, order, out) == (0, -1, -1)
+    np.testing.assert_array_equal(out, np.take(src, order, axis=1))
+    for (row, col), value in {(40, 0): np.inf, (17, 5): -np.inf, (251, 2): np.nan}.items():
+        src[row, col] = np.float16(value).view(np.uint16)
+    src[3, 4] = 0x7E01  # a nan with a payload, in a channel the order leaves out
+    assert kernels.take_half_channels(src, order, out) == (3, 17, 3)  # (17, 5) is out[:, 3], the first row
+    assert np.isnan(out[251, 1:2].view(np.float16)).all() and np.isinf(out[40, 2:3].view(np.float16)).all()

@@ -73,6 +73,7 @@ def warm_up() -> None:
     kernels.nearest_rows(np.zeros((2, 96), np.float32), np.ones((3, 96), np.float32))  # a latent texture's tables
     # a latent texture read from its file: half floats (the image texture above took the float32 loop)
     trilinear_lookup(MipChain([np.zeros((1, 1, 100))], dtype=np.float16), np.zeros((2, 2)), 0.0)
+    kernels.take_half_channels(np.zeros((1, 3), np.uint16), np.arange(2, dtype=np.int64), np.zeros((1, 2), np.uint16))
 
 
 def warm_up_in_background() -> threading.Thread | None:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import kernels
 from ..neural.top_lobe import NO_TOP
 from ..stack import LATENT as LATENT_DIM
 from . import files
@@ -29,7 +30,7 @@ PROXY_CHANNELS = ["proxy.sigma", "proxy.w"]
 TOP_CHANNELS = ["top.alpha", "top.ior"]
 CHANNEL_NAMES = LATENT_CHANNELS + PROXY_CHANNELS + TOP_CHANNELS
 TILE = 64
-READ_BAND_BYTES = 64 << 20  # rows of a level read at once (``_read_level``)
+READ_BAND_BYTES = 16 << 20  # rows of a level read at once (``_read_level``)
 
 
 def oiio_module():
@@ -264,9 +265,11 @@ def _read_levels(inp, path: Path, order: list[int], height: int, width: int) -> 
 
 def _read_level(inp, path: Path, level: int, lspec, order: list[int], out: np.ndarray) -> None:
     """Mip level ``level`` into ``out`` (h, w, 100) half floats, in bands of whole tiles (or scanlines) of about
-    :data:`READ_BAND_BYTES`: the file's channels come sorted by name, so each band is read, reordered into ``out``
-    and checked finite there; only a band, not the whole level, is held besides the chain."""
+    :data:`READ_BAND_BYTES`: the file's channels come sorted by name, so each band is read, then reordered into
+    ``out`` and checked finite in one compiled pass (``kernels.take_half_channels``); only a band, not the whole
+    level, is held besides the chain."""
     h, w, n = lspec.height, lspec.width, len(order)
+    order = np.asarray(order, dtype=np.int64)
     tile = lspec.tile_height if lspec.tile_width else 1
     band_rows = max(1, READ_BAND_BYTES // (w * n * 2) // tile) * tile
     for y in range(0, h, band_rows):
@@ -279,18 +282,17 @@ def _read_level(inp, path: Path, level: int, lspec, order: list[int], out: np.nd
             pixels = inp.read_scanlines(0, level, lspec.y + y, lspec.y + end, lspec.z, 0, n, "half")
         if pixels is None or np.size(pixels) != (end - y) * w * n:
             raise LatentTextureError(f"cannot read mip level {level} of {path} (damaged file?): {inp.geterror()}")
-        band = np.asarray(pixels, dtype=np.float16).reshape(end - y, w, n)
-        if n == len(CHANNEL_NAMES):  # mode "clip": "raise" would buffer the output
-            np.take(band, order, axis=2, out=out[y:end], mode="clip")
-        else:  # written before the top-coat channels: every texel uncoated
-            out[y:end, :, :n] = np.take(band, order, axis=2)
-            out[y:end, :, n:] = NO_TOP
-        rows = out[y:end]
-        if not np.isfinite(rows).all():  # a band at a time: a level-sized mask took 0.4 GB at 2048 x 2048
-            bad = ~np.isfinite(rows)
-            row, x, c = np.argwhere(bad)[0]
+        band = np.ascontiguousarray(pixels, dtype=np.float16).reshape((end - y) * w, n)
+        rows = out[y:end]  # contiguous: its texels as (rows x w, 100) are a view
+        bad, row, c = kernels.take_half_channels(
+            band.view(np.uint16), order, rows.reshape(-1, out.shape[2]).view(np.uint16)
+        )
+        if n < len(CHANNEL_NAMES):  # written before the top-coat channels: every texel uncoated
+            rows[:, :, n:] = NO_TOP
+        if bad:  # checked a band at a time, as it is copied: a level-sized mask took 0.4 GB at 2048 x 2048
+            x, row = row % w, row // w
             raise LatentTextureError(
-                f"{path}: {int(bad.sum())} non-finite value(s) in mip level {level}, first {rows[row, x, c]} at "
+                f"{path}: {bad} non-finite value(s) in mip level {level}, first {rows[row, x, c]} at "
                 f"(x={x}, y={y + row}) in channel {CHANNEL_NAMES[c]}; latent texels must be finite (re-bake the "
                 "texture)"
             )
