@@ -489,7 +489,7 @@ def assemble(
     for b, p in enumerate(paths):
         start = b * band_rows * w
         try:
-            chain.write_texels(start, _load_band(p, _band_rows(job, b, band_rows), w))
+            band = _load_band(p, _band_rows(job, b, band_rows), w)
         except FileNotFoundError:
             if _fresh(out, job, key):
                 return False  # another shard published it and removed the bands
@@ -500,7 +500,8 @@ def assemble(
         except ValueError as e:  # damaged after it was kept: never reused, baked again here
             log(f"{e}: baking it again")
             p.unlink(missing_ok=True)
-            chain.write_texels(start, rebake(b))
+            band = rebake(b)
+        chain.write_texels(start, band)  # a latent beyond the half range: a clear error, and the band is kept
     meta = {"stack": job.spatial.stack.to_json(), "model": model, "key": key, **(model_metadata or {})}
     calibration_s = None
     if models is not None and job.mix is None:  # a blended texel's latent is no stack's: nothing to walk

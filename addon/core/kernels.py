@@ -173,8 +173,9 @@ def trilinear(flat, offsets, heights, widths, channels, uv, lod, out):
 
 @njit(**_JIT)
 def take_half_channels(src, order, out):
-    """``out[i, k] = src[i, order[k]]`` for half floats held as their bit patterns (uint16; src (N, C), out (N,
-    len(order)), both C-contiguous): a file's channels, stored sorted by name, in a latent texture's order. One
+    """``out[i, k] = src[i, order[k]]`` for half floats held as their bit patterns (uint16; src (N, C), out (N, K)
+    with K >= len(order), both C-contiguous; columns from len(order) on are left as they are): a file's channels,
+    stored sorted by name, in a latent texture's order. One
     pass, which also finds the texels that are not finite (exponent bits all set: inf or nan). Returns how many
     values are not, and the row and column in ``out`` of the first (-1, -1 for none)."""
     bad, first_row, first_col = 0, -1, -1

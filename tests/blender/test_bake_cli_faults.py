@@ -522,3 +522,22 @@ def test_bands_and_textures_of_another_decoder_file_are_not_reused(rough_png, tm
     assert bake_cli.main(preset_argv(rough_png, out), encode=encoder("newer", 3)) == 0  # not "up to date"
     assert LatentTexture.read_exr(out / "varnished_wood.exr").metadata["model_digest"] == "newer"
     assert listing(out) == ["varnished_wood.exr", "varnished_wood.json"]
+
+
+def test_a_kept_band_beyond_the_half_range_is_a_clear_error_and_is_kept(rough_png, tmp_path, capsys):
+    """A band that loads (finite float32) but holds a latent the half-float texture cannot store is no damaged file:
+    the texture is refused with that value named, and the band is neither deleted nor baked again."""
+    out = tmp_path / "out"
+    assert bake_cli.main(preset_argv(rough_png, out, "--shard", "0/2"), encode=stand_in_encoder()) == 0
+    band = sorted((out / ".varnished_wood.bands").glob("*.npy"))[0]
+    texels = np.load(band)
+    texels[1, 3] = 1e5
+    np.save(band, texels)
+    capsys.readouterr()
+    code = bake_cli.main(preset_argv(rough_png, out, "--shard", "1/2"), encode=stand_in_encoder())
+    captured = capsys.readouterr()
+    assert code != 0
+    assert "half-float range" in captured.err and "100000" in captured.err, captured
+    assert "baking it again" not in captured.out
+    assert band.is_file() and np.load(band)[1, 3] == np.float32(1e5)
+    assert not (out / "varnished_wood.exr").exists()

@@ -286,3 +286,18 @@ def test_an_encoder_returning_latents_a_texture_cannot_hold_is_a_clear_error(bad
             bake_texels(spatial.texels()[0], spoiled)
     else:
         assert bake_texels(spatial.texels()[0], spoiled)[0].max() == np.float32(1e5)  # float32 holds it
+
+
+def test_a_mix_of_the_largest_halves_is_held_not_refused():
+    """Blending two texels at the half range's edge stays there (float32's rounding of the blend could step past
+    65504: the mix clips it back rather than refuse the texture)."""
+    from addon.core.textures.bake import bake_mix
+
+    def at_the_edge(arrays):
+        n = len(arrays)
+        return np.full((n, 3, 32), 65504.0, np.float32), np.full((n, 2), -65504.0, np.float32)
+
+    mask = np.tile(np.linspace(0.0, 1.0, 1001), (2, 1))
+    tex, _ = bake_mix(SpatialStack(wood()), SpatialStack(preset("coated_gold")), mask, at_the_edge)
+    for level in tex.levels:
+        assert (level[..., :96] == 65504.0).all() and (level[..., 96:98] == -65504.0).all()

@@ -149,6 +149,16 @@ def test_a_half_float_chain_refuses_texels_a_half_cannot_hold_and_writes_none_of
     assert chain[0][1, 2, 1] == 65504.0 and chain[0][0, 2, 0] == 4.0
     with pytest.raises(ValueError, match="half-float range"):
         LatentTexture.from_texels(np.full((2, 2, len(CHANNEL_NAMES)), 1e5, np.float32))
+    held = chain.flat.copy()
+    for start, values, message in (
+        (5, np.ones((2, 2)), "outside the base level"),  # past its 6 texels, into the next level
+        (-1, np.ones((1, 2)), "outside the base level"),
+        (0, np.ones((2, 1)), r"\(N, 2\) rows"),  # would broadcast to every channel
+        (0, np.ones(2), r"\(N, 2\) rows"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            chain.write_texels(start, values)
+    np.testing.assert_array_equal(chain.flat, held)  # the next level's texels too
 
 
 def test_lookup_rejects_bad_input():

@@ -21,7 +21,7 @@ from ..neural.top_lobe import top_coats
 from ..rows import distinct_rows
 from ..stack import StackArrays
 from .latent_texture import CHANNEL_NAMES, LatentTexture
-from .mip import MipChain, check_half_range
+from .mip import HALF_MAX, MipChain, check_half_range
 from .spatial import SpatialStack
 
 Encoder = Callable[[StackArrays], tuple[np.ndarray, np.ndarray]]
@@ -455,7 +455,8 @@ def bake_mix(
     for start in range(0, h * w, GATHER_TEXELS):  # blended a band of texels at a time, into the chain's base
         mix = t[start : start + GATHER_TEXELS]
         ta, tb = (_band_of_texels(d, i, start).astype(np.float32) for d, i in ((da, ia), (db, ib)))
-        chain.write_texels(start, (1.0 - mix) * ta + mix * tb)
+        blend = (1.0 - mix) * ta + mix * tb  # two halves' blend, within the half range but for float32 rounding
+        chain.write_texels(start, np.clip(blend, -HALF_MAX, HALF_MAX, out=blend))
     del baked, da, ia, db, ib
     meta = {"stack": a.stack.to_json(), "mix_stack": b.stack.to_json()}
     meta.update(metadata or {})

@@ -155,7 +155,8 @@ class LatentTexture:
                 if not (np.abs(band) <= HALF_MAX).all():  # nan as well
                     raise ValueError(
                         f"cannot write {path}: mip level {i} holds values outside the half-float range "
-                        f"[-{HALF_MAX:g}, {HALF_MAX:g}] (largest magnitude {np.nanmax(np.abs(band)):g})"
+                        f"[-{HALF_MAX:g}, {HALF_MAX:g}] (non-finite, or magnitudes up to {np.nanmax(np.abs(band)):.9g} "
+                        f"in rows {rows} .. {rows + len(band) - 1})"
                     )
         with files.publishing(path) as tmp:
             out = oiio.ImageOutput.create(str(tmp))

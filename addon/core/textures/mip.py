@@ -77,8 +77,8 @@ class MipChain(list):
 
     A latent texture is held in half floats, as its file stores it, whether baked (``textures.bake``) or read
     (``LatentTexture.read_exr``): the values the file holds, in half the memory (1.1 GB for 2048 x 2048 x 100
-    channels with its levels), which the lookup converts as it reads them. Its levels are computed in float32
-    from the level above, a band of rows at a time (:meth:`fill`), and rounded once."""
+    channels with its levels), which the lookup converts as it reads them. Each level is computed in float32 from
+    the level above as held, a band of rows at a time (:meth:`fill`), and rounded to half once."""
 
     DTYPES = (np.float32, np.float16)
 
@@ -130,12 +130,17 @@ class MipChain(list):
 
     def write_texels(self, start: int, values: np.ndarray) -> None:
         """Rows ``start`` .. ``start + len(values)`` of the base level's texels (row-major, (H * W, C) as
-        flattened) from ``values`` (N, C), rounded to the chain's type. ValueError for a value a half-float chain
-        cannot hold (non-finite, or beyond the largest half, 65504), before anything of ``values`` is written."""
+        flattened) from ``values`` (N, C), rounded to the chain's type. ValueError, before anything is written, for
+        rows outside the base level, values of another shape, or a value a half-float chain cannot hold
+        (non-finite, or beyond the largest half, 65504)."""
         values = np.asarray(values)
+        h, w, c = self[0].shape
+        if values.ndim != 2 or values.shape[1] != c:
+            raise ValueError(f"texels are written as (N, {c}) rows, got shape {values.shape}")
+        if not 0 <= start <= start + len(values) <= h * w:
+            raise ValueError(f"texels {start} .. {start + len(values)} are outside the base level's {h * w} texels")
         if self.dtype == np.float16:
             check_half_range(values, "latent texels")
-        h, w, c = self[0].shape
         self.flat[start * c : (start + len(values)) * c].reshape(len(values), c)[...] = values
 
     def fill(self) -> "MipChain":
@@ -156,7 +161,7 @@ def check_half_range(values: np.ndarray, what: str) -> None:
     if bad.any():
         raise ValueError(
             f"{what} must be finite and within the half-float range [-{HALF_MAX:g}, {HALF_MAX:g}] their texture is "
-            f"stored in, got {values[bad][0]:g}"
+            f"stored in, got {values[bad][0]:.9g}"
         )
 
 
