@@ -175,9 +175,9 @@ def trilinear(flat, offsets, heights, widths, channels, uv, lod, out):
 def take_half_channels(src, order, out):
     """``out[i, k] = src[i, order[k]]`` for half floats held as their bit patterns (uint16; src (N, C), out (N, K)
     with K >= len(order), both C-contiguous; columns from len(order) on are left as they are): a file's channels,
-    stored sorted by name, in a latent texture's order. One
-    pass, which also finds the texels that are not finite (exponent bits all set: inf or nan). Returns how many
-    values are not, and the row and column in ``out`` of the first (-1, -1 for none)."""
+    stored sorted by name, in a latent texture's order. One pass, which also finds the values that are not finite
+    (exponent bits all set: inf or nan). Returns how many are not, and the row and column in ``out`` of the first
+    (-1, -1 for none)."""
     bad, first_row, first_col = 0, -1, -1
     for i in range(src.shape[0]):
         for k in range(order.shape[0]):
@@ -400,8 +400,8 @@ def _sample_light(kind, prm, image, pixel_p, alias_p, alias_i, px, py, pz, u0, u
     the irradiance) and solid-angle pdf (1 for delta lights).
 
     Compiled as a function of its own, not inlined into its callers' loops: inlined, ``sample_lights`` took
-    80 ns a hit of the demo scene where it takes 63 (its branches for every kind of light; the other
-    helpers here are as fast or faster inlined)."""
+    80 ns a hit where it takes 63 (a bounce of the demo scene recorded and replayed; its branches for every kind
+    of light). The other helpers here measured as fast or faster inlined."""
     inf = np.inf
     if kind == POINT or kind == SPOT:
         dx, dy, dz = prm[0] - px, prm[1] - py, prm[2] - pz
@@ -748,7 +748,7 @@ def lambert_shade(albedo, wo, light_wi, light_rows, u):
     pdf, valid, as ``Lambertian.sample``; ``u`` (N, 2)). ``albedo`` is (1, 3) shared or (N, 3) per hit.
 
     Two loops, each compiled on its own: written as one function, the same two loops took 60 ns a hit where
-    they take 32 (the demo scene's floor, this CPU)."""
+    they take 32 (a bounce of the demo scene's floor recorded and replayed)."""
     f, pdf_light = _lambert_at_lights(albedo, wo, light_wi, light_rows)
     wi, weight, pdf, valid = _lambert_samples(albedo, wo, u)
     return f, pdf_light, wi, weight, pdf, valid

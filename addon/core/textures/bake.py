@@ -274,9 +274,8 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1, gath
         proxy = np.asarray(proxy, dtype=np.float32).reshape(len(part), -1)
         if z.shape[1] != 96 or proxy.shape[1] != 2:
             raise ValueError(f"encoder returned latents {z.shape} and proxy {proxy.shape}; expected (N, 96) and (N, 2)")
-        texels = np.concatenate(
-            [z, proxy, top_coats(part)], axis=1, dtype=np.float32
-        )  # top coat: for a remainder decoder
+        # the top coating's channels: what a remainder decoder's exact top lobe needs
+        texels = np.concatenate([z, proxy, top_coats(part)], axis=1, dtype=np.float32)
         if not np.isfinite(texels).all():
             raise ValueError("the encoder returned non-finite latents")
         if out.dtype == np.float16:

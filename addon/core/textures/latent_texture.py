@@ -30,7 +30,9 @@ PROXY_CHANNELS = ["proxy.sigma", "proxy.w"]
 TOP_CHANNELS = ["top.alpha", "top.ior"]
 CHANNEL_NAMES = LATENT_CHANNELS + PROXY_CHANNELS + TOP_CHANNELS
 TILE = 64
-READ_BAND_BYTES = 16 << 20  # rows of a level read at once (``_read_level``)
+# rows of a level read at once (``_read_level``): below malloc's largest mmap threshold (32 MB), so that each band's
+# buffer reuses the last one's memory; 64 MB bands were mapped and faulted in afresh, 2 s of a 2048 x 2048 read
+READ_BAND_BYTES = 16 << 20
 
 
 def oiio_module():
