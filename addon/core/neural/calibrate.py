@@ -465,7 +465,11 @@ def cache_key(stack: Stack, models, z) -> str:
 def cached(stack: Stack, models, z) -> AlbedoCalibration | None:
     """The calibration of this stack and latent if it was made in this session or is on disk
     (:func:`use_disk_cache`), else None (no walks)."""
-    key = cache_key(stack, models, z)
+    return _lookup(cache_key(stack, models, z))
+
+
+def _lookup(key: str) -> AlbedoCalibration | None:
+    """The calibration under ``key``: this session's, else the disk's (then kept for the session), else None."""
     hit = _CACHE.get(key)
     if hit is None:
         hit = _from_disk(key)
@@ -485,10 +489,10 @@ def calibrate(stack: Stack, models, z, proxy_params, seed: int = 0, step=None) -
     viewport stops a calibration so when an edit makes its stack stale."""
     if not isinstance(stack, Stack):
         raise ValueError(f"calibrate needs a Stack, got {type(stack).__name__}")
-    hit = cached(stack, models, z)
+    key = cache_key(stack, models, z)
+    hit = _lookup(key)
     if hit is not None:
         return hit
-    key = cache_key(stack, models, z)
     sigma, w = (float(v) for v in proxy_params)
     coat = top_lobe.top_coat(stack)
     moments = decoded_moments(models, z, sigma, w, seed=seed, top=coat, step=step)
