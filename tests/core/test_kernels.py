@@ -66,6 +66,28 @@ def test_hits_by_material_is_a_stable_sort_of_the_hits_with_each_materials_start
     check()
 
 
+def test_closest_hits_converts_an_embree_query_as_numpy_would_with_misses_at_infinity():
+    from addon.core.render import shapes
+    from addon.core.render.integrator import Tracer
+
+    mesh = shapes.quad((0.0, 0.0, 0.0), (2.0, 0.0, 0.0), (0.0, 2.0, 0.0), material=0)
+    rng = np.random.default_rng(5)
+    n = 400
+    o = np.column_stack([rng.uniform(-3.0, 3.0, (n, 2)), np.full(n, 1.0)])  # over half of them miss the quad
+    d = np.tile([0.0, 0.0, -1.0], (n, 1))
+    r = Tracer(mesh).scene.run(o.astype(np.float32), d.astype(np.float32), output=1)
+    assert r["primID"].dtype == np.int32 and r["tfar"].dtype == np.float32  # what the kernel is compiled for
+    t, prim, bu, bv = kernels.closest_hits(r["primID"], r["tfar"], r["u"], r["v"])
+    hit = r["primID"] >= 0
+    assert 0 < hit.sum() < n
+    np.testing.assert_array_equal(prim, r["primID"].astype(np.int64))
+    np.testing.assert_array_equal(t, np.where(hit, r["tfar"].astype(np.float64), np.inf))
+    np.testing.assert_allclose(t[hit], 1.0, rtol=1e-6)
+    np.testing.assert_array_equal(bu, r["u"].astype(np.float64))
+    np.testing.assert_array_equal(bv, r["v"].astype(np.float64))
+    assert prim.dtype == np.int64 and t.dtype == bu.dtype == bv.dtype == np.float64
+
+
 def test_take_paths_gathers_every_field_as_fancy_indexing_does():
     rng = np.random.default_rng(2)
     n = 50
@@ -240,8 +262,9 @@ def test_nearest_rows_picks_the_centre_of_least_squared_distance():
 
 
 def test_trilinear_writes_every_row_whatever_the_output_held():
-    """The lookup's output array is passed uninitialised (``textures.mip.trilinear_lookup``): the loop must
-    write each row, not add to it, on one level and between two."""
+    """The lookup's output arrays are passed uninitialised (``textures.mip.trilinear_lookup``): the loop must
+    write each row, not add to it, on one level and between two; split into two arrays (a latent texture's
+    latents and the rest), the rows are the same values."""
     rng = np.random.default_rng(6)
     c = 100
     levels = [rng.random((8, 8, c)).astype(np.float32), rng.random((4, 4, c)).astype(np.float32)]
@@ -252,9 +275,12 @@ def test_trilinear_writes_every_row_whatever_the_output_held():
     lod = np.concatenate([np.zeros(25), rng.random(25)])  # level 0 alone, then blends of both
     clean, dirty = np.zeros((50, c), np.float32), np.full((50, c), np.nan, np.float32)
     for out in (clean, dirty):
-        kernels.trilinear(flat, offsets, heights, widths, c, uv, lod, out)
+        kernels.trilinear(flat, offsets, heights, widths, c, uv, lod, out, np.empty((50, 0), np.float32))
     np.testing.assert_array_equal(dirty, clean)
     assert np.isfinite(clean).all() and clean.min() >= 0.0 and clean.max() <= 1.0
+    first, rest = np.full((50, 96), np.nan, np.float32), np.full((50, c - 96), np.nan, np.float32)
+    kernels.trilinear(flat, offsets, heights, widths, c, uv, lod, first, rest)
+    np.testing.assert_array_equal(np.concatenate([first, rest], axis=1), clean)
 
 
 def test_half_floats_convert_exactly_in_the_compiled_loops():

@@ -86,6 +86,13 @@ def test_lookup_matches_a_per_corner_oracle_across_levels_and_wrapping(shape):
     np.testing.assert_allclose(got, want, atol=2e-6)
     # a plain list of levels gives the same as the packed chain
     np.testing.assert_array_equal(trilinear_lookup(list(chain), uv, fp), got)
+    # split: the same channels in two contiguous arrays (a latent texture's latents and the rest)
+    for split in range(shape[2] + 1):
+        first, rest = trilinear_lookup(chain, uv, fp, split=split)
+        assert first.flags.c_contiguous and rest.flags.c_contiguous
+        np.testing.assert_array_equal(np.concatenate([first, rest], axis=1), got)
+    with pytest.raises(ValueError, match="split must be in"):
+        trilinear_lookup(chain, uv, fp, split=shape[2] + 1)
 
 
 @pytest.mark.parametrize("shape", [(16, 16, 3), (13, 7, 5), (1, 9, 100)])

@@ -421,17 +421,16 @@ class ModelSet:
         if n == 0:
             return out
         zz = z[None]
+        if self._rgb is not None:  # the graph normalises and masks the horizon itself
+            # unit directions need no guard for float32's range (a cast, not the length check: 2% of a textured render)
+            wi32, wo32 = (w.astype(np.float32) if unit else _float32_rows(w) for w in (wi, wo))
 
         def latents(rows: slice) -> np.ndarray:
             return z[z_rows[rows]] if z_rows is not None else z[rows]
 
         def chunk(rows: slice) -> None:  # runs on the session's threads, one chunk of rows each
-            if self._rgb is not None:  # the graph normalises and masks the horizon itself
-                feeds = {
-                    "z": latents(rows) if per_row else zz,
-                    "wi": _float32_rows(wi[rows]),
-                    "wo": _float32_rows(wo[rows]),
-                }
+            if self._rgb is not None:
+                feeds = {"z": latents(rows) if per_row else zz, "wi": wi32[rows], "wo": wo32[rows]}
                 f = self._rgb.run_once(["f"], feeds)[0]
                 np.fmax(f, 0.0, out=out[rows])  # fmax: NaN (an overflowing latent) gives 0
                 return

@@ -149,9 +149,7 @@ class Tracer:
         r = self.scene.run(np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32), output=1)
         stats.seconds["rays"] += time.perf_counter() - t0
         stats.rays += n
-        prim = r["primID"].astype(np.int64)
-        t = np.where(prim >= 0, r["tfar"].astype(np.float64), np.inf)
-        return t, prim, r["u"].astype(np.float64), r["v"].astype(np.float64)
+        return kernels.closest_hits(r["primID"], r["tfar"], r["u"], r["v"])
 
     def occluded(self, o, d, tmax, stats: RenderStats):
         n = len(o)

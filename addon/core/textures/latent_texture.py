@@ -141,10 +141,8 @@ class LatentTexture:
     def lookup(self, uv: np.ndarray, footprint) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Latents (N, 3, 32), proxy parameters (N, 2) and top coatings (N, 2: alpha, ior) at uv with a
         footprint in uv units, on the levels the bake found filterable (``filter_levels``)."""
-        v = trilinear_lookup(self.levels, uv, footprint, self.filter_levels)
-        k = CHANNELS * LATENT_DIM
-        z = v[:, :k].reshape(-1, CHANNELS, LATENT_DIM)
-        return z, v[:, k : k + 2], v[:, k + 2 :]
+        z, rest = trilinear_lookup(self.levels, uv, footprint, self.filter_levels, split=CHANNELS * LATENT_DIM)
+        return z.reshape(-1, CHANNELS, LATENT_DIM), rest[:, :2], rest[:, 2:]
 
     def write_exr(self, path: str | os.PathLike) -> None:
         """Write a tiled, mip-mapped, half-float EXR, published atomically (see ``files.publishing``):

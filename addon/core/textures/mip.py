@@ -209,11 +209,16 @@ def mip_level_for_footprint(footprint: np.ndarray, width: int, height: int, n_le
 
 
 def trilinear_lookup(
-    levels: list[np.ndarray], uv: np.ndarray, footprint: np.ndarray | float, n_levels: int | None = None
-) -> np.ndarray:
+    levels: list[np.ndarray],
+    uv: np.ndarray,
+    footprint: np.ndarray | float,
+    n_levels: int | None = None,
+    split: int | None = None,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Trilinear lookup (N, C) float32 at uv (N, 2) (v = 0 at the bottom row, repeat addressing) with
     footprint (N,) or scalar in uv units, on the first ``n_levels`` levels (default all: a coarser footprint
-    stays on the last of them).
+    stays on the last of them). With ``split``: two C-contiguous arrays, the first ``split`` channels (N, split)
+    and the others (N, C - split), written by the same pass.
 
     The level is log2 of the footprint in texels of level 0; the two nearest levels are looked up
     bilinearly and blended, in float32 (the texture is stored as half floats: float64 arithmetic would
@@ -233,6 +238,10 @@ def trilinear_lookup(
     h, w, c = chain[0].shape
     usable = len(chain) if n_levels is None else max(1, min(int(n_levels), len(chain)))
     lod = mip_level_for_footprint(fp, w, h, usable)
-    out = np.empty((uv.shape[0], c), dtype=np.float32)  # every row written by the loop
-    kernels.trilinear(chain.kernel_flat, chain.offsets, chain.heights, chain.widths, c, uv, lod, out)
-    return out
+    first = c if split is None else int(split)
+    if not 0 <= first <= c:
+        raise ValueError(f"split must be in [0, {c}] (the texture's channels), got {split}")
+    out = np.empty((uv.shape[0], first), dtype=np.float32)  # every row written by the loop
+    rest = np.empty((uv.shape[0], c - first), dtype=np.float32)
+    kernels.trilinear(chain.kernel_flat, chain.offsets, chain.heights, chain.widths, c, uv, lod, out, rest)
+    return out if split is None else (out, rest)
