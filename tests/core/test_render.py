@@ -287,6 +287,30 @@ def test_images_do_not_depend_on_the_thread_count():
         assert 0 < st.seconds["rays"] and st.seconds["rays"] + st.rest <= st.seconds["total"] * (1 + 1e-9)
 
 
+def test_the_networks_run_on_the_cores_the_chunks_in_flight_leave(monkeypatch):
+    """With every core tracing a chunk, a chunk's network batches run on its own thread (on a pool beside the
+    chunks' threads they waited on one another: two-thread renders took 8% longer); a render of one chunk, a
+    viewport's first pass, gives them every thread."""
+    from addon.core.neural import session
+    from addon.core.render.demo_scene import demo_scene
+
+    seen = []
+    real = session.ChunkedSession.map
+
+    def spy(self, fn, n):
+        if session._THREADS:  # the scene's encoding comes before the tracing
+            seen.append(session._THREADS[-1])
+        return real(self, fn, n)
+
+    monkeypatch.setattr(session.ChunkedSession, "map", spy)
+    scene = demo_scene(16, 9)
+    render(scene, RenderSettings(samples=2, max_bounces=2, threads=2, calibrate=False))  # two chunks in flight
+    assert seen and set(seen) == {1}
+    seen.clear()
+    render(scene, RenderSettings(samples=1, max_bounces=2, threads=2, calibrate=False))  # one chunk
+    assert seen and set(seen) == {2}
+
+
 def test_the_scenes_setup_is_timed_apart_from_the_tracing(monkeypatch):
     """The materials' preparation (encoding, a session's first calibration of each stack: seconds) comes before
     any path: it is reported as ``setup`` and left out of the scaling that turns the threads' phase times into
