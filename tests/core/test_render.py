@@ -1,6 +1,7 @@
 """Path tracer: furnace, estimator consistency, light units, robustness, determinism."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -285,6 +286,45 @@ def test_images_do_not_depend_on_the_thread_count():
     # The phases are shares of the wall time, whatever the thread count.
     for st in (one, three):
         assert 0 < st.seconds["rays"] and st.seconds["rays"] + st.rest <= st.seconds["total"] * (1 + 1e-9)
+
+
+def test_a_scenes_stacks_are_encoded_and_calibrated_side_by_side_and_alike(monkeypatch):
+    """A render resolves its layered stacks on its threads (``materials.resolve_all``): each stack's encoding
+    and calibration are the ones a lone thread makes, so the image is too."""
+    import threading
+
+    from addon.core.neural import calibrate
+    from addon.core.render import materials
+    from addon.core.render.demo_scene import demo_scene
+
+    scene = demo_scene(16, 9)
+    settings = RenderSettings(samples=2, max_bounces=2, seed=1)
+    threads_seen = set()
+    real = materials.resolve
+
+    def spy(*args, **kwargs):
+        threads_seen.add(threading.current_thread().name.split("_")[0])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(materials, "resolve", spy)
+    films, tables = [], []
+    for threads in (1, 2):
+        calibrate.clear_cache()
+        film, stats = render(scene, replace(settings, threads=threads))
+        films.append(film.mean())
+        tables.append(
+            [
+                m.calibration.table
+                for m in materials.resolve_all(scene.materials, "neural", 16, True)
+                if getattr(m, "calibration", None) is not None
+            ]
+        )
+        assert stats.material_kinds.count("neural") == 5
+    assert "materials" in threads_seen  # the two-thread render resolved on its pool
+    np.testing.assert_array_equal(films[0], films[1])
+    assert len(tables[0]) == 5
+    for a, b in zip(*tables, strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_the_networks_run_on_the_cores_the_chunks_in_flight_leave(monkeypatch):

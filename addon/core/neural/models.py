@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -303,13 +304,14 @@ class ModelSet:
         return self.cards[role]
 
     def _load(self, role: str, chunk: int | None = None) -> ChunkedSession:
-        if role not in self._sessions:
-            if chunk is None:  # the activations of a call in cache (DECODER_CHUNK_FLOATS)
-                width = self.card(role).get("architecture", {}).get("width") or 128
-                chunk = max(128, DECODER_CHUNK_FLOATS // (2 * int(width)))
-            self.card(role)
-            self._sessions[role] = _session(self.path(role), self.threads, chunk)
-        return self._sessions[role]
+        with _LOADING:  # materials are resolved on several threads (``materials.resolve_all``): load once
+            if role not in self._sessions:
+                if chunk is None:  # the activations of a call in cache (DECODER_CHUNK_FLOATS)
+                    width = self.card(role).get("architecture", {}).get("width") or 128
+                    chunk = max(128, DECODER_CHUNK_FLOATS // (2 * int(width)))
+                self.card(role)
+                self._sessions[role] = _session(self.path(role), self.threads, chunk)
+            return self._sessions[role]
 
     def load(self, *roles: str) -> "ModelSet":
         """Load (and check) the networks ``roles`` now rather than when first used; returns the set."""
@@ -470,6 +472,7 @@ class ModelSet:
 
 
 _CACHE: dict[tuple[str, int, Path], ModelSet] = {}
+_LOADING = threading.RLock()  # model sets and their sessions are made once, whichever thread asks first
 
 
 def load_models(size: str = AUTO, threads: int = 2, model_dir: Path | str | None = None) -> ModelSet:
@@ -477,9 +480,10 @@ def load_models(size: str = AUTO, threads: int = 2, model_dir: Path | str | None
     count and folder (the one cache of the neural runtime)."""
     size = resolve_size(size, model_dir)
     key = (size, int(threads), Path(model_dir) if model_dir is not None else MODEL_DIR)
-    if key not in _CACHE:
-        _CACHE[key] = ModelSet(size, threads, model_dir)
-    return _CACHE[key]
+    with _LOADING:
+        if key not in _CACHE:
+            _CACHE[key] = ModelSet(size, threads, model_dir)
+        return _CACHE[key]
 
 
 def clear_cache() -> None:

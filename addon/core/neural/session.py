@@ -23,6 +23,7 @@ import numpy as np
 
 T = TypeVar("T")
 _POOLS: dict[int, ThreadPoolExecutor] = {}
+_POOLS_LOCK = threading.Lock()
 _CLOCK = threading.local()
 _THREADS: list[int] = []  # process-wide thread counts in force, innermost last (``threads_in_force``)
 
@@ -48,9 +49,10 @@ def seconds_on_this_thread() -> float:
 
 
 def _pool(threads: int) -> ThreadPoolExecutor:
-    if threads not in _POOLS:
-        _POOLS[threads] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="onnx")
-    return _POOLS[threads]
+    with _POOLS_LOCK:  # one pool per count, whichever thread asks first
+        if threads not in _POOLS:
+            _POOLS[threads] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="onnx")
+        return _POOLS[threads]
 
 
 def session_options():

@@ -228,15 +228,13 @@ class _Context:
     def __init__(self, scene: Scene, settings: RenderSettings, stats: RenderStats):
         self.scene, self.settings, self.stats = scene, settings, stats
         n_mat = max(len(scene.materials), int(scene.mesh.material_index.max()) + 1 if scene.mesh.triangle_count else 0)
-        self.materials = [
-            mat.resolve(
-                scene.materials[i] if i < len(scene.materials) else None,
-                settings.mode,
-                settings.reference_walks,
-                settings.calibrate,
-            )
-            for i in range(n_mat)
-        ]
+        self.materials = mat.resolve_all(
+            [scene.materials[i] if i < len(scene.materials) else None for i in range(n_mat)],
+            settings.mode,
+            settings.reference_walks,
+            settings.calibrate,
+            settings.thread_count,
+        )
         stats.material_kinds = [m.kind for m in self.materials]
         self.tracer = Tracer(scene.mesh)
         env = scene.environment

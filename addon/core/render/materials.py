@@ -361,3 +361,20 @@ def resolve(material, mode: str, reference_walks: int = 16, calibrate=False):
         if made is not None:
             return made
     return ReferenceLayered(stack, reference_walks, spatial=spec.spatial if spec else None)
+
+
+def resolve_all(materials, mode: str, reference_walks: int = 16, calibrate=False, threads: int = 1) -> list:
+    """:func:`resolve` of each of ``materials``, in order, on up to ``threads`` threads: a scene's layered stacks
+    are encoded and calibrated side by side (a calibration's reference walks and decoder batches release the
+    GIL). On two cores the demo scene's first render, its five stacks to calibrate, spent 1.53-1.70 s before its
+    first path where it spent 1.94-1.97 s one stack at a time (fresh processes, alternating). Each material's own
+    work is seeded, so the materials do not depend on the thread count."""
+    materials = list(materials)
+    to_make = sum(1 for m in materials if m is not None and not hasattr(m, "bind"))  # the others are as they are
+    workers = min(max(1, int(threads)), to_make)
+    if workers <= 1:
+        return [resolve(m, mode, reference_walks, calibrate) for m in materials]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="materials") as pool:
+        return list(pool.map(lambda m: resolve(m, mode, reference_walks, calibrate), materials))

@@ -25,7 +25,7 @@ import numpy as np
 
 from .film import Film
 from .integrator import Cancelled, RenderSettings, render
-from .materials import resolve
+from .materials import resolve_all
 from .scene import Camera, Scene
 
 
@@ -231,7 +231,9 @@ class ProgressiveSession:
 
         # Materials resolved (stacks encoded, calibrated as the settings say, as ``render`` would) once for both
         # renders of the generation, and kept for the camera moves that follow.
-        materials = [resolve(m, settings.mode, settings.reference_walks, settings.calibrate) for m in scene.materials]
+        materials = resolve_all(
+            scene.materials, settings.mode, settings.reference_walks, settings.calibrate, settings.thread_count
+        )
         scene = replace(scene, materials=materials)
         with self._lock:
             if generation == self._generation and self._last is not None:
