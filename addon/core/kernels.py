@@ -214,8 +214,8 @@ def take_half_channels(src, order, out):
 def closest_hits(prim_id, tfar, u, v):
     """An intersection query's results (embree's float32 ``tfar``, ``u``, ``v`` and int32 ``primID``, -1 for a
     miss) as the loops read them, in one pass: the distance (inf on a miss), the triangle (int64) and the
-    barycentrics, in float64. The numpy conversions it replaces made five passes and two temporaries: 0.7 ms a
-    bounce of the demo scene's 129,600 rays, 2.6% of its render."""
+    barycentrics, in float64. The numpy conversions it replaces made five passes and two temporaries: 0.71 ms for
+    the demo scene's first bounce (129,600 rays), where this takes 0.21 ms."""
     n = len(prim_id)
     t = np.empty(n)
     prim = np.empty(n, dtype=np.int64)

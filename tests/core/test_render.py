@@ -327,10 +327,19 @@ def test_a_scenes_stacks_are_encoded_and_calibrated_side_by_side_and_alike(monke
         np.testing.assert_array_equal(a, b)
 
 
-def test_the_networks_run_on_the_cores_the_chunks_in_flight_leave(monkeypatch):
+def test_a_material_that_cannot_be_resolved_is_a_clear_error_on_the_pool_too():
+    from addon.core.render import materials
+    from addon.core.stack import preset
+
+    for threads in (1, 2):
+        with pytest.raises(ValueError, match="a scene material must be"):
+            materials.resolve_all([preset("coated_gold"), "gold", preset("red_car_paint")], "neural", threads=threads)
+
+
+def test_the_networks_run_on_each_chunks_thread_when_every_core_traces_a_chunk(monkeypatch):
     """With every core tracing a chunk, a chunk's network batches run on its own thread (on a pool beside the
-    chunks' threads they waited on one another: two-thread renders took 8% longer); a render of one chunk, a
-    viewport's first pass, gives them every thread."""
+    chunks' threads they waited on one another: two-thread renders took 8% longer); with fewer chunks than
+    threads (a viewport's first pass) the chunks share one pool of every thread."""
     from addon.core.neural import session
     from addon.core.render.demo_scene import demo_scene
 
@@ -349,6 +358,9 @@ def test_the_networks_run_on_the_cores_the_chunks_in_flight_leave(monkeypatch):
     seen.clear()
     render(scene, RenderSettings(samples=1, max_bounces=2, threads=2, calibrate=False))  # one chunk
     assert seen and set(seen) == {2}
+    seen.clear()
+    render(scene, RenderSettings(samples=2, max_bounces=2, threads=4, calibrate=False))  # two chunks, four threads
+    assert seen and set(seen) == {4}
 
 
 def test_the_scenes_setup_is_timed_apart_from_the_tracing(monkeypatch):

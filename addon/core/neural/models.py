@@ -304,6 +304,9 @@ class ModelSet:
         return self.cards[role]
 
     def _load(self, role: str, chunk: int | None = None) -> ChunkedSession:
+        loaded = self._sessions.get(role)
+        if loaded is not None:  # no wait on the lock while another thread loads something else
+            return loaded
         with _LOADING:  # materials are resolved on several threads (``materials.resolve_all``): load once
             if role not in self._sessions:
                 if chunk is None:  # the activations of a call in cache (DECODER_CHUNK_FLOATS)
@@ -424,7 +427,7 @@ class ModelSet:
             return out
         zz = z[None]
         if self._rgb is not None:  # the graph normalises and masks the horizon itself
-            # unit directions need no guard for float32's range (a cast, not the length check: 2% of a textured render)
+            # unit directions need no guard for float32's range: a cast, not the length check and its temporaries
             wi32, wo32 = (w.astype(np.float32) if unit else _float32_rows(w) for w in (wi, wo))
 
         def latents(rows: slice) -> np.ndarray:
@@ -480,6 +483,9 @@ def load_models(size: str = AUTO, threads: int = 2, model_dir: Path | str | None
     count and folder (the one cache of the neural runtime)."""
     size = resolve_size(size, model_dir)
     key = (size, int(threads), Path(model_dir) if model_dir is not None else MODEL_DIR)
+    loaded = _CACHE.get(key)
+    if loaded is not None:
+        return loaded
     with _LOADING:
         if key not in _CACHE:
             _CACHE[key] = ModelSet(size, threads, model_dir)

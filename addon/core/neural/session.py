@@ -31,8 +31,9 @@ _THREADS: list[int] = []  # process-wide thread counts in force, innermost last 
 @contextmanager
 def threads_in_force(threads: int):
     """Within the block, every session runs its chunks on ``threads`` threads, whatever count it
-    was made with: the renderer and the bakes put the scene's render thread setting (or every
-    core) in force for their work, so no constant decides how many cores the networks use."""
+    was made with: the bakes put the scene's render thread setting (or every core) in force for their
+    work, and the renderer that count or, when every core traces a chunk of paths, 1 (each chunk's batches
+    on its own thread), so no constant decides how many cores the networks use."""
     if isinstance(threads, bool) or int(threads) < 1:
         raise ValueError(f"threads must be >= 1, got {threads!r}")
     _THREADS.append(int(threads))

@@ -286,8 +286,8 @@ def render(
     chunks (of this pass or the next) are traced at once on a pool of threads (numpy, embreex and ONNX
     Runtime release the GIL in their loops), with as many more queued, so that a thread whose chunk ends
     first starts the next while the film takes the chunks in order. The networks run a chunk's batches on the
-    cores the chunks in flight leave free: on the chunk's own thread when every core traces a chunk, on all
-    of them when a render is one chunk (a viewport's first pass).
+    chunk's own thread when every core traces a chunk, and on one pool of every thread that the chunks share
+    when there are fewer chunks than threads (a viewport's first pass).
     Chunks draw their random numbers from their own (pass, chunk) key and are added to the film
     in order, so the image does not depend on the thread count.
 
@@ -327,11 +327,11 @@ def render(
 
     workers = min(settings.thread_count, len(tasks))
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="render") if workers > 1 else None
-    # The networks' threads: the cores the chunks in flight leave free. With every core tracing a chunk, each
-    # chunk's batches run on its own thread: handed to a pool beside the chunks' threads, they waited on one
-    # another (two-thread renders, alternating: the demo scene 1.29 s against 1.19, the baked floor 2.80 s
-    # against 2.57, the same images).
-    with session.threads_in_force(max(1, settings.thread_count // workers)):
+    # The networks' threads. With every core tracing a chunk, each chunk's batches run on its own thread: handed
+    # to a pool beside the chunks' threads, they waited on one another (two-thread renders, alternating: the demo
+    # scene 1.29 s against 1.19, the baked floor 2.80 s against 2.57, the same images). With cores to spare (fewer
+    # chunks than threads) the chunks share one pool of every thread, whose work they wait on.
+    with session.threads_in_force(1 if workers >= settings.thread_count else settings.thread_count):
         try:
             results = _ordered(pool, trace, tasks, 2 * workers)
             for k, c in tasks:

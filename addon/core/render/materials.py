@@ -376,5 +376,8 @@ def resolve_all(materials, mode: str, reference_walks: int = 16, calibrate=False
         return [resolve(m, mode, reference_walks, calibrate) for m in materials]
     from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="materials") as pool:
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="materials")
+    try:
         return list(pool.map(lambda m: resolve(m, mode, reference_walks, calibrate), materials))
+    finally:  # on an error, the materials not started yet are not made
+        pool.shutdown(wait=True, cancel_futures=True)
