@@ -36,6 +36,7 @@ BSDF-sampled emission only after delta (specular) events.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -374,8 +375,6 @@ def resolve_all(materials, mode: str, reference_walks: int = 16, calibrate=False
     workers = min(max(1, int(threads)), to_make)
     if workers <= 1:
         return [resolve(m, mode, reference_walks, calibrate) for m in materials]
-    from concurrent.futures import ThreadPoolExecutor
-
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="materials")
     try:
         return list(pool.map(lambda m: resolve(m, mode, reference_walks, calibrate), materials))
