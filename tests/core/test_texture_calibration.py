@@ -262,5 +262,16 @@ def test_a_cancel_stops_a_bake_inside_a_clusters_calibration(monkeypatch, baked)
         return len(calls) > 4  # the encoding's batch, the calibration's start, then two of its steps
 
     with pytest.raises(BakeCancelled, match="calibration"):
-        bake_stack(_two_halves(), encode, cancel=cancel)
+        bake_stack(_two_halves(), encode, cancel=cancel, threads=1)  # one cluster after another
     assert len(calls) == 5 and not solved  # stopped before the first cluster was solved
+    # With the clusters calibrated side by side, each stops at its next step: none is solved.
+    calls.clear()
+    with pytest.raises(BakeCancelled, match="calibration"):
+        bake_stack(_two_halves(), encode, cancel=cancel, threads=2)
+    assert 5 <= len(calls) <= 6 and not solved
+
+
+def test_a_textures_clusters_calibrated_side_by_side_are_the_ones_a_lone_thread_makes(baked):
+    encode = neural_encoder("tiny", threads=2)
+    texts = [bake_stack(_two_halves(), encode, threads=n)[0].metadata["calibration"] for n in (1, 2)]
+    assert len(tc.TextureCalibration.from_text(texts[0]).tables) == 2 and texts[0] == texts[1]

@@ -365,7 +365,7 @@ def bake_stack(
         t = time.perf_counter()
         step(0.0)
         with threads_in_force(_thread_count(threads)):
-            calibration = calibrate_texture(rows, distinct, counts, models, step)
+            calibration = calibrate_texture(rows, distinct, counts, models, step, threads=_thread_count(threads))
         meta["calibration"] = calibration.to_text()
         stats = BakeStats(stats.texels, stats.unique, stats.seconds, time.perf_counter() - t, len(calibration.tables))
     del rows, counts

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import base64
 import json
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -138,12 +139,19 @@ class TextureCalibration:
 
 
 def calibrate_texture(
-    arrays: StackArrays, texels: np.ndarray, counts: np.ndarray, models, progress=None, seed: int = SEED
+    arrays: StackArrays,
+    texels: np.ndarray,
+    counts: np.ndarray,
+    models,
+    progress=None,
+    seed: int = SEED,
+    threads: int = 1,
 ) -> TextureCalibration:
     """The calibration of a texture's distinct texels: their stacks ``arrays`` (M rows), baked channels
     ``texels`` (M, 100: latents, proxy, top coating; ``latent_texture.CHANNEL_NAMES``) and how many texels
     each stands for (``counts``). ``progress(fraction)`` after each cluster, and between the parts of one
-    (``calibrate.calibrate``'s ``step``: a bake's cancel raises there)."""
+    (``calibrate.calibrate``'s ``step``: a bake's cancel raises there). The clusters are calibrated on up to
+    ``threads`` threads, each with its own seed, so the tables do not depend on the thread count."""
     texels = np.asarray(texels)
     counts = np.asarray(counts, dtype=np.float64)
     if len(arrays) != len(texels) or counts.shape != (len(texels),) or len(texels) == 0:
@@ -158,22 +166,34 @@ def calibrate_texture(
     k = 3 * LATENT
     z = texels[:, :k]
     centroids, labels = cluster_latents(z, counts, MAX_CLUSTERS, seed)
-    tables = []
-    for j in range(len(centroids)):  # one calibration per cluster (at most MAX_CLUSTERS), not per texel
+    n = len(centroids)
+    done = [0]  # clusters calibrated so far: what a step reports, from any thread
+
+    def table_of(j: int) -> np.ndarray:  # one calibration per cluster (at most MAX_CLUSTERS), not per texel
         members = np.flatnonzero(labels == j)
         pick = members[_stratified(counts[members], SAMPLES_PER_CLUSTER)]
-        calibration = cal.calibrate_texels(
+        return cal.calibrate_texels(
             arrays.take(pick),
             models,
             z[pick].reshape(-1, 3, LATENT),
             texels[pick, k : k + 2],
             texels[pick, k + 2 : k + 4],
             seed=seed + j,
-            step=None if progress is None else (lambda j=j: progress(j / len(centroids))),
-        )
-        tables.append(calibration.table)
-        if progress is not None:
-            progress((j + 1) / len(centroids))
+            step=None if progress is None else (lambda: progress(done[0] / n)),
+        ).table
+
+    workers = max(1, min(int(threads), n))
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="calibrate") if workers > 1 else None
+    tables = []
+    try:
+        for table in pool.map(table_of, range(n)) if pool else map(table_of, range(n)):
+            tables.append(table)
+            done[0] += 1
+            if progress is not None:
+                progress(done[0] / n)
+    finally:  # a cancelled bake (its step raised) starts no cluster more
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
     cosines = np.asarray(cal.COSINES, dtype=np.float64)
     return TextureCalibration(cosines, centroids, np.array(tables), cal.settings_key())
 
