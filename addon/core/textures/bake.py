@@ -33,9 +33,10 @@ BATCH = 65536  # texels per encoder call
 # calibrated, its levels measured) and writing its file, less the process before the bake. The bake holds its
 # texture in half floats, 267 B per texel with the mip chain, and its distinct texels in half floats besides (200 B
 # each), and half a gigabyte whatever the size (the parameter rows, the calibration's walks, the levels'
-# measurement). Measured over two runs 0.85 GB at 1024 texels a side, 1.96-1.97 GB at 2048 and 5.48-5.56 GB at 4096
-# (about 380 and 300 B a texel more: the share of distinct texels falls from 96% to 62%); a mix (``bake_mix``) took
-# as much. The check counts a margin above each, and about what a bake of every texel distinct would hold.
+# measurement). Measured over three runs 0.85-0.86 GB at 1024 texels a side, 1.96-2.12 GB at 2048 and 5.48-5.56 GB
+# at 4096 (about 380 and 300 B a texel more: the share of distinct texels falls from 96% to 62%); a mix
+# (``bake_mix``) took as much. The check counts a margin above each, and about what a bake of every texel
+# distinct would hold.
 BAKE_FIXED_BYTES = 512 << 20
 BAKE_BYTES_PER_TEXEL = 500
 GATHER_TEXELS = 1 << 16  # texels gathered into the chain at once (26 MB of float32 latents)
