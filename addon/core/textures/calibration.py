@@ -206,12 +206,16 @@ def _stratified(weights: np.ndarray, n: int) -> np.ndarray:
     return np.minimum(np.searchsorted(cum, points, side="right"), len(weights) - 1)
 
 
-def calibrate_baked(arrays: StackArrays, texels: np.ndarray, models, progress=None) -> TextureCalibration:
+def calibrate_baked(
+    arrays: StackArrays, texels: np.ndarray, models, progress=None, threads: int = 0
+) -> TextureCalibration:
     """:func:`calibrate_texture` of baked texels (N, 100) and their stacks (N rows, repeats allowed: the
-    distinct rows are found first, as the bake finds them)."""
+    distinct rows are found first, as the bake finds them), its clusters on ``threads`` threads (0: every
+    core, as a bake's)."""
     from ..rows import distinct_rows
+    from .bake import _thread_count
 
     first, inverse = distinct_rows(arrays.to_matrix(np.float32))
     counts = np.bincount(inverse, minlength=len(first)).astype(np.float64)
     distinct = np.asarray(texels).reshape(len(arrays), -1)[first]  # half floats, converted where sampled
-    return calibrate_texture(arrays.take(first), distinct, counts, models, progress)
+    return calibrate_texture(arrays.take(first), distinct, counts, models, progress, threads=_thread_count(threads))
