@@ -176,6 +176,28 @@ def test_the_viewport_calibrates_what_cached_left_out_after_its_first_image():
     assert np.array_equal(image.rgba, offline.rgba())
 
 
+def test_the_viewport_calibrates_several_stacks_side_by_side_as_an_offline_render_does():
+    """Every stack the view left uncalibrated is calibrated after its first full pass, on the render's threads;
+    each as a lone calibration makes it, so the accumulation equals the offline render's."""
+    from addon.core.neural import calibrate
+    from addon.core.render.demo_scene import demo_scene
+
+    calibrate.clear_cache()
+    scene = demo_scene(24, 14)
+    settings = RenderSettings(samples=2, max_bounces=2, seed=8, calibrate="cached", threads=2)
+    session = ProgressiveSession(settings, preview_divisor=2)
+    try:
+        session.restart(scene)
+        image = session.wait()
+        made = [m for m in session._last.materials if getattr(m, "calibration", None) is not None]
+    finally:
+        session.close()
+    assert len(made) == 5 and all(m.uncalibrated_stack is None for m in made)
+    calibrate.clear_cache()  # the offline render makes its own, one stack after another
+    offline, _ = render(scene, replace(settings, calibrate=True, threads=1))
+    assert np.array_equal(image.rgba, offline.rgba())
+
+
 def test_a_calibration_that_fails_leaves_the_view_rendering_uncalibrated(monkeypatch):
     """The viewport's calibration runs reference walks the user did not ask for: if it fails, the view goes on
     with the material uncalibrated (what it showed before the calibration existed) and keeps the failure for a
