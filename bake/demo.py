@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -30,6 +29,7 @@ if str(ROOT) not in sys.path:
 from addon.core import lobe, reference  # noqa: E402
 from addon.core.render.film import write_png  # noqa: E402
 from addon.core.stack import PRESETS  # noqa: E402
+from addon.core.threads import thread_count  # noqa: E402
 
 
 def _preset_lobes(name: str, lobe_dir: Path, res: int, walks: int, seed: int):
@@ -58,7 +58,7 @@ def preset_lobes(out: Path, res: int, walks: int, seed: int) -> list[str]:
     lobe_dir = out / "lobes"
     lobe_dir.mkdir(parents=True, exist_ok=True)
     names = list(PRESETS)
-    with ProcessPoolExecutor(max_workers=max(1, min(len(names), os.cpu_count() or 1))) as pool:
+    with ProcessPoolExecutor(max_workers=min(len(names), thread_count(0))) as pool:
         done = pool.map(_preset_lobes, names, *(itertools.repeat(v) for v in (lobe_dir, res, walks, seed)))
         for name, (a, se, dt) in zip(names, done, strict=True):
             rows.append(f"| {name} | {a[0, 0]:.4f} | {a[0, 1]:.4f} | {a[0, 2]:.4f} | {se.max():.4f} | {dt:.1f} |")

@@ -16,7 +16,6 @@ converge to the same image, which the tests check.
 
 from __future__ import annotations
 
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -27,6 +26,7 @@ import numpy as np
 from .. import kernels
 from ..neural import session
 from ..neural.calibrate import check_mode as calibrate_mode
+from ..threads import thread_count
 from . import materials as mat
 from .film import Film
 from .lights import NO_IMAGE, AreaLight
@@ -83,7 +83,7 @@ class RenderSettings:
     @property
     def thread_count(self) -> int:
         """Chunks of paths traced at once: ``threads``, or one per CPU core when it is 0."""
-        return int(self.threads) or (os.cpu_count() or 1)
+        return thread_count(self.threads)
 
 
 @dataclass

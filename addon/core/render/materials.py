@@ -36,7 +36,6 @@ BSDF-sampled emission only after delta (specular) events.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -47,6 +46,7 @@ from ..bsdf import Lambertian, RoughConductor, RoughDielectric
 from ..bsdf.base import SMOOTH_ALPHA, BSDFSample
 from ..stack import Conductor, Dielectric, Diffuse, Stack
 from ..textures.mip import build_mip_chain, trilinear_lookup
+from ..threads import map_on_threads
 from .shading import ShadeByParts, Shading, finish_sample
 
 
@@ -372,11 +372,6 @@ def resolve_all(materials, mode: str, reference_walks: int = 16, calibrate=False
     work is seeded, so the materials do not depend on the thread count."""
     materials = list(materials)
     to_make = sum(1 for m in materials if m is not None and not hasattr(m, "bind"))  # the others are as they are
-    workers = min(max(1, int(threads)), to_make)
-    if workers <= 1:
-        return [resolve(m, mode, reference_walks, calibrate) for m in materials]
-    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="materials")
-    try:
-        return list(pool.map(lambda m: resolve(m, mode, reference_walks, calibrate), materials))
-    finally:  # on an error, the materials not started yet are not made
-        pool.shutdown(wait=True, cancel_futures=True)
+    return map_on_threads(
+        lambda m: resolve(m, mode, reference_walks, calibrate), materials, threads if to_make > 1 else 1, "materials"
+    )

@@ -19,11 +19,11 @@ from __future__ import annotations
 
 import copy
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..threads import map_on_threads
 from .film import Film
 from .integrator import Cancelled, RenderSettings, render
 from .materials import resolve_all
@@ -219,16 +219,10 @@ class ProgressiveSession:
         # Side by side on the render's threads (the view waits on them), each stack seeded as alone: with the five
         # stacks of the demo scene to calibrate, the first calibrated pass came 1.70-1.80 s after the edit where it
         # came 2.10-2.17 s after it one stack at a time (320x180).
-        workers = max(1, min(self.settings.thread_count, len(pending)))
-        pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="calibrate") if workers > 1 else None
-        run = pool.map if pool is not None else map
-        try:
-            made = list(run(calibrated, [materials[i] for i in pending]))
+        try:  # after a restart, no stack not yet started is calibrated
+            made = map_on_threads(calibrated, [materials[i] for i in pending], self.settings.thread_count, "calibrate")
         except Cancelled:
             return None
-        finally:  # after a restart, no stack not yet started is calibrated
-            if pool is not None:
-                pool.shutdown(wait=True, cancel_futures=True)
         for i, material in zip(pending, made, strict=True):
             materials[i] = material
         if not pending:

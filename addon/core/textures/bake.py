@@ -20,6 +20,7 @@ import numpy as np
 from ..neural.top_lobe import top_coats
 from ..rows import distinct_rows
 from ..stack import StackArrays
+from ..threads import thread_count
 from .latent_texture import CHANNEL_NAMES, LatentTexture
 from .mip import HALF_MAX, MipChain, check_half_range
 from .spatial import SpatialStack
@@ -236,15 +237,10 @@ def bake_texels(
     return texels, stats
 
 
-def _thread_count(threads: int) -> int:
-    """The threads a bake runs its networks on: ``threads``, or every core for 0."""
-    return int(threads) or (os.cpu_count() or 1)
-
-
 def _bake_in_threads(arrays, encode, dedup, batch, progress, cancel, threads, gather=True):
     from ..neural.session import threads_in_force
 
-    n_threads = _thread_count(threads)
+    n_threads = thread_count(threads)
     workers = n_threads if getattr(encode, "concurrent", False) else 1
     with threads_in_force(n_threads):
         return _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers, gather)
@@ -365,8 +361,8 @@ def bake_stack(
 
         t = time.perf_counter()
         step(0.0)
-        with threads_in_force(_thread_count(threads)):
-            calibration = calibrate_texture(rows, distinct, counts, models, step, threads=_thread_count(threads))
+        with threads_in_force(thread_count(threads)):
+            calibration = calibrate_texture(rows, distinct, counts, models, step, threads=thread_count(threads))
         meta["calibration"] = calibration.to_text()
         stats = BakeStats(stats.texels, stats.unique, stats.seconds, time.perf_counter() - t, len(calibration.tables))
     del rows, counts
@@ -397,7 +393,7 @@ def record_filter_levels(tex: LatentTexture, models, threads: int = 0) -> None:
     from ..neural.session import threads_in_force
     from .filtering import filterable_levels
 
-    with threads_in_force(_thread_count(threads)):
+    with threads_in_force(thread_count(threads)):
         tex.metadata["filter_levels"] = filterable_levels(models, tex.levels)[0]
 
 

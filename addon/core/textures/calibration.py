@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import base64
 import json
-from concurrent.futures import ThreadPoolExecutor
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,6 +27,7 @@ import numpy as np
 from .. import kernels
 from ..neural import calibrate as cal
 from ..stack import LATENT, StackArrays
+from ..threads import map_on_threads, thread_count
 
 MAX_CLUSTERS = 8  # tables per texture: calibrations cost about a second each
 SAMPLES_PER_CLUSTER = 8  # texels of a cluster walked for its table (each with 1/8 of one calibration's walks)
@@ -167,12 +168,13 @@ def calibrate_texture(
     z = texels[:, :k]
     centroids, labels = cluster_latents(z, counts, MAX_CLUSTERS, seed)
     n = len(centroids)
-    done = [0]  # clusters calibrated so far: what a step reports, from any thread
+    done = [0]  # clusters calibrated so far: what the progress reports, from any thread
+    counting = threading.Lock()
 
     def table_of(j: int) -> np.ndarray:  # one calibration per cluster (at most MAX_CLUSTERS), not per texel
         members = np.flatnonzero(labels == j)
         pick = members[_stratified(counts[members], SAMPLES_PER_CLUSTER)]
-        return cal.calibrate_texels(
+        table = cal.calibrate_texels(
             arrays.take(pick),
             models,
             z[pick].reshape(-1, 3, LATENT),
@@ -181,19 +183,14 @@ def calibrate_texture(
             seed=seed + j,
             step=None if progress is None else (lambda: progress(done[0] / n)),
         ).table
-
-    workers = max(1, min(int(threads), n))
-    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="calibrate") if workers > 1 else None
-    tables = []
-    try:
-        for table in pool.map(table_of, range(n)) if pool else map(table_of, range(n)):
-            tables.append(table)
+        with counting:
             done[0] += 1
-            if progress is not None:
-                progress(done[0] / n)
-    finally:  # a cancelled bake (its step raised) starts no cluster more
-        if pool is not None:
-            pool.shutdown(wait=True, cancel_futures=True)
+            fraction = done[0] / n
+        if progress is not None:
+            progress(fraction)
+        return table
+
+    tables = map_on_threads(table_of, range(n), threads, "calibrate")  # a cancel (a step raising) stops the others
     cosines = np.asarray(cal.COSINES, dtype=np.float64)
     return TextureCalibration(cosines, centroids, np.array(tables), cal.settings_key())
 
@@ -213,9 +210,8 @@ def calibrate_baked(
     distinct rows are found first, as the bake finds them), its clusters on ``threads`` threads (0: every
     core, as a bake's)."""
     from ..rows import distinct_rows
-    from .bake import _thread_count
 
     first, inverse = distinct_rows(arrays.to_matrix(np.float32))
     counts = np.bincount(inverse, minlength=len(first)).astype(np.float64)
     distinct = np.asarray(texels).reshape(len(arrays), -1)[first]  # half floats, converted where sampled
-    return calibrate_texture(arrays.take(first), distinct, counts, models, progress, threads=_thread_count(threads))
+    return calibrate_texture(arrays.take(first), distinct, counts, models, progress, threads=thread_count(threads))

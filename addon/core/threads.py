@@ -1,0 +1,33 @@
+"""Independent pieces of work side by side on a few threads: a scene's materials, a texture's clusters, the
+stacks a viewport calibrates. Each piece is seeded on its own, so what they make does not depend on the thread
+count; their reference walks and decoder batches release the GIL for most of their time."""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Iterable, TypeVar
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+def thread_count(threads: int) -> int:
+    """The threads a setting means: ``threads``, or one per CPU core for 0 (the renderer's and the bakes' default,
+    and Blender's *Auto*)."""
+    return int(threads) or (os.cpu_count() or 1)
+
+
+def map_on_threads(fn: Callable[[T], R], items: Iterable[T], threads: int, name: str) -> list[R]:
+    """``[fn(x) for x in items]``, in order, on up to ``threads`` threads (named ``name``; inline with one thread or
+    one item). The first error is raised once the pieces running have ended, and the pieces not started are not
+    run (a cancel or a restart raised by one of them stops the rest at their next step)."""
+    items = list(items)
+    workers = max(1, min(int(threads), len(items)))
+    if workers == 1:
+        return [fn(x) for x in items]
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix=name)
+    try:
+        return list(pool.map(fn, items))
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
