@@ -366,10 +366,10 @@ def resolve(material, mode: str, reference_walks: int = 16, calibrate=False):
 
 def resolve_all(materials, mode: str, reference_walks: int = 16, calibrate=False, threads: int = 1) -> list:
     """:func:`resolve` of each of ``materials``, in order, on up to ``threads`` threads: a scene's layered stacks
-    are encoded and calibrated side by side (a calibration's reference walks and decoder batches release the
-    GIL). On two cores the demo scene's first render, its five stacks to calibrate, spent 1.53-1.70 s before its
-    first path where it spent 1.94-1.97 s one stack at a time (fresh processes, alternating). Each material's own
-    work is seeded, so the materials do not depend on the thread count."""
+    are encoded and calibrated side by side (``threads.map_on_threads``: their decoder batches release the GIL,
+    their walks in part). On two cores the demo scene's first render, its five stacks to calibrate, spent
+    1.53-1.70 s before its first path where it spent 1.94-1.97 s one stack at a time (fresh processes,
+    alternating). Each material's own work is seeded, so the materials do not depend on the thread count."""
     materials = list(materials)
     to_make = sum(1 for m in materials if m is not None and not hasattr(m, "bind"))  # the others are as they are
     return map_on_threads(
