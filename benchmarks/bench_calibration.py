@@ -29,79 +29,47 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from addon.core.neural import calibrate as cal  # noqa: E402
-from addon.core.neural import encode_stack, load_models, top_coat  # noqa: E402
+from addon.core.neural import encode_stack, load_models  # noqa: E402
 from addon.core.stack import PRESETS  # noqa: E402
 from onnx_export.heldout_grazing import GRAZING_ANGLES_DEG, grazing_ratios, load  # noqa: E402
 
 GRAZING = ROOT / "tests" / "data" / "heldout_grazing.npz"
 
 
-def grazing_row(size: str, calibrate: bool) -> dict:
+def grazing_rows(size: str, calibrate: bool) -> tuple[dict, dict]:
+    """``tests/training/test_grazing.py``'s figures for one size, decoder alone or calibrated: on the lobe grid
+    (median albedo ratio per coating count at 75 and 85 degrees, the largest albedo and f cos ratios at
+    80-89.5 degrees), and for the directional albedo integrated in full (the decoded lobe by importance
+    sampling, the stored analog-walk reference: medians per coating count, the largest ratio at 75 / 85
+    degrees and at 80-89.5 degrees)."""
     r = grazing_ratios(load_models(size), load(GRAZING), calibrate=calibrate)
-    near = r["angles"] >= 80
-    row = {"albedo_max": float(r["albedo"][:, near].max()), "fcos_max": float(r["fcos"][:, near].max())}
+    a = r["angles"]
+    near = a >= 80
+    grid = {"albedo_max": float(r["albedo"][:, near].max()), "fcos_max": float(r["fcos"][:, near].max())}
+    full = {
+        "max": float(r["albedo_full"][:, (a == 75.0) | (a == 85.0)].max()),
+        "max_grazing": float(r["albedo_full"][:, near].max()),
+    }
     for t in (75.0, 85.0):
-        k = list(r["angles"]).index(t)
+        k = list(a).index(t)
         for c in np.unique(r["n_coatings"]):
-            row[f"median_{t:g}_{int(c)}"] = float(np.median(r["albedo"][r["n_coatings"] == c, k]))
-    row["coatings"] = [int(c) for c in np.unique(r["n_coatings"])]
-    return row
+            grid[f"median_{t:g}_{int(c)}"] = float(np.median(r["albedo"][r["n_coatings"] == c, k]))
+            full[f"median_{t:g}_{int(c)}"] = float(np.median(r["albedo_full"][r["n_coatings"] == c, k]))
+    grid["coatings"] = [int(c) for c in np.unique(r["n_coatings"])]
+    return grid, full
 
 
-def true_albedo_rows(size: str, angles=GRAZING_ANGLES_DEG, walks: int = 32768) -> dict:
-    """Directional albedo, decoded (with and without calibration) / reference, at ``angles`` for the
-    held-out grazing stacks, integrated in full (not on a lobe grid): the decoded lobe by importance
-    sampling (other random numbers than the calibration's), the reference by analog walks with other
-    seeds than the calibration's. Medians per coating count at 75 and 85 degrees, and the largest ratio over
-    all stacks at 75 / 85 degrees (``max``) and at 80-89.5 degrees (``max_grazing``)."""
-    from addon.core import reference
-
-    models = load_models(size)
-    data = load(GRAZING)
-    cosines = np.cos(np.radians(angles))
-    ratios = {False: [], True: []}
-    for k, stack in enumerate(data["stacks"]):
-        z = encode_stack(stack, models)
-        proxy = models.proxy_params(z)[0]
-        c = cal.calibrate(stack, models, z, proxy)
-        ref, _ = reference.albedo(stack, cal.grid_directions(cosines), samples=walks, seed=1000 + k)
-        for flag in (False, True):
-            dec = cal.decoded_albedo(
-                models, z, *proxy, cosines, calibration=c if flag else None, seed=77, top=top_coat(stack)
-            )
-            ratios[flag].append(dec.mean(-1) / np.maximum(ref.mean(-1), 1e-12))
-    n_coat = np.asarray(data["n_coatings"])
-    out = {}
-    for flag, rows in ratios.items():
-        r = np.array(rows)
-        a = np.asarray(angles)
-        out[flag] = {
-            f"median_{t:g}_{int(cc)}": float(np.median(r[n_coat == cc, i]))
-            for i, t in enumerate(angles)
-            for cc in np.unique(n_coat)
-        }
-        out[flag]["max"] = float(r[:, (a == 75.0) | (a == 85.0)].max())
-        out[flag]["max_grazing"] = float(r[:, a >= 80.0].max())
-    return out
-
-
-def grid_coverage(angles=(75.0, 85.0), walks: int = 32768) -> list[str]:
+def grid_coverage(angles=(75.0, 85.0)) -> list[str]:
     """What the held-out grazing set's 16 x 16 lobe grid holds of each reference lobe: the reference's own grid
-    albedo (the stored sum of its lobe image) / its directional albedo from analog walks, per coating count at
-    ``angles``: medians and ranges. Where a sharp grazing lobe falls between grid points, the grid holds a fraction
-    of its energy, and a network / reference ratio on the grid measures the lobes at those points only."""
-    from addon.core import reference
-
+    albedo (the stored sum of its lobe image) / its directional albedo from analog walks (stored too), per
+    coating count at ``angles``: medians and ranges. Where a sharp grazing lobe falls between grid points, the
+    grid holds a fraction of its energy, and a network / reference ratio on the grid measures the lobes at those
+    points only."""
     data = load(GRAZING)
     k = [list(data["angles"]).index(t) for t in angles]
-    wo = cal.grid_directions(np.cos(np.radians(angles)))
-    analog = np.array(
-        [
-            reference.albedo(stack, wo, samples=walks, seed=2000 + i)[0].mean(-1)
-            for i, stack in enumerate(data["stacks"])
-        ]
+    ratio = np.asarray(data["albedo"], dtype=np.float64)[:, k].mean(-1) / np.maximum(
+        np.asarray(data["albedo_full"], dtype=np.float64)[:, k].mean(-1), 1e-12
     )
-    ratio = np.asarray(data["albedo"], dtype=np.float64)[:, k].mean(-1) / np.maximum(analog, 1e-12)
     n_coat = np.asarray(data["n_coatings"])
     head = " | ".join(f"{t:g} deg, {c} coat." for t in angles for c in np.unique(n_coat))
     cells = " | ".join(
@@ -114,7 +82,7 @@ def grid_coverage(angles=(75.0, 85.0), walks: int = 32768) -> list[str]:
         "",
         "The held-out grazing set's albedo is the sum of a 16 x 16 lobe image (uniform on the projected disk, "
         "`onnx_export.heldout_grazing`). Its reference albedo on that grid / the same stacks' directional albedo "
-        f"from analog walks ({walks:,} per angle, integrated in full), median (range) per coating count:",
+        "from analog walks (the set's `albedo_full`, integrated in full), median (range) per coating count:",
         "",
         f"| | {head} |",
         "|---|" + "---|" * (len(angles) * len(np.unique(n_coat))),
@@ -244,16 +212,16 @@ def main(argv=None) -> int:
         "",
     ]
     for size in a.sizes:
-        rows = {flag: grazing_row(size, flag) for flag in (False, True)}
+        measured = {flag: grazing_rows(size, flag) for flag in (False, True)}
+        rows, true = {f: m[0] for f, m in measured.items()}, {f: m[1] for f, m in measured.items()}
         coats = rows[False]["coatings"]
         lines += [f"### {size}", ""]
         lines += ratio_table(rows, coats, ["largest albedo ratio", "largest f cos ratio"], ["albedo_max", "fcos_max"])
-        true = true_albedo_rows(size)
         lines += [
             "",
-            "Directional albedo integrated in full (importance-sampled decoded lobe, analog-walk reference with "
-            "other seeds than the calibration's; not the 16 x 16 lobe grid above, which samples sharp grazing "
-            f"lobes at a few points), {size}, median decoded / reference, and the largest ratio over all 32 "
+            "Directional albedo integrated in full (importance-sampled decoded lobe; the set's analog-walk "
+            "reference, other seeds than the calibration's; not the 16 x 16 lobe grid above, which samples sharp "
+            f"grazing lobes at a few points), {size}, median decoded / reference, and the largest ratio over all 32 "
             f"stacks (at {', '.join(f'{t:g}' for t in GRAZING_ANGLES_DEG)} degrees):",
             "",
             *ratio_table(

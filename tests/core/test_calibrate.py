@@ -219,14 +219,16 @@ def test_previews_use_the_calibration_a_render_made_and_make_none_themselves():
 
 def test_calibrated_albedo_of_held_out_stacks_is_within_five_percent_near_grazing():
     """The issue's albedo target at 75 and 85 degrees (median within 5%, no stack over 2x) on held-out
-    stacks the calibration never saw, with independent reference walks and decoded samples (every
-    fourth stack of tests/data/heldout_grazing.npz: one to four coatings)."""
+    stacks the calibration never saw, with independent reference walks (the set's directional albedo from
+    analog walks of other seeds) and decoded samples (every fourth stack of tests/data/heldout_grazing.npz: one
+    to four coatings)."""
     from pathlib import Path
 
     from addon.core.stack import Stack
 
     data = np.load(Path(__file__).resolve().parents[1] / "data" / "heldout_grazing.npz")
     stacks = [Stack.from_json(str(s)) for s in data["stacks"]][::4]
+    angles = [list(data["angles"]).index(t) for t in (75.0, 85.0)]
     models = load_models("tiny")
     cosines = np.cos(np.radians([75.0, 85.0]))
     before, after = [], []
@@ -234,7 +236,7 @@ def test_calibrated_albedo_of_held_out_stacks_is_within_five_percent_near_grazin
         z = encode_stack(stack, models)
         proxy = models.proxy_params(z)[0]
         c = cal.calibrate(stack, models, z, proxy)
-        ref, _ = reference.albedo(stack, cal.grid_directions(cosines), samples=16384, seed=500 + k)
+        ref = np.asarray(data["albedo_full"][4 * k, angles], dtype=np.float64)
         for out, calib in ((before, None), (after, c)):
             dec = cal.decoded_albedo(
                 models, z, *proxy, cosines, calibration=calib, samples=8192, seed=9, top=top_coat(stack)
