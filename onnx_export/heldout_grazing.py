@@ -100,7 +100,6 @@ class Materials:
     """The runtime path's materials of held-out stacks: latents ``z`` (C, 3, 32), top coats ``top`` (C, 2),
     the sampling proxy's (sigma, w) per stack, and each stack's albedo calibration (None: decoder alone)."""
 
-    stacks: list
     z: np.ndarray
     top: np.ndarray
     proxies: list
@@ -130,7 +129,7 @@ def materials(models, stacks: list[Stack], calibrate: bool = False) -> Materials
 
         proxies = [proxy_guess(s) for s in stacks]
     calibrations = [cal.calibrate(s, models, z[k], proxies[k]) if calibrate else None for k, s in enumerate(stacks)]
-    return Materials(list(stacks), z, top, proxies, calibrations)
+    return Materials(z, top, proxies, calibrations)
 
 
 def network_grazing(
