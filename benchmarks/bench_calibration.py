@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 from addon.core.neural import calibrate as cal  # noqa: E402
 from addon.core.neural import encode_stack, load_models  # noqa: E402
 from addon.core.stack import PRESETS  # noqa: E402
-from onnx_export.heldout_grazing import GRAZING_ANGLES_DEG, grazing_ratios, load  # noqa: E402
+from onnx_export.heldout_grazing import GRAZING_ANGLES_DEG, grazing_ratios, load, medians_by_coatings  # noqa: E402
 
 GRAZING = ROOT / "tests" / "data" / "heldout_grazing.npz"
 
@@ -50,11 +50,8 @@ def grazing_rows(size: str, calibrate: bool) -> tuple[dict, dict]:
         "max": float(r["albedo_full"][:, (a == 75.0) | (a == 85.0)].max()),
         "max_grazing": float(r["albedo_full"][:, near].max()),
     }
-    for t in (75.0, 85.0):
-        k = list(a).index(t)
-        for c in np.unique(r["n_coatings"]):
-            grid[f"median_{t:g}_{int(c)}"] = float(np.median(r["albedo"][r["n_coatings"] == c, k]))
-            full[f"median_{t:g}_{int(c)}"] = float(np.median(r["albedo_full"][r["n_coatings"] == c, k]))
+    for row, key in ((grid, "albedo"), (full, "albedo_full")):
+        row.update({f"median_{t:g}_{c}": m for (t, c), m in medians_by_coatings(r, key).items()})
     grid["coatings"] = [int(c) for c in np.unique(r["n_coatings"])]
     return grid, full
 

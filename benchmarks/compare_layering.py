@@ -35,7 +35,7 @@ import torch  # noqa: E402
 from addon.core.neural import MODEL_DIR  # noqa: E402
 from addon.core.neural.models import ModelSet  # noqa: E402
 from onnx_export import layering  # noqa: E402
-from onnx_export.heldout_grazing import grazing_ratios  # noqa: E402
+from onnx_export.heldout_grazing import grazing_ratios, medians_by_coatings  # noqa: E402
 from onnx_export.heldout_grazing import load as load_grazing  # noqa: E402
 from onnx_export.heldout_layered import load as load_heldout  # noqa: E402
 
@@ -77,19 +77,15 @@ def grazing_figures(size: str, model_dir: Path) -> tuple[float, ...]:
     r = grazing_ratios(ModelSet(size, 1, model_dir), load_grazing(GRAZING))
     near = r["angles"] >= 80
 
-    def largest_bias(ratio):
-        return max(
-            abs(float(np.median(ratio[r["n_coatings"] == c, list(r["angles"]).index(t)])) - 1.0)
-            for t in (75.0, 85.0)
-            for c in np.unique(r["n_coatings"])
-        )
+    def largest_bias(key):
+        return max(abs(m - 1.0) for m in medians_by_coatings(r, key).values())
 
     return (
         float(r["albedo"][:, near].max()),
         float(r["fcos"][:, near].max()),
-        largest_bias(r["albedo"]),
+        largest_bias("albedo"),
         float(r["albedo_full"][:, near].max()),
-        largest_bias(r["albedo_full"]),
+        largest_bias("albedo_full"),
     )
 
 

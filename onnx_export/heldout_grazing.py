@@ -207,6 +207,17 @@ def ratios_to_reference(data: dict, alb: np.ndarray, fcos: np.ndarray, full: np.
     return out
 
 
+BIAS_ANGLES_DEG = (75.0, 85.0)  # the incident elevations of the issue's median albedo bias
+
+
+def medians_by_coatings(ratios: dict, key: str = "albedo", angles=BIAS_ANGLES_DEG) -> dict:
+    """The median of ``ratios[key]`` ((C, A) network / reference, from :func:`ratios_to_reference`) over the
+    stacks of each coating count at each of ``angles``: {(angle, coatings): median}."""
+    col = {t: list(ratios["angles"]).index(t) for t in angles}
+    n_coat = np.asarray(ratios["n_coatings"])
+    return {(t, int(c)): float(np.median(ratios[key][n_coat == c, col[t]])) for t in angles for c in np.unique(n_coat)}
+
+
 def load(path) -> dict:
     d = dict(np.load(path, allow_pickle=False))
     d["stacks"] = [Stack.from_json(str(s)) for s in d["stacks"]]

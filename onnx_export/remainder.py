@@ -127,14 +127,12 @@ def torch_path_brdfs(
 def grazing_summary(ratios: dict) -> dict:
     """The issue's grazing figures of ``heldout_grazing.ratios_to_reference``: the largest albedo and
     f cos ratios at 80-89.5 degrees, and the median albedo ratio at 75 and 85 degrees per coating count."""
-    ang = list(ratios["angles"])
+    from onnx_export.heldout_grazing import medians_by_coatings
+
     near = ratios["angles"] >= 80
     out = {"albedo_max": float(ratios["albedo"][:, near].max()), "fcos_max": float(ratios["fcos"][:, near].max())}
-    for t in (75.0, 85.0):
-        for c in np.unique(ratios["n_coatings"]):
-            out[f"albedo_median_{t:g}deg_{int(c)}coat"] = float(
-                np.median(ratios["albedo"][ratios["n_coatings"] == c, ang.index(t)])
-            )
+    for (t, c), m in medians_by_coatings(ratios).items():
+        out[f"albedo_median_{t:g}deg_{c}coat"] = m
     return out
 
 
