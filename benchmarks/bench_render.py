@@ -152,6 +152,22 @@ def mse(a, b):
     return float(((a - b) ** 2).mean())
 
 
+# render_speed.md: what follows this line is written by hand (what changed and why), kept when the
+# tables above it are measured again.
+NOTES_MARKER = "<!-- Written by hand below: bench_render.py --speed-only keeps it when it rewrites the tables. -->"
+
+
+def write_keeping_notes(path: Path, tables: str) -> None:
+    """Write ``tables`` to ``path`` and, below :data:`NOTES_MARKER`, what the file held below it (the
+    hand-written notes). A file that has text but no marker is refused: its notes would be lost."""
+    notes = ""
+    if path.exists():
+        before, marker, notes = path.read_text().partition(NOTES_MARKER)
+        if not marker and before.strip():
+            raise SystemExit(f"{path} has no line {NOTES_MARKER!r}: add it above its hand-written notes first")
+    path.write_text(tables.rstrip("\n") + "\n\n" + NOTES_MARKER + (notes or "\n"))
+
+
 # Each loop's rows: its first argument of these names (hits, rays, paths), for the ns-per-row column.
 BATCH_ARGUMENTS = ("hit", "hits", "p", "o", "wo", "row", "keep", "px", "uv")
 
@@ -280,6 +296,94 @@ def baked_floor(width: int, height: int, samples: int, bounces: int, repeats: in
             f"{med(lambda st: st.rest)} | {100 * statistics.median(st.rest / st.seconds['total'] for st in sts):.0f}% |"
         )
     return lines + [""]
+
+
+def _stdout_of(fn):
+    """``fn()``'s return value and what it printed to the process's standard output at the C level (Cycles
+    prints its statistics with the C library, past ``sys.stdout``)."""
+    import ctypes
+
+    libc = ctypes.CDLL(None)
+    sys.stdout.flush()
+    libc.fflush(None)
+    saved = os.dup(1)
+    with tempfile.TemporaryFile() as f:
+        os.dup2(f.fileno(), 1)
+        try:
+            result = fn()
+        finally:
+            libc.fflush(None)
+            os.dup2(saved, 1)
+            os.close(saved)
+        f.seek(0)
+        return result, f.read().decode(errors="replace")
+
+
+def cycles_kernel_times(text: str) -> list[tuple[int, str, float]]:
+    """The kernel statistics Cycles prints after a profiled render (``--cycles-print-stats``): (depth, name,
+    seconds of all its threads, children included) per line, depth 0 for the total, in order."""
+    import re
+
+    rows = []
+    inside = False
+    for line in text.splitlines():
+        if line.strip() == "Kernel statistics:":
+            inside = True
+            continue
+        m = re.match(r"^( +)(\S.*?)\s*: Total\s+[\d.]+% \(([\d.]+)s\)", line) if inside else None
+        if m is None:
+            if inside and rows:
+                break
+            continue
+        rows.append(((len(m.group(1)) - 2) // 2, m.group(2), float(m.group(3))))
+    return rows
+
+
+def cycles_split(width: int, height: int, samples: int, bounces: int) -> list[str]:
+    """Where Cycles' own time goes on the same scene: one more Cycles render with its profiler on (the
+    statistics Blender prints with ``--cycles-print-stats``; ``_cycles.enable_print_stats`` from the Python
+    module), beside ours (every core) just before it: the share of ray intersection in each renderer. The
+    profiler stays on for the rest of the process, so this runs after every timed Cycles render."""
+    import bpy  # noqa: I001 (bpy first: it puts Cycles' module on the path)
+    import _cycles
+
+    scene = demo_scene(width, height)
+    ours(scene, 1, 1, "neural")  # warm-up, as for the timed renders
+    _, st = ours(scene, samples, bounces, "neural")
+    _cycles.enable_print_stats()
+    with tempfile.TemporaryDirectory() as tmp:
+        bs = build_blender_scene(bpy, scene)
+        (_, seconds), text = _stdout_of(lambda: render_cycles(bpy, bs, width, height, samples, bounces, Path(tmp)))
+    rows = cycles_kernel_times(text)
+    if not rows or rows[0][0] != 0:
+        raise RuntimeError("Cycles printed no kernel statistics (its profiler did not run)")
+    total = rows[0][2]
+    if total <= 0:
+        raise RuntimeError(f"Cycles' profiler counted no time in a {width}x{height} render: make it longer")
+    top = [(name, sec) for depth, name, sec in rows if depth == 1 and sec > 0]
+    rays = sum(sec for name, sec in top if name.startswith("Intersect"))
+    s = st.seconds
+    lines = [
+        f"## Where Cycles' own time goes ({width}x{height}, {samples} spp, {bounces} bounces, every core)",
+        "",
+        "One more Cycles render of the same scene with its profiler on (the kernel statistics of "
+        "`--cycles-print-stats`: thread time sampled per kernel, profiling overhead included, so its wall time "
+        f"({seconds:.2f} s) is not compared above), and one of ours just before it, {s['total']:.2f} s.",
+        "",
+        "| Cycles kernel | seconds of all threads | share |",
+        "|---|---|---|",
+        *(f"| {name} | {sec:.2f} | {100 * sec / total:.1f}% |" for name, sec in top),
+        f"| all | {total:.2f} | 100% |",
+        "",
+        f"Ray intersection is **{100 * rays / total:.0f}%** of Cycles' time on this scene; the rest is shading, "
+        "light sampling and setup. Ours in the render before it: rays "
+        f"{100 * s['rays'] / s['total']:.0f}%, networks {100 * s['network'] / s['total']:.0f}%, the rest "
+        f"{100 * st.rest / s['total']:.0f}%; in seconds of all threads, our rays took "
+        f"{st.thread_phases['rays']:.2f} s where Cycles' intersection "
+        f"took {rays:.2f} s.",
+        "",
+    ]
+    return lines
 
 
 def viewport_latency(repeats: int, size=(320, 180)) -> list[str]:
@@ -522,6 +626,7 @@ def speed_only(args, command: str) -> int:
     sections += viewport_latency(args.repeats)
     sections += viewport_drag(args.repeats)
     sections += viewport_edit_during_calibration(args.repeats)
+    sections += cycles_split(*first_size, args.samples, args.bounces)  # last: the profiler stays on
     text = [
         "# Renderer speed: demo scene, ours vs Blender Cycles, alternating",
         "",
@@ -541,7 +646,7 @@ def speed_only(args, command: str) -> int:
         "",
         *sections,
     ]
-    (args.out / "render_speed.md").write_text("\n".join(text))
+    write_keeping_notes(args.out / "render_speed.md", "\n".join(text))
     print(f"Wrote {args.out / 'render_speed.md'}")
     return 0
 
