@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -132,8 +133,9 @@ def test_the_alias_table_gives_each_index_its_probability(weights):
 
 def test_environment_samples_fall_in_each_pixel_as_often_as_its_probability_and_uniformly_inside_it():
     """The sky's importance sampling through the alias table: pixel frequencies match ``pixel_p``
-    (chi-square), and the one uniform that picks the cell also places the direction across the pixel
-    uniformly (the rescaled remainder on either side of the cell's threshold)."""
+    (chi-square), the one uniform that picks the cell also places the direction across the pixel
+    uniformly (the rescaled remainder on either side of the cell's threshold), and the other places it
+    down the pixel evenly in z, so that the density is one number per pixel."""
     from scipy import stats
 
     from addon.core.render.lights import Environment, direction_to_equirect
@@ -153,6 +155,70 @@ def test_environment_samples_fall_in_each_pixel_as_often_as_its_probability_and_
     assert stats.chisquare(counts[seen], n * env.pixel_p[seen] / env.pixel_p[seen].sum()).pvalue > 1e-3
     across = uv[:, 0] * 16 - np.floor(uv[:, 0] * 16)  # the position across each pixel
     assert stats.kstest(across, "uniform").pvalue > 1e-3
+    # down each pixel evenly in z (so in solid angle), with one density per pixel
+    z_top, z_bottom = np.cos(y * np.pi / 8), np.cos((y + 1) * np.pi / 8)
+    assert stats.kstest((z_top - ls.wi[:, 2]) / (z_top - z_bottom), "uniform").pvalue > 1e-3
+    solid = 2 * np.pi / 16 * (z_top - z_bottom)
+    np.testing.assert_allclose(ls.pdf, env.pixel_p[y * 16 + x] / solid, rtol=1e-9)
+
+
+@pytest.mark.parametrize("shape", [(64, 128), (8, 16), (3, 5), (2, 1), (1, 1), (256, 512)])
+def test_the_sky_lookup_finds_the_pixel_of_blenders_mapping_without_its_arc_tangents(shape):
+    """``kernels._env_pixel`` (table guesses settled by comparisons with the pixels' edges) gives the pixel that
+    ``direction_to_equirect`` and a floor give, for any direction not within rounding of an edge, at any image
+    size; and a direction drawn inside a pixel is looked up in that pixel, with the density it was drawn with."""
+    from addon.core.render.lights import Environment, direction_to_equirect
+
+    h, w = shape
+    rng = np.random.default_rng(h * 1000 + w)
+    image = rng.random((h, w, 3)) + np.arange(h * w).reshape(h, w, 1)  # every pixel a distinct radiance
+    env = Environment(image=image)
+    d = rng.normal(size=(100_000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    uv = direction_to_equirect(d)
+    fx, fy = uv[:, 0] * w, (1.0 - uv[:, 1]) * h
+    x, y = np.minimum(fx.astype(int), w - 1), np.minimum(fy.astype(int), h - 1)
+    clear = (np.abs(fx - np.round(fx)) > 1e-9) & (np.abs(fy - np.round(fy)) > 1e-9)
+    rad, pdf = env.radiance_and_pdf(d)
+    np.testing.assert_array_equal(rad[clear], env.image[y[clear], x[clear]])
+    np.testing.assert_array_equal(pdf[clear], env.pixel_pdf[y[clear] * w + x[clear]])
+    ls = env.sample(np.zeros((50_000, 3)), rng.random((50_000, 2)))
+    np.testing.assert_array_equal(env.pdf(ls.wi), ls.pdf)
+    np.testing.assert_array_equal(env.radiance(ls.wi), ls.radiance)
+
+
+def test_a_sky_of_one_colour_is_sampled_evenly_over_the_sphere():
+    """A constant environment is the image of one pixel: uniform directions, density 1 / (4 pi) everywhere."""
+    from scipy import stats
+
+    from addon.core.render.lights import Environment
+
+    env = Environment(color=(0.2, 0.3, 0.4), strength=2.0)
+    rng = np.random.default_rng(4)
+    ls = env.sample(np.zeros((100_000, 3)), rng.random((100_000, 2)))
+    np.testing.assert_allclose(np.linalg.norm(ls.wi, axis=1), 1.0, atol=1e-12)
+    assert stats.kstest(ls.wi[:, 2], "uniform", args=(-1, 2)).pvalue > 1e-3  # Archimedes: z is uniform
+    assert stats.kstest(np.arctan2(ls.wi[:, 1], ls.wi[:, 0]), "uniform", args=(-np.pi, 2 * np.pi)).pvalue > 1e-3
+    np.testing.assert_allclose(ls.pdf, 1 / (4 * np.pi), rtol=1e-12)
+    np.testing.assert_allclose(ls.radiance, np.tile([0.4, 0.6, 0.8], (len(ls.pdf), 1)), rtol=1e-12)
+    rad, pdf = env.radiance_and_pdf(rng.normal(size=(1000, 3)) * 3.0)  # any length: the lookup normalises
+    np.testing.assert_allclose(pdf, 1 / (4 * np.pi), rtol=1e-12)
+    np.testing.assert_allclose(rad, np.tile([0.4, 0.6, 0.8], (1000, 1)), rtol=1e-12)
+
+
+def test_pseudo_angle_grows_with_the_angle_as_atan2_does():
+    @kernels.njit
+    def pseudo(x, y):
+        out = np.empty(len(x))
+        for i in range(len(x)):
+            out[i] = kernels._pseudo_angle(x[i], y[i])
+        return out
+
+    angle = np.sort(np.random.default_rng(2).random(10_000) * 2 * np.pi)
+    p = pseudo(np.cos(angle), np.sin(angle))
+    assert ((p >= 0) & (p < 4)).all() and (np.diff(p) > 0).all()
+    np.testing.assert_allclose(pseudo(np.array([1.0, 0.0, -1.0, 0.0]), np.array([0.0, 1.0, 0.0, -1.0])), [0, 1, 2, 3])
+    assert pseudo(np.array([0.0, np.nan]), np.array([0.0, 1.0]))[0] == 0.0
 
 
 def test_the_shading_frame_at_a_hit_is_the_bsdf_package_basis_and_wo_the_ray_back_in_it():

@@ -254,9 +254,6 @@ class _Context:
         self.nee_params = np.array([r for _, r in rows]).reshape(len(rows), kernels.N_PARAMS)
         self.area_params = np.array([li.table_row()[1] for li in self.area]).reshape(len(self.area), kernels.N_PARAMS)
         self.area_ellipse = np.array([li.ellipse for li in self.area], dtype=np.bool_)
-        self.env_kind, self.env_params = (
-            self.env.table_row() if self.env is not None else (-1, np.zeros(kernels.N_PARAMS))
-        )
         self.env_arrays = self.env.image_arrays() if self.env is not None else NO_IMAGE
         self.strategy_code = STRATEGIES.index(settings.strategy)
         m = scene.mesh
@@ -460,11 +457,10 @@ def _camera_paths(ctx: _Context, pix: np.ndarray, rng: np.random.Generator) -> _
 def _add_emission(ctx: _Context, paths: _Paths, t: np.ndarray, L: np.ndarray) -> None:
     """Emission the rays reach: area lights in front of the first surface (distance ``t``), the sky
     where they escape (t = inf), weighted against next-event estimation by how each ray was sampled."""
-    if len(ctx.area_params) == 0 and ctx.env_kind < 0:
+    if len(ctx.area_params) == 0 and ctx.env is None:
         return
-    image, pixel_p = ctx.env_arrays[:2]
     kernels.add_emission(
-        ctx.area_params, ctx.area_ellipse, ctx.env_kind, ctx.env_params, image, pixel_p,
+        ctx.area_params, ctx.area_ellipse, ctx.env is not None, ctx.env_arrays,
         ctx.strategy_code, ctx.p_select,
         paths.o, paths.d, t, paths.row, paths.throughput, paths.pdf, paths.delta, paths.mis, L,
     )  # fmt: skip
@@ -491,10 +487,8 @@ def _sample_lights(ctx: _Context, hits: _Hits, u_light: np.ndarray, stats: Rende
         return _LightSamples(
             np.zeros((m, 3)), np.zeros((m, 3)), np.ones(m), np.zeros(m, dtype=bool), np.zeros(m, dtype=bool)
         )
-    image, pixel_p, alias_p, alias_i = ctx.env_arrays
     wi, rad, pdf, delta, visible, rows, org, d, tmax = kernels.sample_lights(
-        ctx.nee_kinds, ctx.nee_params, image, pixel_p, alias_p, alias_i, hits.p, hits.ng, hits.ts, hits.tt, hits.ns,
-        u_light, ctx.eps,
+        ctx.nee_kinds, ctx.nee_params, ctx.env_arrays, hits.p, hits.ng, hits.ts, hits.tt, hits.ns, u_light, ctx.eps,
     )  # fmt: skip
     visible[rows[ctx.tracer.occluded(org, d, tmax, stats)]] = False
     return _LightSamples(wi, rad, pdf, delta, visible)

@@ -25,8 +25,20 @@ from .. import kernels
 from ..kernels import N_PARAMS
 
 INF = np.inf
-# The environment arrays of a light table without an image (the kernels' argument types stay fixed).
-NO_IMAGE = (np.zeros((1, 1, 3)), np.ones(1), np.ones(1), np.zeros(1, dtype=np.int64))
+# The environment arrays the kernels take for lights other than the environment, and for a scene without one
+# (``Environment.image_arrays``' types, so that the kernels compile once): placeholders the loops never read.
+NO_IMAGE = (
+    np.zeros((1, 1, 3)),
+    np.ones(1),
+    np.ones(1),
+    np.zeros(1, dtype=np.int64),
+    np.array([1.0, -1.0]),
+    np.zeros(1, dtype=np.int64),
+    np.array([[-1.0, 0.0], [-1.0, 0.0]]),
+    np.zeros(1, dtype=np.int64),
+)
+# Bins of the lookup's first guesses (``kernels._env_pixel``) per image row and per image column.
+GUESS_BINS = 16
 
 
 @dataclass
@@ -200,6 +212,28 @@ class AreaLight:
         return float(self.power * self.color.mean())
 
 
+def _pixel_guesses(z_edges: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The tables ``kernels._env_pixel`` guesses from: the row at the middle of each of ``GUESS_BINS`` * H even
+    bins of z (from +1 down), the columns' W + 1 edge directions (x, y) and the column at the middle of each of
+    ``GUESS_BINS`` * W even bins of ``kernels._pseudo_angle``. A guess only starts the comparisons with the
+    edges, which decide."""
+    h = len(z_edges) - 1
+    nz = GUESS_BINS * h
+    z = 1.0 - 2.0 * (np.arange(nz) + 0.5) / nz
+    row_of_bin = np.clip(np.searchsorted(-z_edges, -z, side="left") - 1, 0, h - 1).astype(np.int64)
+    u = np.arange(w + 1) / w
+    edges = np.ascontiguousarray(kernels.equirect_direction(np.stack([u, np.full(w + 1, 0.5)], axis=1))[:, :2])
+    na = GUESS_BINS * w
+    a = 4.0 * (np.arange(na) + 0.5) / na  # the diamond's point at each bin's middle, quadrant by quadrant
+    q = np.floor(a)
+    f = a - q
+    x = np.select([q == 0, q == 1, q == 2], [1.0 - f, -f, f - 1.0], f)
+    y = np.select([q == 0, q == 1, q == 2], [f, 1.0 - f, -f], f - 1.0)
+    col = kernels.equirect_uv(np.stack([x, y, np.zeros(na)], axis=1))[:, 0]
+    column_of_bin = np.clip((col * w).astype(np.int64), 0, w - 1)
+    return row_of_bin, edges, column_of_bin
+
+
 def direction_to_equirect(d: np.ndarray) -> np.ndarray:
     """Blender's equirectangular mapping: world direction -> (u, v) in [0, 1]^2, v = 1 at +z."""
     return kernels.equirect_uv(_rows(d))
@@ -220,11 +254,11 @@ def _rows(a, columns: int = 3) -> np.ndarray:
 def _sample(light, p: np.ndarray, u: np.ndarray) -> LightSample:
     """``light.sample``: the light table's sampling loop on this one light."""
     kind, row = light.table_row()
-    image, pixel_p, alias_p, alias_i = light.image_arrays() if isinstance(light, Environment) else NO_IMAGE
+    env = light.image_arrays() if isinstance(light, Environment) else NO_IMAGE
     p, u = _rows(p), _rows(u, 2)
     if len(u) != len(p):
         raise ValueError(f"one pair of uniforms per point: got {len(u)} for {len(p)}")
-    wi, dist, rad, pdf = kernels.sample_light(kind, row, image, pixel_p, alias_p, alias_i, p, u)
+    wi, dist, rad, pdf = kernels.sample_light(kind, row, env, p, u)
     return LightSample(wi, dist, rad, pdf, bool(kernels.is_delta(kind)))
 
 
@@ -232,13 +266,16 @@ class Environment:
     """World lighting: a constant colour or an equirectangular image (row 0 = top = +z).
 
     The image is importance-sampled by a piecewise-constant distribution over its pixels with
-    density proportional to luminance times sin(polar angle), so the solid-angle pdf is
-    p_pixel * W * H / (2 pi^2 sin(theta)) (uniform in (u, v) inside the chosen pixel).
+    probability proportional to luminance times the pixel's solid angle, and inside the chosen pixel
+    evenly in solid angle (evenly in azimuth and in z): the solid-angle pdf is p_pixel / (the pixel's
+    solid angle), one number per pixel (``pixel_pdf``), which the lookup of a direction reads with the
+    pixel's radiance.
     """
 
     def __init__(self, color=(0.0, 0.0, 0.0), image: np.ndarray | None = None, strength: float = 1.0):
         self.strength = _power(strength, "Environment.strength")
         self.color = _rgb(color, "Environment.color")
+        self.constant = self.color * self.strength
         self.image = None
         if image is not None:
             img = np.asarray(image, dtype=np.float64)
@@ -246,17 +283,25 @@ class Environment:
                 raise ValueError(f"environment image must be (H, W, 3), got shape {img.shape}")
             img = np.nan_to_num(np.maximum(img[:, :, :3], 0.0), nan=0.0, posinf=0.0)
             self.image = img * self.strength
-            h, w, _ = img.shape
-            lum = self.image @ np.array([0.2126, 0.7152, 0.0722])
-            theta = (np.arange(h) + 0.5) / h * math.pi  # polar angle of each row's centre
-            weight = lum * np.sin(theta)[:, None]
+        # The kernels read one kind of environment: a constant colour is an image of one pixel.
+        pixels = self.image if self.image is not None else self.constant.reshape(1, 1, 3)
+        h, w, _ = pixels.shape
+        lum = pixels @ np.array([0.2126, 0.7152, 0.0722])
+        # The rows' edge heights and the columns' edge directions, from the mapping itself.
+        v = 1.0 - np.arange(h + 1) / h
+        z_edges = kernels.equirect_direction(np.stack([np.full(h + 1, 0.5), v], axis=1))[:, 2]
+        z_edges[0], z_edges[h] = 1.0, -1.0
+        solid = (2.0 * math.pi / w) * (z_edges[:-1] - z_edges[1:])  # (H,) each pixel's solid angle, by row
+        weight = lum * solid[:, None]
+        total = weight.sum()
+        if total <= 0:
+            weight = np.ones((h, w)) * solid[:, None]
             total = weight.sum()
-            if total <= 0:
-                weight = np.ones((h, w)) * np.sin(theta)[:, None]
-                total = weight.sum()
-            self.pixel_p = (weight / total).ravel()
-            self.alias_p, self.alias_i = kernels.alias_table(self.pixel_p)
-        self.constant = self.color * self.strength
+        self.pixel_p = (weight / total).ravel()
+        self.pixel_pdf = np.ascontiguousarray((weight / total / solid[:, None]).ravel())
+        self.alias_p, self.alias_i = kernels.alias_table(self.pixel_p)
+        self._arrays = (np.ascontiguousarray(pixels), self.pixel_pdf, self.alias_p, self.alias_i, z_edges)
+        self._arrays += _pixel_guesses(z_edges, w)
 
     @property
     def is_black(self) -> bool:
@@ -265,14 +310,14 @@ class Environment:
         return not (self.constant > 0).any()
 
     def table_row(self) -> tuple[int, np.ndarray]:
-        row = np.zeros(N_PARAMS)
-        row[3:6] = self.constant
-        return (kernels.ENV_CONSTANT if self.image is None else kernels.ENV_IMAGE), row
+        """The light table's row: the kind and no parameters (the environment is all in :meth:`image_arrays`)."""
+        return kernels.ENVIRONMENT, np.zeros(N_PARAMS)
 
-    def image_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The image, pixel probabilities and alias table (``kernels.alias_table``) the kernels read; for a
-        constant colour ``NO_IMAGE``, arrays of the same types that the loops never read."""
-        return NO_IMAGE if self.image is None else (self.image, self.pixel_p, self.alias_p, self.alias_i)
+    def image_arrays(self) -> tuple:
+        """The ``env`` tuple the kernels read (``kernels``, "lights"): the image (one pixel for a constant colour),
+        each pixel's solid-angle pdf, the alias table (``kernels.alias_table``), the rows' edge heights and the
+        lookup's guesses."""
+        return self._arrays
 
     def radiance(self, d: np.ndarray) -> np.ndarray:
         """Radiance (N, 3) arriving from world directions d (pointing away from the scene)."""
@@ -284,9 +329,9 @@ class Environment:
     def radiance_and_pdf(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Radiance (N, 3) from world directions d and the solid-angle pdf (N,) of :meth:`sample`
         choosing them, from one pixel lookup."""
-        kind, row = self.table_row()
-        image, pixel_p = self.image_arrays()[:2]
-        return kernels.environment_radiance(kind, row, image, pixel_p, _rows(d))
+        d = _rows(d)
+        d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)  # the lookup reads unit directions
+        return kernels.environment_radiance(self._arrays, d)
 
     def sample(self, p: np.ndarray, u: np.ndarray) -> LightSample:
         return _sample(self, p, u)
