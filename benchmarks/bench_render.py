@@ -152,9 +152,9 @@ def mse(a, b):
     return float(((a - b) ** 2).mean())
 
 
-# render_speed.md: what follows this line is written by hand (what changed and why), kept when the
-# tables above it are measured again.
-NOTES_MARKER = "<!-- Written by hand below: bench_render.py --speed-only keeps it when it rewrites the tables. -->"
+# render_speed.md and render_benchmark.md: what follows this line is written by hand (what changed and why),
+# kept when the tables above it are measured again.
+NOTES_MARKER = "<!-- Written by hand below: bench_render.py keeps it when it rewrites the tables. -->"
 
 
 def write_keeping_notes(path: Path, tables: str) -> None:
@@ -900,7 +900,7 @@ def main(argv=None) -> int:
         "(albedo scaling with a view-dependent tint, no light trapped under the coat).",
         "",
     ]
-    (args.out / "render_benchmark.md").write_text("\n".join(lines))
+    write_keeping_notes(args.out / "render_benchmark.md", "\n".join(lines))
     print(f"Wrote {args.out / 'render_benchmark.md'} and {chart}")
     return 0
 

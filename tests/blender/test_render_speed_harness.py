@@ -70,10 +70,13 @@ def test_a_file_without_the_marker_is_refused_not_overwritten(tmp_path):
     assert doc.read_text() == "# Old tables\n\n## Notes written by hand\n"
 
 
-def test_the_committed_speed_doc_has_the_marker_once():
-    text = (ROOT / "docs" / "render_speed.md").read_text()
+@pytest.mark.parametrize(
+    "name, generated", [("render_speed.md", "## Where the rest goes"), ("render_benchmark.md", "## Equal-time error")]
+)
+def test_the_committed_docs_have_the_marker_once_below_their_tables(name, generated):
+    text = (ROOT / "docs" / name).read_text()
     assert text.count(bench_render.NOTES_MARKER) == 1
-    assert "## Where the rest goes" in text.partition(bench_render.NOTES_MARKER)[0]
+    assert generated in text.partition(bench_render.NOTES_MARKER)[0]
 
 
 def test_cycles_split_measures_both_renderers_on_a_small_scene():
