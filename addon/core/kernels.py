@@ -321,7 +321,7 @@ def first_hit_features(features, row, weight, ns, dist):
 #
 # Every light the renderer samples is a row of a light table: its kind and 16 float parameters
 # (``lights.Light.table_row``). The environment's image and its tables travel beside the light table as one
-# tuple, ``env`` (``lights.Environment.image_arrays``; placeholders for a scene without an image): the image
+# tuple, ``env`` (``lights.Environment.image_arrays``; ``lights.NO_IMAGE`` where there is none): the image
 # (H, W, 3), each pixel's solid-angle pdf (H * W,), the alias table (keep, alias) that picks a pixel, the
 # rows' edge heights z ((H + 1,), decreasing), a first guess of the row per even bin of z, the columns' edge
 # directions (W + 1, 2) and a first guess of the column per even bin of :func:`_pseudo_angle`.
@@ -383,10 +383,10 @@ def _pseudo_angle(x, y):
 def _env_pixel(image, z_edges, row_of_bin, edges, column_of_bin, dx, dy, dz):
     """The pixel (row, column) of the environment image that unit direction (dx, dy, dz) falls in by Blender's
     mapping (:func:`_equirect_uv`, then floor), found with no transcendental function: a table guesses the row
-    from z and the column from :func:`_pseudo_angle` (bins at least four times finer than the pixels, so the
-    guess is within a step), and comparisons with the edges settle it. Row y holds z_edges[y + 1] < z <=
-    z_edges[y]; column x the directions from edge x + 1 (exclusive) counterclockwise to edge x. Where the atan2
-    of the mapping took 110 ns a lookup (the demo sky's misses), this takes under 20."""
+    from z and the column from :func:`_pseudo_angle` (bins ``lights.GUESS_BINS`` times finer than the pixels, so
+    the guess is within a step), and comparisons with the edges settle it. Row y holds z_edges[y + 1] < z <=
+    z_edges[y]; column x the directions from edge x + 1 (exclusive) counterclockwise to edge x. Where the arc
+    tangents of the mapping made a lookup 110 ns (the demo sky's misses), the pixel takes about 20 here."""
     h, w = image.shape[0], image.shape[1]
     nz = len(row_of_bin)
     y = row_of_bin[min(max(int((1.0 - dz) * 0.5 * nz), 0), nz - 1)]

@@ -297,11 +297,17 @@ class Environment:
         if total <= 0:
             weight = np.ones((h, w)) * solid[:, None]
             total = weight.sum()
-        self.pixel_p = (weight / total).ravel()
+        self._solid = solid
         self.pixel_pdf = np.ascontiguousarray((weight / total / solid[:, None]).ravel())
-        self.alias_p, self.alias_i = kernels.alias_table(self.pixel_p)
+        self.alias_p, self.alias_i = kernels.alias_table((weight / total).ravel())
         self._arrays = (np.ascontiguousarray(pixels), self.pixel_pdf, self.alias_p, self.alias_i, z_edges)
         self._arrays += _pixel_guesses(z_edges, w)
+
+    @property
+    def pixel_p(self) -> np.ndarray:
+        """(H * W,) each pixel's probability of being sampled (computed from ``pixel_pdf``; not kept, since an
+        HDRI's would be as large as its density)."""
+        return (self.pixel_pdf.reshape(len(self._solid), -1) * self._solid[:, None]).ravel()
 
     @property
     def is_black(self) -> bool:
