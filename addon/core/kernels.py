@@ -988,21 +988,54 @@ def _ior_cell(ior_grid, ior):
 
 
 @njit(inline="always", **_JIT)
+def _coating_node(table, k, ia, fa, ii, fi):
+    """The transmittance table (cos, alpha, ior) at its k-th cosine for a coating whose alpha and ior cells
+    (ia, fa), (ii, fi) are found already: bilinear in alpha and ior."""
+    low = table[k, ia, ii] * (1.0 - fi) + table[k, ia, ii + 1] * fi
+    high = table[k, ia + 1, ii] * (1.0 - fi) + table[k, ia + 1, ii + 1] * fi
+    return low * (1.0 - fa) + high * fa
+
+
+@njit(inline="always", **_JIT)
+def _between_nodes(cos_grid, c):
+    """The cosine cell (k, weight) of ``c`` in the transmittance table, or k = -1 at and below the horizon."""
+    if not c > 0.0:
+        return -1, 0.0
+    return _segment_near(cos_grid, c, _spacing_guess(cos_grid, c, 2))
+
+
+@njit(inline="always", **_JIT)
 def _transmission(table, cos_grid, c, ia, fa, ii, fi):
     """The top interface's transmittance at cosine ``c`` (``top_lobe.transmission``): trilinear in ``table``
     (cos, alpha, ior) with the coating's alpha and ior cells (ia, fa), (ii, fi) found already, clipped to
     [0, 1]; 0 at and below the horizon."""
-    if not c > 0.0:
+    k, t = _between_nodes(cos_grid, c)
+    if k < 0:
         return 0.0
-    ic, fc = _segment_near(cos_grid, c, _spacing_guess(cos_grid, c, 2))
-    out = 0.0
-    for dc in range(2):  # the 8 corners of the cell
-        wc = fc if dc else 1.0 - fc
-        for da in range(2):
-            wa = wc * (fa if da else 1.0 - fa)
-            for di in range(2):
-                out += wa * (fi if di else 1.0 - fi) * table[ic + dc, ia + da, ii + di]
-    return min(max(out, 0.0), 1.0)
+    v = _coating_node(table, k, ia, fa, ii, fi) * (1.0 - t) + _coating_node(table, k + 1, ia, fa, ii, fi) * t
+    return min(max(v, 0.0), 1.0)
+
+
+@njit(inline="always", **_JIT)
+def _transmission_column(table, alpha_grid, ior_grid, a, ior):
+    """One coating's (a, ior) transmittance at every cosine of the table's grid (:func:`_coating_node`): for a
+    material's rows, which share their coating, so that each row reads two of them (:func:`_column_transmission`)
+    where :func:`_transmission` reads eight corners of the table."""
+    ia, fa = _alpha_cell(alpha_grid, a)
+    ii, fi = _ior_cell(ior_grid, ior)
+    out = np.empty(table.shape[0])
+    for k in range(table.shape[0]):
+        out[k] = _coating_node(table, k, ia, fa, ii, fi)
+    return out
+
+
+@njit(inline="always", **_JIT)
+def _column_transmission(column, cos_grid, c):
+    """:func:`_transmission` at cosine ``c`` from the coating's :func:`_transmission_column` (the same numbers)."""
+    k, t = _between_nodes(cos_grid, c)
+    if k < 0:
+        return 0.0
+    return min(max(column[k] * (1.0 - t) + column[k + 1] * t, 0.0), 1.0)
 
 
 @njit(**_JIT)
@@ -1024,31 +1057,41 @@ def transmission_rows(top, cos, table, cos_grid, alpha_grid, ior_grid):
 
 
 @njit(**_JIT)
-def top_coat(out, wi, wo, top, table, cos_grid, alpha_grid, ior_grid, scale, add_lobe):
-    """A remainder decoder's exact top coat on its decoded ``out`` (N, 3) float32, in place
-    (``ModelSet.eval_brdf``): with ``scale``, times the transmission factor T(cos theta_i) T(cos theta_o)
-    (``transmission_rows``); with ``add_lobe``, plus the top lobe's f (``top_lobe_eval_pdf``). Returns the
-    lobe's sampling density (N,). ``top`` (1, 2) or (N, 2); unit local directions."""
+def decoded_brdf(out, wi, wo, calibration, top, transmittance, scale, add_lobe):
+    """A decoder's ``out`` (N, 3) float32 made the material's f, in place, in one pass (``ModelSet.eval_brdf``):
+    times the albedo calibration's factor at the cosines (``calibration`` as ``RowCalibration.arrays`` gives it;
+    no table: none); then, for a remainder decoder's top coat (``top`` (1, 2) shared or (N, 2); no rows: none),
+    with ``scale`` times the transmission factor T(cos theta_i) T(cos theta_o) (``transmission_rows``) and with
+    ``add_lobe`` plus the top lobe's f (``top_lobe_eval_pdf``). Returns the top lobe's sampling density (N,)
+    (0 without a top coat). Unit local directions."""
+    grid, tables, which = calibration
+    table, cos_grid, alpha_grid, ior_grid = transmittance
     n = len(wi)
     p = np.zeros(n)
-    if n == 0:
-        return p
+    calibrated = tables.shape[0] > 0
+    coated = top.shape[0] > 0
     shared = top.shape[0] == 1
-    ia, fa = _alpha_cell(alpha_grid, top[0, 0])
-    ii, fi = _ior_cell(ior_grid, top[0, 1])
+    column = _transmission_column(table, alpha_grid, ior_grid, top[0, 0], top[0, 1]) if shared else np.empty(0)
     for i in range(n):
+        if calibrated:
+            x, y = min(max(wi[i, 2], 0.0), 1.0), min(max(wo[i, 2], 0.0), 1.0)
+            _scale_row(out, i, x, y, grid, tables[which[i] if len(which) else 0])
+        if not coated:
+            continue
         j = 0 if shared else i
         a, ior = top[j, 0], top[j, 1]
         if abs(ior - 1.0) < INDEX_MATCHED_TOL:
             continue
-        if not shared:
-            ia, fa = _alpha_cell(alpha_grid, a)
-            ii, fi = _ior_cell(ior_grid, ior)
         if scale:
-            s = np.float32(
-                _transmission(table, cos_grid, wi[i, 2], ia, fa, ii, fi)
-                * _transmission(table, cos_grid, wo[i, 2], ia, fa, ii, fi)
-            )
+            if shared:
+                s = _column_transmission(column, cos_grid, wi[i, 2]) * _column_transmission(column, cos_grid, wo[i, 2])
+            else:
+                ia, fa = _alpha_cell(alpha_grid, a)
+                ii, fi = _ior_cell(ior_grid, ior)
+                s = _transmission(table, cos_grid, wi[i, 2], ia, fa, ii, fi) * _transmission(
+                    table, cos_grid, wo[i, 2], ia, fa, ii, fi
+                )
+            s = np.float32(s)
             for c in range(3):
                 out[i, c] = out[i, c] * s
         f, p[i] = top_reflection(wi[i, 0], wi[i, 1], wi[i, 2], wo[i, 0], wo[i, 1], wo[i, 2], a, ior)
@@ -1065,14 +1108,16 @@ def propose_with_top(wo, u_lobe, u, sigma, w, top):
     ``top_lobe.sample_top_directions``), else the proxy (``proxy_directions``, its lobe chosen by u_lobe
     rescaled past the share). ``top`` is (1, 2) or (N, 2) as in ``top_lobe_eval_pdf``; ``sigma``, ``w`` (N,).
     Returns the directions (N, 3), the share (N,) and the rows whose top-lobe sample failed (below the
-    horizon: zero-weight samples)."""
+    horizon: zero-weight samples). ``sigma`` and ``w`` may be (1,), shared, as ``top`` may."""
     n = len(wo)
     wi = np.empty((n, 3))
     share = np.empty(n)
     missed = np.zeros(n, dtype=np.bool_)
     shared = top.shape[0] == 1
+    one_proxy = len(sigma) == 1
     for i in range(n):
         j = 0 if shared else i
+        k = 0 if one_proxy else i
         a, ior = top[j, 0], top[j, 1]
         ox, oy, oz = wo[i, 0], wo[i, 1], wo[i, 2]
         sh = top_share_cos(oz, a, ior)
@@ -1083,21 +1128,59 @@ def propose_with_top(wo, u_lobe, u, sigma, w, top):
             missed[i] = not (oz > 0.0 and z > 0.0)
         else:
             v = min(max((u_lobe[i] - sh) / (1.0 - sh), 0.0), 1.0 - 1e-12)
-            x, y, z = _proxy_direction(ox, oy, oz, sigma[i], w[i], v, u[i, 0], u[i, 1])
+            x, y, z = _proxy_direction(ox, oy, oz, sigma[k], w[k], v, u[i, 0], u[i, 1])
         wi[i, 0], wi[i, 1], wi[i, 2] = x, y, z
     return wi, share, missed
+
+
+@njit(inline="always", **_JIT)
+def _mixture_row(wo, wi, i, sigma, w, j, share, p_top):
+    """The mixture's density at row i (:func:`mixture_pdf`), the proxy's parameters and share of hit j."""
+    k = 0 if len(sigma) == 1 else j
+    p = _proxy_pdf(wo[i, 0], wo[i, 1], wo[i, 2], wi[i, 0], wi[i, 1], wi[i, 2], sigma[k], w[k])
+    return (1.0 - share[j]) * p + share[j] * p_top[i]
 
 
 @njit(**_JIT)
 def mixture_pdf(wo, wi, sigma, w, share, p_top):
     """The density of ``propose_with_top`` at wi: the proxy's (``proxy_pdf``) mixed with the top lobe's
-    ``p_top`` by ``share``, all per row (N,)."""
+    ``p_top`` by ``share``, all per row (N,); ``sigma`` and ``w`` (1,) shared, or per row."""
     n = len(wo)
     out = np.empty(n)
     for i in range(n):
-        p = _proxy_pdf(wo[i, 0], wo[i, 1], wo[i, 2], wi[i, 0], wi[i, 1], wi[i, 2], sigma[i], w[i])
-        out[i] = (1.0 - share[i]) * p + share[i] * p_top[i]
+        out[i] = _mixture_row(wo, wi, i, sigma, w, i, share, p_top)
     return out
+
+
+@njit(**_JIT)
+def neural_shading(f, p_top, wi, wo, rows, v, sigma, w, share, missed, need_pdf):
+    """A remainder decoder's answer to a bounce after its one decoder batch (``render.neural_material``): rows
+    [0, v) are next-event directions, the rest the hits' proposals (``propose_with_top``) in hit order, with
+    ``f`` (V + N, 3) float32 and ``p_top`` the decoder's f and the top lobe's density there
+    (``ModelSet.eval_brdf``), ``rows`` (V + N,) each row's hit. ``sigma``, ``w`` (1,) shared or per hit;
+    ``share`` and ``missed`` per hit, as ``propose_with_top`` returns them.
+
+    Returns f (V, 3) and the mixture's density (V,) at the next-event directions (zeros unless ``need_pdf``),
+    and the hits' samples as ``finish_proposals`` makes them (wi, weight, pdf, valid): the density of a
+    proposal whose top-lobe sample missed is 0."""
+    n = len(wi) - v
+    f_light = np.empty((v, 3))
+    pdf_light = np.zeros(v)
+    s_wi, weight, s_pdf = np.empty((n, 3)), np.empty((n, 3)), np.empty(n)
+    valid = np.empty(n, dtype=np.bool_)
+    for i in range(v):
+        for c in range(3):
+            f_light[i, c] = f[i, c]
+        if need_pdf:
+            pdf_light[i] = _mixture_row(wo, wi, i, sigma, w, rows[i], share, p_top)
+    for k in range(n):
+        i = v + k
+        p = 0.0 if missed[k] else _mixture_row(wo, wi, i, sigma, w, k, share, p_top)
+        x, y, z = wi[i, 0], wi[i, 1], wi[i, 2]
+        s = abs(z) / p
+        ok = p > 0.0 and z > 0.0
+        _keep_sample(s_wi, weight, s_pdf, valid, k, x, y, z, f[i, 0] * s, f[i, 1] * s, f[i, 2] * s, p, ok)
+    return f_light, pdf_light, s_wi, weight, s_pdf, valid
 
 
 # --- the albedo calibration (addon.core.neural.calibrate) ---------------------------------------
@@ -1139,14 +1222,20 @@ def scale_by_table(f, x, y, grid, tables, which):
     """``f`` (N, C) times ``tables[which[n]]`` (T, K, K, C) at (``x``, ``y``) (N,) each, bilinear between
     the increasing abscissae ``grid`` (K,) on both axes, constant beyond them; in place. An empty
     ``which`` means table 0 for every row."""
-    for n in range(len(f)):  # the calibration's cosines are close to quadratic: guesses within two cells
-        i, s = _segment_near(grid, x[n], _spacing_guess(grid, x[n], 2))
-        j, t = _segment_near(grid, y[n], _spacing_guess(grid, y[n], 2))
-        table = tables[which[n] if len(which) else 0]
-        for c in range(f.shape[1]):
-            low = table[i, j, c] * (1.0 - s) + table[i + 1, j, c] * s
-            high = table[i, j + 1, c] * (1.0 - s) + table[i + 1, j + 1, c] * s
-            f[n, c] *= low * (1.0 - t) + high * t
+    for n in range(len(f)):
+        _scale_row(f, n, x[n], y[n], grid, tables[which[n] if len(which) else 0])
+
+
+@njit(inline="always", **_JIT)
+def _scale_row(f, n, x, y, grid, table):
+    """``f[n]`` times ``table`` (K, K, C) at (x, y), bilinear (:func:`scale_by_table`)."""
+    # the calibration's cosines are close to quadratic: guesses within two cells
+    i, s = _segment_near(grid, x, _spacing_guess(grid, x, 2))
+    j, t = _segment_near(grid, y, _spacing_guess(grid, y, 2))
+    for c in range(f.shape[1]):
+        low = table[i, j, c] * (1.0 - s) + table[i + 1, j, c] * s
+        high = table[i, j + 1, c] * (1.0 - s) + table[i + 1, j + 1, c] * s
+        f[n, c] *= low * (1.0 - t) + high * t
 
 
 @njit(fastmath={"reassoc", "contract"}, **_JIT)

@@ -82,14 +82,10 @@ def to_numpy(a) -> np.ndarray:
 
 def index_add(xp, target, index, values) -> None:
     """``target[index[i]] += values[i]`` in place, repeated indices accumulating."""
-    if xp is np:
-        np.add.at(target, index, values)
-    elif xp.name == "torch":
+    if xp is not np and xp.name == "torch":
         target.index_add_(0, index, values)
-    else:
-        import cupyx
-
-        cupyx.scatter_add(target, index, values)
+    else:  # numpy, and CuPy's ufunc.at (CuPy 13 and later: its older cupyx.scatter_add is deprecated)
+        xp.add.at(target, index, values)
 
 
 def _torch_ns(device):

@@ -45,7 +45,8 @@ def test_the_warm_up_compiles_every_loop_a_render_of_the_demo_scene_runs():
     )
     got = json.loads(run.stdout.strip().splitlines()[-1])
     before, after = got["before"], got["after"]
-    for name in ("surface_hits", "sample_lights", "trilinear", "proxy_pdf", "proxy_directions", "scale_by_table"):
+    loops = ("surface_hits", "sample_lights", "trilinear", "proxy_pdf", "proxy_directions", "scale_by_table")
+    for name in (*loops, "decoded_brdf", "neural_shading"):
         assert before[name] >= 1, f"the warm-up did not compile {name}"
     assert before["trilinear"] >= 2, "the warm-up did not compile the taps of a half-float latent texture"
     assert after == before
@@ -282,6 +283,87 @@ def test_the_compiled_lambert_shade_is_the_lambertian_bsdf_and_finish_proposals_
     assert 0.2 < want.valid.mean() < 0.6
     for a, b_ in zip(got, (want.wi, want.weight, want.pdf, want.valid), strict=True):
         np.testing.assert_array_equal(a, b_)
+
+
+def _unit_rows(rng, n, below=0.1):
+    """n random unit directions, a share ``below`` of them under the horizon."""
+    v = rng.normal(size=(n, 3))
+    v[:, 2] = np.abs(v[:, 2]) * np.where(rng.random(n) < below, -1.0, 1.0)
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def test_decoded_brdf_is_the_calibration_then_the_top_coat_in_one_pass():
+    """``kernels.decoded_brdf`` (a decoder's output made the material's f) against its parts apart: the
+    calibration's factor (``RowCalibration.apply``), the transmission factor (``top_lobe.remainder_scale``) and
+    the exact lobe (``top_lobe.eval_pdf_top``); per-hit tables and coatings, some index-matched. A coating
+    shared by every row (its transmittance read from one column) gives the same numbers as the same coating
+    given per row; no calibration and no coating leave the decoder's output as it is."""
+    from addon.core.neural import calibrate, top_lobe
+
+    rng = np.random.default_rng(21)
+    n = 4000
+    wi, wo = _unit_rows(rng, n), _unit_rows(rng, n)
+    k = len(calibrate.COSINES)
+    cal = calibrate.RowCalibration(
+        np.asarray(calibrate.COSINES), rng.uniform(0.5, 1.5, (3, k, k, 3)), rng.integers(0, 3, n)
+    )
+    top = np.column_stack([rng.uniform(0.01, 1.0, n), rng.uniform(1.0, 2.0, n)])
+    top[rng.random(n) < 0.1, 1] = 1.0  # index-matched: no top interface
+    decoded = rng.random((n, 3)).astype(np.float32)
+    grids = top_lobe.transmittance_grids()
+
+    want = cal.apply(decoded, wi, wo)
+    want = want * top_lobe.remainder_scale(top, wi, wo, unit=True).astype(np.float32)[:, None]
+    lobe, p_want = top_lobe.eval_pdf_top(top, wi, wo)
+    want = want + lobe.astype(np.float32)[:, None]
+    got = decoded.copy()
+    p = kernels.decoded_brdf(got, wi, wo, cal.arrays(), top, grids, True, True)
+    np.testing.assert_allclose(got, want, rtol=2e-6)
+    np.testing.assert_allclose(p, p_want, rtol=1e-12)
+    assert (lobe > 0).mean() > 0.5 and (p > 0).mean() > 0.5
+
+    one = top[:1].copy()
+    shared, per_row = decoded.copy(), decoded.copy()
+    p_shared = kernels.decoded_brdf(shared, wi, wo, calibrate.NO_CALIBRATION, one, grids, True, True)
+    p_rows = kernels.decoded_brdf(per_row, wi, wo, calibrate.NO_CALIBRATION, np.repeat(one, n, 0), grids, True, True)
+    np.testing.assert_array_equal(shared, per_row)
+    np.testing.assert_array_equal(p_shared, p_rows)
+
+    untouched = decoded.copy()
+    p_none = kernels.decoded_brdf(untouched, wi, wo, calibrate.NO_CALIBRATION, top_lobe.NO_TOP_ROWS, grids, True, True)
+    np.testing.assert_array_equal(untouched, decoded)
+    assert not p_none.any()
+
+
+@pytest.mark.parametrize("per_hit", [False, True])
+def test_neural_shading_is_the_mixture_density_and_finish_proposals(per_hit):
+    """``kernels.neural_shading`` (a remainder material's bounce after its decoder batch) against the loops it
+    replaced: ``mixture_pdf`` at the next-event directions and the proposals, a missed top-lobe sample's density
+    0, and ``finish_proposals``; the lights' density zeros when not asked for."""
+    rng = np.random.default_rng(22)
+    n = 3000
+    wo = _unit_rows(rng, n, below=0.0)
+    rows = np.flatnonzero(rng.random(n) < 0.6)
+    v = len(rows)
+    index = np.concatenate([rows, np.arange(n)])
+    wi = np.concatenate([_unit_rows(rng, v), _unit_rows(rng, n)])
+    wo_all = wo[index]
+    sigma, w = (rng.uniform(0.05, 0.8, n), rng.random(n)) if per_hit else (np.array([0.3]), np.array([0.4]))
+    share, missed = rng.uniform(0.0, 0.9, n), rng.random(n) < 0.1
+    p_top = np.where(rng.random(v + n) < 0.2, 0.0, rng.random(v + n) * 3.0)
+    f = rng.random((v + n, 3)).astype(np.float32)
+    f[rng.random(v + n) < 0.02, 1] = np.inf
+
+    rows_sigma = (lambda a: a[index]) if per_hit else (lambda a: np.repeat(a, v + n))
+    pdf = kernels.mixture_pdf(wo_all, wi, rows_sigma(sigma), rows_sigma(w), share[index], p_top)
+    sample = kernels.finish_proposals(wi[v:], np.where(missed, 0.0, pdf[v:]), f[v:].astype(np.float64))
+    for need_pdf in (True, False):
+        got = kernels.neural_shading(f, p_top, wi, wo_all, index, v, sigma, w, share, missed, need_pdf)
+        np.testing.assert_array_equal(got[0], f[:v].astype(np.float64))
+        np.testing.assert_array_equal(got[1], pdf[:v] if need_pdf else np.zeros(v))
+        for a, b in zip(got[2:], sample, strict=True):
+            np.testing.assert_array_equal(a, b)
+    assert 0.5 < sample[3].mean() < 0.95
 
 
 _LAMBERT = """

@@ -112,6 +112,10 @@ class AlbedoCalibration:
         """This table for every row."""
         return RowCalibration(self.cosines, self.table[None], np.zeros(0, dtype=np.int64))
 
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`RowCalibration.arrays` of this table for every row."""
+        return self.rows().arrays()
+
 
 @dataclass(frozen=True)
 class RowCalibration:
@@ -132,7 +136,7 @@ class RowCalibration:
         x = np.clip(np.asarray(cos_i, dtype=np.float64).reshape(-1), 0.0, 1.0)
         y = np.clip(np.asarray(cos_o, dtype=np.float64).reshape(-1), 0.0, 1.0)
         out = np.ones((len(x), 3))
-        kernels.scale_by_table(out, x, y, *self._increasing())
+        kernels.scale_by_table(out, x, y, *self.arrays())
         return out
 
     def apply(self, f: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
@@ -142,14 +146,19 @@ class RowCalibration:
             raise ValueError(f"the calibration has {len(self.which)} rows, f has {len(out)}")
         cos_i = np.clip(np.ascontiguousarray(wi[:, 2], dtype=np.float64), 0.0, 1.0)
         cos_o = np.clip(np.ascontiguousarray(wo[:, 2], dtype=np.float64), 0.0, 1.0)
-        kernels.scale_by_table(out, cos_i, cos_o, *self._increasing())
+        kernels.scale_by_table(out, cos_i, cos_o, *self.arrays())
         return out.astype(np.asarray(f).dtype, copy=False)
 
-    def _increasing(self):
-        """The grid's cosines increasing (the kernel's order), the tables in the same order, and ``which``."""
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The calibration as the compiled loops take it (``kernels.scale_by_table``, ``kernels.decoded_brdf``):
+        the grid's cosines increasing, the tables in the same order, and ``which``."""
         grid = np.ascontiguousarray(self.cosines[::-1], dtype=np.float64)
         tables = np.ascontiguousarray(self.tables[:, ::-1, ::-1], dtype=np.float64)
         return grid, tables, np.ascontiguousarray(self.which, dtype=np.int64)
+
+
+# ``RowCalibration.arrays`` of no calibration (no table), for ``kernels.decoded_brdf``
+NO_CALIBRATION = (np.zeros(2), np.zeros((0, 2, 2, 3)), np.zeros(0, dtype=np.int64))
 
 
 def grid_directions(cosines=COSINES) -> np.ndarray:

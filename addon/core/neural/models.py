@@ -41,7 +41,7 @@ from .. import kernels
 from ..bsdf.frame import dot
 from ..rows import distinct_rows
 from ..stack import LATENT
-from . import proxy, top_lobe
+from . import calibrate, proxy, top_lobe
 from .features import N_FEATURES
 from .session import ChunkedSession
 
@@ -453,25 +453,32 @@ class ModelSet:
             out[rows] = np.where((a[1] & b[1])[:, None] & (f >= 0.0), f, 0.0)
 
         (self._rgb or self._decoder).map(chunk, n)
-        t = top_lobe._checked(top, n) if self.remainder and top is not None else None  # (2,): shared, scalar path
-        t = t if t is not None and top_lobe.has_top(t.reshape(-1, 2)).any() else None
+        t = top_lobe.top_table(top, n) if self.remainder and top is not None else None  # (1, 2): shared
+        t = t if t is not None and top_lobe.has_top(t).any() else None
         if calibration is not None or t is not None:
-            ui, uo = (wi, wo) if unit else (top_lobe._unit(wi), top_lobe._unit(wo))
-        if calibration is not None:
-            out = calibration.apply(out, ui, uo)
-        p_top = np.zeros(n) if top_pdf else None
-        if t is not None:
-            p_top = self._top_lobe(out, t, ui, uo, with_top_lobe, top_pdf)
+            p_top = self._finish(out, calibration, t, wi, wo, unit, with_top_lobe)
+        else:
+            p_top = np.zeros(n)
         return (out, p_top) if top_pdf else out
 
-    def _top_lobe(self, out, t, ui, uo, with_top_lobe: bool, top_pdf: bool):
-        """``eval_brdf``'s top coat on the decoded ``out`` (in place): the transmission factor of a
-        ``top_transmission`` decoder and the exact lobe, in one compiled pass (``kernels.top_coat``); returns
-        the lobe's density when ``top_pdf``."""
+    def _finish(self, out, calibration, t, wi, wo, unit: bool, with_top_lobe: bool) -> np.ndarray:
+        """``eval_brdf``'s work after the decoder, on its ``out`` in place, in one compiled pass
+        (``kernels.decoded_brdf``): the calibration's factor, and for a top coat ``t`` (checked rows) the
+        transmission factor of a ``top_transmission`` decoder and the exact lobe. Returns the lobe's density."""
+        ui, uo = (wi, wo) if unit else (top_lobe._unit(wi), top_lobe._unit(wo))
         ui, uo = kernels.float64_rows(ui), kernels.float64_rows(uo)
-        rows = top_lobe.top_table(t, len(ui))
-        p = kernels.top_coat(out, ui, uo, rows, *top_lobe.transmittance_grids(), self.top_transmission, with_top_lobe)
-        return p if top_pdf else None
+        if calibration is not None and len(getattr(calibration, "which", ())) not in (0, len(out)):
+            raise ValueError(f"the calibration has {len(calibration.which)} rows, f has {len(out)}")
+        return kernels.decoded_brdf(
+            out,
+            ui,
+            uo,
+            calibrate.NO_CALIBRATION if calibration is None else calibration.arrays(),
+            top_lobe.NO_TOP_ROWS if t is None else t,
+            top_lobe.transmittance_grids(),
+            self.top_transmission,
+            with_top_lobe,
+        )
 
 
 _CACHE: dict[tuple[str, int, Path], ModelSet] = {}

@@ -47,6 +47,8 @@ from .top_formulas import TOP_SHARE_RANGE, TOP_SHARE_REST, top_share_cos  # noqa
 
 # (alpha, ior) of a stack without coatings: index-matched, no reflection
 NO_TOP = (0.0, 1.0)
+# no top coat at all, as the compiled loops take coatings (``kernels.decoded_brdf``): no rows
+NO_TOP_ROWS = np.zeros((0, 2))
 
 
 def top_coats(arrays: StackArrays) -> np.ndarray:

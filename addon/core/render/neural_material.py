@@ -20,6 +20,7 @@ import warnings
 import numpy as np
 
 from .. import kernels
+from ..bsdf.base import BSDFSample
 from ..neural import proxy, top_lobe
 from ..stack import LATENT, Stack
 from .shading import ShadeByProposal, Shading, finish_sample
@@ -46,6 +47,9 @@ class _BoundNeural(ShadeByProposal):
         self.models, self.z, self.sigma, self.w = models, z, sigma, w
         self.calibration = calibration
         self.top = top if getattr(models, "remainder", False) else None
+        if self.top is not None:  # checked once, as the compiled loops take them: (1, ...) shared, else per hit
+            self._top_table = top_lobe.top_table(self.top, len(self.top) if np.ndim(self.top) == 2 else 1)
+            self._sigma_rows, self._w_rows = proxy.params(sigma, w, np.size(sigma))
 
     @staticmethod
     def _rows(a, index):
@@ -100,13 +104,14 @@ class _BoundNeural(ShadeByProposal):
         """Directions of the mixture sampler (the top lobe with probability ``share``, else the proxy),
         ``share`` (None without a top lobe) and the rows whose top-lobe sample failed (below the horizon:
         zero-weight samples): one compiled pass (``kernels.propose_with_top``)."""
-        top = self._top_rows(None, len(wo))
-        if top is None:
+        if self.top is None:
             u3 = np.concatenate([u_lobe[:, None], u], axis=1)
             return proxy.sample_directions(wo, self.sigma, self.w, u3), None, None
-        sigma, w = proxy.params(self.sigma, self.w, len(wo))
-        t = top_lobe.top_table(top, len(wo))
-        return kernels.propose_with_top(*(kernels.float64_rows(a) for a in (wo, u_lobe, u)), sigma, w, t)
+        if len(self._sigma_rows) not in (1, len(wo)) or len(self._top_table) not in (1, len(wo)):
+            raise ValueError(f"the material's per-hit parameters do not match its {len(wo)} hits")
+        return kernels.propose_with_top(
+            *(kernels.float64_rows(a) for a in (wo, u_lobe, u)), self._sigma_rows, self._w_rows, self._top_table
+        )
 
     def sample_direction(self, wo, u_lobe, u):
         wi, share, missed = self._propose(wo, u_lobe, u)
@@ -133,11 +138,14 @@ class _BoundNeural(ShadeByProposal):
             unit=True,
             **self._latents(index),
         )
-        keep = slice(0, None) if need_pdf and v else slice(v, None)  # the lights' density only when asked
-        pdf = self._mixture(wi_all[keep], wo_all[keep], index[keep], share[index[keep]], p_top[keep])
-        prop_pdf = np.where(missed, 0.0, pdf[-n:] if n else pdf[:0])
-        f = f.astype(np.float64)
-        return Shading(f[:v], pdf[:v] if need_pdf and v else None, finish_sample(prop_wi, prop_pdf, f[v:]))
+        need_pdf = bool(need_pdf and v)  # the lights' density only when asked
+        f_light, pdf_light, *sample = kernels.neural_shading(
+            f, p_top, wi_all, wo_all, index, v, self._sigma_rows, self._w_rows, share, missed, need_pdf
+        )
+        false = np.zeros(n, dtype=bool)
+        return Shading(
+            f_light, pdf_light if need_pdf else None, BSDFSample(*sample[:3], false, false.copy(), sample[3])
+        )
 
     def sample(self, wo, u_lobe, u):
         """Self-contained sampling (one decoder batch of its own); the integrator uses ``shade``."""

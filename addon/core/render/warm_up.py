@@ -63,12 +63,16 @@ def warm_up() -> None:
     grid, table = np.array([0.0, 1.0]), np.ones((2, 2, 3))
     kernels.scale_by_table(np.ones((2, 3)), wo[:, 2].copy(), wo[:, 2].copy(), grid, table[None], np.zeros(0, np.int64))
     top, half = np.array([[0.1, 1.5]]), np.full(2, 0.5)  # a remainder decoder's exact top coat
-    wi, share, _missed = kernels.propose_with_top(wo, half, np.full((2, 2), 0.5), half, half, top)
+    wi, share, missed = kernels.propose_with_top(wo, half, np.full((2, 2), 0.5), half, half, top)
     _f, p_top = kernels.top_lobe_eval_pdf(wi, wo, top)
     pdf = kernels.mixture_pdf(wo, wi, half, half, share, p_top)
     kernels.finish_proposals(wi, pdf, np.ones((2, 3)))
+    f32, rows = np.ones((2, 3), dtype=np.float32), np.arange(2)
+    kernels.neural_shading(f32, p_top, wi, wo, rows, 1, half, half, share, missed, True)
     grids = top_lobe.transmittance_grids()
-    kernels.top_coat(np.ones((2, 3), dtype=np.float32), wi, wo, top, *grids, True, True)
+    calibration = (grid, table[None], np.zeros(0, np.int64))
+    for coat in (top, np.repeat(top, 2, axis=0), top_lobe.NO_TOP_ROWS):  # shared, per row, none
+        kernels.decoded_brdf(np.ones((2, 3), dtype=np.float32), wi, wo, calibration, coat, grids, True, True)
     kernels.transmission_rows(top, wo[:, 2].copy(), *grids)
     kernels.nearest_rows(np.zeros((2, 96), np.float32), np.ones((3, 96), np.float32))  # a latent texture's tables
     # a latent texture read from its file: half floats (the image texture above took the float32 loop)
