@@ -586,7 +586,12 @@ def speed_only(args, command: str) -> int:
                 ours_cpu = time.process_time() - c0
                 _, cyc_s = render_cycles(bpy, bs, width, height, args.samples, args.bounces, Path(tmp))
                 s = st.seconds
-                pairs.append((s["total"], cyc_s, s["rays"], s["network"], st.rest, ours_cpu, render_cycles.cpu_seconds))
+                pairs.append(
+                    (
+                        s["total"], cyc_s, s["rays"], s["network"], st.rest, ours_cpu, render_cycles.cpu_seconds,
+                        s["shading"], st.bookkeeping,
+                    )
+                )  # fmt: skip
                 print(
                     size,
                     rep,
@@ -598,17 +603,19 @@ def speed_only(args, command: str) -> int:
         ratios = [p[1] / p[0] for p in pairs]
         cpu_ratios = [p[6] / p[5] for p in pairs]
         rest_share = [p[4] / p[0] for p in pairs]
+        books_share = [p[8] / p[0] for p in pairs]
         lines = [
             f"## {width}x{height}, {args.samples} spp, {args.bounces} bounces ({paths:,} paths per render)",
             "",
             "| repetition | ours s | Cycles s | throughput ours / Cycles (wall) | ours CPU s | Cycles CPU s | "
-            "ours / Cycles (CPU time) | rays s | networks s | rest s | rest share |",
-            "|---|---|---|---|---|---|---|---|---|---|---|",
+            "ours / Cycles (CPU time) | rays s | networks s | rest s | rest share | of the rest: shading s | "
+            "bookkeeping s | bookkeeping share |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
-        for i, (o, c, ra, ne, re, oc, cc) in enumerate(pairs):
+        for i, (o, c, ra, ne, re, oc, cc, sh, bk) in enumerate(pairs):
             lines.append(
                 f"| {i + 1} | {o:.2f} | {c:.2f} | {c / o:.2f}x | {oc:.2f} | {cc:.2f} | {cc / oc:.2f}x | "
-                f"{ra:.2f} | {ne:.2f} | {re:.2f} | {100 * re / o:.0f}% |"
+                f"{ra:.2f} | {ne:.2f} | {re:.2f} | {100 * re / o:.0f}% | {sh:.2f} | {bk:.2f} | {100 * bk / o:.0f}% |"
             )
         lines += [
             "",
@@ -617,7 +624,9 @@ def speed_only(args, command: str) -> int:
             f"render needs, less sensitive to the other jobs): median **{statistics.median(cpu_ratios):.2f}x** "
             f"(range {min(cpu_ratios):.2f}-{max(cpu_ratios):.2f}x); the rest's share of our time: median "
             f"{100 * statistics.median(rest_share):.0f}% (range {100 * min(rest_share):.0f}-"
-            f"{100 * max(rest_share):.0f}%).",
+            f"{100 * max(rest_share):.0f}%), of which bookkeeping (the rest less the shading: `RenderStats`) "
+            f"{100 * statistics.median(books_share):.0f}% (range {100 * min(books_share):.0f}-"
+            f"{100 * max(books_share):.0f}%).",
             "",
         ]
         sections += lines
@@ -641,8 +650,11 @@ def speed_only(args, command: str) -> int:
         "resolution, samples and bounces, no denoising or adaptive sampling, Principled coat materials, wall time "
         "of `bpy.ops.render.render` after a warm-up (scene sync included, as for a user's F12). CPU time: "
         "`time.process_time()` of this process around each render (all its threads). Rays: embreex; "
-        "networks: ONNX Runtime batches; rest: everything else (numpy shading, sampling, bookkeeping), as "
-        "shares of our wall time (`RenderStats`).",
+        "networks: ONNX Runtime batches; rest: everything else, as shares of our wall time (`RenderStats`). The "
+        "rest splits into shading (the surface at each hit, the emission rays find, the light samples, the "
+        "materials' f, densities and samples and the light they add: compiled loops and the numpy around them, "
+        "less the rays and networks inside) and bookkeeping (camera rays, random numbers, sorting hits by "
+        "material, gathering and compacting paths, Russian roulette, setup).",
         "",
         *sections,
     ]

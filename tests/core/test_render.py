@@ -385,6 +385,31 @@ def test_the_scenes_setup_is_timed_apart_from_the_tracing(monkeypatch):
     assert s["rays"] + s["network"] + s["reference"] <= tracing * (1 + 1e-9)
     assert s["rays"] == pytest.approx(st.thread_phases["rays"] * tracing / st.thread_seconds)
     assert st.rest >= s["setup"] and "setup" in st.summary()
+    # the rest splits into shading and bookkeeping, setup part of the latter
+    assert 0 < s["shading"] and st.bookkeeping >= s["setup"] - 1e-9
+    assert s["shading"] + st.bookkeeping == pytest.approx(st.rest)
+    assert s["shading"] == pytest.approx(st.thread_phases["shading"] * tracing / st.thread_seconds)
+
+
+def test_the_shading_phase_leaves_out_the_rays_inside_it(monkeypatch):
+    """Shadow rays are traced inside the light sampling, which counts as shading: their time is the rays', not
+    the shading's (each shadow query made 0.1 s slower here, and counted as rays)."""
+    import time
+
+    from addon.core.render import integrator
+    from addon.core.render.demo_scene import demo_scene
+
+    real = integrator.Tracer.occluded
+
+    def slow(self, o, d, tmax, stats):
+        time.sleep(0.1)
+        stats.seconds["rays"] += 0.1
+        return real(self, o, d, tmax, stats)
+
+    monkeypatch.setattr(integrator.Tracer, "occluded", slow)
+    _, st = render(demo_scene(8, 6), RenderSettings(samples=1, max_bounces=2, threads=1, calibrate=False))
+    assert st.thread_phases["rays"] >= 0.2
+    assert 0 < st.thread_phases["shading"] < 0.1
 
 
 @pytest.mark.mitsuba

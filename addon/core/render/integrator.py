@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -94,6 +95,12 @@ class RenderStats:
     and, on a session's first render of a stack, calibrated; the ray-tracing structure and the light
     tables), ``total`` the render's wall time.
 
+    What is neither rays, networks nor reference estimators is the ``rest``, which splits into ``shading``, the
+    work that computes light at the hits (the surface at each hit, the emission rays find, the light samples,
+    the materials' f, densities and samples, and the light they add to the image: compiled loops and the numpy
+    around them, less the rays and networks inside), and ``bookkeeping``, everything else (camera rays, random
+    numbers, sorting hits by material, gathering and compacting paths, Russian roulette, setup).
+
     Chunks of paths are traced on several threads at once; each thread's time splits into the
     phases and the rest, and the phase times here are those splits summed over the threads and
     scaled by the tracing's wall time (``total`` less ``setup``) / thread time (``thread_seconds``), so
@@ -102,17 +109,25 @@ class RenderStats:
     paths: int = 0
     rays: int = 0
     seconds: dict = field(
-        default_factory=lambda: {"rays": 0.0, "network": 0.0, "reference": 0.0, "setup": 0.0, "total": 0.0}
-    )
+        default_factory=lambda: {
+            "rays": 0.0, "network": 0.0, "reference": 0.0, "shading": 0.0, "setup": 0.0, "total": 0.0
+        }
+    )  # fmt: skip
     nonfinite: int = 0
     material_kinds: list = field(default_factory=list)  # per material index: analytic/neural/reference
     thread_seconds: float = 0.0  # summed wall time of the threads that traced the chunks
-    thread_phases: dict = field(default_factory=lambda: {"rays": 0.0, "network": 0.0, "reference": 0.0})
+    thread_phases: dict = field(default_factory=lambda: {"rays": 0.0, "network": 0.0, "reference": 0.0, "shading": 0.0})
 
     @property
     def rest(self) -> float:
+        """Everything but rays, networks and reference estimators: ``shading`` and ``bookkeeping``."""
         s = self.seconds
         return max(0.0, s["total"] - s["rays"] - s["network"] - s["reference"])
+
+    @property
+    def bookkeeping(self) -> float:
+        """The rest less the shading (the class docstring)."""
+        return max(0.0, self.rest - self.seconds["shading"])
 
     @property
     def paths_per_second(self) -> float:
@@ -122,8 +137,9 @@ class RenderStats:
         s = self.seconds
         return (
             f"{self.paths} paths in {s['total']:.2f} s ({self.paths_per_second:,.0f}/s): rays {s['rays']:.2f} s, "
-            f"network {s['network']:.2f} s, reference {s['reference']:.2f} s, rest {self.rest:.2f} s (of which "
-            f"setup {s['setup']:.2f} s: materials, calibrations, scene)"
+            f"network {s['network']:.2f} s, reference {s['reference']:.2f} s, rest {self.rest:.2f} s (shading "
+            f"{s['shading']:.2f} s, bookkeeping {self.bookkeeping:.2f} s, of which setup {s['setup']:.2f} s: "
+            "materials, calibrations, scene)"
         )
 
 
@@ -364,7 +380,18 @@ def _ordered(pool, fn, tasks, ahead: int):
         futures[i] = None
 
 
-_PHASES = ("rays", "network", "reference")
+_PHASES = ("rays", "network", "reference", "shading")
+
+
+@contextmanager
+def _shading(stats: RenderStats):
+    """Add the block's time to ``stats``'s shading, less the rays, networks and reference estimators inside it."""
+    s = stats.seconds
+    t0, inner = time.perf_counter(), s["rays"] + s["network"] + s["reference"]
+    try:
+        yield
+    finally:
+        s["shading"] += time.perf_counter() - t0 - (s["rays"] + s["network"] + s["reference"] - inner)
 
 
 def _merge_stats(stats: RenderStats, piece: RenderStats) -> None:
@@ -526,18 +553,19 @@ def _shade(
         need_pdf = material.has_pdf and ctx.settings.strategy == "mis"
         rows = np.flatnonzero(lights.visible[sel])
         v = rows + sel.start
-        t0, net0 = time.perf_counter(), session.seconds_on_this_thread()
-        bound = material.bind(mat.SurfaceHits(hits.uv[sel], hits.footprint[sel], int(seeds[mi])))
-        sh = bound.shade(hits.wo[sel], lights.wi[v], rows, u_lobe[sel], u_dir[sel], need_pdf)
-        stats.seconds["network"] += session.seconds_on_this_thread() - net0
-        if material.kind == "reference":
-            stats.seconds["reference"] += time.perf_counter() - t0
-        if len(v):
-            pdf_bsdf = sh.pdf_light if need_pdf else np.empty(0)  # read only when weighted
-            kernels.add_direct(
-                L, v, paths.row, paths.throughput, kernels.float64_rows(sh.f_light), lights.wi, lights.radiance,
-                ctx.p_select, lights.pdf, lights.delta, pdf_bsdf, need_pdf,
-            )  # fmt: skip
+        with _shading(stats):
+            t0, net0 = time.perf_counter(), session.seconds_on_this_thread()
+            bound = material.bind(mat.SurfaceHits(hits.uv[sel], hits.footprint[sel], int(seeds[mi])))
+            sh = bound.shade(hits.wo[sel], lights.wi[v], rows, u_lobe[sel], u_dir[sel], need_pdf)
+            stats.seconds["network"] += session.seconds_on_this_thread() - net0
+            if material.kind == "reference":
+                stats.seconds["reference"] += time.perf_counter() - t0
+            if len(v):
+                pdf_bsdf = sh.pdf_light if need_pdf else np.empty(0)  # read only when weighted
+                kernels.add_direct(
+                    L, v, paths.row, paths.throughput, kernels.float64_rows(sh.f_light), lights.wi, lights.radiance,
+                    ctx.p_select, lights.pdf, lights.delta, pdf_bsdf, need_pdf,
+                )  # fmt: skip
         bs = sh.sample
         out.wi[sel], out.weight[sel], out.pdf[sel], out.delta[sel] = bs.wi, bs.weight, bs.pdf, bs.delta
         out.mis[sel] = material.has_pdf
@@ -577,7 +605,8 @@ def _trace_paths(
             break
         rng = np.random.default_rng([s.seed, pass_index, chunk_index, depth + 1])
         t, prim, bu, bv = ctx.tracer.intersect(paths.o, paths.d, stats)
-        _add_emission(ctx, paths, t, L)
+        with _shading(stats):
+            _add_emission(ctx, paths, t, L)
         if depth == s.max_bounces:
             break
         # Sorted by material (stable), so that each material shades one contiguous slice of rows.
@@ -586,9 +615,11 @@ def _trace_paths(
             break
         paths = paths.take(hit)
         groups = [(mi, slice(int(starts[mi]), int(starts[mi + 1]))) for mi in np.flatnonzero(np.diff(starts))]
-        hits = _surface_hits(ctx, paths, hit, t, prim, bu, bv, groups)
         m = len(hit)
-        lights = _sample_lights(ctx, hits, rng.random((m, 3)), stats)
+        u_light = rng.random((m, 3))
+        with _shading(stats):
+            hits = _surface_hits(ctx, paths, hit, t, prim, bu, bv, groups)
+            lights = _sample_lights(ctx, hits, u_light, stats)
         u_lobe, u_dir = rng.random(m), rng.random((m, 2))
         seeds = rng.integers(0, 2**31, size=len(ctx.materials))
         sc = _shade(ctx, paths, hits, lights, u_lobe, u_dir, seeds, L, stats)
