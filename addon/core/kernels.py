@@ -1072,6 +1072,9 @@ def decoded_brdf(out, wi, wo, calibration, top, transmittance, scale, add_lobe):
     coated = top.shape[0] > 0
     shared = top.shape[0] == 1
     column = _transmission_column(table, alpha_grid, ior_grid, top[0, 0], top[0, 1]) if shared else np.empty(0)
+    # per-hit coatings: a row's cells are the row before's when its coating is (a latent texture's hits inside
+    # one texel, or a hit's next-event and proposal rows)
+    last_a, last_ior, ia, fa, ii, fi = -1.0, -1.0, 0, 0.0, 0, 0.0
     for i in range(n):
         if calibrated:
             x, y = min(max(wi[i, 2], 0.0), 1.0), min(max(wo[i, 2], 0.0), 1.0)
@@ -1086,8 +1089,10 @@ def decoded_brdf(out, wi, wo, calibration, top, transmittance, scale, add_lobe):
             if shared:
                 s = _column_transmission(column, cos_grid, wi[i, 2]) * _column_transmission(column, cos_grid, wo[i, 2])
             else:
-                ia, fa = _alpha_cell(alpha_grid, a)
-                ii, fi = _ior_cell(ior_grid, ior)
+                if a != last_a or ior != last_ior:
+                    ia, fa = _alpha_cell(alpha_grid, a)
+                    ii, fi = _ior_cell(ior_grid, ior)
+                    last_a, last_ior = a, ior
                 s = _transmission(table, cos_grid, wi[i, 2], ia, fa, ii, fi) * _transmission(
                     table, cos_grid, wo[i, 2], ia, fa, ii, fi
                 )
