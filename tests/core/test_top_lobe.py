@@ -96,6 +96,10 @@ def test_the_one_pass_shade_is_eval_pdf_and_sample_direction_together(per_hit):
     np.testing.assert_allclose(sh.sample.wi[ok], wi[ok], rtol=1e-12)
     np.testing.assert_allclose(sh.sample.pdf[ok], pdf[ok], rtol=1e-9)
     assert bound.shade(wo, light_wi, rows, u_lobe, u, need_pdf=False).pdf_light is None
+    # a bounce with no hit of the material: empty answers
+    empty = bound if not per_hit else _BoundNeural(m, z[:0], sig[:0], w[:0], top=top[:0])
+    none = empty.shade(wo[:0], light_wi[:0], rows[:0], u_lobe[:0], u[:0], need_pdf=True)
+    assert none.f_light.shape == (0, 3) and none.sample.wi.shape == (0, 3) and none.pdf_light is None
 
 
 @pytest.mark.parametrize("alpha", [0.05, 0.3])

@@ -424,7 +424,7 @@ class ModelSet:
             raise ValueError("z must be finite (the latent holds NaN or Inf)")
         out = np.empty((n, 3), dtype=np.float32)
         if n == 0:
-            return out
+            return (out, np.zeros(0)) if top_pdf else out
         zz = z[None]
         if self._rgb is not None:  # the graph normalises and masks the horizon itself
             # unit directions need no guard for float32's range: a cast, not the length check and its temporaries
