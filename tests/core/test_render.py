@@ -294,6 +294,7 @@ def test_a_scenes_stacks_are_encoded_and_calibrated_side_by_side_and_alike(monke
     import threading
 
     from addon.core.neural import calibrate
+    from addon.core.neural import models as neural_models
     from addon.core.render import materials
     from addon.core.render.demo_scene import demo_scene
 
@@ -310,6 +311,8 @@ def test_a_scenes_stacks_are_encoded_and_calibrated_side_by_side_and_alike(monke
     films, tables = [], []
     for threads in (1, 2):
         calibrate.clear_cache()
+        for models in neural_models._CACHE.values():  # encoded again too (``ModelSet.encodings``)
+            models.encodings.clear()
         film, stats = render(scene, replace(settings, threads=threads))
         films.append(film.mean())
         tables.append(
@@ -325,6 +328,28 @@ def test_a_scenes_stacks_are_encoded_and_calibrated_side_by_side_and_alike(monke
     assert len(tables[0]) == 5
     for a, b in zip(*tables, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_meshs_ray_tracing_structure_is_built_once_per_geometry_and_never_stale():
+    """``tracer_for`` keeps the last meshes' structures by the content of their triangles: the same triangles in
+    another Mesh find the kept one, moved triangles get their own (and hit where they now are), and only the last
+    ``TRACERS_KEPT`` are kept."""
+    from addon.core.render import RenderStats, integrator
+
+    ball = shapes.uv_sphere((0.0, 0.0, 0.0), 1.0, segments=16, rings=8)
+    again = Mesh(ball.positions.copy(), ball.normals, ball.uvs, ball.material_index)
+    moved = Mesh(ball.positions + np.float32([0.0, 0.0, 0.5]), ball.normals, ball.uvs, ball.material_index)
+    kept = integrator.tracer_for(ball)
+    assert integrator.tracer_for(again) is kept
+    other = integrator.tracer_for(moved)
+    assert other is not kept
+    o, d = np.array([[0.0, 0.0, -5.0]]), np.array([[0.0, 0.0, 1.0]])
+    t_ball = kept.intersect(o, d, RenderStats())[0][0]
+    t_moved = other.intersect(o, d, RenderStats())[0][0]
+    assert t_moved == pytest.approx(t_ball + 0.5, abs=0.02)  # its front moved 0.5 towards +z
+    for k in range(integrator.TRACERS_KEPT):
+        integrator.tracer_for(Mesh(ball.positions + np.float32(2 + k), ball.normals, ball.uvs, ball.material_index))
+    assert integrator.tracer_for(ball) is not kept  # pushed out, built again
 
 
 def test_a_material_that_cannot_be_resolved_is_a_clear_error_on_the_pool_too():

@@ -50,6 +50,41 @@ def test_stacks_resolve_to_exact_neural_or_reference_materials():
         M.resolve("gold", "neural")
 
 
+def test_a_stack_is_encoded_once_per_model_set_and_kept_read_only(monkeypatch):
+    """``neural_material.make`` keeps each stack's latent, proxy parameters and top coating with the model set
+    (``ModelSet.encodings``): a second material of the same stack encodes nothing, gets the same numbers, and
+    cannot change them for the next one; another stack, or a given latent, is encoded as before."""
+    from addon import core
+    from addon.core.neural import load_models
+    from addon.core.render import neural_material
+
+    models = load_models("tiny")
+    models.encodings.clear()
+    calls = []
+    real = core.neural.encode_stack
+
+    def counting(stack, m=None):
+        calls.append(stack)
+        return real(stack, m)
+
+    monkeypatch.setattr(core.neural, "encode_stack", counting)
+    stack, other = PRESETS["coated_gold"], PRESETS["red_car_paint"]
+    first = neural_material.make(stack, size="tiny")
+    second = neural_material.make(stack, size="tiny")
+    assert calls == [stack]
+    np.testing.assert_array_equal(first.z, second.z)
+    assert (first.sigma, first.w) == (second.sigma, second.w)
+    np.testing.assert_array_equal(first.top, second.top)
+    z, proxy, top = models.encodings[stack]
+    np.testing.assert_array_equal(z, real(stack, models))
+    with pytest.raises(ValueError, match="read-only"):
+        z[0, 0] = 1.0
+    neural_material.make(other, size="tiny")
+    assert calls == [stack, other]
+    given = neural_material.make(stack, latent=(np.zeros((3, 32)), "tiny"))
+    assert not given.z.any() and calls == [stack, other]
+
+
 def test_reference_mode_without_pdf_matches_the_exact_analytic_material():
     # The same rough conductor as an exact BSDF and through the position-free estimator, which
     # has no pdf: next-event estimation alone must carry its rough part.

@@ -33,6 +33,7 @@ from __future__ import annotations
 import hashlib
 import json
 import threading
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -293,6 +294,10 @@ class ModelSet:
         self.remainder = self.card("decoder").get("remainder", False) is True
         # ... divided by the top coat's Fresnel transmission in and out (top_lobe.remainder_scale)
         self.top_transmission = self.remainder and self.card("decoder").get("top_transmission", False) is True
+        # what the renderer's materials keep of each stack they encoded with these networks, by stack
+        # (``render.neural_material``): it goes with the model set, so new model files never meet an old latent
+        self.encodings: OrderedDict = OrderedDict()
+        self.encodings_lock = threading.Lock()
 
     def path(self, role: str) -> Path:
         return self.model_dir / file_name(role, self.size)

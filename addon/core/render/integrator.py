@@ -16,7 +16,10 @@ converge to the same image, which the tests check.
 
 from __future__ import annotations
 
+import hashlib
+import threading
 import time
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -148,14 +151,16 @@ class Tracer:
     query adds its time and ray count to ``stats``."""
 
     def __init__(self, mesh):
-        self.mesh = mesh
         self.scene = None
+        # the triangles as embree was given them, kept as long as its structure (the mesh itself is not: a kept
+        # tracer, ``tracer_for``, holds no normals or uvs)
+        self.positions = np.ascontiguousarray(mesh.positions, dtype=np.float32)
         if mesh.triangle_count:
             from embreex import rtcore_scene as rtcs
             from embreex.mesh_construction import TriangleMesh
 
             self.scene = rtcs.EmbreeScene()
-            TriangleMesh(self.scene, np.ascontiguousarray(mesh.positions, dtype=np.float32))
+            TriangleMesh(self.scene, self.positions)
 
     def intersect(self, o, d, stats: RenderStats):
         n = len(o)
@@ -184,6 +189,32 @@ class Tracer:
         return np.asarray(r) != -1
 
 
+# The last few meshes' ray-tracing structures, by the content of their triangles (``tracer_for``).
+TRACERS_KEPT = 2
+_TRACERS: OrderedDict = OrderedDict()
+_TRACERS_LOCK = threading.Lock()
+
+
+def tracer_for(mesh) -> Tracer:
+    """The :class:`Tracer` of ``mesh``, built once for each content of its triangles and kept for the renders that
+    follow (the last :data:`TRACERS_KEPT`): the viewport renders a scene two or three times after an edit (a
+    reduced first image, the full passes, the calibrated ones), a view change or an edit of a material leaves the
+    triangles as they were, and building the structure took 25 ms of the viewport's 50-80 ms first image on the
+    demo scene. Found by a digest of the triangles' positions (0.7 ms there), so a scene exported again with the
+    same geometry finds it too."""
+    positions = np.ascontiguousarray(mesh.positions, dtype=np.float32)
+    key = (positions.shape, hashlib.blake2b(positions.data, digest_size=20).digest())
+    with _TRACERS_LOCK:
+        tracer = _TRACERS.get(key)
+        if tracer is None:
+            tracer = _TRACERS[key] = Tracer(mesh)
+            while len(_TRACERS) > TRACERS_KEPT:
+                _TRACERS.popitem(last=False)
+        else:
+            _TRACERS.move_to_end(key)
+        return tracer
+
+
 def uv_scale(mesh) -> np.ndarray:
     """(triangles,) uv units per world unit of each triangle: sqrt(uv area / world area); 0 for a
     mesh without uvs (no texture footprint)."""
@@ -208,7 +239,7 @@ def camera_hits(scene: Scene, px, py) -> tuple[np.ndarray, np.ndarray]:
     if not scene.mesh.triangle_count or not len(px):
         return np.full(len(px), -1, dtype=np.int64), fp
     o, d = cam.generate_rays(px, py, np.full((len(px), 2), 0.5))
-    t, prim, bu, bv = Tracer(scene.mesh).intersect(o, d, RenderStats())
+    t, prim, bu, bv = tracer_for(scene.mesh).intersect(o, d, RenderStats())
     prim = np.asarray(prim, dtype=np.int64)
     hit = np.flatnonzero(prim >= 0)
     if len(hit):
@@ -252,7 +283,7 @@ class _Context:
             settings.thread_count,
         )
         stats.material_kinds = [m.kind for m in self.materials]
-        self.tracer = Tracer(scene.mesh)
+        self.tracer = tracer_for(scene.mesh)
         env = scene.environment
         self.env = env if env is not None and not env.is_black else None
         self.area = [li for li in scene.lights if isinstance(li, AreaLight) and li.power > 0]

@@ -253,7 +253,7 @@ def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None
     Everything else raises: ValueError for an unknown size, a texture that records no or an unknown
     decoder size, or one baked for another size than ``size``.
     """
-    from ..neural import AUTO, ModelFileError, encode_stack, load_models, resolve_size
+    from ..neural import AUTO, ModelFileError, load_models, resolve_size
 
     if not isinstance(stack, Stack):
         raise ValueError(f"make needs a Stack, got {type(stack).__name__}")
@@ -301,9 +301,7 @@ def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None
             calibration = _texture_calibration(latent_texture) if calibrate else None
             material = NeuralMaterial(models, None, proxy_guess(stack), latent_texture, calibration)
         else:
-            z = encode_stack(stack, models) if z is None else z
-            proxy = models.proxy_params(z)[0] if models.has("sampling") else proxy_guess(stack)
-            top = top_lobe.top_coat(stack)
+            z, proxy, top = _encoded(stack, models, z)
             material = NeuralMaterial(
                 models,
                 z,
@@ -320,6 +318,37 @@ def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None
         return None
     material.size = size
     return material
+
+
+ENCODINGS_KEPT = 256  # stacks whose encoding each model set keeps (``_encoded``)
+
+
+def _encoded(stack: Stack, models, z=None):
+    """``stack``'s latent on ``models`` (``z`` when given: a refined one), its proxy parameters (sigma, w) and its
+    top coating, what ``make`` gives a material. An encoded stack is kept, read-only, by the model set
+    (``ModelSet.encodings``, the last :data:`ENCODINGS_KEPT`) for the renders that follow: every render resolves
+    its scene's materials again, the viewport's after each edit, where usually one stack changed (encoding the
+    demo scene's five stacks took 30-35 ms of the viewport's 50-80 ms first image)."""
+    cache = getattr(models, "encodings", None) if z is None else None
+    if cache is not None:
+        with models.encodings_lock:
+            hit = cache.get(stack)
+            if hit is not None:
+                cache.move_to_end(stack)
+                return hit
+    from ..neural import encode_stack
+
+    z = encode_stack(stack, models) if z is None else z
+    proxy = models.proxy_params(z)[0] if models.has("sampling") else proxy_guess(stack)
+    made = (np.array(z, dtype=np.float32), np.array(proxy), top_lobe.top_coat(stack))
+    for a in made:
+        a.setflags(write=False)
+    if cache is not None:
+        with models.encodings_lock:
+            cache[stack] = made
+            while len(cache) > ENCODINGS_KEPT:
+                cache.popitem(last=False)
+    return made
 
 
 def _calibration(stack: Stack, models, z, proxy, calibrate):
