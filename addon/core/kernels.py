@@ -1005,6 +1005,12 @@ def _between_nodes(cos_grid, c):
 
 
 @njit(inline="always", **_JIT)
+def _between_clipped(low, high, t):
+    """The transmittance between two cosine nodes' values, weight ``t`` on the second, clipped to [0, 1]."""
+    return min(max(low * (1.0 - t) + high * t, 0.0), 1.0)
+
+
+@njit(inline="always", **_JIT)
 def _transmission(table, cos_grid, c, ia, fa, ii, fi):
     """The top interface's transmittance at cosine ``c`` (``top_lobe.transmission``): trilinear in ``table``
     (cos, alpha, ior) with the coating's alpha and ior cells (ia, fa), (ii, fi) found already, clipped to
@@ -1012,8 +1018,7 @@ def _transmission(table, cos_grid, c, ia, fa, ii, fi):
     k, t = _between_nodes(cos_grid, c)
     if k < 0:
         return 0.0
-    v = _coating_node(table, k, ia, fa, ii, fi) * (1.0 - t) + _coating_node(table, k + 1, ia, fa, ii, fi) * t
-    return min(max(v, 0.0), 1.0)
+    return _between_clipped(_coating_node(table, k, ia, fa, ii, fi), _coating_node(table, k + 1, ia, fa, ii, fi), t)
 
 
 @njit(inline="always", **_JIT)
@@ -1035,7 +1040,7 @@ def _column_transmission(column, cos_grid, c):
     k, t = _between_nodes(cos_grid, c)
     if k < 0:
         return 0.0
-    return min(max(column[k] * (1.0 - t) + column[k + 1] * t, 0.0), 1.0)
+    return _between_clipped(column[k], column[k + 1], t)
 
 
 @njit(**_JIT)
