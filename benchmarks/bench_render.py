@@ -503,6 +503,60 @@ def viewport_drag(drags: int, size=(320, 180), steps: int = 40, interval: float 
     return lines + [""]
 
 
+def viewport_move_during_pass(repeats: int, sizes=((320, 180), (1280, 720)), into: float = 0.3) -> list[str]:
+    """The view moved while the viewport refines: ``move_camera`` a fraction ``into`` of the way through a
+    full-resolution pass of the demo scene (the add-on's viewport settings, the stacks calibrated): seconds from
+    the move to the new view's first image, beside the seconds a full-resolution pass takes. Per viewport size,
+    ``repeats`` moves, each to another orbit position."""
+    import itertools
+    import statistics
+
+    from addon.core.render.progressive import ProgressiveSession
+    from addon.core.render.scene import Camera
+
+    rows = []
+    for width, height in sizes:
+        session = ProgressiveSession(RenderSettings(samples=64, max_bounces=4, calibrate="cached"), preview_divisor=4)
+        seen = []
+        session.on_image = lambda im, seen=seen: seen.append((im.generation, im.reduced, time.perf_counter()))
+        try:
+            session.restart(demo_scene(width, height))
+            session.wait(samples=3, timeout=600)  # models loaded, stacks encoded and calibrated, a few passes
+            full = [t for _, r, t in seen if not r]
+            pass_s = statistics.median(b - a for a, b in itertools.pairwise(full[-3:]))  # the last two passes
+            first = []
+            for rep in range(repeats):
+                k = len(seen)
+                while not any(not r for _, r, _ in seen[k:]):  # a full-resolution pass just ended: the next began
+                    time.sleep(0.001)
+                time.sleep(into * pass_s)
+                orbit = Camera.look_at(
+                    (0.3 + 0.05 * rep, -5.5, 1.6), (0.0, 0.0, 0.6), fov_deg=50.0, width=width, height=height
+                )
+                t0 = time.perf_counter()
+                generation = session.move_camera(orbit)
+                end = time.monotonic() + 600
+                while not any(g == generation for g, _, _ in seen) and time.monotonic() < end:
+                    time.sleep(0.001)
+                first.append(next(t for g, _, t in seen if g == generation) - t0)
+        finally:
+            session.close()
+        rows.append((width, height, pass_s, first))
+        print("move during a pass", rows[-1], flush=True)
+    lines = [
+        f"## Viewport: the view moved during a full-resolution pass (demo scene, {repeats} moves per size)",
+        "",
+        f"`ProgressiveSession.move_camera` {100 * into:.0f}% of the way through a full-resolution pass (one sample "
+        "per pixel), the viewport's settings: seconds from the move to the new view's first image (median, "
+        "range), beside a full-resolution pass's seconds.",
+        "",
+        "| viewport | full-resolution pass s | first image after the move s (median) | range |",
+        "|---|---|---|---|",
+    ]
+    lines += [f"| {w}x{h} | {p:.2f} | {statistics.median(f):.3f} | {min(f):.3f}-{max(f):.3f} |" for w, h, p, f in rows]
+    return lines + [""]
+
+
 def viewport_edit_during_calibration(repeats: int, size=(320, 180), decoders=("tiny", "paper")) -> list[str]:
     """An edit that comes while the viewport calibrates the stack of the edit before it: seconds from the restart
     to the new scene's first image, per decoder size. The first sphere's stack is edited (a coat roughness not
@@ -634,6 +688,7 @@ def speed_only(args, command: str) -> int:
     sections += rest_split(*first_size, args.samples, args.bounces, args.repeats)
     sections += viewport_latency(args.repeats)
     sections += viewport_drag(args.repeats)
+    sections += viewport_move_during_pass(3 * args.repeats)
     sections += viewport_edit_during_calibration(args.repeats)
     sections += cycles_split(*first_size, args.samples, args.bounces)  # last: the profiler stays on
     text = [

@@ -79,6 +79,44 @@ def test_cancel_stops_within_a_pass_and_keeps_the_last_image():
         session.close()
 
 
+def test_a_restart_ends_the_old_pass_at_its_next_bounce_not_at_its_end():
+    import threading
+
+    from addon.core.render import Mesh
+
+    entered, release = threading.Event(), threading.Event()
+    binds = []
+
+    class HeldOnce(LambertMaterial):  # the old scene's first bounce waits until the restart has come
+        def bind(self, hits):
+            binds.append(len(hits.uv))
+            if len(binds) == 1:
+                entered.set()
+                release.wait(30)
+            return super().bind(hits)
+
+    old = small_scene(width=32, height=24)
+    floor = shapes.quad((0.0, 0.0, 0.0), (3.0, 0.0, 0.0), (0.0, 3.0, 0.0))
+    old = replace(old, mesh=Mesh.concatenate([old.mesh, floor]), materials=[HeldOnce((0.7, 0.5, 0.3))])
+    # One thread: no other chunk of the old scene runs beside the one held (two would race the restart).
+    session = ProgressiveSession(RenderSettings(samples=50, max_bounces=6, threads=1), preview_divisor=1)
+    try:
+        session.restart(old)
+        assert entered.wait(30)
+        generation = session.restart(small_scene((0.0, 0.0, 1.0)))
+        release.set()
+        image = session.wait(samples=1, timeout=60)
+    finally:
+        release.set()
+        session.close()
+    assert image.generation == generation
+    # Its paths went on bouncing between the sphere and the floor, but the old scene shaded no bounce after the
+    # restart: its pass stopped at the next bounce, not at its end.
+    assert len(binds) == 1
+    full, _ = render(old, RenderSettings(samples=1, max_bounces=6, threads=1))
+    assert len(binds) > 2
+
+
 def test_a_failing_render_is_reported_not_lost():
     class Broken(LambertMaterial):
         def bind(self, hits):

@@ -220,6 +220,47 @@ def test_cancel_stops_after_the_current_pass():
     assert info.value.film.passes == 3
 
 
+def test_a_stop_event_ends_the_render_within_a_bounce_on_any_thread():
+    import threading
+
+    stop = threading.Event()
+    binds = []
+
+    class StopsOnFirstBind(LambertMaterial):  # the event set from inside the first bounce, as by another thread
+        def bind(self, hits):
+            binds.append(len(hits.uv))
+            stop.set()
+            return super().bind(hits)
+
+    scene = mixed_scene(16, 12)
+    scene.materials = [StopsOnFirstBind((0.5, 0.5, 0.5)), StopsOnFirstBind((0.7, 0.3, 0.2))]
+    for threads in (1, 2):
+        stop.clear()
+        binds.clear()
+        settings = RenderSettings(samples=6, max_bounces=4, threads=threads, chunk_paths=64)
+        with pytest.raises(Cancelled) as info:
+            render(scene, settings, stop=stop)
+        # The chunks being traced end at their next bounce; the passes queued behind them never start.
+        assert 0 < len(binds) <= len(scene.materials) * settings.thread_count
+        film = info.value.film
+        assert film.passes == 0 and info.value.stats.seconds["total"] > 0
+        assert film.count.max() <= 1 and film.count.sum() < 16 * 12  # each pixel at most its one finished sample
+    # Without the event set the same scene renders all its bounces and passes.
+    binds.clear()
+    film, _ = render(scene, RenderSettings(samples=2, max_bounces=4, threads=1), stop=threading.Event())
+    assert film.passes == 2 and len(binds) > 2
+
+
+def test_a_render_stopped_before_it_starts_adds_nothing():
+    import threading
+
+    stop = threading.Event()
+    stop.set()
+    with pytest.raises(Cancelled) as info:
+        render(mixed_scene(8, 8), RenderSettings(samples=3), stop=stop)
+    assert info.value.film.passes == 0 and info.value.film.count.sum() == 0
+
+
 def test_awkward_scenes_render_without_errors_or_nan():
     cam = Camera.look_at((0, -3, 1), (0, 0, 0), width=12, height=10)
     # Empty scene: the environment only.

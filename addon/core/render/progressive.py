@@ -6,8 +6,8 @@ reduced resolution (``preview_divisor`` times smaller on each side, so the first
 edit arrives in a fraction of a full pass), then passes of one sample per pixel at full
 resolution, accumulated into one film until ``settings.samples`` passes. ``restart(scene)``
 (after an edit: stack, camera, objects) drops the old work and starts again; the old render
-stops at its next pass (``render``'s progress callback), so a cancelled pass costs at most one
-pass of the old scene. The full-resolution accumulation is the offline render of the same
+stops within a bounce (``render``'s ``stop`` event, which each generation has its own of), not at
+the end of its pass. The full-resolution accumulation is the offline render of the same
 settings: the same passes with the same random numbers (``render(..., film=...)``).
 
 The viewport glue (``addon/blender/engine.py``) calls ``restart`` from ``view_update`` (an edit), ``move_camera``
@@ -75,6 +75,7 @@ class ProgressiveSession:
         self._scene: Scene | None = None
         self._last: Scene | None = None  # the scene of the last restart (its materials resolved once rendered)
         self._generation = 0
+        self._stop = threading.Event()  # set when the generation rendering ends (``render``'s ``stop``)
         self._image: ViewImage | None = None
         self._closed = False
         self._busy = False
@@ -84,7 +85,7 @@ class ProgressiveSession:
     # ------------------------------------------------------------------ control (any thread)
 
     def restart(self, scene: Scene, settings: RenderSettings | None = None) -> int:
-        """Render ``scene`` from scratch (the running render stops at its next pass); returns the
+        """Render ``scene`` from scratch (the running render stops within a bounce); returns the
         new generation."""
         with self._lock:
             self._last = scene
@@ -104,25 +105,29 @@ class ProgressiveSession:
         self._scene = scene
         if settings is not None:
             self.settings = settings
-        self._generation += 1
+        self._next_generation()
         self.error = None
-        self._wake.notify_all()
         return self._generation
 
+    def _next_generation(self) -> None:
+        """End the generation rendering (its render stops within a bounce) and start the next (the lock held)."""
+        self._stop.set()
+        self._stop = threading.Event()
+        self._generation += 1
+        self._wake.notify_all()
+
     def cancel(self) -> None:
-        """Stop rendering (the current pass is the last); the newest image stays available."""
+        """Stop rendering (within a bounce); the newest image stays available."""
         with self._lock:
             self._scene = None
-            self._generation += 1
-            self._wake.notify_all()
+            self._next_generation()
 
     def close(self, timeout: float | None = 10.0) -> None:
         """Cancel and end the background thread."""
         with self._lock:
             self._closed = True
             self._scene = None
-            self._generation += 1
-            self._wake.notify_all()
+            self._next_generation()
         self._thread.join(timeout)
 
     def latest(self) -> ViewImage | None:
@@ -178,10 +183,10 @@ class ProgressiveSession:
                     self._busy = False
                     self._wake.notify_all()
                     return
-                scene, settings, generation = self._scene, self.settings, self._generation
+                scene, settings, generation, stop = self._scene, self.settings, self._generation, self._stop
                 self._busy = True
             try:
-                self._render_generation(scene, settings, generation)
+                self._render_generation(scene, settings, generation, stop)
             except Exception as e:  # kept and reported, never lost on this thread
                 with self._lock:
                     if generation == self._generation:
@@ -234,7 +239,7 @@ class ProgressiveSession:
                 self._last = replace(self._last, materials=materials)
         return replace(scene, materials=materials)
 
-    def _render_generation(self, scene: Scene, settings: RenderSettings, generation: int) -> None:
+    def _render_generation(self, scene: Scene, settings: RenderSettings, generation: int, stop) -> None:
         def progress(reduced):
             return lambda film, done, total: self._publish(film, generation, reduced)
 
@@ -251,7 +256,7 @@ class ProgressiveSession:
         if self.preview_divisor > 1:
             small = replace(scene, camera=reduced_camera(scene.camera, self.preview_divisor))
             try:
-                render(small, replace(settings, samples=1), progress=progress(True))
+                render(small, replace(settings, samples=1), progress=progress(True), stop=stop)
             except Cancelled:
                 return
         if not self._current(generation):
@@ -261,13 +266,13 @@ class ProgressiveSession:
             # edit comes before it ends, so the viewport never waits for reference walks; once the view rests,
             # the walks run and the accumulation starts again calibrated.
             try:
-                render(scene, replace(settings, samples=1), progress=progress(False))
+                render(scene, replace(settings, samples=1), progress=progress(False), stop=stop)
             except Cancelled:
                 return
             scene = self._calibrate_pending(scene, generation)
             if scene is None:
                 return
         try:
-            render(scene, settings, progress=progress(False))
+            render(scene, settings, progress=progress(False), stop=stop)
         except Cancelled:
             return
