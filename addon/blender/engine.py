@@ -236,16 +236,21 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
             self.update_stats("", f"Sample {done}/{total} | {core_scene.mesh.triangle_count} triangles")
             return not self.test_break()
 
+        # Esc ends the render within a bounce (test_break, polled on this thread while chunks are traced), and
+        # what it rendered stays in the result, whichever mode it was in
         try:
-            film, stats = render(core_scene, settings, progress=progress)
+            try:
+                film, stats = render(core_scene, settings, progress=progress, stop=self.test_break)
+            except (RuntimeError, OSError) as e:
+                if settings.mode != "neural":
+                    raise
+                # The neural runtime failed (a broken model file, say): the reference still renders.
+                self.report({"WARNING"}, f"neural evaluation failed ({_failure(e)}); rendering in reference mode")
+                film, stats = render(
+                    core_scene, replace(settings, mode="reference"), progress=progress, stop=self.test_break
+                )
         except Cancelled as c:
             film, stats = c.film, c.stats
-        except (RuntimeError, OSError) as e:
-            if settings.mode != "neural":
-                raise
-            # The neural runtime failed (a broken model file, say): the reference still renders.
-            self.report({"WARNING"}, f"neural evaluation failed ({_failure(e)}); rendering in reference mode")
-            film, stats = render(core_scene, replace(settings, mode="reference"), progress=progress)
         self.update_stats("", stats.summary())
         combined.rect.foreach_set(np.ascontiguousarray(film.rgba()[::-1]).ravel())
         _write_feature_passes(result.layers[0].passes, film)

@@ -340,6 +340,32 @@ def test_f12_reports_every_failure_and_falls_back_to_the_reference(fresh_scene, 
         bpy.ops.render.render(write_still=True)
 
 
+def test_esc_ends_an_f12_render_inside_its_first_pass(fresh_scene, monkeypatch):
+    from addon.blender import engine
+    from addon.core.render import Cancelled
+
+    ctx = fresh_scene
+    small(ctx.scene, 64, 48, samples=64)
+    ctx.scene.render.engine = "NEURAL_LAYERED"
+    real, given, stopped = engine.render, [], []
+
+    def esc_held(scene, settings, **kw):
+        """The engine's render with Esc held from the start (Blender's test_break cannot be made to say so
+        headless): what the engine gives as ``stop`` is its own test_break, and the render polls its stand-in
+        while the first pass is traced, not only after a pass."""
+        given.append((repr(kw["stop"]), kw["stop"]()))
+        try:
+            return real(scene, settings, **{**kw, "stop": lambda: True})
+        except Cancelled as c:
+            stopped.append(c.film.passes)
+            raise
+
+    monkeypatch.setattr(engine, "render", esc_held)
+    bpy.ops.render.render()  # a stopped render is no failure: the result keeps what was rendered
+    assert len(given) == 1 and "test_break" in given[0][0] and given[0][1] is False
+    assert stopped == [0]
+
+
 def test_render_threads_follow_the_scene_setting(fresh_scene):
     import os
 

@@ -251,6 +251,41 @@ def test_a_stop_event_ends_the_render_within_a_bounce_on_any_thread():
     assert film.passes == 2 and len(binds) > 2
 
 
+def test_a_stop_function_is_polled_on_the_calling_thread_only():
+    import threading
+    import time
+
+    home = threading.get_ident()
+    calls = []
+
+    def test_break():  # as Blender's, which belongs to the engine's thread
+        calls.append(threading.get_ident())
+        return len(calls) >= 3
+
+    class Slow(LambertMaterial):  # chunks that take longer than the render's polling interval
+        def bind(self, hits):
+            time.sleep(0.03)
+            return super().bind(hits)
+
+    scene = mixed_scene(16, 12)
+    scene.materials = [Slow((0.5, 0.5, 0.5)), Slow((0.7, 0.3, 0.2))]
+    for threads in (1, 2):
+        calls.clear()
+        with pytest.raises(Cancelled) as info:
+            render(scene, RenderSettings(samples=50, max_bounces=4, threads=threads, chunk_paths=64), stop=test_break)
+        assert calls == [home] * 3  # polled until it said stop, on this thread only
+        assert info.value.film.passes <= 1
+    # A function that never says stop: the render ends as usual, the function polled on this thread only.
+    calls.clear()
+
+    def never():
+        calls.append(threading.get_ident())
+        return False
+
+    film, _ = render(mixed_scene(16, 12), RenderSettings(samples=2, threads=2, chunk_paths=64), stop=never)
+    assert film.passes == 2 and calls and set(calls) == {home}
+
+
 def test_a_render_stopped_before_it_starts_adds_nothing():
     import threading
 

@@ -319,7 +319,7 @@ def render(
     progress: Callable[[Film, int, int], bool] | None = None,
     film: Film | None = None,
     pixels: np.ndarray | None = None,
-    stop: threading.Event | None = None,
+    stop: threading.Event | Callable[[], bool] | None = None,
 ) -> tuple[Film, RenderStats]:
     """Render ``scene``; returns the film (per-pixel mean and standard error) and statistics.
 
@@ -331,7 +331,10 @@ def render(
     traced checks it before each bounce and before its materials shade, so the render raises :class:`Cancelled`
     within about half a bounce, where a False from ``progress`` takes effect once the pass, and the chunks
     queued behind it, are traced (a view moved during a 1280x720 pass of the demo scene: its first image after
-    0.11-0.20 s with ``stop``, 0.52-0.73 s without). After a stop the film holds the finished passes and the
+    0.11-0.20 s with ``stop``, 0.52-0.73 s without). ``stop`` may instead be a function of the calling thread,
+    True to stop (Blender's ``RenderEngine.test_break``, which belongs to the engine's thread): the render calls
+    it on that thread only, before each chunk it takes and every :data:`STOP_POLL_SECONDS` while it waits for
+    one, and then stops the chunks as the event does. After a stop the film holds the finished passes and the
     finished chunks of the pass stopped (each pixel's ``count`` says which); ``passes`` counts the finished
     passes.
 
@@ -348,6 +351,7 @@ def render(
     region of any shape: the rest of the film gets no sample); default every pixel.
     """
     settings = settings or RenderSettings()
+    stop = _PolledStop(stop) if stop is not None and not isinstance(stop, threading.Event) else stop
     cam = scene.camera
     stats = RenderStats()
     t_start = time.perf_counter()
@@ -388,7 +392,7 @@ def render(
     # chunks than threads) the chunks share one pool of every thread, whose work they wait on.
     with session.threads_in_force(1 if workers >= settings.thread_count else settings.thread_count):
         try:
-            results = _ordered(pool, trace, tasks, 2 * workers)
+            results = _ordered(pool, trace, tasks, 2 * workers, stop)
             for k, c in tasks:
                 pix, (L, features, piece) = next(results)
                 film.add(pix, L, features)
@@ -410,18 +414,44 @@ def render(
     return film, stats
 
 
-def _ordered(pool, fn, tasks, ahead: int):
+STOP_POLL_SECONDS = 0.1  # how often a render polls a ``stop`` function while it waits for a chunk
+
+
+class _PolledStop:
+    """``render``'s ``stop`` given as a function of the calling thread's: an event the chunks read, set once the
+    function, called on that thread only, returns True."""
+
+    def __init__(self, poll: Callable[[], bool]):
+        self.poll, self.event, self.home = poll, threading.Event(), threading.get_ident()
+
+    def is_set(self) -> bool:
+        if not self.event.is_set() and threading.get_ident() == self.home and self.poll():
+            self.event.set()
+        return self.event.is_set()
+
+
+def _ordered(pool, fn, tasks, ahead: int, stop=None):
     """``fn(task)`` for each task, in order; with a pool, at most ``ahead`` tasks submitted and not yet
-    consumed (a cancelled render does not leave a queue of passes behind)."""
+    consumed (a cancelled render does not leave a queue of passes behind). Raises :class:`Cancelled` before
+    a task is taken once ``stop`` is set, and while waiting for one (checked every :data:`STOP_POLL_SECONDS`)."""
     if pool is None:
-        yield from map(fn, tasks)
+        for task in tasks:
+            _check_stop(stop)
+            yield fn(task)
         return
     futures = [pool.submit(fn, t) for t in tasks[:ahead]]
     for i in range(len(tasks)):
         if i + ahead < len(tasks):
             futures.append(pool.submit(fn, tasks[i + ahead]))
-        yield futures[i].result()
+        while True:
+            _check_stop(stop)
+            try:
+                result = futures[i].result(timeout=STOP_POLL_SECONDS if stop is not None else None)
+                break
+            except TimeoutError:
+                continue
         futures[i] = None
+        yield result
 
 
 _PHASES = ("rays", "network", "reference", "shading")
@@ -632,14 +662,14 @@ def _continue_paths(
     )  # fmt: skip
 
 
-def _check_stop(stop: threading.Event | None, pass_index: int) -> None:
-    """Raise :class:`Cancelled` if ``stop`` (``render``'s) is set."""
+def _check_stop(stop) -> None:
+    """Raise :class:`Cancelled` if ``stop`` (``render``'s: an event, or a :class:`_PolledStop`) is set."""
     if stop is not None and stop.is_set():
-        raise Cancelled(f"render stopped in pass {pass_index + 1}")
+        raise Cancelled("render stopped")
 
 
 def _trace_paths(
-    ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: int, stop: threading.Event | None = None
+    ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: int, stop=None
 ) -> tuple[np.ndarray, np.ndarray, RenderStats]:
     """Radiance (N, 3) of one path per pixel of ``pix``, all paths a bounce at a time, the
     denoising features of their first hits (N, 7; see ``Film.add``), and the chunk's statistics
@@ -653,7 +683,7 @@ def _trace_paths(
     for depth in range(s.max_bounces + 1):
         if len(paths.row) == 0:
             break
-        _check_stop(stop, pass_index)
+        _check_stop(stop)
         rng = np.random.default_rng([s.seed, pass_index, chunk_index, depth + 1])
         t, prim, bu, bv = ctx.tracer.intersect(paths.o, paths.d, stats)
         with _shading(stats):
@@ -671,7 +701,7 @@ def _trace_paths(
         with _shading(stats):
             hits = _surface_hits(ctx, paths, hit, t, prim, bu, bv, groups)
             lights = _sample_lights(ctx, hits, u_light, stats)
-        _check_stop(stop, pass_index)  # the materials' networks next: half of a bounce's time on neural scenes
+        _check_stop(stop)  # the materials' networks next: half of a bounce's time on neural scenes
         u_lobe, u_dir = rng.random(m), rng.random((m, 2))
         seeds = rng.integers(0, 2**31, size=len(ctx.materials))
         sc = _shade(ctx, paths, hits, lights, u_lobe, u_dir, seeds, L, stats)
