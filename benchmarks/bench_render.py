@@ -503,7 +503,9 @@ def viewport_drag(drags: int, size=(320, 180), steps: int = 40, interval: float 
     return lines + [""]
 
 
-def viewport_move_during_pass(repeats: int, sizes=((320, 180), (1280, 720)), into: float = 0.3) -> list[str]:
+def viewport_move_during_pass(
+    repeats: int, sizes=((320, 180), (1280, 720), (1920, 1080)), into: float = 0.3
+) -> list[str]:
     """The view moved while the viewport refines: ``move_camera`` a fraction ``into`` of the way through a
     full-resolution pass of the demo scene (the add-on's viewport settings, the stacks calibrated): seconds from
     the move to the new view's first image, beside the seconds a full-resolution pass takes. Per viewport size,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from addon.core.render import Camera, Environment, LambertMaterial, PointLight, RenderSettings, Scene, render, shapes
-from addon.core.render.progressive import ProgressiveSession, reduced_camera
+from addon.core.render.progressive import PREVIEW_PIXELS, ProgressiveSession, preview_divisors, reduced_camera
 
 
 def small_scene(sky=(0.3, 0.4, 0.5), width=24, height=16):
@@ -132,6 +132,32 @@ def test_a_failing_render_is_reported_not_lost():
     finally:
         session.close()
     assert isinstance(session.error, RuntimeError) and errors == [session.error]
+
+
+def test_a_large_view_starts_smaller_and_doubles_up_to_the_divisor():
+    assert PREVIEW_PIXELS == 64 * 64
+    assert preview_divisors(320, 180, 4) == [4]  # 80 x 45: within the first image's pixels already
+    assert preview_divisors(1280, 720, 4) == [16, 8, 4]  # 80 x 45 first, then 160 x 90 and 320 x 180
+    assert preview_divisors(3840, 2160, 4) == [64, 32, 16, 8, 4]
+    assert preview_divisors(3840, 2160, 1) == [] and preview_divisors(24, 16, 2) == [2]
+    assert preview_divisors(400, 300, 3) == [6, 3]  # 66 x 50 first: a divisor need not be a power of two
+    for w, h in ((1280, 720), (3840, 2160), (7, 5000)):
+        first = preview_divisors(w, h, 4)[0]
+        assert (w // first) * (h // first) <= PREVIEW_PIXELS
+
+    scene = small_scene(width=200, height=150)
+    settings = RenderSettings(samples=2, max_bounces=2, seed=3)
+    seen = []
+    session = ProgressiveSession(settings, preview_divisor=2, on_image=seen.append)
+    try:
+        session.restart(scene)
+        image = session.wait()
+    finally:
+        session.close()
+    assert [im.rgba.shape[:2] for im in seen if im.reduced] == [(37, 50), (75, 100)]
+    assert [im.samples for im in seen] == [1, 1, 1, 2]
+    # The reduced images are previews only: the accumulation is the offline render's.
+    assert np.array_equal(image.rgba, render(scene, settings)[0].rgba())
 
 
 def test_reduced_camera_and_bad_divisor():
