@@ -8,8 +8,9 @@ scene's output format (OpenEXR, PNG, ...). Every failure is reported in the UI (
 the render's error line); where the neural runtime fails the reference renders instead.
 
 ``view_update`` / ``view_draw`` keep a progressive session (``addon.core.render.progressive``)
-for the viewport: 1 sample per pixel at a quarter of the resolution first, then refinement,
-restarted on every edit and every view change; ``_Viewport`` draws its newest image.
+for the viewport: 1 sample per pixel at reduced resolutions first (at most 64 x 64 pixels, growing to a
+quarter of the view on each side), then refinement, restarted on every edit and every view change (the old
+render stops within a bounce); ``_Viewport`` draws its newest image.
 Material thumbnails (``is_preview``) render with ``core.render.thumbnail``'s settings: a few
 samples, few bounces, the fastest decoder, no denoising, no *Auto* measurement.
 The render thread setting of the scene (Threads: Auto / Fixed) decides the cores used.
