@@ -245,6 +245,9 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
             except (RuntimeError, OSError) as e:
                 if settings.mode != "neural":
                     raise
+                if self.test_break():  # Esc came too: nothing to fall back for
+                    self.update_stats("", "Cancelled")
+                    return
                 # The neural runtime failed (a broken model file, say): the reference still renders.
                 self.report({"WARNING"}, f"neural evaluation failed ({_failure(e)}); rendering in reference mode")
                 film, stats = render(

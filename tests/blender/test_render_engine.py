@@ -340,30 +340,48 @@ def test_f12_reports_every_failure_and_falls_back_to_the_reference(fresh_scene, 
         bpy.ops.render.render(write_still=True)
 
 
-def test_esc_ends_an_f12_render_inside_its_first_pass(fresh_scene, monkeypatch):
+def test_esc_stops_an_f12_render_between_passes_and_keeps_what_was_rendered(fresh_scene, tmp_path, monkeypatch):
     from addon.blender import engine
     from addon.core.render import Cancelled
 
     ctx = fresh_scene
     small(ctx.scene, 64, 48, samples=64)
     ctx.scene.render.engine = "NEURAL_LAYERED"
-    real, given, stopped = engine.render, [], []
+    ctx.scene.render.image_settings.file_format = "OPEN_EXR"
+    ctx.scene.render.filepath = str(tmp_path / "stopped.exr")
+    real, given, stopped, shown = engine.render, [], [], []
 
-    def esc_held(scene, settings, **kw):
-        """The engine's render with Esc held from the start (Blender's test_break cannot be made to say so
-        headless): what the engine gives as ``stop`` is its own test_break, and the render polls its stand-in
-        while the first pass is traced, not only after a pass."""
+    def esc_after_the_first_pass(scene, settings, **kw):
+        """The engine's render with Esc pressed once the first pass is shown (Blender's test_break cannot be made
+        to say so headless): the engine gives its own test_break as ``stop``; the render polls the stand-in
+        before it takes each chunk, and so stops before the second pass's, where only ``progress`` (which asks the
+        real test_break: no Esc) would have let it run on."""
         given.append((repr(kw["stop"]), kw["stop"]()))
+
+        def progress(*args):
+            shown.append(args[1])
+            return kw["progress"](*args)
+
         try:
-            return real(scene, settings, **{**kw, "stop": lambda: True})
+            return real(scene, settings, **{**kw, "progress": progress, "stop": lambda: bool(shown)})
         except Cancelled as c:
             stopped.append(c.film.passes)
             raise
 
-    monkeypatch.setattr(engine, "render", esc_held)
-    bpy.ops.render.render()  # a stopped render is no failure: the result keeps what was rendered
+    monkeypatch.setattr(engine, "render", esc_after_the_first_pass)
+    bpy.ops.render.render(write_still=True)  # a stopped render is no failure
     assert len(given) == 1 and "test_break" in given[0][0] and given[0][1] is False
-    assert stopped == [0]
+    assert shown == [1] and stopped == [1]  # the first pass, then Esc before the second pass's chunk
+    px = read_image(tmp_path / "stopped.exr")[..., :3]
+    assert np.isfinite(px).all() and px.max() > 0  # the pass rendered before Esc is the result
+
+    def neural_fails(scene, settings, **kw):  # Esc during the reference fallback keeps its result too
+        if settings.mode == "neural":
+            raise RuntimeError("ONNX Runtime: model file damaged")
+        return real(scene, settings, **{**kw, "stop": lambda: True})
+
+    monkeypatch.setattr(engine, "render", neural_fails)
+    bpy.ops.render.render(write_still=True)
 
 
 def test_render_threads_follow_the_scene_setting(fresh_scene):

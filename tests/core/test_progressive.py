@@ -141,9 +141,10 @@ def test_a_large_view_starts_smaller_and_doubles_up_to_the_divisor():
     assert preview_divisors(3840, 2160, 4) == [64, 32, 16, 8, 4]
     assert preview_divisors(3840, 2160, 1) == [] and preview_divisors(24, 16, 2) == [2]
     assert preview_divisors(400, 300, 3) == [6, 3]  # 66 x 50 first: a divisor need not be a power of two
-    for w, h in ((1280, 720), (3840, 2160), (7, 5000)):
-        first = preview_divisors(w, h, 4)[0]
-        assert (w // first) * (h // first) <= PREVIEW_PIXELS
+    for w, h in ((1280, 720), (3840, 2160), (7, 5000), (1, 40000), (40000, 1), (1, 1)):
+        cam = Camera.look_at((0, -3, 1), (0, 0, 0), width=w, height=h)
+        first = reduced_camera(cam, preview_divisors(w, h, 4)[0])
+        assert first.width * first.height <= PREVIEW_PIXELS
 
     scene = small_scene(width=200, height=150)
     settings = RenderSettings(samples=2, max_bounces=2, seed=3)

@@ -286,6 +286,56 @@ def test_a_stop_function_is_polled_on_the_calling_thread_only():
     assert film.passes == 2 and calls and set(calls) == {home}
 
 
+def test_a_render_that_progress_ends_stops_the_chunks_still_being_traced():
+    import time
+
+    binds, said_no = [], []
+
+    class Slow(LambertMaterial):
+        def bind(self, hits):
+            binds.append(time.perf_counter())
+            time.sleep(0.03)
+            return super().bind(hits)
+
+    def no_more(film, done, total):
+        said_no.append(time.perf_counter())
+        return False
+
+    scene = mixed_scene(16, 12)
+    scene.materials = [Slow((0.5, 0.5, 0.5)), Slow((0.7, 0.3, 0.2))]
+    settings = RenderSettings(samples=20, max_bounces=4, threads=2)  # one chunk a pass: the next passes run beside
+    with pytest.raises(Cancelled) as info:
+        render(scene, settings, progress=no_more)
+    assert info.value.film.passes == 1
+    # Each chunk still being traced shades at most one more bounce (one bind per material) and stops; the ones
+    # queued never start. Run on, the next passes' chunks would shade every bounce left.
+    assert sum(t > said_no[0] for t in binds) <= len(scene.materials) * settings.thread_count
+
+
+def test_a_film_a_stop_left_in_the_middle_of_a_pass_is_not_continued():
+    import threading
+
+    stop = threading.Event()
+
+    class StopsAfterAFewBinds(LambertMaterial):
+        calls = 0
+
+        def bind(self, hits):
+            StopsAfterAFewBinds.calls += 1
+            if StopsAfterAFewBinds.calls == 6:
+                stop.set()
+            return super().bind(hits)
+
+    scene = mixed_scene(16, 12)
+    scene.materials = [StopsAfterAFewBinds((0.5, 0.5, 0.5)), StopsAfterAFewBinds((0.7, 0.3, 0.2))]
+    with pytest.raises(Cancelled) as info:
+        render(scene, RenderSettings(samples=4, max_bounces=2, threads=1, chunk_paths=64), stop=stop)
+    film = info.value.film
+    assert film.count.max() > film.passes  # part of a pass: some pixels have a sample more
+    with pytest.raises(ValueError, match="part of a pass"):
+        render(scene, RenderSettings(samples=1, max_bounces=2, threads=1), film=film)
+
+
 def test_a_render_stopped_before_it_starts_adds_nothing():
     import threading
 

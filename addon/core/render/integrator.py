@@ -21,6 +21,7 @@ import threading
 import time
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import wait as wait_for_futures
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable
@@ -325,18 +326,21 @@ def render(
 
     ``progress(film, done, total)`` is called after every pass of one sample per pixel; returning
     False stops the render (raising :class:`Cancelled`, with the partial film attached as
-    ``exc.film``). Pass a ``film`` to continue accumulating into it (progressive refinement).
+    ``exc.film``). Pass a ``film`` to continue accumulating into it (progressive refinement): one of
+    whole passes (a film that a ``stop`` left in the middle of a pass is refused, ValueError: its pixels
+    would get the stopped pass's samples twice).
 
-    ``stop`` (an event, set from any thread) ends the render sooner than ``progress`` can: every chunk being
-    traced checks it before each bounce and before its materials shade, so the render raises :class:`Cancelled`
-    within about half a bounce, where a False from ``progress`` takes effect once the pass, and the chunks
-    queued behind it, are traced (a view moved during a 1280x720 pass of the demo scene: its first image after
-    0.11-0.20 s with ``stop``, 0.52-0.73 s without). ``stop`` may instead be a function of the calling thread,
-    True to stop (Blender's ``RenderEngine.test_break``, which belongs to the engine's thread): the render calls
-    it on that thread only, before each chunk it takes and every :data:`STOP_POLL_SECONDS` while it waits for
-    one, and then stops the chunks as the event does. After a stop the film holds the finished passes and the
-    finished chunks of the pass stopped (each pixel's ``count`` says which); ``passes`` counts the finished
-    passes.
+    ``stop`` (an event, set from any thread) ends the render sooner than ``progress`` can, which is heard
+    after a pass only: every chunk being traced checks it before each bounce and before its materials shade,
+    and the render before it takes each chunk, so the render raises :class:`Cancelled` within about half a bounce
+    (a view moved during a 1280x720 pass of the demo scene: its first image after 0.11-0.20 s with ``stop``,
+    0.52-0.73 s when the old render ran to the end of its pass). ``stop`` may instead be a function of the calling
+    thread, True to stop (Blender's ``RenderEngine.test_break``, which belongs to the engine's thread): the
+    render calls it on that thread only, before each chunk it takes and every :data:`STOP_POLL_SECONDS` while
+    it waits for one, and then stops the chunks as the event does. However a render ends (a stop, a False from
+    ``progress``, an error), the chunks still being traced stop at their next bounce. After a stop the film
+    holds the finished passes and the chunks of the pass stopped that the render took, in order, before it
+    (each pixel's ``count`` says which); ``passes`` counts the finished passes.
 
     Each pass is cut into equal chunks of at most ``chunk_paths`` pixels; ``settings.thread_count``
     chunks (of this pass or the next) are traced at once on a pool of threads (numpy, embreex and ONNX
@@ -351,7 +355,12 @@ def render(
     region of any shape: the rest of the film gets no sample); default every pixel.
     """
     settings = settings or RenderSettings()
-    stop = _PolledStop(stop) if stop is not None and not isinstance(stop, threading.Event) else stop
+    halt = _Halt(stop)
+    if film is not None and film.count.size and film.count.max() > film.passes:
+        raise ValueError(
+            "the film holds part of a pass that a stopped render left (some pixels have more samples than its "
+            f"{film.passes} passes): continue from a film of whole passes"
+        )
     cam = scene.camera
     stats = RenderStats()
     t_start = time.perf_counter()
@@ -381,7 +390,7 @@ def render(
         k, c = task
         pix = pixels[starts[c] : starts[c] + chunk]
         return (slice(starts[c], starts[c] + len(pix)) if whole else pix), _trace_paths(
-            ctx, pix, start_pass + k, c, stop
+            ctx, pix, start_pass + k, c, halt
         )
 
     workers = min(settings.thread_count, len(tasks))
@@ -392,7 +401,7 @@ def render(
     # chunks than threads) the chunks share one pool of every thread, whose work they wait on.
     with session.threads_in_force(1 if workers >= settings.thread_count else settings.thread_count):
         try:
-            results = _ordered(pool, trace, tasks, 2 * workers, stop)
+            results = _ordered(pool, trace, tasks, 2 * workers, halt)
             for k, c in tasks:
                 pix, (L, features, piece) = next(results)
                 film.add(pix, L, features)
@@ -408,6 +417,7 @@ def render(
             exc.film, exc.stats = film, stats
             raise
         finally:
+            halt.event.set()  # whatever ended the render, the chunks still being traced stop at their next bounce
             if pool is not None:
                 pool.shutdown(wait=True, cancel_futures=True)
     _finish_stats(stats, time.perf_counter() - t_start)
@@ -417,39 +427,43 @@ def render(
 STOP_POLL_SECONDS = 0.1  # how often a render polls a ``stop`` function while it waits for a chunk
 
 
-class _PolledStop:
-    """``render``'s ``stop`` given as a function of the calling thread's: an event the chunks read, set once the
-    function, called on that thread only, returns True."""
+class _Halt:
+    """What a render's chunks read to stop: its own event, set when the render ends however it ends, or when
+    ``render``'s ``stop`` says so: an event set from any thread, or a function called on the thread that made
+    this object (the one that called ``render``) only."""
 
-    def __init__(self, poll: Callable[[], bool]):
-        self.poll, self.event, self.home = poll, threading.Event(), threading.get_ident()
+    def __init__(self, stop: threading.Event | Callable[[], bool] | None):
+        self.event, self.home = threading.Event(), threading.get_ident()
+        self.given = stop if isinstance(stop, threading.Event) else None
+        self.poll = stop if stop is not None and self.given is None else None
 
     def is_set(self) -> bool:
-        if not self.event.is_set() and threading.get_ident() == self.home and self.poll():
+        if not self.event.is_set() and (
+            (self.given is not None and self.given.is_set())
+            or (self.poll is not None and threading.get_ident() == self.home and self.poll())
+        ):
             self.event.set()
         return self.event.is_set()
 
 
-def _ordered(pool, fn, tasks, ahead: int, stop=None):
+def _ordered(pool, fn, tasks, ahead: int, halt: _Halt):
     """``fn(task)`` for each task, in order; with a pool, at most ``ahead`` tasks submitted and not yet
     consumed (a cancelled render does not leave a queue of passes behind). Raises :class:`Cancelled` before
-    a task is taken once ``stop`` is set, and while waiting for one (checked every :data:`STOP_POLL_SECONDS`)."""
+    a task is taken once ``halt`` is set, and while waiting for one (checked every :data:`STOP_POLL_SECONDS`)."""
     if pool is None:
         for task in tasks:
-            _check_stop(stop)
+            _check_stop(halt)
             yield fn(task)
         return
     futures = [pool.submit(fn, t) for t in tasks[:ahead]]
     for i in range(len(tasks)):
         if i + ahead < len(tasks):
             futures.append(pool.submit(fn, tasks[i + ahead]))
-        while True:
-            _check_stop(stop)
-            try:
-                result = futures[i].result(timeout=STOP_POLL_SECONDS if stop is not None else None)
-                break
-            except TimeoutError:
-                continue
+        while not futures[i].done():  # waits only: a chunk's own TimeoutError is its error, not a wait's
+            _check_stop(halt)
+            wait_for_futures([futures[i]], timeout=STOP_POLL_SECONDS)
+        _check_stop(halt)
+        result = futures[i].result()
         futures[i] = None
         yield result
 
@@ -662,18 +676,18 @@ def _continue_paths(
     )  # fmt: skip
 
 
-def _check_stop(stop) -> None:
-    """Raise :class:`Cancelled` if ``stop`` (``render``'s: an event, or a :class:`_PolledStop`) is set."""
-    if stop is not None and stop.is_set():
+def _check_stop(halt: _Halt | None) -> None:
+    """Raise :class:`Cancelled` if ``halt`` (a render's :class:`_Halt`) is set."""
+    if halt is not None and halt.is_set():
         raise Cancelled("render stopped")
 
 
 def _trace_paths(
-    ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: int, stop=None
+    ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: int, halt: _Halt | None = None
 ) -> tuple[np.ndarray, np.ndarray, RenderStats]:
     """Radiance (N, 3) of one path per pixel of ``pix``, all paths a bounce at a time, the
     denoising features of their first hits (N, 7; see ``Film.add``), and the chunk's statistics
-    (its phases in thread time). Raises :class:`Cancelled` before a bounce once ``stop`` is set."""
+    (its phases in thread time). Raises :class:`Cancelled` before a bounce once ``halt`` is set."""
     t_start = time.perf_counter()
     stats = RenderStats()
     s = ctx.settings
@@ -683,7 +697,7 @@ def _trace_paths(
     for depth in range(s.max_bounces + 1):
         if len(paths.row) == 0:
             break
-        _check_stop(stop)
+        _check_stop(halt)
         rng = np.random.default_rng([s.seed, pass_index, chunk_index, depth + 1])
         t, prim, bu, bv = ctx.tracer.intersect(paths.o, paths.d, stats)
         with _shading(stats):
@@ -701,7 +715,7 @@ def _trace_paths(
         with _shading(stats):
             hits = _surface_hits(ctx, paths, hit, t, prim, bu, bv, groups)
             lights = _sample_lights(ctx, hits, u_light, stats)
-        _check_stop(stop)  # the materials' networks next: half of a bounce's time on neural scenes
+        _check_stop(halt)  # the materials' networks next: half of a bounce's time on neural scenes
         u_lobe, u_dir = rng.random(m), rng.random((m, 2))
         seeds = rng.integers(0, 2**31, size=len(ctx.materials))
         sc = _shade(ctx, paths, hits, lights, u_lobe, u_dir, seeds, L, stats)

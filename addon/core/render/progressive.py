@@ -55,7 +55,7 @@ def preview_divisors(width: int, height: int, divisor: int, pixels: int = PREVIE
     if divisor <= 1:
         return []
     first = divisor
-    while (width // first) * (height // first) > pixels:
+    while max(1, width // first) * max(1, height // first) > max(1, pixels):  # sides of 1 pixel at least
         first *= 2
     out = []
     while first >= divisor:
