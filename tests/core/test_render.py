@@ -336,6 +336,30 @@ def test_a_film_a_stop_left_in_the_middle_of_a_pass_is_not_continued():
         render(scene, RenderSettings(samples=1, max_bounces=2, threads=1), film=film)
 
 
+def test_a_chunks_own_timeout_error_is_raised_not_waited_on():
+    import threading
+
+    class ReadTimesOut(LambertMaterial):  # e.g. a texture on a network share: OSError ETIMEDOUT is a TimeoutError
+        def bind(self, hits):
+            raise TimeoutError("reading the texture timed out")
+
+    scene = mixed_scene(8, 8)
+    scene.materials = [ReadTimesOut((0.5, 0.5, 0.5)), ReadTimesOut((0.5, 0.5, 0.5))]
+    raised = []
+
+    def run():
+        try:
+            render(scene, RenderSettings(samples=4, threads=2, chunk_paths=16))
+        except Exception as e:  # noqa: BLE001 - the test looks at what came out
+            raised.append(e)
+
+    worker = threading.Thread(target=run, daemon=True)
+    worker.start()
+    worker.join(60)
+    assert not worker.is_alive(), "the render kept waiting on a chunk that had failed"
+    assert len(raised) == 1 and isinstance(raised[0], TimeoutError)
+
+
 def test_a_render_stopped_before_it_starts_adds_nothing():
     import threading
 
