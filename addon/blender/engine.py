@@ -88,7 +88,7 @@ class _Viewport:
         self.engine_ref = engine
         self.key = None
         self.session = ProgressiveSession(settings, preview_divisor=4)
-        self._drawn = None  # (generation, samples) on screen
+        self._drawn = None  # the session's image on screen (``ViewImage``: a new object for every image)
         self._texture = None
         self._reported = None  # the last session error shown
         bpy.app.timers.register(self._poll, first_interval=0.05)
@@ -104,8 +104,7 @@ class _Viewport:
     def _poll(self):
         if self.session is None:
             return None  # closed: the timer ends
-        image = self.session.latest()
-        if image is not None and (image.generation, image.samples) != self._drawn:
+        if self._is_new(self.session.latest()):
             try:
                 self.engine_ref.tag_redraw()
             except ReferenceError:  # the engine is gone
@@ -128,19 +127,25 @@ class _Viewport:
             self._reported = failed
         if image is None:
             return
-        if (image.generation, image.samples) != self._drawn or self._texture is None:
+        if self._is_new(image) or self._texture is None:
             h, w, _ = image.rgba.shape
             pixels = np.ascontiguousarray(image.rgba[::-1]).ravel()  # GPU rows run bottom to top
             self._texture = gpu.types.GPUTexture(
                 (w, h), format="RGBA16F", data=gpu.types.Buffer("FLOAT", pixels.size, pixels)
             )
-            self._drawn = (image.generation, image.samples)
+            self._drawn = image
         region = bpy.context.region
         gpu.state.blend_set("ALPHA_PREMULT")
         engine.bind_display_space_shader(scene)
         draw_texture_2d(self._texture, (0, 0), region.width, region.height)
         engine.unbind_display_space_shader()
         gpu.state.blend_set("NONE")
+
+    def _is_new(self, image) -> bool:
+        """Whether ``image`` is not the one on screen. Told by the object, not by its generation and samples: a
+        generation's reduced images and its first full-resolution pass all have one sample (and so does the
+        first pass after its calibration), and each must be shown when it comes."""
+        return image is not None and image is not self._drawn
 
     def close(self) -> None:
         if self.session is not None:

@@ -486,6 +486,33 @@ def test_material_thumbnails_render_through_the_engine_with_thumbnail_settings(f
     assert np.isfinite(px).all() and px[..., :3].max() > 0
 
 
+def test_the_viewport_asks_for_a_redraw_for_every_new_image_of_a_generation(bpy_addon):
+    """A generation's reduced images and its first full-resolution pass all have one sample: each new image is
+    drawn when it comes, not only when the sample count grows."""
+    from types import SimpleNamespace
+
+    from addon.blender import engine
+    from addon.core.render.progressive import ViewImage
+
+    def image(h, w, samples, reduced):
+        return ViewImage(np.zeros((h, w, 4), np.float32), samples, reduced, generation=3)
+
+    shown = [image(45, 80, 1, True), image(90, 160, 1, True), image(180, 320, 1, False), image(180, 320, 2, False)]
+    latest = []
+    redraws = []
+    viewport = engine._Viewport.__new__(engine._Viewport)  # no timer: _poll is called by hand
+    viewport.session = SimpleNamespace(latest=lambda: latest[-1] if latest else None)
+    viewport.engine_ref = SimpleNamespace(tag_redraw=lambda: redraws.append(latest[-1]))
+    viewport._drawn = None
+    assert viewport._poll() == 0.05 and redraws == []  # nothing yet
+    for im in shown:
+        latest.append(im)
+        viewport._poll()
+        viewport._drawn = im  # what draw does once it has uploaded the image
+        viewport._poll()  # on screen already: no second redraw
+    assert redraws == shown
+
+
 def test_viewport_navigation_moves_the_camera_and_an_edit_or_a_resize_exports_again(bpy_addon, monkeypatch):
     """view_draw with a moved view: the session renders its last scene from the new camera (no export);
     the same with another region size, or with no session yet, goes through view_update (an export)."""
