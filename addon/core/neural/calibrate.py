@@ -139,11 +139,15 @@ class RowCalibration:
         kernels.scale_by_table(out, x, y, *self.arrays())
         return out
 
+    def check_rows(self, n: int) -> None:
+        """ValueError unless this calibration can scale ``n`` rows (one table for all, or a choice per row)."""
+        if len(self.which) not in (0, n):
+            raise ValueError(f"the calibration has {len(self.which)} rows, f has {n}")
+
     def apply(self, f: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
         """f (N, 3) at local unit directions wi, wo (N, 3) times each row's factor at (cos theta_i, cos theta_o)."""
         out = np.array(f, dtype=np.float64)
-        if len(self.which) not in (0, len(out)):
-            raise ValueError(f"the calibration has {len(self.which)} rows, f has {len(out)}")
+        self.check_rows(len(out))
         cos_i = np.clip(np.ascontiguousarray(wi[:, 2], dtype=np.float64), 0.0, 1.0)
         cos_o = np.clip(np.ascontiguousarray(wo[:, 2], dtype=np.float64), 0.0, 1.0)
         kernels.scale_by_table(out, cos_i, cos_o, *self.arrays())

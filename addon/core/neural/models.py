@@ -472,8 +472,8 @@ class ModelSet:
         transmission factor of a ``top_transmission`` decoder and the exact lobe. Returns the lobe's density."""
         ui, uo = (wi, wo) if unit else (top_lobe._unit(wi), top_lobe._unit(wo))
         ui, uo = kernels.float64_rows(ui), kernels.float64_rows(uo)
-        if calibration is not None and len(getattr(calibration, "which", ())) not in (0, len(out)):
-            raise ValueError(f"the calibration has {len(calibration.which)} rows, f has {len(out)}")
+        if hasattr(calibration, "check_rows"):  # a per-row choice of tables (an AlbedoCalibration has one)
+            calibration.check_rows(len(out))
         return kernels.decoded_brdf(
             out,
             ui,
