@@ -72,6 +72,22 @@ def test_each_row_is_scaled_by_its_own_table_as_one_materials_calibration_would(
     check()
 
 
+def test_a_row_choice_of_another_length_than_f_is_a_clear_error():
+    from addon.core.neural import load_models
+
+    rng = np.random.default_rng(2)
+    tex = _calibration(2, rng)
+    rows = cal.RowCalibration(tex.cosines, tex.tables, np.array([0, 1, 0]))
+    wi = wo = np.tile([0.0, 0.0, 1.0], (5, 1))
+    with pytest.raises(ValueError, match="the calibration has 3 rows, f has 5"):
+        rows.apply(np.ones((5, 3)), wi, wo)
+    z = np.zeros((3, 32), np.float32)
+    with pytest.raises(ValueError, match="the calibration has 3 rows, f has 5"):
+        load_models("tiny").eval_brdf(z, wi, wo, calibration=rows)
+    rows.check_rows(3)
+    cal.RowCalibration(tex.cosines, tex.tables, np.zeros(0, dtype=np.int64)).check_rows(5)  # one table for all
+
+
 def test_the_calibrations_text_round_trips_and_damage_is_a_clear_error():
     tex = _calibration(3, np.random.default_rng(1))
     back = tc.TextureCalibration.from_text(tex.to_text())
