@@ -28,16 +28,21 @@ def plastic_scene(roughness: float) -> Scene:
     return Scene(base.camera, base.mesh, [LayeredSpec(stack, None, "plastic")], base.lights, base.environment)
 
 
+def rendered_once(scene, settings, preview_divisor):
+    """Every image a session shows of ``scene`` until its last sample, and the last."""
+    seen = []
+    session = ProgressiveSession(settings, preview_divisor=preview_divisor, on_image=seen.append)
+    try:
+        session.restart(scene)
+        return seen, session.wait()
+    finally:
+        session.close()
+
+
 def test_accumulation_equals_an_offline_render_of_the_same_samples():
     scene = small_scene()
     settings = RenderSettings(samples=5, max_bounces=3, seed=4)
-    seen = []
-    session = ProgressiveSession(settings, preview_divisor=2, on_image=seen.append)
-    try:
-        session.restart(scene)
-        image = session.wait()
-    finally:
-        session.close()
+    seen, image = rendered_once(scene, settings, 2)
     offline, _ = render(scene, settings)
     assert image.samples == 5 and not image.reduced
     assert np.array_equal(image.rgba, offline.rgba())
@@ -148,13 +153,7 @@ def test_a_large_view_starts_smaller_and_doubles_up_to_the_divisor():
 
     scene = small_scene(width=200, height=150)
     settings = RenderSettings(samples=2, max_bounces=2, seed=3)
-    seen = []
-    session = ProgressiveSession(settings, preview_divisor=2, on_image=seen.append)
-    try:
-        session.restart(scene)
-        image = session.wait()
-    finally:
-        session.close()
+    seen, image = rendered_once(scene, settings, 2)
     assert [im.rgba.shape[:2] for im in seen if im.reduced] == [(37, 50), (75, 100)]
     assert [im.samples for im in seen] == [1, 1, 1, 2]
     # The reduced images are previews only: the accumulation is the offline render's.
