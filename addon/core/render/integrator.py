@@ -42,7 +42,7 @@ MODES = ("neural", "reference")
 
 
 class Cancelled(Exception):
-    """Raised inside :func:`render` when the progress callback returns False or its ``stop`` event is set."""
+    """Raised inside :func:`render` when the progress callback returns False or its ``stop`` says stop."""
 
 
 @dataclass

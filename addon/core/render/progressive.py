@@ -261,7 +261,9 @@ class ProgressiveSession:
                 self._last = replace(self._last, materials=materials)
         return replace(scene, materials=materials)
 
-    def _render_generation(self, scene: Scene, settings: RenderSettings, generation: int, stop) -> None:
+    def _render_generation(
+        self, scene: Scene, settings: RenderSettings, generation: int, stop: threading.Event
+    ) -> None:
         def progress(reduced):
             return lambda film, done, total: self._publish(film, generation, reduced)
 
