@@ -238,15 +238,16 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         def progress(film, done, total):
             combined.rect.foreach_set(np.ascontiguousarray(film.rgba()[::-1]).ravel())
             self.update_result(result)
-            self.update_progress(done / total)
             self.update_stats("", f"Sample {done}/{total} | {core_scene.mesh.triangle_count} triangles")
             return not self.test_break()
 
         # Esc ends the render within a bounce (test_break, polled on this thread while chunks are traced), and
-        # what it rendered stays in the result, whichever mode it was in
+        # what it rendered stays in the result, whichever mode it was in. The progress bar moves with each chunk
+        # (a 4K pass is 64 of them), the image and the sample count with each pass.
+        calls = dict(progress=progress, stop=self.test_break, chunk_progress=self.update_progress)
         try:
             try:
-                film, stats = render(core_scene, settings, progress=progress, stop=self.test_break)
+                film, stats = render(core_scene, settings, **calls)
             except (RuntimeError, OSError) as e:
                 if settings.mode != "neural":
                     raise
@@ -255,9 +256,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
                     return
                 # The neural runtime failed (a broken model file, say): the reference still renders.
                 self.report({"WARNING"}, f"neural evaluation failed ({_failure(e)}); rendering in reference mode")
-                film, stats = render(
-                    core_scene, replace(settings, mode="reference"), progress=progress, stop=self.test_break
-                )
+                film, stats = render(core_scene, replace(settings, mode="reference"), **calls)
         except Cancelled as c:
             film, stats = c.film, c.stats
         self.update_stats("", stats.summary())

@@ -384,6 +384,41 @@ def test_esc_stops_an_f12_render_between_passes_and_keeps_what_was_rendered(fres
     bpy.ops.render.render(write_still=True)
 
 
+def test_the_progress_bar_moves_with_each_chunk_of_a_pass(fresh_scene, tmp_path, monkeypatch):
+    from dataclasses import replace
+
+    from addon.blender import engine
+
+    ctx = fresh_scene
+    small(ctx.scene, 64, 48, samples=2)
+    ctx.scene.render.engine = "NEURAL_LAYERED"
+    ctx.scene.render.filepath = str(tmp_path / "chunks.exr")
+    ctx.scene.render.image_settings.file_format = "OPEN_EXR"
+    real, given, fractions, passes = engine.render, [], [], []
+
+    def in_chunks(scene, settings, **kw):
+        """The engine's render in chunks of 1,024 pixels (3 a pass): what the engine gives to hear of each."""
+        given.append(repr(kw["chunk_progress"]))
+
+        def chunk_progress(fraction):
+            fractions.append(fraction)
+            kw["chunk_progress"](fraction)  # the engine's own: Blender's progress bar
+
+        def progress(film, done, total):
+            passes.append((done, len(fractions)))
+            return kw["progress"](film, done, total)
+
+        ours = {**kw, "chunk_progress": chunk_progress, "progress": progress}
+        return real(scene, replace(settings, chunk_paths=1024), **ours)
+
+    monkeypatch.setattr(engine, "render", in_chunks)
+    bpy.ops.render.render(write_still=True)
+    assert len(given) == 1 and "update_progress" in given[0]
+    assert fractions == pytest.approx([1 / 6, 2 / 6, 3 / 6, 4 / 6, 5 / 6, 1.0])
+    assert passes == [(1, 3), (2, 6)]  # the image and the sample count with each pass
+    assert np.isfinite(read_image(tmp_path / "chunks.exr")).all()
+
+
 def test_render_threads_follow_the_scene_setting(fresh_scene):
     import os
 

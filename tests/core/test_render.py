@@ -213,6 +213,27 @@ def test_renders_are_deterministic_per_seed_and_progressive():
     assert np.allclose(film.mean(), a, atol=1e-6)
 
 
+def test_chunk_progress_moves_within_a_pass_on_the_calling_thread():
+    import threading
+
+    home = threading.get_ident()
+    seen, passes = [], []
+    scene = mixed_scene(16, 12)  # 192 pixels: 3 chunks of 64 a pass
+    for threads in (1, 2):
+        seen.clear()
+        passes.clear()
+        film, _ = render(
+            scene,
+            RenderSettings(samples=2, max_bounces=2, threads=threads, chunk_paths=64),
+            progress=lambda film, done, total: passes.append((done, len(seen))),
+            chunk_progress=lambda fraction: seen.append((fraction, threading.get_ident())),
+        )
+        assert [f for f, _ in seen] == pytest.approx([1 / 6, 2 / 6, 3 / 6, 4 / 6, 5 / 6, 1.0])
+        assert {t for _, t in seen} == {home}
+        assert passes == [(1, 3), (2, 6)]  # a pass is reported once its last chunk is
+        assert film.passes == 2
+
+
 def test_cancel_stops_after_the_current_pass():
     scene = mixed_scene(8, 8)
     with pytest.raises(Cancelled) as info:
