@@ -559,6 +559,64 @@ def viewport_move_during_pass(
     return lines + [""]
 
 
+def viewport_images_after_a_move(repeats: int, sizes=((320, 180), (1280, 720), (1920, 1080))) -> list[str]:
+    """The images a view change brings, first to the first full-resolution pass: ``move_camera`` with the demo
+    scene (the add-on's viewport settings, the stacks calibrated), ``repeats`` moves per viewport size, each to
+    another orbit position; each image's size and its seconds after the move (median, range)."""
+    import statistics
+
+    from addon.core.render.progressive import ProgressiveSession
+    from addon.core.render.scene import Camera
+
+    rows = []
+    for width, height in sizes:
+        session = ProgressiveSession(RenderSettings(samples=4, max_bounces=4, calibrate="cached"), preview_divisor=4)
+        seen = []
+        session.on_image = lambda im, seen=seen: seen.append(
+            (im.generation, im.rgba.shape[1], im.rgba.shape[0], im.reduced, time.perf_counter())
+        )
+        times = {}
+        try:
+            session.restart(demo_scene(width, height))
+            session.wait(timeout=600)  # models loaded, stacks encoded and calibrated, a first pass timed
+            for rep in range(repeats):
+                orbit = Camera.look_at(
+                    (0.3 + 0.05 * rep, -5.5, 1.6), (0.0, 0.0, 0.6), fov_deg=50.0, width=width, height=height
+                )
+                t0 = time.perf_counter()
+                generation = session.move_camera(orbit)
+                session.wait(samples=1, timeout=600)
+                session.cancel()
+                while not session.idle:
+                    time.sleep(0.01)
+                for g, w, h, reduced, t in seen:
+                    if g == generation:
+                        times.setdefault((w, h, reduced), []).append(t - t0)
+                        if not reduced:
+                            break
+        finally:
+            session.close()
+        rows.append((width, height, times))
+        print("images after a move", width, height, {k: statistics.median(v) for k, v in times.items()}, flush=True)
+    lines = [
+        f"## Viewport: the images after a view change (demo scene, {repeats} moves per size)",
+        "",
+        "`ProgressiveSession.move_camera` with the viewport's settings, the stacks calibrated: each image the new "
+        "view shows up to its first full-resolution pass (one sample per pixel each), seconds after the move "
+        "(median, range). The reduced images go from at most 64 x 64 pixels to a quarter of the view on each side, "
+        "and to half of it where the session predicts a full pass longer than "
+        "`progressive.HALF_IMAGE_SECONDS` (0.5 s) from the last one.",
+        "",
+        "| viewport | image | seconds after the move (median) | range |",
+        "|---|---|---|---|",
+    ]
+    for width, height, times in rows:
+        for (w, h, reduced), t in sorted(times.items(), key=lambda kv: (not kv[0][2], kv[0][0])):
+            label = f"{w}x{h}" + ("" if reduced else " (the first full pass)")
+            lines.append(f"| {width}x{height} | {label} | {statistics.median(t):.3f} | {min(t):.3f}-{max(t):.3f} |")
+    return lines + [""]
+
+
 def viewport_edit_during_calibration(repeats: int, size=(320, 180), decoders=("tiny", "paper")) -> list[str]:
     """An edit that comes while the viewport calibrates the stack of the edit before it: seconds from the restart
     to the new scene's first image, per decoder size. The first sphere's stack is edited (a coat roughness not
@@ -691,6 +749,7 @@ def speed_only(args, command: str) -> int:
     sections += viewport_latency(args.repeats)
     sections += viewport_drag(args.repeats)
     sections += viewport_move_during_pass(3 * args.repeats)
+    sections += viewport_images_after_a_move(3 * args.repeats)
     sections += viewport_edit_during_calibration(args.repeats)
     sections += cycles_split(*first_size, args.samples, args.bounces)  # last: the profiler stays on
     text = [

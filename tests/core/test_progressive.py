@@ -28,10 +28,10 @@ def plastic_scene(roughness: float) -> Scene:
     return Scene(base.camera, base.mesh, [LayeredSpec(stack, None, "plastic")], base.lights, base.environment)
 
 
-def rendered_once(scene, settings, preview_divisor):
+def rendered_once(scene, settings, preview_divisor, **options):
     """Every image a session shows of ``scene`` until its last sample, and the last."""
     seen = []
-    session = ProgressiveSession(settings, preview_divisor=preview_divisor, on_image=seen.append)
+    session = ProgressiveSession(settings, preview_divisor=preview_divisor, on_image=seen.append, **options)
     try:
         session.restart(scene)
         return seen, session.wait()
@@ -158,6 +158,42 @@ def test_a_large_view_starts_smaller_and_doubles_up_to_the_divisor():
     assert [im.samples for im in seen] == [1, 1, 1, 2]
     # The reduced images are previews only: the accumulation is the offline render's.
     assert np.array_equal(image.rgba, render(scene, settings)[0].rgba())
+
+
+def test_a_view_whose_pass_is_predicted_slow_gets_a_half_resolution_image_before_it():
+    """After the reduced images down to the divisor, one at half the view's resolution when the full pass is
+    predicted to take longer than ``half_image_seconds``: predicted from the last full pass's seconds a pixel, or
+    from the last reduced image before any full pass."""
+    scene = small_scene(width=200, height=150)
+    settings = RenderSettings(samples=2, max_bounces=2, seed=3)
+    offline = render(scene, settings)[0].rgba()
+    for seconds, shapes_seen in ((0.0, [(37, 50), (75, 100)]), (float("inf"), [(37, 50)])):
+        seen, image = rendered_once(scene, settings, 4, half_image_seconds=seconds)
+        assert [im.rgba.shape[:2] for im in seen if im.reduced] == shapes_seen
+        assert np.array_equal(image.rgba, offline)  # previews only: the accumulation is the offline render's
+
+    seen = []
+    session = ProgressiveSession(settings, preview_divisor=4, on_image=seen.append)
+    try:
+        session.restart(scene)
+        session.wait()
+        per_pixel = session.pass_seconds_per_pixel
+        assert per_pixel is not None and per_pixel > 0.0  # the first full pass, timed
+        predicted = per_pixel * 200 * 150
+        for seconds, shapes_seen in ((2.0 * predicted, [(37, 50)]), (0.5 * predicted, [(37, 50), (75, 100)])):
+            session.half_image_seconds = seconds
+            session.pass_seconds_per_pixel = per_pixel  # as the last generation measured it
+            seen.clear()
+            generation = session.move_camera(scene.camera)
+            image = session.wait()
+            assert image.generation == generation
+            assert [im.rgba.shape[:2] for im in seen if im.reduced] == shapes_seen
+    finally:
+        session.close()
+    with pytest.raises(ValueError, match="half_image_seconds"):
+        ProgressiveSession(settings, half_image_seconds=-1.0)
+    with pytest.raises(ValueError, match="half_image_seconds"):
+        ProgressiveSession(settings, half_image_seconds=float("nan"))
 
 
 def test_reduced_camera_and_bad_divisor():

@@ -4,12 +4,13 @@ on every edit.
 A :class:`ProgressiveSession` renders on a background thread: first images of one sample per pixel at
 reduced resolutions (:func:`preview_divisors`: the first of at most :data:`PREVIEW_PIXELS` pixels whatever the
 viewport's size, each next one twice as large on each side, the last ``preview_divisor`` times smaller than the
-view), so that the first image of an edit arrives in a fraction of a full pass; then passes of one sample per
-pixel at full resolution, accumulated into one film until ``settings.samples`` passes. ``restart(scene)``
-(after an edit: stack, camera, objects) drops the old work and starts again; the old render
-stops within a bounce (``render``'s ``stop`` event, which each generation has its own of), not at
-the end of its pass. The full-resolution accumulation is the offline render of the same
-settings: the same passes with the same random numbers (``render(..., film=...)``).
+view; and one more at half the view's resolution where a full pass is predicted to take longer than
+:data:`HALF_IMAGE_SECONDS`), so that the first image of an edit arrives in a fraction of a full pass; then
+passes of one sample per pixel at full resolution, accumulated into one film until ``settings.samples`` passes.
+``restart(scene)`` (after an edit: stack, camera, objects) drops the old work and starts again; the old render
+stops within a bounce (``render``'s ``stop`` event, which each generation has its own of), not at the end of its
+pass. The full-resolution accumulation is the offline render of the same settings: the same passes with the
+same random numbers (``render(..., film=...)``).
 
 The viewport glue (``addon/blender/engine.py``) calls ``restart`` from ``view_update`` (an edit), ``move_camera``
 when only the view moved (navigation: the scene is not exported again), and draws
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import copy
 import threading
+import time
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -44,6 +46,10 @@ class ViewImage:
 
 
 PREVIEW_PIXELS = 64 * 64  # the first image's pixels at most (Cycles' viewport starts at 64 pixels a side too)
+# A view whose full-resolution pass is predicted to take longer than this gets one more reduced image, at half its
+# resolution on each side, before that pass (as Cycles' viewport halves its pixel size down to 1): a quarter of a
+# pass more for a sharp image that much sooner.
+HALF_IMAGE_SECONDS = 0.5
 
 
 def preview_divisors(width: int, height: int, divisor: int, pixels: int = PREVIEW_PIXELS) -> list[int]:
@@ -80,14 +86,29 @@ class ProgressiveSession:
 
     ``on_image(image)`` (optional) is called from that thread after every new image, e.g. to ask
     the viewport for a redraw. Errors of a render are kept in ``error`` (and passed to
-    ``on_error``), never raised on the background thread unseen.
+    ``on_error``), never raised on the background thread unseen. A view whose full-resolution pass is predicted to
+    take longer than ``half_image_seconds`` gets a reduced image at half its resolution before that pass (0: every
+    view, ``inf``: none).
     """
 
-    def __init__(self, settings: RenderSettings, preview_divisor: int = 4, on_image=None, on_error=None):
+    def __init__(
+        self,
+        settings: RenderSettings,
+        preview_divisor: int = 4,
+        on_image=None,
+        on_error=None,
+        half_image_seconds: float = HALF_IMAGE_SECONDS,
+    ):
         if int(preview_divisor) < 1:
             raise ValueError(f"preview_divisor must be >= 1, got {preview_divisor!r}")
+        if not half_image_seconds >= 0.0:
+            raise ValueError(f"half_image_seconds must be >= 0, got {half_image_seconds!r}")
         self.settings = settings
         self.preview_divisor = int(preview_divisor)
+        self.half_image_seconds = float(half_image_seconds)
+        # seconds a pixel of the last full-resolution pass took (its render's setup included): what the next
+        # generations predict their passes from; None before the first one
+        self.pass_seconds_per_pixel: float | None = None
         self.on_image, self.on_error = on_image, on_error
         self.error: Exception | None = None
         # the last calibration that failed (the view renders that material uncalibrated): for a warning
@@ -261,11 +282,48 @@ class ProgressiveSession:
                 self._last = replace(self._last, materials=materials)
         return replace(scene, materials=materials)
 
+    def _render_reduced(self, scene: Scene, settings: RenderSettings, generation: int, stop: threading.Event) -> bool:
+        """A generation's reduced images (one sample per pixel each): those of :func:`preview_divisors`, then one at
+        half the view's resolution where a full pass is predicted to take longer than ``half_image_seconds``, from
+        the last full pass's seconds a pixel or, before any, from the last reduced image's. False if stopped."""
+        cam = scene.camera
+        per_pixel = self.pass_seconds_per_pixel
+        half = [2] if self.preview_divisor > 2 and min(cam.width, cam.height) >= 2 else []
+        for divisor in preview_divisors(cam.width, cam.height, self.preview_divisor) + half:
+            if (
+                divisor == 2
+                and half
+                and not (per_pixel and per_pixel * cam.width * cam.height > self.half_image_seconds)
+            ):
+                break
+            small = replace(scene, camera=reduced_camera(cam, divisor))
+            t0 = time.perf_counter()
+            try:
+                render(
+                    small,
+                    replace(settings, samples=1),
+                    progress=lambda film, done, total: self._publish(film, generation, True),
+                    stop=stop,
+                )
+            except Cancelled:
+                return False
+            if self.pass_seconds_per_pixel is None:  # no full pass yet: predicted from this image
+                per_pixel = (time.perf_counter() - t0) / (small.camera.width * small.camera.height)
+        return True
+
     def _render_generation(
         self, scene: Scene, settings: RenderSettings, generation: int, stop: threading.Event
     ) -> None:
-        def progress(reduced):
-            return lambda film, done, total: self._publish(film, generation, reduced)
+        def timed_progress():
+            """The full-resolution passes' progress, which times the first pass for the next generations."""
+            t0, pixels = time.perf_counter(), scene.camera.width * scene.camera.height
+
+            def on_pass(film, done, total):
+                if done == 1:
+                    self.pass_seconds_per_pixel = (time.perf_counter() - t0) / pixels
+                return self._publish(film, generation, False)
+
+            return on_pass
 
         # Materials resolved (stacks encoded, calibrated as the settings say, as ``render`` would) once for both
         # renders of the generation, and kept for the camera moves that follow.
@@ -277,12 +335,8 @@ class ProgressiveSession:
             if generation == self._generation and self._last is not None:
                 self._last = replace(self._last, materials=materials)
 
-        for divisor in preview_divisors(scene.camera.width, scene.camera.height, self.preview_divisor):
-            small = replace(scene, camera=reduced_camera(scene.camera, divisor))
-            try:
-                render(small, replace(settings, samples=1), progress=progress(True), stop=stop)
-            except Cancelled:
-                return
+        if not self._render_reduced(scene, settings, generation, stop):
+            return
         if not self._current(generation):
             return
         if any(getattr(m, "uncalibrated_stack", None) is not None for m in scene.materials):
@@ -290,13 +344,13 @@ class ProgressiveSession:
             # edit comes before it ends, so the viewport never waits for reference walks; once the view rests,
             # the walks run and the accumulation starts again calibrated.
             try:
-                render(scene, replace(settings, samples=1), progress=progress(False), stop=stop)
+                render(scene, replace(settings, samples=1), progress=timed_progress(), stop=stop)
             except Cancelled:
                 return
             scene = self._calibrate_pending(scene, generation)
             if scene is None:
                 return
         try:
-            render(scene, settings, progress=progress(False), stop=stop)
+            render(scene, settings, progress=timed_progress(), stop=stop)
         except Cancelled:
             return
