@@ -704,6 +704,30 @@ def test_first_hit_features_are_albedo_normal_and_depth():
     assert all(np.all(v == 0) for v in empty.features().values())
 
 
+def test_the_film_keeps_80_bytes_a_pixel_and_its_float32_features_keep_their_means():
+    from addon.core.render.film import Film
+
+    film = Film(500, 200)
+    arrays = (film.sum, film.sum_sq, film.count, film.feature_sum)
+    assert sum(a.nbytes for a in arrays) == 80 * 500 * 200
+    rng = np.random.default_rng(5)
+    pixels = rng.permutation(500 * 200)[:1000]  # a render region of 1,000 pixels, 4,096 passes
+    features = np.zeros((1000, 7))
+    exact = np.zeros((1000, 7))
+    for _ in range(4096):
+        features[:, :3] = rng.uniform(0.0, 1.0, (1000, 3))  # albedo
+        features[:, 3:6] = rng.uniform(-1.0, 1.0, (1000, 3))  # normal
+        features[:, 6] = rng.uniform(1.0, 100.0, 1000)  # depth
+        film.add(pixels, rng.uniform(0.0, 1.0, (1000, 3)), features)
+        exact += features
+    f = film.features()
+    means = np.concatenate([f["albedo"], f["normal"], f["depth"]], axis=2).reshape(-1, 7)[pixels]
+    scale = np.array([1, 1, 1, 1, 1, 1, 100])
+    assert np.abs(means - exact / 4096).max(axis=0) / scale == pytest.approx(0, abs=2e-5)
+    assert film.count[pixels].tolist() == [4096] * 1000 and film.count.sum() == 4096 * 1000
+    assert np.isfinite(film.stderr().reshape(-1, 3)[pixels]).all()
+
+
 def test_a_pixel_subset_renders_those_pixels_as_the_whole_frame_does_and_nothing_else():
     from addon.core.render.demo_scene import demo_scene
 
