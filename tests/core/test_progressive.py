@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 
 from addon.core.render import Camera, Environment, LambertMaterial, PointLight, RenderSettings, Scene, render, shapes
-from addon.core.render.progressive import PREVIEW_PIXELS, ProgressiveSession, preview_divisors, reduced_camera
+from addon.core.render.progressive import (
+    PREVIEW_PIXELS,
+    ProgressiveSession,
+    predicted_pass_seconds,
+    preview_divisors,
+    reduced_camera,
+)
 
 
 def small_scene(sky=(0.3, 0.4, 0.5), width=24, height=16):
@@ -162,9 +168,9 @@ def test_a_large_view_starts_smaller_and_doubles_up_to_the_divisor():
 
 def test_a_view_whose_pass_is_predicted_slow_gets_a_half_resolution_image_before_it():
     """After the reduced images down to the divisor, one at half the view's resolution when the full pass is
-    predicted to take longer than ``half_image_seconds``: predicted from the last full pass's seconds a pixel, or
-    from the last reduced image before any full pass."""
-    scene = small_scene(width=200, height=150)
+    predicted to take longer than ``half_image_seconds``: from the last full pass's seconds a pixel, or from the
+    last two reduced images before any full pass; a view with one reduced image waits for a full pass to know."""
+    scene = small_scene(width=200, height=150)  # one reduced image at the divisor 4: 50 x 37
     settings = RenderSettings(samples=2, max_bounces=2, seed=3)
     offline = render(scene, settings)[0].rgba()
     for seconds, shapes_seen in ((0.0, [(37, 50), (75, 100)]), (float("inf"), [(37, 50)])):
@@ -173,10 +179,11 @@ def test_a_view_whose_pass_is_predicted_slow_gets_a_half_resolution_image_before
         assert np.array_equal(image.rgba, offline)  # previews only: the accumulation is the offline render's
 
     seen = []
-    session = ProgressiveSession(settings, preview_divisor=4, on_image=seen.append)
+    session = ProgressiveSession(settings, preview_divisor=4, on_image=seen.append, half_image_seconds=1e-9)
     try:
         session.restart(scene)
         session.wait()
+        assert [im.rgba.shape[:2] for im in seen if im.reduced] == [(37, 50)]  # nothing to predict from yet
         per_pixel = session.pass_seconds_per_pixel
         assert per_pixel is not None and per_pixel > 0.0  # the first full pass, timed
         predicted = per_pixel * 200 * 150
@@ -194,6 +201,15 @@ def test_a_view_whose_pass_is_predicted_slow_gets_a_half_resolution_image_before
         ProgressiveSession(settings, half_image_seconds=-1.0)
     with pytest.raises(ValueError, match="half_image_seconds"):
         ProgressiveSession(settings, half_image_seconds=float("nan"))
+
+
+def test_a_full_pass_is_predicted_from_the_last_one_or_the_reduced_images_marginal_cost():
+    # the last full pass's seconds a pixel first
+    assert predicted_pass_seconds(1000, 2e-3, [(100, 9.0), (400, 9.5)]) == pytest.approx(2.0)
+    # before any: the seconds per pixel more of the last two reduced images, their fixed costs left out
+    assert predicted_pass_seconds(1000, None, [(25, 0.5), (100, 0.6), (400, 0.9)]) == pytest.approx(1.0)
+    assert predicted_pass_seconds(1000, None, [(100, 0.6), (400, 0.5)]) == 0.0  # noise: never below 0
+    assert predicted_pass_seconds(1000, None, [(100, 0.6)]) is None and predicted_pass_seconds(10, None, []) is None
 
 
 def test_reduced_camera_and_bad_divisor():

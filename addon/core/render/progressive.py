@@ -70,6 +70,21 @@ def preview_divisors(width: int, height: int, divisor: int, pixels: int = PREVIE
     return out
 
 
+def predicted_pass_seconds(
+    pixels: int, pass_seconds_per_pixel: float | None, reduced: list[tuple[int, float]]
+) -> float | None:
+    """Seconds a full-resolution pass of ``pixels`` pixels is predicted to take: from the seconds a pixel of the
+    session's last full pass or, before any, from the seconds per pixel more of the last two ``reduced`` images
+    ((pixels, seconds) each: a small image's time is mostly its render's fixed costs, which the difference
+    leaves out); None with neither."""
+    if pass_seconds_per_pixel is not None:
+        return pass_seconds_per_pixel * pixels
+    if len(reduced) >= 2:
+        (pa, ta), (pb, tb) = reduced[-2:]
+        return max(0.0, tb - ta) / max(1, pb - pa) * pixels
+    return None
+
+
 def reduced_camera(camera: Camera, divisor: int) -> Camera:
     """The same view with ``divisor`` times fewer pixels on each side (at least 1 x 1)."""
     return Camera(
@@ -284,18 +299,16 @@ class ProgressiveSession:
 
     def _render_reduced(self, scene: Scene, settings: RenderSettings, generation: int, stop: threading.Event) -> bool:
         """A generation's reduced images (one sample per pixel each): those of :func:`preview_divisors`, then one at
-        half the view's resolution where a full pass is predicted to take longer than ``half_image_seconds``, from
-        the last full pass's seconds a pixel or, before any, from the last reduced image's. False if stopped."""
+        half the view's resolution where :func:`predicted_pass_seconds` exceeds ``half_image_seconds`` (or that
+        is 0). False if stopped."""
         cam = scene.camera
-        per_pixel = self.pass_seconds_per_pixel
         half = [2] if self.preview_divisor > 2 and min(cam.width, cam.height) >= 2 else []
+        timed = []  # (pixels, seconds) of each reduced image
         for divisor in preview_divisors(cam.width, cam.height, self.preview_divisor) + half:
-            if (
-                divisor == 2
-                and half
-                and not (per_pixel and per_pixel * cam.width * cam.height > self.half_image_seconds)
-            ):
-                break
+            if half and divisor == 2 and self.half_image_seconds > 0.0:
+                predicted = predicted_pass_seconds(cam.width * cam.height, self.pass_seconds_per_pixel, timed)
+                if predicted is None or predicted <= self.half_image_seconds:
+                    break
             small = replace(scene, camera=reduced_camera(cam, divisor))
             t0 = time.perf_counter()
             try:
@@ -307,8 +320,7 @@ class ProgressiveSession:
                 )
             except Cancelled:
                 return False
-            if self.pass_seconds_per_pixel is None:  # no full pass yet: predicted from this image
-                per_pixel = (time.perf_counter() - t0) / (small.camera.width * small.camera.height)
+            timed.append((small.camera.width * small.camera.height, time.perf_counter() - t0))
         return True
 
     def _render_generation(
