@@ -25,6 +25,7 @@ import numpy as np
 
 from ..core.render import Cancelled, render, warm_up
 from ..core.render.progressive import ProgressiveSession
+from ..core.render.remaining import RemainingTime, format_duration
 from ..core.render.thumbnail import prepare_thumbnail
 from . import render_operators, render_properties, render_ui, scene_export
 
@@ -163,6 +164,12 @@ def _write_feature_passes(passes, film) -> None:
             passes[rp].rect.foreach_set(np.ascontiguousarray(features[key][::-1]).ravel())
 
 
+def status_line(passes: int, samples: int, remaining: float | None, triangles: int) -> str:
+    """F12's status line: the samples done, the time left once known (Blender's own time format), the triangles."""
+    left = "" if remaining is None else f" | Remaining:{format_duration(remaining)}"
+    return f"Sample {passes}/{samples}{left} | {triangles} triangles"
+
+
 class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
     bl_idname = ENGINE_ID
     bl_label = "Neural Layered"
@@ -234,17 +241,30 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         for w in warnings:
             self.report({"WARNING"}, w)
         combined = result.layers[0].passes["Combined"]
+        remaining = RemainingTime(settings.samples)
+        done_passes = [0]
+
+        def status():
+            self.update_stats(
+                "", status_line(done_passes[0], settings.samples, remaining.seconds(), core_scene.mesh.triangle_count)
+            )
 
         def progress(film, done, total):
             combined.rect.foreach_set(np.ascontiguousarray(film.rgba()[::-1]).ravel())
             self.update_result(result)
-            self.update_stats("", f"Sample {done}/{total} | {core_scene.mesh.triangle_count} triangles")
+            done_passes[0] = done
+            remaining.pass_done(done)
+            status()
             return not self.test_break()
 
+        def chunk_progress(fraction):
+            self.update_progress(fraction)
+            status()  # the remaining time counts down between passes
+
         # Esc ends the render within a bounce (test_break, polled on this thread while chunks are traced), and
-        # what it rendered stays in the result, whichever mode it was in. The progress bar moves with each chunk
-        # (a 4K pass is 64 of them), the image and the sample count with each pass.
-        calls = dict(progress=progress, stop=self.test_break, chunk_progress=self.update_progress)
+        # what it rendered stays in the result, whichever mode it was in. The progress bar and the remaining time
+        # move with each chunk (a 4K pass is 64 of them), the image and the sample count with each pass.
+        calls = dict(progress=progress, stop=self.test_break, chunk_progress=chunk_progress)
         try:
             try:
                 film, stats = render(core_scene, settings, **calls)
@@ -256,6 +276,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
                     return
                 # The neural runtime failed (a broken model file, say): the reference still renders.
                 self.report({"WARNING"}, f"neural evaluation failed ({_failure(e)}); rendering in reference mode")
+                remaining, done_passes[0] = RemainingTime(settings.samples), 0  # the fallback's own passes
                 film, stats = render(core_scene, replace(settings, mode="reference"), **calls)
         except Cancelled as c:
             film, stats = c.film, c.stats

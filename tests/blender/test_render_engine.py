@@ -384,38 +384,45 @@ def test_esc_stops_an_f12_render_between_passes_and_keeps_what_was_rendered(fres
     bpy.ops.render.render(write_still=True)
 
 
-def test_the_progress_bar_moves_with_each_chunk_of_a_pass(fresh_scene, tmp_path, monkeypatch):
+def test_the_progress_bar_and_the_remaining_time_move_with_each_chunk_of_a_pass(fresh_scene, tmp_path, monkeypatch):
     from dataclasses import replace
 
     from addon.blender import engine
 
     ctx = fresh_scene
-    small(ctx.scene, 64, 48, samples=2)
+    small(ctx.scene, 64, 48, samples=3)
     ctx.scene.render.engine = "NEURAL_LAYERED"
     ctx.scene.render.filepath = str(tmp_path / "chunks.exr")
     ctx.scene.render.image_settings.file_format = "OPEN_EXR"
-    real, given, fractions, passes = engine.render, [], [], []
+    real, real_line, bar, lines, passes = engine.render, engine.status_line, [], [], []
 
     def in_chunks(scene, settings, **kw):
-        """The engine's render in chunks of 1,024 pixels (3 a pass): what the engine gives to hear of each."""
-        given.append(repr(kw["chunk_progress"]))
+        """The engine's render in chunks of 1,024 pixels (3 a pass)."""
 
         def chunk_progress(fraction):
-            fractions.append(fraction)
-            kw["chunk_progress"](fraction)  # the engine's own: Blender's progress bar
+            bar.append(fraction)
+            kw["chunk_progress"](fraction)  # the engine's: Blender's progress bar and status line
 
         def progress(film, done, total):
-            passes.append((done, len(fractions)))
+            passes.append((done, len(bar)))
             return kw["progress"](film, done, total)
 
-        ours = {**kw, "chunk_progress": chunk_progress, "progress": progress}
-        return real(scene, replace(settings, chunk_paths=1024), **ours)
+        calls = {**kw, "progress": progress, "chunk_progress": chunk_progress}
+        return real(scene, replace(settings, chunk_paths=1024), **calls)
 
     monkeypatch.setattr(engine, "render", in_chunks)
+    monkeypatch.setattr(engine, "status_line", lambda *a: lines.append(real_line(*a)) or lines[-1])
     bpy.ops.render.render(write_still=True)
-    assert len(given) == 1 and "update_progress" in given[0]
-    assert fractions == pytest.approx([1 / 6, 2 / 6, 3 / 6, 4 / 6, 5 / 6, 1.0])
-    assert passes == [(1, 3), (2, 6)]  # the image and the sample count with each pass
+    assert bar == pytest.approx([k / 9 for k in range(1, 10)])  # every chunk
+    assert passes == [(1, 3), (2, 6), (3, 9)]  # the image and the sample count with each pass
+    # a line with every chunk (before its pass's) and every pass; the time left from the first pass's end on
+    assert [line.split(" | ")[0] for line in lines] == ["Sample 0/3"] * 3 + ["Sample 1/3"] * 4 + ["Sample 2/3"] * 4 + [
+        "Sample 3/3"
+    ]
+    assert all("Remaining" not in line for line in lines[:3]) and all(" | Remaining:" in line for line in lines[3:])
+    assert lines[-1].startswith("Sample 3/3 | Remaining:00:00.00 | ")
+    assert real_line(2, 16, 3725.5, 11042) == "Sample 2/16 | Remaining:01:02:05.50 | 11042 triangles"
+    assert real_line(0, 16, None, 12) == "Sample 0/16 | 12 triangles"
     assert np.isfinite(read_image(tmp_path / "chunks.exr")).all()
 
 
