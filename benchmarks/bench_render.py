@@ -617,6 +617,65 @@ def viewport_images_after_a_move(repeats: int, sizes=((320, 180), (1280, 720), (
     return lines + [""]
 
 
+def f12_time_left(size=(1920, 1080), samples: int = 8, bounces: int = 4) -> list[str]:
+    """What F12's status line says is left (``remaining.RemainingTime``, as the engine keeps it) at each pass's
+    end of a render of the demo scene, against the seconds that were really left."""
+    from addon.core.render.remaining import RemainingTime
+
+    width, height = size
+    scene = demo_scene(width, height)
+    render(demo_scene(64, 36), RenderSettings(samples=1, max_bounces=bounces))  # models loaded, loops compiled
+    left, said = RemainingTime(samples), []
+
+    def progress(film, done, total):
+        left.pass_done(done)
+        said.append((done, time.perf_counter(), left.seconds()))
+
+    t0 = time.perf_counter()
+    render(scene, RenderSettings(samples=samples, max_bounces=bounces), progress=progress)
+    end = said[-1][1]
+    print("time left", [(d, round(s, 2), round(end - t, 2)) for d, t, s in said], flush=True)
+    lines = [
+        f"## F12: the time left ({width}x{height}, {samples} spp, {bounces} bounces, demo scene)",
+        "",
+        "What the status line says is left at each pass's end (`remaining.RemainingTime`: the first pass's seconds "
+        "with the render's setup, then the mean of the passes since the first), against the seconds that were.",
+        "",
+        "| passes done | seconds since the start | said left s | really left s |",
+        "|---|---|---|---|",
+    ]
+    lines += [f"| {d} | {t - t0:.2f} | {s:.2f} | {end - t:.2f} |" for d, t, s in said]
+    return lines + [""]
+
+
+def film_memory(size=(3840, 2160), samples: int = 2, bounces: int = 4) -> list[str]:
+    """Peak memory of a process that renders the demo scene at ``size`` (in a process of its own, so that nothing
+    else this benchmark did counts), beside the film's own bytes."""
+    import json
+    import subprocess
+
+    width, height = size
+    code = (
+        "import json, resource, sys; sys.path.insert(0, sys.argv[1]);"
+        "from addon.core.render import RenderSettings, render;"
+        "from addon.core.render.demo_scene import demo_scene;"
+        f"film, _ = render(demo_scene({width}, {height}), RenderSettings(samples={samples}, max_bounces={bounces}));"
+        "arrays = (film.sum, film.sum_sq, film.count, film.feature_sum);"
+        "print(json.dumps([resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, sum(a.nbytes for a in arrays)]))"
+    )
+    out = subprocess.run([sys.executable, "-c", code, str(ROOT)], capture_output=True, text=True, check=True)
+    peak, film_bytes = json.loads(out.stdout.strip().splitlines()[-1])
+    print("film memory", peak, film_bytes, flush=True)
+    return [
+        f"## Memory: a {width}x{height} render ({samples} spp, {bounces} bounces, demo scene)",
+        "",
+        "| peak resident memory of the process GB | the film's arrays GB | film bytes a pixel |",
+        "|---|---|---|",
+        f"| {peak / 1e9:.2f} | {film_bytes / 1e9:.2f} | {film_bytes / (width * height):.0f} |",
+        "",
+    ]
+
+
 def viewport_edit_during_calibration(repeats: int, size=(320, 180), decoders=("tiny", "paper")) -> list[str]:
     """An edit that comes while the viewport calibrates the stack of the edit before it: seconds from the restart
     to the new scene's first image, per decoder size. The first sphere's stack is edited (a coat roughness not
@@ -751,6 +810,8 @@ def speed_only(args, command: str) -> int:
     sections += viewport_move_during_pass(3 * args.repeats)
     sections += viewport_images_after_a_move(3 * args.repeats)
     sections += viewport_edit_during_calibration(args.repeats)
+    sections += f12_time_left()
+    sections += film_memory()
     sections += cycles_split(*first_size, args.samples, args.bounces)  # last: the profiler stays on
     text = [
         "# Renderer speed: demo scene, ours vs Blender Cycles, alternating",
