@@ -661,8 +661,10 @@ def film_memory(size=(3840, 2160), samples: int = 2, bounces: int = 4) -> list[s
         "from addon.core.render.demo_scene import demo_scene;"
         f"film, _ = render(demo_scene({width}, {height}), RenderSettings(samples={samples}, max_bounces={bounces}));"
         "arrays = (film.sum, film.sum_sq, film.count, film.feature_sum);"
-        "print(json.dumps([resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, sum(a.nbytes for a in arrays)]))"
-    )
+        "hwm = [int(x.split()[1]) for x in open('/proc/self/status') if x.startswith('VmHWM:')];"
+        "peak = hwm[0] * 1024 if hwm else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024;"
+        "print(json.dumps([peak, sum(a.nbytes for a in arrays)]))"
+    )  # VmHWM: this process's own peak (ru_maxrss keeps the parent's across the exec that started it)
     out = subprocess.run([sys.executable, "-c", code, str(ROOT)], capture_output=True, text=True, check=True)
     peak, film_bytes = json.loads(out.stdout.strip().splitlines()[-1])
     print("film memory", peak, film_bytes, flush=True)
