@@ -93,3 +93,15 @@ def test_cycles_split_measures_both_renderers_on_a_small_scene():
     share = float(re.search(r"Ray intersection is \*\*(\d+)%\*\*", section).group(1))
     assert 0 < share < 100
     assert re.search(r"Ours in the render before it: rays \d+%, networks \d+%, the rest \d+%", section)
+
+
+def test_film_memory_reads_the_rendering_process_own_peak_not_its_parent_s():
+    """``ru_maxrss`` keeps a parent's peak across the exec that starts a child: under a parent holding Blender it
+    read 1.91 GB for a render whose own peak was 1.26 GB. The section reads the child's ``VmHWM``."""
+    import numpy as np
+
+    held = np.ones(1 << 30, np.uint8)  # this process: 1 GiB more, touched
+    lines = bench_render.film_memory(size=(32, 18), samples=1, bounces=1)
+    peak_gb, film_gb, per_pixel = (float(v) for v in lines[4].strip("| ").split(" | "))
+    assert per_pixel == 80 and film_gb == 0.0
+    assert 0.0 < peak_gb < held.nbytes / 1e9  # the child's own peak: a tiny render is far below the parent's GiB
