@@ -242,17 +242,15 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
             self.report({"WARNING"}, w)
         combined = result.layers[0].passes["Combined"]
         remaining = RemainingTime(settings.samples)
-        done_passes = [0]
 
         def status():
             self.update_stats(
-                "", status_line(done_passes[0], settings.samples, remaining.seconds(), core_scene.mesh.triangle_count)
+                "", status_line(remaining.passes, settings.samples, remaining.seconds(), core_scene.mesh.triangle_count)
             )
 
         def progress(film, done, total):
             combined.rect.foreach_set(np.ascontiguousarray(film.rgba()[::-1]).ravel())
             self.update_result(result)
-            done_passes[0] = done
             remaining.pass_done(done)
             status()
             return not self.test_break()
@@ -276,7 +274,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
                     return
                 # The neural runtime failed (a broken model file, say): the reference still renders.
                 self.report({"WARNING"}, f"neural evaluation failed ({_failure(e)}); rendering in reference mode")
-                remaining, done_passes[0] = RemainingTime(settings.samples), 0  # the fallback's own passes
+                remaining = RemainingTime(settings.samples)  # the fallback's own passes
                 film, stats = render(core_scene, replace(settings, mode="reference"), **calls)
         except Cancelled as c:
             film, stats = c.film, c.stats

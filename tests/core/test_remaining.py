@@ -18,7 +18,7 @@ class Clock:
 def test_the_time_left_is_known_at_a_pass_end_and_counts_down_between():
     clock = Clock()
     left = RemainingTime(5, clock)
-    assert left.seconds() is None  # within the first pass: its chunks done are no fair share of it
+    assert left.seconds() is None and left.passes == 0  # within the first pass: its chunks are no fair share
     clock.now += 3.0  # the first pass, its setup included
     left.pass_done(1)
     assert left.seconds() == pytest.approx(4 * 3.0)
@@ -29,6 +29,7 @@ def test_the_time_left_is_known_at_a_pass_end_and_counts_down_between():
     assert left.seconds() == pytest.approx(3 * 2.0)
     clock.now += 2.5
     left.pass_done(3)  # passes since the first: (2 + 2.5) / 2
+    assert left.passes == 3
     assert left.seconds() == pytest.approx(2 * 2.25)
     clock.now += 100.0
     assert left.seconds() == 0.0  # late: never below 0

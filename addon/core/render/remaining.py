@@ -35,6 +35,11 @@ class RemainingTime:
             self._per_pass = (now - self._first) / (passes - 1)
         self._last = (passes, now)
 
+    @property
+    def passes(self) -> int:
+        """The passes done so far."""
+        return 0 if self._last is None else self._last[0]
+
     def seconds(self) -> float | None:
         """Seconds left (0 at the end), None before the first pass ends."""
         if self._last is None:
