@@ -34,6 +34,14 @@ from .bsdf.lambert import lambert_f, lambert_pdf, lambert_sample
 from .neural.top_formulas import top_reflection, top_share_cos
 
 _JIT = dict(nogil=True, cache=True, error_model="numpy")
+F8, I8, B1 = np.dtype(np.float64), np.dtype(np.int64), np.dtype(np.bool_)
+
+
+def rows_of(layout, n: int) -> tuple[np.ndarray, ...]:
+    """New arrays of ``n`` rows for a loop's ``out`` of ``layout`` (``SURFACE_HITS_OUT`` and the like: a
+    (columns, dtype) pair per array, 0 columns for a flat one). The renderer passes views of buffers it keeps
+    instead (``render.scratch.Scratch``)."""
+    return tuple(np.empty((n, c) if c else n, dtype=dt) for c, dt in layout)
 
 
 def float64_rows(a) -> np.ndarray:
@@ -210,24 +218,24 @@ def take_half_channels(src, order, out):
 # --- surfaces ----------------------------------------------------------------------------------
 
 
+# What ``closest_hits`` writes (``out``, a row per ray): the distance, triangle and barycentrics.
+CLOSEST_HITS_OUT = ((0, F8), (0, I8), (0, F8), (0, F8))
+
+
 @njit(**_JIT)
-def closest_hits(prim_id, tfar, u, v):
+def closest_hits(out, prim_id, tfar, u, v):
     """An intersection query's results (embree's float32 ``tfar``, ``u``, ``v`` and int32 ``primID``, -1 for a
-    miss) as the loops read them, in one pass: the distance (inf on a miss), the triangle (int64) and the
-    barycentrics, in float64. The numpy conversions it replaces made five passes and two temporaries: 0.71 ms for
-    the demo scene's first bounce (129,600 rays), where this takes 0.21 ms."""
-    n = len(prim_id)
-    t = np.empty(n)
-    prim = np.empty(n, dtype=np.int64)
-    bu = np.empty(n)
-    bv = np.empty(n)
-    for i in range(n):
+    miss) as the loops read them, in one pass, into ``out`` (:data:`CLOSEST_HITS_OUT`): the distance (inf on a
+    miss), the triangle (int64) and the barycentrics, in float64. The numpy conversions it replaces made five
+    passes and two temporaries: 0.71 ms for the demo scene's first bounce (129,600 rays), where this takes 0.21 ms."""
+    t, prim, bu, bv = out
+    for i in range(len(prim_id)):
         p = prim_id[i]
         prim[i] = p
         t[i] = tfar[i] if p >= 0 else np.inf
         bu[i] = u[i]
         bv[i] = v[i]
-    return t, prim, bu, bv
+    return out
 
 
 @njit(**_JIT)
@@ -239,8 +247,12 @@ def texture_footprint(width, cos_o, tri_uv_scale):
     return width / np.sqrt(np.maximum(np.abs(cos_o), 0.05)) * tri_uv_scale
 
 
+# What ``surface_hits`` writes (``out``, a row per hit): p, ng, ns, uv, width, footprint, ts, tt, wo, distance.
+SURFACE_HITS_OUT = ((3, F8), (3, F8), (3, F8), (2, F8), (0, F8), (0, F8), (3, F8), (3, F8), (3, F8), (0, F8))
+
+
 @njit(**_JIT)
-def surface_hits(corners, face_normals, uv_scale, hit, prim, bu, bv, d, t, width, spread):
+def surface_hits(out, corners, face_normals, uv_scale, hit, prim, bu, bv, d, t, width, spread):
     """The surface where rays ``d`` (unit, world) land: ray ``hit[i]`` of the intersection's results (the
     triangles ``prim``, barycentrics (bu, bv) and distances ``t`` of every ray) for row i of ``d``, ``width``
     and ``spread``. Position, geometric and shading normals, uv, the ray cone's width there
@@ -251,21 +263,11 @@ def surface_hits(corners, face_normals, uv_scale, hit, prim, bu, bv, d, t, width
     geometric one. Both are turned toward the viewer, and a shading normal the viewer sees at
     grazing (cos <= 1e-6) falls back to the geometric one.
     The shading frame is ``frame.basis`` of the shading normal, and ``wo`` the direction back along the ray
-    in it. Returns p, ng, ns (N, 3), uv (N, 2), width, footprint (N,), the tangents ts, tt (N, 3), wo (N, 3)
-    and the distance (N,).
+    in it. Writes and returns ``out`` (:data:`SURFACE_HITS_OUT`): p, ng, ns (N, 3), uv (N, 2), width,
+    footprint (N,), the tangents ts, tt (N, 3), wo (N, 3) and the distance (N,).
     """
-    n = len(hit)
-    p = np.empty((n, 3))
-    ng = np.empty((n, 3))
-    ns = np.empty((n, 3))
-    ts = np.empty((n, 3))
-    tt = np.empty((n, 3))
-    wo = np.empty((n, 3))
-    uv = np.empty((n, 2))
-    width_out = np.empty(n)
-    footprint = np.empty(n)
-    dist = np.empty(n)
-    for i in range(n):
+    p, ng, ns, uv, width_out, footprint, ts, tt, wo, dist = out
+    for i in range(len(hit)):
         h = hit[i]
         k = prim[h]
         b1, b2 = bu[h], bv[h]
@@ -302,7 +304,7 @@ def surface_hits(corners, face_normals, uv_scale, hit, prim, bu, bv, d, t, width
         w = width[i] + spread[i] * t[h]
         width_out[i] = w
         footprint[i] = texture_footprint(w, cos_g, uv_scale[k])
-    return p, ng, ns, uv, width_out, footprint, ts, tt, wo, dist
+    return out
 
 
 @njit(**_JIT)
@@ -556,8 +558,13 @@ def sample_light(kind, prm, env, p, u):
     return wi, dist, rad, pdf
 
 
+# What ``sample_lights`` writes (``out``, a row per hit): local direction, radiance, pdf, delta, useful, and the
+# shadow rays' rows, origins, directions and lengths (their first rows only: one per useful sample).
+LIGHT_SAMPLES_OUT = ((3, F8), (3, F8), (0, F8), (0, B1), (0, B1), (0, I8), (3, F8), (3, F8), (0, F8))
+
+
 @njit(**_JIT)
-def sample_lights(kinds, params, env, p, ng, ts, tt, ns, u, eps):
+def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps):
     """Next-event estimation's light samples: one light of the table per hit, chosen uniformly by
     u[:, 0] (its remainder is not reused), a point on it from u[:, 1:3]. Returns, per hit, the direction
     in the shading frame (ts, tt, ns), the radiance (N, 3), pdf, delta flag and whether the sample can
@@ -565,19 +572,12 @@ def sample_lights(kinds, params, env, p, ng, ts, tt, ns, u, eps):
     normal ``ng`` as of the shading normal, so light never leaks through the surface); and the shadow rays
     of the useful samples only: their rows, origins offset by ``eps`` off the surface on the light's side,
     world directions and lengths (inf to the sun or the sky; else short of the light by a relative 1e-4
-    and ``eps``)."""
+    and ``eps``). Writes them into ``out`` (:data:`LIGHT_SAMPLES_OUT`) and returns them, the shadow rays'
+    arrays cut to their count."""
     image, pixel_pdf, alias_p, alias_i, z_edges = env[0], env[1], env[2], env[3], env[4]
     n = len(p)
     n_lights = len(kinds)
-    wi_local = np.empty((n, 3))
-    rad = np.empty((n, 3))
-    pdf = np.empty(n)
-    delta = np.empty(n, dtype=np.bool_)
-    useful = np.empty(n, dtype=np.bool_)
-    rows = np.empty(n, dtype=np.int64)
-    org = np.empty((n, 3))
-    d = np.empty((n, 3))
-    tmax = np.empty(n)
+    wi_local, rad, pdf, delta, useful, rows, org, d, tmax = out
     m = 0
     for i in range(n):
         j = min(int(u[i, 0] * n_lights), n_lights - 1)
@@ -716,38 +716,27 @@ def add_direct(L, hits, row, throughput, f, light_wi, radiance, p_select, light_
             L[r, c] += throughput[i, c] * f[k, c] * s * radiance[i, c]
 
 
-@njit(inline="always", **_JIT)
-def _empty_paths(n, row):
-    """Arrays for ``n`` paths' fields (``integrator._Paths``, in order); ``row`` gives the rows' dtype."""
-    return (
-        np.empty(n, dtype=row.dtype),
-        np.empty((n, 3)),
-        np.empty((n, 3)),
-        np.empty((n, 3)),
-        np.empty(n),
-        np.empty(n, dtype=np.bool_),
-        np.empty(n, dtype=np.bool_),
-        np.empty(n),
-        np.empty(n),
-    )
+# The paths' fields (``integrator._Paths``, in order), as ``take_paths`` and ``continue_paths`` write them.
+PATHS_OUT = ((0, I8), (3, F8), (3, F8), (3, F8), (0, F8), (0, B1), (0, B1), (0, F8), (0, F8))
+# ``continue_paths``'s own rows: survives, throughput scale, offset side, world direction.
+CONTINUE_TEMP = ((0, B1), (0, F8), (0, F8), (3, F8))
 
 
 @njit(**_JIT)
 def continue_paths(
-    wi_local, ts, tt, ns, weight, pdf, delta, mis, p, ng, row, throughput, width, spread, u_rr, roulette, eps
-):
+    out, temp, wi_local, ts, tt, ns, weight, pdf, delta, mis, p, ng, row, throughput, width, spread, u_rr, roulette,
+    eps,
+):  # fmt: skip
     """The next rays of the paths at a bounce: throughput times the sample weight, with Russian
     roulette where ``roulette`` (survival probability the largest throughput component, clipped to
     [0.05, 1], drawn against ``u_rr``; survivors reweighted by 1 / q); paths whose sample is zero or
     would leave through the wrong side of the geometric surface (``wi_local`` in the shading frame
     (ts, tt, ns), taken to world space here) are dropped. The survivors' origins are offset by ``eps``
     off the surface on their side, and a non-specular bounce widens the ray cone's spread to at least 0.2.
-    Returns row, origin, direction, throughput, pdf, delta, mis, width, spread of the survivors."""
+    Returns row, origin, direction, throughput, pdf, delta, mis, width, spread of the survivors: the first rows
+    of ``out`` (:data:`PATHS_OUT`, a row per path), with ``temp`` (:data:`CONTINUE_TEMP`) for its own rows."""
     n = len(row)
-    keep = np.empty(n, dtype=np.bool_)
-    scale = np.empty(n)
-    side = np.empty(n)
-    wi = np.empty((n, 3))
+    keep, scale, side, wi = temp
     count = 0
     for i in range(n):
         lx, ly, lz = wi_local[i, 0], wi_local[i, 1], wi_local[i, 2]
@@ -764,7 +753,7 @@ def continue_paths(
             s = 1.0 / q
         keep[i], scale[i], side[i] = ok, s, (eps if c > 0.0 else -eps)
         count += ok
-    o_row, o_org, o_dir, o_thr, o_pdf, o_delta, o_mis, o_width, o_spread = _empty_paths(count, row)
+    o_row, o_org, o_dir, o_thr, o_pdf, o_delta, o_mis, o_width, o_spread = out
     j = 0
     for i in range(n):
         if not keep[i]:
@@ -777,20 +766,24 @@ def continue_paths(
         o_pdf[j], o_delta[j], o_mis[j], o_width[j] = pdf[i], delta[i], mis[i], width[i]
         o_spread[j] = spread[i] if delta[i] else max(spread[i], 0.2)
         j += 1
-    return o_row, o_org, o_dir, o_thr, o_pdf, o_delta, o_mis, o_width, o_spread
+    return (
+        o_row[:count], o_org[:count], o_dir[:count], o_thr[:count], o_pdf[:count], o_delta[:count], o_mis[:count],
+        o_width[:count], o_spread[:count],
+    )  # fmt: skip
 
 
 @njit(**_JIT)
-def hits_by_material(prim, material_of_triangle, n_materials):
+def hits_by_material(out, prim, material_of_triangle, n_materials):
     """The rays that hit a triangle (``prim`` >= 0), ordered by the material of the triangle (stable:
-    a counting sort), and where each material's rows start (``n_materials + 1`` offsets)."""
+    a counting sort), and where each material's rows start (``n_materials + 1`` offsets). ``out``: int64, a row
+    per ray; the first rows, one per hit, are written and returned."""
     counts = np.zeros(n_materials + 1, dtype=np.int64)
     for i in range(len(prim)):
         if prim[i] >= 0:
             counts[material_of_triangle[prim[i]] + 1] += 1
     starts = np.cumsum(counts)
     fill = starts[:-1].copy()
-    order = np.empty(starts[-1], dtype=np.int64)
+    order = out[: starts[-1]]
     for i in range(len(prim)):
         if prim[i] >= 0:
             m = material_of_triangle[prim[i]]
@@ -800,17 +793,17 @@ def hits_by_material(prim, material_of_triangle, n_materials):
 
 
 @njit(**_JIT)
-def take_paths(keep, row, o, d, throughput, pdf, delta, mis, width, spread):
-    """The paths' fields (``integrator._Paths``, in order) at rows ``keep``, in one pass."""
-    n = len(keep)
-    o_row, o_o, o_d, o_thr, o_pdf, o_delta, o_mis, o_width, o_spread = _empty_paths(n, row)
-    for j in range(n):
+def take_paths(out, keep, row, o, d, throughput, pdf, delta, mis, width, spread):
+    """The paths' fields (``integrator._Paths``, in order) at rows ``keep``, in one pass, into ``out``
+    (:data:`PATHS_OUT`, a row per kept path)."""
+    o_row, o_o, o_d, o_thr, o_pdf, o_delta, o_mis, o_width, o_spread = out
+    for j in range(len(keep)):
         i = keep[j]
         o_row[j] = row[i]
         for k in range(3):
             o_o[j, k], o_d[j, k], o_thr[j, k] = o[i, k], d[i, k], throughput[i, k]
         o_pdf[j], o_delta[j], o_mis[j], o_width[j], o_spread[j] = pdf[i], delta[i], mis[i], width[i], spread[i]
-    return o_row, o_o, o_d, o_thr, o_pdf, o_delta, o_mis, o_width, o_spread
+    return out
 
 
 # --- the shading of a bounce ----------------------------------------------------------------------
@@ -1272,15 +1265,18 @@ def nearest_rows(x, centres):
 # --- the camera ----------------------------------------------------------------------------------
 
 
+# What ``camera_rays`` writes (``out``, a row per pixel): origins and directions.
+CAMERA_RAYS_OUT = ((3, F8), (3, F8))
+
+
 @njit(**_JIT)
-def camera_rays(px, py, jitter, matrix, width, height, tan_x, tan_y, shift_x, shift_y):
+def camera_rays(out, px, py, jitter, matrix, width, height, tan_x, tan_y, shift_x, shift_y):
     """World rays of a pinhole camera (``render.scene.Camera``) through pixels (px, py) (row 0 at the
-    top) offset by ``jitter`` (N, 2) in [0, 1)^2: origins and unit directions (N, 3). ``matrix``: the
-    camera's (4, 4) object-to-world, looking along its local -z; ``shift``: Blender's lens shift in
-    units of the larger image side."""
+    top; integers or floats) offset by ``jitter`` (N, 2) in [0, 1)^2: origins and unit directions (N, 3), into
+    ``out`` (:data:`CAMERA_RAYS_OUT`) and returned. ``matrix``: the camera's (4, 4) object-to-world, looking
+    along its local -z; ``shift``: Blender's lens shift in units of the larger image side."""
     n = len(px)
-    o = np.empty((n, 3))
-    d = np.empty((n, 3))
+    o, d = out
     big = max(width, height)
     off_x = 2.0 * shift_x * tan_x * big / width
     off_y = 2.0 * shift_y * tan_y * big / height

@@ -58,7 +58,7 @@ def test_hits_by_material_is_a_stable_sort_of_the_hits_with_each_materials_start
     def check(prims, n_materials):
         prim = np.array(prims, dtype=np.int64)
         material_of_triangle = np.arange(8, dtype=np.int64) % n_materials
-        order, starts = kernels.hits_by_material(prim, material_of_triangle, n_materials)
+        order, starts = kernels.hits_by_material(np.empty(len(prim), np.int64), prim, material_of_triangle, n_materials)
         hit = np.flatnonzero(prim >= 0)
         material = material_of_triangle[prim[hit]]
         np.testing.assert_array_equal(order, hit[np.argsort(material, kind="stable")])
@@ -79,7 +79,9 @@ def test_closest_hits_converts_an_embree_query_as_numpy_would_with_misses_at_inf
     d = np.tile([0.0, 0.0, -1.0], (n, 1))
     r = Tracer(mesh).scene.run(o.astype(np.float32), d.astype(np.float32), output=1)
     assert r["primID"].dtype == np.int32 and r["tfar"].dtype == np.float32  # what the kernel is compiled for
-    t, prim, bu, bv = kernels.closest_hits(r["primID"], r["tfar"], r["u"], r["v"])
+    out = kernels.rows_of(kernels.CLOSEST_HITS_OUT, n)
+    t, prim, bu, bv = kernels.closest_hits(out, r["primID"], r["tfar"], r["u"], r["v"])
+    assert all(got is given for got, given in zip((t, prim, bu, bv), out, strict=True))  # written in place
     hit = r["primID"] >= 0
     assert 0 < hit.sum() < n
     np.testing.assert_array_equal(prim, r["primID"].astype(np.int64))
@@ -105,7 +107,9 @@ def test_take_paths_gathers_every_field_as_fancy_indexing_does():
         rng.random(n),
     )
     keep = np.flatnonzero(rng.random(n) < 0.6)[::-1].copy()
-    for got, field in zip(kernels.take_paths(keep, *fields), fields, strict=True):
+    for got, field in zip(
+        kernels.take_paths(kernels.rows_of(kernels.PATHS_OUT, len(keep)), keep, *fields), fields, strict=True
+    ):
         np.testing.assert_array_equal(got, field[keep])
         assert got.dtype == field.dtype
 
@@ -237,7 +241,10 @@ def test_the_shading_frame_at_a_hit_is_the_bsdf_package_basis_and_wo_the_ray_bac
     d = frame.normalize(rng.normal(size=(n, 3)) - np.array([0.0, 0.0, 2.0]))
     bu, bv = rng.random(n) * 0.5, rng.random(n) * 0.5
     hit, dist = rng.permutation(n), rng.uniform(0.5, 2.0, n)  # the rays' rows in the intersection's results
-    out = kernels.surface_hits(corners, face, np.ones(n), hit, np.arange(n), bu, bv, d, dist, np.zeros(n), np.ones(n))
+    rows = kernels.rows_of(kernels.SURFACE_HITS_OUT, n)
+    out = kernels.surface_hits(
+        rows, corners, face, np.ones(n), hit, np.arange(n), bu, bv, d, dist, np.zeros(n), np.ones(n)
+    )
     ns, ts, tt, wo = out[2], out[6], out[7], out[8]
     np.testing.assert_array_equal(out[9], dist[hit])
     np.testing.assert_array_equal(out[4], dist[hit])  # the cone's width: 0 + 1 x the distance

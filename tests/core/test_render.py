@@ -597,10 +597,10 @@ def test_the_shading_phase_leaves_out_the_rays_inside_it(monkeypatch):
 
     real = integrator.Tracer.occluded
 
-    def slow(self, o, d, tmax, stats):
+    def slow(self, o, d, tmax, stats, *scratch):
         time.sleep(0.1)
         stats.seconds["rays"] += 0.1
-        return real(self, o, d, tmax, stats)
+        return real(self, o, d, tmax, stats, *scratch)
 
     monkeypatch.setattr(integrator.Tracer, "occluded", slow)
     _, st = render(demo_scene(8, 6), RenderSettings(samples=1, max_bounces=2, threads=1, calibrate=False))

@@ -26,13 +26,22 @@ class Film:
         self.passes = 0
         # What a denoiser is guided by, from each path's first hit: albedo, shading normal, depth.
         self.feature_sum = np.zeros((self.height * self.width, 7), dtype=np.float32)
+        self._square = np.empty((0, 3))  # ``add``'s squares, kept: a new array each chunk faulted its pages in
+
+    def _square_rows(self, n: int) -> np.ndarray:
+        """(n, 3) float64 rows of a buffer ``add`` keeps for the squares of the radiance it adds."""
+        if len(self._square) < n:
+            self._square = np.empty((n, 3))
+        return self._square[:n]
 
     def add(self, pixels: np.ndarray | slice, radiance: np.ndarray, features: np.ndarray | None = None) -> None:
         """Add radiance (N, 3) to ``pixels``: (N,) flat indices, each at most once per call, or a slice of
         N consecutive pixels (a whole render's chunks: in-place adds on views instead of gathers and
         scatters, 10x faster). ``features`` (N, 7): first-hit albedo (3), world shading normal (3) and depth (1)."""
         self.sum[pixels] += radiance
-        self.sum_sq[pixels] += radiance * radiance
+        square = self._square_rows(len(radiance))
+        np.multiply(radiance, radiance, out=square)
+        self.sum_sq[pixels] += square
         self.count[pixels] += 1
         if features is not None:
             self.feature_sum[pixels] += features

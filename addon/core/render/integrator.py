@@ -36,6 +36,7 @@ from . import materials as mat
 from .film import Film
 from .lights import NO_IMAGE, AreaLight
 from .scene import Scene
+from .scratch import Scratch, ScratchPool
 
 STRATEGIES = ("mis", "light", "bsdf")
 MODES = ("neural", "reference")
@@ -163,31 +164,42 @@ class Tracer:
             self.scene = rtcs.EmbreeScene()
             TriangleMesh(self.scene, self.positions)
 
-    def intersect(self, o, d, stats: RenderStats):
+    def intersect(self, o, d, stats: RenderStats, scratch: Scratch | None = None):
+        """Distance (inf on a miss), triangle (-1), barycentrics of the closest hit of each ray (o, d): arrays of
+        ``scratch`` when given (overwritten by its next intersection), else new ones."""
         n = len(o)
         if self.scene is None or n == 0:
             return np.full(n, np.inf), np.full(n, -1, np.int64), np.zeros(n), np.zeros(n)
+        scratch = scratch or Scratch()
+        o32, d32 = _rays32(scratch, "rays32", o, d)
         t0 = time.perf_counter()
-        r = self.scene.run(np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32), output=1)
+        r = self.scene.run(o32, d32, output=1)
         stats.seconds["rays"] += time.perf_counter() - t0
         stats.rays += n
-        return kernels.closest_hits(r["primID"], r["tfar"], r["u"], r["v"])
+        return kernels.closest_hits(
+            scratch.arrays("closest", n, kernels.CLOSEST_HITS_OUT), r["primID"], r["tfar"], r["u"], r["v"]
+        )
 
-    def occluded(self, o, d, tmax, stats: RenderStats):
+    def occluded(self, o, d, tmax, stats: RenderStats, scratch: Scratch | None = None):
         n = len(o)
         if self.scene is None or n == 0:
             return np.zeros(n, dtype=bool)
+        scratch = scratch or Scratch()
+        o32, d32 = _rays32(scratch, "shadow32", o, d)
+        (dist,) = scratch.arrays("shadow_dist32", n, ((0, np.float32),))
+        np.minimum(tmax, 1e30, out=dist, casting="same_kind")
         t0 = time.perf_counter()
-        dist = np.minimum(tmax, 1e30).astype(np.float32)
-        r = self.scene.run(
-            np.ascontiguousarray(o, np.float32),
-            np.ascontiguousarray(d, np.float32),
-            dists=np.ascontiguousarray(dist),
-            query="OCCLUDED",
-        )
+        r = self.scene.run(o32, d32, dists=dist, query="OCCLUDED")
         stats.seconds["rays"] += time.perf_counter() - t0
         stats.rays += n
         return np.asarray(r) != -1
+
+
+def _rays32(scratch: Scratch, name: str, o, d) -> tuple[np.ndarray, np.ndarray]:
+    """Rays (o, d) in float32 (embree's precision), in ``scratch``'s arrays of ``name``."""
+    o32, d32 = scratch.arrays(name, len(o), ((3, np.float32), (3, np.float32)))
+    o32[...], d32[...] = o, d
+    return o32, d32
 
 
 # The last few meshes' ray-tracing structures, by the content of their triangles (``tracer_for``).
@@ -246,6 +258,7 @@ def camera_hits(scene: Scene, px, py) -> tuple[np.ndarray, np.ndarray]:
     if len(hit):
         corners, face_normals, tri_uv_scale = _triangle_arrays(scene.mesh)
         f = kernels.surface_hits(
+            kernels.rows_of(kernels.SURFACE_HITS_OUT, len(hit)),
             corners,
             face_normals,
             tri_uv_scale,
@@ -390,13 +403,23 @@ def render(
     chunk = -(-len(pixels) // n_chunks)
     starts = list(range(0, len(pixels), chunk))
     tasks = [(k, c) for k in range(settings.samples) for c in range(len(starts))]
+    # A chunk's bounces write into a Scratch of their own (one per chunk traced at once); its radiance and
+    # features into one of ``images``, given back once the film has added them (chunks done and not added yet
+    # hold theirs). Both pools are the render's: their buffers go with it.
+    scratches, images = ScratchPool(chunk), ScratchPool(chunk)
 
     def trace(task):
         k, c = task
         pix = pixels[starts[c] : starts[c] + chunk]
-        return (slice(starts[c], starts[c] + len(pix)) if whole else pix), _trace_paths(
-            ctx, pix, start_pass + k, c, halt
-        )
+        scratch, image = scratches.take(), images.take()
+        try:
+            traced = _trace_paths(ctx, pix, start_pass + k, c, halt, scratch, image)
+        except BaseException:
+            images.give(image)
+            raise
+        finally:
+            scratches.give(scratch)
+        return (slice(starts[c], starts[c] + len(pix)) if whole else pix), traced, image
 
     workers = min(settings.thread_count, len(tasks))
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="render") if workers > 1 else None
@@ -408,8 +431,9 @@ def render(
         try:
             results = _ordered(pool, trace, tasks, 2 * workers, halt)
             for k, c in tasks:
-                pix, (L, features, piece) = next(results)
+                pix, (L, features, piece), image = next(results)
                 film.add(pix, L, features)
+                images.give(image)
                 _merge_stats(stats, piece)
                 if chunk_progress is not None:
                     chunk_progress((k * len(starts) + c + 1) / len(tasks))
@@ -525,8 +549,9 @@ class _Paths:
     width: np.ndarray
     spread: np.ndarray
 
-    def take(self, keep: np.ndarray) -> "_Paths":
-        return _Paths(*kernels.take_paths(keep, *vars(self).values()))  # every field, in order
+    def take(self, keep: np.ndarray, out: tuple) -> "_Paths":
+        """The paths at rows ``keep``, in ``out`` (``kernels.PATHS_OUT``, a row per kept path)."""
+        return _Paths(*kernels.take_paths(out, keep, *vars(self).values()))  # every field, in order
 
 
 @dataclass
@@ -558,22 +583,24 @@ class _LightSamples:
     visible: np.ndarray
 
 
-def _camera_paths(ctx: _Context, pix: np.ndarray, rng: np.random.Generator) -> _Paths:
-    """Primary rays, one per pixel, jittered inside it; emission they see counts with weight 1."""
+def _camera_paths(ctx: _Context, pix: np.ndarray, rng: np.random.Generator, scratch: Scratch) -> _Paths:
+    """Primary rays, one per pixel, jittered inside it; emission they see counts with weight 1. In
+    ``scratch``'s "paths.next" arrays, which the first bounce's paths are taken from."""
     cam = ctx.scene.camera
     n = len(pix)
-    o, d = cam.generate_rays(pix % cam.width, pix // cam.width, rng.random((n, 2)))
-    return _Paths(
-        np.arange(n),
-        o,
-        d,
-        np.ones((n, 3)),
-        np.ones(n),
-        np.ones(n, dtype=bool),
-        np.ones(n, dtype=bool),
-        np.zeros(n),
-        np.full(n, cam.pixel_spread),
-    )
+    paths = _Paths(*scratch.arrays("paths.next", n, kernels.PATHS_OUT))
+    px, py, jitter = scratch.arrays("pixels", n, ((0, kernels.I8), (0, kernels.I8), (2, kernels.F8)))
+    np.divmod(pix, cam.width, out=(py, px))
+    rng.random(out=jitter)
+    cam.generate_rays(px, py, jitter, out=(paths.o, paths.d))
+    paths.row[...] = np.arange(n)
+    paths.throughput.fill(1.0)
+    paths.pdf.fill(1.0)
+    paths.delta.fill(True)
+    paths.mis.fill(True)
+    paths.width.fill(0.0)
+    paths.spread.fill(cam.pixel_spread)
+    return paths
 
 
 def _add_emission(ctx: _Context, paths: _Paths, t: np.ndarray, L: np.ndarray) -> None:
@@ -588,19 +615,22 @@ def _add_emission(ctx: _Context, paths: _Paths, t: np.ndarray, L: np.ndarray) ->
     )  # fmt: skip
 
 
-def _surface_hits(ctx: _Context, paths: _Paths, hit, t, prim, bu, bv, groups) -> _Hits:
+def _surface_hits(ctx: _Context, paths: _Paths, hit, t, prim, bu, bv, groups, scratch: Scratch) -> _Hits:
     """The surface where each ray lands: interpolated position, normals and uv; a shading frame
     facing the viewer (shading normals that disagree with the geometry fall back to it); the
     ray cone grown to the hit and its footprint in texture space. ``groups``: the rows of each
     material (the rays come sorted by material). ``hit``: the rows of the intersection's results
     (``t``, ``prim``, ``bu``, ``bv``, one per ray traced) that ``paths`` now holds, in its order."""
     p, ng, ns, uv, paths.width, footprint, ts, tt, wo, dist = kernels.surface_hits(
-        ctx.corners, ctx.face_normals, ctx.uv_scale, hit, prim, bu, bv, paths.d, t, paths.width, paths.spread
-    )
+        scratch.arrays("hits", len(hit), kernels.SURFACE_HITS_OUT),
+        ctx.corners, ctx.face_normals, ctx.uv_scale, hit, prim, bu, bv, paths.d, t, paths.width, paths.spread,
+    )  # fmt: skip
     return _Hits(p, ng, ns, ts, tt, wo, uv, footprint, dist, groups)
 
 
-def _sample_lights(ctx: _Context, hits: _Hits, u_light: np.ndarray, stats: RenderStats) -> _LightSamples:
+def _sample_lights(
+    ctx: _Context, hits: _Hits, u_light: np.ndarray, stats: RenderStats, scratch: Scratch
+) -> _LightSamples:
     """Next-event estimation: one light (or the sky) chosen uniformly per hit, a point on it, and
     one occlusion query for all shadow rays; light reaching the surface through the shading
     normal's side but not the geometric one's is discarded."""
@@ -610,10 +640,14 @@ def _sample_lights(ctx: _Context, hits: _Hits, u_light: np.ndarray, stats: Rende
             np.zeros((m, 3)), np.zeros((m, 3)), np.ones(m), np.zeros(m, dtype=bool), np.zeros(m, dtype=bool)
         )
     wi, rad, pdf, delta, visible, rows, org, d, tmax = kernels.sample_lights(
+        scratch.arrays("lights", m, kernels.LIGHT_SAMPLES_OUT),
         ctx.nee_kinds, ctx.nee_params, ctx.env_arrays, hits.p, hits.ng, hits.ts, hits.tt, hits.ns, u_light, ctx.eps,
     )  # fmt: skip
-    visible[rows[ctx.tracer.occluded(org, d, tmax, stats)]] = False
+    visible[rows[ctx.tracer.occluded(org, d, tmax, stats, scratch)]] = False
     return _LightSamples(wi, rad, pdf, delta, visible)
+
+
+_SCATTER = ((3, kernels.F8), (3, kernels.F8), (0, kernels.F8), (0, kernels.B1), (0, kernels.B1))
 
 
 @dataclass
@@ -637,12 +671,13 @@ def _shade(
     seeds,
     L: np.ndarray,
     stats: RenderStats,
+    scratch: Scratch,
 ) -> _Scatter:
     """Scattering at the surface, one query per material: the reflected next-event light
     (MIS-weighted against BSDF sampling) goes into the image, and each hit draws the direction
     its path continues in."""
-    m = len(hits.p)
-    out = _Scatter(np.zeros((m, 3)), np.zeros((m, 3)), np.zeros(m), np.zeros(m, dtype=bool), np.ones(m, dtype=bool))
+    # every row is written below: the groups' slices cover the hits
+    out = _Scatter(*scratch.arrays("scatter", len(hits.p), _SCATTER))
     for mi, sel in hits.groups:  # a loop over materials; each one's hits are one slice (views, no gathers)
         material = ctx.materials[mi]
         need_pdf = material.has_pdf and ctx.settings.strategy == "mis"
@@ -668,19 +703,25 @@ def _shade(
 
 
 def _continue_paths(
-    ctx: _Context, paths: _Paths, hits: _Hits, sc: _Scatter, depth: int, rng: np.random.Generator
+    ctx: _Context, paths: _Paths, hits: _Hits, sc: _Scatter, depth: int, rng: np.random.Generator, scratch: Scratch
 ) -> _Paths:
     """The next rays: throughput times the sample weight, Russian roulette from ``rr_depth``
     (survivors reweighted by 1 / q), paths that died or would cross the geometric surface on the
     wrong side dropped, origins offset off the surface; a non-specular bounce widens the cone."""
     roulette = depth + 1 >= ctx.settings.rr_depth
-    u_rr = rng.random(len(paths.row)) if roulette else np.empty(0)
+    n = len(paths.row)
+    u_rr = rng.random(out=scratch.arrays("u_rr", n, ((0, kernels.F8),))[0]) if roulette else np.empty(0)
     return _Paths(
         *kernels.continue_paths(
+            scratch.arrays("paths.next", n, kernels.PATHS_OUT), scratch.arrays("continue", n, kernels.CONTINUE_TEMP),
             sc.wi, hits.ts, hits.tt, hits.ns, sc.weight, sc.pdf, sc.delta, sc.mis, hits.p, hits.ng, paths.row,
             paths.throughput, paths.width, paths.spread, u_rr, roulette, ctx.eps,
         )
     )  # fmt: skip
+
+
+_UNIFORMS = ((3, kernels.F8), (0, kernels.F8), (2, kernels.F8))  # a bounce's: light, lobe, direction
+_IMAGE_ROWS = ((3, kernels.F8), (7, kernels.F8))  # a chunk's radiance and denoising features
 
 
 def _check_stop(halt: _Halt | None) -> None:
@@ -690,45 +731,59 @@ def _check_stop(halt: _Halt | None) -> None:
 
 
 def _trace_paths(
-    ctx: _Context, pix: np.ndarray, pass_index: int, chunk_index: int, halt: _Halt | None = None
+    ctx: _Context,
+    pix: np.ndarray,
+    pass_index: int,
+    chunk_index: int,
+    halt: _Halt | None = None,
+    scratch: Scratch | None = None,
+    image: Scratch | None = None,
 ) -> tuple[np.ndarray, np.ndarray, RenderStats]:
     """Radiance (N, 3) of one path per pixel of ``pix``, all paths a bounce at a time, the
     denoising features of their first hits (N, 7; see ``Film.add``), and the chunk's statistics
-    (its phases in thread time). Raises :class:`Cancelled` before a bounce once ``halt`` is set."""
+    (its phases in thread time). Raises :class:`Cancelled` before a bounce once ``halt`` is set.
+    The bounces write their hits, light samples and paths into ``scratch``'s arrays, and the radiance and
+    features are arrays of ``image`` (new ones where None)."""
+    scratch = scratch or Scratch(len(pix))
     t_start = time.perf_counter()
     stats = RenderStats()
     s = ctx.settings
-    L = np.zeros((len(pix), 3))
-    features = np.zeros((len(pix), 7))
-    paths = _camera_paths(ctx, pix, np.random.default_rng([s.seed, pass_index, chunk_index, 0]))
+    L, features = (image or Scratch()).arrays("image", len(pix), _IMAGE_ROWS)
+    L.fill(0.0)
+    features.fill(0.0)
+    paths = _camera_paths(ctx, pix, np.random.default_rng([s.seed, pass_index, chunk_index, 0]), scratch)
     for depth in range(s.max_bounces + 1):
         if len(paths.row) == 0:
             break
         _check_stop(halt)
         rng = np.random.default_rng([s.seed, pass_index, chunk_index, depth + 1])
-        t, prim, bu, bv = ctx.tracer.intersect(paths.o, paths.d, stats)
+        t, prim, bu, bv = ctx.tracer.intersect(paths.o, paths.d, stats, scratch)
         with _shading(stats):
             _add_emission(ctx, paths, t, L)
         if depth == s.max_bounces:
             break
         # Sorted by material (stable), so that each material shades one contiguous slice of rows.
-        hit, starts = kernels.hits_by_material(prim, ctx.material_of_triangle, len(ctx.materials))
+        order = scratch.arrays("order", len(prim), ((0, kernels.I8),))[0]
+        hit, starts = kernels.hits_by_material(order, prim, ctx.material_of_triangle, len(ctx.materials))
         if len(hit) == 0:
             break
-        paths = paths.take(hit)
+        # the paths alternate between two groups of arrays: "paths.taken" here, "paths.next" in _continue_paths
+        paths = paths.take(hit, scratch.arrays("paths.taken", len(hit), kernels.PATHS_OUT))
         groups = [(mi, slice(int(starts[mi]), int(starts[mi + 1]))) for mi in np.flatnonzero(np.diff(starts))]
         m = len(hit)
-        u_light = rng.random((m, 3))
+        u_light, u_lobe, u_dir = scratch.arrays("uniforms", m, _UNIFORMS)
+        rng.random(out=u_light)
         with _shading(stats):
-            hits = _surface_hits(ctx, paths, hit, t, prim, bu, bv, groups)
-            lights = _sample_lights(ctx, hits, u_light, stats)
+            hits = _surface_hits(ctx, paths, hit, t, prim, bu, bv, groups, scratch)
+            lights = _sample_lights(ctx, hits, u_light, stats, scratch)
         _check_stop(halt)  # the materials' networks next: half of a bounce's time on neural scenes
-        u_lobe, u_dir = rng.random(m), rng.random((m, 2))
+        rng.random(out=u_lobe)
+        rng.random(out=u_dir)
         seeds = rng.integers(0, 2**31, size=len(ctx.materials))
-        sc = _shade(ctx, paths, hits, lights, u_lobe, u_dir, seeds, L, stats)
+        sc = _shade(ctx, paths, hits, lights, u_lobe, u_dir, seeds, L, stats, scratch)
         if depth == 0:
             kernels.first_hit_features(features, paths.row, sc.weight, hits.ns, hits.dist)
-        paths = _continue_paths(ctx, paths, hits, sc, depth, rng)
+        paths = _continue_paths(ctx, paths, hits, sc, depth, rng, scratch)
     bad = ~np.isfinite(L[:, 0] + L[:, 1] + L[:, 2])  # inf - inf is nan: any non-finite channel
     if bad.any():
         stats.nonfinite += int(bad.sum())

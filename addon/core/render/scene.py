@@ -94,14 +94,20 @@ class Camera:
         """Angle (radians) one pixel subtends at the image centre: the ray cone's spread."""
         return 2.0 * self.tan_half_fov[1] / self.height
 
-    def generate_rays(self, px: np.ndarray, py: np.ndarray, jitter: np.ndarray):
+    def generate_rays(self, px: np.ndarray, py: np.ndarray, jitter: np.ndarray, out=None):
         """World-space rays through pixel (px, py) (row 0 at the top) offset by jitter in [0, 1)^2.
 
-        Returns origins (N, 3) and unit directions (N, 3), float64.
+        Returns origins (N, 3) and unit directions (N, 3), float64: ``out`` (two such arrays) when given.
         """
+        px, py = (np.ascontiguousarray(a) for a in (px, py))
+        if px.dtype.kind not in "iu":  # integers are read as they are; anything else as float64
+            px, py = (np.ascontiguousarray(a, dtype=np.float64) for a in (px, py))
+        else:
+            px, py = (np.ascontiguousarray(a, dtype=np.int64) for a in (px, py))
         return kernels.camera_rays(
-            np.ascontiguousarray(px, dtype=np.float64),
-            np.ascontiguousarray(py, dtype=np.float64),
+            kernels.rows_of(kernels.CAMERA_RAYS_OUT, len(px)) if out is None else out,
+            px,
+            py,
             np.ascontiguousarray(jitter, dtype=np.float64),
             self.matrix,
             self.width,

@@ -1,0 +1,117 @@
+"""The arrays a render's chunks write their bounces into again (``render.scratch``): views of kept buffers,
+never shared by two chunks at once, and images the same as with new arrays each bounce."""
+
+import numpy as np
+import pytest
+
+from addon.core import kernels
+from addon.core.render import RenderSettings, RenderStats, integrator, render
+from addon.core.render.demo_scene import demo_scene
+from addon.core.render.scratch import Scratch, ScratchPool
+
+LAYOUT = ((3, np.float64), (0, np.int64), (2, np.bool_))
+
+
+def test_arrays_are_contiguous_views_of_buffers_kept_for_the_next_call():
+    s = Scratch()
+    a, b, c = s.arrays("x", 10, LAYOUT)
+    assert (a.shape, b.shape, c.shape) == ((10, 3), (10,), (10, 2))
+    assert (a.dtype, b.dtype, c.dtype) == (np.float64, np.int64, np.bool_)
+    assert all(v.flags.c_contiguous for v in (a, b, c))
+    a[:] = 7.0
+    a2, b2, _ = s.arrays("x", 4, LAYOUT)  # fewer rows: the same memory, not a new buffer
+    assert a2.shape == (4, 3) and np.shares_memory(a2, a) and a2.base is a.base and b2.base is b.base
+    assert s.arrays("y", 4, LAYOUT)[0].base is not a.base  # each name its own buffers
+    assert s.nbytes == 10 * (24 + 8 + 2) + 4 * (24 + 8 + 2)
+
+
+def test_arrays_grow_when_asked_for_more_rows_and_start_at_the_scratchs_rows():
+    s = Scratch(rows=100)
+    a = s.arrays("x", 10, LAYOUT)[0]
+    assert len(a.base) == 100  # made for a chunk's rows at once: no regrowth as the bounces' counts move
+    assert s.arrays("x", 100, LAYOUT)[0].base is a.base
+    grown = s.arrays("x", 101, LAYOUT)[0]
+    assert grown.shape == (101, 3) and grown.base is not a.base
+    assert s.arrays("x", 0, LAYOUT)[0].shape == (0, 3)
+
+
+def test_a_negative_row_count_is_refused():
+    with pytest.raises(ValueError, match=">= 0"):
+        Scratch().arrays("x", -1, LAYOUT)
+
+
+def test_the_pool_hands_back_what_was_given_and_makes_one_only_when_none_is_free():
+    pool = ScratchPool(rows=8)
+    a, b = pool.take(), pool.take()
+    assert a is not b and pool.made == 2 and a.rows == b.rows == 8
+    pool.give(a)
+    assert pool.take() is a and pool.made == 2
+
+
+class NewArrays(Scratch):
+    """A scratch that gives new arrays at every call, as the renderer's bounces had before they kept them."""
+
+    def arrays(self, name, n, layout):
+        self._groups.pop(name, None)
+        return super().arrays(name, n, layout)
+
+
+def test_a_chunk_traced_in_kept_arrays_is_the_chunk_traced_in_new_arrays_at_every_bounce():
+    """No array a bounce reads is overwritten before it reads it (the paths alternate between two groups), and
+    a scratch left by other chunks (other pixels, passes and bounce counts) changes nothing: to the bit."""
+    scene = demo_scene(48, 27)
+    settings = RenderSettings(samples=1, max_bounces=4, threads=1)
+    ctx = integrator._Context(scene, settings, RenderStats())
+    pixels = np.arange(48 * 27)
+    used = Scratch(400)
+    for k, pix in enumerate((pixels[:400], pixels[-300:], pixels[500:900])):
+        L, features, _ = integrator._trace_paths(ctx, pix, k, k, None, used, Scratch())
+        L_new, features_new, _ = integrator._trace_paths(ctx, pix, k, k, None, NewArrays(), NewArrays())
+        np.testing.assert_array_equal(L, L_new)
+        np.testing.assert_array_equal(features, features_new)
+        assert np.abs(L).sum() > 0
+
+
+def test_a_render_makes_each_chunks_buffers_once_and_its_image_does_not_depend_on_the_threads(monkeypatch):
+    """Two threads, 4 chunks a pass, 6 passes: two Scratch objects (one per chunk traced at once), each name's
+    buffers made once, so that no bounce after the first chunk's faults new memory in; and the image equals the
+    one-thread render's (a chunk's radiance is not overwritten before the film adds it)."""
+    scene = demo_scene(64, 36)
+    made, bases = [], {}
+    take, arrays = ScratchPool.take, Scratch.arrays
+
+    def counting_take(self):
+        s = take(self)
+        if s not in made:
+            made.append(s)
+        return s
+
+    def recording_arrays(self, name, n, layout):
+        views = arrays(self, name, n, layout)
+        bases.setdefault((id(self), name), set()).add(id(views[0].base))
+        return views
+
+    monkeypatch.setattr(ScratchPool, "take", counting_take)
+    monkeypatch.setattr(Scratch, "arrays", recording_arrays)
+    chunk = 64 * 36 // 4
+    film2, _ = render(scene, RenderSettings(samples=6, max_bounces=4, threads=2, chunk_paths=chunk))
+    monkeypatch.undo()
+    film1, _ = render(scene, RenderSettings(samples=6, max_bounces=4, threads=1, chunk_paths=chunk))
+    np.testing.assert_array_equal(film2.mean(), film1.mean())
+    np.testing.assert_array_equal(film2.features()["normal"], film1.features()["normal"])
+    bounce_scratches = [s for s in made if "hits" in s._groups]
+    assert len(bounce_scratches) == 2
+    for s in bounce_scratches:
+        for name in ("hits", "lights", "paths.taken", "paths.next", "scatter", "closest"):
+            assert len(bases[(id(s), name)]) == 1, f"{name} was made again"
+            assert len(s._groups[name][0]) == chunk  # made for the chunk's paths at once
+
+
+def test_the_loops_write_the_arrays_they_are_given():
+    """The outputs a kernel returns are the arrays passed in (or their first rows), not copies."""
+    rows = kernels.rows_of(kernels.PATHS_OUT, 5)
+    fields = kernels.rows_of(kernels.PATHS_OUT, 8)
+    for f in fields:
+        f[...] = 1
+    got = kernels.take_paths(rows, np.arange(5), *fields)
+    assert all(g is r for g, r in zip(got, rows, strict=True))
