@@ -678,6 +678,99 @@ def film_memory(size=(3840, 2160), samples: int = 2, bounces: int = 4) -> list[s
     ]
 
 
+# A child process's pairs for ``allocators``: ours then Cycles, ``repeats`` times, after a warm-up of each; one
+# JSON line per pair (seconds, ours' page faults and rest) and first whether jemalloc is this process's malloc.
+_PAIRS_CODE = """
+import json, resource, sys, tempfile
+from pathlib import Path
+sys.path.insert(0, sys.argv[1]); sys.path.insert(0, sys.argv[1] + "/benchmarks")
+import bench_render as br
+import bpy
+width, height, samples, bounces, repeats = (int(v) for v in sys.argv[2:7])
+print(json.dumps({"jemalloc": any("jemalloc" in line for line in open("/proc/self/maps"))}), flush=True)
+scene = br.demo_scene(width, height)
+with tempfile.TemporaryDirectory() as tmp:
+    bs = br.build_blender_scene(bpy, scene)
+    br.render_cycles(bpy, bs, 8, 8, 1, 1, Path(tmp))
+    br.ours(scene, 1, 1, "neural")
+    for rep in range(repeats):
+        f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        _, st = br.ours(scene, samples, bounces, "neural", seed=rep)
+        faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0
+        _, cycles = br.render_cycles(bpy, bs, width, height, samples, bounces, Path(tmp))
+        pair = {"ours": st.seconds["total"], "cycles": cycles, "faults": faults, "rest": st.rest}
+        print(json.dumps(pair), flush=True)
+"""
+
+JEMALLOC_NAMES = ("libjemalloc.so.2", "libjemalloc.so")  # what LD_PRELOAD is given, found as the loader would
+
+
+def _jemalloc_library() -> str | None:
+    """A jemalloc library to preload: ``$JEMALLOC_LIBRARY``, else one the dynamic loader finds (Debian's
+    libjemalloc2), else None."""
+    import ctypes
+
+    given = os.environ.get("JEMALLOC_LIBRARY")
+    if given:
+        return given
+    for name in JEMALLOC_NAMES:
+        try:
+            ctypes.CDLL(name)
+        except OSError:
+            continue
+        return name
+    return None
+
+
+def allocators(width: int, height: int, samples: int, bounces: int, repeats: int) -> list[str]:
+    """Ours and Cycles alternating in two child processes, one on glibc's malloc (as the tables above: the bpy
+    module and a plain Python) and one with jemalloc preloaded, the malloc Blender's Linux builds link: a
+    render's speed inside Blender depends on how the allocator treats the renderer's arrays."""
+    import json
+    import statistics
+    import subprocess
+
+    title = f"## The allocator: glibc's malloc and jemalloc ({width}x{height}, {samples} spp, {bounces} bounces)"
+    lib = _jemalloc_library()
+    if lib is None:
+        return [title, "", "Not measured: no jemalloc library here (Debian: `apt install libjemalloc2`, or set "
+                "`JEMALLOC_LIBRARY` to one).", ""]  # fmt: skip
+    rows = []
+    for name, preload in (("glibc", None), ("jemalloc", lib)):
+        env = dict(os.environ)
+        env.pop("LD_PRELOAD", None)
+        if preload:
+            env["LD_PRELOAD"] = preload
+        args = [str(ROOT), str(width), str(height), str(samples), str(bounces), str(repeats)]
+        out = subprocess.run(
+            [sys.executable, "-c", _PAIRS_CODE, *args], capture_output=True, text=True, check=True, env=env
+        )
+        lines = [json.loads(x) for x in out.stdout.splitlines() if x.startswith("{")]
+        if lines[0]["jemalloc"] != bool(preload):
+            raise RuntimeError(f"the {name} child {'lacks' if preload else 'has'} jemalloc: LD_PRELOAD={preload}")
+        pairs = lines[1:]
+        print(name, pairs, flush=True)
+        med = lambda key: statistics.median(p[key] for p in pairs)  # noqa: E731
+        ratios = [p["cycles"] / p["ours"] for p in pairs]
+        rows.append(
+            f"| {name} | {med('ours'):.2f} ({min(p['ours'] for p in pairs):.2f}-{max(p['ours'] for p in pairs):.2f}) "
+            f"| {med('cycles'):.2f} | **{statistics.median(ratios):.2f}x** ({min(ratios):.2f}-{max(ratios):.2f}x) | "
+            f"{100 * statistics.median(p['rest'] / p['ours'] for p in pairs):.0f}% | {med('faults') / 1e3:.0f} k |"
+        )
+    return [
+        title,
+        "",
+        f"{repeats} pairs in each of two child processes, the first on glibc's malloc, the second with "
+        f"`{Path(lib).name}` in `LD_PRELOAD`; medians (ranges). Page faults: minor faults of the process during our "
+        "render.",
+        "",
+        "| malloc | ours s | Cycles s | throughput ours / Cycles | rest share | page faults in our render |",
+        "|---|---|---|---|---|---|",
+        *rows,
+        "",
+    ]
+
+
 def viewport_edit_during_calibration(repeats: int, size=(320, 180), decoders=("tiny", "paper")) -> list[str]:
     """An edit that comes while the viewport calibrates the stack of the edit before it: seconds from the restart
     to the new scene's first image, per decoder size. The first sphere's stack is edited (a coat roughness not
@@ -805,6 +898,7 @@ def speed_only(args, command: str) -> int:
             "",
         ]
         sections += lines
+    sections += allocators(*first_size, args.samples, args.bounces, args.repeats)
     sections += baked_floor(*first_size, args.samples, args.bounces, args.repeats)
     sections += rest_split(*first_size, args.samples, args.bounces, args.repeats)
     sections += viewport_latency(args.repeats)
