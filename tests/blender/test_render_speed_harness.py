@@ -105,3 +105,18 @@ def test_film_memory_reads_the_rendering_process_own_peak_not_its_parent_s():
     peak_gb, film_gb, per_pixel = (float(v) for v in lines[4].strip("| ").split(" | "))
     assert per_pixel == 80 and film_gb == 0.0
     assert 0.0 < peak_gb < held.nbytes / 1e9  # the child's own peak: a tiny render is far below the parent's GiB
+
+
+def test_allocators_says_it_did_not_measure_without_a_jemalloc_library(monkeypatch):
+    monkeypatch.setattr(bench_render, "_jemalloc_library", lambda: None)
+    lines = bench_render.allocators(32, 18, 1, 1, 1)
+    assert lines[0].startswith("## The allocator") and "Not measured: no jemalloc library" in lines[2]
+
+
+def test_allocators_refuses_a_child_the_preload_did_not_reach(monkeypatch):
+    """The loader skips a library it cannot preload and runs on: the child says which malloc it has, and a
+    jemalloc row measured on glibc is an error, not a table."""
+    pytest.importorskip("bpy")
+    monkeypatch.setattr(bench_render, "_jemalloc_library", lambda: "libno-such-jemalloc.so.2")
+    with pytest.raises(RuntimeError, match="lacks jemalloc"):
+        bench_render.allocators(32, 18, 1, 1, 1)
