@@ -80,8 +80,8 @@ def test_a_render_makes_each_chunks_buffers_once_and_its_image_does_not_depend_o
     made, bases = [], {}
     take, arrays = ScratchPool.take, Scratch.arrays
 
-    def counting_take(self):
-        s = take(self)
+    def counting_take(self, *rows):
+        s = take(self, *rows)
         if s not in made:
             made.append(s)
         return s
@@ -115,3 +115,41 @@ def test_the_loops_write_the_arrays_they_are_given():
         f[...] = 1
     got = kernels.take_paths(rows, np.arange(5), *fields)
     assert all(g is r for g, r in zip(got, rows, strict=True))
+
+
+def test_renders_given_one_pool_keep_its_scratches_and_buffers_from_one_render_to_the_next():
+    """A viewport session's renders share its pool: the second render takes the first one's Scratch objects and
+    buffers (no new memory to fault in after a view change), and renders the image it renders alone."""
+    scene = demo_scene(64, 36)
+    settings = RenderSettings(samples=2, max_bounces=4, threads=2, chunk_paths=64 * 36 // 4)
+    pool = ScratchPool()
+    render(scene, settings, scratches=pool)
+    assert pool.made == 2
+    kept = {id(s): {k: g[0] for k, g in s._groups.items()} for s in pool._free}
+    film, _ = render(scene, settings, scratches=pool)
+    assert pool.made == 2
+    for s in pool._free:
+        assert all(s._groups[k][0] is buffer for k, buffer in kept[id(s)].items())
+    np.testing.assert_array_equal(film.mean(), render(scene, settings)[0].mean())
+
+
+def test_a_viewport_session_renders_in_its_own_pool_and_frees_it_when_closed():
+    from addon.core.render.progressive import ProgressiveSession
+
+    session = ProgressiveSession(RenderSettings(samples=2, max_bounces=2, threads=2), preview_divisor=1)
+    try:
+        session.restart(demo_scene(48, 27))
+        assert session.wait(timeout=120) is not None
+        pool = session.scratches
+        assert 1 <= pool.made <= 2 and pool._free  # the renders' chunks took their arrays from it, and gave them back
+        session.move_camera(
+            demo_scene(
+                48,
+                27,
+            ).camera
+        )
+        assert session.wait(timeout=120) is not None
+        assert session.scratches is pool and pool.made <= 2
+    finally:
+        session.close()
+    assert session.scratches is not pool and session.scratches.made == 0

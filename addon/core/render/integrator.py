@@ -335,6 +335,7 @@ def render(
     pixels: np.ndarray | None = None,
     stop: threading.Event | Callable[[], bool] | None = None,
     chunk_progress: Callable[[float], object] | None = None,
+    scratches: ScratchPool | None = None,
 ) -> tuple[Film, RenderStats]:
     """Render ``scene``; returns the film (per-pixel mean and standard error) and statistics.
 
@@ -371,6 +372,9 @@ def render(
     ``chunk_progress(fraction)`` is called on the calling thread after each chunk is added to the film, with the
     fraction of the render's chunks added so far (1.0 after the last): a progress bar that moves within a pass
     (a 4K pass of the demo scene is 64 chunks and takes seconds).
+
+    ``scratches``: where the chunks take the arrays their bounces write (``render.scratch``); default a pool of
+    this render's, freed at its end. A viewport session passes its own, kept from one render to the next.
     """
     settings = settings or RenderSettings()
     halt = _Halt(stop)
@@ -405,13 +409,14 @@ def render(
     tasks = [(k, c) for k in range(settings.samples) for c in range(len(starts))]
     # A chunk's bounces write into a Scratch of their own (one per chunk traced at once); its radiance and
     # features into one of ``images``, given back once the film has added them (chunks done and not added yet
-    # hold theirs). Both pools are the render's: their buffers go with it.
-    scratches, images = ScratchPool(chunk), ScratchPool(chunk)
+    # hold theirs). ``images`` is the render's: its buffers go with it; so are the scratches unless given.
+    scratches = scratches if scratches is not None else ScratchPool(chunk)
+    images = ScratchPool(chunk)
 
     def trace(task):
         k, c = task
         pix = pixels[starts[c] : starts[c] + chunk]
-        scratch, image = scratches.take(), images.take()
+        scratch, image = scratches.take(chunk), images.take()
         try:
             traced = _trace_paths(ctx, pix, start_pass + k, c, halt, scratch, image)
         except BaseException:

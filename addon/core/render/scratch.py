@@ -50,9 +50,10 @@ class Scratch:
 
 
 class ScratchPool:
-    """The :class:`Scratch` objects of one render: ``take()`` one for a chunk (a kept one when there is one,
-    else a new one), ``give(s)`` it back when the chunk is done. As many are made as chunks are traced at
-    once; they go when the pool does (the render's end), so no render keeps another's memory."""
+    """The :class:`Scratch` objects of a render, or of a viewport's renders: ``take(rows)`` one for a chunk of
+    ``rows`` paths (a kept one when there is one, else a new one), ``give(s)`` it back when the chunk is done. As
+    many are made as chunks are traced at once; their buffers go when the pool does: a render's own pool at its
+    end, a viewport session's when it closes (``progressive.ProgressiveSession.scratches``)."""
 
     def __init__(self, rows: int = 0):
         self.rows = int(rows)  # each Scratch's (``Scratch.rows``)
@@ -60,12 +61,15 @@ class ScratchPool:
         self._lock = threading.Lock()
         self.made = 0
 
-    def take(self) -> Scratch:
+    def take(self, rows: int = 0) -> Scratch:
+        """A Scratch whose buffers are made with at least ``rows`` rows (and the pool's ``rows``)."""
         with self._lock:
-            if self._free:
-                return self._free.pop()
-            self.made += 1
-        return Scratch(self.rows)
+            scratch = self._free.pop() if self._free else None
+            if scratch is None:
+                self.made += 1
+        scratch = scratch or Scratch(self.rows)
+        scratch.rows = max(scratch.rows, int(rows))
+        return scratch
 
     def give(self, scratch: Scratch) -> None:
         with self._lock:
