@@ -10,7 +10,9 @@ path continuation) and the shading of a bounce; the BSDF formulas they evaluate 
 
 Every kernel:
 
-- takes and returns numpy arrays (float64 unless said), never Python objects;
+- takes and returns numpy arrays (float64 unless said), never Python objects; one whose output has a row per
+  hit, ray or path writes it into ``out`` arrays it is given (a layout constant beside it says which), so that
+  the renderer can keep them from one bounce to the next (``render.scratch``);
 - releases the GIL (``nogil``), so the renderer's chunk threads run them at once;
 - is compiled on first use and cached on disk beside this file (or in the user's cache folder
   where that is read-only), so a later process loads it in milliseconds;
