@@ -35,6 +35,14 @@ def test_arrays_grow_when_asked_for_more_rows_and_start_at_the_scratchs_rows():
     assert s.arrays("x", 0, LAYOUT)[0].shape == (0, 3)
 
 
+def test_a_name_asked_for_with_another_layout_gets_buffers_of_that_layout():
+    s = Scratch()
+    s.arrays("x", 10, LAYOUT)
+    other = ((2, np.float32), (0, np.int64), (2, np.bool_))  # as many arrays, not the same ones
+    a, _, _ = s.arrays("x", 10, other)
+    assert a.shape == (10, 2) and a.dtype == np.float32
+
+
 def test_a_negative_row_count_is_refused():
     with pytest.raises(ValueError, match=">= 0"):
         Scratch().arrays("x", -1, LAYOUT)

@@ -99,11 +99,9 @@ class Camera:
 
         Returns origins (N, 3) and unit directions (N, 3), float64: ``out`` (two such arrays) when given.
         """
-        px, py = (np.ascontiguousarray(a) for a in (px, py))
-        if px.dtype.kind not in "iu":  # integers are read as they are; anything else as float64
-            px, py = (np.ascontiguousarray(a, dtype=np.float64) for a in (px, py))
-        else:
-            px, py = (np.ascontiguousarray(a, dtype=np.int64) for a in (px, py))
+        px, py = np.asarray(px), np.asarray(py)
+        integers = px.dtype.kind in "iu" and py.dtype.kind in "iu"  # read as they are; anything else as float64
+        px, py = (np.ascontiguousarray(a, dtype=np.int64 if integers else np.float64) for a in (px, py))
         return kernels.camera_rays(
             kernels.rows_of(kernels.CAMERA_RAYS_OUT, len(px)) if out is None else out,
             px,

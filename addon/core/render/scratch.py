@@ -27,20 +27,21 @@ class Scratch:
     def __init__(self, rows: int = 0):
         self.rows = int(rows)  # the fewest rows a buffer is made with: a chunk's paths, which bound every group
         self._groups: dict[str, tuple[np.ndarray, ...]] = {}
+        self._layouts: dict[str, tuple] = {}
 
     def arrays(self, name: str, n: int, layout) -> tuple[np.ndarray, ...]:
         """``n`` rows of each array of ``layout`` (``kernels.SURFACE_HITS_OUT`` and the like: a (columns,
         dtype) pair per array, 0 columns for a flat one), C-contiguous views of the buffers of ``name``; the
-        buffers are made with at least ``rows`` rows, and grow to ``n`` when shorter (their old contents are not
-        kept)."""
+        buffers are made with at least ``rows`` rows, and made again when shorter than ``n`` or of another layout
+        (their old contents are not kept)."""
         n = int(n)
         if n < 0:
             raise ValueError(f"a row count is >= 0, got {n}")
         group = self._groups.get(name)
-        if group is None or len(group[0]) < n or len(group) != len(layout):
+        if group is None or len(group[0]) < n or self._layouts[name] != layout:
             m = max(n, self.rows)
             group = tuple(np.empty((m, c) if c else m, dtype=dt) for c, dt in layout)
-            self._groups[name] = group
+            self._groups[name], self._layouts[name] = group, layout
         return tuple(b[:n] for b in group)
 
     @property
