@@ -150,12 +150,7 @@ def test_a_viewport_session_renders_in_its_own_pool_and_frees_it_when_closed():
         assert session.wait(timeout=120) is not None
         pool = session.scratches
         assert 1 <= pool.made <= 2 and pool._free  # the renders' chunks took their arrays from it, and gave them back
-        session.move_camera(
-            demo_scene(
-                48,
-                27,
-            ).camera
-        )
+        session.move_camera(demo_scene(48, 27).camera)
         assert session.wait(timeout=120) is not None
         assert session.scratches is pool and pool.made <= 2
     finally:
