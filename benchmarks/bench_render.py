@@ -702,24 +702,14 @@ with tempfile.TemporaryDirectory() as tmp:
         print(json.dumps(pair), flush=True)
 """
 
-JEMALLOC_NAMES = ("libjemalloc.so.2", "libjemalloc.so")  # what LD_PRELOAD is given, found as the loader would
-
 
 def _jemalloc_library() -> str | None:
-    """A jemalloc library to preload: ``$JEMALLOC_LIBRARY``, else one the dynamic loader finds (Debian's
-    libjemalloc2), else None."""
-    import ctypes
+    """A jemalloc library to preload: ``$JEMALLOC_LIBRARY``, else the one the loader's cache names (Debian's
+    libjemalloc2), else None. Found, not loaded: this process keeps its own malloc, and a jemalloc built for
+    preloading may refuse to be opened later (its thread-local storage)."""
+    import ctypes.util
 
-    given = os.environ.get("JEMALLOC_LIBRARY")
-    if given:
-        return given
-    for name in JEMALLOC_NAMES:
-        try:
-            ctypes.CDLL(name)
-        except OSError:
-            continue
-        return name
-    return None
+    return os.environ.get("JEMALLOC_LIBRARY") or ctypes.util.find_library("jemalloc")
 
 
 def allocators(width: int, height: int, samples: int, bounces: int, repeats: int) -> list[str]:
