@@ -64,12 +64,30 @@ class NewArrays(Scratch):
         return super().arrays(name, n, layout)
 
 
-def test_a_chunk_traced_in_kept_arrays_is_the_chunk_traced_in_new_arrays_at_every_bounce():
+@pytest.fixture(scope="module")
+def baked_floor():
+    """The main job's floor: the varnished tiles baked into a latent texture (3 distinct texels, with the bake's
+    albedo calibration), 64 x 64 texels."""
+    from addon.core.render.demo_scene import FLOOR_STACK, floor_maps
+    from addon.core.textures.bake import bake_stack, neural_encoder
+    from addon.core.textures.spatial import SpatialStack
+
+    texture, _ = bake_stack(SpatialStack(FLOOR_STACK, floor_maps(64, 4)), neural_encoder())
+    return texture
+
+
+@pytest.mark.parametrize("floor", ["lambertian", "baked"])
+def test_a_chunk_traced_in_kept_arrays_is_the_chunk_traced_in_new_arrays_at_every_bounce(floor, request):
     """No array a bounce reads is overwritten before it reads it (the paths alternate between two groups), and
-    a scratch left by other chunks (other pixels, passes and bounce counts) changes nothing: to the bit."""
-    scene = demo_scene(48, 27)
+    a scratch left by other chunks (other pixels, passes and bounce counts) changes nothing: to the bit. The
+    baked floor is a latent texture (per-hit latents, coatings, proxies and calibration tables, the main job's
+    floor) beside the spheres' single-latent materials."""
+    texture = request.getfixturevalue("baked_floor") if floor == "baked" else None
+    scene = demo_scene(48, 27, floor_texture=texture)
     settings = RenderSettings(samples=1, max_bounces=4, threads=1)
     ctx = integrator._Context(scene, settings, RenderStats())
+    if texture is not None:  # the floor renders as its latent texture, not the reference
+        assert any(getattr(m, "texture", None) is texture for m in ctx.materials)
     pixels = np.arange(48 * 27)
     used = Scratch(400)
     for k, pix in enumerate((pixels[:400], pixels[-300:], pixels[500:900])):
