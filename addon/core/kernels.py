@@ -146,6 +146,18 @@ def _tap_channels(flat, a, b, d, e, gx, fx, top, bottom, first, out_row, add):
 
 
 @njit(inline="always", **_JIT)
+def _wrap(i, n):
+    """``i % n`` (repeat addressing), without the integer division where ``i`` is within a step of [0, n): uv
+    inside [0, 1], as a floor's or a sphere's are. A tap's four divisions were a fifth of a 3-channel lookup (55-72
+    ns a row of random uv in [0, 1), one thread; 43-46 ns without them)."""
+    if 0 <= i < n:
+        return i
+    if i == -1:
+        return n - 1
+    return i % n
+
+
+@njit(inline="always", **_JIT)
 def _bilinear_tap(flat, offset, h, w, c, u, v, weight, out_row, rest_row, add):
     """``weight`` times the bilinear tap (repeat addressing, v = 0 at the bottom row) of the level stored at
     ``flat[offset:]`` as (h, w, c), in float32: its first ``len(out_row)`` channels added to ``out_row``
@@ -156,10 +168,10 @@ def _bilinear_tap(flat, offset, h, w, c, u, v, weight, out_row, rest_row, add):
     y0f = math.floor(y)
     fx = np.float32(x - x0f)
     fy = np.float32(y - y0f)
-    x0 = int(x0f) % w
-    y0 = int(y0f) % h
-    x1 = (x0 + 1) % w
-    y1 = (y0 + 1) % h
+    x0 = _wrap(int(x0f), w)
+    y0 = _wrap(int(y0f), h)
+    x1 = x0 + 1 if x0 + 1 < w else 0
+    y1 = y0 + 1 if y0 + 1 < h else 0
     gx = np.float32(1.0) - fx
     top = np.float32(weight) * (np.float32(1.0) - fy)
     bottom = np.float32(weight) * fy
