@@ -148,8 +148,8 @@ def _tap_channels(flat, a, b, d, e, gx, fx, top, bottom, first, out_row, add):
 @njit(inline="always", **_JIT)
 def _wrap(i, n):
     """``i % n`` (repeat addressing), without the integer division where ``i`` is within a step of [0, n): uv
-    inside [0, 1], as a floor's or a sphere's are. A tap's four divisions were a fifth of a 3-channel lookup (55-72
-    ns a row of random uv in [0, 1), one thread; 43-46 ns without them)."""
+    inside [0, 1], as a floor's or a sphere's are. A tap's four divisions were a fifth to a third of a 3-channel
+    lookup (55-72 ns a row of random uv in [0, 1), one thread; 43-46 ns without them)."""
     if 0 <= i < n:
         return i
     if i == -1:
