@@ -109,6 +109,22 @@ def _half_bits_to_float32(typingctx, bits):
     return types.float32(bits), codegen
 
 
+@intrinsic
+def _sqrt(typingctx, x):
+    """``math.sqrt(x)`` of a float as the CPU's square root instruction: the same value (both are correctly
+    rounded; nan below zero). numba's ``math.sqrt`` calls the C library's function wherever the compiler cannot
+    prove its argument non-negative, to keep ``errno``, which nothing here reads: the lengths of vectors (a sum
+    of squares may be nan) were such calls."""
+    if not isinstance(x, types.Float):
+        return None
+
+    def codegen(context, builder, signature, args):
+        fn = builder.module.declare_intrinsic("llvm.sqrt", [args[0].type])
+        return builder.call(fn, [args[0]])
+
+    return x(x), codegen
+
+
 def texel(flat, i):
     """``flat[i]`` as float32, where ``flat`` holds float32 values or the bit patterns of half floats
     (uint16: numba has no float16 on the CPU). For the compiled loops; see its overload below."""
@@ -125,22 +141,23 @@ def _texel(flat, i):
 
 
 @njit(inline="always", **_JIT)
-def _tap_channels(flat, a, b, d, e, gx, fx, top, bottom, first, out_row, add):
-    """Channels ``first`` .. ``first + len(out_row)`` of a bilinear tap whose corner texels start at ``a``, ``b``,
-    ``d``, ``e`` in ``flat`` (weights ``gx``, ``fx`` across, ``top``, ``bottom`` down): added to ``out_row``
-    (``add``) or written into it."""
+def _tap_channels(flat, a, b, d, e, gx, fx, top, bottom, first, out, i, add):
+    """Channels ``first`` .. ``first + out.shape[1]`` of a bilinear tap whose corner texels start at ``a``, ``b``,
+    ``d``, ``e`` in ``flat`` (weights ``gx``, ``fx`` across, ``top``, ``bottom`` down): added to row ``i`` of
+    ``out`` (``add``) or written into it. The row is indexed, not sliced: a slice is an array whose reference
+    count the loop would raise and drop for every row."""
     # Unsigned offsets: numba then drops its negative-index check and the channel loops vectorise.
     first = np.uint64(first)
     if add:
-        for k in range(np.uint64(len(out_row))):
+        for k in range(np.uint64(out.shape[1])):
             j = first + k
-            out_row[k] += (texel(flat, a + j) * gx + texel(flat, b + j) * fx) * top + (
+            out[i, k] += (texel(flat, a + j) * gx + texel(flat, b + j) * fx) * top + (
                 texel(flat, d + j) * gx + texel(flat, e + j) * fx
             ) * bottom
     else:
-        for k in range(np.uint64(len(out_row))):
+        for k in range(np.uint64(out.shape[1])):
             j = first + k
-            out_row[k] = (texel(flat, a + j) * gx + texel(flat, b + j) * fx) * top + (
+            out[i, k] = (texel(flat, a + j) * gx + texel(flat, b + j) * fx) * top + (
                 texel(flat, d + j) * gx + texel(flat, e + j) * fx
             ) * bottom
 
@@ -158,10 +175,10 @@ def _wrap(i, n):
 
 
 @njit(inline="always", **_JIT)
-def _bilinear_tap(flat, offset, h, w, c, u, v, weight, out_row, rest_row, add):
+def _bilinear_tap(flat, offset, h, w, c, u, v, weight, out, rest, i, add):
     """``weight`` times the bilinear tap (repeat addressing, v = 0 at the bottom row) of the level stored at
-    ``flat[offset:]`` as (h, w, c), in float32: its first ``len(out_row)`` channels added to ``out_row``
-    (``add``) or written into it, the others to ``rest_row``."""
+    ``flat[offset:]`` as (h, w, c), in float32: its first ``out.shape[1]`` channels added to row ``i`` of ``out``
+    (``add``) or written into it, the others to row ``i`` of ``rest``."""
     x = u * w - 0.5
     y = (1.0 - v) * h - 0.5
     x0f = math.floor(x)
@@ -179,9 +196,9 @@ def _bilinear_tap(flat, offset, h, w, c, u, v, weight, out_row, rest_row, add):
     b = np.uint64(offset + (y0 * w + x1) * c)
     d = np.uint64(offset + (y1 * w + x0) * c)
     e = np.uint64(offset + (y1 * w + x1) * c)
-    _tap_channels(flat, a, b, d, e, gx, fx, top, bottom, 0, out_row, add)
-    if len(rest_row):
-        _tap_channels(flat, a, b, d, e, gx, fx, top, bottom, len(out_row), rest_row, add)
+    _tap_channels(flat, a, b, d, e, gx, fx, top, bottom, 0, out, i, add)
+    if rest.shape[1]:
+        _tap_channels(flat, a, b, d, e, gx, fx, top, bottom, out.shape[1], rest, i, add)
 
 
 @njit(**_JIT)
@@ -201,13 +218,12 @@ def trilinear(flat, offsets, heights, widths, channels, uv, lod, out, rest):
     for i in range(len(lod)):
         k = int(math.floor(lod[i]))
         t = lod[i] - k
-        row, rest_row = out[i], rest[i]
         u, v = uv[i, 0], uv[i, 1]
         if k + 1 >= n_levels:
-            _bilinear_tap(flat, offsets[k], heights[k], widths[k], channels, u, v, 1.0, row, rest_row, False)
+            _bilinear_tap(flat, offsets[k], heights[k], widths[k], channels, u, v, 1.0, out, rest, i, False)
         else:
-            _bilinear_tap(flat, offsets[k], heights[k], widths[k], channels, u, v, 1.0 - t, row, rest_row, False)
-            _bilinear_tap(flat, offsets[k + 1], heights[k + 1], widths[k + 1], channels, u, v, t, row, rest_row, True)
+            _bilinear_tap(flat, offsets[k], heights[k], widths[k], channels, u, v, 1.0 - t, out, rest, i, False)
+            _bilinear_tap(flat, offsets[k + 1], heights[k + 1], widths[k + 1], channels, u, v, t, out, rest, i, True)
 
 
 @njit(**_JIT)
@@ -296,7 +312,7 @@ def surface_hits(out, corners, face_normals, uv_scale, hit, prim, bu, bv, d, t, 
         sy = b0 * c0[4] + b1 * c1[4] + b2 * c2[4]
         sz = b0 * c0[5] + b1 * c1[5] + b2 * c2[5]
         gx, gy, gz = face_normals[k, 0], face_normals[k, 1], face_normals[k, 2]
-        length = math.sqrt(sx * sx + sy * sy + sz * sz)
+        length = _sqrt(sx * sx + sy * sy + sz * sz)
         if length > 0.0:
             sx, sy, sz = sx / length, sy / length, sz / length
         if not (sx * gx + sy * gy + sz * gz > 0.0):  # inconsistent or zero: the geometric normal
@@ -487,33 +503,34 @@ def is_delta(kind):
 
 
 @njit(**_JIT)
-def _sample_light(kind, prm, image, pixel_pdf, alias_p, alias_i, z_edges, px, py, pz, u0, u1):
-    """One sample of a light from point (px, py, pz): direction toward it (unit), distance (inf for
-    the sun and the environment), arriving radiance (for delta lights the intensity / distance^2 or
-    the irradiance) and solid-angle pdf (1 for delta lights).
+def _sample_light(kind, params, j, image, pixel_pdf, alias_p, alias_i, z_edges, px, py, pz, u0, u1):
+    """One sample of light ``params[j]`` from point (px, py, pz): direction toward it (unit), distance (inf for
+    the sun and the environment), arriving radiance (for delta lights the intensity / distance^2 or the
+    irradiance) and solid-angle pdf (1 for delta lights). The light is indexed, not sliced: a slice passed to a
+    function is an array whose reference count the caller would raise and drop for every row.
 
     Compiled as a function of its own, not inlined into its callers' loops: inlined, ``sample_lights`` took
     80 ns a hit where it takes 63 (a bounce of the demo scene recorded and replayed; its branches for every kind
     of light). The other helpers here measured as fast or faster inlined."""
     inf = np.inf
     if kind == POINT or kind == SPOT:
-        dx, dy, dz = prm[0] - px, prm[1] - py, prm[2] - pz
-        dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+        dx, dy, dz = params[j, 0] - px, params[j, 1] - py, params[j, 2] - pz
+        dist = _sqrt(dx * dx + dy * dy + dz * dz)
         safe = max(dist, 1e-9)
         wx, wy, wz = dx / safe, dy / safe, dz / safe
         mask = 1.0
         if kind == SPOT:  # Blender's smoothstep over the cone's edge
-            c = -(wx * prm[6] + wy * prm[7] + wz * prm[8])
-            cos_edge, smooth = prm[9], prm[10]
+            c = -(wx * params[j, 6] + wy * params[j, 7] + wz * params[j, 8])
+            cos_edge, smooth = params[j, 9], params[j, 10]
             if smooth <= 0.0:
                 mask = 1.0 if c > cos_edge else 0.0
             else:
                 s = min(max((c - cos_edge) / smooth, 0.0), 1.0)
                 mask = s * s * (3.0 - 2.0 * s)
         scale = mask / max(safe, 1e-4) ** 2
-        return wx, wy, wz, dist, prm[3] * scale, prm[4] * scale, prm[5] * scale, 1.0
+        return wx, wy, wz, dist, params[j, 3] * scale, params[j, 4] * scale, params[j, 5] * scale, 1.0
     if kind == SUN:
-        return prm[0], prm[1], prm[2], inf, prm[3], prm[4], prm[5], 1.0
+        return params[j, 0], params[j, 1], params[j, 2], inf, params[j, 3], params[j, 4], params[j, 5], 1.0
     if kind == AREA_RECT or kind == AREA_ELLIPSE:
         a = 2.0 * u0 - 1.0
         b = 2.0 * u1 - 1.0
@@ -523,15 +540,15 @@ def _sample_light(kind, prm, image, pixel_pdf, alias_p, alias_i, z_edges, px, py
             else:
                 r, phi = b, math.pi / 2.0 - (math.pi / 4.0) * a / (b if b != 0.0 else 1.0)
             a, b = r * math.cos(phi), r * math.sin(phi)
-        dx = prm[0] + a * prm[3] + b * prm[6] - px
-        dy = prm[1] + a * prm[4] + b * prm[7] - py
-        dz = prm[2] + a * prm[5] + b * prm[8] - pz
-        dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+        dx = params[j, 0] + a * params[j, 3] + b * params[j, 6] - px
+        dy = params[j, 1] + a * params[j, 4] + b * params[j, 7] - py
+        dz = params[j, 2] + a * params[j, 5] + b * params[j, 8] - pz
+        dist = _sqrt(dx * dx + dy * dy + dz * dz)
         safe = max(dist, 1e-9)
         wx, wy, wz = dx / safe, dy / safe, dz / safe
-        cos_l = -(wx * prm[9] + wy * prm[10] + wz * prm[11])
+        cos_l = -(wx * params[j, 9] + wy * params[j, 10] + wz * params[j, 11])
         if cos_l > 1e-8:
-            return wx, wy, wz, dist, prm[12], prm[13], prm[14], safe * safe / (cos_l * prm[15])
+            return wx, wy, wz, dist, params[j, 12], params[j, 13], params[j, 14], safe * safe / (cos_l * params[j, 15])
         return wx, wy, wz, dist, 0.0, 0.0, 0.0, 0.0
     # ENVIRONMENT: one uniform picks the pixel through the alias table (its remainder, rescaled, is the
     # jitter across the pixel), the second places the direction down it evenly in z, so evenly in solid
@@ -550,7 +567,7 @@ def _sample_light(kind, prm, image, pixel_pdf, alias_p, alias_i, z_edges, px, py
     fx = min(max(fx, 0.0), 1.0 - 1e-9)
     y, x = idx // w, idx % w
     z = z_edges[y + 1] + u1 * (z_edges[y] - z_edges[y + 1])
-    r = math.sqrt(max(0.0, 1.0 - z * z))
+    r = _sqrt(max(0.0, 1.0 - z * z))
     phi = _equirect_azimuth((x + fx) / w)
     return r * math.cos(phi), r * math.sin(phi), z, inf, image[y, x, 0], image[y, x, 1], image[y, x, 2], pixel_pdf[idx]
 
@@ -565,9 +582,10 @@ def sample_light(kind, prm, env, p, u):
     dist = np.empty(n)
     rad = np.empty((n, 3))
     pdf = np.empty(n)
+    params = prm.copy().reshape((1, len(prm)))
     for i in range(n):
         wi[i, 0], wi[i, 1], wi[i, 2], dist[i], rad[i, 0], rad[i, 1], rad[i, 2], pdf[i] = _sample_light(
-            kind, prm, image, pixel_pdf, alias_p, alias_i, z_edges, p[i, 0], p[i, 1], p[i, 2], u[i, 0], u[i, 1]
+            kind, params, 0, image, pixel_pdf, alias_p, alias_i, z_edges, p[i, 0], p[i, 1], p[i, 2], u[i, 0], u[i, 1]
         )
     return wi, dist, rad, pdf
 
@@ -597,7 +615,8 @@ def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps):
         j = min(int(u[i, 0] * n_lights), n_lights - 1)
         wx, wy, wz, dist, r0, r1, r2, pd = _sample_light(
             kinds[j],
-            params[j],
+            params,
+            j,
             image,
             pixel_pdf,
             alias_p,
@@ -631,23 +650,27 @@ def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps):
 
 
 @njit(inline="always", **_JIT)
-def _intersect_area(prm, ellipse, ox, oy, oz, dx, dy, dz):
-    """Distance along a unit ray to an area light's emitting side (inf where missed) and the
-    solid-angle pdf of sampling that point."""
-    nx, ny, nz = prm[9], prm[10], prm[11]
+def _intersect_area(params, j, ellipse, ox, oy, oz, dx, dy, dz):
+    """Distance along a unit ray to the emitting side of area light ``params[j]`` (inf where missed) and the
+    solid-angle pdf of sampling that point. The light is indexed, not sliced (as ``_sample_light``'s)."""
+    nx, ny, nz = params[j, 9], params[j, 10], params[j, 11]
     denom = dx * nx + dy * ny + dz * nz
-    height = (prm[0] - ox) * nx + (prm[1] - oy) * ny + (prm[2] - oz) * nz
+    height = (params[j, 0] - ox) * nx + (params[j, 1] - oy) * ny + (params[j, 2] - oz) * nz
     # Only rays arriving against the emitting normal, from its lit side, can hit it.
     if not (denom < -1e-12 and height < 0.0):
         return np.inf, 0.0
     t = height / denom
-    qx, qy, qz = ox + t * dx - prm[0], oy + t * dy - prm[1], oz + t * dz - prm[2]
-    a = (qx * prm[3] + qy * prm[4] + qz * prm[5]) / (prm[3] * prm[3] + prm[4] * prm[4] + prm[5] * prm[5])
-    b = (qx * prm[6] + qy * prm[7] + qz * prm[8]) / (prm[6] * prm[6] + prm[7] * prm[7] + prm[8] * prm[8])
+    qx, qy, qz = ox + t * dx - params[j, 0], oy + t * dy - params[j, 1], oz + t * dz - params[j, 2]
+    a = (qx * params[j, 3] + qy * params[j, 4] + qz * params[j, 5]) / (
+        params[j, 3] * params[j, 3] + params[j, 4] * params[j, 4] + params[j, 5] * params[j, 5]
+    )
+    b = (qx * params[j, 6] + qy * params[j, 7] + qz * params[j, 8]) / (
+        params[j, 6] * params[j, 6] + params[j, 7] * params[j, 7] + params[j, 8] * params[j, 8]
+    )
     inside = (a * a + b * b <= 1.0) if ellipse else (abs(a) <= 1.0 and abs(b) <= 1.0)
     if not (inside and t > 1e-6):
         return np.inf, 0.0
-    return t, t * t / (-denom * prm[15])
+    return t, t * t / (-denom * params[j, 15])
 
 
 @njit(**_JIT)
@@ -656,8 +679,9 @@ def intersect_area(prm, ellipse, o, d):
     n = len(o)
     t = np.empty(n)
     pdf = np.empty(n)
+    params = prm.copy().reshape((1, len(prm)))
     for i in range(n):
-        t[i], pdf[i] = _intersect_area(prm, ellipse, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2])
+        t[i], pdf[i] = _intersect_area(params, 0, ellipse, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2])
     return t, pdf
 
 
@@ -697,12 +721,11 @@ def add_emission(
         ox, oy, oz, dx, dy, dz = o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2]
         r = row[i]
         for j in range(len(area_params)):
-            tl, pdf_l = _intersect_area(area_params[j], area_ellipse[j], ox, oy, oz, dx, dy, dz)
+            tl, pdf_l = _intersect_area(area_params, j, area_ellipse[j], ox, oy, oz, dx, dy, dz)
             if tl < t[i]:
                 w = _emission_weight(strategy, p_select, pdf_l, prev_pdf[i], prev_delta[i], prev_mis[i])
-                prm = area_params[j]
                 for k in range(3):
-                    L[r, k] += throughput[i, k] * prm[12 + k] * w
+                    L[r, k] += throughput[i, k] * area_params[j, 12 + k] * w
         if has_env and math.isinf(t[i]):
             r0, r1, r2, pdf_e = _env_lookup(image, pixel_pdf, z_edges, row_of_bin, edges, column_of_bin, dx, dy, dz)
             w = _emission_weight(strategy, p_select, pdf_e, prev_pdf[i], prev_delta[i], prev_mis[i])
@@ -913,7 +936,7 @@ def _proxy_pdf(ox, oy, oz, ix, iy, iz, s, w):
     if not (oz > 0.0 and iz > 0.0):
         return 0.0
     hx, hy, hz = ix + ox, iy + oy, iz + oz
-    hn = max(math.sqrt(hx * hx + hy * hy + hz * hz), 1e-12)
+    hn = max(_sqrt(hx * hx + hy * hy + hz * hz), 1e-12)
     hx, hy, hz = hx / hn, hy / hn, hz / hn
     p_disk = math.exp(-0.5 * (hx * hx + hy * hy) / (s * s)) / (2.0 * math.pi * s * s * _disk_mass(s))
     p_h = p_disk * max(hz, 0.0)
@@ -939,13 +962,13 @@ def _proxy_direction(ox, oy, oz, s, w, u0, u1, u2):
     phi = 2.0 * math.pi * u2
     c, s_phi = math.cos(phi), math.sin(phi)
     if u0 < w:
-        rc = math.sqrt(u1)
-        x, y, z = rc * c, rc * s_phi, math.sqrt(max(1.0 - u1, 0.0))
+        rc = _sqrt(u1)
+        x, y, z = rc * c, rc * s_phi, _sqrt(max(1.0 - u1, 0.0))
     else:
-        r = min(s * math.sqrt(-2.0 * math.log1p(-u1 * _disk_mass(s))), 1.0)
-        hx, hy, hz = r * c, r * s_phi, math.sqrt(max(1.0 - r * r, 0.0))
+        r = min(s * _sqrt(-2.0 * math.log1p(-u1 * _disk_mass(s))), 1.0)
+        hx, hy, hz = r * c, r * s_phi, _sqrt(max(1.0 - r * r, 0.0))
         x, y, z = reflected(ox, oy, oz, hx, hy, hz)
-    norm = max(math.sqrt(x * x + y * y + z * z), 1e-12)
+    norm = max(_sqrt(x * x + y * y + z * z), 1e-12)
     return x / norm, y / norm, z / norm
 
 
@@ -1090,7 +1113,7 @@ def decoded_brdf(out, wi, wo, calibration, top, transmittance, scale, add_lobe):
     for i in range(n):
         if calibrated:
             x, y = min(max(wi[i, 2], 0.0), 1.0), min(max(wo[i, 2], 0.0), 1.0)
-            _scale_row(out, i, x, y, grid, tables[which[i] if len(which) else 0])
+            _scale_row(out, i, x, y, grid, tables, which[i] if len(which) else 0)
         if not coated:
             continue
         j = 0 if shared else i
@@ -1231,7 +1254,7 @@ def _spacing_guess(grid, x, spacing):
     if spacing == 1:
         return last * math.log(x / g0) / math.log(g1 / g0)
     t = (x - g0) / (g1 - g0)
-    return last * (math.sqrt(t) if spacing == 2 else t)
+    return last * (_sqrt(t) if spacing == 2 else t)
 
 
 @njit(**_JIT)
@@ -1240,18 +1263,19 @@ def scale_by_table(f, x, y, grid, tables, which):
     the increasing abscissae ``grid`` (K,) on both axes, constant beyond them; in place. An empty
     ``which`` means table 0 for every row."""
     for n in range(len(f)):
-        _scale_row(f, n, x[n], y[n], grid, tables[which[n] if len(which) else 0])
+        _scale_row(f, n, x[n], y[n], grid, tables, which[n] if len(which) else 0)
 
 
 @njit(inline="always", **_JIT)
-def _scale_row(f, n, x, y, grid, table):
-    """``f[n]`` times ``table`` (K, K, C) at (x, y), bilinear (:func:`scale_by_table`)."""
+def _scale_row(f, n, x, y, grid, tables, m):
+    """``f[n]`` times ``tables[m]`` (K, K, C) at (x, y), bilinear (:func:`scale_by_table`). The table is indexed,
+    not sliced: a slice is an array whose reference count a loop would raise and drop for every row."""
     # the calibration's cosines are close to quadratic: guesses within two cells
     i, s = _segment_near(grid, x, _spacing_guess(grid, x, 2))
     j, t = _segment_near(grid, y, _spacing_guess(grid, y, 2))
     for c in range(f.shape[1]):
-        low = table[i, j, c] * (1.0 - s) + table[i + 1, j, c] * s
-        high = table[i, j + 1, c] * (1.0 - s) + table[i + 1, j + 1, c] * s
+        low = tables[m, i, j, c] * (1.0 - s) + tables[m, i + 1, j, c] * s
+        high = tables[m, i, j + 1, c] * (1.0 - s) + tables[m, i + 1, j + 1, c] * s
         f[n, c] *= low * (1.0 - t) + high * t
 
 
@@ -1300,7 +1324,7 @@ def camera_rays(out, px, py, jitter, matrix, width, height, tan_x, tan_y, shift_
         dx = matrix[0, 0] * x + matrix[0, 1] * y - matrix[0, 2]
         dy = matrix[1, 0] * x + matrix[1, 1] * y - matrix[1, 2]
         dz = matrix[2, 0] * x + matrix[2, 1] * y - matrix[2, 2]
-        norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+        norm = _sqrt(dx * dx + dy * dy + dz * dz)
         d[i, 0], d[i, 1], d[i, 2] = dx / norm, dy / norm, dz / norm
         o[i, 0], o[i, 1], o[i, 2] = matrix[0, 3], matrix[1, 3], matrix[2, 3]
     return o, d

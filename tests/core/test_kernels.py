@@ -1,6 +1,7 @@
 """The renderer's compiled loops (addon/core/kernels.py): compiled before a user waits on them."""
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -9,6 +10,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from numba import njit
 
 from addon.core import kernels
 
@@ -518,3 +520,25 @@ def test_take_half_channels_reorders_and_counts_what_is_not_finite():
     src[3, 4] = 0x7E01  # a nan with a payload, in a channel the order leaves out
     assert kernels.take_half_channels(src, order, out) == (3, 17, 3)  # (17, 5) is out[:, 3], the first row
     assert np.isnan(out[251, 1:2].view(np.float16)).all() and np.isinf(out[40, 2:3].view(np.float16)).all()
+
+
+@njit(cache=False)
+def _roots(x):
+    out = np.empty_like(x)
+    for i in range(len(x)):
+        out[i] = kernels._sqrt(x[i])
+    return out
+
+
+@given(st.lists(st.floats(allow_nan=True, allow_infinity=True, width=64), min_size=1, max_size=64))
+@settings(max_examples=60, deadline=None)
+def test_the_loops_square_root_is_maths(values):
+    """The loops' square root (the CPU's instruction, never a call into the C library) gives math.sqrt's value,
+    bit for bit, and nan below zero as numpy does."""
+    x = np.array(values)
+    with np.errstate(invalid="ignore"):
+        expected = np.sqrt(x)
+    got = _roots(x)
+    assert np.array_equal(got.view(np.int64)[~np.isnan(got)], expected.view(np.int64)[~np.isnan(expected)])
+    assert np.array_equal(np.isnan(got), np.isnan(expected))
+    assert all(math.sqrt(v) == g for v, g in zip(values, got, strict=True) if v >= 0.0)
