@@ -130,7 +130,7 @@ def compiled_functions(libraries) -> list[tuple[int, int, str]]:
 
 def write_perf_map(functions, pid: int) -> Path:
     """perf's map of JIT code for process ``pid`` (``/tmp/perf-<pid>.map``: start, size, name in hex)."""
-    path = Path(tempfile.gettempdir()) / f"perf-{pid}.map"
+    path = Path("/tmp") / f"perf-{pid}.map"  # perf's own convention, whatever TMPDIR says
     path.write_text("".join(f"{address:x} {size:x} {name}\n" for address, size, name in functions))
     return path
 
