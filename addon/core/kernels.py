@@ -438,12 +438,17 @@ def _env_pixel(image, z_edges, row_of_bin, edges, column_of_bin, dx, dy, dz):
     return y, x
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _env_lookup(image, pixel_pdf, z_edges, row_of_bin, edges, column_of_bin, dx, dy, dz):
     """Radiance arriving from unit world direction (dx, dy, dz) and the pdf of sampling it (the arrays of
     ``env``, taken out of the tuple by the caller once, not per row). One path for every environment: a branch
     on a constant colour here took the lookups in ``add_emission`` from 24 to 78 ns a row (the demo sky's
-    misses)."""
+    misses).
+
+    Inlined by LLVM (``forceinline``), as the calibration's and the top coat's table helpers below are, not by
+    numba (``inline="always"``): numba's inlining binds the arrays to new names, and with this helper's searches
+    the loop raised and dropped their reference counts for every row (``add_emission`` 22-23 ns a ray that way,
+    17-18 this way; ``decoded_brdf`` 123-127 ns a row, 105-116)."""
     y, x = _env_pixel(image, z_edges, row_of_bin, edges, column_of_bin, dx, dy, dz)
     return image[y, x, 0], image[y, x, 1], image[y, x, 2], pixel_pdf[y * image.shape[1] + x]
 
@@ -1006,19 +1011,19 @@ def top_lobe_eval_pdf(wi, wo, top):
     return f, p
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _alpha_cell(alpha_grid, a):
     """The transmittance table's cell of roughness ``a`` (its grid is geometric: ``top_lobe.TRANSMITTANCE_ALPHA``)."""
     return _segment_near(alpha_grid, a, _spacing_guess(alpha_grid, a, 1))
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _ior_cell(ior_grid, ior):
     """The transmittance table's cell of index ``ior`` (its grid is even: ``top_lobe.TRANSMITTANCE_IOR``)."""
     return _segment_near(ior_grid, ior, _spacing_guess(ior_grid, ior, 0))
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _coating_node(table, k, ia, fa, ii, fi):
     """The transmittance table (cos, alpha, ior) at its k-th cosine for a coating whose alpha and ior cells
     (ia, fa), (ii, fi) are found already: bilinear in alpha and ior."""
@@ -1027,7 +1032,7 @@ def _coating_node(table, k, ia, fa, ii, fi):
     return low * (1.0 - fa) + high * fa
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _between_nodes(cos_grid, c):
     """The cosine cell (k, weight) of ``c`` in the transmittance table, or k = -1 at and below the horizon."""
     if not c > 0.0:
@@ -1041,7 +1046,7 @@ def _between_clipped(low, high, t):
     return min(max(low * (1.0 - t) + high * t, 0.0), 1.0)
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _transmission(table, cos_grid, c, ia, fa, ii, fi):
     """The top interface's transmittance at cosine ``c`` (``top_lobe.transmission``): trilinear in ``table``
     (cos, alpha, ior) with the coating's alpha and ior cells (ia, fa), (ii, fi) found already, clipped to
@@ -1052,7 +1057,7 @@ def _transmission(table, cos_grid, c, ia, fa, ii, fi):
     return _between_clipped(_coating_node(table, k, ia, fa, ii, fi), _coating_node(table, k + 1, ia, fa, ii, fi), t)
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _transmission_column(table, alpha_grid, ior_grid, a, ior):
     """One coating's (a, ior) transmittance at every cosine of the table's grid (:func:`_coating_node`): for a
     material's rows, which share their coating, so that each row reads two of them (:func:`_column_transmission`)
@@ -1065,7 +1070,7 @@ def _transmission_column(table, alpha_grid, ior_grid, a, ior):
     return out
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _column_transmission(column, cos_grid, c):
     """:func:`_transmission` at cosine ``c`` from the coating's :func:`_transmission_column` (the same numbers)."""
     k, t = _between_nodes(cos_grid, c)
@@ -1227,7 +1232,7 @@ def neural_shading(f, p_top, wi, wo, rows, v, sigma, w, share, missed, need_pdf)
 # --- the albedo calibration (addon.core.neural.calibrate) ---------------------------------------
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _segment_near(grid, x, guess):
     """Index i and weight t of ``x`` between ``grid[i]`` and ``grid[i + 1]`` (``grid`` increasing), constant beyond
     its ends: walked from a guess of the index (a float) to the cell that holds ``x``. The cell and the weight do
@@ -1244,7 +1249,7 @@ def _segment_near(grid, x, guess):
     return i, (x - grid[i]) / (grid[i + 1] - grid[i])
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _spacing_guess(grid, x, spacing):
     """Where ``x`` falls in ``grid`` (a fractional index) if the grid is spaced as ``spacing`` says: 0 evenly, 1
     geometrically, 2 quadratically from its first node (``top_lobe``'s transmittance grids: ior, alpha, cosine)."""
@@ -1267,7 +1272,7 @@ def scale_by_table(f, x, y, grid, tables, which):
         _scale_row(f, n, x[n], y[n], grid, tables, which[n] if len(which) else 0)
 
 
-@njit(inline="always", **_JIT)
+@njit(forceinline=True, **_JIT)
 def _scale_row(f, n, x, y, grid, tables, m):
     """``f[n]`` times ``tables[m]`` (K, K, C) at (x, y), bilinear (:func:`scale_by_table`). The table is indexed,
     not sliced: a slice is an array whose reference count a loop would raise and drop for every row."""
