@@ -250,12 +250,11 @@ def baked_floor(width: int, height: int, samples: int, bounces: int, repeats: in
     the Lambertian floor, the baked floor, and the baked floor with the calibration off."""
     import statistics
 
-    from addon.core.render.demo_scene import FLOOR_STACK, floor_maps
-    from addon.core.textures.bake import bake_stack, neural_encoder
-    from addon.core.textures.spatial import SpatialStack
+    from addon.core.render.demo_scene import bake_floor
+    from addon.core.textures.bake import neural_encoder
 
     encode = neural_encoder()
-    texture, bake = bake_stack(SpatialStack(FLOOR_STACK, floor_maps()), encode)
+    texture, bake = bake_floor(encode)
     variants = (
         ("Lambertian floor (the scene above)", demo_scene(width, height), True),
         ("baked floor (the main job's scene)", demo_scene(width, height, floor_texture=texture), True),

@@ -223,14 +223,9 @@ def main(argv=None) -> int:
     import numpy as np
 
     from addon.core.render import RenderSettings, render
-    from addon.core.render.demo_scene import FLOOR_STACK, demo_scene, floor_maps
+    from addon.core.render.demo_scene import bake_floor, demo_scene
 
-    texture = None
-    if args.floor == "baked":
-        from addon.core.textures.bake import bake_stack, neural_encoder
-        from addon.core.textures.spatial import SpatialStack
-
-        texture, _ = bake_stack(SpatialStack(FLOOR_STACK, floor_maps()), neural_encoder())
+    texture = bake_floor()[0] if args.floor == "baked" else None
     scene = demo_scene(width, height, floor_texture=texture)
 
     def settings(seed, samples):

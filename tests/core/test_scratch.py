@@ -68,11 +68,9 @@ class NewArrays(Scratch):
 def baked_floor():
     """The main job's floor: the varnished tiles baked into a latent texture (3 distinct texels, with the bake's
     albedo calibration), 64 x 64 texels."""
-    from addon.core.render.demo_scene import FLOOR_STACK, floor_maps
-    from addon.core.textures.bake import bake_stack, neural_encoder
-    from addon.core.textures.spatial import SpatialStack
+    from addon.core.render.demo_scene import bake_floor
 
-    texture, _ = bake_stack(SpatialStack(FLOOR_STACK, floor_maps(64, 4)), neural_encoder())
+    texture, _ = bake_floor(size=64, squares=4)
     return texture
 
 

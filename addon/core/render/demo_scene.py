@@ -67,6 +67,15 @@ def floor_maps(size: int = 256, squares: int = 16) -> dict[str, np.ndarray]:
     }
 
 
+def bake_floor(encode=None, size: int = 256, squares: int = 16, **options):
+    """The varnished tile floor (``FLOOR_STACK`` driven by ``floor_maps(size, squares)``) baked into a latent
+    texture by ``encode`` (default: ``textures.bake.neural_encoder()``), with ``bake_stack``'s ``options``: its
+    (texture, stats). The floor of the main job's scene, as the main job, the benchmarks and the tests bake it."""
+    from ..textures.bake import bake_stack, neural_encoder
+
+    return bake_stack(SpatialStack(FLOOR_STACK, floor_maps(size, squares)), encode or neural_encoder(), **options)
+
+
 def demo_scene(width: int = 320, height: int = 180, presets=DEMO_PRESETS, floor_texture=None) -> Scene:
     """Spheres of the given presets (names, or Stack objects) in a row on a tiled floor, a sky and
     a soft area light. With ``floor_texture`` (a latent texture baked from ``FLOOR_STACK`` and
