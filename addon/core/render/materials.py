@@ -149,7 +149,7 @@ class LambertMaterial:
     def bind(self, hits: SurfaceHits):
         if self.texture is None:
             return self._const
-        albedo = np.clip(self.texture.lookup(hits.uv, hits.footprint), 0.0, 1.0) * self.color  # float64, in [0, 1]
+        albedo = kernels.tinted_albedo(self.texture.lookup(hits.uv, hits.footprint), self.color)  # in [0, 1]
         return _BoundBSDF(Lambertian.of_valid_rows(albedo))
 
 
