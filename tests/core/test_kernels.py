@@ -94,23 +94,13 @@ def test_closest_hits_converts_an_embree_query_as_numpy_would_with_misses_at_inf
     assert prim.dtype == np.int64 and t.dtype == bu.dtype == bv.dtype == np.float64
 
 
-def test_take_paths_gathers_every_field_as_fancy_indexing_does():
+def test_take_paths_gathers_the_shadings_fields_as_fancy_indexing_does():
     rng = np.random.default_rng(2)
     n = 50
-    fields = (
-        np.arange(n),
-        rng.random((n, 3)),
-        rng.random((n, 3)),
-        rng.random((n, 3)),
-        rng.random(n),
-        rng.random(n) < 0.5,
-        rng.random(n) < 0.5,
-        rng.random(n),
-        rng.random(n),
-    )
+    fields = (np.arange(n), rng.random((n, 3)), rng.random((n, 3)), rng.random(n), rng.random(n))
     keep = np.flatnonzero(rng.random(n) < 0.6)[::-1].copy()
     for got, field in zip(
-        kernels.take_paths(kernels.rows_of(kernels.PATHS_OUT, len(keep)), keep, *fields), fields, strict=True
+        kernels.take_paths(kernels.rows_of(kernels.HIT_PATHS_OUT, len(keep)), keep, *fields), fields, strict=True
     ):
         np.testing.assert_array_equal(got, field[keep])
         assert got.dtype == field.dtype

@@ -133,8 +133,8 @@ def test_a_render_makes_each_chunks_buffers_once_and_its_image_does_not_depend_o
 
 def test_the_loops_write_the_arrays_they_are_given():
     """The outputs a kernel returns are the arrays passed in (or their first rows), not copies."""
-    rows = kernels.rows_of(kernels.PATHS_OUT, 5)
-    fields = kernels.rows_of(kernels.PATHS_OUT, 8)
+    rows = kernels.rows_of(kernels.HIT_PATHS_OUT, 5)
+    fields = kernels.rows_of(kernels.HIT_PATHS_OUT, 8)
     for f in fields:
         f[...] = 1
     got = kernels.take_paths(rows, np.arange(5), *fields)

@@ -554,9 +554,22 @@ class _Paths:
     width: np.ndarray
     spread: np.ndarray
 
-    def take(self, keep: np.ndarray, out: tuple) -> "_Paths":
-        """The paths at rows ``keep``, in ``out`` (``kernels.PATHS_OUT``, a row per kept path)."""
-        return _Paths(*kernels.take_paths(out, keep, *vars(self).values()))  # every field, in order
+    def take(self, keep: np.ndarray, out: tuple) -> "_HitPaths":
+        """The paths at rows ``keep`` as the shading reads them, in ``out`` (``kernels.HIT_PATHS_OUT``, a row per
+        kept path)."""
+        return _HitPaths(*kernels.take_paths(out, keep, self.row, self.d, self.throughput, self.width, self.spread))
+
+
+@dataclass
+class _HitPaths:
+    """The paths that hit a surface, sorted by its material, as the shading reads them: ``_Paths``'s fields less
+    the origin and how the ray was sampled (read by the intersection and the emission it finds, before)."""
+
+    row: np.ndarray
+    d: np.ndarray
+    throughput: np.ndarray
+    width: np.ndarray
+    spread: np.ndarray
 
 
 @dataclass
@@ -620,7 +633,7 @@ def _add_emission(ctx: _Context, paths: _Paths, t: np.ndarray, L: np.ndarray) ->
     )  # fmt: skip
 
 
-def _surface_hits(ctx: _Context, paths: _Paths, hit, t, prim, bu, bv, groups, scratch: Scratch) -> _Hits:
+def _surface_hits(ctx: _Context, paths: _HitPaths, hit, t, prim, bu, bv, groups, scratch: Scratch) -> _Hits:
     """The surface where each ray lands: interpolated position, normals and uv; a shading frame
     facing the viewer (shading normals that disagree with the geometry fall back to it); the
     ray cone grown to the hit and its footprint in texture space. ``groups``: the rows of each
@@ -668,7 +681,7 @@ class _Scatter:
 
 def _shade(
     ctx: _Context,
-    paths: _Paths,
+    paths: _HitPaths,
     hits: _Hits,
     lights: _LightSamples,
     u_lobe,
@@ -708,7 +721,7 @@ def _shade(
 
 
 def _continue_paths(
-    ctx: _Context, paths: _Paths, hits: _Hits, sc: _Scatter, depth: int, rng: np.random.Generator, scratch: Scratch
+    ctx: _Context, paths: _HitPaths, hits: _Hits, sc: _Scatter, depth: int, rng: np.random.Generator, scratch: Scratch
 ) -> _Paths:
     """The next rays: throughput times the sample weight, Russian roulette from ``rr_depth``
     (survivors reweighted by 1 / q), paths that died or would cross the geometric surface on the
@@ -773,7 +786,7 @@ def _trace_paths(
         if len(hit) == 0:
             break
         # the paths alternate between two groups of arrays: "paths.taken" here, "paths.next" in _continue_paths
-        paths = paths.take(hit, scratch.arrays("paths.taken", len(hit), kernels.PATHS_OUT))
+        paths = paths.take(hit, scratch.arrays("paths.taken", len(hit), kernels.HIT_PATHS_OUT))
         groups = [(mi, slice(int(starts[mi]), int(starts[mi + 1]))) for mi in np.flatnonzero(np.diff(starts))]
         m = len(hit)
         u_light, u_lobe, u_dir = scratch.arrays("uniforms", m, _UNIFORMS)
