@@ -37,6 +37,7 @@ from .neural.top_formulas import top_reflection, top_share_cos
 
 _JIT = dict(nogil=True, cache=True, error_model="numpy")
 F8, I8, B1 = np.dtype(np.float64), np.dtype(np.int64), np.dtype(np.bool_)
+F4 = np.dtype(np.float32)  # rays as embree takes them
 
 
 def rows_of(layout, n: int) -> tuple[np.ndarray, ...]:
@@ -597,8 +598,12 @@ def sample_light(kind, prm, env, p, u):
 
 
 # What ``sample_lights`` writes (``out``, a row per hit): local direction, radiance, pdf, delta, useful, and the
-# shadow rays' rows, origins, directions and lengths (their first rows only: one per useful sample).
-LIGHT_SAMPLES_OUT = ((3, F8), (3, F8), (0, F8), (0, B1), (0, B1), (0, I8), (3, F8), (3, F8), (0, F8))
+# shadow rays' rows, origins, directions and lengths (their first rows only: one per useful sample), the rays in
+# float32 as embree takes them.
+LIGHT_SAMPLES_OUT = ((3, F8), (3, F8), (0, F8), (0, B1), (0, B1), (0, I8), (3, F4), (3, F4), (0, F4))
+
+# The longest shadow ray handed to embree: a light at infinity (the sun, the sky) is this far.
+FAR = 1e30
 
 
 @njit(**_JIT)
@@ -609,9 +614,9 @@ def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps):
     contribute (``useful``: pdf and radiance non-zero, and the direction on the same side of the geometric
     normal ``ng`` as of the shading normal, so light never leaks through the surface); and the shadow rays
     of the useful samples only: their rows, origins offset by ``eps`` off the surface on the light's side,
-    world directions and lengths (inf to the sun or the sky; else short of the light by a relative 1e-4
-    and ``eps``). Writes them into ``out`` (:data:`LIGHT_SAMPLES_OUT`) and returns them, the shadow rays'
-    arrays cut to their count."""
+    world directions and lengths (:data:`FAR` to the sun or the sky; else short of the light by a relative 1e-4
+    and ``eps``), in float32 for embree (each value rounded once, as numpy's cast rounds it). Writes them into
+    ``out`` (:data:`LIGHT_SAMPLES_OUT`) and returns them, the shadow rays' arrays cut to their count."""
     image, pixel_pdf, alias_p, alias_i, z_edges = env[0], env[1], env[2], env[3], env[4]
     n = len(p)
     n_lights = len(kinds)
@@ -650,7 +655,8 @@ def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps):
             for k in range(3):
                 org[m, k] = p[i, k] + ng[i, k] * off
             d[m, 0], d[m, 1], d[m, 2] = wx, wy, wz
-            tmax[m] = np.inf if math.isinf(dist) else dist * (1.0 - 1e-4) - eps
+            length = FAR if math.isinf(dist) else dist * (1.0 - 1e-4) - eps
+            tmax[m] = FAR if length > FAR else length
             m += 1
     return wi_local, rad, pdf, delta, useful, rows[:m], org[:m], d[:m], tmax[:m]
 

@@ -166,7 +166,8 @@ class Tracer:
 
     def intersect(self, o, d, stats: RenderStats, scratch: Scratch | None = None):
         """Distance (inf on a miss), triangle (-1), barycentrics of the closest hit of each ray (o, d): arrays of
-        ``scratch`` when given (overwritten by its next intersection), else new ones."""
+        ``scratch`` when given (overwritten by its next intersection), else new ones. C-contiguous float32 rays
+        are handed to embree as they are."""
         n = len(o)
         if self.scene is None or n == 0:
             return np.full(n, np.inf), np.full(n, -1, np.int64), np.zeros(n), np.zeros(n)
@@ -181,13 +182,19 @@ class Tracer:
         )
 
     def occluded(self, o, d, tmax, stats: RenderStats, scratch: Scratch | None = None):
+        """Whether each ray (o, d) meets a triangle before ``tmax`` (inf or beyond ``kernels.FAR`` taken as
+        ``FAR``). float32 arrays (``kernels.sample_lights``' shadow rays) are handed to embree as they are: a
+        float32 ``tmax`` must be at most ``FAR`` already."""
         n = len(o)
         if self.scene is None or n == 0:
             return np.zeros(n, dtype=bool)
         scratch = scratch or Scratch()
         o32, d32 = _rays32(scratch, "shadow32", o, d)
-        (dist,) = scratch.arrays("shadow_dist32", n, ((0, np.float32),))
-        np.minimum(tmax, 1e30, out=dist, casting="same_kind")
+        if _is_float32_rows(tmax):
+            dist = tmax
+        else:
+            (dist,) = scratch.arrays("shadow_dist32", n, ((0, np.float32),))
+            np.minimum(tmax, kernels.FAR, out=dist, casting="same_kind")
         t0 = time.perf_counter()
         r = self.scene.run(o32, d32, dists=dist, query="OCCLUDED")
         stats.seconds["rays"] += time.perf_counter() - t0
@@ -195,8 +202,15 @@ class Tracer:
         return np.asarray(r) != -1
 
 
+def _is_float32_rows(a) -> bool:
+    return isinstance(a, np.ndarray) and a.dtype == np.float32 and a.flags.c_contiguous
+
+
 def _rays32(scratch: Scratch, name: str, o, d) -> tuple[np.ndarray, np.ndarray]:
-    """Rays (o, d) in float32 (embree's precision), in ``scratch``'s arrays of ``name``."""
+    """Rays (o, d) in float32 (embree's precision): the arrays themselves when they are C-contiguous float32
+    already (the shadow rays ``kernels.sample_lights`` writes), else copies in ``scratch``'s arrays of ``name``."""
+    if _is_float32_rows(o) and _is_float32_rows(d):
+        return o, d
     o32, d32 = scratch.arrays(name, len(o), ((3, np.float32), (3, np.float32)))
     o32[...], d32[...] = o, d
     return o32, d32
