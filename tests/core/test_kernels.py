@@ -305,9 +305,10 @@ def _unit_rows(rng, n, below=0.1):
 def test_decoded_brdf_is_the_calibration_then_the_top_coat_in_one_pass():
     """``kernels.decoded_brdf`` (a decoder's output made the material's f) against its parts apart: the
     calibration's factor (``RowCalibration.apply``), the transmission factor (``top_lobe.remainder_scale``) and
-    the exact lobe (``top_lobe.eval_pdf_top``); per-hit tables and coatings, some index-matched. A coating
-    shared by every row (its transmittance read from one column) gives the same numbers as the same coating
-    given per row; no calibration and no coating leave the decoder's output as it is."""
+    the exact lobe (``top_lobe.eval_pdf_top``); per-hit tables and coatings, some index-matched. Rows that read
+    their hit's coating and table (``hit``) give the numbers of the same rows gathered first; a coating shared by
+    every row (its transmittance read from one column) gives the same numbers as the same coating given per row;
+    no calibration and no coating leave the decoder's output as it is."""
     from addon.core.neural import calibrate, top_lobe
 
     rng = np.random.default_rng(21)
@@ -327,20 +328,36 @@ def test_decoded_brdf_is_the_calibration_then_the_top_coat_in_one_pass():
     lobe, p_want = top_lobe.eval_pdf_top(top, wi, wo)
     want = want + lobe.astype(np.float32)[:, None]
     got = decoded.copy()
-    p = kernels.decoded_brdf(got, wi, wo, cal.arrays(), top, grids, True, True)
+    p = kernels.decoded_brdf(got, wi, wo, cal.arrays(), top, grids, True, True, kernels.EVERY_ROW)
     np.testing.assert_allclose(got, want, rtol=2e-6)
     np.testing.assert_allclose(p, p_want, rtol=1e-12)
     assert (lobe > 0).mean() > 0.5 and (p > 0).mean() > 0.5
 
+    every = kernels.EVERY_ROW
+    # rows that read their coating and table through ``hit`` (a latent texture's hits, each queried twice): the
+    # numbers of the same coatings and tables gathered first
+    hit = rng.integers(0, n, 2 * n)
+    gathered, through = decoded[hit], decoded[hit]
+    p_gathered = kernels.decoded_brdf(
+        gathered, wi[hit], wo[hit], cal.take(hit).arrays(), top[hit], grids, True, True, every
+    )
+    p_through = kernels.decoded_brdf(through, wi[hit], wo[hit], cal.arrays(), top, grids, True, True, hit)
+    np.testing.assert_array_equal(through, gathered)
+    np.testing.assert_array_equal(p_through, p_gathered)
+
     one = top[:1].copy()
     shared, per_row = decoded.copy(), decoded.copy()
-    p_shared = kernels.decoded_brdf(shared, wi, wo, calibrate.NO_CALIBRATION, one, grids, True, True)
-    p_rows = kernels.decoded_brdf(per_row, wi, wo, calibrate.NO_CALIBRATION, np.repeat(one, n, 0), grids, True, True)
+    p_shared = kernels.decoded_brdf(shared, wi, wo, calibrate.NO_CALIBRATION, one, grids, True, True, every)
+    p_rows = kernels.decoded_brdf(
+        per_row, wi, wo, calibrate.NO_CALIBRATION, np.repeat(one, n, 0), grids, True, True, every
+    )
     np.testing.assert_array_equal(shared, per_row)
     np.testing.assert_array_equal(p_shared, p_rows)
 
     untouched = decoded.copy()
-    p_none = kernels.decoded_brdf(untouched, wi, wo, calibrate.NO_CALIBRATION, top_lobe.NO_TOP_ROWS, grids, True, True)
+    p_none = kernels.decoded_brdf(
+        untouched, wi, wo, calibrate.NO_CALIBRATION, top_lobe.NO_TOP_ROWS, grids, True, True, every
+    )
     np.testing.assert_array_equal(untouched, decoded)
     assert not p_none.any()
 

@@ -14,6 +14,7 @@ from addon.core.neural import (
     SIZES,
     ClampWarning,
     ModelSet,
+    calibrate,
     encode_arrays,
     encode_stack,
     load_models,
@@ -105,7 +106,8 @@ def test_per_row_latents_match_single(models):
 
 def test_latents_by_row_index_equal_the_gathered_latents(models):
     """``z_rows`` (the renderer's query of a latent texture's hits) decodes ``z[z_rows]`` without gathering it
-    first: the same values, chunk by chunk; rows outside z are refused."""
+    first: the same values, chunk by chunk, also with the hits' own coatings and calibration tables, which are
+    read through ``z_rows`` too; rows outside z, and coatings or tables not one per row of z, are refused."""
     rng = np.random.default_rng(4)
     n = 9000  # more than one chunk of the runtime
     wi, wo = _dirs(rng, n), _dirs(rng, n)
@@ -113,6 +115,21 @@ def test_latents_by_row_index_equal_the_gathered_latents(models):
     z = np.stack([encode_layer(models, Diffuse(a)) for a in (0.2, 0.5, 0.8)] * 10)  # (30, 3, 32)
     rows = rng.integers(0, len(z), n)
     np.testing.assert_array_equal(models.eval_brdf(z, wi, wo, z_rows=rows), models.eval_brdf(z[rows], wi, wo))
+    k = len(calibrate.COSINES)
+    tables = calibrate.RowCalibration(
+        np.asarray(calibrate.COSINES), rng.uniform(0.5, 1.5, (3, k, k, 3)), rng.integers(0, 3, len(z))
+    )
+    top = np.column_stack([rng.uniform(0.05, 0.5, len(z)), rng.uniform(1.3, 1.7, len(z))])
+    f_through, p_through = models.eval_brdf(z, wi, wo, top, tables, top_pdf=True, z_rows=rows)
+    f_gathered, p_gathered = models.eval_brdf(z[rows], wi, wo, top[rows], tables.take(rows), top_pdf=True)
+    np.testing.assert_array_equal(f_through, f_gathered)
+    np.testing.assert_array_equal(p_through, p_gathered)
+    assert (p_through > 0).any() == models.remainder
+    with pytest.raises(ValueError, match="calibration has 9000 rows"):
+        models.eval_brdf(z, wi, wo, calibration=tables.take(rows), z_rows=rows)
+    if models.remainder:  # a whole-BRDF decoder reads no coating
+        with pytest.raises(ValueError, match=r"top must have shape \(2,\) or \(30, 2\)"):
+            models.eval_brdf(z, wi, wo, top[rows], z_rows=rows)
     with pytest.raises(ValueError, match="z_rows must index"):
         models.eval_brdf(z, wi[:2], wo[:2], z_rows=np.array([0, 30]))
     with pytest.raises(ValueError, match="z_rows must be 2 integer rows"):

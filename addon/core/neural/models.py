@@ -406,13 +406,15 @@ class ModelSet:
         """f (N, 3) in 1/sr (no cosine) for one material ``z`` (3, 32) or per-row latents (N, 3, 32); with
         ``z_rows`` (N,) the latents ``z[z_rows]`` of M (M, 3, 32), gathered a chunk at a time, not first (the
         renderer's query of a latent texture's hits: each hit's latent for its next-event and its sampled
-        direction).
+        direction); a per-row ``top`` and calibration are then per row of ``z`` (M) as well, and read through
+        ``z_rows`` too.
 
-        ``top``: the material's top coating (alpha, ior) as (2,) or per row (N, 2) (``top_lobe``; None
-        or :data:`top_lobe.NO_TOP` for a stack without coatings). A remainder decoder's f is the decoded
-        remainder (times the top coat's transmission for a ``top_transmission`` decoder) plus the exact top
-        lobe (``with_top_lobe=False``: the remainder alone); for a whole-BRDF decoder ``top`` changes nothing.
-        ``calibration`` (``calibrate.AlbedoCalibration``): its factors scale the decoded part.
+        ``top``: the material's top coating (alpha, ior) as (2,) or per row (N, 2; (M, 2) with ``z_rows``)
+        (``top_lobe``; None or :data:`top_lobe.NO_TOP` for a stack without coatings). A remainder decoder's f is
+        the decoded remainder (times the top coat's transmission for a ``top_transmission`` decoder) plus the
+        exact top lobe (``with_top_lobe=False``: the remainder alone); for a whole-BRDF decoder ``top`` changes
+        nothing. ``calibration`` (``calibrate.AlbedoCalibration``, or a ``calibrate.RowCalibration`` with a
+        table chosen per row): its factors scale the decoded part.
         Directions need not be unit length (they are normalised; ``unit``: the caller's are unit already);
         zero-length directions and directions at or below the horizon give 0.
 
@@ -458,22 +460,24 @@ class ModelSet:
             out[rows] = np.where((a[1] & b[1])[:, None] & (f >= 0.0), f, 0.0)
 
         (self._rgb or self._decoder).map(chunk, n)
-        t = top_lobe.top_table(top, n) if self.remainder and top is not None else None  # (1, 2): shared
+        m = n if z_rows is None else len(z)  # the rows of per-row parameters
+        t = top_lobe.top_table(top, m) if self.remainder and top is not None else None  # (1, 2): shared
         t = t if t is not None and top_lobe.has_top(t).any() else None
         if calibration is not None or t is not None:
-            p_top = self._finish(out, calibration, t, wi, wo, unit, with_top_lobe)
+            p_top = self._finish(out, calibration, t, wi, wo, unit, with_top_lobe, z_rows, m)
         else:
             p_top = np.zeros(n)
         return (out, p_top) if top_pdf else out
 
-    def _finish(self, out, calibration, t, wi, wo, unit: bool, with_top_lobe: bool) -> np.ndarray:
+    def _finish(self, out, calibration, t, wi, wo, unit: bool, with_top_lobe: bool, z_rows, m: int) -> np.ndarray:
         """``eval_brdf``'s work after the decoder, on its ``out`` in place, in one compiled pass
         (``kernels.decoded_brdf``): the calibration's factor, and for a top coat ``t`` (checked rows) the
-        transmission factor of a ``top_transmission`` decoder and the exact lobe. Returns the lobe's density."""
+        transmission factor of a ``top_transmission`` decoder and the exact lobe. Returns the lobe's density.
+        With ``z_rows``, row i reads the coating and the table of z's row ``z_rows[i]`` (of ``m``)."""
         ui, uo = (wi, wo) if unit else (top_lobe._unit(wi), top_lobe._unit(wo))
         ui, uo = kernels.float64_rows(ui), kernels.float64_rows(uo)
         if hasattr(calibration, "check_rows"):  # a per-row choice of tables (an AlbedoCalibration has one)
-            calibration.check_rows(len(out))
+            calibration.check_rows(m)
         return kernels.decoded_brdf(
             out,
             ui,
@@ -483,6 +487,7 @@ class ModelSet:
             top_lobe.transmittance_grids(),
             self.top_transmission,
             with_top_lobe,
+            kernels.EVERY_ROW if z_rows is None else np.ascontiguousarray(z_rows, dtype=np.int64),
         )
 
 

@@ -57,13 +57,15 @@ class _BoundNeural(ShadeByProposal):
         shared = np.ndim(a) == 0 or (np.ndim(a) == 2)
         return a if index is None or shared else a[index]
 
-    def _latents(self, index) -> dict:
-        """``eval_brdf``'s latent arguments for the rows ``index`` (all when None): the material's one latent, or
-        a latent texture's per-hit latents with the rows to take (gathered a chunk at a time by the runtime,
-        not copied here first)."""
-        if index is None or np.ndim(self.z) == 2:
-            return {"z": self.z}
-        return {"z": self.z, "z_rows": index}
+    def _decoder_inputs(self, index) -> dict:
+        """``eval_brdf``'s arguments of the material for the rows ``index`` (all when None): the material's one
+        latent, coating and calibration; or a latent texture's per-hit latents, coatings and choice of tables
+        with the rows to read them at (``z_rows``: gathered a chunk at a time by the runtime, or read through
+        the rows by its loop, not copied here first)."""
+        inputs = {"z": self.z, "top": self.top, "calibration": self.calibration}
+        if index is not None and np.ndim(self.z) == 3:
+            inputs["z_rows"] = index
+        return inputs
 
     def _top_rows(self, index, n):
         """The top coatings of the rows ``index`` (all when None): the material's one pair (2,) or per hit
@@ -73,17 +75,8 @@ class _BoundNeural(ShadeByProposal):
         shared = np.ndim(self.top) == 1
         return self.top if index is None or shared else self.top[index]
 
-    def _calibration_rows(self, index):
-        """The calibration of the rows ``index`` (all when None): a material's one table as it is, a latent
-        texture's per-hit choice (``calibrate.RowCalibration``) restricted to them."""
-        c = self.calibration
-        return c if index is None or not hasattr(c, "take") else c.take(index)
-
     def eval(self, wi, wo, index=None):
-        top = self._top_rows(index, len(wi))
-        return self.models.eval_brdf(
-            wi=wi, wo=wo, top=top, calibration=self._calibration_rows(index), **self._latents(index)
-        ).astype(np.float64)
+        return self.models.eval_brdf(wi=wi, wo=wo, **self._decoder_inputs(index)).astype(np.float64)
 
     def _mixture(self, wi, wo, index, share, p_top):
         """The sampler's density: the proxy's, mixed with the top lobe's ``p_top`` by ``share``."""
@@ -129,15 +122,7 @@ class _BoundNeural(ShadeByProposal):
         v, n = len(light_rows), len(wo)
         index = np.concatenate([light_rows, np.arange(n)])
         wi_all, wo_all = np.concatenate([light_wi, prop_wi]), wo[index]
-        f, p_top = self.models.eval_brdf(
-            wi=wi_all,
-            wo=wo_all,
-            top=self._top_rows(index, len(index)),
-            calibration=self._calibration_rows(index),
-            top_pdf=True,
-            unit=True,
-            **self._latents(index),
-        )
+        f, p_top = self.models.eval_brdf(wi=wi_all, wo=wo_all, top_pdf=True, unit=True, **self._decoder_inputs(index))
         need_pdf = bool(need_pdf and v)  # the lights' density only when asked
         f_light, pdf_light, *sample = kernels.neural_shading(
             f, p_top, wi_all, wo_all, index, v, self._sigma_rows, self._w_rows, share, missed, need_pdf

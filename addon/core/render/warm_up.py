@@ -72,7 +72,8 @@ def warm_up() -> None:
     grids = top_lobe.transmittance_grids()
     calibration = (grid, table[None], np.zeros(0, np.int64))
     for coat in (top, np.repeat(top, 2, axis=0), top_lobe.NO_TOP_ROWS):  # shared, per row, none
-        kernels.decoded_brdf(np.ones((2, 3), dtype=np.float32), wi, wo, calibration, coat, grids, True, True)
+        f32 = np.ones((2, 3), dtype=np.float32)
+        kernels.decoded_brdf(f32, wi, wo, calibration, coat, grids, True, True, kernels.EVERY_ROW)
     kernels.transmission_rows(top, wo[:, 2].copy(), *grids)
     kernels.nearest_rows(np.zeros((2, 96), np.float32), np.ones((3, 96), np.float32))  # a latent texture's tables
     # a latent texture read from its file: half floats (the image texture above took the float32 loop)
