@@ -1123,12 +1123,12 @@ def transmission_rows(top, cos, table, cos_grid, alpha_grid, ior_grid):
     return out
 
 
-# ``decoded_brdf``'s ``hit`` where row i reads row i
+# ``decoded_brdf``'s ``hit_of_row`` where row i reads row i
 EVERY_ROW = np.zeros(0, dtype=I8)
 
 
 @njit(**_JIT)
-def decoded_brdf(out, wi, wo, calibration, top, transmittance, scale, add_lobe, hit):
+def decoded_brdf(out, wi, wo, calibration, top, transmittance, scale, add_lobe, hit_of_row):
     """A decoder's ``out`` (N, 3) float32 made the material's f, in place, in one pass (``ModelSet.eval_brdf``):
     times the albedo calibration's factor at the cosines (``calibration`` as ``RowCalibration.arrays`` gives it;
     no table: none); then, for a remainder decoder's top coat (``top`` (1, 2) shared or per row; no rows: none),
@@ -1136,7 +1136,7 @@ def decoded_brdf(out, wi, wo, calibration, top, transmittance, scale, add_lobe, 
     ``add_lobe`` plus the top lobe's f (``top_lobe_eval_pdf``). Returns the top lobe's sampling density (N,)
     (0 without a top coat). Unit local directions.
 
-    ``hit`` (N,): the row of ``top`` and of the calibration's choice of table that row i reads (a latent
+    ``hit_of_row`` (N,): the row of ``top`` and of the calibration's choice of table that row i reads (a latent
     texture's hits, each queried at its next-event and its proposed direction); empty: row i."""
     grid, tables, which = calibration
     table, cos_grid, alpha_grid, ior_grid = transmittance
@@ -1149,9 +1149,9 @@ def decoded_brdf(out, wi, wo, calibration, top, transmittance, scale, add_lobe, 
     # per-hit coatings: a row's cells are the row before's when its coating is (a latent texture's hits inside
     # one texel, or a hit's next-event and proposal rows)
     last_a, last_ior, ia, fa, ii, fi = -1.0, -1.0, 0, 0.0, 0, 0.0
-    indexed = len(hit) > 0
+    indexed = len(hit_of_row) > 0
     for i in range(n):
-        h = hit[i] if indexed else i
+        h = hit_of_row[i] if indexed else i
         if calibrated:
             x, y = min(max(wi[i, 2], 0.0), 1.0), min(max(wo[i, 2], 0.0), 1.0)
             _scale_row(out, i, x, y, grid, tables, which[h] if len(which) else 0)
