@@ -306,9 +306,9 @@ def test_decoded_brdf_is_the_calibration_then_the_top_coat_in_one_pass():
     """``kernels.decoded_brdf`` (a decoder's output made the material's f) against its parts apart: the
     calibration's factor (``RowCalibration.apply``), the transmission factor (``top_lobe.remainder_scale``) and
     the exact lobe (``top_lobe.eval_pdf_top``); per-hit tables and coatings, some index-matched. Rows that read
-    their hit's coating and table (``hit_of_row``) give the numbers of the same rows gathered first; a coating shared by
-    every row (its transmittance read from one column) gives the same numbers as the same coating given per row;
-    no calibration and no coating leave the decoder's output as it is."""
+    their hit's coating and table (``hit_of_row``) give the numbers of the same rows gathered first; a coating
+    shared by every row (its transmittance read from one column) gives the same numbers as the same coating given
+    per row; no calibration and no coating leave the decoder's output as it is."""
     from addon.core.neural import calibrate, top_lobe
 
     rng = np.random.default_rng(21)
@@ -334,8 +334,8 @@ def test_decoded_brdf_is_the_calibration_then_the_top_coat_in_one_pass():
     assert (lobe > 0).mean() > 0.5 and (p > 0).mean() > 0.5
 
     every = kernels.EVERY_ROW
-    # rows that read their coating and table through ``hit_of_row`` (a latent texture's hits, each queried twice): the
-    # numbers of the same coatings and tables gathered first
+    # rows that read their coating and table through ``hit_of_row`` (a latent texture's hits, each queried
+    # twice): the numbers of the same coatings and tables gathered first
     hit = rng.integers(0, n, 2 * n)
     gathered, through = decoded[hit], decoded[hit]
     p_gathered = kernels.decoded_brdf(
