@@ -70,7 +70,7 @@ def bake_floor(out: Path):
     """Bake the varnished tile floor (spatially varying stack) into a latent texture, or None
     (with a message) when no shipped decoder size has its layering and sampling networks."""
     from addon.core.neural import SIZES
-    from addon.core.render.demo_scene import bake_floor
+    from addon.core.render.demo_scene import bake_floor as bake_floor_texture
     from addon.core.textures import LatentTexture
     from addon.core.textures.bake import neural_encoder
 
@@ -80,7 +80,7 @@ def bake_floor(out: Path):
         except (FileNotFoundError, ValueError):
             continue
         t0 = time.perf_counter()
-        tex, stats = bake_floor(encode, metadata={"model": size})
+        tex, stats = bake_floor_texture(encode, metadata={"model": size})
         path = out / "varnished_tiles.exr"
         try:
             tex.write_exr(path)
