@@ -77,6 +77,19 @@ def sin(x):
     return namespace(x).sin(x)
 
 
+def quarter_cos_sin(a):
+    """(cos a, sin a) of an angle |a| <= pi / 4 (compiled: the Taylor series, no call into the C library)."""
+    xp = namespace(a)
+    return xp.cos(a), xp.sin(a)
+
+
+def turn_cos_sin(u):
+    """(cos, sin) of the angle 2 pi u (compiled: reduced to a quarter turn exactly, then the Taylor series)."""
+    xp = namespace(u)
+    phi = 2.0 * math.pi * u
+    return xp.cos(phi), xp.sin(phi)
+
+
 def isfinite(x):
     return namespace(x).isfinite(x)
 
@@ -126,6 +139,55 @@ def _cos_scalar(x):
 @overload(sin)
 def _sin_scalar(x):
     return lambda x: math.sin(x)
+
+
+# The Taylor series of cos and sin to a^16 / 16! and a^15 / 15! (the latter over a): at |a| <= pi / 4 the first
+# terms left out are below 1.1e-15 (a^18 / 18!, a^17 / 17!), so the sums are within a few units in the last place.
+_COS_TERMS = tuple((-1.0) ** k / math.factorial(2 * k) for k in range(9))
+_SIN_TERMS = tuple((-1.0) ** k / math.factorial(2 * k + 1) for k in range(8))
+
+
+@register_jitable
+def _series_cos_sin(a):
+    """cos and sin of |a| <= pi / 4 by :data:`_COS_TERMS` and :data:`_SIN_TERMS`, two chains of multiply-adds. The
+    C library's ``sincos`` reduces its angle first, whatever it is: in the sky's light samples that call took 31
+    of the 71 ns a sample took (``kernels._sample_environment``)."""
+    a2 = a * a
+    c = _COS_TERMS[8]
+    for k in range(7, -1, -1):
+        c = c * a2 + _COS_TERMS[k]
+    s = _SIN_TERMS[7]
+    for k in range(6, -1, -1):
+        s = s * a2 + _SIN_TERMS[k]
+    return c, a * s
+
+
+@overload(quarter_cos_sin)
+def _quarter_cos_sin_scalar(a):
+    return lambda a: _series_cos_sin(a)
+
+
+@register_jitable
+def _turn_cos_sin(u):
+    t = 4.0 * (u - math.floor(u))  # quarter turns, in [0, 4): exact
+    q = math.floor(t)
+    f = t - q  # exact, in [0, 1)
+    upper = f > 0.5  # past the eighth: the series at the quarter's far end, cos and sin exchanged
+    c, s = _series_cos_sin((1.0 - f if upper else f) * (math.pi / 2.0))
+    if upper:
+        c, s = s, c
+    if q == 0.0:
+        return c, s
+    if q == 1.0:
+        return -s, c
+    if q == 2.0:
+        return -c, -s
+    return s, -c
+
+
+@overload(turn_cos_sin)
+def _turn_cos_sin_scalar(u):
+    return lambda u: _turn_cos_sin(u)
 
 
 @overload(isfinite)

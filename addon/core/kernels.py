@@ -32,7 +32,8 @@ from .bsdf.base import sample_ok
 from .bsdf.dielectric import INDEX_MATCHED_TOL
 from .bsdf.frame import basis, reflected
 from .bsdf.ggx import MIN_ALPHA, visible_normal
-from .bsdf.lambert import lambert_f, lambert_pdf, lambert_sample
+from .bsdf.lambert import concentric_disk, lambert_f, lambert_pdf, lambert_sample
+from .formula import quarter_cos_sin, turn_cos_sin
 from .neural.top_formulas import top_reflection, top_share_cos
 
 _JIT = dict(nogil=True, cache=True, error_model="numpy")
@@ -535,14 +536,10 @@ def _sample_local_light(kind, params, j, px, py, pz, u0, u1):
     if kind == SUN:
         return params[j, 0], params[j, 1], params[j, 2], inf, params[j, 3], params[j, 4], params[j, 5], 1.0
     # AREA_RECT, AREA_ELLIPSE
-    a = 2.0 * u0 - 1.0
-    b = 2.0 * u1 - 1.0
-    if kind == AREA_ELLIPSE:  # concentric square-to-disk map (uniform area density)
-        if abs(a) > abs(b):
-            r, phi = a, (math.pi / 4.0) * b / a
-        else:
-            r, phi = b, math.pi / 2.0 - (math.pi / 4.0) * a / (b if b != 0.0 else 1.0)
-        a, b = r * math.cos(phi), r * math.sin(phi)
+    if kind == AREA_ELLIPSE:  # the concentric square-to-disk map (even in area)
+        a, b = concentric_disk(u0, u1)
+    else:
+        a, b = 2.0 * u0 - 1.0, 2.0 * u1 - 1.0
     dx = params[j, 0] + a * params[j, 3] + b * params[j, 6] - px
     dy = params[j, 1] + a * params[j, 4] + b * params[j, 7] - py
     dz = params[j, 2] + a * params[j, 5] + b * params[j, 8] - pz
@@ -555,30 +552,8 @@ def _sample_local_light(kind, params, j, px, py, pz, u0, u1):
     return wx, wy, wz, dist, 0.0, 0.0, 0.0, 0.0
 
 
-# The Taylor series of cos and sin, 1 - a^2 / 2! + ... + a^16 / 16! and 1 - a^2 / 3! + ... - a^14 / 15! (the
-# latter times a), for :func:`_small_angle_cos_sin`.
-_COS_TERMS = tuple((-1.0) ** k / math.factorial(2 * k) for k in range(9))
-_SIN_TERMS = tuple((-1.0) ** k / math.factorial(2 * k + 1) for k in range(8))
-
-
-@njit(inline="always", **_JIT)
-def _small_angle_cos_sin(a):
-    """cos and sin of an angle |a| <= pi / 4 from their Taylor series, to a^16 and a^15: the first terms left out
-    are below 1.1e-15 at pi / 4 (a^18 / 18! and a^17 / 17!), so both are within a few units in the last place of
-    the C library's (the test asserts 4e-16). Two chains of multiply-adds, where the C library's ``sincos``
-    reduces the angle first: in the environment's light samples that call took 31 of the 71 ns a sample took."""
-    a2 = a * a
-    c = _COS_TERMS[8]
-    for k in range(7, -1, -1):
-        c = c * a2 + _COS_TERMS[k]
-    s = _SIN_TERMS[7]
-    for k in range(6, -1, -1):
-        s = s * a2 + _SIN_TERMS[k]
-    return c, a * s
-
-
 # An environment at least this wide turns its column's edge by less than pi / 4 to place a sample: within the
-# reach of :func:`_small_angle_cos_sin`.
+# reach of ``formula.quarter_cos_sin``.
 SMALL_ANGLE_COLUMNS = 8
 
 
@@ -591,7 +566,7 @@ def _sample_environment(image, pixel_pdf, alias_p, alias_i, z_edges, edges, u0, 
     per pixel.
 
     The azimuth turns the column's edge direction (``edges``, as ``env`` holds them) by the jitter's share of the
-    column (:func:`_small_angle_cos_sin`) in an image of at least :data:`SMALL_ANGLE_COLUMNS` columns; a narrower
+    column (``formula.quarter_cos_sin``) in an image of at least :data:`SMALL_ANGLE_COLUMNS` columns; a narrower
     one (a constant colour is one pixel) takes the C library's cos and sin of the azimuth."""
     h, w = image.shape[0], image.shape[1]
     n = h * w
@@ -608,7 +583,7 @@ def _sample_environment(image, pixel_pdf, alias_p, alias_i, z_edges, edges, u0, 
     z = z_edges[y + 1] + u1 * (z_edges[y] - z_edges[y + 1])
     r = _sqrt(max(0.0, 1.0 - z * z))
     if w >= SMALL_ANGLE_COLUMNS:  # the column's edge x turned clockwise by fx of the column: no sincos call
-        c, s = _small_angle_cos_sin(fx * (2.0 * math.pi / w))
+        c, s = quarter_cos_sin(fx * (2.0 * math.pi / w))
         dx, dy = edges[x, 0] * c + edges[x, 1] * s, edges[x, 1] * c - edges[x, 0] * s
     else:
         phi = _equirect_azimuth((x + fx) / w)
@@ -1057,8 +1032,7 @@ def proxy_pdf(wo, wi, sigma, w):
 @njit(inline="always", **_JIT)
 def _proxy_direction(ox, oy, oz, s, w, u0, u1, u2):
     """One direction of ``proxy_directions`` for wo (ox, oy, oz), parameters (s, w) and uniforms u0..u2."""
-    phi = 2.0 * math.pi * u2
-    c, s_phi = math.cos(phi), math.sin(phi)
+    c, s_phi = turn_cos_sin(u2)  # the azimuth 2 pi u2
     if u0 < w:
         rc = _sqrt(u1)
         x, y, z = rc * c, rc * s_phi, _sqrt(max(1.0 - u1, 0.0))

@@ -206,7 +206,7 @@ def test_a_sky_of_one_colour_is_sampled_evenly_over_the_sphere():
 @pytest.mark.parametrize("shape", [(16, 32), (64, 8), (4, 7), (3, 1)])
 def test_an_image_of_one_colour_is_sampled_evenly_over_the_sphere_and_across_each_pixel(shape):
     """Constant pixels: uniform directions, and the azimuth even across each column too, both where the column's
-    edge is turned by the small-angle series (:data:`kernels.SMALL_ANGLE_COLUMNS` columns or more) and where the
+    edge is turned by ``formula.quarter_cos_sin`` (:data:`kernels.SMALL_ANGLE_COLUMNS` columns or more) and where the
     azimuth's cos and sin are the C library's."""
     from scipy import stats
 
@@ -223,21 +223,6 @@ def test_an_image_of_one_colour_is_sampled_evenly_over_the_sphere_and_across_eac
     assert stats.kstest(np.mod(column, 1.0), "uniform").pvalue > 1e-3
     np.testing.assert_allclose(ls.pdf, 1 / (4 * np.pi), rtol=1e-12)
     np.testing.assert_array_equal(env.pdf(ls.wi), ls.pdf)
-
-
-def test_the_small_angle_series_gives_the_c_librarys_cos_and_sin():
-    @kernels.njit
-    def cos_sin(a):
-        out = np.empty((len(a), 2))
-        for i in range(len(a)):
-            out[i, 0], out[i, 1] = kernels._small_angle_cos_sin(a[i])
-        return out
-
-    a = np.concatenate([np.linspace(-np.pi / 4, np.pi / 4, 100_001), [0.0, -0.0, 1e-300, 5e-324]])
-    got = cos_sin(a)
-    np.testing.assert_allclose(got[:, 0], np.cos(a), rtol=0, atol=4e-16)
-    np.testing.assert_allclose(got[:, 1], np.sin(a), rtol=0, atol=4e-16)
-    assert got[-4:, 0].tolist() == [1.0] * 4 and got[-4:, 1].tolist() == [0.0, -0.0, 1e-300, 5e-324]
 
 
 def test_pseudo_angle_grows_with_the_angle_as_atan2_does():

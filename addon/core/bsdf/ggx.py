@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from ..formula import clip, cos, formula, isfinite, maximum, sin, sqrt, where
+from ..formula import clip, formula, isfinite, maximum, sqrt, turn_cos_sin, where
 from ..xp import namespace
 from .frame import dot
 
@@ -71,11 +71,11 @@ def visible_normal(wx, wy, wz, alpha, u0, u1):
     inv = 1.0 / sqrt(sx * sx + sy * sy + sz * sz)
     sx, sy, sz = sx * inv, sy * inv, sz * inv
     # sample the spherical cap z in (-sz, 1]
-    phi = 2.0 * math.pi * u0
+    cos_phi, sin_phi = turn_cos_sin(u0)  # the azimuth 2 pi u0
     z = (1.0 - u1) * (1.0 + sz) - sz
     sin_t = sqrt(clip(1.0 - z * z, 0.0, 1.0))
-    mx = (sin_t * cos(phi) + sx) * alpha
-    my = (sin_t * sin(phi) + sy) * alpha
+    mx = (sin_t * cos_phi + sx) * alpha
+    my = (sin_t * sin_phi + sy) * alpha
     mz = maximum(z + sz, 0.0)
     n = sqrt(mx * mx + my * my + mz * mz)
     ok = n > 0.0

@@ -6,22 +6,29 @@ import math
 
 import numpy as np
 
-from ..formula import cos, formula, maximum, sin, sqrt, where
+from ..formula import formula, maximum, quarter_cos_sin, sqrt, where
 from ..xp import namespace
 from .base import BSDF, RADIANCE, BSDFSample, as_param, rows
 
 
 @formula
-def cosine_direction(u0, u1):
-    """(x, y, z): the formula of :func:`sample_cosine_hemisphere` for one pair of uniforms."""
+def concentric_disk(u0, u1):
+    """(x, y): the point of the unit disk where Shirley and Chiu's concentric map takes the uniforms (u0, u1),
+    evenly in area: the square's ring of half-width |r| to the disk's circle of radius |r|."""
     ox = 2.0 * u0 - 1.0
     oy = 2.0 * u1 - 1.0
     use_x = abs(ox) > abs(oy)
     r = where(use_x, ox, oy)
-    theta = where(use_x, (math.pi / 4.0) * (oy / ox), math.pi / 2.0 - (math.pi / 4.0) * (ox / oy))
-    theta = where((ox == 0.0) & (oy == 0.0), 0.0, theta)
-    x = r * cos(theta)
-    y = r * sin(theta)
+    # the angle from the nearer axis, within pi / 4 of it (the centre: 0)
+    t = where(use_x, (math.pi / 4.0) * (oy / ox), (math.pi / 4.0) * (ox / oy))
+    c, s = quarter_cos_sin(where((ox == 0.0) & (oy == 0.0), 0.0, t))
+    return r * where(use_x, c, s), r * where(use_x, s, c)
+
+
+@formula
+def cosine_direction(u0, u1):
+    """(x, y, z): the formula of :func:`sample_cosine_hemisphere` for one pair of uniforms."""
+    x, y = concentric_disk(u0, u1)
     return x, y, sqrt(maximum(0.0, 1.0 - x * x - y * y))
 
 
