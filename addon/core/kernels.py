@@ -283,7 +283,7 @@ def texture_footprint(width, cos_o, tri_uv_scale):
 SURFACE_HITS_OUT = ((3, F8), (3, F8), (3, F8), (2, F8), (0, F8), (0, F8), (3, F8), (3, F8), (3, F8), (0, F8))
 
 
-@njit(**_JIT)
+@njit(fastmath={"contract"}, **_JIT)
 def surface_hits(out, corners, face_normals, uv_scale, hit, prim, bu, bv, d, t, width, spread):
     """The surface where rays ``d`` (unit, world) land: ray ``hit[i]`` of the intersection's results (the
     triangles ``prim``, barycentrics (bu, bv) and distances ``t`` of every ray) for row i of ``d``, ``width``
@@ -297,6 +297,12 @@ def surface_hits(out, corners, face_normals, uv_scale, hit, prim, bu, bv, d, t, 
     The shading frame is ``frame.basis`` of the shading normal, and ``wo`` the direction back along the ray
     in it. Writes and returns ``out`` (:data:`SURFACE_HITS_OUT`): p, ng, ns (N, 3), uv (N, 2), width,
     footprint (N,), the tangents ts, tt (N, 3), wo (N, 3) and the distance (N,).
+
+    Its sums of products (the interpolations, the dot products, the frame) may be fused into multiply-adds
+    (``fastmath`` "contract", nothing else: each fused sum is rounded once, where it was rounded at every step),
+    which shortens their chains: 45-46 -> 37-39 ns a hit in a one-thread demo render. The shading loops and
+    ``continue_paths`` measured no faster so, and the sky's lookup must not be: there a product's difference that
+    is exactly zero (a direction on a column's edge) must stay zero.
     """
     p, ng, ns, uv, width_out, footprint, ts, tt, wo, dist = out
     for i in range(len(hit)):
