@@ -220,7 +220,11 @@ def trilinear(flat, offsets, heights, widths, channels, uv, lod, out, rest):
     for i in range(len(lod)):
         k = int(math.floor(lod[i]))
         t = lod[i] - k
+        # Repeat addressing once for every tap, exactly (u - floor(u) is exact): the taps' texels are then within a
+        # step of the level, where :func:`_wrap` needs no integer division. A texture repeated across a floor
+        # (the demo's tiles: uv up to 10) took four divisions a lookup: 38-39 -> 30-31 ns a hit of the demo floor.
         u, v = uv[i, 0], uv[i, 1]
+        u, v = u - math.floor(u), v - math.floor(v)
         if k + 1 >= n_levels:
             _bilinear_tap(flat, offsets[k], heights[k], widths[k], channels, u, v, 1.0, out, rest, i, False)
         else:

@@ -480,6 +480,24 @@ def test_trilinear_writes_every_row_whatever_the_output_held():
     np.testing.assert_array_equal(np.concatenate([first, rest], axis=1), clean)
 
 
+def test_trilinear_repeats_the_texture_for_uv_outside_the_unit_square():
+    """Repeat addressing: uv shifted by whole numbers (a texture tiled across a floor, and below zero) looks up
+    what the same point inside [0, 1)^2 does, on every level and between them."""
+    rng = np.random.default_rng(7)
+    c = 3
+    levels = [rng.random((8, 16, c)).astype(np.float32), rng.random((4, 8, c)).astype(np.float32)]
+    flat = np.concatenate([lv.ravel() for lv in levels])
+    offsets, heights, widths = np.array([0, levels[0].size]), np.array([8, 4]), np.array([16, 8])
+    uv = rng.random((400, 2))
+    lod = rng.random(400) * 1.5
+    shift = rng.integers(-3, 11, (400, 2)).astype(np.float64)
+    inside, outside = (np.empty((400, c), np.float32) for _ in range(2))
+    none = np.empty((400, 0), np.float32)
+    kernels.trilinear(flat, offsets, heights, widths, c, uv, lod, inside, none)
+    kernels.trilinear(flat, offsets, heights, widths, c, uv + shift, lod, outside, none)
+    np.testing.assert_allclose(outside, inside, rtol=0, atol=2e-6)  # the shift rounds uv's last bits
+
+
 def test_half_floats_convert_exactly_in_the_compiled_loops():
     """Every finite half float, as a latent texture read from its file holds it, converts to the float32 numpy
     gives, sign of zero included: by the CPU where it can (``NATIVE_HALF``) and in integer operations elsewhere."""
