@@ -818,13 +818,11 @@ def add_direct(L, hits, row, throughput, f, light_wi, radiance, p_select, light_
 
 # The paths' fields (``integrator._Paths``, in order), as ``continue_paths`` writes them.
 PATHS_OUT = ((0, I8), (3, F8), (3, F8), (3, F8), (0, F8), (0, B1), (0, B1), (0, F8), (0, F8))
-# ``continue_paths``'s own rows: survives, throughput scale, offset side, world direction.
-CONTINUE_TEMP = ((0, B1), (0, F8), (0, F8), (3, F8))
 
 
 @njit(**_JIT)
 def continue_paths(
-    out, temp, wi_local, ts, tt, ns, weight, pdf, delta, mis, p, ng, row, throughput, width, spread, u_rr, roulette,
+    out, wi_local, ts, tt, ns, weight, pdf, delta, mis, p, ng, row, throughput, width, spread, u_rr, roulette,
     eps,
 ):  # fmt: skip
     """The next rays of the paths at a bounce: throughput times the sample weight, with Russian
@@ -834,15 +832,19 @@ def continue_paths(
     (ts, tt, ns), taken to world space here) are dropped. The survivors' origins are offset by ``eps``
     off the surface on their side, and a non-specular bounce widens the ray cone's spread to at least 0.2.
     Returns row, origin, direction, throughput, pdf, delta, mis, width, spread of the survivors: the first rows
-    of ``out`` (:data:`PATHS_OUT`, a row per path), with ``temp`` (:data:`CONTINUE_TEMP`) for its own rows."""
+    of ``out`` (:data:`PATHS_OUT`, a row per path; not the arrays of the paths it reads).
+
+    One pass, each survivor written as it is found: a first pass that decided and a second that compacted, with
+    rows of their own between them, took 27 ns a path where this takes 25 (one-thread demo renders)."""
     n = len(row)
-    keep, scale, side, wi = temp
-    count = 0
+    o_row, o_org, o_dir, o_thr, o_pdf, o_delta, o_mis, o_width, o_spread = out
+    j = 0
     for i in range(n):
         lx, ly, lz = wi_local[i, 0], wi_local[i, 1], wi_local[i, 2]
-        for k in range(3):
-            wi[i, k] = lx * ts[i, k] + ly * tt[i, k] + lz * ns[i, k]
-        c = wi[i, 0] * ng[i, 0] + wi[i, 1] * ng[i, 1] + wi[i, 2] * ng[i, 2]
+        wx = lx * ts[i, 0] + ly * tt[i, 0] + lz * ns[i, 0]
+        wy = lx * ts[i, 1] + ly * tt[i, 1] + lz * ns[i, 1]
+        wz = lx * ts[i, 2] + ly * tt[i, 2] + lz * ns[i, 2]
+        c = wx * ng[i, 0] + wy * ng[i, 1] + wz * ng[i, 2]
         same_side = (c > 0.0 and lz > 0.0) or (c < 0.0 and lz < 0.0)
         ok = max(weight[i, 0], weight[i, 1], weight[i, 2]) > 0.0 and same_side
         s = 1.0
@@ -851,21 +853,20 @@ def continue_paths(
             q = min(max(q, 0.05), 1.0)
             ok = u_rr[i] < q
             s = 1.0 / q
-        keep[i], scale[i], side[i] = ok, s, (eps if c > 0.0 else -eps)
-        count += ok
-    o_row, o_org, o_dir, o_thr, o_pdf, o_delta, o_mis, o_width, o_spread = out
-    j = 0
-    for i in range(n):
-        if not keep[i]:
+        if not ok:
             continue
+        side = eps if c > 0.0 else -eps
         o_row[j] = row[i]
+        o_org[j, 0] = p[i, 0] + ng[i, 0] * side
+        o_org[j, 1] = p[i, 1] + ng[i, 1] * side
+        o_org[j, 2] = p[i, 2] + ng[i, 2] * side
+        o_dir[j, 0], o_dir[j, 1], o_dir[j, 2] = wx, wy, wz
         for k in range(3):
-            o_org[j, k] = p[i, k] + ng[i, k] * side[i]
-            o_dir[j, k] = wi[i, k]
-            o_thr[j, k] = throughput[i, k] * weight[i, k] * scale[i]
+            o_thr[j, k] = throughput[i, k] * weight[i, k] * s
         o_pdf[j], o_delta[j], o_mis[j], o_width[j] = pdf[i], delta[i], mis[i], width[i]
         o_spread[j] = spread[i] if delta[i] else max(spread[i], 0.2)
         j += 1
+    count = j
     return (
         o_row[:count], o_org[:count], o_dir[:count], o_thr[:count], o_pdf[:count], o_delta[:count], o_mis[:count],
         o_width[:count], o_spread[:count],

@@ -745,7 +745,7 @@ def _continue_paths(
     u_rr = rng.random(out=scratch.arrays("u_rr", n, ((0, kernels.F8),))[0]) if roulette else np.empty(0)
     return _Paths(
         *kernels.continue_paths(
-            scratch.arrays("paths.next", n, kernels.PATHS_OUT), scratch.arrays("continue", n, kernels.CONTINUE_TEMP),
+            scratch.arrays("paths.next", n, kernels.PATHS_OUT),
             sc.wi, hits.ts, hits.tt, hits.ns, sc.weight, sc.pdf, sc.delta, sc.mis, hits.p, hits.ng, paths.row,
             paths.throughput, paths.width, paths.spread, u_rr, roulette, ctx.eps,
         )
