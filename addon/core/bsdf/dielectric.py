@@ -100,7 +100,7 @@ def is_smooth(alpha, ior):
     return (alpha < SMOOTH_ALPHA) | (abs(ior - 1.0) < INDEX_MATCHED_TOL)
 
 
-@formula
+@formula(inline=True)
 def rough_dielectric_eval_pdf(ix, iy, iz, ox, oy, oz, alpha, ior, radiance, reflection_only):
     """(f, pdf) of :class:`RoughDielectric` at wi, wo (components) for one interface (alpha, ior):
     the one implementation of both (class docstring); ``radiance``: RADIANCE mode, else IMPORTANCE.
