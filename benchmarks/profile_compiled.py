@@ -275,8 +275,8 @@ def main(argv=None) -> int:
         f"{args.frequency} Hz a thread during {args.renders} renders ({seconds:.2f} s); {len(functions)} compiled "
         "functions named in its map. Shares are of all samples of all threads (ONNX Runtime's and embree's own "
         "threads included). A compiled function's row holds the helpers copied into its code (`kernel:helper`); a "
-        "helper compiled on its own (a formula called but not inlined, as `rough_dielectric_eval_pdf` is from "
-        "`decoded_brdf`) has a row of its own. The C maths library's functions (sin, cos, expm1) are called from "
+        "helper compiled on its own (a formula called but not inlined, as `top_reflection` is from "
+        "`decoded_brdf`) has a row of its own. The C maths library's functions (exp, expm1, log) are called from "
         "the loops.",
         "",
         f"The renders' own split (`RenderStats`): rays {share['rays']:.0%}, networks {share['network']:.0%}, "
