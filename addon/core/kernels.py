@@ -629,21 +629,9 @@ def sample_light(kind, prm, env, p, u):
     params = prm.copy().reshape((1, len(prm)))
     for i in range(n):
         wi[i, 0], wi[i, 1], wi[i, 2], dist[i], rad[i, 0], rad[i, 1], rad[i, 2], pdf[i] = _sample_light(
-            kind,
-            params,
-            0,
-            image,
-            pixel_pdf,
-            alias_p,
-            alias_i,
-            z_edges,
-            edges,
-            p[i, 0],
-            p[i, 1],
-            p[i, 2],
-            u[i, 0],
+            kind, params, 0, image, pixel_pdf, alias_p, alias_i, z_edges, edges, p[i, 0], p[i, 1], p[i, 2], u[i, 0],
             u[i, 1],
-        )
+        )  # fmt: skip
     return wi, dist, rad, pdf
 
 
@@ -675,21 +663,9 @@ def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps):
     for i in range(n):
         j = min(int(u[i, 0] * n_lights), n_lights - 1)
         wx, wy, wz, dist, r0, r1, r2, pd = _sample_light(
-            kinds[j],
-            params,
-            j,
-            image,
-            pixel_pdf,
-            alias_p,
-            alias_i,
-            z_edges,
-            edges,
-            p[i, 0],
-            p[i, 1],
-            p[i, 2],
-            u[i, 1],
-            u[i, 2],
-        )
+            kinds[j], params, j, image, pixel_pdf, alias_p, alias_i, z_edges, edges, p[i, 0], p[i, 1], p[i, 2],
+            u[i, 1], u[i, 2],
+        )  # fmt: skip
         c = wx * ng[i, 0] + wy * ng[i, 1] + wz * ng[i, 2]
         lz = wx * ns[i, 0] + wy * ns[i, 1] + wz * ns[i, 2]
         wi_local[i, 0] = wx * ts[i, 0] + wy * ts[i, 1] + wz * ts[i, 2]
