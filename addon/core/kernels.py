@@ -363,7 +363,7 @@ def first_hit_features(features, row, weight, ns, dist):
 
 # --- lights ------------------------------------------------------------------------------------
 #
-# Every light the renderer samples is a row of a light table: its kind and 16 float parameters
+# Every light the renderer samples is a row of a light table: its kind and 17 float parameters
 # (``lights.Light.table_row``). The environment's image and its tables travel beside the light table as one
 # tuple, ``env`` (``lights.Environment.image_arrays``; ``lights.NO_IMAGE`` where there is none): the image
 # (H, W, 3), each pixel's solid-angle pdf (H * W,), the alias table (keep, alias) that picks a pixel, the
@@ -371,7 +371,7 @@ def first_hit_features(features, row, weight, ns, dist):
 # directions (W + 1, 2) and a first guess of the column per even bin of :func:`_pseudo_angle`.
 
 POINT, SPOT, SUN, AREA_RECT, AREA_ELLIPSE, ENVIRONMENT = range(6)  # an environment of one colour is a 1 x 1 image
-N_PARAMS = 16
+N_PARAMS = 17
 
 
 @njit(inline="always", **_JIT)
@@ -691,7 +691,16 @@ def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps):
 @njit(inline="always", **_JIT)
 def _intersect_area(params, j, ellipse, ox, oy, oz, dx, dy, dz):
     """Distance along a unit ray to the emitting side of area light ``params[j]`` (inf where missed) and the
-    solid-angle pdf of sampling that point. The light is indexed, not sliced (as ``_sample_light``'s)."""
+    solid-angle pdf of sampling that point. The light is indexed, not sliced (as ``_sample_light``'s).
+
+    A ray whose line passes the light's centre farther than the light's bounding radius (its square in
+    ``params[j, 16]``, with a margin) misses it: most rays, rejected with no division. The demo's area light, rays
+    of random directions: 13 -> 4 ns a ray more than with no area light; in a render ``add_emission`` 18 -> 15 ns
+    a ray, the image the same to the bit."""
+    cx, cy, cz = params[j, 0] - ox, params[j, 1] - oy, params[j, 2] - oz
+    along = cx * dx + cy * dy + cz * dz
+    if cx * cx + cy * cy + cz * cz - along * along > params[j, 16]:
+        return np.inf, 0.0
     nx, ny, nz = params[j, 9], params[j, 10], params[j, 11]
     denom = dx * nx + dy * ny + dz * nz
     height = (params[j, 0] - ox) * nx + (params[j, 1] - oy) * ny + (params[j, 2] - oz) * nz

@@ -164,6 +164,44 @@ def test_area_light_samples_are_what_its_intersection_finds(ellipse):
     assert np.isinf(light.intersect(np.zeros((1, 3)), np.array([[-1.0, 0.0, 0.0]]))[0]).all()
 
 
+@pytest.mark.parametrize("ellipse", [False, True])
+@pytest.mark.parametrize("shear", [0.0, 0.7])
+def test_area_light_intersection_finds_what_the_plane_and_its_shape_give(ellipse, shear):
+    """The intersection's first test (the ray's line against a sphere about the light) rejects no ray that the
+    light's plane and shape accept: against the same plane test written in numpy, with rays aimed at the shape,
+    at its corners and past its edges, from near and far, and a matrix that shears the light's axes."""
+    m = np.eye(4)
+    m[:3, :3] = [[1.0, shear, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]  # shear: the local y axis leans toward x
+    m[:3, 3] = (0.3, -0.2, 2.0)
+    light = AreaLight(m, power=20.0, size=1.2, size_y=0.6, ellipse=ellipse)
+    c, u, v, nrm = light.center, light.axis_u, light.axis_v, light.normal
+    rng = np.random.default_rng(11)
+    n = 60_000
+    # Points of the plane in the intersection's own coordinates (q.u / |u|^2, q.v / |v|^2), which a shear sets apart
+    # from the sampling's (q = a u + b v): a quarter at the corners, just inside.
+    ab = rng.uniform(-1.3, 1.3, (n, 2))
+    ab[: n // 4] = rng.choice([-1.0, 1.0], (n // 4, 2)) * (1.0 - 1e-9)
+    gram = np.array([[u @ u, u @ v], [u @ v, v @ v]])
+    coef = np.linalg.solve(gram, (ab * np.array([u @ u, v @ v])).T).T
+    target = c + coef[:, :1] * u + coef[:, 1:] * v
+    o = rng.normal(size=(n, 3)) * np.array([1.0, 1.0, 0.3]) * rng.choice([1.0, 30.0, 1000.0], (n, 1))
+    o[:, 2] = -np.abs(o[:, 2])  # below the light, which emits down
+    d = target - o
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t, pdf = light.intersect(o, d)
+    denom, height = d @ nrm, (c - o) @ nrm
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_plane = height / denom
+        q = o + t_plane[:, None] * d - c
+        a, b = q @ u / (u @ u), q @ v / (v @ v)
+    inside = (a * a + b * b <= 1.0) if ellipse else (np.abs(a) <= 1.0) & (np.abs(b) <= 1.0)
+    want = (denom < -1e-12) & (height < 0.0) & inside & (t_plane > 1e-6)
+    assert 0.2 < want.mean() < 0.95
+    np.testing.assert_array_equal(np.isfinite(t), want)
+    np.testing.assert_allclose(t[want], t_plane[want], rtol=1e-12)
+    assert np.all(pdf[want] > 0) and np.all(pdf[~want] == 0)
+
+
 def test_environment_importance_sampling_matches_its_pdf():
     env = Environment(image=env_image(), strength=2.0)
     rng = np.random.default_rng(0)
