@@ -703,7 +703,7 @@ def _intersect_area(params, j, ellipse, ox, oy, oz, dx, dy, dz):
         return np.inf, 0.0
     nx, ny, nz = params[j, 9], params[j, 10], params[j, 11]
     denom = dx * nx + dy * ny + dz * nz
-    height = (params[j, 0] - ox) * nx + (params[j, 1] - oy) * ny + (params[j, 2] - oz) * nz
+    height = cx * nx + cy * ny + cz * nz  # (centre - origin) . normal
     # Only rays arriving against the emitting normal, from its lit side, can hit it.
     if not (denom < -1e-12 and height < 0.0):
         return np.inf, 0.0
