@@ -123,7 +123,7 @@ def speed(size: str, threads: int, repeats: int = 5) -> dict:
     so.intra_op_num_threads = threads
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     sess = ort.InferenceSession(str(m._rgb.path), so, providers=["CPUExecutionProvider"])
-    feeds = {"z": z[None], "wi": wi.astype(np.float32), "wo": wo.astype(np.float32)}
+    feeds = {"zc": m.project_latents(z), "wi": wi.astype(np.float32), "wo": wo.astype(np.float32)}
     sess.run(["f"], feeds)
     one = np.inf
     for _ in range(repeats):
@@ -152,14 +152,14 @@ def operator_breakdown(size: str, chunk: int, runs: int = 100) -> dict:
     wi = rng.normal(size=(chunk, 3))
     wi[:, 2] = np.abs(wi[:, 2])
     wi = (wi / np.linalg.norm(wi, axis=1, keepdims=True)).astype(np.float32)
-    z = (rng.normal(size=(1, 3, 32)) * 0.3).astype(np.float32)
+    zc = load_models(size).project_latents(rng.normal(size=(1, 3, 32)) * 0.3)
     with tempfile.TemporaryDirectory() as tmp:
         so = session_options()
         so.enable_profiling = True
         so.profile_file_prefix = str(Path(tmp) / "ort")
         sess = ort.InferenceSession(str(MODEL_DIR / f"decoder_{size}_rgb.onnx"), so, providers=["CPUExecutionProvider"])
         for _ in range(runs):
-            sess.run(["f"], {"z": z, "wi": wi, "wo": wi})
+            sess.run(["f"], {"zc": zc, "wi": wi, "wo": wi})
         events = json.loads(Path(sess.end_profiling()).read_text())
     by_op: dict[str, float] = {}
     for e in events:

@@ -49,11 +49,11 @@ def export_decoder(dec: Decoder, path: Path) -> None:
 
 
 def export_rgb_decoder(dec: Decoder, path: Path) -> None:
-    """The runtime's fused graph: z (Bz, 3, 32) with Bz in {1, B}, wi, wo (B, 3) -> f (B, 3)."""
+    """The runtime's fused graph: zc (Bz, 3W) with Bz in {1, B} (``RGBDecoder.project``), wi, wo (B, 3) -> f (B, 3)."""
     rgb = RGBDecoder(dec).eval()
     b = 8
     args = (
-        torch.zeros(1, 3, 32),
+        torch.zeros(1, 3 * rgb.width),
         torch.tensor([[0.0, 0.0, 1.0]]).expand(b, 3).contiguous(),
         torch.tensor([[0.0, 0.0, 1.0]]).expand(b, 3).contiguous(),
     )
@@ -61,9 +61,9 @@ def export_rgb_decoder(dec: Decoder, path: Path) -> None:
         rgb,
         args,
         str(path),
-        input_names=["z", "wi", "wo"],
+        input_names=["zc", "wi", "wo"],
         output_names=["f"],
-        dynamic_axes={"z": {0: "latents"}, "wi": {0: "batch"}, "wo": {0: "batch"}, "f": {0: "batch"}},
+        dynamic_axes={"zc": {0: "latents"}, "wi": {0: "batch"}, "wo": {0: "batch"}, "f": {0: "batch"}},
         opset_version=OPSET,
         dynamo=False,
     )
@@ -71,12 +71,14 @@ def export_rgb_decoder(dec: Decoder, path: Path) -> None:
 
 def rgb_decoder_parity(dec: Decoder, path: Path, n: int = 2048, seed: int = 0) -> float:
     """Max relative difference between the fused RGB graph (ONNX Runtime) and the scalar torch
-    decoder, for one shared latent and for per-row latents; the graph gets the directions both
-    as unit vectors and scaled by lengths from 1e-3 to 1e3 (it normalises them itself)."""
+    decoder, for one shared latent and for per-row latents (each projected by ``RGBDecoder.project``, as the
+    runtime projects them); the graph gets the directions both as unit vectors and scaled by lengths from 1e-3
+    to 1e3 (it normalises them itself)."""
     import onnxruntime as ort
 
     rng = np.random.default_rng(seed)
     s = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    rgb = RGBDecoder(dec).eval()
     wi = np.concatenate([random_directions(rng, n // 2), random_directions(rng, n - n // 2, grazing=True)])
     wo = random_directions(rng, n)
     worst = 0.0
@@ -94,7 +96,9 @@ def rgb_decoder_parity(dec: Decoder, path: Path, n: int = 2048, seed: int = 0) -
                 .reshape(n, 3)
             )
         for scale_i, scale_o in ((1.0, 1.0), tuple(10.0 ** rng.uniform(-3, 3, (2, n, 1)).astype(np.float32))):
-            got = s.run(["f"], {"z": z, "wi": wi * scale_i, "wo": wo * scale_o})[0]
+            with torch.no_grad():
+                zc = rgb.project(torch.from_numpy(z)).numpy()
+            got = s.run(["f"], {"zc": zc, "wi": wi * scale_i, "wo": wo * scale_o})[0]
             worst = max(worst, max_relative_difference(got, ref))
     return worst
 
@@ -165,10 +169,12 @@ def rgb_graph_card(dec: Decoder, rgb_path: Path) -> dict:
     """The ``rgb_graph`` entry of a decoder card: the fused graph's contract, cost and parity."""
     return {
         "file": rgb_path.name,
-        "inputs": "z (1 or B, 3, 32), wi (B, 3), wo (B, 3): directions of any nonzero length",
+        "inputs": "zc (1 or B, 3W): latents z (1 or B, 3, 32) times the first layer's latent columns plus its bias, "
+        "the three channels side by side; wi (B, 3), wo (B, 3): directions of any nonzero length",
         "outputs": "f (B, 3), 0 where either direction is at or below the horizon (or zero)",
-        "note": "same weights; the graph normalises the directions in float32, and computes the direction "
-        "features and their first-layer product once per query",
+        "note": "same weights; the runtime projects the latents (once a material, or once a texel of a latent "
+        "texture); the graph normalises the directions in float32, and computes the direction features and their "
+        "first-layer product once per query",
         "macs_per_rgb_eval_one_material": macs_rgb_one_material(dec),
         "onnx_runtime_vs_torch_max_relative_difference": rgb_decoder_parity(dec, rgb_path),
     }
@@ -404,6 +410,10 @@ def main(argv=None):
     }
     dpath.with_suffix(".json").write_text(json.dumps(dcard, indent=1) + "\n")
     epath.with_suffix(".json").write_text(json.dumps(ecard, indent=1) + "\n")
+    # the runtime puts latents through the first layer with these (``ModelSet.project_latents``)
+    from onnx_export.decoder_weights import export_weights
+
+    export_weights(a.size, a.out)
     print(
         json.dumps(
             {

@@ -227,10 +227,12 @@ def cosine_lr(step: int, steps: int, base: float, floor: float = 0.05, warmup: i
 class RGBDecoder(nn.Module):
     """The same decoder evaluated for the three colour channels at once (the runtime's graph).
 
-    z (Bz, 3, 32) with Bz = 1 (one material) or B (per row), wi, wo (B, 3) -> f (B, 3). The
-    direction features and their first-layer product are computed once per query instead of
-    once per channel, and for one material the latent's first-layer product is computed once
-    for the whole batch: same weights, same values as ``Decoder`` row by row.
+    zc (Bz, 3W) with Bz = 1 (one material) or B (per row), wi, wo (B, 3) -> f (B, 3). ``zc`` is the latents'
+    product with the first layer, bias included (:meth:`project`: ``z (Bz, 3, 32) @ w_z.T + b``, the three
+    channels side by side), which the runtime computes outside the graph: once for a material's latent, once per
+    texel for a latent texture (the product is affine, so it commutes with the texture's filtering), instead of
+    once per query row. The direction features and their first-layer product are computed once per query
+    instead of once per channel: same weights, same values as ``Decoder`` row by row.
 
     Unlike ``Decoder`` the directions need not be unit length: the graph normalises them (in
     float32; a zero direction counts as below the horizon), so the runtime hands its directions
@@ -249,10 +251,13 @@ class RGBDecoder(nn.Module):
         self.b = nn.Parameter(first.bias.detach().clone())
         self.rest = dec.net[2:]  # after the first Linear + ReLU
 
-    def forward(self, z: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
+    def project(self, z: torch.Tensor) -> torch.Tensor:
+        """(Bz, 3W): the latents z (Bz, 3, 32) through the first layer's latent columns, bias included."""
+        return (torch.matmul(z, self.w_z.t()) + self.b).reshape(z.shape[0], 3 * self.width)
+
+    def forward(self, zc: torch.Tensor, wi: torch.Tensor, wo: torch.Tensor) -> torch.Tensor:
         above = ((wi[:, 2] > 0.0) & (wo[:, 2] > 0.0)).to(wi.dtype).unsqueeze(1)
         wi, wo = unit_rows(wi), unit_rows(wo)
-        zc = (torch.matmul(z, self.w_z.t()) + self.b).reshape(z.shape[0], 3 * self.width)  # (Bz, 3W)
         d = torch.matmul(direction_features(wi, wo, self.dec.features), self.w_d3.t())  # (B, 3W)
         h = torch.relu(d + zc).reshape(-1, self.width)  # (B * 3, W)
         y = self.rest(h).reshape(-1, 3)  # 2-D rows: the exporter emits Gemm, which fuses bias and ReLU

@@ -284,18 +284,19 @@ def test_chunked_threaded_decoding_equals_one_call(n):
     whole = ChunkedSession(models._rgb.path, threads=1, chunk=max(n, 1))
     z = encode_layer(models, Conductor(0.1))
     zr = np.stack([encode_layer(models, Diffuse(a)) for a in (0.1, 0.9)])[rng.integers(0, 2, n)]
-    for zz, feeds in ((z, {"z": z[None]}), (zr, {"z": zr})):
+    for zz, feeds in ((z, {"zc": models.project_latents(z)}), (zr, {"zc": models.project_latents(zr)})):
         f = models.eval_brdf(zz, wi, wo)
         ref = whole.run_once(["f"], {**feeds, "wi": wi.astype(np.float32), "wo": wo.astype(np.float32)})[0]
         assert f.shape == (n, 3)
         np.testing.assert_allclose(f, ref, rtol=1e-5, atol=1e-7)
     # the generic row-split run agrees with one call too, and checks its inputs
     two = ChunkedSession(models._rgb.path, threads=2, chunk=1000)
-    got = two.run(["f"], {"wi": wi.astype(np.float32), "wo": wo.astype(np.float32)}, {"z": z[None]})[0]
-    ref = whole.run_once(["f"], {"z": z[None], "wi": wi.astype(np.float32), "wo": wo.astype(np.float32)})[0]
+    zc = models.project_latents(z)
+    got = two.run(["f"], {"wi": wi.astype(np.float32), "wo": wo.astype(np.float32)}, {"zc": zc})[0]
+    ref = whole.run_once(["f"], {"zc": zc, "wi": wi.astype(np.float32), "wo": wo.astype(np.float32)})[0]
     np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-7)
     with pytest.raises(ValueError, match="disagree"):
-        two.run(["f"], {"wi": wi.astype(np.float32), "wo": np.zeros((n + 1, 3), np.float32)}, {"z": z[None]})
+        two.run(["f"], {"wi": wi.astype(np.float32), "wo": np.zeros((n + 1, 3), np.float32)}, {"zc": zc})
 
 
 def test_chunked_session_rejects_bad_settings(tmp_path):

@@ -39,7 +39,7 @@ def test_network_clock_counts_time_in_batches_on_the_calling_thread():
     rng = np.random.default_rng(0)
     w = rng.normal(size=(5000, 3)).astype(np.float32)
     before = seconds_on_this_thread()
-    (f,) = s.run(["f"], {"wi": w, "wo": w}, {"z": np.zeros((1, 3, 32), np.float32)})
+    (f,) = s.run(["f"], {"wi": w, "wo": w}, {"zc": np.zeros((1, 96), np.float32)})
     assert f.shape == (5000, 3) and seconds_on_this_thread() > before
     seen = []
     t = threading.Thread(target=lambda: seen.append(seconds_on_this_thread()))

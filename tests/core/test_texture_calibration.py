@@ -201,7 +201,9 @@ def test_the_renderer_gives_each_hit_the_table_of_its_texels_cluster(baked):
             *(np.ones((K, 3)),) * 4,
         )
         want = models.eval_brdf(z[r], wi[r : r + 1], wo[r : r + 1], top[r], one)
-        np.testing.assert_allclose(got[r], want[0], rtol=1e-5)
+        # the renderer reads the texture's latents through the decoder's first layer, stored in half floats as
+        # the texture is (``LatentTexture.projected``): one more rounding of 2^-11 relative
+        np.testing.assert_allclose(got[r], want[0], rtol=1e-3)
     # a subset of the rows (the integrator's light rows) keeps each row's table
     np.testing.assert_allclose(bound.eval(wi[[2, 0]], wo[[2, 0]], index=np.array([2, 0])), got[[2, 0]], rtol=1e-6)
 

@@ -7,7 +7,9 @@
 Every decoder size has its own latent space, so a size ships as a set of files in ``addon/models``:
 
 - ``decoder_<size>.onnx`` (inputs ``z`` (B, 32), ``wi``, ``wo`` (B, 3); output ``f`` (B,)) and its fused
-  RGB graph ``decoder_<size>_rgb.onnx`` (same weights; ``z`` (1 or B, 3, 32) -> ``f`` (B, 3));
+  RGB graph ``decoder_<size>_rgb.onnx`` (same weights; ``zc`` (1 or B, 3W) -> ``f`` (B, 3), where ``zc`` is the
+  latents through the first layer, :meth:`ModelSet.project_latents`, with the weights of
+  ``decoder_<size>_weights.npz``);
 - ``encoder_<size>.onnx`` (input ``x`` (B, N_FEATURES); output ``z`` (B, 32));
 - ``layering_<size>.onnx`` (``z_top``, ``z_bottom`` (B, 32), ``albedo``, ``thickness`` (B,) -> ``z``);
 - ``sampling_<size>.onnx`` (``z`` (B, 3, 32) -> ``sigma``, ``w`` (B,)).
@@ -289,6 +291,8 @@ class ModelSet:
         # the fused RGB graph (same weights) is faster; the scalar graph is the reference interface
         rgb = self.model_dir / f"decoder_{size}_rgb.onnx"
         self._rgb = _session(rgb, self.threads, chunk) if rgb.name in self.card("decoder")["files"] else None
+        self.width = int(width)
+        self._first_layer = None  # (w_t (32, W), b (W,)) float32 for the fused graph's zc, read when first needed
         self._load("encoder")
         # the decoder holds the remainder design's rest of the BRDF: eval_brdf adds the exact top lobe
         self.remainder = self.card("decoder").get("remainder", False) is True
@@ -320,6 +324,30 @@ class ModelSet:
                 self.card(role)
                 self._sessions[role] = _session(self.path(role), self.threads, chunk)
             return self._sessions[role]
+
+    @property
+    def projects_latents(self) -> bool:
+        """Whether the decoder takes latents through :meth:`project_latents` (the fused RGB graph is shipped)."""
+        return self._rgb is not None
+
+    def project_latents(self, z, out: np.ndarray | None = None) -> np.ndarray:
+        """(N, 3W) float32: latents ``z`` (N, 3, 32) ((3, 32) gives one row) through the decoder's first layer, bias
+        included, the three channels side by side: what its fused graph takes (``zc``). A material's latent is
+        projected once a query, a latent texture's once a texel (``LatentTexture.projected``): the product is
+        affine, so it commutes with the texture's filtering. The weights are the numpy decoder's
+        (:func:`decoder_weights`, checked against the ONNX file they were exported from)."""
+        if self._first_layer is None:
+            with _LOADING:
+                if self._first_layer is None:
+                    arrays = decoder_weights(self.size, self.model_dir)
+                    w_t = np.ascontiguousarray(np.asarray(arrays["w0_latent"], dtype=np.float32).T)
+                    self._first_layer = (w_t, np.ascontiguousarray(arrays["b0"], dtype=np.float32))
+        w_t, b = self._first_layer
+        # writeable as well as contiguous (a material's cached latent is read-only): one compiled signature
+        z = np.require(z, np.float32, ("C", "W")).reshape(-1, 3 * LATENT)
+        if out is None:
+            out = np.empty((len(z), 3 * self.width), dtype=np.float32)
+        return kernels.project_latents(out, z, w_t, b)
 
     def load(self, *roles: str) -> "ModelSet":
         """Load (and check) the networks ``roles`` now rather than when first used; returns the set."""
@@ -402,6 +430,7 @@ class ModelSet:
         top_pdf: bool = False,
         unit: bool = False,
         z_rows=None,
+        zc=None,
     ):
         """f (N, 3) in 1/sr (no cosine) for one material ``z`` (3, 32) or per-row latents (N, 3, 32); with
         ``z_rows`` (N,) the latents ``z[z_rows]`` of M (M, 3, 32), gathered a chunk at a time, not first (the
@@ -420,29 +449,37 @@ class ModelSet:
 
         ``top_pdf``: return ``(f, p)`` with ``p`` (N,) float64 the density of ``top_lobe.sample_top`` at the
         same pairs (0 without a top lobe), from the same evaluation of the lobe (the renderer's MIS needs both).
+
+        ``zc``: the latents already through the first layer (:meth:`project_latents`; (N, 3W), or (M, 3W) with
+        ``z_rows``), in place of ``z`` (None then): a projected latent texture's hits. Only with
+        :attr:`projects_latents`.
         """
         wi = _directions(wi, "wi")
         wo = _directions(wo, "wo")
         if wi.shape[0] != wo.shape[0]:
             raise ValueError(f"wi has {wi.shape[0]} rows but wo has {wo.shape[0]}")
         n = wi.shape[0]
-        z, per_row, z_rows = _latents_of_rows(z, n, z_rows)
+        if zc is not None:
+            zc, z_rows = self._projected_rows(zc, n, z_rows)
+            z, per_row = zc, True
+        else:
+            z, per_row, z_rows = _latents_of_rows(z, n, z_rows)
         if not np.all(np.isfinite(z)):
             raise ValueError("z must be finite (the latent holds NaN or Inf)")
         out = np.empty((n, 3), dtype=np.float32)
         if n == 0:
             return (out, np.zeros(0)) if top_pdf else out
-        zz = z[None]
         if self._rgb is not None:  # the graph normalises and masks the horizon itself
             # unit directions need no guard for float32's range: a cast, not the length check and its temporaries
             wi32, wo32 = (w.astype(np.float32) if unit else _float32_rows(w) for w in (wi, wo))
+            zc = zc if zc is not None else self.project_latents(z)  # once a latent, not once a query row
 
-        def latents(rows: slice) -> np.ndarray:  # np.take: 40% faster than z[z_rows[rows]] on (N, 3, 32) rows
+        def latents(rows: slice, z=z) -> np.ndarray:  # np.take: 40% faster than z[z_rows[rows]] on rows
             return np.take(z, z_rows[rows], axis=0) if z_rows is not None else z[rows]
 
         def chunk(rows: slice) -> None:  # runs on the session's threads, one chunk of rows each
             if self._rgb is not None:
-                feeds = {"z": latents(rows) if per_row else zz, "wi": wi32[rows], "wo": wo32[rows]}
+                feeds = {"zc": latents(rows, zc) if per_row else zc, "wi": wi32[rows], "wo": wo32[rows]}
                 f = self._rgb.run_once(["f"], feeds)[0]
                 np.fmax(f, 0.0, out=out[rows])  # fmax: NaN (an overflowing latent) gives 0
                 return
@@ -469,6 +506,26 @@ class ModelSet:
             p_top = np.zeros(n)
         return (out, p_top) if top_pdf else out
 
+    def _projected_rows(self, zc, n: int, z_rows) -> tuple[np.ndarray, np.ndarray | None]:
+        """``eval_brdf``'s ``zc`` (M, 3W) float32 with its rows ``z_rows`` (n,) (None: M = n, a row each), checked."""
+        if not self.projects_latents:
+            raise ValueError(f"decoder_{self.size} has no fused graph to take projected latents (zc)")
+        zc = np.asarray(zc, dtype=np.float32)
+        if zc.ndim != 2 or zc.shape[1] != 3 * self.width:
+            raise ValueError(f"zc must be (M, {3 * self.width}) projected latents, got {zc.shape}")
+        if z_rows is None:
+            if len(zc) != n:
+                raise ValueError(f"zc has {len(zc)} rows for {n} directions (give z_rows to read rows of it)")
+            return zc, None
+        z_rows = np.asarray(z_rows)
+        if (
+            z_rows.shape != (n,)
+            or z_rows.dtype.kind not in "iu"
+            or (n and (z_rows.min() < 0 or z_rows.max() >= len(zc)))
+        ):
+            raise ValueError(f"z_rows must be {n} integer rows of zc's {len(zc)}")
+        return zc, z_rows
+
     def _finish(self, out, calibration, t, wi, wo, unit: bool, with_top_lobe: bool, z_rows, m: int) -> np.ndarray:
         """``eval_brdf``'s work after the decoder, on its ``out`` in place, in one compiled pass
         (``kernels.decoded_brdf``): the calibration's factor, and for a top coat ``t`` (checked rows) the
@@ -489,6 +546,38 @@ class ModelSet:
             with_top_lobe,
             kernels.EVERY_ROW if z_rows is None else np.ascontiguousarray(z_rows, dtype=np.int64),
         )
+
+
+class StaleWeightsError(RuntimeError):
+    """The numpy weights were exported from another version of the decoder's ONNX file."""
+
+
+def decoder_weights(size: str, model_dir: Path | str | None = None) -> dict:
+    """The arrays of ``decoder_<size>_weights.npz``, the decoder's weights for numpy (``refine.NumpyDecoder``, and
+    the first layer of :meth:`ModelSet.project_latents`); raises FileNotFoundError when it is missing and
+    StaleWeightsError when it was exported from another version of ``decoder_<size>.onnx``."""
+    if size not in SIZES:
+        raise ValueError(f"unknown decoder size {size!r}; sizes are {list(SIZES)}")
+    d = Path(model_dir) if model_dir is not None else MODEL_DIR
+    path = d / f"decoder_{size}_weights.npz"
+    if not path.exists():
+        raise FileNotFoundError(
+            f"{path.name} is missing from the models folder; export it with "
+            f"python -m onnx_export.decoder_weights --sizes {size}"
+        )
+    with np.load(path, allow_pickle=False) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    onnx_path = d / f"decoder_{size}.onnx"
+    if not onnx_path.exists():
+        raise FileNotFoundError(f"{onnx_path.name} is missing from the models folder")
+    digest = file_digest(onnx_path)
+    if str(arrays["onnx_sha256"]) != digest:
+        raise StaleWeightsError(
+            f"{path.name} was exported from another version of {onnx_path.name} "
+            f"(sha256 {str(arrays['onnx_sha256'])[:12]}..., the file is {digest[:12]}...): "
+            f"run python -m onnx_export.decoder_weights --sizes {size}"
+        )
+    return arrays
 
 
 _CACHE: dict[tuple[str, int, Path], ModelSet] = {}

@@ -43,8 +43,9 @@ class _BoundNeural(ShadeByProposal):
     (2,) or per hit (N, 2)) is None for a whole-BRDF decoder; for a remainder decoder the sampler mixes
     exact samples of the top lobe (share ``top_lobe.top_share`` of wo) with the proxy's."""
 
-    def __init__(self, models, z, sigma, w, calibration=None, top=None):
+    def __init__(self, models, z, sigma, w, calibration=None, top=None, zc=None):
         self.models, self.z, self.sigma, self.w = models, z, sigma, w
+        self.zc = zc  # per-hit latents already through the decoder's first layer (a projected texture), z None
         self.calibration = calibration
         self.top = top if getattr(models, "remainder", False) else None
         if self.top is not None:  # checked once, as the compiled loops take them: (1, ...) shared, else per hit
@@ -63,7 +64,9 @@ class _BoundNeural(ShadeByProposal):
         with the rows to read them at (``z_rows``: gathered a chunk at a time by the runtime, or read through
         the rows by its loop, not copied here first)."""
         inputs = {"z": self.z, "top": self.top, "calibration": self.calibration}
-        if index is not None and np.ndim(self.z) == 3:
+        if self.zc is not None:
+            inputs["zc"] = self.zc
+        if index is not None and (np.ndim(self.z) == 3 or self.zc is not None):
             inputs["z_rows"] = index
         return inputs
 
@@ -155,6 +158,7 @@ class NeuralMaterial:
         self.sigma, self.w = float(proxy[0]), float(proxy[1])
         self.texture = latent_texture
         self.calibration = calibration
+        self._projected_centroids = None  # the calibration's centroids as a projected texture's rows (``bind``)
         self.uncalibrated_stack = None  # set by ``make`` for "cached" without a calibration: see ``calibrated``
         if self.z is None and self.texture is None:
             raise ValueError("a NeuralMaterial needs a latent z (3, 32) or a latent texture")
@@ -176,6 +180,7 @@ class NeuralMaterial:
 
         out = copy.copy(self)
         out.calibration = cal.calibrate(self.uncalibrated_stack, self.models, self.z, (self.sigma, self.w), step=step)
+        out._projected_centroids = None
         out.uncalibrated_stack = None
         return out
 
@@ -184,11 +189,34 @@ class NeuralMaterial:
             return _BoundNeural(
                 self.models, self.z, np.float64(self.sigma), np.float64(self.w), self.calibration, self.top
             )
-        z, prox, top = self.texture.lookup(hits.uv, hits.footprint)
+        projected = self._projected_texture()
+        if projected is None:
+            z, prox, top = self.texture.lookup(hits.uv, hits.footprint)
+            calibration = None if self.calibration is None else self.calibration.at(z)
+            zc = None
+        else:
+            (zc, prox, top), z = projected.lookup(hits.uv, hits.footprint), None
+            calibration = None if self.calibration is None else self.calibration.at(zc, self._projected_centroids)
         sigma = np.asarray(prox[:, 0], dtype=np.float64)
         w = np.asarray(prox[:, 1], dtype=np.float64)
-        calibration = None if self.calibration is None else self.calibration.at(z)
-        return _BoundNeural(self.models, z, sigma, w, calibration, top)
+        return _BoundNeural(self.models, z, sigma, w, calibration, top, zc)
+
+    def _projected_texture(self):
+        """The latent texture as the decoder's fused graph reads it (``LatentTexture.projected``), when its
+        projected latents are no wider than the latents (the tiny decoder's 32 channels: the same memory and taps,
+        and each query row skips the latents' layer); None otherwise, and the runtime projects the looked-up
+        latents of each query instead. A calibration then chooses each hit's table by the centroid nearest its
+        projected latents (its centroids projected the same way): the distance the decoder sees. The latents'
+        own distance also counts directions the tiny decoder all but ignores (its first layer's latent columns
+        have a condition number of about 1,200), and keeping the latents beside the products for it doubled the
+        taps, which cost what the products saved."""
+        models = self.models
+        if not hasattr(self.texture, "projected") or not models.projects_latents or models.width > LATENT:
+            return None
+        if self.calibration is not None and self._projected_centroids is None:
+            self._projected_centroids = models.project_latents(self.calibration.centroids)
+        key = (models.size, str(models.model_dir))
+        return self.texture.projected(key, models.project_latents, models.width)
 
 
 class NeuralFallbackWarning(UserWarning):

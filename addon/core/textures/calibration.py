@@ -11,8 +11,10 @@ cluster once on a sample of its texels (``calibrate.calibrate_texels``: the tabl
 cluster's mean lobe to the mean of their references) and stores the centroids and the tables in the
 texture's metadata (:meth:`TextureCalibration.to_text`). The renderer gives each hit the table of the
 centroid nearest its looked-up latent (:meth:`TextureCalibration.at`): filtered texels between two
-clusters take the nearer one's. Measured against the reference texel by texel, the clusters' tables do
-about as well as each texel's own (``benchmarks/bench_texture_calibration.py``, docs/texture_calibration.md).
+clusters take the nearer one's. A texture the tiny decoder reads through its first layer
+(``LatentTexture.projected``) is chosen among the centroids put through that layer too. Measured against the
+reference texel by texel, the clusters' tables do about as well as each texel's own
+(``benchmarks/bench_texture_calibration.py``, docs/texture_calibration.md).
 """
 
 from __future__ import annotations
@@ -90,13 +92,15 @@ class TextureCalibration:
     tables: np.ndarray
     settings: str
 
-    def at(self, z: np.ndarray) -> cal.RowCalibration:
+    def at(self, z: np.ndarray, centroids: np.ndarray | None = None) -> cal.RowCalibration:
         """The calibration of rows with latents ``z`` (N, 3, LATENT): each row the table of its nearest centroid
-        (once per bounce and material, in float32: ``kernels.nearest_rows``)."""
+        (once per bounce and material, in float32: ``kernels.nearest_rows``). With ``centroids`` (T, D), rows ``z``
+        (N, D) are chosen by those instead: a projected texture's rows, its latents through the decoder's first
+        layer, with the centroids projected the same way (``render.neural_material``)."""
         if len(self.centroids) == 1:
             return cal.RowCalibration(self.cosines, self.tables, np.zeros(len(z), np.int64))
         x = np.ascontiguousarray(z, dtype=np.float32).reshape(len(z), -1)
-        c = np.ascontiguousarray(self.centroids, dtype=np.float32)
+        c = np.ascontiguousarray(self.centroids if centroids is None else centroids, dtype=np.float32)
         return cal.RowCalibration(self.cosines, self.tables, kernels.nearest_rows(x, c))
 
     def to_text(self) -> str:

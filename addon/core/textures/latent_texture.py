@@ -13,6 +13,7 @@ OpenImageIO ships inside Blender and the bpy wheel; inside Blender's Python (or 
 from __future__ import annotations
 
 import os
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,7 +23,7 @@ from .. import kernels
 from ..neural.top_lobe import NO_TOP
 from ..stack import LATENT as LATENT_DIM
 from . import files
-from .mip import HALF_MAX, MipChain, build_mip_chain, trilinear_lookup
+from .mip import HALF_MAX, MipChain, build_mip_chain, check_half_range, trilinear_lookup
 
 CHANNELS = 3
 LATENT_CHANNELS = [f"z.{c}.{i:02d}" for c in "RGB" for i in range(LATENT_DIM)]
@@ -30,6 +31,9 @@ PROXY_CHANNELS = ["proxy.sigma", "proxy.w"]
 TOP_CHANNELS = ["top.alpha", "top.ior"]
 CHANNEL_NAMES = LATENT_CHANNELS + PROXY_CHANNELS + TOP_CHANNELS
 TILE = 64
+# texels projected at once (``LatentTexture.projected``): a band's float32 latents and products stay under a few MB
+PROJECT_TEXELS = 8192
+_PROJECTING = threading.Lock()
 # rows of a level read at once (``_read_level``): below malloc's largest mmap threshold (32 MB), so that each band's
 # buffer reuses the last one's memory; 64 MB bands were mapped and faulted in afresh, 2 s of a 2048 x 2048 read
 READ_BAND_BYTES = 16 << 20
@@ -108,6 +112,8 @@ class LatentTexture:
 
     levels: list[np.ndarray]
     metadata: dict = field(default_factory=dict)
+    # ``projected``'s textures, by decoder
+    _projections: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self):
         if not isinstance(self.levels, MipChain):
@@ -143,6 +149,37 @@ class LatentTexture:
         footprint in uv units, on the levels the bake found filterable (``filter_levels``)."""
         z, rest = trilinear_lookup(self.levels, uv, footprint, self.filter_levels, split=CHANNELS * LATENT_DIM)
         return z.reshape(-1, CHANNELS, LATENT_DIM), rest[:, :2], rest[:, 2:]
+
+    def projected(self, key, project, width: int) -> "ProjectedTexture":
+        """This texture as a decoder's fused graph reads it (:class:`ProjectedTexture`), made once per ``key`` (the
+        decoder's size and folder), then kept with the texture (whose texels are not written
+        after it is made). ``project(z (N, 96) float32, out (N, 3 width) float32)`` is the decoder's
+        ``ModelSet.project_latents``; ``width`` its first layer's. The texels are projected as the texture holds
+        them, a band at a time, and stored in its type."""
+        with _PROJECTING:
+            made = self._projections.get(key)
+            if made is not None:
+                return made
+            zc = CHANNELS * int(width)
+            latents = CHANNELS * LATENT_DIM
+            c = self.levels[0].shape[2]
+            channels = zc + c - latents
+            shapes = [(level.shape[0], level.shape[1], channels) for level in self.levels]
+            chain = MipChain.__new__(MipChain)
+            chain._allocate(shapes, self.levels.dtype)
+            src, dst = self.levels.flat.reshape(-1, c), chain.flat.reshape(-1, channels)
+            products = np.empty((PROJECT_TEXELS, zc), dtype=np.float32)
+            for start in range(0, len(src), PROJECT_TEXELS):  # a loop over bands of texels
+                band = src[start : start + PROJECT_TEXELS].astype(np.float32)
+                out = products[: len(band)]
+                project(np.ascontiguousarray(band[:, :latents]), out)
+                if chain.dtype == np.float16:
+                    check_half_range(out, "a latent texture's texels through the decoder's first layer")
+                d = dst[start : start + len(band)]
+                d[:, :zc], d[:, zc:] = out, band[:, latents:]
+            made = ProjectedTexture(self, chain, zc)
+            self._projections[key] = made
+            return made
 
     def write_exr(self, path: str | os.PathLike) -> None:
         """Write a tiled, mip-mapped, half-float EXR, published atomically (see ``files.publishing``):
@@ -225,6 +262,25 @@ class LatentTexture:
                 f"{path}: filter_levels must be a positive count, got {metadata['filter_levels']!r}"
             )
         return cls(levels, metadata)
+
+
+@dataclass(frozen=True)
+class ProjectedTexture:
+    """A latent texture as a decoder's fused graph reads it (``LatentTexture.projected``): per texel the latents
+    through the decoder's first layer (``zc``, 3W channels), then the proxy's and top coating's channels, on the
+    same levels. The product is affine and a lookup's weights sum to 1, so a lookup here is the projection of the
+    latents' lookup (to rounding): each hit's query rows then skip the latents' layer."""
+
+    texture: LatentTexture
+    levels: MipChain
+    projected_channels: int
+
+    def lookup(self, uv: np.ndarray, footprint) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(zc (N, 3W), proxy (N, 2), top (N, 2))`` at uv, as ``LatentTexture.lookup``."""
+        zc, rest = trilinear_lookup(
+            self.levels, uv, footprint, self.texture.filter_levels, split=self.projected_channels
+        )
+        return zc, rest[:, :2], rest[:, 2:]
 
 
 class LatentTextureError(ValueError):
