@@ -22,7 +22,7 @@ from addon.core.neural.features import FEATURE_NAMES, N_FEATURES
 from onnx_export.cli import command_line
 from onnx_export.evaluate import load_decoder
 from onnx_export.layered_data import data_command, holds_layering_data
-from onnx_export.nets import Decoder, Encoder, RGBDecoder, macs_per_eval, n_params
+from onnx_export.nets import Decoder, Encoder, LatentProjection, RGBDecoder, macs_per_eval, n_params
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"
 OPSET = 17
@@ -67,6 +67,31 @@ def export_rgb_decoder(dec: Decoder, path: Path) -> None:
         opset_version=OPSET,
         dynamo=False,
     )
+
+
+def export_latent_graph(dec: Decoder, path: Path) -> None:
+    """The runtime's projection of latents for the fused graph: z (B, 3, 32) -> zc (B, 3W) (``LatentProjection``)."""
+    torch.onnx.export(
+        LatentProjection(RGBDecoder(dec).eval()).eval(),
+        (torch.zeros(2, 3, 32),),
+        str(path),
+        input_names=["z"],
+        output_names=["zc"],
+        dynamic_axes={"z": {0: "batch"}, "zc": {0: "batch"}},
+        opset_version=OPSET,
+        dynamo=False,
+    )
+
+
+def latent_graph_parity(dec: Decoder, path: Path, n: int = 2048, seed: int = 0) -> float:
+    """Max relative difference between the latent graph (ONNX Runtime) and ``RGBDecoder.project`` in torch."""
+    import onnxruntime as ort
+
+    z = (np.random.default_rng(seed).standard_normal((n, 3, 32)) * 0.5).astype(np.float32)
+    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(["zc"], {"z": z})[0]
+    with torch.no_grad():
+        ref = RGBDecoder(dec).eval().project(torch.from_numpy(z)).numpy()
+    return max_relative_difference(got, ref)
 
 
 def rgb_decoder_parity(dec: Decoder, path: Path, n: int = 2048, seed: int = 0) -> float:
@@ -165,18 +190,27 @@ def macs_rgb_one_material(dec: Decoder) -> int:
     return int(first + 3 * sum(m.in_features * m.out_features for m in lin[1:]))
 
 
-def rgb_graph_card(dec: Decoder, rgb_path: Path) -> dict:
-    """The ``rgb_graph`` entry of a decoder card: the fused graph's contract, cost and parity."""
+def rgb_graph_card(dec: Decoder, rgb_path: Path, latents_path: Path) -> dict:
+    """The ``rgb_graph`` entry of a decoder card: the fused graph's contract, cost and parity, and those of its
+    latent graph."""
     return {
         "file": rgb_path.name,
         "inputs": "zc (1 or B, 3W): latents z (1 or B, 3, 32) times the first layer's latent columns plus its bias, "
-        "the three channels side by side; wi (B, 3), wo (B, 3): directions of any nonzero length",
+        "the three channels side by side (the latent graph's output); wi (B, 3), wo (B, 3): directions of any "
+        "nonzero length",
         "outputs": "f (B, 3), 0 where either direction is at or below the horizon (or zero)",
-        "note": "same weights; the runtime projects the latents (once a material, or once a texel of a latent "
-        "texture); the graph normalises the directions in float32, and computes the direction features and their "
-        "first-layer product once per query",
+        "note": "same weights; the runtime projects the latents with the latent graph (once a material, or once a "
+        "texel of a latent texture); the graph normalises the directions in float32, and computes the direction "
+        "features and their first-layer product once per query",
         "macs_per_rgb_eval_one_material": macs_rgb_one_material(dec),
         "onnx_runtime_vs_torch_max_relative_difference": rgb_decoder_parity(dec, rgb_path),
+        "latent_graph": {
+            "file": latents_path.name,
+            "inputs": "z (B, 3, 32)",
+            "outputs": "zc (B, 3W)",
+            "macs_per_latent": 3 * 32 * RGBDecoder(dec).width,
+            "onnx_runtime_vs_torch_max_relative_difference": latent_graph_parity(dec, latents_path),
+        },
     }
 
 
@@ -209,7 +243,7 @@ def initializers(path: Path) -> dict[str, np.ndarray]:
 
 
 def regraph_decoder(size: str, model_dir: Path = MODEL_DIR) -> dict:
-    """Re-export the two decoder graphs of a shipped size from their own weights, after a change
+    """Re-export the three decoder graphs of a shipped size from their own weights, after a change
     to the graph code (``nets.direction_features``) that leaves the weights alone.
 
     Checks that every weight is bit-identical before and after, refreshes the parity figures of
@@ -222,6 +256,7 @@ def regraph_decoder(size: str, model_dir: Path = MODEL_DIR) -> dict:
 
     dpath = model_dir / f"decoder_{size}.onnx"
     rgb_path = model_dir / f"decoder_{size}_rgb.onnx"
+    latents_path = model_dir / f"decoder_{size}_latents.onnx"
     card_path = dpath.with_suffix(".json")
     card = json.loads(card_path.read_text())
     before = initializers(dpath)
@@ -229,12 +264,13 @@ def regraph_decoder(size: str, model_dir: Path = MODEL_DIR) -> dict:
     dec = torch_from_onnx(dpath, card)
     export_decoder(dec, dpath)
     export_rgb_decoder(dec, rgb_path)
+    export_latent_graph(dec, latents_path)
     after = initializers(dpath)
     if before.keys() != after.keys() or any(not np.array_equal(before[k], after[k]) for k in before):
         raise RuntimeError(f"re-exporting {dpath.name} changed its weights; retrain the models that depend on it")
     card["onnx_runtime_vs_torch_max_relative_difference"] = decoder_parity(dec, dpath)
-    card["rgb_graph"] = rgb_graph_card(dec, rgb_path)
-    card["files"] = {p.name: file_digest(p) for p in (dpath, rgb_path)}
+    card["rgb_graph"] = rgb_graph_card(dec, rgb_path, latents_path)
+    card["files"] = {p.name: file_digest(p) for p in (dpath, rgb_path, latents_path)}
     card_path.write_text(json.dumps(card, indent=1) + "\n")
     new_digest = file_digest(dpath)
     moved = []
@@ -326,8 +362,10 @@ def main(argv=None):
     export_encoder(enc, epath)
     dpar = decoder_parity(dec, dpath)
     rgb_path = a.out / f"decoder_{a.size}_rgb.onnx"
+    latents_path = a.out / f"decoder_{a.size}_latents.onnx"
     export_rgb_decoder(dec, rgb_path)
-    rgb_card = rgb_graph_card(dec, rgb_path)
+    export_latent_graph(dec, latents_path)
+    rgb_card = rgb_graph_card(dec, rgb_path, latents_path)
     rng = np.random.default_rng(1)
     epar = encoder_parity(enc, epath, rng.random((512, N_FEATURES)).astype(np.float32))
     metrics = json.loads(a.metrics.read_text()) if a.metrics else {}
@@ -355,7 +393,7 @@ def main(argv=None):
         ),
         "remainder": remainder,
         "top_transmission": transmission,
-        "files": {p.name: file_digest(p) for p in (dpath, rgb_path)},
+        "files": {p.name: file_digest(p) for p in (dpath, rgb_path, latents_path)},
         "inputs": {
             "z": "(B, 32) float32 latent of one colour channel",
             "wi": "(B, 3) float32 unit, toward the light",
@@ -410,10 +448,6 @@ def main(argv=None):
     }
     dpath.with_suffix(".json").write_text(json.dumps(dcard, indent=1) + "\n")
     epath.with_suffix(".json").write_text(json.dumps(ecard, indent=1) + "\n")
-    # the runtime puts latents through the first layer with these (``ModelSet.project_latents``)
-    from onnx_export.decoder_weights import export_weights
-
-    export_weights(a.size, a.out)
     print(
         json.dumps(
             {

@@ -229,10 +229,10 @@ class RGBDecoder(nn.Module):
 
     zc (Bz, 3W) with Bz = 1 (one material) or B (per row), wi, wo (B, 3) -> f (B, 3). ``zc`` is the latents'
     product with the first layer, bias included (:meth:`project`: ``z (Bz, 3, 32) @ w_z.T + b``, the three
-    channels side by side), which the runtime computes outside the graph: once for a material's latent, once per
-    texel for a latent texture (the product is affine, so it commutes with the texture's filtering), instead of
-    once per query row. The direction features and their first-layer product are computed once per query
-    instead of once per channel: same weights, same values as ``Decoder`` row by row.
+    channels side by side), which the runtime computes outside the graph (``LatentProjection``): once for a
+    material's latent, once per texel for a latent texture (the product is affine, so it commutes with the
+    texture's filtering), instead of once per query row. The direction features and their first-layer product
+    are computed once per query instead of once per channel: same weights, same values as ``Decoder`` row by row.
 
     Unlike ``Decoder`` the directions need not be unit length: the graph normalises them (in
     float32; a zero direction counts as below the horizon), so the runtime hands its directions
@@ -266,6 +266,19 @@ class RGBDecoder(nn.Module):
         else:
             f = nn.functional.softplus(y)
         return f * above  # f is finite (clamped), so this is 0 below the horizon
+
+
+class LatentProjection(nn.Module):
+    """The fused graph's first step as a graph of its own (the runtime's ``decoder_<size>_latents.onnx``): latents
+    z (B, 3, 32) -> zc (B, 3W), ``RGBDecoder.project``. The runtime runs it once a material's latent, once a texel
+    of a latent texture, or once a hit's looked-up latents, and feeds the products to the fused graph."""
+
+    def __init__(self, rgb: RGBDecoder):
+        super().__init__()
+        self.rgb = rgb
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        return self.rgb.project(z)
 
 
 def unit_rows(w: torch.Tensor) -> torch.Tensor:

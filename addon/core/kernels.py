@@ -1396,27 +1396,6 @@ def nearest_rows(x, centres):
     return out
 
 
-@njit(**_JIT)
-def project_latents(out, z, w_t, b):
-    """The latents' products with the decoder's first layer, bias included, as its fused graph takes them
-    (``zc``): ``out`` (M, C W) float32, where row i's channel c holds ``b + z[i, c] @ w_t``, for latents ``z``
-    (M, C L) float32 (each channel's L values side by side), the first layer's latent columns transposed ``w_t``
-    (L, W) and its bias ``b`` (W,) (``ModelSet.project_latents``). A loop for ``nearest_rows``' reason (no BLAS
-    threads beside the render's); each channel's W outputs are independent sums, so the inner loop vectorises as
-    written, and every output is summed in the order k = 0 .. L - 1."""
-    lat, width = w_t.shape[0], w_t.shape[1]
-    for i in range(z.shape[0]):
-        for c in range(z.shape[1] // lat):
-            o = c * width
-            for j in range(width):
-                out[i, o + j] = b[j]
-            for k in range(lat):
-                zk = z[i, c * lat + k]
-                for j in range(width):
-                    out[i, o + j] += zk * w_t[k, j]
-    return out
-
-
 # --- the camera ----------------------------------------------------------------------------------
 
 

@@ -96,7 +96,8 @@ def _fingerprint(size: str, model_dir=None) -> str:
 
     d = Path(model_dir) if model_dir is not None else MODEL_DIR
     parts = []
-    for name in (f"decoder_{size}.onnx", f"decoder_{size}_rgb.onnx", f"encoder_{size}.onnx", f"layering_{size}.onnx"):
+    names = ("decoder", "decoder_{}_rgb", "decoder_{}_latents", "encoder", "layering")
+    for name in (f"{n.format(size)}.onnx" if "{}" in n else f"{n}_{size}.onnx" for n in names):
         p = d / name
         if p.exists():
             st = p.stat()

@@ -6,8 +6,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from addon.core import kernels
 from addon.core.neural import MODEL_DIR, SIZES, load_models
+from addon.core.neural.models import ModelFileError, ModelSet
 from addon.core.render import neural_material
 from addon.core.stack import preset
 from addon.core.textures import LatentTexture
@@ -24,8 +24,9 @@ def _unit_rows(rng, n):
 
 @pytest.mark.parametrize("size", SIZES)
 def test_projection_is_the_first_layer_of_the_shipped_weights(size):
-    """Against the weights file read here in float64 with numpy's product: each channel's 32 latents times the
-    first layer's latent columns, plus its bias, the channels side by side."""
+    """The latent graph against the numpy decoder's weights file (exported from the scalar graph on its own), in
+    float64 with numpy's product: each channel's 32 latents times the first layer's latent columns, plus its
+    bias, the channels side by side."""
     models = load_models(size)
     with np.load(MODEL_DIR / f"decoder_{size}_weights.npz") as npz:
         w, b = npz["w0_latent"].astype(np.float64), npz["b0"].astype(np.float64)
@@ -124,14 +125,20 @@ def test_texel_centres_choose_their_clusters_table_by_the_projected_centroids(ba
     )[0]
     by_latents = calibration.at(z).which
     assert len(set(by_latents)) == 2
-    np.testing.assert_array_equal(calibration.at(zc, models.project_latents(calibration.centroids)).which, by_latents)
+    np.testing.assert_array_equal(
+        calibration.at(zc, models.project_latents(calibration.centroids.reshape(-1, 3, 32))).which, by_latents
+    )
 
 
-def test_the_projection_kernel_sums_each_output_in_order():
-    """``kernels.project_latents`` on values whose sums are exact in float32: the exact products."""
-    rng = np.random.default_rng(5)
-    z = rng.integers(-4, 5, size=(7, 6)).astype(np.float32)  # two channels of three latents
-    w_t = rng.integers(-4, 5, size=(3, 4)).astype(np.float32)
-    b = rng.integers(-4, 5, size=4).astype(np.float32)
-    out = kernels.project_latents(np.empty((7, 8), np.float32), z, w_t, b)
-    np.testing.assert_array_equal(out, np.concatenate([z[:, :3] @ w_t + b, z[:, 3:] @ w_t + b], axis=1))
+def test_a_card_that_names_the_fused_graph_must_name_its_latent_graph(tmp_path):
+    import json
+    import shutil
+
+    for f in MODEL_DIR.glob("*_tiny*"):
+        shutil.copy(f, tmp_path / f.name)
+    card_path = tmp_path / "decoder_tiny.json"
+    card = json.loads(card_path.read_text())
+    del card["files"]["decoder_tiny_latents.onnx"]
+    card_path.write_text(json.dumps(card))
+    with pytest.raises(ModelFileError, match="decoder_tiny_latents.onnx"):
+        ModelSet("tiny", model_dir=tmp_path)

@@ -551,6 +551,7 @@ def test_onnx_runtime_equals_torch(size):
     assert export.decoder_parity(dec, dpath, n=2048) <= 1e-4
     rgb = MODEL_DIR / f"decoder_{size}_rgb.onnx"  # the runtime's fused graph: same weights, same values
     assert export.rgb_decoder_parity(dec, rgb, n=1024) <= 1e-4
+    assert export.latent_graph_parity(dec, MODEL_DIR / f"decoder_{size}_latents.onnx", n=1024) <= 1e-4  # its input
     epath = MODEL_DIR / f"encoder_{size}.onnx"
     enc = export.torch_from_onnx(epath, json.loads(epath.with_suffix(".json").read_text()))
     x = rng.random((256, N_FEATURES)).astype(np.float32)

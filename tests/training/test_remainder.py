@@ -136,7 +136,7 @@ def test_a_layering_network_that_does_not_match_the_shipped_decoder_is_refused_b
     from addon.core.neural import MODEL_DIR
     from onnx_export import layering
 
-    for name in ("decoder_small.onnx", "decoder_small_rgb.onnx"):
+    for name in ("decoder_small.onnx", "decoder_small_rgb.onnx", "decoder_small_latents.onnx"):
         shutil.copy(MODEL_DIR / name, tmp_path / name)
     card = json.loads((MODEL_DIR / "decoder_small.json").read_text())
     card["remainder"] = decoder_remainder

@@ -8,8 +8,8 @@ Every decoder size has its own latent space, so a size ships as a set of files i
 
 - ``decoder_<size>.onnx`` (inputs ``z`` (B, 32), ``wi``, ``wo`` (B, 3); output ``f`` (B,)) and its fused
   RGB graph ``decoder_<size>_rgb.onnx`` (same weights; ``zc`` (1 or B, 3W) -> ``f`` (B, 3), where ``zc`` is the
-  latents through the first layer, :meth:`ModelSet.project_latents`, with the weights of
-  ``decoder_<size>_weights.npz``);
+  latents through the first layer: ``decoder_<size>_latents.onnx``, ``z`` (B, 3, 32) -> ``zc``,
+  :meth:`ModelSet.project_latents`);
 - ``encoder_<size>.onnx`` (input ``x`` (B, N_FEATURES); output ``z`` (B, 32));
 - ``layering_<size>.onnx`` (``z_top``, ``z_bottom`` (B, 32), ``albedo``, ``thickness`` (B,) -> ``z``);
 - ``sampling_<size>.onnx`` (``z`` (B, 3, 32) -> ``sigma``, ``w`` (B,)).
@@ -292,7 +292,14 @@ class ModelSet:
         rgb = self.model_dir / f"decoder_{size}_rgb.onnx"
         self._rgb = _session(rgb, self.threads, chunk) if rgb.name in self.card("decoder")["files"] else None
         self.width = int(width)
-        self._first_layer = None  # (w_t (32, W), b (W,)) float32 for the fused graph's zc, read when first needed
+        self._latent_graph = None  # z (B, 3, 32) -> zc (B, 3W), the fused graph's input (``project_latents``)
+        if self._rgb is not None:
+            latents = self.model_dir / f"decoder_{size}_latents.onnx"
+            if latents.name not in self.card("decoder")["files"]:
+                raise ModelFileError(
+                    f"{self.decoder_path.stem}.json names {rgb.name} but not {latents.name}, which makes its input"
+                )
+            self._latent_graph = _session(latents, self.threads, chunk)
         self._load("encoder")
         # the decoder holds the remainder design's rest of the BRDF: eval_brdf adds the exact top lobe
         self.remainder = self.card("decoder").get("remainder", False) is True
@@ -330,24 +337,23 @@ class ModelSet:
         """Whether the decoder takes latents through :meth:`project_latents` (the fused RGB graph is shipped)."""
         return self._rgb is not None
 
-    def project_latents(self, z, out: np.ndarray | None = None) -> np.ndarray:
+    def project_latents(self, z) -> np.ndarray:
         """(N, 3W) float32: latents ``z`` (N, 3, 32) ((3, 32) gives one row) through the decoder's first layer, bias
-        included, the three channels side by side: what its fused graph takes (``zc``). A material's latent is
-        projected once a query, a latent texture's once a texel (``LatentTexture.projected``): the product is
-        affine, so it commutes with the texture's filtering. The weights are the numpy decoder's
-        (:func:`decoder_weights`, checked against the ONNX file they were exported from)."""
-        if self._first_layer is None:
-            with _LOADING:
-                if self._first_layer is None:
-                    arrays = decoder_weights(self.size, self.model_dir)
-                    w_t = np.ascontiguousarray(np.asarray(arrays["w0_latent"], dtype=np.float32).T)
-                    self._first_layer = (w_t, np.ascontiguousarray(arrays["b0"], dtype=np.float32))
-        w_t, b = self._first_layer
-        # writeable as well as contiguous (a material's cached latent is read-only): one compiled signature
-        z = np.require(z, np.float32, ("C", "W")).reshape(-1, 3 * LATENT)
-        if out is None:
-            out = np.empty((len(z), 3 * self.width), dtype=np.float32)
-        return kernels.project_latents(out, z, w_t, b)
+        included, the three channels side by side: what its fused graph takes (``zc``), from the latent graph
+        (``decoder_<size>_latents.onnx``; its time counts as the networks'). A material's latent is projected once
+        a query, a latent texture's once a texel (``LatentTexture.projected``): the product is affine, so it
+        commutes with the texture's filtering."""
+        if not self.projects_latents:
+            raise ValueError(f"decoder_{self.size} has no fused graph to take projected latents")
+        z = latents(z)
+        out = np.empty((len(z), 3 * self.width), dtype=np.float32)
+        session = self._latent_graph
+
+        def chunk(rows: slice) -> None:  # runs on the session's threads
+            out[rows] = session.run_once(["zc"], {"z": z[rows]})[0]
+
+        session.map(chunk, len(z))
+        return out
 
     def load(self, *roles: str) -> "ModelSet":
         """Load (and check) the networks ``roles`` now rather than when first used; returns the set."""
@@ -546,38 +552,6 @@ class ModelSet:
             with_top_lobe,
             kernels.EVERY_ROW if z_rows is None else np.ascontiguousarray(z_rows, dtype=np.int64),
         )
-
-
-class StaleWeightsError(RuntimeError):
-    """The numpy weights were exported from another version of the decoder's ONNX file."""
-
-
-def decoder_weights(size: str, model_dir: Path | str | None = None) -> dict:
-    """The arrays of ``decoder_<size>_weights.npz``, the decoder's weights for numpy (``refine.NumpyDecoder``, and
-    the first layer of :meth:`ModelSet.project_latents`); raises FileNotFoundError when it is missing and
-    StaleWeightsError when it was exported from another version of ``decoder_<size>.onnx``."""
-    if size not in SIZES:
-        raise ValueError(f"unknown decoder size {size!r}; sizes are {list(SIZES)}")
-    d = Path(model_dir) if model_dir is not None else MODEL_DIR
-    path = d / f"decoder_{size}_weights.npz"
-    if not path.exists():
-        raise FileNotFoundError(
-            f"{path.name} is missing from the models folder; export it with "
-            f"python -m onnx_export.decoder_weights --sizes {size}"
-        )
-    with np.load(path, allow_pickle=False) as npz:
-        arrays = {k: npz[k] for k in npz.files}
-    onnx_path = d / f"decoder_{size}.onnx"
-    if not onnx_path.exists():
-        raise FileNotFoundError(f"{onnx_path.name} is missing from the models folder")
-    digest = file_digest(onnx_path)
-    if str(arrays["onnx_sha256"]) != digest:
-        raise StaleWeightsError(
-            f"{path.name} was exported from another version of {onnx_path.name} "
-            f"(sha256 {str(arrays['onnx_sha256'])[:12]}..., the file is {digest[:12]}...): "
-            f"run python -m onnx_export.decoder_weights --sizes {size}"
-        )
-    return arrays
 
 
 _CACHE: dict[tuple[str, int, Path], ModelSet] = {}

@@ -61,15 +61,7 @@ import numpy as np
 from ..bsdf.frame import dot
 from ..stack import LATENT, Stack
 from .encode import encode_stack
-from .models import (  # noqa: F401  (StaleWeightsError: raised by NumpyDecoder.load, named here)
-    MODEL_DIR,
-    StaleWeightsError,
-    _unit_or_up,
-    decoder_weights,
-    file_digest,
-    load_models,
-    resolve_size,
-)
+from .models import MODEL_DIR, SIZES, _unit_or_up, file_digest, load_models, resolve_size
 from .top_lobe import NO_TOP, eval_top, remainder_scale, top_coat
 
 # Lobe values up to about this many times the group's mean count as absolute errors (the lobe metric), above
@@ -77,6 +69,10 @@ from .top_lobe import NO_TOP, eval_top, remainder_scale, top_coat
 PEAK_RATIO = 30.0
 REFINE_VERSION = 5  # part of the cache key: bump when the procedure changes what it returns
 GRAZING_COS = (float(np.cos(np.radians(89.5))), float(np.cos(np.radians(80.0))))
+
+
+class StaleWeightsError(RuntimeError):
+    """The numpy weights were exported from another version of the decoder's ONNX file."""
 
 
 # ---------------------------------------------------------------------- the decoder in numpy
@@ -129,7 +125,28 @@ class NumpyDecoder:
     def load(cls, size: str, model_dir: Path | str | None = None, dtype=np.float32) -> "NumpyDecoder":
         """The weights of ``decoder_<size>.onnx``; raises FileNotFoundError when the weights file is
         missing and StaleWeightsError when it was exported from another version of the ONNX file."""
-        return cls(decoder_weights(size, model_dir), size, dtype)
+        if size not in SIZES:
+            raise ValueError(f"unknown decoder size {size!r}; sizes are {list(SIZES)}")
+        d = Path(model_dir) if model_dir is not None else MODEL_DIR
+        path = d / f"decoder_{size}_weights.npz"
+        if not path.exists():
+            raise FileNotFoundError(
+                f"{path.name} is missing from the models folder; export it with "
+                f"python -m onnx_export.decoder_weights --sizes {size}"
+            )
+        with np.load(path, allow_pickle=False) as npz:
+            arrays = {k: npz[k] for k in npz.files}
+        onnx_path = d / f"decoder_{size}.onnx"
+        if not onnx_path.exists():
+            raise FileNotFoundError(f"{onnx_path.name} is missing from the models folder")
+        digest = file_digest(onnx_path)
+        if str(arrays["onnx_sha256"]) != digest:
+            raise StaleWeightsError(
+                f"{path.name} was exported from another version of {onnx_path.name} "
+                f"(sha256 {str(arrays['onnx_sha256'])[:12]}..., the file is {digest[:12]}...): "
+                f"run python -m onnx_export.decoder_weights --sizes {size}"
+            )
+        return cls(arrays, size, dtype)
 
     def _features_product(self, wi, wo):
         a, ok_a = _unit_or_up(np.asarray(wi, dtype=np.float64))

@@ -214,7 +214,7 @@ class NeuralMaterial:
         if not hasattr(self.texture, "projected") or not models.projects_latents or models.width > LATENT:
             return None
         if self.calibration is not None and self._projected_centroids is None:
-            self._projected_centroids = models.project_latents(self.calibration.centroids)
+            self._projected_centroids = models.project_latents(self.calibration.centroids.reshape(-1, 3, LATENT))
         key = (models.size, str(models.model_dir))
         return self.texture.projected(key, models.project_latents, models.width)
 

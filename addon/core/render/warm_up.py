@@ -49,7 +49,7 @@ def warm_scene(environment_image: bool):
 def warm_up() -> None:
     """Render the warm-up scenes once each (one thread, one sample, analytic materials), and run the
     neural materials' loops (the sampling proxy, the albedo calibration and a latent texture's choice of
-    table and its half-float taps, the latents through the decoder's first layer, the exact top coat) on a few rows,
+    table and its half-float taps, the exact top coat) on a few rows,
     with the argument types a render passes."""
     from .. import kernels
     from ..neural import proxy, top_lobe
@@ -76,8 +76,6 @@ def warm_up() -> None:
         kernels.decoded_brdf(f32, wi, wo, calibration, coat, grids, True, True, kernels.EVERY_ROW)
     kernels.transmission_rows(top, wo[:, 2].copy(), *grids)
     kernels.nearest_rows(np.zeros((2, 96), np.float32), np.ones((3, 96), np.float32))  # a latent texture's tables
-    z32, w32 = np.zeros((2, 96), np.float32), np.zeros((32, 32), np.float32)  # latents through the first layer
-    kernels.project_latents(np.empty((2, 96), np.float32), z32, w32, w32[0])
     # a latent texture read from its file: half floats (the image texture above took the float32 loop)
     trilinear_lookup(MipChain([np.zeros((1, 1, 100))], dtype=np.float16), np.zeros((2, 2)), 0.0)
     kernels.take_half_channels(np.zeros((1, 3), np.uint16), np.arange(2, dtype=np.int64), np.zeros((1, 2), np.uint16))

@@ -153,8 +153,8 @@ class LatentTexture:
     def projected(self, key, project, width: int) -> "ProjectedTexture":
         """This texture as a decoder's fused graph reads it (:class:`ProjectedTexture`), made once per ``key`` (the
         decoder's size and folder), then kept with the texture (whose texels are not written
-        after it is made). ``project(z (N, 96) float32, out (N, 3 width) float32)`` is the decoder's
-        ``ModelSet.project_latents``; ``width`` its first layer's. The texels are projected as the texture holds
+        after it is made). ``project(z (N, 3, 32)) -> (N, 3 width)`` is the decoder's ``ModelSet.project_latents``;
+        ``width`` its first layer's. The texels are projected as the texture holds
         them, a band at a time, and stored in its type."""
         with _PROJECTING:
             made = self._projections.get(key)
@@ -168,11 +168,9 @@ class LatentTexture:
             chain = MipChain.__new__(MipChain)
             chain._allocate(shapes, self.levels.dtype)
             src, dst = self.levels.flat.reshape(-1, c), chain.flat.reshape(-1, channels)
-            products = np.empty((PROJECT_TEXELS, zc), dtype=np.float32)
             for start in range(0, len(src), PROJECT_TEXELS):  # a loop over bands of texels
                 band = src[start : start + PROJECT_TEXELS].astype(np.float32)
-                out = products[: len(band)]
-                project(np.ascontiguousarray(band[:, :latents]), out)
+                out = project(band[:, :latents].reshape(-1, CHANNELS, LATENT_DIM))
                 if chain.dtype == np.float16:
                     check_half_range(out, "a latent texture's texels through the decoder's first layer")
                 d = dst[start : start + len(band)]
