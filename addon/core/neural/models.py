@@ -52,7 +52,7 @@ MODEL_DIR = Path(__file__).resolve().parents[2] / "models"
 SIZES = ("tiny", "small", "medium", "paper")
 AUTO = "auto"
 # The size the renderer, the previews and the bakes use when the setting is "auto": the fastest
-# (docs/decoders_bench.md, 2-core development machine: tiny 3.8 M, small 1.7 M RGB evaluations per
+# (docs/decoders_bench.md, 2-core development machine: tiny 5.7 M, small 2.5 M RGB evaluations per
 # second); larger sizes are chosen explicitly or per material by the render quality setting
 # (``addon.core.quality``).
 DEFAULT_SIZE = "tiny"
