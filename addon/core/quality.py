@@ -96,8 +96,8 @@ def _fingerprint(size: str, model_dir=None) -> str:
 
     d = Path(model_dir) if model_dir is not None else MODEL_DIR
     parts = []
-    names = ("decoder", "decoder_{}_rgb", "decoder_{}_latents", "encoder", "layering")
-    for name in (f"{n.format(size)}.onnx" if "{}" in n else f"{n}_{size}.onnx" for n in names):
+    decoder = (f"decoder_{size}.onnx", f"decoder_{size}_rgb.onnx", f"decoder_{size}_latents.onnx")
+    for name in (*decoder, f"encoder_{size}.onnx", f"layering_{size}.onnx"):
         p = d / name
         if p.exists():
             st = p.stat()

@@ -134,7 +134,7 @@ class LatentTexture:
     def filter_levels(self) -> int:
         """How many levels (finest first) lookups use: the bake's measurement (``textures.filtering``, the
         metadata's ``filter_levels``), else all of them."""
-        return max(1, min(int(self.metadata.get("filter_levels", len(self.levels))), len(self.levels)))
+        return _filter_levels(self.metadata, len(self.levels))
 
     @property
     def width(self) -> int:
@@ -152,10 +152,9 @@ class LatentTexture:
 
     def projected(self, key, project, width: int) -> "ProjectedTexture":
         """This texture as a decoder's fused graph reads it (:class:`ProjectedTexture`), made once per ``key`` (the
-        decoder's size and folder), then kept with the texture (whose texels are not written
-        after it is made). ``project(z (N, 3, 32)) -> (N, 3 width)`` is the decoder's ``ModelSet.project_latents``;
-        ``width`` its first layer's. The texels are projected as the texture holds
-        them, a band at a time, and stored in its type."""
+        decoder's size and folder), then kept with the texture (whose texels are not written after it is made).
+        ``project(z (N, 3, 32)) -> (N, 3 width)`` is the decoder's ``ModelSet.project_latents``; ``width`` its first
+        layer's. The texels are projected as the texture holds them, a band at a time, and stored in its type."""
         with _PROJECTING:
             made = self._projections.get(key)
             if made is not None:
@@ -175,7 +174,7 @@ class LatentTexture:
                     check_half_range(out, "a latent texture's texels through the decoder's first layer")
                 d = dst[start : start + len(band)]
                 d[:, :zc], d[:, zc:] = out, band[:, latents:]
-            made = ProjectedTexture(self, chain, zc)
+            made = ProjectedTexture(self.metadata, chain, zc)
             self._projections[key] = made
             return made
 
@@ -269,16 +268,20 @@ class ProjectedTexture:
     same levels. The product is affine and a lookup's weights sum to 1, so a lookup here is the projection of the
     latents' lookup (to rounding): each hit's query rows then skip the latents' layer."""
 
-    texture: LatentTexture
+    metadata: dict  # the texture's (its ``filter_levels``), not the texture: no cycle keeps a texture alive
     levels: MipChain
     projected_channels: int
 
     def lookup(self, uv: np.ndarray, footprint) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(zc (N, 3W), proxy (N, 2), top (N, 2))`` at uv, as ``LatentTexture.lookup``."""
-        zc, rest = trilinear_lookup(
-            self.levels, uv, footprint, self.texture.filter_levels, split=self.projected_channels
-        )
+        levels = _filter_levels(self.metadata, len(self.levels))
+        zc, rest = trilinear_lookup(self.levels, uv, footprint, levels, split=self.projected_channels)
         return zc, rest[:, :2], rest[:, 2:]
+
+
+def _filter_levels(metadata: dict, n_levels: int) -> int:
+    """``LatentTexture.filter_levels`` of a texture with ``metadata`` and ``n_levels`` levels."""
+    return max(1, min(int(metadata.get("filter_levels", n_levels)), n_levels))
 
 
 class LatentTextureError(ValueError):
