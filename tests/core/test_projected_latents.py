@@ -142,3 +142,21 @@ def test_a_card_that_names_the_fused_graph_must_name_its_latent_graph(tmp_path):
     card_path.write_text(json.dumps(card))
     with pytest.raises(ModelFileError, match="decoder_tiny_latents.onnx"):
         ModelSet("tiny", model_dir=tmp_path)
+
+
+def test_a_texture_and_its_projection_go_with_the_texture_s_last_reference():
+    """No reference cycle: a released texture (up to a gigabyte, with as much again projected) is freed at once,
+    not left to the cyclic collector."""
+    import gc
+    import weakref
+
+    models = load_models("tiny")
+    texture = LatentTexture.from_texels(np.zeros((4, 4, 100), np.float32))
+    texture.projected((models.size, str(models.model_dir)), models.project_latents, models.width)
+    gone = weakref.ref(texture)
+    gc.disable()
+    try:
+        del texture
+        assert gone() is None
+    finally:
+        gc.enable()
