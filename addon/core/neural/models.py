@@ -229,6 +229,18 @@ def _float32_rows(w: np.ndarray) -> np.ndarray:
     return w.astype(np.float32)
 
 
+def _checked_rows(z_rows, n: int, m: int, of: str) -> np.ndarray:
+    """``eval_brdf``'s ``z_rows``: ``n`` integer rows of the ``m`` rows of ``of`` (z or zc), or ValueError."""
+    z_rows = np.asarray(z_rows)
+    if z_rows.shape != (n,) or z_rows.dtype.kind not in "iu":
+        raise ValueError(f"z_rows must be {n} integer rows of {of}; got {z_rows.dtype} {z_rows.shape}")
+    if n and (z_rows.min() < 0 or z_rows.max() >= m):
+        raise ValueError(
+            f"z_rows must index {of}'s {m} rows (integer rows 0..{m - 1}), got {z_rows.min()}..{z_rows.max()}"
+        )
+    return z_rows
+
+
 def _latents_of_rows(z, n: int, z_rows) -> tuple[np.ndarray, bool, np.ndarray | None]:
     """``eval_brdf``'s latents for ``n`` rows: ``(z float32, per row?, z_rows)``, checked (module docstring of
     ``eval_brdf``: one (3, 32), one per row (n, 3, 32), or rows ``z_rows`` (n,) of (M, 3, 32))."""
@@ -236,15 +248,9 @@ def _latents_of_rows(z, n: int, z_rows) -> tuple[np.ndarray, bool, np.ndarray | 
         raise ValueError("z must be real, got complex values")
     z = np.asarray(z, dtype=np.float32)
     if z_rows is not None:
-        z_rows = np.asarray(z_rows)
-        if z.ndim != 3 or z.shape[1:] != (3, LATENT) or z_rows.shape != (n,) or z_rows.dtype.kind not in "iu":
-            raise ValueError(
-                f"z_rows must be {n} integer rows of z (M, 3, {LATENT}); got {z_rows.dtype} {z_rows.shape} for z "
-                f"{z.shape}"
-            )
-        if n and (z_rows.min() < 0 or z_rows.max() >= len(z)):
-            raise ValueError(f"z_rows must index z's {len(z)} rows, got {z_rows.min()}..{z_rows.max()}")
-        return z, True, z_rows
+        if z.ndim != 3 or z.shape[1:] != (3, LATENT):
+            raise ValueError(f"z_rows reads rows of latents z (M, 3, {LATENT}), got z {z.shape}")
+        return z, True, _checked_rows(z_rows, n, len(z), "z")
     if z.shape == (3, LATENT):
         return z, False, None
     if z.ndim == 3 and z.shape[1:] == (3, LATENT) and z.shape[0] == n:
@@ -523,14 +529,7 @@ class ModelSet:
             if len(zc) != n:
                 raise ValueError(f"zc has {len(zc)} rows for {n} directions (give z_rows to read rows of it)")
             return zc, None
-        z_rows = np.asarray(z_rows)
-        if (
-            z_rows.shape != (n,)
-            or z_rows.dtype.kind not in "iu"
-            or (n and (z_rows.min() < 0 or z_rows.max() >= len(zc)))
-        ):
-            raise ValueError(f"z_rows must be {n} integer rows of zc's {len(zc)}")
-        return zc, z_rows
+        return zc, _checked_rows(z_rows, n, len(zc), "zc")
 
     def _finish(self, out, calibration, t, wi, wo, unit: bool, with_top_lobe: bool, z_rows, m: int) -> np.ndarray:
         """``eval_brdf``'s work after the decoder, on its ``out`` in place, in one compiled pass

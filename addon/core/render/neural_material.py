@@ -203,13 +203,13 @@ class NeuralMaterial:
 
     def _projected_texture(self):
         """The latent texture as the decoder's fused graph reads it (``LatentTexture.projected``), when its
-        projected latents are no wider than the latents (the tiny decoder's 32 channels: the same memory and taps,
-        and each query row skips the latents' layer); None otherwise, and the runtime projects the looked-up
-        latents of each query instead. A calibration then chooses each hit's table by the centroid nearest its
-        projected latents (its centroids projected the same way): the distance the decoder sees. The latents'
-        own distance also counts directions the tiny decoder all but ignores (its first layer's latent columns
-        have a condition number of about 1,200), and keeping the latents beside the products for it doubled the
-        taps, which cost what the products saved."""
+        projected latents are no wider than the latents (the tiny decoder's 32 channels: the same taps, in a second
+        chain as large as the texture's, and each query row skips the latents' layer); None otherwise, and the
+        runtime projects each hit's looked-up latents once a bounce instead. A calibration then chooses each hit's
+        table by the centroid nearest its projected latents (its centroids projected the same way): the distance
+        the decoder sees. The latents' own distance also counts directions the tiny decoder all but ignores (its
+        first layer's latent columns have a condition number of about 1,200), and keeping the latents beside the
+        products for it doubled the taps, which cost what the products saved."""
         models = self.models
         if not hasattr(self.texture, "projected") or not models.projects_latents or models.width > LATENT:
             return None
