@@ -138,7 +138,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", default="tiny", help="decoder size (its encoder/layering/sampling models are used)")
     ap.add_argument("--res", type=int, default=512, help="texture side in texels")
-    ap.add_argument("--out", type=Path, default=ROOT / "docs")
+    ap.add_argument("--out", type=Path, default=ROOT / "docs", help="folder for bake.md and the chart (made if missing)")
     ap.add_argument(
         "--peak-memory",
         type=int,
@@ -148,6 +148,7 @@ def main(argv=None) -> int:
         help="texture sides whose bake's peak memory is measured, each in a fresh process (none: skip)",
     )
     args = ap.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
     import bpy
 
     bpy.utils.expose_bundled_modules()

@@ -93,6 +93,20 @@ def _half_to_float32(typingctx, bits):
 
 
 @intrinsic
+def _float32_to_half_bits(typingctx, x):
+    """The bit pattern (uint16) of the float32 ``x`` rounded to a half float, to nearest with ties to even as
+    numpy rounds it, by the CPU (``fptrunc``: needs :data:`NATIVE_HALF`; elsewhere LLVM would call a runtime
+    function the JIT may not have)."""
+    if not (isinstance(x, types.Float) and x.bitwidth == 32):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(builder.fptrunc(args[0], ir.HalfType()), ir.IntType(16))
+
+    return types.uint16(x), codegen
+
+
+@intrinsic
 def _half_bits_to_float32(typingctx, bits):
     """The float32 of the half float whose bit pattern is the uint16 ``bits``, in three 32-bit integer operations
     and one product: sign, exponent and mantissa shifted into a float32's places (sign-extended, shifted, the
@@ -140,6 +154,31 @@ def _texel(flat, i):
             return lambda flat, i: _half_to_float32(flat[i])
         return lambda flat, i: _half_bits_to_float32(flat[i])
     return lambda flat, i: flat[i]
+
+
+@njit(**_JIT)
+def halves_to_float32(bits, out):
+    """``out[i]`` (float32) = the half float whose bit pattern is ``bits[i]`` (uint16; both flat): :func:`texel`'s
+    conversion, by the CPU where it has one (numpy converts half floats in software, at a quarter of the pace)."""
+    for i in range(len(bits)):
+        out[i] = texel(bits, i)
+
+
+@njit(**_JIT)
+def float32_to_halves(values, limit, bits):
+    """``bits[i, k]`` = the bit pattern of ``values[i, k]`` (float32; both (N, C)) rounded to a half float, to
+    nearest with ties to even (as numpy rounds), when every value is finite and within +-``limit``; returns -1.
+    Otherwise returns the row of the first value that is not, having written nothing. Needs :data:`NATIVE_HALF`."""
+    for i in range(values.shape[0]):
+        ok = True
+        for k in range(values.shape[1]):  # no exit inside a row: the test vectorises (a branch per value: 2.4x)
+            ok &= abs(values[i, k]) <= limit  # nan fails it
+        if not ok:
+            return i
+    for i in range(values.shape[0]):
+        for k in range(values.shape[1]):
+            bits[i, k] = _float32_to_half_bits(values[i, k])
+    return -1
 
 
 @njit(inline="always", **_JIT)

@@ -561,6 +561,53 @@ def test_a_grid_cell_found_from_a_guess_is_the_binary_searchs_whatever_the_guess
         np.testing.assert_array_equal(got[:, 2], i)
 
 
+def _halfway_values():
+    """float32 values where rounding to a half is hard: every tie between two adjacent finite halves (subnormal
+    ones included), the float32 on either side of each, and random bit patterns within the half range."""
+    bits = np.arange(1 << 15, dtype=np.uint16)  # the non-negative halves
+    halves = bits.view(np.float16).astype(np.float32)
+    halves = halves[np.isfinite(halves)]
+    ties = (halves[:-1] + halves[1:]) / 2  # exact in float32: halves have 11 significant bits
+    near = np.concatenate([ties, np.nextafter(ties, 0), np.nextafter(ties, np.inf), halves])
+    rng = np.random.default_rng(5)
+    random = rng.integers(0, 2**32, size=400_000, dtype=np.uint64).astype(np.uint32).view(np.float32)
+    values = np.concatenate([near, -near, random[np.abs(random) <= 65504.0]])
+    return values[: len(values) // 8 * 8].reshape(-1, 8)
+
+
+@pytest.mark.skipif(not kernels.NATIVE_HALF, reason="the loop needs the CPU's half conversions (x86 F16C, ARM64)")
+def test_float32_rounds_to_the_half_numpy_gives_in_the_compiled_loop():
+    """``float32_to_halves``: numpy's rounding of each float32 to a half (to nearest, ties to even, into the
+    subnormals) at ties and beside them; a value past the limit (inf, nan, beyond it) anywhere refuses the whole
+    array, naming its row, with nothing written; and a strided output (columns of a wider array) is written in
+    place."""
+    values = _halfway_values()
+    out = np.zeros(values.shape, np.uint16)
+    assert kernels.float32_to_halves(values, 65504.0, out) == -1
+    np.testing.assert_array_equal(out, values.astype(np.float16).view(np.uint16))
+    for bad in (np.inf, -np.inf, np.nan, 65504.0039):
+        spoilt = values.copy()
+        spoilt[77, 3] = bad
+        held = np.zeros(values.shape, np.uint16)
+        assert kernels.float32_to_halves(spoilt, 65504.0, held) == 77
+        assert not held.any()
+    edge = np.array([[65504.0039, 65519.996, -65519.996]], np.float32)
+    wide = np.zeros((1, 5), np.uint16)
+    assert kernels.float32_to_halves(edge, float(np.float32(65519.996)), wide[:, 1:4]) == -1
+    np.testing.assert_array_equal(wide[0, 1:4].view(np.float16), [65504.0, 65504.0, -65504.0])
+    assert wide[0, 0] == wide[0, 4] == 0
+
+
+def test_halves_convert_to_the_float32_numpy_gives_in_the_compiled_loop():
+    """``halves_to_float32``: every finite half, as numpy converts it (the texture taps' conversion, by the CPU
+    where it can)."""
+    bits = np.arange(1 << 16, dtype=np.uint16)
+    bits = bits[np.isfinite(bits.view(np.float16))]
+    out = np.empty(len(bits), np.float32)
+    kernels.halves_to_float32(bits, out)
+    np.testing.assert_array_equal(out.view(np.uint32), bits.view(np.float16).astype(np.float32).view(np.uint32))
+
+
 def test_take_half_channels_reorders_and_counts_what_is_not_finite():
     """The read's channel reorder: numpy's take of the same bit patterns, and the count and first place (in the
     output's order) of the halves that are inf or nan, whatever their sign and payload; finite ones (the largest

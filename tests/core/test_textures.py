@@ -168,6 +168,33 @@ def test_a_half_float_chain_refuses_texels_a_half_cannot_hold_and_writes_none_of
     np.testing.assert_array_equal(chain.flat, held)  # the next level's texels too
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+def test_texels_stored_as_halves_are_numpys_halves_with_or_without_the_compiled_loop(compiled, monkeypatch):
+    """``store_texels`` and ``float32_texels``, with the compiled conversions and with numpy's (a CPU without half
+    conversions): the same halves as numpy's rounding, into a strided output too; a value beyond the limit
+    refused with nothing written; and halves back to the float32 numpy gives."""
+    from addon.core import kernels
+    from addon.core.textures.mip import HALF_ROUNDS_FINITE, float32_texels, store_texels
+
+    if not compiled:
+        monkeypatch.setattr(kernels, "NATIVE_HALF", False)
+    rng = np.random.default_rng(3)
+    values = (rng.standard_normal((500, 7)) * np.logspace(-9, 4, 7)).astype(np.float32)
+    wide = np.zeros((500, 9), np.float16)
+    store_texels(values, wide[:, 1:8], "texels")
+    np.testing.assert_array_equal(wide[:, 1:8].view(np.uint16), values.astype(np.float16).view(np.uint16))
+    assert not wide[:, [0, 8]].any()
+    np.testing.assert_array_equal(float32_texels(wide[:, 1:8]), values.astype(np.float16).astype(np.float32))
+    assert float32_texels(values) is values
+    values[12, 4] = 65510.0  # rounds to the largest half: refused as a texel, held as a mean of halves
+    before = wide.copy()
+    with pytest.raises(ValueError, match=r"texels must be finite and within the half-float range.*got 65510"):
+        store_texels(values, wide[:, 1:8], "texels")
+    np.testing.assert_array_equal(wide.view(np.uint16), before.view(np.uint16))
+    store_texels(values, wide[:, 1:8], "texels", HALF_ROUNDS_FINITE)
+    assert wide[12, 5] == 65504.0
+
+
 def test_lookup_rejects_bad_input():
     chain = build_mip_chain(np.zeros((4, 4, 1)))
     with pytest.raises(ValueError, match="uv"):

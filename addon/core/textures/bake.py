@@ -22,7 +22,7 @@ from ..rows import distinct_rows
 from ..stack import StackArrays
 from ..threads import thread_count
 from .latent_texture import CHANNEL_NAMES, LatentTexture
-from .mip import HALF_MAX, MipChain, check_half_range
+from .mip import HALF_MAX, MipChain, float32_texels, store_texels
 from .spatial import SpatialStack
 
 Encoder = Callable[[StackArrays], tuple[np.ndarray, np.ndarray]]
@@ -275,9 +275,7 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1, gath
         texels = np.concatenate([z, proxy, top_coats(part)], axis=1, dtype=np.float32)
         if not np.isfinite(texels).all():
             raise ValueError("the encoder returned non-finite latents")
-        if out.dtype == np.float16:
-            check_half_range(texels, "the encoder's latents")
-        out[start : start + len(part)] = texels
+        store_texels(texels, out[start : start + len(part)], "the encoder's latents")
         return start + len(part)
 
     starts = list(range(0, m, batch))
@@ -450,7 +448,7 @@ def bake_mix(
     chain = MipChain.empty(h, w, len(CHANNEL_NAMES), dtype=np.float16)
     for start in range(0, h * w, GATHER_TEXELS):  # blended a band of texels at a time, into the chain's base
         mix = t[start : start + GATHER_TEXELS]
-        ta, tb = (_band_of_texels(d, i, start).astype(np.float32) for d, i in ((da, ia), (db, ib)))
+        ta, tb = (float32_texels(_band_of_texels(d, i, start)) for d, i in ((da, ia), (db, ib)))
         blend = (1.0 - mix) * ta + mix * tb  # two halves' blend, within the half range but for float32 rounding
         chain.write_texels(start, np.clip(blend, -HALF_MAX, HALF_MAX, out=blend))
     del baked, da, ia, db, ib

@@ -23,7 +23,7 @@ from .. import kernels
 from ..neural.top_lobe import NO_TOP
 from ..stack import LATENT as LATENT_DIM
 from . import files
-from .mip import HALF_MAX, MipChain, build_mip_chain, check_half_range, trilinear_lookup
+from .mip import HALF_MAX, MipChain, build_mip_chain, float32_texels, store_texels, trilinear_lookup
 
 CHANNELS = 3
 LATENT_CHANNELS = [f"z.{c}.{i:02d}" for c in "RGB" for i in range(LATENT_DIM)]
@@ -168,12 +168,11 @@ class LatentTexture:
             chain._allocate(shapes, self.levels.dtype)
             src, dst = self.levels.flat.reshape(-1, c), chain.flat.reshape(-1, channels)
             for start in range(0, len(src), PROJECT_TEXELS):  # a loop over bands of texels
-                band = src[start : start + PROJECT_TEXELS].astype(np.float32)
-                out = project(band[:, :latents].reshape(-1, CHANNELS, LATENT_DIM))
-                if chain.dtype == np.float16:
-                    check_half_range(out, "a latent texture's texels through the decoder's first layer")
+                band = src[start : start + PROJECT_TEXELS]
+                out = project(float32_texels(band[:, :latents]).reshape(-1, CHANNELS, LATENT_DIM))
                 d = dst[start : start + len(band)]
-                d[:, :zc], d[:, zc:] = out, band[:, latents:]
+                store_texels(out, d[:, :zc], "a latent texture's texels through the decoder's first layer")
+                d[:, zc:] = band[:, latents:]
             made = ProjectedTexture(self.metadata, chain, zc)
             self._projections[key] = made
             return made

@@ -13,6 +13,9 @@ import numpy as np
 from .. import kernels
 
 HALF_MAX = 65504.0  # the largest finite half float: a latent texture's texels are halves
+# The largest float32 that rounds to a finite half (to HALF_MAX). A mean of halves is one, but float32's rounding of
+# the mean can step a little past HALF_MAX: the mip levels round it back.
+HALF_ROUNDS_FINITE = float(np.nextafter(np.float32(65520.0), np.float32(0.0)))
 
 
 def box_weights(n: int, m: int | None = None) -> np.ndarray:
@@ -139,9 +142,7 @@ class MipChain(list):
             raise ValueError(f"texels are written as (N, {c}) rows, got shape {values.shape}")
         if not 0 <= start <= start + len(values) <= h * w:
             raise ValueError(f"texels {start} .. {start + len(values)} are outside the base level's {h * w} texels")
-        if self.dtype == np.float16:
-            check_half_range(values, "latent texels")
-        self.flat[start * c : (start + len(values)) * c].reshape(len(values), c)[...] = values
+        store_texels(values, self.flat[start * c : (start + len(values)) * c].reshape(len(values), c), "latent texels")
 
     def fill(self) -> "MipChain":
         """Every level from the one above it, in place; returns the chain. Each is box-filtered (``downsample``,
@@ -152,17 +153,47 @@ class MipChain(list):
         return self
 
 
-def check_half_range(values: np.ndarray, what: str) -> None:
-    """ValueError naming ``what`` unless every value is finite and fits a half float (a latent texture's type)."""
+def check_half_range(values: np.ndarray, what: str, limit: float = HALF_MAX) -> None:
+    """ValueError naming ``what`` unless every value is finite and fits a half float (a latent texture's type):
+    within +-``limit`` (HALF_MAX, or :data:`HALF_ROUNDS_FINITE` for values rounded to the nearest half)."""
     if values.dtype == np.float16:
         bad = ~np.isfinite(values)
     else:
-        bad = ~(np.abs(values) <= HALF_MAX)  # nan as well
+        bad = ~(np.abs(values) <= limit)  # nan as well
     if bad.any():
         raise ValueError(
             f"{what} must be finite and within the half-float range [-{HALF_MAX:g}, {HALF_MAX:g}] their texture is "
             f"stored in, got {values[bad][0]:.9g}"
         )
+
+
+def float32_texels(values: np.ndarray) -> np.ndarray:
+    """``values`` as float32 (no copy when they are already). Half floats are converted by a compiled loop
+    (``kernels.halves_to_float32``, the CPU's conversion where it has one): numpy converts them in software, 2.3 ns
+    a value here against 0.2."""
+    if values.dtype != np.float16:
+        return np.asarray(values, dtype=np.float32)
+    values = np.ascontiguousarray(values)
+    out = np.empty(values.shape, dtype=np.float32)
+    kernels.halves_to_float32(values.view(np.uint16).reshape(-1), out.reshape(-1))
+    return out
+
+
+def store_texels(values: np.ndarray, out: np.ndarray, what: str, limit: float = HALF_MAX) -> None:
+    """``out[...] = values`` in ``out``'s type (float32, or float16: then :func:`check_half_range`'s ValueError
+    naming ``what``, with nothing written, for a value beyond ``limit``). float32 values go into a (N, C)
+    half-float ``out`` by a compiled loop that also checks them (``kernels.float32_to_halves``, where the CPU
+    converts half floats), rounded as numpy rounds them: numpy's check and conversion took 3.5 ns a value here, the
+    loop 0.35."""
+    if out.dtype != np.float16:
+        out[...] = values
+        return
+    values = np.asarray(values)
+    if kernels.NATIVE_HALF and values.dtype == np.float32 and values.shape == out.shape and out.ndim == 2:
+        if kernels.float32_to_halves(values, limit, out.view(np.uint16)) < 0:
+            return
+    check_half_range(values, what, limit)  # raises for what the loop found, naming the value
+    out[...] = values
 
 
 BAND_BYTES = 64 << 20  # the float32 rows of a level that :meth:`MipChain.fill` reduces at once
@@ -178,18 +209,24 @@ def _downsample_in_bands(level: np.ndarray, out: np.ndarray) -> None:
     step = max(1, BAND_BYTES // max(1, 2 * level[0].size * 4))  # output rows per band: about two input rows each
     for a in range(0, m, step):  # a loop over bands of rows, not texels
         b = min(m, a + step)
+        band = out[a:b]
         if even:
-            src = level[2 * a : 2 * b].astype(np.float32, copy=False)
+            src = float32_texels(level[2 * a : 2 * b])
             if out.dtype == np.float32:
-                downsample(src, out=out[a:b])
-            else:
-                out[a:b] = downsample(src)
-            continue
-        weights = row_weights[a:b]
-        covered = np.flatnonzero(weights.any(axis=0))
-        lo, hi = int(covered[0]), int(covered[-1]) + 1
-        rows = _reduce_rows(level[lo:hi].astype(np.float32, copy=False), weights[:, lo:hi])
-        out[a:b] = _reduce_rows(rows.transpose(1, 0, 2), col_weights).transpose(1, 0, 2)
+                downsample(src, out=band)
+                continue
+            reduced = downsample(src)
+        else:
+            weights = row_weights[a:b]
+            covered = np.flatnonzero(weights.any(axis=0))
+            lo, hi = int(covered[0]), int(covered[-1]) + 1
+            rows = _reduce_rows(float32_texels(level[lo:hi]), weights[:, lo:hi])
+            reduced = _reduce_rows(rows.transpose(1, 0, 2), col_weights).transpose(1, 0, 2)
+        texels = band.view()
+        texels.shape = (-1, band.shape[-1])  # whole rows of a level: a view (a shape needing a copy raises)
+        store_texels(
+            np.ascontiguousarray(reduced).reshape(texels.shape), texels, "a mip level's texels", HALF_ROUNDS_FINITE
+        )
 
 
 def build_mip_chain(base: np.ndarray, dtype=np.float32) -> MipChain:
