@@ -138,7 +138,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", default="tiny", help="decoder size (its encoder/layering/sampling models are used)")
     ap.add_argument("--res", type=int, default=512, help="texture side in texels")
-    ap.add_argument("--out", type=Path, default=ROOT / "docs", help="folder for bake.md and the chart (made if missing)")
+    ap.add_argument(
+        "--out", type=Path, default=ROOT / "docs", help="folder for bake.md and the chart (made if missing)"
+    )
     ap.add_argument(
         "--peak-memory",
         type=int,

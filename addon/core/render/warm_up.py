@@ -49,11 +49,11 @@ def warm_scene(environment_image: bool):
 def warm_up() -> None:
     """Render the warm-up scenes once each (one thread, one sample, analytic materials), and run the
     neural materials' loops (the sampling proxy, the albedo calibration and a latent texture's choice of
-    table and its half-float taps, the exact top coat) on a few rows,
-    with the argument types a render passes."""
+    table and its half-float taps, the exact top coat) on a few rows, and the half-float conversions of a bake
+    and of a texture's projection, with the argument types a render and a bake pass."""
     from .. import kernels
     from ..neural import proxy, top_lobe
-    from ..textures.mip import MipChain, trilinear_lookup
+    from ..textures.mip import MipChain, build_mip_chain, store_texels, trilinear_lookup
     from .integrator import RenderSettings, render
 
     for image in (True, False):
@@ -79,6 +79,9 @@ def warm_up() -> None:
     # a latent texture read from its file: half floats (the image texture above took the float32 loop)
     trilinear_lookup(MipChain([np.zeros((1, 1, 100))], dtype=np.float16), np.zeros((2, 2)), 0.0)
     kernels.take_half_channels(np.zeros((1, 3), np.uint16), np.arange(2, dtype=np.int64), np.zeros((1, 2), np.uint16))
+    # the half-float conversions: a baked texture's chain, and the projected texture's columns a render makes
+    build_mip_chain(np.zeros((2, 2, 3), np.float32), dtype=np.float16)
+    store_texels(np.zeros((2, 2), np.float32), np.zeros((2, 3), np.float16)[:, :2], "the warm-up's texels")
 
 
 def warm_up_in_background() -> threading.Thread | None:
