@@ -164,17 +164,43 @@ def halves_to_float32(bits, out):
         out[i] = texel(bits, i)
 
 
+def _within(value, limit):
+    """Whether ``value`` is finite and within +-``limit``; a uint16 is a half float's bit pattern, finite unless its
+    exponent bits are all set (a finite half is within 65504). For the compiled loops; see its overload below."""
+    if isinstance(value, np.uint16):
+        return (value & 0x7C00) != 0x7C00
+    return abs(value) <= limit
+
+
+@overload(_within, jit_options=dict(inline="always"))
+def _within_overload(value, limit):
+    if value == types.uint16:
+        return lambda value, limit: (value & 0x7C00) != 0x7C00
+    return lambda value, limit: abs(value) <= limit  # nan fails it
+
+
+@njit(**_JIT)
+def first_row_beyond(values, limit):
+    """The first row of ``values`` (N, C) holding a value that is not finite or beyond +-``limit``, -1 for none:
+    float32 values, or half floats as their bit patterns (uint16: only the non-finite ones)."""
+    for i in range(values.shape[0]):
+        ok = True
+        for k in range(values.shape[1]):  # no exit inside a row: the test vectorises (a branch per value: 2.4x)
+            ok &= _within(values[i, k], limit)
+        if not ok:
+            return i
+    return -1
+
+
 @njit(**_JIT)
 def float32_to_halves(values, limit, bits):
     """``bits[i, k]`` = the bit pattern of ``values[i, k]`` (float32; both (N, C)) rounded to a half float, to
     nearest with ties to even (as numpy rounds), when every value is finite and within +-``limit``; returns -1.
-    Otherwise returns the row of the first value that is not, having written nothing. Needs :data:`NATIVE_HALF`."""
-    for i in range(values.shape[0]):
-        ok = True
-        for k in range(values.shape[1]):  # no exit inside a row: the test vectorises (a branch per value: 2.4x)
-            ok &= abs(values[i, k]) <= limit  # nan fails it
-        if not ok:
-            return i
+    Otherwise returns the row of the first value that is not (:func:`first_row_beyond`), having written nothing.
+    Needs :data:`NATIVE_HALF`."""
+    bad = first_row_beyond(values, limit)
+    if bad >= 0:
+        return bad
     for i in range(values.shape[0]):
         for k in range(values.shape[1]):
             bits[i, k] = _float32_to_half_bits(values[i, k])

@@ -52,6 +52,7 @@ def test_the_warm_up_compiles_every_loop_a_render_of_the_demo_scene_runs():
         assert before[name] >= 1, f"the warm-up did not compile {name}"
     assert before["trilinear"] >= 2, "the warm-up did not compile the taps of a half-float latent texture"
     assert before["halves_to_float32"] >= 1, "the warm-up did not compile the conversion from half floats"
+    assert before["first_row_beyond"] >= 2, "the warm-up did not compile the range checks of halves and float32"
     if kernels.NATIVE_HALF:  # elsewhere numpy converts to half floats
         assert before["float32_to_halves"] >= 2, (
             "the warm-up did not compile the conversions to a chain and its columns"

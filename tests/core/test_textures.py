@@ -195,6 +195,39 @@ def test_texels_stored_as_halves_are_numpys_halves_with_or_without_the_compiled_
     assert wide[12, 5] == 65504.0
 
 
+def test_the_range_check_finds_the_first_row_a_half_float_cannot_hold_in_every_type():
+    """``first_row_beyond_half``: the first row (first axis) holding a value that is not finite or beyond the
+    limit, for half floats (any inf or nan, whatever its sign and payload; the largest half and subnormals pass),
+    float32 (the compiled loop) and float64 (numpy), at any rank; and ``check_half_range`` names the first such
+    value in the array's order."""
+    from addon.core.textures.mip import HALF_ROUNDS_FINITE, check_half_range, first_row_beyond_half
+
+    rng = np.random.default_rng(4)
+    for dtype in (np.float16, np.float32, np.float64):
+        values = (rng.standard_normal((40, 3, 5)) * 100).astype(dtype)
+        values[0, 0, :3] = [65504.0, -65504.0, 6e-8]
+        assert first_row_beyond_half(values) == -1
+        assert first_row_beyond_half(values[:0]) == -1
+        for bad in (np.inf, -np.inf, np.nan):
+            spoilt = values.copy()
+            spoilt[31, 2, 4], spoilt[17, 1, 0] = bad, bad
+            assert first_row_beyond_half(spoilt) == 17
+            assert first_row_beyond_half(spoilt[18:]) == 13
+            assert first_row_beyond_half(spoilt[:, 2, 4]) == 31  # one value a row
+        if dtype != np.float16:
+            spoilt = values.copy()
+            spoilt[25, 0, 2], spoilt[25, 1, 1] = 65510.0, -7e4
+            assert first_row_beyond_half(spoilt) == 25
+            assert first_row_beyond_half(spoilt[:, 0], HALF_ROUNDS_FINITE) == -1
+            with pytest.raises(ValueError, match="got 65510$"):
+                check_half_range(spoilt, "texels")
+    payload = np.full((3, 4), 0x7E01, np.uint16)  # a nan with a payload, either sign
+    payload[0], payload[1, :3] = 0, 0x3C00
+    assert first_row_beyond_half(payload.view(np.float16)) == 1
+    assert first_row_beyond_half((payload | 0x8000).view(np.float16)[2:]) == 0
+    assert first_row_beyond_half(np.float32(np.nan)) == 0 and first_row_beyond_half(np.float16(1.0)) == -1
+
+
 def test_lookup_rejects_bad_input():
     chain = build_mip_chain(np.zeros((4, 4, 1)))
     with pytest.raises(ValueError, match="uv"):

@@ -49,11 +49,11 @@ def warm_scene(environment_image: bool):
 def warm_up() -> None:
     """Render the warm-up scenes once each (one thread, one sample, analytic materials), and run the
     neural materials' loops (the sampling proxy, the albedo calibration and a latent texture's choice of
-    table and its half-float taps, the exact top coat) on a few rows, and the half-float conversions of a bake
-    and of a texture's projection, with the argument types a render and a bake pass."""
+    table and its half-float taps, the exact top coat) on a few rows, and the half-float conversions and range checks of
+    a bake, a texture's file and its projection, with the argument types a render and a bake pass."""
     from .. import kernels
     from ..neural import proxy, top_lobe
-    from ..textures.mip import MipChain, build_mip_chain, store_texels, trilinear_lookup
+    from ..textures.mip import MipChain, build_mip_chain, first_row_beyond_half, store_texels, trilinear_lookup
     from .integrator import RenderSettings, render
 
     for image in (True, False):
@@ -82,6 +82,8 @@ def warm_up() -> None:
     # the half-float conversions: a baked texture's chain, and the projected texture's columns a render makes
     build_mip_chain(np.zeros((2, 2, 3), np.float32), dtype=np.float16)
     store_texels(np.zeros((2, 2), np.float32), np.zeros((2, 3), np.float16)[:, :2], "the warm-up's texels")
+    for dtype in (np.float16, np.float32):  # the range checks: a texture's file write, a bake's texels
+        first_row_beyond_half(np.zeros((2, 2), dtype))
 
 
 def warm_up_in_background() -> threading.Thread | None:

@@ -23,7 +23,15 @@ from .. import kernels
 from ..neural.top_lobe import NO_TOP
 from ..stack import LATENT as LATENT_DIM
 from . import files
-from .mip import HALF_MAX, MipChain, build_mip_chain, float32_texels, store_texels, trilinear_lookup
+from .mip import (
+    HALF_MAX,
+    MipChain,
+    build_mip_chain,
+    first_row_beyond_half,
+    float32_texels,
+    store_texels,
+    trilinear_lookup,
+)
 
 CHANNELS = 3
 LATENT_CHANNELS = [f"z.{c}.{i:02d}" for c in "RGB" for i in range(LATENT_DIM)]
@@ -185,7 +193,7 @@ class LatentTexture:
         for i, level in enumerate(self.levels):
             for rows in range(0, level.shape[0], TILE):  # bands of rows: no level-sized temporaries
                 band = level[rows : rows + TILE]
-                if not (np.abs(band) <= HALF_MAX).all():  # nan as well
+                if first_row_beyond_half(band) >= 0:
                     raise ValueError(
                         f"cannot write {path}: mip level {i} holds values outside the half-float range "
                         f"[-{HALF_MAX:g}, {HALF_MAX:g}] (non-finite, or magnitudes up to {np.nanmax(np.abs(band)):.9g} "

@@ -153,17 +153,34 @@ class MipChain(list):
         return self
 
 
+def first_row_beyond_half(values: np.ndarray, limit: float = HALF_MAX) -> int:
+    """The first row (along the first axis) of ``values`` holding one that is not finite or beyond +-``limit``, -1
+    for none. Half floats and float32 are tested by a compiled loop (``kernels.first_row_beyond``: numpy's
+    ``np.abs(values) <= limit`` over half floats took 2.4 ns a value here, in software, the loop 0.15); other types
+    by numpy."""
+    values = np.asarray(values)
+    if values.size == 0:
+        return -1
+    rows = values.reshape(len(values), -1) if values.ndim else values.reshape(1, 1)
+    if rows.dtype == np.float16:
+        return int(kernels.first_row_beyond(rows.view(np.uint16), limit))
+    if rows.dtype == np.float32:
+        return int(kernels.first_row_beyond(rows, limit))
+    bad = ~(np.abs(rows) <= limit).all(axis=1)  # nan fails it
+    return int(np.argmax(bad)) if bad.any() else -1
+
+
 def check_half_range(values: np.ndarray, what: str, limit: float = HALF_MAX) -> None:
     """ValueError naming ``what`` unless every value is finite and fits a half float (a latent texture's type):
     within +-``limit`` (HALF_MAX, or :data:`HALF_ROUNDS_FINITE` for values rounded to the nearest half)."""
-    if values.dtype == np.float16:
-        bad = ~np.isfinite(values)
-    else:
-        bad = ~(np.abs(values) <= limit)  # nan as well
-    if bad.any():
+    values = np.asarray(values)
+    row = first_row_beyond_half(values, limit)
+    if row >= 0:
+        first = np.ravel(values[row] if values.ndim else values)
+        bad = first[~(np.abs(first.astype(np.float64)) <= limit)][0]
         raise ValueError(
             f"{what} must be finite and within the half-float range [-{HALF_MAX:g}, {HALF_MAX:g}] their texture is "
-            f"stored in, got {values[bad][0]:.9g}"
+            f"stored in, got {bad:.9g}"
         )
 
 
