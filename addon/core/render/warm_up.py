@@ -49,8 +49,9 @@ def warm_scene(environment_image: bool):
 def warm_up() -> None:
     """Render the warm-up scenes once each (one thread, one sample, analytic materials), and run the
     neural materials' loops (the sampling proxy, the albedo calibration and a latent texture's choice of
-    table and its half-float taps, the exact top coat) on a few rows, and the half-float conversions and range checks of
-    a bake, a texture's file and its projection, with the argument types a render and a bake pass."""
+    table and its half-float taps, the exact top coat) on a few rows, and the half-float conversions and
+    range checks of a bake, a texture's file and its projection, with the argument types a render and a bake
+    pass."""
     from .. import kernels
     from ..neural import proxy, top_lobe
     from ..textures.mip import MipChain, build_mip_chain, first_row_beyond_half, store_texels, trilinear_lookup
