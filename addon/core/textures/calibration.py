@@ -30,6 +30,7 @@ from .. import kernels
 from ..neural import calibrate as cal
 from ..stack import LATENT, StackArrays
 from ..threads import map_on_threads, thread_count
+from .mip import float32_texels
 
 MAX_CLUSTERS = 8  # tables per texture: calibrations cost about a second each
 SAMPLES_PER_CLUSTER = 8  # texels of a cluster walked for its table (each with 1/8 of one calibration's walks)
@@ -167,7 +168,7 @@ def calibrate_texture(
     if len(texels) > MAX_ROWS:  # a systematic sample by texel count; a row drawn m times weighs m
         pick, weight = np.unique(_stratified(counts, MAX_ROWS), return_counts=True)
         arrays, texels, counts = arrays.take(pick), texels[pick], weight.astype(np.float64)
-    texels = texels.astype(np.float32)  # a bake's are half floats: converted once sampled
+    texels = float32_texels(texels)  # a bake's are half floats: converted once sampled
     k = 3 * LATENT
     z = texels[:, :k]
     centroids, labels = cluster_latents(z, counts, MAX_CLUSTERS, seed)

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..rows import distinct_rows
-from .mip import downsample
+from .mip import downsample, float32_texels
 
 TOLERANCE = 0.02  # mean |decoded average latent - average decoded| over the mean decoded value
 CROP = 128  # texels a side of the block of each level that is measured
@@ -78,7 +78,7 @@ def level_error(models, level: np.ndarray, seed: int = SEED) -> float:
     for shift in (0, 1):  # a loop over the two alignments of the blocks
         rows = (y0 + shift + np.arange(ch)) % h
         cols = (x0 + shift + np.arange(cw)) % w
-        crop = np.asarray(level[np.ix_(rows, cols)], dtype=np.float32)
+        crop = float32_texels(level[np.ix_(rows, cols)])
         averaged = downsample(crop)  # the latents of the blocks, averaged
         each = decoded(models, crop.reshape(-1, crop.shape[2])).reshape(ch, cw, -1)
         want = downsample(each)  # the texels' decoded values averaged the same way
