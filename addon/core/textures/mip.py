@@ -187,7 +187,9 @@ def check_half_range(values: np.ndarray, what: str, limit: float = HALF_MAX) -> 
 def float32_texels(values: np.ndarray) -> np.ndarray:
     """``values`` as float32 (no copy when they are already). Half floats are converted by a compiled loop
     (``kernels.halves_to_float32``, the CPU's conversion where it has one): numpy converts them in software, 2.3 ns
-    a value here against 0.2."""
+    a value here against 0.2. Elsewhere the loop converts in integer operations, exact for finite halves but
+    turning an inf or nan finite: texels are finite (a value beyond the half range is refused before it is
+    stored), and a texture's file is checked as it is read."""
     if values.dtype != np.float16:
         return np.asarray(values, dtype=np.float32)
     values = np.ascontiguousarray(values)
