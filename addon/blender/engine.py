@@ -154,14 +154,47 @@ class _Viewport:
             self.session = None
 
 
-def _write_feature_passes(passes, film) -> None:
-    """Denoising Albedo / Normal and Depth from the film's first-hit features, where the result
-    has those passes."""
+def _write_feature_passes(passes, film, region) -> None:
+    """Denoising Albedo / Normal and Depth from the film's first-hit features in ``region`` (``render_region``),
+    where the result has those passes."""
     features = film.features()
     for name, key in (("Denoising Albedo", "albedo"), ("Denoising Normal", "normal"), ("Depth", "depth")):
         rp = passes.find(name)
         if rp >= 0:
-            passes[rp].rect.foreach_set(np.ascontiguousarray(features[key][::-1]).ravel())
+            passes[rp].rect.foreach_set(_region_rows(features[key], region))
+
+
+def render_region(scene, width: int, height: int) -> tuple[int, int, int, int]:
+    """The pixels F12 renders of a ``width`` x ``height`` frame, (x0, y0, x1, y1) with rows counted from the bottom
+    as Blender counts them: the Render Region (``use_border``) as Blender cuts it (its float32 fractions times the
+    size in float32, truncated: 0.9 of 30 rows is 27, where doubles give 26.99999...), else the whole frame.
+    Blender's result holds that rectangle only, cropped or not: without *Crop to Render Region* it places it in the
+    frame itself."""
+    r = scene.render
+    if not r.use_border:
+        return 0, 0, width, height
+    w, h = np.float32(width), np.float32(height)
+    x0, x1 = (int(np.float32(f) * w) for f in (r.border_min_x, r.border_max_x))
+    y0, y1 = (int(np.float32(f) * h) for f in (r.border_min_y, r.border_max_y))
+    return x0, y0, max(x1, x0 + 1), max(y1, y0 + 1)
+
+
+def region_pixels(region: tuple[int, int, int, int], width: int, height: int) -> np.ndarray | None:
+    """Flat indices (row 0 at the top, as the core renderer counts them) of ``region``'s pixels; None for the whole
+    frame."""
+    x0, y0, x1, y1 = region
+    if (x0, y0, x1, y1) == (0, 0, width, height):
+        return None
+    rows = np.arange(height - y1, height - y0)
+    return (rows[:, None] * width + np.arange(x0, x1)[None, :]).ravel()
+
+
+def _region_rows(image: np.ndarray, region: tuple[int, int, int, int]) -> np.ndarray:
+    """The region's part of a whole frame's ``image`` (H, W, C), row 0 at the top, as Blender's flat pass buffers
+    take it: rows from the bottom, C-contiguous and flat."""
+    x0, y0, x1, y1 = region
+    height = image.shape[0]
+    return np.ascontiguousarray(image[height - y1 : height - y0, x0:x1][::-1]).ravel()
 
 
 def status_line(passes: int, samples: int, remaining: float | None, triangles: int) -> str:
@@ -205,12 +238,20 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         scene = depsgraph.scene
         props = scene.neural_render
         width, height = scene_export.render_size(scene)
+        region = (0, 0, width, height) if self.is_preview else render_region(scene, width, height)
         if props.denoise and not self.is_preview:
             for name, channels, ids, _ in render_properties.DENOISING_PASSES:
-                self.add_pass(name, channels, ids)
-        result = self.begin_result(0, 0, width, height)
+                self.add_pass(name, channels, ids, layer=depsgraph.view_layer.name)
+        x0, y0, x1, y1 = region
+        # The result of the view layer rendered: Blender calls render() once per view layer, each to its own layer.
+        result = self.begin_result(0, 0, x1 - x0, y1 - y0, layer=depsgraph.view_layer.name)
         try:
-            self._render(depsgraph, scene, props, result, thumbnail=self.is_preview)
+            if (result.resolution_x, result.resolution_y) != (x1 - x0, y1 - y0):
+                raise RuntimeError(
+                    f"Blender's render result is {result.resolution_x}x{result.resolution_y} pixels where the "
+                    f"render region was cut to {x1 - x0}x{y1 - y0}: turn Render Region off to render"
+                )
+            self._render(depsgraph, scene, props, result, region, thumbnail=self.is_preview)
         except Exception as e:  # every failure reaches the UI, not only a console traceback
             self._fail(e)
         finally:
@@ -230,7 +271,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
             warnings.append(f"decoder choice failed ({_failure(e)}); layered materials use the default decoder")
         return props.to_core(scene=scene), warnings, info
 
-    def _render(self, depsgraph, scene, props, result, thumbnail: bool = False):
+    def _render(self, depsgraph, scene, props, result, region, thumbnail: bool = False):
         self.update_stats("", "Exporting scene")
         info: list[str] = []
         core_scene, warnings = scene_export.export_scene(depsgraph, *scene_export.render_size(scene), info=info)
@@ -240,7 +281,11 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
             self.report({"INFO"}, line)
         for w in warnings:
             self.report({"WARNING"}, w)
-        combined = result.layers[0].passes["Combined"]
+        layer = result.layers[0]  # the view layer's own: the result was begun for it alone
+        combined = layer.passes["Combined"]
+        width, height = core_scene.camera.width, core_scene.camera.height
+        region = (0, 0, width, height) if thumbnail else region
+        pixels = region_pixels(region, width, height)
         remaining = RemainingTime(settings.samples)
 
         def status():
@@ -249,7 +294,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
             )
 
         def progress(film, done, total):
-            combined.rect.foreach_set(np.ascontiguousarray(film.rgba()[::-1]).ravel())
+            combined.rect.foreach_set(_region_rows(film.rgba(), region))
             self.update_result(result)
             remaining.pass_done(done)
             status()
@@ -262,7 +307,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         # Esc ends the render within a bounce (test_break, polled on this thread while chunks are traced), and
         # what it rendered stays in the result, whichever mode it was in. The progress bar and the remaining time
         # move with each chunk (a 4K pass is 64 of them), the image and the sample count with each pass.
-        calls = dict(progress=progress, stop=self.test_break, chunk_progress=chunk_progress)
+        calls = dict(progress=progress, stop=self.test_break, chunk_progress=chunk_progress, pixels=pixels)
         try:
             try:
                 film, stats = render(core_scene, settings, **calls)
@@ -279,8 +324,8 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         except Cancelled as c:
             film, stats = c.film, c.stats
         self.update_stats("", stats.summary())
-        combined.rect.foreach_set(np.ascontiguousarray(film.rgba()[::-1]).ravel())
-        _write_feature_passes(result.layers[0].passes, film)
+        combined.rect.foreach_set(_region_rows(film.rgba(), region))
+        _write_feature_passes(layer.passes, film, region)
 
     # ------------------------------------------------------------------ 3D viewport (Rendered mode)
 

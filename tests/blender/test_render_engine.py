@@ -148,6 +148,87 @@ def test_f12_render_writes_png_and_exr(fresh_scene, tmp_path):
     assert px[..., :3].max() > 4 * np.median(px[..., :3])
 
 
+def test_f12_renders_the_render_region_into_its_place_in_the_frame_or_cropped(fresh_scene, tmp_path):
+    from addon.blender.engine import render_region
+
+    scene = fresh_scene.scene
+    small(scene, 40, 30, samples=16)
+    scene.render.engine = "NEURAL_LAYERED"
+    scene.render.image_settings.file_format = "OPEN_EXR"
+    scene.render.image_settings.color_depth = "32"
+
+    def frame(name, border, crop=False):
+        scene.render.use_border, scene.render.use_crop_to_border = border, crop
+        scene.render.filepath = str(tmp_path / f"{name}.exr")
+        bpy.ops.render.render(write_still=True)
+        return read_image(tmp_path / f"{name}.exr")
+
+    whole = frame("whole", False)
+    scene.render.border_min_x, scene.render.border_max_x = 0.1, 0.6
+    scene.render.border_min_y, scene.render.border_max_y = 0.2, 0.9
+    scene.render.use_border = True
+    x0, y0, x1, y1 = render_region(scene, 40, 30)
+    # the fractions times the size in float32, truncated, as Blender cuts it: 0.9 x 30 is 27 there, 26.99999 in
+    # doubles
+    assert (x0, y0, x1, y1) == (4, 6, 24, 27)
+    scene.render.border_min_x, scene.render.border_max_x = 0.27, 0.71  # 10.8 and 28.4 columns: truncated
+    assert render_region(scene, 40, 30)[::2] == (10, 28)
+    scene.render.border_min_x, scene.render.border_max_x = 0.1, 0.6
+    rows, cols = slice(30 - y1, 30 - y0), slice(x0, x1)  # the file's rows run from the top
+    placed = frame("placed", True)
+    assert placed.shape[:2] == (30, 40)
+    inside = np.zeros((30, 40), bool)
+    inside[rows, cols] = True
+    assert (placed[..., 3] > 0).tolist() == inside.tolist()  # the region's pixels, and only those
+    cropped = frame("cropped", True, crop=True)
+    assert cropped.shape[:2] == (y1 - y0, x1 - x0)  # Blender's own cut of the region is the same
+    # Each holds the region's image: the whole frame's pixels there (other random numbers: the same scene
+    # within the noise of 16 samples).
+    for part in (placed[rows, cols, :3], cropped[..., :3]):
+        ref = whole[rows, cols, :3]
+        assert np.corrcoef(part.ravel(), ref.ravel())[0, 1] > 0.9
+        assert part.mean() == pytest.approx(ref.mean(), rel=0.1)
+
+
+def test_each_view_layer_renders_into_its_own_layer(fresh_scene, tmp_path):
+    from addon.blender import engine
+
+    scene = fresh_scene.scene
+    small(scene, 24, 18, samples=2)
+    scene.render.engine = "NEURAL_LAYERED"
+    scene.render.use_compositing = False
+    scene.render.image_settings.file_format = "OPEN_EXR"
+    scene.render.image_settings.color_depth = "32"
+    scene.render.filepath = str(tmp_path / "alone.exr")
+    bpy.ops.render.render(write_still=True)
+    alone = read_image(tmp_path / "alone.exr")
+    # A second view layer without the cube: rendered after the first, it must not land in the first's layer.
+    cube = scene.objects["Cube"]
+    group = bpy.data.collections.new("Cube only")
+    scene.collection.children.link(group)
+    for c in list(cube.users_collection):
+        c.objects.unlink(cube)
+    group.objects.link(cube)
+    first = scene.view_layers[0]
+    second = scene.view_layers.new("Without the cube")
+    second.layer_collection.children["Cube only"].exclude = True
+    layers = []
+    render = engine.NeuralLayeredRenderEngine._render
+
+    def spy(self, depsgraph, scene, props, result, region, thumbnail=False):
+        layers.append((depsgraph.view_layer.name, [layer.name for layer in result.layers]))
+        return render(self, depsgraph, scene, props, result, region, thumbnail)
+
+    engine.NeuralLayeredRenderEngine._render = spy
+    try:
+        scene.render.filepath = str(tmp_path / "layers.exr")
+        bpy.ops.render.render(write_still=True)
+    finally:
+        engine.NeuralLayeredRenderEngine._render = render
+    assert layers == [(first.name, [first.name]), (second.name, [second.name])]
+    assert np.array_equal(read_image(tmp_path / "layers.exr"), alone)  # the first layer's image, the cube in it
+
+
 def test_render_preview_operator_fills_an_image(fresh_scene, tmp_path):
     ctx = fresh_scene
     small(ctx.scene)
