@@ -35,7 +35,7 @@ def camera_resolution(context, mat, spatial) -> tuple[int, int]:
     scene, _ = scene_export.export_scene(context.evaluated_depsgraph_get())
     footprints = quality.primary_footprints(scene)
     names = list(getattr(scene, "material_names", []))
-    footprint = footprints[names.index(mat.name)] if mat.name in names else float("inf")
+    footprint = footprints[names.index(mat.name_full)] if mat.name_full in names else float("inf")
     return quality.texture_resolution_for_footprint(footprint, spatial.resolution or (1, 1))
 
 

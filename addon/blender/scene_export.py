@@ -354,6 +354,14 @@ def _world_mesh(arrays, matrix: np.ndarray) -> Mesh:
     return Mesh(world_pos, world_nrm, uvs, slots[np.clip(mat_i, 0, len(slots) - 1)])
 
 
+def _identity(data_block) -> int:
+    """What tells one data-block from another within a session, whatever its name and library: its original's
+    ``session_uid`` (an evaluated copy has its original's; a temporary one, as Geometry Nodes' instanced geometry,
+    its own)."""
+    original = getattr(data_block, "original", None) or data_block
+    return original.session_uid
+
+
 def export_scene(
     depsgraph,
     width: int | None = None,
@@ -383,11 +391,12 @@ def export_scene(
     names: list[str] = []
 
     def material_slot(mat) -> int:
-        key = mat.name if mat is not None else ""
+        # By identity, not by name: a linked "Material [lib.blend]" and a local "Material" are two materials.
+        key = _identity(mat) if mat is not None else None
         if key not in material_index:
             material_index[key] = len(materials)
             materials.append(export_material(mat, warnings, info) if mat is not None else LambertMaterial())
-            names.append(key)
+            names.append(mat.name_full if mat is not None else "")
         return material_index[key]
 
     cache: dict = {}
@@ -406,7 +415,10 @@ def export_scene(
             continue
         if ob.type not in GEOMETRY_TYPES:
             continue
-        key = (ob.name, ob.data.name if ob.data is not None else "")
+        # The object (its material slots) and its geometry, by identity: a linked object beside a local one of the
+        # same name, and the geometries that Geometry Nodes instance (each a temporary object named after its
+        # instancer, its mesh named "Mesh"), are each their own.
+        key = (_identity(original), _identity(ob.data) if ob.data is not None else None)
         if key not in cache:
             cache[key] = _object_arrays(ob, material_slot, warnings)
         arrays = cache[key]

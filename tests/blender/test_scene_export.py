@@ -62,3 +62,69 @@ def test_path_properties_take_blend_relative_paths_without_a_warning(bpy_addon, 
         assert bpy.ops.neural_layers.render_preview(filepath="//preview.exr", samples=1) == {"FINISHED"}
     assert (tmp_path / "preview.exr").is_file()
     assert not [str(w.message) for w in caught if "relative" in str(w.message)]
+
+
+def test_a_linked_object_and_material_beside_local_ones_of_the_same_names_export_as_their_own(
+    bpy_addon, fresh_scene, tmp_path
+):
+    from addon.blender import scene_export, stack_io
+    from addon.core.stack import PRESETS
+
+    bpy = bpy_addon
+    # The library: its "Cube" is a sphere's mesh (also named "Cube") with a layered "Material".
+    cube = bpy.data.objects["Cube"]
+    bpy.ops.mesh.primitive_uv_sphere_add()
+    sphere = bpy.context.active_object
+    old = cube.data
+    cube.data = sphere.data
+    bpy.data.objects.remove(sphere)
+    bpy.data.meshes.remove(old)
+    cube.data.name = "Cube"
+    cube.data.materials.append(bpy.data.materials["Material"])
+    stack_io.stack_to_material(PRESETS["red_car_paint"], cube.active_material)
+    triangles = sum(len(p.vertices) - 2 for p in cube.data.polygons)
+    library = tmp_path / "lib.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(library))
+    # The shot: the factory cube and material, and the library's, linked, of the same names.
+    bpy.ops.wm.read_homefile(app_template="")
+    with bpy.data.libraries.load(str(library), link=True) as (_, linked):
+        linked.objects = ["Cube"]
+    bpy.context.scene.collection.objects.link(linked.objects[0])
+    scene, _ = scene_export.export_scene(bpy.context.evaluated_depsgraph_get(), 32, 24)
+    assert scene.mesh.triangle_count == 12 + triangles
+    assert sorted(scene.material_names) == ["Material", "Material [lib.blend]"]
+    kinds = dict(zip(scene.material_names, (type(m).__name__ for m in scene.materials), strict=True))
+    assert kinds["Material"] == "LambertMaterial" and kinds["Material [lib.blend]"] != "LambertMaterial"
+
+
+def test_each_geometry_that_geometry_nodes_instance_exports_as_itself(bpy_addon, fresh_scene):
+    from addon.blender import scene_export
+
+    bpy = bpy_addon
+    # The cube's points, each instancing a cone (32 triangles) or an icosphere (20), in turn.
+    tree = bpy.data.node_groups.new("instances", "GeometryNodeTree")
+    tree.interface.new_socket("Geometry", in_out="INPUT", socket_type="NodeSocketGeometry")
+    tree.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+    nodes, links = tree.nodes, tree.links
+    given, result = nodes.new("NodeGroupInput"), nodes.new("NodeGroupOutput")
+    points, on_points = nodes.new("GeometryNodeMeshToPoints"), nodes.new("GeometryNodeInstanceOnPoints")
+    cone, ico = nodes.new("GeometryNodeMeshCone"), nodes.new("GeometryNodeMeshIcoSphere")
+    pick, index = nodes.new("GeometryNodeGeometryToInstance"), nodes.new("GeometryNodeInputIndex")
+    links.new(given.outputs[0], points.inputs["Mesh"])
+    links.new(points.outputs[0], on_points.inputs["Points"])
+    links.new(cone.outputs["Mesh"], pick.inputs[0])
+    links.new(ico.outputs["Mesh"], pick.inputs[0])
+    links.new(pick.outputs[0], on_points.inputs["Instance"])
+    on_points.inputs["Pick Instance"].default_value = True
+    links.new(index.outputs[0], on_points.inputs["Instance Index"])
+    links.new(on_points.outputs[0], result.inputs[0])
+    bpy.data.objects["Cube"].modifiers.new("instances", "NODES").node_group = tree
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    sizes = [
+        sum(len(p.vertices) - 2 for p in i.object.data.polygons)
+        for i in depsgraph.object_instances
+        if i.is_instance and i.object.type == "MESH"
+    ]
+    assert len(sizes) == 8 and len(set(sizes)) == 2  # the cube's 8 corners, two geometries
+    scene, _ = scene_export.export_scene(depsgraph, 32, 24)
+    assert scene.mesh.triangle_count == sum(sizes)
