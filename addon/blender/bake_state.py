@@ -65,7 +65,8 @@ def current_texture(mat):
     s = mat.neural_layers
     if not s.texture_path:
         return None, "not baked", None
-    path = bpy.path.abspath(s.texture_path)
+    # "//" is relative to the file that holds the material: a linked one's library, not the open file
+    path = bpy.path.abspath(s.texture_path, library=getattr(mat, "original", mat).library)
     if not os.path.isfile(path):
         return None, f"baked texture missing: {path}", None
     try:

@@ -50,13 +50,26 @@ def scripted() -> bool:
     return bool(bpy.app.background)
 
 
-def poll_problem(context, needs: str = "material") -> str | None:
+def read_only_problem(mat) -> str | None:
+    """Why ``mat`` cannot be edited (linked from a library: an edit would be lost when the file is saved), or None."""
+    if mat.library is not None or not mat.is_editable:
+        where = f" from {mat.library.filepath!r}" if mat.library is not None else ""
+        return (
+            f"Material {mat.name_full!r} is linked{where} and cannot be edited here: make it local "
+            "(Object > Relations > Make Local) or edit it in its own file"
+        )
+    return None
+
+
+def poll_problem(context, needs: str = "material", edits: bool = False) -> str | None:
     """Why an operator that needs ``needs`` ("material", "stack" or "texture") cannot act on the
-    context's active material, or None when it can."""
+    context's active material (``edits``: and change it), or None when it can."""
     ob = getattr(context, "object", None)
     mat = getattr(ob, "active_material", None) if ob is not None else None
     if mat is None:
         return "Select an object with a material" if ob is None else f"Object {ob.name!r} has no material"
+    if edits and (problem := read_only_problem(mat)) is not None:
+        return problem
     if needs in ("stack", "texture") and len(mat.neural_layers.layers) == 0:
         return f"The layer stack of {mat.name!r} is empty: add a base layer or pick a preset"
     if needs == "texture" and not mat.neural_layers.texture_path:
@@ -75,12 +88,14 @@ class MaterialOperator:
     # What the button needs to be pressable: "material" (an active material), "stack" (one with
     # layers) or "texture" (one with a baked latent texture).
     poll_needs = "material"
+    # Whether the operator changes the material (then a linked one, read-only, is refused).
+    edits = True
 
     @classmethod
     def poll(cls, context):
         """Grey the button out (with the reason as its tooltip) where it cannot run. In background
         mode (scripts, which may name any material) it always runs and reports what is missing."""
-        problem = poll_problem(context, cls.poll_needs)
+        problem = poll_problem(context, cls.poll_needs, cls.edits)
         if problem is None or scripted():
             return True
         cls.poll_message_set(problem)
@@ -91,13 +106,19 @@ class MaterialOperator:
             mat = bpy.data.materials.get(self.material)
             if mat is None:
                 raise UserError(f"there is no material named {self.material!r}")
-            return mat
+            return self._editable(mat)
         ob = getattr(context, "object", None) or getattr(context, "active_object", None)
         if ob is None:
             raise UserError('no active object: select an object with a material (or pass material="Name")')
         mat = ob.active_material
         if mat is None:
             raise UserError(f"object {ob.name!r} has no material: add one (Material Properties > New)")
+        return self._editable(mat)
+
+    def _editable(self, mat):
+        """``mat``, if the operator may act on it (a read-only operator on any; one that edits on a local one)."""
+        if self.edits and (problem := read_only_problem(mat)) is not None:
+            raise UserError(problem)
         return mat
 
     def target_stack(self, context):

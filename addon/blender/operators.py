@@ -163,6 +163,7 @@ class NLM_OT_layer_duplicate(MaterialOperator, bpy.types.Operator):
             raise UserError(f"{src.name!r} is the base and a stack has one base: duplicate a coating instead")
         with stack_io.bulk_edit(mat):
             item = s.layers.add()
+            src = s.layers[i]  # found again: adding an item can move the collection's items in memory
             _copy_properties(src, item)
             item.name = stack_io.default_layer_name(src.layer_type, {x.name for x in s.layers})
             s.layers.move(len(s.layers) - 1, i + 1)
@@ -218,6 +219,9 @@ class NLM_OT_preset_apply(MaterialOperator, bpy.types.Operator):
     def _run(self, context):
         mat = self.target(context)
         stack_io.stack_to_material(PRESETS[self.preset], mat)
+        # A bundled preset is now the last applied: none of the user's is, so "Remove Preset" has none to remove
+        # (it would have removed the user's preset applied before this one).
+        bpy.types.NLM_MT_presets.bl_label = PRESETS_MENU_LABEL
         return {"FINISHED"}
 
 
@@ -248,6 +252,9 @@ class NLM_OT_stack_apply(MaterialOperator, bpy.types.Operator):
 
 
 PRESET_SUBDIR = "neural_layered_materials/layer_stacks"
+# The presets menu's label while no preset of the user's is the last applied: Blender's preset menus hold the name
+# of the last one applied in their label, and that is the preset "Remove Preset" removes.
+PRESETS_MENU_LABEL = "Layer Presets"
 
 
 def preset_file_text(stack: Stack) -> str:
@@ -265,6 +272,7 @@ class NLM_OT_preset_add(AddPresetBase, MaterialOperator, bpy.types.Operator):
     presets/neural_layered_materials/layer_stacks), or remove the active one of yours"""
 
     poll_needs = "material"
+    edits = False  # reads the stack, writes a preset file
     bl_idname = "neural_layers.preset_add"
     bl_label = "Add Layer Preset"
     bl_options = {"REGISTER", "INTERNAL"}
@@ -322,6 +330,7 @@ class NLM_OT_preview_lobe(LongOperator, bpy.types.Operator):
     """Show the BRDF lobe (f cos over the projected outgoing hemisphere) for the incident angle in the Image Editor"""
 
     poll_needs = "stack"
+    edits = False  # reads the stack, shows an image
     bl_idname = "neural_layers.preview_lobe"
     bl_label = "Preview Lobe"
     bl_options = {"REGISTER"}

@@ -6,7 +6,7 @@ import bpy
 
 from ..core.stack import PRESETS
 from . import layer_types, stack_io
-from .operators import PRESET_SUBDIR
+from .operators import PRESET_SUBDIR, PRESETS_MENU_LABEL
 
 
 class NLM_UL_layers(bpy.types.UIList):
@@ -34,7 +34,7 @@ class NLM_MT_presets(bpy.types.Menu):
     """The bundled layer stacks, then your own (saved with the + beside this menu)."""
 
     bl_idname = "NLM_MT_presets"
-    bl_label = "Layer Presets"
+    bl_label = PRESETS_MENU_LABEL
     preset_subdir = PRESET_SUBDIR
     preset_operator = "script.execute_preset"
 
@@ -46,8 +46,10 @@ class NLM_MT_presets(bpy.types.Menu):
         if bpy.utils.preset_paths(self.preset_subdir):
             layout.separator()
             bpy.types.Menu.draw_preset(self, context)
-            remove = layout.operator("neural_layers.preset_add", text="Remove Last Applied Preset", icon="REMOVE")
-            remove.remove_active = True
+            last = type(self).bl_label  # the preset of yours applied last (Blender's presets keep it there)
+            if last != PRESETS_MENU_LABEL:
+                remove = layout.operator("neural_layers.preset_add", text=f"Remove Preset {last!r}", icon="REMOVE")
+                remove.remove_active = True
 
 
 def _material(context):

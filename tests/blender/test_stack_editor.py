@@ -367,7 +367,14 @@ def test_users_save_share_and_apply_their_own_layer_presets(bpy_addon, material,
     from addon.blender import stack_io
 
     assert stack_io.stack_from_material(other) == saved != PRESETS["red_car_paint"]
-    # the menu's Remove Last Applied Preset deletes the user's file (never a bundled stack)
+    # The menu's Remove Preset removes the user's preset applied last, and none once a bundled one came after it.
+    assert bpy.types.NLM_MT_presets.bl_label == "My Paint"
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="coated_gold").finished
+    assert bpy.types.NLM_MT_presets.bl_label == "Layer Presets"
+    assert not run_operator(bpy.ops.neural_layers.preset_add, remove_active=True).finished
+    assert files[0].exists()
+    r = run_operator(bpy.ops.script.execute_preset, filepath=str(files[0]), menu_idname="NLM_MT_presets")
+    assert r.finished, r.error
     assert run_operator(bpy.ops.neural_layers.preset_add, remove_active=True).finished
     assert not files[0].exists()
     r = run_operator(bpy.ops.neural_layers.stack_apply, stack="{not json")
@@ -402,3 +409,43 @@ def test_every_stack_edit_reaches_the_evaluated_material(bpy_addon, material):
         assert stack(evaluated()) == stack(material.neural_layers), op
     material.neural_layers.bake_refine = 3.0  # part of a baked texture's key
     assert evaluated().bake_refine == 3.0
+
+
+def test_a_linked_material_is_read_but_never_edited_and_its_texture_found_beside_its_library(
+    bpy_addon, fresh_scene, tmp_path, monkeypatch
+):
+    """A material linked from another file is read-only: an edit would be lost when the file is saved, so the
+    editing buttons grey out and scripts get the reason; what only reads it still runs. Its baked texture's
+    "//" path is relative to its library, not to the open file."""
+    import types
+
+    from addon.blender import bake_state, operator_base, operators
+
+    bpy = bpy_addon
+    (tmp_path / "lib" / "textures").mkdir(parents=True)
+    (tmp_path / "shot").mkdir()
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="coated_gold").finished
+    bpy.data.materials["Material"].neural_layers.texture_path = "//textures/Material.exr"
+    (tmp_path / "lib" / "textures" / "Material.exr").write_bytes(b"")
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "lib" / "lib.blend"))
+    bpy.ops.wm.read_homefile(app_template="")
+    with bpy.data.libraries.load(str(tmp_path / "lib" / "lib.blend"), link=True) as (_, linked):
+        linked.materials = ["Material"]
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "shot" / "shot.blend"))
+    ob = fresh_scene.view_layer.objects.active
+    ob.material_slots[0].link = "OBJECT"
+    ob.material_slots[0].material = linked.materials[0]
+    mat = ob.active_material
+    assert mat.library is not None and len(mat.neural_layers.layers) == 2
+    monkeypatch.setattr(operator_base, "scripted", lambda: False)
+    ctx = types.SimpleNamespace(object=ob)
+    assert not operators.NLM_OT_layer_add.poll(ctx) and not operators.NLM_OT_preset_apply.poll(ctx)
+    assert "linked" in operator_base.poll_problem(ctx, "stack", edits=True)
+    assert operators.NLM_OT_preview_lobe.poll(ctx) and operators.NLM_OT_preset_add.poll(ctx)
+    monkeypatch.setattr(operator_base, "scripted", lambda: True)
+    r = run_operator(bpy.ops.neural_layers.layer_add, layer_type="COATING")
+    assert not r.finished and "linked" in r.error and "Make Local" in r.error
+    assert len(mat.neural_layers.layers) == 2
+    # the texture is found beside the library (the empty file is then refused for its content, not as missing)
+    state = bake_state.current_texture(mat)[1]
+    assert "missing" not in state, state
