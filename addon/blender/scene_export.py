@@ -349,8 +349,16 @@ def _world_mesh(arrays, matrix: np.ndarray) -> Mesh:
     transpose, material slots mapped to the scene's material indices."""
     pos, nrm, uvs, mat_i, slots = arrays
     world_pos = pos @ matrix[:3, :3].T.astype(np.float32) + matrix[:3, 3].astype(np.float32)
-    normal_m = np.linalg.inv(matrix[:3, :3]).T if abs(np.linalg.det(matrix[:3, :3])) > 1e-30 else np.eye(3)
+    det = np.linalg.det(matrix[:3, :3])
+    normal_m = np.linalg.inv(matrix[:3, :3]).T if abs(det) > 1e-30 else np.eye(3)
     world_nrm = nrm @ normal_m.T.astype(np.float32)
+    if det < 0:
+        # A mirroring matrix (a negative scale) turns the corners' order: reversed, the face normal that their order
+        # gives points out again, with the corner normals (else every corner normal disagreed with its face and the
+        # surface shaded flat).
+        corners = [0, 2, 1]
+        world_pos, world_nrm = world_pos[:, corners], world_nrm[:, corners]
+        uvs = uvs[:, corners] if uvs is not None else None
     return Mesh(world_pos, world_nrm, uvs, slots[np.clip(mat_i, 0, len(slots) - 1)])
 
 

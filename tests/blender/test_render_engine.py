@@ -95,6 +95,23 @@ def test_smooth_shading_exports_interpolated_normals(fresh_scene):
     del sphere
 
 
+@pytest.mark.parametrize("scale", [(1, 1, 1), (-1, 1, 1), (-1, -1, -1)])
+def test_a_mirrored_object_keeps_its_outward_faces_and_smooth_normals(fresh_scene, scale):
+    ctx = fresh_scene
+    bpy.ops.mesh.primitive_uv_sphere_add(segments=16, ring_count=8, location=(0, 0, 5))
+    bpy.ops.object.shade_smooth()
+    ctx.object.scale = scale
+    mesh = export(ctx)[0].mesh
+    sel = mesh.positions[:, :, 2].mean(axis=1) > 3
+    p = mesh.positions[sel] - np.array([0, 0, 5], np.float32)
+    radial = p / np.linalg.norm(p, axis=2, keepdims=True)
+    # The faces (their corners' order) still face out, and so every corner normal agrees with its face: none is
+    # dropped for the flat normal when the renderer checks them.
+    assert (np.einsum("ti,ti->t", mesh.face_normals[sel], radial.mean(axis=1)) > 0).all()
+    assert (np.einsum("tci,ti->tc", mesh.normals[sel], mesh.face_normals[sel]) > 0).all()
+    assert (np.einsum("tci,tci->tc", mesh.normals[sel], radial) > 0.99).all()
+
+
 def test_lights_world_and_layered_materials_export(fresh_scene):
     ctx = fresh_scene
     from addon.blender import stack_io
