@@ -709,6 +709,16 @@ LIGHT_SAMPLES_OUT = ((3, F8), (3, F8), (0, F8), (0, B1), (0, B1), (0, I8), (3, F
 FAR = 1e30
 
 
+@njit(inline="always", **_JIT)
+def _unblocked_before(dist, eps):
+    """How far short of a local light at ``dist`` a surface must be to block it: a relative 1e-4 and ``eps``, so
+    that a light flush with a surface (an area light on a ceiling, in float32 rays) shines. The one rule of both
+    ways to reach a light: the shadow rays of next-event estimation end there, and :func:`add_emission` takes the
+    light a ray finds unless a surface is nearer than that (with a strict ``<`` there, a light flush with a
+    ceiling was found by half the sampled directions that light sampling took as reaching it)."""
+    return dist * (1.0 - 1e-4) - eps
+
+
 @njit(**_JIT)
 def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps):
     """Next-event estimation's light samples: one light of the table per hit, chosen uniformly by
@@ -717,8 +727,8 @@ def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps):
     contribute (``useful``: pdf and radiance non-zero, and the direction on the same side of the geometric
     normal ``ng`` as of the shading normal, so light never leaks through the surface); and the shadow rays
     of the useful samples only: their rows, origins offset by ``eps`` off the surface on the light's side,
-    world directions and lengths (:data:`FAR` to the sun or the sky; else short of the light by a relative 1e-4
-    and ``eps``), in float32 for embree (each value rounded once, as numpy's cast rounds it). Writes them into
+    world directions and lengths (:data:`FAR` to the sun or the sky; else :func:`_unblocked_before` the light),
+    in float32 for embree (each value rounded once, as numpy's cast rounds it). Writes them into
     ``out`` (:data:`LIGHT_SAMPLES_OUT`) and returns them, the shadow rays' arrays cut to their count."""
     image, pixel_pdf, alias_p, alias_i, z_edges, edges = env[0], env[1], env[2], env[3], env[4], env[6]
     n = len(p)
@@ -747,7 +757,7 @@ def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps):
             for k in range(3):
                 org[m, k] = p[i, k] + ng[i, k] * off
             d[m, 0], d[m, 1], d[m, 2] = wx, wy, wz
-            length = FAR if math.isinf(dist) else dist * (1.0 - 1e-4) - eps
+            length = FAR if math.isinf(dist) else _unblocked_before(dist, eps)
             tmax[m] = FAR if length > FAR else length
             m += 1
     return wi_local, rad, pdf, delta, useful, rows[:m], org[:m], d[:m], tmax[:m]
@@ -774,12 +784,13 @@ def _intersect_area(params, j, ellipse, ox, oy, oz, dx, dy, dz):
         return np.inf, 0.0
     t = height / denom
     qx, qy, qz = ox + t * dx - params[j, 0], oy + t * dy - params[j, 1], oz + t * dz - params[j, 2]
-    a = (qx * params[j, 3] + qy * params[j, 4] + qz * params[j, 5]) / (
-        params[j, 3] * params[j, 3] + params[j, 4] * params[j, 4] + params[j, 5] * params[j, 5]
-    )
-    b = (qx * params[j, 6] + qy * params[j, 7] + qz * params[j, 8]) / (
-        params[j, 6] * params[j, 6] + params[j, 7] * params[j, 7] + params[j, 8] * params[j, 8]
-    )
+    # the point's coordinates (a, b) in the axes u, v: q = a u + b v, as the sampling places points (solved with
+    # the axes' Gram matrix: a matrix that shears the light leaves u and v oblique)
+    ux, uy, uz, vx, vy, vz = params[j, 3], params[j, 4], params[j, 5], params[j, 6], params[j, 7], params[j, 8]
+    uu, vv, uv = ux * ux + uy * uy + uz * uz, vx * vx + vy * vy + vz * vz, ux * vx + uy * vy + uz * vz
+    qu, qv = qx * ux + qy * uy + qz * uz, qx * vx + qy * vy + qz * vz
+    gram = uu * vv - uv * uv
+    a, b = (qu * vv - qv * uv) / gram, (qv * uu - qu * uv) / gram
     inside = (a * a + b * b <= 1.0) if ellipse else (abs(a) <= 1.0 and abs(b) <= 1.0)
     if not (inside and t > 1e-6):
         return np.inf, 0.0
@@ -824,18 +835,19 @@ def _emission_weight(strategy, p_select, pdf_light, prev_pdf, prev_delta, prev_m
 @njit(**_JIT)
 def add_emission(
     area_params, area_ellipse, has_env, env, strategy, p_select,
-    o, d, t, row, throughput, prev_pdf, prev_delta, prev_mis, L,
+    o, d, t, row, throughput, prev_pdf, prev_delta, prev_mis, L, eps,
 ):  # fmt: skip
-    """Add to ``L[row]`` the emission rays (o, d) reach before distance ``t``: every area light in
-    front of the surface, and the environment ``env`` where the ray escapes (t = inf; with ``has_env``), each
-    weighted by how the ray was sampled (:func:`_emission_weight`)."""
+    """Add to ``L[row]`` the emission rays (o, d) reach before distance ``t``: every area light that no surface
+    blocks (the surface at ``t`` is not nearer than :func:`_unblocked_before` the light, as for the shadow rays),
+    and the environment ``env`` where the ray escapes (t = inf; with ``has_env``), each weighted by how the ray
+    was sampled (:func:`_emission_weight`)."""
     image, pixel_pdf, _, _, z_edges, row_of_bin, edges, column_of_bin = env
     for i in range(len(o)):
         ox, oy, oz, dx, dy, dz = o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2]
         r = row[i]
         for j in range(len(area_params)):
             tl, pdf_l = _intersect_area(area_params, j, area_ellipse[j], ox, oy, oz, dx, dy, dz)
-            if tl < t[i]:
+            if not math.isinf(tl) and t[i] >= _unblocked_before(tl, eps):
                 w = _emission_weight(strategy, p_select, pdf_l, prev_pdf[i], prev_delta[i], prev_mis[i])
                 for k in range(3):
                     L[r, k] += throughput[i, k] * area_params[j, 12 + k] * w

@@ -643,7 +643,7 @@ def _add_emission(ctx: _Context, paths: _Paths, t: np.ndarray, L: np.ndarray) ->
     kernels.add_emission(
         ctx.area_params, ctx.area_ellipse, ctx.env is not None, ctx.env_arrays,
         ctx.strategy_code, ctx.p_select,
-        paths.o, paths.d, t, paths.row, paths.throughput, paths.pdf, paths.delta, paths.mis, L,
+        paths.o, paths.d, t, paths.row, paths.throughput, paths.pdf, paths.delta, paths.mis, L, ctx.eps,
     )  # fmt: skip
 
 

@@ -202,17 +202,11 @@ class AreaLight:
         return (kernels.AREA_ELLIPSE if self.ellipse else kernels.AREA_RECT), row
 
     def _bounding_radius2(self) -> float:
-        """The squared radius about the centre, 0.1% wider, of a sphere that holds every point the sampling gives
-        (a u + b v, |a|, |b| <= 1) and every point the intersection accepts (q.u = a |u|^2, q.v = b |v|^2): the
-        two are the same rectangle unless the matrix shears the axes. The intersection's first test."""
+        """The squared radius about the centre, 0.1% wider, of a sphere that holds the light: the points a u + b v,
+        |a|, |b| <= 1, which both the sampling and the intersection take (an oblique u and v, a sheared light,
+        included). The intersection's first test."""
         u, v = self.axis_u, self.axis_v
-        gram = np.array([[u @ u, u @ v], [u @ v, v @ v]])
-        corners = []
-        for s in (1.0, -1.0):
-            corners.append(np.sum((u + s * v) ** 2))
-            ab = np.linalg.solve(gram, np.array([u @ u, s * (v @ v)]))
-            corners.append(ab @ gram @ ab)
-        return float(max(corners) * 1.001)
+        return float(max(np.sum((u + v) ** 2), np.sum((u - v) ** 2)) * 1.001)
 
     def sample(self, p: np.ndarray, u: np.ndarray) -> LightSample:
         return _sample(self, p, u)
