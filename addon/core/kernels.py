@@ -349,7 +349,9 @@ def texture_footprint(width, cos_o, tri_uv_scale):
 
 
 # What ``surface_hits`` writes (``out``, a row per hit): p, ng, ns, uv, width, footprint, ts, tt, wo, distance.
-SURFACE_HITS_OUT = ((3, F8), (3, F8), (3, F8), (2, F8), (0, F8), (0, F8), (3, F8), (3, F8), (3, F8), (0, F8))
+SURFACE_HITS_OUT = (
+    (3, F8), (3, F8), (3, F8), (2, F8), (0, F8), (0, F8), (3, F8), (3, F8), (3, F8), (0, F8), (0, B1)
+)  # fmt: skip
 
 
 @njit(fastmath={"contract"}, **_JIT)
@@ -365,7 +367,10 @@ def surface_hits(out, corners, face_normals, uv_scale, hit, prim, bu, bv, d, t, 
     grazing (cos <= 1e-6) falls back to the geometric one.
     The shading frame is ``frame.basis`` of the shading normal, and ``wo`` the direction back along the ray
     in it. Writes and returns ``out`` (:data:`SURFACE_HITS_OUT`): p, ng, ns (N, 3), uv (N, 2), width,
-    footprint (N,), the tangents ts, tt (N, 3), wo (N, 3) and the distance (N,).
+    footprint (N,), the tangents ts, tt (N, 3), wo (N, 3), the distance (N,) and ``front`` (N,), whether the ray
+    came from the side the triangle's face normal points to (the outside of a closed mesh whose faces point
+    out): the frame is turned toward the viewer either way, so a material that lets light through tells
+    entering from leaving by it.
 
     Its sums of products (the interpolations, the dot products, the frame) may be fused into multiply-adds
     (``fastmath`` "contract", nothing else: each fused sum is rounded once, where it was rounded at every step),
@@ -373,7 +378,7 @@ def surface_hits(out, corners, face_normals, uv_scale, hit, prim, bu, bv, d, t, 
     ``continue_paths`` measured no faster so, and the sky's lookup must not be: there a product's difference that
     is exactly zero (a direction on a column's edge) must stay zero.
     """
-    p, ng, ns, uv, width_out, footprint, ts, tt, wo, dist = out
+    p, ng, ns, uv, width_out, footprint, ts, tt, wo, dist, front = out
     for i in range(len(hit)):
         h = hit[i]
         k = prim[h]
@@ -396,6 +401,7 @@ def surface_hits(out, corners, face_normals, uv_scale, hit, prim, bu, bv, d, t, 
             sx, sy, sz = gx, gy, gz
         ox, oy, oz = -d[i, 0], -d[i, 1], -d[i, 2]
         cos_g = gx * ox + gy * oy + gz * oz
+        front[i] = cos_g >= 0.0
         if cos_g < 0.0:  # turned toward the viewer
             gx, gy, gz, sx, sy, sz, cos_g = -gx, -gy, -gz, -sx, -sy, -sz, -cos_g
         if not (sx * ox + sy * oy + sz * oz > 1e-6):  # grazing: the geometric normal

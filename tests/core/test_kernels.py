@@ -275,6 +275,9 @@ def test_the_shading_frame_at_a_hit_is_the_bsdf_package_basis_and_wo_the_ray_bac
     np.testing.assert_allclose(tt, t, atol=1e-12)
     np.testing.assert_allclose(wo, frame.to_local(-d, s, t, ns), atol=1e-12)
     np.testing.assert_allclose(np.einsum("ij,ij->i", wo, wo), 1.0, atol=1e-12)
+    front = -d[:, 2] >= 0.0  # the rays that came from the side the face normal (+z) points to
+    assert 0 < front.sum() < n
+    np.testing.assert_array_equal(out[10], front)
 
 
 def test_the_compiled_lambert_shade_is_the_lambertian_bsdf_and_finish_proposals_is_build():

@@ -600,6 +600,7 @@ class _Hits:
     uv: np.ndarray
     footprint: np.ndarray
     dist: np.ndarray  # the ray's length to the hit
+    front: np.ndarray  # whether the ray came from the side the face normal points to (``kernels.surface_hits``)
     groups: list  # (material index, slice of rows): the hits are sorted by material
 
 
@@ -653,11 +654,11 @@ def _surface_hits(ctx: _Context, paths: _HitPaths, hit, t, prim, bu, bv, groups,
     ray cone grown to the hit and its footprint in texture space. ``groups``: the rows of each
     material (the rays come sorted by material). ``hit``: the rows of the intersection's results
     (``t``, ``prim``, ``bu``, ``bv``, one per ray traced) that ``paths`` now holds, in its order."""
-    p, ng, ns, uv, paths.width, footprint, ts, tt, wo, dist = kernels.surface_hits(
+    p, ng, ns, uv, paths.width, footprint, ts, tt, wo, dist, front = kernels.surface_hits(
         scratch.arrays("hits", len(hit), kernels.SURFACE_HITS_OUT),
         ctx.corners, ctx.face_normals, ctx.uv_scale, hit, prim, bu, bv, paths.d, t, paths.width, paths.spread,
     )  # fmt: skip
-    return _Hits(p, ng, ns, ts, tt, wo, uv, footprint, dist, groups)
+    return _Hits(p, ng, ns, ts, tt, wo, uv, footprint, dist, front, groups)
 
 
 def _sample_lights(
@@ -717,7 +718,7 @@ def _shade(
         v = rows + sel.start
         with _shading(stats):
             t0, net0 = time.perf_counter(), session.seconds_on_this_thread()
-            bound = material.bind(mat.SurfaceHits(hits.uv[sel], hits.footprint[sel], int(seeds[mi])))
+            bound = material.bind(mat.SurfaceHits(hits.uv[sel], hits.footprint[sel], int(seeds[mi]), hits.front[sel]))
             sh = bound.shade(hits.wo[sel], lights.wi[v], rows, u_lobe[sel], u_dir[sel], need_pdf)
             stats.seconds["network"] += session.seconds_on_this_thread() - net0
             if material.kind == "reference":

@@ -53,11 +53,15 @@ from .shading import ShadeByParts, Shading, finish_sample
 @dataclass
 class SurfaceHits:
     """Per-hit information a material may use: uv (N, 2), footprint (N,) in uv units (the ray
-    cone's width on the surface), and an integer seed for stochastic estimators."""
+    cone's width on the surface), an integer seed for stochastic estimators, and ``front`` (N,) bool, whether
+    each ray came from the side the surface's face normal points to (None: all of them). The local frame is
+    turned toward the viewer either way; a material that lets light through tells entering from leaving by
+    ``front``."""
 
     uv: np.ndarray
     footprint: np.ndarray
     seed: int = 0
+    front: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.uv)
@@ -160,9 +164,22 @@ class BSDFMaterial:
     has_pdf = True
 
     def __init__(self, bsdf):
+        self.bsdf = bsdf
         self._bound = _BoundBSDF(bsdf)
 
     def bind(self, hits: SurfaceHits):
+        bsdf = self.bsdf
+        if (
+            isinstance(bsdf, RoughDielectric)
+            and not bsdf.reflection_only
+            and hits.front is not None
+            and not np.all(hits.front)
+        ):
+            # A ray leaving through the surface (from the back of its faces) meets the interface from inside: the
+            # frame faces the viewer, so the relative index is turned (else every crossing entered, and light
+            # never met total internal reflection on its way out).
+            ior = np.where(hits.front, bsdf.ior, 1.0 / np.asarray(bsdf.ior, dtype=np.float64))
+            return _BoundBSDF(RoughDielectric(np.broadcast_to(bsdf.alpha, ior.shape), ior))
         return self._bound
 
 
