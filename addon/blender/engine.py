@@ -69,15 +69,18 @@ def _failure(e: Exception) -> str:
 
 
 def _view_camera(context):
-    """The 3D viewport's view as a core camera (its lens, the region's size)."""
+    """The 3D viewport's view as a core camera (its projection, or the scene camera's as camera view frames it;
+    the region's size)."""
     region = context.region
     return scene_export.view_camera(context.region_data, context.space_data.lens, region.width, region.height)
 
 
 def _view_key(context) -> tuple:
-    """What makes a viewport image stale without an edit: the view matrix, lens and region size."""
+    """What makes a viewport image stale without an edit: the view and projection matrices (a lens, a zoom or a
+    pan in camera view), the lens and the region size."""
     r3d, region = context.region_data, context.region
-    return (tuple(map(tuple, r3d.view_matrix)), context.space_data.lens, region.width, region.height)
+    projection = (tuple(map(tuple, r3d.window_matrix)), context.space_data.lens)
+    return (tuple(map(tuple, r3d.view_matrix)), projection, region.width, region.height)
 
 
 class _Viewport:
@@ -346,6 +349,8 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         except Exception as e:
             self.report({"ERROR"}, _failure(e))
             return
+        if not context.region_data.is_perspective:
+            self.report({"WARNING"}, "an orthographic view renders in perspective: this engine's camera is a pinhole")
         if self._viewport is None:
             self._viewport = _Viewport(self, settings)
         self._viewport.restart(core_scene, settings, _view_key(context))

@@ -269,11 +269,24 @@ def _camera(cam_ob, width: int, height: int, warnings: list[str]) -> Camera:
 
 
 def view_camera(region_3d, lens: float, width: int, height: int) -> Camera:
-    """The camera of a 3D viewport (its view matrix and lens), for previews of the current view."""
+    """The camera of a 3D viewport, for an image of ``width`` x ``height``: its view matrix, and its projection
+    (``window_matrix``: the viewport's own lens, or in camera view the scene camera's field of view, zoom and
+    offset as the viewport frames it) with the field of view of its larger side on the image's larger side
+    (the viewport's region itself: its projection exactly). An orthographic view has no pinhole camera: the
+    viewport's ``lens`` (mm, on its 72 mm sensor) gives a perspective one of the same view."""
     m = np.array(region_3d.view_matrix.inverted())
-    t = VIEWPORT_SENSOR / (2.0 * lens)
-    tan = (t, t * height / width) if width >= height else (t * width / height, t)
-    return Camera(m, width, height, tan)
+    big = max(width, height)
+    if not region_3d.is_perspective:
+        t = VIEWPORT_SENSOR / (2.0 * lens)
+        return Camera(m, width, height, (t * width / big, t * height / big))
+    p = np.array(region_3d.window_matrix)
+    tan_x, tan_y = 1.0 / p[0, 0], 1.0 / p[1, 1]  # the region's half extents at unit distance
+    t = max(tan_x, tan_y)  # on the region's larger side
+    tan = (t * width / big, t * height / big)
+    # the centre's offset (camera view: the frame's place in the region), as ``Camera.shift`` counts it
+    off_x, off_y = p[0, 2] / p[0, 0], p[1, 2] / p[1, 1]
+    shift = (off_x * width / (2.0 * tan[0] * big), off_y * height / (2.0 * tan[1] * big))
+    return Camera(m, width, height, tan, shift)
 
 
 def _light(ob, matrix: np.ndarray, warnings: list[str]):

@@ -673,7 +673,7 @@ def test_viewport_navigation_moves_the_camera_and_an_edit_or_a_resize_exports_ag
 
     def context(matrix, width=40):
         return SimpleNamespace(
-            region_data=SimpleNamespace(view_matrix=matrix),
+            region_data=SimpleNamespace(view_matrix=matrix, window_matrix=((1, 0), (0, 1))),
             space_data=SimpleNamespace(lens=50.0),
             region=SimpleNamespace(width=width, height=30),
         )
@@ -691,3 +691,43 @@ def test_viewport_navigation_moves_the_camera_and_an_edit_or_a_resize_exports_ag
     assert calls[-1] == ("move", ("camera", ((0, 1), (1, 0)), 40, 30))
     view_draw(fake, context(((0, 1), (1, 0)), width=80), None)
     assert calls[-1] == ("update", 80)  # another size: Auto's decoder choice may change, so export again
+
+
+def _frustum(left, right, bottom, top, near=0.1, far=100.0):
+    """An OpenGL perspective projection (rows as mathutils gives them), as Blender makes a viewport's."""
+    return np.array(
+        [
+            [2 * near / (right - left), 0, (right + left) / (right - left), 0],
+            [0, 2 * near / (top - bottom), (top + bottom) / (top - bottom), 0],
+            [0, 0, -(far + near) / (far - near), -2 * far * near / (far - near)],
+            [0, 0, -1, 0],
+        ]
+    )
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0), (0.03, -0.02)])
+def test_the_viewport_camera_is_the_viewports_projection_in_camera_view_too(bpy_addon, offset):
+    """The viewport's camera puts each pixel's centre where the viewport's own projection (its window matrix:
+    the lens, or in camera view the scene camera framed with its zoom and offset) puts it; it used to take the
+    viewport's lens alone, so camera view showed another field of view than its frame."""
+    from types import SimpleNamespace
+
+    from mathutils import Euler, Matrix
+
+    from addon.blender import scene_export
+
+    width, height = 40, 30
+    view = Matrix.LocRotScale((0.3, -4.0, 1.2), Euler((1.2, 0.1, 0.3)), None).inverted()
+    half_w = 0.06  # at the near distance 0.1: a 62-degree horizontal field of view
+    half_h = half_w * height / width
+    dx, dy = offset
+    window = _frustum(dx - half_w, dx + half_w, dy - half_h, dy + half_h)
+    r3d = SimpleNamespace(view_matrix=view, window_matrix=Matrix(window.tolist()), is_perspective=True)
+    cam = scene_export.view_camera(r3d, 50.0, width, height)
+    px, py = np.meshgrid(np.arange(width), np.arange(height))
+    o, d = cam.generate_rays(px.ravel(), py.ravel(), np.full((width * height, 2), 0.5))
+    world = np.concatenate([o + d, np.ones((len(o), 1))], axis=1)
+    clip = world @ (window @ np.array(view)).T
+    ndc = clip[:, :2] / clip[:, 3:]
+    want = np.stack([(px.ravel() + 0.5) * 2 / width - 1, 1 - (py.ravel() + 0.5) * 2 / height], axis=1)
+    np.testing.assert_allclose(ndc, want, atol=2e-6)  # mathutils holds float32
