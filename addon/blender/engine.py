@@ -95,6 +95,7 @@ class _Viewport:
         self._drawn = None  # the session's image on screen (``ViewImage``: a new object for every image)
         self._texture = None
         self._reported = None  # the last session error shown
+        _OPEN_VIEWPORTS.add(self)
         bpy.app.timers.register(self._poll, first_interval=0.05)
 
     def restart(self, core_scene, settings, key) -> None:
@@ -108,12 +109,14 @@ class _Viewport:
     def _poll(self):
         if self.session is None:
             return None  # closed: the timer ends
-        if self._is_new(self.session.latest()):
-            try:
+        try:
+            if self._is_new(self.session.latest()):
                 self.engine_ref.tag_redraw()
-            except ReferenceError:  # the engine is gone
-                self.close()
-                return None
+            else:
+                self.engine_ref.is_preview  # noqa: B018 (an RNA read: raises once Blender freed the engine)
+        except ReferenceError:  # the engine is gone (the viewport left Rendered mode): so is its session
+            self.close()
+            return None
         return 0.05
 
     def draw(self, engine, scene) -> None:
@@ -152,9 +155,14 @@ class _Viewport:
         return image is not None and image is not self._drawn
 
     def close(self) -> None:
+        _OPEN_VIEWPORTS.discard(self)
         if self.session is not None:
             self.session.close(timeout=5.0)
             self.session = None
+
+
+# The viewports' sessions not closed yet: ``unregister`` closes them (their threads and buffers), with their timers.
+_OPEN_VIEWPORTS: set = set()
 
 
 def _write_feature_passes(passes, film, region) -> None:
@@ -394,7 +402,16 @@ def _forget_textures(*_args) -> None:
     scene_export.forget_textures()
 
 
+def close_viewports() -> None:
+    """Close every viewport session still open, with its timer (the add-on is going: nothing will draw them)."""
+    for view in list(_OPEN_VIEWPORTS):
+        view.close()
+        if bpy.app.timers.is_registered(view._poll):
+            bpy.app.timers.unregister(view._poll)
+
+
 def unregister() -> None:
+    close_viewports()
     if _forget_textures in bpy.app.handlers.load_post:
         bpy.app.handlers.load_post.remove(_forget_textures)
     scene_export.forget_textures()

@@ -642,7 +642,7 @@ def test_the_viewport_asks_for_a_redraw_for_every_new_image_of_a_generation(bpy_
     redraws = []
     viewport = engine._Viewport.__new__(engine._Viewport)  # no timer: _poll is called by hand
     viewport.session = SimpleNamespace(latest=lambda: latest[-1] if latest else None)
-    viewport.engine_ref = SimpleNamespace(tag_redraw=lambda: redraws.append(latest[-1]))
+    viewport.engine_ref = SimpleNamespace(tag_redraw=lambda: redraws.append(latest[-1]), is_preview=False)
     viewport._drawn = None
     assert viewport._poll() == 0.05 and redraws == []  # nothing yet
     for im in shown:
@@ -651,6 +651,45 @@ def test_the_viewport_asks_for_a_redraw_for_every_new_image_of_a_generation(bpy_
         viewport._drawn = im  # what draw does once it has uploaded the image
         viewport._poll()  # on screen already: no second redraw
     assert redraws == shown
+
+
+def test_a_viewport_session_closes_when_its_engine_goes_and_when_the_add_on_does(bpy_addon, fresh_scene):
+    """Leaving Rendered mode frees the engine: its session (thread, scene, buffers) closes at the timer's next tick,
+    whether or not a new image came (a converged session used to live on, its timer running, one more each time
+    the viewport went to Rendered and back); and unregistering the add-on closes the sessions still open."""
+    from addon.blender import engine, scene_export
+
+    scene = fresh_scene.scene
+    scene.neural_render.samples = 2
+    core_scene, _ = scene_export.export_scene(fresh_scene.evaluated_depsgraph_get(), 24, 18)
+    settings = scene.neural_render.to_core(scene=scene, viewport=True)
+
+    class Engine:  # as Blender's: once freed, reading it raises ReferenceError
+        freed = False
+
+        def tag_redraw(self):
+            self.is_preview  # noqa: B018
+
+        @property
+        def is_preview(self):
+            if self.freed:
+                raise ReferenceError("StructRNA of type NeuralLayeredRenderEngine has been removed")
+            return False
+
+    views = []
+    for _ in range(2):
+        view = engine._Viewport(Engine(), settings)
+        view.restart(core_scene, settings, ("key",))
+        assert view.session.wait(timeout=120) is not None  # converged
+        view._drawn = view.session.latest()  # on screen: no new image will come
+        assert view._poll() == 0.05
+        views.append(view)
+    views[0].engine_ref.freed = True
+    assert views[0]._poll() is None and views[0].session is None  # closed, its timer ends
+    assert views[1] in engine._OPEN_VIEWPORTS and views[0] not in engine._OPEN_VIEWPORTS
+    engine.close_viewports()
+    assert views[1].session is None and not engine._OPEN_VIEWPORTS
+    assert not bpy.app.timers.is_registered(views[1]._poll)
 
 
 def test_viewport_navigation_moves_the_camera_and_an_edit_or_a_resize_exports_again(bpy_addon, monkeypatch):
