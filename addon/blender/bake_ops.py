@@ -39,6 +39,17 @@ def camera_resolution(context, mat, spatial) -> tuple[int, int]:
     return quality.texture_resolution_for_footprint(footprint, spatial.resolution or (1, 1))
 
 
+def _blend_relative(path: str) -> str:
+    """``path`` relative to the saved .blend file ("//..."), or as it is where it cannot be: no saved file, or
+    another drive than the file's (Windows), where a relative path does not exist."""
+    if not bpy.data.filepath:
+        return path
+    try:
+        return bpy.path.relpath(path)
+    except ValueError:  # os.path.relpath across drives
+        return path
+
+
 class NLM_OT_map_add(MaterialOperator, bpy.types.Operator):
     """Drive a parameter of the active layer by an image"""
 
@@ -144,7 +155,7 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
 
         def finish(context, result):
             stats, seconds, refined, (filtered, levels) = result
-            mat.neural_layers.texture_path = bpy.path.relpath(path) if bpy.data.filepath else path
+            mat.neural_layers.texture_path = _blend_relative(path)
             mat.neural_layers.texture_key = key
             mat.neural_layers.texture_size = res
             refined = "" if refined is None else f", {refined} refined"

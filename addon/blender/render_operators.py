@@ -84,6 +84,11 @@ class NLM_OT_render_preview(jobs.ModalJob, bpy.types.Operator):
     def _prepare(self, context):
         if self.filepath and Path(self.filepath).suffix.lower() not in (".exr", ".png"):
             raise ValueError(f"filepath {self.filepath!r} must end in .exr or .png")
+        if self.filepath.startswith("//") and not bpy.data.filepath:  # else it would land in the working folder
+            raise ValueError(
+                f"filepath {self.filepath!r} is relative to the .blend file, which is not saved: "
+                "save the file first or choose an absolute path"
+            )
         scene = context.scene
         w, h = scene_export.render_size(scene)
         if self.width and self.height:
@@ -122,23 +127,28 @@ class NLM_OT_render_preview(jobs.ModalJob, bpy.types.Operator):
         self.report({"ERROR"}, message)
         return {"CANCELLED"}
 
+    def _failure(self, e: Exception):
+        """Every failure as a report: a plain message for bad input, the type too for anything else (a model file
+        that cannot be read, an unexpected error), never a traceback alone."""
+        if isinstance(e, (ValueError, RuntimeError)):
+            return self._fail(str(e))
+        return self._fail(f"Render Preview failed: {type(e).__name__}: {e}")
+
     def execute(self, context):
         try:
             return self._finish(context, self._prepare(context)(None))
-        except (ValueError, RuntimeError) as e:
-            return self._fail(str(e))
         except Cancelled:
             return {"CANCELLED"}
-        except Exception as e:  # unexpected: still a report, with enough to file a bug
-            return self._fail(f"Render Preview failed: {type(e).__name__}: {e}")
+        except Exception as e:
+            return self._failure(e)
 
     def invoke(self, context, event):
         if bpy.app.background or context.window is None:
             return self.execute(context)
         try:
             work = self._prepare(context)
-        except (ValueError, RuntimeError) as e:
-            return self._fail(str(e))
+        except Exception as e:
+            return self._failure(e)
         return self.start_job(context, work, interval=0.2)
 
     def job_done(self, context, job):
@@ -146,8 +156,8 @@ class NLM_OT_render_preview(jobs.ModalJob, bpy.types.Operator):
             return self._fail(f"Render Preview failed: {type(job.error).__name__}: {job.error}")
         try:
             return self._finish(context, job.result)
-        except (ValueError, RuntimeError) as e:
-            return self._fail(str(e))
+        except Exception as e:
+            return self._failure(e)
 
 
 _CLASSES = (NLM_OT_render_preview,)

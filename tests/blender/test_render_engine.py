@@ -260,6 +260,10 @@ def test_render_preview_operator_fills_an_image(fresh_scene, tmp_path):
     assert out.exists()
     bad = run_operator(bpy.ops.neural_layers.render_preview, width=8, height=8, filepath=str(tmp_path / "x.jpg"))
     assert bad.error and ".exr or .png" in bad.error
+    # A "//" path in a file never saved would land in the process's working folder: refused, as the bake does.
+    assert not bpy.data.filepath
+    bad = run_operator(bpy.ops.neural_layers.render_preview, width=8, height=8, filepath="//preview.png")
+    assert bad.error and "not saved" in bad.error
 
 
 def test_awkward_blender_scenes_render_without_errors(fresh_scene, tmp_path):

@@ -128,3 +128,22 @@ def test_each_geometry_that_geometry_nodes_instance_exports_as_itself(bpy_addon,
     assert len(sizes) == 8 and len(set(sizes)) == 2  # the cube's 8 corners, two geometries
     scene, _ = scene_export.export_scene(depsgraph, 32, 24)
     assert scene.mesh.triangle_count == sum(sizes)
+
+
+def test_a_bake_on_another_drive_than_the_blend_file_keeps_its_absolute_path(
+    bpy_addon, fresh_scene, tmp_path, monkeypatch
+):
+    """On Windows a Bake Folder on another drive has no path relative to the .blend file (os.path.relpath raises):
+    the bake keeps the absolute path, where that error used to lose the finished bake."""
+    from addon.blender import bake_ops
+
+    bpy = bpy_addon
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "shot.blend"))
+    inside = str(tmp_path / "textures" / "Material.exr")
+    assert bake_ops._blend_relative(inside) == "//textures/Material.exr"
+
+    def across_drives(path, start=None):
+        raise ValueError("path is on mount 'D:', start on mount 'C:'")
+
+    monkeypatch.setattr(bpy.path, "relpath", across_drives)
+    assert bake_ops._blend_relative("D:\\bakes\\Material.exr") == "D:\\bakes\\Material.exr"
