@@ -343,9 +343,10 @@ def _world(world, warnings: list[str]) -> Environment | None:
     return Environment(tuple(world.color))
 
 
-def _object_arrays(ob, material_slot, warnings: list[str]):
-    """``_mesh_arrays`` of an evaluated object plus its scene material indices; None (with a
-    warning for an object without a mesh form, e.g. empty curves) when it has no triangles."""
+def _object_arrays(ob, material_slot, materials, names, warnings: list[str]):
+    """``_mesh_arrays`` of an evaluated object plus its scene material indices (``material_slot``'s, into
+    ``materials`` and their ``names``); None (with a warning for an object without a mesh form, e.g. empty curves)
+    when it has no triangles. An object without a UV map whose materials read a texture is warned of."""
     try:
         arrays = _mesh_arrays(ob)
     except RuntimeError as e:
@@ -354,7 +355,21 @@ def _object_arrays(ob, material_slot, warnings: list[str]):
     if arrays is None:
         return None
     slots = [material_slot(s.material) for s in ob.material_slots] or [material_slot(None)]
+    if arrays[2] is None:
+        textured = sorted({names[i] for i in slots if _reads_uvs(materials[i])})
+        if textured:
+            warnings.append(
+                f"object {ob.name!r} has no UV map, and its textured material(s) {', '.join(map(repr, textured))} "
+                "sample their texture at uv (0, 0): add a UV map (UV Editing)"
+            )
     return arrays + (np.asarray(slots, np.int32),)
+
+
+def _reads_uvs(material) -> bool:
+    """Whether a scene material looks anything up by uv: an image texture, a baked latent texture, parameter maps."""
+    if isinstance(material, LambertMaterial):
+        return material.texture is not None
+    return getattr(material, "latent_texture", None) is not None or getattr(material, "spatial", None) is not None
 
 
 def _world_mesh(arrays, matrix: np.ndarray) -> Mesh:
@@ -441,14 +456,12 @@ def export_scene(
         # instancer, its mesh named "Mesh"), are each their own.
         key = (_identity(original), _identity(ob.data) if ob.data is not None else None)
         if key not in cache:
-            cache[key] = _object_arrays(ob, material_slot, warnings)
+            cache[key] = _object_arrays(ob, material_slot, materials, names, warnings)
         arrays = cache[key]
         if arrays is None:
             continue
         meshes.append(_world_mesh(arrays, matrix))
     mesh = Mesh.concatenate(meshes)
-    if mesh.uvs is None and any(isinstance(m, LambertMaterial) and m.texture is not None for m in materials):
-        warnings.append("textured materials on meshes without UV maps sample the texture at uv (0, 0)")
     out = Scene(camera, mesh, materials, lights, _world(scene.world, warnings), names)
     with _LOCK:
         for path in set(_TEXTURES) - _USED:  # textures no material renders any more: let them go

@@ -147,3 +147,25 @@ def test_a_bake_on_another_drive_than_the_blend_file_keeps_its_absolute_path(
 
     monkeypatch.setattr(bpy.path, "relpath", across_drives)
     assert bake_ops._blend_relative("D:\\bakes\\Material.exr") == "D:\\bakes\\Material.exr"
+
+
+def test_an_object_without_uvs_under_a_textured_material_is_named_whatever_the_others_have(bpy_addon, fresh_scene):
+    """The warning names each object without a UV map whose material reads a texture, even when other objects have
+    UV maps (the scene-wide check said nothing then); an object without UVs under a plain colour is no concern."""
+    from addon.blender import scene_export
+
+    bpy = bpy_addon
+    bpy.ops.mesh.primitive_ico_sphere_add(calc_uvs=False, location=(3, 0, 0))
+    sphere = bpy.context.object
+    textured = bpy.data.materials.new("Checker")
+    tree = textured.node_tree
+    image = tree.nodes.new("ShaderNodeTexImage")
+    image.image = bpy.data.images.new("checker", 8, 8)
+    tree.links.new(image.outputs["Color"], tree.nodes["Principled BSDF"].inputs["Base Color"])
+    sphere.data.materials.append(bpy.data.materials.new("Plain"))
+    _, warnings = scene_export.export_scene(bpy.context.evaluated_depsgraph_get(), 32, 24)
+    assert not any("UV map" in w for w in warnings)
+    sphere.data.materials[0] = textured
+    _, warnings = scene_export.export_scene(bpy.context.evaluated_depsgraph_get(), 32, 24)  # the cube has UVs
+    (warning,) = [w for w in warnings if "UV map" in w]
+    assert "'Icosphere'" in warning and "'Checker'" in warning and "Cube" not in warning
