@@ -288,6 +288,8 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         core_scene, warnings = scene_export.export_scene(depsgraph, *scene_export.render_size(scene), info=info)
         settings, notes, choice_info = self._settings(core_scene, scene, props, thumbnail)
         warnings = warnings + notes
+        if props.denoise and not thumbnail and (note := render_properties.denoise_note(scene)) is not None:
+            warnings.append(f"Denoise does nothing here: {note}")
         for line in info + choice_info:
             self.report({"INFO"}, line)
         for w in warnings:

@@ -12,18 +12,37 @@ DENOISE_GROUP = "Neural Layered Denoise"
 DENOISING_PASSES = (("Denoising Normal", 3, "XYZ", "VECTOR"), ("Denoising Albedo", 3, "RGB", "COLOR"))
 
 
-def ensure_denoise_compositor(scene) -> str | None:
-    """Set the scene's compositor to Render Layers -> Denoise (image, normal, albedo) -> output,
-    Blender's own OpenImageDenoise; returns a note when the scene already has another compositor
-    (left alone)."""
+_DENOISE_MARK = "neural_layered_denoise"  # an ID property on the compositor groups *Denoise* makes
+
+
+def _is_denoise_group(group) -> bool:
+    """Whether ``group`` is a compositor that *Denoise* made (marked, or by its name in files from before the mark)."""
+    return bool(group.get(_DENOISE_MARK)) or group.name == DENOISE_GROUP or group.name.startswith(DENOISE_GROUP + ".")
+
+
+def denoise_note(scene) -> str | None:
+    """Why *Denoise* cannot act on ``scene``: the scene already has a compositor of its own (left alone), or None."""
     group = scene.compositing_node_group
-    if group is not None and group.name != DENOISE_GROUP:
+    if group is not None and not _is_denoise_group(group):
         return (
             f"the scene already has the compositor {group.name!r}: connect its Render Layers' Denoising "
             "Normal and Denoising Albedo to a Denoise node"
         )
-    if group is None:
-        group = bpy.data.node_groups.get(DENOISE_GROUP) or bpy.data.node_groups.new(DENOISE_GROUP, "CompositorNodeTree")
+    return None
+
+
+def ensure_denoise_compositor(scene) -> str | None:
+    """Set the scene's compositor to Render Layers -> Denoise (image, normal, albedo) -> output,
+    Blender's own OpenImageDenoise; returns a note when the scene already has another compositor
+    (left alone). Each scene has a group of its own: one shared by two scenes would render one scene's layers in
+    the other's compositor."""
+    note = denoise_note(scene)
+    if note is not None:
+        return note
+    group = scene.compositing_node_group
+    if group is None or group.users > 1:  # none yet, or shared with another scene (a copied scene's)
+        group = bpy.data.node_groups.new(DENOISE_GROUP, "CompositorNodeTree")
+        group[_DENOISE_MARK] = True
         scene.compositing_node_group = group
     group.nodes.clear()
     if not group.interface.items_tree:
@@ -45,9 +64,12 @@ def ensure_denoise_compositor(scene) -> str | None:
 def _denoise_changed(self, context):
     scene = self.id_data
     if self.denoise:
-        ensure_denoise_compositor(scene)
-    elif scene.compositing_node_group is not None and scene.compositing_node_group.name == DENOISE_GROUP:
+        ensure_denoise_compositor(scene)  # a scene with its own compositor: F12 says so (``denoise_note``)
+    elif scene.compositing_node_group is not None and _is_denoise_group(scene.compositing_node_group):
+        group = scene.compositing_node_group
         scene.compositing_node_group = None
+        if group.users == 0:
+            bpy.data.node_groups.remove(group)
 
 
 class NLM_RenderSettings(bpy.types.PropertyGroup):

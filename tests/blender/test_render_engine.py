@@ -568,6 +568,43 @@ def test_denoise_option_brings_a_4_spp_render_closer_to_256_spp(fresh_scene, tmp
     assert scene.compositing_node_group is None
 
 
+def test_denoise_gives_each_scene_its_own_compositor_and_says_when_a_scene_has_another(
+    fresh_scene, tmp_path, monkeypatch
+):
+    from addon.blender import engine
+    from addon.blender.render_properties import denoise_note
+
+    first = fresh_scene.scene
+    second = bpy.data.scenes.new("Shot B")
+    first.neural_render.denoise = True
+    second.neural_render.denoise = True
+    groups = [s.compositing_node_group for s in (first, second)]
+    assert groups[0] is not None and groups[1] is not None and groups[0] != groups[1]
+    for scene, group in zip((first, second), groups, strict=True):
+        (layers,) = [n for n in group.nodes if n.bl_idname == "CompositorNodeRLayers"]
+        assert layers.scene == scene  # the other scene's Denoise took the first's compositor over, before
+    second.neural_render.denoise = False
+    assert second.compositing_node_group is None and first.compositing_node_group == groups[0]
+    # A scene with a compositor of its own keeps it, and F12 says that Denoise does nothing there.
+    small(first, 16, 12, samples=1)
+    first.neural_render.denoise = False
+    first.compositing_node_group = bpy.data.node_groups.new("My Comp", "CompositorNodeTree")
+    first.neural_render.denoise = True
+    assert first.compositing_node_group.name == "My Comp" and "My Comp" in denoise_note(first)
+    first.render.engine = "NEURAL_LAYERED"
+    first.render.use_compositing = False
+    first.render.filepath = str(tmp_path / "frame.png")
+    notes = []  # the engine's reports cannot be watched from Python (RNA functions): its call of denoise_note can
+
+    def watched(scene):
+        notes.append(denoise_note(scene))
+        return notes[-1]
+
+    monkeypatch.setattr(engine.render_properties, "denoise_note", watched)
+    bpy.ops.render.render(write_still=True)
+    assert len(notes) == 1 and "My Comp" in notes[0]
+
+
 def test_denoising_passes_reach_the_compositor(fresh_scene, tmp_path):
     ctx = fresh_scene
     scene = ctx.scene
