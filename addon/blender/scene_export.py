@@ -123,10 +123,21 @@ def _baked_texture(mat, warnings: list[str]):
         warnings.append(f"material {mat.name!r}: {state}; rendering its constant stack")
         return None, None
     try:
-        return _read_texture(path), spatial
+        texture = _read_texture(path)
     except (OSError, ValueError, RuntimeError) as e:
         warnings.append(f"material {mat.name!r}: cannot read its latent texture ({e}); rendering its constant stack")
         return None, None
+    # The file must hold this material's bake: another bake can sit at its path while the material's key still
+    # matches its inputs (another .blend file's material of the same name in the same folder, a renamed material
+    # and a new one of its old name, an undo after a second bake, names that differ in case only).
+    found = texture.metadata.get("key")
+    if found is not None and found != mat.neural_layers.texture_key:
+        warnings.append(
+            f"material {mat.name!r}: {path} holds another bake (of material {texture.metadata.get('material', '?')!r}"
+            f"): bake again; rendering its constant stack"
+        )
+        return None, None
+    return texture, spatial
 
 
 # Latent textures read, by absolute path: (the file's identity, the texture). The viewport exports the scene

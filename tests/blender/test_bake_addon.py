@@ -86,6 +86,28 @@ def test_bake_writes_the_texture_and_the_renderer_uses_it_while_current(wood, bp
     assert run_operator(ops.texture_clear).finished and wood.neural_layers.texture_path == ""
 
 
+def test_a_texture_file_that_holds_another_materials_bake_is_not_rendered(wood, bpy_addon):
+    """A renamed material and a new one of its old name bake to the same file: the first's key still matches its
+    own inputs, but the file holds the second's bake, so the first renders its constant stack and says why (it
+    rendered the other material's texture, silently)."""
+    from addon.blender import scene_export
+
+    bpy = bpy_addon
+    assert run_operator(ops.bake_texture).finished
+    wood.name = "Oak"
+    other = bpy.data.materials.new("Material")
+    other.neural_layers.bake_directory = wood.neural_layers.bake_directory
+    bpy.context.view_layer.objects.active.active_material = other
+    assert run_operator(ops.preset_apply, preset="coated_gold").finished
+    assert run_operator(ops.bake_texture).finished
+    assert bpy.path.abspath(other.neural_layers.texture_path) == bpy.path.abspath(wood.neural_layers.texture_path)
+    warnings = []
+    spec = scene_export.export_material(wood, warnings)
+    assert spec.latent_texture is None and any("holds another bake" in w and "'Material'" in w for w in warnings)
+    warnings = []
+    assert scene_export.export_material(other, warnings).latent_texture is not None and not warnings
+
+
 def _evaluated_spec(bpy):
     """The cube's material as the viewport and the render operators export it: from the evaluated depsgraph."""
     from addon.blender import scene_export

@@ -104,3 +104,24 @@ def test_an_interrupted_write_leaves_the_previous_file_and_no_temporary(tmp_path
     assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]  # ... and removed it
     expected = before if suffix == ".exr" else np.round(to_srgb(before) * 255) / 255
     np.testing.assert_allclose(read_image(path), expected, atol=1e-6)  # the previous file, round-tripped
+
+
+def test_an_image_with_transparency_is_read_as_stored_not_multiplied_by_its_alpha(tmp_path):
+    """A parameter map or mask with alpha below 1 (PNG keeps colour and alpha apart): its colour is read as stored,
+    as Blender reads it, where OpenImageIO multiplied it by the alpha (0.502 stored, 0.126 read at alpha 1/4)."""
+    from addon.core.textures.latent_texture import oiio_module
+
+    oiio = oiio_module()
+    path = tmp_path / "map.png"
+    pixels = np.zeros((2, 2, 4), np.float32)
+    pixels[..., :3] = 128 / 255
+    pixels[0, :, 3], pixels[1, :, 3] = 1.0, 0.25
+    spec = oiio.ImageSpec(2, 2, 4, "uint8")
+    spec.attribute("oiio:UnassociatedAlpha", 1)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec)
+    out.write_image(pixels)
+    out.close()
+    read = read_image(path)
+    np.testing.assert_allclose(read[..., :3], 128 / 255, atol=1e-6)
+    np.testing.assert_allclose(read[:, 0, 3], [1.0, 64 / 255], atol=1e-6)
