@@ -7,13 +7,14 @@ append it to ``_MODULES``. ``register()`` is idempotent: calling it twice re-reg
 
 from __future__ import annotations
 
-from . import bake_ops, engine, operators, properties, refine_ops, ui
+from . import bake_ops, bake_state, engine, operators, properties, refine_ops, ui
 
 _MODULES = [
     properties,
     operators,
     refine_ops,
     bake_ops,
+    bake_state,
     ui,
     engine,
 ]

@@ -84,3 +84,60 @@ def current_texture(mat):
     if bake_key(spatial, res, model) != s.texture_key:
         return None, "baked texture is out of date: bake again", None
     return path, f"baked: {os.path.basename(path)}", spatial
+
+
+# Save As into another folder: a texture path relative to the .blend file ("//textures/...") is made relative to the
+# new file, as Blender remaps its own relative paths (images, libraries); its own do not cover this setting, so a
+# bake was reported missing after a Save As. A Save Copy keeps the open file where it was: the paths written into
+# the copy are remapped, and the open file's put back after the save (``_remapped``).
+_remapped: list = []
+
+
+def _relative_to(path: str, folder: str) -> str:
+    """``path`` (absolute) relative to ``folder`` as a "//" path, or as it is where none exists (another drive)."""
+    try:
+        return bpy.path.relpath(path, start=folder)
+    except ValueError:
+        return path
+
+
+@bpy.app.handlers.persistent
+def remap_texture_paths(filepath, *_args) -> None:
+    """``save_pre``: the materials' "//" texture paths made relative to the file being written, ``filepath``."""
+    _remapped.clear()
+    old = bpy.data.filepath
+    if not old or not filepath or os.path.dirname(os.path.abspath(old)) == os.path.dirname(os.path.abspath(filepath)):
+        return
+    folder = os.path.dirname(os.path.abspath(filepath))
+    for mat in bpy.data.materials:
+        path = mat.neural_layers.texture_path if mat.library is None else ""
+        if path.startswith("//"):
+            _remapped.append((mat, path))
+            mat.neural_layers.texture_path = _relative_to(bpy.path.abspath(path), folder)
+
+
+@bpy.app.handlers.persistent
+def restore_texture_paths(filepath, *_args) -> None:
+    """``save_post``: after a Save Copy (the open file is still the old one) the texture paths as they were."""
+    if _remapped and os.path.abspath(bpy.data.filepath) != os.path.abspath(filepath):
+        for mat, path in _remapped:
+            mat.neural_layers.texture_path = path
+    _remapped.clear()
+
+
+def register() -> None:
+    for handlers, handler in (
+        (bpy.app.handlers.save_pre, remap_texture_paths),
+        (bpy.app.handlers.save_post, restore_texture_paths),
+    ):
+        if handler not in handlers:
+            handlers.append(handler)
+
+
+def unregister() -> None:
+    for handlers, handler in (
+        (bpy.app.handlers.save_pre, remap_texture_paths),
+        (bpy.app.handlers.save_post, restore_texture_paths),
+    ):
+        if handler in handlers:
+            handlers.remove(handler)

@@ -355,3 +355,30 @@ def test_bake_refine_option_refines_the_distinct_texels_and_keys_the_bake_apart(
     assert len(list((tmp_path / ".refine").glob("refine_*.npz"))) == 1
     s.bake_refine = 0.0
     assert bake_ops.baked_texture_state(material)[0] is None
+
+
+def test_save_as_into_another_folder_keeps_the_baked_texture_and_save_copy_keeps_the_open_files_paths(
+    wood, bpy_addon, tmp_path
+):
+    """The texture path is relative to the .blend file: Save As into another folder remaps it, as Blender remaps
+    its own relative paths (the bake was reported missing after it); a Save Copy remaps the copy's only."""
+    import os
+
+    from addon.blender import bake_ops
+
+    bpy = bpy_addon
+    for sub in ("one", "two", "three/deeper"):
+        (tmp_path / sub).mkdir(parents=True)
+    wood.neural_layers.bake_directory = "//textures/"
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "one" / "scene.blend"))
+    assert run_operator(ops.bake_texture).finished
+    assert wood.neural_layers.texture_path == "//textures/Material.exr"
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "two" / "scene.blend"))
+    assert wood.neural_layers.texture_path == "//../one/textures/Material.exr"
+    assert bake_ops.baked_texture_state(wood)[0] is not None
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "three" / "deeper" / "copy.blend"), copy=True)
+    assert wood.neural_layers.texture_path == "//../one/textures/Material.exr"  # the open file is still two's
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "three" / "deeper" / "copy.blend"))
+    copied = bpy.data.materials["Material"]
+    assert copied.neural_layers.texture_path == "//../../one/textures/Material.exr"
+    assert os.path.isfile(bpy.path.abspath(copied.neural_layers.texture_path))
