@@ -57,3 +57,30 @@ def test_no_budget_means_no_refinement():
     arrays = StackArrays.from_stacks(STACKS)
     z, _ = encode(arrays)
     assert np.array_equal(z, encode_arrays(arrays, load_models("tiny", 1)))
+
+
+def test_a_refining_bake_hears_a_cancel_and_moves_its_progress_after_each_texel(monkeypatch):
+    """Each refinement takes seconds (up to REFINE_PER_MATERIAL_S): the bake checks its cancel and moves its
+    progress after each one, where it heard neither until the whole budget was spent (a Refine of 600 s ignored
+    Esc for ten minutes)."""
+    import time
+
+    from addon.core.neural import refine
+    from addon.core.textures.bake import BakeCancelled
+
+    def slow_refinement(stack, size, budget_s, **kwargs):  # the refinement's seconds, without its work
+        time.sleep(0.02)
+        return encode_arrays(StackArrays.from_stacks([stack]), load_models("tiny", 1))[0], None
+
+    monkeypatch.setattr(refine, "refine_latent", slow_refinement)
+    stacks = [
+        Stack(Conductor(eta=(0.2, 0.4, 1.4), k=(3.9, 2.4, 1.6), roughness=0.2 + 0.01 * i), STACKS[0].coatings)
+        for i in range(20)
+    ]
+    arrays = StackArrays.from_stacks(stacks)
+    encode = neural_encoder("tiny", threads=1, refine_s=60.0)
+    seen = []
+    with pytest.raises(BakeCancelled, match="while refining, after 4 of 20"):  # heard after the fourth
+        bake_texels(arrays, encode, progress=seen.append, cancel=lambda: len(seen) >= 3)
+    assert seen == [1 / 20, 2 / 20, 3 / 20] and encode.metadata["refined"] == 4
+    assert encode.step is None  # the bake's callbacks went with it

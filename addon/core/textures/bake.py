@@ -126,12 +126,15 @@ def neural_encoder(
         # every row is encoded: deduplication is bake_texels' job, so it can be measured
         z = encode_arrays(arrays, models)
         if left[0] > 0.0:
-            z = _refine_rows(arrays, z, models, left, refine_cache, refine_settings, encode.metadata)
+            z = _refine_rows(arrays, z, models, left, refine_cache, refine_settings, encode.metadata, encode.step)
         return z, models.proxy_params(z)
 
     encode.metadata = {"model": models.size, "model_digest": models.digest}
     encode.models = models  # what bake_stack calibrates the texture's texels against
     encode.concurrent = refine_s == 0  # batches may run side by side (a refinement spends one budget in order)
+    # called with the rows refined so far in the batch after each one (seconds of work each): the bake hears a
+    # cancel and moves its progress there (``_bake_texels`` sets it)
+    encode.step = None
     if refine_s > 0:
         encode.metadata.update(refine_s=float(refine_s), refined=0)
     return encode
@@ -141,9 +144,10 @@ REFINE_PER_MATERIAL_S = 10.0
 
 
 def _refine_rows(
-    arrays: StackArrays, z: np.ndarray, models, left: list, cache_dir, settings, metadata: dict
+    arrays: StackArrays, z: np.ndarray, models, left: list, cache_dir, settings, metadata: dict, step=None
 ) -> np.ndarray:
-    """Refined latents for the first rows of ``arrays`` while the budget ``left[0]`` lasts."""
+    """Refined latents for the first rows of ``arrays`` while the budget ``left[0]`` lasts; ``step(rows done)``
+    (optional) after each row, which may raise to stop."""
     from ..neural.refine import refine_latent
 
     z = np.array(z, dtype=np.float32)
@@ -161,6 +165,8 @@ def _refine_rows(
         )
         left[0] -= time.perf_counter() - t
         metadata["refined"] += 1
+        if step is not None:
+            step(i + 1)
     return z
 
 
@@ -246,6 +252,27 @@ def _bake_in_threads(arrays, encode, dedup, batch, progress, cancel, threads, ga
         return _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers, gather)
 
 
+def _refine_steps(encode, batch_start, m: int = 0, progress=None, cancel=None) -> None:
+    """Give a refining encoder (``neural_encoder``'s, whose ``step`` it calls after each refined row: seconds of
+    work each) a step that stops the bake on ``cancel`` and moves ``progress`` over the ``m`` distinct texels,
+    counting from ``batch_start[0]``, the batch being encoded; ``batch_start`` None takes it away. Only for batches
+    encoded one at a time on the bake's thread (a refining encoder's are)."""
+    if not hasattr(encode, "step"):
+        return
+    if batch_start is None:
+        encode.step = None
+        return
+
+    def step(rows: int) -> None:
+        done = batch_start[0] + rows
+        if cancel is not None and cancel():
+            raise BakeCancelled(f"bake cancelled while refining, after {done} of {m} distinct texels")
+        if progress is not None:
+            progress(min(1.0, done / m))
+
+    encode.step = step
+
+
 def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1, gather=True):
     """``bake_texels``' texels and stats, and the distinct rows it encoded: ``(stacks, texels, counts)``. Without
     ``gather`` the first is ``(distinct texels, inverse)`` instead (None: every row its own), for a caller that
@@ -264,8 +291,11 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1, gath
     m = len(todo)
     out = np.empty((m, len(CHANNEL_NAMES)), dtype=np.float32 if gather else np.float16)
 
+    batch_start = [0]  # of the batch being encoded (a refining encoder's step counts from it)
+
     def encode_batch(start: int) -> int:
         part = todo.take(slice(start, start + batch))
+        batch_start[0] = start
         z, proxy = encode(part)
         z = np.asarray(z, dtype=np.float32).reshape(len(part), -1)
         proxy = np.asarray(proxy, dtype=np.float32).reshape(len(part), -1)
@@ -282,6 +312,8 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1, gath
     workers = max(1, min(int(workers), len(starts)))
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="bake") if workers > 1 else None
     try:
+        if workers == 1:
+            _refine_steps(encode, batch_start, m, progress, cancel)
         pending = []  # batches in flight, oldest first: at most ``workers``
         for i, start in enumerate(starts + [None]):  # a loop over batches, not texels
             if start is not None and cancel is not None and cancel():
@@ -298,6 +330,7 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1, gath
     finally:
         if pool is not None:
             pool.shutdown(wait=True, cancel_futures=True)
+        _refine_steps(encode, None)  # this bake's callbacks go with it
     counts = np.ones(m) if inverse is None else np.bincount(inverse, minlength=m).astype(np.float64)
     stats = BakeStats(texels=n, unique=m, seconds=time.perf_counter() - t0)
     texels = (out if inverse is None else out[inverse]) if gather else (out, inverse)
