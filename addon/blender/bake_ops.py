@@ -148,6 +148,8 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
                 metadata={"material": name, "model": size, "key": key},
                 threads=threads,
             )
+            if progress is not None:  # an Esc up to here cancels (raises): from here the file is written, and kept
+                progress(1.0)
             os.makedirs(os.path.dirname(path), exist_ok=True)
             tex.write_exr(path)
             refined = (getattr(encode, "metadata", None) or {}).get("refined")

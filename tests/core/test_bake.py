@@ -107,6 +107,22 @@ def test_progress_and_cancel():
         bake_texels(arrays, linear_encoder(), batch=3, cancel=lambda: True)
 
 
+@pytest.mark.parametrize("when", ["the mip chain", "the filtering measurement"])
+def test_a_cancel_after_the_encoding_stops_the_bake_before_its_texture_is_made(when):
+    """A bake's last parts (its mip chain, the measurement of its filterable levels: seconds a level at large
+    sizes) hear a cancel too, where the bar stood full and an Esc there was ignored."""
+    from addon.core.textures.bake import neural_encoder
+
+    spatial = SpatialStack(preset("three_layer"), {"coatings[0].thickness": np.linspace(0, 1, 64).reshape(8, 8, 1)})
+    seen = []
+
+    def cancel():  # once the encoding is done: at the chain, or at the filtering's first level
+        return bool(seen) and seen[-1] >= 1.0 and (when == "the mip chain" or seen.count(1.0) >= 2)
+
+    with pytest.raises(BakeCancelled, match=f"during {when}"):
+        bake_stack(spatial, neural_encoder("tiny", threads=1), calibrate=False, progress=seen.append, cancel=cancel)
+
+
 def test_a_concurrent_encoder_encodes_batches_side_by_side_with_the_same_texels():
     """``encode.concurrent``: ``threads`` batches are in flight at once (one's numpy work overlaps
     another's networks), never more; the texels, the progress and a cancellation are as with one."""

@@ -397,6 +397,7 @@ def bake_stack(
         meta["calibration"] = calibration.to_text()
         stats = BakeStats(stats.texels, stats.unique, stats.seconds, time.perf_counter() - t, len(calibration.tables))
     del rows, counts
+    _still_wanted(progress, cancel, "the mip chain")()
     # The texels gathered a band at a time into the base level of a half-float chain (the values the texture's file
     # stores), then the levels below it in place: the bake's peak holds the distinct texels and the chain, no
     # texture-sized copy besides (BAKE_BYTES_PER_TEXEL).
@@ -407,7 +408,7 @@ def bake_stack(
     tex = LatentTexture(chain.fill(), meta)
     encoder_models = getattr(encode, "models", None)
     if check_filtering and encoder_models is not None:
-        record_filter_levels(tex, encoder_models, threads)
+        record_filter_levels(tex, encoder_models, threads, _still_wanted(progress, cancel, "the filtering measurement"))
     return tex, stats
 
 
@@ -418,14 +419,29 @@ def _band_of_texels(distinct: np.ndarray, inverse: np.ndarray | None, start: int
     return distinct[rows] if inverse is None else distinct[inverse[rows]]
 
 
-def record_filter_levels(tex: LatentTexture, models, threads: int = 0) -> None:
+def record_filter_levels(tex: LatentTexture, models, threads: int = 0, step=None) -> None:
     """``tex.metadata["filter_levels"]``: how many of its levels decode like the average of their texels
-    (``textures.filtering.filterable_levels``, on ``threads`` threads)."""
+    (``textures.filtering.filterable_levels``, on ``threads`` threads; ``step()`` before each level, which may
+    raise to stop)."""
     from ..neural.session import threads_in_force
     from .filtering import filterable_levels
 
     with threads_in_force(thread_count(threads)):
-        tex.metadata["filter_levels"] = filterable_levels(models, tex.levels)[0]
+        tex.metadata["filter_levels"] = filterable_levels(models, tex.levels, step=step)[0]
+
+
+def _still_wanted(progress: Progress | None, cancel: Callable[[], bool] | None, what: str) -> Callable[[], None]:
+    """A step for the bake's last parts (the chain, the filtering measurement: seconds at large sizes), where its
+    progress is full: raises BakeCancelled on ``cancel``, and calls ``progress(1.0)``, which may raise too (the
+    add-on cancels so)."""
+
+    def step() -> None:
+        if cancel is not None and cancel():
+            raise BakeCancelled(f"bake cancelled during {what}")
+        if progress is not None:
+            progress(1.0)
+
+    return step
 
 
 def bake_mix(
@@ -491,7 +507,7 @@ def bake_mix(
     stats = BakeStats(texels=h * w, unique=sa.unique + sb.unique, seconds=time.perf_counter() - t0)
     tex = LatentTexture(chain.fill(), meta)
     if check_filtering and getattr(encode, "models", None) is not None:
-        record_filter_levels(tex, encode.models)
+        record_filter_levels(tex, encode.models, step=_still_wanted(progress, cancel, "the filtering measurement"))
     return tex, stats
 
 

@@ -87,11 +87,14 @@ def level_error(models, level: np.ndarray, seed: int = SEED) -> float:
     return max(errors)
 
 
-def filterable_levels(models, levels, tolerance: float = TOLERANCE) -> tuple[int, list[float]]:
+def filterable_levels(models, levels, tolerance: float = TOLERANCE, step=None) -> tuple[int, list[float]]:
     """How many levels of the chain ``levels`` (finest first) decode like the average of their texels, and
-    each measured level's error (:func:`level_error`), in order until the first one over ``tolerance``."""
+    each measured level's error (:func:`level_error`), in order until the first one over ``tolerance``.
+    ``step()`` (optional) before each level (about a second each), which may raise to stop."""
     errors = []
     for k in range(1, len(levels)):  # a loop over mip levels, each one batch of decodes
+        if step is not None:
+            step()
         errors.append(level_error(models, levels[k - 1], SEED + k))
         if errors[-1] > tolerance:
             return k, errors
