@@ -15,6 +15,7 @@ import bpy
 from bpy.props import EnumProperty, IntProperty
 
 from ..core.render import RenderSettings
+from ..core.textures import files
 from ..core.textures.bake import bake_key, bake_stack, check_bake_memory, neural_encoder
 from . import bake_inputs, stack_io
 from .bake_state import (  # noqa: F401 (baked_texture_state: API)
@@ -151,6 +152,7 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
             if progress is not None:  # an Esc up to here cancels (raises): from here the file is written, and kept
                 progress(1.0)
             os.makedirs(os.path.dirname(path), exist_ok=True)
+            files.remove_stale_temps(os.path.dirname(path))  # what a killed Blender's writes left there, as the CLI
             tex.write_exr(path)
             refined = (getattr(encode, "metadata", None) or {}).get("refined")
             return stats, time.perf_counter() - t0, refined, (tex.filter_levels, len(tex.levels))

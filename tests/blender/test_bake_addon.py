@@ -382,3 +382,21 @@ def test_save_as_into_another_folder_keeps_the_baked_texture_and_save_copy_keeps
     copied = bpy.data.materials["Material"]
     assert copied.neural_layers.texture_path == "//../../one/textures/Material.exr"
     assert os.path.isfile(bpy.path.abspath(copied.neural_layers.texture_path))
+
+
+def test_the_add_ons_bake_removes_what_a_killed_writer_left_in_its_folder(wood, bpy_addon, tmp_path):
+    """A Blender killed while it wrote a texture leaves a hidden temporary file beside it: the next bake into that
+    folder removes it (a live process's is kept), as the bake command does."""
+    import subprocess
+    import sys
+
+    from addon.core.textures import files
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stale = tmp_path / f".Material.exr.{files._HOST}-{dead.pid}-0123abcd.partial.exr"
+    stale.write_bytes(b"half")
+    live = files.temp_path(tmp_path / "Other.exr")
+    live.write_bytes(b"")
+    assert run_operator(ops.bake_texture).finished
+    assert not stale.exists() and live.exists()
