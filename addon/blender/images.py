@@ -95,7 +95,13 @@ def _to_scene_linear(colorspace: str):
 
 def linear_pixels(image) -> np.ndarray | None:
     """(H, W, 4) scene-linear float pixels of ``image``, row 0 at the top, decoded by its Color
-    Space as Cycles does; None if it has no pixels. Alpha is left as stored."""
+    Space as Cycles does; None if it has no pixels. Alpha is left as stored. A UDIM image of several tiles is
+    refused (ValueError): Blender gives its first tile's pixels alone, which would cover the whole uv square."""
+    if image.source == "TILED" and len(image.tiles) > 1:
+        raise ValueError(
+            f"image {image.name!r} is a UDIM image of {len(image.tiles)} tiles, which this add-on cannot read: "
+            "use a single image (one tile) for it"
+        )
     px = read_pixels(image)
     if px is None or image.is_float or image.colorspace_settings.is_data:
         return px

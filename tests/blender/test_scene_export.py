@@ -169,3 +169,21 @@ def test_an_object_without_uvs_under_a_textured_material_is_named_whatever_the_o
     _, warnings = scene_export.export_scene(bpy.context.evaluated_depsgraph_get(), 32, 24)  # the cube has UVs
     (warning,) = [w for w in warnings if "UV map" in w]
     assert "'Icosphere'" in warning and "'Checker'" in warning and "Cube" not in warning
+
+
+def test_a_udim_image_of_several_tiles_is_said_not_read_as_its_first_tile(bpy_addon, material):
+    """Blender gives a UDIM image's first tile alone: a base colour from one renders its colour with a warning
+    naming the image, where the first tile covered the whole uv square."""
+    from addon.blender import scene_export
+
+    bpy = bpy_addon
+    udim = bpy.data.images.new("udim", 8, 8, tiled=True)
+    udim.tiles.new(tile_number=1002)
+    tree = material.node_tree
+    node = tree.nodes.new("ShaderNodeTexImage")
+    node.image = udim
+    tree.links.new(node.outputs["Color"], tree.nodes["Principled BSDF"].inputs["Base Color"])
+    warnings = []
+    exported = scene_export.export_material(material, warnings)
+    assert exported.texture is None
+    assert any("'udim'" in w and "UDIM" in w and "2 tiles" in w for w in warnings), warnings
