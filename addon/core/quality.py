@@ -186,7 +186,7 @@ class ErrorCache:
         if self.path is not None and self.path.exists():
             try:
                 self.data = {k: float(v) for k, v in json.loads(self.path.read_text()).items()}
-            except (OSError, ValueError, AttributeError):
+            except (OSError, ValueError, AttributeError, TypeError):  # TypeError: a null or a list as a value
                 self.data = {}  # a damaged cache is rebuilt, never trusted
 
     def get(self, key: str):

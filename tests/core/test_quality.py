@@ -89,8 +89,9 @@ def test_measured_errors_are_cached_on_disk_and_a_damaged_cache_is_ignored(tmp_p
     assert list(data.values()) == [pytest.approx(c1.errors[SIZES[0]])]
     c2 = quality.choose_decoder(SIMPLE, 0.5, cache=quality.ErrorCache(tmp_path))
     assert c2.errors == c1.errors
-    (tmp_path / "decoder_errors.json").write_text("{not json")
-    assert quality.ErrorCache(tmp_path).data == {}
+    for damaged in ("{not json", '{"k": null}', '{"k": [1]}', "[1, 2]"):  # the add-on reads it as it registers
+        (tmp_path / "decoder_errors.json").write_text(damaged)
+        assert quality.ErrorCache(tmp_path).data == {}
 
 
 def test_the_default_cache_kept_on_disk_serves_a_later_session(tmp_path, monkeypatch):
