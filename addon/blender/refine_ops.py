@@ -36,7 +36,12 @@ class NLM_RefineResult(bpy.types.PropertyGroup):
         name="Error after", description="Validation lobe error of the refined latent", default=0.0
     )
     seconds: FloatProperty(name="Seconds", description="Seconds the refinement took", default=0.0)
-    kept: StringProperty(name="Kept", description="'yes' when the refined latent is the one stored", default="")
+    kept: StringProperty(
+        name="Kept",
+        description="'yes' when the refined latent is the one stored; 'replaced' once the stack was encoded again "
+        "over it (an edit, Evaluate, a model size change)",
+        default="",
+    )
 
 
 class NLM_OT_refine_latent(MaterialOperator, bpy.types.Operator):

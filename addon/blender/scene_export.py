@@ -178,7 +178,7 @@ def _refined_latent(mat, stack, info: list[str]):
     still shipped. Else None, with a line in ``info`` when a refined latent is there but stale."""
     mat = getattr(mat, "original", mat)  # Refine writes the original; a depsgraph copy may predate it
     refined = getattr(mat, "neural_refine", None)
-    if refined is None or not refined.key or refined.kept != "yes":
+    if refined is None or not refined.key or refined.kept not in ("yes", "replaced"):
         return None  # never refined, or the refinement kept the encoded latent
     from ..core import preview
     from ..core.neural.models import ModelFileError, load_models
@@ -190,6 +190,13 @@ def _refined_latent(mat, stack, info: list[str]):
         info.append(
             f"material {mat.name!r}: its refined latent is out of date (the stack or model size changed "
             "since Refine); rendering the stack encoded again: press Refine to refine it again"
+        )
+        return None
+    if refined.kept == "replaced":  # the same stack and size, encoded again over the refined latent
+        info.append(
+            f"material {mat.name!r}: its refined latent was replaced by the stack encoded again (Evaluate, an "
+            "edit undone by hand, a model size setting that resolves to the same size); rendering the encoded "
+            "latent: press Refine to refine it again"
         )
         return None
     try:

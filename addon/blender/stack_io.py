@@ -194,6 +194,9 @@ def compute_latent(mat, size: str | None = None) -> list[str]:
     s.latent = z.tolist()
     s.latent_size = used
     s.latent_hash = preview.stack_hash(stack)
+    refined = getattr(mat, "neural_refine", None)
+    if refined is not None and refined.kept == "yes":  # the refined latent this replaced: no longer what renders
+        refined.kept = "replaced"
     return notes
 
 

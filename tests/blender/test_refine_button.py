@@ -124,8 +124,17 @@ def test_f12_renders_the_refined_latent_the_preview_shows_and_ignores_a_stale_on
     refined = _f12(bpy, scene, tmp_path / "refined.exr")
     assert np.isfinite(refined).all() and np.abs(refined - plain).max() > 1e-3  # F12 changed with Refine
     # the stack edited: the refined latent is stale, F12 encodes the stack again and says why
+    refined_roughness = material.neural_layers.layers[-1].roughness
     material.neural_layers.layers[-1].roughness = 0.2
     info = []
     core_scene, _ = scene_export.export_scene(bpy.context.evaluated_depsgraph_get(), info=info)
     assert all(getattr(m, "latent", None) is None for m in core_scene.materials)
     assert any("refined latent is out of date" in line for line in info)
+    # and back as it was: the stack is the refined one again, but its latent is the encoded one now, which F12
+    # renders and says so (it took the encoded latent for the refined one, silently)
+    material.neural_layers.layers[-1].roughness = refined_roughness
+    assert material.neural_refine.kept == "replaced"
+    info = []
+    core_scene, _ = scene_export.export_scene(bpy.context.evaluated_depsgraph_get(), info=info)
+    assert all(getattr(m, "latent", None) is None for m in core_scene.materials)
+    assert any("refined latent was replaced" in line for line in info), info
