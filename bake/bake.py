@@ -121,8 +121,11 @@ def parse_map(spec: str) -> tuple[str, Path, float, float, str]:
     m = _MAP.match(spec)
     if not m:
         raise BadInput(f"--map {spec!r} must look like 'coatings[0].roughness=rough.png' or '...=rough.png:0.01:0.5'")
-    lo = float(m.group("lo")) if m.group("lo") is not None else 0.0
-    hi = float(m.group("hi")) if m.group("hi") is not None else 1.0
+    try:
+        lo = float(m.group("lo")) if m.group("lo") is not None else 0.0
+        hi = float(m.group("hi")) if m.group("hi") is not None else 1.0
+    except ValueError:
+        raise BadInput(f"--map {spec!r}: LO and HI must be numbers, e.g. ':0.01:0.5'") from None
     return m.group("path").strip(), Path(m.group("file")), lo, hi, _space(m.group("space"), f"--map {spec!r}")
 
 
@@ -159,7 +162,7 @@ def preset_job(args) -> list[Job]:
             img, how = read_map(file, parse_parameter_path(stack, path)[2], space)
         except (FileNotFoundError, ValueError) as e:
             raise BadInput(f"--map {path}: {e}") from None
-        maps[path] = lo + (hi - lo) * img
+        maps[path] = lo + (hi - lo) * img.astype(np.float64)  # in float64: LO itself, not float32's rounding of it
         sources[path] = f"{file.name} ({how}) [{lo}, {hi}]"
     try:
         spatial = SpatialStack(stack, maps)
@@ -592,7 +595,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         "image. Colour space: an image driving albedo is decoded from sRGB to linear when it is stored "
         "as 8/16-bit integers without a linear tag (Blender's default sRGB); float images (EXR, HDR) are "
         "linear; every other parameter and the mask read the values raw (Blender's Non-Color). "
-        f"@SPACE overrides it: {', '.join(colour_maps.COLOUR_SPACES)} (e.g. base.albedo=colour.png@linear)",
+        f"@SPACE overrides it: {', '.join(colour_maps.COLOUR_SPACES)} (e.g. base.albedo=colour.png@linear). "
+        "LO:HI are in the stack's own units (addon.core.stack): a roughness is the GGX alpha, the square of the "
+        "roughness Blender's sidebar shows (sidebar 0.5 is 0.25 here)",
     )
     ap.add_argument("--name", help="with --preset: output name (default: the preset's)")
     ap.add_argument("--mix", help="with --preset and --mask: a second preset blended in latent space")
@@ -635,6 +640,8 @@ def _bake(argv: list[str], encode) -> int:
         raise BadInput(f"--band-rows must be >= 1, got {args.band_rows}")
     if args.preset is None and (args.map or args.mix or args.mask or args.name):
         raise BadInput("--map, --mix, --mask and --name go with --preset; in a .blend they are set on the material")
+    if not (np.isfinite(args.refine) and args.refine >= 0):
+        raise BadInput(f"--refine must be a number of seconds >= 0, got {args.refine}")
     jobs = blend_jobs(args) if args.blend else preset_job(args)
     if encode is None:
         try:

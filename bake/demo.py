@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import shlex
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -130,8 +131,8 @@ def render_demo(out: Path, width: int, height: int, samples: int, bounces: int, 
     kinds = ", ".join(f"{name}: {kind}" for name, kind in zip(scene.material_names, stats.material_kinds, strict=True))
     (out / "demo_render.md").write_text(
         "Demo scene render (layered presets and a textured floor; sky + area light).\n\n"
-        f"Command: `python bake/demo.py --out {out} --render-size {width}x{height} --samples {samples} "
-        f"--bounces {bounces} --mode {mode}`\n\n"
+        f"Command: `python bake/demo.py --out {shlex.quote(str(out))} --render-size {width}x{height} "
+        f"--samples {samples} --bounces {bounces} --mode {mode} --seed {seed}`\n\n"
         f"- materials: {kinds}\n"
         f"- {stats.summary()}\n"
         f"- non-finite samples: {stats.nonfinite}\n"
@@ -183,7 +184,7 @@ def _main(argv: list[str] | None) -> int:
     ap.add_argument("--out", type=Path, default=Path("output"), help="output folder (created)")
     ap.add_argument("--lobe-res", type=int, default=48, help="lobe image resolution")
     ap.add_argument("--walks", type=int, default=32, help="reference walks per lobe pixel")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0, help="seed of the reference lobes' walks and of the render")
     ap.add_argument("--render-size", type=_size, default=(320, 180), help="demo render size WxH")
     ap.add_argument("--samples", type=int, default=16, help="demo render paths per pixel")
     ap.add_argument("--bounces", type=int, default=4, help="demo render max bounces")
@@ -214,7 +215,8 @@ def _main(argv: list[str] | None) -> int:
         table = args.out / "albedo.md"
         header = (
             "Directional albedo at normal incidence (position-free Monte Carlo reference).\n\n"
-            f"Command: `python bake/demo.py --out {args.out} --lobe-res {args.lobe_res} --walks {args.walks}`\n\n"
+            f"Command: `python bake/demo.py --out {shlex.quote(str(args.out))} --lobe-res {args.lobe_res} "
+            f"--walks {args.walks} --seed {args.seed}`\n\n"
         )
         table.write_text(header + "\n".join(rows) + "\n")
         print(f"Wrote {table}")

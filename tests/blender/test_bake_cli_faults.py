@@ -492,10 +492,13 @@ def test_argument_errors_are_one_line(tmp_path, capsys):
         ["--preset", "coated_gold", "--out", str(tmp_path), "--band-rows", "x"],
         ["--bogus"],
         ["--blend", "a.blend", "--name", "n", "--out", str(tmp_path)],
+        ["--preset", "coated_gold", "--map", "coatings[0].roughness=r.png:0.1:-", "--out", str(tmp_path)],
+        ["--preset", "coated_gold", "--refine", "-5", "--out", str(tmp_path)],
     ):
         assert bake_cli.main(argv, encode=stand_in_encoder()) == 2
         err = capsys.readouterr().err
         assert len(err.strip().splitlines()) == 1 and err.startswith("error: "), err
+        assert "--model" not in err  # a bad --refine named --model
 
 
 def test_bands_and_textures_of_another_decoder_file_are_not_reused(rough_png, tmp_path):
@@ -541,3 +544,17 @@ def test_a_kept_band_beyond_the_half_range_is_a_clear_error_and_is_kept(rough_pn
     assert "baking it again" not in captured.out
     assert band.is_file() and np.load(band)[1, 3] == np.float32(1e5)
     assert not (out / "varnished_wood.exr").exists()
+
+
+def test_a_map_from_the_trained_minimum_is_not_clamped(rough_png, tmp_path):
+    """LO taken as written (float64): the guide's 0.01 is the trained minimum, where float32's 0.0099999998 fell
+    below it and was clamped with a warning."""
+    import warnings
+
+    from addon.core.stack import ClampWarning
+
+    argv = ["--preset", "varnished_wood", "--map", f"coatings[0].roughness={rough_png}:0.01:0.4", "--no-calibrate"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert bake_cli.main([*argv, "--model", "tiny", "--out", str(tmp_path / "out")]) == 0  # the encoder clamps
+    assert not [w for w in caught if issubclass(w.category, ClampWarning)], [str(w.message) for w in caught]
