@@ -9,8 +9,20 @@ from __future__ import annotations
 
 import sys
 
+# The modules the extension's zips bundle as wheels (``scripts/build_extension.py``): a package built without them
+# (the checkout built as it is) cannot run the renderer.
+BUNDLED = ("numba", "llvmlite", "onnxruntime", "embreex")
+
 
 def register() -> None:
+    import importlib.util
+
+    missing = [name for name in BUNDLED if importlib.util.find_spec(name) is None]
+    if missing:
+        raise ImportError(
+            f"the Neural Layered extension is missing its bundled modules {', '.join(missing)}: install a zip made "
+            "by scripts/build_extension.py for your platform (a package built from the source folder has no wheels)"
+        )
     from .addon import blender
 
     blender.register()

@@ -234,6 +234,7 @@ def assemble(build: Path, platform: str, wheels: list[Path]) -> None:
         shutil.rmtree(build)
     build.mkdir(parents=True)
     shutil.copy2(ROOT / "__init__.py", build / "__init__.py")
+    shutil.copy2(ROOT / "LICENSE", build / "LICENSE")  # the GPL-3.0-or-later the manifest declares, its text
     shutil.copytree(ROOT / "addon", build / "addon", ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     (build / "wheels").mkdir()
     for w in wheels:

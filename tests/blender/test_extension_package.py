@@ -91,6 +91,8 @@ def test_zip_contents(built_zip):
         names = z.namelist()
         manifest = z.read("blender_manifest.toml").decode()
     assert "__init__.py" in names and "addon/blender/__init__.py" in names and "addon/core/stack.py" in names
+    assert "LICENSE" in names  # the text of the GPL-3.0-or-later the manifest declares
+    assert "GNU GENERAL PUBLIC LICENSE" in zipfile.ZipFile(built_zip).read("LICENSE").decode()[:200]
     wheels = [n for n in names if n.startswith("wheels/")]
     for dist in ("onnxruntime", "embreex", "protobuf", "flatbuffers", "packaging"):
         assert any(Path(w).name.startswith(dist + "-") for w in wheels), f"no {dist} wheel in {wheels}"
@@ -245,3 +247,16 @@ def test_each_zip_holds_its_own_platforms_wheels_only(tmp_path, monkeypatch):
         if "macos" in z.name:
             assert "needs macOS 14.0 or newer" in manifest
     assert any("linux-arm64" in line and "embreex" in line and "no fallback ray caster" in line for line in logs), logs
+
+
+def test_a_package_without_its_bundled_modules_says_what_is_missing_when_enabled(monkeypatch):
+    """The checkout built as it is has no wheels: enabling it names the missing modules and the zips that hold
+    them, where it failed deep in an import ("No module named 'llvmlite'")."""
+    import importlib.util
+
+    import __init__ as entry  # the extension's entry point (the repository root on sys.path)
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "llvmlite" else real(name, *a))
+    with pytest.raises(ImportError, match="missing its bundled modules llvmlite: install a zip made by"):
+        entry.register()
