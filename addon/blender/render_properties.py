@@ -199,6 +199,7 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
             budget_seconds=self.time_budget,
             evaluations=queries,
             calibrate=self.calibration(viewport),
+            only_cached=viewport,  # the viewport reads what renders measured, never stops to measure an edit
         )
         if info is not None:
             info += [quality.choice_reason(name, c) for name, c in choices.items()]

@@ -227,10 +227,12 @@ def measured_error(
     cache: ErrorCache | None = None,
     threads: int = 2,
     calibrate=False,
+    only_cached: bool = False,
 ) -> float:
     """The measured lobe error of ``size`` on ``stack`` (see the module docstring); ``inf`` when
     the size cannot encode the stack (a model it needs is missing). ``calibrate`` measures the
-    material as the renderer shades it with that setting (:func:`decoder_lobes`)."""
+    material as the renderer shades it with that setting (:func:`decoder_lobes`). ``only_cached``: nan where
+    it was not measured yet (no measurement: a second or two of reference walks and decodes)."""
     if not isinstance(stack, Stack):
         raise ValueError(f"measured_error needs a Stack, got {type(stack).__name__}")
     from .neural import ModelFileError
@@ -252,6 +254,8 @@ def measured_error(
     hit = cache.get(key)
     if hit is not None:
         return hit
+    if only_cached:
+        return math.nan
     try:
         pred = decoder_lobes(stack, size, res, threads, calibrate)
     except (FileNotFoundError, ModelFileError):
@@ -274,9 +278,15 @@ def choose_decoder(
     cache_dir=None,
     threads: int = 2,
     calibrate=False,
+    only_cached: bool = False,
 ) -> DecoderChoice:
     """The smallest decoder size whose measured error on ``stack`` is at most ``tolerance``, measured
     as the renderer shades the material with ``calibrate`` (:func:`measured_error`).
+
+    ``only_cached`` (the viewport, which must not stop for a measurement at every edit): only errors measured
+    before are read; where a size was not measured before the choice is made, the default size
+    (``neural.resolve_size``) with a note saying so, ``met`` False and the sizes' errors as known (nan: not
+    measured).
 
     ``tolerance`` is a relative lobe RMSE (0.2 = 20%). Sizes default to the shipped ones, fewest
     parameters first; they are measured in that order and the search stops at the first fit.
@@ -302,9 +312,14 @@ def choose_decoder(
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         for s in sizes:
-            errors[s] = measured_error(stack, s, res, walks, seed, cache, threads, calibrate)
-            if errors[s] <= tol:
+            errors[s] = measured_error(stack, s, res, walks, seed, cache, threads, calibrate, only_cached)
+            if errors[s] <= tol or math.isnan(errors[s]):
                 break
+    if any(math.isnan(e) for e in errors.values()):
+        from .neural.models import resolve_size
+
+        msg = "not measured yet: the default decoder until a render (F12) measures this stack"
+        return DecoderChoice(resolve_size(), tol, errors, False, tuple(notes + [msg]))
     for w in caught:
         if issubclass(w.category, QualityWarning):
             continue
@@ -343,6 +358,8 @@ def choice_reason(name: str, choice: DecoderChoice) -> str:
     if choice.size is None:
         return f"material {name!r}: the reference estimator (no decoder fits: {', '.join(choice.notes) or 'none'})"
     err = choice.errors.get(choice.size, math.nan)
+    if math.isnan(err) and any(math.isnan(e) for e in choice.errors.values()):
+        return f"material {name!r}: decoder {choice.size}, {choice.notes[-1]}"
     if math.isnan(err):
         return f"material {name!r}: decoder {choice.size} (as set)"
     why = "the smallest within" if choice.met else "the most accurate, none within"
@@ -480,7 +497,7 @@ def assign_decoders(
     renderer shades with the reference),
     the choice per material name (its size and the measured errors that decided it), and the
     warnings to show the user.
-    ``measure`` passes ``res``, ``walks`` or ``cache`` on to :func:`choose_decoder`.
+    ``measure`` passes ``res``, ``walks``, ``cache`` or ``only_cached`` on to :func:`choose_decoder`.
 
     With ``budget_seconds``, "auto" only considers the sizes whose predicted decoder time for
     ``evaluations`` queries (:func:`frame_decoder_queries`) fits the budget

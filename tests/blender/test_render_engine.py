@@ -811,3 +811,22 @@ def test_the_viewport_camera_is_the_viewports_projection_in_camera_view_too(bpy_
     ndc = clip[:, :2] / clip[:, 3:]
     want = np.stack([(px.ravel() + 0.5) * 2 / width - 1, 1 - (py.ravel() + 0.5) * 2 / height], axis=1)
     np.testing.assert_allclose(ndc, want, atol=2e-6)  # mathutils holds float32
+
+
+def test_the_viewports_auto_choice_reads_measured_errors_and_never_stops_to_measure(fresh_scene, monkeypatch):
+    """Each edit in the Rendered viewport chose its decoders on Blender's main thread, measuring every new stack
+    (reference walks and decodes: 1-2 s at every tick of a slider). The viewport now reads what renders measured:
+    the default decoder, said so, until an F12 has measured the stack."""
+    from addon.blender import scene_export, stack_io
+    from addon.core import quality
+    from addon.core.stack import PRESETS
+
+    scene = fresh_scene.scene
+    stack_io.stack_to_material(PRESETS["red_car_paint"], scene.objects["Cube"].active_material)
+    scene.neural_render.decoder_quality = "AUTO"
+    monkeypatch.setattr(quality, "_DEFAULT_CACHE", quality.ErrorCache())
+    monkeypatch.setattr(quality, "reference_lobes", lambda *a, **k: pytest.fail("the viewport measured"))
+    core_scene, _ = scene_export.export_scene(fresh_scene.evaluated_depsgraph_get(), 32, 24)
+    info = []
+    scene.neural_render.assign_decoders(core_scene, info=info, viewport=True)
+    assert any("not measured yet" in line for line in info), info

@@ -41,6 +41,24 @@ def test_simple_stack_picks_the_smallest_decoder():
     assert 0.0 <= choice.errors[SIZES[0]] <= 0.15
 
 
+def test_only_cached_reads_what_was_measured_and_never_measures(monkeypatch):
+    """The viewport's choice (``only_cached``): no reference walks at an edit (1-2 s each, on Blender's main
+    thread, at every tick of a slider); the default size with a note until a render measured the stack, then
+    the measured choice."""
+    from addon.core.neural.models import resolve_size
+
+    cache = quality.ErrorCache()
+    measuring = quality.reference_lobes
+    monkeypatch.setattr(quality, "reference_lobes", lambda *a, **k: pytest.fail("measured in only_cached"))
+    first = quality.choose_decoder(DEMANDING, 0.15, cache=cache, only_cached=True)
+    assert first.size == resolve_size() and not first.met and math.isnan(first.errors[SIZES[0]])
+    assert "not measured yet" in quality.choice_reason("m", first)
+    monkeypatch.setattr(quality, "reference_lobes", measuring)
+    measured = quality.choose_decoder(DEMANDING, 0.15, cache=cache)
+    monkeypatch.setattr(quality, "reference_lobes", lambda *a, **k: pytest.fail("measured in only_cached"))
+    assert quality.choose_decoder(DEMANDING, 0.15, cache=cache, only_cached=True) == measured
+
+
 def test_demanding_stack_needs_more_than_the_simple_one():
     cache = quality.ErrorCache()
     e_simple = quality.measured_error(SIMPLE, SIZES[0], cache=cache)
