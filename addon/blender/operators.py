@@ -340,10 +340,11 @@ class NLM_OT_preview_lobe(LongOperator, bpy.types.Operator):
         s = mat.neural_layers
         theta, res, method, walks = math.degrees(s.theta_i), s.lobe_resolution, s.preview_method, s.walks
         latent, size = stack_io.current_latent(mat), stack_io.model_size(mat)
+        calibrated = context.scene.neural_render.calibrate  # as F12 renders it
 
         def work(progress):
             t0 = time.perf_counter()
-            choice = preview.choose_brdf(stack, method, latent=latent, size=size, walks=walks)
+            choice = preview.choose_brdf(stack, method, latent=latent, size=size, walks=walks, calibrated=calibrated)
             img = preview.lobe_preview(choice.brdf, theta, res, progress, choice.chunk)
             return img, choice, time.perf_counter() - t0
 
@@ -362,6 +363,7 @@ class NLM_OT_preview_sphere(LongOperator, bpy.types.Operator):
     """Show a sphere shaded with the stack under a default sky and sun in the Image Editor"""
 
     poll_needs = "stack"
+    edits = False  # reads the stack, shows an image
     bl_idname = "neural_layers.preview_sphere"
     bl_label = "Preview Sphere"
     bl_options = {"REGISTER"}
@@ -371,10 +373,11 @@ class NLM_OT_preview_sphere(LongOperator, bpy.types.Operator):
         s = mat.neural_layers
         res, method, walks, k = s.sphere_resolution, s.preview_method, s.walks, s.env_samples
         latent, size = stack_io.current_latent(mat), stack_io.model_size(mat)
+        calibrated = context.scene.neural_render.calibrate  # as F12 renders it
 
         def work(progress):
             t0 = time.perf_counter()
-            choice = preview.choose_brdf(stack, method, latent=latent, size=size, walks=walks)
+            choice = preview.choose_brdf(stack, method, latent=latent, size=size, walks=walks, calibrated=calibrated)
             # an importance sampler (the reference's walks) gets the walk budget per pixel
             samples = k * walks if choice.sampler is not None else k
             img = preview.choice_sphere(choice, res, env_samples=samples, progress=progress)
@@ -395,6 +398,7 @@ class NLM_OT_compare_reference(LongOperator, bpy.types.Operator):
     """Neural and Monte Carlo reference lobes side by side with their error image and timings"""
 
     poll_needs = "stack"
+    edits = False  # reads the stack, shows an image
     bl_idname = "neural_layers.compare_reference"
     bl_label = "Compare with Reference"
     bl_options = {"REGISTER"}
@@ -404,10 +408,11 @@ class NLM_OT_compare_reference(LongOperator, bpy.types.Operator):
         s = mat.neural_layers
         theta, res, walks = math.degrees(s.theta_i), s.lobe_resolution, s.walks
         latent, size = stack_io.current_latent(mat), stack_io.model_size(mat)
+        calibrated = context.scene.neural_render.calibrate  # as F12 renders it
 
         def work(progress):
             return preview.compare_with_reference(
-                stack, theta, res, walks=walks, latent=latent, size=size, progress=progress
+                stack, theta, res, walks=walks, latent=latent, size=size, progress=progress, calibrated=calibrated
             )
 
         def finish(context, cmp):

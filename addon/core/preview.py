@@ -177,12 +177,16 @@ def _latent_for(stack, latent, size):
     return encode_latent(stack, size)
 
 
-def _cached_calibration(stack: Stack, z: np.ndarray, size: str):
+def _cached_calibration(stack: Stack, z: np.ndarray, size: str, calibrated: bool, notes: list[str]):
     """The albedo calibration a render or the viewport made for this stack and latent (this session, or kept on
-    disk: ``calibrate.use_disk_cache``), or None."""
+    disk: ``calibrate.use_disk_cache``), or None (also when ``calibrated`` is off: the scene's *Calibrate Albedo*,
+    so that a preview shows what F12 renders); ``notes`` is told when one is applied."""
     from .neural import calibrate, load_models
 
-    return calibrate.cached(stack, load_models(size), z)
+    found = calibrate.cached(stack, load_models(size), z) if calibrated else None
+    if found is not None:  # as thumbnails: the calibration a render or the viewport made, no walks here
+        notes.append("albedo calibration of the last render applied")
+    return found
 
 
 def _top_coat(stack: Stack) -> np.ndarray:
@@ -237,13 +241,15 @@ def choose_brdf(
     size: str = "auto",
     walks: int = 64,
     seed: int = 0,
+    calibrated: bool = True,
 ) -> BrdfChoice:
     """The BRDF a preview uses.
 
     ``method``: "NEURAL" (fail with :class:`NeuralUnavailable` if it cannot), "REFERENCE", or
     "AUTO" (neural when available, else the reference, with a note saying why). ``latent``, when
     given, is ``(z, size)``: a current latent of ``stack`` and the decoder size it belongs to; it
-    saves an encoder call when that size is the one ``size`` resolves to.
+    saves an encoder call when that size is the one ``size`` resolves to. ``calibrated``: apply the albedo
+    calibration a render made, as F12 does with *Calibrate Albedo* on.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
@@ -252,10 +258,9 @@ def choose_brdf(
     try:
         z, used, notes = _latent_for(stack, latent, size)
         proxy, proxy_note = neural_proxy(z, used)
-        calibration = _cached_calibration(stack, z, used)
+        notes = list(notes)
+        calibration = _cached_calibration(stack, z, used, calibrated, notes)
         brdf = neural_brdf_from_latent(z, used, _top_coat(stack), calibration)
-        if calibration is not None:  # as thumbnails: the calibration a render or the viewport made, no walks here
-            notes = notes + ["albedo calibration of the last render applied"]
         proposal = None
         if proxy is not None:
             from .render.neural_material import NeuralMaterial
@@ -551,14 +556,18 @@ def compare_with_reference(
     latent: Optional[tuple[np.ndarray, str]] = None,
     size: str = "auto",
     progress: ProgressFn = None,
+    calibrated: bool = True,
 ) -> Comparison:
     """Neural and reference lobe images of ``stack`` with their timings and the error between them.
 
     Raises :class:`NeuralUnavailable` when the neural runtime cannot serve the stack. Timings
-    are wall-clock seconds of each method's evaluation alone (encoding excluded).
+    are wall-clock seconds of each method's evaluation alone (encoding excluded). The neural lobe is the one
+    the other previews show (``calibrated`` as :func:`choose_brdf`'s), so its error is that of what F12 renders.
     """
     z, used, notes = _latent_for(stack, latent, size)
-    neural = neural_brdf_from_latent(z, used, _top_coat(stack))
+    notes = list(notes)
+    calibration = _cached_calibration(stack, z, used, calibrated, notes)
+    neural = neural_brdf_from_latent(z, used, _top_coat(stack), calibration)
     t0 = time.perf_counter()
     img_n = lobe_preview(neural, theta_i_deg, res, _scaled(progress, 0.0, 0.1))
     t1 = time.perf_counter()

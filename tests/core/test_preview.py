@@ -209,3 +209,27 @@ def test_reference_lobe_preview_has_independent_noise_per_pixel():
         choice = preview.choose_brdf(stack, "REFERENCE", walks=16, seed=seed)
         lobes.append(preview.lobe_preview(choice.brdf, 30.0, 48, chunk=choice.chunk)[..., 0])
     assert _row_band_ratio(*lobes) < 2.0
+
+
+def test_every_neural_preview_shows_the_calibration_f12_applies_and_none_when_it_is_off():
+    """Lobe and Sphere applied a render's albedo calibration (even with Calibrate Albedo off), Compare with
+    Reference never did: its error was not that of what F12 renders. All three now follow the scene's setting."""
+    from addon.core.neural import calibrate, encode_stack, load_models
+
+    stack = PRESETS["red_car_paint"]
+    models = load_models("tiny")
+    z = encode_stack(stack, models)
+    calibrate.calibrate(stack, models, z, models.proxy_params(z[None])[0])  # what a render makes and keeps
+    note = "albedo calibration of the last render applied"
+    shown = {on: preview.choose_brdf(stack, "NEURAL", size="tiny", calibrated=on) for on in (True, False)}
+    compared = {
+        on: preview.compare_with_reference(stack, 60.0, 16, walks=2, size="tiny", calibrated=on) for on in (True, False)
+    }
+    assert note in shown[True].notes and note not in shown[False].notes
+    assert note in compared[True].notes and note not in compared[False].notes
+    for on in (True, False):  # the comparison's neural lobe is the one the lobe preview shows
+        lobe = preview.lobe_preview(shown[on].brdf, 60.0, 16)
+        np.testing.assert_allclose(
+            compared[on].neural[..., :3], preview.sanitize(lobe)[0][..., :3], rtol=1e-5, atol=1e-7
+        )
+    assert not np.allclose(compared[True].neural, compared[False].neural)
