@@ -131,6 +131,19 @@ def test_refinement_fits_the_reference_better_on_separate_validation_pairs_and_i
     assert rf._cache_get(rep.key, tmp_path) is None
 
 
+def test_a_refinement_its_budget_cut_short_is_refined_again_for_a_larger_budget(tmp_path):
+    """The budget is not in the cache key (a finished refinement serves any budget); one the budget stopped was
+    served to every larger budget too, so Refine's redo panel could never improve it."""
+    rf._MEMORY.clear()
+    _, short = rf.refine_latent(COATED, "tiny", budget_s=0.05, settings=QUICK, threads=1, cache_dir=tmp_path)
+    assert short.stopped == "budget" and not short.cached
+    _, longer = rf.refine_latent(COATED, "tiny", budget_s=30.0, settings=QUICK, threads=1, cache_dir=tmp_path)
+    assert not longer.cached and longer.steps > short.steps and longer.stopped != "budget"
+    rf._MEMORY.clear()
+    _, again = rf.refine_latent(COATED, "tiny", budget_s=0.05, settings=QUICK, threads=1, cache_dir=tmp_path)
+    assert again.cached and again.steps == longer.steps  # the finished one serves a smaller budget
+
+
 def test_a_refinement_that_is_worse_on_validation_is_not_kept():
     rf._MEMORY.clear()
     # one group of 8 pairs at 2 walks: the fit follows the noise of those few values (overfits)

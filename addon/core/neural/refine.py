@@ -462,7 +462,8 @@ def refine_latent(
     s = settings or RefineSettings()
     key = refine_key(stack, size, s, model_dir)
     cached = _cache_get(key, cache_dir) if use_cache else None
-    if cached is not None:
+    # a refinement that its budget cut short is no answer for a larger budget: refined again, further
+    if cached is not None and not (cached[1].stopped == "budget" and float(budget_s) > cached[1].budget_s):
         return cached
     t0 = time.perf_counter()
     decoder = NumpyDecoder.load(size, model_dir)
