@@ -34,7 +34,7 @@ import json
 import math
 import threading
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -544,8 +544,8 @@ def assign_decoders(
         else:
             size = quality
             choices[name] = DecoderChoice(size, math.nan)
-        if size is None:
-            out.append(m)
+        if size is None:  # no size serves it, or none fits and the fallback is the reference: rendered so
+            out.append(replace(spec, reference=True))
             continue
         try:
             with warnings.catch_warnings(record=True) as caught:

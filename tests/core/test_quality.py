@@ -311,6 +311,21 @@ def test_assign_decoders_auto_gives_every_encodable_layered_material_its_decoder
     assert {stats.material_kinds[i] for i in range(1, 6)} <= {"neural", "reference"}
 
 
+def test_assign_decoders_with_the_reference_as_fallback_renders_the_reference():
+    """fallback="reference": a stack no size fits renders with the reference estimator, as its note says (it
+    rendered on the default decoder: the spec went back as it was, and neural mode encoded it)."""
+    from addon.core.render.materials import ReferenceLayered, resolve
+
+    scene = demo_scene(16, 9)
+    mats, choices, notes = quality.assign_decoders(
+        scene, "auto", 1e-4, fallback="reference", res=8, walks=16, cache=quality.ErrorCache()
+    )
+    assert any("reference estimator" in n for n in notes)
+    fell_back = [m for name, m in zip(scene.material_names[1:], mats[1:], strict=True) if choices[name].size is None]
+    assert fell_back  # (a lobe whose measured error is within the reference's noise fits any tolerance)
+    assert all(isinstance(resolve(m, "neural"), ReferenceLayered) for m in fell_back)
+
+
 def test_assign_decoders_fixed_size_and_what_stays_untouched():
 
     scene = demo_scene(16, 9, presets=["coated_gold", "white_diffuse"])

@@ -342,6 +342,7 @@ class LayeredSpec:
     name: str = ""
     latent: tuple | None = None
     spatial: object | None = None
+    reference: bool = False  # rendered with the reference estimator in every mode (Auto's fallback="reference")
 
 
 def resolve(material, mode: str, reference_walks: int = 16, calibrate=False):
@@ -367,7 +368,7 @@ def resolve(material, mode: str, reference_walks: int = 16, calibrate=False):
     exact = analytic_for_stack(stack)
     if exact is not None and (spec is None or spec.latent_texture is None):
         return exact
-    if mode == "neural":
+    if mode == "neural" and not (spec is not None and spec.reference):
         from . import neural_material
 
         made = neural_material.make(
