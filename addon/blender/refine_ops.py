@@ -14,7 +14,7 @@ from bpy.props import FloatProperty, PointerProperty, StringProperty
 
 from ..core import preview
 from . import stack_io
-from .operator_base import MaterialOperator, guarded
+from .operator_base import LongOperator, UserError
 
 
 class NLM_RefineResult(bpy.types.PropertyGroup):
@@ -44,10 +44,11 @@ class NLM_RefineResult(bpy.types.PropertyGroup):
     )
 
 
-class NLM_OT_refine_latent(MaterialOperator, bpy.types.Operator):
+class NLM_OT_refine_latent(LongOperator, bpy.types.Operator):
     """Fit the latent code to the reference BRDF of the stack (a few seconds; cached by stack and model
     files) and store it on the material when it is better on separate validation pairs"""
 
+    poll_needs = "stack"
     bl_idname = "neural_layers.refine_latent"
     bl_label = "Refine Latent"
     bl_options = {"REGISTER", "UNDO"}
@@ -56,10 +57,9 @@ class NLM_OT_refine_latent(MaterialOperator, bpy.types.Operator):
         name="Budget (s)", description="Seconds the refinement may take", default=8.0, min=0.5, max=600.0
     )
 
-    def execute(self, context):
-        return guarded("refining the latent", self, lambda: self._run(context))
-
-    def _run(self, context):
+    def prepare(self, context):
+        """On a worker thread with a progress bar and Esc, as the other long operators (it held Blender's UI for
+        its whole budget, up to ten minutes, with no way to stop it)."""
         from ..core.neural.models import load_models
         from ..core.neural.refine import refine_latent
         from ..core.stack import clamp_to_trained
@@ -68,14 +68,28 @@ class NLM_OT_refine_latent(MaterialOperator, bpy.types.Operator):
         size = preview.resolve_size(stack_io.model_size(mat))
         _, notes = clamp_to_trained(stack)  # the encoder sees the clamped stack; the reference the real one
         self.report_notes(notes)
-        z, rep = refine_latent(stack, size, budget_s=float(self.budget))
+        budget = float(self.budget)
+
+        def work(progress):
+            return refine_latent(stack, size, budget_s=budget, progress=progress), load_models(size).digest
+
+        def finish(context, result):
+            (z, rep), digest = result
+            if stack_io.stack_from_material(mat) != stack:
+                raise UserError(f"the stack of {mat.name!r} changed while it was refined: press Refine again")
+            self._store(mat, stack, size, z, rep, digest)
+            return {"FINISHED"}
+
+        return work, finish
+
+    def _store(self, mat, stack, size, z, rep, digest) -> None:
         s = stack_io.settings(mat)
         s.latent = z.tolist()
         s.latent_size = size
         s.latent_hash = preview.stack_hash(stack)
         r = mat.neural_refine
         r.key, r.stack_hash, r.size = rep.key, s.latent_hash, size
-        r.decoder_digest = load_models(size).digest
+        r.decoder_digest = digest
         r.error_before, r.error_after = rep.validation_error_before, rep.validation_error_after
         r.seconds, r.kept = rep.total_s, "yes" if rep.kept else "no"
         stack_io.tag_changed(mat)  # the viewport and the render operators' evaluated copies: another latent now
@@ -93,7 +107,6 @@ class NLM_OT_refine_latent(MaterialOperator, bpy.types.Operator):
                 f"pairs ({rep.validation_error_before:.3f} -> {rep.validation_error_after:.3f}): "
                 f"the encoded latent is kept",
             )
-        return {"FINISHED"}
 
 
 _CLASSES = (NLM_RefineResult, NLM_OT_refine_latent)

@@ -144,6 +144,25 @@ def test_a_refinement_its_budget_cut_short_is_refined_again_for_a_larger_budget(
     assert again.cached and again.steps == longer.steps  # the finished one serves a smaller budget
 
 
+def test_a_refinement_reports_its_progress_and_stops_when_asked_caching_nothing(tmp_path):
+    """``progress``: the share of the budget spent, after the reference walks and each step (the add-on's Refine
+    runs on a worker thread with a bar and Esc; it held Blender's UI for its whole budget)."""
+    rf._MEMORY.clear()
+    seen = []
+
+    def progress(fraction):
+        seen.append(fraction)
+        if len(seen) == 6:
+            raise KeyboardInterrupt("Esc")
+
+    with pytest.raises(KeyboardInterrupt):
+        rf.refine_latent(
+            COATED, "tiny", budget_s=30.0, settings=QUICK, threads=1, cache_dir=tmp_path, progress=progress
+        )
+    assert len(seen) == 6 and seen == sorted(seen) and 0.0 <= seen[0] and seen[-1] <= 1.0
+    assert not list(tmp_path.glob("refine_*.npz")) and not rf._MEMORY
+
+
 def test_a_refinement_that_is_worse_on_validation_is_not_kept():
     rf._MEMORY.clear()
     # one group of 8 pairs at 2 walks: the fit follows the noise of those few values (overfits)

@@ -405,10 +405,17 @@ def refine_key(stack: Stack, size: str, settings: RefineSettings, model_dir=None
 
 
 def _adam(
-    decoder: NumpyDecoder, z0: np.ndarray, fit: PairSet, s: RefineSettings, deadline: float, top_f=0.0, scale=1.0
+    decoder: NumpyDecoder,
+    z0: np.ndarray,
+    fit: PairSet,
+    s: RefineSettings,
+    deadline: float,
+    top_f=0.0,
+    scale=1.0,
+    step_done=None,
 ):
     """Adam on the latent; a remainder decoder's value is ``scale * f + top_f`` (the top coat's transmission
-    (P, 1) and its exact top lobe (P, 1))."""
+    (P, 1) and its exact top lobe (P, 1)); ``step_done()`` (optional) after each step, which may raise to stop."""
     dprod = decoder.directions(fit.wi, fit.wo)
     z = z0.astype(np.float64).copy()
     m = np.zeros_like(z)
@@ -433,6 +440,8 @@ def _adam(
         if time.perf_counter() > deadline:
             stopped = "budget"
             break
+        if step_done is not None:
+            step_done()
         g = decoder.backward(p, scale * grad_f)
         m = 0.9 * m + 0.1 * g
         v = 0.999 * v + 0.001 * g * g
@@ -449,11 +458,14 @@ def refine_latent(
     model_dir=None,
     cache_dir: Path | str | None = None,
     use_cache: bool = True,
+    progress=None,
 ):
     """``(z (3, 32) float32, RefineReport)``: the latent of ``stack`` for decoder ``size`` fitted to the
     reference (see the module docstring). ``budget_s`` bounds the whole call (reference walks and
     optimisation; the walks of the two pair sets are always made); the latent returned is the refined
-    one only where it is better on the validation pairs, else the encoded one."""
+    one only where it is better on the validation pairs, else the encoded one. ``progress(fraction)``
+    (optional: the share of the budget spent) between the reference walks and after each optimisation step; it
+    may raise to stop the refinement, which then caches nothing."""
     if not isinstance(stack, Stack):
         raise ValueError(f"refine_latent needs a Stack, got {type(stack).__name__}")
     size = resolve_size(size, model_dir)
@@ -466,11 +478,19 @@ def refine_latent(
     if cached is not None and not (cached[1].stopped == "budget" and float(budget_s) > cached[1].budget_s):
         return cached
     t0 = time.perf_counter()
+
+    def spent() -> None:
+        if progress is not None:
+            progress(min(1.0, (time.perf_counter() - t0) / float(budget_s)))
+
     decoder = NumpyDecoder.load(size, model_dir)
     models = load_models(size, threads, model_dir)
     z0 = np.asarray(encode_stack(stack, models), dtype=np.float32)
+    spent()
     fit = PairSet.measure(stack, s.fit_groups, s.per_group, s.walks, seed=2 * s.seed)
+    spent()
     val = PairSet.measure(stack, s.validation_groups, s.per_group, s.walks, seed=2 * s.seed + 1)
+    spent()
     t1 = time.perf_counter()
     # a remainder decoder holds the BRDF less the exact top lobe: the fit is of their sum
     top = top_coat(stack) if models.remainder else NO_TOP
@@ -479,7 +499,7 @@ def refine_latent(
     one = models.top_transmission
     sc_fit = remainder_scale(top, fit.wi, fit.wo)[:, None] if one else 1.0
     sc_val = remainder_scale(top, val.wi, val.wo)[:, None] if one else 1.0
-    z1, fit0, fit1, steps, stopped = _adam(decoder, z0, fit, s, t0 + float(budget_s), top_fit, sc_fit)
+    z1, fit0, fit1, steps, stopped = _adam(decoder, z0, fit, s, t0 + float(budget_s), top_fit, sc_fit, spent)
     t2 = time.perf_counter()
     v0, _, e0 = lobe_loss(sc_val * decoder.forward(z0, val.wi, val.wo) + top_val, val)
     v1, _, e1 = lobe_loss(sc_val * decoder.forward(z1, val.wi, val.wo) + top_val, val)
