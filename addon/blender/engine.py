@@ -94,9 +94,11 @@ class _Viewport:
         self.session = ProgressiveSession(settings, preview_divisor=4)
         self._drawn = None  # the session's image on screen (``ViewImage``: a new object for every image)
         self._texture = None
-        self._reported = None  # the last session error shown
+        self._reported_error = None  # the session's last render error shown
+        self._reported_calibration = None  # and its last calibration failure: each shown once, not at every redraw
         _OPEN_VIEWPORTS.add(self)
-        bpy.app.timers.register(self._poll, first_interval=0.05)
+        self.timer = self._poll  # one bound method: what the timers compare to unregister it
+        bpy.app.timers.register(self.timer, first_interval=0.05)
 
     def restart(self, core_scene, settings, key) -> None:
         self.key = key
@@ -110,8 +112,8 @@ class _Viewport:
         if self.session is None:
             return None  # closed: the timer ends
         try:
-            if self._is_new(self.session.latest()):
-                self.engine_ref.tag_redraw()
+            if self._is_new(self.session.latest()) or self._unreported():
+                self.engine_ref.tag_redraw()  # a new image, or a failure to show (a failed pass has no image)
             else:
                 self.engine_ref.is_preview  # noqa: B018 (an RNA read: raises once Blender freed the engine)
         except ReferenceError:  # the engine is gone (the viewport left Rendered mode): so is its session
@@ -125,13 +127,13 @@ class _Viewport:
 
         image = self.session.latest()
         error = self.session.error
-        if error is not None and error is not self._reported:  # once per failure, not per redraw
+        if error is not None and error is not self._reported_error:  # once per failure, not per redraw
             engine.report({"ERROR"}, _failure(error))
-            self._reported = error
+            self._reported_error = error
         failed = self.session.calibration_failure
-        if failed is not None and failed is not self._reported:
+        if failed is not None and failed is not self._reported_calibration:
             engine.report({"WARNING"}, f"albedo calibration failed ({_failure(failed)}); viewing it uncalibrated")
-            self._reported = failed
+            self._reported_calibration = failed
         if image is None:
             return
         if self._is_new(image) or self._texture is None:
@@ -147,6 +149,13 @@ class _Viewport:
         draw_texture_2d(self._texture, (0, 0), region.width, region.height)
         engine.unbind_display_space_shader()
         gpu.state.blend_set("NONE")
+
+    def _unreported(self) -> bool:
+        """Whether the session has a failure ``draw`` has not shown yet."""
+        error, failed = self.session.error, self.session.calibration_failure
+        return (error is not None and error is not self._reported_error) or (
+            failed is not None and failed is not self._reported_calibration
+        )
 
     def _is_new(self, image) -> bool:
         """Whether ``image`` is not the one on screen. Told by the object, not by its generation and samples: a
@@ -408,8 +417,8 @@ def close_viewports() -> None:
     """Close every viewport session still open, with its timer (the add-on is going: nothing will draw them)."""
     for view in list(_OPEN_VIEWPORTS):
         view.close()
-        if bpy.app.timers.is_registered(view._poll):
-            bpy.app.timers.unregister(view._poll)
+        if bpy.app.timers.is_registered(view.timer):
+            bpy.app.timers.unregister(view.timer)
 
 
 def unregister() -> None:

@@ -6,8 +6,9 @@ took longer on threads and run in processes instead (``bake/demo.py``)."""
 
 from __future__ import annotations
 
+import contextvars
 import os
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Callable, Iterable, TypeVar
 
 T = TypeVar("T")
@@ -20,16 +21,24 @@ def thread_count(threads: int) -> int:
     return int(threads) or (os.cpu_count() or 1)
 
 
+def submit_in_context(pool: ThreadPoolExecutor, fn: Callable[..., R], *args) -> Future:
+    """``pool.submit(fn, *args)``, run in a copy of the calling thread's context: what the caller has in force
+    there (``neural.session.threads_in_force``'s thread count) holds for the work too."""
+    return pool.submit(contextvars.copy_context().run, fn, *args)
+
+
 def map_on_threads(fn: Callable[[T], R], items: Iterable[T], threads: int, name: str) -> list[R]:
     """``[fn(x) for x in items]``, in order, on up to ``threads`` threads (named ``name``; inline with one thread or
-    one item). The first error is raised once the pieces running have ended, and the pieces not started are not
-    run (a cancel or a restart raised by one of them stops the rest at their next step)."""
+    one item), each in a copy of the calling context (``submit_in_context``). The first error is raised once the
+    pieces running have ended, and the pieces not started are not run (a cancel or a restart raised by one of them
+    stops the rest at their next step)."""
     items = list(items)
     workers = max(1, min(int(threads), len(items)))
     if workers == 1:
         return [fn(x) for x in items]
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix=name)
     try:
-        return list(pool.map(fn, items))
+        futures = [submit_in_context(pool, fn, x) for x in items]
+        return [f.result() for f in futures]
     finally:
         pool.shutdown(wait=True, cancel_futures=True)

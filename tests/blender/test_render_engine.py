@@ -682,9 +682,12 @@ def test_the_viewport_asks_for_a_redraw_for_every_new_image_of_a_generation(bpy_
     latest = []
     redraws = []
     viewport = engine._Viewport.__new__(engine._Viewport)  # no timer: _poll is called by hand
-    viewport.session = SimpleNamespace(latest=lambda: latest[-1] if latest else None)
+    viewport.session = SimpleNamespace(
+        latest=lambda: latest[-1] if latest else None, error=None, calibration_failure=None
+    )
     viewport.engine_ref = SimpleNamespace(tag_redraw=lambda: redraws.append(latest[-1]), is_preview=False)
     viewport._drawn = None
+    viewport._reported_error = viewport._reported_calibration = None
     assert viewport._poll() == 0.05 and redraws == []  # nothing yet
     for im in shown:
         latest.append(im)
@@ -692,6 +695,32 @@ def test_the_viewport_asks_for_a_redraw_for_every_new_image_of_a_generation(bpy_
         viewport._drawn = im  # what draw does once it has uploaded the image
         viewport._poll()  # on screen already: no second redraw
     assert redraws == shown
+
+
+def test_a_viewport_failure_is_drawn_once_even_without_a_new_image(bpy_addon):
+    """A failed pass publishes no image: the timer asks for a redraw anyway, so its error is shown (the viewport
+    kept the old image, silent); a render error and a calibration failure are each reported once, where each one's
+    report reset the other's and both came again at every redraw."""
+    from types import SimpleNamespace
+
+    from addon.blender import engine
+
+    redraws, reports = [], []
+    viewport = engine._Viewport.__new__(engine._Viewport)  # no timer: _poll and draw are called by hand
+    viewport.session = SimpleNamespace(latest=lambda: None, error=None, calibration_failure=None)
+    viewport.engine_ref = SimpleNamespace(tag_redraw=lambda: redraws.append(1), is_preview=False)
+    viewport._drawn, viewport._texture = None, None
+    viewport._reported_error = viewport._reported_calibration = None
+    fake_engine = SimpleNamespace(report=lambda kind, text: reports.append((kind, text)))
+    assert viewport._poll() == 0.05 and redraws == []
+    viewport.session.calibration_failure = ValueError("walks failed")
+    viewport.session.error = RuntimeError("texture file vanished")
+    viewport._poll()
+    assert redraws == [1]
+    for _ in range(3):
+        viewport.draw(fake_engine, None)  # no image: reports only
+        viewport._poll()
+    assert redraws == [1] and [kind for kind, _ in reports] == [{"ERROR"}, {"WARNING"}]
 
 
 def test_a_viewport_session_closes_when_its_engine_goes_and_when_the_add_on_does(bpy_addon, fresh_scene):
@@ -730,7 +759,7 @@ def test_a_viewport_session_closes_when_its_engine_goes_and_when_the_add_on_does
     assert views[1] in engine._OPEN_VIEWPORTS and views[0] not in engine._OPEN_VIEWPORTS
     engine.close_viewports()
     assert views[1].session is None and not engine._OPEN_VIEWPORTS
-    assert not bpy.app.timers.is_registered(views[1]._poll)
+    assert not bpy.app.timers.is_registered(views[1].timer)  # (a new bound method never was registered)
 
 
 def test_viewport_navigation_moves_the_camera_and_an_edit_or_a_resize_exports_again(bpy_addon, monkeypatch):

@@ -226,7 +226,7 @@ def test_the_bake_uses_the_threads_it_is_given_and_their_count_changes_nothing(m
     real = session.ChunkedSession.map
 
     def spy(self, fn, n):
-        seen.append(session._THREADS[-1] if session._THREADS else None)
+        seen.append(session.threads_now())
         return real(self, fn, n)
 
     monkeypatch.setattr(session.ChunkedSession, "map", spy)

@@ -640,26 +640,36 @@ def test_the_networks_run_on_each_chunks_thread_when_every_core_traces_a_chunk(m
     chunks' threads they waited on one another: two-thread renders took 8% longer); with fewer chunks than
     threads (a viewport's first pass) the chunks share one pool of every thread."""
     from addon.core.neural import session
+    from addon.core.render import integrator
     from addon.core.render.demo_scene import demo_scene
 
-    seen = []
-    real = session.ChunkedSession.map
+    seen, setup = [], []
+    real_map, real_resolve = session.ChunkedSession.map, integrator.mat.resolve_all
 
     def spy(self, fn, n):
-        if session._THREADS:  # the scene's encoding comes before the tracing
-            seen.append(session._THREADS[-1])
-        return real(self, fn, n)
+        seen.append(session.threads_now())
+        return real_map(self, fn, n)
+
+    def resolving(*args):  # the materials' encoding and calibration, before the tracing
+        setup.append(session.threads_now())
+        return real_resolve(*args)
 
     monkeypatch.setattr(session.ChunkedSession, "map", spy)
+    monkeypatch.setattr(integrator.mat, "resolve_all", resolving)
     scene = demo_scene(16, 9)
     render(scene, RenderSettings(samples=2, max_bounces=2, threads=2, calibrate=False))  # two chunks in flight
     assert seen and set(seen) == {1}
+    # the scene's encoding and calibrations before the tracing: on the scene's thread count (they took whatever
+    # count was in force, or the models' 2)
+    assert setup == [2]
     seen.clear()
     render(scene, RenderSettings(samples=1, max_bounces=2, threads=2, calibrate=False))  # one chunk
     assert seen and set(seen) == {2}
     seen.clear()
+    setup.clear()
     render(scene, RenderSettings(samples=2, max_bounces=2, threads=4, calibrate=False))  # two chunks, four threads
     assert seen and set(seen) == {4}
+    assert setup == [4]
 
 
 def test_the_scenes_setup_is_timed_apart_from_the_tracing(monkeypatch):

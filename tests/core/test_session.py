@@ -27,11 +27,51 @@ def test_threads_in_force_decide_where_chunks_run():
         assert chunk_threads(s, 100) == {threading.current_thread().name}
     with threads_in_force(3):
         assert all(name.startswith("onnx") for name in chunk_threads(s, 100))
-        assert session._THREADS[-1] == 3
-    assert not session._THREADS
+        assert session.threads_now() == 3
+    assert session.threads_now() is None
     with pytest.raises(ValueError, match="threads must be >= 1"):
         with threads_in_force(0):
             pass
+
+
+def test_two_renders_at_once_keep_their_own_thread_counts_and_pass_them_to_their_threads():
+    """The count in force is the calling context's: a viewport pass and a thumbnail at once each keep theirs (one
+    list for the process let each take the other's, and the first to end removed the other's), and the threads a
+    render starts (``threads.submit_in_context``) run with the render's."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from addon.core.threads import map_on_threads, submit_in_context
+
+    entered, release = threading.Barrier(2), threading.Event()
+    seen = {}
+
+    def render(name, count):
+        with threads_in_force(count):
+            entered.wait(timeout=10)  # both blocks entered, the second after the first
+            seen[name] = session.threads_now()
+            if name == "first":
+                release.wait(timeout=10)  # the second's block ends before the first reads again
+                seen["first, after the second ended"] = session.threads_now()
+            else:
+                release.set()
+            with ThreadPoolExecutor(1) as pool:
+                seen[name + " on its pool"] = submit_in_context(pool, session.threads_now).result()
+            seen[name + " on map_on_threads"] = set(map_on_threads(lambda _: session.threads_now(), range(3), 3, "t"))
+
+    threads = [threading.Thread(target=render, args=a) for a in (("first", 1), ("second", 4))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=30)
+    assert seen == {
+        "first": 1,
+        "second": 4,
+        "first, after the second ended": 1,
+        "first on its pool": 1,
+        "second on its pool": 4,
+        "first on map_on_threads": {1},
+        "second on map_on_threads": {4},
+    }
 
 
 def test_network_clock_counts_time_in_batches_on_the_calling_thread():

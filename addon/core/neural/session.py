@@ -12,6 +12,7 @@ about doubled the decoders' throughput against one 2-thread call on the whole ba
 
 from __future__ import annotations
 
+import contextvars
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -25,7 +26,11 @@ T = TypeVar("T")
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 _POOLS_LOCK = threading.Lock()
 _CLOCK = threading.local()
-_THREADS: list[int] = []  # process-wide thread counts in force, innermost last (``threads_in_force``)
+# The thread counts in force (``threads_in_force``), innermost last: of the calling context, so that two renders or
+# bakes at once each keep their own (one list for the whole process let each take the other's, and a block's end
+# remove the other's count). Threads a render or a bake starts run in a copy of its context
+# (``threads.submit_in_context``).
+_THREADS: contextvars.ContextVar[tuple[int, ...]] = contextvars.ContextVar("threads_in_force", default=())
 
 
 @contextmanager
@@ -36,11 +41,17 @@ def threads_in_force(threads: int):
     on its own thread), so no constant decides how many cores the networks use."""
     if isinstance(threads, bool) or int(threads) < 1:
         raise ValueError(f"threads must be >= 1, got {threads!r}")
-    _THREADS.append(int(threads))
+    token = _THREADS.set((*_THREADS.get(), int(threads)))
     try:
         yield
     finally:
-        _THREADS.pop()
+        _THREADS.reset(token)
+
+
+def threads_now() -> int | None:
+    """The thread count in force for the calling context (``threads_in_force``), or None."""
+    counts = _THREADS.get()
+    return counts[-1] if counts else None
 
 
 def seconds_on_this_thread() -> float:
@@ -103,7 +114,7 @@ class ChunkedSession:
         """``fn(rows)`` for each chunk ``rows`` (a slice) of ``range(n)``, on the pool's threads
         (inline with one thread or one chunk); the results in chunk order."""
         slices = [slice(s, min(n, s + self.chunk)) for s in range(0, n, self.chunk)] or [slice(0, 0)]
-        threads = _THREADS[-1] if _THREADS else self.threads
+        threads = threads_now() or self.threads
         t0 = time.perf_counter()
         try:
             if threads == 1 or len(slices) == 1:

@@ -31,7 +31,7 @@ import numpy as np
 from .. import kernels
 from ..neural import session
 from ..neural.calibrate import check_mode as calibrate_mode
-from ..threads import thread_count
+from ..threads import submit_in_context, thread_count
 from . import materials as mat
 from .film import Film
 from .lights import NO_IMAGE, AreaLight
@@ -400,7 +400,8 @@ def render(
     cam = scene.camera
     stats = RenderStats()
     t_start = time.perf_counter()
-    ctx = _Context(scene, settings, stats)
+    with session.threads_in_force(settings.thread_count):  # the materials' encoding and calibration: the scene's
+        ctx = _Context(scene, settings, stats)
     stats.seconds["setup"] = time.perf_counter() - t_start
     film = film or Film(cam.width, cam.height)
     start_pass = film.passes
@@ -505,10 +506,10 @@ def _ordered(pool, fn, tasks, ahead: int, halt: _Halt):
             _check_stop(halt)
             yield fn(task)
         return
-    futures = [pool.submit(fn, t) for t in tasks[:ahead]]
+    futures = [submit_in_context(pool, fn, t) for t in tasks[:ahead]]  # the render's thread count in force there
     for i in range(len(tasks)):
         if i + ahead < len(tasks):
-            futures.append(pool.submit(fn, tasks[i + ahead]))
+            futures.append(submit_in_context(pool, fn, tasks[i + ahead]))
         while not futures[i].done():  # waits only: a chunk's own TimeoutError is its error, not a wait's
             _check_stop(halt)
             wait_for_futures([futures[i]], timeout=STOP_POLL_SECONDS)

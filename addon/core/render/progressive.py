@@ -26,6 +26,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..neural import session
 from ..threads import map_on_threads
 from .film import Film
 from .integrator import Cancelled, RenderSettings, render
@@ -261,7 +262,7 @@ class ProgressiveSession:
                 if generation == self._generation:
                     self._scene = None  # done: wait for the next restart
 
-    def _calibrate_pending(self, scene: Scene, generation: int) -> Scene | None:
+    def _calibrate_pending(self, scene: Scene, generation: int, settings: RenderSettings) -> Scene | None:
         """The scene with the calibrations its materials left out (``calibrate="cached"``, the viewport's: no
         reference walks before the first images) made now, after the first full-resolution pass, so that the
         accumulation that follows renders as F12 does (``NeuralMaterial.calibrated``; 0.4 s per changed stack
@@ -288,8 +289,9 @@ class ProgressiveSession:
         # Side by side on the render's threads (the view waits on them), each stack seeded as alone: with the five
         # stacks of the demo scene to calibrate, the first calibrated pass came 1.70-1.80 s after the edit where it
         # came 2.10-2.17 s after it one stack at a time (320x180).
-        try:  # after a restart, no stack not yet started is calibrated
-            made = map_on_threads(calibrated, [materials[i] for i in pending], self.settings.thread_count, "calibrate")
+        try:  # after a restart, no stack not yet started is calibrated; on the generation's threads, its networks too
+            with session.threads_in_force(settings.thread_count):
+                made = map_on_threads(calibrated, [materials[i] for i in pending], settings.thread_count, "calibrate")
         except Cancelled:
             return None
         for i, material in zip(pending, made, strict=True):
@@ -368,7 +370,7 @@ class ProgressiveSession:
                 )
             except Cancelled:
                 return
-            scene = self._calibrate_pending(scene, generation)
+            scene = self._calibrate_pending(scene, generation, settings)
             if scene is None:
                 return
         try:

@@ -20,7 +20,7 @@ import numpy as np
 from ..neural.top_lobe import top_coats
 from ..rows import distinct_rows
 from ..stack import StackArrays
-from ..threads import thread_count
+from ..threads import submit_in_context, thread_count
 from .latent_texture import CHANNEL_NAMES, LatentTexture
 from .mip import HALF_MAX, MipChain, float32_texels, store_texels
 from .spatial import SpatialStack
@@ -321,7 +321,7 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1, gath
                     f"bake cancelled after {starts[i - len(pending)] if pending else start} of {m} distinct texels"
                 )
             if start is not None:
-                pending.append(pool.submit(encode_batch, start) if pool else encode_batch(start))
+                pending.append(submit_in_context(pool, encode_batch, start) if pool else encode_batch(start))
             while pending and (start is None or len(pending) >= workers):
                 done = pending.pop(0)
                 end = done.result() if pool else done
