@@ -272,6 +272,8 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
                     f"render region was cut to {x1 - x0}x{y1 - y0}: turn Render Region off to render"
                 )
             self._render(depsgraph, scene, props, result, region, thumbnail=self.is_preview)
+        except Cancelled:  # Esc before any pass (the decoder choice): nothing rendered, nothing failed
+            self.update_stats("", "Cancelled")
         except Exception as e:  # every failure reaches the UI, not only a console traceback
             self._fail(e)
         finally:
@@ -285,8 +287,10 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
             settings, notes = prepare_thumbnail(core_scene, threads=props.to_core(scene=scene).threads)
             return settings, notes, info
         self.update_stats("", "Choosing decoders")
-        try:
-            warnings = props.assign_decoders(core_scene, info=info)
+        try:  # Esc heard between the measurements (a second or two a material and size the first time)
+            warnings = props.assign_decoders(core_scene, info=info, stop=self.test_break)
+        except Cancelled:
+            raise
         except Exception as e:  # the stacks stay, on the default decoder or the reference
             warnings.append(f"decoder choice failed ({_failure(e)}); layered materials use the default decoder")
         return props.to_core(scene=scene), warnings, info

@@ -176,7 +176,7 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
         )
 
     def assign_decoders(
-        self, core_scene, samples: int | None = None, info: list | None = None, viewport: bool = False
+        self, core_scene, samples: int | None = None, info: list | None = None, viewport: bool = False, stop=None
     ) -> list[str]:
         """Put the layered materials of an exported scene on their decoders (neural mode), calibrated
         as :meth:`calibration` says; returns warnings.
@@ -200,6 +200,7 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
             evaluations=queries,
             calibrate=self.calibration(viewport),
             only_cached=viewport,  # the viewport reads what renders measured, never stops to measure an edit
+            stop=stop,  # F12's Esc, between the measurements (render.Cancelled)
         )
         if info is not None:
             info += [quality.choice_reason(name, c) for name, c in choices.items()]

@@ -266,6 +266,19 @@ def measured_error(
     return err
 
 
+def _checked_tolerance(tolerance, fallback: str) -> float:
+    """``choose_decoder``'s tolerance as a float, after its and ``fallback``'s checks (ValueError)."""
+    try:
+        tol = float(tolerance)
+    except (TypeError, ValueError):
+        raise ValueError(f"tolerance must be a number (relative lobe error, e.g. 0.2), got {tolerance!r}") from None
+    if not (tol > 0.0) or math.isnan(tol):
+        raise ValueError(f"tolerance must be a positive relative error (e.g. 0.2 for 20%), got {tolerance!r}")
+    if fallback not in FALLBACKS:
+        raise ValueError(f"fallback must be one of {FALLBACKS}, got {fallback!r}")
+    return tol
+
+
 def choose_decoder(
     stack: Stack,
     tolerance: float = DEFAULT_TOLERANCE,
@@ -279,6 +292,7 @@ def choose_decoder(
     threads: int = 2,
     calibrate=False,
     only_cached: bool = False,
+    stop=None,
 ) -> DecoderChoice:
     """The smallest decoder size whose measured error on ``stack`` is at most ``tolerance``, measured
     as the renderer shades the material with ``calibrate`` (:func:`measured_error`).
@@ -286,7 +300,8 @@ def choose_decoder(
     ``only_cached`` (the viewport, which must not stop for a measurement at every edit): only errors measured
     before are read; where a size was not measured before the choice is made, the default size
     (``neural.resolve_size``) with a note saying so, ``met`` False and the sizes' errors as known (nan: not
-    measured).
+    measured). ``stop()`` (optional: F12's Esc) before each size's measurement (a second or two each): True raises
+    ``render.Cancelled``.
 
     ``tolerance`` is a relative lobe RMSE (0.2 = 20%). Sizes default to the shipped ones, fewest
     parameters first; they are measured in that order and the search stops at the first fit.
@@ -296,14 +311,7 @@ def choose_decoder(
     """
     if not isinstance(stack, Stack):
         raise ValueError(f"choose_decoder needs a Stack, got {type(stack).__name__}")
-    try:
-        tol = float(tolerance)
-    except (TypeError, ValueError):
-        raise ValueError(f"tolerance must be a number (relative lobe error, e.g. 0.2), got {tolerance!r}") from None
-    if not (tol > 0.0) or math.isnan(tol):
-        raise ValueError(f"tolerance must be a positive relative error (e.g. 0.2 for 20%), got {tolerance!r}")
-    if fallback not in FALLBACKS:
-        raise ValueError(f"fallback must be one of {FALLBACKS}, got {fallback!r}")
+    tol = _checked_tolerance(tolerance, fallback)
     sizes = available_sizes() if sizes is None else list(sizes)
     if cache is None:
         cache = ErrorCache(cache_dir) if cache_dir is not None else _DEFAULT_CACHE
@@ -312,6 +320,10 @@ def choose_decoder(
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         for s in sizes:
+            if stop is not None and stop():
+                from .render.integrator import Cancelled
+
+                raise Cancelled("the decoder choice was stopped")
             errors[s] = measured_error(stack, s, res, walks, seed, cache, threads, calibrate, only_cached)
             if errors[s] <= tol or math.isnan(errors[s]):
                 break
@@ -497,7 +509,7 @@ def assign_decoders(
     renderer shades with the reference),
     the choice per material name (its size and the measured errors that decided it), and the
     warnings to show the user.
-    ``measure`` passes ``res``, ``walks``, ``cache`` or ``only_cached`` on to :func:`choose_decoder`.
+    ``measure`` passes ``res``, ``walks``, ``cache``, ``only_cached`` or ``stop`` on to :func:`choose_decoder`.
 
     With ``budget_seconds``, "auto" only considers the sizes whose predicted decoder time for
     ``evaluations`` queries (:func:`frame_decoder_queries`) fits the budget

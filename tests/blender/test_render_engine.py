@@ -859,3 +859,29 @@ def test_the_viewports_auto_choice_reads_measured_errors_and_never_stops_to_meas
     info = []
     scene.neural_render.assign_decoders(core_scene, info=info, viewport=True)
     assert any("not measured yet" in line for line in info), info
+
+
+def test_esc_while_f12_chooses_decoders_cancels_the_render_without_a_failure(fresh_scene, tmp_path, monkeypatch):
+    """Auto measures each new stack before the first pass (a second or two a size): F12 gives its test_break to
+    the choice, which stops at the next measurement; the render then ends cancelled, not failed, and no pass is
+    traced (Esc was not heard until the choice had measured everything)."""
+    from addon.blender import engine, render_properties, stack_io
+    from addon.core.stack import PRESETS
+
+    scene = fresh_scene.scene
+    small(scene, 16, 12, samples=2)
+    stack_io.stack_to_material(PRESETS["red_car_paint"], scene.objects["Cube"].active_material)
+    scene.render.engine = "NEURAL_LAYERED"
+    scene.neural_render.decoder_quality = "AUTO"
+    real = render_properties.NLM_RenderSettings.assign_decoders
+    stops, traced = [], []
+
+    def esc_pressed(self, core_scene, **kw):
+        stops.append(repr(kw["stop"]))
+        return real(self, core_scene, **{**kw, "stop": lambda: True})
+
+    monkeypatch.setattr(render_properties.NLM_RenderSettings, "assign_decoders", esc_pressed)
+    monkeypatch.setattr(engine, "render", lambda *a, **k: traced.append(1))
+    scene.render.filepath = str(tmp_path / "frame.png")
+    bpy.ops.render.render(write_still=True)  # an ERROR report would raise here
+    assert len(stops) == 1 and "test_break" in stops[0] and traced == []

@@ -394,3 +394,12 @@ def test_a_disk_backed_error_cache_keeps_every_entry_put_from_two_threads(tmp_pa
     b_done.set()
     a.join()
     assert quality.ErrorCache(tmp_path).data == {"a": 1.0, "b": 2.0}
+
+
+def test_a_stopped_choice_raises_cancelled_before_it_measures(monkeypatch):
+    """F12's Esc during "Choosing decoders" (seconds a new stack): heard before each size's measurement."""
+    from addon.core.render import Cancelled
+
+    monkeypatch.setattr(quality, "reference_lobes", lambda *a, **k: pytest.fail("measured after the stop"))
+    with pytest.raises(Cancelled, match="decoder choice was stopped"):
+        quality.choose_decoder(DEMANDING, 0.15, cache=quality.ErrorCache(), stop=lambda: True)
