@@ -161,10 +161,16 @@ class NLM_OT_layer_duplicate(MaterialOperator, bpy.types.Operator):
         src = s.layers[i]
         if src.layer_type in BASE_LAYER_TYPES:
             raise UserError(f"{src.name!r} is the base and a stack has one base: duplicate a coating instead")
+        if src.layer_type not in layer_types.BY_ID:  # a newer version's type: its properties cannot be copied
+            raise UserError(f"{src.name!r} has a layer type this version does not know: it cannot be duplicated")
         with stack_io.bulk_edit(mat):
             item = s.layers.add()
             src = s.layers[i]  # found again: adding an item can move the collection's items in memory
-            _copy_properties(src, item)
+            try:
+                _copy_properties(src, item)
+            except Exception:
+                s.layers.remove(len(s.layers) - 1)  # no half-made layer left behind
+                raise
             item.name = stack_io.default_layer_name(src.layer_type, {x.name for x in s.layers})
             s.layers.move(len(s.layers) - 1, i + 1)
             s.active_index = i + 1

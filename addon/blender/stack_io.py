@@ -14,6 +14,7 @@ import numpy as np
 
 from ..core import preview
 from ..core.stack import (
+    VALID_RANGES,
     Coating,
     Conductor,
     Dielectric,
@@ -33,6 +34,16 @@ def settings(mat):
     return mat.neural_layers
 
 
+def _stored(value, key: str):
+    """A property's value (a number or an RGB triple) for the core: Blender holds it in float32 and keeps it within
+    the property's min and max, which are the core's valid range; float32's rounding of an end (0.01 is
+    0.0099999998, 0.99 is 0.9900000095) is taken back to the end, where the core refused it and the stack with it."""
+    lo, hi = VALID_RANGES[key]
+    if isinstance(value, float):
+        return min(max(value, lo), hi)
+    return tuple(min(max(float(v), lo), hi) for v in value)
+
+
 def layer_from_item(item) -> Layer:
     """The core layer of one ``NLM_Layer`` item; ``ValueError`` names the layer if a value is invalid."""
     kind = item.layer_type
@@ -43,16 +54,16 @@ def layer_from_item(item) -> Layer:
         if kind == "CONDUCTOR":
             if item.conductor_mode == "F0":
                 return Conductor.from_f0(tuple(item.f0), roughness=alpha)
-            return Conductor(roughness=alpha, eta=tuple(item.eta), k=tuple(item.k))
+            return Conductor(roughness=alpha, eta=_stored(item.eta, "eta"), k=_stored(item.k, "k"))
         if kind == "DIELECTRIC":
-            return Dielectric(roughness=alpha, ior=item.ior)
+            return Dielectric(roughness=alpha, ior=_stored(item.ior, "ior"))
         if kind == "COATING":
             return Coating(
                 roughness=alpha,
-                ior=item.ior,
+                ior=_stored(item.ior, "ior"),
                 albedo=tuple(item.medium_albedo),
-                thickness=item.thickness,
-                g=item.g,
+                thickness=_stored(item.thickness, "thickness"),
+                g=_stored(item.g, "g"),
             )
     except ValueError as e:
         raise ValueError(f"layer {item.name!r}: {e}") from None
@@ -220,6 +231,8 @@ def on_stack_changed(mat) -> None:
     if not s.auto_latent:
         return
     try:
+        if latent_is_current(mat) and s.latent_size == preview.resolve_size(model_size(mat)):
+            return  # the stack and size it was made for (an edit undone, a map changed): kept, refined or not
         compute_latent(mat)
     except (ValueError, preview.NeuralUnavailable):
         s.latent_hash = ""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 from addon.core.stack import PRESETS, Coating, Diffuse, Stack, alpha_from_artist_roughness
@@ -449,3 +450,55 @@ def test_a_linked_material_is_read_but_never_edited_and_its_texture_found_beside
     # the texture is found beside the library (the empty file is then refused for its content, not as missing)
     state = bake_state.current_texture(mat)[1]
     assert "missing" not in state, state
+
+
+def test_values_at_the_ends_of_their_ranges_make_a_valid_stack(material, bpy_addon):
+    """Blender holds the fields in float32: Eta's minimum 0.01 is 0.0099999998 there and g's end 0.99 is
+    0.9900000095, just outside the core's ranges, so dragging a field to its end made the whole stack invalid (a
+    red error in the panel, and F12 rendered the material as a Lambertian)."""
+    from addon.blender import stack_io
+
+    assert run_operator(bpy_addon.ops.neural_layers.preset_apply, preset="coated_gold").finished
+    s = material.neural_layers
+    s.layers[0].conductor_mode = "ETA_K"
+    s.layers[0].eta = (0.01, 10.0, 0.01)
+    s.layers[1].g = 0.99
+    stack = stack_io.stack_from_material(material)
+    assert stack.base.eta == (0.01, 10.0, 0.01) and stack.coatings[0].g == 0.99
+    s.layers[1].g = -0.99
+    assert stack_io.stack_from_material(material).coatings[0].g == -0.99
+
+
+def test_a_layer_of_an_unknown_type_is_not_duplicated_into_a_half_made_one(material, bpy_addon):
+    """A file from a newer version holds a layer type this one does not know: Duplicate refuses it by name, where
+    it added a nameless Diffuse layer and failed (cancelled, so no undo step took it back)."""
+    assert run_operator(bpy_addon.ops.neural_layers.preset_apply, preset="red_car_paint").finished
+    s = material.neural_layers
+    s.layers[1]["layer_type"] = 99  # an enum value this version has no item for: it reads as ''
+    assert s.layers[1].layer_type == ""
+    before = _names(material)
+    s.active_index = 1
+    r = run_operator(bpy_addon.ops.neural_layers.layer_duplicate)
+    assert r.error and "does not know" in r.error
+    assert _names(material) == before
+
+
+def test_an_edit_that_leaves_the_stack_as_it_was_keeps_a_refined_latent(material, bpy_addon):
+    """Ticking Auto Update Latent, adding a parameter map or editing one (none changes the stack) encoded the stack
+    again over a refined latent, which F12 then stopped rendering."""
+    from addon.blender import stack_io
+
+    ops = bpy_addon.ops.neural_layers
+    assert run_operator(ops.preset_apply, preset="coated_gold").finished
+    s = material.neural_layers
+    refined = np.asarray(stack_io.latent_of(material)) + 0.25  # as Refine stores one, for the same stack and size
+    s.latent = refined.tolist()
+    material.neural_refine.kept = "yes"
+    s.auto_latent = False
+    s.auto_latent = True
+    s.active_index = 1
+    assert run_operator(ops.map_add, parameter="ROUGHNESS").finished
+    assert material.neural_refine.kept == "yes"
+    np.testing.assert_allclose(stack_io.latent_of(material), refined.reshape(3, 32), rtol=1e-6)
+    s.layers[1].roughness = 0.5  # an edit of the stack itself: encoded again
+    assert material.neural_refine.kept == "replaced"
