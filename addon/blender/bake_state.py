@@ -125,19 +125,40 @@ def restore_texture_paths(filepath, *_args) -> None:
     _remapped.clear()
 
 
+@bpy.app.handlers.persistent
+def rebase_appended_texture_paths(context, *_args) -> None:
+    """``blend_import_post``: a material appended from another file keeps its bake. Its "//" texture path was
+    relative to that file; Blender rebases its own paths (images) as it appends, not this setting, so the bake read
+    as missing when the files' folders differ."""
+    for item in context.import_items:
+        mat, library = item.id, item.source_library
+        if item.id_type != "MATERIAL" or mat is None or mat.library is not None or library is None:
+            continue  # linked, not appended: its paths stay its library's (``current_texture``)
+        if item.append_action not in ("MAKE_LOCAL", "COPY_LOCAL"):
+            continue  # a local material reused, not one brought in
+        path = mat.neural_layers.texture_path
+        if path.startswith("//"):
+            absolute = bpy.path.abspath(path, library=library)
+            here = os.path.dirname(os.path.abspath(bpy.data.filepath)) if bpy.data.filepath else None
+            mat.neural_layers.texture_path = _relative_to(absolute, here) if here else absolute
+
+
+_HANDLERS = (
+    ("save_pre", remap_texture_paths),
+    ("save_post", restore_texture_paths),
+    ("blend_import_post", rebase_appended_texture_paths),
+)
+
+
 def register() -> None:
-    for handlers, handler in (
-        (bpy.app.handlers.save_pre, remap_texture_paths),
-        (bpy.app.handlers.save_post, restore_texture_paths),
-    ):
+    for name, handler in _HANDLERS:
+        handlers = getattr(bpy.app.handlers, name)
         if handler not in handlers:
             handlers.append(handler)
 
 
 def unregister() -> None:
-    for handlers, handler in (
-        (bpy.app.handlers.save_pre, remap_texture_paths),
-        (bpy.app.handlers.save_post, restore_texture_paths),
-    ):
+    for name, handler in _HANDLERS:
+        handlers = getattr(bpy.app.handlers, name)
         if handler in handlers:
             handlers.remove(handler)

@@ -400,3 +400,29 @@ def test_the_add_ons_bake_removes_what_a_killed_writer_left_in_its_folder(wood, 
     live.write_bytes(b"")
     assert run_operator(ops.bake_texture).finished
     assert not stale.exists() and live.exists()
+
+
+def test_a_baked_material_appended_from_another_folder_keeps_its_texture(wood, bpy_addon, tmp_path):
+    """File > Append: the material's "//" texture path was its file's; Blender rebases its own paths as it
+    appends, not this one, so the bake read as missing in the file it was appended to."""
+    import os
+
+    from addon.blender import bake_ops
+
+    bpy = bpy_addon
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    wood.neural_layers.bake_directory = "//textures/"
+    wood.neural_layers.layers[1].maps[0].image.pack()  # the map's pixels travel with the material
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "a" / "a.blend"))
+    assert run_operator(ops.bake_texture).finished
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "a" / "a.blend"))
+    bpy.ops.wm.read_homefile(app_template="")
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "b" / "b.blend"))
+    library = str(tmp_path / "a" / "a.blend")
+    bpy.ops.wm.append(directory=library + "/Material/", filename="Material")
+    (appended,) = [m for m in bpy.data.materials if m.name != "Material" and m.neural_layers.texture_path]
+    assert appended.neural_layers.texture_path == "//../a/textures/Material.exr"
+    assert os.path.isfile(bpy.path.abspath(appended.neural_layers.texture_path))
+    path, state = bake_ops.baked_texture_state(appended)
+    assert path is not None, state
