@@ -61,11 +61,23 @@ def read_only_problem(mat) -> str | None:
     return None
 
 
+def context_material(context):
+    """The material the context shows: in the Shader Editor, the one it displays (a pinned one too, which need not
+    be the active object's); elsewhere the active object's active material. None when there is none."""
+    space = getattr(context, "space_data", None)
+    if space is not None and getattr(space, "type", "") == "NODE_EDITOR":
+        shown = getattr(space, "id", None)
+        if isinstance(shown, bpy.types.Material):
+            return shown
+    ob = getattr(context, "object", None) or getattr(context, "active_object", None)
+    return getattr(ob, "active_material", None) if ob is not None else None
+
+
 def poll_problem(context, needs: str = "material", edits: bool = False) -> str | None:
     """Why an operator that needs ``needs`` ("material", "stack" or "texture") cannot act on the
-    context's active material (``edits``: and change it), or None when it can."""
+    context's material (``context_material``; ``edits``: and change it), or None when it can."""
     ob = getattr(context, "object", None)
-    mat = getattr(ob, "active_material", None) if ob is not None else None
+    mat = context_material(context)
     if mat is None:
         return "Select an object with a material" if ob is None else f"Object {ob.name!r} has no material"
     if edits and (problem := read_only_problem(mat)) is not None:
@@ -107,11 +119,11 @@ class MaterialOperator:
             if mat is None:
                 raise UserError(f"there is no material named {self.material!r}")
             return self._editable(mat)
-        ob = getattr(context, "object", None) or getattr(context, "active_object", None)
-        if ob is None:
-            raise UserError('no active object: select an object with a material (or pass material="Name")')
-        mat = ob.active_material
+        mat = context_material(context)
         if mat is None:
+            ob = getattr(context, "object", None) or getattr(context, "active_object", None)
+            if ob is None:
+                raise UserError('no active object: select an object with a material (or pass material="Name")')
             raise UserError(f"object {ob.name!r} has no material: add one (Material Properties > New)")
         return self._editable(mat)
 

@@ -6,6 +6,7 @@ import bpy
 
 from ..core.stack import PRESETS
 from . import layer_types, stack_io
+from .operator_base import context_material
 from .operators import PRESET_SUBDIR, PRESETS_MENU_LABEL
 
 
@@ -53,16 +54,20 @@ class NLM_MT_presets(bpy.types.Menu):
 
 
 def _material(context):
-    ob = context.object
-    return (ob, ob.active_material) if ob is not None else (None, None)
+    """The object and the material the panels edit: the Shader Editor's shown material (pinned too), else the
+    active object's (``operator_base.context_material``, which the operators act on)."""
+    return context.object, context_material(context)
 
 
 def _draw_stack(layout, context):
     ob, mat = _material(context)
-    if ob is None:
+    if ob is None and mat is None:
         layout.label(text="Select an object", icon="INFO")
         return None
-    layout.template_ID(ob, "active_material", new="material.new")
+    if ob is not None and mat is ob.active_material:
+        layout.template_ID(ob, "active_material", new="material.new")
+    else:  # a material the Shader Editor pins: the panels edit it, not the active object's
+        layout.label(text=f"Pinned: {mat.name}", icon="PINNED")
     if mat is None:
         layout.label(text="The object has no material", icon="INFO")
         return None

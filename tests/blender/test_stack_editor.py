@@ -502,3 +502,21 @@ def test_an_edit_that_leaves_the_stack_as_it_was_keeps_a_refined_latent(material
     np.testing.assert_allclose(stack_io.latent_of(material), refined.reshape(3, 32), rtol=1e-6)
     s.layers[1].roughness = 0.5  # an edit of the stack itself: encoded again
     assert material.neural_refine.kept == "replaced"
+
+
+def test_the_shader_editors_pinned_material_is_the_one_edited(bpy_addon, fresh_scene, material):
+    """The Layers tab of a Shader Editor that pins another material showed and edited the active object's."""
+    import types
+
+    from addon.blender import operator_base
+
+    bpy = bpy_addon
+    pinned = bpy.data.materials.new("Pinned")
+    ob = fresh_scene.view_layer.objects.active
+    shader_editor = types.SimpleNamespace(
+        object=ob, space_data=types.SimpleNamespace(type="NODE_EDITOR", id=pinned, pin=True)
+    )
+    viewport = types.SimpleNamespace(object=ob, space_data=types.SimpleNamespace(type="VIEW_3D"))
+    assert operator_base.context_material(shader_editor) == pinned
+    assert operator_base.context_material(viewport) == material
+    assert "'Pinned'" in operator_base.poll_problem(shader_editor, "stack")  # its stack, not the active one's
