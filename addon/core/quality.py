@@ -175,6 +175,11 @@ def noise_corrected_error(pred: np.ndarray, ref: np.ndarray, ref_stderr: np.ndar
     return math.sqrt(num / den)
 
 
+# Measured errors kept at most (the most recently measured): about 200 bytes each in decoder_errors.json, which is
+# written whole at every new entry.
+MAX_ERROR_ENTRIES = 20000
+
+
 class ErrorCache:
     """Measured errors keyed by (stack, size, model files, settings): in memory, and in
     ``<cache_dir>/decoder_errors.json`` when a folder is given (written after every new entry)."""
@@ -183,6 +188,10 @@ class ErrorCache:
         self.path = Path(cache_dir) / "decoder_errors.json" if cache_dir is not None else None
         self.data: dict[str, float] = {}
         self._lock = threading.Lock()  # the viewport and an F12 render may measure at once
+        if self.path is not None:
+            from .textures import files
+
+            files.remove_stale_temps(self.path.parent)  # what a killed session's writes left there
         if self.path is not None and self.path.exists():
             try:
                 self.data = {k: float(v) for k, v in json.loads(self.path.read_text()).items()}
@@ -196,10 +205,13 @@ class ErrorCache:
         from .textures import files
 
         with self._lock:
-            self.data[key] = float(value)
+            self.data.pop(key, None)
+            self.data[key] = float(value)  # last: the dict keeps insertion order, oldest first
+            while len(self.data) > MAX_ERROR_ENTRIES:
+                del self.data[next(iter(self.data))]
             if self.path is None:
                 return
-            text = json.dumps(self.data, indent=0, sort_keys=True)
+            text = json.dumps(self.data, indent=0)  # in the order measured: the oldest go first when it is full
             try:  # published atomically: another session never reads half a file
                 self.path.parent.mkdir(parents=True, exist_ok=True)
                 files.write_bytes(self.path, text.encode())

@@ -333,3 +333,20 @@ def test_calibrations_on_disk_serve_a_later_session_and_a_damaged_one_is_made_ag
     monkeypatch.setattr(cal, "_CACHE", {})
     assert cal.calibrate(stack, models, z, proxy) is not None and plain.is_file()
     cal.use_disk_cache(None)
+
+
+def test_the_calibration_folder_loses_what_a_killed_writer_left(tmp_path, monkeypatch):
+    """A session killed while it wrote a calibration left its temporary file in the folder for good."""
+    import subprocess
+    import sys
+
+    from addon.core.textures import files
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stale = tmp_path / f".calibration_{0:064x}.npz.{files._HOST}-{dead.pid}-0123abcd.partial.npz"
+    stale.write_bytes(b"")
+    monkeypatch.setattr(cal, "_DISK_FOLDER", None)
+    cal.use_disk_cache(tmp_path)
+    assert not stale.exists()
+    cal.use_disk_cache(None)

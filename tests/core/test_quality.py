@@ -403,3 +403,24 @@ def test_a_stopped_choice_raises_cancelled_before_it_measures(monkeypatch):
     monkeypatch.setattr(quality, "reference_lobes", lambda *a, **k: pytest.fail("measured after the stop"))
     with pytest.raises(Cancelled, match="decoder choice was stopped"):
         quality.choose_decoder(DEMANDING, 0.15, cache=quality.ErrorCache(), stop=lambda: True)
+
+
+def test_the_error_cache_keeps_the_most_recent_entries_and_cleans_a_killed_writers_files(tmp_path, monkeypatch):
+    """decoder_errors.json grew for good (one entry a stack, size and setting: the file is written whole at each)
+    and a session killed while writing it left its temporary file there."""
+    import subprocess
+    import sys
+
+    from addon.core.textures import files
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stale = tmp_path / f".decoder_errors.json.{files._HOST}-{dead.pid}-0123abcd.partial.json"
+    stale.write_text("{")
+    monkeypatch.setattr(quality, "MAX_ERROR_ENTRIES", 3)
+    cache = quality.ErrorCache(tmp_path)
+    assert not stale.exists()
+    for i in range(5):
+        cache.put(f"k{i}", float(i))
+    cache.put("k2", 2.5)  # measured again: the most recent now
+    assert list(quality.ErrorCache(tmp_path).data.items()) == [("k3", 3.0), ("k4", 4.0), ("k2", 2.5)]

@@ -411,6 +411,10 @@ def use_disk_cache(folder) -> None:
     have their calibrations at once. None: this session's memory only (the default)."""
     global _DISK_FOLDER
     _DISK_FOLDER = None if folder is None else Path(folder)
+    if _DISK_FOLDER is not None:
+        from ..textures import files
+
+        files.remove_stale_temps(_DISK_FOLDER)  # what a killed session's writes left there
 
 
 def _disk_path(key: str) -> Path | None:
@@ -466,6 +470,9 @@ def _to_disk(key: str, calibration: AlbedoCalibration) -> None:
 def settings_key() -> str:
     """What a calibration depends on besides the stack, the model files and the latent: part of every key
     under which calibrated figures are kept (here, and ``quality``'s measured errors on disk)."""
+    # DECODED_SAMPLES, ITERATIONS and FACTOR_RANGE change a calibration too but are not in this key: adding them
+    # now would mark every texture baked with a calibration out of date (their keys hold this one). Whoever changes
+    # one of them adds it here.
     return f"walks{list(WALKS)}-cosines{list(COSINES)}-target-below-top-shrink{NOISE_THRESHOLD:g}-table"
 
 
