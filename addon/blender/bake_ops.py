@@ -160,6 +160,7 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
         def finish(context, result):
             stats, seconds, refined, (filtered, levels) = result
             mat.neural_layers.texture_path = _blend_relative(path)
+            mat.neural_layers.texture_file = os.path.abspath(path)
             mat.neural_layers.texture_key = key
             mat.neural_layers.texture_size = res
             refined = "" if refined is None else f", {refined} refined"
@@ -189,6 +190,7 @@ class NLM_OT_texture_clear(MaterialOperator, bpy.types.Operator):
     def _run(self, context):
         mat = self.target(context)
         mat.neural_layers.texture_path = ""
+        mat.neural_layers.texture_file = ""
         mat.neural_layers.texture_key = ""
         return {"FINISHED"}
 

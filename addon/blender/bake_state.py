@@ -67,6 +67,8 @@ def current_texture(mat):
         return None, "not baked", None
     # "//" is relative to the file that holds the material: a linked one's library, not the open file
     path = bpy.path.abspath(s.texture_path, library=getattr(mat, "original", mat).library)
+    if not os.path.isfile(path) and s.texture_file and os.path.isfile(s.texture_file):
+        path = s.texture_file  # where the bake wrote it: a linked material made local has lost its library's "//"
     if not os.path.isfile(path):
         return None, f"baked texture missing: {path}", None
     try:

@@ -375,6 +375,13 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
         options={"PATH_SUPPORTS_BLEND_RELATIVE"},
         update=_on_texture_changed,
     )
+    texture_file: StringProperty(
+        name="Latent Texture File",
+        description="Where the bake wrote the latent texture, as an absolute path: found again by it when a "
+        "relative Latent Texture path no longer leads to the file (a linked material made local)",
+        default="",
+        options={"HIDDEN"},
+    )
     texture_key: StringProperty(
         name="Latent Texture Key",
         description="Hash of the inputs the texture was baked from",

@@ -426,3 +426,30 @@ def test_a_baked_material_appended_from_another_folder_keeps_its_texture(wood, b
     assert os.path.isfile(bpy.path.abspath(appended.neural_layers.texture_path))
     path, state = bake_ops.baked_texture_state(appended)
     assert path is not None, state
+
+
+def test_a_linked_baked_material_made_local_keeps_its_texture(wood, bpy_addon, tmp_path):
+    """Make Local turns a linked material into the open file's own: its "//" texture path, its library's, then
+    led into the open file's folder (no handler sees Make Local), and the bake read as missing. The bake's
+    absolute path (``texture_file``) finds it again."""
+    import os
+
+    from addon.blender import bake_ops
+
+    bpy = bpy_addon
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    wood.neural_layers.bake_directory = "//textures/"
+    wood.neural_layers.layers[1].maps[0].image.pack()
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "a" / "a.blend"))
+    assert run_operator(ops.bake_texture).finished
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "a" / "a.blend"))
+    bpy.ops.wm.read_homefile(app_template="")
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "b" / "b.blend"))
+    with bpy.data.libraries.load(str(tmp_path / "a" / "a.blend"), link=True) as (_, linked):
+        linked.materials = ["Material"]
+    local = linked.materials[0].make_local()
+    assert local.library is None and local.neural_layers.texture_path == "//textures/Material.exr"
+    assert not os.path.isfile(bpy.path.abspath(local.neural_layers.texture_path))
+    path, state = bake_ops.baked_texture_state(local)
+    assert path is not None and os.path.samefile(path, tmp_path / "a" / "textures" / "Material.exr"), state
