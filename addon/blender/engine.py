@@ -334,6 +334,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         # what it rendered stays in the result, whichever mode it was in. The progress bar and the remaining time
         # move with each chunk (a 4K pass is 64 of them), the image and the sample count with each pass.
         calls = dict(progress=progress, stop=self.test_break, chunk_progress=chunk_progress, pixels=pixels)
+        self.update_stats("", "Preparing materials")  # a new stack's calibration: about a second, Esc heard
         try:
             try:
                 film, stats = render(core_scene, settings, **calls)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import contextvars
 import os
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from typing import Callable, Iterable, TypeVar
 
 T = TypeVar("T")
@@ -27,11 +27,22 @@ def submit_in_context(pool: ThreadPoolExecutor, fn: Callable[..., R], *args) -> 
     return pool.submit(contextvars.copy_context().run, fn, *args)
 
 
-def map_on_threads(fn: Callable[[T], R], items: Iterable[T], threads: int, name: str) -> list[R]:
+def map_on_threads(
+    fn: Callable[[T], R],
+    items: Iterable[T],
+    threads: int,
+    name: str,
+    check: Callable[[], object] | None = None,
+    check_seconds: float = 0.1,
+) -> list[R]:
     """``[fn(x) for x in items]``, in order, on up to ``threads`` threads (named ``name``; inline with one thread or
     one item), each in a copy of the calling context (``submit_in_context``). The first error is raised once the
     pieces running have ended, and the pieces not started are not run (a cancel or a restart raised by one of them
-    stops the rest at their next step)."""
+    stops the rest at their next step).
+
+    ``check`` (optional) is called on the calling thread every ``check_seconds`` while it waits for the pieces: what
+    only that thread may ask (Blender's ``RenderEngine.test_break``). What it raises is raised here, once the pieces
+    running have ended, so it should also make them stop at their next step (an event they read)."""
     items = list(items)
     workers = max(1, min(int(threads), len(items)))
     if workers == 1:
@@ -39,6 +50,9 @@ def map_on_threads(fn: Callable[[T], R], items: Iterable[T], threads: int, name:
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix=name)
     try:
         futures = [submit_in_context(pool, fn, x) for x in items]
+        for f in futures if check is not None else ():
+            while not wait([f], timeout=check_seconds).done:
+                check()
         return [f.result() for f in futures]
     finally:
         pool.shutdown(wait=True, cancel_futures=True)

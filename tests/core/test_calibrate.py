@@ -350,3 +350,44 @@ def test_the_calibration_folder_loses_what_a_killed_writer_left(tmp_path, monkey
     cal.use_disk_cache(tmp_path)
     assert not stale.exists()
     cal.use_disk_cache(None)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_render_stopped_while_its_materials_calibrate_stops_there_and_caches_nothing(threads, monkeypatch):
+    """A session's first render of a stack calibrates it (about a second of reference walks a stack) before its
+    first path. A stop then (F12's Esc: Blender's ``test_break``, a function of the calling thread only) is heard
+    between the calibration's steps, on whichever thread calibrates: the render raises ``Cancelled`` with its empty
+    film, and no calibration is cached half made. Before, the render heard it only once every stack was
+    calibrated."""
+    import threading
+
+    from addon.core.render import Cancelled, RenderSettings, render
+    from tests.core.test_render import mixed_scene
+
+    monkeypatch.setattr(cal, "_CACHE", {})
+    monkeypatch.setattr(cal, "_DISK_FOLDER", None)  # this session's memory only
+    started = []  # the calibrations begun (their decoded moments), and on which thread
+    real_moments = cal.decoded_moments
+
+    def moments(*args, **kwargs):
+        started.append(threading.get_ident())
+        return real_moments(*args, **kwargs)
+
+    monkeypatch.setattr(cal, "decoded_moments", moments)
+    home, polls = threading.get_ident(), []
+
+    def test_break():  # says stop once a calibration has begun
+        polls.append(threading.get_ident())
+        return bool(started)
+
+    scene = mixed_scene(8, 6, env=False)
+    scene.materials = [preset("lacquered_plastic"), preset("red_car_paint")]
+    with pytest.raises(Cancelled) as info:
+        render(scene, RenderSettings(samples=2, max_bounces=2, threads=threads), stop=test_break)
+    assert started and set(polls) == {home}  # stopped inside a calibration; polled on this thread only
+    assert (threading.get_ident() in started) == (threads == 1)  # two stacks, two threads: calibrated on workers
+    assert info.value.film.passes == 0 and info.value.film.count.sum() == 0
+    assert cal._CACHE == {}
+    # Not stopped, the same render calibrates both stacks and renders its passes.
+    film, _ = render(scene, RenderSettings(samples=2, max_bounces=2, threads=threads), stop=lambda: False)
+    assert film.passes == 2 and len(cal._CACHE) == 2

@@ -650,9 +650,9 @@ def test_the_networks_run_on_each_chunks_thread_when_every_core_traces_a_chunk(m
         seen.append(session.threads_now())
         return real_map(self, fn, n)
 
-    def resolving(*args):  # the materials' encoding and calibration, before the tracing
+    def resolving(*args, **kwargs):  # the materials' encoding and calibration, before the tracing
         setup.append(session.threads_now())
-        return real_resolve(*args)
+        return real_resolve(*args, **kwargs)
 
     monkeypatch.setattr(session.ChunkedSession, "map", spy)
     monkeypatch.setattr(integrator.mat, "resolve_all", resolving)

@@ -300,15 +300,20 @@ def _triangle_arrays(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 class _Context:
     """What stays fixed during a render: resolved materials, lights, tracer, settings."""
 
-    def __init__(self, scene: Scene, settings: RenderSettings, stats: RenderStats):
+    def __init__(self, scene: Scene, settings: RenderSettings, stats: RenderStats, halt: "_Halt | None" = None):
         self.scene, self.settings, self.stats = scene, settings, stats
         n_mat = max(len(scene.materials), int(scene.mesh.material_index.max()) + 1 if scene.mesh.triangle_count else 0)
+        # A stop is heard during the materials' setup too: a session's first render of a stack calibrates it (about
+        # a second of reference walks a stack), between the calibration's steps, on whichever thread makes it.
+        stop = None if halt is None else (lambda: _check_stop(halt))
         self.materials = mat.resolve_all(
             [scene.materials[i] if i < len(scene.materials) else None for i in range(n_mat)],
             settings.mode,
             settings.reference_walks,
             settings.calibrate,
             settings.thread_count,
+            step=stop,
+            check=stop,
         )
         stats.material_kinds = [m.kind for m in self.materials]
         self.tracer = tracer_for(scene.mesh)
@@ -400,10 +405,16 @@ def render(
     cam = scene.camera
     stats = RenderStats()
     t_start = time.perf_counter()
-    with session.threads_in_force(settings.thread_count):  # the materials' encoding and calibration: the scene's
-        ctx = _Context(scene, settings, stats)
-    stats.seconds["setup"] = time.perf_counter() - t_start
     film = film or Film(cam.width, cam.height)
+    try:
+        with session.threads_in_force(settings.thread_count):  # the materials' encoding and calibration: the scene's
+            ctx = _Context(scene, settings, stats, halt)
+    except Cancelled as exc:  # stopped during a calibration: the film as it came, nothing cached half made
+        stats.seconds["setup"] = time.perf_counter() - t_start
+        _finish_stats(stats, time.perf_counter() - t_start)
+        exc.film, exc.stats = film, stats
+        raise
+    stats.seconds["setup"] = time.perf_counter() - t_start
     start_pass = film.passes
     npix = cam.width * cam.height
     whole = pixels is None  # every pixel: each chunk is a run of consecutive pixels

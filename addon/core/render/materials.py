@@ -345,13 +345,14 @@ class LayeredSpec:
     reference: bool = False  # rendered with the reference estimator in every mode (Auto's fallback="reference")
 
 
-def resolve(material, mode: str, reference_walks: int = 16, calibrate=False):
+def resolve(material, mode: str, reference_walks: int = 16, calibrate=False, step=None):
     """A renderer material for a scene entry (material object, Stack or LayeredSpec).
 
     ``mode`` is "neural" or "reference". Single-layer stacks render exactly with their analytic
     BSDF in both modes. Layered stacks use the neural runtime in "neural" mode when it is
     available, else the reference (see :func:`neural_available`); ``calibrate`` is passed to
-    ``neural_material.make`` (the albedo calibration of each layered stack).
+    ``neural_material.make`` (the albedo calibration of each layered stack), with ``step`` (called between the
+    calibration's parts: raising there stops it, and nothing is cached).
     """
     if mode not in ("neural", "reference"):
         raise ValueError(f"render mode must be 'neural' or 'reference', got {mode!r}")
@@ -376,20 +377,32 @@ def resolve(material, mode: str, reference_walks: int = 16, calibrate=False):
             spec.latent_texture if spec else None,
             latent=spec.latent if spec else None,
             calibrate=calibrate,
+            step=step,
         )
         if made is not None:
             return made
     return ReferenceLayered(stack, reference_walks, spatial=spec.spatial if spec else None)
 
 
-def resolve_all(materials, mode: str, reference_walks: int = 16, calibrate=False, threads: int = 1) -> list:
+def resolve_all(
+    materials, mode: str, reference_walks: int = 16, calibrate=False, threads: int = 1, step=None, check=None
+) -> list:
     """:func:`resolve` of each of ``materials``, in order, on up to ``threads`` threads: a scene's layered stacks
     are encoded and calibrated side by side (``threads.map_on_threads``: their decoder batches release the GIL,
     their walks in part). On two cores the demo scene's first render, its five stacks to calibrate, spent
     1.53-1.70 s before its first path where it spent 1.94-1.97 s one stack at a time (fresh processes,
-    alternating). Each material's own work is seeded, so the materials do not depend on the thread count."""
+    alternating). Each material's own work is seeded, so the materials do not depend on the thread count.
+
+    ``step`` is passed to each :func:`resolve`; ``check`` to ``map_on_threads`` (called on this thread while it
+    waits: a render's stop that only this thread may poll), and also called before each material when they are
+    resolved on this thread alone."""
     materials = list(materials)
     to_make = sum(1 for m in materials if m is not None and not hasattr(m, "bind"))  # the others are as they are
-    return map_on_threads(
-        lambda m: resolve(m, mode, reference_walks, calibrate), materials, threads if to_make > 1 else 1, "materials"
-    )
+    workers = threads if to_make > 1 else 1
+
+    def one(m):
+        if check is not None and workers == 1:
+            check()
+        return resolve(m, mode, reference_walks, calibrate, step)
+
+    return map_on_threads(one, materials, workers, "materials", check=check)

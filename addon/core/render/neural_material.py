@@ -241,7 +241,7 @@ def _texture_size(latent_texture) -> tuple[str, str | None]:
     return size, meta.get("model_digest")
 
 
-def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None, calibrate=False):
+def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None, calibrate=False, step=None):
     """A NeuralMaterial for ``stack`` (or for its latent texture), or None in the documented cases below.
 
     ``calibrate``: True gives the material its albedo calibration against the reference
@@ -249,7 +249,7 @@ def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None
     ``calibrate.use_disk_cache``, on disk), "cached" only one already made (no work: for the viewport and
     thumbnails), False none. A latent texture brings the calibration its bake made (``textures.calibration``;
     none when it was baked without one or with other calibration settings, with a warning to rebake), for True
-    and "cached".
+    and "cached". ``step`` (optional) is passed to the calibration (``calibrate.calibrate``): raising there stops it.
 
     ``size`` picks the decoder ("auto" or None: ``neural.resolve_size``, the default size). A latent
     texture is decoded by the size it was baked for (its ``model`` metadata, checked against ``size``
@@ -320,7 +320,7 @@ def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None
                 models,
                 z,
                 tuple(float(v) for v in proxy),
-                calibration=_calibration(stack, models, z, proxy, calibrate),
+                calibration=_calibration(stack, models, z, proxy, calibrate, step),
                 top=top,
             )
             if calibrate == "cached" and material.calibration is None:
@@ -365,12 +365,12 @@ def _encoded(stack: Stack, models, z=None):
     return made
 
 
-def _calibration(stack: Stack, models, z, proxy, calibrate):
-    """The albedo calibration ``make`` gives a single latent (see its ``calibrate``)."""
+def _calibration(stack: Stack, models, z, proxy, calibrate, step=None):
+    """The albedo calibration ``make`` gives a single latent (see its ``calibrate`` and ``step``)."""
     from ..neural import calibrate as cal
 
     if calibrate is True:
-        return cal.calibrate(stack, models, z, proxy)
+        return cal.calibrate(stack, models, z, proxy, step=step)
     return cal.cached(stack, models, z) if calibrate == "cached" else None
 
 
