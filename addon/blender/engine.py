@@ -232,6 +232,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self._viewport = None  # the 3D viewport's progressive session (view_update / view_draw)
+        self._view_info: set[str] = set()  # the viewport's decoder-choice lines reported so far
 
     def __del__(self):
         view = getattr(self, "_viewport", None)
@@ -360,10 +361,19 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         region = context.region
         core_scene, _ = scene_export.export_scene(depsgraph, region.width, region.height, camera=_view_camera(context))
         props = depsgraph.scene.neural_render
+        info: list[str] = []
         try:
-            props.assign_decoders(core_scene, viewport=True)
+            props.assign_decoders(core_scene, info=info, viewport=True)
         except Exception:  # the default decoder, as for F12
             pass
+        # What the viewport's decoder choice says (a stack no F12 has measured yet: the default decoder), each line
+        # once, not at every edit of a slider drag.
+        for line in info:
+            if line not in self._view_info:
+                if len(self._view_info) > 1000:  # a long session of edits: forget, report again
+                    self._view_info.clear()
+                self._view_info.add(line)
+                self.report({"INFO"}, line)
         return core_scene, props.to_core(scene=depsgraph.scene, viewport=True)
 
     def view_update(self, context, depsgraph):

@@ -101,11 +101,14 @@ class NLM_OT_render_preview(jobs.ModalJob, bpy.types.Operator):
         depsgraph = context.evaluated_depsgraph_get()
         info: list[str] = []
         core_scene, warnings = scene_export.export_scene(depsgraph, w, h, camera, info=info)
+        samples = self.samples or scene.neural_render.preview_samples
+        # Auto's time budget for the samples this preview renders, not for the scene's Samples
+        warnings = warnings + scene.neural_render.assign_decoders(core_scene, samples=samples, info=info)
         for msg in info:
             self.report({"INFO"}, msg)
-        for msg in warnings + scene.neural_render.assign_decoders(core_scene):
+        for msg in warnings:
             self.report({"WARNING"}, msg)
-        settings = scene.neural_render.to_core(self.samples or scene.neural_render.preview_samples, scene=scene)
+        settings = scene.neural_render.to_core(samples, scene=scene)
         return render_work(core_scene, settings)
 
     def _finish(self, context, result):

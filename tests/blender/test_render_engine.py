@@ -266,6 +266,32 @@ def test_render_preview_operator_fills_an_image(fresh_scene, tmp_path):
     assert bad.error and "not saved" in bad.error
 
 
+def test_render_preview_chooses_decoders_for_the_samples_it_renders(fresh_scene, monkeypatch, tmp_path):
+    """Auto's time budget is for the frame rendered: Render Preview's samples (16 by default), not F12's Samples
+    (64), which left out sizes whose cost fits the preview."""
+    from addon.core import quality
+
+    ctx = fresh_scene
+    small(ctx.scene)
+    asked = []
+    real = quality.assign_decoders
+
+    def spy(scene, *args, **kwargs):
+        asked.append(kwargs["evaluations"])
+        return real(scene, *args, **kwargs)
+
+    monkeypatch.setattr(quality, "assign_decoders", spy)
+    props = ctx.scene.neural_render
+    props.decoder_quality = "AUTO"
+    props.samples = props.preview_samples + 5
+    for samples, expected in ((0, props.preview_samples), (3, 3)):
+        asked.clear()
+        out = str(tmp_path / "preview.png")
+        report = run_operator(bpy.ops.neural_layers.render_preview, width=20, height=10, samples=samples, filepath=out)
+        assert report.finished, report.error
+        assert asked == [quality.frame_decoder_queries(20 * 10, expected, props.max_bounces)]
+
+
 def test_awkward_blender_scenes_render_without_errors(fresh_scene, tmp_path):
     ctx = fresh_scene
     small(ctx.scene, 16, 12)
@@ -859,6 +885,18 @@ def test_the_viewports_auto_choice_reads_measured_errors_and_never_stops_to_meas
     info = []
     scene.neural_render.assign_decoders(core_scene, info=info, viewport=True)
     assert any("not measured yet" in line for line in info), info
+    # The viewport says so, once: its edits (a slider dragged) do not repeat the line.
+    from types import SimpleNamespace
+
+    from addon.blender import engine
+
+    monkeypatch.setattr(engine, "_view_camera", lambda context: None)  # the scene camera
+    reports = []
+    fake = SimpleNamespace(_view_info=set(), report=lambda kind, text: reports.append((kind, text)))
+    context = SimpleNamespace(region=SimpleNamespace(width=32, height=24))
+    for _ in range(3):
+        engine.NeuralLayeredRenderEngine._view_scene(fake, context, fresh_scene.evaluated_depsgraph_get())
+    assert [kind for kind, text in reports if "not measured yet" in text] == [{"INFO"}], reports
 
 
 def test_esc_while_f12_chooses_decoders_cancels_the_render_without_a_failure(fresh_scene, tmp_path, monkeypatch):
