@@ -10,12 +10,13 @@ its lobe images (``addon.core.lobe``: f cos(theta_o) on the projected hemisphere
 incident elevations of docs/architecture.md, Measurement, all four images together, against the reference
 (``addon.core.reference``): exact for single-layer stacks, the amortised estimator
 (``eval_brdf_many``, by reciprocity) for layered ones, with the estimator's own noise taken out
-(error^2 = max(||pred - ref||^2 - ||stderr||^2, 0) / ||ref||^2, as independent noise adds its
-variance). The stack is encoded as the renderer encodes it (encoder + layering network, values
-clamped to the trained range), so clamping costs show up in the error; with ``calibrate`` the
-material carries the albedo calibration a render gives it (``addon.core.neural.calibrate``). Sizes are tried from the
-fewest parameters up and the first one under the tolerance is chosen; when none is, the choice
-falls back (``fallback``) to the most accurate size or to the reference, and a
+(error^2 = max(||pred - ref||^2 - ||stderr||^2, 0) / max(||ref||^2, N ERROR_FLOOR^2), as independent noise adds
+its variance; the floor, over the N values of the images, keeps a black or nearly black stack's error finite and
+absolute: a reference of 0 makes every relative error infinite). The stack is encoded as the renderer encodes it
+(encoder + layering network, values clamped to the trained range), so clamping costs show up in the error; with
+``calibrate`` the material carries the albedo calibration a render gives it (``addon.core.neural.calibrate``).
+Sizes are tried from the fewest parameters up and the first one under the tolerance is chosen; when none is, the
+choice falls back (``fallback``) to the most accurate size or to the reference, and a
 :class:`QualityWarning` says so. Errors are cached per (stack, size, model files, settings) in
 memory and, given ``cache_dir``, in a JSON file there.
 
@@ -44,6 +45,10 @@ from .stack import Stack
 
 DEFAULT_TOLERANCE = 0.2
 LOBE_RES = 16
+# The smallest lobe value (f cos) an error is relative to, as if the reference were this everywhere: a Lambertian
+# of about 3% albedo (0.01 pi). Below it an error is absolute: a black stack under a clear coat (a reference of 0)
+# measured infinite for every size, and Auto said no decoder could encode it.
+ERROR_FLOOR = 0.01
 REFERENCE_WALKS = 256
 FALLBACKS = ("best", "reference")
 
@@ -59,7 +64,8 @@ class DecoderChoice:
     ``size`` is a decoder size, or None when the stack should be rendered by the reference
     estimator (no decoder can encode it, or none meets the tolerance with ``fallback="reference"``).
     ``errors`` holds the measured error of every size tried (smallest first; ``inf`` for sizes
-    that cannot encode the stack), ``met`` whether ``size`` is within ``tolerance``.
+    that cannot encode the stack), ``met`` whether ``size`` is within ``tolerance``; ``left_out`` the sizes
+    a time budget kept from the choice (``assign_decoders``), never measured.
     """
 
     size: str | None
@@ -67,6 +73,7 @@ class DecoderChoice:
     errors: dict = field(default_factory=dict)
     met: bool = False
     notes: tuple = ()
+    left_out: tuple = ()
 
 
 def available_sizes(model_dir=None) -> list[str]:
@@ -91,17 +98,25 @@ def available_sizes(model_dir=None) -> list[str]:
 
 
 def _fingerprint(size: str, model_dir=None) -> str:
-    """Identity of a size's model files (name, byte size, modification time): a retrained model is new."""
+    """Identity of what decodes a size's stacks: the sha256 of each of its networks' files as their cards record
+    them (the runtime refuses a file that does not match its card), and the decoder card's flags that change how
+    its output is used (``remainder``, ``top_transmission``). A retrained model is new; the same files installed
+    again (a reinstalled extension: new modification times) are not, and keep their measured errors."""
     from .neural.models import MODEL_DIR
 
     d = Path(model_dir) if model_dir is not None else MODEL_DIR
     parts = []
-    decoder = (f"decoder_{size}.onnx", f"decoder_{size}_rgb.onnx", f"decoder_{size}_latents.onnx")
-    for name in (*decoder, f"encoder_{size}.onnx", f"layering_{size}.onnx"):
-        p = d / name
-        if p.exists():
-            st = p.stat()
-            parts.append(f"{name}:{st.st_size}:{st.st_mtime_ns}")
+    for role in ("decoder", "encoder", "layering"):
+        try:
+            card = json.loads((d / f"{role}_{size}.json").read_text())
+        except (OSError, ValueError):
+            continue  # a missing or damaged card: the size cannot be loaded, nothing is measured with it
+        if not isinstance(card, dict):
+            continue
+        files = card.get("files")
+        parts.append(f"{role}:{json.dumps(files, sort_keys=True) if isinstance(files, dict) else None}")
+        if role == "decoder":
+            parts.append(f"remainder={card.get('remainder')}:top_transmission={card.get('top_transmission')}")
     return ";".join(parts)
 
 
@@ -163,14 +178,15 @@ def decoder_lobes(stack: Stack, size: str, res: int = LOBE_RES, threads: int = 2
 
 
 def noise_corrected_error(pred: np.ndarray, ref: np.ndarray, ref_stderr: np.ndarray | None = None) -> float:
-    """Relative RMSE of ``pred`` against a noisy ``ref``, the reference's own noise variance removed."""
+    """Relative RMSE of ``pred`` against a noisy ``ref``, the reference's own noise variance removed; relative to
+    at least :data:`ERROR_FLOOR` a value (module docstring), so finite for a black reference."""
     pred = np.asarray(pred, dtype=np.float64)
     ref = np.asarray(ref, dtype=np.float64)
-    den = float(np.sum(ref * ref))
+    den = max(float(np.sum(ref * ref)), ref.size * ERROR_FLOOR**2)
     num = float(np.sum((pred - ref) ** 2))
     if ref_stderr is not None:
         num = max(num - float(np.sum(np.asarray(ref_stderr, dtype=np.float64) ** 2)), 0.0)
-    if den == 0.0:
+    if den == 0.0:  # empty images
         return 0.0 if num == 0.0 else math.inf
     return math.sqrt(num / den)
 
@@ -192,11 +208,16 @@ class ErrorCache:
             from .textures import files
 
             files.remove_stale_temps(self.path.parent)  # what a killed session's writes left there
-        if self.path is not None and self.path.exists():
-            try:
-                self.data = {k: float(v) for k, v in json.loads(self.path.read_text()).items()}
-            except (OSError, ValueError, AttributeError, TypeError):  # TypeError: a null or a list as a value
-                self.data = {}  # a damaged cache is rebuilt, never trusted
+        self.data = self._read()
+
+    def _read(self) -> dict[str, float]:
+        """The file's entries; none when there is no file or it is damaged (rebuilt, never trusted)."""
+        if self.path is None or not self.path.exists():
+            return {}
+        try:
+            return {k: float(v) for k, v in json.loads(self.path.read_text()).items()}
+        except (OSError, ValueError, AttributeError, TypeError):  # TypeError: a null or a list as a value
+            return {}
 
     def get(self, key: str):
         return self.data.get(key)
@@ -205,6 +226,11 @@ class ErrorCache:
         from .textures import files
 
         with self._lock:
+            # What other sessions wrote since this one read the file is kept: each wrote its whole dictionary, and
+            # the last one to write lost the others' new entries (measured again by every later session).
+            on_disk = self._read()
+            if on_disk:
+                self.data = {**{k: v for k, v in on_disk.items() if k not in self.data}, **self.data}
             self.data.pop(key, None)
             self.data[key] = float(value)  # last: the dict keeps insertion order, oldest first
             while len(self.data) > MAX_ERROR_ENTRIES:
@@ -230,6 +256,17 @@ def use_disk_cache(folder) -> None:
     _DEFAULT_CACHE = ErrorCache(folder)
 
 
+def error_key(
+    stack: Stack, size: str, res: int = LOBE_RES, walks: int = REFERENCE_WALKS, seed: int = 0, calibrated=False
+) -> str:
+    """The error cache's key of ``stack`` measured on ``size`` (its model files' :func:`_fingerprint`), with these
+    measurement settings, calibrated or not (then with the calibration's settings, ``calibrate.settings_key``)."""
+    from .neural.calibrate import stack_settings_key
+
+    key = _key("err-floored", stack.to_json(), size, _fingerprint(size), res, walks, seed)
+    return key + (f"-calibrated-{stack_settings_key(stack)}" if calibrated else "")
+
+
 def measured_error(
     stack: Stack,
     size: str,
@@ -248,7 +285,7 @@ def measured_error(
     if not isinstance(stack, Stack):
         raise ValueError(f"measured_error needs a Stack, got {type(stack).__name__}")
     from .neural import ModelFileError
-    from .neural.calibrate import cached, check_mode, settings_key
+    from .neural.calibrate import cached, check_mode
 
     calibrate = check_mode(calibrate)
     cache = _DEFAULT_CACHE if cache is None else cache
@@ -260,9 +297,7 @@ def measured_error(
             calibrate = cached(stack, models, encode_stack(stack, models)) is not None
         except (FileNotFoundError, ModelFileError):
             return math.inf
-    key = _key("err", stack.to_json(), size, _fingerprint(size), res, walks, seed) + (
-        f"-calibrated-{settings_key()}" if calibrate else ""
-    )
+    key = error_key(stack, size, res, walks, seed, calibrated=bool(calibrate))
     hit = cache.get(key)
     if hit is not None:
         return hit
@@ -305,6 +340,7 @@ def choose_decoder(
     calibrate=False,
     only_cached: bool = False,
     stop=None,
+    left_out=(),
 ) -> DecoderChoice:
     """The smallest decoder size whose measured error on ``stack`` is at most ``tolerance``, measured
     as the renderer shades the material with ``calibrate`` (:func:`measured_error`).
@@ -313,7 +349,8 @@ def choose_decoder(
     before are read; where a size was not measured before the choice is made, the default size
     (``neural.resolve_size``) with a note saying so, ``met`` False and the sizes' errors as known (nan: not
     measured). ``stop()`` (optional: F12's Esc) before each size's measurement (a second or two each): True raises
-    ``render.Cancelled``.
+    ``render.Cancelled``. ``left_out``: the sizes a time budget kept out of ``sizes`` (``assign_decoders``), named
+    in the choice and its warning when none of ``sizes`` fits.
 
     ``tolerance`` is a relative lobe RMSE (0.2 = 20%). Sizes default to the shipped ones, fewest
     parameters first; they are measured in that order and the search stops at the first fit.
@@ -343,16 +380,17 @@ def choose_decoder(
         from .neural.models import resolve_size
 
         msg = "not measured yet: the default decoder until a render (F12) measures this stack"
-        return DecoderChoice(resolve_size(), tol, errors, False, tuple(notes + [msg]))
+        return DecoderChoice(resolve_size(), tol, errors, False, tuple(notes + [msg]), tuple(left_out))
     for w in caught:
         if issubclass(w.category, QualityWarning):
             continue
         text = str(w.message)
         if text not in notes:
             notes.append(text)
+    left_out = tuple(left_out)
     fits = [s for s in errors if errors[s] <= tol]
     if fits:
-        return DecoderChoice(fits[0], tol, errors, True, tuple(notes))
+        return DecoderChoice(fits[0], tol, errors, True, tuple(notes), left_out)
     finite = {s: e for s, e in errors.items() if math.isfinite(e)}
     if not finite:
         msg = (
@@ -360,21 +398,24 @@ def choose_decoder(
             f"{list(errors) or 'none'}): it renders with the reference estimator"
         )
         warnings.warn(msg, QualityWarning, stacklevel=2)
-        return DecoderChoice(None, tol, errors, False, tuple(notes + [msg]))
+        return DecoderChoice(None, tol, errors, False, tuple(notes + [msg]), left_out)
     best = min(finite, key=finite.get)
+    # With sizes the time budget left out, what was measured is not every decoder: they were never tried.
+    within = " within the time budget" if left_out else ""
+    budget = f"; {', '.join(left_out)} left out by the time budget (raise Time Budget to try them)" if left_out else ""
     if fallback == "reference":
         msg = (
-            f"no decoder meets the tolerance {tol:.3g} for this stack (best: {best} at {finite[best]:.3g}): "
-            f"it renders with the reference estimator"
+            f"no decoder{within} meets the tolerance {tol:.3g} for this stack (best: {best} at {finite[best]:.3g})"
+            f"{budget}: it renders with the reference estimator"
         )
         warnings.warn(msg, QualityWarning, stacklevel=2)
-        return DecoderChoice(None, tol, errors, False, tuple(notes + [msg]))
+        return DecoderChoice(None, tol, errors, False, tuple(notes + [msg]), left_out)
     msg = (
-        f"no decoder meets the tolerance {tol:.3g} for this stack; using the most accurate one, {best} "
-        f"(measured error {finite[best]:.3g}); raise the tolerance or use the reference for this material"
+        f"no decoder{within} meets the tolerance {tol:.3g} for this stack; using the most accurate one, {best} "
+        f"(measured error {finite[best]:.3g}){budget}; raise the tolerance or use the reference for this material"
     )
     warnings.warn(msg, QualityWarning, stacklevel=2)
-    return DecoderChoice(best, tol, errors, False, tuple(notes + [msg]))
+    return DecoderChoice(best, tol, errors, False, tuple(notes + [msg]), left_out)
 
 
 def choice_reason(name: str, choice: DecoderChoice) -> str:
@@ -386,7 +427,8 @@ def choice_reason(name: str, choice: DecoderChoice) -> str:
         return f"material {name!r}: decoder {choice.size}, {choice.notes[-1]}"
     if math.isnan(err):
         return f"material {name!r}: decoder {choice.size} (as set)"
-    why = "the smallest within" if choice.met else "the most accurate, none within"
+    within = " within the time budget" if choice.left_out else ""
+    why = "the smallest within" if choice.met else f"the most accurate{within}, none within"
     return f"material {name!r}: decoder {choice.size}, measured error {err:.3g} ({why} {choice.tolerance:.3g})"
 
 
@@ -541,15 +583,18 @@ def assign_decoders(
         f"material {i}" for i in range(len(scene.material_names), len(scene.materials))
     ]
     out, choices, notes = [], {}, []
-    sizes = None
-    if quality == "auto" and budget_seconds is not None:
-        sizes, left_out = sizes_within_budget(evaluations, budget_seconds)
-        notes += left_out
+    sizes, left_out = None, ()
+    budgeted = False  # the budget's sizes worked out, once a material goes through Auto: no notes without one
     for name, m in zip(names, scene.materials, strict=True):
         spec = m if isinstance(m, LayeredSpec) else (LayeredSpec(m) if isinstance(m, Stack) else None)
         if spec is None or not spec.stack.coatings or spec.latent_texture is not None or spec.latent is not None:
             out.append(m)
             continue
+        if quality == "auto" and budget_seconds is not None and not budgeted:
+            budgeted = True
+            sizes, budget_notes = sizes_within_budget(evaluations, budget_seconds)
+            left_out = tuple(s for s in available_sizes() if s not in sizes)
+            notes += budget_notes
         if quality == "auto":
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
@@ -560,6 +605,7 @@ def assign_decoders(
                     fallback=fallback,
                     threads=threads,
                     calibrate=calibrate,
+                    left_out=left_out,
                     **measure,
                 )
             size = choice.size

@@ -9,7 +9,7 @@ from addon.core.neural import encode_stack, load_models, top_coat
 from addon.core.neural.top_lobe import eval_top, remainder_scale
 from addon.core.render import neural_material
 from addon.core.render.integrator import RenderSettings
-from addon.core.stack import preset
+from addon.core.stack import Coating, Diffuse, Stack, StackArrays, preset
 
 
 def test_factors_solve_the_symmetric_scaling_and_leave_a_matching_albedo_alone():
@@ -391,3 +391,21 @@ def test_a_render_stopped_while_its_materials_calibrate_stops_there_and_caches_n
     # Not stopped, the same render calibrates both stacks and renders its passes.
     film, _ = render(scene, RenderSettings(samples=2, max_bounces=2, threads=threads), stop=lambda: False)
     assert film.passes == 2 and len(cal._CACHE) == 2
+
+
+def test_a_coat_outside_the_trained_ior_range_calibrates_to_the_references_albedo():
+    """A remainder decoder's material is the exact top lobe at the coat the decoders see (clamped into the trained
+    ior range 1.05-2) plus the calibrated remainder, whose target was the light below the stack's *own* top. The two
+    did not add up: a white base under an ior 3 coat read 0.68x the reference at normal incidence, under an ior
+    1.02 coat 1.08x at grazing. The target now takes the difference of the two interfaces' first reflections."""
+    models = load_models("tiny", threads=2)
+    for ior in (3.0, 1.02):
+        stack = Stack(Diffuse((0.8, 0.8, 0.8)), (Coating(roughness=0.1, ior=ior),))
+        assert cal.top_clamped(StackArrays.from_stacks([stack])).all()
+        material = neural_material.make(stack, size="tiny", calibrate=True)
+        got = cal.decoded_albedo(
+            models, material.z, material.sigma, material.w, cal.COSINES, material.calibration, seed=7, top=material.top
+        )
+        ref = cal.reference_parts(stack, seed=11).albedo  # other walks than the calibration's
+        ratio = got / ref
+        assert np.all(np.abs(ratio - 1) < 0.05), (ior, ratio[:, 1])

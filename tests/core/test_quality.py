@@ -84,10 +84,7 @@ def test_rule_smallest_size_under_tolerance_from_cached_measurements(tmp_path):
     cache = quality.ErrorCache(tmp_path)
     errors = {"tiny": 0.30, "small": 0.12, "medium": 0.05, "paper": 0.04}
     for size, err in errors.items():
-        key = quality._key(
-            "err", DEMANDING.to_json(), size, quality._fingerprint(size), quality.LOBE_RES, quality.REFERENCE_WALKS, 0
-        )
-        cache.put(key, err)
+        cache.put(quality.error_key(DEMANDING, size), err)
     reread = quality.ErrorCache(tmp_path)
     sizes = list(errors)
     assert quality.choose_decoder(DEMANDING, 0.2, sizes=sizes, cache=reread).size == "small"
@@ -424,3 +421,48 @@ def test_the_error_cache_keeps_the_most_recent_entries_and_cleans_a_killed_write
         cache.put(f"k{i}", float(i))
     cache.put("k2", 2.5)  # measured again: the most recent now
     assert list(quality.ErrorCache(tmp_path).data.items()) == [("k3", 3.0), ("k4", 4.0), ("k2", 2.5)]
+
+
+def test_a_black_stack_measures_a_finite_error_and_is_not_called_unencodable():
+    """A black base under an index-matched coat reflects nothing: every relative error was infinite, and Auto said
+    no shipped decoder could encode the stack (it renders with the reference). The error is now relative to at
+    least ``ERROR_FLOOR`` a value: finite, and the chosen size is a decoder."""
+    from addon.core.stack import Coating, Diffuse, Stack
+
+    black = Stack(Diffuse((0.0, 0.0, 0.0)), (Coating(roughness=0.3, ior=1.0),))
+    ref, _ = quality.reference_lobes(black)
+    assert float(np.abs(ref).sum()) == 0.0
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        choice = quality.choose_decoder(black, 0.2, sizes=[SIZES[0]], cache=quality.ErrorCache())
+    assert choice.size == SIZES[0] and math.isfinite(choice.errors[SIZES[0]])
+    assert not any("can encode" in str(w.message) for w in caught)
+    # The floor: an error below it is absolute (its RMSE over ERROR_FLOOR), above it relative as before.
+    pred = np.full((4, 3), 0.002)
+    assert quality.noise_corrected_error(pred, np.zeros((4, 3))) == pytest.approx(0.2)
+    bright = np.full((4, 3), 0.5)
+    assert quality.noise_corrected_error(bright * 1.1, bright) == pytest.approx(0.1)
+
+
+def test_the_error_cache_keeps_what_another_session_wrote_and_knows_reinstalled_files(tmp_path):
+    """Two sessions sharing decoder_errors.json each wrote their whole dictionary: the last lost the other's new
+    entries. Now each write merges what is on disk. And the files' identity is their content (the cards' digests),
+    not their modification times: the same files installed again keep their measured errors."""
+    import os
+    import shutil
+
+    a, b = quality.ErrorCache(tmp_path), quality.ErrorCache(tmp_path)
+    a.put("stack-a", 0.1)
+    b.put("stack-b", 0.2)
+    assert quality.ErrorCache(tmp_path).data == {"stack-a": 0.1, "stack-b": 0.2}
+    models = tmp_path / "models"
+    shutil.copytree(MODEL_DIR, models, ignore=shutil.ignore_patterns("*_weights.npz", "sampling_*"))
+    before = quality._fingerprint("tiny", models)
+    for f in models.iterdir():
+        os.utime(f, ns=(1, 1))  # a reinstall: the same bytes, new times
+    assert quality._fingerprint("tiny", models) == before
+    card = models / "decoder_tiny.json"
+    data = json.loads(card.read_text())
+    data["remainder"] = not data["remainder"]  # how the decoder's output is used changes what it renders
+    card.write_text(json.dumps(data))
+    assert quality._fingerprint("tiny", models) != before

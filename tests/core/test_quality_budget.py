@@ -46,3 +46,20 @@ def test_auto_never_takes_a_size_over_the_budget_even_when_none_meets_the_tolera
     assert any(sizes[-1] in n and "left out" in n for n in notes)
     reason = quality.choice_reason("gold", choice)
     assert choice.size in reason and "measured error" in reason
+    # The reason and the warning say the budget limited the choice, and name what it left out: they said "the most
+    # accurate" and told to raise the tolerance, where a size the budget left out may meet it.
+    assert "within the time budget" in reason and choice.left_out == tuple(sizes[2:])
+    (warned,) = [n for n in notes if "meets the tolerance" in n]
+    assert "within the time budget" in warned and all(s in warned for s in sizes[2:]) and "Time Budget" in warned
+
+
+def test_a_scene_without_layered_materials_gets_no_budget_notes():
+    """The budget's notes come with a material that goes through Auto: a scene of Lambertian and single-layer
+    materials at the factory 1920x1080, 64 spp, 6 bounces (no size fits the default 120 s) warned at every F12."""
+    from addon.core.stack import Conductor, Stack
+
+    queries = quality.frame_decoder_queries(1920 * 1080, 64, 6)
+    assert quality.sizes_within_budget(queries, 120.0)[1] != []  # the budget does leave sizes out here
+    scene = demo_scene(8, 6, [Stack(Conductor(0.3))])  # a floor (Lambertian) and a single-layer sphere
+    _, choices, notes = quality.assign_decoders(scene, "auto", budget_seconds=120.0, evaluations=queries)
+    assert choices == {} and notes == []

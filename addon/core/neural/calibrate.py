@@ -54,7 +54,7 @@ from __future__ import annotations
 
 import hashlib
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -476,10 +476,17 @@ def settings_key() -> str:
     return f"walks{list(WALKS)}-cosines{list(COSINES)}-target-below-top-shrink{NOISE_THRESHOLD:g}-table"
 
 
+def stack_settings_key(stack: Stack) -> str:
+    """:func:`settings_key`, and for a stack whose top coating the decoders see clamped (``top_clamped``) the
+    rule that calibrates it (``_as_rendered``), which the calibrations made before it lacked."""
+    arrays = StackArrays.from_stacks([stack])
+    return settings_key() + ("-top-as-rendered" if top_clamped(arrays).any() else "")
+
+
 def cache_key(stack: Stack, models, z) -> str:
     z = np.ascontiguousarray(np.asarray(z, dtype=np.float32))
-    parts = (stack.to_json(), models.size, models.digest, hashlib.sha256(z.tobytes()).hexdigest(), settings_key())
-    return hashlib.sha256(repr(parts).encode()).hexdigest()
+    parts = (stack.to_json(), models.size, models.digest, hashlib.sha256(z.tobytes()).hexdigest())
+    return hashlib.sha256(repr((*parts, stack_settings_key(stack))).encode()).hexdigest()
 
 
 def cached(stack: Stack, models, z) -> AlbedoCalibration | None:
@@ -517,7 +524,8 @@ def calibrate(stack: Stack, models, z, proxy_params, seed: int = 0, step=None) -
     coat = top_lobe.top_coat(stack)
     moments = decoded_moments(models, z, sigma, w, seed=seed, top=coat, step=step)
     top = top_lobe.top_albedo(coat, COSINES, DECODED_SAMPLES, seed)
-    out = _solve(reference_parts(stack, seed=seed, step=step), moments, top, bool(getattr(models, "remainder", False)))
+    ref = _as_rendered(reference_parts(stack, seed=seed, step=step), StackArrays.from_stacks([stack]), seed)
+    out = _solve(ref, moments, top, bool(getattr(models, "remainder", False)))
     _CACHE[key] = out
     _to_disk(key, out)
     return out
@@ -549,8 +557,44 @@ def calibrate_texels(arrays: StackArrays, models, z, proxy_params, tops, seed: i
         np.mean([m.pairs for m in each], axis=0), np.sqrt(np.sum([m.bins_stderr**2 for m in each], axis=0)) / r
     )  # a loop over the R sampled materials, not over texels
     top = np.mean([top_lobe.top_albedo(t, COSINES, per, seed) for t in tops], axis=0)
-    return _solve(
-        reference_parts(arrays, seed=seed, step=step), moments, top, bool(getattr(models, "remainder", False))
+    ref = _as_rendered(reference_parts(arrays, seed=seed, step=step), arrays, seed)
+    return _solve(ref, moments, top, bool(getattr(models, "remainder", False)))
+
+
+def top_clamped(arrays: StackArrays) -> np.ndarray:
+    """(N,) bool: the stacks whose top coating the decoders see other than it is (clamped to the trained ranges,
+    ``top_lobe.top_coats``): a smooth one (alpha below the trained 0.01), an index-matched one (ior 1) or one of
+    ior above 2, say."""
+    return np.any(top_lobe.top_coats(arrays) != top_lobe.own_tops(arrays), axis=1)
+
+
+def _as_rendered(ref, arrays: StackArrays, seed: int):
+    """The reference's parts ``ref`` (of the mean of ``arrays``' R stacks) with the remainder's target as the
+    renderer needs it. A remainder decoder's material is the exact top lobe *at the clamped top coating* plus the
+    calibrated remainder; the reference's ``below_top`` leaves out the first reflection at the stack's own top
+    interface. Where the two interfaces differ, ``below_top`` (and its split by exit) takes the difference of
+    their first reflections, so the material's albedo is the reference's: uncorrected, a white base under an
+    index-matched coat read 1.22x the reference at 89 degrees, under an ior 3 coat 0.68x at normal incidence."""
+    clamped = np.flatnonzero(top_clamped(arrays))
+    if len(clamped) == 0:
+        return ref
+    grid = np.asarray(COSINES)
+
+    def bins(wi):
+        return _hats(np.clip(wi[:, 2], 0.0, 1.0), grid)
+
+    used, own = top_lobe.top_coats(arrays), top_lobe.own_tops(arrays)
+    samples = max(256, DECODED_SAMPLES // len(arrays))
+    d_albedo, d_bins = np.zeros(len(grid)), np.zeros((len(grid), len(grid)))
+    for j in clamped:  # a loop over the stacks sampled (one, or a texture's few), each vectorised over the grid
+        a_own, b_own = top_lobe.interface_reflection(own[j], grid, bins, samples, seed + int(j))
+        a_used, b_used = top_lobe.interface_reflection(used[j], grid, bins, samples, seed + int(j))
+        d_albedo += (a_own - a_used) / len(arrays)  # the same samples for both: their noise mostly cancels
+        d_bins += (b_own - b_used) / len(arrays)
+    return replace(
+        ref,
+        below_top=ref.below_top + d_albedo[:, None],
+        below_top_by_exit=ref.below_top_by_exit + d_bins[:, :, None],
     )
 
 

@@ -222,6 +222,40 @@ def top_share(top, wo) -> np.ndarray:
         return top_share_cos(np.asarray(wo)[:, 2], t[:, 0], t[:, 1])
 
 
+def own_tops(arrays: StackArrays) -> np.ndarray:
+    """(N, 2) float64 ``alpha, ior`` of each stack's own top coating, as the stack gives it (not clamped to the
+    trained ranges: the interface the reference walks); :data:`NO_TOP` for stacks without coatings."""
+    out = np.tile(np.asarray(NO_TOP, dtype=np.float64), (len(arrays), 1))
+    if arrays.n_coatings and len(arrays):
+        out[:, 0] = np.asarray(arrays.coat_roughness, dtype=np.float64)[:, -1]
+        out[:, 1] = np.asarray(arrays.coat_ior, dtype=np.float64)[:, -1]
+    return out
+
+
+def interface_reflection(top, cosines, exit_bins, samples: int = 8192, seed: int = 0):
+    """What the top interface ``top`` (2,) reflects at its first event, seen from outgoing ``cosines`` (A,): its
+    albedo (A,) and that albedo split by exit direction, ``exit_bins(wi)`` (m, B) weights, (A, B). A smooth
+    interface's delta reflection counts (Fresnel at each cosine, exit at the mirror direction), unlike
+    :func:`top_albedo`'s, which is f's alone: this is the reference's first reflection at the top (what its
+    ``below_top`` leaves out). Index-matched: nothing."""
+    t = as_top(top, 1)
+    c = np.atleast_1d(np.asarray(cosines, dtype=np.float64))
+    wo = np.stack([np.sqrt(np.maximum(1 - c * c, 0)), np.zeros_like(c), c], axis=1)
+    bins = np.asarray(exit_bins(wo))
+    if not has_top(t)[0]:
+        return np.zeros(len(c)), np.zeros((len(c), bins.shape[1]))
+    if t[0, 0] < SMOOTH_ALPHA:
+        f = fresnel_dielectric(c, np.full(len(c), t[0, 1]))
+        mirror = wo * np.array([-1.0, -1.0, 1.0])
+        return f, f[:, None] * np.asarray(exit_bins(mirror))
+    wo = np.repeat(wo, samples, axis=0)
+    u = np.random.default_rng(seed).random((len(wo), 2))
+    s = _lobe(np.broadcast_to(t, (len(wo), 2))).sample(wo, np.zeros(len(wo)), u, check=False)
+    w = s.weight[:, 0]
+    split = (w[:, None] * np.asarray(exit_bins(s.wi))).reshape(len(c), samples, -1).mean(axis=1)
+    return w.reshape(len(c), samples).mean(axis=1), split
+
+
 def top_albedo(top, cosines, samples: int = 8192, seed: int = 0) -> np.ndarray:
     """(A,) directional albedo of one top lobe ``top`` (2,) at outgoing ``cosines`` (A,), by its own
     importance samples (weight F G2 / G1 per sample)."""
