@@ -667,7 +667,7 @@ def markdown(data: dict, command: str) -> str:
             "",
             "Smallest camera-ray footprint per demo material (`addon.core.quality.primary_footprints`, one ray "
             "per pixel) and the latent-texture resolution it needs out of a 4096^2 source "
-            "(`texture_resolution_for_footprint`); a latent texel is 98 half floats (196 bytes).",
+            "(`texture_resolution_for_footprint`); a latent texel is 100 half floats (200 bytes).",
             "",
             "| image | material | footprint (uv) | texture needed | memory vs 4096^2 |",
             "|---|---|---|---|---|",

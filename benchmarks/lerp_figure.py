@@ -102,7 +102,7 @@ def main(argv=None):
     (a.out / "lerp.md").write_text(
         "# Latent interpolation\n\n"
         f"Made by `{cmd}`.\n\n"
-        "`lerp(z_a, z_b, t) = (1 - t) z_a + t z_b` (`addon/core/neural/layering.py`) against the linear blend "
+        "`lerp(z_a, z_b, t) = (1 - t) z_a + t z_b` (`addon/core/neural/encode.py`) against the linear blend "
         "`(1 - t) f_a + t f_b` of the two decoded BRDFs. Material A: gold under a smooth clear coat "
         f"(`{MATERIAL_A.to_json()}`); material B: blue diffuse under a rough, scattering coat "
         f"(`{MATERIAL_B.to_json()}`).\n\n"

@@ -10,6 +10,7 @@ render written by the add-on itself. Prints every step; exits 1 when a step did 
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import tempfile
@@ -21,7 +22,9 @@ import blender_only  # noqa: E402
 import build_extension  # noqa: E402
 
 
-def main() -> int:
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="user_guide_") as tmp:
         tmp = Path(tmp)
         (zip_path,) = build_extension.build(
