@@ -82,7 +82,11 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
         max=65536,
     )
     max_bounces: IntProperty(
-        name="Max Bounces", description="Longest path, in surface bounces", default=6, min=0, max=1024
+        name="Max Bounces",
+        description="Bounces of light after the first hit, as Cycles counts them: 0 is direct lighting only",
+        default=6,
+        min=0,
+        max=1024,
     )
     seed: IntProperty(name="Seed", description="Random seed: the same seed gives the same image", default=0, min=0)
     mode: EnumProperty(

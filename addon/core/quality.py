@@ -443,9 +443,9 @@ def predicted_decoder_seconds(size: str, evaluations: float, model_dir=None) -> 
 
 
 def frame_decoder_queries(pixels: int, samples: int, max_bounces: int) -> float:
-    """An upper bound on one material's decoder queries in a frame: every path hits it at every
-    bounce, with one next-event and one sampled direction each."""
-    return 2.0 * int(pixels) * int(samples) * max(1, int(max_bounces))
+    """An upper bound on one material's decoder queries in a frame: every path hits it at its first hit and at
+    each of its ``max_bounces`` bounces, with one next-event and one sampled direction each."""
+    return 2.0 * int(pixels) * int(samples) * (int(max_bounces) + 1)
 
 
 def sizes_within_budget(evaluations: float, budget_seconds: float | None, sizes=None) -> tuple[list[str], list[str]]:

@@ -740,7 +740,7 @@ def test_mitsuba_renders_the_same_scene():
     sky, albedo, alpha = (0.3, 0.4, 0.5), (0.6, 0.5, 0.4), 0.25
     eta, k = (0.2, 0.9, 1.1), (3.9, 2.4, 2.2)
     scene = Scene(cam, mesh, [LambertMaterial(albedo), conductor(alpha, eta, k)], [area], Environment(sky))
-    film, _ = render(scene, RenderSettings(samples=192, max_bounces=4, seed=3))
+    film, _ = render(scene, RenderSettings(samples=192, max_bounces=3, seed=3))  # Mitsuba's max_depth 5
 
     def rgb(v):
         return {"type": "rgb", "value": [float(x) for x in v]}
@@ -762,7 +762,7 @@ def test_mitsuba_renders_the_same_scene():
     mscene = mi.load_dict(
         {
             "type": "scene",
-            "integrator": {"type": "path", "max_depth": 5},  # ours counts bounces, Mitsuba vertices
+            "integrator": {"type": "path", "max_depth": 5},  # Mitsuba counts vertices: max_bounces + 2
             "sensor": {
                 "type": "perspective",
                 "fov": 40,
@@ -799,6 +799,23 @@ def test_mitsuba_renders_the_same_scene():
     tol = 4 * se + 0.02 * theirs
     assert np.all(np.abs(ours - theirs) < tol), np.abs(ours - theirs) / tol
     assert abs(ours.mean() / theirs.mean() - 1) < 0.01
+
+
+def test_max_bounces_counts_as_cycles_does_zero_is_direct_lighting():
+    """Max Bounces counts the bounces after the first hit, as Cycles' does: 0 is direct lighting only. It counted
+    one more (0 rendered every surface black, and each setting matched Cycles' one below it). A plane under a point
+    light cannot light itself: every setting renders its direct lighting, albedo / pi x I cos / r^2."""
+    cam = Camera.look_at((0.0, 0.0, 2.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_deg=20, width=8, height=6)
+    mesh = shapes.quad((-5, -5, 0), (10, 0, 0), (0, 10, 0), material=0)
+    light = PointLight((0.0, 0.0, 1.0), 10.0)
+    scene = Scene(cam, mesh, [LambertMaterial((0.2, 0.5, 0.7))], [light])
+    images = [render(scene, RenderSettings(samples=2, max_bounces=n))[0].mean() for n in (0, 1, 3)]
+    o, d = cam.generate_rays(np.arange(8), np.full(8, 3), np.full((8, 2), 0.5))
+    p = o + d * (-o[:, 2:] / d[:, 2:])  # the row's points on the plane z = 0
+    r2 = np.sum((light.position - p) ** 2, axis=1)
+    direct = np.array([0.2, 0.5, 0.7]) / math.pi * light.intensity * (1.0 / r2)[:, None] / np.sqrt(r2)[:, None]
+    assert np.array_equal(images[0], images[1]) and np.array_equal(images[0], images[2])
+    np.testing.assert_allclose(images[0][3], direct, rtol=0.05)  # the pixels' means, the rays through their centres
 
 
 def test_first_hit_features_are_albedo_normal_and_depth():

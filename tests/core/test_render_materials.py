@@ -123,7 +123,7 @@ def test_reference_mode_matches_mitsuba_plastic():
         [area],
         Environment(sky),
     )
-    film, _ = render(scene, RenderSettings(samples=48, max_bounces=3, mode="reference", reference_walks=2))
+    film, _ = render(scene, RenderSettings(samples=48, max_bounces=2, mode="reference", reference_walks=2))
 
     def rgb(v):
         return {"type": "rgb", "value": [float(x) for x in v]}
@@ -147,7 +147,7 @@ def test_reference_mode_matches_mitsuba_plastic():
             mi.load_dict(
                 {
                     "type": "scene",
-                    "integrator": {"type": "path", "max_depth": 4},
+                    "integrator": {"type": "path", "max_depth": 4},  # vertices: max_bounces + 2
                     "sensor": {
                         "type": "perspective",
                         "fov": 35,

@@ -49,6 +49,8 @@ class Cancelled(Exception):
 @dataclass
 class RenderSettings:
     samples: int = 16
+    # bounces after the first hit, as Cycles counts them: 0 is direct lighting only (each first hit's light samples
+    # and the emission its sampled direction finds), 1 adds one bounce of indirect light
     max_bounces: int = 8
     seed: int = 0
     strategy: str = "mis"
@@ -797,7 +799,8 @@ def _trace_paths(
     L.fill(0.0)
     features.fill(0.0)
     paths = _camera_paths(ctx, pix, np.random.default_rng([s.seed, pass_index, chunk_index, 0]), scratch)
-    for depth in range(s.max_bounces + 1):
+    last = s.max_bounces + 1  # the hits of the last bounce's rays: only the emission they find
+    for depth in range(last + 1):
         if len(paths.row) == 0:
             break
         _check_stop(halt)
@@ -805,7 +808,7 @@ def _trace_paths(
         t, prim, bu, bv = ctx.tracer.intersect(paths.o, paths.d, stats, scratch)
         with _shading(stats):
             _add_emission(ctx, paths, t, L)
-        if depth == s.max_bounces:
+        if depth == last:
             break
         # Sorted by material (stable), so that each material shades one contiguous slice of rows.
         order = scratch.arrays("order", len(prim), ((0, kernels.I8),))[0]

@@ -14,7 +14,7 @@ from __future__ import annotations
 from .integrator import RenderSettings
 
 THUMBNAIL_SAMPLES = 4
-THUMBNAIL_BOUNCES = 2
+THUMBNAIL_BOUNCES = 1
 THUMBNAIL_DECODER = "tiny"  # the fastest shipped size (addon.core.neural.models.SIZES[0])
 THUMBNAIL_REFERENCE_WALKS = 1
 THUMBNAIL_MAX_SIDE = 512  # Blender's largest preview (a 2x-DPI icon) is well below this
