@@ -308,23 +308,38 @@ def view_camera(region_3d, lens: float, width: int, height: int) -> Camera:
 
 
 def _light(ob, matrix: np.ndarray, warnings: list[str]):
+    """The core light of a Blender light object, or None for one that sheds no light here (with a warning where the
+    user may not expect it). Blender allows what the core lights refuse: a negative power (Cycles subtracts light;
+    this renderer does not), a light scaled to nothing (an animator's way to hide it), an area light of size 0, and
+    a 180-degree spot, whose float32 angle is just above pi."""
     light = ob.data
     color = tuple(light.color)
     z = -matrix[:3, 2]  # lights point along their local -z
+    if light.type not in ("POINT", "SPOT", "SUN", "AREA"):
+        warnings.append(f"light {ob.name!r} has unsupported type {light.type}; skipped")
+        return None
+    if not light.energy > 0.0:
+        if light.energy < 0.0:
+            warnings.append(
+                f"light {ob.name!r} has a negative power ({light.energy:g}), which this renderer does "
+                "not subtract; skipped"
+            )
+        return None
+    scale = np.linalg.norm(matrix[:3, :3], axis=0)
+    if light.type in ("SPOT", "SUN") and not scale[2] > 0.0:
+        return None  # its direction scaled to nothing: hidden
     if light.type == "POINT":
         return PointLight(matrix[:3, 3], light.energy, color)
     if light.type == "SPOT":
-        return SpotLight(
-            matrix[:3, 3], light.energy, color, direction=z, spot_size=light.spot_size, blend=light.spot_blend
-        )
+        spot_size = min(float(light.spot_size), math.pi)
+        return SpotLight(matrix[:3, 3], light.energy, color, direction=z, spot_size=spot_size, blend=light.spot_blend)
     if light.type == "SUN":
         return SunLight(z, light.energy, color)
-    if light.type == "AREA":
-        shape = light.shape
-        size_y = light.size_y if shape in ("RECTANGLE", "ELLIPSE") else light.size
-        return AreaLight(matrix, light.energy, color, light.size, size_y, ellipse=shape in ("DISK", "ELLIPSE"))
-    warnings.append(f"light {ob.name!r} has unsupported type {light.type}; skipped")
-    return None
+    shape = light.shape
+    size_y = light.size_y if shape in ("RECTANGLE", "ELLIPSE") else light.size
+    if not (light.size > 0.0 and size_y > 0.0 and scale[0] > 0.0 and scale[1] > 0.0):
+        return None  # no area: it emits nothing (scaled to nothing, or of size 0)
+    return AreaLight(matrix, light.energy, color, light.size, size_y, ellipse=shape in ("DISK", "ELLIPSE"))
 
 
 def _world(world, warnings: list[str]) -> Environment | None:
@@ -338,6 +353,11 @@ def _world(world, warnings: list[str]) -> Environment | None:
             bg = out.inputs["Surface"].links[0].from_node
             if bg.type == "BACKGROUND":
                 strength = float(bg.inputs["Strength"].default_value)
+                if strength < 0.0:
+                    warnings.append(
+                        f"world {world.name!r}: a negative Strength ({strength:g}) adds no light here; black world"
+                    )
+                    return None
                 socket = bg.inputs["Color"]
                 image = _linked_image(socket)
                 if image:

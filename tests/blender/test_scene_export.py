@@ -187,3 +187,43 @@ def test_a_udim_image_of_several_tiles_is_said_not_read_as_its_first_tile(bpy_ad
     exported = scene_export.export_material(material, warnings)
     assert exported.texture is None
     assert any("'udim'" in w and "UDIM" in w and "2 tiles" in w for w in warnings), warnings
+
+
+def test_light_values_blender_allows_render_as_cycles_does_not_fail_the_render(bpy_addon, fresh_scene):
+    """Blender's largest spot (180 degrees, a float32 just above pi), a light scaled to nothing, an area light of
+    size 0, a negative power and a negative world Strength each failed F12 ("SpotLight.spot_size must be in
+    (0, pi]", "direction must be a non-zero finite vector", ...). The spot renders; the others shed no light here,
+    the negative ones with a warning."""
+    bpy = bpy_addon
+    from addon.blender import scene_export
+    from addon.core.render import AreaLight, SpotLight
+
+    scene = fresh_scene.scene
+    for ob in [o for o in scene.objects if o.type == "LIGHT"]:
+        bpy.data.objects.remove(ob)
+
+    def add(name, kind, energy=100.0, scale=(1.0, 1.0, 1.0), **settings):
+        light = bpy.data.lights.new(name, kind)
+        light.energy = energy
+        for key, value in settings.items():
+            setattr(light, key, value)
+        ob = bpy.data.objects.new(name, light)
+        ob.location, ob.scale = (0.0, 0.0, 3.0), scale
+        scene.collection.objects.link(ob)
+
+    add("wide spot", "SPOT", spot_size=bpy.types.SpotLight.bl_rna.properties["spot_size"].hard_max)
+    add("hidden spot", "SPOT", scale=(0.0, 0.0, 0.0))
+    add("hidden sun", "SUN", scale=(0.0, 0.0, 0.0))
+    add("flat area", "AREA", size=0.0)
+    add("hidden area", "AREA", scale=(0.0, 0.0, 0.0))
+    add("negative", "POINT", energy=-50.0)
+    scene.world.node_tree.nodes["Background"].inputs["Strength"].default_value = -1.0
+    core, warnings = scene_export.export_scene(fresh_scene.evaluated_depsgraph_get(), 16, 12)
+    (spot,) = core.lights
+    assert isinstance(spot, SpotLight) and spot.spot_size == pytest.approx(3.141592653589793)
+    assert not any(isinstance(li, AreaLight) for li in core.lights) and core.environment is None
+    assert any("'negative'" in w and "negative power" in w for w in warnings), warnings
+    assert any("negative Strength" in w for w in warnings), warnings
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 16, 12, 100
+    scene.neural_render.samples = 1
+    assert bpy.ops.render.render() == {"FINISHED"}

@@ -152,6 +152,16 @@ def _plane_under(light, albedo=0.5, samples=16):
     return render(scene, RenderSettings(samples=samples, max_bounces=1))[0].mean().mean(axis=(0, 1))
 
 
+@pytest.mark.parametrize("mirror", [(-1, 1, 1), (1, -1, 1), (-1, -1, -1), (1, 1, -1)])
+def test_a_mirrored_area_light_emits_along_its_local_minus_z_as_blender_s_does(mirror):
+    """A negative scale turned the light's u x v over, and it emitted upwards from a ceiling: a black floor where
+    Cycles lights it. It emits along its local -z (for a negative z scale: upwards, as Blender's does)."""
+    m = np.diag([*mirror, 1.0])
+    m[:3, 3] = (0.0, 0.0, 2.0)
+    light = AreaLight(m, power=100.0, size=1.0)
+    np.testing.assert_allclose(light.normal, -np.sign(mirror[2]) * np.array([0.0, 0.0, 1.0]))
+
+
 def test_light_units_follow_blender_conventions():
     albedo = 0.5
     # Point: I = P / (4 pi); at height h the floor radiance is albedo / pi * I / h^2.

@@ -189,7 +189,8 @@ class AreaLight:
         n = np.cross(self.axis_u, self.axis_v)
         if np.linalg.norm(n) < 1e-20 or not np.isfinite(n).all():
             raise ValueError("AreaLight matrix collapses the light to zero area")
-        self.normal = -n / np.linalg.norm(n)  # emits along local -z
+        # emits along its local -z: the side of the plane -m[:3, 2] points to (a mirroring scale turns u x v over)
+        self.normal = n / np.linalg.norm(n) * (-1.0 if np.dot(n, m[:3, 2]) >= 0.0 else 1.0)
         full = 4 * np.linalg.norm(n)
         self.area = full * (math.pi / 4 if self.ellipse else 1.0)
         self.radiance = self.color * self.power / (math.pi * self.area)
