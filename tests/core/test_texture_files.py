@@ -127,3 +127,31 @@ def test_a_texture_is_read_band_by_band_as_at_once(monkeypatch, tmp_path, oiio):
     one = raw_latent_exr(oiio, tmp_path / "one.exr", [np.full((1, 1, 100), 0.25, np.float32)])  # untiled
     assert oiio.ImageInput.open(str(one)).spec().tile_width == 0
     np.testing.assert_array_equal(LatentTexture.read_exr(one).levels[0], np.full((1, 1, 100), 0.25, np.float16))
+
+
+def test_a_latent_texture_is_whole_and_closed_when_it_is_renamed_into_place(tmp_path, monkeypatch):
+    """A writer of several mip levels finishes its file only when it is destroyed: ``write_exr`` flushed and renamed
+    the temporary file while the writer still held it open and short (1,007,616 of 1,009,501 bytes at 64 x 64), so a
+    kill right after a bake, or another process reading it, met a truncated texture under its final name."""
+    import contextlib
+    import os
+
+    from addon.core.textures.latent_texture import LatentTexture
+
+    seen = {}
+    real_replace = os.replace
+
+    def replace(src, dst):
+        fds = []
+        for fd in os.listdir("/proc/self/fd"):
+            with contextlib.suppress(OSError):  # the listing's own descriptor is gone by now
+                fds.append(os.readlink(f"/proc/self/fd/{fd}"))
+        seen["size"], seen["open"] = os.path.getsize(src), any(str(src) in f for f in fds)
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(files.os, "replace", replace)
+    rng = np.random.default_rng(0)
+    texture = LatentTexture.from_texels(rng.normal(size=(64, 64, 100)).astype(np.float32), {"model": "tiny"})
+    path = tmp_path / "whole.exr"
+    texture.write_exr(path)
+    assert seen == {"size": os.path.getsize(path), "open": False}

@@ -98,6 +98,7 @@ def _write_oiio(path: Path, pixels: np.ndarray, pixel_type: str) -> None:
                 raise RuntimeError(f"cannot write {path}: {out.geterror()}")
         finally:
             out.close()
+            del out  # the file is whole once its writer is gone (``LatentTexture.write_exr``), before the rename
 
 
 def write_png(path: str | os.PathLike, linear: np.ndarray, exposure: float = 1.0) -> None:

@@ -211,6 +211,9 @@ class LatentTexture:
                 self._write_levels(out, tmp, path)
             finally:
                 out.close()
+                # A writer of several mip levels finishes the file only when it is destroyed (its close() returned
+                # with the file open and short): dropped here, before ``publishing`` flushes and renames it.
+                del out
 
     def _write_levels(self, out, tmp: Path, path: Path) -> None:
         for i, level in enumerate(self.levels):
