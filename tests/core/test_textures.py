@@ -1,5 +1,7 @@
 """Latent textures: mip chain = box filter, trilinear lookup, EXR round trip."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -72,7 +74,7 @@ def test_lookup_matches_a_per_corner_oracle_across_levels_and_wrapping(shape):
     chain = build_mip_chain(rng.random(shape).astype(np.float32))
     uv = rng.uniform(-2.0, 3.0, (500, 2))
     fp = 2.0 ** rng.uniform(-8.0, 1.0, 500)
-    lod = np.clip(np.log2(np.maximum(fp * max(shape[:2]), 1e-12)), 0.0, len(chain) - 1)
+    lod = np.clip(np.log2(np.maximum(fp * math.sqrt(shape[0] * shape[1]), 1e-12)), 0.0, len(chain) - 1)
     k = np.floor(lod).astype(int)
     t = (lod - k)[:, None]
     want = np.empty((500, shape[2]))
@@ -284,3 +286,15 @@ def test_even_levels_take_the_2x2_mean_bit_for_bit_as_the_general_box_filter():
     for shape in ((64, 32, 100), (2, 2, 3), (16, 4, 1)):
         x = rng.normal(size=shape).astype(np.float32)
         np.testing.assert_array_equal(mip.downsample(x), mip.resample_area(x, shape[0] // 2, shape[1] // 2))
+
+
+@pytest.mark.parametrize("width, height", [(512, 256), (256, 512), (1024, 128), (64, 64)])
+def test_a_non_square_texture_picks_the_level_of_its_footprint_in_texels(width, height):
+    """One texel a pixel is level 0 and four texels a pixel level 2 whatever the texture's aspect: the longer side
+    alone put a 2 : 1 texture at 0.5 and 2.5, an 8 : 1 one at 1.5 and 3.5. The footprint's uv scale is a geometric
+    mean (``integrator.uv_scale``), so is a texel's side: sqrt(1 / (W H)) in uv."""
+    from addon.core.textures.mip import mip_level_for_footprint
+
+    texel = 1.0 / math.sqrt(width * height)
+    levels = mip_level_for_footprint(np.array([texel, 4 * texel]), width, height, 12)
+    np.testing.assert_allclose(levels, [0.0, 2.0], atol=1e-12)

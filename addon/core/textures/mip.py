@@ -8,6 +8,8 @@ texel averages the input texels it covers, with fractional weights at the border
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .. import kernels
@@ -259,8 +261,12 @@ def build_mip_chain(base: np.ndarray, dtype=np.float32) -> MipChain:
 
 
 def mip_level_for_footprint(footprint: np.ndarray, width: int, height: int, n_levels: int) -> np.ndarray:
-    """Continuous mip level for a footprint given in uv units (the ray cone's width on the surface)."""
-    texels = np.maximum(np.asarray(footprint, dtype=np.float64) * max(width, height), 1e-12)
+    """Continuous mip level for a footprint given in uv units (the ray cone's width on the surface): log2 of the
+    footprint in texels of level 0, a texel's side taken as the geometric mean of its two, sqrt(1 / (W H)) in uv
+    (as the footprint's uv scale is the geometric mean of the triangle's: ``integrator.uv_scale``). The longer side
+    alone made every texture of aspect a : 1 half a level per doubling of a too coarse (a 2 : 1 one seen at one
+    texel a pixel looked up level 0.5)."""
+    texels = np.maximum(np.asarray(footprint, dtype=np.float64) * math.sqrt(width * height), 1e-12)
     return np.clip(np.log2(texels), 0.0, n_levels - 1)
 
 
