@@ -422,12 +422,13 @@ def surface_hits(out, corners, face_normals, uv_scale, hit, prim, bu, bv, d, t, 
 
 @njit(**_JIT)
 def first_hit_features(features, row, weight, ns, dist):
-    """What a denoiser is guided by, into ``features[row]`` (``render.film``): the first sample's weight
-    clipped to [0, 1] (its mean is the directional albedo), the world shading normal and the depth."""
+    """What a denoiser is guided by, into ``features[row]`` (``render.film``): the first sample's weight, at least 0
+    (its mean is the directional albedo; ``Film.features`` clips the mean to [0, 1], not each weight, which made the
+    mean of a material sampled by a proposal 15% low), the world shading normal and the depth."""
     for i in range(len(row)):
         r = row[i]
         for k in range(3):
-            features[r, k] = min(max(weight[i, k], 0.0), 1.0)
+            features[r, k] = max(weight[i, k], 0.0)
             features[r, 3 + k] = ns[i, k]
         features[r, 6] = dist[i]
 

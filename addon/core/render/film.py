@@ -48,11 +48,11 @@ class Film:
 
     def features(self) -> dict[str, np.ndarray]:
         """Per-pixel means of the denoising features, (H, W, C) float32 each, row 0 at the top:
-        ``albedo`` (3), ``normal`` (3, world space, not renormalised) and ``depth`` (1, distance
-        along the camera ray; 0 where the ray escaped)."""
+        ``albedo`` (3, clipped to [0, 1]: a denoiser's albedo guide), ``normal`` (3, world space, not renormalised)
+        and ``depth`` (1, distance along the camera ray; 0 where the ray escaped)."""
         c = np.maximum(self.count, 1)[:, None]
         f = (self.feature_sum / c).reshape(self.height, self.width, 7).astype(np.float32)
-        return {"albedo": f[..., :3], "normal": f[..., 3:6], "depth": f[..., 6:7]}
+        return {"albedo": np.clip(f[..., :3], 0.0, 1.0), "normal": f[..., 3:6], "depth": f[..., 6:7]}
 
     def mean(self) -> np.ndarray:
         """(H, W, 3) float32 per-pixel mean (0 where no sample yet)."""

@@ -143,9 +143,17 @@ class Mesh:
         for name, arr in (("normals", n), ("uvs", uv), ("material_index", mi)):
             if arr is not None and arr.shape[0] != t:
                 raise ValueError(f"Mesh.{name} has {arr.shape[0]} triangles, positions have {t}")
-        face_n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]).astype(np.float64)
+        # In float64 from the float32 corners: their differences and products are exact or nearly, so a triangle
+        # of collinear corners has a cross product of about 0, whatever its size.
+        p64 = p.astype(np.float64)
+        e1, e2 = p64[:, 1] - p64[:, 0], p64[:, 2] - p64[:, 0]
+        face_n = np.cross(e1, e2)
         area2 = np.linalg.norm(face_n, axis=1)
-        keep = np.isfinite(p).all(axis=(1, 2)) & (area2 > 1e-12)
+        # Degenerate relative to its size: a small object's real triangles are kept (an absolute 1e-12 dropped a
+        # tenth of a 0.1 mm sphere's, and every triangle of a 0.01 mm one).
+        longest2 = np.maximum(np.maximum(np.sum(e1 * e1, axis=1), np.sum(e2 * e2, axis=1)), np.sum((e2 - e1) ** 2, 1))
+        with np.errstate(invalid="ignore", over="ignore"):
+            keep = np.isfinite(p).all(axis=(1, 2)) & (area2 > 1e-12 * longest2) & (area2 > 0.0)
         self.dropped = int(t - keep.sum())
         p, mi, face_n, area2 = p[keep], mi[keep], face_n[keep], area2[keep]
         face_n = face_n / np.maximum(area2, 1e-30)[:, None]
