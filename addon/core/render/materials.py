@@ -44,6 +44,7 @@ import numpy as np
 from .. import kernels
 from ..bsdf import Lambertian, RoughConductor, RoughDielectric
 from ..bsdf.base import SMOOTH_ALPHA, BSDFSample
+from ..bsdf.dielectric import INDEX_MATCHED_TOL, is_smooth
 from ..stack import Conductor, Dielectric, Diffuse, Stack
 from ..textures.mip import build_mip_chain, trilinear_lookup
 from ..threads import map_on_threads
@@ -202,9 +203,14 @@ def analytic_for_stack(stack: Stack):
 
 
 def _top_is_smooth(stack: Stack) -> bool:
-    """True when light can leave the stack by delta events only (a smooth top interface)."""
+    """True when the top interface is a delta one (the walk's ``is_smooth``): smooth, or index-matched whatever its
+    roughness (light passes straight through it, and a mirror below reflects a delta lobe; a rough ior-1 coat over a
+    mirror rendered 0.21 of its 0.93 albedo, its delta part never sampled)."""
     top = stack.coatings[-1] if stack.coatings else stack.base
-    return not isinstance(top, Diffuse) and top.roughness < SMOOTH_ALPHA
+    if isinstance(top, Diffuse):
+        return False
+    ior = getattr(top, "ior", None)
+    return bool(is_smooth(top.roughness, ior)) if ior is not None else top.roughness < SMOOTH_ALPHA
 
 
 class _BoundReference(ShadeByParts):
@@ -317,9 +323,14 @@ class ReferenceLayered:
 
         self.stack, self.walks, self.spatial = stack, int(walks), spatial
         self.sigma, self.w = proxy_guess(stack)
-        # a delta component wherever a texel's top is smooth (its roughness may be one of the maps)
-        alpha = None if spatial is None else spatial.top_roughness_range()
-        smooth = _top_is_smooth(stack) if spatial is None else alpha is not None and alpha[0] < SMOOTH_ALPHA
+        # a delta component wherever a texel's top is smooth or index-matched (its roughness or ior may be maps)
+        if spatial is None:
+            smooth = _top_is_smooth(stack)
+        else:
+            alpha, ior = spatial.top_range("roughness"), spatial.top_range("ior")
+            smooth = (alpha is not None and alpha[0] < SMOOTH_ALPHA) or (
+                ior is not None and ior[0] < 1.0 + INDEX_MATCHED_TOL
+            )
         self.q = 0.5 if smooth else 1.0
 
     def bind(self, hits: SurfaceHits):

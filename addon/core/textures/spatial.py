@@ -139,15 +139,16 @@ class SpatialStack:
             self._assign(arrays, path, img[row, col])
         return arrays
 
-    def top_roughness_range(self) -> tuple[float, float] | None:
-        """(least, greatest) GGX alpha of the top interface over the texels; None for a diffuse base
-        without coatings (no interface)."""
-        top = f"coatings[{len(self.stack.coatings) - 1}].roughness" if self.stack.coatings else "base.roughness"
+    def top_range(self, name: str) -> tuple[float, float] | None:
+        """(least, greatest) of the top interface's parameter ``name`` ("roughness": GGX alpha, or "ior") over the
+        texels; None where the top layer has no such parameter (a diffuse base without coatings: no interface; a
+        conductor's ior)."""
+        top = f"coatings[{len(self.stack.coatings) - 1}].{name}" if self.stack.coatings else f"base.{name}"
         if top in self.maps:
             return float(self.maps[top].min()), float(self.maps[top].max())
         layer = self.stack.coatings[-1] if self.stack.coatings else self.stack.base
-        alpha = getattr(layer, "roughness", None)
-        return None if alpha is None else (float(alpha), float(alpha))
+        value = getattr(layer, name, None)
+        return None if value is None else (float(value), float(value))
 
     def _assign(self, arrays: StackArrays, path: str, values: np.ndarray) -> None:
         """Set the parameter ``path`` of every row of ``arrays`` from ``values`` (N, channels)."""
