@@ -923,3 +923,40 @@ def test_esc_while_f12_chooses_decoders_cancels_the_render_without_a_failure(fre
     scene.render.filepath = str(tmp_path / "frame.png")
     bpy.ops.render.render(write_still=True)  # an ERROR report would raise here
     assert len(stops) == 1 and "test_break" in stops[0] and traced == []
+
+
+@pytest.mark.parametrize("tau", [0.5, 1.0])
+def test_the_cycles_baseline_tints_an_absorbing_coat_for_its_way_in_and_out(fresh_scene, tmp_path, tau):
+    """``principled_inputs``' Coat Tint is Cycles' transmittance of the whole trip through the coat at normal
+    incidence: exp(-2 tau (1 - albedo)). Applied once, an absorbing coat over a mirror rendered 0.62 in Cycles where
+    the stack reflects 0.38 (tau 0.5): the Cycles baseline of the benchmarks was too bright and washed out."""
+    from addon.core import reference
+    from addon.core.render.principled import principled_inputs
+    from addon.core.stack import Coating, Conductor, Stack
+
+    stack = Stack(Conductor(0.0, (1.0, 1.0, 1.0), (20.0, 20.0, 20.0)), (Coating(0.0, 1.5, (0.0, 0.0, 0.0), tau),))
+    truth, _ = reference.albedo(stack, np.array([[0.0, 0.0, 1.0]]), samples=4096, seed=1)
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    s = bpy.context.scene
+    s.render.engine, s.cycles.device, s.cycles.samples, s.cycles.use_denoising = "CYCLES", "CPU", 4, False
+    s.render.resolution_x = s.render.resolution_y = 4
+    s.view_settings.view_transform = "Standard"
+    s.world = bpy.data.worlds.new("white")
+    s.world.use_nodes = True
+    s.world.node_tree.nodes["Background"].inputs[0].default_value = (1.0, 1.0, 1.0, 1.0)
+    bpy.ops.mesh.primitive_plane_add(size=100)
+    material = bpy.data.materials.new("coat")
+    material.use_nodes = True
+    node = material.node_tree.nodes["Principled BSDF"]
+    for key, value in principled_inputs(stack).items():
+        node.inputs[key].default_value = value
+    bpy.context.object.data.materials.append(material)
+    camera = bpy.data.objects.new("camera", bpy.data.cameras.new("camera"))
+    camera.data.type, camera.data.ortho_scale, camera.location = "ORTHO", 1.0, (0.0, 0.0, 5.0)
+    s.collection.objects.link(camera)
+    s.camera = camera
+    s.render.image_settings.file_format, s.render.filepath = "OPEN_EXR", str(tmp_path / "tint.exr")
+    bpy.ops.render.render(write_still=True)
+    image = bpy.data.images.load(str(tmp_path / "tint.exr"))
+    cycles = np.array(image.pixels[:]).reshape(-1, 4)[:, :3].mean()
+    assert cycles == pytest.approx(float(truth[0].mean()), rel=0.06), (cycles, truth[0])

@@ -16,16 +16,19 @@ from ..stack import Conductor, Dielectric, Diffuse, Stack, artist_roughness_from
 def principled_inputs(stack: Stack) -> dict:
     """Principled BSDF socket values (Blender 4.x/5.x names) approximating ``stack``.
 
-    Base: Diffuse -> base colour; Conductor -> metallic with base colour = its normal-incidence
-    Fresnel reflectance; Dielectric -> black base with the dielectric's IOR. Coatings: the top
+    Base: Diffuse -> base colour, with no specular layer (Specular IOR Level 0: the stack has no interface on the
+    base; Principled's default 0.5 added 14% in red to lacquered plastic); Conductor -> metallic with base colour =
+    its normal-incidence Fresnel reflectance; Dielectric -> black base with the dielectric's IOR. Coatings: the top
     coating's roughness and IOR drive Coat; each coating's medium contributes a coat tint
-    exp(-thickness * (1 - albedo)) (its absorption only), multiplied over the coatings.
+    exp(-2 thickness (1 - albedo)) (its absorption only, in and out: Cycles' Coat Tint is the transmittance of the
+    whole trip at normal incidence), multiplied over the coatings.
     Roughness values are artist roughness (sqrt of GGX alpha).
     """
     b = stack.base
     inputs = {"Roughness": 1.0, "Metallic": 0.0, "Base Color": (0.8, 0.8, 0.8, 1.0)}
     if isinstance(b, Diffuse):
         inputs["Base Color"] = (*b.albedo, 1.0)
+        inputs["Specular IOR Level"] = 0.0
     elif isinstance(b, Conductor):
         f0 = fresnel_conductor(np.ones(1), np.asarray(b.eta), np.asarray(b.k))[0]
         inputs.update(
@@ -43,7 +46,7 @@ def principled_inputs(stack: Stack) -> dict:
         top = stack.coatings[-1]
         tint = np.ones(3)
         for c in stack.coatings:
-            tint *= np.exp(-c.thickness * (1.0 - np.asarray(c.albedo)))
+            tint *= np.exp(-2.0 * c.thickness * (1.0 - np.asarray(c.albedo)))
         inputs.update(
             {
                 "Coat Weight": 1.0,
