@@ -194,6 +194,8 @@ class Stack:
     def from_dict(cls, data: dict) -> "Stack":
         if not isinstance(data, dict) or "base" not in data:
             raise ValueError(f"a stack needs a 'base' entry, got {data!r}")
+        if not isinstance(data.get("coatings", []), list):
+            raise ValueError(f"a stack's 'coatings' must be a list of layers, got {data['coatings']!r}")
         return cls(
             base=layer_from_dict(data["base"]),
             coatings=tuple(layer_from_dict(c) for c in data.get("coatings", [])),
@@ -218,6 +220,8 @@ def layer_to_dict(layer: Layer) -> dict:
 
 
 def layer_from_dict(data: dict) -> Layer:
+    if not isinstance(data, dict):
+        raise ValueError(f"a layer must be a mapping with a 'type' entry, got {data!r}")
     data = dict(data)
     kind = data.pop("type", None)
     if kind not in LAYER_TYPES:

@@ -163,3 +163,19 @@ def test_a_coating_encodes_as_its_interface_in_both_forms():
     assert len(rows) == 2 * len(s.coatings) and rows.n_coatings == 0
     for j, c in enumerate(s.coatings):
         assert rows.stack(len(s.coatings) + j) == st.Stack(st.coating_interface(c))
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        '{"base": {"type": "Diffuse"}, "coatings": null}',
+        '{"base": {"type": "Diffuse"}, "coatings": "Coating"}',
+        '{"base": [1, 2]}',
+        '{"base": {"type": "Diffuse"}, "coatings": [3]}',
+    ],
+)
+def test_a_malformed_stack_text_raises_value_error(text):
+    """The documented error for a bad stack is ValueError: these raised TypeError ('NoneType' object is not
+    iterable, ...), which a caller catching ValueError did not see."""
+    with pytest.raises(ValueError):
+        st.Stack.from_json(text)
