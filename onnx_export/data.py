@@ -10,6 +10,10 @@ Two sets:
 Each set is a list of chunks of ``--chunk`` materials. Chunk ``j`` is generated from the seed
 ``(seed, j)`` alone, so the data do not depend on how the work is sharded: ``--shard i/n`` makes
 chunks ``j = i, i + n, ...``; finished chunks on disk are skipped, so an interrupted run resumes.
+``OUT/manifest.json`` records the options that decide the chunks' contents (set, seed, pairs, walks,
+chunk size) and the number of materials: a rerun with other options is refused (naming the option),
+a larger ``--materials`` adds chunks and makes a short last chunk again (``write_chunks``), and
+``data_command`` renders the command of the data as they are.
 
     python -m onnx_export.data --set single --materials 4096 --pairs 1024 --out cache/data/single
     python -m onnx_export.data --set layered --materials 512 --pairs 512 --walks 64 --shard 0/4 ...
@@ -23,8 +27,11 @@ slightly widened roughness (the lobe). Targets are f without the cosine, RGB, fl
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -32,9 +39,16 @@ import numpy as np
 from addon.core.bsdf import ggx
 from addon.core.bsdf.lambert import Lambertian, sample_cosine_hemisphere
 from addon.core.stack import BASE_KINDS, StackArrays
+from onnx_export.cli import command_line, positive_int
 
 KIND_PROBS = (0.2, 0.4, 0.4)  # Diffuse, Conductor, Dielectric: the glossy kinds are the hard ones
 GROUPS = 8  # layered set: outgoing directions per stack that share their reference walks
+DEFAULT_SEED = 1
+MANIFEST = "manifest.json"  # beside the chunks: the options they were made with (``prepare_out``)
+
+
+class OptionError(ValueError):
+    """Options that do not fit each other or the chunks already in the output folder (the scripts' usage error)."""
 
 
 # ----------------------------------------------------------------------------- parameters
@@ -214,6 +228,100 @@ def parse_shard(text: str) -> tuple[int, int]:
     return i, n
 
 
+def check_counts(**counts: int) -> None:
+    """``OptionError`` naming the first of ``counts`` (flag dest -> value) that is not a positive integer."""
+    for k, v in counts.items():
+        if not v >= 1:
+            raise OptionError(f"--{k.replace('_', '-')} must be a positive integer, got {v}")
+
+
+def read_manifest(out: Path) -> dict | None:
+    """The manifest of the chunks under ``out`` (``prepare_out``), None where there is none (no data, or
+    chunks from before manifests were written)."""
+    path = Path(out) / MANIFEST
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def chunk_rows(path: Path) -> int:
+    """Materials (stacks) in the finished chunk ``path``."""
+    with np.load(path) as d:
+        return int(d["p_base_kind"].shape[0])
+
+
+def finished_chunks(out: Path) -> list[Path]:
+    """The finished chunks under ``out``, in order (an interrupted chunk is still a ``.tmp.npz``)."""
+    return sorted(p for p in Path(out).glob("chunk_*.npz") if not p.name.endswith(".tmp.npz"))
+
+
+def prepare_out(out: Path, options: dict, count_flag: str, count: int, visible: Callable[[Path], dict], log) -> None:
+    """Make ``out`` ready for chunks made with ``options`` (argparse dests -> values: the options that decide
+    the chunks' contents) up to ``count`` rows (``count_flag``: ``materials`` or ``stacks``), and record them in
+    ``out/manifest.json``.
+
+    A folder whose manifest records other options, or more rows, raises ``OptionError`` naming the option: its
+    chunks are not the ones this run would make. Chunks from before manifests are checked on what they show
+    (``visible(chunk)``: the options readable from a chunk) and adopted with a log line."""
+    out.mkdir(parents=True, exist_ok=True)
+    held = read_manifest(out)
+    chunks = finished_chunks(out)
+    if held is None and chunks:
+        held = visible(chunks[0]) | {count_flag: sum(chunk_rows(c) for c in chunks)}
+        log(f"{out} holds chunks without a manifest: checked on {sorted(held)} only, the rest taken as asked")
+    if held is not None:
+        for k, v in options.items():
+            if k in held and held[k] != v:
+                raise OptionError(
+                    f"{out} holds chunks made with --{k.replace('_', '-')} {held[k]}, this run asks for {v}: "
+                    "remove the folder or write elsewhere"
+                )
+        if count < held.get(count_flag, 0):
+            raise OptionError(
+                f"{out} holds {held[count_flag]} {count_flag}, this run asks for --{count_flag} {count}: ask for "
+                f"{held[count_flag]} or more (a training run can take fewer), or write elsewhere"
+            )
+    tmp = out / f"{MANIFEST}.{os.getpid()}.tmp"  # shards write the same manifest side by side
+    tmp.write_text(json.dumps(options | {count_flag: count}, indent=1) + "\n")
+    tmp.replace(out / MANIFEST)
+
+
+def write_chunks(
+    out: Path,
+    count_flag: str,
+    count: int,
+    chunk: int,
+    shard: tuple[int, int],
+    make: Callable[[int, int], dict],
+    what: Callable[[int, int], str],
+    log,
+) -> list[Path]:
+    """Chunks ``j = shard[0], shard[0] + shard[1], ...`` of ``count`` rows (``count_flag``: materials or stacks),
+    ``chunk`` a chunk, under ``out``: ``make(j, size)`` is chunk j's dict of arrays, ``what(j, size)`` its words
+    in the progress log. A finished
+    chunk of the right size is kept (an interrupted run resumes); one of another size (the short last chunk of
+    a run with fewer rows) is made again. Returns the paths of this shard's chunks."""
+    n_chunks = (count + chunk - 1) // chunk
+    mine = list(range(shard[0], n_chunks, shard[1]))
+    paths = [out / f"chunk_{j:05d}.npz" for j in mine]
+    t0 = time.perf_counter()
+    done = 0
+    for j, path in zip(mine, paths, strict=True):
+        size = min(chunk, count - j * chunk)
+        if path.exists():
+            held = chunk_rows(path)
+            if held == size:
+                continue
+            log(f"{out}: chunk {j} holds {held} {count_flag}, --{count_flag} {count} needs {size}: making it again")
+        data = make(j, size)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, **data)
+        tmp.replace(path)  # atomic: a killed run never leaves a half-written chunk
+        done += 1
+        el = time.perf_counter() - t0
+        left = sum(1 for q in paths if not q.exists())
+        log(f"{what(j, size)} {done} new, {left} left, {el:.1f} s, eta {el / done * left:.0f} s")
+    return paths
+
+
 def generate(
     kind: str,
     out: Path,
@@ -225,37 +333,53 @@ def generate(
     walks: int = 64,
     log=print,
 ) -> list[Path]:
-    """Write the chunks of this shard under ``out`` (skipping finished ones); return all paths."""
-    out.mkdir(parents=True, exist_ok=True)
-    n_chunks = (materials + chunk - 1) // chunk
-    mine = list(range(shard[0], n_chunks, shard[1]))
-    t0 = time.perf_counter()
-    done = 0
-    paths = []
-    for j in mine:
-        path = out / f"chunk_{j:05d}.npz"
-        paths.append(path)
-        if path.exists():
-            continue
-        size = min(chunk, materials - j * chunk)
-        data = make_chunk(kind, seed, j, size, pairs, walks)
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, **data)
-        tmp.replace(path)  # atomic: a killed run never leaves a half-written chunk
-        done += 1
-        el = time.perf_counter() - t0
-        left = sum(1 for q in mine if not (out / f"chunk_{q:05d}.npz").exists())
-        log(
-            f"[{kind} shard {shard[0]}/{shard[1]}] chunk {j} ({size} materials x {pairs} pairs) "
-            f"{done} new, {left} left, {el:.1f} s, eta {el / done * left:.0f} s"
-        )
-    return paths
+    """Write the chunks of this shard under ``out`` (skipping finished ones); return all paths. ``out`` must
+    hold no chunks made with other options (``prepare_out``)."""
+    check_counts(materials=materials, pairs=pairs, chunk=chunk, walks=walks)
+    if kind != "single" and pairs % GROUPS:
+        raise OptionError(f"--pairs must be a multiple of {GROUPS} for the layered set, got {pairs}")
+    options = {"set": kind, "seed": seed, "pairs": pairs, "chunk": chunk} | (
+        {} if kind == "single" else {"walks": walks}
+    )
+
+    def visible(path: Path) -> dict:
+        with np.load(path) as d:
+            return {"set": "layered" if "stderr" in d else "single", "pairs": int(d["wi"].shape[1])}
+
+    prepare_out(out, options, "materials", materials, visible, log)
+    return write_chunks(
+        out,
+        "materials",
+        materials,
+        chunk,
+        shard,
+        lambda j, size: make_chunk(kind, seed, j, size, pairs, walks),
+        lambda j, size: f"[{kind} shard {shard[0]}/{shard[1]}] chunk {j} ({size} materials x {pairs} pairs)",
+        log,
+    )
+
+
+def data_command(out: Path) -> str:
+    """The command that makes the data under ``out`` as they are: the options of its manifest and the
+    materials its chunks hold (chunks from before manifests: the set and pairs read from them, the other
+    options their defaults)."""
+    chunks = finished_chunks(out)
+    if not chunks:
+        raise FileNotFoundError(f"no data chunks under {out}; run python -m onnx_export.data first")
+    held = read_manifest(out)
+    if held is None:
+        with np.load(chunks[0]) as d:
+            held = {"set": "layered" if "stderr" in d else "single", "pairs": int(d["wi"].shape[1])}
+    opts = {k: v for k, v in held.items() if k != "materials"}
+    return command_line(
+        "onnx_export.data",
+        {"set": opts.pop("set"), "materials": sum(chunk_rows(c) for c in chunks), **opts, "out": str(out)},
+    )
 
 
 def load(out: Path) -> dict:
     """Concatenate all chunks under ``out`` (materials axis first)."""
-    paths = sorted(Path(out).glob("chunk_*.npz"))
-    paths = [p for p in paths if not p.name.endswith(".tmp.npz")]
+    paths = finished_chunks(out)
     if not paths:
         raise FileNotFoundError(f"no data chunks under {out}; run python -m onnx_export.data first")
     parts = [dict(np.load(p)) for p in paths]
@@ -271,25 +395,28 @@ def load(out: Path) -> dict:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--set", choices=("single", "layered"), default="single")
-    ap.add_argument("--materials", type=int, default=4096)
-    ap.add_argument("--pairs", type=int, default=1024)
-    ap.add_argument("--chunk", type=int, default=128)
-    ap.add_argument("--walks", type=int, default=64, help="reference walks per pair (layered only)")
-    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--materials", type=positive_int, default=4096)
+    ap.add_argument("--pairs", type=positive_int, default=1024)
+    ap.add_argument("--chunk", type=positive_int, default=128)
+    ap.add_argument("--walks", type=positive_int, default=64, help="reference walks per pair (layered only)")
+    ap.add_argument("--seed", type=int, default=DEFAULT_SEED)
     ap.add_argument("--shard", type=parse_shard, default=(0, 1))
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args(argv)
-    generate(
-        a.set,
-        a.out,
-        a.materials,
-        a.pairs,
-        a.chunk,
-        a.seed,
-        a.shard,
-        a.walks,
-        log=lambda s: print(s, file=sys.stderr, flush=True),
-    )
+    try:
+        generate(
+            a.set,
+            a.out,
+            a.materials,
+            a.pairs,
+            a.chunk,
+            a.seed,
+            a.shard,
+            a.walks,
+            log=lambda s: print(s, file=sys.stderr, flush=True),
+        )
+    except OptionError as e:  # options that do not fit the folder or each other
+        ap.error(str(e))
 
 
 if __name__ == "__main__":

@@ -33,15 +33,19 @@ def load_decoder(ckpt) -> tuple[Decoder, torch.Tensor]:
     return dec, s["latents"]
 
 
-def latent_pair_loss(dec: Decoder, z, wi, wo, f, idx, loss: str) -> torch.Tensor:
+def latent_pair_loss(dec: Decoder, z, wi, wo, f, idx, loss: str, scale=None) -> torch.Tensor:
     """Mean ``loss`` of latents z (C, 3, 32) at the pairs ``idx`` of the C tabulated BRDFs (C, P, 3):
-    every channel of every BRDF at the same pairs."""
+    every channel of every BRDF at the same pairs. ``scale`` (C, P): what the decoder's output is multiplied
+    by before it is compared (a ``--top-transmission`` decoder's ``train_decoder.batch_of`` scale)."""
     c, q = z.shape[0], idx.shape[0]
     wi_r = wi[:, idx].unsqueeze(1).expand(c, 3, q, 3).reshape(-1, 3)
     wo_r = wo[:, idx].unsqueeze(1).expand(c, 3, q, 3).reshape(-1, 3)
     f_r = f[:, idx].permute(0, 2, 1).reshape(-1)
     zz = z.unsqueeze(2).expand(c, 3, q, 32).reshape(-1, 32)
-    return pair_loss(dec(zz, wi_r, wo_r), f_r, wi_r, wo_r, loss).mean()
+    pred = dec(zz, wi_r, wo_r)
+    if scale is not None:
+        pred = pred * scale[:, idx].unsqueeze(1).expand(c, 3, q).reshape(-1)
+    return pair_loss(pred, f_r, wi_r, wo_r, loss).mean()
 
 
 def project(
@@ -57,12 +61,16 @@ def project(
     chunk_pairs: int | None = None,
     seed: int = 0,
     log=None,
+    scale=None,
 ) -> torch.Tensor:
     """Latents (C, 3, 32) of C tabulated RGB BRDFs given at (C, P, 3) direction pairs with values f (C, P, 3).
 
     ``init``: one latent (3, 32) for all, or one per BRDF (C, 3, 32); ``chunk_pairs``: pairs drawn per
-    step (the same for all C; seeded by ``seed``), all of them when not given."""
+    step (the same for all C; seeded by ``seed``), all of them when not given; ``scale`` (C, P): the factor on
+    the decoder's output before it is compared (``latent_pair_loss``)."""
     wi, wo, f = (torch.as_tensor(np.asarray(a), dtype=torch.float32) for a in (wi, wo, f))
+    if scale is not None:
+        scale = torch.as_tensor(np.asarray(scale), dtype=torch.float32)
     c, p = wi.shape[:2]
     z = torch.zeros(c, 3, 32) if init is None else torch.as_tensor(init, dtype=torch.float32).expand(c, 3, 32).clone()
     z.requires_grad_(True)
@@ -77,7 +85,7 @@ def project(
             idx = torch.arange(p)
         for g in opt.param_groups:
             g["lr"] = lr * (0.1 + 0.9 * 0.5 * (1 + np.cos(np.pi * step / steps)))
-        l = latent_pair_loss(dec, z, wi, wo, f, idx, loss)
+        l = latent_pair_loss(dec, z, wi, wo, f, idx, loss, scale)
         opt.zero_grad()
         l.backward()
         opt.step()

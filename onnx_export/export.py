@@ -5,13 +5,20 @@
 
 writes ``addon/models/decoder_<size>.onnx`` and ``encoder_<size>.onnx`` with a model card
 (``.json``) each. The card's held-out errors and speed come from ``--metrics`` (written by
-``benchmarks/bench_decoders.py``) when given.
+``benchmarks/bench_decoders.py``) when given; its data commands are those the training checkpoint recorded
+when it loaded the data (``train_decoder.data_records``).
+
+Every graph is checked against torch (``PARITY_TOLERANCE``): the files are written beside ``--out`` first and
+replace what is there only when every parity holds; otherwise the export exits non-zero naming the graph and
+leaves ``--out`` as it was.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -23,9 +30,11 @@ from onnx_export.cli import command_line
 from onnx_export.evaluate import load_decoder
 from onnx_export.layered_data import data_command, holds_layering_data
 from onnx_export.nets import Decoder, Encoder, LatentProjection, RGBDecoder, macs_per_eval, n_params
+from onnx_export.train_decoder import decoder_design
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"
 OPSET = 17
+PARITY_TOLERANCE = 1e-4  # max relative difference of ONNX Runtime against torch that an export accepts
 
 
 def export_decoder(dec: Decoder, path: Path) -> None:
@@ -293,6 +302,26 @@ def regraph_decoder(size: str, model_dir: Path = MODEL_DIR) -> dict:
 SINGLE_DATA_COMMAND = "python -m onnx_export.data --set single --materials 4096 --pairs 1024 --out cache/data/single"
 
 
+def parity_failures(figures: dict[str, float], tolerance: float = PARITY_TOLERANCE) -> list[str]:
+    """The entries of ``figures`` (graph -> max relative difference of ONNX Runtime against torch) above
+    ``tolerance`` (NaN included), as words for the error."""
+    return [f"{k}: {v:.3g}" for k, v in figures.items() if not v <= tolerance]
+
+
+def data_record(ckpt: dict) -> tuple[str | list[str], int | list[int]]:
+    """The data commands and seeds of a ``train_decoder`` checkpoint (one each, or one per set): those it
+    recorded when it loaded the data; checkpoints from before the record: the layering folders as they are now
+    and the single-layer set's usual command."""
+    records = ckpt.get("data_records")
+    if records:
+        cmds, seeds = [r["command"] for r in records], [r["seed"] for r in records]
+    else:
+        dirs = [Path(d) for d in ckpt["args"]["data"]]
+        cmds = [data_command(d) if holds_layering_data(d) else SINGLE_DATA_COMMAND for d in dirs]
+        seeds = [1]
+    return (cmds[0] if len(cmds) == 1 else cmds), (seeds[0] if len(seeds) == 1 else seeds)
+
+
 def training_commands(ckpt: dict) -> list[str]:
     """The train_decoder commands that made a checkpoint, first stage first: a run started with
     ``--init`` from another run's checkpoint is preceded by that run's command (when it is here)."""
@@ -348,30 +377,54 @@ def main(argv=None):
     if a.decoder is None or a.encoder is None:
         ap.error("--decoder and --encoder are required (or --regraph)")
     a.out.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=".export-", dir=a.out))  # same file system: each file moves in at once
+    try:
+        written = export_into(a, stage)
+        for p in sorted(stage.iterdir()):
+            p.replace(a.out / p.name)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+    print(json.dumps({k: (str(a.out / v.name) if isinstance(v, Path) else v) for k, v in written.items()}))
+
+
+def export_into(a, folder: Path) -> dict:
+    """Export the decoder and encoder checkpoints of ``a`` with their cards into ``folder``; raises
+    ``SystemExit`` (before any card is written) when a graph's parity exceeds ``PARITY_TOLERANCE``."""
     dck = torch.load(a.decoder, weights_only=False)
     # trained on remainders (train_decoder --remainder): the card says so, and the runtime adds the exact top lobe
-    remainder = dck.get("args", {}).get("remainder") in (True, "True")
-    transmission = remainder and dck.get("args", {}).get("top_transmission") in (True, "True")
+    remainder, transmission = decoder_design(dck.get("args", {}))
     dec, latents = load_decoder(dck)
     eck = torch.load(a.encoder, weights_only=False)
     enc = Encoder(**eck["config"])
     enc.load_state_dict(eck["encoder"])
-    dpath = a.out / f"decoder_{a.size}.onnx"
-    epath = a.out / f"encoder_{a.size}.onnx"
+    dpath = folder / f"decoder_{a.size}.onnx"
+    epath = folder / f"encoder_{a.size}.onnx"
     export_decoder(dec, dpath)
     export_encoder(enc, epath)
     dpar = decoder_parity(dec, dpath)
-    rgb_path = a.out / f"decoder_{a.size}_rgb.onnx"
-    latents_path = a.out / f"decoder_{a.size}_latents.onnx"
+    rgb_path = folder / f"decoder_{a.size}_rgb.onnx"
+    latents_path = folder / f"decoder_{a.size}_latents.onnx"
     export_rgb_decoder(dec, rgb_path)
     export_latent_graph(dec, latents_path)
     rgb_card = rgb_graph_card(dec, rgb_path, latents_path)
     rng = np.random.default_rng(1)
     epar = encoder_parity(enc, epath, rng.random((512, N_FEATURES)).astype(np.float32))
+    bad = parity_failures(
+        {
+            dpath.name: dpar,
+            rgb_path.name: rgb_card["onnx_runtime_vs_torch_max_relative_difference"],
+            latents_path.name: rgb_card["latent_graph"]["onnx_runtime_vs_torch_max_relative_difference"],
+            epath.name: epar,
+        }
+    )
+    if bad:
+        raise SystemExit(
+            f"export of {a.decoder} refused: ONNX Runtime differs from torch by more than {PARITY_TOLERANCE:g} "
+            f"(max relative difference) in {'; '.join(bad)}; nothing written to {a.out}"
+        )
     metrics = json.loads(a.metrics.read_text()) if a.metrics else {}
     targs = dck["args"]
-    data_cmd = [data_command(Path(d)) if holds_layering_data(Path(d)) else SINGLE_DATA_COMMAND for d in targs["data"]]
-    data_cmd = data_cmd[0] if len(data_cmd) == 1 else data_cmd
+    data_cmd, data_seed = data_record(dck)
     stages = training_commands(dck)
     from addon.core.neural.models import file_digest
 
@@ -419,7 +472,7 @@ def main(argv=None):
             ),
             "steps": dck["step"],
             "final_loss": dck.get("loss"),
-            "seeds": {"data": 1, "training": targs.get("seed", 0)},
+            "seeds": {"data": data_seed, "training": targs.get("seed", 0)},
             "loss": loss_text(targs),
         },
         "onnx_runtime_vs_torch_max_relative_difference": dpar,
@@ -448,17 +501,13 @@ def main(argv=None):
     }
     dpath.with_suffix(".json").write_text(json.dumps(dcard, indent=1) + "\n")
     epath.with_suffix(".json").write_text(json.dumps(ecard, indent=1) + "\n")
-    print(
-        json.dumps(
-            {
-                "decoder": str(dpath),
-                "parity": dpar,
-                "rgb_parity": rgb_card["onnx_runtime_vs_torch_max_relative_difference"],
-                "encoder": str(epath),
-                "encoder_parity": epar,
-            }
-        )
-    )
+    return {
+        "decoder": dpath,
+        "parity": dpar,
+        "rgb_parity": rgb_card["onnx_runtime_vs_torch_max_relative_difference"],
+        "encoder": epath,
+        "encoder_parity": epar,
+    }
 
 
 if __name__ == "__main__":

@@ -16,14 +16,15 @@ coating's roughness widened by a factor in [1, 2] (the specular lobe), a quarter
 uniform. Parameters span the trained ranges (``onnx_export.data.sample_layered_params``).
 
 Chunk ``j`` depends only on ``(seed, coatings, j)``: ``--shard i/n`` makes chunks i, i+n, ...;
-finished chunks are skipped, so a killed run resumes where it stopped.
+finished chunks are skipped, so a killed run resumes where it stopped. ``OUT/manifest.json`` records the
+options the chunks were made with, as for ``onnx_export.data`` (``data.prepare_out``): a rerun with other
+options is refused, a larger ``--stacks`` adds chunks and makes a short last chunk again.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,22 @@ import numpy as np
 from addon.core.bsdf import ggx
 from addon.core.bsdf.lambert import sample_cosine_hemisphere
 from addon.core.stack import StackArrays
-from onnx_export.data import parse_shard, sample_layered_params, uniform_hemisphere
+from onnx_export.cli import command_line, positive_int
+from onnx_export.data import (
+    OptionError,
+    check_counts,
+    chunk_rows,
+    finished_chunks,
+    parse_shard,
+    prepare_out,
+    read_manifest,
+    sample_layered_params,
+    uniform_hemisphere,
+    write_chunks,
+)
+
+DEFAULT_SEED = 11
+DEFAULT_WALKS = 8
 
 
 def _unit_above(w: np.ndarray) -> np.ndarray:
@@ -96,33 +112,35 @@ def generate(
     shard=(0, 1),
     log=print,
 ) -> list[Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    n_chunks = (stacks + chunk - 1) // chunk
-    mine = list(range(shard[0], n_chunks, shard[1]))
-    t0 = time.perf_counter()
-    done = 0
-    for j in mine:
-        path = out / f"chunk_{j:05d}.npz"
-        if path.exists():
-            continue
-        size = min(chunk, stacks - j * chunk)
-        data = make_chunk(seed, coatings, j, size, n_wo, n_wi, walks)
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, **data)
-        tmp.replace(path)
-        done += 1
-        el = time.perf_counter() - t0
-        left = sum(1 for q in mine if not (out / f"chunk_{q:05d}.npz").exists())
-        log(
+    """Write the chunks of this shard under ``out`` (skipping finished ones); return their paths. ``out`` must
+    hold no chunks made with other options (``data.prepare_out``)."""
+    check_counts(stacks=stacks, wo=n_wo, wi=n_wi, walks=walks, chunk=chunk)
+    options = {"coatings": coatings, "seed": seed, "wo": n_wo, "wi": n_wi, "walks": walks, "chunk": chunk}
+
+    def visible(path: Path) -> dict:
+        with np.load(path) as d:
+            shown = {"coatings": d["p_coat_roughness"].shape[1], "wo": d["wi"].shape[1], "wi": d["wi"].shape[2]}
+            return {k: int(v) for k, v in shown.items()} | ({"walks": int(d["walks"][0])} if "walks" in d else {})
+
+    prepare_out(out, options, "stacks", stacks, visible, log)
+    return write_chunks(
+        out,
+        "stacks",
+        stacks,
+        chunk,
+        shard,
+        lambda j, size: make_chunk(seed, coatings, j, size, n_wo, n_wi, walks),
+        lambda j, size: (
             f"[layering data c{coatings} shard {shard[0]}/{shard[1]}] chunk {j} ({size} stacks x {n_wo} x {n_wi} "
-            f"values, {walks} walks) {el:.0f} s, eta {el / done * left:.0f} s"
-        )
-    return [out / f"chunk_{j:05d}.npz" for j in mine]
+            f"values, {walks} walks)"
+        ),
+        log,
+    )
 
 
 def chunk_paths(out: Path) -> list[Path]:
     """The finished chunks under ``out``, in order (an interrupted chunk is still a ``.tmp.npz``)."""
-    return sorted(p for p in Path(out).glob("chunk_*.npz") if not p.name.endswith(".tmp.npz"))
+    return finished_chunks(out)
 
 
 def load(out: Path) -> dict:
@@ -144,15 +162,24 @@ def holds_layering_data(out: Path) -> bool:
 
 
 def data_command(out: Path, coatings: int | None = None, default_stacks: int = 0) -> str:
-    """The command that makes the layering data under ``out``: its coatings and number of stacks as
-    found there, else ``coatings`` and ``default_stacks`` (data not on this machine)."""
+    """The command that makes the layering data under ``out``: the options of its manifest and the stacks its
+    chunks hold; chunks from before manifests: their coatings, stacks and walks as found there, the other
+    options their defaults; no data here: ``coatings`` and ``default_stacks`` (data not on this machine)."""
     chunks = chunk_paths(out)
+    held = read_manifest(out) if chunks else None
+    if held is not None:
+        opts = {k: v for k, v in held.items() if k != "stacks"}
+        stacks = sum(chunk_rows(c) for c in chunks)
+        return command_line(
+            "onnx_export.layered_data",
+            {"coatings": opts.pop("coatings"), "stacks": stacks, **opts, "out": str(out)},
+        )
     if chunks:
         first = np.load(chunks[0])
         coatings = first["p_coat_roughness"].shape[1]
-        stacks = int(sum(np.load(c)["wo"].shape[0] for c in chunks))
-        walks = int(first["walks"][0]) if "walks" in first else 8  # chunks from before it was recorded: the default
-        if walks != 8:
+        stacks = sum(chunk_rows(c) for c in chunks)
+        walks = int(first["walks"][0]) if "walks" in first else DEFAULT_WALKS  # chunks from before it was recorded
+        if walks != DEFAULT_WALKS:
             return (
                 f"python -m onnx_export.layered_data --coatings {coatings} --stacks {stacks} --walks {walks} "
                 f"--out {out}"
@@ -167,27 +194,30 @@ def data_command(out: Path, coatings: int | None = None, default_stacks: int = 0
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--coatings", type=int, default=1, choices=(1, 2, 3, 4))
-    ap.add_argument("--stacks", type=int, default=3072)
-    ap.add_argument("--wo", type=int, default=16, help="outgoing directions per stack")
-    ap.add_argument("--wi", type=int, default=64, help="incident directions per outgoing direction")
-    ap.add_argument("--walks", type=int, default=8, help="reference walks per outgoing direction")
-    ap.add_argument("--chunk", type=int, default=128)
-    ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--stacks", type=positive_int, default=3072)
+    ap.add_argument("--wo", type=positive_int, default=16, help="outgoing directions per stack")
+    ap.add_argument("--wi", type=positive_int, default=64, help="incident directions per outgoing direction")
+    ap.add_argument("--walks", type=positive_int, default=DEFAULT_WALKS, help="reference walks per outgoing direction")
+    ap.add_argument("--chunk", type=positive_int, default=128)
+    ap.add_argument("--seed", type=int, default=DEFAULT_SEED)
     ap.add_argument("--shard", type=parse_shard, default=(0, 1))
     ap.add_argument("--out", type=Path, required=True)
     a = ap.parse_args(argv)
-    generate(
-        a.out,
-        a.coatings,
-        a.stacks,
-        a.wo,
-        a.wi,
-        a.walks,
-        a.chunk,
-        a.seed,
-        a.shard,
-        log=lambda s: print(s, file=sys.stderr, flush=True),
-    )
+    try:
+        generate(
+            a.out,
+            a.coatings,
+            a.stacks,
+            a.wo,
+            a.wi,
+            a.walks,
+            a.chunk,
+            a.seed,
+            a.shard,
+            log=lambda s: print(s, file=sys.stderr, flush=True),
+        )
+    except OptionError as e:  # options that do not fit the folder
+        ap.error(str(e))
 
 
 if __name__ == "__main__":

@@ -32,11 +32,13 @@ with the same stacks computed with more walks, ``--decoded-data``); docs/layerin
 them. Against data, the stage also runs without ``--projected``, from a trained network
 (``--init-from SIZE``): more steps, or more stacks, without a new projection.
 
-Checkpoints go to ``OUT/ckpt.pt`` (resumable, the function-space stage too); the held-out lobe error
-(``tests/data/heldout_layered.npz``) is measured at the end of each stage and every ``--eval-every``
-steps. With ``--keep-best`` (and a validation set as ``--heldout``) ``OUT/best.pt`` keeps the network of
-the best of those evaluations (``selection_score``): a later stage that loses what an earlier one reached
-does not take it away. ``train`` runs unchanged under ``torchrun --nproc_per_node N``
+Checkpoints go to ``OUT/ckpt.pt`` (resumable, every stage: the optimiser and the batch generator are saved,
+so a resumed run continues as the uninterrupted one; a rerun with other arguments than the checkpoint's is
+refused, naming the flag); the held-out lobe error (``--heldout``, ``tests/data/heldout_layered.npz``; a
+missing file is an error at the start, ``--heldout none`` measures nothing) is measured at the end of each
+stage and every ``--eval-every`` steps. With ``--keep-best`` (and a validation set as ``--heldout``)
+``OUT/best.pt`` keeps the network of the best of those evaluations (``selection_score``): a later stage that
+loses what an earlier one reached does not take it away. ``train`` runs unchanged under ``torchrun --nproc_per_node N``
 (``onnx_export.distributed``): each process takes its 1/N of the stacks of every batch, and process 0
 measures, logs and checkpoints.
 """
@@ -56,7 +58,7 @@ from torch import nn
 from addon.core.neural.features import arrays_features
 from addon.core.neural.models import ModelSet, file_digest
 from addon.core.stack import TRAINED_RANGES, StackArrays
-from onnx_export.cli import command_line
+from onnx_export.cli import check_resume, command_line, positive_int
 from onnx_export.distributed import ONE_PROCESS, Processes, processes, quiet_unless_main
 from onnx_export.layered_data import data_command
 from onnx_export.nets import LATENT, cosine_lr, level_weights, macs_per_eval, mlp, n_params, pair_loss, stack_levels
@@ -65,6 +67,27 @@ from onnx_export.remainder import remainder_scales, top_reflection
 MODEL_DIR = Path(__file__).resolve().parents[1] / "addon" / "models"
 OPSET = 17
 THICKNESS_MAX = TRAINED_RANGES["thickness"][1]
+# what a resumed ``train`` may change (more steps, logging, evaluation); any other argument must be the checkpoint's
+RESUME_FREE = ("steps", "finetune", "every", "eval_every", "log_every", "threads", "out", "cmd", "heldout", "keep_best")
+
+
+def heldout_path(text: str) -> Path | None:
+    """argparse type of ``--heldout``: a path, or ``none`` for no held-out evaluation."""
+    return None if text.lower() == "none" else Path(text)
+
+
+def check_heldout(args) -> None:
+    """``FileNotFoundError`` at the start of a run whose ``--heldout`` file is missing (every evaluation, and
+    ``--keep-best``, would be skipped without a word); ``ValueError`` for ``--keep-best`` without one."""
+    if args.heldout is None:
+        if args.keep_best:
+            raise ValueError("--keep-best keeps the network of the best held-out evaluation: give --heldout")
+        return
+    if not Path(args.heldout).exists():
+        raise FileNotFoundError(
+            f"--heldout {args.heldout}: no such file (make it with onnx_export.heldout_layered, or give "
+            "--heldout none to train without held-out evaluations)"
+        )
 
 
 class LayeringNet(nn.Module):
@@ -696,6 +719,11 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
 
     if args.finetune:
         stage2_shares(args)  # a bad --c3-share fails now, not after stage 1
+    check_heldout(args)
+    ckpt = Path(args.out) / "ckpt.pt"
+    resumed = torch.load(ckpt, weights_only=False) if ckpt.exists() else None
+    if resumed is not None:  # a resumed run continues the same one
+        check_resume(resumed["args"], vars(args), RESUME_FREE, ckpt)
     procs = processes()
     log = quiet_unless_main(log, procs)
     torch.set_num_threads(args.threads)
@@ -714,7 +742,7 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
     sets = {1: stack_set(args, models, args.c1, args.stacks)}  # two-coating data are loaded when stage 2 starts
 
     def heldout():  # measured by process 0 only
-        return load_heldout(args.heldout) if procs.main and args.heldout.exists() else None
+        return load_heldout(args.heldout) if procs.main and args.heldout is not None else None
 
     net = LayeringNet(args.width, args.depth)
     init_rec = None
@@ -736,13 +764,13 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    ckpt = out / "ckpt.pt"
-    step, hist, resumed = 0, ({"init_from": init_rec} if init_rec else {}), None
-    if ckpt.exists():
-        resumed = torch.load(ckpt, weights_only=False)
+    step, hist = 0, ({"init_from": init_rec} if init_rec else {})
+    if resumed is not None:
         net.load_state_dict(resumed["net"])
         opt.load_state_dict(resumed["opt"])
         step, hist = resumed["step"], resumed.get("history", {})
+        if "gen" in resumed:  # the batches continue where they stopped (checkpoints before it: drawn afresh)
+            gen.set_state(resumed["gen"])
         log(f"resumed from {ckpt} at step {step}")
     total = args.steps + args.finetune
 
@@ -757,6 +785,7 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
                 "net": net.state_dict(),
                 "config": net.config(),
                 "opt": opt.state_dict(),
+                "gen": gen.get_state(),
                 "step": step,
                 "trained_with": trained_with,
                 "history": hist,
@@ -770,10 +799,12 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
         path.with_suffix(".tmp").replace(path)
 
     fresh_opt = False  # a stage below ran in this call: the stages after it start with a fresh optimiser
-    if args.projected and step == 0 and "regressed" not in hist:
+    # stage 0 is done once the checkpoint records it ("projected"; older ones: "regressed", which only a run
+    # with held-out evaluations wrote)
+    if args.projected and step == 0 and not {"projected", "regressed"} & hist.keys():
         targets, refit = projected_targets(args, models, sets, args.shrink)
-        hist["projected"] = {"latents": str(args.projected), "refit": refit, "shrink": args.shrink}
         regress_projected(net, sets, targets, args, gen, log, procs)
+        hist["projected"] = {"latents": str(args.projected), "refit": refit, "shrink": args.shrink}
         if heldout() is not None:
             hist["regressed"] = heldout_error(
                 net, dec, models, heldout(), log, remainder=args.remainder, transmission=args.top_transmission
@@ -799,18 +830,7 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
                 rec["shrink"] = args.decoded_shrink
             else:
                 rec["data"] = [dsets[c].command for c in dsets]
-        else:
-            if rec.get("reciprocal", False) != args.decoded_reciprocal:
-                raise ValueError(
-                    f"{ckpt} holds a function-space stage "
-                    f"{'with' if rec.get('reciprocal') else 'without'} --decoded-reciprocal: resume it "
-                    "the same way, or train into another --out"
-                )
-            if rec["steps"] != args.decoded_steps:  # its learning-rate schedule is that of its own length
-                raise ValueError(
-                    f"{ckpt} holds a function-space stage of {rec['steps']} steps: resume it with "
-                    f"--decoded-steps {rec['steps']}, or train into another --out"
-                )
+        else:  # the same stage resumed (check_resume: with the same --decoded-steps, its schedule's length)
             opt_state = resumed["decoded_opt"]
             gen.set_state(resumed["decoded_gen"])
             log(f"function-space stage resumed at step {rec['step']}")
@@ -842,7 +862,7 @@ def train(args, log=print) -> dict:  # noqa: C901 (one stage after another; to b
         opt = torch.optim.Adam(net.parameters(), lr=args.lr)  # the stages below start afresh
     log(f"layering net {net.config()} params {n_params(net)}; one-coating stacks {sets[1].n}; loss {args.loss}")
     t0 = time.perf_counter()
-    ema = None
+    ema = resumed.get("loss") if resumed is not None and step > 0 else None
     while step < total:
         stage2 = step >= args.steps
         if stage2:
@@ -1059,7 +1079,9 @@ def export(args, log=print) -> dict:
         "heldout": {
             **{k: v for k, v in s.get("history", {}).items() if k in ("regressed", "stage1", "stage2")},
             **({"decoded": decoded["heldout"]} if "heldout" in decoded else {}),
-            "set": str(a.get("heldout", "tests/data/heldout_layered.npz")),
+            "set": None
+            if a.get("heldout") in (None, "None")
+            else str(a.get("heldout", "tests/data/heldout_layered.npz")),
             "when": "measured at training time against the reference file of that time; "
             "heldout_runtime: the latest benchmark run",
             "metric": "relative RMSE of lobe images at 0/30/60/75 deg; albedo error = |albedo from lobe|",
@@ -1106,7 +1128,13 @@ def parser() -> argparse.ArgumentParser:
         "four deep as well",
     )
     t.add_argument("--stacks", type=int, default=0, help="use only the first N one-coating stacks (0: all)")
-    t.add_argument("--heldout", type=Path, default=Path("tests/data/heldout_layered.npz"))
+    t.add_argument(
+        "--heldout",
+        type=heldout_path,
+        default=Path("tests/data/heldout_layered.npz"),
+        help="the held-out (or validation) set measured along the way (onnx_export.heldout_layered); none: no "
+        "evaluation",
+    )
     t.add_argument(
         "--init-from",
         default=None,
@@ -1119,8 +1147,8 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--steps", type=int, default=4000)
     t.add_argument("--finetune", type=int, default=1500)
     t.add_argument("--finetune-lr-scale", type=float, default=0.3)
-    t.add_argument("--batch", type=int, default=64, help="stacks per step")
-    t.add_argument("--pairs", type=int, default=128, help="direction pairs per stack per step")
+    t.add_argument("--batch", type=positive_int, default=64, help="stacks per step")
+    t.add_argument("--pairs", type=positive_int, default=128, help="direction pairs per stack per step")
     t.add_argument("--lr", type=float, default=1e-3)
     t.add_argument("--clip", type=float, default=1.0)
     t.add_argument(
@@ -1236,9 +1264,9 @@ def parser() -> argparse.ArgumentParser:
         choices=(1, 2),
         help="coating counts of the function-space stage (default: those regressed with --projected, else 1 and 2)",
     )
-    t.add_argument("--threads", type=int, default=1)
+    t.add_argument("--threads", type=positive_int, default=1)
     t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--every", type=int, default=250)
+    t.add_argument("--every", type=positive_int, default=250)
     t.add_argument("--eval-every", type=int, default=1000, help="held-out error every N steps (0: stage ends only)")
     t.add_argument(
         "--keep-best",
@@ -1246,7 +1274,7 @@ def parser() -> argparse.ArgumentParser:
         help="also keep OUT/best.pt, the network of the evaluation with the lowest selection_score (use a "
         "validation set as --heldout, never the held-out set the figures are reported on)",
     )
-    t.add_argument("--log-every", type=int, default=50)
+    t.add_argument("--log-every", type=positive_int, default=50)
     t.add_argument("--out", type=Path, required=True)
     e = sub.add_parser("export")
     e.add_argument("--size", default="tiny")

@@ -18,6 +18,11 @@ its frozen decoder, starting from them, with each set's training loss, and write
 with those latents replaced (the decoder and every other latent unchanged; ``refit`` records how).
 Stacks are re-fitted a chunk at a time and the checkpoint is written after each, so a rerun of the
 same command resumes.
+
+Either way the targets are what the decoder holds, and its output is compared as it was trained: a decoder of
+the remainder design (``train_decoder --remainder``, or a shipped card's ``remainder``) is fitted to each
+stack's BRDF minus its exact top-interface reflection, and a ``--top-transmission`` one with its output times
+the top coat's transmission (``train_decoder.load_training_tensors``, the trainer's own targets).
 """
 
 from __future__ import annotations
@@ -30,23 +35,29 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from addon.core.neural.models import read_card
 from onnx_export.cli import command_line
 from onnx_export.evaluate import latent_pair_loss, load_decoder, project
-from onnx_export.layered_data import load
-from onnx_export.layering import frozen_decoder
-from onnx_export.train_decoder import load_set
+from onnx_export.layering import MODEL_DIR, frozen_decoder
+from onnx_export.train_decoder import decoder_design, load_training_tensors
+
+
+def fit_targets(data: Path, stacks: int, remainder: bool, transmission: bool) -> tuple:
+    """wi, wo, f (n, P, 3) and the output scale (n, P) or None of the first ``stacks`` stacks of ``data`` (0: all)
+    for a decoder of the given design: the targets and scale its training used (``load_training_tensors``)."""
+    t = load_training_tensors([Path(data)], stacks or None, remainder=remainder, transmission=transmission)
+    return t["wi"], t["wo"], t["f"], t.get("scale")
 
 
 def project_set(
     size: str, data: Path, steps: int, chunk: int, pairs: int, loss: str, stacks: int = 0, lr: float = 0.03, log=print
 ) -> np.ndarray:
+    """Latents (n, 3, 32) of the stacks of ``data`` projected from zero into the shipped decoder of ``size``,
+    against what that decoder holds (its card's ``remainder`` and ``top_transmission``)."""
     dec = frozen_decoder(size)
-    d = load(data)
-    n, p, m = d["wi"].shape[:3]
-    n = min(n, stacks) if stacks else n
-    wi = d["wi"][:n].reshape(n, p * m, 3)
-    wo = np.repeat(d["wo"][:n], m, axis=1)
-    f = d["f"][:n].reshape(n, p * m, 3)
+    card = read_card("decoder", size, MODEL_DIR)
+    wi, wo, f, scale = fit_targets(data, stacks, card.get("remainder") is True, card.get("top_transmission") is True)
+    n = wi.shape[0]
     z = np.zeros((n, 3, 32), dtype=np.float32)
     t0 = time.perf_counter()
     for s in range(0, n, chunk):  # a loop over chunks of stacks
@@ -59,17 +70,20 @@ def project_set(
             lr=lr,
             loss=loss,
             chunk_pairs=pairs,
+            scale=None if scale is None else scale[s : s + chunk],
         ).numpy()
         log(f"projected {min(n, s + chunk)}/{n} stacks {time.perf_counter() - t0:.0f} s")
     return z
 
 
 @torch.no_grad()
-def mean_pair_loss(dec, wi, wo, f, z, loss: str, pairs: int = 256, seed: int = 1) -> float:
-    """Mean ``loss`` of latents z (C, 3, 32) on ``pairs`` fixed pairs of each of the C stacks (C, P, 3)."""
+def mean_pair_loss(dec, wi, wo, f, z, loss: str, pairs: int = 256, seed: int = 1, scale=None) -> float:
+    """Mean ``loss`` of latents z (C, 3, 32) on ``pairs`` fixed pairs of each of the C stacks (C, P, 3), the
+    decoder's output times ``scale`` (C, P) when given."""
     gen = torch.Generator().manual_seed(seed)
     p = wi.shape[1]
-    return float(latent_pair_loss(dec, z, wi, wo, f, torch.randint(0, p, (min(pairs, p),), generator=gen), loss))
+    idx = torch.randint(0, p, (min(pairs, p),), generator=gen)
+    return float(latent_pair_loss(dec, z, wi, wo, f, idx, loss, scale))
 
 
 def refit_checkpoint(
@@ -87,7 +101,8 @@ def refit_checkpoint(
     log=print,
 ) -> dict:
     """Re-fit the latents of the stacks of ``data`` (sets of the ``train_decoder`` checkpoint ``ckpt``)
-    against its frozen decoder; write the checkpoint with them replaced to ``out``. Returns ``refit``."""
+    against its frozen decoder, on the targets it was trained on (``--remainder``, ``--top-transmission``:
+    ``fit_targets``); write the checkpoint with them replaced to ``out``. Returns ``refit``."""
     s = torch.load(ckpt, weights_only=False)
     if "units_per_set" not in s:
         raise ValueError(f"{ckpt} does not record which latents belong to which data set (train it again)")
@@ -113,6 +128,7 @@ def refit_checkpoint(
     dec, _ = load_decoder(s)
     for p_ in dec.parameters():
         p_.requires_grad_(False)
+    remainder, transmission = decoder_design(s["args"])
     for d in data:
         if Path(d).resolve() not in dirs:
             raise ValueError(f"{ckpt} was not trained on {d}: its sets are {s['args']['data']}")
@@ -120,8 +136,7 @@ def refit_checkpoint(
         kind = loss or kinds[i]
         start = sum(s["units_per_set"][:i])
         n = s["units_per_set"][i] // 3
-        t = load_set(Path(d))
-        wi, wo, f = (torch.from_numpy(np.ascontiguousarray(t[k][:n], dtype=np.float32)) for k in ("wi", "wo", "f"))
+        wi, wo, f, scale = fit_targets(Path(d), n, remainder, transmission)
         rec = refit["sets"].setdefault(
             str(d), {"stacks": n, "done": 0, "loss": kind, "loss_before": [], "loss_after": []}
         )
@@ -129,11 +144,22 @@ def refit_checkpoint(
         while rec["done"] < n:  # a loop over chunks of stacks; each chunk is one batched projection
             a, b = rec["done"], min(n, rec["done"] + chunk)
             z0 = s["latents"][start + 3 * a : start + 3 * b].reshape(-1, 3, 32)
-            before = mean_pair_loss(dec, wi[a:b], wo[a:b], f[a:b], z0, kind)
+            sc = None if scale is None else scale[a:b]
+            before = mean_pair_loss(dec, wi[a:b], wo[a:b], f[a:b], z0, kind, scale=sc)
             z = project(
-                dec, wi[a:b], wo[a:b], f[a:b], init=z0, steps=steps, lr=lr, loss=kind, chunk_pairs=pairs, seed=seed + a
+                dec,
+                wi[a:b],
+                wo[a:b],
+                f[a:b],
+                init=z0,
+                steps=steps,
+                lr=lr,
+                loss=kind,
+                chunk_pairs=pairs,
+                seed=seed + a,
+                scale=sc,
             )
-            after = mean_pair_loss(dec, wi[a:b], wo[a:b], f[a:b], z, kind)
+            after = mean_pair_loss(dec, wi[a:b], wo[a:b], f[a:b], z, kind, scale=sc)
             s["latents"][start + 3 * a : start + 3 * b] = z.reshape(-1, 32)
             rec["loss_before"].append(before)
             rec["loss_after"].append(after)

@@ -25,6 +25,10 @@ second implementation of the proxy's formula in torch. The table's minimum is th
 per-material fit could reach; both are reported. Latents come from the runtime encoders and layering
 network (``addon.core.neural.encode``) of random stacks with 0 to 3 coatings.
 
+The tables are kept in ``OUT/tables.npz`` with what they were computed for (``tables_key``: size, seed,
+materials, held-out materials, samples and the digests of the models that made the latents): a rerun with the
+same key reuses them, any other computes them again (with a log line saying what changed).
+
 The same command runs under ``torchrun --nproc_per_node N`` (``onnx_export.distributed``): the tables,
 most of the work, are split by batches of materials (each process skips the random numbers of the
 others' batches, so the tables are those of one process), the training takes 1/N of every batch, and
@@ -227,6 +231,39 @@ def net_from_onnx(path: Path, card: dict) -> SamplingNet:
     return net.eval()
 
 
+def tables_key(args, models) -> dict:
+    """What the KL tables of ``run`` depend on: the run's size, seed, materials, held-out materials and
+    samples, and the digests of the models that encode the materials and decode their BRDFs."""
+    from addon.core.neural.models import file_digest
+
+    paths = (models.encoder_path, models.decoder_path, models.path("layering"))
+    return {
+        "size": args.size,
+        "seed": int(args.seed),
+        "materials": int(args.materials),
+        "heldout": int(args.heldout),
+        "samples": int(args.samples),
+        "models": {p.name: file_digest(p) for p in paths},
+    }
+
+
+def cached_tables(path: Path, key: dict, log) -> dict | None:
+    """The tables in ``path`` when they were computed for ``key`` (``tables_key``), else None (with a log line
+    naming what differs when there are tables of something else)."""
+    if not path.exists():
+        return None
+    d = dict(np.load(path))
+    held = json.loads(str(d.pop("key"))) if "key" in d else {}
+    if held == key:
+        return d
+    changed = [k for k in key if held.get(k) != key[k]]
+    words = ", ".join(
+        f"{k} {held.get(k, '(not recorded)')} -> {key[k]}" if k != "models" else "the models' digests" for k in changed
+    )
+    log(f"{path} holds tables of other settings ({words}): computing them again")
+    return None
+
+
 def run(args, log=print) -> dict:
     from addon.core.neural.models import ModelSet, file_digest
 
@@ -239,8 +276,9 @@ def run(args, log=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     models = ModelSet(args.size, threads=args.threads, model_dir=args.models)
     cache = out / "tables.npz"
-    if cache.exists():
-        d = np.load(cache)
+    key = tables_key(args, models)
+    d = cached_tables(cache, key, log)
+    if d is not None:
         z, table, z_ho, table_ho = d["z"], d["table"], d["z_ho"], d["table_ho"]
     else:
         rng = np.random.default_rng([args.seed, 5])
@@ -254,7 +292,9 @@ def run(args, log=print) -> dict:
             models, z_ho, args.samples, seed=args.seed + 1, log=log, procs=procs, top=material_tops(arrays_ho)
         )
         if procs.main:
-            np.savez(cache, z=z, table=table, z_ho=z_ho, table_ho=table_ho)
+            tmp = cache.with_suffix(".tmp.npz")
+            np.savez(tmp, z=z, table=table, z_ho=z_ho, table_ho=table_ho, key=np.array(json.dumps(key)))
+            tmp.replace(cache)  # whole or not at all
     net = SamplingNet(args.width, args.depth)
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
     zt, tt = torch.from_numpy(z), torch.from_numpy(table)

@@ -6,8 +6,11 @@
 Each step draws ``--batch`` BRDF channels and ``--pairs`` direction pairs of each. The loss
 compares log1p(f cos_i cos_o) of the prediction and the target (``l1``: the median under Monte
 Carlo noise, fine for exact targets; ``l2``: the mean, the right choice for noisy targets).
-Checkpoints (decoder, latents, optimiser, step) go to ``OUT/ckpt.pt`` every ``--every`` steps and
-at the end; rerunning the same command resumes from there. Progress goes to stderr.
+Checkpoints (decoder, latents, optimiser, batch generator, step) go to ``OUT/ckpt.pt`` every ``--every``
+steps and at the end; rerunning the same command resumes from there and continues as the uninterrupted run
+would have (``--steps`` may grow; any other change of the arguments is refused, naming the flag). Each
+checkpoint records the commands of the data as they were loaded (``data_records``, for the model card).
+Progress goes to stderr.
 
 ``--init`` takes another run's checkpoint, or a shipped ``decoder_<size>.onnx`` (its weights; the
 latents then come from ``--init-latents-from``): a size whose training checkpoint is gone continues
@@ -34,6 +37,7 @@ import torch
 from addon.core.stack import StackArrays
 from onnx_export import data as datamod
 from onnx_export import layered_data
+from onnx_export.cli import check_resume, nonnegative_int, positive_int
 from onnx_export.distributed import processes, quiet_unless_main
 from onnx_export.nets import (
     PAIR_LOSSES,
@@ -76,6 +80,26 @@ def load_set(path: Path) -> dict:
         },
     )
     return d
+
+
+def data_records(paths: list[Path]) -> list[dict]:
+    """The command and seed of each data set under ``paths`` as they are now (read from the chunks' manifests,
+    ``data.data_command`` / ``layered_data.data_command``): what a checkpoint records of the data it loaded."""
+    out = []
+    for p in map(Path, paths):
+        mod = layered_data if layered_data.holds_layering_data(p) else datamod
+        out.append(
+            {"command": mod.data_command(p), "seed": (datamod.read_manifest(p) or {}).get("seed", mod.DEFAULT_SEED)}
+        )
+    return out
+
+
+def decoder_design(args: dict) -> tuple[bool, bool]:
+    """(remainder, top_transmission) of a decoder trained with the stored arguments ``args`` (a checkpoint's
+    ``args``, values or their ``str``): what its outputs hold (``--remainder``) and are multiplied by
+    (``--top-transmission``)."""
+    remainder = args.get("remainder") in (True, "True")
+    return remainder, remainder and args.get("top_transmission") in (True, "True")
 
 
 def load_training_tensors(
@@ -232,7 +256,11 @@ def batch_of(t: dict, units: torch.Tensor, pairs: int, gen: torch.Generator):
     return wi, wo, f
 
 
-def train(args, log=print) -> dict:
+RESUME_FREE = ("steps", "every", "log_every", "threads", "out")  # what a resumed run may change
+
+
+def check_arguments(args) -> None:
+    """``ValueError`` for arguments that do not fit each other (before any work)."""
     n_sets = len(args.data)
     if (
         len(args.loss) not in (1, n_sets)
@@ -243,6 +271,19 @@ def train(args, log=print) -> dict:
             f"--loss, --loss-scales and --data-weights take one value per --data set ({n_sets}) "
             f"(--loss may also take one for all)"
         )
+    if (args.width > 0) != (args.depth > 0) or args.width < 0 or args.depth < 0:
+        raise ValueError(
+            f"--width and --depth go together, each >= 1 (or both 0: the --size's), got --width {args.width} "
+            f"--depth {args.depth}"
+        )
+
+
+def train(args, log=print) -> dict:
+    check_arguments(args)
+    ckpt = Path(args.out) / "ckpt.pt"
+    saved = torch.load(ckpt, weights_only=False) if ckpt.exists() else None
+    if saved is not None:  # a resumed run continues the same one
+        check_resume(saved["args"], vars(args) | {"data": [str(p) for p in args.data]}, RESUME_FREE, ckpt)
     procs = processes()
     mine = procs.rows(args.batch)  # this process's BRDF channels of every batch
     log = quiet_unless_main(log, procs)
@@ -255,9 +296,10 @@ def train(args, log=print) -> dict:
         remainder=getattr(args, "remainder", False),
         transmission=getattr(args, "top_transmission", False),
     )
+    records = data_records(args.data)  # the data as loaded: their commands for the model card
     n_units = t["wi"].shape[0] * 3
     dec = make_decoder(args.size, features=args.features, activation=args.activation)
-    if args.width:
+    if args.width and args.depth:
         dec = Decoder(args.width, args.depth, args.features, args.activation)
     if args.init_scheme == "he":
         he_init(dec)
@@ -276,21 +318,26 @@ def train(args, log=print) -> dict:
         [{"params": dec.parameters(), "lr": args.lr}, {"params": [latents], "lr": args.lr * args.latent_lr_scale}]
     )
     model = AutoDecoder(dec, latents)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    ckpt = out / "ckpt.pt"
+    Path(args.out).mkdir(parents=True, exist_ok=True)
     step = 0
-    if ckpt.exists():
-        s = torch.load(ckpt, weights_only=False)
-        dec.load_state_dict(s["decoder"])
-        latents.data.copy_(s["latents"])
-        opt.load_state_dict(s["opt"])
-        step = s["step"]
-        init_record = s.get("init_record", init_record)
+    ema, ema_set = None, [None] * len(args.data)
+    if saved is not None:
+        if saved["latents"].shape != latents.shape:
+            raise ValueError(
+                f"{ckpt} holds {saved['latents'].shape[0]} BRDF channels, the data under --data now {n_units}: "
+                "the data changed since the run started; train into another --out"
+            )
+        dec.load_state_dict(saved["decoder"])
+        latents.data.copy_(saved["latents"])
+        opt.load_state_dict(saved["opt"])
+        step = saved["step"]
+        init_record = saved.get("init_record", init_record)
+        if "gen" in saved:  # the batches continue where they stopped (checkpoints before it: drawn afresh)
+            gen.set_state(saved["gen"])
+        ema, ema_set = saved.get("loss"), list(saved.get("loss_per_set") or ema_set)
         log(f"resumed from {ckpt} at step {step}")
     log(f"decoder {dec.config()} params {n_params(dec)} MACs/eval {macs_per_eval(dec)}; {n_units} BRDF channels")
     t0 = time.perf_counter()
-    ema, ema_set = None, [None] * len(args.data)
     while step < args.steps:
         lr = cosine_lr(step, args.steps, args.lr)
         opt.param_groups[0]["lr"] = lr
@@ -329,8 +376,10 @@ def train(args, log=print) -> dict:
                     "config": dec.config(),
                     "latents": latents.data,
                     "opt": opt.state_dict(),
+                    "gen": gen.get_state(),
                     "step": step,
                     "args": vars(args) | {"data": [str(p) for p in args.data]},
+                    "data_records": records,
                     "loss": ema,
                     "loss_per_set": ema_set,
                     "units_per_set": units_per_set,
@@ -347,8 +396,12 @@ def train(args, log=print) -> dict:
 def parser():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--size", default="tiny")
-    ap.add_argument("--width", type=int, default=0, help="override the size's width (with --depth)")
-    ap.add_argument("--depth", type=int, default=0)
+    ap.add_argument(
+        "--width", type=nonnegative_int, default=0, help="override the size's width (with --depth; 0: the size's)"
+    )
+    ap.add_argument(
+        "--depth", type=nonnegative_int, default=0, help="override the size's depth (with --width; 0: the size's)"
+    )
     ap.add_argument("--data", type=Path, nargs="+", required=True)
     ap.add_argument(
         "--data-weights",
@@ -368,10 +421,10 @@ def parser():
         default=None,
         help="start the latents from this shipped size's encoder (its latent space), then optimise them",
     )
-    ap.add_argument("--materials", type=int, default=0, help="use only the first N materials (0: all)")
-    ap.add_argument("--steps", type=int, default=6000)
-    ap.add_argument("--batch", type=int, default=64, help="BRDF channels per step")
-    ap.add_argument("--pairs", type=int, default=512, help="direction pairs per BRDF channel per step")
+    ap.add_argument("--materials", type=nonnegative_int, default=0, help="use only the first N materials (0: all)")
+    ap.add_argument("--steps", type=positive_int, default=6000)
+    ap.add_argument("--batch", type=positive_int, default=64, help="BRDF channels per step")
+    ap.add_argument("--pairs", type=positive_int, default=512, help="direction pairs per BRDF channel per step")
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--latent-lr-scale", type=float, default=5.0)
     ap.add_argument("--latent-reg", type=float, default=1e-4)
@@ -419,16 +472,21 @@ def parser():
         help="with --remainder: the decoder's output is multiplied by the top coat's Fresnel transmission in and "
         "out (addon.core.neural.top_lobe.remainder_scale), a structural prior that vanishes at the horizon",
     )
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=positive_int, default=1)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--every", type=int, default=250, help="checkpoint every N steps")
-    ap.add_argument("--log-every", type=int, default=50)
+    ap.add_argument("--every", type=positive_int, default=250, help="checkpoint every N steps")
+    ap.add_argument("--log-every", type=positive_int, default=50)
     ap.add_argument("--out", type=Path, required=True)
     return ap
 
 
 def main(argv=None):
-    args = parser().parse_args(argv)
+    ap = parser()
+    args = ap.parse_args(argv)
+    try:
+        check_arguments(args)
+    except ValueError as e:
+        ap.error(str(e))
     res = train(args, log=lambda s: print(s, file=sys.stderr, flush=True))
     if not processes().main:
         return

@@ -255,7 +255,7 @@ def test_stage_two_trains_each_coating_count_with_an_equal_share_of_the_batch(tm
         return batch(self, net, dec, b, *rest, **kw)
 
     monkeypatch.setattr(lay.StackSet, "batch", recorded)
-    args = ["train", "--size", "tiny", "--init-from", "tiny", "--heldout", str(tmp_path / "none.npz")]
+    args = ["train", "--size", "tiny", "--init-from", "tiny", "--heldout", "none"]
     args += ["--c1", str(tmp_path / "c1"), "--c2", str(tmp_path / "c2"), "--c3", str(tmp_path / "c3")]
     args += ["--c4", str(tmp_path / "c4")]
     args += ["--steps", "1", "--finetune", "2", "--batch", "9", "--pairs", "4", "--out", str(tmp_path / "run")]

@@ -269,7 +269,8 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
     )
     card = json.loads((tmp_path / "models" / "decoder_tiny.json").read_text())["training"]
     assert card["data"][1] == (
-        f"python -m onnx_export.layered_data --coatings 1 --stacks 4 --walks 4 --out {tmp_path / 'layering_c1'}"
+        "python -m onnx_export.layered_data --coatings 1 --stacks 4 --seed 3 --wo 2 --wi 32 --walks 4 --chunk 4 "
+        f"--out {tmp_path / 'layering_c1'}"
     )
     assert "l2rel x 4.0" in card["loss"] and "--loss l1 l2rel" in card["command"]
     # a layering network regressed onto the re-fitted latents, against the decoder and encoder exported above
@@ -288,7 +289,7 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
             "--model-dir",
             str(tmp_path / "models"),
             "--heldout",
-            str(tmp_path / "none.npz"),
+            "none",
             "--regress-steps",
             "20",
             "--decoded-steps",
@@ -329,7 +330,7 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
         "--model-dir",
         str(tmp_path / "models"),
         "--heldout",
-        str(tmp_path / "none.npz"),
+        "none",
         "--regress-steps",
         "5",
         "--decoded-steps",
@@ -345,8 +346,9 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
         base + ["--decoded-target", "data", "--decoded-data", str(tmp_path / "c1_more"), "--out", str(tmp_path / "l2")]
     )
     rec = torch.load(tmp_path / "l2" / "ckpt.pt", weights_only=False)["history"]["decoded"]
+    more = "--seed 3 --wo 2 --wi 32 --walks 8 --chunk 4"  # the options of its manifest
     assert rec["target"] == "data" and rec["data"] == [
-        f"python -m onnx_export.layered_data --coatings 1 --stacks 4 --out {tmp_path / 'c1_more'}"
+        f"python -m onnx_export.layered_data --coatings 1 --stacks 4 {more} --out {tmp_path / 'c1_more'}"
     ]
     with pytest.raises(ValueError, match="does not hold the stacks"):
         layering.main(
@@ -364,7 +366,7 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
             "--model-dir",
             str(tmp_path / "models"),
             "--heldout",
-            str(tmp_path / "none.npz"),
+            "none",
             "--steps",
             "2",
             "--finetune",
@@ -433,7 +435,7 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
             layering.parser().parse_args(["train", *warm, "--out", str(tmp_path / "w1")]), log=stop_at_step_3
         )
     assert torch.load(tmp_path / "w1" / "ckpt.pt", weights_only=False)["history"]["decoded"]["step"] == 2
-    with pytest.raises(ValueError, match="resume it with --decoded-steps 4"):
+    with pytest.raises(ValueError, match="trained with --decoded-steps 4, this run asks for --decoded-steps 6"):
         layering.main(["train", *warm, "--decoded-steps", "6", "--out", str(tmp_path / "w1")])
     logs = []
     layering.train(layering.parser().parse_args(["train", *warm, "--out", str(tmp_path / "w1")]), log=logs.append)
@@ -444,7 +446,9 @@ def test_decoder_trains_on_single_and_layered_sets_with_a_loss_each(tmp_path):
         torch.testing.assert_close(resumed["net"][k], v, rtol=0, atol=0)
     rec = whole["history"]["decoded"]
     assert rec["step"] == 4 and rec["loss"] == "rmse" and list(rec["evals"]) == ["2"] and "coatings_1" in rec["heldout"]
-    assert rec["data"] == [f"python -m onnx_export.layered_data --coatings 1 --stacks 4 --out {tmp_path / 'c1_more'}"]
+    assert rec["data"] == [
+        f"python -m onnx_export.layered_data --coatings 1 --stacks 4 {more} --out {tmp_path / 'c1_more'}"
+    ]
     assert whole["history"]["init_from"]["command"] == lay_card["command"]
     layered_data.generate(
         tmp_path / "c1_more", coatings=1, stacks=8, n_wo=2, n_wi=32, walks=8, chunk=4, seed=3, log=lambda s: None
