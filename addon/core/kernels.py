@@ -348,14 +348,32 @@ def texture_footprint(width, cos_o, tri_uv_scale):
     return width / np.sqrt(np.maximum(np.abs(cos_o), 0.05)) * tri_uv_scale
 
 
-# What ``surface_hits`` writes (``out``, a row per hit): p, ng, ns, uv, width, footprint, ts, tt, wo, distance.
+# What ``surface_hits`` writes (``out``, a row per hit): p, ng, ns, uv, width, footprint, ts, tt, wo, distance,
+# front, offset.
 SURFACE_HITS_OUT = (
-    (3, F8), (3, F8), (3, F8), (2, F8), (0, F8), (0, F8), (3, F8), (3, F8), (3, F8), (0, F8), (0, B1)
+    (3, F8), (3, F8), (3, F8), (2, F8), (0, F8), (0, F8), (3, F8), (3, F8), (3, F8), (0, F8), (0, B1), (0, F8)
 )  # fmt: skip
+
+# How far a ray leaving a surface starts off it, and how far short of a light a blocker must be (``_unblocked_before``):
+# OFFSET_SCALE of the largest coordinate of the hit point (about 84 float32 roundings of it: Embree intersects in
+# float32, from the ray's origin) and TRIANGLE_OFFSET_SCALE of the largest coordinate of its triangle's corners
+# (about 8 roundings: the plane Embree intersects is made of them). It was one offset for the whole scene, 1e-4 of
+# its largest coordinate plus 1e-4: a triangle a kilometre away made every offset 0.1 and took a small object's
+# contact shadow away; a scene a ten-thousandth the size lost its shadows to the 1e-4. With a floor of 1 km a side
+# made of two triangles, a 0.1 m sphere's contact shadow in direct light is now the same as on a 4 m floor (and
+# at 10 km), its lit floor within 2e-5 (with TRIANGLE_OFFSET_SCALE as OFFSET_SCALE, 0.5% of those pixels moved).
+OFFSET_SCALE = 1e-5
+TRIANGLE_OFFSET_SCALE = 1e-6
+
+
+def triangle_offsets(corners) -> np.ndarray:
+    """(T,) each triangle's part of the offset of the rays leaving it: :data:`TRIANGLE_OFFSET_SCALE` times the
+    largest coordinate of its corners (``corners`` (T, 3, >= 3), positions first)."""
+    return TRIANGLE_OFFSET_SCALE * np.abs(np.asarray(corners)[:, :, :3]).max(axis=(1, 2))
 
 
 @njit(fastmath={"contract"}, **_JIT)
-def surface_hits(out, corners, face_normals, uv_scale, hit, prim, bu, bv, d, t, width, spread):
+def surface_hits(out, corners, face_normals, uv_scale, tri_offset, hit, prim, bu, bv, d, t, width, spread):
     """The surface where rays ``d`` (unit, world) land: ray ``hit[i]`` of the intersection's results (the
     triangles ``prim``, barycentrics (bu, bv) and distances ``t`` of every ray) for row i of ``d``, ``width``
     and ``spread``. Position, geometric and shading normals, uv, the ray cone's width there
@@ -367,10 +385,11 @@ def surface_hits(out, corners, face_normals, uv_scale, hit, prim, bu, bv, d, t, 
     grazing (cos <= 1e-6) falls back to the geometric one.
     The shading frame is ``frame.basis`` of the shading normal, and ``wo`` the direction back along the ray
     in it. Writes and returns ``out`` (:data:`SURFACE_HITS_OUT`): p, ng, ns (N, 3), uv (N, 2), width,
-    footprint (N,), the tangents ts, tt (N, 3), wo (N, 3), the distance (N,) and ``front`` (N,), whether the ray
+    footprint (N,), the tangents ts, tt (N, 3), wo (N, 3), the distance (N,), ``front`` (N,), whether the ray
     came from the side the triangle's face normal points to (the outside of a closed mesh whose faces point
     out): the frame is turned toward the viewer either way, so a material that lets light through tells
-    entering from leaving by it.
+    entering from leaving by it; and the offset (N,) of the rays that leave the hit (:data:`OFFSET_SCALE`: of
+    the hit point's largest coordinate, plus the triangle's ``tri_offset``, ``triangle_offsets``).
 
     Its sums of products (the interpolations, the dot products, the frame) may be fused into multiply-adds
     (``fastmath`` "contract", nothing else: each fused sum is rounded once, where it was rounded at every step),
@@ -378,7 +397,7 @@ def surface_hits(out, corners, face_normals, uv_scale, hit, prim, bu, bv, d, t, 
     ``continue_paths`` measured no faster so, and the sky's lookup must not be: there a product's difference that
     is exactly zero (a direction on a column's edge) must stay zero.
     """
-    p, ng, ns, uv, width_out, footprint, ts, tt, wo, dist, front = out
+    p, ng, ns, uv, width_out, footprint, ts, tt, wo, dist, front, offset = out
     for i in range(len(hit)):
         h = hit[i]
         k = prim[h]
@@ -388,6 +407,7 @@ def surface_hits(out, corners, face_normals, uv_scale, hit, prim, bu, bv, d, t, 
         c0, c1, c2 = corners[k, 0], corners[k, 1], corners[k, 2]
         for j in range(3):
             p[i, j] = b0 * c0[j] + b1 * c1[j] + b2 * c2[j]
+        offset[i] = OFFSET_SCALE * max(abs(p[i, 0]), abs(p[i, 1]), abs(p[i, 2])) + tri_offset[k]
         uv[i, 0] = b0 * c0[6] + b1 * c1[6] + b2 * c2[6]
         uv[i, 1] = b0 * c0[7] + b1 * c1[7] + b2 * c2[7]
         sx = b0 * c0[3] + b1 * c1[3] + b2 * c2[3]
@@ -592,10 +612,11 @@ def is_delta(kind):
 
 
 @njit(forceinline=True, **_JIT)
-def _sample_local_light(kind, params, j, px, py, pz, u0, u1):
+def _sample_local_light(kind, params, j, px, py, pz, u0, u1, near):
     """One sample of light ``params[j]`` (a point, a spot, the sun or an area light: any kind but the
     environment) from point (px, py, pz): direction toward it (unit), distance (inf for the sun), arriving
-    radiance (for delta lights the intensity / distance^2 or the irradiance) and solid-angle pdf (1 for delta
+    radiance (for delta lights the intensity / distance^2 or the irradiance, the distance taken as at least
+    ``near``: a point light on the surface lights it finitely) and solid-angle pdf (1 for delta
     lights). The light is indexed, not sliced: a slice passed to a function is an array whose reference count the
     caller would raise and drop for every row."""
     inf = np.inf
@@ -613,7 +634,7 @@ def _sample_local_light(kind, params, j, px, py, pz, u0, u1):
             else:
                 s = min(max((c - cos_edge) / smooth, 0.0), 1.0)
                 mask = s * s * (3.0 - 2.0 * s)
-        scale = mask / max(safe, 1e-4) ** 2
+        scale = mask / max(safe, near) ** 2
         return wx, wy, wz, dist, params[j, 3] * scale, params[j, 4] * scale, params[j, 5] * scale, 1.0
     if kind == SUN:
         return params[j, 0], params[j, 1], params[j, 2], inf, params[j, 3], params[j, 4], params[j, 5], 1.0
@@ -674,7 +695,7 @@ def _sample_environment(image, pixel_pdf, alias_p, alias_i, z_edges, edges, u0, 
 
 
 @njit(forceinline=True, **_JIT)
-def _sample_light(kind, params, j, image, pixel_pdf, alias_p, alias_i, z_edges, edges, px, py, pz, u0, u1):
+def _sample_light(kind, params, j, image, pixel_pdf, alias_p, alias_i, z_edges, edges, px, py, pz, u0, u1, near):
     """One sample of light ``params[j]`` from point (px, py, pz): :func:`_sample_local_light`, or
     :func:`_sample_environment` for the environment.
 
@@ -685,7 +706,7 @@ def _sample_light(kind, params, j, image, pixel_pdf, alias_p, alias_i, z_edges, 
     measured the same as calling it."""
     if kind == ENVIRONMENT:
         return _sample_environment(image, pixel_pdf, alias_p, alias_i, z_edges, edges, u0, u1)
-    return _sample_local_light(kind, params, j, px, py, pz, u0, u1)
+    return _sample_local_light(kind, params, j, px, py, pz, u0, u1, near)
 
 
 @njit(**_JIT)
@@ -702,7 +723,7 @@ def sample_light(kind, prm, env, p, u):
     for i in range(n):
         wi[i, 0], wi[i, 1], wi[i, 2], dist[i], rad[i, 0], rad[i, 1], rad[i, 2], pdf[i] = _sample_light(
             kind, params, 0, image, pixel_pdf, alias_p, alias_i, z_edges, edges, p[i, 0], p[i, 1], p[i, 2], u[i, 0],
-            u[i, 1],
+            u[i, 1], 1e-9,
         )  # fmt: skip
     return wi, dist, rad, pdf
 
@@ -733,7 +754,8 @@ def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps):
     in the shading frame (ts, tt, ns), the radiance (N, 3), pdf, delta flag and whether the sample can
     contribute (``useful``: pdf and radiance non-zero, and the direction on the same side of the geometric
     normal ``ng`` as of the shading normal, so light never leaks through the surface); and the shadow rays
-    of the useful samples only: their rows, origins offset by ``eps`` off the surface on the light's side,
+    of the useful samples only: their rows, origins offset by ``eps`` (a row per hit: ``surface_hits``' offset) off
+    the surface on the light's side,
     world directions and lengths (:data:`FAR` to the sun or the sky; else :func:`_unblocked_before` the light),
     in float32 for embree (each value rounded once, as numpy's cast rounds it). Writes them into
     ``out`` (:data:`LIGHT_SAMPLES_OUT`) and returns them, the shadow rays' arrays cut to their count."""
@@ -746,7 +768,7 @@ def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps):
         j = min(int(u[i, 0] * n_lights), n_lights - 1)
         wx, wy, wz, dist, r0, r1, r2, pd = _sample_light(
             kinds[j], params, j, image, pixel_pdf, alias_p, alias_i, z_edges, edges, p[i, 0], p[i, 1], p[i, 2],
-            u[i, 1], u[i, 2],
+            u[i, 1], u[i, 2], eps[i],  # no nearer than the shadow ray's start: a scene's size is its own
         )  # fmt: skip
         c = wx * ng[i, 0] + wy * ng[i, 1] + wz * ng[i, 2]
         lz = wx * ns[i, 0] + wy * ns[i, 1] + wz * ns[i, 2]
@@ -759,12 +781,12 @@ def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps):
         ok = pd > 0.0 and max(r0, r1, r2) > 0.0 and same_side
         useful[i] = ok
         if ok:
-            off = eps if c > 0.0 else -eps
+            off = eps[i] if c > 0.0 else -eps[i]
             rows[m] = i
             for k in range(3):
                 org[m, k] = p[i, k] + ng[i, k] * off
             d[m, 0], d[m, 1], d[m, 2] = wx, wy, wz
-            length = FAR if math.isinf(dist) else _unblocked_before(dist, eps)
+            length = FAR if math.isinf(dist) else _unblocked_before(dist, eps[i])
             tmax[m] = FAR if length > FAR else length
             m += 1
     return wi_local, rad, pdf, delta, useful, rows[:m], org[:m], d[:m], tmax[:m]
@@ -845,7 +867,8 @@ def add_emission(
     o, d, t, row, throughput, prev_pdf, prev_delta, prev_mis, L, eps,
 ):  # fmt: skip
     """Add to ``L[row]`` the emission rays (o, d) reach before distance ``t``: every area light that no surface
-    blocks (the surface at ``t`` is not nearer than :func:`_unblocked_before` the light, as for the shadow rays),
+    blocks (the surface at ``t`` is not nearer than :func:`_unblocked_before` the light, as for the shadow rays, with
+    ``eps`` the offset of each ray's origin: 0 for the camera's),
     and the environment ``env`` where the ray escapes (t = inf; with ``has_env``), each weighted by how the ray
     was sampled (:func:`_emission_weight`)."""
     image, pixel_pdf, _, _, z_edges, row_of_bin, edges, column_of_bin = env
@@ -854,7 +877,7 @@ def add_emission(
         r = row[i]
         for j in range(len(area_params)):
             tl, pdf_l = _intersect_area(area_params, j, area_ellipse[j], ox, oy, oz, dx, dy, dz)
-            if not math.isinf(tl) and t[i] >= _unblocked_before(tl, eps):
+            if not math.isinf(tl) and t[i] >= _unblocked_before(tl, eps[i]):
                 w = _emission_weight(strategy, p_select, pdf_l, prev_pdf[i], prev_delta[i], prev_mis[i])
                 for k in range(3):
                     L[r, k] += throughput[i, k] * area_params[j, 12 + k] * w
@@ -886,7 +909,7 @@ def add_direct(L, hits, row, throughput, f, light_wi, radiance, p_select, light_
 
 
 # The paths' fields (``integrator._Paths``, in order), as ``continue_paths`` writes them.
-PATHS_OUT = ((0, I8), (3, F8), (3, F8), (3, F8), (0, F8), (0, B1), (0, B1), (0, F8), (0, F8))
+PATHS_OUT = ((0, I8), (3, F8), (3, F8), (3, F8), (0, F8), (0, B1), (0, B1), (0, F8), (0, F8), (0, F8))
 
 
 @njit(**_JIT)
@@ -898,15 +921,16 @@ def continue_paths(
     roulette where ``roulette`` (survival probability the largest throughput component, clipped to
     [0.05, 1], drawn against ``u_rr``; survivors reweighted by 1 / q); paths whose sample is zero or
     would leave through the wrong side of the geometric surface (``wi_local`` in the shading frame
-    (ts, tt, ns), taken to world space here) are dropped. The survivors' origins are offset by ``eps``
-    off the surface on their side, and a non-specular bounce widens the ray cone's spread to at least 0.2.
-    Returns row, origin, direction, throughput, pdf, delta, mis, width, spread of the survivors: the first rows
+    (ts, tt, ns), taken to world space here) are dropped. The survivors' origins are offset by ``eps`` (a row per
+    hit: ``surface_hits``' offset) off the surface on their side, and a non-specular bounce widens the ray cone's
+    spread to at least 0.2. Returns row, origin, direction, throughput, pdf, delta, mis, width, spread and offset
+    (for :func:`add_emission`) of the survivors: the first rows
     of ``out`` (:data:`PATHS_OUT`, a row per path; not the arrays of the paths it reads).
 
     One pass, each survivor written as it is found: a first pass that decided and a second that compacted, with
     rows of their own between them, took 27 ns a path where this takes 25 (one-thread demo renders)."""
     n = len(row)
-    o_row, o_org, o_dir, o_thr, o_pdf, o_delta, o_mis, o_width, o_spread = out
+    o_row, o_org, o_dir, o_thr, o_pdf, o_delta, o_mis, o_width, o_spread, o_eps = out
     j = 0
     for i in range(n):
         lx, ly, lz = wi_local[i, 0], wi_local[i, 1], wi_local[i, 2]
@@ -924,7 +948,7 @@ def continue_paths(
             s = 1.0 / q
         if not ok:
             continue
-        side = eps if c > 0.0 else -eps
+        side = eps[i] if c > 0.0 else -eps[i]
         o_row[j] = row[i]
         o_org[j, 0] = p[i, 0] + ng[i, 0] * side
         o_org[j, 1] = p[i, 1] + ng[i, 1] * side
@@ -934,11 +958,12 @@ def continue_paths(
             o_thr[j, k] = throughput[i, k] * weight[i, k] * s
         o_pdf[j], o_delta[j], o_mis[j], o_width[j] = pdf[i], delta[i], mis[i], width[i]
         o_spread[j] = spread[i] if delta[i] else max(spread[i], 0.2)
+        o_eps[j] = eps[i]
         j += 1
     count = j
     return (
         o_row[:count], o_org[:count], o_dir[:count], o_thr[:count], o_pdf[:count], o_delta[:count], o_mis[:count],
-        o_width[:count], o_spread[:count],
+        o_width[:count], o_spread[:count], o_eps[:count],
     )  # fmt: skip
 
 

@@ -262,10 +262,15 @@ def test_the_shading_frame_at_a_hit_is_the_bsdf_package_basis_and_wo_the_ray_bac
     bu, bv = rng.random(n) * 0.5, rng.random(n) * 0.5
     hit, dist = rng.permutation(n), rng.uniform(0.5, 2.0, n)  # the rays' rows in the intersection's results
     rows = kernels.rows_of(kernels.SURFACE_HITS_OUT, n)
+    tri_offset = kernels.triangle_offsets(corners)
     out = kernels.surface_hits(
-        rows, corners, face, np.ones(n), hit, np.arange(n), bu, bv, d, dist, np.zeros(n), np.ones(n)
+        rows, corners, face, np.ones(n), tri_offset, hit, np.arange(n), bu, bv, d, dist, np.zeros(n), np.ones(n)
     )
     ns, ts, tt, wo = out[2], out[6], out[7], out[8]
+    # the offset of the rays leaving: of the hit point's largest coordinate and of its triangle's corners
+    expected = kernels.OFFSET_SCALE * np.abs(out[0]).max(axis=1)
+    expected += kernels.TRIANGLE_OFFSET_SCALE * np.abs(corners[hit, :, :3]).max(axis=(1, 2))
+    np.testing.assert_allclose(out[11], expected, rtol=1e-12)
     np.testing.assert_array_equal(out[9], dist[hit])
     np.testing.assert_array_equal(out[4], dist[hit])  # the cone's width: 0 + 1 x the distance
     b = np.stack([1 - bu[hit] - bv[hit], bu[hit], bv[hit]], axis=1)

@@ -816,6 +816,35 @@ def test_mitsuba_renders_the_same_scene():
     assert abs(ours.mean() / theirs.mean() - 1) < 0.01
 
 
+def test_a_contact_shadow_is_the_same_whatever_else_the_scene_holds_and_at_any_scale():
+    """The rays leaving a surface start off it by an offset of their own hit and triangle (``kernels.OFFSET_SCALE``).
+    One offset for the scene, from its largest coordinate, lost a small sphere's contact shadow to a triangle 1 km
+    away (0.73 where 0.008), and a scene of a ten-thousandth the size lost it to the offset's floor of 1e-4."""
+
+    def scene(s=1.0, floor=8.0, far=None):  # a floor filling the view
+        r = 0.1 * s
+        parts = [
+            shapes.uv_sphere((0, 0, r), r, 24, 12, material=0),
+            shapes.quad((-floor * s / 2, -floor * s / 2, 0), (floor * s, 0, 0), (0, floor * s, 0), material=0),
+        ]
+        if far is not None:
+            parts.append(shapes.quad((0, far, 0), (1, 0, 0), (0, 0, 1), material=0))
+        cam = Camera.look_at((0, -0.8 * s, 0.5 * s), (0, 0, 0.05 * s), fov_deg=40, width=32, height=24)
+        light = PointLight((0.05 * s, 0.05 * s, 1.0 * s), power=50.0 * s * s)
+        return Scene(cam, Mesh.concatenate(parts), [LambertMaterial((0.6, 0.6, 0.6))], [light])
+
+    settings = RenderSettings(samples=4, max_bounces=0, seed=1)
+    base = render(scene(), settings)[0].mean()
+    shadow = base.mean(axis=2) < 0.02
+    assert 20 < shadow.sum() < base.size // 6  # a contact shadow under the sphere, on a lit floor
+    for other in (scene(far=-1000.0), scene(s=1e-4), scene(s=1e4)):
+        np.testing.assert_allclose(render(other, settings)[0].mean(), base, atol=1e-3)
+    # A floor of 1 km a side (two triangles): the shadow's pixels as dark (its edge may move by the offset of
+    # its larger triangles, a pixel or two of 4 samples).
+    img = render(scene(floor=1000.0), settings)[0].mean()
+    assert abs(float(img[shadow].mean() - base[shadow].mean())) < 0.01
+
+
 def test_max_bounces_counts_as_cycles_does_zero_is_direct_lighting():
     """Max Bounces counts the bounces after the first hit, as Cycles' does: 0 is direct lighting only. It counted
     one more (0 rendered every surface black, and each setting matched Cycles' one below it). A plane under a point

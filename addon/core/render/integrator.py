@@ -272,12 +272,13 @@ def camera_hits(scene: Scene, px, py) -> tuple[np.ndarray, np.ndarray]:
     prim = np.asarray(prim, dtype=np.int64)
     hit = np.flatnonzero(prim >= 0)
     if len(hit):
-        corners, face_normals, tri_uv_scale = _triangle_arrays(scene.mesh)
+        corners, face_normals, tri_uv_scale, tri_offset = _triangle_arrays(scene.mesh)
         f = kernels.surface_hits(
             kernels.rows_of(kernels.SURFACE_HITS_OUT, len(hit)),
             corners,
             face_normals,
             tri_uv_scale,
+            tri_offset,
             hit,
             prim,
             bu,
@@ -291,12 +292,14 @@ def camera_hits(scene: Scene, px, py) -> tuple[np.ndarray, np.ndarray]:
     return prim, fp
 
 
-def _triangle_arrays(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _triangle_arrays(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per-triangle geometry in float64, as ``kernels.surface_hits`` reads it: the corners' position,
-    normal and uv side by side (T, 3, 8), the face normals (T, 3) and the uv scale (T,)."""
+    normal and uv side by side (T, 3, 8), the face normals (T, 3), the uv scale (T,) and the triangles' part of
+    the offset of the rays leaving them (T,) (``kernels.triangle_offsets``)."""
     uvs = np.zeros((mesh.triangle_count, 3, 2)) if mesh.uvs is None else mesh.uvs
     corners = np.ascontiguousarray(np.concatenate([mesh.positions, mesh.normals, uvs], axis=2), dtype=np.float64)
-    return corners, np.ascontiguousarray(mesh.face_normals, dtype=np.float64), uv_scale(mesh)
+    face_normals = np.ascontiguousarray(mesh.face_normals, dtype=np.float64)
+    return corners, face_normals, uv_scale(mesh), kernels.triangle_offsets(corners)
 
 
 class _Context:
@@ -339,13 +342,8 @@ class _Context:
         self.env_arrays = self.env.image_arrays() if self.env is not None else NO_IMAGE
         self.strategy_code = STRATEGIES.index(settings.strategy)
         m = scene.mesh
-        if m.triangle_count:
-            p = m.positions.astype(np.float64)
-            self.eps = 1e-4 * (1.0 + float(np.abs(p).max()))
-        else:
-            self.eps = 1e-4
         self.material_of_triangle = np.asarray(m.material_index, dtype=np.int64)
-        self.corners, self.face_normals, self.uv_scale = _triangle_arrays(m)
+        self.corners, self.face_normals, self.uv_scale, self.tri_offset = _triangle_arrays(m)
 
 
 def render(
@@ -581,6 +579,7 @@ class _Paths:
     mis: np.ndarray
     width: np.ndarray
     spread: np.ndarray
+    eps: np.ndarray  # how far the ray's origin is off its surface (``kernels.surface_hits``' offset; 0: the camera)
 
     def take(self, keep: np.ndarray, out: tuple) -> "_HitPaths":
         """The paths at rows ``keep`` as the shading reads them, in ``out`` (``kernels.HIT_PATHS_OUT``, a row per
@@ -615,6 +614,7 @@ class _Hits:
     footprint: np.ndarray
     dist: np.ndarray  # the ray's length to the hit
     front: np.ndarray  # whether the ray came from the side the face normal points to (``kernels.surface_hits``)
+    eps: np.ndarray  # how far the rays leaving each hit start off it (``kernels.OFFSET_SCALE``)
     groups: list  # (material index, slice of rows): the hits are sorted by material
 
 
@@ -647,6 +647,7 @@ def _camera_paths(ctx: _Context, pix: np.ndarray, rng: np.random.Generator, scra
     paths.mis.fill(True)
     paths.width.fill(0.0)
     paths.spread.fill(cam.pixel_spread)
+    paths.eps.fill(0.0)
     return paths
 
 
@@ -658,7 +659,7 @@ def _add_emission(ctx: _Context, paths: _Paths, t: np.ndarray, L: np.ndarray) ->
     kernels.add_emission(
         ctx.area_params, ctx.area_ellipse, ctx.env is not None, ctx.env_arrays,
         ctx.strategy_code, ctx.p_select,
-        paths.o, paths.d, t, paths.row, paths.throughput, paths.pdf, paths.delta, paths.mis, L, ctx.eps,
+        paths.o, paths.d, t, paths.row, paths.throughput, paths.pdf, paths.delta, paths.mis, L, paths.eps,
     )  # fmt: skip
 
 
@@ -668,11 +669,12 @@ def _surface_hits(ctx: _Context, paths: _HitPaths, hit, t, prim, bu, bv, groups,
     ray cone grown to the hit and its footprint in texture space. ``groups``: the rows of each
     material (the rays come sorted by material). ``hit``: the rows of the intersection's results
     (``t``, ``prim``, ``bu``, ``bv``, one per ray traced) that ``paths`` now holds, in its order."""
-    p, ng, ns, uv, paths.width, footprint, ts, tt, wo, dist, front = kernels.surface_hits(
+    p, ng, ns, uv, paths.width, footprint, ts, tt, wo, dist, front, eps = kernels.surface_hits(
         scratch.arrays("hits", len(hit), kernels.SURFACE_HITS_OUT),
-        ctx.corners, ctx.face_normals, ctx.uv_scale, hit, prim, bu, bv, paths.d, t, paths.width, paths.spread,
+        ctx.corners, ctx.face_normals, ctx.uv_scale, ctx.tri_offset, hit, prim, bu, bv, paths.d, t, paths.width,
+        paths.spread,
     )  # fmt: skip
-    return _Hits(p, ng, ns, ts, tt, wo, uv, footprint, dist, front, groups)
+    return _Hits(p, ng, ns, ts, tt, wo, uv, footprint, dist, front, eps, groups)
 
 
 def _sample_lights(
@@ -688,7 +690,7 @@ def _sample_lights(
         )
     wi, rad, pdf, delta, visible, rows, org, d, tmax = kernels.sample_lights(
         scratch.arrays("lights", m, kernels.LIGHT_SAMPLES_OUT),
-        ctx.nee_kinds, ctx.nee_params, ctx.env_arrays, hits.p, hits.ng, hits.ts, hits.tt, hits.ns, u_light, ctx.eps,
+        ctx.nee_kinds, ctx.nee_params, ctx.env_arrays, hits.p, hits.ng, hits.ts, hits.tt, hits.ns, u_light, hits.eps,
     )  # fmt: skip
     visible[rows[ctx.tracer.occluded(org, d, tmax, stats, scratch)]] = False
     return _LightSamples(wi, rad, pdf, delta, visible)
@@ -762,7 +764,7 @@ def _continue_paths(
         *kernels.continue_paths(
             scratch.arrays("paths.next", n, kernels.PATHS_OUT),
             sc.wi, hits.ts, hits.tt, hits.ns, sc.weight, sc.pdf, sc.delta, sc.mis, hits.p, hits.ng, paths.row,
-            paths.throughput, paths.width, paths.spread, u_rr, roulette, ctx.eps,
+            paths.throughput, paths.width, paths.spread, u_rr, roulette, hits.eps,
         )
     )  # fmt: skip
 
