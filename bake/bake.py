@@ -420,6 +420,7 @@ def run(
     bar = ProgressBar(len(mine))
     stats = {"bands_baked": 0, "bands_skipped": 0, "texels": 0, "unique": 0, "seconds": 0.0, "assembled": []}
     cache: dict[str, object] = {}
+    clamped: set[tuple[str, str]] = set()
     for job, key, band in mine:
         folder = _band_folder(out, job)
         target = folder / f"{key}_{band:04d}.npy"
@@ -442,6 +443,10 @@ def run(
         stats["texels"] += st.texels
         stats["unique"] += st.unique
         stats["seconds"] += st.seconds
+        for note in st.clamped:  # the networks' trained ranges: said once a job, not once a band
+            if (job.name, note) not in clamped:
+                clamped.add((job.name, note))
+                log(f"{job.name}: {note}; baked clamped")
     bar.close()
     for job in jobs:
 

@@ -15,7 +15,8 @@ from ..core.textures.spatial import SpatialStack
 from . import images, stack_io
 
 # (map parameter, layer type) -> core field name of that layer
-_FIELDS = {
+# The stack field each parameter map drives, per layer type: the maps a layer can have.
+MAP_FIELDS = {
     ("ROUGHNESS", "CONDUCTOR"): "roughness",
     ("ROUGHNESS", "DIELECTRIC"): "roughness",
     ("ROUGHNESS", "COATING"): "roughness",
@@ -29,6 +30,11 @@ _FIELDS = {
     ("THICKNESS", "COATING"): "thickness",
 }
 _RGB = {"ALBEDO", "F0", "ETA", "K", "MEDIUM_ALBEDO"}
+
+
+def map_parameters(layer_type: str) -> list[str]:
+    """The parameters a layer of ``layer_type`` can have a map of (:data:`MAP_FIELDS`), in the menu's order."""
+    return [parameter for parameter, kind in MAP_FIELDS if kind == layer_type]
 
 
 def _map_values(item, pmap) -> np.ndarray:
@@ -67,7 +73,7 @@ def spatial_stack_from_material(mat):
         for pmap in item.maps:
             if pmap.image is None:
                 continue
-            field = _FIELDS.get((pmap.parameter, item.layer_type))
+            field = MAP_FIELDS.get((pmap.parameter, item.layer_type))
             if field is None:
                 raise ValueError(
                     f"layer {item.name!r} ({item.layer_type.title()}) has no {pmap.parameter.lower()} "

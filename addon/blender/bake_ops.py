@@ -24,7 +24,7 @@ from .bake_state import (  # noqa: F401 (baked_texture_state: API)
     baked_texture_state,
     texture_output_path,
 )
-from .operator_base import LongOperator, MaterialOperator, UserError, guarded
+from .operator_base import LongOperator, MaterialOperator, UserError, context_material, guarded
 from .properties import MAP_PARAMETERS
 
 
@@ -51,6 +51,22 @@ def _blend_relative(path: str) -> str:
         return path
 
 
+_MAP_ITEMS: list = []  # the menu's items, kept alive while Blender shows them (a dynamic enum's rule)
+
+
+def _map_parameter_items(op, context):
+    """The parameters the active layer can have a map of (every one without a layer to ask): a diffuse base's
+    albedo, a coating's roughness, ior, medium albedo and thickness... The menu offered every parameter for every
+    layer, so an Albedo map added to a coating failed only at the bake."""
+    mat = bpy.data.materials.get(op.material) if getattr(op, "material", "") else None
+    mat = mat or (context_material(context) if context is not None else None)
+    layers = mat.neural_layers.layers if mat is not None else ()
+    index = mat.neural_layers.active_index if mat is not None else -1
+    allowed = bake_inputs.map_parameters(layers[index].layer_type) if 0 <= index < len(layers) else None
+    _MAP_ITEMS[:] = [item for item in MAP_PARAMETERS if allowed is None or item[0] in allowed]
+    return _MAP_ITEMS
+
+
 class NLM_OT_map_add(MaterialOperator, bpy.types.Operator):
     """Drive a parameter of the active layer by an image"""
 
@@ -61,8 +77,7 @@ class NLM_OT_map_add(MaterialOperator, bpy.types.Operator):
 
     parameter: EnumProperty(
         name="Parameter",
-        items=MAP_PARAMETERS,
-        default="ROUGHNESS",
+        items=_map_parameter_items,
         description="The parameter of the active layer the new map drives",
     )
 
@@ -75,6 +90,12 @@ class NLM_OT_map_add(MaterialOperator, bpy.types.Operator):
         if not (0 <= s.active_index < len(s.layers)):
             raise UserError(f"material {mat.name!r} has no active layer to add a map to")
         item = s.layers[s.active_index]
+        allowed = bake_inputs.map_parameters(item.layer_type)
+        if self.parameter not in allowed:  # a script's value: the menu offers only these
+            raise UserError(
+                f"layer {item.name!r} ({item.layer_type.title()}) has no {self.parameter.lower()} to map; its maps: "
+                f"{', '.join(p.lower() for p in allowed)}"
+            )
         pmap = item.maps.add()
         pmap.parameter = self.parameter
         stack_io.tag_changed(mat)  # the texture baked from the maps is now out of date
@@ -165,6 +186,8 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
             mat.neural_layers.texture_size = res
             refined = "" if refined is None else f", {refined} refined"
             calibrated = f", calibrated in {stats.clusters} cluster(s)" if stats.clusters else ""
+            for note in stats.clamped:  # the networks' trained ranges: what the texture holds is the clamped stack
+                self.report({"WARNING"}, f"{name}: {note}; baked clamped")
             self.report(
                 {"INFO"},
                 f"{name}: baked {res[1]}x{res[0]} ({stats.unique} distinct of {stats.texels} texels"

@@ -47,10 +47,19 @@ class NLM_MT_presets(bpy.types.Menu):
         if bpy.utils.preset_paths(self.preset_subdir):
             layout.separator()
             bpy.types.Menu.draw_preset(self, context)
-            last = type(self).bl_label  # the preset of yours applied last (Blender's presets keep it there)
-            if last != PRESETS_MENU_LABEL:
+            last = removable_preset()
+            if last is not None:
                 remove = layout.operator("neural_layers.preset_add", text=f"Remove Preset {last!r}", icon="REMOVE")
                 remove.remove_active = True
+
+
+def removable_preset() -> str | None:
+    """The preset of yours applied last, which Remove Preset removes: Blender's presets keep its name as the menu's
+    label. None when a bundled stack came after it, or it is gone: after a removal Blender sets the label to
+    "Presets", which names no file (the menu offered a Remove Preset 'Presets' that did nothing)."""
+    last = NLM_MT_presets.bl_label
+    found = last != PRESETS_MENU_LABEL and bpy.utils.preset_find(last, PRESET_SUBDIR, display_name=True)
+    return last if found else None
 
 
 def _material(context):
@@ -112,6 +121,7 @@ def _draw_layer(layout, item):
     t = item.layer_type
     if t == "DIFFUSE":
         layout.prop(item, "albedo")
+        _draw_maps(layout, item)  # an albedo map: a wood grain under its varnish
         return
     layout.prop(item, "roughness", slider=True)
     if t == "CONDUCTOR":

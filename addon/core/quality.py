@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from . import lobe
-from .stack import Stack
+from .stack import ClampWarning, Stack, clamp_to_trained
 
 DEFAULT_TOLERANCE = 0.2
 LOBE_RES = 16
@@ -125,6 +125,11 @@ def _key(*parts) -> str:
 
 
 _MEMO: dict[str, object] = {}
+
+
+def clear_memo() -> None:
+    """Forget the reference lobe images measured this session (``reference_lobes``)."""
+    _MEMO.clear()
 
 
 def reference_lobes(stack: Stack, res: int = LOBE_RES, walks: int = REFERENCE_WALKS, seed: int = 0):
@@ -617,11 +622,14 @@ def assign_decoders(
         if size is None:  # no size serves it, or none fits and the fallback is the reference: rendered so
             out.append(replace(spec, reference=True))
             continue
+        # What the networks see clamped to their trained ranges, said wherever the stack renders (its encoding is
+        # cached, so the encoder's own ClampWarning came once a session, to the console)
+        notes += [f"material {name!r}: {n}; rendered clamped" for n in clamp_to_trained(spec.stack)[1]]
         try:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 out.append(neural_material(spec.stack, size, calibrate))
-            notes += [f"material {name!r}: {w.message}" for w in caught]
+            notes += [f"material {name!r}: {w.message}" for w in caught if not issubclass(w.category, ClampWarning)]
         except FileNotFoundError as e:
             notes.append(f"material {name!r}: decoder {size} cannot encode it ({e}); rendering it with the reference")
             out.append(m)

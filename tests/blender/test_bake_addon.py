@@ -53,10 +53,57 @@ def test_maps_become_a_spatial_stack_in_core_units(wood):
 
 def test_map_on_a_parameter_the_layer_lacks_is_reported(wood):
     wood.neural_layers.active_index = 0  # the diffuse base
-    assert run_operator(ops.map_add, parameter="THICKNESS").finished
-    wood.neural_layers.layers[0].maps[0].image = wood.neural_layers.layers[1].maps[0].image
+    # The menu offers what the layer has (a map of any other parameter failed only at the bake); a script's value
+    # outside it is refused.
+    with pytest.raises(TypeError, match="THICKNESS"):
+        ops.map_add(parameter="THICKNESS")
+    with pytest.raises(TypeError, match="THICKNESS"):  # the material named: its active layer's parameters
+        ops.map_add(parameter="THICKNESS", material=wood.name)
+    base = wood.neural_layers.layers[0]
+    assert len(base.maps) == 0
+    pmap = base.maps.add()  # set from Python, past the operator: the bake still says it
+    pmap.parameter, pmap.image = "THICKNESS", wood.neural_layers.layers[1].maps[0].image
     r = run_operator(ops.bake_texture)
     assert r.error and "has no thickness" in r.error
+
+
+def test_the_map_menu_offers_each_layers_own_parameters_and_a_diffuse_base_shows_its_maps(wood):
+    """A diffuse base had no Add Parameter Map (its box returned before the maps), and a coating's menu offered an
+    Albedo map that failed at the bake: each layer now offers the parameters it has, a diffuse base its albedo."""
+    from types import SimpleNamespace
+
+    import bpy
+
+    from addon.blender import bake_ops, ui
+
+    s = wood.neural_layers
+    offered = {}
+    for index in range(len(s.layers)):
+        s.active_index = index
+        items = bake_ops._map_parameter_items(SimpleNamespace(material=""), bpy.context)
+        offered[s.layers[index].layer_type] = [item[0] for item in items]
+    assert offered == {"DIFFUSE": ["ALBEDO"], "COATING": ["ROUGHNESS", "IOR", "MEDIUM_ALBEDO", "THICKNESS"]}
+
+    class Layout:  # records what the layer's box draws
+        def __init__(self):
+            self.calls = []
+
+        def __getattr__(self, name):
+            def call(*args, **kwargs):
+                self.calls.append((name, args))
+                return self
+
+            return call
+
+        def __setattr__(self, name, value):
+            if name == "calls":
+                object.__setattr__(self, name, value)
+
+    layout = Layout()
+    ui._draw_layer(layout, s.layers[0])
+    assert ("operator_menu_enum", ("neural_layers.map_add", "parameter")) in layout.calls
+    s.active_index = 0
+    assert run_operator(ops.map_add, parameter="ALBEDO").finished and len(s.layers[0].maps) == 1
 
 
 def test_bake_writes_the_texture_and_the_renderer_uses_it_while_current(wood, bpy_addon):

@@ -376,8 +376,12 @@ def test_users_save_share_and_apply_their_own_layer_presets(bpy_addon, material,
     assert files[0].exists()
     r = run_operator(bpy.ops.script.execute_preset, filepath=str(files[0]), menu_idname="NLM_MT_presets")
     assert r.finished, r.error
+    from addon.blender import ui
+
+    assert ui.removable_preset() == "My Paint"
     assert run_operator(bpy.ops.neural_layers.preset_add, remove_active=True).finished
     assert not files[0].exists()
+    assert ui.removable_preset() is None  # the menu offers no Remove Preset 'Presets'
     r = run_operator(bpy.ops.neural_layers.stack_apply, stack="{not json")
     assert not r.finished and "not a layer stack" in r.error
 

@@ -317,3 +317,16 @@ def test_a_mix_of_the_largest_halves_is_held_not_refused():
     tex, _ = bake_mix(SpatialStack(wood()), SpatialStack(preset("coated_gold")), mask, at_the_edge)
     for level in tex.levels:
         assert (level[..., :96] == 65504.0).all() and (level[..., 96:98] == -65504.0).all()
+
+
+def test_a_bake_says_what_the_networks_saw_clamped():
+    """A smooth top coat (roughness 0, below the trained 0.01) is baked as the clamped stack: the bake's statistics
+    say so (the add-on reports it, as the command prints it), where it went only to the console once a session."""
+    smooth = Stack(Diffuse((0.5, 0.5, 0.5)), (Coating(0.0, 1.5),))
+    stacks = StackArrays.from_stacks([smooth] * 4 + [Stack(Diffuse((0.5, 0.5, 0.5)), (Coating(0.1, 1.5),))] * 4)
+    _, stats = bake_texels(stacks, linear_encoder())
+    assert len(stats.clamped) == 1 and "roughness" in stats.clamped[0], stats.clamped
+    _, plain = bake_texels(
+        StackArrays.from_stacks([Stack(Diffuse((0.5, 0.5, 0.5)), (Coating(0.1, 1.5),))]), linear_encoder()
+    )
+    assert plain.clamped == ()

@@ -466,3 +466,16 @@ def test_the_error_cache_keeps_what_another_session_wrote_and_knows_reinstalled_
     data["remainder"] = not data["remainder"]  # how the decoder's output is used changes what it renders
     card.write_text(json.dumps(data))
     assert quality._fingerprint("tiny", models) != before
+
+
+def test_a_stack_the_networks_see_clamped_is_said_at_every_render():
+    """The encoding is cached, so its ClampWarning reached the console once a session, and F12 and Render Preview
+    said nothing: the decoder choice now says it for each material, once, whatever the decoder size setting."""
+    from addon.core.stack import Coating
+
+    smooth = Stack(Diffuse((0.5, 0.5, 0.5)), (Coating(0.0, 1.5),))
+    scene = demo_scene(8, 6, [smooth])
+    for _ in range(2):  # the second time from the caches
+        _, _, notes = quality.assign_decoders(scene, SIZES[0])
+        clamped = [n for n in notes if "clamped" in n]
+        assert len(clamped) == 1 and "coatings[0].roughness" in clamped[0], notes

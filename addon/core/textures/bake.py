@@ -8,6 +8,7 @@ neural runtime provides the real one. Identical parameter tuples are encoded onc
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 import time
@@ -19,7 +20,7 @@ import numpy as np
 
 from ..neural.top_lobe import top_coats
 from ..rows import distinct_rows
-from ..stack import StackArrays
+from ..stack import StackArrays, clamp_to_trained
 from ..threads import submit_in_context, thread_count
 from .latent_texture import CHANNEL_NAMES, LatentTexture
 from .mip import HALF_MAX, MipChain, float32_texels, store_texels
@@ -217,6 +218,9 @@ class BakeStats:
     seconds: float  # encoding the texels
     calibration_seconds: float = 0.0  # the texture's calibration (``bake_stack``), when it has one
     clusters: int = 0  # its factor tables
+    # what the networks saw clamped to their trained ranges (``stack.clamp_to_trained``' notes over the distinct
+    # texels, ``bake_stack``): a user is told, not only a console
+    clamped: tuple = ()
 
     @property
     def texels_per_second(self) -> float:
@@ -332,7 +336,8 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1, gath
             pool.shutdown(wait=True, cancel_futures=True)
         _refine_steps(encode, None)  # this bake's callbacks go with it
     counts = np.ones(m) if inverse is None else np.bincount(inverse, minlength=m).astype(np.float64)
-    stats = BakeStats(texels=n, unique=m, seconds=time.perf_counter() - t0)
+    clamped = tuple(clamp_to_trained(todo)[1]) if m else ()
+    stats = BakeStats(texels=n, unique=m, seconds=time.perf_counter() - t0, clamped=clamped)
     texels = (out if inverse is None else out[inverse]) if gather else (out, inverse)
     return texels, stats, (todo, out, counts)
 
@@ -395,7 +400,9 @@ def bake_stack(
         with threads_in_force(thread_count(threads)):
             calibration = calibrate_texture(rows, distinct, counts, models, step, threads=thread_count(threads))
         meta["calibration"] = calibration.to_text()
-        stats = BakeStats(stats.texels, stats.unique, stats.seconds, time.perf_counter() - t, len(calibration.tables))
+        stats = dataclasses.replace(
+            stats, calibration_seconds=time.perf_counter() - t, clusters=len(calibration.tables)
+        )
     del rows, counts
     _still_wanted(progress, cancel, "the mip chain")()
     # The texels gathered a band at a time into the base level of a half-float chain (the values the texture's file
@@ -504,7 +511,12 @@ def bake_mix(
     meta = {"stack": a.stack.to_json(), "mix_stack": b.stack.to_json()}
     meta.update(metadata or {})
     meta.update(getattr(encode, "metadata", {}))  # the encoder's decoder size and digest
-    stats = BakeStats(texels=h * w, unique=sa.unique + sb.unique, seconds=time.perf_counter() - t0)
+    stats = BakeStats(
+        texels=h * w,
+        unique=sa.unique + sb.unique,
+        seconds=time.perf_counter() - t0,
+        clamped=tuple(dict.fromkeys(sa.clamped + sb.clamped)),
+    )
     tex = LatentTexture(chain.fill(), meta)
     if check_filtering and getattr(encode, "models", None) is not None:
         record_filter_levels(tex, encode.models, step=_still_wanted(progress, cancel, "the filtering measurement"))
