@@ -7,7 +7,7 @@ append it to ``_MODULES``. ``register()`` is idempotent: calling it twice re-reg
 
 from __future__ import annotations
 
-from . import bake_ops, bake_state, engine, operators, properties, refine_ops, ui
+from . import bake_ops, bake_state, engine, images, operators, properties, refine_ops, ui
 
 _MODULES = [
     properties,
@@ -15,6 +15,7 @@ _MODULES = [
     refine_ops,
     bake_ops,
     bake_state,
+    images,
     ui,
     engine,
 ]
@@ -62,6 +63,9 @@ def unregister() -> None:
     quality.use_disk_cache(None)
     for module in reversed(_MODULES):
         module.unregister()
+    from ..core import release
+
+    release()  # the networks' threads and what the renders kept: a disabled add-on holds none of it
     _registered = False
 
 

@@ -27,7 +27,8 @@ def store_image(name: str, rgba: np.ndarray, metadata: dict | None = None):
         raise ValueError(f"preview image must be (H, W, 4), got {rgba.shape}")
     h, w = rgba.shape[:2]
     image = bpy.data.images.get(name)
-    if image is not None and (not image.is_float or image.source != "GENERATED"):
+    # a preview of ours is a generated float image, or one the file packed (``pack_previews``): written again
+    if image is not None and (not image.is_float or (image.source != "GENERATED" and not image.get(PREVIEW_KEY))):
         bpy.data.images.remove(image)
         image = None
     if image is None:
@@ -41,8 +42,34 @@ def store_image(name: str, rgba: np.ndarray, metadata: dict | None = None):
     image.update()
     for key, value in (metadata or {}).items():
         image[key] = value
+    image[PREVIEW_KEY] = 1
     set_preview(image, rgba)
     return image
+
+
+PREVIEW_KEY = "nlm_preview"  # marks the images ``store_image`` writes
+
+
+@bpy.app.handlers.persistent
+def pack_previews(*_args) -> None:
+    """``save_pre``: the previews' pixels packed into the file (as OpenEXR, float). A generated image keeps no
+    pixels in a .blend: a preview shown in the Image Editor came back black after a reload. The EXR is
+    premultiplied, which keeps the previews' pixels: their alpha is 1, or 0 where they are black (outside a lobe's
+    disk or a sphere)."""
+    for image in bpy.data.images:
+        if image.get(PREVIEW_KEY) and image.library is None and (image.is_dirty or image.packed_file is None):
+            image.file_format = "OPEN_EXR"
+            image.pack()
+
+
+def register() -> None:
+    if pack_previews not in bpy.app.handlers.save_pre:
+        bpy.app.handlers.save_pre.append(pack_previews)
+
+
+def unregister() -> None:
+    if pack_previews in bpy.app.handlers.save_pre:
+        bpy.app.handlers.save_pre.remove(pack_previews)
 
 
 PREVIEW_SIDE = 256  # largest side of the picture shown in the sidebar

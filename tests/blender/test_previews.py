@@ -340,3 +340,23 @@ def test_background_previews_leave_the_screen_alone_and_use_an_open_image_editor
     area.type = "IMAGE_EDITOR"
     assert run_operator(bpy.ops.neural_layers.preview_sphere).finished
     assert area.spaces.active.image == bpy.data.images[f"Sphere {material.name}"]
+
+
+def test_a_preview_image_keeps_its_pixels_through_a_save_and_a_reload(bpy_addon, fresh_scene, tmp_path):
+    """A preview is a generated float image, whose pixels a .blend does not keep: one shown in the Image Editor came
+    back black after a reload. The previews are packed as the file is saved (OpenEXR), and written again after."""
+    from addon.blender import images
+
+    bpy = bpy_addon
+    rng = np.random.default_rng(3)
+    path = str(tmp_path / "previews.blend")
+    for _ in range(2):  # a preview, and a preview again after the file packed the first
+        rgba = rng.random((6, 8, 4)).astype(np.float32) * 4.0  # beyond 1: float pixels
+        rgba[..., 3] = 1.0  # opaque, as the previews are
+        image = images.store_image("NLM Preview Test", rgba)
+        image.use_fake_user = True  # as the Image Editor's user keeps it
+        bpy.ops.wm.save_as_mainfile(filepath=path)
+        bpy.ops.wm.open_mainfile(filepath=path)
+        image = bpy.data.images["NLM Preview Test"]
+        assert image.packed_file is not None
+        np.testing.assert_allclose(images.read_pixels(image), rgba, rtol=1e-3)

@@ -86,3 +86,26 @@ def test_network_clock_counts_time_in_batches_on_the_calling_thread():
     t.start()
     t.join()
     assert seen == [0.0]  # each thread has its own clock
+
+
+def test_release_ends_the_networks_threads_and_a_later_batch_makes_them_again():
+    """``addon.core.release`` (the add-on's unregister) ends the networks' pools and forgets the loaded models: a
+    disabled add-on kept two idle threads more at each disable and enable, and its model sets."""
+    import time
+
+    from addon.core import release
+    from addon.core.neural import load_models, models
+
+    s = ChunkedSession(MODEL_DIR / "decoder_tiny_rgb.onnx", threads=2, chunk=10)
+    with threads_in_force(2):
+        assert all(name.startswith("onnx") for name in chunk_threads(s, 100))
+    load_models("tiny")
+    assert models._CACHE and session._POOLS
+    release()
+    assert not models._CACHE and not session._POOLS
+    end = time.monotonic() + 10
+    while any(t.name.startswith("onnx") for t in threading.enumerate()) and time.monotonic() < end:
+        time.sleep(0.01)
+    assert not any(t.name.startswith("onnx") for t in threading.enumerate())
+    with threads_in_force(2):  # a later batch makes its pool again
+        assert all(name.startswith("onnx") for name in chunk_threads(s, 100))

@@ -378,6 +378,11 @@ class RefineSettings:
 _MEMORY: dict[str, tuple[np.ndarray, RefineReport]] = {}
 
 
+def clear_memory() -> None:
+    """Forget this session's refinements (those on disk stay)."""
+    _MEMORY.clear()
+
+
 def model_files(stack: Stack, size: str, model_dir: Path | str | None = None) -> list[Path]:
     """The model files a refined latent of ``stack`` depends on."""
     d = Path(model_dir) if model_dir is not None else MODEL_DIR

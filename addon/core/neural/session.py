@@ -67,6 +67,17 @@ def _pool(threads: int) -> ThreadPoolExecutor:
         return _POOLS[threads]
 
 
+def shutdown_pools() -> None:
+    """End the networks' thread pools (``ChunkedSession``'s: one per thread count, kept for the process). A later
+    batch makes a new one; the add-on's unregister ends them, which stayed idle after it, two threads more at each
+    disable and enable."""
+    with _POOLS_LOCK:
+        pools = list(_POOLS.values())
+        _POOLS.clear()
+    for pool in pools:
+        pool.shutdown(wait=False, cancel_futures=True)
+
+
 def session_options():
     """The options every session is made with: one intra-op and one inter-op thread (the
     parallelism is over chunks, on the pool), every graph optimisation ONNX Runtime has."""

@@ -224,6 +224,12 @@ _TRACERS: OrderedDict = OrderedDict()
 _TRACERS_LOCK = threading.Lock()
 
 
+def clear_tracers() -> None:
+    """Forget the ray-tracing structures kept for later renders (``tracer_for``)."""
+    with _TRACERS_LOCK:
+        _TRACERS.clear()
+
+
 def tracer_for(mesh) -> Tracer:
     """The :class:`Tracer` of ``mesh``, built once for each content of its triangles and kept for the renders that
     follow (the last :data:`TRACERS_KEPT`): the viewport renders a scene two or three times after an edit (a
