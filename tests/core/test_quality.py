@@ -352,6 +352,14 @@ def test_camera_hits_give_the_renderers_footprint_on_a_facing_quad():
     np.testing.assert_allclose(fp[0], 4.0 * cam.pixel_spread * 0.5 / math.sqrt(c), rtol=1e-6)
     # the grazing floor: |cos| below 0.05 counts as 0.05
     np.testing.assert_allclose(texture_footprint(1.0, 1e-9, 2.0), 2.0 / math.sqrt(0.05))
+    # A plane facing a pinhole camera is the same number of texels a pixel everywhere: a wide view's corner has the
+    # centre's footprint (one spread for every ray made it 2.3x larger at 90 degrees, 4.3x at 120).
+    for fov in (40.0, 90.0, 120.0):
+        wide = Camera.look_at((0.0, -1.0, 0.0), (0.0, 0.0, 0.0), fov_deg=fov, width=33, height=33)
+        plane = shapes.quad((-50.0, 0.0, -50.0), (100.0, 0.0, 0.0), (0.0, 0.0, 100.0))
+        prim, fp = camera_hits(Scene(wide, plane, [LambertMaterial()], [], None, ["plane"]), [16, 0, 32], [16, 0, 0])
+        assert (prim >= 0).all()
+        np.testing.assert_allclose(fp[1:], fp[0], rtol=1e-3)
 
 
 def test_a_size_with_a_damaged_card_is_not_available_and_says_why(tmp_path):

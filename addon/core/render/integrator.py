@@ -292,7 +292,7 @@ def camera_hits(scene: Scene, px, py) -> tuple[np.ndarray, np.ndarray]:
             d[hit],
             t,
             np.zeros(len(hit)),
-            np.full(len(hit), cam.pixel_spread),
+            cam.ray_spreads(d[hit]),
         )[5]
         fp[hit] = np.where(f > 0, f, np.inf)
     return prim, fp
@@ -652,7 +652,7 @@ def _camera_paths(ctx: _Context, pix: np.ndarray, rng: np.random.Generator, scra
     paths.delta.fill(True)
     paths.mis.fill(True)
     paths.width.fill(0.0)
-    paths.spread.fill(cam.pixel_spread)
+    cam.ray_spreads(paths.d, out=paths.spread)
     paths.eps.fill(0.0)
     return paths
 
