@@ -233,6 +233,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         super().__init__(*args, **kwargs)
         self._viewport = None  # the 3D viewport's progressive session (view_update / view_draw)
         self._view_info: set[str] = set()  # the viewport's decoder-choice lines reported so far
+        self._view_world = None  # (the viewport's last exported environment,), kept while the world is unchanged
 
     def __del__(self):
         view = getattr(self, "_viewport", None)
@@ -357,9 +358,22 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
 
     # ------------------------------------------------------------------ 3D viewport (Rendered mode)
 
-    def _view_scene(self, context, depsgraph):
+    def _view_scene(self, context, depsgraph, updates=None):
+        """The viewport's core scene and settings. ``updates``: the depsgraph's updates (default
+        ``depsgraph.updates``, which Blender fills during ``view_update`` only). The world is exported again only
+        when they name a world, an image or the scene: each edit elsewhere re-read and re-tabulated the sky, seconds
+        for an 8K image at every tick of a slider."""
         region = context.region
-        core_scene, _ = scene_export.export_scene(depsgraph, region.width, region.height, camera=_view_camera(context))
+        kept = getattr(self, "_view_world", None)
+        updates = depsgraph.updates if updates is None else updates
+        changed = kept is None or any(
+            isinstance(u.id, (bpy.types.World, bpy.types.Image, bpy.types.Scene)) for u in updates
+        )
+        environment = scene_export.EXPORT_WORLD if changed else kept[0]
+        core_scene, _ = scene_export.export_scene(
+            depsgraph, region.width, region.height, camera=_view_camera(context), environment=environment
+        )
+        self._view_world = (core_scene.environment,)
         props = depsgraph.scene.neural_render
         info: list[str] = []
         try:

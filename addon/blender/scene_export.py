@@ -436,18 +436,24 @@ def _identity(data_block) -> int:
     return original.session_uid
 
 
+EXPORT_WORLD = object()  # ``export_scene``'s default environment: the scene's world, exported
+
+
 def export_scene(
     depsgraph,
     width: int | None = None,
     height: int | None = None,
     camera: Camera | None = None,
     info: list[str] | None = None,
+    environment=EXPORT_WORLD,
 ):
     """The depsgraph's scene as a core ``Scene``; returns ``(scene, warnings)``.
 
     ``width``/``height`` default to the render resolution (with its percentage); ``camera``
     replaces the scene camera (e.g. the viewport's). Raises ValueError if there is no camera.
     ``info`` (a list) receives the lines that are not warnings (a stale refined latent ignored).
+    ``environment``: the world as an export made it before (an ``Environment`` or None), when the world has not
+    changed since (the viewport's edits elsewhere: an 8K sky image is seconds to read and tabulate).
     """
     scene = depsgraph.scene
     warnings: list[str] = []
@@ -500,7 +506,8 @@ def export_scene(
             continue
         meshes.append(_world_mesh(arrays, matrix))
     mesh = Mesh.concatenate(meshes)
-    out = Scene(camera, mesh, materials, lights, _world(scene.world, warnings), names)
+    world = _world(scene.world, warnings) if environment is EXPORT_WORLD else environment
+    out = Scene(camera, mesh, materials, lights, world, names)
     with _LOCK:
         for path in set(_TEXTURES) - _USED:  # textures no material renders any more: let them go
             del _TEXTURES[path]

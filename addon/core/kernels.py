@@ -558,6 +558,27 @@ def _env_lookup(image, pixel_pdf, z_edges, row_of_bin, edges, column_of_bin, dx,
 
 
 @njit(**_JIT)
+def clean_environment(src, strength, image, lum):
+    """An environment image as the renderer keeps it, in one pass over its pixels: ``src`` (H, W, >= 3) float, its
+    first three channels times ``strength`` into ``image`` (H, W, 3) float32, a non-finite or negative value as 0,
+    and each pixel's luminance (Rec. 709) into ``lum`` (H, W). numpy's copies and masks took 5 s of an 8K
+    image's 7.8 s."""
+    h, w = src.shape[0], src.shape[1]
+    for y in range(h):
+        for x in range(w):
+            total = 0.0
+            for c in range(3):
+                v = float(src[y, x, c])
+                v = v * strength if v > 0.0 and v < np.inf else 0.0  # NaN fails both tests
+                if not v < 3.4028234663852886e38:  # a finite value the strength took past float32's largest
+                    v = 0.0
+                stored = np.float32(v)
+                image[y, x, c] = stored
+                total += float(stored) * (0.2126 if c == 0 else (0.7152 if c == 1 else 0.0722))
+            lum[y, x] = total
+
+
+@njit(**_JIT)
 def alias_table(p):
     """Walker's alias table of the probabilities ``p`` (N,), summing to 1 (Vose's O(N) construction):
     cell i keeps i with probability ``keep[i]`` and gives the rest to ``alias[i]``, so that a uniform

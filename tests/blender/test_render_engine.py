@@ -960,3 +960,31 @@ def test_the_cycles_baseline_tints_an_absorbing_coat_for_its_way_in_and_out(fres
     image = bpy.data.images.load(str(tmp_path / "tint.exr"))
     cycles = np.array(image.pixels[:]).reshape(-1, 4)[:, :3].mean()
     assert cycles == pytest.approx(float(truth[0].mean()), rel=0.06), (cycles, truth[0])
+
+
+def test_the_viewport_exports_the_world_again_only_when_it_changed(fresh_scene, monkeypatch):
+    """Each edit in the Rendered viewport exported the scene again, its world too: an 8K sky image read and
+    tabulated at every tick of a slider (seconds each). The world is now kept while the depsgraph reports no update
+    of a world, an image or the scene."""
+    from types import SimpleNamespace
+
+    from addon.blender import engine, scene_export
+
+    monkeypatch.setattr(engine, "_view_camera", lambda context: None)  # the scene camera
+    worlds = []
+    real_world = scene_export._world
+    monkeypatch.setattr(scene_export, "_world", lambda *a: worlds.append(1) or real_world(*a))
+    graph = fresh_scene.evaluated_depsgraph_get()
+
+    def updates(*ids):  # what the depsgraph reports to view_update after an edit of these
+        return [SimpleNamespace(id=i) for i in ids]
+
+    fake = SimpleNamespace(_view_info=set(), report=lambda kind, text: None)
+    context = SimpleNamespace(region=SimpleNamespace(width=16, height=12))
+    view_scene = engine.NeuralLayeredRenderEngine._view_scene
+    first, _ = view_scene(fake, context, graph, updates())
+    material = bpy.data.materials["Material"]
+    second, _ = view_scene(fake, context, graph, updates(material))  # a material's edit: the world as it was
+    assert len(worlds) == 1 and second.environment is first.environment
+    view_scene(fake, context, graph, updates(fresh_scene.scene.world))  # the world's edit: exported again
+    assert len(worlds) == 2
