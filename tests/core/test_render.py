@@ -938,3 +938,46 @@ def test_a_pixel_subset_renders_those_pixels_as_the_whole_frame_does_and_nothing
     for bad in (np.array([-1]), np.array([24 * 16]), np.array([1, 1]), np.array([0.5]), np.zeros((2, 2), int)):
         with pytest.raises(ValueError, match="pixels must"):
             render(scene, settings, pixels=bad)
+
+
+def test_the_background_warm_up_stops_at_its_next_step_when_the_add_on_goes(monkeypatch):
+    """Disabling the add-on waits for the background compile (its thread imports the add-on's modules): it waited
+    for all of it, Blender frozen (31 s on a loaded machine right after an install). It now stops the warm-up at its
+    next step; a later enable starts it again, and one that finished is not run twice."""
+    import threading
+    import time
+
+    from addon.core.render import warm_up
+
+    monkeypatch.setattr(warm_up, "_finished", threading.Event())
+    monkeypatch.setattr(warm_up, "_stop", threading.Event())
+    monkeypatch.setattr(warm_up, "_thread", None)
+    steps = []
+
+    def slow(stop):  # a compile of a minute, in steps that each check ``stop``
+        for _ in range(600):
+            if stop.is_set():
+                return
+            steps.append(1)
+            time.sleep(0.1)
+
+    real = warm_up.warm_up
+    monkeypatch.setattr(warm_up, "warm_up", slow)
+    thread = warm_up.warm_up_in_background()
+    assert thread is not None and warm_up.warm_up_in_background() is None  # one at a time
+    time.sleep(0.3)
+    t0 = time.monotonic()
+    warm_up.wait_for_background()
+    assert not thread.is_alive() and time.monotonic() - t0 < 5.0 and len(steps) < 100
+    again = warm_up.warm_up_in_background()  # stopped, not finished: an enable starts it again
+    assert again is not None
+    monkeypatch.setattr(warm_up, "warm_up", lambda stop: None)
+    warm_up.wait_for_background()
+    done = warm_up.warm_up_in_background()
+    done.join(5.0)
+    assert warm_up._finished.is_set() and warm_up.warm_up_in_background() is None
+    # the real warm-up with its stop set: no render finishes, nothing else is warmed
+    monkeypatch.setattr(warm_up, "_warm_the_other_loops", lambda: pytest.fail("warmed after a stop"))
+    stop = threading.Event()
+    stop.set()
+    real(stop)

@@ -15,7 +15,8 @@ import threading
 
 import numpy as np
 
-_started = threading.Event()
+_finished = threading.Event()  # every loop compiled (or loaded) in this process
+_stop = threading.Event()  # set by ``wait_for_background``: the warm-up ends at its next step
 _thread: threading.Thread | None = None
 
 
@@ -46,19 +47,30 @@ def warm_scene(environment_image: bool):
     return Scene(cam, Mesh.concatenate([floor, ball]), materials, lights, env, ["floor", "ball"])
 
 
-def warm_up() -> None:
+def warm_up(stop: threading.Event | None = None) -> None:
     """Render the warm-up scenes once each (one thread, one sample, analytic materials), and run the
     neural materials' loops (the sampling proxy, the albedo calibration and a latent texture's choice of
     table and its half-float taps, the exact top coat) on a few rows, and the half-float conversions and
     range checks of a bake, a texture's file and its projection, with the argument types a render and a bake
-    pass."""
+    pass. ``stop`` (set from another thread) ends it at its next step: a loop being compiled finishes first."""
+    from .integrator import Cancelled, RenderSettings, render
+
+    for image in (True, False):
+        try:
+            render(warm_scene(image), RenderSettings(samples=1, max_bounces=3, rr_depth=1, threads=1), stop=stop)
+        except Cancelled:
+            return
+    if stop is not None and stop.is_set():
+        return
+    _warm_the_other_loops()
+
+
+def _warm_the_other_loops() -> None:
+    """The loops no render of the warm-up scenes runs (``warm_up``'s docstring), each on a few rows."""
     from .. import kernels
     from ..neural import proxy, top_lobe
     from ..textures.mip import MipChain, build_mip_chain, first_row_beyond_half, store_texels, trilinear_lookup
-    from .integrator import RenderSettings, render
 
-    for image in (True, False):
-        render(warm_scene(image), RenderSettings(samples=1, max_bounces=3, rr_depth=1, threads=1))
     wo = np.array([[0.0, 0.6, 0.8], [0.6, 0.0, 0.8]])
     proxy.sample(wo, np.array([0.2, 0.3]), 0.5, np.full((2, 3), 0.5))
     grid, table = np.array([0.0, 1.0]), np.ones((2, 2, 3))
@@ -88,19 +100,28 @@ def warm_up() -> None:
 
 
 def warm_up_in_background() -> threading.Thread | None:
-    """Start :func:`warm_up` on a daemon thread, once per process (None when already started)."""
+    """Start :func:`warm_up` on a daemon thread, unless it is running or has finished in this process (None then);
+    one that ``wait_for_background`` stopped starts again."""
     global _thread
-    if _started.is_set():
+    if _finished.is_set() or (_thread is not None and _thread.is_alive()):
         return None
-    _started.set()
-    _thread = threading.Thread(target=warm_up, name="compile-render-kernels", daemon=True)
+    _stop.clear()
+
+    def run():
+        warm_up(_stop)
+        if not _stop.is_set():
+            _finished.set()
+
+    _thread = threading.Thread(target=run, name="compile-render-kernels", daemon=True)
     _thread.start()
     return _thread
 
 
 def wait_for_background(timeout: float | None = None) -> None:
-    """Wait until the background warm-up (if any) has finished. The add-on calls it when it is
+    """Stop the background warm-up (if any) at its next step and wait for it. The add-on calls it when it is
     disabled: the thread imports the extension's modules, and a thread still running would put them
-    back after disabling forgot them."""
+    back after disabling forgot them. It waited for the whole compile (about ten seconds after an install, 31 s on
+    a loaded machine) with Blender frozen; now for the loop being compiled at most."""
     if _thread is not None:
+        _stop.set()
         _thread.join(timeout)
