@@ -273,7 +273,7 @@ def camera_hits(scene: Scene, px, py) -> tuple[np.ndarray, np.ndarray]:
     fp = np.full(len(px), np.inf)
     if not scene.mesh.triangle_count or not len(px):
         return np.full(len(px), -1, dtype=np.int64), fp
-    o, d = cam.generate_rays(px, py, np.full((len(px), 2), 0.5))
+    o, d, spread = cam.rays(px, py, np.full((len(px), 2), 0.5))
     t, prim, bu, bv = tracer_for(scene.mesh).intersect(o, d, RenderStats())
     prim = np.asarray(prim, dtype=np.int64)
     hit = np.flatnonzero(prim >= 0)
@@ -292,7 +292,7 @@ def camera_hits(scene: Scene, px, py) -> tuple[np.ndarray, np.ndarray]:
             d[hit],
             t,
             np.zeros(len(hit)),
-            cam.ray_spreads(d[hit]),
+            spread[hit],
         )[5]
         fp[hit] = np.where(f > 0, f, np.inf)
     return prim, fp
@@ -645,14 +645,13 @@ def _camera_paths(ctx: _Context, pix: np.ndarray, rng: np.random.Generator, scra
     px, py, jitter = scratch.arrays("pixels", n, ((0, kernels.I8), (0, kernels.I8), (2, kernels.F8)))
     np.divmod(pix, cam.width, out=(py, px))
     rng.random(out=jitter)
-    cam.generate_rays(px, py, jitter, out=(paths.o, paths.d))
+    cam.rays(px, py, jitter, out=(paths.o, paths.d, paths.spread))
     paths.row[...] = np.arange(n)
     paths.throughput.fill(1.0)
     paths.pdf.fill(1.0)
     paths.delta.fill(True)
     paths.mis.fill(True)
     paths.width.fill(0.0)
-    cam.ray_spreads(paths.d, out=paths.spread)
     paths.eps.fill(0.0)
     return paths
 

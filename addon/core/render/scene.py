@@ -94,21 +94,16 @@ class Camera:
         """Angle (radians) one pixel subtends at the image centre: the ray cone's spread."""
         return 2.0 * self.tan_half_fov[1] / self.height
 
-    def ray_spreads(self, d: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """The ray cone's spread of each camera ray ``d`` (N, 3, unit): the angle its pixel subtends, the centre's
-        :attr:`pixel_spread` times cos^1.5 of the ray's angle to the optical axis (a pixel off the axis subtends
-        cos^2 of it radially and cos across: their geometric mean). One spread for every ray made a plane facing
-        the camera look blurrier toward the image's corners: a texture at one texel a pixel took mip level 0.25
-        in a 40-degree view's corners, 1.2 in a 90-degree view's."""
-        forward = -self.matrix[:3, 2] / np.linalg.norm(self.matrix[:3, 2])
-        cos = np.clip(np.asarray(d, dtype=np.float64) @ forward, 0.0, 1.0)
-        return np.multiply(self.pixel_spread, cos * np.sqrt(cos), out=out)
-
     def generate_rays(self, px: np.ndarray, py: np.ndarray, jitter: np.ndarray, out=None):
         """World-space rays through pixel (px, py) (row 0 at the top) offset by jitter in [0, 1)^2.
 
         Returns origins (N, 3) and unit directions (N, 3), float64: ``out`` (two such arrays) when given.
         """
+        return self.rays(px, py, jitter, None if out is None else (*out, np.empty(len(out[0]))))[:2]
+
+    def rays(self, px: np.ndarray, py: np.ndarray, jitter: np.ndarray, out=None):
+        """:meth:`generate_rays`' origins and directions and each ray cone's spread (N,), the angle its pixel
+        subtends (``kernels.camera_rays``): ``out`` (``kernels.CAMERA_RAYS_OUT``) when given."""
         px, py = np.asarray(px), np.asarray(py)
         integers = px.dtype.kind in "iu" and py.dtype.kind in "iu"  # read as they are; anything else as float64
         px, py = (np.ascontiguousarray(a, dtype=np.int64 if integers else np.float64) for a in (px, py))
@@ -122,6 +117,7 @@ class Camera:
             self.height,
             *self.tan_half_fov,
             *(float(v) for v in self.shift),
+            self.pixel_spread,
         )
 
 
