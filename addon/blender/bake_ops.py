@@ -134,7 +134,9 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
     poll_needs = "stack"
     bl_idname = "neural_layers.bake_texture"
     bl_label = "Bake Latent Texture"
-    bl_options = {"REGISTER", "UNDO"}
+    # undoable, with no Adjust Last Operation panel: its redo calls execute(), the whole job on Blender's thread
+    # with no progress and no Esc (seconds to minutes)
+    bl_options = {"UNDO"}
 
     def prepare(self, context):
         mat = self.target(context)
@@ -180,6 +182,7 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
 
         def finish(context, result):
             stats, seconds, refined, (filtered, levels) = result
+            mat = self.again(name)  # an undo during the bake replaced the one read above
             mat.neural_layers.texture_path = _blend_relative(path)
             mat.neural_layers.texture_file = os.path.abspath(path)
             mat.neural_layers.texture_key = key

@@ -174,6 +174,15 @@ class LongOperator(jobs.ModalJob, MaterialOperator):
         work, self._finish = prepared[0]
         return self.start_job(context, work)
 
+    @staticmethod
+    def again(name: str):
+        """The material named ``name`` as it is now, for a job's finish: an undo while the job ran replaces every
+        data-block, and the one ``prepare`` read is gone (its Python object raises ReferenceError)."""
+        mat = bpy.data.materials.get(name)
+        if mat is None:
+            raise UserError(f"material {name!r} is gone (undone or deleted while the job ran): nothing was changed")
+        return mat
+
     def job_done(self, context, job):
         if job.error is not None:
             err = job.error

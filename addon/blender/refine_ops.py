@@ -51,7 +51,9 @@ class NLM_OT_refine_latent(LongOperator, bpy.types.Operator):
     poll_needs = "stack"
     bl_idname = "neural_layers.refine_latent"
     bl_label = "Refine Latent"
-    bl_options = {"REGISTER", "UNDO"}
+    # undoable, with no Adjust Last Operation panel: its redo calls execute(), the whole job on Blender's thread
+    # with no progress and no Esc (seconds to minutes)
+    bl_options = {"UNDO"}
 
     budget: FloatProperty(
         name="Budget (s)", description="Seconds the refinement may take", default=8.0, min=0.5, max=600.0
@@ -65,6 +67,7 @@ class NLM_OT_refine_latent(LongOperator, bpy.types.Operator):
         from ..core.stack import clamp_to_trained
 
         mat, stack = self.target_stack(context)
+        name = mat.name
         size = preview.resolve_size(stack_io.model_size(mat))
         _, notes = clamp_to_trained(stack)  # the encoder sees the clamped stack; the reference the real one
         self.report_notes(notes)
@@ -75,6 +78,7 @@ class NLM_OT_refine_latent(LongOperator, bpy.types.Operator):
 
         def finish(context, result):
             (z, rep), digest = result
+            mat = self.again(name)  # an undo during the refinement replaced the one read above
             if stack_io.stack_from_material(mat) != stack:
                 raise UserError(f"the stack of {mat.name!r} changed while it was refined: press Refine again")
             self._store(mat, stack, size, z, rep, digest)

@@ -500,3 +500,38 @@ def test_a_linked_baked_material_made_local_keeps_its_texture(wood, bpy_addon, t
     assert not os.path.isfile(bpy.path.abspath(local.neural_layers.texture_path))
     path, state = bake_ops.baked_texture_state(local)
     assert path is not None and os.path.samefile(path, tmp_path / "a" / "textures" / "Material.exr"), state
+
+
+def test_a_bake_is_undone_and_offers_no_redo_panel_that_would_run_it_on_blenders_thread(wood, bpy_addon):
+    """Bake and Refine had REGISTER and UNDO, so Blender's Adjust Last Operation panel re-ran them through execute():
+    the whole job on Blender's thread, with no progress and no Esc. They keep their undo step, without the panel."""
+    from addon.blender import bake_ops, refine_ops
+
+    bpy = bpy_addon
+    for op in (bake_ops.NLM_OT_bake_texture, refine_ops.NLM_OT_refine_latent):
+        assert op.bl_options == {"UNDO"}
+    bpy.ops.ed.undo_push(message="before the bake")
+    assert run_operator(ops.bake_texture, "EXEC_DEFAULT", True).finished
+    assert bpy.data.materials["Material"].neural_layers.texture_path
+    bpy.ops.ed.undo()
+    assert bpy.data.materials["Material"].neural_layers.texture_path == ""
+
+
+def test_a_bake_finishes_on_the_material_as_it_is_after_an_undo_during_it(wood, bpy_addon, monkeypatch):
+    """An undo while a bake runs replaces every data-block: its finish wrote to the material its preparation read,
+    which was gone (ReferenceError, the texture written and not used). It now finds the material again by name."""
+    from addon.blender import bake_ops
+
+    bpy = bpy_addon
+    real = bake_ops.bake_stack
+
+    def undone_meanwhile(*args, **kwargs):
+        bpy.ops.ed.undo()  # the user's Ctrl+Z while the job runs
+        return real(*args, **kwargs)
+
+    bpy.ops.ed.undo_push(message="before the bake")
+    bpy.ops.ed.undo_push(message="again")
+    monkeypatch.setattr(bake_ops, "bake_stack", undone_meanwhile)
+    r = run_operator(ops.bake_texture)
+    assert r.finished, r.error
+    assert bpy.data.materials["Material"].neural_layers.texture_path
