@@ -128,6 +128,9 @@ def reference_key(width: int, height: int, samples: int, seeds: list[int]) -> di
         "seeds": list(seeds),
         "reference_walks": defaults.reference_walks,
         "max_bounces": defaults.max_bounces,
+        # how Max Bounces counts (after the first hit, as Cycles): a render cached when it counted one more is
+        # another render, never reused
+        "bounces_counted": "after the first hit",
     }
 
 
