@@ -568,6 +568,18 @@ def _clamp_arrays(arrays: StackArrays) -> tuple[StackArrays, list[str]]:
     return out, notes
 
 
+def clamp_notes(arrays: StackArrays) -> list[str]:
+    """``clamp_to_trained(arrays)``'s notes, without its clamped copy where no field leaves its trained range (a
+    minimum and a maximum a field): what a bake says of its distinct texels at a few milliseconds, where the copy
+    took 66 ms of a 262,144-texel bake's second."""
+    for name, (key, _kinds) in ARRAY_FIELDS.items():
+        lo, hi = TRAINED_RANGES[key]
+        v = getattr(arrays, name)
+        if np.size(v) and (np.min(v) < lo or np.max(v) > hi):
+            return _clamp_arrays(arrays)[1]
+    return []
+
+
 def clamp_to_trained(stacks: "Stack | StackArrays") -> "tuple[Stack | StackArrays, list[str]]":
     """Every parameter clamped into TRAINED_RANGES: the clamped copy and a note per change (a Stack:
     per layer field; StackArrays: per field, with the count of rows whose base kind uses it)."""

@@ -179,3 +179,14 @@ def test_a_malformed_stack_text_raises_value_error(text):
     iterable, ...), which a caller catching ValueError did not see."""
     with pytest.raises(ValueError):
         st.Stack.from_json(text)
+
+
+def test_clamp_notes_are_clamp_to_trained_s_without_its_copy():
+    """What a bake says of its distinct texels: the same notes as ``clamp_to_trained``, none for rows inside the
+    trained ranges (checked by a minimum and a maximum a field, where the clamped copy took 66 ms of a bake)."""
+    inside = st.StackArrays.from_stacks([st.preset("varnished_wood"), st.preset("red_car_paint")][:1] * 3)
+    assert st.clamp_notes(inside) == [] == st.clamp_to_trained(inside)[1]
+    smooth = st.Stack(st.Diffuse((0.5, 0.5, 0.5)), (st.Coating(0.0, 2.5),))
+    mixed = st.StackArrays.from_stacks([st.preset("varnished_wood"), smooth, smooth])
+    notes = st.clamp_notes(mixed)
+    assert notes == st.clamp_to_trained(mixed)[1] and len(notes) == 2  # roughness and ior, 2 rows each

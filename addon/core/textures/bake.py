@@ -20,7 +20,7 @@ import numpy as np
 
 from ..neural.top_lobe import top_coats
 from ..rows import distinct_rows
-from ..stack import StackArrays, clamp_to_trained
+from ..stack import StackArrays, clamp_notes
 from ..threads import submit_in_context, thread_count
 from .latent_texture import CHANNEL_NAMES, LatentTexture
 from .mip import HALF_MAX, MipChain, float32_texels, store_texels
@@ -336,7 +336,7 @@ def _bake_texels(arrays, encode, dedup, batch, progress, cancel, workers=1, gath
             pool.shutdown(wait=True, cancel_futures=True)
         _refine_steps(encode, None)  # this bake's callbacks go with it
     counts = np.ones(m) if inverse is None else np.bincount(inverse, minlength=m).astype(np.float64)
-    clamped = tuple(clamp_to_trained(todo)[1]) if m else ()
+    clamped = tuple(clamp_notes(todo)) if m else ()
     stats = BakeStats(texels=n, unique=m, seconds=time.perf_counter() - t0, clamped=clamped)
     texels = (out if inverse is None else out[inverse]) if gather else (out, inverse)
     return texels, stats, (todo, out, counts)
