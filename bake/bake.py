@@ -443,9 +443,10 @@ def run(
         stats["texels"] += st.texels
         stats["unique"] += st.unique
         stats["seconds"] += st.seconds
-        for note in st.clamped:  # the networks' trained ranges: said once a job, not once a band
-            if (job.name, note) not in clamped:
-                clamped.add((job.name, note))
+        for note in st.clamped:  # the networks' trained ranges: said once a job and field, not once a band
+            field = note.split(":", 1)[0]  # a band's note counts its own rows
+            if (job.name, field) not in clamped:
+                clamped.add((job.name, field))
                 log(f"{job.name}: {note}; baked clamped")
     bar.close()
     for job in jobs:

@@ -182,11 +182,11 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
 
         def finish(context, result):
             stats, seconds, refined, (filtered, levels) = result
-            mat = self.again(name)  # an undo during the bake replaced the one read above
-            mat.neural_layers.texture_path = _blend_relative(path)
-            mat.neural_layers.texture_file = os.path.abspath(path)
-            mat.neural_layers.texture_key = key
-            mat.neural_layers.texture_size = res
+            target = self.again(mat, name)  # an undo during the bake replaced the one read above
+            target.neural_layers.texture_path = _blend_relative(path)
+            target.neural_layers.texture_file = os.path.abspath(path)
+            target.neural_layers.texture_key = key
+            target.neural_layers.texture_size = res
             refined = "" if refined is None else f", {refined} refined"
             calibrated = f", calibrated in {stats.clusters} cluster(s)" if stats.clusters else ""
             for note in stats.clamped:  # the networks' trained ranges: what the texture holds is the clamped stack

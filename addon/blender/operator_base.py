@@ -175,13 +175,19 @@ class LongOperator(jobs.ModalJob, MaterialOperator):
         return self.start_job(context, work)
 
     @staticmethod
-    def again(name: str):
-        """The material named ``name`` as it is now, for a job's finish: an undo while the job ran replaces every
-        data-block, and the one ``prepare`` read is gone (its Python object raises ReferenceError)."""
-        mat = bpy.data.materials.get(name)
-        if mat is None:
+    def again(mat, name: str):
+        """The material ``mat`` (named ``name`` when ``prepare`` read it) as it is now, for a job's finish: itself
+        (renamed meanwhile, too), or after an undo during the job, which replaced every data-block (``mat`` then
+        raises ReferenceError), the material of that name."""
+        try:
+            mat.name  # noqa: B018 (an RNA read: raises once Blender freed the data-block)
+            return mat
+        except ReferenceError:
+            pass
+        found = bpy.data.materials.get(name)
+        if found is None:
             raise UserError(f"material {name!r} is gone (undone or deleted while the job ran): nothing was changed")
-        return mat
+        return found
 
     def job_done(self, context, job):
         if job.error is not None:

@@ -78,10 +78,10 @@ class NLM_OT_refine_latent(LongOperator, bpy.types.Operator):
 
         def finish(context, result):
             (z, rep), digest = result
-            mat = self.again(name)  # an undo during the refinement replaced the one read above
-            if stack_io.stack_from_material(mat) != stack:
-                raise UserError(f"the stack of {mat.name!r} changed while it was refined: press Refine again")
-            self._store(mat, stack, size, z, rep, digest)
+            target = self.again(mat, name)  # an undo during the refinement replaced the one read above
+            if stack_io.stack_from_material(target) != stack:
+                raise UserError(f"the stack of {target.name!r} changed while it was refined: press Refine again")
+            self._store(target, stack, size, z, rep, digest)
             return {"FINISHED"}
 
         return work, finish

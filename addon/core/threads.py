@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import contextvars
 import os
-from concurrent.futures import Future, ThreadPoolExecutor, wait
+from concurrent.futures import FIRST_EXCEPTION, Future, ThreadPoolExecutor, wait
 from typing import Callable, Iterable, TypeVar
 
 T = TypeVar("T")
@@ -50,9 +50,11 @@ def map_on_threads(
     pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix=name)
     try:
         futures = [submit_in_context(pool, fn, x) for x in items]
-        for f in futures if check is not None else ():
-            while not wait([f], timeout=check_seconds).done:
-                check()
+        while check is not None:  # until all are done or one failed (then the rest not started are not run)
+            done, pending = wait(futures, timeout=check_seconds, return_when=FIRST_EXCEPTION)
+            if not pending or any(f.exception() is not None for f in done):
+                break
+            check()
         return [f.result() for f in futures]
     finally:
         pool.shutdown(wait=True, cancel_futures=True)

@@ -535,3 +535,22 @@ def test_a_bake_finishes_on_the_material_as_it_is_after_an_undo_during_it(wood, 
     r = run_operator(ops.bake_texture)
     assert r.finished, r.error
     assert bpy.data.materials["Material"].neural_layers.texture_path
+
+
+def test_a_bake_finishes_on_its_material_renamed_during_it(wood, bpy_addon, monkeypatch):
+    """Found again by name alone, a material renamed during its bake was 'gone' and another material given that name
+    took its texture. The material itself is kept while it lives; only an undo's replacement is found by name."""
+    from addon.blender import bake_ops
+
+    bpy = bpy_addon
+    real = bake_ops.bake_stack
+
+    def renamed_meanwhile(*args, **kwargs):
+        wood.name = "Renamed"
+        bpy.data.materials.new("Material")  # another one takes the old name
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(bake_ops, "bake_stack", renamed_meanwhile)
+    assert run_operator(ops.bake_texture).finished
+    assert bpy.data.materials["Renamed"].neural_layers.texture_path
+    assert bpy.data.materials["Material"].neural_layers.texture_path == ""

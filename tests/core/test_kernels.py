@@ -679,3 +679,16 @@ def test_an_environment_image_is_kept_in_float32_with_what_cannot_shine_as_zero(
     # its sampling is the image's: a pixel twice as bright is chosen twice as often (same solid angle)
     two = Environment(image=np.array([[[1.0, 1.0, 1.0], [2.0, 2.0, 2.0]]], dtype=np.float32))
     np.testing.assert_allclose(two.pixel_p, [1 / 3, 2 / 3])
+
+
+def test_an_environment_from_blenders_rgba_pixels_takes_the_warmed_up_loop():
+    """The export hands the RGB of Blender's RGBA pixels, a strided view: ``clean_environment`` compiled a loop of its
+    own for it on the first F12 with a sky image. The image is made contiguous first: one loop, the warm-up's."""
+    from addon.core.render.lights import Environment
+
+    rgba = np.random.default_rng(1).random((4, 8, 4)).astype(np.float32)
+    Environment(image=np.ascontiguousarray(rgba[..., :3]))
+    before = len(kernels.clean_environment.signatures)
+    strided = Environment(image=rgba[..., :3])
+    assert len(kernels.clean_environment.signatures) == before
+    np.testing.assert_array_equal(strided.image, rgba[..., :3])

@@ -981,3 +981,20 @@ def test_the_background_warm_up_stops_at_its_next_step_when_the_add_on_goes(monk
     stop = threading.Event()
     stop.set()
     real(stop)
+
+
+def test_the_warm_up_stops_between_the_loops_it_compiles_after_its_renders(monkeypatch):
+    """The stop was heard around the warm-up's two renders only: the fifteen loops compiled after them ran to the
+    end. Each now yields, and a stop ends the warm-up at the next one."""
+    import threading
+
+    from addon.core import kernels
+    from addon.core.render import integrator, warm_up
+
+    monkeypatch.setattr(integrator, "render", lambda *a, **k: None)  # the renders' loops: compiled elsewhere
+    stop = threading.Event()
+    real = kernels.scale_by_table
+    monkeypatch.setattr(kernels, "scale_by_table", lambda *a: (stop.set(), real(*a))[1])  # the user disables here
+    monkeypatch.setattr(kernels, "transmission_rows", lambda *a: pytest.fail("compiled after the stop"))
+    warm_up.warm_up(stop)
+    assert stop.is_set()

@@ -109,3 +109,24 @@ def test_release_ends_the_networks_threads_and_a_later_batch_makes_them_again():
     assert not any(t.name.startswith("onnx") for t in threading.enumerate())
     with threads_in_force(2):  # a later batch makes its pool again
         assert all(name.startswith("onnx") for name in chunk_threads(s, 100))
+
+
+def test_a_failed_piece_stops_the_pieces_not_started_while_the_caller_polls():
+    """``map_on_threads`` with ``check`` (a render's stop, polled while the materials calibrate) waited for every
+    piece before it raised the first error: one material failing calibrated all the others first."""
+    import time
+
+    from addon.core.threads import map_on_threads
+
+    ran = []
+
+    def piece(i):
+        ran.append(i)
+        if i == 0:
+            raise ValueError("the first material fails")
+        time.sleep(0.1)
+        return i
+
+    with pytest.raises(ValueError, match="first material"):
+        map_on_threads(piece, range(8), 2, "test", check=lambda: None, check_seconds=0.01)
+    assert len(ran) < 8, ran

@@ -293,3 +293,48 @@ def test_a_textures_clusters_calibrated_side_by_side_are_the_ones_a_lone_thread_
     encode = neural_encoder("tiny", threads=2)
     texts = [bake_stack(_two_halves(), encode, threads=n)[0].metadata["calibration"] for n in (1, 2)]
     assert len(tc.TextureCalibration.from_text(texts[0]).tables) == 2 and texts[0] == texts[1]
+
+
+def test_a_texture_calibration_of_clamped_top_coatings_records_its_rule_and_older_ones_are_not_current():
+    """A remainder decoder's calibration now targets the light below the clamped top coating the renderer adds
+    (``calibrate._as_rendered``). A texture calibrated before that rule, some of whose texels' top coatings sit at a
+    bound of the trained ranges, is not current (it was rendered with its old factors, silently); one with the rule
+    recorded is, and so is an old one whose tops are all inside the ranges (its factors are the same)."""
+    from addon.core.neural import calibrate as cal
+    from addon.core.textures.calibration import TextureCalibration, top_at_trained_bounds
+
+    tables = np.ones((1, len(cal.COSINES), len(cal.COSINES), 3))
+    old = TextureCalibration(np.asarray(cal.COSINES), np.zeros((1, 96)), tables, cal.settings_key())
+    new = TextureCalibration(np.asarray(cal.COSINES), np.zeros((1, 96)), tables, cal.settings_key() + cal.TOP_RULE)
+    assert new.is_current(True) and new.is_current(False)
+    assert old.is_current(False) and not old.is_current(True)
+    inside = np.zeros((2, 2, 100), np.float16)
+    inside[..., 98], inside[..., 99] = 0.1, 1.5
+    assert not top_at_trained_bounds([inside])
+    for channel, value in ((98, 0.01), (99, 1.05), (99, 2.0)):  # the clamps' bounds, in half floats
+        at = inside.copy()
+        at[0, 1, channel] = value
+        assert top_at_trained_bounds([at])
+
+
+def test_a_calibrated_bake_of_a_clamped_top_has_another_key():
+    """The bake key of a calibrated texture whose top coatings leave the trained ranges holds the rule, so the
+    command's kept bakes and the add-on's texture made before it are baked again; other bakes keep their keys."""
+    from addon.core.stack import Coating, Diffuse, Stack
+    from addon.core.textures.bake import bake_key
+    from addon.core.textures.spatial import SpatialStack
+
+    rough = np.full((4, 4), 0.2)
+    clear = SpatialStack(Stack(Diffuse((0.5, 0.5, 0.5)), (Coating(0.1, 1.5),)), {})
+    mapped = SpatialStack(Stack(Diffuse((0.5, 0.5, 0.5)), (Coating(0.1, 1.5),)), {"coatings[0].roughness": rough})
+    smooth = rough.copy()
+    smooth[0, 0] = 0.0  # one texel's coat below the trained 0.01
+    clamped = SpatialStack(Stack(Diffuse((0.5, 0.5, 0.5)), (Coating(0.1, 1.5),)), {"coatings[0].roughness": smooth})
+    for spatial, changes in ((clear, False), (mapped, False), (clamped, True)):
+        calibrated = bake_key(spatial, (4, 4), "tiny+calibrated-abcd1234:digest")
+        with pytest.MonkeyPatch.context() as mp:
+            from addon.core.textures import bake as bake_module
+
+            mp.setattr(bake_module, "_clamps_top", lambda s: False)
+            before = bake_key(spatial, (4, 4), "tiny+calibrated-abcd1234:digest")
+        assert (calibrated != before) == changes

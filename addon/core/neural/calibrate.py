@@ -476,11 +476,16 @@ def settings_key() -> str:
     return f"walks{list(WALKS)}-cosines{list(COSINES)}-target-below-top-shrink{NOISE_THRESHOLD:g}-table"
 
 
+# What the key of a calibration of a clamped top coating adds (``_as_rendered``): the calibrations made before that
+# rule lacked it, and are not current for such stacks.
+TOP_RULE = "-top-as-rendered"
+
+
 def stack_settings_key(stack: Stack) -> str:
     """:func:`settings_key`, and for a stack whose top coating the decoders see clamped (``top_clamped``) the
-    rule that calibrates it (``_as_rendered``), which the calibrations made before it lacked."""
+    rule that calibrates it (:data:`TOP_RULE`)."""
     arrays = StackArrays.from_stacks([stack])
-    return settings_key() + ("-top-as-rendered" if top_clamped(arrays).any() else "")
+    return settings_key() + (TOP_RULE if top_clamped(arrays).any() else "")
 
 
 def cache_key(stack: Stack, models, z) -> str:

@@ -287,7 +287,9 @@ class Environment:
         self.constant = self.color * self.strength
         self.image = None
         if image is not None:
-            src = np.asarray(image, dtype=np.float32)  # Blender's pixels as they are; one compiled loop for all
+            # Blender's pixels as they are, contiguous: one compiled loop for every caller, the warm-up's too (the
+            # export's RGB of RGBA pixels is a strided view, which compiled a loop of its own on the first F12)
+            src = np.ascontiguousarray(image, dtype=np.float32)
             if src.ndim != 3 or src.shape[2] < 3 or src.shape[0] < 1 or src.shape[1] < 1:
                 raise ValueError(f"environment image must be (H, W, 3), got shape {src.shape}")
             # float32, as Blender's pixels are: an 8K image is 403 MB where it was 805, and on this kind of machine

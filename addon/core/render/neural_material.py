@@ -380,7 +380,7 @@ class StaleCalibrationWarning(UserWarning):
 
 def _texture_calibration(latent_texture):
     """The calibration a latent texture's bake stored in its metadata (``calibration``), or None."""
-    from ..textures.calibration import TextureCalibration
+    from ..textures.calibration import TextureCalibration, top_at_trained_bounds
 
     text = (getattr(latent_texture, "metadata", None) or {}).get("calibration")
     if not text:
@@ -390,7 +390,7 @@ def _texture_calibration(latent_texture):
     except ValueError as e:
         why = f"cannot be read ({e})"
     else:
-        if calibration.is_current():
+        if calibration.is_current(top_at_trained_bounds(latent_texture.levels)):
             return calibration
         why = "was made with other calibration settings than this version's"
     warnings.warn(

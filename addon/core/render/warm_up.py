@@ -55,48 +55,66 @@ def warm_up(stop: threading.Event | None = None) -> None:
     pass. ``stop`` (set from another thread) ends it at its next step: a loop being compiled finishes first."""
     from .integrator import Cancelled, RenderSettings, render
 
+    def stopped() -> bool:
+        return stop is not None and stop.is_set()
+
     for image in (True, False):
+        if stopped():  # before the scene: its environment's tables compile loops of their own
+            return
         try:
             render(warm_scene(image), RenderSettings(samples=1, max_bounces=3, rr_depth=1, threads=1), stop=stop)
         except Cancelled:
             return
-    if stop is not None and stop.is_set():
-        return
-    _warm_the_other_loops()
+    for _ in _warm_the_other_loops():  # a loop over its steps, each compiling a loop or two
+        if stopped():
+            return
 
 
-def _warm_the_other_loops() -> None:
-    """The loops no render of the warm-up scenes runs (``warm_up``'s docstring), each on a few rows."""
+def _warm_the_other_loops():
+    """The loops no render of the warm-up scenes runs (``warm_up``'s docstring), each on a few rows: a generator that
+    yields after each step, where ``warm_up`` may stop."""
     from .. import kernels
     from ..neural import proxy, top_lobe
     from ..textures.mip import MipChain, build_mip_chain, first_row_beyond_half, store_texels, trilinear_lookup
 
     wo = np.array([[0.0, 0.6, 0.8], [0.6, 0.0, 0.8]])
     proxy.sample(wo, np.array([0.2, 0.3]), 0.5, np.full((2, 3), 0.5))
+    yield
     grid, table = np.array([0.0, 1.0]), np.ones((2, 2, 3))
     kernels.scale_by_table(np.ones((2, 3)), wo[:, 2].copy(), wo[:, 2].copy(), grid, table[None], np.zeros(0, np.int64))
+    yield
     top, half = np.array([[0.1, 1.5]]), np.full(2, 0.5)  # a remainder decoder's exact top coat
     wi, share, missed = kernels.propose_with_top(wo, half, np.full((2, 2), 0.5), half, half, top)
     _f, p_top = kernels.top_lobe_eval_pdf(wi, wo, top)
     pdf = kernels.mixture_pdf(wo, wi, half, half, share, p_top)
     kernels.finish_proposals(wi, pdf, np.ones((2, 3)))
+    yield
     f32, rows = np.ones((2, 3), dtype=np.float32), np.arange(2)
     kernels.neural_shading(f32, p_top, wi, wo, rows, 1, half, half, share, missed, True)
+    yield
     grids = top_lobe.transmittance_grids()
     calibration = (grid, table[None], np.zeros(0, np.int64))
     for coat in (top, np.repeat(top, 2, axis=0), top_lobe.NO_TOP_ROWS):  # shared, per row, none
         f32 = np.ones((2, 3), dtype=np.float32)
         kernels.decoded_brdf(f32, wi, wo, calibration, coat, grids, True, True, kernels.EVERY_ROW)
+        yield
     kernels.transmission_rows(top, wo[:, 2].copy(), *grids)
+    yield
     kernels.nearest_rows(np.zeros((2, 96), np.float32), np.ones((3, 96), np.float32))  # a latent texture's tables
+    yield
     # a latent texture read from its file: half floats (the image texture above took the float32 loop)
     trilinear_lookup(MipChain([np.zeros((1, 1, 100))], dtype=np.float16), np.zeros((2, 2)), 0.0)
+    yield
     kernels.take_half_channels(np.zeros((1, 3), np.uint16), np.arange(2, dtype=np.int64), np.zeros((1, 2), np.uint16))
+    yield
     # the half-float conversions: a baked texture's chain, and the projected texture's columns a render makes
     build_mip_chain(np.zeros((2, 2, 3), np.float32), dtype=np.float16)
+    yield
     store_texels(np.zeros((2, 2), np.float32), np.zeros((2, 3), np.float16)[:, :2], "the warm-up's texels")
+    yield
     for dtype in (np.float16, np.float32):  # the range checks: a texture's file write, a bake's texels
         first_row_beyond_half(np.zeros((2, 2), dtype))
+        yield
 
 
 def warm_up_in_background() -> threading.Thread | None:

@@ -201,10 +201,27 @@ def bake_key(
     h.update(spatial.stack.to_json().encode())
     h.update(repr(tuple(resolution)).encode())
     h.update(model.encode())
+    if "+calibrated-" in model and _clamps_top(spatial):  # calibrated by the rule for clamped tops since it came
+        from ..neural.calibrate import TOP_RULE
+
+        h.update(TOP_RULE.encode())
     for path in sorted(spatial.maps):
         h.update(path.encode())
         h.update(np.ascontiguousarray(spatial.maps[path], dtype=np.float32).tobytes())
     return h.hexdigest()[:16]
+
+
+def _clamps_top(spatial: SpatialStack) -> bool:
+    """Whether some texel's top coating leaves the trained ranges (the renderer's top lobe is then the clamped one:
+    ``calibrate.top_clamped``), from its parameters' ranges over the texels."""
+    from ..stack import TRAINED_RANGES
+
+    if not spatial.stack.coatings:
+        return False
+    alpha, ior = spatial.top_range("roughness"), spatial.top_range("ior")
+    return alpha[0] < TRAINED_RANGES["roughness"][0] or not (
+        TRAINED_RANGES["ior"][0] <= ior[0] and ior[1] <= TRAINED_RANGES["ior"][1]
+    )
 
 
 class BakeCancelled(Exception):

@@ -139,9 +139,33 @@ class TextureCalibration:
             raise ValueError("not a latent texture's calibration: non-finite or negative values")
         return cls(cosines, centroids.astype(np.float64), tables.astype(np.float64), settings)
 
-    def is_current(self) -> bool:
-        """Whether it was made with this version's calibration settings (else a renderer ignores it)."""
-        return self.settings == cal.settings_key()
+    def is_current(self, top_at_bounds: bool = False) -> bool:
+        """Whether it was made with this version's calibration settings (else a renderer ignores it). A texture
+        some of whose texels' top coatings sit at a bound of the trained ranges (``top_at_trained_bounds``: clamped
+        there, as far as its channels tell) needs the rule for clamped tops (``calibrate.TOP_RULE``), which its
+        bake records when it applied it; those made before it are not current."""
+        if self.settings == cal.settings_key() + cal.TOP_RULE:
+            return True
+        return self.settings == cal.settings_key() and not top_at_bounds
+
+
+def top_at_trained_bounds(levels) -> bool:
+    """Whether some texel of a latent texture's base level (``levels[0]``, (H, W, 100): its last two channels the top
+    coating's alpha and ior, clamped to the trained ranges by the bake) sits at a bound of those ranges: alpha at
+    its least, ior at its least or greatest, in the half floats the texture holds (a texel exactly there unclamped
+    counts too: its calibration is the same, and a rebake costs only time)."""
+    from ..stack import TRAINED_RANGES
+
+    base = levels[0]
+    alpha, ior = base[..., -2], base[..., -1]
+    if alpha.size == 0:
+        return False
+    half = np.float16
+    return bool(
+        np.min(alpha) <= half(TRAINED_RANGES["roughness"][0])
+        or np.min(ior) <= half(TRAINED_RANGES["ior"][0])
+        or np.max(ior) >= half(TRAINED_RANGES["ior"][1])
+    )
 
 
 def calibrate_texture(
@@ -197,7 +221,8 @@ def calibrate_texture(
 
     tables = map_on_threads(table_of, range(n), threads, "calibrate")  # a cancel (a step raising) stops the others
     cosines = np.asarray(cal.COSINES, dtype=np.float64)
-    return TextureCalibration(cosines, centroids, np.array(tables), cal.settings_key())
+    settings = cal.settings_key() + (cal.TOP_RULE if cal.top_clamped(arrays).any() else "")
+    return TextureCalibration(cosines, centroids, np.array(tables), settings)
 
 
 def _stratified(weights: np.ndarray, n: int) -> np.ndarray:
