@@ -209,6 +209,26 @@ def region_pixels(region: tuple[int, int, int, int], width: int, height: int) ->
     return (rows[:, None] * width + np.arange(x0, x1)[None, :]).ravel()
 
 
+def thumbnail_size(width: int, height: int) -> tuple[int, int]:
+    """The size a material preview asked at ``width`` x ``height`` is rendered at: itself, or the same aspect with
+    its longer side THUMBNAIL_MAX_SIDE pixels."""
+    from ..core.render.thumbnail import THUMBNAIL_MAX_SIDE
+
+    big = max(width, height)
+    if big <= THUMBNAIL_MAX_SIDE:
+        return width, height
+    return max(1, round(width * THUMBNAIL_MAX_SIDE / big)), max(1, round(height * THUMBNAIL_MAX_SIDE / big))
+
+
+def _resized(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``image`` (H, W, C) at ``width`` x ``height``, each pixel the nearest of the image's (a preview's
+    upscale)."""
+    h, w = image.shape[:2]
+    rows = np.minimum((np.arange(height) + 0.5) * h / height, h - 1).astype(np.int64)
+    cols = np.minimum((np.arange(width) + 0.5) * w / width, w - 1).astype(np.int64)
+    return image[rows][:, cols]
+
+
 def _region_rows(image: np.ndarray, region: tuple[int, int, int, int]) -> np.ndarray:
     """The region's part of a whole frame's ``image`` (H, W, C), row 0 at the top, as Blender's flat pass buffers
     take it: rows from the bottom, C-contiguous and flat."""
@@ -300,7 +320,12 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
     def _render(self, depsgraph, scene, props, result, region, thumbnail: bool = False):
         self.update_stats("", "Exporting scene")
         info: list[str] = []
-        core_scene, warnings = scene_export.export_scene(depsgraph, *scene_export.render_size(scene), info=info)
+        asked = scene_export.render_size(scene)
+        # A material preview is rendered at most THUMBNAIL_MAX_SIDE pixels a side and shown at the size Blender asks:
+        # the Properties editor's Preview panel asks for its own size (over 512 pixels on a wide or 2x-DPI editor),
+        # which failed with an error.
+        size = thumbnail_size(*asked) if thumbnail else asked
+        core_scene, warnings = scene_export.export_scene(depsgraph, *size, info=info)
         settings, notes, choice_info = self._settings(core_scene, scene, props, thumbnail)
         warnings = warnings + notes
         if props.denoise and not thumbnail and (note := render_properties.denoise_note(scene)) is not None:
@@ -314,6 +339,13 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         width, height = core_scene.camera.width, core_scene.camera.height
         region = (0, 0, width, height) if thumbnail else region
         pixels = region_pixels(region, width, height)
+
+        def shown(film):  # the pass's pixels as the result takes them
+            rgba = film.rgba()
+            if thumbnail and (width, height) != tuple(asked):
+                return _region_rows(_resized(rgba, *asked), (0, 0, *asked))
+            return _region_rows(rgba, region)
+
         remaining = RemainingTime(settings.samples)
 
         def status():
@@ -322,7 +354,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
             )
 
         def progress(film, done, total):
-            combined.rect.foreach_set(_region_rows(film.rgba(), region))
+            combined.rect.foreach_set(shown(film))
             self.update_result(result)
             remaining.pass_done(done)
             status()
@@ -353,8 +385,9 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         except Cancelled as c:
             film, stats = c.film, c.stats
         self.update_stats("", stats.summary())
-        combined.rect.foreach_set(_region_rows(film.rgba(), region))
-        _write_feature_passes(layer.passes, film, region)
+        combined.rect.foreach_set(shown(film))
+        if not thumbnail:
+            _write_feature_passes(layer.passes, film, region)
 
     # ------------------------------------------------------------------ 3D viewport (Rendered mode)
 

@@ -27,14 +27,18 @@ def store_image(name: str, rgba: np.ndarray, metadata: dict | None = None):
         raise ValueError(f"preview image must be (H, W, 4), got {rgba.shape}")
     h, w = rgba.shape[:2]
     image = bpy.data.images.get(name)
-    # a preview of ours is a generated float image, or one the file packed (``pack_previews``): written again
-    if image is not None and (not image.is_float or (image.source != "GENERATED" and not image.get(PREVIEW_KEY))):
+    # A preview of ours is a generated float image, or one the file packed (``pack_previews``): written again, at
+    # its size. One of another size is made anew: scaled, its buffer went back to the generated (or packed) size as
+    # soon as its colour space was set, and the pixels did not fit (a Lobe Size changed from 24 to 16 failed).
+    if image is not None and (
+        not image.is_float
+        or (image.source != "GENERATED" and not image.get(PREVIEW_KEY))
+        or tuple(image.size) != (w, h)
+    ):
         bpy.data.images.remove(image)
         image = None
     if image is None:
         image = bpy.data.images.new(name, width=w, height=h, alpha=True, float_buffer=True)
-    elif tuple(image.size) != (w, h):
-        image.scale(w, h)
     image.colorspace_settings.name = "Linear Rec.709"
     image.alpha_mode = "STRAIGHT"
     # Blender stores rows bottom to top

@@ -20,8 +20,8 @@ def _is_denoise_group(group) -> bool:
     return bool(group.get(_DENOISE_MARK)) or group.name == DENOISE_GROUP or group.name.startswith(DENOISE_GROUP + ".")
 
 
-def denoise_note(scene) -> str | None:
-    """Why *Denoise* cannot act on ``scene``: the scene already has a compositor of its own (left alone), or None."""
+def _foreign_compositor_note(scene) -> str | None:
+    """A note when the scene already has a compositor of its own (left alone), else None."""
     group = scene.compositing_node_group
     if group is not None and not _is_denoise_group(group):
         return (
@@ -31,12 +31,34 @@ def denoise_note(scene) -> str | None:
     return None
 
 
+def denoise_note(scene) -> str | None:
+    """Why *Denoise* cannot act fully on ``scene``: the scene already has a compositor of its own (left alone), or
+    ours lacks its guides; else None."""
+    note = _foreign_compositor_note(scene)
+    if note is not None:
+        return note
+    group = scene.compositing_node_group
+    if group is not None and _guides_unlinked(group):
+        # Denoise turned on (by a script) before the engine was this one: the Render Layers node had no guide
+        # outputs to link then, and OpenImageDenoise ran on the image alone
+        return "its Denoise node has no albedo and normal guides linked: turn Denoise off and on again to link them"
+    return None
+
+
+def _guides_unlinked(group) -> bool:
+    """Whether our compositor's Denoise node lacks a link to its Normal or Albedo input."""
+    for node in group.nodes:
+        if node.bl_idname == "CompositorNodeDenoise":
+            return not (node.inputs["Normal"].is_linked and node.inputs["Albedo"].is_linked)
+    return False
+
+
 def ensure_denoise_compositor(scene) -> str | None:
     """Set the scene's compositor to Render Layers -> Denoise (image, normal, albedo) -> output,
     Blender's own OpenImageDenoise; returns a note when the scene already has another compositor
     (left alone). Each scene has a group of its own: one shared by two scenes would render one scene's layers in
     the other's compositor."""
-    note = denoise_note(scene)
+    note = _foreign_compositor_note(scene)
     if note is not None:
         return note
     group = scene.compositing_node_group

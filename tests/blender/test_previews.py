@@ -360,3 +360,17 @@ def test_a_preview_image_keeps_its_pixels_through_a_save_and_a_reload(bpy_addon,
         image = bpy.data.images["NLM Preview Test"]
         assert image.packed_file is not None
         np.testing.assert_allclose(images.read_pixels(image), rgba, rtol=1e-3)
+
+
+def test_a_preview_stored_again_at_another_size_takes_its_new_pixels(bpy_addon, fresh_scene):
+    """Changing Lobe Size between two previews failed: the image was scaled, then its colour space was set, which
+    put its buffer back at the generated size ("expected sequence size 2304, got 1024")."""
+    from addon.blender import images
+
+    rng = np.random.default_rng(4)
+    for side in (24, 16, 40):
+        rgba = rng.random((side, side, 4)).astype(np.float32)
+        rgba[..., 3] = 1.0
+        image = images.store_image("NLM Resized Preview", rgba)
+        assert tuple(image.size) == (side, side)
+        np.testing.assert_allclose(images.read_pixels(image), rgba, rtol=1e-6)

@@ -988,3 +988,53 @@ def test_the_viewport_exports_the_world_again_only_when_it_changed(fresh_scene, 
     assert len(worlds) == 1 and second.environment is first.environment
     view_scene(fake, context, graph, updates(fresh_scene.scene.world))  # the world's edit: exported again
     assert len(worlds) == 2
+
+
+def test_a_material_preview_larger_than_a_thumbnail_renders_smaller_and_fills_its_size(
+    fresh_scene, tmp_path, monkeypatch
+):
+    """The Properties editor's Preview panel asks for its own size, over 512 pixels on a wide or 2x-DPI editor: the
+    thumbnail settings refused it with an error. It renders at most THUMBNAIL_MAX_SIDE a side, shown at the size
+    asked (each pixel the nearest rendered one)."""
+    from addon.blender import engine
+    from addon.core.render.thumbnail import THUMBNAIL_MAX_SIDE
+
+    ctx = fresh_scene
+    small(ctx.scene, 600, 300, samples=1)
+    ctx.scene.render.engine = "NEURAL_LAYERED"
+    seen = []
+    real = engine.render
+    monkeypatch.setattr(
+        engine, "render", lambda scene, s, **kw: seen.append(scene.camera.width) or real(scene, s, **kw)
+    )
+    cls = engine.NeuralLayeredRenderEngine
+    real_step = cls._render  # is_preview is Blender's read-only flag: stand in for it one step below
+    monkeypatch.setattr(cls, "_render", lambda self, *a, thumbnail=False: real_step(self, *a, thumbnail=True))
+    ctx.scene.render.filepath = str(tmp_path / "preview.exr")
+    ctx.scene.render.image_settings.file_format = "OPEN_EXR"
+    bpy.ops.render.render(write_still=True)
+    assert seen == [THUMBNAIL_MAX_SIDE] and engine.thumbnail_size(600, 300) == (512, 256)
+    px = read_image(tmp_path / "preview.exr")
+    assert px.shape[:2] == (300, 600) and np.isfinite(px).all() and px[..., :3].max() > 0
+
+
+def test_denoise_turned_on_before_the_engine_says_its_guides_are_missing_and_off_and_on_links_them(fresh_scene):
+    """Denoise set by a script before the engine was this one built its Denoise node without the albedo and normal
+    guides (the Render Layers node had no such outputs then), silently. F12 now says so; turning Denoise off and on
+    again with this engine links them."""
+    from addon.blender import render_properties
+
+    scene = fresh_scene.scene
+    scene.render.engine = (
+        "BLENDER_EEVEE_NEXT"
+        if "BLENDER_EEVEE_NEXT"
+        in {e.identifier for e in bpy.types.RenderSettings.bl_rna.properties["engine"].enum_items}
+        else "CYCLES"
+    )
+    scene.neural_render.denoise = True
+    scene.render.engine = "NEURAL_LAYERED"
+    note = render_properties.denoise_note(scene)
+    assert note is not None and "guides" in note
+    scene.neural_render.denoise = False
+    scene.neural_render.denoise = True
+    assert render_properties.denoise_note(scene) is None
