@@ -656,6 +656,20 @@ def test_denoising_passes_reach_the_compositor(fresh_scene, tmp_path):
     assert np.allclose(np.median(albedo[seen], axis=0), 0.8, atol=1e-3) and albedo.max() <= 0.8 + 1e-3
 
 
+def render_as_material_preview(scene, path, monkeypatch) -> None:
+    """F12 of ``scene`` into ``path`` (OpenEXR) through the engine's material-preview branch: headless Blender
+    renders no material previews, and ``is_preview`` is Blender's read-only flag, so this stands in for it one step
+    below (``_render``'s ``thumbnail``)."""
+    from addon.blender import engine
+
+    cls = engine.NeuralLayeredRenderEngine
+    real_step = cls._render
+    monkeypatch.setattr(cls, "_render", lambda self, *a, thumbnail=False: real_step(self, *a, thumbnail=True))
+    scene.render.filepath = str(path)
+    scene.render.image_settings.file_format = "OPEN_EXR"
+    bpy.ops.render.render(write_still=True)
+
+
 def test_material_thumbnails_render_through_the_engine_with_thumbnail_settings(fresh_scene, tmp_path, monkeypatch):
     """Headless Blender renders no material previews, so this renders F12 through the engine's own
     code path, its thumbnail branch taken as Blender's read-only ``is_preview`` would take it."""
@@ -679,12 +693,7 @@ def test_material_thumbnails_render_through_the_engine_with_thumbnail_settings(f
         return real(scene, settings, **kw)
 
     monkeypatch.setattr(engine, "render", recording)
-    cls = engine.NeuralLayeredRenderEngine
-    real_step = cls._render  # is_preview is Blender's read-only flag: stand in for it one step below
-    monkeypatch.setattr(cls, "_render", lambda self, *a, thumbnail=False: real_step(self, *a, thumbnail=True))
-    ctx.scene.render.filepath = str(tmp_path / "thumb.exr")
-    ctx.scene.render.image_settings.file_format = "OPEN_EXR"
-    bpy.ops.render.render(write_still=True)
+    render_as_material_preview(ctx.scene, tmp_path / "thumb.exr", monkeypatch)
     ((settings, sizes),) = seen
     expected = thumbnail_settings(24, 24, threads=settings.threads)
     assert settings == expected and settings.samples < 64 and settings.mode == "neural"
@@ -1007,12 +1016,7 @@ def test_a_material_preview_larger_than_a_thumbnail_renders_smaller_and_fills_it
     monkeypatch.setattr(
         engine, "render", lambda scene, s, **kw: seen.append(scene.camera.width) or real(scene, s, **kw)
     )
-    cls = engine.NeuralLayeredRenderEngine
-    real_step = cls._render  # is_preview is Blender's read-only flag: stand in for it one step below
-    monkeypatch.setattr(cls, "_render", lambda self, *a, thumbnail=False: real_step(self, *a, thumbnail=True))
-    ctx.scene.render.filepath = str(tmp_path / "preview.exr")
-    ctx.scene.render.image_settings.file_format = "OPEN_EXR"
-    bpy.ops.render.render(write_still=True)
+    render_as_material_preview(ctx.scene, tmp_path / "preview.exr", monkeypatch)
     assert seen == [THUMBNAIL_MAX_SIDE] and engine.thumbnail_size(600, 300) == (512, 256)
     px = read_image(tmp_path / "preview.exr")
     assert px.shape[:2] == (300, 600) and np.isfinite(px).all() and px[..., :3].max() > 0
