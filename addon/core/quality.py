@@ -265,10 +265,13 @@ def error_key(
     stack: Stack, size: str, res: int = LOBE_RES, walks: int = REFERENCE_WALKS, seed: int = 0, calibrated=False
 ) -> str:
     """The error cache's key of ``stack`` measured on ``size`` (its model files' :func:`_fingerprint`), with these
-    measurement settings, calibrated or not (then with the calibration's settings, ``calibrate.settings_key``)."""
+    measurement settings, against the reference of ``reference.ESTIMATOR_VERSION`` (an error measured against an
+    estimator since corrected is measured again), calibrated or not (then with the calibration's settings,
+    ``calibrate.settings_key``)."""
     from .neural.calibrate import stack_settings_key
+    from .reference import ESTIMATOR_VERSION
 
-    key = _key("err-floored", stack.to_json(), size, _fingerprint(size), res, walks, seed)
+    key = _key("err-floored", stack.to_json(), size, _fingerprint(size), res, walks, seed, ESTIMATOR_VERSION)
     return key + (f"-calibrated-{stack_settings_key(stack)}" if calibrated else "")
 
 

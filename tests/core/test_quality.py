@@ -79,6 +79,16 @@ def test_demanding_stack_needs_more_than_the_simple_one():
         assert any(issubclass(w.category, quality.QualityWarning) for w in caught)
 
 
+def test_an_error_measured_against_an_earlier_reference_estimator_is_measured_again(monkeypatch):
+    """The cache keys on what the reference estimates: errors measured before a fix of its expectation (the light a
+    mirror brings back to a medium vertex) were measured against a wrong lobe."""
+    from addon.core import reference
+
+    before = quality.error_key(DEMANDING, "tiny")
+    monkeypatch.setattr(reference, "ESTIMATOR_VERSION", reference.ESTIMATOR_VERSION + 1)
+    assert quality.error_key(DEMANDING, "tiny") != before
+
+
 def test_rule_smallest_size_under_tolerance_from_cached_measurements(tmp_path):
     """The selection rule on recorded errors (as read back from the on-disk cache)."""
     cache = quality.ErrorCache(tmp_path)

@@ -998,3 +998,28 @@ def test_the_warm_up_stops_between_the_loops_it_compiles_after_its_renders(monke
     monkeypatch.setattr(kernels, "transmission_rows", lambda *a: pytest.fail("compiled after the stop"))
     warm_up.warm_up(stop)
     assert stop.is_set()
+
+
+def test_reference_mode_renders_a_milky_coat_over_a_mirror_as_bright_as_its_walks():
+    """A scattering smooth coat over a smooth gold base, a plane alone in a white sky, direct light only: each pixel's
+    radiance is the stack's directional albedo at the view. The reference's eval left out the light that the mirror
+    sends back to a medium vertex (``reference.walk``, ``_delta_routes``), and the sky's next-event estimates are
+    all of the non-delta light there: the plane rendered 0.41 / 0.35 / 0.22 of 0.50 / 0.41 / 0.23 (now 0.50 / 0.40 /
+    0.23)."""
+    from addon.core import reference
+    from addon.core.render.materials import LayeredSpec
+    from addon.core.stack import Coating, Conductor, Stack
+
+    gold = Conductor(0.0, eta=(0.143, 0.374, 1.442), k=(3.983, 2.385, 1.603))
+    stack = Stack(gold, (Coating(0.0, 1.5, 0.9, 1.0),))
+    theta = math.radians(40.0)
+    eye = (0.0, -20.0 * math.sin(theta), 20.0 * math.cos(theta))
+    cam = Camera.look_at(eye, (0.0, 0.0, 0.0), fov_deg=2.0, width=12, height=12)  # the views within 1 degree
+    mesh = shapes.quad((0, 0, 0), (2, 0, 0), (0, 2, 0))
+    scene = Scene(cam, mesh, [LayeredSpec(stack)], [], Environment((1.0, 1.0, 1.0)))
+    film, stats = render(scene, RenderSettings(samples=32, max_bounces=0, mode="reference", seed=2))
+    wo = np.array([[0.0, -math.sin(theta), math.cos(theta)]])
+    truth, truth_se = reference.albedo(stack, wo, samples=200000, seed=4)
+    img, se = film.mean().reshape(-1, 3).mean(axis=0), np.sqrt((film.stderr().reshape(-1, 3) ** 2).mean(axis=0) / 144)
+    assert stats.nonfinite == 0
+    assert np.all(np.abs(img - truth[0]) <= 4.0 * np.sqrt(se**2 + truth_se[0] ** 2) + 0.01 * truth[0]), (img, truth)

@@ -59,6 +59,12 @@ as pbrt-v4's ``LayeredBxDF``, generalised to any number of coatings:
   reverse density ``pdf_exit(wi | -w)``, which biases rough coats by 2.5-10%).
   A delta reflection or a downward direction ends a run; a path the chain cannot make (the
   run starts after a delta event) gets its splits from the first rough vertex on.
+- a medium vertex under smooth interfaces only also receives the light that delta events bring back
+  to it: reflected up by a smooth floor (a smooth base, a smooth interface and what lies below it) and
+  back and forth between that and the interfaces above (``_RandomWalk._delta_routes``). After the
+  vertex such a path holds no rough vertex, so no split above makes it: without these terms a milky
+  smooth coat over a smooth gold base evaluated 6-24% dark (by channel) against the analog walk. Under a rough
+  interface the walk makes them, connecting at it.
 
 The per-walk estimate is the sum of the connections; ``f`` is its mean over walks and the
 standard error is the sample standard deviation over walks / sqrt(walks).
@@ -85,6 +91,7 @@ from ..bsdf import (
     RoughDielectric,
 )
 from ..bsdf.dielectric import is_smooth
+from ..bsdf.fresnel import fresnel_conductor, fresnel_dielectric
 from ..stack import BASE_KINDS, StackArrays, validate
 from ..xp import Rng, namespace
 
@@ -188,6 +195,64 @@ def _base_smooth(lay: Layers, pr):
     return (kind != _DIFFUSE) & (
         (lay.base_alpha[pr] < SMOOTH_ALPHA) | ((kind == _DIELECTRIC) & is_smooth(lay.base_alpha[pr], lay.base_ior[pr]))
     )
+
+
+def _delta_below(lay: Layers, pr, slab, cos):
+    """The delta reflectance (m, 3) of what lies below slab ``slab`` (m,) of stack rows ``pr``, for light travelling
+    down in that slab at ``|cos|`` (m,): the light that comes back up into the slab by delta events alone (a
+    smooth base's mirror reflection, a smooth interface's reflection, and through a smooth interface the delta
+    reflectance of what lies below it, with the inter-reflections between the two and the extinction of the slab
+    between, exp(-2 tau / |cos|) per round trip). A rough surface or a medium scattering on the way is a vertex of
+    the walk, not a delta event: that light is not part of it."""
+    xp = lay.xp
+    out = xp.zeros((pr.shape[0], 3))
+    at_base = xp.flatnonzero((slab == 0) & _base_smooth(lay, pr))
+    if at_base.shape[0]:
+        p, c = pr[at_base], cos[at_base]
+        conductor = lay.base_kind[p] == _CONDUCTOR
+        r_cond = fresnel_conductor(c, lay.base_eta[p], lay.base_k[p])
+        r_diel = fresnel_dielectric(c, lay.base_ior[p])[:, None]
+        out[at_base] = xp.where(conductor[:, None], r_cond, r_diel)
+    inside = xp.flatnonzero(slab > 0)
+    if inside.shape[0]:
+        inside = inside[lay.smooth[pr[inside], slab[inside] - 1]]
+    if inside.shape[0] == 0:
+        return out
+    p, k, c = pr[inside], slab[inside] - 1, cos[inside]
+    e = lay.eta[p, k]  # interface k, seen from slab k + 1 above it
+    r = xp.repeat(fresnel_dielectric(c, e)[:, None], 3, axis=1)
+    sin2_t = (1.0 - c * c) / (e * e)
+    cos_t = xp.sqrt(xp.clip(1.0 - sin2_t, 0.0, 1.0))
+    through = xp.flatnonzero(sin2_t < 1.0)  # the rest is total internal reflection: r = 1
+    if through.shape[0]:
+        pt, kt, ct = p[through], k[through], cos_t[through]
+        lower = _delta_below(lay, pt, kt, ct) * _tr(2.0 * lay.tau[pt, kt], ct)[:, None]
+        rt = r[through]
+        with xp.errstate(divide="ignore", invalid="ignore"):
+            r[through] = rt + (1.0 - rt) ** 2 * lower / (1.0 - rt * lower)
+    out[inside] = r
+    return out
+
+
+def _delta_above(lay: Layers, pr, slab, cos):
+    """The delta reflectance (m, 3) of the smooth interfaces above slab ``slab`` (m,) of stack rows ``pr`` for light
+    travelling up in that slab at ``|cos|`` (m,): interface ``slab`` from below, and through it the delta reflectance
+    of what lies above it, with the inter-reflections between the two and the extinction of the slab between (as
+    :func:`_delta_below`, upward). Every interface above must be smooth (a rough one's light is the walk's)."""
+    xp = lay.xp
+    p, c = pr, cos
+    e = 1.0 / lay.eta[p, slab]  # interface ``slab``, seen from below: n_{slab + 1} / n_slab
+    r = xp.repeat(fresnel_dielectric(c, e)[:, None], 3, axis=1)
+    sin2_t = (1.0 - c * c) / (e * e)
+    through = xp.flatnonzero((sin2_t < 1.0) & (slab + 1 < lay.C))  # into a slab with interfaces above it
+    if through.shape[0]:
+        pt, st = p[through], slab[through] + 1
+        ct = xp.sqrt(xp.clip(1.0 - sin2_t[through], 0.0, 1.0))
+        upper = _delta_above(lay, pt, st, ct) * _tr(2.0 * lay.tau[pt, st], ct)[:, None]
+        rt = r[through]
+        with xp.errstate(divide="ignore", invalid="ignore"):
+            r[through] = rt + (1.0 - rt) ** 2 * upper / (1.0 - rt * upper)
+    return r
 
 
 def _tr(tau, cos):
@@ -651,6 +716,7 @@ class _RandomWalk:
         if vertex.in_medium:
             tr = _tr(lay.tau[p, link.slab] - w.height[link.rows], dz)
             c = w.throughput[link.rows] * lay.albedo[p, w.slab[link.rows]] * (f * tr / dz)[:, None] * chain_weight
+            self._delta_routes(link, vertex, p, w_in, dz, f, chain_weight)
         else:
             tr = _tr(lay.tau[p, link.slab], dz)
             c = w.throughput[link.rows] * f * tr[:, None] * chain_weight
@@ -659,6 +725,41 @@ class _RandomWalk:
         with xp.errstate(invalid="ignore"):
             mis = 1.0 / (1.0 + xp.nan_to_num(splits_below, nan=xp.inf) + xp.nan_to_num(splits_above, nan=xp.inf))
         self.estimate[link.walk, link.chain] += c * mis[:, None]
+
+    def _delta_routes(self, link: "_Link", vertex, p, w_in, dz, f, chain_weight) -> None:
+        """The light that reaches a medium vertex by delta events after the chain brought it into the vertex's slab:
+        reflected back up by what lies below (:func:`_delta_below`), and between that and the interface above,
+        any number of times. No strategy of the walk makes these paths where every interface above the slab is
+        smooth: after the vertex they hold no rough vertex to connect at (the walk's straight run ends at a delta
+        reflection). So they are added here, with weight 1; where a rough interface lies above, the walk makes them
+        by connecting at it. With R_b the reflectance below, R_t the interface above's (from below), T(x) the
+        extinction over optical length x along the chain's direction in the slab and h the vertex's height above
+        the floor of a slab of thickness tau, the light arrives travelling down with T(tau - h) / (1 - q) (the
+        connection holds its first term) and travelling up with R_b T(tau + h) / (1 - q), q = R_b R_t T(2 tau),
+        R_t being the delta reflectance of everything above from below (:func:`_delta_above`). What the chain
+        brings in is its direct transmission: light reflected back and forth between two smooth interfaces above
+        before it reaches the slab is left out (of order R^2: 2e-4 for coats of ior 1.2 over 1.6)."""
+        xp, lay, w, ch = self.xp, self.lay, self.walks, self.chains
+        sel = xp.flatnonzero(~ch.rough_above[link.walk, link.chain, link.slab])
+        if sel.shape[0] == 0:
+            return
+        ps, slab, c = p[sel], link.slab[sel], dz[sel]
+        below = _delta_below(lay, ps, slab, c)
+        hit = xp.flatnonzero(xp.max(below, axis=1) > 0.0)
+        if hit.shape[0] == 0:
+            return
+        sel, ps, slab, c, below = sel[hit], ps[hit], slab[hit], c[hit], below[hit]
+        rows = link.rows[sel]
+        tau, h = lay.tau[ps, slab], w.height[rows]
+        r_top = _delta_above(lay, ps, slab, c)
+        q = below * r_top * _tr(2.0 * tau, c)[:, None]
+        d_up = link.d[sel] * xp.asarray([1.0, 1.0, -1.0])
+        f_up = vertex.f(link.a[sel], -d_up, -w_in[sel])
+        with xp.errstate(divide="ignore", invalid="ignore"):
+            down = (f[sel] * _tr(tau - h, c))[:, None] * (q / (1.0 - q))  # the terms after the connection's first
+            up = (f_up * _tr(tau + h, c))[:, None] * below / (1.0 - q)
+            add = w.throughput[rows] * lay.albedo[ps, slab] * (down + up) / c[:, None] * chain_weight[sel]
+        self.estimate[link.walk[sel], link.chain[sel]] += xp.where(xp.isfinite(add), add, 0.0)
 
     def _splits_above(self, link: "_Link", vertex, p, w_in, dz):
         """``B``: the splits in which the chain's lower segments were made by the walk instead
