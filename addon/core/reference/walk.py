@@ -65,6 +65,9 @@ as pbrt-v4's ``LayeredBxDF``, generalised to any number of coatings:
   vertex such a path holds no rough vertex, so no split above makes it: without these terms a milky
   smooth coat over a smooth gold base evaluated 6-24% dark (by channel) against the analog walk. Under a rough
   interface the walk makes them, connecting at it.
+- under smooth interfaces only, the chain's weight also holds the light those interfaces reflect back
+  and forth before it enters the vertex's slab (``_RandomWalk._entry_reflections``); without it, three
+  smooth coats under a dense top (ior 1.95) evaluated 1.1% dark.
 
 The per-walk estimate is the sum of the connections; ``f`` is its mean over walks and the
 standard error is the sample standard deviation over walks / sqrt(walks).
@@ -712,6 +715,7 @@ class _RandomWalk:
         p = w.row[link.rows]
         w_in = w.direction[link.rows]
         dz = xp.abs(link.d[:, 2])
+        self._entry_reflections(link, p, chain_weight)
         f = vertex.f(a, -link.d, -w_in)
         if vertex.in_medium:
             tr = _tr(lay.tau[p, link.slab] - w.height[link.rows], dz)
@@ -726,6 +730,28 @@ class _RandomWalk:
             mis = 1.0 / (1.0 + xp.nan_to_num(splits_below, nan=xp.inf) + xp.nan_to_num(splits_above, nan=xp.inf))
         self.estimate[link.walk, link.chain] += c * mis[:, None]
 
+    def _entry_reflections(self, link: "_Link", p, chain_weight) -> None:
+        """The chain's weight into the vertex's slab with the light that smooth interfaces above reflect back and forth
+        before it enters (in place). The chain refracts straight down through each; light that interface k reflects
+        up goes back down from what lies above it (:func:`_delta_above`), so the light that passes interface k is
+        1 / (1 - R_k R_above(k + 1) T(2 tau_{k+1})) times the straight passage's, at the chain's direction in slab
+        k + 1. Under smooth interfaces only, no walk strategy makes these paths (a delta reflection ends the run).
+        Where a rough interface lies above, they are left out (of order R^2 beside the straight passage)."""
+        xp, lay, ch, C = self.xp, self.lay, self.chains, self.C
+        if C < 2:
+            return
+        sel = xp.flatnonzero(~ch.rough_above[link.walk, link.chain, link.slab])
+        for k in range(C - 1):  # interface k under slab k + 1, for the vertices in slab k or below
+            at = sel[link.slab[sel] <= k]
+            if at.shape[0] == 0:
+                continue
+            pk = p[at]
+            c = xp.abs(ch.direction[link.walk[at], link.chain[at], k + 1][:, 2])
+            r = fresnel_dielectric(c, lay.eta[pk, k])[:, None]
+            back = r * _delta_above(lay, pk, xp.full(at.shape[0], k + 1), c) * _tr(2.0 * lay.tau[pk, k + 1], c)[:, None]
+            with xp.errstate(divide="ignore", invalid="ignore"):
+                chain_weight[at] = chain_weight[at] / (1.0 - back)
+
     def _delta_routes(self, link: "_Link", vertex, p, w_in, dz, f, chain_weight) -> None:
         """The light that reaches a medium vertex by delta events after the chain brought it into the vertex's slab:
         reflected back up by what lies below (:func:`_delta_below`), and between that and the interface above,
@@ -736,9 +762,8 @@ class _RandomWalk:
         extinction over optical length x along the chain's direction in the slab and h the vertex's height above
         the floor of a slab of thickness tau, the light arrives travelling down with T(tau - h) / (1 - q) (the
         connection holds its first term) and travelling up with R_b T(tau + h) / (1 - q), q = R_b R_t T(2 tau),
-        R_t being the delta reflectance of everything above from below (:func:`_delta_above`). What the chain
-        brings in is its direct transmission: light reflected back and forth between two smooth interfaces above
-        before it reaches the slab is left out (of order R^2: 2e-4 for coats of ior 1.2 over 1.6)."""
+        R_t being the delta reflectance of everything above from below (:func:`_delta_above`); the chain's weight
+        holds the light's first passage into the slab (:meth:`_entry_reflections`)."""
         xp, lay, w, ch = self.xp, self.lay, self.walks, self.chains
         sel = xp.flatnonzero(~ch.rough_above[link.walk, link.chain, link.slab])
         if sel.shape[0] == 0:
