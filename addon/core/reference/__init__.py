@@ -51,7 +51,7 @@ from .walk import CHUNK_WALKS, MAX_DEPTH, Layers, run_walks
 __all__ = ["eval_brdf", "eval_brdf_many", "sample", "albedo", "pack_stacks", "MAX_DEPTH", "ESTIMATOR_VERSION"]
 
 # What eval_brdf estimates, as a number that caches of its results key on: a change of its expectation (not of its
-# noise) raises it. 2: the light delta events bring back to a medium vertex under smooth interfaces (``.walk``).
+# noise) raises it. 2: the light that delta events bring to a vertex under smooth interfaces (``.walk``).
 ESTIMATOR_VERSION = 2
 
 
