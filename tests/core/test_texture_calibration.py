@@ -317,6 +317,17 @@ def test_a_texture_calibration_of_clamped_top_coatings_records_its_rule_and_olde
         assert top_at_trained_bounds([at])
 
 
+def test_a_bake_whose_top_coating_sits_at_a_trained_bound_renders_calibrated():
+    """Red car paint's top coat has alpha 0.01, the trained least: its texels sit at a bound, where the renderer asks
+    for the rule for clamped tops. The bake recorded the rule only for clamped tops, so every such texture rendered
+    uncalibrated with a warning to rebake it, which gave the same texture."""
+    texture, _ = bake_stack(SpatialStack(preset("red_car_paint"), {}), neural_encoder())
+    assert tc.top_at_trained_bounds(texture.levels)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", neural_material.StaleCalibrationWarning)
+        assert neural_material._texture_calibration(texture) is not None
+
+
 def test_a_calibrated_bake_of_a_clamped_top_has_another_key():
     """The bake key of a calibrated texture whose top coatings leave the trained ranges holds the rule, so the
     command's kept bakes and the add-on's texture made before it are baked again; other bakes keep their keys."""

@@ -153,11 +153,17 @@ def top_at_trained_bounds(levels) -> bool:
     """Whether some texel of a latent texture's base level (``levels[0]``, (H, W, 100): its last two channels the top
     coating's alpha and ior, clamped to the trained ranges by the bake) sits at a bound of those ranges: alpha at
     its least, ior at its least or greatest, in the half floats the texture holds (a texel exactly there unclamped
-    counts too: its calibration is the same, and a rebake costs only time)."""
+    counts too: the bake records the rule for it, :func:`calibrate_texture`, where it changes nothing)."""
+    base = levels[0]
+    return tops_at_trained_bounds(base[..., -2], base[..., -1])
+
+
+def tops_at_trained_bounds(alpha, ior) -> bool:
+    """Whether some of these top coatings (a texture's alpha and ior channels, any shape) sit at a bound of the
+    trained ranges, as :func:`top_at_trained_bounds` tells it from a texture's base level."""
     from ..stack import TRAINED_RANGES
 
-    base = levels[0]
-    alpha, ior = base[..., -2], base[..., -1]
+    alpha, ior = np.asarray(alpha), np.asarray(ior)
     if alpha.size == 0:
         return False
     half = np.float16
@@ -189,11 +195,16 @@ def calibrate_texture(
             f"calibrate_texture needs as many stacks, texels and counts (at least one); got {len(arrays)}, "
             f"{len(texels)}, {counts.shape}"
         )
+    k = 3 * LATENT
+    # The rule for clamped tops, recorded where the renderer will ask for it: where a top coating was clamped, or
+    # where one sits at a bound as the texture's channels tell (``top_at_trained_bounds``; unclamped there, the rule
+    # changes nothing). Recorded only for clamped ones, a texture of red car paint (top alpha 0.01, the trained
+    # least) was always rendered uncalibrated, and a rebake did not help.
+    rule = cal.top_clamped(arrays).any() or tops_at_trained_bounds(texels[:, k + 2], texels[:, k + 3])
     if len(texels) > MAX_ROWS:  # a systematic sample by texel count; a row drawn m times weighs m
         pick, weight = np.unique(_stratified(counts, MAX_ROWS), return_counts=True)
         arrays, texels, counts = arrays.take(pick), texels[pick], weight.astype(np.float64)
     texels = float32_texels(texels)  # a bake's are half floats: converted once sampled
-    k = 3 * LATENT
     z = texels[:, :k]
     centroids, labels = cluster_latents(z, counts, MAX_CLUSTERS, seed)
     n = len(centroids)
@@ -221,7 +232,7 @@ def calibrate_texture(
 
     tables = map_on_threads(table_of, range(n), threads, "calibrate")  # a cancel (a step raising) stops the others
     cosines = np.asarray(cal.COSINES, dtype=np.float64)
-    settings = cal.settings_key() + (cal.TOP_RULE if cal.top_clamped(arrays).any() else "")
+    settings = cal.settings_key() + (cal.TOP_RULE if rule else "")
     return TextureCalibration(cosines, centroids, np.array(tables), settings)
 
 
