@@ -52,8 +52,11 @@ NO_TOP_ROWS = np.zeros((0, 2))
 
 
 def top_coats(arrays: StackArrays) -> np.ndarray:
-    """(N, 2) float64 ``alpha, ior`` of each stack's top coating, in the trained ranges (the values
-    the decoder saw); :data:`NO_TOP` for stacks without coatings."""
+    """(N, 2) float64 ``alpha, ior`` of each stack's top coating as the renderer adds its lobe: the alpha in the
+    trained range (the value the decoder saw), the ior the stack's own down to 1 (below the trained 1.05 too: an
+    index-matched coat reflects nothing, where its lobe at 1.05 made a black base glow at grazing, 0.15 at 87
+    degrees) and clamped above the trained 2, where the transmittance table ends (the calibration then takes the
+    difference, ``calibrate._as_rendered``); :data:`NO_TOP` for stacks without coatings."""
     if not isinstance(arrays, StackArrays):
         raise ValueError(f"top_coats needs StackArrays, got {type(arrays).__name__}")
     out = np.tile(np.asarray(NO_TOP, dtype=np.float64), (len(arrays), 1))
@@ -61,7 +64,8 @@ def top_coats(arrays: StackArrays) -> np.ndarray:
         return out
     fixed, _notes = clamp_to_trained(arrays)  # encode_arrays warns about the clamp once
     out[:, 0] = np.asarray(fixed.coat_roughness, dtype=np.float64)[:, -1]
-    out[:, 1] = np.asarray(fixed.coat_ior, dtype=np.float64)[:, -1]
+    own = np.asarray(arrays.coat_ior, dtype=np.float64)[:, -1]
+    out[:, 1] = np.minimum(own, np.asarray(fixed.coat_ior, dtype=np.float64)[:, -1])
     return out
 
 
