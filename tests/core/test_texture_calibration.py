@@ -351,10 +351,10 @@ def test_a_calibrated_bake_of_a_clamped_top_has_another_key():
         assert (calibrated != before) == changes
 
 
-def test_a_bake_of_a_top_coating_below_the_trained_ior_has_another_key(monkeypatch):
-    """Texels of a top coating below the trained ior 1.05 hold their own ior since the renderer's top lobe takes it:
-    the command's kept bakes and the add-on's textures made before (which hold 1.05) are baked again; others keep
-    their keys."""
+def test_a_bake_of_a_top_coating_outside_the_trained_ior_has_another_key(monkeypatch):
+    """Texels of a top coating outside the trained ior range hold their own ior since the renderer's top lobe takes
+    it: the command's kept bakes and the add-on's textures made before (which hold 1.05 or 2) are baked again;
+    others keep their keys."""
     from addon.core.stack import Coating, Diffuse, Stack
     from addon.core.textures import bake as bake_module
     from addon.core.textures.bake import bake_key
@@ -362,7 +362,7 @@ def test_a_bake_of_a_top_coating_below_the_trained_ior_has_another_key(monkeypat
     low = SpatialStack(Stack(Diffuse((0.5, 0.5, 0.5)), (Coating(0.1, 1.0),)), {})
     inside = SpatialStack(Stack(Diffuse((0.5, 0.5, 0.5)), (Coating(0.1, 1.5),)), {})
     keys = [bake_key(s, (4, 4), "tiny") for s in (low, inside)]
-    monkeypatch.setattr(bake_module, "_top_ior_below_trained", lambda s: False)
+    monkeypatch.setattr(bake_module, "_top_ior_outside_trained", lambda s: False)
     assert bake_key(low, (4, 4), "tiny") != keys[0]
     assert bake_key(inside, (4, 4), "tiny") == keys[1]
     texture, _ = bake_stack(low, neural_encoder(), calibrate=False)

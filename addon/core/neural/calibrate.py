@@ -568,8 +568,8 @@ def calibrate_texels(arrays: StackArrays, models, z, proxy_params, tops, seed: i
 
 def top_clamped(arrays: StackArrays) -> np.ndarray:
     """(N,) bool: the stacks whose top coating the renderer's top lobe takes other than it is (``top_lobe.top_coats``:
-    clamped to the trained alpha and to an ior of at most 2): a smooth one (alpha below the trained 0.01) or one of
-    ior above 2, say. One of ior below the trained 1.05 keeps its own ior there, and is not."""
+    clamped to the trained alpha): a smooth one (alpha below the trained 0.01). The lobe keeps the coating's own
+    ior."""
     return np.any(top_lobe.top_coats(arrays) != top_lobe.own_tops(arrays), axis=1)
 
 
@@ -578,10 +578,9 @@ def _as_rendered(ref, arrays: StackArrays, seed: int):
     renderer needs it. A remainder decoder's material is the exact top lobe *at the clamped top coating* plus the
     calibrated remainder; the reference's ``below_top`` leaves out the first reflection at the stack's own top
     interface. Where the two interfaces differ, ``below_top`` (and its split by exit) takes the difference of
-    their first reflections, so the material's albedo is the reference's: uncorrected, a white base under an
-    ior 3 coat read 0.68x the reference at normal incidence. (A top of ior below 1.05 keeps its own ior in the
-    lobe: a difference taken from the remainder cannot take away light the exact lobe adds, and a black base under
-    an index-matched coat glowed at grazing.)"""
+    their first reflections, so the material's albedo is the reference's (the two differ in alpha only: the lobe
+    keeps the coating's own ior, since a difference taken from the remainder cannot take away light the exact lobe
+    adds, nor add light where the remainder is dark)."""
     clamped = np.flatnonzero(top_clamped(arrays))
     if len(clamped) == 0:
         return ref

@@ -53,10 +53,11 @@ NO_TOP_ROWS = np.zeros((0, 2))
 
 def top_coats(arrays: StackArrays) -> np.ndarray:
     """(N, 2) float64 ``alpha, ior`` of each stack's top coating as the renderer adds its lobe: the alpha in the
-    trained range (the value the decoder saw), the ior the stack's own down to 1 (below the trained 1.05 too: an
-    index-matched coat reflects nothing, where its lobe at 1.05 made a black base glow at grazing, 0.15 at 87
-    degrees) and clamped above the trained 2, where the transmittance table ends (the calibration then takes the
-    difference, ``calibrate._as_rendered``); :data:`NO_TOP` for stacks without coatings."""
+    trained range (the value the decoder saw; a smooth coat's delta reflection is not part of f), the ior the
+    stack's own, outside the trained 1.05-2 too. The calibration of the remainder cannot take away light that the
+    exact lobe adds, nor add light where the remainder is dark: at the trained bounds, an index-matched coat over
+    a black base glowed at grazing (0.15 at 87 degrees for 0), and an opaque coat of ior 3 rendered 0.56 of its
+    reflection. :data:`NO_TOP` for stacks without coatings."""
     if not isinstance(arrays, StackArrays):
         raise ValueError(f"top_coats needs StackArrays, got {type(arrays).__name__}")
     out = np.tile(np.asarray(NO_TOP, dtype=np.float64), (len(arrays), 1))
@@ -64,8 +65,7 @@ def top_coats(arrays: StackArrays) -> np.ndarray:
         return out
     fixed, _notes = clamp_to_trained(arrays)  # encode_arrays warns about the clamp once
     out[:, 0] = np.asarray(fixed.coat_roughness, dtype=np.float64)[:, -1]
-    own = np.asarray(arrays.coat_ior, dtype=np.float64)[:, -1]
-    out[:, 1] = np.minimum(own, np.asarray(fixed.coat_ior, dtype=np.float64)[:, -1])
+    out[:, 1] = np.asarray(arrays.coat_ior, dtype=np.float64)[:, -1]
     return out
 
 
@@ -159,11 +159,12 @@ def sample_top_directions(top, wo, u) -> tuple[np.ndarray, np.ndarray]:
 
 
 # The grid of the top interface's transmittance table (transmission): outgoing cosines denser towards
-# grazing, roughness (geometric: the table changes fastest for smooth coats) and index over the trained
-# ranges (stack.TRAINED_RANGES; values beyond are clamped).
+# grazing, roughness (geometric: the table changes fastest for smooth coats) over the trained range (the top lobe's
+# alpha is clamped to it) and index over the valid range (stack.VALID_RANGES: the top lobe keeps the coating's own),
+# evenly by 0.1.
 TRANSMITTANCE_COS = 1e-3 + (1.0 - 1e-3) * np.linspace(0.0, 1.0, 33) ** 2
 TRANSMITTANCE_ALPHA = np.geomspace(0.01, 1.0, 21)
-TRANSMITTANCE_IOR = np.linspace(1.0, 2.0, 11)
+TRANSMITTANCE_IOR = np.linspace(1.0, 4.0, 31)
 TRANSMITTANCE_STRATA = 16  # 16 x 16 stratified visible normals per cell: the estimator varies little
 
 

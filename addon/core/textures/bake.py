@@ -205,7 +205,7 @@ def bake_key(
         from ..neural.calibrate import TOP_RULE
 
         h.update(TOP_RULE.encode())
-    if _top_ior_below_trained(spatial):  # such texels hold their own top ior since the renderer's lobe takes it
+    if _top_ior_outside_trained(spatial):  # such texels hold their own top ior since the renderer's lobe takes it
         h.update(OWN_TOP_IOR.encode())
     for path in sorted(spatial.maps):
         h.update(path.encode())
@@ -213,16 +213,19 @@ def bake_key(
     return h.hexdigest()[:16]
 
 
-# What the key of a bake adds where some texel's top coating has an ior below the trained range: its top channel holds
-# that ior (``top_lobe.top_coats``), where bakes before held the trained 1.05.
+# What the key of a bake adds where some texel's top coating has an ior outside the trained range: its top channel
+# holds that ior (``top_lobe.top_coats``), where bakes before held the trained bound.
 OWN_TOP_IOR = "-top-ior-own"
 
 
-def _top_ior_below_trained(spatial: SpatialStack) -> bool:
-    """Whether some texel's top coating has an ior below the trained range (its lobe takes the coating's own)."""
+def _top_ior_outside_trained(spatial: SpatialStack) -> bool:
+    """Whether some texel's top coating has an ior outside the trained range (its lobe takes the coating's own)."""
     from ..stack import TRAINED_RANGES
 
-    return bool(spatial.stack.coatings) and spatial.top_range("ior")[0] < TRAINED_RANGES["ior"][0]
+    if not spatial.stack.coatings:
+        return False
+    low, high = spatial.top_range("ior")
+    return low < TRAINED_RANGES["ior"][0] or high > TRAINED_RANGES["ior"][1]
 
 
 def _clamps_top(spatial: SpatialStack) -> bool:
