@@ -208,6 +208,10 @@ MULTI = {
     "milky over a smooth dielectric base": Stack(Dielectric(0.0, 1.8), (Coating(0.0, 1.5, (0.9, 0.7, 0.5), 2.0, 0.6),)),
     # Light that smooth interfaces reflect back and forth before it enters the lower coats (a dense top: R = 0.10):
     # eval left it out, 1.1% dark.
+    # The same round trips above a rough coat: they reach every split below it, the vertex's connection too (12% dark).
+    "a rough coat under two smooth ones": Stack(
+        Conductor(0.3, **GOLD), (Coating(0.4, 1.5), Coating(0.0, 1.1), Coating(0.0, 4.0))
+    ),
     "3 smooth coats under a dense top": Stack(
         Diffuse((0.43, 0.42, 0.31)),
         (Coating(0.0, 1.53, (0.75, 0.9, 0.7), 1.9, -0.46), Coating(0.0, 1.19), Coating(0.0, 1.95)),
@@ -488,14 +492,20 @@ def test_albedo_parts_are_the_albedos_walks_split_without_changing_them():
     assert parts.below_top[2].mean() / parts.albedo[2].mean() < parts.below_top[0].mean() / parts.albedo[0].mean()
 
 
-def random_layered_stack(rng: np.random.Generator) -> Stack:
-    """A stack of 1-3 coatings drawn over the valid ranges, half of its surfaces smooth. A rough surface has alpha >=
-    0.05 and neighbouring indices are 0.1 apart or more: a rough interface of a very small alpha, or between nearly
-    equal indices, transmits in a lobe close to a delta, whose integral over cosine-distributed directions is too
-    heavy-tailed to compare (a limit of the test, not of the estimator)."""
+# A rough interface transmits in a lobe about alpha |n1 - n2| / max(n1, n2) wide: narrower than this, its integral
+# over cosine-distributed directions is too heavy-tailed to compare at the sweep's sample counts (a smooth base
+# under an alpha-0.05 coat of ior 1.15 read 0.074 for the walks' 0.128 at 40,000 directions and 0.127 to 0.158 at
+# 400,000): a limit of the test, not of the estimator.
+MIN_TRANSMISSION_WIDTH = 0.03
 
-    def alpha():
-        return 0.0 if rng.random() < 0.5 else float(rng.uniform(0.05, 0.6))
+
+def random_layered_stack(rng: np.random.Generator) -> Stack:
+    """A stack of 1-3 coatings drawn over the valid ranges, half of its surfaces smooth. Neighbouring indices are 0.1
+    apart or more, a rough base has alpha >= 0.05 and a rough interface a transmission lobe at least
+    :data:`MIN_TRANSMISSION_WIDTH` wide (else it is smooth)."""
+
+    def alpha(lo=0.05):
+        return 0.0 if rng.random() < 0.5 or lo > 0.6 else float(rng.uniform(lo, 0.6))
 
     kind = rng.integers(3)
     if kind == 0:
@@ -504,16 +514,17 @@ def random_layered_stack(rng: np.random.Generator) -> Stack:
         base = Conductor(alpha(), eta=tuple(rng.uniform(0.1, 2.0, 3)), k=tuple(rng.uniform(1.0, 5.0, 3)))
     else:
         base = Dielectric(alpha(), float(rng.uniform(1.2, 2.5)))
-    iors = [1.0]
+    iors = [1.0]  # air, then the coatings from the top down
     for _ in range(rng.integers(1, 4)):
         iors.append(float(rng.choice([x for x in np.arange(1.1, 2.01, 0.05) if abs(x - iors[-1]) >= 0.1])))
     coats = []
-    for ior in reversed(iors[1:]):
+    for j in range(len(iors) - 1, 0, -1):  # bottom to top: coating j under iors[j - 1]
+        n, above = iors[j], iors[j - 1]
         scattering = rng.random() < 0.6
         coats.append(
             Coating(
-                alpha(),
-                ior,
+                alpha(max(0.05, MIN_TRANSMISSION_WIDTH * max(n, above) / abs(n - above))),
+                n,
                 tuple(rng.uniform(0.3, 1.0, 3)) if scattering else 0.0,
                 float(rng.uniform(0.1, 2.0)) if rng.random() < 0.8 else 0.0,
                 float(rng.uniform(-0.6, 0.6)),

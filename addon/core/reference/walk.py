@@ -65,9 +65,10 @@ as pbrt-v4's ``LayeredBxDF``, generalised to any number of coatings:
   vertex such a path holds no rough vertex, so no split above makes it: without these terms a milky
   smooth coat over a smooth gold base evaluated 6-24% dark (by channel) against the analog walk. Under a rough
   interface the walk makes them, connecting at it.
-- under smooth interfaces only, the chain's weight also holds the light those interfaces reflect back
-  and forth before it enters the vertex's slab (``_RandomWalk._entry_reflections``); without it, three
-  smooth coats under a dense top (ior 1.95) evaluated 1.1% dark.
+- the chain's weight also holds the light that smooth interfaces above (every interface from one of
+  them up to the top smooth) reflect back and forth before it passes them
+  (``_RandomWalk._entry_reflections``); without it, three smooth coats under a dense top (ior 1.95)
+  evaluated 1.1% dark, and a rough coat under two smooth ones 12% dark.
 
 The per-walk estimate is the sum of the connections; ``f`` is its mean over walks and the
 standard error is the sample standard deviation over walks / sqrt(walks).
@@ -735,14 +736,14 @@ class _RandomWalk:
         before it enters (in place). The chain refracts straight down through each; light that interface k reflects
         up goes back down from what lies above it (:func:`_delta_above`), so the light that passes interface k is
         1 / (1 - R_k R_above(k + 1) T(2 tau_{k+1})) times the straight passage's, at the chain's direction in slab
-        k + 1. Under smooth interfaces only, no walk strategy makes these paths (a delta reflection ends the run).
-        Where a rough interface lies above, they are left out (of order R^2 beside the straight passage)."""
+        k + 1, wherever interface k and all above it are smooth, whatever lies between it and the vertex: no walk
+        strategy makes these paths (a delta reflection ends the run), and every split of a path below a rough
+        interface under k carries the same factor, so the MIS weights stay as they are. (Applied only under smooth
+        interfaces all the way down to the vertex, three coats with a rough one under two smooth ones read 0.88 of
+        the analog walk.)"""
         xp, lay, ch, C = self.xp, self.lay, self.chains, self.C
-        if C < 2:
-            return
-        sel = xp.flatnonzero(~ch.rough_above[link.walk, link.chain, link.slab])
         for k in range(C - 1):  # interface k under slab k + 1, for the vertices in slab k or below
-            at = sel[link.slab[sel] <= k]
+            at = xp.flatnonzero((link.slab <= k) & ~ch.rough_above[link.walk, link.chain, k])
             if at.shape[0] == 0:
                 continue
             pk = p[at]
