@@ -209,7 +209,25 @@ def _refined_latent(mat, stack, info: list[str]):
             "the shipped one; rendering the stack encoded again: press Refine to refine it again"
         )
         return None
+    if shipped is not None and refined.key != _refine_key(stack, refined.size):
+        info.append(
+            f"material {mat.name!r}: its latent was refined by an earlier version (of the refinement, its "
+            "reference or the models it depends on); rendering the stack encoded again: press Refine to refine it "
+            "again"
+        )
+        return None
     return stack_io.latent_of(mat), refined.size
+
+
+def _refine_key(stack, size: str) -> str | None:
+    """The key a Refine of ``stack`` at ``size`` would have now (the operator's default settings), or None when
+    a model file it depends on is missing."""
+    from ..core.neural.refine import RefineSettings, refine_key
+
+    try:
+        return refine_key(stack, size, RefineSettings())
+    except FileNotFoundError:
+        return None
 
 
 def export_material(mat, warnings: list[str], info: list[str] | None = None):

@@ -123,6 +123,15 @@ def test_f12_renders_the_refined_latent_the_preview_shows_and_ignores_a_stale_on
     )
     refined = _f12(bpy, scene, tmp_path / "refined.exr")
     assert np.isfinite(refined).all() and np.abs(refined - plain).max() > 1e-3  # F12 changed with Refine
+    # a latent refined by an earlier version (another key for the same stack and files): F12 encodes the stack
+    # again and says why (an earlier version's, fitted to other targets, was rendered silently)
+    key = material.neural_refine.key
+    material.neural_refine.key = "0" * 64
+    info = []
+    core_scene, _ = scene_export.export_scene(bpy.context.evaluated_depsgraph_get(), info=info)
+    assert all(getattr(m, "latent", None) is None for m in core_scene.materials)
+    assert any("refined by an earlier version" in line for line in info), info
+    material.neural_refine.key = key
     # the stack edited: the refined latent is stale, F12 encodes the stack again and says why
     refined_roughness = material.neural_layers.layers[-1].roughness
     material.neural_layers.layers[-1].roughness = 0.2

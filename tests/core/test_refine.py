@@ -183,6 +183,11 @@ def test_cache_key_follows_the_stack_the_settings_and_the_model_files(tmp_path):
     assert rf.refine_key(COATED, "tiny", rf.RefineSettings(seed=1), tmp_path) != rf.refine_key(
         COATED, "tiny", rf.RefineSettings(), tmp_path
     )
+    from addon.core import reference
+
+    with pytest.MonkeyPatch.context() as mp:  # the reference's eval gives the targets: a corrected one, new ones
+        mp.setattr(reference, "ESTIMATOR_VERSION", reference.ESTIMATOR_VERSION + 1)
+        assert rf.refine_key(COATED, "tiny", QUICK, tmp_path) != k
     with open(tmp_path / "layering_tiny.onnx", "ab") as fh:
         fh.write(b"\0")
     assert rf.refine_key(COATED, "tiny", QUICK, tmp_path) != k

@@ -50,6 +50,7 @@ the budget it had).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import time
@@ -67,7 +68,9 @@ from .top_lobe import NO_TOP, eval_top, remainder_scale, top_coat
 # Lobe values up to about this many times the group's mean count as absolute errors (the lobe metric), above
 # it as relative ones: a highlight a few pixels wide keeps its weight, a smooth coat's spike does not
 PEAK_RATIO = 30.0
-REFINE_VERSION = 5  # part of the cache key: bump when the procedure changes what it returns
+# Part of the cache key: bump when the procedure changes what it returns. 6: the top lobe at the coating's own ior
+# (``top_lobe.top_coats``); the key holds ``reference.ESTIMATOR_VERSION`` too, whose eval gives the targets.
+REFINE_VERSION = 6
 GRAZING_COS = (float(np.cos(np.radians(89.5))), float(np.cos(np.radians(80.0))))
 
 
@@ -393,11 +396,20 @@ def model_files(stack: Stack, size: str, model_dir: Path | str | None = None) ->
 
 
 def refine_key(stack: Stack, size: str, settings: RefineSettings, model_dir=None) -> str:
-    """sha256 of what the refined latent depends on: the stack's JSON, every model file, the settings."""
+    """sha256 of what the refined latent depends on: the stack's JSON, every model file, the settings, the version
+    of this procedure and of the reference estimator that gives its targets."""
+    from ..reference import ESTIMATOR_VERSION
+
     h = hashlib.sha256()
     h.update(
         json.dumps(
-            {"version": REFINE_VERSION, "size": size, "stack": stack.to_json(), "settings": asdict(settings)},
+            {
+                "version": REFINE_VERSION,
+                "estimator": ESTIMATOR_VERSION,
+                "size": size,
+                "stack": stack.to_json(),
+                "settings": asdict(settings),
+            },
             sort_keys=True,
         ).encode()
     )
@@ -405,8 +417,16 @@ def refine_key(stack: Stack, size: str, settings: RefineSettings, model_dir=None
         if not p.exists():
             raise FileNotFoundError(f"{p.name} is missing from the models folder (needed to refine a {size} latent)")
         h.update(p.name.encode())
-        h.update(file_digest(p).encode())
+        stat = p.stat()
+        h.update(_file_digest(str(p), stat.st_mtime_ns, stat.st_size).encode())
     return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=64)
+def _file_digest(path: str, mtime_ns: int, size: int) -> str:
+    """``file_digest`` of a file as it is at that modification time and size: an export asks for a refined
+    material's key at every edit, and a paper decoder takes 4 MB to hash."""
+    return file_digest(path)
 
 
 def _adam(
