@@ -452,3 +452,17 @@ def test_an_opaque_coat_of_ior_3_renders_its_interfaces_reflection():
     wo = np.array([[0.0, -math.sin(theta), math.cos(theta)]])
     truth, _ = reference.albedo(stack, wo, samples=20000, seed=4)
     np.testing.assert_allclose(film.mean().reshape(-1, 3).mean(axis=0), truth[0], rtol=0.05)
+
+
+def test_calibrations_of_a_top_outside_the_trained_ior_made_with_the_lobe_at_the_bound_are_not_found():
+    """A calibration on disk is found by its key. The top lobe takes the coating's own ior now; calibrations made
+    with it at the trained bound (a rough ior-3 coat's key had lost the clamped-top rule and became the one of
+    before that rule: rendered 0.89-0.97 of the reference) must not be found again."""
+    from addon.core.neural import top_lobe
+
+    inside = Stack(Diffuse((0.8, 0.8, 0.8)), (Coating(roughness=0.1, ior=1.5),))
+    assert not cal.stack_settings_key(inside).endswith(top_lobe.OWN_TOP_IOR)
+    for ior, roughness in ((3.0, 0.1), (3.0, 0.0), (1.02, 0.1)):
+        stack = Stack(Diffuse((0.8, 0.8, 0.8)), (Coating(roughness=roughness, ior=ior),))
+        key = cal.stack_settings_key(stack)
+        assert key.endswith(top_lobe.OWN_TOP_IOR) and key not in (cal.settings_key(), cal.settings_key() + cal.TOP_RULE)

@@ -483,9 +483,11 @@ TOP_RULE = "-top-as-rendered"
 
 def stack_settings_key(stack: Stack) -> str:
     """:func:`settings_key`, and for a stack whose top coating the decoders see clamped (``top_clamped``) the
-    rule that calibrates it (:data:`TOP_RULE`)."""
+    rule that calibrates it (:data:`TOP_RULE`); for one whose top lobe takes an ior outside the trained range,
+    ``top_lobe.OWN_TOP_IOR`` (calibrations on disk made with the lobe at the trained bound are not found)."""
     arrays = StackArrays.from_stacks([stack])
-    return settings_key() + (TOP_RULE if top_clamped(arrays).any() else "")
+    key = settings_key() + (TOP_RULE if top_clamped(arrays).any() else "")
+    return key + (top_lobe.OWN_TOP_IOR if top_lobe.ior_outside_trained(arrays).any() else "")
 
 
 def cache_key(stack: Stack, models, z) -> str:

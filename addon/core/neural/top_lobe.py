@@ -26,8 +26,8 @@ that steep fall.
 
 A stack without coatings has no top lobe (its base is the whole BRDF): its row is :data:`NO_TOP`, an
 index-matched interface, which reflects nothing. A smooth top interface reflects a delta lobe, which is
-not part of f either (0 here, as in ``RoughDielectric``). Parameters are those the decoder was trained
-with: a stack clamped to the trained ranges (``stack.clamp_to_trained``).
+not part of f either (0 here, as in ``RoughDielectric``). The lobe's alpha is the one the decoder was trained
+with (clamped to the trained range, ``stack.clamp_to_trained``), its ior the coating's own (:func:`top_coats`).
 """
 
 from __future__ import annotations
@@ -67,6 +67,23 @@ def top_coats(arrays: StackArrays) -> np.ndarray:
     out[:, 0] = np.asarray(fixed.coat_roughness, dtype=np.float64)[:, -1]
     out[:, 1] = np.asarray(arrays.coat_ior, dtype=np.float64)[:, -1]
     return out
+
+
+# What the keys of work made with a material's top lobe (calibrations, bakes) add where the top coating's ior is
+# outside the trained range: the lobe takes that ior, where it took the trained bound before.
+OWN_TOP_IOR = "-top-ior-own"
+
+
+def ior_outside_trained(arrays: StackArrays) -> np.ndarray:
+    """(N,) bool: the stacks whose top coating's ior lies outside the trained range (their top lobe takes it as it
+    is, :func:`top_coats`)."""
+    from ..stack import TRAINED_RANGES
+
+    if arrays.n_coatings == 0 or len(arrays) == 0:
+        return np.zeros(len(arrays), dtype=bool)
+    ior = np.asarray(arrays.coat_ior, dtype=np.float64)[:, -1]
+    lo, hi = TRAINED_RANGES["ior"]
+    return (ior < lo) | (ior > hi)
 
 
 def top_coat(stack: Stack) -> np.ndarray:
@@ -173,7 +190,7 @@ def transmittance_table() -> np.ndarray:
     """(cos, alpha, ior) table of the share of the light arriving from ``cos`` that the top interface lets
     into the coat, in the reference walk's interface model (``RoughDielectric``: GGX visible normals,
     Fresnel, height-correlated Smith): the mean of (1 - F) G2 / G1 over refracted visible-normal samples,
-    at stratified midpoints, deterministic; made once per process (well under a second)."""
+    at stratified midpoints, deterministic; made once per process (about a second, by the add-on's warm-up)."""
     k = TRANSMITTANCE_STRATA
     g = (np.arange(k) + 0.5) / k
     u = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
@@ -183,7 +200,7 @@ def transmittance_table() -> np.ndarray:
     alpha = np.repeat(np.tile(TRANSMITTANCE_ALPHA, n_c), n_u)
     m = ggx.sample_visible_normal(wo, alpha, np.tile(u, (n_c * n_a, 1)))
     out = np.empty((n_c, n_a, len(TRANSMITTANCE_IOR)))
-    for j, ior in enumerate(TRANSMITTANCE_IOR):  # a loop over 11 table slices, each one vectorised pass
+    for j, ior in enumerate(TRANSMITTANCE_IOR):  # a loop over the 31 table slices, each one vectorised pass
         eta = np.full(len(wo), ior)
         wt, ok = refract(wo, m, eta)
         with np.errstate(invalid="ignore", divide="ignore"):

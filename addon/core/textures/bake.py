@@ -206,16 +206,13 @@ def bake_key(
 
         h.update(TOP_RULE.encode())
     if _top_ior_outside_trained(spatial):  # such texels hold their own top ior since the renderer's lobe takes it
+        from ..neural.top_lobe import OWN_TOP_IOR
+
         h.update(OWN_TOP_IOR.encode())
     for path in sorted(spatial.maps):
         h.update(path.encode())
         h.update(np.ascontiguousarray(spatial.maps[path], dtype=np.float32).tobytes())
     return h.hexdigest()[:16]
-
-
-# What the key of a bake adds where some texel's top coating has an ior outside the trained range: its top channel
-# holds that ior (``top_lobe.top_coats``), where bakes before held the trained bound.
-OWN_TOP_IOR = "-top-ior-own"
 
 
 def _top_ior_outside_trained(spatial: SpatialStack) -> bool:
