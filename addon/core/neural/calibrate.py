@@ -30,7 +30,8 @@ material's own sampling proxy mixed half and half with a cosine lobe: exact pdfs
    of both, plus sum D^2, so that a bin the reference does not pin keeps the separable factor. A
    separable factor matches each angle's albedo by scaling all of its light alike: where the decoder
    holds too little of a lobe's grazing forward light and too much towards the normal, it brightened
-   the terminator of coated gold under a level light (docs/terminator.md).
+   the terminator of coated gold under a level light (docs/terminator.md). A material whose lobe is
+   narrower than the grid resolves (:data:`SEPARABLE_SIGMA`) keeps the separable factors.
 
 What it does not change: the lobe's azimuthal shape and its shape within a bin (where exactly the light
 goes), only how much of it leaves at each pair of elevations. It keeps f >= 0 and reciprocity (the table
@@ -77,6 +78,17 @@ ITERATIONS = 60
 # A calibration target moves the factors only by as much as it differs from the decoded albedo beyond this
 # many of the reference's standard errors (:func:`shrink_target`).
 NOISE_THRESHOLD = 2.0
+# A material whose lobe is narrower than the grid resolves is calibrated by the separable factors alone: the table's
+# exit bins split a near-mirror lobe between two nodes, a slight offset between the decoded lobe and the
+# reference's drives the entries off the diagonal towards their bounds, and the view directions between nodes,
+# interpolated through those entries, lose their light. Measured as the decoded albedo against the reference's
+# between the nodes (10 and 20 degrees), tiny: a conductor of alpha 0.01 under a coat of 0.01, 17% and 39% dark
+# with the table, 3.4% and 1.8% without; alpha 0.03 under 0.02 (proxy sigma 0.078) 14% / 0.8%; alpha 0.05 (0.109)
+# 7% / 0.4%; alpha 0.08 (0.134) 4.1% / 0.8%; alpha 0.12 (0.160) the same either way. The limit is the proxy's
+# spread (``proxy.material_params``), below every preset's (0.135 and up, whose calibrations stay as they were).
+SEPARABLE_SIGMA = 0.12
+# What the key of such a calibration adds (``cache_key``).
+SEPARABLE_RULE = "-separable"
 # Decoded rows per network call while a calibration integrates its lobe, with ``step`` called between calls:
 # the granularity at which a calibration can be stopped (0.17 s of paper's 1.8 s of decoding, 2 threads).
 STEP_ROWS = 8192
@@ -490,10 +502,21 @@ def stack_settings_key(stack: Stack) -> str:
     return key + (top_lobe.OWN_TOP_IOR if top_lobe.ior_outside_trained(arrays).any() else "")
 
 
-def cache_key(stack: Stack, models, z) -> str:
+def narrow_lobe(sigma) -> bool:
+    """Whether a material whose sampling proxy has spread ``sigma`` is calibrated by the separable factors alone
+    (:data:`SEPARABLE_SIGMA`)."""
+    return float(sigma) < SEPARABLE_SIGMA
+
+
+def cache_key(stack: Stack, models, z, narrow: bool | None = None) -> str:
+    """The key of a calibration of ``stack``'s latent ``z`` on ``models``; ``narrow`` (:func:`narrow_lobe` of the
+    material's proxy, found from ``models`` and ``z`` when None) marks one made by the separable factors alone."""
     z = np.ascontiguousarray(np.asarray(z, dtype=np.float32))
+    if narrow is None:
+        narrow = narrow_lobe(proxy.material_params(models, z, stack)[0])
     parts = (stack.to_json(), models.size, models.digest, hashlib.sha256(z.tobytes()).hexdigest())
-    return hashlib.sha256(repr((*parts, stack_settings_key(stack))).encode()).hexdigest()
+    settings = stack_settings_key(stack) + (SEPARABLE_RULE if narrow else "")
+    return hashlib.sha256(repr((*parts, settings)).encode()).hexdigest()
 
 
 def cached(stack: Stack, models, z) -> AlbedoCalibration | None:
@@ -523,16 +546,16 @@ def calibrate(stack: Stack, models, z, proxy_params, seed: int = 0, step=None) -
     viewport stops a calibration so when an edit makes its stack stale."""
     if not isinstance(stack, Stack):
         raise ValueError(f"calibrate needs a Stack, got {type(stack).__name__}")
-    key = cache_key(stack, models, z)
+    sigma, w = (float(v) for v in proxy_params)
+    key = cache_key(stack, models, z, narrow_lobe(sigma))
     hit = _lookup(key)
     if hit is not None:
         return hit
-    sigma, w = (float(v) for v in proxy_params)
     coat = top_lobe.top_coat(stack)
     moments = decoded_moments(models, z, sigma, w, seed=seed, top=coat, step=step)
     top = top_lobe.top_albedo(coat, COSINES, DECODED_SAMPLES, seed)
     ref = _as_rendered(reference_parts(stack, seed=seed, step=step), StackArrays.from_stacks([stack]), seed)
-    out = _solve(ref, moments, top, bool(getattr(models, "remainder", False)))
+    out = _solve(ref, moments, top, bool(getattr(models, "remainder", False)), separable=narrow_lobe(sigma))
     _CACHE[key] = out
     _to_disk(key, out)
     return out
@@ -606,9 +629,12 @@ def _as_rendered(ref, arrays: StackArrays, seed: int):
     )
 
 
-def _solve(ref, moments: DecodedMoments, top_albedo: np.ndarray, remainder: bool) -> AlbedoCalibration:
+def _solve(
+    ref, moments: DecodedMoments, top_albedo: np.ndarray, remainder: bool, separable: bool = False
+) -> AlbedoCalibration:
     """The calibration from the reference's parts ``ref`` and the decoded ``moments`` (both at the grid's
-    angles); ``top_albedo`` (K,), the exact top lobe's albedo, counts only for a remainder decoder."""
+    angles); ``top_albedo`` (K,), the exact top lobe's albedo, counts only for a remainder decoder.
+    ``separable``: the table is the separable factors' (:data:`SEPARABLE_SIGMA`)."""
     top = np.zeros_like(ref.albedo)
     if remainder:  # the decoded part's target: the light that entered the top interface
         top[:] = top_albedo[:, None]
@@ -620,7 +646,10 @@ def _solve(ref, moments: DecodedMoments, top_albedo: np.ndarray, remainder: bool
     m = moments.m
     scale = solve_factors(m, np.maximum(shrink_target(target, m.sum(axis=1), target_se), 0.0))
     one_walk = target / np.asarray(WALKS, dtype=np.float64)[:, None]  # (K, 3): one walk's share of the albedo
-    table = solve_table(moments, scale, bins, bins_se, stderr_floor=one_walk[:, None, :])
+    if separable:
+        table = np.clip(scale[:, None, :] * scale[None, :, :], *FACTOR_RANGE)
+    else:
+        table = solve_table(moments, scale, bins, bins_se, stderr_floor=one_walk[:, None, :])
     return AlbedoCalibration(
         cosines=np.asarray(COSINES, dtype=np.float64),
         scale=scale,

@@ -23,6 +23,27 @@ from .. import kernels
 SIGMA_MIN = 1e-3
 
 
+def guess(stack) -> tuple[float, float]:
+    """Proxy (sigma, w) from the stack's top interface until the sampling network provides them.
+
+    sigma follows the top roughness (the half-vector spread), w the chance of a diffuse-like
+    lobe. Any values keep the render unbiased (the proxy pdf is exact); they only shape noise.
+    """
+    top = stack.coatings[-1] if stack.coatings else stack.base
+    alpha = float(getattr(top, "roughness", 1.0))
+    diffuse_below = not hasattr(stack.base, "roughness") or stack.base.roughness > 0.3
+    return max(alpha, 0.02), (0.5 if diffuse_below or stack.coatings else 0.1)
+
+
+def material_params(models, z, stack) -> tuple[float, float]:
+    """A material's proxy (sigma, w): the sampling network's for latent ``z`` (3, 32) where ``models`` has one,
+    else :func:`guess` from ``stack``."""
+    if models.has("sampling"):
+        sigma, w = models.proxy_params(z)[0]
+        return float(sigma), float(w)
+    return guess(stack)
+
+
 def params(sigma, w, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Proxy parameters (shared or (n,)) as (n,) float64 rows, sigma floored at SIGMA_MIN and w in [0, 1];
     ValueError unless finite."""

@@ -22,20 +22,9 @@ import numpy as np
 from .. import kernels
 from ..bsdf.base import BSDFSample
 from ..neural import proxy, top_lobe
+from ..neural.proxy import guess as proxy_guess  # noqa: F401 (this module's name for it, as callers import it)
 from ..stack import LATENT, Stack
 from .shading import ShadeByProposal, Shading, finish_sample
-
-
-def proxy_guess(stack: Stack) -> tuple[float, float]:
-    """Proxy (sigma, w) from the stack's top interface until the sampling network provides them.
-
-    sigma follows the top roughness (the half-vector spread), w the chance of a diffuse-like
-    lobe. Any values keep the render unbiased (the proxy pdf is exact); they only shape noise.
-    """
-    top = stack.coatings[-1] if stack.coatings else stack.base
-    alpha = float(getattr(top, "roughness", 1.0))
-    diffuse_below = not hasattr(stack.base, "roughness") or stack.base.roughness > 0.3
-    return max(alpha, 0.02), (0.5 if diffuse_below or stack.coatings else 0.1)
 
 
 class _BoundNeural(ShadeByProposal):
@@ -353,8 +342,7 @@ def _encoded(stack: Stack, models, z=None):
     from ..neural import encode_stack
 
     z = encode_stack(stack, models) if z is None else z
-    proxy = models.proxy_params(z)[0] if models.has("sampling") else proxy_guess(stack)
-    made = (np.array(z, dtype=np.float32), np.array(proxy), top_lobe.top_coat(stack))
+    made = (np.array(z, dtype=np.float32), np.array(proxy.material_params(models, z, stack)), top_lobe.top_coat(stack))
     for a in made:
         a.setflags(write=False)
     if cache is not None:
