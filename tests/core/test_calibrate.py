@@ -471,7 +471,8 @@ def test_calibrations_of_a_top_outside_the_trained_ior_made_with_the_lobe_at_the
 def test_a_near_mirror_metal_under_a_clear_coat_keeps_its_albedo_between_the_grids_angles():
     """The table's exit bins split a near-mirror lobe between two grid nodes, and the entries off the diagonal went
     to their bounds: between the nodes the calibrated material lost its light (a conductor of alpha 0.01 under a
-    coat of 0.01: 39% dark at 20 degrees, its render too). Such a narrow lobe keeps the separable factors."""
+    coat of 0.01: 39% dark at 20 degrees, its render too). Such a narrow lobe keeps the separable factors within 70
+    degrees of the normal, where the grid is coarse."""
     import math
 
     from addon.core import reference

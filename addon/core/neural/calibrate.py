@@ -31,7 +31,8 @@ material's own sampling proxy mixed half and half with a cosine lobe: exact pdfs
    separable factor matches each angle's albedo by scaling all of its light alike: where the decoder
    holds too little of a lobe's grazing forward light and too much towards the normal, it brightened
    the terminator of coated gold under a level light (docs/terminator.md). A material whose lobe is
-   narrower than the grid resolves (:data:`SEPARABLE_SIGMA`) keeps the separable factors.
+   narrower than the grid resolves (:data:`SEPARABLE_SIGMA`) keeps the separable factors where the grid
+   is coarse (:data:`COARSE_COS`).
 
 What it does not change: the lobe's azimuthal shape and its shape within a bin (where exactly the light
 goes), only how much of it leaves at each pair of elevations. It keeps f >= 0 and reciprocity (the table
@@ -78,15 +79,21 @@ ITERATIONS = 60
 # A calibration target moves the factors only by as much as it differs from the decoded albedo beyond this
 # many of the reference's standard errors (:func:`shrink_target`).
 NOISE_THRESHOLD = 2.0
-# A material whose lobe is narrower than the grid resolves is calibrated by the separable factors alone: the table's
-# exit bins split a near-mirror lobe between two nodes, a slight offset between the decoded lobe and the
-# reference's drives the entries off the diagonal towards their bounds, and the view directions between nodes,
-# interpolated through those entries, lose their light. Measured as the decoded albedo against the reference's
-# between the nodes (10 and 20 degrees), tiny: a conductor of alpha 0.01 under a coat of 0.01, 17% and 39% dark
-# with the table, 3.4% and 1.8% without; alpha 0.03 under 0.02 (proxy sigma 0.078) 14% / 0.8%; alpha 0.05 (0.109)
-# 7% / 0.4%; alpha 0.08 (0.134) 4.1% / 0.8%; alpha 0.12 (0.160) the same either way. The limit is the proxy's
-# spread (``proxy.material_params``), below every preset's (0.135 and up, whose calibrations stay as they were).
+# A material whose lobe is narrower than the grid resolves keeps the separable factors where the grid is coarse
+# (:data:`COARSE_COS`): the table's exit bins split a near-mirror lobe between two nodes, a slight offset between the
+# decoded lobe and the reference's drives the entries off the diagonal towards their bounds, and the view
+# directions between nodes, interpolated through those entries, lose their light. Measured as the decoded albedo
+# against the reference's between the nodes (10 and 20 degrees), tiny: a conductor of alpha 0.01 under a coat of
+# 0.01, 17% and 39% dark with the table, 3.3% and 1.7% with this rule; alpha 0.03 under 0.02 (proxy sigma 0.078)
+# 14% / 0.9%; alpha 0.05 (0.109) 7% / 0.3%; alpha 0.08 (0.134) 4.1% with the table; alpha 0.12 (0.160) the same
+# either way. The limit is the proxy's spread (``proxy.material_params``), below every preset's (0.135 and up,
+# whose calibrations stay as they were).
 SEPARABLE_SIGMA = 0.12
+# Where a narrow lobe's table is the separable factors': every pair of grid cosines at or above this (within 70
+# degrees of the normal, where the grid's nodes are 8-15 degrees apart). Towards grazing the nodes are close enough
+# for the table, which keeps the held-out grazing set's largest albedo ratio at 80-89.5 degrees (tiny: 1.10; the
+# separable factors everywhere gave 1.22).
+COARSE_COS = 0.35
 # What the key of such a calibration adds (``cache_key``).
 SEPARABLE_RULE = "-separable"
 # Decoded rows per network call while a calibration integrates its lobe, with ``step`` called between calls:
@@ -634,7 +641,7 @@ def _solve(
 ) -> AlbedoCalibration:
     """The calibration from the reference's parts ``ref`` and the decoded ``moments`` (both at the grid's
     angles); ``top_albedo`` (K,), the exact top lobe's albedo, counts only for a remainder decoder.
-    ``separable``: the table is the separable factors' (:data:`SEPARABLE_SIGMA`)."""
+    ``separable``: the table is the separable factors' where the grid is coarse (:data:`SEPARABLE_SIGMA`)."""
     top = np.zeros_like(ref.albedo)
     if remainder:  # the decoded part's target: the light that entered the top interface
         top[:] = top_albedo[:, None]
@@ -646,10 +653,11 @@ def _solve(
     m = moments.m
     scale = solve_factors(m, np.maximum(shrink_target(target, m.sum(axis=1), target_se), 0.0))
     one_walk = target / np.asarray(WALKS, dtype=np.float64)[:, None]  # (K, 3): one walk's share of the albedo
+    table = solve_table(moments, scale, bins, bins_se, stderr_floor=one_walk[:, None, :])
     if separable:
-        table = np.clip(scale[:, None, :] * scale[None, :, :], *FACTOR_RANGE)
-    else:
-        table = solve_table(moments, scale, bins, bins_se, stderr_floor=one_walk[:, None, :])
+        coarse = np.flatnonzero(np.asarray(COSINES) >= COARSE_COS)
+        sep = np.clip(scale[:, None, :] * scale[None, :, :], *FACTOR_RANGE)
+        table[np.ix_(coarse, coarse)] = sep[np.ix_(coarse, coarse)]
     return AlbedoCalibration(
         cosines=np.asarray(COSINES, dtype=np.float64),
         scale=scale,
