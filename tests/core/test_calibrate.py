@@ -492,3 +492,40 @@ def test_a_near_mirror_metal_under_a_clear_coat_keeps_its_albedo_between_the_gri
         np.testing.assert_allclose(got[0], truth[0], rtol=0.06)
     wide = neural_material.make(preset("coated_gold"), size="tiny", calibrate=False)
     assert not cal.narrow_lobe(wide.sigma)  # the presets keep the table
+    # a latent texture of it, calibrated as a bake calibrates a cluster (it kept the table: 41% dark at 20 degrees)
+    rows = 4
+    texels = cal.calibrate_texels(
+        StackArrays.from_stacks([stack] * rows), material.models, np.repeat(material.z[None], rows, axis=0),
+        np.tile([material.sigma, material.w], (rows, 1)), np.tile(material.top, (rows, 1)),
+    )  # fmt: skip
+    t = math.radians(20.0)
+    wo = np.array([[0.0, -math.sin(t), math.cos(t)]])
+    got = cal.decoded_albedo(
+        material.models, material.z, material.sigma, material.w, wo[:, 2], texels, seed=7, top=material.top
+    )
+    truth, _ = reference.albedo(stack, wo, samples=20000, seed=1)
+    np.testing.assert_allclose(got[0], truth[0], rtol=0.06)
+
+
+def test_a_polished_metal_under_a_dense_clear_coat_keeps_its_albedo_between_the_grids_angles():
+    """The sampling network sees a coat's ior clamped to 2, so a narrow lobe under an ior-3 coat has a wide proxy;
+    its table went far from separable along the diagonal, and between the nodes the material read 1.24 of the
+    reference (20 degrees). Such a table keeps the separable factors where the grid is coarse."""
+    import math
+
+    from addon.core import reference
+    from addon.core.stack import Conductor
+
+    stack = Stack(Conductor(0.04, eta=(1.23, 1.77, 1.62), k=(3.08, 5.15, 4.33)), (Coating(roughness=0.05, ior=3.0),))
+    material = neural_material.make(stack, size="tiny", calibrate=True)
+    coarse = np.flatnonzero(np.asarray(cal.COSINES) >= cal.COARSE_COS)
+    assert cal.diagonal_mismatch(material.calibration.table, coarse) < 1e-9
+    for view in (10.0, 20.0, 45.0):
+        t = math.radians(view)
+        wo = np.array([[0.0, -math.sin(t), math.cos(t)]])
+        got = cal.decoded_albedo(
+            material.models, material.z, material.sigma, material.w, wo[:, 2], material.calibration, seed=7,
+            top=material.top,
+        )  # fmt: skip
+        truth, _ = reference.albedo(stack, wo, samples=20000, seed=1)
+        np.testing.assert_allclose(got[0], truth[0], rtol=0.06)

@@ -31,7 +31,8 @@ material's own sampling proxy mixed half and half with a cosine lobe: exact pdfs
    separable factor matches each angle's albedo by scaling all of its light alike: where the decoder
    holds too little of a lobe's grazing forward light and too much towards the normal, it brightened
    the terminator of coated gold under a level light (docs/terminator.md). A material whose lobe is
-   narrower than the grid resolves (:data:`SEPARABLE_SIGMA`) keeps the separable factors where the grid
+   narrower than the grid resolves (:data:`SEPARABLE_SIGMA`, or whose table comes out far from
+   separable along its diagonal, :data:`DIAGONAL_MISMATCH`) keeps the separable factors where the grid
    is coarse (:data:`COARSE_COS`).
 
 What it does not change: the lobe's azimuthal shape and its shape within a bin (where exactly the light
@@ -89,6 +90,11 @@ NOISE_THRESHOLD = 2.0
 # either way. The limit is the proxy's spread (``proxy.material_params``), below every preset's (0.135 and up,
 # whose calibrations stay as they were).
 SEPARABLE_SIGMA = 0.12
+# The same for a solved table whose coarse part is far from separable along its diagonal (``diagonal_mismatch``):
+# a narrow lobe the sampling network does not see as narrow (it sees a coat's ior clamped to 2: a conductor of alpha
+# 0.04 under a coat of 0.05 and ior 3 read 1.24 of the reference at 20 degrees, its table's mismatch 1.23). The
+# presets' tables: 0.03-0.16.
+DIAGONAL_MISMATCH = 0.3
 # Where a narrow lobe's table is the separable factors': every pair of grid cosines at or above this (within 70
 # degrees of the normal, where the grid's nodes are 8-15 degrees apart). Towards grazing the nodes are close enough
 # for the table, which keeps the held-out grazing set's largest albedo ratio at 80-89.5 degrees (tiny: 1.10; the
@@ -595,7 +601,8 @@ def calibrate_texels(arrays: StackArrays, models, z, proxy_params, tops, seed: i
     )  # a loop over the R sampled materials, not over texels
     top = np.mean([top_lobe.top_albedo(t, COSINES, per, seed) for t in tops], axis=0)
     ref = _as_rendered(reference_parts(arrays, seed=seed, step=step), arrays, seed)
-    return _solve(ref, moments, top, bool(getattr(models, "remainder", False)))
+    narrow = narrow_lobe(np.median(prox[:, 0]))
+    return _solve(ref, moments, top, bool(getattr(models, "remainder", False)), separable=narrow)
 
 
 def top_clamped(arrays: StackArrays) -> np.ndarray:
@@ -636,12 +643,21 @@ def _as_rendered(ref, arrays: StackArrays, seed: int):
     )
 
 
+def diagonal_mismatch(table: np.ndarray, nodes: np.ndarray) -> float:
+    """How far a factor table (K, K, 3) is from separable along its diagonal at the grid nodes ``nodes`` (ascending
+    indices): the largest |log(S[k, k+1] / sqrt(S[k, k] S[k+1, k+1]))| over neighbouring nodes and channels (0 for a
+    separable table). A narrow lobe seen between two nodes takes its factor from those four entries."""
+    k = nodes[:-1]
+    return float(np.max(np.abs(np.log(table[k, k + 1] / np.sqrt(table[k, k] * table[k + 1, k + 1])))))
+
+
 def _solve(
     ref, moments: DecodedMoments, top_albedo: np.ndarray, remainder: bool, separable: bool = False
 ) -> AlbedoCalibration:
     """The calibration from the reference's parts ``ref`` and the decoded ``moments`` (both at the grid's
     angles); ``top_albedo`` (K,), the exact top lobe's albedo, counts only for a remainder decoder.
-    ``separable``: the table is the separable factors' where the grid is coarse (:data:`SEPARABLE_SIGMA`)."""
+    ``separable``: the table is the separable factors' where the grid is coarse (:data:`SEPARABLE_SIGMA`); so is
+    a solved table's there that is far from separable along its diagonal (:data:`DIAGONAL_MISMATCH`)."""
     top = np.zeros_like(ref.albedo)
     if remainder:  # the decoded part's target: the light that entered the top interface
         top[:] = top_albedo[:, None]
@@ -654,8 +670,8 @@ def _solve(
     scale = solve_factors(m, np.maximum(shrink_target(target, m.sum(axis=1), target_se), 0.0))
     one_walk = target / np.asarray(WALKS, dtype=np.float64)[:, None]  # (K, 3): one walk's share of the albedo
     table = solve_table(moments, scale, bins, bins_se, stderr_floor=one_walk[:, None, :])
-    if separable:
-        coarse = np.flatnonzero(np.asarray(COSINES) >= COARSE_COS)
+    coarse = np.flatnonzero(np.asarray(COSINES) >= COARSE_COS)
+    if separable or diagonal_mismatch(table, coarse) > DIAGONAL_MISMATCH:
         sep = np.clip(scale[:, None, :] * scale[None, :, :], *FACTOR_RANGE)
         table[np.ix_(coarse, coarse)] = sep[np.ix_(coarse, coarse)]
     return AlbedoCalibration(
