@@ -84,3 +84,17 @@ def test_a_refining_bake_hears_a_cancel_and_moves_its_progress_after_each_texel(
         bake_texels(arrays, encode, progress=seen.append, cancel=lambda: len(seen) >= 3)
     assert seen == [1 / 20, 2 / 20, 3 / 20] and encode.metadata["refined"] == 4
     assert encode.step is None  # the bake's callbacks went with it
+
+
+def test_a_refined_bakes_key_follows_the_refinements_and_the_references_versions(monkeypatch):
+    """Refined texels are fitted to the reference's lobes by one version of the refinement: a bake refined by an
+    earlier one (other targets, another top lobe) was taken for current."""
+    from addon.core import reference
+    from addon.core.neural import refine
+    from addon.core.textures.bake import model_key
+
+    plain, refined = model_key("tiny", "d"), model_key("tiny", "d", 2.0)
+    monkeypatch.setattr(refine, "REFINE_VERSION", refine.REFINE_VERSION + 1)
+    assert model_key("tiny", "d", 2.0) != refined and model_key("tiny", "d") == plain
+    monkeypatch.setattr(reference, "ESTIMATOR_VERSION", reference.ESTIMATOR_VERSION + 1)
+    assert model_key("tiny", "d", 2.0) != refined and model_key("tiny", "d") == plain

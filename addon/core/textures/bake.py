@@ -175,10 +175,18 @@ def model_key(size: str, digest: str | None, refine_s: float = 0.0, calibrated: 
     """The model part of a bake key: the decoder size, the refinement budget when there is one
     (refined texels are not the encoded ones) and, when known, the decoder file's digest
     (``encode.metadata["model_digest"]``, ``ModelSet.digest``), so a bake made with an earlier
-    decoder of the same size, or with another refinement budget, is never taken for current;
+    decoder of the same size, or with another refinement budget, is never taken for current; a refined
+    bake's key holds the refinement's and the reference estimator's versions too (``refine.REFINE_VERSION``,
+    ``reference.ESTIMATOR_VERSION``: its texels were fitted to that estimator's lobes);
     ``calibrated``: the texture carries its albedo calibration, keyed by the calibration's settings
     (``calibrate.settings_key``), so a bake without one, or with other settings, is baked again."""
-    name = f"{size}+refine{refine_s:g}" if refine_s else size
+    if refine_s:
+        from ..neural.refine import REFINE_VERSION
+        from ..reference import ESTIMATOR_VERSION
+
+        name = f"{size}+refine{refine_s:g}-v{REFINE_VERSION}-e{ESTIMATOR_VERSION}"
+    else:
+        name = size
     if calibrated:
         from ..neural.calibrate import settings_key
 
