@@ -173,61 +173,14 @@ def forget_textures() -> None:
 
 
 def _refined_latent(mat, stack, info: list[str]):
-    """``(z, size)`` of the material's refined latent (the sidebar's *Refine*) while it is current: refined
-    from this stack, stored for the size it was refined for, with the decoder file it was refined for
-    still shipped. Else None, with a line in ``info`` when a refined latent is there but stale."""
-    mat = getattr(mat, "original", mat)  # Refine writes the original; a depsgraph copy may predate it
-    refined = getattr(mat, "neural_refine", None)
-    if refined is None or not refined.key or refined.kept not in ("yes", "replaced"):
-        return None  # never refined, or the refinement kept the encoded latent
-    from ..core import preview
-    from ..core.neural.models import ModelFileError, load_models
+    """``(z, size)`` of the material's refined latent while it is current (``stack_io.refined_latent``), else None,
+    with a line in ``info`` when a refined latent is there but stale."""
     from . import stack_io
 
-    s = mat.neural_layers
-    now = preview.stack_hash(stack)
-    if refined.stack_hash != now or s.latent_hash != now or s.latent_size != refined.size:
-        info.append(
-            f"material {mat.name!r}: its refined latent is out of date (the stack or model size changed "
-            "since Refine); rendering the stack encoded again: press Refine to refine it again"
-        )
-        return None
-    if refined.kept == "replaced":  # the same stack and size, encoded again over the refined latent
-        info.append(
-            f"material {mat.name!r}: its refined latent was replaced by the stack encoded again (Evaluate, an "
-            "edit undone by hand, a model size setting that resolves to the same size); rendering the encoded "
-            "latent: press Refine to refine it again"
-        )
-        return None
-    try:
-        shipped = load_models(refined.size).digest
-    except (ValueError, FileNotFoundError, ModelFileError):
-        shipped = None  # the renderer reports the missing models itself
-    if shipped != refined.decoder_digest:
-        info.append(
-            f"material {mat.name!r}: its latent was refined for another decoder_{refined.size}.onnx than "
-            "the shipped one; rendering the stack encoded again: press Refine to refine it again"
-        )
-        return None
-    if shipped is not None and refined.key != _refine_key(stack, refined.size):
-        info.append(
-            f"material {mat.name!r}: its latent was refined by an earlier version (of the refinement, its "
-            "reference or the models it depends on); rendering the stack encoded again: press Refine to refine it "
-            "again"
-        )
-        return None
-    return stack_io.latent_of(mat), refined.size
-
-
-def _refine_key(stack, size: str) -> str | None:
-    """The key a Refine of ``stack`` at ``size`` would have now (the operator's default settings), or None when
-    a model file it depends on is missing."""
-    from ..core.neural.refine import RefineSettings, refine_key
-
-    try:
-        return refine_key(stack, size, RefineSettings())
-    except FileNotFoundError:
-        return None
+    latent, why = stack_io.refined_latent(mat, stack)
+    if why:
+        info.append(why)
+    return latent
 
 
 def export_material(mat, warnings: list[str], info: list[str] | None = None):

@@ -212,8 +212,70 @@ def compute_latent(mat, size: str | None = None) -> list[str]:
 
 
 def current_latent(mat):
-    """``(z (3, 32), decoder size)`` when the stored latent is current, else None."""
-    return (latent_of(mat), settings(mat).latent_size) if latent_is_current(mat) else None
+    """``(z (3, 32), decoder size)`` when the stored latent is current, else None: also None for a stored refined
+    latent that F12 would not render (``refined_latent``), so that the previews show what it renders."""
+    if not latent_is_current(mat):
+        return None
+    refined = getattr(getattr(mat, "original", mat), "neural_refine", None)
+    if refined is not None and refined.key and refined.kept == "yes":
+        latent, _ = refined_latent(mat, stack_from_material(mat))
+        if latent is None:
+            return None
+    return latent_of(mat), settings(mat).latent_size
+
+
+def refined_latent(mat, stack):
+    """``((z, size), None)`` for the material's refined latent (the sidebar's *Refine*) while it is current: refined
+    from this stack, stored for the size it was refined for, by this version of the refinement (its key is the one
+    a Refine would have now) and for the decoder file still shipped. Else ``(None, why)``, ``why`` a line for the
+    user when a refined latent is there but stale (None when the material was never refined, or the refinement
+    kept the encoded latent)."""
+    mat = getattr(mat, "original", mat)  # Refine writes the original; a depsgraph copy may predate it
+    refined = getattr(mat, "neural_refine", None)
+    if refined is None or not refined.key or refined.kept not in ("yes", "replaced"):
+        return None, None
+    from ..core.neural.models import ModelFileError, load_models
+
+    s = mat.neural_layers
+    now = preview.stack_hash(stack)
+    again = "; rendering the stack encoded again: press Refine to refine it again"
+    if refined.stack_hash != now or s.latent_hash != now or s.latent_size != refined.size:
+        return None, (
+            f"material {mat.name!r}: its refined latent is out of date (the stack or model size changed "
+            f"since Refine){again}"
+        )
+    if refined.kept == "replaced":  # the same stack and size, encoded again over the refined latent
+        return None, (
+            f"material {mat.name!r}: its refined latent was replaced by the stack encoded again (Evaluate, an "
+            "edit undone by hand, a model size setting that resolves to the same size); rendering the encoded "
+            "latent: press Refine to refine it again"
+        )
+    try:
+        shipped = load_models(refined.size).digest
+    except (ValueError, FileNotFoundError, ModelFileError):
+        shipped = None  # the renderer reports the missing models itself
+    if shipped != refined.decoder_digest:
+        return None, (
+            f"material {mat.name!r}: its latent was refined for another decoder_{refined.size}.onnx than "
+            f"the shipped one{again}"
+        )
+    if shipped is not None and refined.key != _refine_key(stack, refined.size):
+        return None, (
+            f"material {mat.name!r}: its latent was refined by an earlier version (of the refinement, its "
+            f"reference or the models it depends on){again}"
+        )
+    return (latent_of(mat), refined.size), None
+
+
+def _refine_key(stack, size: str) -> str | None:
+    """The key a Refine of ``stack`` at ``size`` would have now (the operator's default settings), or None when
+    a model file it depends on is missing."""
+    from ..core.neural.refine import RefineSettings, refine_key
+
+    try:
+        return refine_key(stack, size, RefineSettings())
+    except OSError:
+        return None
 
 
 def on_stack_changed(mat) -> None:

@@ -131,7 +131,9 @@ def test_f12_renders_the_refined_latent_the_preview_shows_and_ignores_a_stale_on
     core_scene, _ = scene_export.export_scene(bpy.context.evaluated_depsgraph_get(), info=info)
     assert all(getattr(m, "latent", None) is None for m in core_scene.materials)
     assert any("refined by an earlier version" in line for line in info), info
+    assert stack_io.current_latent(material) is None  # the previews encode the stack again too, as F12 renders
     material.neural_refine.key = key
+    assert np.array_equal(stack_io.current_latent(material)[0], z_shown)
     # the stack edited: the refined latent is stale, F12 encodes the stack again and says why
     refined_roughness = material.neural_layers.layers[-1].roughness
     material.neural_layers.layers[-1].roughness = 0.2
