@@ -468,28 +468,33 @@ def test_calibrations_of_a_top_outside_the_trained_ior_made_with_the_lobe_at_the
         assert key.endswith(top_lobe.OWN_TOP_IOR) and key not in (cal.settings_key(), cal.settings_key() + cal.TOP_RULE)
 
 
+def _assert_albedo_as_the_reference(stack, material, views, calibration, rtol=0.06):
+    """The material's decoded albedo under ``calibration`` equals the reference's at each view (degrees)."""
+    import math
+
+    from addon.core import reference
+
+    for view in views:
+        t = math.radians(view)
+        wo = np.array([[0.0, -math.sin(t), math.cos(t)]])
+        got = cal.decoded_albedo(
+            material.models, material.z, material.sigma, material.w, wo[:, 2], calibration, seed=7, top=material.top
+        )
+        truth, _ = reference.albedo(stack, wo, samples=20000, seed=1)
+        np.testing.assert_allclose(got[0], truth[0], rtol=rtol, err_msg=f"{view} degrees")
+
+
 def test_a_near_mirror_metal_under_a_clear_coat_keeps_its_albedo_between_the_grids_angles():
     """The table's exit bins split a near-mirror lobe between two grid nodes, and the entries off the diagonal went
     to their bounds: between the nodes the calibrated material lost its light (a conductor of alpha 0.01 under a
     coat of 0.01: 39% dark at 20 degrees, its render too). Such a narrow lobe keeps the separable factors within 70
     degrees of the normal, where the grid is coarse."""
-    import math
-
-    from addon.core import reference
     from addon.core.stack import Conductor
 
     stack = Stack(Conductor(0.01, eta=(1.23, 1.77, 1.62), k=(3.08, 5.15, 4.33)), (Coating(roughness=0.01, ior=1.47),))
     material = neural_material.make(stack, size="tiny", calibrate=True)
     assert cal.narrow_lobe(material.sigma)
-    for view in (10.0, 20.0, 60.0):
-        t = math.radians(view)
-        wo = np.array([[0.0, -math.sin(t), math.cos(t)]])
-        got = cal.decoded_albedo(
-            material.models, material.z, material.sigma, material.w, wo[:, 2], material.calibration, seed=7,
-            top=material.top,
-        )  # fmt: skip
-        truth, _ = reference.albedo(stack, wo, samples=20000, seed=1)
-        np.testing.assert_allclose(got[0], truth[0], rtol=0.06)
+    _assert_albedo_as_the_reference(stack, material, (10.0, 20.0, 60.0), material.calibration)
     wide = neural_material.make(preset("coated_gold"), size="tiny", calibrate=False)
     assert not cal.narrow_lobe(wide.sigma)  # the presets keep the table
     # a latent texture of it, calibrated as a bake calibrates a cluster (it kept the table: 41% dark at 20 degrees)
@@ -498,34 +503,17 @@ def test_a_near_mirror_metal_under_a_clear_coat_keeps_its_albedo_between_the_gri
         StackArrays.from_stacks([stack] * rows), material.models, np.repeat(material.z[None], rows, axis=0),
         np.tile([material.sigma, material.w], (rows, 1)), np.tile(material.top, (rows, 1)),
     )  # fmt: skip
-    t = math.radians(20.0)
-    wo = np.array([[0.0, -math.sin(t), math.cos(t)]])
-    got = cal.decoded_albedo(
-        material.models, material.z, material.sigma, material.w, wo[:, 2], texels, seed=7, top=material.top
-    )
-    truth, _ = reference.albedo(stack, wo, samples=20000, seed=1)
-    np.testing.assert_allclose(got[0], truth[0], rtol=0.06)
+    _assert_albedo_as_the_reference(stack, material, (20.0,), texels)
 
 
 def test_a_polished_metal_under_a_dense_clear_coat_keeps_its_albedo_between_the_grids_angles():
     """The sampling network sees a coat's ior clamped to 2, so a narrow lobe under an ior-3 coat has a wide proxy;
     its table went far from separable along the diagonal, and between the nodes the material read 1.24 of the
     reference (20 degrees). Such a table keeps the separable factors where the grid is coarse."""
-    import math
-
-    from addon.core import reference
     from addon.core.stack import Conductor
 
     stack = Stack(Conductor(0.04, eta=(1.23, 1.77, 1.62), k=(3.08, 5.15, 4.33)), (Coating(roughness=0.05, ior=3.0),))
     material = neural_material.make(stack, size="tiny", calibrate=True)
     coarse = np.flatnonzero(np.asarray(cal.COSINES) >= cal.COARSE_COS)
     assert cal.diagonal_mismatch(material.calibration.table, coarse) < 1e-9
-    for view in (10.0, 20.0, 45.0):
-        t = math.radians(view)
-        wo = np.array([[0.0, -math.sin(t), math.cos(t)]])
-        got = cal.decoded_albedo(
-            material.models, material.z, material.sigma, material.w, wo[:, 2], material.calibration, seed=7,
-            top=material.top,
-        )  # fmt: skip
-        truth, _ = reference.albedo(stack, wo, samples=20000, seed=1)
-        np.testing.assert_allclose(got[0], truth[0], rtol=0.06)
+    _assert_albedo_as_the_reference(stack, material, (10.0, 20.0, 45.0), material.calibration)
