@@ -516,14 +516,14 @@ def stack_settings_key(stack: Stack) -> str:
 
 
 def narrow_lobe(sigma) -> bool:
-    """Whether a material whose sampling proxy has spread ``sigma`` is calibrated by the separable factors alone
-    (:data:`SEPARABLE_SIGMA`)."""
+    """Whether a material whose sampling proxy has spread ``sigma`` keeps the separable factors where the grid is
+    coarse (:data:`SEPARABLE_SIGMA`)."""
     return float(sigma) < SEPARABLE_SIGMA
 
 
 def cache_key(stack: Stack, models, z, narrow: bool | None = None) -> str:
     """The key of a calibration of ``stack``'s latent ``z`` on ``models``; ``narrow`` (:func:`narrow_lobe` of the
-    material's proxy, found from ``models`` and ``z`` when None) marks one made by the separable factors alone."""
+    material's proxy, found from ``models`` and ``z`` when None) marks one made by the rule for narrow lobes."""
     z = np.ascontiguousarray(np.asarray(z, dtype=np.float32))
     if narrow is None:
         narrow = narrow_lobe(proxy.material_params(models, z, stack)[0])
