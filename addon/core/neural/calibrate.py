@@ -92,9 +92,11 @@ NOISE_THRESHOLD = 2.0
 SEPARABLE_SIGMA = 0.12
 # The same for a solved table whose coarse part is far from separable along its diagonal (``diagonal_mismatch``):
 # a narrow lobe the sampling network does not see as narrow (it sees a coat's ior clamped to 2: a conductor of alpha
-# 0.04 under a coat of 0.05 and ior 3 read 1.24 of the reference at 20 degrees, its table's mismatch 1.23). The
-# presets' tables: 0.03-0.16.
-DIAGONAL_MISMATCH = 0.3
+# 0.04 under a coat of 0.05 and ior 3 read 1.24 of the reference at 20 degrees, its table's mismatch 1.23; under a
+# coat of 0.03, 0.75). The presets' tables: 0.03-0.16. Held-out stacks of two coatings with wide lobes reach 0.3-0.6,
+# where the table's lobe is the better one (at 0.3 their calibrated lobe error's 90th percentile rose from 0.16 to
+# 0.22: tests/core/test_layering.py).
+DIAGONAL_MISMATCH = 0.6
 # Where a narrow lobe's table is the separable factors': every pair of grid cosines at or above this (within 70
 # degrees of the normal, where the grid's nodes are 8-15 degrees apart). Towards grazing the nodes are close enough
 # for the table, which keeps the held-out grazing set's largest albedo ratio at 80-89.5 degrees (tiny: 1.10; the
