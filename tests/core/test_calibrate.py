@@ -415,20 +415,10 @@ def test_an_index_matched_coat_over_a_black_base_renders_black_at_grazing():
     """A coat of ior 1 reflects nothing; the renderer added its top lobe at the trained 1.05, which reflects much at
     grazing, and no calibration of the remainder can take light away from the exact lobe: a black base under it
     rendered 0.066 at 80 degrees and 0.147 at 87 (the reference: 0). The top lobe is the stack's own below 1.05."""
-    import math
-
-    from addon.core.render import Camera, Environment, RenderSettings, Scene, render, shapes
-    from addon.core.render.materials import LayeredSpec
+    from benchmarks.bench_stack_sweep import white_sky_albedo
 
     stack = Stack(Diffuse((0.0, 0.0, 0.0)), (Coating(roughness=0.1, ior=1.0),))
-    theta = math.radians(80.0)
-    eye = (0.0, -20.0 * math.sin(theta), 20.0 * math.cos(theta))
-    cam = Camera.look_at(eye, (0.0, 0.0, 0.0), fov_deg=1.0, width=8, height=8)
-    scene = Scene(
-        cam, shapes.quad((0, 0, 0), (20, 0, 0), (0, 20, 0)), [LayeredSpec(stack)], [], Environment((1.0,) * 3)
-    )
-    film, _ = render(scene, RenderSettings(samples=64, max_bounces=0, seed=2))
-    assert film.mean().max() < 0.01
+    assert white_sky_albedo(stack, 80.0, "neural", 64, seed=2).max() < 0.01
 
 
 def test_an_opaque_coat_of_ior_3_renders_its_interfaces_reflection():
@@ -438,20 +428,12 @@ def test_an_opaque_coat_of_ior_3_renders_its_interfaces_reflection():
     import math
 
     from addon.core import reference
-    from addon.core.render import Camera, Environment, RenderSettings, Scene, render, shapes
-    from addon.core.render.materials import LayeredSpec
+    from benchmarks.bench_stack_sweep import white_sky_albedo
 
     stack = Stack(Dielectric(0.0, 1.43), (Coating(roughness=0.37, ior=3.08, thickness=17.7),))
-    theta = math.radians(20.0)
-    eye = (0.0, -20.0 * math.sin(theta), 20.0 * math.cos(theta))
-    cam = Camera.look_at(eye, (0.0, 0.0, 0.0), fov_deg=1.0, width=8, height=8)
-    scene = Scene(
-        cam, shapes.quad((0, 0, 0), (20, 0, 0), (0, 20, 0)), [LayeredSpec(stack)], [], Environment((1.0,) * 3)
-    )
-    film, _ = render(scene, RenderSettings(samples=64, max_bounces=0, seed=2))
-    wo = np.array([[0.0, -math.sin(theta), math.cos(theta)]])
-    truth, _ = reference.albedo(stack, wo, samples=20000, seed=4)
-    np.testing.assert_allclose(film.mean().reshape(-1, 3).mean(axis=0), truth[0], rtol=0.05)
+    t = math.radians(20.0)
+    truth, _ = reference.albedo(stack, np.array([[0.0, -math.sin(t), math.cos(t)]]), samples=20000, seed=4)
+    np.testing.assert_allclose(white_sky_albedo(stack, 20.0, "neural", 64, seed=2), truth[0], rtol=0.05)
 
 
 def test_calibrations_of_a_top_outside_the_trained_ior_made_with_the_lobe_at_the_bound_are_not_found():
