@@ -230,10 +230,7 @@ def _delta_below(lay: Layers, pr, slab, cos):
     through = xp.flatnonzero(sin2_t < 1.0)  # the rest is total internal reflection: r = 1
     if through.shape[0]:
         pt, kt, ct = p[through], k[through], cos_t[through]
-        lower = _delta_below(lay, pt, kt, ct) * _tr(2.0 * lay.tau[pt, kt], ct)[:, None]
-        rt = r[through]
-        with xp.errstate(divide="ignore", invalid="ignore"):
-            r[through] = rt + (1.0 - rt) ** 2 * lower / (1.0 - rt * lower)
+        r[through] = _with_beyond(r[through], _delta_below(lay, pt, kt, ct) * _tr(2.0 * lay.tau[pt, kt], ct)[:, None])
     out[inside] = r
     return out
 
@@ -252,11 +249,17 @@ def _delta_above(lay: Layers, pr, slab, cos):
     if through.shape[0]:
         pt, st = p[through], slab[through] + 1
         ct = xp.sqrt(xp.clip(1.0 - sin2_t[through], 0.0, 1.0))
-        upper = _delta_above(lay, pt, st, ct) * _tr(2.0 * lay.tau[pt, st], ct)[:, None]
-        rt = r[through]
-        with xp.errstate(divide="ignore", invalid="ignore"):
-            r[through] = rt + (1.0 - rt) ** 2 * upper / (1.0 - rt * upper)
+        r[through] = _with_beyond(r[through], _delta_above(lay, pt, st, ct) * _tr(2.0 * lay.tau[pt, st], ct)[:, None])
     return r
+
+
+def _with_beyond(r, beyond):
+    """The delta reflectance of a smooth interface of reflectance ``r`` (m, 3) with ``beyond`` (m, 3) behind it: what
+    lies past the interface reflects back, extinction of the slab between included, any number of times (the
+    adding of two layers for delta events: the interface transmits 1 - r each way)."""
+    xp = namespace(r, beyond)
+    with xp.errstate(divide="ignore", invalid="ignore"):
+        return r + (1.0 - r) ** 2 * beyond / (1.0 - r * beyond)
 
 
 def _tr(tau, cos):
