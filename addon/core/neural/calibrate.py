@@ -534,10 +534,12 @@ def cache_key(stack: Stack, models, z, narrow: bool | None = None) -> str:
     return hashlib.sha256(repr((*parts, settings)).encode()).hexdigest()
 
 
-def cached(stack: Stack, models, z) -> AlbedoCalibration | None:
+def cached(stack: Stack, models, z, proxy_params=None) -> AlbedoCalibration | None:
     """The calibration of this stack and latent if it was made in this session or is on disk
-    (:func:`use_disk_cache`), else None (no walks)."""
-    return _lookup(cache_key(stack, models, z))
+    (:func:`use_disk_cache`), else None (no walks). ``proxy_params``: the material's (sigma, w) when the caller
+    has them (else the sampling network is asked again)."""
+    narrow = None if proxy_params is None else narrow_lobe(proxy_params[0])
+    return _lookup(cache_key(stack, models, z, narrow))
 
 
 def _lookup(key: str) -> AlbedoCalibration | None:

@@ -359,7 +359,7 @@ def _calibration(stack: Stack, models, z, proxy, calibrate, step=None):
 
     if calibrate is True:
         return cal.calibrate(stack, models, z, proxy, step=step)
-    return cal.cached(stack, models, z) if calibrate == "cached" else None
+    return cal.cached(stack, models, z, proxy) if calibrate == "cached" else None
 
 
 class StaleCalibrationWarning(UserWarning):
