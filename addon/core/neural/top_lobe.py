@@ -77,12 +77,17 @@ OWN_TOP_IOR = "-top-ior-own"
 def ior_outside_trained(arrays: StackArrays) -> np.ndarray:
     """(N,) bool: the stacks whose top coating's ior lies outside the trained range (their top lobe takes it as it
     is, :func:`top_coats`)."""
-    from ..stack import TRAINED_RANGES
-
     if arrays.n_coatings == 0 or len(arrays) == 0:
         return np.zeros(len(arrays), dtype=bool)
-    ior = np.asarray(arrays.coat_ior, dtype=np.float64)[:, -1]
+    return outside_trained_ior(np.asarray(arrays.coat_ior, dtype=np.float64)[:, -1])
+
+
+def outside_trained_ior(ior) -> np.ndarray:
+    """Whether each of these iors lies outside the trained range (``stack.TRAINED_RANGES``)."""
+    from ..stack import TRAINED_RANGES
+
     lo, hi = TRAINED_RANGES["ior"]
+    ior = np.asarray(ior, dtype=np.float64)
     return (ior < lo) | (ior > hi)
 
 

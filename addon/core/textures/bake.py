@@ -225,12 +225,9 @@ def bake_key(
 
 def _top_ior_outside_trained(spatial: SpatialStack) -> bool:
     """Whether some texel's top coating has an ior outside the trained range (its lobe takes the coating's own)."""
-    from ..stack import TRAINED_RANGES
+    from ..neural.top_lobe import outside_trained_ior
 
-    if not spatial.stack.coatings:
-        return False
-    low, high = spatial.top_range("ior")
-    return low < TRAINED_RANGES["ior"][0] or high > TRAINED_RANGES["ior"][1]
+    return bool(spatial.stack.coatings) and bool(outside_trained_ior(spatial.top_range("ior")).any())
 
 
 def _clamps_top(spatial: SpatialStack) -> bool:
