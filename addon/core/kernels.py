@@ -463,7 +463,7 @@ def first_hit_features(features, row, weight, ns, dist):
 # directions (W + 1, 2) and a first guess of the column per even bin of :func:`_pseudo_angle`.
 
 POINT, SPOT, SUN, AREA_RECT, AREA_ELLIPSE, ENVIRONMENT = range(6)  # an environment of one colour is a 1 x 1 image
-N_PARAMS = 17
+N_PARAMS = 20
 
 
 @njit(inline="always", **_JIT)
@@ -647,9 +647,12 @@ def _sample_local_light(kind, params, j, px, py, pz, u0, u1, near):
         safe = max(dist, 1e-9)
         wx, wy, wz = dx / safe, dy / safe, dz / safe
         mask = 1.0
-        if kind == SPOT:  # Blender's smoothstep over the cone's edge
-            c = -(wx * params[j, 6] + wy * params[j, 7] + wz * params[j, 8])
-            cos_edge, smooth = params[j, 9], params[j, 10]
+        if kind == SPOT:  # Blender's smoothstep over the cone's edge, in the light's own (scaled) frame
+            lx = wx * params[j, 6] + wy * params[j, 7] + wz * params[j, 8]
+            ly = wx * params[j, 9] + wy * params[j, 10] + wz * params[j, 11]
+            lz = wx * params[j, 12] + wy * params[j, 13] + wz * params[j, 14]
+            c = lz / max(_sqrt(lx * lx + ly * ly + lz * lz), 1e-300)  # the cosine from the light's -z to the point
+            cos_edge, smooth = params[j, 15], params[j, 16]
             if smooth <= 0.0:
                 mask = 1.0 if c > cos_edge else 0.0
             else:
@@ -672,8 +675,25 @@ def _sample_local_light(kind, params, j, px, py, pz, u0, u1, near):
     wx, wy, wz = dx / safe, dy / safe, dz / safe
     cos_l = -(wx * params[j, 9] + wy * params[j, 10] + wz * params[j, 11])
     if cos_l > 1e-8:
-        return wx, wy, wz, dist, params[j, 12], params[j, 13], params[j, 14], safe * safe / (cos_l * params[j, 15])
+        g = spread_factor(params, j, cos_l)
+        pdf = safe * safe / (cos_l * params[j, 15])
+        return wx, wy, wz, dist, params[j, 12] * g, params[j, 13] * g, params[j, 14] * g, pdf
     return wx, wy, wz, dist, 0.0, 0.0, 0.0, 0.0
+
+
+@njit(inline="always", **_JIT)
+def spread_factor(params, j, cos_l):
+    """What area light ``params[j]`` emits toward a direction at cosine ``cos_l`` to its normal, relative to its
+    radiance without a *Spread*: Cycles' soft-box grid (``lights.spread_table``: the tangent of the half angle in
+    ``params[j, 17]``, inf for none, and the factor that keeps the power in ``params[j, 18]``). A spread of 0 emits
+    along the normal only, as Cycles' does."""
+    tan_half = params[j, 17]
+    if math.isinf(tan_half):
+        return 1.0
+    tan_a = _sqrt(max(1.0 - cos_l * cos_l, 0.0)) / cos_l
+    if tan_half == 0.0:
+        return math.pi if tan_a <= 1e-5 else 0.0
+    return max((tan_half - tan_a) * params[j, 18], 0.0)
 
 
 # An environment at least this wide turns its column's edge by less than pi / 4 to place a sample: within the
@@ -885,11 +905,13 @@ def _emission_weight(strategy, p_select, pdf_light, prev_pdf, prev_delta, prev_m
 @njit(**_JIT)
 def add_emission(
     area_params, area_ellipse, has_env, env, strategy, p_select,
-    o, d, t, row, throughput, prev_pdf, prev_delta, prev_mis, L, eps,
+    o, d, t, row, throughput, prev_pdf, prev_delta, prev_mis, L, eps, camera,
 ):  # fmt: skip
     """Add to ``L[row]`` the emission rays (o, d) reach before distance ``t``: every area light that no surface
     blocks (the surface at ``t`` is not nearer than :func:`_unblocked_before` the light, as for the shadow rays, with
-    ``eps`` the offset of each ray's origin: 0 for the camera's),
+    ``eps`` the offset of each ray's origin: 0 for the camera's), toward the ray as its spread lets it
+    (:func:`spread_factor`), and not when the rays are the camera's (``camera``) and the light is hidden from them
+    (``area_params[j, 19]`` 0),
     and the environment ``env`` where the ray escapes (t = inf; with ``has_env``), each weighted by how the ray
     was sampled (:func:`_emission_weight`)."""
     image, pixel_pdf, _, _, z_edges, row_of_bin, edges, column_of_bin = env
@@ -897,9 +919,13 @@ def add_emission(
         ox, oy, oz, dx, dy, dz = o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2]
         r = row[i]
         for j in range(len(area_params)):
+            if camera and area_params[j, 19] == 0.0:
+                continue
             tl, pdf_l = _intersect_area(area_params, j, area_ellipse[j], ox, oy, oz, dx, dy, dz)
             if not math.isinf(tl) and t[i] >= _unblocked_before(tl, eps[i]):
                 w = _emission_weight(strategy, p_select, pdf_l, prev_pdf[i], prev_delta[i], prev_mis[i])
+                cos_l = -(dx * area_params[j, 9] + dy * area_params[j, 10] + dz * area_params[j, 11])
+                w *= spread_factor(area_params, j, cos_l)
                 for k in range(3):
                     L[r, k] += throughput[i, k] * area_params[j, 12 + k] * w
         if has_env and math.isinf(t[i]):
@@ -1529,15 +1555,21 @@ def nearest_rows(x, centres):
 # --- the camera ----------------------------------------------------------------------------------
 
 
-# What ``camera_rays`` writes (``out``, a row per pixel): origins, directions and the ray cones' spreads.
-CAMERA_RAYS_OUT = ((3, F8), (3, F8), (0, F8))
+# What ``camera_rays`` writes (``out``, a row per pixel): origins, directions, the ray cones' spreads and the rays'
+# lengths to the far clipping plane.
+CAMERA_RAYS_OUT = ((3, F8), (3, F8), (0, F8), (0, F8))
 
 
 @njit(**_JIT)
-def camera_rays(out, px, py, jitter, matrix, width, height, tan_x, tan_y, shift_x, shift_y, pixel_spread):
+def camera_rays(
+    out, px, py, jitter, matrix, width, height, tan_x, tan_y, shift_x, shift_y, pixel_spread, clip_start, clip_end
+):
     """World rays of a pinhole camera (``render.scene.Camera``) through pixels (px, py) (row 0 at the
     top; integers or floats) offset by ``jitter`` (N, 2) in [0, 1)^2: origins and unit directions (N, 3), and each
-    ray cone's spread (N,), into ``out`` (:data:`CAMERA_RAYS_OUT`) and returned. ``matrix``: the camera's (4, 4)
+    ray cone's spread (N,), and each ray's length to the far clipping plane (N,), into ``out``
+    (:data:`CAMERA_RAYS_OUT`) and returned. The clipping planes are at depths ``clip_start`` and ``clip_end`` along
+    the optical axis, as Blender's: each ray starts on the near one and ends on the far one (inf: none).
+    ``matrix``: the camera's (4, 4)
     object-to-world without scale, looking along its local -z; ``shift``: Blender's lens shift in units of the larger
     image side. The spread is the angle the ray's pixel subtends: ``pixel_spread`` (the image centre's) times cos^1.5
     of the ray's angle to the optical axis (a pixel off the axis subtends cos^2 of it radially and cos across:
@@ -1545,7 +1577,7 @@ def camera_rays(out, px, py, jitter, matrix, width, height, tan_x, tan_y, shift_
     ray made a plane facing the camera look blurrier toward the corners: a texture at one texel a pixel took mip
     level 0.25 in a 40-degree view's corners, 1.2 in a 90-degree view's."""
     n = len(px)
-    o, d, spread = out
+    o, d, spread, tmax = out
     big = max(width, height)
     off_x = 2.0 * shift_x * tan_x * big / width
     off_y = 2.0 * shift_y * tan_y * big / height
@@ -1556,11 +1588,15 @@ def camera_rays(out, px, py, jitter, matrix, width, height, tan_x, tan_y, shift_
         dx = matrix[0, 0] * x + matrix[0, 1] * y - matrix[0, 2]
         dy = matrix[1, 0] * x + matrix[1, 1] * y - matrix[1, 2]
         dz = matrix[2, 0] * x + matrix[2, 1] * y - matrix[2, 2]
-        inv = 1.0 / _sqrt(dx * dx + dy * dy + dz * dz)
+        length = _sqrt(dx * dx + dy * dy + dz * dz)  # a unit depth's distance along the ray
+        inv = 1.0 / length
         d[i, 0], d[i, 1], d[i, 2] = dx * inv, dy * inv, dz * inv
-        o[i, 0], o[i, 1], o[i, 2] = matrix[0, 3], matrix[1, 3], matrix[2, 3]
+        o[i, 0] = matrix[0, 3] + clip_start * dx  # on the near plane
+        o[i, 1] = matrix[1, 3] + clip_start * dy
+        o[i, 2] = matrix[2, 3] + clip_start * dz
         spread[i] = pixel_spread * inv * _sqrt(inv)
-    return o, d, spread
+        tmax[i] = (clip_end - clip_start) * length
+    return o, d, spread, tmax
 
 
 # --- the disk cache and the formulas compiled into the loops -------------------------------------

@@ -135,6 +135,44 @@ def test_an_area_light_flush_with_the_ceiling_shines_the_same_for_every_strategy
     assert np.sqrt((z**2).mean()) < 1.6, f"{other} vs MIS: rms z = {np.sqrt((z**2).mean()):.2f}"
 
 
+@pytest.mark.parametrize("other", ["light", "bsdf"])
+def test_a_spread_area_light_and_a_scaled_spot_converge_for_every_strategy(other):
+    """An area light's *Spread* weighs what it emits by direction in both ways to reach it (light sampling and the
+    rays a BSDF samples), and a spot scaled unevenly masks its cone in its own frame: the strategies agree."""
+    light_m = np.array([[1, 0, 0, 0.2], [0, 0.8, -0.6, -0.8], [0, 0.6, 0.8, 2.5], [0, 0, 0, 1]])
+    spot_axes = np.array([[1.0, 0.0, 0.0], [0.0, 0.4, 0.0], [0.0, 0.0, 0.7]])
+    lights = [
+        AreaLight(light_m, power=150.0, size=1.5, spread=math.radians(50.0)),
+        SpotLight((0.5, -1.0, 3.0), power=400.0, spot_size=0.9, blend=0.2, axes=spot_axes),
+    ]
+    scene = mixed_scene(lights=lights, env=False)
+    a, sa = block_stats(render(scene, RenderSettings(samples=96, max_bounces=2, strategy="mis", seed=1))[0])
+    b, sb = block_stats(render(scene, RenderSettings(samples=96, max_bounces=2, strategy=other, seed=2))[0])
+    assert a.mean() > 0.02
+    z = (a - b) / np.sqrt(sa**2 + sb**2 + 1e-12)
+    assert np.sqrt((z**2).mean()) < 1.6, f"{other} vs MIS: rms z = {np.sqrt((z**2).mean()):.2f}"
+    assert np.abs(z).max() < 6
+
+
+@pytest.mark.parametrize("spread_deg", [1.0, 5.0, 30.0, 90.0, 179.0, 180.0])
+def test_an_area_lights_spread_keeps_its_power(spread_deg):
+    """Cycles' soft-box grid only redistributes what the light emits: the spread's weight times the cosine,
+    integrated over the hemisphere, is pi at every spread (its normalisation's series below a half angle of 0.05
+    radians included), and nothing leaves outside the cone."""
+    from addon.core import kernels
+    from addon.core.render.lights import spread_table
+
+    params = np.zeros((1, kernels.N_PARAMS))
+    params[0, 17], params[0, 18] = spread_table(math.radians(spread_deg))
+    half = math.radians(spread_deg) / 2
+    theta = (np.arange(100_000) + 0.5) / 100_000 * min(half, math.pi / 2)  # the cone, finely
+    g = np.array([kernels.spread_factor(params, 0, c) for c in np.cos(theta)])
+    power = 2 * math.pi * np.sum(g * np.cos(theta) * np.sin(theta)) * (theta[1] - theta[0])
+    assert power == pytest.approx(math.pi, rel=2e-3)
+    if spread_deg < 180.0:
+        assert kernels.spread_factor(params, 0, math.cos(half + 1e-3)) == 0.0
+
+
 def test_mis_has_less_noise_than_either_strategy_alone():
     scene = mixed_scene()
     se = {

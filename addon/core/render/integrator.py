@@ -17,6 +17,7 @@ converge to the same image, which the tests check.
 from __future__ import annotations
 
 import hashlib
+import math
 import threading
 import time
 from collections import OrderedDict
@@ -166,17 +167,22 @@ class Tracer:
             self.scene = rtcs.EmbreeScene()
             TriangleMesh(self.scene, self.positions)
 
-    def intersect(self, o, d, stats: RenderStats, scratch: Scratch | None = None):
+    def intersect(self, o, d, stats: RenderStats, scratch: Scratch | None = None, tmax=None):
         """Distance (inf on a miss), triangle (-1), barycentrics of the closest hit of each ray (o, d): arrays of
         ``scratch`` when given (overwritten by its next intersection), else new ones. C-contiguous float32 rays
-        are handed to embree as they are."""
+        are handed to embree as they are. ``tmax`` (N,): how far each ray reaches (none: all the way); a ray
+        that meets nothing before it misses."""
         n = len(o)
         if self.scene is None or n == 0:
             return np.full(n, np.inf), np.full(n, -1, np.int64), np.zeros(n), np.zeros(n)
         scratch = scratch or Scratch()
         o32, d32 = _rays32(scratch, "rays32", o, d)
+        dists = None
+        if tmax is not None:
+            (dists,) = scratch.arrays("rays_tmax32", n, ((0, np.float32),))
+            np.minimum(tmax, kernels.FAR, out=dists, casting="same_kind")
         t0 = time.perf_counter()
-        r = self.scene.run(o32, d32, output=1)
+        r = self.scene.run(o32, d32, dists=dists, output=1)
         stats.seconds["rays"] += time.perf_counter() - t0
         stats.rays += n
         return kernels.closest_hits(
@@ -273,8 +279,8 @@ def camera_hits(scene: Scene, px, py) -> tuple[np.ndarray, np.ndarray]:
     fp = np.full(len(px), np.inf)
     if not scene.mesh.triangle_count or not len(px):
         return np.full(len(px), -1, dtype=np.int64), fp
-    o, d, spread = cam.rays(px, py, np.full((len(px), 2), 0.5))
-    t, prim, bu, bv = tracer_for(scene.mesh).intersect(o, d, RenderStats())
+    o, d, spread, tmax = cam.rays(px, py, np.full((len(px), 2), 0.5))
+    t, prim, bu, bv = tracer_for(scene.mesh).intersect(o, d, RenderStats(), tmax=_clipped(cam, tmax))
     prim = np.asarray(prim, dtype=np.int64)
     hit = np.flatnonzero(prim >= 0)
     if len(hit):
@@ -636,16 +642,26 @@ class _LightSamples:
     visible: np.ndarray
 
 
-def _camera_paths(ctx: _Context, pix: np.ndarray, rng: np.random.Generator, scratch: Scratch) -> _Paths:
+def _clipped(cam, tmax: np.ndarray) -> np.ndarray | None:
+    """The camera rays' lengths to the far clipping plane, where the camera has one."""
+    return tmax if math.isfinite(cam.clip[1]) else None
+
+
+def _camera_paths(
+    ctx: _Context, pix: np.ndarray, rng: np.random.Generator, scratch: Scratch
+) -> tuple[_Paths, np.ndarray | None]:
     """Primary rays, one per pixel, jittered inside it; emission they see counts with weight 1. In
-    ``scratch``'s "paths.next" arrays, which the first bounce's paths are taken from."""
+    ``scratch``'s "paths.next" arrays, which the first bounce's paths are taken from. With them, how far each
+    reaches (the far clipping plane; None: all the way)."""
     cam = ctx.scene.camera
     n = len(pix)
     paths = _Paths(*scratch.arrays("paths.next", n, kernels.PATHS_OUT))
-    px, py, jitter = scratch.arrays("pixels", n, ((0, kernels.I8), (0, kernels.I8), (2, kernels.F8)))
+    px, py, jitter, tmax = scratch.arrays(
+        "pixels", n, ((0, kernels.I8), (0, kernels.I8), (2, kernels.F8), (0, kernels.F8))
+    )
     np.divmod(pix, cam.width, out=(py, px))
     rng.random(out=jitter)
-    cam.rays(px, py, jitter, out=(paths.o, paths.d, paths.spread))
+    cam.rays(px, py, jitter, out=(paths.o, paths.d, paths.spread, tmax))
     paths.row[...] = np.arange(n)
     paths.throughput.fill(1.0)
     paths.pdf.fill(1.0)
@@ -653,18 +669,19 @@ def _camera_paths(ctx: _Context, pix: np.ndarray, rng: np.random.Generator, scra
     paths.mis.fill(True)
     paths.width.fill(0.0)
     paths.eps.fill(0.0)
-    return paths
+    return paths, _clipped(cam, tmax)
 
 
-def _add_emission(ctx: _Context, paths: _Paths, t: np.ndarray, L: np.ndarray) -> None:
-    """Emission the rays reach: area lights in front of the first surface (distance ``t``), the sky
-    where they escape (t = inf), weighted against next-event estimation by how each ray was sampled."""
+def _add_emission(ctx: _Context, paths: _Paths, t: np.ndarray, L: np.ndarray, camera: bool) -> None:
+    """Emission the rays reach: area lights in front of the first surface (distance ``t``; for the camera's rays,
+    ``camera``, only the lights visible to the camera), the sky where they escape (t = inf), weighted against
+    next-event estimation by how each ray was sampled."""
     if len(ctx.area_params) == 0 and ctx.env is None:
         return
     kernels.add_emission(
         ctx.area_params, ctx.area_ellipse, ctx.env is not None, ctx.env_arrays,
         ctx.strategy_code, ctx.p_select,
-        paths.o, paths.d, t, paths.row, paths.throughput, paths.pdf, paths.delta, paths.mis, L, paths.eps,
+        paths.o, paths.d, t, paths.row, paths.throughput, paths.pdf, paths.delta, paths.mis, L, paths.eps, camera,
     )  # fmt: skip
 
 
@@ -805,16 +822,16 @@ def _trace_paths(
     L, features = (image or Scratch()).arrays("image", len(pix), _IMAGE_ROWS)
     L.fill(0.0)
     features.fill(0.0)
-    paths = _camera_paths(ctx, pix, np.random.default_rng([s.seed, pass_index, chunk_index, 0]), scratch)
+    paths, tmax = _camera_paths(ctx, pix, np.random.default_rng([s.seed, pass_index, chunk_index, 0]), scratch)
     last = s.max_bounces + 1  # the hits of the last bounce's rays: only the emission they find
     for depth in range(last + 1):
         if len(paths.row) == 0:
             break
         _check_stop(halt)
         rng = np.random.default_rng([s.seed, pass_index, chunk_index, depth + 1])
-        t, prim, bu, bv = ctx.tracer.intersect(paths.o, paths.d, stats, scratch)
+        t, prim, bu, bv = ctx.tracer.intersect(paths.o, paths.d, stats, scratch, tmax if depth == 0 else None)
         with _shading(stats):
-            _add_emission(ctx, paths, t, L)
+            _add_emission(ctx, paths, t, L, depth == 0)
         if depth == last:
             break
         # Sorted by material (stable), so that each material shades one contiguous slice of rows.

@@ -6,7 +6,8 @@ Blender's units, converted once here:
   channel (a spot is a point light masked to its cone, as in Blender);
 - sun: ``strength`` is the irradiance in W/m^2 on a surface facing it;
 - area: ``power`` in watts leaves one side (the light's local -z) as a Lambertian emitter,
-  radiance L = power / (pi * area).
+  radiance L = power / (pi * area) (L = power / pi where Blender's *Normalize* is off), shaped by Blender's
+  *Spread* (Cycles' soft-box grid, which keeps the power: ``spread_factor``).
 
 Every ``sample(p, u)`` returns a :class:`LightSample` of world directions *toward* the light,
 the distance to it (inf for the sun and the environment), the arriving radiance (for delta
@@ -117,10 +118,26 @@ class SpotLight(PointLight):
     direction: np.ndarray = (0.0, 0.0, -1.0)
     spot_size: float = math.radians(45.0)
     blend: float = 0.15
+    axes: np.ndarray | None = None
 
     def __post_init__(self):
+        """``axes``: the light object's local x, y and z axes in world space (the columns of its (3, 3) matrix),
+        scale included; the cone is tested in the light's own frame, as Blender's is, so a light scaled unevenly
+        casts an elliptical cone and one flattened along its z a wider one. None: an unscaled light pointing
+        along ``direction``."""
         super().__post_init__()
-        self.direction = _unit(self.direction, "SpotLight.direction")
+        if self.axes is None:
+            self.direction = _unit(self.direction, "SpotLight.direction")
+            z = -self.direction
+            x = np.cross((0.0, 0.0, 1.0) if abs(z[2]) < 0.9 else (1.0, 0.0, 0.0), z)
+            x /= np.linalg.norm(x)
+            self.axes = np.stack([x, np.cross(z, x), z], axis=1)
+        else:
+            axes = np.asarray(self.axes, dtype=np.float64).reshape(3, 3)
+            if not (np.isfinite(axes).all() and abs(np.linalg.det(axes)) > 1e-30):
+                raise ValueError(f"SpotLight.axes must be three finite independent axes, got {axes.tolist()}")
+            self.axes = axes
+            self.direction = _unit(-axes[:, 2], "SpotLight.axes' z")
         if not (0 < self.spot_size <= math.pi):
             raise ValueError(f"SpotLight.spot_size must be in (0, pi] radians, got {self.spot_size}")
         if not (0 <= self.blend <= 1):
@@ -129,7 +146,8 @@ class SpotLight(PointLight):
     def table_row(self) -> tuple[int, np.ndarray]:
         _, row = super().table_row()
         cos_edge = math.cos(self.spot_size / 2)
-        row[6:9], row[9], row[10] = self.direction, cos_edge, (1 - cos_edge) * self.blend
+        row[6:15] = np.linalg.inv(self.axes).ravel()  # world -> the light's frame: a direction's local (x, y, z)
+        row[15], row[16] = cos_edge, (1 - cos_edge) * self.blend
         return kernels.SPOT, row
 
 
@@ -173,8 +191,15 @@ class AreaLight:
     size: float = 1.0
     size_y: float | None = None
     ellipse: bool = False
+    normalize: bool = True
+    spread: float = math.pi
+    camera_visible: bool = True
 
     def __post_init__(self):
+        """``normalize``: Blender's *Normalize* (the power spread over the light's area; off, the radiance is
+        power / pi whatever the size). ``spread``: Blender's *Spread* in radians, (0, pi]: the light leaves within
+        that cone of its normal (``spread_factor``). ``camera_visible``: whether camera rays see the light itself
+        (the object's *Camera* ray visibility), as Cycles draws it; it lights the scene either way."""
         m = np.asarray(self.matrix, dtype=np.float64).reshape(4, 4)
         if not np.isfinite(m).all():
             raise ValueError(f"AreaLight.matrix must be finite, got {m.tolist()}")
@@ -193,13 +218,18 @@ class AreaLight:
         self.normal = n / np.linalg.norm(n) * (-1.0 if np.dot(n, m[:3, 2]) >= 0.0 else 1.0)
         full = 4 * np.linalg.norm(n)
         self.area = full * (math.pi / 4 if self.ellipse else 1.0)
-        self.radiance = self.color * self.power / (math.pi * self.area)
+        self.radiance = self.color * self.power / (math.pi * (self.area if self.normalize else 1.0))
+        self.spread = float(self.spread)
+        if not 0.0 <= self.spread <= math.pi:
+            raise ValueError(f"AreaLight.spread must be in [0, pi] radians, got {self.spread!r}")
 
     def table_row(self) -> tuple[int, np.ndarray]:
         row = np.zeros(N_PARAMS)
         row[0:3], row[3:6], row[6:9] = self.center, self.axis_u, self.axis_v
         row[9:12], row[12:15], row[15] = self.normal, self.radiance, self.area
         row[16] = self._bounding_radius2()
+        row[17], row[18] = spread_table(self.spread)
+        row[19] = 1.0 if self.camera_visible else 0.0
         return (kernels.AREA_ELLIPSE if self.ellipse else kernels.AREA_RECT), row
 
     def _bounding_radius2(self) -> float:
@@ -219,6 +249,21 @@ class AreaLight:
 
     def estimated_power(self) -> float:
         return float(self.power * self.color.mean())
+
+
+def spread_table(spread: float) -> tuple[float, float]:
+    """An area light's *Spread* (radians) as the light table holds it: the tangent of its half angle (inf for
+    180 degrees: no grid) and the factor that keeps the light's power (``kernels.spread_factor``). Cycles'
+    soft-box grid: a direction at angle a to the normal passes (tan(s/2) - tan a) / tan(s/2) of the light, and
+    the integral of cos a sin a over the cone is (tan(s/2) - s/2) / tan(s/2) of the hemisphere's; at half angles
+    below 0.05 the difference loses its digits, and its series' first term takes its place."""
+    half = 0.5 * spread
+    if spread >= math.pi:
+        return math.inf, 1.0
+    if half <= 0.0:
+        return 0.0, 0.0
+    tan_half = math.tan(half)
+    return tan_half, (1.0 / (tan_half - half) if half > 0.05 else 3.0 / half**3)
 
 
 def _pixel_guesses(z_edges: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -95,6 +95,7 @@ def reduced_camera(camera: Camera, divisor: int) -> Camera:
         max(1, camera.height // divisor),
         camera.tan_half_fov,
         camera.shift,
+        camera.clip,
     )
 
 

@@ -28,7 +28,8 @@ class Camera:
     ``matrix`` is camera-to-world (4, 4) without scale: the camera looks down its local -z with
     +y up (Blender's convention). ``tan_half_fov`` is (tan of half the horizontal field of view,
     tan of half the vertical one); ``shift`` is Blender's lens shift in units of the larger
-    image side.
+    image side; ``clip`` the depths of the near and far clipping planes along the optical axis (Blender's
+    *Clip Start* and *End*: nothing nearer or farther is seen, the world beyond the far one is).
     """
 
     matrix: np.ndarray
@@ -36,6 +37,7 @@ class Camera:
     height: int
     tan_half_fov: tuple[float, float]
     shift: tuple[float, float] = (0.0, 0.0)
+    clip: tuple[float, float] = (0.0, math.inf)
 
     def __post_init__(self):
         self.matrix = np.asarray(self.matrix, dtype=np.float64).reshape(4, 4)
@@ -48,6 +50,10 @@ class Camera:
         if not (tx > 0 and ty > 0 and math.isfinite(tx) and math.isfinite(ty)):
             raise ValueError(f"tan_half_fov must be two positive numbers, got {self.tan_half_fov}")
         self.tan_half_fov = (tx, ty)
+        near, far = (float(v) for v in self.clip)
+        if not (0.0 <= near < far and math.isfinite(near)):
+            raise ValueError(f"clip must be two depths 0 <= start < end, got {self.clip}")
+        self.clip = (near, far)
         # Orthonormalise the rotation so a scaled camera object still gives unit directions.
         r = self.matrix[:3, :3]
         u, _, vt = np.linalg.svd(r)
@@ -99,11 +105,13 @@ class Camera:
 
         Returns origins (N, 3) and unit directions (N, 3), float64: ``out`` (two such arrays) when given.
         """
-        return self.rays(px, py, jitter, None if out is None else (*out, np.empty(len(out[0]))))[:2]
+        n = len(out[0]) if out is not None else 0
+        return self.rays(px, py, jitter, None if out is None else (*out, np.empty(n), np.empty(n)))[:2]
 
     def rays(self, px: np.ndarray, py: np.ndarray, jitter: np.ndarray, out=None):
-        """:meth:`generate_rays`' origins and directions and each ray cone's spread (N,), the angle its pixel
-        subtends (``kernels.camera_rays``): ``out`` (``kernels.CAMERA_RAYS_OUT``) when given."""
+        """:meth:`generate_rays`' origins and directions, each ray cone's spread (N,), the angle its pixel
+        subtends, and each ray's length to the far clipping plane (N,) (``kernels.camera_rays``): ``out``
+        (``kernels.CAMERA_RAYS_OUT``) when given."""
         px, py = np.asarray(px), np.asarray(py)
         integers = px.dtype.kind in "iu" and py.dtype.kind in "iu"  # read as they are; anything else as float64
         px, py = (np.ascontiguousarray(a, dtype=np.int64 if integers else np.float64) for a in (px, py))
@@ -118,6 +126,7 @@ class Camera:
             *self.tan_half_fov,
             *(float(v) for v in self.shift),
             self.pixel_spread,
+            *self.clip,
         )
 
 
