@@ -39,14 +39,10 @@ def _compatible_panels():
         "RENDER_PT_frame_range",
         "RENDER_PT_output",
         "RENDER_PT_color_management",
-        "RENDER_PT_dimensions",
         "RENDER_PT_format_presets",
         "RENDER_PT_encoding",
         "RENDER_PT_stamp",
-        "DATA_PT_context_light",
-        "DATA_PT_light",
-        "DATA_PT_area",
-        "DATA_PT_spot",
+        "DATA_PT_context_light",  # the light's own settings: render_ui.NLM_PT_light
         "DATA_PT_camera",
         "DATA_PT_lens",
         "DATA_PT_camera_display",
@@ -71,8 +67,9 @@ def _failure(e: Exception) -> str:
 def _view_camera(context):
     """The 3D viewport's view as a core camera (its projection, or the scene camera's as camera view frames it;
     the region's size)."""
-    region = context.region
-    return scene_export.view_camera(context.region_data, context.space_data.lens, region.width, region.height)
+    region, r3d, space = context.region, context.region_data, context.space_data
+    clip = scene_export.view_clip(r3d, space, context.scene)
+    return scene_export.view_camera(r3d, space.lens, region.width, region.height, clip)
 
 
 def _view_key(context) -> tuple:

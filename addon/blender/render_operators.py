@@ -27,7 +27,8 @@ def _view_camera(context, width: int, height: int):
         return None
     if region.view_perspective == "CAMERA" or not region.is_perspective:
         return None
-    return scene_export.view_camera(region, space.lens, width, height)
+    clip = scene_export.view_clip(region, space, context.scene)
+    return scene_export.view_camera(region, space.lens, width, height, clip)
 
 
 def render_work(core_scene, settings):

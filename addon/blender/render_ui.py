@@ -1,4 +1,4 @@
-"""Render properties panel of the Neural Layered engine, and the Render Preview menu entry."""
+"""Render properties panel of the Neural Layered engine, its light panel, and the Render Preview menu entry."""
 
 from __future__ import annotations
 
@@ -38,16 +38,73 @@ class NLM_PT_render(bpy.types.Panel):
         layout.operator("neural_layers.render_preview", icon="RENDER_STILL")
 
 
+class NLM_PT_light(bpy.types.Panel):
+    """A light's settings as this engine renders them (``scene_export._light``): Blender's own light panel
+    draws only the type for engines other than its own, and EEVEE's holds settings this engine leaves out."""
+
+    bl_label = "Light"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "data"
+    COMPAT_ENGINES = {"NEURAL_LAYERED"}
+
+    @classmethod
+    def poll(cls, context):
+        return context.engine in cls.COMPAT_ENGINES and getattr(context, "light", None) is not None
+
+    def draw(self, context):
+        light = context.light
+        layout = self.layout
+        layout.row().prop(light, "type", expand=True)
+        layout.use_property_split = True
+        col = layout.column()
+        row = col.row(heading="Temperature")
+        row.prop(light, "use_temperature", text="")
+        sub = row.row()
+        sub.active = light.use_temperature
+        sub.prop(light, "temperature", text="")
+        col.prop(light, "color", text="Tint" if light.use_temperature else "Color")
+        col = layout.column()
+        col.prop(light, "energy", text="Strength" if light.type == "SUN" else "Power")
+        col.prop(light, "exposure")
+        col = layout.column()
+        if light.type == "SPOT":
+            col.prop(light, "spot_size", text="Spot Size")
+            col.prop(light, "spot_blend", text="Blend")
+            col.prop(light, "show_cone")
+        elif light.type == "AREA":
+            col.prop(light, "normalize")
+            col.prop(light, "shape")
+            sub = col.column(align=True)
+            if light.shape in {"SQUARE", "DISK"}:
+                sub.prop(light, "size")
+            else:
+                sub.prop(light, "size", text="Size X")
+                sub.prop(light, "size_y", text="Y")
+            col.prop(light, "spread")
+            ob = context.object
+            if ob is not None and ob.data == light:
+                col.prop(ob, "visible_camera", text="Visible to Camera")
+        if light.type in {"POINT", "SPOT", "SUN"}:
+            col.label(text="Rendered as a point (no radius or angle)" if light.type != "SUN" else
+                      "Rendered as one direction (no angle)", icon="INFO")  # fmt: skip
+
+
 def _menu(self, context):
     self.layout.operator("neural_layers.render_preview", icon="RENDER_STILL")
 
 
+_CLASSES = (NLM_PT_render, NLM_PT_light)
+
+
 def register() -> None:
-    bpy.utils.register_class(NLM_PT_render)
+    for cls in _CLASSES:
+        bpy.utils.register_class(cls)
     bpy.types.TOPBAR_MT_render.append(_menu)
 
 
 def unregister() -> None:
     bpy.types.TOPBAR_MT_render.remove(_menu)
-    if getattr(NLM_PT_render, "is_registered", False):
-        bpy.utils.unregister_class(NLM_PT_render)
+    for cls in reversed(_CLASSES):
+        if getattr(cls, "is_registered", False):
+            bpy.utils.unregister_class(cls)

@@ -238,13 +238,19 @@ def _mesh_arrays(ob):
         ob.to_mesh_clear()
 
 
-def _camera(cam_ob, width: int, height: int, warnings: list[str]) -> Camera:
+def _camera(cam_ob, width: int, height: int, warnings: list[str], pixel_aspect=(1.0, 1.0)) -> Camera:
+    """The core camera of a Blender camera for an image of ``width`` x ``height`` pixels of ``pixel_aspect``
+    (the render's Aspect X and Y), as Blender frames it (``BKE_camera_params_compute_viewplane``): the sensor fit
+    decided on the image's displayed sides, the lens shift in units of the fitted side, and the clipping
+    planes."""
     cam = cam_ob.data
     if cam.type != "PERSP":
         warnings.append(f"camera {cam_ob.name!r} is {cam.type}; rendering it as a perspective camera")
+    ax, ay = (float(a) for a in pixel_aspect)
+    shown_w, shown_h = width * ax, height * ay  # the image's sides as displayed
     fit = cam.sensor_fit
     if fit == "AUTO":
-        fit = "HORIZONTAL" if width >= height else "VERTICAL"
+        fit = "HORIZONTAL" if shown_w >= shown_h else "VERTICAL"
         sensor = cam.sensor_width
     else:
         sensor = cam.sensor_width if fit == "HORIZONTAL" else cam.sensor_height
@@ -252,22 +258,45 @@ def _camera(cam_ob, width: int, height: int, warnings: list[str]) -> Camera:
         tan_fit = math.tan(cam.angle / 2)
     else:
         tan_fit = sensor / (2.0 * cam.lens)
-    aspect = width / height
+    aspect = shown_w / shown_h
     tan = (tan_fit, tan_fit / aspect) if fit == "HORIZONTAL" else (tan_fit * aspect, tan_fit)
-    return Camera(np.array(cam_ob.matrix_world), width, height, tan, (cam.shift_x, cam.shift_y))
+    # Blender shifts by the fitted side; ``Camera.shift`` counts in the larger side's pixels
+    fitted = shown_w if fit == "HORIZONTAL" else shown_h
+    big = max(width, height)
+    shift = (cam.shift_x * fitted / (ax * big), cam.shift_y * fitted / (ay * big))
+    clip = (max(0.0, float(cam.clip_start)), float(cam.clip_end))
+    if not clip[0] < clip[1]:
+        warnings.append(f"camera {cam_ob.name!r}: Clip End is not beyond Clip Start; rendering without clipping")
+        clip = (0.0, math.inf)
+    return Camera(np.array(cam_ob.matrix_world), width, height, tan, shift, clip)
 
 
-def view_camera(region_3d, lens: float, width: int, height: int) -> Camera:
+def view_clip(region_3d, space, scene) -> tuple[float, float]:
+    """The clipping planes of a 3D viewport's view: in camera view the scene camera's, else the viewport's own
+    (its View > Clip Start and End); none for an orthographic view, which renders as a perspective one."""
+    src = space
+    if region_3d.view_perspective == "CAMERA" and scene.camera is not None and scene.camera.type == "CAMERA":
+        src = scene.camera.data
+        if src.type != "PERSP":
+            return (0.0, math.inf)
+    elif not region_3d.is_perspective:
+        return (0.0, math.inf)
+    start, end = max(0.0, float(src.clip_start)), float(src.clip_end)
+    return (start, end) if start < end else (0.0, math.inf)
+
+
+def view_camera(region_3d, lens: float, width: int, height: int, clip=(0.0, math.inf)) -> Camera:
     """The camera of a 3D viewport, for an image of ``width`` x ``height``: its view matrix, and its projection
     (``window_matrix``: the viewport's own lens, or in camera view the scene camera's field of view, zoom and
     offset as the viewport frames it) with the field of view of its larger side on the image's larger side
     (the viewport's region itself: its projection exactly). An orthographic view has no pinhole camera: the
-    viewport's ``lens`` (mm, on its 72 mm sensor) gives a perspective one of the same view."""
+    viewport's ``lens`` (mm, on its 72 mm sensor) gives a perspective one of the same view. ``clip``: its
+    clipping planes (``view_clip``)."""
     m = np.array(region_3d.view_matrix.inverted())
     big = max(width, height)
     if not region_3d.is_perspective:
         t = VIEWPORT_SENSOR / (2.0 * lens)
-        return Camera(m, width, height, (t * width / big, t * height / big))
+        return Camera(m, width, height, (t * width / big, t * height / big), clip=clip)
     p = np.array(region_3d.window_matrix)
     tan_x, tan_y = 1.0 / p[0, 0], 1.0 / p[1, 1]  # the region's half extents at unit distance
     t = max(tan_x, tan_y)  # on the region's larger side
@@ -275,7 +304,7 @@ def view_camera(region_3d, lens: float, width: int, height: int) -> Camera:
     # the centre's offset (camera view: the frame's place in the region), as ``Camera.shift`` counts it
     off_x, off_y = p[0, 2] / p[0, 0], p[1, 2] / p[1, 1]
     shift = (off_x * width / (2.0 * tan[0] * big), off_y * height / (2.0 * tan[1] * big))
-    return Camera(m, width, height, tan, shift)
+    return Camera(m, width, height, tan, shift, clip)
 
 
 def _light(ob, matrix: np.ndarray, warnings: list[str]):
@@ -284,7 +313,6 @@ def _light(ob, matrix: np.ndarray, warnings: list[str]):
     this renderer does not), a light scaled to nothing (an animator's way to hide it), an area light of size 0, and
     a 180-degree spot, whose float32 angle is just above pi."""
     light = ob.data
-    color = tuple(light.color)
     z = -matrix[:3, 2]  # lights point along their local -z
     if light.type not in ("POINT", "SPOT", "SUN", "AREA"):
         warnings.append(f"light {ob.name!r} has unsupported type {light.type}; skipped")
@@ -296,21 +324,40 @@ def _light(ob, matrix: np.ndarray, warnings: list[str]):
                 "not subtract; skipped"
             )
         return None
+    color = _light_color(light)
+    power = light.energy * 2.0 ** float(getattr(light, "exposure", 0.0))  # Blender's Exposure: stops
     scale = np.linalg.norm(matrix[:3, :3], axis=0)
     if light.type in ("SPOT", "SUN") and not scale[2] > 0.0:
         return None  # its direction scaled to nothing: hidden
     if light.type == "POINT":
-        return PointLight(matrix[:3, 3], light.energy, color)
+        return PointLight(matrix[:3, 3], power, color)
     if light.type == "SPOT":
         spot_size = min(float(light.spot_size), math.pi)
-        return SpotLight(matrix[:3, 3], light.energy, color, direction=z, spot_size=spot_size, blend=light.spot_blend)
+        axes = matrix[:3, :3] if (scale > 0.0).all() and abs(np.linalg.det(matrix[:3, :3])) > 1e-30 else None
+        return SpotLight(
+            matrix[:3, 3], power, color, direction=z, spot_size=spot_size, blend=light.spot_blend, axes=axes
+        )
     if light.type == "SUN":
-        return SunLight(z, light.energy, color)
+        return SunLight(z, power, color)
     shape = light.shape
     size_y = light.size_y if shape in ("RECTANGLE", "ELLIPSE") else light.size
     if not (light.size > 0.0 and size_y > 0.0 and scale[0] > 0.0 and scale[1] > 0.0):
         return None  # no area: it emits nothing (scaled to nothing, or of size 0)
-    return AreaLight(matrix, light.energy, color, light.size, size_y, ellipse=shape in ("DISK", "ELLIPSE"))
+    return AreaLight(
+        matrix, power, color, light.size, size_y, ellipse=shape in ("DISK", "ELLIPSE"),
+        normalize=bool(getattr(light, "normalize", True)),
+        spread=min(float(getattr(light, "spread", math.pi)), math.pi),
+        camera_visible=bool(getattr(ob, "visible_camera", True)),
+    )  # fmt: skip
+
+
+def _light_color(light) -> tuple:
+    """A light's colour as Cycles lights with it: its Color, times its blackbody colour where Temperature is on
+    (the Color then tints it)."""
+    color = np.array(light.color[:3], dtype=np.float64)
+    if getattr(light, "use_temperature", False):
+        color *= np.array(light.temperature_color[:3], dtype=np.float64)
+    return tuple(color)
 
 
 def _world(world, warnings: list[str]) -> Environment | None:
@@ -334,7 +381,8 @@ def _world(world, warnings: list[str]) -> Environment | None:
                 if image:
                     px = _image_pixels(image, warnings)
                     if px is not None:
-                        return Environment(image=px[:, :, :3], strength=strength)
+                        turn = _environment_turn(socket.links[0].from_node, world, warnings)
+                        return Environment(image=turned_image(px[:, :, :3], turn), strength=strength)
                 elif image is False:
                     warnings.append(f"world {world.name!r}: environment texture node has no image; using its colour")
                 elif socket.is_linked:
@@ -350,6 +398,58 @@ def _world(world, warnings: list[str]) -> Environment | None:
         elif out is not None:
             return None  # nothing connected: a black world
     return Environment(tuple(world.color))
+
+
+def _environment_turn(node, world, warnings: list[str]) -> float:
+    """How far (radians) the sky of an Environment or Image Texture node is turned about the world's z: the Z
+    rotation of a Mapping node on its Vector (an HDRI's usual rotation). What else maps the directions (a
+    Mapping node's X or Y rotation, location or scale, another node, a Mirror Ball projection) is named in a
+    warning and left out."""
+    where = f"world {world.name!r}"
+    if getattr(node, "projection", "EQUIRECTANGULAR") != "EQUIRECTANGULAR":
+        warnings.append(f"{where}: the sky's {node.projection} projection is rendered as equirectangular")
+    vector = node.inputs.get("Vector")
+    if vector is None or not vector.is_linked:
+        return 0.0
+    mapping = vector.links[0].from_node
+    if mapping.type != "MAPPING":
+        warnings.append(f"{where}: the sky's Vector comes from a {mapping.type} node, which is not evaluated here")
+        return 0.0
+    inputs = {name: mapping.inputs.get(name) for name in ("Location", "Rotation", "Scale")}
+    if any(i is not None and i.is_linked for i in inputs.values()):
+        warnings.append(f"{where}: the sky's Mapping node has linked inputs, which are not evaluated here")
+        return 0.0
+    rx, ry, rz = (float(v) for v in inputs["Rotation"].default_value)
+    location = inputs["Location"].default_value if inputs["Location"] is not None else (0.0, 0.0, 0.0)
+    scale = inputs["Scale"].default_value if inputs["Scale"] is not None else (1.0, 1.0, 1.0)
+    mode = mapping.vector_type
+    if (
+        abs(rx) > 1e-6
+        or abs(ry) > 1e-6
+        or mode == "NORMAL"
+        or any(abs(v - 1.0) > 1e-6 for v in scale)
+        or (mode in ("POINT", "TEXTURE") and any(abs(v) > 1e-6 for v in location))
+    ):
+        warnings.append(
+            f"{where}: only the Z rotation of the sky's Mapping node is applied (not its X/Y rotation, location, "
+            f"scale or {mode.title()} type)"
+        )
+    return -rz if mode == "TEXTURE" else rz  # a Texture mapping is the inverse transform
+
+
+def turned_image(image: np.ndarray, turn: float) -> np.ndarray:
+    """An equirectangular image (H, W, C) turned by ``turn`` radians about z: what a Mapping node's Z rotation
+    does to the directions it looks up (``Rz(turn) d``), as the pixels' own image: its columns moved by
+    turn / (2 pi) of the width, whole columns exactly and a fraction by linear interpolation between two
+    neighbours."""
+    w = image.shape[1]
+    shift = (turn / (2.0 * math.pi)) * w % w
+    whole = int(math.floor(shift))
+    frac = shift - whole
+    out = np.roll(image, whole, axis=1)
+    if frac > 1e-6:
+        out = (1.0 - frac) * out + frac * np.roll(out, 1, axis=1)
+    return np.ascontiguousarray(out, dtype=image.dtype)
 
 
 def _object_arrays(ob, material_slot, materials, names, warnings: list[str]):
@@ -435,7 +535,10 @@ def export_scene(
     if camera is None:
         if scene.camera is None:
             raise ValueError(f"scene {scene.name!r} has no active camera; add one or set Scene > Camera")
-        camera = _camera(scene.camera.evaluated_get(depsgraph), width, height, warnings)
+        r = scene.render
+        camera = _camera(
+            scene.camera.evaluated_get(depsgraph), width, height, warnings, (r.pixel_aspect_x, r.pixel_aspect_y)
+        )
 
     material_index: dict[str, int] = {}
     materials: list = []

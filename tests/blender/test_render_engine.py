@@ -804,7 +804,8 @@ def test_viewport_navigation_moves_the_camera_and_an_edit_or_a_resize_exports_ag
 
     from addon.blender import engine, scene_export
 
-    monkeypatch.setattr(scene_export, "view_camera", lambda r3d, lens, w, h: ("camera", r3d.view_matrix, w, h))
+    monkeypatch.setattr(scene_export, "view_camera", lambda r3d, lens, w, h, clip: ("camera", r3d.view_matrix, w, h))
+    monkeypatch.setattr(scene_export, "view_clip", lambda r3d, space, scene: (0.0, math.inf))
     calls = []
 
     class Viewport:
@@ -820,6 +821,7 @@ def test_viewport_navigation_moves_the_camera_and_an_edit_or_a_resize_exports_ag
             region_data=SimpleNamespace(view_matrix=matrix, window_matrix=((1, 0), (0, 1))),
             space_data=SimpleNamespace(lens=50.0),
             region=SimpleNamespace(width=width, height=30),
+            scene=None,
         )
 
     fake = SimpleNamespace(_viewport=None, report=lambda kind, text: calls.append(("report", text)))
