@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 import os
 import threading
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -37,12 +38,14 @@ from . import images
 
 GEOMETRY_TYPES = {"MESH", "CURVE", "SURFACE", "META", "FONT", "CURVES"}
 VIEWPORT_SENSOR = 72.0  # mm: the 3D viewport's lens maps to this sensor width
+DEFAULT_LENS = 50.0  # mm on a 36 mm sensor: Blender's lens for a scene camera that is not a camera
 
 
 def render_size(scene) -> tuple[int, int]:
+    """The render's size in pixels, as Blender computes it: in integers (in floating point, 1280 at 70% was 895)."""
     r = scene.render
-    pct = r.resolution_percentage / 100.0
-    return max(1, int(r.resolution_x * pct)), max(1, int(r.resolution_y * pct))
+    pct = r.resolution_percentage
+    return max(1, r.resolution_x * pct // 100), max(1, r.resolution_y * pct // 100)
 
 
 def _image_pixels(image, warnings: list[str]) -> np.ndarray | None:
@@ -228,7 +231,8 @@ def _mesh_arrays(ob):
         positions = co.reshape(-1, 3)[tri_v].reshape(nt, 3, 3)
         normals = cn.reshape(-1, 3)[tri_l].reshape(nt, 3, 3)
         uvs = None
-        layer = mesh.uv_layers.active
+        # the UV map marked for renders (the camera icon), as Cycles textures with it; the active one otherwise
+        layer = next((lay for lay in mesh.uv_layers if lay.active_render), mesh.uv_layers.active)
         if layer is not None and len(layer.data):
             uv = np.empty(len(mesh.loops) * 2, np.float32)
             layer.data.foreach_get("uv", uv)
@@ -243,7 +247,17 @@ def _camera(cam_ob, width: int, height: int, warnings: list[str], pixel_aspect=(
     (the render's Aspect X and Y), as Blender frames it (``BKE_camera_params_compute_viewplane``): the sensor fit
     decided on the image's displayed sides, the lens shift in units of the fitted side, and the clipping
     planes."""
-    cam = cam_ob.data
+    if cam_ob.type != "CAMERA":  # Blender renders an empty or a light set as the camera with a default lens
+        warnings.append(
+            f"the scene camera {cam_ob.name!r} is a {cam_ob.type.lower()}, not a camera; rendering its view with "
+            f"a {DEFAULT_LENS:g} mm lens"
+        )
+        cam = SimpleNamespace(
+            type="PERSP", sensor_fit="AUTO", sensor_width=36.0, sensor_height=24.0, lens_unit="MILLIMETERS",
+            lens=DEFAULT_LENS, angle=0.0, shift_x=0.0, shift_y=0.0, clip_start=0.0, clip_end=math.inf,
+        )  # fmt: skip
+    else:
+        cam = cam_ob.data
     if cam.type != "PERSP":
         warnings.append(f"camera {cam_ob.name!r} is {cam.type}; rendering it as a perspective camera")
     ax, ay = (float(a) for a in pixel_aspect)
@@ -265,7 +279,7 @@ def _camera(cam_ob, width: int, height: int, warnings: list[str], pixel_aspect=(
     big = max(width, height)
     shift = (cam.shift_x * fitted / (ax * big), cam.shift_y * fitted / (ay * big))
     clip = (max(0.0, float(cam.clip_start)), float(cam.clip_end))
-    if not clip[0] < clip[1]:
+    if not clip[0] < clip[1]:  # Blender's fields allow it
         warnings.append(f"camera {cam_ob.name!r}: Clip End is not beyond Clip Start; rendering without clipping")
         clip = (0.0, math.inf)
     return Camera(np.array(cam_ob.matrix_world), width, height, tan, shift, clip)
@@ -499,6 +513,52 @@ def _world_mesh(arrays, matrix: np.ndarray) -> Mesh:
     return Mesh(world_pos, world_nrm, uvs, slots[np.clip(mat_i, 0, len(slots) - 1)])
 
 
+def _render_visibility(depsgraph):
+    """``visible(instance, original)``: whether an instance of the depsgraph renders in F12. A render's depsgraph
+    holds only what renders; a viewport's (Render Preview, the viewport's Rendered mode) holds what the viewport
+    shows, so there an object disabled for renders, in a collection disabled or excluded for them, or instanced by
+    such an object, is left out too. An instancer whose own geometry is hidden (a particle emitter's Show
+    Emitter off for renders) is left out in both."""
+    check_collections = getattr(depsgraph, "mode", "RENDER") != "RENDER"
+    shown: set = set()
+    if check_collections:
+
+        def walk(layer_collection):
+            for child in layer_collection.children:
+                if not (child.exclude or child.collection.hide_render):
+                    shown.add(child.collection.session_uid)
+                    walk(child)
+
+        top = depsgraph.view_layer.layer_collection
+        shown.add(top.collection.session_uid)
+        walk(top)
+
+    def hidden(ob) -> bool:
+        if ob is None:
+            return False
+        if getattr(ob, "hide_render", False):
+            return True
+        if not check_collections:
+            return False
+        users = [c.session_uid for c in getattr(ob, "users_collection", ())]
+        return bool(users) and not any(uid in shown for uid in users)
+
+    def visible(inst, original) -> bool:
+        if not inst.is_instance and not getattr(inst, "show_self", True):
+            return False
+        if getattr(original, "hide_render", False):
+            return False
+        if check_collections:
+            if not inst.is_instance and hidden(original):
+                return False
+            parent = inst.parent.original if inst.is_instance and inst.parent is not None else None
+            if hidden(parent):
+                return False
+        return True
+
+    return visible
+
+
 def _identity(data_block) -> int:
     """What tells one data-block from another within a session, whatever its name and library: its original's
     ``session_uid`` (an evaluated copy has its original's; a temporary one, as Geometry Nodes' instanced geometry,
@@ -556,10 +616,11 @@ def export_scene(
     cache: dict = {}
     meshes: list[Mesh] = []
     lights: list = []
+    rendered = _render_visibility(depsgraph)
     for inst in depsgraph.object_instances:
         ob = inst.object
         original = ob.original if not inst.is_instance else ob
-        if getattr(original, "hide_render", False):
+        if not rendered(inst, original):
             continue
         matrix = np.array(inst.matrix_world, dtype=np.float64)
         if ob.type == "LIGHT":

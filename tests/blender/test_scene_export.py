@@ -227,3 +227,109 @@ def test_light_values_blender_allows_render_as_cycles_does_not_fail_the_render(b
     scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 16, 12, 100
     scene.neural_render.samples = 1
     assert bpy.ops.render.render() == {"FINISHED"}
+
+
+@pytest.mark.parametrize("size, percentage", [((1280, 720), 70), ((100, 100), 29), ((100, 100), 57)])
+def test_the_render_size_is_blenders_at_every_percentage(bpy_addon, fresh_scene, size, percentage):
+    """Blender computes the size in integers: in floating point 720 at 70% was 503, one row short of Blender's
+    frame, whose top row came out transparent black."""
+    from addon.blender import scene_export
+
+    r = fresh_scene.scene.render
+    (r.resolution_x, r.resolution_y), r.resolution_percentage = size, percentage
+    assert scene_export.render_size(fresh_scene.scene) == (size[0] * percentage // 100, size[1] * percentage // 100)
+
+
+def _triangles(depsgraph):
+    from addon.blender import scene_export
+
+    return scene_export.export_scene(depsgraph)[0].mesh.triangle_count
+
+
+def test_what_renders_is_the_same_in_a_viewports_depsgraph_as_in_f12s(bpy_addon, fresh_scene):
+    """Render Preview and the viewport export a viewport's depsgraph, which holds what the viewport shows: a
+    collection disabled for renders and the instances of an instancer disabled for them rendered there (1,940
+    triangles where F12 rendered 12)."""
+    bpy = bpy_addon
+    scene = fresh_scene.scene
+    hidden = bpy.data.collections.new("NotForRender")
+    scene.collection.children.link(hidden)
+    hidden.hide_render = True
+    bpy.ops.mesh.primitive_monkey_add()
+    monkey = fresh_scene.object
+    for c in list(monkey.users_collection):
+        c.objects.unlink(monkey)
+    hidden.objects.link(monkey)
+    source = bpy.data.collections.new("Source")
+    bpy.ops.mesh.primitive_uv_sphere_add()
+    sphere = fresh_scene.object
+    for c in list(sphere.users_collection):
+        c.objects.unlink(sphere)
+    source.objects.link(sphere)
+    instancer = bpy.data.objects.new("Instancer", None)
+    instancer.instance_type, instancer.instance_collection = "COLLECTION", source
+    scene.collection.objects.link(instancer)
+    instancer.hide_render = True
+    assert _triangles(fresh_scene.evaluated_depsgraph_get()) == 12  # the cube alone, as F12
+    excluded = fresh_scene.view_layer.layer_collection.children["NotForRender"]
+    hidden.hide_render, excluded.exclude = False, True  # excluded from the view layer: in neither
+    assert _triangles(fresh_scene.evaluated_depsgraph_get()) == 12
+
+
+def test_an_emitter_shown_without_itself_is_not_rendered(bpy_addon, fresh_scene):
+    """A particle emitter with Show Emitter off for renders: its particles render, not its own faces (the export
+    read every row of the depsgraph, the emitter's own too)."""
+    bpy = bpy_addon
+    scene = fresh_scene.scene
+    cube = scene.objects["Cube"]
+    bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=1, radius=0.05, location=(5, 5, 5))
+    ico = fresh_scene.object
+    cube.modifiers.new("particles", "PARTICLE_SYSTEM")
+    settings = cube.particle_systems[0].settings
+    settings.count, settings.frame_start, settings.frame_end = 10, 1, 1
+    settings.render_type, settings.instance_object = "OBJECT", ico
+    cube.show_instancer_for_render = cube.show_instancer_for_viewport = False
+    scene.frame_set(2)
+    assert _triangles(fresh_scene.evaluated_depsgraph_get()) == 10 * 20 + 20  # the particles and the ico itself
+
+
+@pytest.mark.parametrize("kind", ["EMPTY", "LIGHT"])
+def test_a_scene_camera_that_is_not_a_camera_renders_its_view_with_blenders_default_lens(bpy_addon, fresh_scene, kind):
+    """Blender lets an empty or a light be the scene camera, and renders its view with a 50 mm lens; F12 failed
+    with an AttributeError."""
+    import math
+
+    from addon.blender import scene_export
+
+    bpy = bpy_addon
+    scene = fresh_scene.scene
+    data = bpy.data.lights.new("L", "POINT") if kind == "LIGHT" else None
+    ob = bpy.data.objects.new("viewer", data)
+    ob.location = (0.0, -8.0, 0.0)
+    ob.rotation_euler = (math.pi / 2, 0.0, 0.0)
+    scene.collection.objects.link(ob)
+    scene.camera = ob
+    core, warnings = scene_export.export_scene(fresh_scene.evaluated_depsgraph_get())
+    assert any("not a camera" in w and "50 mm" in w for w in warnings)
+    w, h = scene_export.render_size(scene)
+    assert core.camera.tan_half_fov[0] == pytest.approx(18.0 / 50.0) and core.camera.tan_half_fov[1] == pytest.approx(
+        18.0 / 50.0 * h / w
+    )
+
+
+def test_the_render_uv_map_places_textures_as_cycles_does(bpy_addon, fresh_scene):
+    """Cycles textures with the UV map marked for renders (the camera icon), not the active one being edited."""
+    import numpy as np
+
+    from addon.blender import scene_export
+
+    uv_layers = fresh_scene.scene.objects["Cube"].data.uv_layers
+    name = uv_layers.active.name
+    edit_map = uv_layers.new(name="edit")  # the collection's items move: read again by name below
+    for loop in edit_map.data:
+        loop.uv = (loop.uv[0] * 0.5, loop.uv[1] * 0.5)
+    uv_layers.active = uv_layers["edit"]
+    uv_layers[name].active_render = True
+    core, _ = scene_export.export_scene(fresh_scene.evaluated_depsgraph_get())
+    render_uv = np.array([d.uv[:] for d in uv_layers[name].data])
+    assert np.isclose(core.mesh.uvs.max(), render_uv.max(), atol=1e-6)  # the edit map's is half of it
