@@ -19,8 +19,8 @@ import numpy as np
 def store_image(name: str, rgba: np.ndarray, metadata: dict | None = None):
     """Write an (H, W, 4) float image (rows top to bottom) into ``bpy.data.images[name]``.
 
-    The image is float, linear, reused (and resized) if it exists. ``metadata`` goes into the
-    image's custom properties (e.g. the timings of a comparison).
+    The image is float, linear, reused (and resized) if it exists, and kept by the file (a fake user).
+    ``metadata`` goes into the image's custom properties (e.g. the timings of a comparison).
     """
     rgba = np.asarray(rgba, dtype=np.float32)
     if rgba.ndim != 3 or rgba.shape[2] != 4:
@@ -47,6 +47,9 @@ def store_image(name: str, rgba: np.ndarray, metadata: dict | None = None):
     for key, value in (metadata or {}).items():
         image[key] = value
     image[PREVIEW_KEY] = 1
+    # kept by the file whether or not an Image Editor shows it: the sidebar's previews that no editor showed had no
+    # user and were dropped at the second save and reload
+    image.use_fake_user = True
     set_preview(image, rgba)
     return image
 

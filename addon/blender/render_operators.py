@@ -20,27 +20,39 @@ from . import images, jobs, scene_export
 IMAGE_NAME = "Neural Layered Render"
 
 
-def _view_camera(context, width: int, height: int):
+def _view_camera(context, width: int, height: int, warnings: list[str]):
+    """The 3D viewport's view as a core camera, or None where the operator runs elsewhere or the view looks
+    through the scene camera. An orthographic view renders as a perspective one of the same view (as the
+    viewport's Rendered mode does), with a warning."""
     region = getattr(context, "region_data", None)
     space = getattr(context, "space_data", None)
     if region is None or space is None or getattr(space, "type", "") != "VIEW_3D":
         return None
-    if region.view_perspective == "CAMERA" or not region.is_perspective:
+    if region.view_perspective == "CAMERA":
         return None
+    if not region.is_perspective:
+        warnings.append("the orthographic view is rendered as a perspective view of the same lens")
     clip = scene_export.view_clip(region, space, context.scene)
     return scene_export.view_camera(region, space.lens, width, height, clip)
 
 
-def render_work(core_scene, settings):
-    """The core part: a function of ``progress(fraction)`` returning (film, stats)."""
+def render_work(core_scene, settings, assign):
+    """The core part: a function of ``progress(fraction)`` that chooses the decoders (``assign``:
+    ``NLM_RenderSettings.decoder_assignment``'s, seconds for Auto's measurements and the calibrations) and renders;
+    it returns (film, stats, warnings, info lines). Esc stops it in either step."""
 
     def work(progress):
+        info: list[str] = []
+        stop = None if progress is None else (lambda: progress(0.0) or False)  # progress raises once cancelled
+        notes = assign(core_scene, info, stop)
+
         def on_pass(film, done, total):
             if progress is not None:
                 progress(done / total)  # raises when the user cancels (jobs.Job)
             return True
 
-        return render(core_scene, settings, progress=on_pass)
+        film, stats = render(core_scene, settings, progress=on_pass)
+        return film, stats, notes, info
 
     return work
 
@@ -98,22 +110,27 @@ class NLM_OT_render_preview(jobs.ModalJob, bpy.types.Operator):
             w, h = self.width, max(1, round(self.width * h / w))
         elif self.height:
             w, h = max(1, round(self.height * w / h)), self.height
-        camera = _view_camera(context, w, h) if self.use_view else None
+        view_warnings: list[str] = []
+        camera = _view_camera(context, w, h, view_warnings) if self.use_view else None
         depsgraph = context.evaluated_depsgraph_get()
         info: list[str] = []
         core_scene, warnings = scene_export.export_scene(depsgraph, w, h, camera, info=info)
-        samples = self.samples or scene.neural_render.preview_samples
-        # Auto's time budget for the samples this preview renders, not for the scene's Samples
-        warnings = warnings + scene.neural_render.assign_decoders(core_scene, samples=samples, info=info)
         for msg in info:
             self.report({"INFO"}, msg)
-        for msg in warnings:
+        for msg in view_warnings + warnings:
             self.report({"WARNING"}, msg)
+        samples = self.samples or scene.neural_render.preview_samples
+        # Auto's time budget for the samples this preview renders, not for the scene's Samples
+        assign = scene.neural_render.decoder_assignment(samples)
         settings = scene.neural_render.to_core(samples, scene=scene)
-        return render_work(core_scene, settings)
+        return render_work(core_scene, settings, assign)
 
     def _finish(self, context, result):
-        film, stats = result
+        film, stats, notes, info = result
+        for msg in info:
+            self.report({"INFO"}, msg)
+        for msg in notes:
+            self.report({"WARNING"}, msg)
         rgba = film.rgba()
         old = bpy.data.images.get(IMAGE_NAME)
         if old is not None and tuple(old.size) != (rgba.shape[1], rgba.shape[0]):

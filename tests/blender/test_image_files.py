@@ -39,8 +39,15 @@ def test_exr_round_trips_float_values(tmp_path, no_pillow):
 
 
 def test_unwritable_path_raises_with_the_path(tmp_path):
-    with pytest.raises(RuntimeError, match="cannot write"):
-        write_png(tmp_path / "missing folder" / "a.png", np.zeros((2, 2, 3)))
+    (tmp_path / "a file").write_text("")
+    with pytest.raises(RuntimeError, match="cannot write .*cannot make its folder"):
+        write_png(tmp_path / "a file" / "a.png", np.zeros((2, 2, 3)))
+
+
+def test_a_folder_not_there_yet_is_made(tmp_path):
+    """As F12 makes its output's folder (Render Preview into "//renders/" failed, with an empty reason)."""
+    write_png(tmp_path / "new" / "deeper" / "a.png", np.zeros((2, 2, 3)))
+    assert (tmp_path / "new" / "deeper" / "a.png").is_file()
 
 
 def test_writing_to_a_folder_name_refuses_up_front_and_leaves_nothing(tmp_path):

@@ -362,6 +362,21 @@ def test_a_preview_image_keeps_its_pixels_through_a_save_and_a_reload(bpy_addon,
         np.testing.assert_allclose(images.read_pixels(image), rgba, rtol=1e-3)
 
 
+def test_previews_no_editor_shows_survive_saves_and_reloads(bpy_addon, fresh_scene, tmp_path):
+    """Only the image an Image Editor shows had a user: the sidebar's other previews were dropped at the second
+    save and reload, and their pictures in the panel with them."""
+    from addon.blender import images
+
+    bpy = bpy_addon
+    rgba = np.ones((4, 4, 4), np.float32)
+    images.store_image("NLM Unshown Preview", rgba)
+    path = str(tmp_path / "kept.blend")
+    for _ in range(3):
+        bpy.ops.wm.save_as_mainfile(filepath=path)
+        bpy.ops.wm.open_mainfile(filepath=path)
+    assert "NLM Unshown Preview" in bpy.data.images
+
+
 def test_a_preview_stored_again_at_another_size_takes_its_new_pixels(bpy_addon, fresh_scene):
     """Changing Lobe Size between two previews failed: the image was scaled, then its colour space was set, which
     put its buffer back at the generated size ("expected sequence size 2304, got 1024")."""

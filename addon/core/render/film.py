@@ -83,16 +83,21 @@ def to_srgb(linear: np.ndarray) -> np.ndarray:
 def _write_oiio(path: Path, pixels: np.ndarray, pixel_type: str) -> None:
     """Write (H, W, C) ``pixels`` through OpenImageIO (shipped with Blender and the bpy wheel; the
     format follows the file name), published as the textures' files are: a temporary name unique to
-    this process, flushed and renamed over ``path`` in one step, removed on any failure."""
+    this process, flushed and renamed over ``path`` in one step, removed on any failure. A folder that is not
+    there yet is made (as Blender's F12 makes its output's)."""
     from ..textures.files import publishing
     from ..textures.latent_texture import oiio_module
 
     oiio = oiio_module()
     spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], getattr(oiio, pixel_type))
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise RuntimeError(f"cannot write {path}: cannot make its folder ({e})") from e
     with publishing(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None or not out.open(str(tmp), spec):
-            raise RuntimeError(f"cannot write {path}: {oiio.geterror()}")
+            raise RuntimeError(f"cannot write {path}: {oiio.geterror() or 'OpenImageIO gave no reason'}")
         try:
             if not out.write_image(np.ascontiguousarray(pixels)):
                 raise RuntimeError(f"cannot write {path}: {out.geterror()}")
