@@ -231,6 +231,29 @@ class NLM_OT_preset_apply(MaterialOperator, bpy.types.Operator):
         return {"FINISHED"}
 
 
+class NLM_OT_preset_file_apply(bpy.types.Operator):
+    """Apply a layer preset of your own (the presets menu's entries)"""
+
+    bl_idname = "neural_layers.preset_file_apply"
+    bl_label = "Apply Layer Preset"
+    # Blender's own script.execute_preset pushes no undo step, and the operator its file runs is nested in it, whose
+    # push Blender skips: Ctrl+Z after a preset undid the edit before it too. This one runs it and is the step.
+    bl_options = {"REGISTER", "UNDO", "INTERNAL"}
+
+    filepath: StringProperty(
+        name="File Path", description="The preset file to run", subtype="FILE_PATH", options={"SKIP_SAVE"}
+    )
+    menu_idname: StringProperty(
+        name="Menu", description="The presets menu whose label names the preset applied", options={"SKIP_SAVE"}
+    )
+
+    def execute(self, context):
+        try:
+            return bpy.ops.script.execute_preset(filepath=self.filepath, menu_idname=self.menu_idname)
+        except RuntimeError as e:  # the preset's own operator reported an error: say it as this one's
+            return fail(self, str(e).removeprefix("Error: ").strip())
+
+
 class NLM_OT_stack_apply(MaterialOperator, bpy.types.Operator):
     """Replace the stack with one given as JSON (what a saved layer preset runs)"""
 
@@ -441,6 +464,7 @@ _CLASSES = (
     NLM_OT_layer_duplicate,
     NLM_OT_layer_rename,
     NLM_OT_preset_apply,
+    NLM_OT_preset_file_apply,
     NLM_OT_stack_apply,
     NLM_OT_preset_add,
     NLM_OT_evaluate_latent,

@@ -37,7 +37,7 @@ class NLM_MT_presets(bpy.types.Menu):
     bl_idname = "NLM_MT_presets"
     bl_label = PRESETS_MENU_LABEL
     preset_subdir = PRESET_SUBDIR
-    preset_operator = "script.execute_preset"
+    preset_operator = "neural_layers.preset_file_apply"  # Blender's execute_preset, as one undo step
 
     def draw(self, context):
         layout = self.layout

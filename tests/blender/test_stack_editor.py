@@ -386,6 +386,36 @@ def test_users_save_share_and_apply_their_own_layer_presets(bpy_addon, material,
     assert not r.finished and "not a layer stack" in r.error
 
 
+def test_undo_after_a_preset_of_ones_own_returns_to_the_stack_before_it(bpy_addon, material, tmp_path, monkeypatch):
+    """Blender's preset menu runs the file with no undo step of its own: the file asks for one, else Ctrl+Z after
+    the preset undid the edit before it too (red car paint lost, back to coated gold)."""
+    import os
+
+    from addon.blender import stack_io
+    from addon.blender.operators import PRESET_SUBDIR
+    from addon.core.stack import PRESETS
+
+    bpy = bpy_addon
+    monkeypatch.setitem(os.environ, "BLENDER_USER_SCRIPTS", str(tmp_path / "scripts"))
+    bpy.ops.ed.undo_push(message="start")
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="varnished_wood").finished
+    assert run_operator(bpy.ops.neural_layers.preset_add, name="Mine").finished
+    (preset,) = (tmp_path / "scripts" / "presets" / PRESET_SUBDIR).glob("*.py")
+    assert run_operator(bpy.ops.neural_layers.preset_apply, "EXEC_DEFAULT", True, preset="coated_gold").finished
+    assert run_operator(bpy.ops.neural_layers.preset_apply, "EXEC_DEFAULT", True, preset="red_car_paint").finished
+    before = stack_io.stack_from_material(bpy.data.materials["Material"])
+    # as the menu calls its entries: its preset operator, as Blender's UI calls an operator (an undo step when the
+    # operator asks for one)
+    op = getattr(bpy.ops.neural_layers, bpy.types.NLM_MT_presets.preset_operator.split(".")[1])
+    r = run_operator(op, "EXEC_DEFAULT", True, filepath=str(preset), menu_idname="NLM_MT_presets")
+    assert r.finished, r.error
+    assert len(stack_io.stack_from_material(bpy.data.materials["Material"]).coatings) == len(
+        PRESETS["varnished_wood"].coatings
+    )
+    bpy.ops.ed.undo()
+    assert stack_io.stack_from_material(bpy.data.materials["Material"]) == before  # red car paint, not coated gold
+
+
 def test_every_stack_edit_reaches_the_evaluated_material(bpy_addon, material):
     """What the viewport and the render operators export is the evaluated copy of a material, made again only
     when the material is tagged. An operator that removes a layer or a map from Python tags nothing by itself:
