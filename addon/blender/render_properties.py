@@ -32,12 +32,17 @@ def _foreign_compositor_note(scene) -> str | None:
 
 
 def denoise_note(scene) -> str | None:
-    """Why *Denoise* cannot act fully on ``scene``: the scene already has a compositor of its own (left alone), or
-    ours lacks its guides; else None."""
+    """Why *Denoise* cannot act fully on ``scene``: the scene already has a compositor of its own (left alone), has
+    none (a scene copied with Copy Settings, a group removed), does not composite (Post Processing > Compositing
+    off), or ours lacks its guides; else None."""
     note = _foreign_compositor_note(scene)
     if note is not None:
         return note
     group = scene.compositing_node_group
+    if group is None:
+        return "the scene has no compositor (copied from another, or removed): turn Denoise off and on again"
+    if not scene.render.use_compositing:
+        return "Output > Post Processing > Compositing is off: turn it on"
     if group is not None and _guides_unlinked(group):
         # Denoise turned on (by a script) before the engine was this one: the Render Layers node had no guide
         # outputs to link then, and OpenImageDenoise ran on the image alone
@@ -149,9 +154,9 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
     )
     time_budget: FloatProperty(
         name="Time Budget",
-        description="Auto decoder choice: sizes whose predicted decoder time for the frame (every path on the "
-        "material at every bounce, at the size's measured speed) is over this many seconds are not "
-        "considered, so the paper-sized decoder is only chosen for a frame it fits",
+        description="Auto decoder choice: sizes whose predicted decoder time for the frame (the paths' hits on "
+        "layered materials, from a pilot of camera rays, at the size's measured speed) is over this many seconds "
+        "are not considered, so the paper-sized decoder is only chosen for a frame it fits",
         default=120.0,
         min=1.0,
         soft_max=3600.0,
@@ -210,27 +215,39 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
         *Auto* only considers the sizes whose predicted decoder time for this frame (``samples``
         per pixel, default Samples) fits Time Budget; ``info`` (a list) receives each material's
         size and the reason for it."""
+        return self.decoder_assignment(samples, viewport)(core_scene, info, stop)
+
+    def decoder_assignment(self, samples: int | None = None, viewport: bool = False):
+        """:meth:`assign_decoders` as a function of ``(core_scene, info, stop)`` that reads no Blender data: the
+        settings are read here, on the main thread, and the choice (Auto's measurements, the calibrations:
+        seconds) can run on a worker thread."""
         if self.mode != "neural":
-            return []
+            return lambda core_scene, info=None, stop=None: []
         from ..core import quality
 
         size = "auto" if self.decoder_quality == "AUTO" else self.decoder_quality.lower()
-        queries = quality.frame_decoder_queries(
-            core_scene.camera.width * core_scene.camera.height, samples or self.samples, self.max_bounces
-        )
-        core_scene.materials, choices, notes = quality.assign_decoders(
-            core_scene,
-            size,
-            self.tolerance,
-            budget_seconds=self.time_budget,
-            evaluations=queries,
-            calibrate=self.calibration(viewport),
-            only_cached=viewport,  # the viewport reads what renders measured, never stops to measure an edit
-            stop=stop,  # F12's Esc, between the measurements (render.Cancelled)
-        )
-        if info is not None:
-            info += [quality.choice_reason(name, c) for name, c in choices.items()]
-        return notes
+        tolerance, budget, calibrate = self.tolerance, self.time_budget, self.calibration(viewport)
+        samples, bounces = samples or self.samples, self.max_bounces
+
+        def assign(core_scene, info: list | None = None, stop=None) -> list[str]:
+            pixels = core_scene.camera.width * core_scene.camera.height
+            hits = quality.scene_decoder_hits(core_scene, bounces) if size == "auto" else None
+            queries = quality.frame_decoder_queries(pixels, samples, bounces, hits)
+            core_scene.materials, choices, notes = quality.assign_decoders(
+                core_scene,
+                size,
+                tolerance,
+                budget_seconds=budget,
+                evaluations=queries,
+                calibrate=calibrate,
+                only_cached=viewport,  # the viewport reads what renders measured, never stops to measure an edit
+                stop=stop,  # F12's Esc, between the measurements (render.Cancelled)
+            )
+            if info is not None:
+                info += [quality.choice_reason(name, c) for name, c in choices.items()]
+            return notes
+
+        return assign
 
 
 def register() -> None:

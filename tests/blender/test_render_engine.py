@@ -264,6 +264,32 @@ def test_render_preview_operator_fills_an_image(fresh_scene, tmp_path):
     assert not bpy.data.filepath
     bad = run_operator(bpy.ops.neural_layers.render_preview, width=8, height=8, filepath="//preview.png")
     assert bad.error and "not saved" in bad.error
+    # A folder that is not there yet is made, as F12 makes its output's (it failed with an empty reason).
+    deeper = tmp_path / "renders" / "today" / "view.png"
+    report = run_operator(bpy.ops.neural_layers.render_preview, width=8, height=8, samples=1, filepath=str(deeper))
+    assert report.finished, report.error
+    assert deeper.exists()
+
+
+def test_render_preview_in_an_orthographic_view_renders_that_view(fresh_scene):
+    """Numpad 1, 3 and 7 give orthographic views: Render Preview rendered the scene camera instead without a word
+    (and failed in a scene without one), where the viewport's Rendered mode renders the view."""
+    from types import SimpleNamespace
+
+    from mathutils import Matrix
+
+    from addon.blender import render_operators
+
+    ctx = fresh_scene
+    region = SimpleNamespace(
+        view_perspective="ORTHO", is_perspective=False, view_matrix=Matrix.Translation((0.0, 0.0, -10.0))
+    )
+    space = SimpleNamespace(type="VIEW_3D", lens=50.0)
+    context = SimpleNamespace(region_data=region, space_data=space, scene=ctx.scene)
+    warnings = []
+    camera = render_operators._view_camera(context, 16, 8, warnings)
+    assert camera is not None and np.allclose(camera.matrix[:3, 3], (0.0, 0.0, 10.0))
+    assert any("orthographic" in w for w in warnings)
 
 
 def test_render_preview_chooses_decoders_for_the_samples_it_renders(fresh_scene, monkeypatch, tmp_path):
@@ -289,7 +315,9 @@ def test_render_preview_chooses_decoders_for_the_samples_it_renders(fresh_scene,
         out = str(tmp_path / "preview.png")
         report = run_operator(bpy.ops.neural_layers.render_preview, width=20, height=10, samples=samples, filepath=out)
         assert report.finished, report.error
-        assert asked == [quality.frame_decoder_queries(20 * 10, expected, props.max_bounces)]
+        hits = asked[0] / quality.frame_decoder_queries(20 * 10, expected, props.max_bounces, 1.0)
+        assert asked == [quality.frame_decoder_queries(20 * 10, expected, props.max_bounces, hits)]
+        assert 0.0 <= hits < props.max_bounces + 1  # the pilot's hits on layered materials, not the bound
 
 
 def test_awkward_blender_scenes_render_without_errors(fresh_scene, tmp_path):
@@ -1044,3 +1072,21 @@ def test_denoise_turned_on_before_the_engine_says_its_guides_are_missing_and_off
     scene.neural_render.denoise = False
     scene.neural_render.denoise = True
     assert render_properties.denoise_note(scene) is None
+
+
+def test_denoise_says_when_the_scene_cannot_composite(fresh_scene):
+    """Denoise ticked did nothing, silently, in a scene copied with Copy Settings (the setting copied, not the
+    compositor), with its node group removed, or with Post Processing's Compositing off."""
+    from addon.blender import render_properties
+
+    scene = fresh_scene.scene
+    scene.render.engine = "NEURAL_LAYERED"
+    scene.neural_render.denoise = True
+    assert render_properties.denoise_note(scene) is None
+    scene.render.use_compositing = False
+    assert "Compositing is off" in render_properties.denoise_note(scene)
+    scene.render.use_compositing = True
+    bpy.ops.scene.new(type="EMPTY")  # Copy Settings
+    copy = bpy.context.scene
+    assert copy.neural_render.denoise and copy.compositing_node_group is None
+    assert "no compositor" in render_properties.denoise_note(copy)

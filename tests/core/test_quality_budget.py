@@ -17,6 +17,30 @@ def test_predicted_time_follows_the_measured_speed_of_each_size():
     assert t[sizes[0]] < t[sizes[-1]]  # more parameters, slower
     assert quality.predicted_decoder_seconds(sizes[0], 2e6) == pytest.approx(2 * t[sizes[0]])
     assert quality.frame_decoder_queries(480 * 270, 64, 4) == 2 * 480 * 270 * 64 * 5  # the first hit and 4 bounces
+    assert quality.frame_decoder_queries(480 * 270, 64, 4, 0.5) == 480 * 270 * 64
+
+
+def _layered_box(inside: bool, bounces: int = 4):
+    """A camera in or before a closed box of a coated material, seen whole: a camera inside meets it at every
+    bounce, one outside at its first hit and, from the box's outside, never again."""
+    from addon.core.render import Camera, Mesh, Scene, shapes
+
+    box = shapes.box((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    eye = (0.0, 0.0, 0.0) if inside else (0.0, -3.0, 0.0)
+    cam = Camera.look_at(eye, (0.0, 1.0, 0.0) if inside else (0.0, 0.0, 0.0), fov_deg=30, width=16, height=12)
+    scene = Scene(cam, Mesh.concatenate([box]), [PRESETS["coated_gold"]], [])
+    return scene, quality.scene_decoder_hits(scene, bounces)
+
+
+@pytest.mark.parametrize("inside", [True, False])
+def test_the_budget_predicts_from_the_paths_hits_on_layered_materials(inside):
+    """The pilot's hits a path: a camera inside a closed box of the material meets it at the first hit and each of
+    4 bounces (5, the bound); one before the box sees it fill the view once (1). The default cube filling a tenth
+    of the view was predicted the bound, 7 at 6 bounces: 10 times its decoder time."""
+    scene, hits = _layered_box(inside)
+    assert hits == pytest.approx(5.0 if inside else 1.0, rel=0.02)
+    scene.materials = [PRESETS["coated_gold"].base]  # a single layer: no decoder to choose
+    assert quality.scene_decoder_hits(scene, 4) == 0.0
 
 
 def test_sizes_over_the_budget_are_left_out_with_their_prediction():

@@ -304,6 +304,46 @@ def camera_hits(scene: Scene, px, py) -> tuple[np.ndarray, np.ndarray]:
     return prim, fp
 
 
+def material_hits_per_path(scene: Scene, chosen: np.ndarray, max_bounces: int, rays: int = 4096, seed: int = 0):
+    """How often a path of ``scene`` meets one of the materials ``chosen`` (a flag per material index), on average:
+    a pilot of ``rays`` camera rays spread over the image and one diffuse bounce from each surface they hit. The
+    first hits count directly; each of the ``max_bounces`` bounces after them meets a chosen material as often as
+    the pilot's bounce did, and goes on only as often as it met any surface (no Russian roulette: an estimate from
+    above). What *Auto*'s time budget predicts a frame's decoder queries from (``quality.frame_decoder_queries``)."""
+    cam = scene.camera
+    if not scene.mesh.triangle_count:
+        return 0.0
+    chosen = np.append(np.asarray(chosen, dtype=bool), False)  # a material index beyond the list: not chosen
+    rng = np.random.default_rng(seed)
+    side = max(1, int(math.sqrt(rays * cam.width / cam.height)))
+    xs = np.linspace(0, cam.width - 1, side).astype(np.int64)
+    ys = np.linspace(0, cam.height - 1, max(1, rays // side)).astype(np.int64)
+    px, py = (a.reshape(-1) for a in np.meshgrid(xs, ys))
+    o, d, _, tmax = cam.rays(px, py, rng.random((len(px), 2)))
+    tracer = tracer_for(scene.mesh)
+    t, prim, _, _ = tracer.intersect(o, d, RenderStats(), tmax=_clipped(cam, tmax))
+    material = np.minimum(scene.mesh.material_index.astype(np.int64), len(chosen) - 1)
+    hit = np.flatnonzero(prim >= 0)
+    first = float(chosen[material[prim[hit]]].sum()) / len(px)
+    if max_bounces < 1 or len(hit) == 0:
+        return first
+    p = o[hit] + t[hit, None] * d[hit]
+    n = scene.mesh.face_normals[prim[hit]].astype(np.float64)
+    n *= -np.sign(np.einsum("ij,ij->i", n, d[hit]))[:, None]  # toward the camera
+    # cosine-distributed directions about n: a uniform point on the unit sphere, added to n
+    z = rng.uniform(-1.0, 1.0, len(hit))
+    phi = rng.uniform(0.0, 2.0 * math.pi, len(hit))
+    r = np.sqrt(1.0 - z * z)
+    w = n + np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+    w /= np.maximum(np.linalg.norm(w, axis=1, keepdims=True), 1e-12)
+    scale = np.abs(p).max(axis=1, keepdims=True) + 1.0
+    t2, prim2, _, _ = tracer.intersect(p + n * (1e-4 * scale), w, RenderStats())
+    again = prim2 >= 0
+    on_chosen = float(chosen[material[prim2[again]]].sum()) / len(px)  # per camera ray
+    going_on = float(again.mean())  # the share of bounces that meet a surface at all
+    return first + on_chosen * sum(going_on**k for k in range(max_bounces))
+
+
 def _triangle_arrays(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per-triangle geometry in float64, as ``kernels.surface_hits`` reads it: the corners' position,
     normal and uv side by side (T, 3, 8), the face normals (T, 3), the uv scale (T,) and the triangles' part of
