@@ -2,6 +2,8 @@
 the baked texture while it is current. The networks are replaced by a stand-in encoder (a fixed
 linear map of each texel's parameters) except in the last test, which uses the shipped models."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -554,3 +556,37 @@ def test_a_bake_finishes_on_its_material_renamed_during_it(wood, bpy_addon, monk
     assert run_operator(ops.bake_texture).finished
     assert bpy.data.materials["Renamed"].neural_layers.texture_path
     assert bpy.data.materials["Material"].neural_layers.texture_path == ""
+
+
+def test_an_export_reads_a_baked_materials_maps_once_until_they_change(wood, bpy_addon, monkeypatch):
+    """Every export checks every baked material's key, and the viewport exports at every edit: its maps were
+    read and hashed each time (0.4-1.2 s for a 4096-pixel map). They are read again only when something they are
+    read from changed: an image painted, a map's range, the stack."""
+    from addon.blender import bake_inputs, bake_state
+
+    bpy = bpy_addon
+    pmap = wood.neural_layers.layers[1].maps[0]
+    pmap.image.filepath_raw = str(Path(wood.neural_layers.bake_directory) / "rough.exr")
+    pmap.image.file_format = "OPEN_EXR"
+    pmap.image.save()  # a map from a file, as a user's are (a generated one written by a script has unsaved changes)
+    assert not pmap.image.is_dirty
+    assert run_operator(bpy.ops.neural_layers.bake_texture).finished
+    reads = []
+    real = bake_inputs.spatial_stack_from_material
+    monkeypatch.setattr(bake_inputs, "spatial_stack_from_material", lambda m: reads.append(m.name) or real(m))
+    bake_state._INPUTS.clear()
+    path, state, _ = bake_state.current_texture(wood)
+    assert path is not None, state
+    for _ in range(3):
+        assert bake_state.current_texture(wood)[0] == path
+    assert len(reads) == 1
+    pmap.high += 0.1  # the map's range: a stale bake
+    assert bake_state.current_texture(wood)[0] is None and len(reads) == 2
+    pmap.high -= 0.1
+    assert bake_state.current_texture(wood)[0] == path
+    image = pmap.image
+    image.pixels[0] = 1.0 - image.pixels[0]  # painted: read at every check until saved
+    before = len(reads)
+    bake_state.current_texture(wood)
+    bake_state.current_texture(wood)
+    assert len(reads) == before + 2
