@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..core.formula import LUMINANCE
 from ..core.stack import alpha_from_artist_roughness, k_from_f0
 from ..core.textures.spatial import SpatialStack
 from . import images, stack_io
@@ -44,7 +45,9 @@ def _map_values(item, pmap) -> np.ndarray:
             f"layer {item.name!r}: the image {pmap.image.name!r} driving {pmap.parameter.lower()} has "
             f"no pixels (missing file {pmap.image.filepath!r}?)"
         )
-    values = px[..., :3] if pmap.parameter in _RGB else px[..., :1]
+    # a number from a colour image as Blender makes one (its luminance), as the bake command does: a grey map is
+    # its grey, a coloured one no longer its red
+    values = px[..., :3] if pmap.parameter in _RGB else px[..., :3] @ np.array(LUMINANCE)[:, None]
     values = pmap.low + (pmap.high - pmap.low) * values.astype(np.float64)
     if pmap.parameter == "ROUGHNESS":
         values = alpha_from_artist_roughness(np.clip(values, 0.0, None))

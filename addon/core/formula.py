@@ -35,6 +35,10 @@ from numba.extending import overload, register_jitable
 
 from .xp import namespace
 
+# Rec. 709 luminance weights of linear R, G, B (Blender's scene-linear space): the sky's importance, and the grey
+# value of a colour image driving a single-valued parameter (as Blender converts a colour to a number).
+LUMINANCE = (0.2126, 0.7152, 0.0722)
+
 
 def formula(fn=None, *, inline: bool = False):
     """Mark ``fn`` as a formula: unchanged for arrays and tensors, and compiled into the loops that

@@ -58,7 +58,10 @@ def test_lower_resolution_box_filters_the_parameters_and_higher_is_refused():
         ({"base.roughness": np.zeros((2, 2))}, "Diffuse base has no parameter"),
         ({"top.roughness": np.zeros((2, 2))}, "must look like"),
         ({"base.albedo": np.zeros((2, 2, 2))}, "2 channel"),
-        ({"coatings[0].roughness": np.zeros((2, 2, 3))}, "3 channel"),
+        ({"coatings[0].roughness": np.zeros((2, 2, 2))}, "2 channel"),
+        ({"coatings[0].roughness": np.full((2, 2), "rough.png")}, "real numbers"),
+        ({"coatings[0].thickness": np.ones((2, 2), dtype=bool)}, "real numbers"),
+        ({"coatings[0].roughness": np.full((2, 2), 0.1 + 0.2j)}, "real numbers"),
         ({"coatings[0].roughness": np.full((2, 2), 1.5)}, "outside the valid range"),
         ({"coatings[0].thickness": np.full((2, 2), np.nan)}, "outside the valid range"),
         ({"coatings[0].roughness": np.zeros((2, 2)), "base.albedo": np.zeros((3, 2, 3))}, "share a resolution"),
@@ -67,6 +70,22 @@ def test_lower_resolution_box_filters_the_parameters_and_higher_is_refused():
 def test_bad_driving_images_are_clear_errors(maps, message):
     with pytest.raises(ValueError, match=message):
         SpatialStack(wood(), maps)
+
+
+def test_a_colour_image_drives_a_number_by_its_luminance():
+    """A grey map saved as RGB or RGBA (every JPEG) is its grey, a coloured one its luminance, as Blender turns a
+    colour into a number: the bake command refused them, and the add-on took the red channel."""
+    grey = np.linspace(0.05, 0.6, 8).reshape(2, 4)
+    for image in (
+        np.repeat(grey[..., None], 3, axis=2),
+        np.concatenate([np.repeat(grey[..., None], 3, 2)] * 2, 2)[..., :4],
+    ):
+        got = SpatialStack(wood(), {"coatings[0].roughness": image}).maps["coatings[0].roughness"]
+        np.testing.assert_allclose(got[..., 0], grey)
+    colour = np.zeros((1, 1, 3))
+    colour[..., 1] = 0.5
+    got = SpatialStack(wood(), {"coatings[0].roughness": colour}).maps["coatings[0].roughness"]
+    assert got[0, 0, 0] == pytest.approx(0.7152 * 0.5)
 
 
 def test_deduplication_gives_the_same_texels_with_fewer_encodes():

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import kernels
+from ..formula import LUMINANCE
 from ..kernels import N_PARAMS
 
 INF = np.inf
@@ -346,7 +347,7 @@ class Environment:
         pixels = self.image if self.image is not None else self.constant.reshape(1, 1, 3).astype(np.float32)
         h, w, _ = pixels.shape
         if self.image is None:
-            lum = pixels @ np.array([0.2126, 0.7152, 0.0722])
+            lum = pixels @ np.array(LUMINANCE)
         # The rows' edge heights and the columns' edge directions, from the mapping itself.
         v = 1.0 - np.arange(h + 1) / h
         z_edges = kernels.equirect_direction(np.stack([np.full(h + 1, 0.5), v], axis=1))[:, 2]

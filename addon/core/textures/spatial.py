@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..formula import LUMINANCE
 from ..stack import VALID_RANGES, Stack, StackArrays
 from .mip import resample_area
 
@@ -59,7 +60,13 @@ def parse_parameter_path(stack: Stack, path: str) -> tuple[str, int | None, str]
 
 
 def _as_channels(path: str, name: str, image) -> np.ndarray:
-    img = np.asarray(image, dtype=np.float64)
+    """A map as (H, W, C) float64 of the channels ``name`` takes: 3 for a colour (a grey image repeated, an RGBA
+    one's alpha left out), 1 for a number (a colour image's luminance, as Blender turns a colour into a number: a
+    grey image saved as RGB, every JPEG, is its grey). Refuses what is not an image of numbers, naming the map."""
+    a = np.asarray(image)
+    if a.dtype.kind not in "iuf":  # a string (a file name where pixels were meant), bools, complex values
+        raise ValueError(f"image for {path} must hold real numbers, got {a.dtype} values")
+    img = a.astype(np.float64)
     if img.ndim == 2:
         img = img[..., None]
     if img.ndim != 3 or img.shape[0] < 1 or img.shape[1] < 1:
@@ -69,11 +76,14 @@ def _as_channels(path: str, name: str, image) -> np.ndarray:
         return img
     if want == 3 and img.shape[2] == 1:
         return np.repeat(img, 3, axis=2)
-    if want == 3 and img.shape[2] == 4:  # RGBA colour image: alpha does not drive anything
-        return img[..., :3]
+    if img.shape[2] == 4:  # RGBA: alpha does not drive anything
+        img = img[..., :3]
+        if want == 3:
+            return img
+    if want == 1 and img.shape[2] == 3:
+        return img @ np.array(LUMINANCE)[:, None]
     raise ValueError(
-        f"image for {path} has {img.shape[2]} channel(s); {name} needs {want}"
-        + (" (or 1 grey / 4 RGBA)" if want == 3 else "")
+        f"image for {path} has {img.shape[2]} channel(s); {name} needs {want} (or 1 grey / 3 RGB / 4 RGBA)"
     )
 
 
