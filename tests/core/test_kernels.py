@@ -494,6 +494,26 @@ def test_trilinear_writes_every_row_whatever_the_output_held():
     np.testing.assert_array_equal(np.concatenate([first, rest], axis=1), clean)
 
 
+def test_a_picked_texel_is_one_of_the_taps_with_the_probability_of_its_weight():
+    """Stochastic filtering (``pick_seed``): each row one texel of the lookup's taps (its channels as stored, on one
+    of the two levels), the same for the same seed, and over seeds the lookup's blend on average."""
+    from addon.core.textures.mip import MipChain, trilinear_lookup
+
+    rng = np.random.default_rng(8)
+    levels = MipChain([rng.random((8, 8, 5)).astype(np.float32), rng.random((4, 4, 5)).astype(np.float32)])
+    uv = rng.random((6, 2))
+    fp = np.full(6, 2.0**0.4 / 8)  # level 0.4: both levels in play
+    blend = trilinear_lookup(levels, uv, fp)
+    stored = np.concatenate([levels[0].reshape(-1, 5), levels[1].reshape(-1, 5)])
+    picks = np.stack([trilinear_lookup(levels, uv, fp, pick_seed=seed) for seed in range(4000)])
+    # every pick is a stored texel, whole
+    assert (np.abs(picks.reshape(-1, 1, 5) - stored[None]).max(axis=2).min(axis=1) == 0).all()
+    np.testing.assert_array_equal(trilinear_lookup(levels, uv, fp, pick_seed=17), picks[17])
+    assert not np.array_equal(picks[17], picks[18])
+    # the mean of 4,000 picks: the blend within its noise (the texels are uniform in [0, 1): sd 0.29 a pick)
+    np.testing.assert_allclose(picks.mean(axis=0), blend, atol=4 * 0.29 / np.sqrt(4000))
+
+
 def test_trilinear_repeats_the_texture_for_uv_outside_the_unit_square():
     """Repeat addressing: uv shifted by whole numbers (a texture tiled across a floor, and below zero) looks up
     what the same point inside [0, 1)^2 does, on every level and between them."""

@@ -179,12 +179,16 @@ class NeuralMaterial:
                 self.models, self.z, np.float64(self.sigma), np.float64(self.w), self.calibration, self.top
             )
         projected = self._projected_texture()
+        # one texel a hit, picked by its filter weight: the pixel's samples average what each texel renders
+        # (``kernels.trilinear``), where a blend of latents decoded is not the blend of their BRDFs; hits without
+        # a seed (a caller's own) are looked up blended
+        seed = getattr(hits, "seed", None)
         if projected is None:
-            z, prox, top = self.texture.lookup(hits.uv, hits.footprint)
+            z, prox, top = self.texture.lookup(hits.uv, hits.footprint, pick_seed=seed)
             calibration = None if self.calibration is None else self.calibration.at(z)
             zc = None
         else:
-            (zc, prox, top), z = projected.lookup(hits.uv, hits.footprint), None
+            (zc, prox, top), z = projected.lookup(hits.uv, hits.footprint, pick_seed=seed), None
             calibration = None if self.calibration is None else self.calibration.at(zc, self._projected_centroids)
         sigma = np.asarray(prox[:, 0], dtype=np.float64)
         w = np.asarray(prox[:, 1], dtype=np.float64)

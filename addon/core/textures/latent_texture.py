@@ -156,10 +156,16 @@ class LatentTexture:
     def height(self) -> int:
         return self.levels[0].shape[0]
 
-    def lookup(self, uv: np.ndarray, footprint) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def lookup(
+        self, uv: np.ndarray, footprint, pick_seed: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Latents (N, 3, 32), proxy parameters (N, 2) and top coatings (N, 2: alpha, ior) at uv with a
-        footprint in uv units, on the levels the bake found filterable (``filter_levels``)."""
-        z, rest = trilinear_lookup(self.levels, uv, footprint, self.filter_levels, split=CHANNELS * LATENT_DIM)
+        footprint in uv units, on the levels the bake found filterable (``filter_levels``): blended, or with
+        ``pick_seed`` one texel a row picked with the probability of its weight (``mip.trilinear_lookup``), as the
+        renderer reads them."""
+        z, rest = trilinear_lookup(
+            self.levels, uv, footprint, self.filter_levels, split=CHANNELS * LATENT_DIM, pick_seed=pick_seed
+        )
         return z.reshape(-1, CHANNELS, LATENT_DIM), rest[:, :2], rest[:, 2:]
 
     def projected(self, key, project, width: int) -> "ProjectedTexture":
@@ -286,10 +292,14 @@ class ProjectedTexture:
     levels: MipChain
     projected_channels: int
 
-    def lookup(self, uv: np.ndarray, footprint) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def lookup(
+        self, uv: np.ndarray, footprint, pick_seed: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(zc (N, 3W), proxy (N, 2), top (N, 2))`` at uv, as ``LatentTexture.lookup``."""
         levels = _filter_levels(self.metadata, len(self.levels))
-        zc, rest = trilinear_lookup(self.levels, uv, footprint, levels, split=self.projected_channels)
+        zc, rest = trilinear_lookup(
+            self.levels, uv, footprint, levels, split=self.projected_channels, pick_seed=pick_seed
+        )
         return zc, rest[:, :2], rest[:, 2:]
 
 

@@ -276,11 +276,14 @@ def trilinear_lookup(
     footprint: np.ndarray | float,
     n_levels: int | None = None,
     split: int | None = None,
+    pick_seed: int | None = None,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Trilinear lookup (N, C) float32 at uv (N, 2) (v = 0 at the bottom row, repeat addressing) with
     footprint (N,) or scalar in uv units, on the first ``n_levels`` levels (default all: a coarser footprint
     stays on the last of them). With ``split``: two C-contiguous arrays, the first ``split`` channels (N, split)
-    and the others (N, C - split), written by the same pass.
+    and the others (N, C - split), written by the same pass. With ``pick_seed`` (an integer >= 0): each row one
+    texel, picked with the probability of its weight in the lookup (stochastic filtering, ``kernels.trilinear``),
+    the same texels for the same seed.
 
     The level is log2 of the footprint in texels of level 0; the two nearest levels are looked up
     bilinearly and blended, in float32 (the texture is stored as half floats: float64 arithmetic would
@@ -305,5 +308,6 @@ def trilinear_lookup(
         raise ValueError(f"split must be in [0, {c}] (the texture's channels), got {split}")
     out = np.empty((uv.shape[0], first), dtype=np.float32)  # every row written by the loop
     rest = np.empty((uv.shape[0], c - first), dtype=np.float32)
-    kernels.trilinear(chain.kernel_flat, chain.offsets, chain.heights, chain.widths, c, uv, lod, out, rest)
+    seed = -1 if pick_seed is None else int(pick_seed) % (1 << 63)
+    kernels.trilinear(chain.kernel_flat, chain.offsets, chain.heights, chain.widths, c, uv, lod, out, rest, seed)
     return out if split is None else (out, rest)
