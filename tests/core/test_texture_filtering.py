@@ -93,12 +93,38 @@ def test_a_level_that_steps_within_the_tolerance_but_drifts_from_its_texels_ends
     spatial = SpatialStack(preset("varnished_wood"), {"coatings[0].roughness": np.clip(rough, 0.01, 1.0)})
     tex = bake_stack(spatial, encode, calibrate=False, check_filtering=False, threads=2)[0]
     kept, errors = F.filterable_levels(encode.models, tex.levels)
-    steps = [F.level_error(encode.models, tex.levels[k - 1], F.SEED + k) for k in range(1, len(tex.levels))]
-    assert max(steps) <= F.TOLERANCE  # the step from level to level alone passes everywhere
     assert kept < len(tex.levels) and errors[-1] > F.TOLERANCE
     # against the average of the base texels, decoded, over the whole texture: the kept levels are within it
     want = F.decoded(encode.models, float32_texels(tex.levels[0]).reshape(-1, 100)).reshape(n, n, -1)
     for k in range(1, kept):
         want = downsample(want)
         got = F.decoded(encode.models, float32_texels(tex.levels[k]).reshape(-1, 100)).reshape(want.shape)
-        assert np.abs(got - want).mean() / np.abs(want).mean() <= 1.5 * F.TOLERANCE
+        assert F.relative_error(got, want) <= 1.5 * F.TOLERANCE
+
+
+def test_the_worst_pair_of_directions_decides_not_the_grazing_mirror_pairs(encode):
+    """A base colour of per-texel noise under a clear coat: its next level decodes 8-9% darker than its texels at
+    most pairs of directions, which the pooled measure (1.6-2.0%: the grazing mirror pairs' exact top lobe, the same
+    for every texel, held most of the values) passed for 3 levels; the level renders 8% dark seen from afar."""
+    from addon.core.stack import Coating, Diffuse, Stack
+    from addon.core.textures.mip import downsample, float32_texels
+
+    rng = np.random.default_rng(5)
+    stack = Stack(Diffuse((0.7, 0.3, 0.1)), (Coating(roughness=0.3, ior=1.5, albedo=(0.9, 0.8, 0.6), thickness=0.5),))
+    spatial = SpatialStack(stack, {"base.albedo": rng.uniform(0.0, 1.0, (32, 32, 3))})
+    tex = bake_stack(spatial, encode, calibrate=False, threads=2)[0]
+    assert tex.filter_levels == 1
+    each = F.decoded(encode.models, float32_texels(tex.levels[0]).reshape(-1, 100)).reshape(32, 32, -1)
+    want, got = downsample(each), F.decoded(encode.models, float32_texels(tex.levels[1]).reshape(-1, 100))
+    pooled = np.abs(got.reshape(want.shape) - want).mean() / np.abs(want).mean()
+    assert pooled < F.TOLERANCE < F.relative_error(got.reshape(want.shape), want)
+
+
+def test_the_levels_are_measured_where_the_texture_varies_most(encode):
+    """A patch of one-texel checkers in a corner of an otherwise even texture: a seeded crop elsewhere passed 4 of
+    the levels of a 1,024-texel texture, and the patch rendered 12-32% dark seen from afar."""
+    rough = np.full((64, 64), 0.3)
+    rough[40:56, 8:24] = np.where((np.add.outer(np.arange(16), np.arange(16)) % 2) == 0, 0.02, 0.6)
+    assert F.most_varied_corner(rough[..., None], 16, 16, 2) == (40, 8)
+    tex = _bake(encode, rough.astype(np.float32))
+    assert tex.filter_levels == 1
