@@ -508,7 +508,7 @@ def first_hit_features(features, row, weight, ns, dist):
 
 # --- lights ------------------------------------------------------------------------------------
 #
-# Every light the renderer samples is a row of a light table: its kind and 17 float parameters
+# Every light the renderer samples is a row of a light table: its kind and N_PARAMS float parameters
 # (``lights.Light.table_row``). The environment's image and its tables travel beside the light table as one
 # tuple, ``env`` (``lights.Environment.image_arrays``; ``lights.NO_IMAGE`` where there is none): the image
 # (H, W, 3), each pixel's solid-angle pdf (H * W,), the alias table (keep, alias) that picks a pixel, the
@@ -958,13 +958,14 @@ def _emission_weight(strategy, p_select, pdf_light, prev_pdf, prev_delta, prev_m
 @njit(**_JIT)
 def add_emission(
     area_params, area_ellipse, has_env, env, strategy, p_select,
-    o, d, t, row, throughput, prev_pdf, prev_delta, prev_mis, L, eps, camera,
+    o, d, t, row, throughput, prev_pdf, prev_delta, prev_mis, L, eps, camera, reach,
 ):  # fmt: skip
     """Add to ``L[row]`` the emission rays (o, d) reach before distance ``t``: every area light that no surface
     blocks (the surface at ``t`` is not nearer than :func:`_unblocked_before` the light, as for the shadow rays, with
     ``eps`` the offset of each ray's origin: 0 for the camera's), toward the ray as its spread lets it
     (:func:`spread_factor`), and not when the rays are the camera's (``camera``) and the light is hidden from them
-    (``area_params[j, 19]`` 0),
+    (``area_params[j, 19]`` 0) or lies beyond the far clipping plane (``reach``, each camera ray's length to it; empty:
+    none),
     and the environment ``env`` where the ray escapes (t = inf; with ``has_env``), each weighted by how the ray
     was sampled (:func:`_emission_weight`)."""
     image, pixel_pdf, _, _, z_edges, row_of_bin, edges, column_of_bin = env
@@ -975,6 +976,8 @@ def add_emission(
             if camera and area_params[j, 19] == 0.0:
                 continue
             tl, pdf_l = _intersect_area(area_params, j, area_ellipse[j], ox, oy, oz, dx, dy, dz)
+            if camera and len(reach) and tl > reach[i]:
+                continue
             if not math.isinf(tl) and t[i] >= _unblocked_before(tl, eps[i]):
                 w = _emission_weight(strategy, p_select, pdf_l, prev_pdf[i], prev_delta[i], prev_mis[i])
                 cos_l = -(dx * area_params[j, 9] + dy * area_params[j, 10] + dz * area_params[j, 11])
@@ -1608,9 +1611,9 @@ def nearest_rows(x, centres):
 # --- the camera ----------------------------------------------------------------------------------
 
 
-# What ``camera_rays`` writes (``out``, a row per pixel): origins, directions, the ray cones' spreads and the rays'
-# lengths to the far clipping plane.
-CAMERA_RAYS_OUT = ((3, F8), (3, F8), (0, F8), (0, F8))
+# What ``camera_rays`` writes (``out``, a row per pixel): origins, directions, the ray cones' spreads, the rays'
+# lengths to the far clipping plane and their origins' distances from the camera (on the near plane).
+CAMERA_RAYS_OUT = ((3, F8), (3, F8), (0, F8), (0, F8), (0, F8))
 
 
 @njit(**_JIT)
@@ -1619,7 +1622,8 @@ def camera_rays(
 ):
     """World rays of a pinhole camera (``render.scene.Camera``) through pixels (px, py) (row 0 at the
     top; integers or floats) offset by ``jitter`` (N, 2) in [0, 1)^2: origins and unit directions (N, 3), and each
-    ray cone's spread (N,), and each ray's length to the far clipping plane (N,), into ``out``
+    ray cone's spread (N,), each ray's length to the far clipping plane (N,) and its origin's distance from the
+    camera (N,), into ``out``
     (:data:`CAMERA_RAYS_OUT`) and returned. The clipping planes are at depths ``clip_start`` and ``clip_end`` along
     the optical axis, as Blender's: each ray starts on the near one and ends on the far one (inf: none).
     ``matrix``: the camera's (4, 4)
@@ -1630,7 +1634,7 @@ def camera_rays(
     ray made a plane facing the camera look blurrier toward the corners: a texture at one texel a pixel took mip
     level 0.25 in a 40-degree view's corners, 1.2 in a 90-degree view's."""
     n = len(px)
-    o, d, spread, tmax = out
+    o, d, spread, tmax, near = out
     big = max(width, height)
     off_x = 2.0 * shift_x * tan_x * big / width
     off_y = 2.0 * shift_y * tan_y * big / height
@@ -1649,7 +1653,8 @@ def camera_rays(
         o[i, 2] = matrix[2, 3] + clip_start * dz
         spread[i] = pixel_spread * inv * _sqrt(inv)
         tmax[i] = (clip_end - clip_start) * length
-    return o, d, spread, tmax
+        near[i] = clip_start * length
+    return o, d, spread, tmax, near
 
 
 # --- the disk cache and the formulas compiled into the loops -------------------------------------

@@ -310,3 +310,42 @@ def test_the_light_panel_draws_the_settings_this_engine_renders(bpy_addon):
         drawn.clear()
         render_ui.NLM_PT_light.draw(SimpleNamespace(layout=Layout()), ctx)
         assert expected <= set(drawn), (kind, drawn)
+
+
+def test_an_area_light_beyond_clip_end_is_not_seen(fresh_scene, tmp_path):
+    """A camera ray clipped at Clip End meets nothing: an area light beyond it was drawn (mean 0.67 where Cycles'
+    image was black)."""
+    ctx = fresh_scene
+    _empty_scene(ctx, 16, 12)
+    light = _light(ctx, "AREA", location=(0.0, 0.0, 10.0), energy=500.0, size=4.0)  # shining down
+    light.visible_camera = True
+    _camera(ctx, location=(0.0, 0.0, 0.0), rotation=(math.pi, 0.0, 0.0), lens=20.0, clip_end=5.0)  # looking up
+    cycles, ours, _ = _both(ctx, tmp_path, samples=8)
+    assert cycles.max() < 1e-6 and ours.max() < 1e-6
+
+
+@pytest.mark.parametrize("kind", ["SPOT", "POINT", "EMPTY"])
+def test_a_light_or_an_empty_as_the_scene_camera_frames_what_cycles_frames(fresh_scene, tmp_path, kind):
+    """Cycles frames a light set as the camera by its spot size (45 degrees stored for a point light), an empty by
+    a 50 mm lens: ours took 50 mm for both (a 90-degree spot saw a third of the width Cycles sees)."""
+    ctx = fresh_scene
+    _empty_scene(ctx, 32, 32)
+    floor = _floor(ctx, size=6.0)
+    floor.data.materials.append(_diffuse((0.05, 0.05, 0.05)))
+    bpy.ops.object.mode_set(mode="EDIT")
+    bpy.ops.mesh.subdivide(number_cuts=11)
+    bpy.ops.object.mode_set(mode="OBJECT")
+    for poly in floor.data.polygons:
+        poly.material_index = (int(math.floor(2 * poly.center.x)) + int(math.floor(2 * poly.center.y))) % 2
+    if kind == "EMPTY":
+        viewer = bpy.data.objects.new("viewer", None)
+        viewer.location = (0.0, 0.0, 4.0)
+        ctx.scene.collection.objects.link(viewer)
+    else:
+        settings = {"spot_size": math.radians(90.0)} if kind == "SPOT" else {}
+        viewer = _light(ctx, kind, location=(0.0, 0.0, 4.0), energy=0.0, **settings)
+    ctx.scene.camera = viewer
+    _light(ctx, "SUN", energy=3.0, angle=0.0)
+    cycles, ours, warnings = _both(ctx, tmp_path, samples=16)
+    assert any("not a camera" in w for w in warnings)
+    _assert_blocks_match(cycles, ours, 0.05, n=4)

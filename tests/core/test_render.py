@@ -154,6 +154,23 @@ def test_a_spread_area_light_and_a_scaled_spot_converge_for_every_strategy(other
     assert np.abs(z).max() < 6
 
 
+@pytest.mark.parametrize("clip_start", [0.0, 0.1, 2.0])
+def test_the_depth_and_the_footprint_count_from_the_camera_whatever_the_clip_start(clip_start):
+    """The rays start on the near plane: the Depth pass and the texture footprint were measured from there (a plane
+    5 m away read 3.0 m and a footprint 40% small at Clip Start 2)."""
+    from addon.core.render import integrator
+
+    plane = shapes.quad((0.0, 5.0, 0.0), (3.0, 0.0, 0.0), (0.0, 0.0, 3.0))  # facing the camera, 5 m away
+    cam = Camera.look_at((0, 0, 0), (0, 1, 0), fov_deg=30, width=8, height=8)
+    cam = Camera(cam.matrix, cam.width, cam.height, cam.tan_half_fov, cam.shift, (clip_start, 100.0))
+    scene = Scene(cam, Mesh.concatenate([plane]), [LambertMaterial((0.5, 0.5, 0.5))], [PointLight((0, 1, 0), 100.0)])
+    film, _ = render(scene, RenderSettings(samples=1, max_bounces=0))
+    assert film.features()["depth"][4, 4, 0] == pytest.approx(5.0, rel=0.01)
+    _, footprint = integrator.camera_hits(scene, np.array([4]), np.array([4]))
+    unclipped = Scene(Camera(cam.matrix, 8, 8, cam.tan_half_fov), scene.mesh, scene.materials, scene.lights)
+    assert footprint[0] == pytest.approx(integrator.camera_hits(unclipped, np.array([4]), np.array([4]))[1][0])
+
+
 @pytest.mark.parametrize("spread_deg", [1.0, 5.0, 30.0, 90.0, 179.0, 180.0])
 def test_an_area_lights_spread_keeps_its_power(spread_deg):
     """Cycles' soft-box grid only redistributes what the light emits: the spread's weight times the cosine,

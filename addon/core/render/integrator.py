@@ -279,7 +279,7 @@ def camera_hits(scene: Scene, px, py) -> tuple[np.ndarray, np.ndarray]:
     fp = np.full(len(px), np.inf)
     if not scene.mesh.triangle_count or not len(px):
         return np.full(len(px), -1, dtype=np.int64), fp
-    o, d, spread, tmax = cam.rays(px, py, np.full((len(px), 2), 0.5))
+    o, d, spread, tmax, near = cam.rays(px, py, np.full((len(px), 2), 0.5))
     t, prim, bu, bv = tracer_for(scene.mesh).intersect(o, d, RenderStats(), tmax=_clipped(cam, tmax))
     prim = np.asarray(prim, dtype=np.int64)
     hit = np.flatnonzero(prim >= 0)
@@ -297,7 +297,7 @@ def camera_hits(scene: Scene, px, py) -> tuple[np.ndarray, np.ndarray]:
             bv,
             d[hit],
             t,
-            np.zeros(len(hit)),
+            spread[hit] * near[hit],  # the cone's width where the ray starts: on the near plane
             spread[hit],
         )[5]
         fp[hit] = np.where(f > 0, f, np.inf)
@@ -319,7 +319,7 @@ def material_hits_per_path(scene: Scene, chosen: np.ndarray, max_bounces: int, r
     xs = np.linspace(0, cam.width - 1, side).astype(np.int64)
     ys = np.linspace(0, cam.height - 1, max(1, rays // side)).astype(np.int64)
     px, py = (a.reshape(-1) for a in np.meshgrid(xs, ys))
-    o, d, _, tmax = cam.rays(px, py, rng.random((len(px), 2)))
+    o, d, _, tmax, _ = cam.rays(px, py, rng.random((len(px), 2)))
     tracer = tracer_for(scene.mesh)
     t, prim, _, _ = tracer.intersect(o, d, RenderStats(), tmax=_clipped(cam, tmax))
     material = np.minimum(scene.mesh.material_index.astype(np.int64), len(chosen) - 1)
@@ -689,40 +689,51 @@ def _clipped(cam, tmax: np.ndarray) -> np.ndarray | None:
 
 def _camera_paths(
     ctx: _Context, pix: np.ndarray, rng: np.random.Generator, scratch: Scratch
-) -> tuple[_Paths, np.ndarray | None]:
+) -> tuple[_Paths, np.ndarray | None, np.ndarray | None]:
     """Primary rays, one per pixel, jittered inside it; emission they see counts with weight 1. In
     ``scratch``'s "paths.next" arrays, which the first bounce's paths are taken from. With them, how far each
-    reaches (the far clipping plane; None: all the way)."""
+    reaches (the far clipping plane; None: all the way) and how far from the camera it starts (on the near plane;
+    None: at the camera): its cone is that wide there."""
     cam = ctx.scene.camera
     n = len(pix)
     paths = _Paths(*scratch.arrays("paths.next", n, kernels.PATHS_OUT))
-    px, py, jitter, tmax = scratch.arrays(
-        "pixels", n, ((0, kernels.I8), (0, kernels.I8), (2, kernels.F8), (0, kernels.F8))
+    px, py, jitter, tmax, near = scratch.arrays(
+        "pixels", n, ((0, kernels.I8), (0, kernels.I8), (2, kernels.F8), (0, kernels.F8), (0, kernels.F8))
     )
     np.divmod(pix, cam.width, out=(py, px))
     rng.random(out=jitter)
-    cam.rays(px, py, jitter, out=(paths.o, paths.d, paths.spread, tmax))
+    cam.rays(px, py, jitter, out=(paths.o, paths.d, paths.spread, tmax, near))
     paths.row[...] = np.arange(n)
     paths.throughput.fill(1.0)
     paths.pdf.fill(1.0)
     paths.delta.fill(True)
     paths.mis.fill(True)
-    paths.width.fill(0.0)
     paths.eps.fill(0.0)
-    return paths, _clipped(cam, tmax)
+    if cam.clip[0] > 0.0:
+        np.multiply(paths.spread, near, out=paths.width)
+    else:
+        paths.width.fill(0.0)
+        near = None
+    return paths, _clipped(cam, tmax), near
 
 
-def _add_emission(ctx: _Context, paths: _Paths, t: np.ndarray, L: np.ndarray, camera: bool) -> None:
+def _add_emission(
+    ctx: _Context, paths: _Paths, t: np.ndarray, L: np.ndarray, camera: bool, reach: np.ndarray | None = None
+) -> None:
     """Emission the rays reach: area lights in front of the first surface (distance ``t``; for the camera's rays,
-    ``camera``, only the lights visible to the camera), the sky where they escape (t = inf), weighted against
-    next-event estimation by how each ray was sampled."""
+    ``camera``, only the lights visible to the camera and before the far clipping plane, ``reach``), the sky where
+    they escape (t = inf), weighted against next-event estimation by how each ray was sampled."""
     if len(ctx.area_params) == 0 and ctx.env is None:
         return
     kernels.add_emission(
         ctx.area_params, ctx.area_ellipse, ctx.env is not None, ctx.env_arrays,
         ctx.strategy_code, ctx.p_select,
         paths.o, paths.d, t, paths.row, paths.throughput, paths.pdf, paths.delta, paths.mis, L, paths.eps, camera,
+        reach if reach is not None else _NO_REACH,
     )  # fmt: skip
+
+
+_NO_REACH = np.empty(0)
 
 
 def _surface_hits(ctx: _Context, paths: _HitPaths, hit, t, prim, bu, bv, groups, scratch: Scratch) -> _Hits:
@@ -862,7 +873,7 @@ def _trace_paths(
     L, features = (image or Scratch()).arrays("image", len(pix), _IMAGE_ROWS)
     L.fill(0.0)
     features.fill(0.0)
-    paths, tmax = _camera_paths(ctx, pix, np.random.default_rng([s.seed, pass_index, chunk_index, 0]), scratch)
+    paths, tmax, near = _camera_paths(ctx, pix, np.random.default_rng([s.seed, pass_index, chunk_index, 0]), scratch)
     last = s.max_bounces + 1  # the hits of the last bounce's rays: only the emission they find
     for depth in range(last + 1):
         if len(paths.row) == 0:
@@ -871,7 +882,7 @@ def _trace_paths(
         rng = np.random.default_rng([s.seed, pass_index, chunk_index, depth + 1])
         t, prim, bu, bv = ctx.tracer.intersect(paths.o, paths.d, stats, scratch, tmax if depth == 0 else None)
         with _shading(stats):
-            _add_emission(ctx, paths, t, L, depth == 0)
+            _add_emission(ctx, paths, t, L, depth == 0, tmax if depth == 0 else None)
         if depth == last:
             break
         # Sorted by material (stable), so that each material shades one contiguous slice of rows.
@@ -894,7 +905,8 @@ def _trace_paths(
         seeds = rng.integers(0, 2**31, size=len(ctx.materials))
         sc = _shade(ctx, paths, hits, lights, u_lobe, u_dir, seeds, L, stats, scratch)
         if depth == 0:
-            kernels.first_hit_features(features, paths.row, sc.weight, hits.ns, hits.dist)
+            dist = hits.dist if near is None else hits.dist + near[hit]  # from the camera, not the near plane
+            kernels.first_hit_features(features, paths.row, sc.weight, hits.ns, dist)
         paths = _continue_paths(ctx, paths, hits, sc, depth, rng, scratch)
     bad = ~np.isfinite(L[:, 0] + L[:, 1] + L[:, 2])  # inf - inf is nan: any non-finite channel
     if bad.any():

@@ -106,12 +106,12 @@ class Camera:
         Returns origins (N, 3) and unit directions (N, 3), float64: ``out`` (two such arrays) when given.
         """
         n = len(out[0]) if out is not None else 0
-        return self.rays(px, py, jitter, None if out is None else (*out, np.empty(n), np.empty(n)))[:2]
+        return self.rays(px, py, jitter, None if out is None else (*out, *(np.empty(n) for _ in range(3))))[:2]
 
     def rays(self, px: np.ndarray, py: np.ndarray, jitter: np.ndarray, out=None):
         """:meth:`generate_rays`' origins and directions, each ray cone's spread (N,), the angle its pixel
-        subtends, and each ray's length to the far clipping plane (N,) (``kernels.camera_rays``): ``out``
-        (``kernels.CAMERA_RAYS_OUT``) when given."""
+        subtends, each ray's length to the far clipping plane (N,) and its origin's distance from the camera (N,)
+        (``kernels.camera_rays``): ``out`` (``kernels.CAMERA_RAYS_OUT``) when given."""
         px, py = np.asarray(px), np.asarray(py)
         integers = px.dtype.kind in "iu" and py.dtype.kind in "iu"  # read as they are; anything else as float64
         px, py = (np.ascontiguousarray(a, dtype=np.int64 if integers else np.float64) for a in (px, py))
