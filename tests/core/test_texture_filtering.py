@@ -128,3 +128,12 @@ def test_the_levels_are_measured_where_the_texture_varies_most(encode):
     assert F.most_varied_corner(rough[..., None], 16, 16, 2) == (40, 8)
     tex = _bake(encode, rough.astype(np.float32))
     assert tex.filter_levels == 1
+
+
+def test_a_strip_of_a_texture_is_measured_without_failing(encode):
+    """A level one texel high (a 4 x 1,024 texture's third) has no 2 x 2 blocks to choose a crop by: the bake's
+    measurement failed with a reshape error."""
+    assert F.most_varied_corner(np.zeros((1, 300, 3)), 1, 128, 2) == (0, 0)
+    assert F.most_varied_corner(np.zeros((300, 1, 3)), 128, 1, 2) == (0, 0)
+    tex = _bake(encode, np.full((4, 64), 0.3, np.float32))
+    assert tex.filter_levels == len(tex.levels)

@@ -57,7 +57,7 @@ def most_varied_corner(level: np.ndarray, ch: int, cw: int, align: int) -> tuple
     channel): where averaging latents is tested hardest. A seeded crop missed a patch of fine detail elsewhere, and
     a texture with 256 x 256 of checkers in a corner of 1,024 passed 4 levels, one of which rendered 12-32% dark."""
     h, w = level.shape[:2]
-    if ch >= h and cw >= w:
+    if (ch >= h and cw >= w) or h < 2 or w < 2:  # the whole level, or a strip one texel wide: no 2 x 2 blocks
         return 0, 0
     eh, ew = h - h % 2, w - w % 2
     x = float32_texels(level[:eh, :ew]).astype(np.float64)
