@@ -110,6 +110,9 @@ SEPARABLE_RULE = "-separable"
 # smooth metal: 1.32 of the reference at 80 degrees with the table). The presets' tables meet their targets.
 MISS_SIGMA = 4.0
 MISS_RELATIVE = 0.03
+# What every calibration's key adds for that rule (``cache_key``): those made before it are not current. Not in
+# ``settings_key``, which latent textures' bake keys hold: a texture keeps the tables it was baked with.
+MISS_RULE = "-miss-separable"
 # Decoded rows per network call while a calibration integrates its lobe, with ``step`` called between calls:
 # the granularity at which a calibration can be stopped (0.17 s of paper's 1.8 s of decoding, 2 threads).
 STEP_ROWS = 8192
@@ -536,7 +539,7 @@ def cache_key(stack: Stack, models, z, narrow: bool | None = None) -> str:
     if narrow is None:
         narrow = narrow_lobe(proxy.material_params(models, z, stack)[0])
     parts = (stack.to_json(), models.size, models.digest, hashlib.sha256(z.tobytes()).hexdigest())
-    settings = stack_settings_key(stack) + (SEPARABLE_RULE if narrow else "")
+    settings = stack_settings_key(stack) + (SEPARABLE_RULE if narrow else "") + MISS_RULE
     return hashlib.sha256(repr((*parts, settings)).encode()).hexdigest()
 
 
