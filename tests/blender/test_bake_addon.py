@@ -323,7 +323,9 @@ def test_maps_and_base_colour_textures_decode_the_colour_space_as_cycles(bpy_add
     img = bpy.data.images.new("half", width=4, height=2)  # an 8-bit image
     assert not img.is_float
     img.colorspace_settings.name = colorspace
-    img.pixels.foreach_set(np.full(4 * 2 * 4, 128 / 255, np.float32))
+    px = np.full((2, 4, 4), 128 / 255, np.float32)
+    px[..., 3] = 1.0  # opaque: a texel's alpha scales the colour Cycles' Image Texture node gives
+    img.pixels.foreach_set(px.ravel())
     assert run_operator(ops.preset_apply, preset="white_diffuse").finished
     s = material.neural_layers
     s.active_index = 0
@@ -561,7 +563,7 @@ def test_a_bake_finishes_on_its_material_renamed_during_it(wood, bpy_addon, monk
 def test_an_export_reads_a_baked_materials_maps_once_until_they_change(wood, bpy_addon, monkeypatch):
     """Every export checks every baked material's key, and the viewport exports at every edit: its maps were
     read and hashed each time (0.4-1.2 s for a 4096-pixel map). They are read again only when something they are
-    read from changed: an image painted, a map's range, the stack."""
+    read from changed: an image painted or reloaded, a map's range, the stack."""
     from addon.blender import bake_inputs, bake_state
 
     bpy = bpy_addon
@@ -585,8 +587,56 @@ def test_an_export_reads_a_baked_materials_maps_once_until_they_change(wood, bpy
     pmap.high -= 0.1
     assert bake_state.current_texture(wood)[0] == path
     image = pmap.image
-    image.pixels[0] = 1.0 - image.pixels[0]  # painted: read at every check until saved
+    image.pixels[0] = 1.0 - image.pixels[0]  # painted: its pixels are new, and read once
     before = len(reads)
+    assert bake_state.current_texture(wood)[0] is None  # stale
     bake_state.current_texture(wood)
-    bake_state.current_texture(wood)
-    assert len(reads) == before + 2
+    assert len(reads) == before + 1
+
+
+def test_a_map_edited_outside_blender_makes_its_bake_stale_once_reloaded(wood, bpy_addon, tmp_path):
+    """A map file saved again by another program, checked (a redraw) before Image > Reload: the old pixels were
+    kept under the new file's time, and after the reload the stale bake still read as current. Switching the map
+    to Premultiplied alpha (other pixels) did the same."""
+    import time
+
+    from addon.blender import bake_state
+
+    bpy = bpy_addon
+    pmap = wood.neural_layers.layers[1].maps[0]
+    path = Path(wood.neural_layers.bake_directory) / "rough.exr"
+    pmap.image.filepath_raw, pmap.image.file_format = str(path), "OPEN_EXR"
+    pmap.image.save()
+    assert run_operator(bpy.ops.neural_layers.bake_texture).finished
+    bake_state._INPUTS.clear()
+    assert bake_state.current_texture(wood)[0] is not None
+    time.sleep(0.05)
+    other = bpy.data.images.new("other", width=16, height=8, float_buffer=True)
+    other.pixels.foreach_set(np.full(16 * 8 * 4, 0.25, np.float32))
+    other.filepath_raw, other.file_format = str(path), "OPEN_EXR"
+    other.save()  # the map's file, written again elsewhere
+    assert bake_state.current_texture(wood)[0] is not None  # Blender still holds the old pixels: current
+    pmap.image.reload()
+    pixels = np.empty(16 * 8 * 4, np.float32)
+    pmap.image.pixels.foreach_get(pixels)  # an Image Editor showing it: the pixels loaded again before the check
+    assert bake_state.current_texture(wood)[1] == "baked texture is out of date: bake again"
+
+
+def test_a_maps_alpha_mode_is_part_of_what_its_bake_was_made_from(wood, bpy_addon):
+    from addon.blender import bake_state
+
+    bpy = bpy_addon
+    pmap = wood.neural_layers.layers[1].maps[0]
+    source = bpy.data.images.new("rgba", 16, 8, alpha=True)
+    px = np.zeros((8, 16, 4), np.float32)
+    px[:, :, :3], px[:, 8:, :3], px[..., 3] = 0.3, 0.6, 0.5
+    source.pixels.foreach_set(px.ravel())
+    path = Path(wood.neural_layers.bake_directory) / "rough.png"
+    source.filepath_raw, source.file_format = str(path), "PNG"
+    source.save()
+    pmap.image = bpy.data.images.load(str(path))
+    assert run_operator(bpy.ops.neural_layers.bake_texture).finished
+    bake_state._INPUTS.clear()
+    assert bake_state.current_texture(wood)[0] is not None
+    pmap.image.alpha_mode = "PREMUL"  # other pixels
+    assert bake_state.current_texture(wood)[1] == "baked texture is out of date: bake again"
