@@ -38,7 +38,7 @@ from . import images
 
 GEOMETRY_TYPES = {"MESH", "CURVE", "SURFACE", "META", "FONT", "CURVES"}
 VIEWPORT_SENSOR = 72.0  # mm: the 3D viewport's lens maps to this sensor width
-DEFAULT_LENS = 50.0  # mm on a 36 mm sensor: Blender's lens for a scene camera that is not a camera
+DEFAULT_LENS = 50.0  # mm on a 36 mm sensor: Blender's lens for a scene camera that is an empty
 
 
 def render_size(scene) -> tuple[int, int]:
@@ -73,7 +73,17 @@ def _linked_image(socket):
     return None
 
 
+SURFACE_NODES = ("BSDF_PRINCIPLED", "BSDF_DIFFUSE")  # the surface nodes an unmanaged material is read from
+# Principled BSDF inputs a Lambertian of its base colour leaves out, with the value at which they do nothing.
+_PRINCIPLED_DROPPED = (
+    ("Metallic", 0.0), ("Transmission Weight", 0.0), ("Coat Weight", 0.0), ("Subsurface Weight", 0.0),
+    ("Sheen Weight", 0.0), ("Emission Strength", 0.0), ("Alpha", 1.0),
+)  # fmt: skip
+
+
 def _surface_node(mat):
+    """The node on the material output's Surface, or None when the output has nothing there (or there is no
+    output): Cycles renders such a material black."""
     tree = getattr(mat, "node_tree", None)
     if tree is None:
         return None
@@ -81,36 +91,110 @@ def _surface_node(mat):
     out = out or next((n for n in tree.nodes if n.type == "OUTPUT_MATERIAL"), None)
     if out is not None and out.inputs["Surface"].is_linked:
         return out.inputs["Surface"].links[0].from_node
-    return next((n for n in tree.nodes if n.type in ("BSDF_PRINCIPLED", "BSDF_DIFFUSE")), None)
+    return None
+
+
+def _dropped_inputs(node) -> list[str]:
+    """The inputs of a Principled or Diffuse BSDF that change Cycles' image and that a Lambertian of its colour
+    leaves out: set away from their neutral value, or linked."""
+    if node.type == "BSDF_DIFFUSE":
+        rough = node.inputs.get("Roughness")
+        return ["Roughness"] if rough is not None and (rough.is_linked or rough.default_value > 0.0) else []
+    dropped = []
+    for name, neutral in _PRINCIPLED_DROPPED:
+        socket = node.inputs.get(name)
+        if socket is not None and (socket.is_linked or abs(float(socket.default_value) - neutral) > 1e-6):
+            if (
+                name == "Emission Strength"
+                and not socket.is_linked
+                and not any(node.inputs["Emission Color"].default_value[:3])
+            ):
+                continue
+            dropped.append(name.removesuffix(" Weight").removesuffix(" Strength"))
+    return dropped
+
+
+def _image_node_notes(node) -> list[str]:
+    """What an Image Texture node feeding a base colour sets that this renderer's lookup does not do (it repeats
+    the image over the render UV map, filtered linearly with the ray's footprint)."""
+    notes = []
+    if node.extension != "REPEAT":
+        notes.append(f"its Extension {node.extension.title()} (looked up as Repeat)")
+    if node.interpolation == "Closest":
+        notes.append("its Closest interpolation (looked up filtered)")
+    if node.projection != "FLAT":
+        notes.append(f"its {node.projection.title()} projection (looked up as Flat)")
+    vector = node.inputs.get("Vector")
+    if vector is not None and vector.is_linked:
+        src = vector.links[0]
+        notes.append(f"its Vector from a {src.from_node.type} node (looked up with the render UV map)")
+    return notes
 
 
 def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial:
-    """A Lambertian with the material's base colour (and base-colour texture)."""
+    """A Lambertian with the material's base colour (and base-colour texture); what it leaves out that changes
+    Cycles' image is named in one warning. A material whose output has no surface is black, as in Cycles."""
     if mat is None:
         return LambertMaterial()
-    color = tuple(mat.diffuse_color[:3])
-    texture = None
+    if getattr(mat, "node_tree", None) is None:
+        return LambertMaterial(tuple(mat.diffuse_color[:3]))
     node = _surface_node(mat)
-    if node is not None:
-        socket = node.inputs.get("Base Color") or node.inputs.get("Color")
-        if socket is not None:
-            image = _linked_image(socket)
-            if image is False:
-                warnings.append(f"material {mat.name!r}: image texture node has no image; using its colour")
-            elif image is not None:
-                px = _image_pixels(image, warnings)
-                if px is not None:
-                    texture = ImageTexture(px[:, :, :3])
-            if texture is not None:
-                color = (1.0, 1.0, 1.0)
-            elif not socket.is_linked or image is not None:
-                color = tuple(socket.default_value[:3])
-            else:
-                warnings.append(
-                    f"material {mat.name!r}: its {socket.name} comes from a {socket.links[0].from_node.type} node, "
-                    "which this renderer does not evaluate (only an Image Texture is); using the viewport colour"
-                )
+    if node is None:
+        return LambertMaterial((0.0, 0.0, 0.0))
+    notes: list[str] = []
+    if node.type not in SURFACE_NODES:
+        colour = node.inputs.get("Color")
+        notes.append(
+            f"its surface is a {node.type} node, which this renderer does not evaluate; rendered as a Lambertian of "
+            + ("its Color" if colour is not None and not colour.is_linked else "the viewport colour")
+            + (" (it emits no light here)" if node.type == "EMISSION" else "")
+        )
+        color = tuple(colour.default_value[:3]) if colour is not None and not colour.is_linked else None
+        _warn_material(mat, notes, warnings)
+        return LambertMaterial(color if color is not None else tuple(mat.diffuse_color[:3]))
+    dropped = _dropped_inputs(node)
+    if dropped:
+        kind = "Principled BSDF's" if node.type == "BSDF_PRINCIPLED" else "Diffuse BSDF's"
+        notes.append(f"the {kind} {', '.join(dropped)} are left out (a Lambertian of its base colour)")
+    color, texture = tuple(mat.diffuse_color[:3]), None
+    socket = node.inputs.get("Base Color") or node.inputs.get("Color")
+    image = _linked_image(socket)
+    if image is False:
+        warnings.append(f"material {mat.name!r}: image texture node has no image; using its colour")
+    elif image is not None:
+        image_node = socket.links[0].from_node
+        if socket.links[0].from_socket.name != "Color":
+            notes.append(f"its base colour is the image's {socket.links[0].from_socket.name} (its Color is read)")
+        notes += _image_node_notes(image_node)
+        px = _image_pixels(image, warnings)
+        if px is not None:
+            texture = ImageTexture(_associated_colour(px, image, image_node))
+    if texture is not None:
+        color = (1.0, 1.0, 1.0)
+    elif not socket.is_linked or image is not None:
+        color = tuple(socket.default_value[:3])
+    else:
+        notes.append(
+            f"its {socket.name} comes from a {socket.links[0].from_node.type} node, which this renderer does not "
+            "evaluate (only an Image Texture is); using the viewport colour"
+        )
+    _warn_material(mat, notes, warnings)
     return LambertMaterial(color, texture)
+
+
+def _warn_material(mat, notes: list[str], warnings: list[str]) -> None:
+    if notes:
+        warnings.append(f"material {mat.name!r}: " + "; ".join(notes))
+
+
+def _associated_colour(px: np.ndarray, image, node) -> np.ndarray:
+    """An image's colour as Cycles' Image Texture node gives it: times its alpha where the node's Alpha output is
+    not used (a texel of alpha 0.25 rendered 4 times too bright), as it is where Alpha goes elsewhere, or where the
+    image's alpha does not mean coverage (Channel Packed, None)."""
+    rgb = px[:, :, :3]
+    if px.shape[2] < 4 or node.outputs["Alpha"].is_linked or image.alpha_mode in ("CHANNEL_PACKED", "NONE"):
+        return rgb
+    return rgb * np.clip(px[:, :, 3:4], 0.0, 1.0)
 
 
 def _baked_texture(mat, warnings: list[str]):
@@ -247,14 +331,18 @@ def _camera(cam_ob, width: int, height: int, warnings: list[str], pixel_aspect=(
     (the render's Aspect X and Y), as Blender frames it (``BKE_camera_params_compute_viewplane``): the sensor fit
     decided on the image's displayed sides, the lens shift in units of the fitted side, and the clipping
     planes."""
-    if cam_ob.type != "CAMERA":  # Blender renders an empty or a light set as the camera with a default lens
+    if cam_ob.type != "CAMERA":  # Blender renders an empty or a light set as the camera with a lens of its own
+        lens = DEFAULT_LENS
+        if cam_ob.type == "LIGHT":  # Cycles frames a light by its spot size (45 degrees stored for other kinds)
+            spot = float(getattr(cam_ob.data, "spot_size", math.radians(45.0)))
+            lens = 16.0 / math.tan(min(spot, math.pi - 1e-3) / 2.0)
         warnings.append(
             f"the scene camera {cam_ob.name!r} is a {cam_ob.type.lower()}, not a camera; rendering its view with "
-            f"a {DEFAULT_LENS:g} mm lens"
+            f"a {lens:.3g} mm lens, as Cycles does"
         )
         cam = SimpleNamespace(
             type="PERSP", sensor_fit="AUTO", sensor_width=36.0, sensor_height=24.0, lens_unit="MILLIMETERS",
-            lens=DEFAULT_LENS, angle=0.0, shift_x=0.0, shift_y=0.0, clip_start=0.0, clip_end=math.inf,
+            lens=lens, angle=0.0, shift_x=0.0, shift_y=0.0, clip_start=0.0, clip_end=math.inf,
         )  # fmt: skip
     else:
         cam = cam_ob.data
@@ -429,6 +517,13 @@ def _environment_turn(node, world, warnings: list[str]) -> float:
     if mapping.type != "MAPPING":
         warnings.append(f"{where}: the sky's Vector comes from a {mapping.type} node, which is not evaluated here")
         return 0.0
+    source = mapping.inputs["Vector"].links[0] if mapping.inputs["Vector"].is_linked else None
+    if source is None or source.from_node.type != "TEX_COORD" or source.from_socket.name not in ("Generated", "Object"):
+        what = "nothing" if source is None else f"{source.from_node.type} {source.from_socket.name}"
+        warnings.append(
+            f"{where}: the sky's Mapping node maps {what}, not the view direction (Texture Coordinate Generated or "
+            "Object); rendered as if it did"
+        )
     inputs = {name: mapping.inputs.get(name) for name in ("Location", "Rotation", "Scale")}
     if any(i is not None and i.is_linked for i in inputs.values()):
         warnings.append(f"{where}: the sky's Mapping node has linked inputs, which are not evaluated here")
@@ -488,6 +583,82 @@ def _object_arrays(ob, material_slot, materials, names, warnings: list[str]):
     return arrays + (np.asarray(slots, np.int32),)
 
 
+UNRENDERED_TYPES = {"POINTCLOUD": "point cloud", "VOLUME": "volume"}  # objects Cycles renders, with no geometry here
+
+
+def _instance_reader(depsgraph, object_arrays, warnings: list[str]):
+    """``add(instance, meshes, lights)``: one instance of the depsgraph into the scene's meshes (in world space) or
+    lights, if it renders (``_render_visibility``). An object's geometry is read once (``object_arrays``) however
+    many times it is instanced, and what it sets that is not rendered is said once."""
+    rendered = _render_visibility(depsgraph)
+    holdouts = _holdout_collections(depsgraph)
+    cache: dict = {}
+    told: set = set()
+
+    def add(inst, meshes: list, lights: list) -> None:
+        ob = inst.object
+        original = ob.original if not inst.is_instance else ob
+        if not rendered(inst, original):
+            return
+        matrix = np.array(inst.matrix_world, dtype=np.float64)
+        if ob.type == "LIGHT":
+            light = _light(ob, matrix, warnings)
+            if light is not None:
+                lights.append(light)
+            return
+        first = ob.name not in told
+        told.add(ob.name)
+        if ob.type not in GEOMETRY_TYPES:
+            if ob.type in UNRENDERED_TYPES and first:
+                warnings.append(
+                    f"object {ob.name!r} is a {UNRENDERED_TYPES[ob.type]}, which this renderer does not render"
+                )
+            return
+        if first:
+            _warn_visibility(ob, holdouts, warnings)
+        # The object (its material slots) and its geometry, by identity: a linked object beside a local one of the
+        # same name, and the geometries that Geometry Nodes instance (each a temporary object named after its
+        # instancer, its mesh named "Mesh"), are each their own.
+        key = (_identity(original), _identity(ob.data) if ob.data is not None else None)
+        if key not in cache:
+            cache[key] = object_arrays(ob)
+        if cache[key] is not None:
+            meshes.append(_world_mesh(cache[key], matrix))
+
+    return add
+
+
+def _holdout_collections(depsgraph) -> set:
+    """The ``session_uid`` of the collections set as holdouts in the depsgraph's view layer, with those inside them."""
+    found: set = set()
+
+    def walk(layer_collection, inside: bool):
+        for child in layer_collection.children:
+            holdout = inside or child.holdout
+            if holdout:
+                found.add(child.collection.session_uid)
+            walk(child, holdout)
+
+    walk(depsgraph.view_layer.layer_collection, False)
+    return found
+
+
+def _warn_visibility(ob, holdouts: set, warnings: list[str]) -> None:
+    """Name the visibility settings of a surface that Cycles honours and this renderer does not: a holdout (the
+    object's, or its collection's, ``holdouts``) renders as seen, an object hidden from camera rays is seen, one
+    that casts no shadow casts it."""
+    left = []
+    users = {c.session_uid for c in getattr(ob.original, "users_collection", ())}
+    if getattr(ob.original, "is_holdout", False) or users & holdouts:
+        left.append("Holdout")
+    if not getattr(ob, "visible_camera", True):
+        left.append("Camera ray visibility off")
+    if not getattr(ob, "visible_shadow", True):
+        left.append("Shadow ray visibility off")
+    if left:
+        warnings.append(f"object {ob.name!r}: {', '.join(left)} is not rendered here; it renders as any surface")
+
+
 def _reads_uvs(material) -> bool:
     """Whether a scene material looks anything up by uv: an image texture, a baked latent texture, parameter maps."""
     if isinstance(material, LambertMaterial):
@@ -513,48 +684,55 @@ def _world_mesh(arrays, matrix: np.ndarray) -> Mesh:
     return Mesh(world_pos, world_nrm, uvs, slots[np.clip(mat_i, 0, len(slots) - 1)])
 
 
+def _shown_collections(depsgraph) -> set:
+    """The ``session_uid`` of every collection of the depsgraph's view layer that renders: neither disabled for
+    renders nor excluded, nor inside one that is."""
+    shown: set = set()
+
+    def walk(layer_collection):
+        for child in layer_collection.children:
+            if not (child.exclude or child.collection.hide_render):
+                shown.add(child.collection.session_uid)
+                walk(child)
+
+    top = depsgraph.view_layer.layer_collection
+    shown.add(top.collection.session_uid)
+    walk(top)
+    return shown
+
+
+def _instancer_hidden(ob) -> bool:
+    """An instancer whose own geometry F12 leaves out (Show Instancer for renders off; a particle emitter's Show
+    Emitter): a viewport's ``show_self`` follows the viewport's setting, not the render's."""
+    instancing = bool(len(getattr(ob, "particle_systems", ()))) or getattr(ob, "instance_type", "NONE") != "NONE"
+    return instancing and not getattr(ob, "show_instancer_for_render", True)
+
+
 def _render_visibility(depsgraph):
     """``visible(instance, original)``: whether an instance of the depsgraph renders in F12. A render's depsgraph
     holds only what renders; a viewport's (Render Preview, the viewport's Rendered mode) holds what the viewport
     shows, so there an object disabled for renders, in a collection disabled or excluded for them, or instanced by
-    such an object, is left out too. An instancer whose own geometry is hidden (a particle emitter's Show
-    Emitter off for renders) is left out in both."""
-    check_collections = getattr(depsgraph, "mode", "RENDER") != "RENDER"
-    shown: set = set()
-    if check_collections:
-
-        def walk(layer_collection):
-            for child in layer_collection.children:
-                if not (child.exclude or child.collection.hide_render):
-                    shown.add(child.collection.session_uid)
-                    walk(child)
-
-        top = depsgraph.view_layer.layer_collection
-        shown.add(top.collection.session_uid)
-        walk(top)
+    such an object, is left out too. An instancer whose own geometry is hidden for renders (a particle emitter's
+    Show Emitter off) is left out in both."""
+    viewport = getattr(depsgraph, "mode", "RENDER") != "RENDER"
+    shown = _shown_collections(depsgraph) if viewport else set()
 
     def hidden(ob) -> bool:
         if ob is None:
             return False
         if getattr(ob, "hide_render", False):
             return True
-        if not check_collections:
-            return False
-        users = [c.session_uid for c in getattr(ob, "users_collection", ())]
+        users = [c.session_uid for c in getattr(ob, "users_collection", ())] if viewport else []
         return bool(users) and not any(uid in shown for uid in users)
 
     def visible(inst, original) -> bool:
-        if not inst.is_instance and not getattr(inst, "show_self", True):
-            return False
         if getattr(original, "hide_render", False):
             return False
-        if check_collections:
-            if not inst.is_instance and hidden(original):
-                return False
-            parent = inst.parent.original if inst.is_instance and inst.parent is not None else None
-            if hidden(parent):
-                return False
-        return True
+        if not viewport:
+            return inst.is_instance or getattr(inst, "show_self", True)
+        if inst.is_instance:
+            return not hidden(inst.parent.original if inst.parent is not None else None)
+        return not (_instancer_hidden(original) or hidden(original))
 
     return visible
 
@@ -613,33 +791,19 @@ def export_scene(
             names.append(mat.name_full if mat is not None else "")
         return material_index[key]
 
-    cache: dict = {}
+    override = getattr(depsgraph.view_layer, "material_override", None)
+    if override is not None:  # the view layer's Material Override: every surface in it
+        slot = material_slot(override.evaluated_get(depsgraph))
+        material_slot = lambda mat, slot=slot: slot  # noqa: E731
     meshes: list[Mesh] = []
     lights: list = []
-    rendered = _render_visibility(depsgraph)
+    add = _instance_reader(
+        depsgraph, lambda ob: _object_arrays(ob, material_slot, materials, names, warnings), warnings
+    )
     for inst in depsgraph.object_instances:
-        ob = inst.object
-        original = ob.original if not inst.is_instance else ob
-        if not rendered(inst, original):
-            continue
-        matrix = np.array(inst.matrix_world, dtype=np.float64)
-        if ob.type == "LIGHT":
-            light = _light(ob, matrix, warnings)
-            if light is not None:
-                lights.append(light)
-            continue
-        if ob.type not in GEOMETRY_TYPES:
-            continue
-        # The object (its material slots) and its geometry, by identity: a linked object beside a local one of the
-        # same name, and the geometries that Geometry Nodes instance (each a temporary object named after its
-        # instancer, its mesh named "Mesh"), are each their own.
-        key = (_identity(original), _identity(ob.data) if ob.data is not None else None)
-        if key not in cache:
-            cache[key] = _object_arrays(ob, material_slot, materials, names, warnings)
-        arrays = cache[key]
-        if arrays is None:
-            continue
-        meshes.append(_world_mesh(arrays, matrix))
+        add(inst, meshes, lights)
+    if getattr(scene.render, "film_transparent", False):
+        warnings.append("Film > Transparent is not rendered here: the world shows behind the scene, alpha is 1")
     mesh = Mesh.concatenate(meshes)
     world = _world(scene.world, warnings) if environment is EXPORT_WORLD else environment
     out = Scene(camera, mesh, materials, lights, world, names)

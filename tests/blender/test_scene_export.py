@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 pytest.importorskip("bpy")
@@ -288,15 +289,18 @@ def test_an_emitter_shown_without_itself_is_not_rendered(bpy_addon, fresh_scene)
     settings = cube.particle_systems[0].settings
     settings.count, settings.frame_start, settings.frame_end = 10, 1, 1
     settings.render_type, settings.instance_object = "OBJECT", ico
-    cube.show_instancer_for_render = cube.show_instancer_for_viewport = False
     scene.frame_set(2)
-    assert _triangles(fresh_scene.evaluated_depsgraph_get()) == 10 * 20 + 20  # the particles and the ico itself
+    # the render's setting decides, in a viewport's depsgraph too (whose rows follow the viewport's setting)
+    for for_render, for_viewport in ((False, True), (False, False), (True, False)):
+        cube.show_instancer_for_render, cube.show_instancer_for_viewport = for_render, for_viewport
+        expected = 10 * 20 + 20 + (12 if for_render else 0)  # the particles, the ico itself, and the emitter
+        assert _triangles(fresh_scene.evaluated_depsgraph_get()) == expected, (for_render, for_viewport)
 
 
 @pytest.mark.parametrize("kind", ["EMPTY", "LIGHT"])
-def test_a_scene_camera_that_is_not_a_camera_renders_its_view_with_blenders_default_lens(bpy_addon, fresh_scene, kind):
-    """Blender lets an empty or a light be the scene camera, and renders its view with a 50 mm lens; F12 failed
-    with an AttributeError."""
+def test_a_scene_camera_that_is_not_a_camera_renders_its_view_with_blenders_lens(bpy_addon, fresh_scene, kind):
+    """Blender lets an empty or a light be the scene camera, and renders its view (an empty's with a 50 mm lens, a
+    light's with its spot size's); F12 failed with an AttributeError."""
     import math
 
     from addon.blender import scene_export
@@ -310,11 +314,12 @@ def test_a_scene_camera_that_is_not_a_camera_renders_its_view_with_blenders_defa
     scene.collection.objects.link(ob)
     scene.camera = ob
     core, warnings = scene_export.export_scene(fresh_scene.evaluated_depsgraph_get())
-    assert any("not a camera" in w and "50 mm" in w for w in warnings)
+    assert any("not a camera" in w for w in warnings)
     w, h = scene_export.render_size(scene)
-    assert core.camera.tan_half_fov[0] == pytest.approx(18.0 / 50.0) and core.camera.tan_half_fov[1] == pytest.approx(
-        18.0 / 50.0 * h / w
-    )
+    # an empty: Blender's 50 mm; a light: the lens of its spot size, 45 degrees stored for a point light
+    lens = 50.0 if kind == "EMPTY" else 16.0 / math.tan(math.radians(45.0) / 2.0)
+    assert core.camera.tan_half_fov[0] == pytest.approx(18.0 / lens)
+    assert core.camera.tan_half_fov[1] == pytest.approx(18.0 / lens * h / w)
 
 
 def test_the_render_uv_map_places_textures_as_cycles_does(bpy_addon, fresh_scene):
@@ -333,3 +338,86 @@ def test_the_render_uv_map_places_textures_as_cycles_does(bpy_addon, fresh_scene
     core, _ = scene_export.export_scene(fresh_scene.evaluated_depsgraph_get())
     render_uv = np.array([d.uv[:] for d in uv_layers[name].data])
     assert np.isclose(core.mesh.uvs.max(), render_uv.max(), atol=1e-6)  # the edit map's is half of it
+
+
+def _principled(bpy, name="m"):
+    mat = bpy.data.materials.new(name)  # 5.0: a new material has its node tree, Principled on the output
+    return mat, mat.node_tree.nodes["Principled BSDF"]
+
+
+def test_what_a_lambertian_leaves_out_of_a_material_is_said(bpy_addon, fresh_scene):
+    """A Lambertian of the base colour stands for every unmanaged material: Metallic, Transmission, Emission or
+    Alpha set on a Principled BSDF, another surface node (Emission rendered as an orange reflector, Glass as white),
+    or an Image Texture's own settings (Clip, a Mapping node) changed Cycles' image a lot, without a word."""
+    from addon.blender import scene_export
+
+    bpy = bpy_addon
+    mat, principled = _principled(bpy)
+    principled.inputs["Metallic"].default_value = 1.0
+    principled.inputs["Transmission Weight"].default_value = 1.0
+    warnings = []
+    scene_export.unmanaged_material(mat, warnings)
+    assert len(warnings) == 1 and "Metallic, Transmission" in warnings[0]
+    mat, principled = _principled(bpy, "plain")
+    warnings = []
+    scene_export.unmanaged_material(mat, warnings)
+    assert warnings == []  # the defaults: nothing left out that matters
+    emission = mat.node_tree.nodes.new("ShaderNodeEmission")
+    out = mat.node_tree.nodes["Material Output"]
+    mat.node_tree.links.new(emission.outputs[0], out.inputs["Surface"])
+    scene_export.unmanaged_material(mat, warnings)
+    assert len(warnings) == 1 and "EMISSION" in warnings[0] and "emits no light" in warnings[0]
+    mat.node_tree.links.remove(out.inputs["Surface"].links[0])  # nothing on the output: Cycles renders black
+    assert np.array_equal(scene_export.unmanaged_material(mat, []).color, (0.0, 0.0, 0.0))
+    mat, principled = _principled(bpy, "tex")
+    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
+    tex.image = bpy.data.images.new("img", 2, 2)
+    tex.extension = "CLIP"
+    mapping = mat.node_tree.nodes.new("ShaderNodeMapping")
+    mat.node_tree.links.new(mapping.outputs[0], tex.inputs["Vector"])
+    mat.node_tree.links.new(tex.outputs["Color"], principled.inputs["Base Color"])
+    warnings = []
+    scene_export.unmanaged_material(mat, warnings)
+    assert len(warnings) == 1 and "Extension Clip" in warnings[0] and "MAPPING" in warnings[0]
+
+
+def test_an_images_alpha_scales_its_colour_as_cycles_image_node_gives_it(bpy_addon, fresh_scene):
+    """Cycles' Image Texture gives its colour times its alpha where the Alpha output is not used: a texel of alpha
+    0.25 rendered 4 times too bright."""
+    from addon.blender import scene_export
+
+    bpy = bpy_addon
+    mat, principled = _principled(bpy)
+    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
+    image = bpy.data.images.new("a", 2, 1, alpha=True, float_buffer=True)
+    image.pixels.foreach_set(np.array([0.8, 0.8, 0.8, 0.25, 0.8, 0.8, 0.8, 1.0], np.float32))
+    tex.image = image
+    mat.node_tree.links.new(tex.outputs["Color"], principled.inputs["Base Color"])
+    level = scene_export.unmanaged_material(mat, []).texture.levels[0]
+    np.testing.assert_allclose(level[0, :, 0], [0.2, 0.8], rtol=1e-5)
+    image.alpha_mode = "CHANNEL_PACKED"  # its alpha is some other data: the colour as stored
+    np.testing.assert_allclose(scene_export.unmanaged_material(mat, []).texture.levels[0][0, :, 0], [0.8, 0.8])
+
+
+def test_settings_cycles_renders_and_this_renderer_does_not_are_said(bpy_addon, fresh_scene):
+    """Holdouts, an object hidden from camera rays, a point cloud and a transparent film rendered as if unset,
+    silently. The view layer's Material Override is rendered."""
+    from addon.blender import scene_export
+
+    bpy = bpy_addon
+    scene = fresh_scene.scene
+    cube = scene.objects["Cube"]
+    cube.is_holdout = True
+    cube.visible_camera = False
+    scene.render.film_transparent = True
+    points = bpy.data.objects.new("points", bpy.data.pointclouds.new("points"))
+    scene.collection.objects.link(points)
+    _, warnings = scene_export.export_scene(fresh_scene.evaluated_depsgraph_get())
+    text = "\n".join(warnings)
+    assert "Holdout, Camera ray visibility off" in text and "Transparent" in text and "point cloud" in text
+    override, principled = _principled(bpy, "override")
+    principled.inputs["Base Color"].default_value = (0.1, 0.2, 0.9, 1.0)
+    fresh_scene.view_layer.material_override = override
+    core, _ = scene_export.export_scene(fresh_scene.evaluated_depsgraph_get())
+    assert core.material_names == ["override"]
+    np.testing.assert_allclose(core.materials[0].color, (0.1, 0.2, 0.9), rtol=1e-6)
