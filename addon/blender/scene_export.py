@@ -116,7 +116,7 @@ def _dropped_inputs(node) -> list[str]:
 
 def _image_node_notes(node) -> list[str]:
     """What an Image Texture node feeding a base colour sets that this renderer's lookup does not do (it repeats
-    the image over the render UV map, filtered linearly with the ray's footprint)."""
+    the image over the render UV map, filtered linearly with the ray's footprint; a Mapping node: ``_uv_mapping``)."""
     notes = []
     if node.extension != "REPEAT":
         notes.append(f"its Extension {node.extension.title()} (looked up as Repeat)")
@@ -124,11 +124,55 @@ def _image_node_notes(node) -> list[str]:
         notes.append("its Closest interpolation (looked up filtered)")
     if node.projection != "FLAT":
         notes.append(f"its {node.projection.title()} projection (looked up as Flat)")
-    vector = node.inputs.get("Vector")
-    if vector is not None and vector.is_linked:
-        src = vector.links[0]
-        notes.append(f"its Vector from a {src.from_node.type} node (looked up with the render UV map)")
     return notes
+
+
+def _uv_mapping(node, notes: list[str]):
+    """The (2, 3) affine uv map of what feeds an Image Texture node's Vector (None: the uv as they are): a Mapping
+    node (Point, Texture or Vector) of the UV coordinates, its location, Z rotation and scale in the uv plane, as
+    Blender applies them. What it cannot follow (another source, a rotation about X or Y, a Normal mapping, inputs
+    driven by nodes, a UV Map node naming another map) goes into ``notes``."""
+    vector = node.inputs.get("Vector")
+    if vector is None or not vector.is_linked:
+        return None
+    link = vector.links[0]
+    mapping = None
+    if link.from_node.type == "MAPPING":
+        mapping, link = link.from_node, (link.from_node.inputs["Vector"].links or [None])[0]
+    if link is None:
+        notes.append("its Mapping node maps no coordinates (Cycles looks one point up; the UV map is looked up here)")
+    elif not _is_uv_source(link):
+        notes.append(f"its Vector from a {link.from_node.type} {link.from_socket.name} (looked up with the UV map)")
+    if mapping is None:
+        return None
+    inputs = [mapping.inputs.get(n) for n in ("Location", "Rotation", "Scale")]  # a Vector mapping has no Location
+    if any(i is not None and i.is_linked for i in inputs) or mapping.vector_type == "NORMAL":
+        notes.append("its Mapping node (driven inputs, or a Normal mapping) is not applied")
+        return None
+    neutral = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+    (lx, ly, _), (rx, ry, rz), (sx, sy, _) = (
+        tuple(i.default_value) if i is not None else n for i, n in zip(inputs, neutral, strict=True)
+    )
+    if abs(rx) > 1e-6 or abs(ry) > 1e-6:
+        notes.append("its Mapping node's X and Y rotations are not applied (its location, Z rotation and scale are)")
+    c, s = math.cos(rz), math.sin(rz)
+    m = np.array([[c * sx, -s * sy], [s * sx, c * sy]])  # R S
+    t = np.array([lx, ly]) if mapping.vector_type == "POINT" else np.zeros(2)
+    if mapping.vector_type == "TEXTURE":  # the inverse: S^-1 R^-1 (v - T)
+        if abs(sx * sy) < 1e-12:
+            return np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+        inv = np.linalg.inv(m)
+        return np.hstack([inv, (-inv @ np.array([lx, ly]))[:, None]])
+    return np.hstack([m, t[:, None]])
+
+
+def _is_uv_source(link) -> bool:
+    """Whether a link brings the render UV map's coordinates: Texture Coordinate's UV, or a UV Map node naming no
+    map (or the active one)."""
+    node = link.from_node
+    if node.type == "TEX_COORD":
+        return link.from_socket.name == "UV"
+    return node.type == "UVMAP" and not node.uv_map
 
 
 def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial:
@@ -166,9 +210,10 @@ def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial:
         if socket.links[0].from_socket.name != "Color":
             notes.append(f"its base colour is the image's {socket.links[0].from_socket.name} (its Color is read)")
         notes += _image_node_notes(image_node)
+        uv_map = _uv_mapping(image_node, notes)
         px = _image_pixels(image, warnings)
         if px is not None:
-            texture = ImageTexture(_associated_colour(px, image, image_node))
+            texture = ImageTexture(_associated_colour(px, image, image_node), uv_map)
     if texture is not None:
         color = (1.0, 1.0, 1.0)
     elif not socket.is_linked or image is not None:

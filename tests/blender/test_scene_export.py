@@ -378,7 +378,7 @@ def test_what_a_lambertian_leaves_out_of_a_material_is_said(bpy_addon, fresh_sce
     mat.node_tree.links.new(tex.outputs["Color"], principled.inputs["Base Color"])
     warnings = []
     scene_export.unmanaged_material(mat, warnings)
-    assert len(warnings) == 1 and "Extension Clip" in warnings[0] and "MAPPING" in warnings[0]
+    assert len(warnings) == 1 and "Extension Clip" in warnings[0] and "Mapping node maps no coordinates" in warnings[0]
 
 
 def test_an_images_alpha_scales_its_colour_as_cycles_image_node_gives_it(bpy_addon, fresh_scene):

@@ -129,14 +129,28 @@ class ImageTexture:
     Uses the same mip chain and lookup as latent textures (``addon.core.textures.mip``).
     """
 
-    def __init__(self, image: np.ndarray):
+    def __init__(self, image: np.ndarray, uv_transform=None):
+        """``uv_transform``: a (2, 3) affine map applied to the uv before the lookup (a Mapping node's), None for
+        none."""
         img = np.asarray(image, dtype=np.float32)
         if img.ndim != 3 or img.shape[2] < 3 or img.shape[0] < 1 or img.shape[1] < 1:
             raise ValueError(f"an image texture must be (H, W, 3 or 4), got shape {img.shape}")
         img = np.nan_to_num(img[:, :, :3], nan=0.0, posinf=0.0, neginf=0.0)
         self.levels = build_mip_chain(img)
+        self.uv_transform = None
+        if uv_transform is not None:
+            a = np.asarray(uv_transform, dtype=np.float64).reshape(2, 3)
+            if not np.isfinite(a).all():
+                raise ValueError(f"uv_transform must be finite, got {a.tolist()}")
+            self.uv_transform = a
 
     def lookup(self, uv: np.ndarray, footprint: np.ndarray) -> np.ndarray:
+        """The texture at ``uv`` (N, 2) with ``footprint`` (N,) in uv units, both through ``uv_transform``: the
+        footprint scaled by the square root of the map's area scale (the geometric mean of its two scales)."""
+        if self.uv_transform is not None:
+            a = self.uv_transform
+            uv = np.asarray(uv, dtype=np.float64) @ a[:, :2].T + a[:, 2]
+            footprint = np.asarray(footprint, dtype=np.float64) * np.sqrt(abs(np.linalg.det(a[:, :2])))
         return trilinear_lookup(self.levels, uv, footprint)
 
 
