@@ -204,6 +204,7 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
             reference_walks=self.reference_walks,
             threads=threads,
             calibrate=self.calibration(viewport),
+            transparent=bool(scene is not None and scene.render.film_transparent),
         )
 
     def assign_decoders(

@@ -847,8 +847,6 @@ def export_scene(
     )
     for inst in depsgraph.object_instances:
         add(inst, meshes, lights)
-    if getattr(scene.render, "film_transparent", False):
-        warnings.append("Film > Transparent is not rendered here: the world shows behind the scene, alpha is 1")
     mesh = Mesh.concatenate(meshes)
     world = _world(scene.world, warnings) if environment is EXPORT_WORLD else environment
     out = Scene(camera, mesh, materials, lights, world, names)

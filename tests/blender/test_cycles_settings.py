@@ -65,12 +65,15 @@ def _light(ctx, kind, location=(0.3, 0.2, 1.5), rotation=(0.0, 0.0, 0.0), scale=
     return ob
 
 
-def _both(ctx, tmp_path, samples=64, bounces=0):
-    """(Cycles' image, ours) of the scene as it is, (H, W, 3) float64, with the export's warnings."""
+def _both(ctx, tmp_path, samples=64, bounces=0, channels=3):
+    """(Cycles' image, ours) of the scene as it is, (H, W, ``channels``) float64 (4: with alpha), with the export's
+    warnings."""
     from addon.core.render import RenderSettings, render
 
     scene, warnings = export(ctx)
-    ours = render(scene, RenderSettings(samples=samples, max_bounces=bounces, seed=3))[0].rgba()[..., :3]
+    transparent = ctx.scene.render.film_transparent
+    settings = RenderSettings(samples=samples, max_bounces=bounces, seed=3, transparent=transparent)
+    ours = render(scene, settings)[0].rgba()[..., :channels]
     s = ctx.scene
     s.render.engine = "CYCLES"
     s.cycles.device = "CPU"
@@ -81,9 +84,10 @@ def _both(ctx, tmp_path, samples=64, bounces=0):
     s.view_settings.view_transform = "Standard"
     s.render.image_settings.file_format = "OPEN_EXR"
     s.render.image_settings.color_depth = "32"
+    s.render.image_settings.color_mode = "RGBA"
     s.render.filepath = str(tmp_path / "cycles.exr")
     bpy.ops.render.render(write_still=True)
-    cycles = read_image(tmp_path / "cycles.exr")[..., :3].astype(np.float64)
+    cycles = read_image(tmp_path / "cycles.exr")[..., :channels].astype(np.float64)
     return cycles, ours.astype(np.float64), warnings
 
 
@@ -399,3 +403,24 @@ def test_a_mapping_node_places_an_image_texture_as_in_cycles(
     assert warnings == []
     for c in range(3):
         _assert_blocks_match(cycles[..., c], ours[..., c], 0.06, n=8)
+
+
+def test_a_transparent_film_renders_as_cycles_renders_it(fresh_scene, tmp_path):
+    """Film > Transparent: the sky the camera sees is left out and alpha is the coverage, the sky still lighting
+    the floor (ours drew the sky, alpha 1: Cycles' alpha mean 0.52 against 1.0)."""
+    ctx = fresh_scene
+    _empty_scene(ctx, 24, 16)
+    bpy.ops.mesh.primitive_plane_add(size=4.0, location=(-2.0, 0.0, 0.0))  # the image's left half
+    ctx.object.data.materials.append(_diffuse((0.5, 0.5, 0.5)))
+    _camera(ctx, location=(0.0, 0.0, 4.0))
+    world = bpy.data.worlds.new("sky")
+    if world.node_tree is None:
+        world.use_nodes = True
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.4, 0.5, 0.6, 1.0)
+    ctx.scene.world = world
+    ctx.scene.render.film_transparent = True
+    cycles, ours, warnings = _both(ctx, tmp_path, samples=64, channels=4)
+    assert warnings == []
+    assert ours[..., 3].mean() == pytest.approx(cycles[..., 3].mean(), abs=0.01)
+    for c in range(4):
+        _assert_blocks_match(cycles[..., c], ours[..., c], 0.03)

@@ -1090,3 +1090,18 @@ def test_denoise_says_when_the_scene_cannot_composite(fresh_scene):
     copy = bpy.context.scene
     assert copy.neural_render.denoise and copy.compositing_node_group is None
     assert "no compositor" in render_properties.denoise_note(copy)
+
+
+def test_f12_with_a_transparent_film_writes_the_coverage_as_alpha(fresh_scene, tmp_path):
+    ctx = fresh_scene
+    small(ctx.scene, 24, 16, samples=4)
+    ctx.scene.render.engine = "NEURAL_LAYERED"
+    ctx.scene.render.film_transparent = True
+    ctx.scene.render.image_settings.file_format = "OPEN_EXR"
+    ctx.scene.render.image_settings.color_mode = "RGBA"
+    ctx.scene.render.filepath = str(tmp_path / "transparent.exr")
+    bpy.ops.render.render(write_still=True)
+    px = read_image(tmp_path / "transparent.exr")
+    alpha = px[..., 3]
+    assert alpha.max() == 1.0 and alpha.min() == 0.0  # the cube, and the world around it
+    np.testing.assert_array_equal(px[alpha == 0.0][:, :3], 0.0)

@@ -154,6 +154,27 @@ def test_a_spread_area_light_and_a_scaled_spot_converge_for_every_strategy(other
     assert np.abs(z).max() < 6
 
 
+def test_a_transparent_film_leaves_the_sky_out_of_the_camera_rays_and_keeps_its_light():
+    """Blender's Film > Transparent: where the camera sees the sky the pixel is transparent (alpha 0, no radiance),
+    a surface has alpha 1 and the light the sky gives it, and a pixel the surface half covers is half transparent."""
+    cam = Camera.look_at((0.0, 0.0, 4.0), (0.0, 0.0, 0.0), fov_deg=40, width=16, height=8)
+    # the floor covers the image's left half and its middle column half
+    floor = shapes.quad((-1.5, 0.0, 0.0), (1.5, 0.0, 0.0), (0.0, 3.0, 0.0))
+    sky = Environment((0.4, 0.5, 0.6))
+    scene = Scene(cam, Mesh.concatenate([floor]), [LambertMaterial((0.5, 0.5, 0.5))], [], sky)
+    opaque, _ = render(scene, RenderSettings(samples=64, max_bounces=1, seed=2))
+    film, _ = render(scene, RenderSettings(samples=64, max_bounces=1, seed=2, transparent=True))
+    rgba, solid = film.rgba(), opaque.rgba()
+    assert np.array_equal(solid[..., 3], np.ones((8, 16)))
+    np.testing.assert_array_equal(rgba[:, :6, 3], 1.0)
+    np.testing.assert_array_equal(rgba[:, 10:, 3], 0.0)
+    np.testing.assert_array_equal(rgba[:, 10:, :3], 0.0)  # no sky seen
+    np.testing.assert_allclose(solid[:, 10:, :3], np.broadcast_to((0.4, 0.5, 0.6), (8, 6, 3)), rtol=1e-6)
+    np.testing.assert_allclose(rgba[:, :6, :3], solid[:, :6, :3], rtol=1e-6)  # the same paths, lit by the sky
+    middle = rgba[:, 7:9, 3]
+    assert 0.2 < middle.mean() < 0.8  # the floor's edge crosses these pixels
+
+
 @pytest.mark.parametrize("clip_start", [0.0, 0.1, 2.0])
 def test_the_depth_and_the_footprint_count_from_the_camera_whatever_the_clip_start(clip_start):
     """The rays start on the near plane: the Depth pass and the texture footprint were measured from there (a plane
@@ -949,16 +970,16 @@ def test_the_albedo_feature_is_the_directional_albedo_of_a_material_whose_sample
     np.testing.assert_allclose(albedo, radiance, rtol=0.03)
 
 
-def test_the_film_keeps_80_bytes_a_pixel_and_its_float32_features_keep_their_means():
+def test_the_film_keeps_84_bytes_a_pixel_and_its_float32_features_keep_their_means():
     from addon.core.render.film import Film
 
     film = Film(500, 200)
     arrays = (film.sum, film.sum_sq, film.count, film.feature_sum)
-    assert sum(a.nbytes for a in arrays) == 80 * 500 * 200
+    assert sum(a.nbytes for a in arrays) == 84 * 500 * 200
     rng = np.random.default_rng(5)
     pixels = rng.permutation(500 * 200)[:1000]  # a render region of 1,000 pixels, 4,096 passes
-    features = np.zeros((1000, 7))
-    exact = np.zeros((1000, 7))
+    features = np.zeros((1000, 8))  # the eighth, coverage, left 0
+    exact = np.zeros((1000, 8))
     for _ in range(4096):
         features[:, :3] = rng.uniform(0.0, 1.0, (1000, 3))  # albedo
         features[:, 3:6] = rng.uniform(-1.0, 1.0, (1000, 3))  # normal
@@ -968,7 +989,7 @@ def test_the_film_keeps_80_bytes_a_pixel_and_its_float32_features_keep_their_mea
     f = film.features()
     means = np.concatenate([f["albedo"], f["normal"], f["depth"]], axis=2).reshape(-1, 7)[pixels]
     scale = np.array([1, 1, 1, 1, 1, 1, 100])
-    assert np.abs(means - exact / 4096).max(axis=0) / scale == pytest.approx(0, abs=2e-5)
+    assert np.abs(means - exact[:, :7] / 4096).max(axis=0) / scale == pytest.approx(0, abs=2e-5)
     assert film.count[pixels].tolist() == [4096] * 1000 and film.count.sum() == 4096 * 1000
     assert np.isfinite(film.stderr().reshape(-1, 3)[pixels]).all()
 

@@ -11,12 +11,18 @@ import numpy as np
 class Film:
     """Accumulates one radiance sample per pixel per pass. Rows run top to bottom.
 
-    Per pixel it keeps 80 bytes (0.66 GB at 3840 x 2160): the radiance's sum and sum of squares in float64 (the
+    Per pixel it keeps 84 bytes (0.70 GB at 3840 x 2160): the radiance's sum and sum of squares in float64 (the
     standard error subtracts them, and float32 would lose a low-variance pixel's variance to rounding), the
-    sample count in int32, and the denoising features' sums in float32 (albedo, normal and depth, which guide a
-    denoiser: their means over 4,096 samples stay within 2e-6 of float64's, depths of up to 100 within 2e-4). It
-    kept 112 bytes, all float64: a 3840 x 2160 render of two samples peaked at 1.50 GB, now 1.25 GB.
+    sample count in int32, and the first hits' features' sums in float32 (albedo, normal and depth, which guide a
+    denoiser: their means over 4,096 samples stay within 2e-6 of float64's, depths of up to 100 within 2e-4; and
+    coverage, the share of camera rays that met a surface, the alpha of a transparent film). It kept 112 bytes,
+    all float64: a 3840 x 2160 render of two samples peaked at 1.50 GB.
+
+    ``transparent`` (the render's ``RenderSettings.transparent``): :meth:`rgba`'s alpha is the coverage, and the
+    sky the camera rays meet was left out of the radiance (Blender's Film > Transparent); else alpha is 1.
     """
+
+    FEATURES = 8  # albedo (3), normal (3), depth, coverage
 
     def __init__(self, width: int, height: int):
         self.width, self.height = int(width), int(height)
@@ -24,8 +30,9 @@ class Film:
         self.sum_sq = np.zeros((self.height * self.width, 3))
         self.count = np.zeros(self.height * self.width, dtype=np.int32)
         self.passes = 0
-        # What a denoiser is guided by, from each path's first hit: albedo, shading normal, depth.
-        self.feature_sum = np.zeros((self.height * self.width, 7), dtype=np.float32)
+        self.transparent = False
+        # What a denoiser is guided by, from each path's first hit: albedo, shading normal, depth; and coverage.
+        self.feature_sum = np.zeros((self.height * self.width, self.FEATURES), dtype=np.float32)
         self._square = np.empty((0, 3))  # ``add``'s squares, kept: a new array each chunk faulted its pages in
 
     def _square_rows(self, n: int) -> np.ndarray:
@@ -37,7 +44,8 @@ class Film:
     def add(self, pixels: np.ndarray | slice, radiance: np.ndarray, features: np.ndarray | None = None) -> None:
         """Add radiance (N, 3) to ``pixels``: (N,) flat indices, each at most once per call, or a slice of
         N consecutive pixels (a whole render's chunks: in-place adds on views instead of gathers and
-        scatters, 10x faster). ``features`` (N, 7): first-hit albedo (3), world shading normal (3) and depth (1)."""
+        scatters, 10x faster). ``features`` (N, 8): first-hit albedo (3), world shading normal (3), depth (1) and
+        whether the camera ray met a surface (1)."""
         self.sum[pixels] += radiance
         square = self._square_rows(len(radiance))
         np.multiply(radiance, radiance, out=square)
@@ -47,12 +55,18 @@ class Film:
             self.feature_sum[pixels] += features
 
     def features(self) -> dict[str, np.ndarray]:
-        """Per-pixel means of the denoising features, (H, W, C) float32 each, row 0 at the top:
-        ``albedo`` (3, clipped to [0, 1]: a denoiser's albedo guide), ``normal`` (3, world space, not renormalised)
-        and ``depth`` (1, distance along the camera ray; 0 where the ray escaped)."""
+        """Per-pixel means of the first hits' features, (H, W, C) float32 each, row 0 at the top:
+        ``albedo`` (3, clipped to [0, 1]: a denoiser's albedo guide), ``normal`` (3, world space, not renormalised),
+        ``depth`` (1, distance along the camera ray; 0 where the ray escaped) and ``coverage`` (1, the share of the
+        pixel's camera rays that met a surface)."""
         c = np.maximum(self.count, 1)[:, None]
-        f = (self.feature_sum / c).reshape(self.height, self.width, 7).astype(np.float32)
-        return {"albedo": np.clip(f[..., :3], 0.0, 1.0), "normal": f[..., 3:6], "depth": f[..., 6:7]}
+        f = (self.feature_sum / c).reshape(self.height, self.width, self.FEATURES).astype(np.float32)
+        return {
+            "albedo": np.clip(f[..., :3], 0.0, 1.0),
+            "normal": f[..., 3:6],
+            "depth": f[..., 6:7],
+            "coverage": np.clip(f[..., 7:8], 0.0, 1.0),
+        }
 
     def mean(self) -> np.ndarray:
         """(H, W, 3) float32 per-pixel mean (0 where no sample yet)."""
@@ -69,9 +83,14 @@ class Film:
         return se.reshape(self.height, self.width, 3)
 
     def rgba(self) -> np.ndarray:
-        """(H, W, 4) float32 mean with alpha 1."""
+        """(H, W, 4) float32 mean, premultiplied as Blender's render results are: alpha 1, or the coverage for a
+        transparent film (whose radiance holds no sky seen directly)."""
         img = self.mean()
-        return np.concatenate([img, np.ones(img.shape[:2] + (1,), np.float32)], axis=2)
+        if self.transparent:
+            alpha = self.features()["coverage"]
+        else:
+            alpha = np.ones(img.shape[:2] + (1,), np.float32)
+        return np.concatenate([img, alpha], axis=2)
 
 
 def to_srgb(linear: np.ndarray) -> np.ndarray:

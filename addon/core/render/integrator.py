@@ -63,6 +63,9 @@ class RenderSettings:
     # albedo calibration of layered stacks in neural mode (``neural.calibrate``): True, False, or
     # "cached" (only calibrations already made, this session or kept on disk: no reference walks)
     calibrate: bool | str = True
+    # Blender's Film > Transparent: the sky the camera sees directly is left out, and the film's alpha is the share
+    # of camera rays that met a surface (``Film.rgba``); the sky still lights the scene
+    transparent: bool = False
 
     def __post_init__(self):
         if self.strategy not in STRATEGIES:
@@ -458,6 +461,7 @@ def render(
     stats = RenderStats()
     t_start = time.perf_counter()
     film = film or Film(cam.width, cam.height)
+    film.transparent = bool(settings.transparent)
     try:
         with session.threads_in_force(settings.thread_count):  # the materials' encoding and calibration: the scene's
             ctx = _Context(scene, settings, stats, halt)
@@ -725,8 +729,9 @@ def _add_emission(
     they escape (t = inf), weighted against next-event estimation by how each ray was sampled."""
     if len(ctx.area_params) == 0 and ctx.env is None:
         return
+    sky = ctx.env is not None and not (camera and ctx.settings.transparent)  # a transparent film: no sky seen directly
     kernels.add_emission(
-        ctx.area_params, ctx.area_ellipse, ctx.env is not None, ctx.env_arrays,
+        ctx.area_params, ctx.area_ellipse, sky, ctx.env_arrays,
         ctx.strategy_code, ctx.p_select,
         paths.o, paths.d, t, paths.row, paths.throughput, paths.pdf, paths.delta, paths.mis, L, paths.eps, camera,
         reach if reach is not None else _NO_REACH,
@@ -843,7 +848,7 @@ def _continue_paths(
 
 
 _UNIFORMS = ((3, kernels.F8), (0, kernels.F8), (2, kernels.F8))  # a bounce's: light, lobe, direction
-_IMAGE_ROWS = ((3, kernels.F8), (7, kernels.F8))  # a chunk's radiance and denoising features
+_IMAGE_ROWS = ((3, kernels.F8), (Film.FEATURES, kernels.F8))  # a chunk's radiance and first hits' features
 
 
 def _check_stop(halt: _Halt | None) -> None:
@@ -862,7 +867,7 @@ def _trace_paths(
     image: Scratch | None = None,
 ) -> tuple[np.ndarray, np.ndarray, RenderStats]:
     """Radiance (N, 3) of one path per pixel of ``pix``, all paths a bounce at a time, the
-    denoising features of their first hits (N, 7; see ``Film.add``), and the chunk's statistics
+    features of their first hits (N, 8; see ``Film.add``), and the chunk's statistics
     (its phases in thread time). Raises :class:`Cancelled` before a bounce once ``halt`` is set.
     The bounces write their hits, light samples and paths into ``scratch``'s arrays, and the radiance and
     features are arrays of ``image`` (new ones where None)."""
