@@ -51,19 +51,37 @@ def relative_error(got: np.ndarray, want: np.ndarray) -> float:
     return float((diff / np.maximum(scale, VALUE_FLOOR)).max())
 
 
-def most_varied_corner(level: np.ndarray, ch: int, cw: int, align: int) -> tuple[int, int]:
+VARIANCE_BAND = 64  # rows of texels whose blocks' variance is worked out at once (a 2,048-wide level: 52 MB)
+
+
+def block_variance(level: np.ndarray, step=None) -> np.ndarray:
+    """(H // 2, W // 2): each 2 x 2 block's variance of its texels, summed over the channels, of ``level`` (H, W, C),
+    a band of :data:`VARIANCE_BAND` rows at a time in float32 (the whole level in float64 held 7 GB more at 2,048
+    texels a side); ``step()`` (optional) between bands, which may raise to stop."""
+    h, w = level.shape[:2]
+    eh, ew = h - h % 2, w - w % 2
+    out = np.zeros((eh // 2, ew // 2))
+    for top in range(0, eh, VARIANCE_BAND):  # a loop over bands of rows, each vectorised
+        if step is not None:
+            step()
+        x = float32_texels(level[top : min(top + VARIANCE_BAND, eh), :ew])
+        blocks = x.reshape(x.shape[0] // 2, 2, ew // 2, 2, -1)
+        mean = blocks.mean(axis=(1, 3))
+        out[top // 2 : top // 2 + len(mean)] = ((blocks * blocks).mean(axis=(1, 3)) - mean * mean).sum(axis=2)
+    return out
+
+
+def most_varied_corner(level: np.ndarray, ch: int, cw: int, align: int, variance=None) -> tuple[int, int]:
     """The (row, column) of the ``ch`` x ``cw`` window of ``level`` (H, W, C), its corner on a multiple of ``align``,
-    whose 2 x 2 blocks vary the most (the sum over the window of each block's variance of its texels, channel by
-    channel): where averaging latents is tested hardest. A seeded crop missed a patch of fine detail elsewhere, and
-    a texture with 256 x 256 of checkers in a corner of 1,024 passed 4 levels, one of which rendered 12-32% dark."""
+    whose 2 x 2 blocks vary the most (the sum over the window of :func:`block_variance`, given as ``variance`` when
+    already worked out): where averaging latents is tested hardest. A seeded crop missed a patch of fine detail
+    elsewhere, and a texture with 256 x 256 of checkers in a corner of 1,024 passed 4 levels, one of which rendered
+    12-32% dark."""
     h, w = level.shape[:2]
     if (ch >= h and cw >= w) or h < 2 or w < 2:  # the whole level, or a strip one texel wide: no 2 x 2 blocks
         return 0, 0
-    eh, ew = h - h % 2, w - w % 2
-    x = float32_texels(level[:eh, :ew]).astype(np.float64)
-    blocks = x.reshape(eh // 2, 2, ew // 2, 2, -1)
-    variance = (blocks**2).mean(axis=(1, 3)) - blocks.mean(axis=(1, 3)) ** 2
-    v = np.pad(variance.sum(axis=2), ((0, h // 2 - eh // 2 + 1), (0, w // 2 - ew // 2 + 1)))
+    variance = block_variance(level) if variance is None else variance
+    v = np.pad(variance, ((0, 1), (0, 1)))
     table = np.zeros((v.shape[0] + 1, v.shape[1] + 1))  # summed-area table over the blocks
     table[1:, 1:] = v.cumsum(axis=0).cumsum(axis=1)
     bh, bw, step = max(1, ch // 2), max(1, cw // 2), max(1, align // 2)
@@ -109,7 +127,7 @@ def decoded(models, texels: np.ndarray) -> np.ndarray:
     return (np.asarray(f, dtype=np.float64) * np.tile(wi[:, 2], n)[:, None]).reshape(n, p, 3)
 
 
-def level_error(models, level: np.ndarray, seed: int = SEED) -> float:
+def level_error(models, level: np.ndarray, seed: int = SEED, variance=None) -> float:
     """|decode(2 x 2 averaged latents) - average of the decoded 2 x 2 texels| (:func:`relative_error`), on the
     crop of ``level`` (H, W, 100) of at most :data:`CROP` texels a side whose blocks vary the most
     (:func:`most_varied_corner`), the larger of two: the blocks the next level averages, and the blocks one texel
@@ -117,7 +135,7 @@ def level_error(models, level: np.ndarray, seed: int = SEED) -> float:
     crop is chosen, not drawn."""
     h, w = level.shape[:2]
     ch, cw = max(1, min(CROP, h - h % 2)), max(1, min(CROP, w - w % 2))
-    y0, x0 = most_varied_corner(level, ch, cw, 2)
+    y0, x0 = most_varied_corner(level, ch, cw, 2, variance)
     errors = []
     for shift in (0, 1):  # a loop over the two alignments of the blocks
         rows = (y0 + shift + np.arange(ch)) % h
@@ -131,7 +149,7 @@ def level_error(models, level: np.ndarray, seed: int = SEED) -> float:
     return max(errors)
 
 
-def base_errors(models, levels, seed: int = SEED) -> list[float]:
+def base_errors(models, levels, seed: int = SEED, variance=None) -> list[float]:
     """Each level k >= 1 against the base level's texels: |decode(level k's latents) - the average of the decoded
     base texels each of them holds| (:func:`relative_error`), on the crop of at most :data:`BASE_CROP` base texels a
     side whose blocks vary the most (aligned to the blocks of the coarsest level it reaches) and the crop of every
@@ -149,7 +167,7 @@ def base_errors(models, levels, seed: int = SEED) -> list[float]:
         return []
     block = 1 << reach
     ch, cw = min(BASE_CROP, h) // block * block, min(BASE_CROP, w) // block * block
-    y0, x0 = most_varied_corner(base, ch, cw, block)
+    y0, x0 = most_varied_corner(base, ch, cw, block, variance)
     crop = float32_texels(base[y0 : y0 + ch, x0 : x0 + cw])
     want = decoded(models, crop.reshape(-1, crop.shape[2])).reshape(ch, cw, -1)
     errors = []
@@ -171,12 +189,15 @@ def filterable_levels(models, levels, tolerance: float = TOLERANCE, step=None) -
         return len(levels), []
     if step is not None:
         step()
-    against_base = base_errors(models, levels, SEED)
+    # the base level's blocks' variances, worked out once for both measurements (a band at a time, heard by step)
+    base_variance = block_variance(levels[0], step) if min(levels[0].shape[:2]) >= 2 else None
+    against_base = base_errors(models, levels, SEED, base_variance)
     errors = []
     for k in range(1, len(levels)):  # a loop over mip levels, each one batch of decodes
         if step is not None:
             step()
-        error = level_error(models, levels[k - 1], SEED + k)
+        variance = base_variance if k == 1 else None
+        error = level_error(models, levels[k - 1], SEED + k, variance)
         errors.append(max(error, against_base[k - 1]) if k <= len(against_base) else error)
         if errors[-1] > tolerance:
             return k, errors
