@@ -48,12 +48,13 @@ def render_size(scene) -> tuple[int, int]:
     return max(1, r.resolution_x * pct // 100), max(1, r.resolution_y * pct // 100)
 
 
-def _image_pixels(image, warnings: list[str]) -> np.ndarray | None:
-    """(H, W, 4) scene-linear float pixels, row 0 at the top; None (with a warning) if unavailable."""
+def _image_pixels(image, warnings: list[str], associate_alpha: bool = False) -> np.ndarray | None:
+    """(H, W, 4) scene-linear float pixels, row 0 at the top (``images.linear_pixels``); None (with a warning) if
+    unavailable."""
     if image is None:
         return None
     try:
-        px = images.linear_pixels(image)
+        px = images.linear_pixels(image, associate_alpha)
     except ValueError as e:
         warnings.append(f"{e}; using the colour")
         return None
@@ -82,15 +83,21 @@ _PRINCIPLED_DROPPED = (
 
 
 def _surface_node(mat):
-    """The node on the material output's Surface, or None when the output has nothing there (or there is no
-    output): Cycles renders such a material black."""
+    """The node on the material output's Surface (through Reroute nodes), or None when the output has nothing
+    there (or there is no output): Cycles renders such a material black."""
     tree = getattr(mat, "node_tree", None)
     if tree is None:
         return None
     out = next((n for n in tree.nodes if n.type == "OUTPUT_MATERIAL" and n.is_active_output), None)
     out = out or next((n for n in tree.nodes if n.type == "OUTPUT_MATERIAL"), None)
-    if out is not None and out.inputs["Surface"].is_linked:
-        return out.inputs["Surface"].links[0].from_node
+    socket = out.inputs["Surface"] if out is not None else None
+    for _ in range(64):  # a chain of reroutes, never a loop
+        if socket is None or not socket.is_linked:
+            return None
+        node = socket.links[0].from_node
+        if node.type != "REROUTE":
+            return node
+        socket = node.inputs[0]
     return None
 
 
@@ -118,6 +125,8 @@ def _image_node_notes(node) -> list[str]:
     """What an Image Texture node feeding a base colour sets that this renderer's lookup does not do (it repeats
     the image over the render UV map, filtered linearly with the ray's footprint; a Mapping node: ``_uv_mapping``)."""
     notes = []
+    if node.type != "TEX_IMAGE":  # an Environment Texture node: its settings are the sky's
+        return [f"its base colour is a {node.type} node's (looked up with the UV map)"]
     if node.extension != "REPEAT":
         notes.append(f"its Extension {node.extension.title()} (looked up as Repeat)")
     if node.interpolation == "Closest":
@@ -211,9 +220,10 @@ def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial:
             notes.append(f"its base colour is the image's {socket.links[0].from_socket.name} (its Color is read)")
         notes += _image_node_notes(image_node)
         uv_map = _uv_mapping(image_node, notes)
-        px = _image_pixels(image, warnings)
+        alpha_out = image_node.outputs.get("Alpha")  # an Environment Texture node has none
+        px = _image_pixels(image, warnings, associate_alpha=alpha_out is not None and not alpha_out.is_linked)
         if px is not None:
-            texture = ImageTexture(_associated_colour(px, image, image_node), uv_map)
+            texture = ImageTexture(px[:, :, :3], uv_map)
     if texture is not None:
         color = (1.0, 1.0, 1.0)
     elif not socket.is_linked or image is not None:
@@ -230,16 +240,6 @@ def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial:
 def _warn_material(mat, notes: list[str], warnings: list[str]) -> None:
     if notes:
         warnings.append(f"material {mat.name!r}: " + "; ".join(notes))
-
-
-def _associated_colour(px: np.ndarray, image, node) -> np.ndarray:
-    """An image's colour as Cycles' Image Texture node gives it: times its alpha where the node's Alpha output is
-    not used (a texel of alpha 0.25 rendered 4 times too bright), as it is where Alpha goes elsewhere, or where the
-    image's alpha does not mean coverage (Channel Packed, None)."""
-    rgb = px[:, :, :3]
-    if px.shape[2] < 4 or node.outputs["Alpha"].is_linked or image.alpha_mode in ("CHANNEL_PACKED", "NONE"):
-        return rgb
-    return rgb * np.clip(px[:, :, 3:4], 0.0, 1.0)
 
 
 def _baked_texture(mat, warnings: list[str]):

@@ -381,24 +381,6 @@ def test_what_a_lambertian_leaves_out_of_a_material_is_said(bpy_addon, fresh_sce
     assert len(warnings) == 1 and "Extension Clip" in warnings[0] and "Mapping node maps no coordinates" in warnings[0]
 
 
-def test_an_images_alpha_scales_its_colour_as_cycles_image_node_gives_it(bpy_addon, fresh_scene):
-    """Cycles' Image Texture gives its colour times its alpha where the Alpha output is not used: a texel of alpha
-    0.25 rendered 4 times too bright."""
-    from addon.blender import scene_export
-
-    bpy = bpy_addon
-    mat, principled = _principled(bpy)
-    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
-    image = bpy.data.images.new("a", 2, 1, alpha=True, float_buffer=True)
-    image.pixels.foreach_set(np.array([0.8, 0.8, 0.8, 0.25, 0.8, 0.8, 0.8, 1.0], np.float32))
-    tex.image = image
-    mat.node_tree.links.new(tex.outputs["Color"], principled.inputs["Base Color"])
-    level = scene_export.unmanaged_material(mat, []).texture.levels[0]
-    np.testing.assert_allclose(level[0, :, 0], [0.2, 0.8], rtol=1e-5)
-    image.alpha_mode = "CHANNEL_PACKED"  # its alpha is some other data: the colour as stored
-    np.testing.assert_allclose(scene_export.unmanaged_material(mat, []).texture.levels[0][0, :, 0], [0.8, 0.8])
-
-
 def test_settings_cycles_renders_and_this_renderer_does_not_are_said(bpy_addon, fresh_scene):
     """Holdouts, an object hidden from camera rays and a point cloud rendered as if unset, silently. The view
     layer's Material Override is rendered, and so is a transparent film (``test_cycles_settings``)."""
