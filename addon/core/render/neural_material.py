@@ -180,8 +180,8 @@ class NeuralMaterial:
             )
         projected = self._projected_texture()
         # one texel a hit, picked by its filter weight: the pixel's samples average what each texel renders
-        # (``kernels.trilinear``), where a blend of latents decoded is not the blend of their BRDFs; hits without
-        # a seed (a caller's own) are looked up blended
+        # (``kernels.trilinear``), where a blend of latents decoded is not the blend of their BRDFs; hits with no
+        # ``seed`` attribute at all (a caller's own object, not ``SurfaceHits``) are looked up blended
         seed = getattr(hits, "seed", None)
         if projected is None:
             z, prox, top = self.texture.lookup(hits.uv, hits.footprint, pick_seed=seed)
