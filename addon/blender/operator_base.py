@@ -140,6 +140,23 @@ class MaterialOperator:
             raise UserError(f"material {mat.name!r} has an empty layer stack: add a base layer or pick a preset")
         return mat, stack
 
+    def preview_target(self, context):
+        """``(mat, stack, latent, notes)`` for a sidebar preview: the material's stack and its latent, or, where
+        maps drive the material, the stack of the texture's most common texel (``bake_inputs.representative_stack``)
+        with no latent of its own and a note saying so."""
+        from . import bake_inputs
+
+        mat, stack = self.target_stack(context)
+        try:
+            found = bake_inputs.representative_stack(mat)
+        except ValueError as e:  # a map that cannot be read: the sliders' stack, said
+            return mat, stack, stack_io.current_latent(mat), [f"previewing the sliders' stack: {e}"]
+        if found is None:
+            return mat, stack, stack_io.current_latent(mat), []
+        texel, share = found
+        note = f"previewing the stack of the most common texel of its maps ({share:.0%} of them): F12 renders the maps"
+        return mat, texel, None, [note]
+
     def report_notes(self, notes):
         for note in notes:
             self.report({"WARNING"}, note)

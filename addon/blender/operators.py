@@ -365,10 +365,10 @@ class NLM_OT_preview_lobe(LongOperator, bpy.types.Operator):
     bl_options = {"REGISTER"}
 
     def prepare(self, context):
-        mat, stack = self.target_stack(context)
+        mat, stack, latent, texel_notes = self.preview_target(context)
         s = mat.neural_layers
         theta, res, method, walks = math.degrees(s.theta_i), s.lobe_resolution, s.preview_method, s.walks
-        latent, size = stack_io.current_latent(mat), stack_io.model_size(mat)
+        size = stack_io.model_size(mat)
         calibrated = context.scene.neural_render.calibrate  # as F12 renders it
 
         def work(progress):
@@ -380,7 +380,7 @@ class NLM_OT_preview_lobe(LongOperator, bpy.types.Operator):
         def finish(context, result):
             img, choice, seconds = result
             img, bad = preview.sanitize(img)
-            notes = choice.notes + ([f"{bad} negative or non-finite values set to 0"] if bad else [])
+            notes = texel_notes + choice.notes + ([f"{bad} negative or non-finite values set to 0"] if bad else [])
             meta = {"method": choice.method, "theta_i_deg": theta, "seconds": seconds}
             summary = f"{choice.method.lower()} lobe at {theta:.0f} deg, {res}x{res}, {seconds:.2f} s"
             return self.show(context, f"Lobe {mat.name}", img, meta, notes, summary)
@@ -398,10 +398,10 @@ class NLM_OT_preview_sphere(LongOperator, bpy.types.Operator):
     bl_options = {"REGISTER"}
 
     def prepare(self, context):
-        mat, stack = self.target_stack(context)
+        mat, stack, latent, texel_notes = self.preview_target(context)
         s = mat.neural_layers
         res, method, walks, k = s.sphere_resolution, s.preview_method, s.walks, s.env_samples
-        latent, size = stack_io.current_latent(mat), stack_io.model_size(mat)
+        size = stack_io.model_size(mat)
         calibrated = context.scene.neural_render.calibrate  # as F12 renders it
 
         def work(progress):
@@ -415,7 +415,7 @@ class NLM_OT_preview_sphere(LongOperator, bpy.types.Operator):
         def finish(context, result):
             img, choice, seconds = result
             img, bad = preview.sanitize(img)
-            notes = choice.notes + ([f"{bad} negative or non-finite values set to 0"] if bad else [])
+            notes = texel_notes + choice.notes + ([f"{bad} negative or non-finite values set to 0"] if bad else [])
             meta = {"method": choice.method, "seconds": seconds}
             summary = f"{choice.method.lower()} sphere, {res}x{res}, {seconds:.2f} s"
             return self.show(context, f"Sphere {mat.name}", img, meta, notes, summary)
@@ -433,10 +433,10 @@ class NLM_OT_compare_reference(LongOperator, bpy.types.Operator):
     bl_options = {"REGISTER"}
 
     def prepare(self, context):
-        mat, stack = self.target_stack(context)
+        mat, stack, latent, texel_notes = self.preview_target(context)
         s = mat.neural_layers
         theta, res, walks = math.degrees(s.theta_i), s.lobe_resolution, s.walks
-        latent, size = stack_io.current_latent(mat), stack_io.model_size(mat)
+        size = stack_io.model_size(mat)
         calibrated = context.scene.neural_render.calibrate  # as F12 renders it
 
         def work(progress):
@@ -452,7 +452,7 @@ class NLM_OT_compare_reference(LongOperator, bpy.types.Operator):
                 "theta_i_deg": theta,
             }
             summary = "neural | reference | error: " + cmp.summary()
-            return self.show(context, f"Compare {mat.name}", cmp.side_by_side(), meta, cmp.notes, summary)
+            return self.show(context, f"Compare {mat.name}", cmp.side_by_side(), meta, texel_notes + cmp.notes, summary)
 
         return work, finish
 

@@ -67,6 +67,12 @@ class NLM_OT_refine_latent(LongOperator, bpy.types.Operator):
         from ..core.stack import clamp_to_trained
 
         mat, stack = self.target_stack(context)
+        if any(pmap.image is not None for item in mat.neural_layers.layers for pmap in item.maps):
+            raise UserError(
+                f"material {mat.name!r}: its maps drive it, through a baked texture, not one latent: Refine fits a "
+                "constant stack's latent, which F12 would not render; refine the bake instead "
+                "(Latent Texture > Refine (s))"
+            )
         name = mat.name
         size = preview.resolve_size(stack_io.model_size(mat))
         _, notes = clamp_to_trained(stack)  # the encoder sees the clamped stack; the reference the real one
@@ -98,18 +104,19 @@ class NLM_OT_refine_latent(LongOperator, bpy.types.Operator):
         r.seconds, r.kept = rep.total_s, "yes" if rep.kept else "no"
         stack_io.tag_changed(mat)  # the viewport and the render operators' evaluated copies: another latent now
         how = "cached" if rep.cached else f"{rep.total_s:.1f} s"
+        # what decided (the mean squared relative error over the validation groups) first, then the median lobe
+        # error, which can move the other way: a latent kept with "0.107 -> 0.122" alone read as a step back
+        figures = (
+            f"validation loss {rep.validation_loss_before:.4f} -> {rep.validation_loss_after:.4f} (what decides), "
+            f"median lobe error {rep.validation_error_before:.3f} -> {rep.validation_error_after:.3f}"
+        )
         if rep.kept:
-            self.report(
-                {"INFO"},
-                f"latent of {mat.name!r} refined ({size}, {how}): validation lobe error "
-                f"{rep.validation_error_before:.3f} -> {rep.validation_error_after:.3f}",
-            )
+            self.report({"INFO"}, f"latent of {mat.name!r} refined ({size}, {how}): {figures}")
         else:
             self.report(
                 {"WARNING"},
-                f"refining {mat.name!r} ({size}, {how}) did not improve on the validation "
-                f"pairs ({rep.validation_error_before:.3f} -> {rep.validation_error_after:.3f}): "
-                f"the encoded latent is kept",
+                f"refining {mat.name!r} ({size}, {how}) did not improve on the validation pairs ({figures}): "
+                "the encoded latent is kept",
             )
 
 

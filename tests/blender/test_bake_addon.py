@@ -640,3 +640,26 @@ def test_a_maps_alpha_mode_is_part_of_what_its_bake_was_made_from(wood, bpy_addo
     assert bake_state.current_texture(wood)[0] is not None
     pmap.image.alpha_mode = "PREMUL"  # other pixels
     assert bake_state.current_texture(wood)[1] == "baked texture is out of date: bake again"
+
+
+def test_a_material_driven_by_maps_previews_its_most_common_texel_and_refuses_refine(wood, bpy_addon):
+    """Its sliders alone are a stack F12 never renders (a coat the map made glossy previewed 67 times too dark),
+    and Refine fitted a latent F12 did not use, saying it was kept."""
+    from addon.blender import bake_inputs, stack_io
+
+    bpy = bpy_addon
+    pmap = wood.neural_layers.layers[1].maps[0]
+    px = np.zeros((8, 16, 4), np.float32)
+    px[:, 4:, :] = 1.0  # three quarters rough
+    pmap.image.pixels.foreach_set(px.ravel())
+    stack, share = bake_inputs.representative_stack(wood)
+    spatial, _ = bake_inputs.spatial_stack_from_material(wood)
+    rough = spatial.maps["coatings[0].roughness"][..., 0]
+    assert share == pytest.approx(0.75)
+    assert stack.coatings[0].roughness == pytest.approx(rough.max(), rel=1e-6)
+    assert stack != stack_io.stack_from_material(wood)  # not the sliders' stack
+    report = run_operator(bpy.ops.neural_layers.refine_latent, budget=1.0)
+    assert not report.finished and "maps drive it" in report.error
+    for item in wood.neural_layers.layers:
+        item.maps.clear()
+    assert bake_inputs.representative_stack(wood) is None
