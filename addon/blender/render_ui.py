@@ -5,16 +5,21 @@ from __future__ import annotations
 import bpy
 
 
-class NLM_PT_render(bpy.types.Panel):
-    bl_label = "Neural Layered"
+class _EnginePanel:
+    """A Properties editor panel of this engine's (``bl_context`` set by each)."""
+
     bl_space_type = "PROPERTIES"
     bl_region_type = "WINDOW"
-    bl_context = "render"
     COMPAT_ENGINES = {"NEURAL_LAYERED"}
 
     @classmethod
     def poll(cls, context):
         return context.engine in cls.COMPAT_ENGINES
+
+
+class NLM_PT_render(_EnginePanel, bpy.types.Panel):
+    bl_label = "Neural Layered"
+    bl_context = "render"
 
     def draw(self, context):
         props = context.scene.neural_render
@@ -38,19 +43,16 @@ class NLM_PT_render(bpy.types.Panel):
         layout.operator("neural_layers.render_preview", icon="RENDER_STILL")
 
 
-class NLM_PT_light(bpy.types.Panel):
+class NLM_PT_light(_EnginePanel, bpy.types.Panel):
     """A light's settings as this engine renders them (``scene_export._light``): Blender's own light panel
     draws only the type for engines other than its own, and EEVEE's holds settings this engine leaves out."""
 
     bl_label = "Light"
-    bl_space_type = "PROPERTIES"
-    bl_region_type = "WINDOW"
     bl_context = "data"
-    COMPAT_ENGINES = {"NEURAL_LAYERED"}
 
     @classmethod
     def poll(cls, context):
-        return context.engine in cls.COMPAT_ENGINES and getattr(context, "light", None) is not None
+        return super().poll(context) and getattr(context, "light", None) is not None
 
     def draw(self, context):
         light = context.light

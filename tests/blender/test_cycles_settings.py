@@ -42,6 +42,20 @@ def _floor(ctx, size=100.0, z=0.0, color=(0.5, 0.5, 0.5)):
     return ctx.object
 
 
+def _checker_floor(ctx, size: float, cuts: int, tiles_per_metre: float):
+    """A floor of ``size`` metres in checkers of a light and a dark Lambertian, ``tiles_per_metre`` a side: a
+    misframed image moves their edges from block to block."""
+    floor = _floor(ctx, size=size)
+    floor.data.materials.append(_diffuse((0.05, 0.05, 0.05)))
+    bpy.ops.object.mode_set(mode="EDIT")
+    bpy.ops.mesh.subdivide(number_cuts=cuts)
+    bpy.ops.object.mode_set(mode="OBJECT")
+    for poly in floor.data.polygons:
+        x, y = (math.floor(tiles_per_metre * c) for c in poly.center[:2])
+        poly.material_index = int(x + y) % 2
+    return floor
+
+
 def _camera(ctx, location=(0.0, 0.0, 4.0), rotation=(0.0, 0.0, 0.0), **settings):
     cam = bpy.data.objects.new("cam", bpy.data.cameras.new("cam"))
     cam.location, cam.rotation_euler = location, rotation
@@ -177,14 +191,7 @@ def test_the_camera_frames_what_cycles_frames(fresh_scene, tmp_path, size, setti
     ctx = fresh_scene
     _empty_scene(ctx, *size)
     ctx.scene.render.pixel_aspect_x, ctx.scene.render.pixel_aspect_y = aspect
-    floor = _floor(ctx, size=6.0)
-    floor.data.materials.append(_diffuse((0.05, 0.05, 0.05)))
-    bpy.ops.object.mode_set(mode="EDIT")
-    bpy.ops.mesh.subdivide(number_cuts=5)
-    bpy.ops.object.mode_set(mode="OBJECT")
-    for poly in floor.data.polygons:
-        c = poly.center
-        poly.material_index = (int(math.floor(c.x)) + int(math.floor(c.y))) % 2
+    _checker_floor(ctx, 6.0, cuts=5, tiles_per_metre=1.0)
     _camera(ctx, location=(0.3, -0.2, 5.0), **settings)
     _light(ctx, "SUN", energy=3.0, angle=0.0)
     cycles, ours, _ = _both(ctx, tmp_path, samples=32)
@@ -334,13 +341,7 @@ def test_a_light_or_an_empty_as_the_scene_camera_frames_what_cycles_frames(fresh
     a 50 mm lens: ours took 50 mm for both (a 90-degree spot saw a third of the width Cycles sees)."""
     ctx = fresh_scene
     _empty_scene(ctx, 32, 32)
-    floor = _floor(ctx, size=6.0)
-    floor.data.materials.append(_diffuse((0.05, 0.05, 0.05)))
-    bpy.ops.object.mode_set(mode="EDIT")
-    bpy.ops.mesh.subdivide(number_cuts=11)
-    bpy.ops.object.mode_set(mode="OBJECT")
-    for poly in floor.data.polygons:
-        poly.material_index = (int(math.floor(2 * poly.center.x)) + int(math.floor(2 * poly.center.y))) % 2
+    _checker_floor(ctx, 6.0, cuts=11, tiles_per_metre=2.0)
     if kind == "EMPTY":
         viewer = bpy.data.objects.new("viewer", None)
         viewer.location = (0.0, 0.0, 4.0)
