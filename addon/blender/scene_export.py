@@ -127,8 +127,7 @@ def _image_node_notes(node) -> list[str]:
     notes = []
     if node.type != "TEX_IMAGE":  # an Environment Texture node: its settings are the sky's
         return [f"its base colour is a {node.type} node's (looked up with the UV map)"]
-    if node.extension != "REPEAT":
-        notes.append(f"its Extension {node.extension.title()} (looked up as Repeat)")
+
     if node.interpolation == "Closest":
         notes.append("its Closest interpolation (looked up filtered)")
     if node.projection != "FLAT":
@@ -223,7 +222,10 @@ def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial:
         alpha_out = image_node.outputs.get("Alpha")  # an Environment Texture node has none
         px = _image_pixels(image, warnings, associate_alpha=alpha_out is not None and not alpha_out.is_linked)
         if px is not None:
-            texture = ImageTexture(px[:, :, :3], uv_map)
+            extension = image_node.extension if image_node.type == "TEX_IMAGE" else "REPEAT"
+            texture = ImageTexture(
+                px[:, :, :3], uv_map, extension if extension in ImageTexture.EXTENSIONS else "REPEAT"
+            )
     if texture is not None:
         color = (1.0, 1.0, 1.0)
     elif not socket.is_linked or image is not None:

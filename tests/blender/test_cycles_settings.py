@@ -491,3 +491,35 @@ def test_an_image_textures_colour_is_the_one_cycles_node_gives(fresh_scene, tmp_
     plain.node_tree.links.new(tex2.outputs["Color"], principled.inputs["Base Color"])
     ours = scene_export.unmanaged_material(plain, []).texture.levels[0]
     np.testing.assert_allclose(ours.reshape(-1, 3).mean(axis=0), cycles.reshape(-1, 3).mean(axis=0), rtol=0.02)
+
+
+@pytest.mark.parametrize("extension", ["REPEAT", "EXTEND", "CLIP", "MIRROR"])
+def test_an_image_textures_extension_is_rendered_as_in_cycles(fresh_scene, tmp_path, extension):
+    """The Image Texture node's Extension beyond the uv square (the plane's uv span -0.5 to 1.5): every mode was
+    looked up as Repeat (Clip 5.4 times Cycles' image mean). A plane in a white sky: a pixel is the albedo."""
+    ctx = fresh_scene
+    _empty_scene(ctx, 32, 32)
+    world = bpy.data.worlds.new("white")
+    if world.node_tree is None:
+        world.use_nodes = True
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+    ctx.scene.world = world
+    _camera(ctx, location=(0.0, 0.0, 2.0), lens=36.0)
+    bpy.ops.mesh.primitive_plane_add(size=2.0)
+    plane = ctx.object
+    for loop in plane.data.uv_layers.active.data:
+        loop.uv = (2.0 * loop.uv[0] - 0.5, 2.0 * loop.uv[1] - 0.5)
+    mat = _diffuse((1.0, 1.0, 1.0))
+    rng = np.random.default_rng(1)
+    px = np.ones((4, 4, 4), np.float32)
+    px[..., :3] = rng.uniform(0.05, 0.95, (4, 4, 3))
+    image = bpy.data.images.new("tiles", 4, 4, float_buffer=True)
+    image.pixels.foreach_set(px.ravel())
+    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
+    tex.image, tex.extension = image, extension
+    mat.node_tree.links.new(tex.outputs["Color"], mat.node_tree.nodes["Diffuse BSDF"].inputs["Color"])
+    plane.data.materials.append(mat)
+    cycles, ours, warnings = _both(ctx, tmp_path, samples=32)
+    assert warnings == []
+    for c in range(3):
+        _assert_blocks_match(cycles[..., c], ours[..., c], 0.08, n=8)

@@ -129,12 +129,18 @@ class ImageTexture:
     Uses the same mip chain and lookup as latent textures (``addon.core.textures.mip``).
     """
 
-    def __init__(self, image: np.ndarray, uv_transform=None):
+    EXTENSIONS = ("REPEAT", "EXTEND", "CLIP", "MIRROR")  # Blender's Image Texture node's Extension
+
+    def __init__(self, image: np.ndarray, uv_transform=None, extension: str = "REPEAT"):
         """``uv_transform``: a (2, 3) affine map applied to the uv before the lookup (a Mapping node's), None for
-        none."""
+        none. ``extension``: what lies outside the uv square, as Blender's Image Texture node says: the image
+        repeated, its edge texels extended, black (Clip) or the image mirrored."""
         img = np.asarray(image, dtype=np.float32)
         if img.ndim != 3 or img.shape[2] < 3 or img.shape[0] < 1 or img.shape[1] < 1:
             raise ValueError(f"an image texture must be (H, W, 3 or 4), got shape {img.shape}")
+        if extension not in self.EXTENSIONS:
+            raise ValueError(f"extension must be one of {self.EXTENSIONS}, got {extension!r}")
+        self.extension = extension
         img = np.nan_to_num(img[:, :, :3], nan=0.0, posinf=0.0, neginf=0.0)
         self.levels = build_mip_chain(img)
         self.uv_transform = None
@@ -151,7 +157,19 @@ class ImageTexture:
             a = self.uv_transform
             uv = np.asarray(uv, dtype=np.float64) @ a[:, :2].T + a[:, 2]
             footprint = np.asarray(footprint, dtype=np.float64) * np.sqrt(abs(np.linalg.det(a[:, :2])))
-        return trilinear_lookup(self.levels, uv, footprint)
+        if self.extension == "REPEAT":
+            return trilinear_lookup(self.levels, uv, footprint)
+        uv = np.asarray(uv, dtype=np.float64)
+        if self.extension == "MIRROR":  # a triangle wave of period 2: the image, then its mirror image
+            uv = 1.0 - np.abs(np.mod(uv, 2.0) - 1.0)
+        h, w = self.levels[0].shape[:2]
+        half = 0.5 / np.array([w, h])  # the edge texels' centres: a tap never reaches round to the other side
+        out = trilinear_lookup(self.levels, np.clip(uv, half, 1.0 - half), footprint)
+        if self.extension == "CLIP":  # black outside the uv square, blended over half a texel each side as a
+            # bilinear tap between the edge texel and a black one beyond it blends them
+            texels = np.minimum(uv, 1.0 - uv) * np.array([w, h]) + 0.5
+            out *= np.prod(np.clip(texels, 0.0, 1.0), axis=1)[:, None].astype(out.dtype)
+        return out
 
 
 class LambertMaterial:
