@@ -61,8 +61,8 @@ def save_image(path: str, rgba) -> None:
     p = Path(bpy.path.abspath(path))
     if p.suffix.lower() == ".exr":
         write_exr(p, rgba)
-    elif p.suffix.lower() == ".png":
-        write_png(p, rgba[:, :, :3])
+    elif p.suffix.lower() == ".png":  # with its alpha where a transparent film left some
+        write_png(p, rgba if (rgba[:, :, 3] < 1.0).any() else rgba[:, :, :3])
     else:
         raise ValueError(f"filepath {path!r} must end in .exr or .png")
 

@@ -960,14 +960,14 @@ def _emission_weight(strategy, p_select, pdf_light, prev_pdf, prev_delta, prev_m
 @njit(**_JIT)
 def add_emission(
     area_params, area_ellipse, has_env, env, strategy, p_select,
-    o, d, t, row, throughput, prev_pdf, prev_delta, prev_mis, L, eps, camera, reach,
+    o, d, t, row, throughput, prev_pdf, prev_delta, prev_mis, L, eps, camera, reach, features,
 ):  # fmt: skip
     """Add to ``L[row]`` the emission rays (o, d) reach before distance ``t``: every area light that no surface
     blocks (the surface at ``t`` is not nearer than :func:`_unblocked_before` the light, as for the shadow rays, with
     ``eps`` the offset of each ray's origin: 0 for the camera's), toward the ray as its spread lets it
     (:func:`spread_factor`), and not when the rays are the camera's (``camera``) and the light is hidden from them
     (``area_params[j, 19]`` 0) or lies beyond the far clipping plane (``reach``, each camera ray's length to it; empty:
-    none),
+    none); a camera ray that meets a light covers its pixel (``features[row, 7]``, the film's coverage: 1),
     and the environment ``env`` where the ray escapes (t = inf; with ``has_env``), each weighted by how the ray
     was sampled (:func:`_emission_weight`)."""
     image, pixel_pdf, _, _, z_edges, row_of_bin, edges, column_of_bin = env
@@ -986,6 +986,8 @@ def add_emission(
                 w *= spread_factor(area_params, j, cos_l)
                 for k in range(3):
                     L[r, k] += throughput[i, k] * area_params[j, 12 + k] * w
+                if camera:
+                    features[r, 7] = 1.0
         if has_env and math.isinf(t[i]):
             r0, r1, r2, pdf_e = _env_lookup(image, pixel_pdf, z_edges, row_of_bin, edges, column_of_bin, dx, dy, dz)
             w = _emission_weight(strategy, p_select, pdf_e, prev_pdf[i], prev_delta[i], prev_mis[i])

@@ -173,6 +173,32 @@ def test_a_transparent_film_leaves_the_sky_out_of_the_camera_rays_and_keeps_its_
     np.testing.assert_allclose(rgba[:, :6, :3], solid[:, :6, :3], rtol=1e-6)  # the same paths, lit by the sky
     middle = rgba[:, 7:9, 3]
     assert 0.2 < middle.mean() < 0.8  # the floor's edge crosses these pixels
+    # an area light the camera sees is opaque, as Cycles keeps it (its light with alpha 0 was a pure additive glow)
+    m = np.diag([1.0, -1.0, -1.0, 1.0])  # emitting up, toward the camera, over the sky's half of the image
+    m[:3, 3] = (0.8, 0.0, 1.0)
+    lit = Scene(cam, scene.mesh, scene.materials, [AreaLight(m, power=20.0, size=0.4)], sky)
+    rgba = render(lit, RenderSettings(samples=16, max_bounces=0, seed=2, transparent=True))[0].rgba()
+    brightness = rgba[..., :3].max(axis=2)
+    seen, whole = brightness > 1.0, brightness > 0.99 * brightness.max()  # the light's pixels, and those it fills
+    assert whole.any() and np.all(rgba[whole][:, 3] == 1.0) and np.all(rgba[seen][:, 3] > 0.0)
+
+
+def test_a_png_of_a_transparent_film_keeps_its_alpha_straight(tmp_path):
+    from addon.core.render.film import write_png
+    from addon.core.textures.latent_texture import oiio_module
+
+    rgba = np.zeros((1, 3, 4), np.float32)
+    rgba[0, 0] = (0.5, 0.5, 0.5, 1.0)  # covered
+    rgba[0, 1] = (0.25, 0.25, 0.25, 0.5)  # half covered: premultiplied 0.5 grey
+    write_png(tmp_path / "t.png", rgba)
+    oiio = oiio_module()
+    as_stored = oiio.ImageSpec()
+    as_stored.attribute("oiio:UnassociatedAlpha", 1)  # the file's values, not multiplied by their alpha on reading
+    back = oiio.ImageBuf(str(tmp_path / "t.png"), 0, 0, as_stored).get_pixels()
+    assert back.shape == (1, 3, 4)
+    np.testing.assert_allclose(back[0, :, 3], (1.0, 0.5, 0.0), atol=1 / 255)
+    np.testing.assert_allclose(back[0, 0, :3], back[0, 1, :3], atol=1 / 255)  # straight: the same grey
+    np.testing.assert_allclose(back[0, 2, :3], 0.0)
 
 
 @pytest.mark.parametrize("clip_start", [0.0, 0.1, 2.0])

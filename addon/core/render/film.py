@@ -99,7 +99,7 @@ def to_srgb(linear: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
-def _write_oiio(path: Path, pixels: np.ndarray, pixel_type: str) -> None:
+def _write_oiio(path: Path, pixels: np.ndarray, pixel_type: str, straight_alpha: bool = False) -> None:
     """Write (H, W, C) ``pixels`` through OpenImageIO (shipped with Blender and the bpy wheel; the
     format follows the file name), published as the textures' files are: a temporary name unique to
     this process, flushed and renamed over ``path`` in one step, removed on any failure. A folder that is not
@@ -109,6 +109,8 @@ def _write_oiio(path: Path, pixels: np.ndarray, pixel_type: str) -> None:
 
     oiio = oiio_module()
     spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], getattr(oiio, pixel_type))
+    if straight_alpha:  # the pixels' colour is not multiplied by their alpha: written as they are
+        spec.attribute("oiio:UnassociatedAlpha", 1)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
@@ -126,9 +128,18 @@ def _write_oiio(path: Path, pixels: np.ndarray, pixel_type: str) -> None:
 
 
 def write_png(path: str | os.PathLike, linear: np.ndarray, exposure: float = 1.0) -> None:
-    """8-bit sRGB PNG of a linear (H, W, 3) image, through OpenImageIO (Blender ships no Pillow)."""
-    img = (to_srgb(np.asarray(linear)[:, :, :3] * exposure) * 255 + 0.5).astype(np.uint8)
-    _write_oiio(Path(path), img, "UINT8")
+    """8-bit sRGB PNG of a linear (H, W, 3) image, through OpenImageIO (Blender ships no Pillow). A (H, W, 4) image
+    is premultiplied, as the film's (``Film.rgba``): it is written RGBA with straight alpha, as Blender writes a
+    PNG (a transparent film's background transparent, its edges their own colour)."""
+    linear = np.asarray(linear)
+    rgb = linear[:, :, :3] * exposure
+    if linear.shape[2] < 4:
+        _write_oiio(Path(path), (to_srgb(rgb) * 255 + 0.5).astype(np.uint8), "UINT8")
+        return
+    alpha = np.clip(linear[:, :, 3:4], 0.0, 1.0)
+    straight = np.where(alpha > 0.0, rgb / np.maximum(alpha, 1e-12), 0.0)
+    img = np.concatenate([to_srgb(straight), alpha], axis=2)
+    _write_oiio(Path(path), (img * 255 + 0.5).astype(np.uint8), "UINT8", straight_alpha=True)
 
 
 def write_exr(path: str | os.PathLike, linear: np.ndarray) -> None:

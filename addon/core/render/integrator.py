@@ -722,11 +722,18 @@ def _camera_paths(
 
 
 def _add_emission(
-    ctx: _Context, paths: _Paths, t: np.ndarray, L: np.ndarray, camera: bool, reach: np.ndarray | None = None
+    ctx: _Context,
+    paths: _Paths,
+    t: np.ndarray,
+    L: np.ndarray,
+    camera: bool,
+    reach: np.ndarray | None = None,
+    features: np.ndarray | None = None,
 ) -> None:
     """Emission the rays reach: area lights in front of the first surface (distance ``t``; for the camera's rays,
-    ``camera``, only the lights visible to the camera and before the far clipping plane, ``reach``), the sky where
-    they escape (t = inf), weighted against next-event estimation by how each ray was sampled."""
+    ``camera``, only the lights visible to the camera and before the far clipping plane, ``reach``, each one it
+    meets covering its pixel in ``features``), the sky where they escape (t = inf), weighted against next-event
+    estimation by how each ray was sampled."""
     if len(ctx.area_params) == 0 and ctx.env is None:
         return
     sky = ctx.env is not None and not (camera and ctx.settings.transparent)  # a transparent film: no sky seen directly
@@ -734,11 +741,12 @@ def _add_emission(
         ctx.area_params, ctx.area_ellipse, sky, ctx.env_arrays,
         ctx.strategy_code, ctx.p_select,
         paths.o, paths.d, t, paths.row, paths.throughput, paths.pdf, paths.delta, paths.mis, L, paths.eps, camera,
-        reach if reach is not None else _NO_REACH,
+        reach if reach is not None else _NO_REACH, features if features is not None else _NO_FEATURES,
     )  # fmt: skip
 
 
 _NO_REACH = np.empty(0)
+_NO_FEATURES = np.empty((0, Film.FEATURES))
 
 
 def _surface_hits(ctx: _Context, paths: _HitPaths, hit, t, prim, bu, bv, groups, scratch: Scratch) -> _Hits:
@@ -887,7 +895,7 @@ def _trace_paths(
         rng = np.random.default_rng([s.seed, pass_index, chunk_index, depth + 1])
         t, prim, bu, bv = ctx.tracer.intersect(paths.o, paths.d, stats, scratch, tmax if depth == 0 else None)
         with _shading(stats):
-            _add_emission(ctx, paths, t, L, depth == 0, tmax if depth == 0 else None)
+            _add_emission(ctx, paths, t, L, depth == 0, tmax if depth == 0 else None, features if depth == 0 else None)
         if depth == last:
             break
         # Sorted by material (stable), so that each material shades one contiguous slice of rows.
