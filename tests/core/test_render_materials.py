@@ -457,3 +457,18 @@ def test_reference_mode_samples_the_delta_lobe_under_a_rough_index_matched_top_c
     rng = np.random.default_rng(0)
     shaded = bound.shade(wo, np.zeros((0, 3)), np.zeros(0, dtype=np.int64), rng.random(n), rng.random((n, 2)), False)
     np.testing.assert_allclose(shaded.sample.weight.mean(axis=0), truth[0], atol=0.02)  # it was 0.04 short
+
+
+@pytest.mark.parametrize("extension", ["EXTEND", "CLIP", "MIRROR"])
+def test_an_image_textures_extension_holds_when_minified(extension):
+    """Extend, Clip and Mirror never show the far edge: looked up on a coarser mip level, the taps wrapped round to
+    it (a white-left, black-right image extended to its left read 0.53 for 1 at a 16-texel footprint)."""
+    from addon.core.render.materials import ImageTexture
+
+    img = np.zeros((64, 64, 3), np.float32)
+    img[:, :32] = 1.0  # left half white
+    tex = ImageTexture(img, extension=extension)
+    uv = np.array([[-0.3, 0.5], [0.02, 0.5], [0.98, 0.5], [1.3, 0.5]])
+    got = tex.lookup(uv, np.full(4, 16.0 / 64.0))[:, 0]
+    want = {"EXTEND": (1.0, 1.0, 0.0, 0.0), "CLIP": (0.0, 1.0, 0.0, 0.0), "MIRROR": (1.0, 1.0, 0.0, 0.0)}[extension]
+    np.testing.assert_allclose(got, want, atol=1e-6)

@@ -164,7 +164,9 @@ class ImageTexture:
             uv = 1.0 - np.abs(np.mod(uv, 2.0) - 1.0)
         h, w = self.levels[0].shape[:2]
         half = 0.5 / np.array([w, h])  # the edge texels' centres: a tap never reaches round to the other side
-        out = trilinear_lookup(self.levels, np.clip(uv, half, 1.0 - half), footprint)
+        # on the base level only, as Cycles looks an image up (no mip levels by default): a coarser level's taps
+        # wrap round to the far edge, which these modes never show (a minified decal took 47% of the other edge)
+        out = trilinear_lookup(self.levels, np.clip(uv, half, 1.0 - half), footprint, n_levels=1)
         if self.extension == "CLIP":  # black outside the uv square, blended over half a texel each side as a
             # bilinear tap between the edge texel and a black one beyond it blends them
             texels = np.minimum(uv, 1.0 - uv) * np.array([w, h]) + 0.5
