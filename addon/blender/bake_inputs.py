@@ -96,6 +96,11 @@ def spatial_stack_from_material(mat):
 PREVIEW_MAX_SIDE = 256  # texels a side the representative texel of a material's maps is found at
 
 
+def has_maps(mat) -> bool:
+    """Whether any layer of the material has a parameter map with an image."""
+    return any(pmap.image is not None for item in mat.neural_layers.layers for pmap in item.maps)
+
+
 def representative_stack(mat):
     """``(stack, share)``: the stack of the most common texel of the material's maps (found at most
     :data:`PREVIEW_MAX_SIDE` texels a side, the maps box-filtered down) and the share of the texels it covers; None

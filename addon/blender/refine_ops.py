@@ -65,9 +65,10 @@ class NLM_OT_refine_latent(LongOperator, bpy.types.Operator):
         from ..core.neural.models import load_models
         from ..core.neural.refine import refine_latent
         from ..core.stack import clamp_to_trained
+        from . import bake_state
 
         mat, stack = self.target_stack(context)
-        if any(pmap.image is not None for item in mat.neural_layers.layers for pmap in item.maps):
+        if bake_state.current_texture(mat)[0] is not None:  # F12 renders the bake, not a latent
             raise UserError(
                 f"material {mat.name!r}: its maps drive it, through a baked texture, not one latent: Refine fits a "
                 "constant stack's latent, which F12 would not render; refine the bake instead "

@@ -249,6 +249,13 @@ def _baked_texture(mat, warnings: list[str]):
     varying stack it was baked from (what reference mode shades), else ``(None, None)`` (with a warning if
     it is stale)."""
     if not mat.neural_layers.texture_path:
+        from . import bake_inputs
+
+        if bake_inputs.has_maps(mat):
+            warnings.append(
+                f"material {mat.name!r}: its maps are not baked (Latent Texture > Bake Latent Texture); rendering "
+                "its constant stack"
+            )
         return None, None
     from . import bake_state
 

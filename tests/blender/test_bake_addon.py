@@ -642,6 +642,12 @@ def test_a_maps_alpha_mode_is_part_of_what_its_bake_was_made_from(wood, bpy_addo
     assert bake_state.current_texture(wood)[1] == "baked texture is out of date: bake again"
 
 
+def bake_state_current(mat):
+    from addon.blender import bake_state
+
+    return bake_state.current_texture(mat)[0]
+
+
 def test_a_material_driven_by_maps_previews_its_most_common_texel_and_refuses_refine(wood, bpy_addon):
     """Its sliders alone are a stack F12 never renders (a coat the map made glossy previewed 67 times too dark),
     and Refine fitted a latent F12 did not use, saying it was kept."""
@@ -658,6 +664,16 @@ def test_a_material_driven_by_maps_previews_its_most_common_texel_and_refuses_re
     assert share == pytest.approx(0.75)
     assert stack.coatings[0].roughness == pytest.approx(rough.max(), rel=1e-6)
     assert stack != stack_io.stack_from_material(wood)  # not the sliders' stack
+    # not baked: F12 renders the sliders' stack (and says the maps are not), which Refine may refine
+    from addon.blender import scene_export
+
+    warnings = []
+    assert scene_export._baked_texture(wood, warnings) == (None, None)
+    assert any("maps are not baked" in w for w in warnings)
+    assert bake_state_current(wood) is None
+    # baked: F12 renders the bake, not a latent, and Refine says so
+    assert run_operator(bpy.ops.neural_layers.bake_texture).finished
+    assert bake_state_current(wood) is not None
     report = run_operator(bpy.ops.neural_layers.refine_latent, budget=1.0)
     assert not report.finished and "maps drive it" in report.error
     for item in wood.neural_layers.layers:
