@@ -212,3 +212,22 @@ def unregister() -> None:
         handlers = getattr(bpy.app.handlers, name)
         if handler in handlers:
             handlers.remove(handler)
+
+
+def preview_target(mat, stack):
+    """``(stack, latent, notes)`` a sidebar preview of ``mat`` (whose sliders give ``stack``) shows: what F12 renders
+    of the material. Its stack and its latent; or, where its maps drive it through a current bake, the stack of
+    the maps' most common texel (``bake_inputs.representative_stack``) with no latent of its own and a note saying
+    so. Maps not baked (or baked for other inputs) are not rendered: F12 renders the sliders' stack, and the note
+    says that."""
+    if not bake_inputs.has_maps(mat):
+        return stack, stack_io.current_latent(mat), []
+    if current_texture(mat)[0] is None:
+        note = "its maps are not baked (or the bake is out of date): F12 renders the sliders' stack, previewed here"
+        return stack, stack_io.current_latent(mat), [note]
+    try:
+        texel, share = bake_inputs.representative_stack(mat)
+    except ValueError as e:  # a map that cannot be read: the sliders' stack, said
+        return stack, stack_io.current_latent(mat), [f"previewing the sliders' stack: {e}"]
+    note = f"previewing the stack of the most common texel of its maps ({share:.0%} of them): F12 renders the maps"
+    return texel, None, [note]

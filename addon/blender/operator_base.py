@@ -140,26 +140,6 @@ class MaterialOperator:
             raise UserError(f"material {mat.name!r} has an empty layer stack: add a base layer or pick a preset")
         return mat, stack
 
-    def preview_target(self, context):
-        """``(mat, stack, latent, notes)`` for a sidebar preview: what F12 renders of the material. Its stack and
-        its latent; or, where its maps drive it through a current bake, the stack of the maps' most common texel
-        (``bake_inputs.representative_stack``) with no latent of its own and a note saying so. Maps not baked (or
-        baked for other inputs) are not rendered: F12 renders the sliders' stack, and the note says that."""
-        from . import bake_inputs, bake_state
-
-        mat, stack = self.target_stack(context)
-        if not bake_inputs.has_maps(mat):
-            return mat, stack, stack_io.current_latent(mat), []
-        if bake_state.current_texture(mat)[0] is None:
-            note = "its maps are not baked (or the bake is out of date): F12 renders the sliders' stack, previewed here"
-            return mat, stack, stack_io.current_latent(mat), [note]
-        try:
-            texel, share = bake_inputs.representative_stack(mat)
-        except ValueError as e:  # a map that cannot be read: the sliders' stack, said
-            return mat, stack, stack_io.current_latent(mat), [f"previewing the sliders' stack: {e}"]
-        note = f"previewing the stack of the most common texel of its maps ({share:.0%} of them): F12 renders the maps"
-        return mat, texel, None, [note]
-
     def report_notes(self, notes):
         for note in notes:
             self.report({"WARNING"}, note)

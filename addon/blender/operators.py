@@ -21,7 +21,7 @@ from bpy.props import BoolProperty, EnumProperty, StringProperty
 
 from ..core import preview
 from ..core.stack import PRESETS, Stack
-from . import layer_types, stack_io
+from . import bake_state, layer_types, stack_io
 from .layer_types import BASE_LAYER_TYPES
 from .operator_base import LongOperator, MaterialOperator, UserError, fail, guarded
 
@@ -365,7 +365,8 @@ class NLM_OT_preview_lobe(LongOperator, bpy.types.Operator):
     bl_options = {"REGISTER"}
 
     def prepare(self, context):
-        mat, stack, latent, texel_notes = self.preview_target(context)
+        mat, stack = self.target_stack(context)
+        stack, latent, texel_notes = bake_state.preview_target(mat, stack)
         s = mat.neural_layers
         theta, res, method, walks = math.degrees(s.theta_i), s.lobe_resolution, s.preview_method, s.walks
         size = stack_io.model_size(mat)
@@ -398,7 +399,8 @@ class NLM_OT_preview_sphere(LongOperator, bpy.types.Operator):
     bl_options = {"REGISTER"}
 
     def prepare(self, context):
-        mat, stack, latent, texel_notes = self.preview_target(context)
+        mat, stack = self.target_stack(context)
+        stack, latent, texel_notes = bake_state.preview_target(mat, stack)
         s = mat.neural_layers
         res, method, walks, k = s.sphere_resolution, s.preview_method, s.walks, s.env_samples
         size = stack_io.model_size(mat)
@@ -433,7 +435,8 @@ class NLM_OT_compare_reference(LongOperator, bpy.types.Operator):
     bl_options = {"REGISTER"}
 
     def prepare(self, context):
-        mat, stack, latent, texel_notes = self.preview_target(context)
+        mat, stack = self.target_stack(context)
+        stack, latent, texel_notes = bake_state.preview_target(mat, stack)
         s = mat.neural_layers
         theta, res, walks = math.degrees(s.theta_i), s.lobe_resolution, s.walks
         size = stack_io.model_size(mat)
