@@ -356,6 +356,31 @@ def test_a_light_or_an_empty_as_the_scene_camera_frames_what_cycles_frames(fresh
     _assert_blocks_match(cycles, ours, 0.05, n=4)
 
 
+def _textured_plane_in_white_sky(ctx):
+    """A 2 m plane filling a 32 x 32 view under a white sky, its Diffuse BSDF's colour from an Image Texture node of
+    a 4 x 4 float image of random texels: direct light only, a pixel is the texture's albedo there. Returns the
+    plane, its material and the node."""
+    _empty_scene(ctx, 32, 32)
+    world = bpy.data.worlds.new("white")
+    if world.node_tree is None:
+        world.use_nodes = True
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+    ctx.scene.world = world
+    _camera(ctx, location=(0.0, 0.0, 2.0), lens=36.0)
+    bpy.ops.mesh.primitive_plane_add(size=2.0)
+    plane = ctx.object
+    mat = _diffuse((1.0, 1.0, 1.0))
+    px = np.ones((4, 4, 4), np.float32)
+    px[..., :3] = np.random.default_rng(0).uniform(0.05, 0.95, (4, 4, 3))
+    image = bpy.data.images.new("tiles", 4, 4, float_buffer=True)
+    image.pixels.foreach_set(px.ravel())
+    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
+    tex.image = image  # Linear interpolation (the default) on both sides: magnified, no mip level in play
+    mat.node_tree.links.new(tex.outputs["Color"], mat.node_tree.nodes["Diffuse BSDF"].inputs["Color"])
+    plane.data.materials.append(mat)
+    return plane, mat, tex
+
+
 @pytest.mark.parametrize(
     "vector_type, location, rotation, scale",
     [
@@ -373,23 +398,8 @@ def test_a_mapping_node_places_an_image_texture_as_in_cycles(
     ignored, a texture scaled 2x rendered blocks 0.61 of the image's brightest off Cycles'. A plane in a white sky,
     direct light only: a pixel is the texture's albedo there."""
     ctx = fresh_scene
-    _empty_scene(ctx, 32, 32)
-    world = bpy.data.worlds.new("white")
-    if world.node_tree is None:
-        world.use_nodes = True
-    world.node_tree.nodes["Background"].inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
-    ctx.scene.world = world
-    _camera(ctx, location=(0.0, 0.0, 2.0), lens=36.0)
-    bpy.ops.mesh.primitive_plane_add(size=2.0)
-    mat = _diffuse((1.0, 1.0, 1.0))
+    _, mat, tex = _textured_plane_in_white_sky(ctx)
     tree = mat.node_tree
-    rng = np.random.default_rng(0)
-    px = np.ones((4, 4, 4), np.float32)
-    px[..., :3] = rng.uniform(0.05, 0.95, (4, 4, 3))
-    image = bpy.data.images.new("tiles", 4, 4, float_buffer=True)
-    image.pixels.foreach_set(px.ravel())
-    tex = tree.nodes.new("ShaderNodeTexImage")
-    tex.image = image  # Linear interpolation (the default) on both sides: magnified, no mip level in play
     mapping, coords = tree.nodes.new("ShaderNodeMapping"), tree.nodes.new("ShaderNodeTexCoord")
     mapping.vector_type = vector_type
     if vector_type != "VECTOR":  # a Vector mapping has no Location
@@ -398,8 +408,6 @@ def test_a_mapping_node_places_an_image_texture_as_in_cycles(
     mapping.inputs["Scale"].default_value = scale
     tree.links.new(coords.outputs["UV"], mapping.inputs["Vector"])
     tree.links.new(mapping.outputs["Vector"], tex.inputs["Vector"])
-    tree.links.new(tex.outputs["Color"], tree.nodes["Diffuse BSDF"].inputs["Color"])
-    ctx.object.data.materials.append(mat)
     cycles, ours, warnings = _both(ctx, tmp_path, samples=32)
     assert warnings == []
     for c in range(3):
@@ -498,27 +506,10 @@ def test_an_image_textures_extension_is_rendered_as_in_cycles(fresh_scene, tmp_p
     """The Image Texture node's Extension beyond the uv square (the plane's uv span -0.5 to 1.5): every mode was
     looked up as Repeat (Clip 5.4 times Cycles' image mean). A plane in a white sky: a pixel is the albedo."""
     ctx = fresh_scene
-    _empty_scene(ctx, 32, 32)
-    world = bpy.data.worlds.new("white")
-    if world.node_tree is None:
-        world.use_nodes = True
-    world.node_tree.nodes["Background"].inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
-    ctx.scene.world = world
-    _camera(ctx, location=(0.0, 0.0, 2.0), lens=36.0)
-    bpy.ops.mesh.primitive_plane_add(size=2.0)
-    plane = ctx.object
+    plane, _, tex = _textured_plane_in_white_sky(ctx)
     for loop in plane.data.uv_layers.active.data:
         loop.uv = (2.0 * loop.uv[0] - 0.5, 2.0 * loop.uv[1] - 0.5)
-    mat = _diffuse((1.0, 1.0, 1.0))
-    rng = np.random.default_rng(1)
-    px = np.ones((4, 4, 4), np.float32)
-    px[..., :3] = rng.uniform(0.05, 0.95, (4, 4, 3))
-    image = bpy.data.images.new("tiles", 4, 4, float_buffer=True)
-    image.pixels.foreach_set(px.ravel())
-    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
-    tex.image, tex.extension = image, extension
-    mat.node_tree.links.new(tex.outputs["Color"], mat.node_tree.nodes["Diffuse BSDF"].inputs["Color"])
-    plane.data.materials.append(mat)
+    tex.extension = extension
     cycles, ours, warnings = _both(ctx, tmp_path, samples=32)
     assert warnings == []
     for c in range(3):
