@@ -458,19 +458,27 @@ def frame_decoder_queries(pixels: int, samples: int, max_bounces: int, hits_per_
     return 2.0 * int(pixels) * int(samples) * hits
 
 
+def auto_spec(material):
+    """The ``LayeredSpec`` of a scene material whose decoder :func:`assign_decoders` chooses (a coated stack
+    without a latent texture or a latent of its own, which fix the size), else None."""
+    from .render.materials import LayeredSpec
+
+    spec = material if isinstance(material, LayeredSpec) else None
+    if spec is None and isinstance(material, Stack):
+        spec = LayeredSpec(material)
+    if spec is None or not spec.stack.coatings or spec.latent_texture is not None or spec.latent is not None:
+        return None
+    return spec
+
+
 def scene_decoder_hits(scene, max_bounces: int) -> float:
     """How often a path of ``scene`` meets a layered material whose decoder *Auto* chooses (coated stacks without
     a latent texture or a latent of their own), on average, from a pilot of camera rays and a bounce
     (``render.integrator.material_hits_per_path``): what the time budget predicts from. A cube filling a tenth of
     the image was predicted 7 hits a path (the bound), 10 times its decoder time."""
     from .render.integrator import material_hits_per_path
-    from .render.materials import LayeredSpec
 
-    def decided(m) -> bool:
-        spec = m if isinstance(m, LayeredSpec) else (LayeredSpec(m) if isinstance(m, Stack) else None)
-        return spec is not None and bool(spec.stack.coatings) and spec.latent_texture is None and spec.latent is None
-
-    chosen = np.array([decided(m) for m in scene.materials], dtype=bool)
+    chosen = np.array([auto_spec(m) is not None for m in scene.materials], dtype=bool)
     if not chosen.any():
         return 0.0
     return material_hits_per_path(scene, chosen, max_bounces)
@@ -600,7 +608,6 @@ def assign_decoders(
     ``calibrate`` (True, False or "cached") gives each material its albedo calibration
     (``neural_material.make``), and "auto" measures the errors of the materials so calibrated.
     """
-    from .render.materials import LayeredSpec
 
     if quality != "auto":
         from .neural.models import SIZES
@@ -614,8 +621,8 @@ def assign_decoders(
     sizes, left_out = None, ()
     budgeted = False  # the budget's sizes worked out, once a material goes through Auto: no notes without one
     for name, m in zip(names, scene.materials, strict=True):
-        spec = m if isinstance(m, LayeredSpec) else (LayeredSpec(m) if isinstance(m, Stack) else None)
-        if spec is None or not spec.stack.coatings or spec.latent_texture is not None or spec.latent is not None:
+        spec = auto_spec(m)
+        if spec is None:
             out.append(m)
             continue
         if quality == "auto" and budget_seconds is not None and not budgeted:

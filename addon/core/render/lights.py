@@ -198,7 +198,7 @@ class AreaLight:
 
     def __post_init__(self):
         """``normalize``: Blender's *Normalize* (the power spread over the light's area; off, the radiance is
-        power / pi whatever the size). ``spread``: Blender's *Spread* in radians, (0, pi]: the light leaves within
+        power / pi whatever the size). ``spread``: Blender's *Spread* in radians, [0, pi]: the light leaves within
         that cone of its normal (``spread_factor``). ``camera_visible``: whether camera rays see the light itself
         (the object's *Camera* ray visibility), as Cycles draws it; it lights the scene either way."""
         m = np.asarray(self.matrix, dtype=np.float64).reshape(4, 4)
