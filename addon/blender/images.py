@@ -17,7 +17,8 @@ import numpy as np
 
 
 def store_image(name: str, rgba: np.ndarray, metadata: dict | None = None):
-    """Write an (H, W, 4) float image (rows top to bottom) into ``bpy.data.images[name]``.
+    """Write an (H, W, 4) float image (rows top to bottom, colour premultiplied by alpha) into
+    ``bpy.data.images[name]``.
 
     The image is float, linear, reused (and resized) if it exists, and kept by the file (a fake user).
     ``metadata`` goes into the image's custom properties (e.g. the timings of a comparison).
@@ -40,7 +41,9 @@ def store_image(name: str, rgba: np.ndarray, metadata: dict | None = None):
     if image is None:
         image = bpy.data.images.new(name, width=w, height=h, alpha=True, float_buffer=True)
     image.colorspace_settings.name = "Linear Rec.709"
-    image.alpha_mode = "STRAIGHT"
+    # premultiplied, as Blender's float buffers and render results are (``Film.rgba``): marked Straight, the packed
+    # EXR of a transparent film's preview came back from a save with its colour multiplied by its alpha again
+    image.alpha_mode = "PREMUL"
     # Blender stores rows bottom to top
     image.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).ravel())
     image.update()
@@ -61,8 +64,7 @@ PREVIEW_KEY = "nlm_preview"  # marks the images ``store_image`` writes
 def pack_previews(*_args) -> None:
     """``save_pre``: the previews' pixels packed into the file (as OpenEXR, float). A generated image keeps no
     pixels in a .blend: a preview shown in the Image Editor came back black after a reload. The EXR is
-    premultiplied, which keeps the previews' pixels: their alpha is 1, or 0 where they are black (outside a lobe's
-    disk or a sphere)."""
+    premultiplied, as the previews' pixels are (``store_image``)."""
     for image in bpy.data.images:
         if image.get(PREVIEW_KEY) and image.library is None and (image.is_dirty or image.packed_file is None):
             image.file_format = "OPEN_EXR"

@@ -344,7 +344,9 @@ def test_background_previews_leave_the_screen_alone_and_use_an_open_image_editor
 
 def test_a_preview_image_keeps_its_pixels_through_a_save_and_a_reload(bpy_addon, fresh_scene, tmp_path):
     """A preview is a generated float image, whose pixels a .blend does not keep: one shown in the Image Editor came
-    back black after a reload. The previews are packed as the file is saved (OpenEXR), and written again after."""
+    back black after a reload. The previews are packed as the file is saved (OpenEXR), and written again after. A
+    transparent film's Render Preview has partial alpha over premultiplied colour: marked Straight, its colour came
+    back multiplied by its alpha once more."""
     from addon.blender import images
 
     bpy = bpy_addon
@@ -352,7 +354,8 @@ def test_a_preview_image_keeps_its_pixels_through_a_save_and_a_reload(bpy_addon,
     path = str(tmp_path / "previews.blend")
     for _ in range(2):  # a preview, and a preview again after the file packed the first
         rgba = rng.random((6, 8, 4)).astype(np.float32) * 4.0  # beyond 1: float pixels
-        rgba[..., 3] = 1.0  # opaque, as the previews are
+        rgba[..., 3] = np.where(rng.random((6, 8)) < 0.5, 1.0, rng.uniform(0.1, 0.9, (6, 8)))  # some half covered
+        rgba[..., :3] *= rgba[..., 3:]  # premultiplied, as Film.rgba is
         image = images.store_image("NLM Preview Test", rgba)
         image.use_fake_user = True  # as the Image Editor's user keeps it
         bpy.ops.wm.save_as_mainfile(filepath=path)
