@@ -494,17 +494,19 @@ def surface_hits(out, corners, face_normals, uv_scale, tri_offset, hit, prim, bu
 
 
 @njit(**_JIT)
-def first_hit_features(features, row, weight, ns, dist):
+def first_hit_features(features, row, weight, ns, dist, d, forward):
     """What a denoiser is guided by, into ``features[row]`` (``render.film``): the first sample's weight, at least 0
     (its mean is the directional albedo; ``Film.features`` clips the mean to [0, 1], not each weight, which made the
-    mean of a material sampled by a proposal 15% low), the world shading normal, the depth, and 1 for coverage (the
-    ray met a surface: a transparent film's alpha)."""
+    mean of a material sampled by a proposal 15% low), the world shading normal, the depth as Cycles' Z pass has it
+    (the hit's distance ``dist`` from the camera along its ray ``d``, projected on the camera's axis ``forward``: a
+    floor facing the camera is one depth across the frame), and 1 for coverage (the ray met a surface: a transparent
+    film's alpha)."""
     for i in range(len(row)):
         r = row[i]
         for k in range(3):
             features[r, k] = max(weight[i, k], 0.0)
             features[r, 3 + k] = ns[i, k]
-        features[r, 6] = dist[i]
+        features[r, 6] = dist[i] * (d[i, 0] * forward[0] + d[i, 1] * forward[1] + d[i, 2] * forward[2])
         features[r, 7] = 1.0
 
 

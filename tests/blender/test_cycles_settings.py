@@ -514,3 +514,47 @@ def test_an_image_textures_extension_is_rendered_as_in_cycles(fresh_scene, tmp_p
     assert warnings == []
     for c in range(3):
         _assert_blocks_match(cycles[..., c], ours[..., c], 0.08, n=8)
+
+
+def _depth_pass(ctx, tmp_path, engine: str, samples: int):
+    """The Depth pass F12 writes with ``engine``, (H, W) float32, from its multilayer EXR."""
+    s = ctx.scene
+    s.render.engine = engine
+    s.neural_render.samples, s.neural_render.max_bounces = samples, 0
+    s.cycles.device, s.cycles.samples, s.cycles.use_denoising = "CPU", samples, False
+    ctx.view_layer.use_pass_z = True
+    s.render.image_settings.media_type = "MULTI_LAYER_IMAGE"  # Blender 5's multilayer OpenEXR
+    s.render.filepath = str(tmp_path / f"{engine}.exr")
+    bpy.ops.render.render(write_still=True)
+    bpy.utils.expose_bundled_modules()
+    import OpenImageIO as oiio  # noqa: N813
+
+    inp = oiio.ImageInput.open(s.render.filepath)
+    try:
+        part = 0
+        while inp.seek_subimage(part, 0):  # the passes may lie in several parts of the file
+            names = list(inp.spec().channelnames)
+            if f"{ctx.view_layer.name}.Depth.Z" in names:
+                z = names.index(f"{ctx.view_layer.name}.Depth.Z")
+                return inp.read_image(part, 0, z, z + 1, oiio.FLOAT)[..., 0]
+            part += 1
+    finally:
+        inp.close()
+    raise AssertionError(f"{engine} wrote no Depth pass")
+
+
+def test_the_depth_pass_is_cycles_z(fresh_scene, tmp_path):
+    """The Depth pass was the distance along each camera ray, averaged over the pixel's samples with 0 for those that
+    escaped: a floor 4 m under the camera read 4.54 m near the frame's edge, 0 where the sky was (Cycles: 1e10), and
+    2.4 m on the floor's edge, where nothing is. Cycles writes the depth along the camera's axis."""
+    ctx = fresh_scene
+    _empty_scene(ctx, 24, 16)
+    _floor(ctx, size=4.0)
+    _camera(ctx)  # 4 m above, looking down: the floor's edges inside the frame, the sky beyond
+    _light(ctx, "SUN", energy=2.0)
+    ours, cycles = _depth_pass(ctx, tmp_path, "NEURAL_LAYERED", 16), _depth_pass(ctx, tmp_path, "CYCLES", 16)
+    floor, sky = cycles < 100.0, cycles > 1e9
+    assert floor.sum() > 100 and sky.sum() > 50
+    np.testing.assert_allclose(ours[floor], cycles[floor], rtol=1e-4)
+    assert np.all(ours[sky] == cycles[sky])
+    assert np.all((np.abs(ours - 4.0) < 1e-3) | (ours == cycles.max()))  # each pixel a surface's depth, or none

@@ -22,6 +22,7 @@ from addon.core.render import (
     render,
     shapes,
 )
+from addon.core.render.film import Film
 from addon.core.render.materials import conductor
 
 
@@ -966,7 +967,8 @@ def test_max_bounces_counts_as_cycles_does_zero_is_direct_lighting():
 
 def test_first_hit_features_are_albedo_normal_and_depth():
     # A Lambertian quad facing the camera, filling the view: albedo is its colour exactly (a
-    # cosine-sampled Lambertian's weight), the normal faces the camera, depth is the distance.
+    # cosine-sampled Lambertian's weight), the normal faces the camera, depth is the distance along the camera's axis
+    # (Cycles' Z), the same across the frame: it was the distance along each ray, 2% more at the frame's corners.
     cam = Camera.look_at((0.0, 0.0, 2.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_deg=20, width=8, height=6)
     mesh = shapes.quad((-5, -5, 0), (10, 0, 0), (0, 10, 0), material=0)
     scene = Scene(cam, mesh, [LambertMaterial((0.2, 0.5, 0.7))], [PointLight((0, 0, 1.0), 10.0)])
@@ -974,10 +976,11 @@ def test_first_hit_features_are_albedo_normal_and_depth():
     f = film.features()
     assert np.allclose(f["albedo"], [0.2, 0.5, 0.7], atol=1e-6)
     assert np.allclose(f["normal"], [0.0, 0.0, 1.0], atol=1e-6)
-    assert np.all((f["depth"] >= 2.0 - 1e-4) & (f["depth"] < 2.0 / math.cos(math.radians(12))))
-    # Rays that escape carry no features.
+    np.testing.assert_allclose(f["depth"], 2.0, rtol=1e-5)
+    # Rays that escape carry no features, and a depth beyond anything, as Cycles writes it.
     empty, _ = render(Scene(cam, environment=Environment((1.0, 1.0, 1.0))), RenderSettings(samples=1))
-    assert all(np.all(v == 0) for v in empty.features().values())
+    assert all(np.all(v == 0) for k, v in empty.features().items() if k != "depth")
+    assert np.all(empty.features()["depth"] == Film.NO_DEPTH)
 
 
 def test_the_albedo_feature_is_the_directional_albedo_of_a_material_whose_sample_weights_exceed_one():
@@ -991,14 +994,12 @@ def test_the_albedo_feature_is_the_directional_albedo_of_a_material_whose_sample
     scene = Scene(cam, shapes.uv_sphere((0, 0, 0), 1.0, 48, 24), [LayeredSpec(PRESETS["coated_gold"])], [])
     scene.environment = Environment((1.0, 1.0, 1.0))
     film, _ = render(scene, RenderSettings(samples=64, max_bounces=0, calibrate=False))
-    hit = film.features()["depth"][..., 0] > 0
+    hit = film.features()["coverage"][..., 0] == 1.0
     albedo, radiance = film.features()["albedo"][hit].mean(axis=0), film.mean()[hit].mean(axis=0)
     np.testing.assert_allclose(albedo, radiance, rtol=0.03)
 
 
 def test_the_film_keeps_84_bytes_a_pixel_and_its_float32_features_keep_their_means():
-    from addon.core.render.film import Film
-
     film = Film(500, 200)
     arrays = (film.sum, film.sum_sq, film.count, film.feature_sum)
     assert sum(a.nbytes for a in arrays) == 84 * 500 * 200
@@ -1006,18 +1007,37 @@ def test_the_film_keeps_84_bytes_a_pixel_and_its_float32_features_keep_their_mea
     pixels = rng.permutation(500 * 200)[:1000]  # a render region of 1,000 pixels, 4,096 passes
     features = np.zeros((1000, 8))  # the eighth, coverage, left 0
     exact = np.zeros((1000, 8))
+    nearest = np.full(1000, np.inf)
     for _ in range(4096):
         features[:, :3] = rng.uniform(0.0, 1.0, (1000, 3))  # albedo
         features[:, 3:6] = rng.uniform(-1.0, 1.0, (1000, 3))  # normal
         features[:, 6] = rng.uniform(1.0, 100.0, 1000)  # depth
         film.add(pixels, rng.uniform(0.0, 1.0, (1000, 3)), features)
         exact += features
+        nearest = np.minimum(nearest, features[:, 6])
     f = film.features()
-    means = np.concatenate([f["albedo"], f["normal"], f["depth"]], axis=2).reshape(-1, 7)[pixels]
-    scale = np.array([1, 1, 1, 1, 1, 1, 100])
-    assert np.abs(means - exact[:, :7] / 4096).max(axis=0) / scale == pytest.approx(0, abs=2e-5)
+    means = np.concatenate([f["albedo"], f["normal"]], axis=2).reshape(-1, 6)[pixels]
+    assert np.abs(means - exact[:, :6] / 4096).max() == pytest.approx(0, abs=2e-5)
+    # the depth is the nearest sample's, where the pixel's samples met a surface; beyond anything elsewhere
+    np.testing.assert_allclose(f["depth"].reshape(-1)[pixels], nearest, rtol=1e-7)
+    assert np.all(np.delete(f["depth"].reshape(-1), pixels) == Film.NO_DEPTH)
     assert film.count[pixels].tolist() == [4096] * 1000 and film.count.sum() == 4096 * 1000
     assert np.isfinite(film.stderr().reshape(-1, 3)[pixels]).all()
+
+
+def test_a_pixel_on_an_edge_has_the_depth_of_a_surface_it_shows():
+    """The depth was the mean over the pixel's samples, counting those that escaped as 0: a pixel on a plane's edge
+    read a depth between the plane's and nothing (2.4 m for a floor 4 m away), which the compositor's depth nodes
+    took as a surface nearer than anything there."""
+    cam = Camera.look_at((0.0, 0.0, 4.0), (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), fov_deg=40, width=16, height=16)
+    half = shapes.quad((-1.03, -5, 0), (2.06, 0, 0), (0, 10, 0), material=0)  # edges across pixel columns
+    scene = Scene(cam, half, [LambertMaterial((0.5, 0.5, 0.5))], [PointLight((0, 0, 1.0), 10.0)])
+    film, _ = render(scene, RenderSettings(samples=16, max_bounces=0))
+    depth, coverage = film.features()["depth"][..., 0], film.features()["coverage"][..., 0]
+    edge = (coverage > 0) & (coverage < 1)
+    assert edge.sum() >= 16  # a column of partly covered pixels on each side
+    np.testing.assert_allclose(depth[coverage > 0], 4.0, rtol=1e-5)
+    assert np.all(depth[coverage == 0] == Film.NO_DEPTH)
 
 
 def test_a_pixel_subset_renders_those_pixels_as_the_whole_frame_does_and_nothing_else():

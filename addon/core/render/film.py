@@ -13,16 +13,18 @@ class Film:
 
     Per pixel it keeps 84 bytes (0.70 GB at 3840 x 2160): the radiance's sum and sum of squares in float64 (the
     standard error subtracts them, and float32 would lose a low-variance pixel's variance to rounding), the
-    sample count in int32, and the first hits' features' sums in float32 (albedo, normal and depth, which guide a
-    denoiser: their means over 4,096 samples stay within 2e-6 of float64's, depths of up to 100 within 2e-4; and
-    coverage, the share of camera rays that met a surface, the alpha of a transparent film). It kept 112 bytes,
-    all float64: a 3840 x 2160 render of two samples peaked at 1.50 GB.
+    sample count in int32, and the first hits' features in float32: the sums of albedo and normal, which guide a
+    denoiser (their means over 4,096 samples stay within 2e-6 of float64's), and of coverage, the share of camera
+    rays that met a surface, the alpha of a transparent film; and the depth, the nearest of the pixel's samples. It
+    kept 112 bytes, all float64: a 3840 x 2160 render of two samples peaked at 1.50 GB.
 
     ``transparent`` (the render's ``RenderSettings.transparent``): :meth:`rgba`'s alpha is the coverage, and the
     sky the camera rays meet was left out of the radiance (Blender's Film > Transparent); else alpha is 1.
     """
 
     FEATURES = 8  # albedo (3), normal (3), depth, coverage
+    DEPTH = 6  # the features' column of the depth, which the film keeps the least of, not the sum
+    NO_DEPTH = 1e10  # the depth where no camera ray met a surface, as Cycles' Z pass writes it
 
     def __init__(self, width: int, height: int):
         self.width, self.height = int(width), int(height)
@@ -33,6 +35,7 @@ class Film:
         self.transparent = False
         # What a denoiser is guided by, from each path's first hit: albedo, shading normal, depth; and coverage.
         self.feature_sum = np.zeros((self.height * self.width, self.FEATURES), dtype=np.float32)
+        self.feature_sum[:, self.DEPTH] = self.NO_DEPTH
         self._square = np.empty((0, 3))  # ``add``'s squares, kept: a new array each chunk faulted its pages in
 
     def _square_rows(self, n: int) -> np.ndarray:
@@ -52,15 +55,21 @@ class Film:
         self.sum_sq[pixels] += square
         self.count[pixels] += 1
         if features is not None:
+            nearest = np.minimum(self.feature_sum[pixels, self.DEPTH], features[:, self.DEPTH])
             self.feature_sum[pixels] += features
+            self.feature_sum[pixels, self.DEPTH] = nearest
 
     def features(self) -> dict[str, np.ndarray]:
         """Per-pixel means of the first hits' features, (H, W, C) float32 each, row 0 at the top:
         ``albedo`` (3, clipped to [0, 1]: a denoiser's albedo guide), ``normal`` (3, world space, not renormalised),
-        ``depth`` (1, distance along the camera ray; 0 where the ray escaped) and ``coverage`` (1, the share of the
+        ``depth`` (1, Cycles' Z: the distance along the camera's axis to the nearest surface the pixel's camera rays
+        met, :data:`NO_DEPTH` where they met none; the nearest, not a mean, so that a pixel on an edge reads one
+        surface's depth, not a depth between the two where nothing is) and ``coverage`` (1, the share of the
         pixel's camera rays that met a surface)."""
         c = np.maximum(self.count, 1)[:, None]
-        f = (self.feature_sum / c).reshape(self.height, self.width, self.FEATURES).astype(np.float32)
+        f = self.feature_sum / c
+        f[:, self.DEPTH] = self.feature_sum[:, self.DEPTH]
+        f = f.reshape(self.height, self.width, self.FEATURES).astype(np.float32)
         return {
             "albedo": np.clip(f[..., :3], 0.0, 1.0),
             "normal": f[..., 3:6],

@@ -377,6 +377,7 @@ class _Context:
         )
         stats.material_kinds = [m.kind for m in self.materials]
         self.tracer = tracer_for(scene.mesh)
+        self.camera_axis = scene.camera.axis
         env = scene.environment
         self.env = env if env is not None and not env.is_black else None
         self.area = [li for li in scene.lights if isinstance(li, AreaLight) and li.power > 0]
@@ -886,6 +887,7 @@ def _trace_paths(
     L, features = (image or Scratch()).arrays("image", len(pix), _IMAGE_ROWS)
     L.fill(0.0)
     features.fill(0.0)
+    features[:, Film.DEPTH] = Film.NO_DEPTH  # the depth of a camera ray that meets nothing
     paths, tmax, near = _camera_paths(ctx, pix, np.random.default_rng([s.seed, pass_index, chunk_index, 0]), scratch)
     last = s.max_bounces + 1  # the hits of the last bounce's rays: only the emission they find
     for depth in range(last + 1):
@@ -919,7 +921,7 @@ def _trace_paths(
         sc = _shade(ctx, paths, hits, lights, u_lobe, u_dir, seeds, L, stats, scratch)
         if depth == 0:
             dist = hits.dist if near is None else hits.dist + near[hit]  # from the camera, not the near plane
-            kernels.first_hit_features(features, paths.row, sc.weight, hits.ns, dist)
+            kernels.first_hit_features(features, paths.row, sc.weight, hits.ns, dist, paths.d, ctx.camera_axis)
         paths = _continue_paths(ctx, paths, hits, sc, depth, rng, scratch)
     bad = ~np.isfinite(L[:, 0] + L[:, 1] + L[:, 2])  # inf - inf is nan: any non-finite channel
     if bad.any():

@@ -96,6 +96,11 @@ class Camera:
         return self.matrix[:3, 3]
 
     @property
+    def axis(self) -> np.ndarray:
+        """(3,) the unit direction the camera looks in (its local -z in world space): depths are measured along it."""
+        return np.ascontiguousarray(-self.matrix[:3, 2])
+
+    @property
     def pixel_spread(self) -> float:
         """Angle (radians) one pixel subtends at the image centre: the ray cone's spread."""
         return 2.0 * self.tan_half_fov[1] / self.height
