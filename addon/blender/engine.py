@@ -274,7 +274,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
                 self.register_pass(scene, renderlayer, name, channels, ids, kind)
 
     def render(self, depsgraph):
-        scene = depsgraph.scene
+        scene = depsgraph.scene_eval  # the frame rendered: an animation render evaluates keyed settings there only
         props = scene.neural_render
         width, height = scene_export.render_size(scene)
         region = (0, 0, width, height) if self.is_preview else render_region(scene, width, height)

@@ -818,7 +818,9 @@ def export_scene(
     ``environment``: the world as an export made it before (an ``Environment`` or None), when the world has not
     changed since (the viewport's edits elsewhere: an 8K sky image is seconds to read and tabulate).
     """
-    scene = depsgraph.scene
+    # evaluated, as Cycles reads it: an animation render evaluates the frame it renders in the depsgraph's copies
+    # only, and the original world kept its first frame's values (a keyed Background Strength rendered 1, 1, 1)
+    scene = depsgraph.scene_eval
     warnings: list[str] = []
     with _LOCK:
         _USED.clear()

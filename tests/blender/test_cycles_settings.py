@@ -558,3 +558,27 @@ def test_the_depth_pass_is_cycles_z(fresh_scene, tmp_path):
     np.testing.assert_allclose(ours[floor], cycles[floor], rtol=1e-4)
     assert np.all(ours[sky] == cycles[sky])
     assert np.all((np.abs(ours - 4.0) < 1e-3) | (ours == cycles.max()))  # each pixel a surface's depth, or none
+
+
+def test_an_animation_renders_each_frames_world(fresh_scene, tmp_path):
+    """The world was read from the scene's original data, which an animation render does not evaluate: a Background
+    Strength keyed from 1 to 5 rendered 1 in every frame of Render Animation (Cycles: 1, 3, 5)."""
+    ctx = fresh_scene
+    s = _empty_scene(ctx, 8, 6)
+    _camera(ctx)
+    s.world = bpy.data.worlds.new("sky")
+    if s.world.node_tree is None:
+        s.world.use_nodes = True
+    strength = s.world.node_tree.nodes["Background"].inputs["Strength"]
+    for frame, value in ((1, 1.0), (3, 5.0)):
+        strength.default_value = value
+        strength.keyframe_insert("default_value", frame=frame)  # Bezier: 3 halfway
+    s.render.engine = "NEURAL_LAYERED"
+    s.neural_render.samples = 1
+    s.frame_start, s.frame_end = 1, 3
+    s.frame_set(1)
+    s.render.image_settings.file_format = "OPEN_EXR"
+    s.render.filepath = str(tmp_path / "frame_")
+    bpy.ops.render.render(animation=True)
+    sky = [read_image(tmp_path / f"frame_{f:04d}.exr")[..., :3].mean() for f in (1, 2, 3)]
+    np.testing.assert_allclose(np.array(sky) / sky[0], [1.0, 3.0, 5.0], rtol=1e-3)
