@@ -780,12 +780,18 @@ def _render_visibility(depsgraph):
         return bool(users) and not any(uid in shown for uid in users)
 
     def visible(inst, original) -> bool:
+        if inst.is_instance:
+            if not viewport:  # F12's depsgraph holds the instances that render
+                return True
+            parent = inst.parent.original if inst.parent is not None else None
+            # Particles and Geometry Nodes render an object hidden for renders (the usual scatter's source): a
+            # collection, vertex or face instancer leaves it out, as F12's depsgraph does.
+            kept = getattr(parent, "instance_type", "NONE") == "NONE" or not getattr(original, "hide_render", False)
+            return kept and not hidden(parent)
         if getattr(original, "hide_render", False):
             return False
         if not viewport:
-            return inst.is_instance or getattr(inst, "show_self", True)
-        if inst.is_instance:
-            return not hidden(inst.parent.original if inst.parent is not None else None)
+            return getattr(inst, "show_self", True)
         return not (_instancer_hidden(original) or hidden(original))
 
     return visible

@@ -402,3 +402,52 @@ def test_settings_cycles_renders_and_this_renderer_does_not_are_said(bpy_addon, 
     core, _ = scene_export.export_scene(fresh_scene.evaluated_depsgraph_get())
     assert core.material_names == ["override"]
     np.testing.assert_allclose(core.materials[0].color, (0.1, 0.2, 0.9), rtol=1e-6)
+
+
+def _f12_triangles(bpy, scene, monkeypatch) -> int:
+    """The triangles F12's own depsgraph exports (one small render of this engine)."""
+    from addon.blender import scene_export
+
+    exported = []
+
+    def spy(depsgraph, *a, **k):
+        exported.append(export(depsgraph, *a, **k))
+        return exported[-1]
+
+    export = scene_export.export_scene
+    monkeypatch.setattr(scene_export, "export_scene", spy)
+    scene.render.engine = "NEURAL_LAYERED"
+    scene.render.resolution_x, scene.render.resolution_y, scene.render.resolution_percentage = 8, 6, 100
+    scene.neural_render.samples = 1
+    assert bpy.ops.render.render() == {"FINISHED"}
+    return exported[0][0].mesh.triangle_count
+
+
+def test_particles_of_an_object_hidden_for_renders_render(bpy_addon, fresh_scene, monkeypatch):
+    """The usual scatter: the source object hidden for renders, its particles shown. Cycles renders the particles;
+    they were dropped with their source, in F12 and in the viewport (12 triangles where there were 212). A collection
+    instance's object hidden for renders is left out, as Cycles leaves it out."""
+    bpy = bpy_addon
+    scene = fresh_scene.scene
+    cube = scene.objects["Cube"]
+    bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=1, radius=0.05, location=(5, 5, 5))
+    ico = fresh_scene.object
+    cube.modifiers.new("particles", "PARTICLE_SYSTEM")
+    settings = cube.particle_systems[0].settings
+    settings.count, settings.frame_start, settings.frame_end = 10, 1, 1
+    settings.render_type, settings.instance_object = "OBJECT", ico
+    scene.frame_set(2)
+    ico.hide_render = True
+    assert _triangles(fresh_scene.evaluated_depsgraph_get()) == 10 * 20 + 12  # the particles and the emitter
+    assert _f12_triangles(bpy, scene, monkeypatch) == 10 * 20 + 12
+    # a collection instance of a collection whose object is hidden for renders: nothing of it, in both
+    cube.modifiers.clear()
+    source = bpy.data.collections.new("Source")
+    for c in list(ico.users_collection):
+        c.objects.unlink(ico)
+    source.objects.link(ico)
+    instancer = bpy.data.objects.new("Instancer", None)
+    instancer.instance_type, instancer.instance_collection = "COLLECTION", source
+    scene.collection.objects.link(instancer)
+    assert _triangles(fresh_scene.evaluated_depsgraph_get()) == 12
+    assert _f12_triangles(bpy, scene, monkeypatch) == 12
