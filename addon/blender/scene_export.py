@@ -121,6 +121,20 @@ def _dropped_inputs(node) -> list[str]:
     return dropped
 
 
+def _relief_notes(mat, node) -> list[str]:
+    """A bump or normal map on the surface node's Normal, and the material output's Displacement (Blender's default
+    displacement is a bump): this renderer shades with the mesh's own normals, where Cycles' image shows the relief."""
+    notes = []
+    normal = node.inputs.get("Normal")
+    if normal is not None and normal.is_linked:
+        notes.append(f"its Normal input (a {normal.links[0].from_node.name}: shaded with the mesh's normals)")
+    out = next((n for n in mat.node_tree.nodes if n.type == "OUTPUT_MATERIAL" and n.is_active_output), None)
+    displacement = out.inputs.get("Displacement") if out is not None else None
+    if displacement is not None and displacement.is_linked:
+        notes.append("its Displacement (not rendered: the surface is shaded flat)")
+    return notes
+
+
 def _image_node_notes(node) -> list[str]:
     """What an Image Texture node feeding a base colour sets that this renderer's lookup does not do (it repeats
     the image over the render UV map, filtered linearly with the ray's footprint; a Mapping node: ``_uv_mapping``)."""
@@ -208,6 +222,7 @@ def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial:
     if dropped:
         kind = "Principled BSDF's" if node.type == "BSDF_PRINCIPLED" else "Diffuse BSDF's"
         notes.append(f"the {kind} {', '.join(dropped)} are left out (a Lambertian of its base colour)")
+    notes += _relief_notes(mat, node)
     color, texture = tuple(mat.diffuse_color[:3]), None
     socket = node.inputs.get("Base Color") or node.inputs.get("Color")
     image = _linked_image(socket)
@@ -473,6 +488,15 @@ def _light(ob, matrix: np.ndarray, warnings: list[str]):
     if light.type not in ("POINT", "SPOT", "SUN", "AREA"):
         warnings.append(f"light {ob.name!r} has unsupported type {light.type}; skipped")
         return None
+    linking = getattr(ob, "light_linking", None)
+    linked = [what for what, collection in (("Light Linking", "receiver_collection"), ("Shadow Linking",
+              "blocker_collection")) if getattr(linking, collection, None) is not None]  # fmt: skip
+    if linked:
+        warnings.append(
+            f"light {ob.name!r}: its {' and '.join(linked)} {'is' if len(linked) == 1 else 'are'} not rendered here; "
+            "it lights every surface, and "
+            "every surface casts its shadow"
+        )
     if not light.energy > 0.0:
         if light.energy < 0.0:
             warnings.append(
@@ -622,7 +646,12 @@ def _object_arrays(ob, material_slot, materials, names, warnings: list[str]):
     try:
         arrays = _mesh_arrays(ob)
     except RuntimeError as e:
-        warnings.append(f"object {ob.name!r} has no mesh to render ({e}); skipped")
+        if ob.type == "CURVES":  # hair: Cycles renders its strands; here only a mesh its modifiers make
+            warnings.append(
+                f"object {ob.name!r}: hair curves are not rendered here (only a mesh made of them); skipped"
+            )
+        else:
+            warnings.append(f"object {ob.name!r} has no mesh to render ({str(e).strip()}); skipped")
         return None
     if arrays is None:
         return None
@@ -705,6 +734,8 @@ def _warn_visibility(ob, holdouts: set, warnings: list[str]) -> None:
     users = {c.session_uid for c in getattr(ob.original, "users_collection", ())}
     if getattr(ob.original, "is_holdout", False) or users & holdouts:
         left.append("Holdout")
+    if getattr(ob, "is_shadow_catcher", False):
+        left.append("Shadow Catcher")
     if not getattr(ob, "visible_camera", True):
         left.append("Camera ray visibility off")
     if not getattr(ob, "visible_shadow", True):

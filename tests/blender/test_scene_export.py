@@ -379,6 +379,15 @@ def test_what_a_lambertian_leaves_out_of_a_material_is_said(bpy_addon, fresh_sce
     warnings = []
     scene_export.unmanaged_material(mat, warnings)
     assert len(warnings) == 1 and "Mapping node maps no coordinates" in warnings[0]  # Clip is rendered
+    # a bump on the Normal and a Displacement (Blender's default, a bump): Cycles' image shows the relief
+    mat, principled = _principled(bpy, "bumpy")
+    noise, bump = mat.node_tree.nodes.new("ShaderNodeTexNoise"), mat.node_tree.nodes.new("ShaderNodeBump")
+    mat.node_tree.links.new(noise.outputs["Fac"], bump.inputs["Height"])
+    mat.node_tree.links.new(bump.outputs["Normal"], principled.inputs["Normal"])
+    mat.node_tree.links.new(noise.outputs["Fac"], mat.node_tree.nodes["Material Output"].inputs["Displacement"])
+    warnings = []
+    scene_export.unmanaged_material(mat, warnings)
+    assert len(warnings) == 1 and "Normal input (a Bump" in warnings[0] and "Displacement" in warnings[0]
 
 
 def test_settings_cycles_renders_and_this_renderer_does_not_are_said(bpy_addon, fresh_scene):
@@ -390,12 +399,19 @@ def test_settings_cycles_renders_and_this_renderer_does_not_are_said(bpy_addon, 
     scene = fresh_scene.scene
     cube = scene.objects["Cube"]
     cube.is_holdout = True
+    cube.is_shadow_catcher = True
     cube.visible_camera = False
     points = bpy.data.objects.new("points", bpy.data.pointclouds.new("points"))
     scene.collection.objects.link(points)
+    hair = bpy.data.objects.new("hair", bpy.data.hair_curves.new("hair"))
+    scene.collection.objects.link(hair)
+    receivers = bpy.data.collections.new("receivers")
+    scene.objects["Light"].light_linking.receiver_collection = receivers  # lights only what it holds
     _, warnings = scene_export.export_scene(fresh_scene.evaluated_depsgraph_get())
     text = "\n".join(warnings)
-    assert "Holdout, Camera ray visibility off" in text and "point cloud" in text
+    assert "Holdout, Shadow Catcher, Camera ray visibility off" in text and "point cloud" in text
+    assert "'Light': its Light Linking is not rendered" in text
+    assert "'hair': hair curves are not rendered" in text and not any("\n" in w for w in warnings)
     override, principled = _principled(bpy, "override")
     principled.inputs["Base Color"].default_value = (0.1, 0.2, 0.9, 1.0)
     fresh_scene.view_layer.material_override = override
