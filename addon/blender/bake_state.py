@@ -16,7 +16,7 @@ import numpy as np
 from ..core.neural.models import ModelFileError, load_models, resolve_size
 from ..core.textures.bake import bake_key, model_key
 from ..core.textures.files import safe_file_name
-from . import bake_inputs, stack_io
+from . import bake_inputs, images, stack_io
 from .operator_base import UserError
 
 DEFAULT_BAKE_FOLDER = "//textures/"
@@ -108,18 +108,19 @@ _INPUTS: OrderedDict = OrderedDict()
 
 
 def _image_signature(image):
-    """What an image's pixels are, without turning them into a map: its identity, size, colour space and alpha
-    mode, and the CRC-32 of the pixels Blender holds (about 0.1-0.2 s for a 4096-pixel map, of the 0.4-1.2 s its
-    reading into a map and hashing takes). The pixels themselves, not the file's time: a map file edited outside
-    Blender and checked before Image > Reload was kept under the new file's time with the old pixels' key, and after
-    the reload the stale bake still read as current. A checksum of every value: a sum and a sample of them missed a
-    painted patch moved elsewhere."""
+    """What an image's pixels are, without turning them into a map: its identity, size, colour space (and the
+    file's working space, which its bytes decode into) and alpha mode, and the CRC-32 of the pixels Blender holds
+    (about 0.1-0.2 s for a 4096-pixel map, of the 0.4-1.2 s its reading into a map and hashing takes). The pixels
+    themselves, not the file's time: a map file edited outside Blender and checked before Image > Reload was kept
+    under the new file's time with the old pixels' key, and after the reload the stale bake still read as current. A
+    checksum of every value: a sum and a sample of them missed a painted patch moved elsewhere."""
     n = int(image.size[0]) * int(image.size[1]) * int(image.channels)
     if n == 0:
         return (image.session_uid, 0)
     pixels = np.empty(n, np.float32)
     image.pixels.foreach_get(pixels)
-    return (image.session_uid, tuple(image.size), image.colorspace_settings.name, image.alpha_mode, zlib.crc32(pixels))
+    space = (image.colorspace_settings.name, images.working_space())  # byte pixels decode into the working space
+    return (image.session_uid, tuple(image.size), *space, image.alpha_mode, zlib.crc32(pixels))
 
 
 def _inputs_signature(mat):

@@ -2,7 +2,7 @@
 
 ``linear_pixels`` is the one way the add-on reads an image that feeds a material (base-colour
 textures, environment images, parameter maps): byte images are decoded from their Color Space to
-scene linear with Blender's own OpenColorIO configuration, as Cycles does (an sRGB byte 128 reads
+scene linear (the file's Working Color Space) with Blender's own OpenColorIO configuration, as Cycles does (an sRGB byte 128 reads
 0.216, the same byte in a Non-Color image reads 0.502); float images are stored in scene linear
 already, and data (Non-Color) images are not transformed.
 """
@@ -120,13 +120,20 @@ def read_pixels(image) -> np.ndarray | None:
 
 
 @functools.lru_cache(maxsize=None)
-def _to_scene_linear(colorspace: str):
-    """OpenColorIO CPU processor from ``colorspace`` to Blender's scene-linear role."""
+def _to_scene_linear(colorspace: str, working_space: str):
+    """OpenColorIO CPU processor from ``colorspace`` to the file's scene linear: its Working Color Space (Blender
+    5's ``bpy.data.colorspace.working_space``; the configuration's scene-linear role, Rec.709, where it is empty).
+    The configuration's role stays Rec.709 whatever the file's space, where Cycles decodes into the file's."""
     import PyOpenColorIO as ocio  # bundled with Blender (bpy.utils.expose_bundled_modules)
 
     path = os.path.join(bpy.utils.system_resource("DATAFILES", path="colormanagement"), "config.ocio")
     config = ocio.Config.CreateFromFile(path)
-    return config.getProcessor(colorspace, ocio.ROLE_SCENE_LINEAR).getDefaultCPUProcessor()
+    return config.getProcessor(colorspace, working_space or ocio.ROLE_SCENE_LINEAR).getDefaultCPUProcessor()
+
+
+def working_space() -> str:
+    """The open file's Working Color Space, "" where Blender has none (before 5.0)."""
+    return getattr(getattr(bpy.data, "colorspace", None), "working_space", "") or ""
 
 
 def linear_pixels(image, associate_alpha: bool = False) -> np.ndarray | None:
@@ -151,7 +158,7 @@ def linear_pixels(image, associate_alpha: bool = False) -> np.ndarray | None:
     if associate_alpha and image.alpha_mode in ("STRAIGHT", "PREMUL"):
         rgb *= px[..., 3:4]
     try:
-        _to_scene_linear(image.colorspace_settings.name).applyRGB(rgb)
+        _to_scene_linear(image.colorspace_settings.name, working_space()).applyRGB(rgb)
     except Exception as e:  # an OpenColorIO failure: say which image and space
         raise ValueError(
             f"image {image.name!r}: cannot decode its colour space {image.colorspace_settings.name!r} to linear ({e})"

@@ -462,22 +462,30 @@ def _image(tmp_path, name, rgba, kind):
 
 
 @pytest.mark.parametrize(
-    "kind, rgba",
+    "kind, rgba, working_space",
     [
-        ("png", (1.0, 0.5, 0.25, 0.25)),
-        ("png", (1.0, 0.5, 0.25, 1.0)),
-        ("data", (1.0, 0.5, 0.25, 0.25)),
-        ("exr", (0.25, 0.125, 0.0625, 0.25)),
+        ("png", (1.0, 0.5, 0.25, 0.25), "Linear Rec.709"),
+        ("png", (1.0, 0.5, 0.25, 1.0), "Linear Rec.709"),
+        ("data", (1.0, 0.5, 0.25, 0.25), "Linear Rec.709"),
+        ("exr", (0.25, 0.125, 0.0625, 0.25), "Linear Rec.709"),
+        ("png", (1.0, 0.5, 0.0, 1.0), "ACEScg"),
+        ("png", (1.0, 0.5, 0.0, 1.0), "Linear Rec.2020"),
+        ("exr", (0.25, 0.125, 0.0, 1.0), "ACEScg"),
     ],
-    ids=["srgb-alpha", "srgb-opaque", "non-color-alpha", "float-alpha"],
+    ids=["srgb-alpha", "srgb-opaque", "non-color-alpha", "float-alpha", "srgb-acescg", "srgb-rec2020", "float-acescg"],
 )
-def test_an_image_textures_colour_is_the_one_cycles_node_gives(fresh_scene, tmp_path, kind, rgba):
+def test_an_image_textures_colour_is_the_one_cycles_node_gives(fresh_scene, tmp_path, kind, rgba, working_space):
     """Where the node's Alpha output is unused, Cycles multiplies a byte image's colour by its alpha before it
     decodes it, and leaves float (stored premultiplied) and Non-Color images as they are: multiplied after the
-    decoding, or always, a texel of alpha 0.25 read 2.5-4.9 times too bright or 0.25 times as bright."""
+    decoding, or always, a texel of alpha 0.25 read 2.5-4.9 times too bright or 0.25 times as bright. Byte images
+    are decoded into the file's Working Color Space (Blender 5), as Cycles decodes them: into Rec.709 whatever it
+    was, an orange texel read 1.56x Cycles' red and 0.83x its green in ACEScg."""
     from addon.blender import scene_export
 
     ctx = fresh_scene
+    if working_space != bpy.data.colorspace.working_space:
+        bpy.ops.wm.set_working_color_space(working_space=working_space)
+        assert bpy.data.colorspace.working_space == working_space
     _empty_scene(ctx, 4, 4)
     image = _image(tmp_path, "texel", rgba, kind)
     emit = bpy.data.materials.new("emit")
