@@ -2,9 +2,9 @@
 
 ``linear_pixels`` is the one way the add-on reads an image that feeds a material (base-colour
 textures, environment images, parameter maps): byte images are decoded from their Color Space to
-scene linear (the file's Working Color Space) with Blender's own OpenColorIO configuration, as Cycles does (an sRGB byte 128 reads
-0.216, the same byte in a Non-Color image reads 0.502); float images are stored in scene linear
-already, and data (Non-Color) images are not transformed.
+scene linear (the file's Working Color Space) with Blender's own OpenColorIO configuration, as
+Cycles does (an sRGB byte 128 reads 0.216, the same byte in a Non-Color image reads 0.502); float
+images are stored in scene linear already, and data (Non-Color) images are not transformed.
 """
 
 from __future__ import annotations
