@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import os
+import re
 
 import bpy
 import numpy as np
@@ -151,20 +152,85 @@ def linear_pixels(image, associate_alpha: bool = False) -> np.ndarray | None:
             f"image {image.name!r} is a UDIM image of {len(image.tiles)} tiles, which this add-on cannot read: "
             "use a single image (one tile) for it"
         )
-    px = read_pixels(image)
-    if px is None or image.is_float or image.colorspace_settings.is_data:
+    return _decoded(image, read_pixels(image), image.is_float, associate_alpha)
+
+
+def _decoded(image, px: np.ndarray | None, is_float: bool, associate_alpha: bool) -> np.ndarray | None:
+    """``linear_pixels``' decoding of ``px`` (H, W, 4), the pixels Blender would hold for ``image``: a float
+    buffer's (``is_float``: scene linear, premultiplied) as they are, a byte buffer's (stored values / 255) by the
+    image's Color Space."""
+    if px is None or is_float or image.colorspace_settings.is_data:
         return px
     rgb = np.ascontiguousarray(px[..., :3])
     if associate_alpha and image.alpha_mode in ("STRAIGHT", "PREMUL"):
         rgb *= px[..., 3:4]
+    px[..., :3] = _to_working_space(image, rgb)
+    return px
+
+
+def _to_working_space(image, rgb: np.ndarray) -> np.ndarray:
+    """``rgb`` (H, W, 3) float32, C-contiguous, decoded in place from ``image``'s Color Space to the file's
+    working space."""
     try:
         _to_scene_linear(image.colorspace_settings.name, working_space()).applyRGB(rgb)
     except Exception as e:  # an OpenColorIO failure: say which image and space
         raise ValueError(
             f"image {image.name!r}: cannot decode its colour space {image.colorspace_settings.name!r} to linear ({e})"
         ) from None
-    px[..., :3] = rgb
-    return px
+    return rgb
+
+
+def sequence_frame(image_user, frame: int) -> int:
+    """The frame of an image sequence an Image Texture node shows at the scene's ``frame``: its Image User's Start
+    Frame, Offset, Frames (its length) and Cyclic, as Blender counts them (``BKE_image_user_frame_get``)."""
+    length = int(image_user.frame_duration)
+    if length == 0:
+        return 0
+    n = int(frame) - int(image_user.frame_start) + 1
+    if image_user.use_cyclic:
+        n %= length
+        n = n or length
+    return min(max(n, 0), length) + int(image_user.frame_offset)
+
+
+def frame_path(image, number: int) -> str:
+    """The absolute path of frame ``number`` of an image sequence: the last run of digits in its file's name
+    replaced by the number, at least as many digits (Blender's ``BLI_path_sequence_encode``)."""
+    path = bpy.path.abspath(image.filepath, library=image.library)
+    folder, name = os.path.split(path)
+    match = re.search(r"(\d+)(?!.*\d)", name)
+    if match is None:
+        return path
+    digits = match.group(1)
+    return os.path.join(folder, name[: match.start()] + str(number).zfill(len(digits)) + name[match.end() :])
+
+
+def sequence_pixels(image, image_user, frame: int, associate_alpha: bool = False) -> tuple[np.ndarray | None, str]:
+    """``linear_pixels`` of the frame of an image sequence its Image User shows at the scene's ``frame``, read from
+    its file (Blender holds the pixels of the frame it last showed, not the frame rendered), and that file's path;
+    None for pixels where the file cannot be read. An 8-bit file is a byte image, as Blender loads it; any other
+    is a float one, scene linear and premultiplied as Blender makes it (an OpenEXR's pixels are premultiplied
+    already)."""
+    from ..core.textures.latent_texture import oiio_module
+
+    path = frame_path(image, sequence_frame(image_user, frame))
+    oiio = oiio_module()
+    buf = oiio.ImageBuf(path)
+    if buf.has_error or buf.spec().nchannels < 1:
+        return None, path
+    spec = buf.spec()
+    px = np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float32).reshape(spec.height, spec.width, -1)
+    c = px.shape[2]
+    rgba = np.ones(px.shape[:2] + (4,), np.float32)
+    rgba[..., :3] = px[..., :3] if c >= 3 else px[..., :1]
+    if c in (2, 4):
+        rgba[..., 3] = px[..., c - 1]
+    is_float = spec.format != oiio.UINT8
+    if is_float and not image.colorspace_settings.is_data:
+        if not path.lower().endswith(".exr") and image.alpha_mode in ("STRAIGHT", "PREMUL"):
+            rgba[..., :3] *= rgba[..., 3:4]  # Blender keeps float buffers premultiplied
+        rgba[..., :3] = _to_working_space(image, np.ascontiguousarray(rgba[..., :3]))
+    return _decoded(image, rgba, is_float, associate_alpha), path
 
 
 def _largest(areas):

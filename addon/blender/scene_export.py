@@ -14,6 +14,7 @@ Diffuse BSDF, or the viewport colour), textured when an Image Texture node drive
 
 from __future__ import annotations
 
+import contextvars
 import math
 import os
 import threading
@@ -48,12 +49,27 @@ def render_size(scene) -> tuple[int, int]:
     return max(1, r.resolution_x * pct // 100), max(1, r.resolution_y * pct // 100)
 
 
-def _image_pixels(image, warnings: list[str], associate_alpha: bool = False) -> np.ndarray | None:
+# The scene frame an export renders (``export_scene``): the frame of an image sequence its nodes show.
+_FRAME: contextvars.ContextVar[int | None] = contextvars.ContextVar("frame", default=None)
+
+
+def _image_pixels(image, warnings: list[str], associate_alpha: bool = False, node=None) -> np.ndarray | None:
     """(H, W, 4) scene-linear float pixels, row 0 at the top (``images.linear_pixels``); None (with a warning) if
-    unavailable."""
+    unavailable. An image sequence gives the frame its ``node``'s Image User shows at the exported frame
+    (``images.sequence_pixels``); a movie, the frame Blender holds, with a warning."""
     if image is None:
         return None
+    user = getattr(node, "image_user", None)
     try:
+        if image.source == "SEQUENCE" and user is not None:
+            frame = _FRAME.get()
+            px, path = images.sequence_pixels(
+                image, user, user.frame_current if frame is None else frame, associate_alpha
+            )
+            if px is None:
+                warnings.append(f"image {image.name!r}: its frame's file {path!r} cannot be read; using the colour")
+                return None
+            return np.ascontiguousarray(px, dtype=np.float32)
         px = images.linear_pixels(image, associate_alpha)
     except ValueError as e:
         warnings.append(f"{e}; using the colour")
@@ -61,6 +77,11 @@ def _image_pixels(image, warnings: list[str], associate_alpha: bool = False) -> 
     if px is None:
         warnings.append(f"image {image.name!r} has no pixels (missing file {image.filepath!r}?); using the colour")
         return None
+    if image.source == "MOVIE":
+        warnings.append(
+            f"image {image.name!r} is a movie, whose frames this renderer does not read: every frame renders the one "
+            "Blender last showed (render the movie to an image sequence to animate it)"
+        )
     return np.ascontiguousarray(px, dtype=np.float32)
 
 
@@ -235,7 +256,9 @@ def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial:
         notes += _image_node_notes(image_node)
         uv_map = _uv_mapping(image_node, notes)
         alpha_out = image_node.outputs.get("Alpha")  # an Environment Texture node has none
-        px = _image_pixels(image, warnings, associate_alpha=alpha_out is not None and not alpha_out.is_linked)
+        px = _image_pixels(
+            image, warnings, associate_alpha=alpha_out is not None and not alpha_out.is_linked, node=image_node
+        )
         if px is not None:
             extension = image_node.extension if image_node.type == "TEX_IMAGE" else "REPEAT"
             texture = ImageTexture(
@@ -559,7 +582,7 @@ def _world(world, warnings: list[str]) -> Environment | None:
                 socket = bg.inputs["Color"]
                 image = _linked_image(socket)
                 if image:
-                    px = _image_pixels(image, warnings)
+                    px = _image_pixels(image, warnings, node=socket.links[0].from_node)
                     if px is not None:
                         turn = _environment_turn(socket.links[0].from_node, world, warnings)
                         return Environment(image=turned_image(px[:, :, :3], turn), strength=strength)
@@ -858,6 +881,15 @@ def export_scene(
     # evaluated, as Cycles reads it: an animation render evaluates the frame it renders in the depsgraph's copies
     # only, and the original world kept its first frame's values (a keyed Background Strength rendered 1, 1, 1)
     scene = depsgraph.scene_eval
+    frame = _FRAME.set(scene.frame_current)
+    try:
+        return _export_scene(depsgraph, scene, width, height, camera, info, environment)
+    finally:
+        _FRAME.reset(frame)
+
+
+def _export_scene(depsgraph, scene, width, height, camera, info, environment):
+    """``export_scene`` of ``depsgraph``'s evaluated ``scene``."""
     warnings: list[str] = []
     with _LOCK:
         _USED.clear()

@@ -590,3 +590,54 @@ def test_an_animation_renders_each_frames_world(fresh_scene, tmp_path):
     bpy.ops.render.render(animation=True)
     sky = [read_image(tmp_path / f"frame_{f:04d}.exr")[..., :3].mean() for f in (1, 2, 3)]
     np.testing.assert_allclose(np.array(sky) / sky[0], [1.0, 3.0, 5.0], rtol=1e-3)
+
+
+def _sequence(tmp_path, colours):
+    """An image sequence "tex_0001.png", ... of 8-bit sRGB frames, one colour each, loaded as Blender loads one."""
+    for i, colour in enumerate(colours, start=1):
+        img = bpy.data.images.new(f"frame{i}", 4, 4, alpha=True)
+        img.pixels.foreach_set(np.tile(np.asarray((*colour, 1.0), np.float32), 16))
+        img.filepath_raw, img.file_format = str(tmp_path / f"tex_{i:04d}.png"), "PNG"
+        img.save()
+        bpy.data.images.remove(img)
+    image = bpy.data.images.load(str(tmp_path / "tex_0001.png"))
+    image.source = "SEQUENCE"
+    return image
+
+
+def test_an_image_sequence_renders_the_frame_its_node_shows(fresh_scene, tmp_path):
+    """An Image Texture of an image sequence rendered the frame Blender last showed, or none at all with a warning of
+    a missing file that was there (a headless animation render): every frame grey where Cycles renders red, green,
+    blue. Each export now reads the frame its node's Image User shows at the scene's frame: Start Frame, Offset,
+    Frames and Cyclic as Blender counts them."""
+    from addon.blender import scene_export
+
+    ctx = fresh_scene
+    colours = [(1.0, 0.0, 0.0), (0.0, 0.5, 0.0), (0.0, 0.0, 1.0)]
+    image = _sequence(tmp_path, colours)
+    mat, principled = bpy.data.materials.new("seq"), None
+    principled = mat.node_tree.nodes["Principled BSDF"]
+    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
+    tex.image = image
+    tex.image_user.frame_duration, tex.image_user.frame_start = 3, 1
+    mat.node_tree.links.new(tex.outputs["Color"], principled.inputs["Base Color"])
+    ctx.scene.objects["Cube"].data.materials[0] = mat
+    decoded = [np.array(c) for c in ((1.0, 0.0, 0.0), (0.0, 0.2158605, 0.0), (0.0, 0.0, 1.0))]  # sRGB 0.5: 0.216
+
+    def shown(frame):
+        ctx.scene.frame_set(frame)
+        core, warnings = export(ctx)
+        assert warnings == []
+        return core.materials[core.material_names.index("seq")].texture.levels[0].reshape(-1, 3).mean(axis=0)
+
+    for frame, want in ((1, 0), (2, 1), (3, 2), (5, 2)):  # past its last frame: the last
+        np.testing.assert_allclose(shown(frame), decoded[want], atol=2e-3)
+    tex.image_user.use_cyclic = True
+    np.testing.assert_allclose(shown(4), decoded[0], atol=2e-3)
+    tex.image_user.use_cyclic, tex.image_user.frame_offset = False, 1
+    np.testing.assert_allclose(shown(1), decoded[1], atol=2e-3)
+    tex.image_user.frame_offset = 5  # a frame with no file: said, and the colour used
+    ctx.scene.frame_set(1)
+    _, warnings = export(ctx)
+    assert len(warnings) == 1 and "tex_0006.png" in warnings[0] and "cannot be read" in warnings[0]
+    assert scene_export.images.frame_path(image, 12345) == str(tmp_path / "tex_12345.png")
