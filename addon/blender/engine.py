@@ -42,6 +42,7 @@ def _compatible_panels():
         "RENDER_PT_format_presets",
         "RENDER_PT_encoding",
         "RENDER_PT_stamp",
+        "RENDER_PT_stereoscopy",  # each view rendered from its own camera (``render``)
         "DATA_PT_context_light",  # the light's own settings: render_ui.NLM_PT_light
         "DATA_PT_camera",
         "DATA_PT_lens",
@@ -282,21 +283,30 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
             for name, channels, ids, _ in render_properties.DENOISING_PASSES:
                 self.add_pass(name, channels, ids, layer=depsgraph.view_layer.name)
         x0, y0, x1, y1 = region
-        # The result of the view layer rendered: Blender calls render() once per view layer, each to its own layer.
-        result = self.begin_result(0, 0, x1 - x0, y1 - y0, layer=depsgraph.view_layer.name)
-        try:
-            if (result.resolution_x, result.resolution_y) != (x1 - x0, y1 - y0):
-                raise RuntimeError(
-                    f"Blender's render result is {result.resolution_x}x{result.resolution_y} pixels where the "
-                    f"render region was cut to {x1 - x0}x{y1 - y0}: turn Render Region off to render"
-                )
-            self._render(depsgraph, scene, props, result, region, thumbnail=self.is_preview)
-        except Cancelled:  # Esc before any pass (the decoder choice): nothing rendered, nothing failed
-            self.update_stats("", "Cancelled")
-        except Exception as e:  # every failure reaches the UI, not only a console traceback
-            self._fail(e)
-        finally:
-            self.end_result(result)
+        # The result of the view layer rendered: Blender calls render() once per view layer, each to its own layer,
+        # and each of its views (Stereoscopy's eyes) is rendered into its own result, from its own camera.
+        views = [""] if self.is_preview else scene_export.render_views(scene.render)
+        for view in views:
+            if view:
+                self.active_view_set(view)
+            result = self.begin_result(0, 0, x1 - x0, y1 - y0, layer=depsgraph.view_layer.name, view=view)
+            try:
+                if (result.resolution_x, result.resolution_y) != (x1 - x0, y1 - y0):
+                    raise RuntimeError(
+                        f"Blender's render result is {result.resolution_x}x{result.resolution_y} pixels where the "
+                        f"render region was cut to {x1 - x0}x{y1 - y0}: turn Render Region off to render"
+                    )
+                self._render(depsgraph, scene, props, result, region, thumbnail=self.is_preview, view=view)
+            except Cancelled:  # Esc before any pass (the decoder choice): nothing rendered, nothing failed
+                self.update_stats("", "Cancelled")
+                return
+            except Exception as e:  # every failure reaches the UI, not only a console traceback
+                self._fail(e)
+                return
+            finally:
+                self.end_result(result)
+            if self.test_break():
+                return
 
     def _settings(self, core_scene, scene, props, thumbnail: bool):
         """The core settings and the decoder choice's warnings (INFO lines go to ``info``)."""
@@ -314,15 +324,18 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
             warnings.append(f"decoder choice failed ({_failure(e)}); layered materials use the default decoder")
         return props.to_core(scene=scene), warnings, info
 
-    def _render(self, depsgraph, scene, props, result, region, thumbnail: bool = False):
-        self.update_stats("", "Exporting scene")
+    def _render(self, depsgraph, scene, props, result, region, thumbnail: bool = False, view: str = ""):
+        self.update_stats("", f"Exporting scene{f' ({view})' if view else ''}")
         info: list[str] = []
         asked = scene_export.render_size(scene)
         # A material preview is rendered at most THUMBNAIL_MAX_SIDE pixels a side and shown at the size Blender asks:
         # the Properties editor's Preview panel asks for its own size (over 512 pixels on a wide or 2x-DPI editor),
         # which failed with an error.
         size = thumbnail_size(*asked) if thumbnail else asked
-        core_scene, warnings = scene_export.export_scene(depsgraph, *size, info=info)
+        camera_warnings: list[str] = []
+        camera = scene_export.stereo_view_camera(self, scene, *size, camera_warnings) if view else None
+        core_scene, warnings = scene_export.export_scene(depsgraph, *size, camera=camera, info=info)
+        warnings = camera_warnings + warnings
         settings, notes, choice_info = self._settings(core_scene, scene, props, thumbnail)
         warnings = warnings + notes
         if props.denoise and not thumbnail and (note := render_properties.denoise_note(scene)) is not None:

@@ -418,11 +418,35 @@ def _mesh_arrays(ob):
         ob.to_mesh_clear()
 
 
-def _camera(cam_ob, width: int, height: int, warnings: list[str], pixel_aspect=(1.0, 1.0)) -> Camera:
+def render_views(render) -> list[str]:
+    """The views F12 renders, each into its own image (Output > Stereoscopy: Stereo 3D's left and right, or
+    Multi-View's views in use); one unnamed view without Stereoscopy."""
+    if not render.use_multiview:
+        return [""]
+    names = [v.name for v in render.views if v.use]
+    if render.views_format == "STEREO_3D":
+        names = [n for n in names if n in ("left", "right")]
+    return names or [""]
+
+
+def stereo_view_camera(engine, scene, width: int, height: int, warnings: list[str]) -> Camera:
+    """The core camera of the view ``engine`` renders (``RenderEngine.active_view_set``): the scene camera moved
+    and shifted as Blender places each eye of a stereo pair (``camera_model_matrix``, ``camera_shift_x``)."""
+    cam_ob, r = scene.camera, scene.render
+    if cam_ob is None:
+        raise ValueError(f"scene {scene.name!r} has no active camera; add one or set Scene > Camera")
+    matrix = np.array(engine.camera_model_matrix(cam_ob), dtype=np.float64)
+    shift_x = float(engine.camera_shift_x(cam_ob)) if cam_ob.type == "CAMERA" else None
+    return _camera(cam_ob, width, height, warnings, (r.pixel_aspect_x, r.pixel_aspect_y), matrix, shift_x)
+
+
+def _camera(
+    cam_ob, width: int, height: int, warnings: list[str], pixel_aspect=(1.0, 1.0), matrix=None, shift_x=None
+) -> Camera:
     """The core camera of a Blender camera for an image of ``width`` x ``height`` pixels of ``pixel_aspect``
     (the render's Aspect X and Y), as Blender frames it (``BKE_camera_params_compute_viewplane``): the sensor fit
     decided on the image's displayed sides, the lens shift in units of the fitted side, and the clipping
-    planes."""
+    planes. ``matrix`` and ``shift_x``: a stereo view's, in place of the camera's own (``stereo_view_camera``)."""
     if cam_ob.type != "CAMERA":  # Blender renders an empty or a light set as the camera with a lens of its own
         lens = DEFAULT_LENS
         if cam_ob.type == "LIGHT":  # Cycles frames a light by its spot size (45 degrees stored for other kinds)
@@ -457,12 +481,14 @@ def _camera(cam_ob, width: int, height: int, warnings: list[str], pixel_aspect=(
     # Blender shifts by the fitted side; ``Camera.shift`` counts in the larger side's pixels
     fitted = shown_w if fit == "HORIZONTAL" else shown_h
     big = max(width, height)
-    shift = (cam.shift_x * fitted / (ax * big), cam.shift_y * fitted / (ay * big))
+    shift_x = cam.shift_x if shift_x is None else shift_x
+    shift = (shift_x * fitted / (ax * big), cam.shift_y * fitted / (ay * big))
     clip = (max(0.0, float(cam.clip_start)), float(cam.clip_end))
     if not clip[0] < clip[1]:  # Blender's fields allow it
         warnings.append(f"camera {cam_ob.name!r}: Clip End is not beyond Clip Start; rendering without clipping")
         clip = (0.0, math.inf)
-    return Camera(np.array(cam_ob.matrix_world), width, height, tan, shift, clip)
+    matrix = np.array(cam_ob.matrix_world) if matrix is None else matrix
+    return Camera(matrix, width, height, tan, shift, clip)
 
 
 def view_clip(region_3d, space, scene) -> tuple[float, float]:

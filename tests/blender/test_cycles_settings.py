@@ -641,3 +641,31 @@ def test_an_image_sequence_renders_the_frame_its_node_shows(fresh_scene, tmp_pat
     _, warnings = export(ctx)
     assert len(warnings) == 1 and "tex_0006.png" in warnings[0] and "cannot be read" in warnings[0]
     assert scene_export.images.frame_path(image, 12345) == str(tmp_path / "tex_12345.png")
+
+
+@pytest.mark.parametrize("mode", ["OFFAXIS", "TOE"])
+def test_each_eye_of_a_stereo_pair_renders_what_cycles_renders(fresh_scene, tmp_path, mode):
+    """Stereoscopy (Stereo 3D, individual views): the left eye was rendered from the camera itself and the right eye
+    left black, without a word, and the panel was hidden. Each eye is now rendered from its own camera, as Blender
+    places it (its interocular distance, convergence mode and shift)."""
+    ctx = fresh_scene
+    s = _empty_scene(ctx, 32, 24)
+    _checker_floor(ctx, 6.0, cuts=11, tiles_per_metre=2.0)
+    cam = _camera(ctx, location=(0.3, -0.2, 5.0))
+    cam.data.stereo.convergence_mode, cam.data.stereo.interocular_distance = mode, 0.4
+    _light(ctx, "SUN", energy=3.0, angle=0.0)
+    s.render.use_multiview, s.render.views_format = True, "STEREO_3D"
+    s.render.image_settings.file_format, s.render.image_settings.views_format = "OPEN_EXR", "INDIVIDUAL"
+    eyes = {}
+    for engine in ("NEURAL_LAYERED", "CYCLES"):
+        s.render.engine = engine
+        s.neural_render.samples, s.neural_render.max_bounces = 32, 0
+        s.cycles.device, s.cycles.samples, s.cycles.max_bounces, s.cycles.use_denoising = "CPU", 32, 0, False
+        s.cycles.pixel_filter_type, s.view_settings.view_transform = "BOX", "Standard"
+        s.render.filepath = str(tmp_path / engine)
+        bpy.ops.render.render(write_still=True)
+        eyes[engine] = [read_image(tmp_path / f"{engine}_{e}.exr")[..., :3].astype(np.float64) for e in "LR"]
+    (ours_l, ours_r), (cycles_l, cycles_r) = eyes["NEURAL_LAYERED"], eyes["CYCLES"]
+    assert np.abs(cycles_l - cycles_r).max() > 0.1  # the eyes see the checkers' edges apart
+    _assert_blocks_match(cycles_l, ours_l, 0.04, n=4)
+    _assert_blocks_match(cycles_r, ours_r, 0.04, n=4)
