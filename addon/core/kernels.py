@@ -408,21 +408,25 @@ SURFACE_HITS_OUT = (
 )  # fmt: skip
 
 # How far a ray leaving a surface starts off it, and how far short of a light a blocker must be (``_unblocked_before``):
-# OFFSET_SCALE of the largest coordinate of the hit point (about 84 float32 roundings of it: Embree intersects in
-# float32, from the ray's origin) and TRIANGLE_OFFSET_SCALE of the largest coordinate of its triangle's corners
-# (about 8 roundings: the plane Embree intersects is made of them). It was one offset for the whole scene, 1e-4 of
-# its largest coordinate plus 1e-4: a triangle a kilometre away made every offset 0.1 and took a small object's
-# contact shadow away; a scene a ten-thousandth the size lost its shadows to the 1e-4. With a floor of 1 km a side
-# made of two triangles, a 0.1 m sphere's contact shadow in direct light is now the same as on a 4 m floor (and
-# at 10 km), its lit floor within 2e-5 (with TRIANGLE_OFFSET_SCALE as OFFSET_SCALE, 0.5% of those pixels moved).
-OFFSET_SCALE = 1e-5
-TRIANGLE_OFFSET_SCALE = 1e-6
+# OFFSET_SCALE of the largest coordinate of the hit point (about 8 float32 roundings of it: the ray's origin is
+# rounded to float32 for Embree, which moves it off the plane by less than one) and TRIANGLE_OFFSET_SCALE of its
+# triangle's extent (about 4 roundings of it: Embree intersects in float32 with the corners taken relative to the
+# ray's origin, so its plane's error goes with the triangle's size, not with where it lies). It was one offset for
+# the whole scene, 1e-4 of its largest coordinate plus 1e-4: a triangle a kilometre away made every offset 0.1 and
+# took a small object's contact shadow away; a scene a ten-thousandth the size lost its shadows to the 1e-4. Then
+# 1e-5 of the hit's coordinates and 1e-6 of its triangle's: a 1 cm object 1 km from the origin (a site's
+# coordinates) cast no shadow, its rays starting 2 cm off the floor. With a floor of 1 km a side made of two
+# triangles, a 0.1 m sphere's contact shadow in direct light is the same as on a 4 m floor (and at 10 km); a 1 cm
+# sphere 1 km from the origin casts the shadow it casts at the origin, but for a sample or two at its edge.
+OFFSET_SCALE = 1e-6
+TRIANGLE_OFFSET_SCALE = 5e-7
 
 
 def triangle_offsets(corners) -> np.ndarray:
     """(T,) each triangle's part of the offset of the rays leaving it: :data:`TRIANGLE_OFFSET_SCALE` times the
     largest coordinate of its corners (``corners`` (T, 3, >= 3), positions first)."""
-    return TRIANGLE_OFFSET_SCALE * np.abs(np.asarray(corners)[:, :, :3]).max(axis=(1, 2))
+    c = np.asarray(corners)[:, :, :3]
+    return TRIANGLE_OFFSET_SCALE * np.abs(c - c[:, :1]).max(axis=(1, 2))
 
 
 @njit(fastmath={"contract"}, **_JIT)

@@ -267,9 +267,10 @@ def test_the_shading_frame_at_a_hit_is_the_bsdf_package_basis_and_wo_the_ray_bac
         rows, corners, face, np.ones(n), tri_offset, hit, np.arange(n), bu, bv, d, dist, np.zeros(n), np.ones(n)
     )
     ns, ts, tt, wo = out[2], out[6], out[7], out[8]
-    # the offset of the rays leaving: of the hit point's largest coordinate and of its triangle's corners
+    # the offset of the rays leaving: of the hit point's largest coordinate and of its triangle's extent
     expected = kernels.OFFSET_SCALE * np.abs(out[0]).max(axis=1)
-    expected += kernels.TRIANGLE_OFFSET_SCALE * np.abs(corners[hit, :, :3]).max(axis=(1, 2))
+    c = corners[hit, :, :3]
+    expected += kernels.TRIANGLE_OFFSET_SCALE * np.abs(c - c[:, :1]).max(axis=(1, 2))
     np.testing.assert_allclose(out[11], expected, rtol=1e-12)
     np.testing.assert_array_equal(out[9], dist[hit])
     np.testing.assert_array_equal(out[4], dist[hit])  # the cone's width: 0 + 1 x the distance

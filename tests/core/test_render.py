@@ -924,16 +924,16 @@ def test_a_contact_shadow_is_the_same_whatever_else_the_scene_holds_and_at_any_s
     One offset for the scene, from its largest coordinate, lost a small sphere's contact shadow to a triangle 1 km
     away (0.73 where 0.008), and a scene of a ten-thousandth the size lost it to the offset's floor of 1e-4."""
 
-    def scene(s=1.0, floor=8.0, far=None):  # a floor filling the view
-        r = 0.1 * s
+    def scene(s=1.0, floor=8.0, far=None, at=(0.0, 0.0, 0.0)):  # a floor filling the view, all of it moved to ``at``
+        r, at = 0.1 * s, np.asarray(at)
         parts = [
-            shapes.uv_sphere((0, 0, r), r, 24, 12, material=0),
-            shapes.quad((-floor * s / 2, -floor * s / 2, 0), (floor * s, 0, 0), (0, floor * s, 0), material=0),
+            shapes.uv_sphere(at + (0, 0, r), r, 24, 12, material=0),
+            shapes.quad(at + (-floor * s / 2, -floor * s / 2, 0), (floor * s, 0, 0), (0, floor * s, 0), material=0),
         ]
         if far is not None:
             parts.append(shapes.quad((0, far, 0), (1, 0, 0), (0, 0, 1), material=0))
-        cam = Camera.look_at((0, -0.8 * s, 0.5 * s), (0, 0, 0.05 * s), fov_deg=40, width=32, height=24)
-        light = PointLight((0.05 * s, 0.05 * s, 1.0 * s), power=50.0 * s * s)
+        cam = Camera.look_at(at + (0, -0.8 * s, 0.5 * s), at + (0, 0, 0.05 * s), fov_deg=40, width=32, height=24)
+        light = PointLight(at + (0.05 * s, 0.05 * s, 1.0 * s), power=50.0 * s * s)
         return Scene(cam, Mesh.concatenate(parts), [LambertMaterial((0.6, 0.6, 0.6))], [light])
 
     settings = RenderSettings(samples=4, max_bounces=0, seed=1)
@@ -946,6 +946,14 @@ def test_a_contact_shadow_is_the_same_whatever_else_the_scene_holds_and_at_any_s
     # its larger triangles, a pixel or two of 4 samples).
     img = render(scene(floor=1000.0), settings)[0].mean()
     assert abs(float(img[shadow].mean() - base[shadow].mean())) < 0.01
+    # A sphere of 1 cm radius 1 km from the origin (a site's coordinates): the offset, 1e-5 of the coordinates and
+    # of the floor's corners, was 2 cm, above the sphere, whose shadow was gone (0.084 where 0.0002; Cycles renders
+    # it). Only float32's rounding of the positions there (6e-5 m, 0.6% of the sphere) moves the image: a sample
+    # or two at the shadow's edge.
+    small = render(scene(s=0.1), settings)[0].mean()
+    moved = render(scene(s=0.1, at=(1000.0, 1000.0, 0.0)), settings)[0].mean()
+    assert abs(float(moved[shadow].mean() - small[shadow].mean())) < 0.03
+    assert (np.abs(moved - small).max(axis=2) > 0.02).sum() <= 8  # of 768 pixels
 
 
 def test_max_bounces_counts_as_cycles_does_zero_is_direct_lighting():
