@@ -232,9 +232,9 @@ def test_each_view_layer_renders_into_its_own_layer(fresh_scene, tmp_path):
     layers = []
     render = engine.NeuralLayeredRenderEngine._render
 
-    def spy(self, depsgraph, scene, props, result, region, thumbnail=False):
+    def spy(self, depsgraph, scene, props, result, region, thumbnail=False, view=""):
         layers.append((depsgraph.view_layer.name, [layer.name for layer in result.layers]))
-        return render(self, depsgraph, scene, props, result, region, thumbnail)
+        return render(self, depsgraph, scene, props, result, region, thumbnail, view)
 
     engine.NeuralLayeredRenderEngine._render = spy
     try:
@@ -692,7 +692,7 @@ def render_as_material_preview(scene, path, monkeypatch) -> None:
 
     cls = engine.NeuralLayeredRenderEngine
     real_step = cls._render
-    monkeypatch.setattr(cls, "_render", lambda self, *a, thumbnail=False: real_step(self, *a, thumbnail=True))
+    monkeypatch.setattr(cls, "_render", lambda self, *a, thumbnail=False, **k: real_step(self, *a, thumbnail=True, **k))
     scene.render.filepath = str(path)
     scene.render.image_settings.file_format = "OPEN_EXR"
     bpy.ops.render.render(write_still=True)
