@@ -719,15 +719,16 @@ UNRENDERED_TYPES = {"POINTCLOUD": "point cloud", "VOLUME": "volume"}  # objects 
 
 
 def _instance_reader(depsgraph, object_arrays, warnings: list[str]):
-    """``add(instance, meshes, lights)``: one instance of the depsgraph into the scene's meshes (in world space) or
-    lights, if it renders (``_render_visibility``). An object's geometry is read once (``object_arrays``) however
-    many times it is instanced, and what it sets that is not rendered is said once."""
+    """``add(instance, placed, lights)``: one instance of the depsgraph into ``placed`` (its geometry's key -> the
+    geometry's arrays and the matrices of its instances, for ``_world_mesh``) or into the lights, if it renders
+    (``_render_visibility``). An object's geometry is read once (``object_arrays``) however many times it is
+    instanced, and what it sets that is not rendered is said once."""
     rendered = _render_visibility(depsgraph)
     holdouts = _holdout_collections(depsgraph)
     cache: dict = {}
     told: set = set()
 
-    def add(inst, meshes: list, lights: list) -> None:
+    def add(inst, placed: dict, lights: list) -> None:
         ob = inst.object
         original = ob.original if not inst.is_instance else ob
         if not rendered(inst, original):
@@ -755,7 +756,7 @@ def _instance_reader(depsgraph, object_arrays, warnings: list[str]):
         if key not in cache:
             cache[key] = object_arrays(ob)
         if cache[key] is not None:
-            meshes.append(_world_mesh(cache[key], matrix))
+            placed.setdefault(key, (cache[key], []))[1].append(matrix)
 
     return add
 
@@ -800,22 +801,48 @@ def _reads_uvs(material) -> bool:
     return getattr(material, "latent_texture", None) is not None or getattr(material, "spatial", None) is not None
 
 
-def _world_mesh(arrays, matrix: np.ndarray) -> Mesh:
-    """One instance's triangles in world space: positions by its matrix, normals by the inverse
-    transpose, material slots mapped to the scene's material indices."""
+def _world_mesh(placed: dict) -> Mesh:
+    """The scene's triangles in world space, of every geometry in ``placed`` (key -> its arrays, the matrices of its
+    instances; ``_instance_reader``), one mesh checked once: each geometry's instances at once (positions by their
+    matrices, normals by their inverse transposes, material slots mapped to the scene's material indices). Each
+    instance made a mesh of its own, checked, and checked again in the scene's: 90,000 instances of a scatter took
+    18.7 s where the same triangles realised took 3.6 s."""
+    parts = [_placed_arrays(arrays, np.array(matrices, dtype=np.float64)) for arrays, matrices in placed.values()]
+    if not parts:
+        return Mesh(np.zeros((0, 3, 3), np.float32))
+    uvs = None
+    if any(p[2] is not None for p in parts):
+        uvs = np.concatenate([p[2] if p[2] is not None else np.zeros(p[0].shape[:2] + (2,), np.float32) for p in parts])
+    return Mesh(*(np.concatenate([p[i] for p in parts]) for i in (0, 1)), uvs, np.concatenate([p[3] for p in parts]))
+
+
+def _placed_arrays(arrays, matrices: np.ndarray) -> tuple:
+    """(positions, normals, uvs or None, material indices) of the K instances of one geometry, ``matrices`` (K, 4,
+    4): K x T triangles. A mirroring matrix (a negative scale) turns the corners' order: reversed, the face normal
+    that their order gives points out again, with the corner normals (else every corner normal disagreed with its
+    face and the surface shaded flat)."""
     pos, nrm, uvs, mat_i, slots = arrays
-    world_pos = pos @ matrix[:3, :3].T.astype(np.float32) + matrix[:3, 3].astype(np.float32)
-    det = np.linalg.det(matrix[:3, :3])
-    normal_m = np.linalg.inv(matrix[:3, :3]).T if abs(det) > 1e-30 else np.eye(3)
-    world_nrm = nrm @ normal_m.T.astype(np.float32)
-    if det < 0:
-        # A mirroring matrix (a negative scale) turns the corners' order: reversed, the face normal that their order
-        # gives points out again, with the corner normals (else every corner normal disagreed with its face and the
-        # surface shaded flat).
-        corners = [0, 2, 1]
-        world_pos, world_nrm = world_pos[:, corners], world_nrm[:, corners]
-        uvs = uvs[:, corners] if uvs is not None else None
-    return Mesh(world_pos, world_nrm, uvs, slots[np.clip(mat_i, 0, len(slots) - 1)])
+    k, t = len(matrices), len(pos)
+    rot = matrices[:, :3, :3]
+    world_pos = np.einsum("kij,tcj->ktci", rot.astype(np.float32), pos) + matrices[:, None, None, :3, 3].astype(
+        np.float32
+    )
+    # each inverse from its rows' cross products (numpy's batched inverse took 0.7 s for 10,000 matrices)
+    a, b, c = rot[:, 0], rot[:, 1], rot[:, 2]
+    adjugate = np.stack([np.cross(b, c), np.cross(c, a), np.cross(a, b)], axis=2)
+    det = np.einsum("ki,ki->k", a, adjugate[:, :, 0])
+    invertible = np.abs(det) > 1e-30
+    inverse = np.broadcast_to(np.eye(3), rot.shape).copy()
+    inverse[invertible] = adjugate[invertible] / det[invertible, None, None]
+    world_nrm = np.einsum("tcj,kji->ktci", nrm, inverse.astype(np.float32))  # n @ inv(R): the inverse transpose
+    uv = None if uvs is None else np.broadcast_to(uvs, (k,) + uvs.shape).copy()
+    mirrored = det < 0
+    if mirrored.any():
+        for a in (world_pos, world_nrm) + ((uv,) if uv is not None else ()):
+            a[mirrored] = a[mirrored][:, :, [0, 2, 1]]
+    slot = np.tile(slots[np.clip(mat_i, 0, len(slots) - 1)], k)
+    merge = lambda a: None if a is None else a.reshape((k * t,) + a.shape[2:])  # noqa: E731
+    return merge(world_pos), merge(world_nrm), merge(uv), slot
 
 
 def _shown_collections(depsgraph) -> set:
@@ -946,14 +973,14 @@ def _export_scene(depsgraph, scene, width, height, camera, info, environment):
     if override is not None:  # the view layer's Material Override: every surface in it
         slot = material_slot(override.evaluated_get(depsgraph))
         material_slot = lambda mat, slot=slot: slot  # noqa: E731
-    meshes: list[Mesh] = []
+    placed: dict = {}
     lights: list = []
     add = _instance_reader(
         depsgraph, lambda ob: _object_arrays(ob, material_slot, materials, names, warnings), warnings
     )
     for inst in depsgraph.object_instances:
-        add(inst, meshes, lights)
-    mesh = Mesh.concatenate(meshes)
+        add(inst, placed, lights)
+    mesh = _world_mesh(placed)
     world = _world(scene.world, warnings) if environment is EXPORT_WORLD else environment
     out = Scene(camera, mesh, materials, lights, world, names)
     with _LOCK:

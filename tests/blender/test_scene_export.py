@@ -467,3 +467,36 @@ def test_particles_of_an_object_hidden_for_renders_render(bpy_addon, fresh_scene
     scene.collection.objects.link(instancer)
     assert _triangles(fresh_scene.evaluated_depsgraph_get()) == 12
     assert _f12_triangles(bpy, scene, monkeypatch) == 12
+
+
+def test_the_instances_of_a_geometry_are_placed_at_once_as_each_would_be_alone(bpy_addon):
+    """Each instance made and checked a mesh of its own, and the scene checked them again (90,000 instances of a
+    scatter: 18.7 s, the same triangles realised 3.6 s): a geometry's instances are now placed together. Each is as it
+    was alone: positions by its matrix, normals by its inverse transpose, a mirrored one's corners reversed, a
+    matrix scaled to nothing leaving its normals as they are."""
+    from addon.blender import scene_export
+
+    rng = np.random.default_rng(4)
+    t = 5
+    pos, nrm = rng.normal(size=(t, 3, 3)).astype(np.float32), rng.normal(size=(t, 3, 3)).astype(np.float32)
+    uvs = rng.random((t, 3, 2)).astype(np.float32)
+    arrays = (pos, nrm, uvs, np.array([0, 1, 1, 0, 7]), np.array([3, 5]))
+    matrices = np.tile(np.eye(4), (4, 1, 1))
+    matrices[0, :3] = rng.normal(size=(3, 4))
+    matrices[1, :3, :3] = np.diag([-1.0, 2.0, 1.0])  # mirrored
+    matrices[2, :3, :3] = 0.0  # scaled to nothing
+    matrices[3, :3] = rng.normal(size=(3, 4))
+    p, n, uv, slot = scene_export._placed_arrays(arrays, matrices)
+    assert p.shape == (4 * t, 3, 3) and n.shape == (4 * t, 3, 3) and uv.shape == (4 * t, 3, 2)
+    for k, m in enumerate(matrices):
+        rows = slice(k * t, (k + 1) * t)
+        order = [0, 2, 1] if np.linalg.det(m[:3, :3]) < 0 else [0, 1, 2]
+        want_n = nrm @ (np.linalg.inv(m[:3, :3]) if abs(np.linalg.det(m[:3, :3])) > 1e-30 else np.eye(3))
+        np.testing.assert_allclose(p[rows], (pos @ m[:3, :3].T + m[:3, 3])[:, order], rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(n[rows], want_n[:, order], rtol=1e-4, atol=1e-5)
+        np.testing.assert_array_equal(uv[rows], uvs[:, order])
+        np.testing.assert_array_equal(slot[rows], [3, 5, 5, 3, 5])  # an index past the last slot: the last
+    mesh = scene_export._world_mesh(
+        {"a": (arrays, list(matrices[[0, 3]])), "b": (arrays[:2] + (None,) + arrays[3:], [np.eye(4)])}
+    )
+    assert mesh.triangle_count == 3 * t and mesh.uvs is not None and not mesh.uvs[2 * t :].any()
