@@ -69,6 +69,7 @@ class NLM_PT_light(_EnginePanel, bpy.types.Panel):
         col = layout.column()
         col.prop(light, "energy", text="Strength" if light.type == "SUN" else "Power")
         col.prop(light, "exposure")
+        col.prop(light, "use_shadow", text="Cast Shadow")
         col = layout.column()
         if light.type == "SPOT":
             col.prop(light, "spot_size", text="Spot Size")

@@ -558,16 +558,17 @@ def _light(ob, matrix: np.ndarray, warnings: list[str]):
     scale = np.linalg.norm(matrix[:3, :3], axis=0)
     if light.type in ("SPOT", "SUN") and not scale[2] > 0.0:
         return None  # its direction scaled to nothing: hidden
+    shadow = dict(casts_shadow=bool(getattr(light, "use_shadow", True)))  # Cast Shadow
     if light.type == "POINT":
-        return PointLight(matrix[:3, 3], power, color)
+        return PointLight(matrix[:3, 3], power, color, **shadow)
     if light.type == "SPOT":
         spot_size = min(float(light.spot_size), math.pi)
         axes = matrix[:3, :3] if (scale > 0.0).all() and abs(np.linalg.det(matrix[:3, :3])) > 1e-30 else None
         return SpotLight(
-            matrix[:3, 3], power, color, direction=z, spot_size=spot_size, blend=light.spot_blend, axes=axes
+            matrix[:3, 3], power, color, direction=z, spot_size=spot_size, blend=light.spot_blend, axes=axes, **shadow
         )
     if light.type == "SUN":
-        return SunLight(z, power, color)
+        return SunLight(z, power, color, **shadow)
     shape = light.shape
     size_y = light.size_y if shape in ("RECTANGLE", "ELLIPSE") else light.size
     if not (light.size > 0.0 and size_y > 0.0 and scale[0] > 0.0 and scale[1] > 0.0):
@@ -576,7 +577,7 @@ def _light(ob, matrix: np.ndarray, warnings: list[str]):
         matrix, power, color, light.size, size_y, ellipse=shape in ("DISK", "ELLIPSE"),
         normalize=bool(getattr(light, "normalize", True)),
         spread=min(float(getattr(light, "spread", math.pi)), math.pi),
-        camera_visible=bool(getattr(ob, "visible_camera", True)),
+        camera_visible=bool(getattr(ob, "visible_camera", True)), **shadow,
     )  # fmt: skip
 
 

@@ -524,7 +524,8 @@ def first_hit_features(features, row, weight, ns, dist, d, forward):
 # directions (W + 1, 2) and a first guess of the column per even bin of :func:`_pseudo_angle`.
 
 POINT, SPOT, SUN, AREA_RECT, AREA_ELLIPSE, ENVIRONMENT = range(6)  # an environment of one colour is a 1 x 1 image
-N_PARAMS = 20
+N_PARAMS = 21
+NO_SHADOW = 20  # every row's last parameter: 1 for a light that casts no shadow (Blender's Cast Shadow off)
 
 
 @njit(inline="always", **_JIT)
@@ -856,11 +857,11 @@ def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps):
     in the shading frame (ts, tt, ns), the radiance (N, 3), pdf, delta flag and whether the sample can
     contribute (``useful``: pdf and radiance non-zero, and the direction on the same side of the geometric
     normal ``ng`` as of the shading normal, so light never leaks through the surface); and the shadow rays
-    of the useful samples only: their rows, origins offset by ``eps`` (a row per hit: ``surface_hits``' offset) off
-    the surface on the light's side,
-    world directions and lengths (:data:`FAR` to the sun or the sky; else :func:`_unblocked_before` the light),
-    in float32 for embree (each value rounded once, as numpy's cast rounds it). Writes them into
-    ``out`` (:data:`LIGHT_SAMPLES_OUT`) and returns them, the shadow rays' arrays cut to their count."""
+    of the useful samples of lights that cast shadows (:data:`NO_SHADOW`) only: their rows, origins offset by
+    ``eps`` (a row per hit: ``surface_hits``' offset) off the surface on the light's side, world directions and
+    lengths (:data:`FAR` to the sun or the sky; else :func:`_unblocked_before` the light), in float32 for embree
+    (each value rounded once, as numpy's cast rounds it). Writes them into ``out`` (:data:`LIGHT_SAMPLES_OUT`) and
+    returns them, the shadow rays' arrays cut to their count."""
     image, pixel_pdf, alias_p, alias_i, z_edges, edges = env[0], env[1], env[2], env[3], env[4], env[6]
     n = len(p)
     n_lights = len(kinds)
@@ -882,7 +883,7 @@ def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps):
         same_side = (c > 0.0 and lz > 0.0) or (c < 0.0 and lz < 0.0)
         ok = pd > 0.0 and max(r0, r1, r2) > 0.0 and same_side
         useful[i] = ok
-        if ok:
+        if ok and params[j, NO_SHADOW] == 0.0:  # a light that casts no shadow reaches the surface untested
             off = eps[i] if c > 0.0 else -eps[i]
             rows[m] = i
             for k in range(3):

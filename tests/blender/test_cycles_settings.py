@@ -308,7 +308,7 @@ def test_the_light_panel_draws_the_settings_this_engine_renders(bpy_addon):
         engine = "NEURAL_LAYERED"
 
     for kind, expected in (
-        ("POINT", {"energy", "color", "exposure", "use_temperature"}),
+        ("POINT", {"energy", "color", "exposure", "use_temperature", "use_shadow"}),
         ("SPOT", {"energy", "spot_size", "spot_blend"}),
         ("SUN", {"energy", "color"}),
         ("AREA", {"energy", "shape", "size", "normalize", "spread", "visible_camera"}),
@@ -669,3 +669,20 @@ def test_each_eye_of_a_stereo_pair_renders_what_cycles_renders(fresh_scene, tmp_
     assert np.abs(cycles_l - cycles_r).max() > 0.1  # the eyes see the checkers' edges apart
     _assert_blocks_match(cycles_l, ours_l, 0.04, n=4)
     _assert_blocks_match(cycles_r, ours_r, 0.04, n=4)
+
+
+@pytest.mark.parametrize("kind", ["POINT", "SUN", "AREA"])
+def test_a_light_that_casts_no_shadow_renders_as_in_cycles(fresh_scene, tmp_path, kind):
+    """A light's Cast Shadow off (a fill light's usual setting): Cycles lights what lies behind a blocker; its
+    shadow was rendered, without a word."""
+    ctx = fresh_scene
+    _empty_scene(ctx, 24, 16)
+    _floor(ctx)
+    bpy.ops.mesh.primitive_cube_add(size=1.0, location=(0.0, 0.0, 0.6))
+    ctx.object.data.materials.append(_diffuse((0.5, 0.5, 0.5)))
+    _camera(ctx, location=(0.0, 0.0, 6.0))
+    settings = {"POINT": {"energy": 300.0}, "SUN": {"energy": 2.0, "angle": 0.0}, "AREA": {"energy": 300.0}}[kind]
+    light = _light(ctx, kind, location=(0.4, 0.3, 2.5), rotation=(0.3, 0.2, 0.0), **settings)
+    light.data.use_shadow = False
+    cycles, ours, _ = _both(ctx, tmp_path, samples=64)
+    _assert_blocks_match(cycles, ours, 0.04, n=4)

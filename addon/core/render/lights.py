@@ -18,7 +18,7 @@ pdf (1 for delta lights).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -81,11 +81,18 @@ def _power(value, name: str) -> float:
     return v
 
 
+def _shadowed(row: np.ndarray, light) -> np.ndarray:
+    """``row`` with its :data:`kernels.NO_SHADOW` parameter: 1 where ``light`` casts no shadow."""
+    row[kernels.NO_SHADOW] = 0.0 if light.casts_shadow else 1.0
+    return row
+
+
 @dataclass
 class PointLight:
     position: np.ndarray
     power: float = 1000.0
     color: tuple = (1.0, 1.0, 1.0)
+    casts_shadow: bool = field(default=True, kw_only=True)  # Blender's Cast Shadow: off, surfaces do not block it
 
     def __post_init__(self):
         self.position = _point(self.position, f"{type(self).__name__}.position")
@@ -99,7 +106,7 @@ class PointLight:
     def table_row(self) -> tuple[int, np.ndarray]:
         row = np.zeros(N_PARAMS)
         row[0:3], row[3:6] = self.position, self.intensity
-        return kernels.POINT, row
+        return kernels.POINT, _shadowed(row, self)
 
     def sample(self, p: np.ndarray, u: np.ndarray) -> LightSample:
         return _sample(self, p, u)
@@ -159,6 +166,7 @@ class SunLight:
     direction: np.ndarray
     strength: float = 1.0
     color: tuple = (1.0, 1.0, 1.0)
+    casts_shadow: bool = field(default=True, kw_only=True)
 
     def __post_init__(self):
         self.direction = _unit(self.direction, "SunLight.direction")
@@ -168,7 +176,7 @@ class SunLight:
     def table_row(self) -> tuple[int, np.ndarray]:
         row = np.zeros(N_PARAMS)
         row[0:3], row[3:6] = -self.direction, self.color * self.strength
-        return kernels.SUN, row
+        return kernels.SUN, _shadowed(row, self)
 
     def sample(self, p: np.ndarray, u: np.ndarray) -> LightSample:
         return _sample(self, p, u)
@@ -195,6 +203,7 @@ class AreaLight:
     normalize: bool = True
     spread: float = math.pi
     camera_visible: bool = True
+    casts_shadow: bool = field(default=True, kw_only=True)
 
     def __post_init__(self):
         """``normalize``: Blender's *Normalize* (the power spread over the light's area; off, the radiance is
@@ -231,7 +240,7 @@ class AreaLight:
         row[16] = self._bounding_radius2()
         row[17], row[18] = spread_table(self.spread)
         row[19] = 1.0 if self.camera_visible else 0.0
-        return (kernels.AREA_ELLIPSE if self.ellipse else kernels.AREA_RECT), row
+        return (kernels.AREA_ELLIPSE if self.ellipse else kernels.AREA_RECT), _shadowed(row, self)
 
     def _bounding_radius2(self) -> float:
         """The squared radius about the centre, 0.1% wider, of a sphere that holds the light: the points a u + b v,
