@@ -546,6 +546,12 @@ def _light(ob, matrix: np.ndarray, warnings: list[str]):
             "it lights every surface, and "
             "every surface casts its shadow"
         )
+    hidden_from = [ray for ray in ("diffuse", "glossy", "transmission") if not getattr(ob, f"visible_{ray}", True)]
+    if hidden_from:
+        warnings.append(
+            f"light {ob.name!r}: its ray visibility ({', '.join(r.title() for r in hidden_from)} off) is not rendered "
+            "here; it lights every surface"
+        )
     if not light.energy > 0.0:
         if light.energy < 0.0:
             warnings.append(

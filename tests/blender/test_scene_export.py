@@ -407,10 +407,12 @@ def test_settings_cycles_renders_and_this_renderer_does_not_are_said(bpy_addon, 
     scene.collection.objects.link(hair)
     receivers = bpy.data.collections.new("receivers")
     scene.objects["Light"].light_linking.receiver_collection = receivers  # lights only what it holds
+    scene.objects["Light"].visible_glossy = False
     _, warnings = scene_export.export_scene(fresh_scene.evaluated_depsgraph_get())
     text = "\n".join(warnings)
     assert "Holdout, Shadow Catcher, Camera ray visibility off" in text and "point cloud" in text
     assert "'Light': its Light Linking is not rendered" in text
+    assert "'Light': its ray visibility (Glossy off) is not rendered" in text
     assert "'hair': hair curves are not rendered" in text and not any("\n" in w for w in warnings)
     override, principled = _principled(bpy, "override")
     principled.inputs["Base Color"].default_value = (0.1, 0.2, 0.9, 1.0)
