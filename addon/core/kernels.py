@@ -498,6 +498,29 @@ def surface_hits(out, corners, face_normals, uv_scale, tri_offset, hit, prim, bu
 
 
 @njit(**_JIT)
+def film_add(sums, squares, count, feature_sum, first, pixels, radiance, features, depth):
+    """A chunk's samples into the film (``render.film.Film.add``), in one pass: row i of ``radiance`` (N, 3) and
+    its square into pixel ``pixels[i]`` (``first + i`` where ``pixels`` is empty: a run of pixels), one more sample
+    counted, and its ``features`` (N, C; none where empty) summed, but for column ``depth``, of which the least is
+    kept."""
+    contiguous = len(pixels) == 0
+    with_features = features.shape[0] > 0
+    for i in range(len(radiance)):
+        q = first + i if contiguous else pixels[i]
+        for k in range(3):
+            v = radiance[i, k]
+            sums[q, k] += v
+            squares[q, k] += v * v
+        count[q] += 1
+        if with_features:
+            for k in range(features.shape[1]):
+                if k == depth:
+                    feature_sum[q, k] = min(feature_sum[q, k], features[i, k])
+                else:
+                    feature_sum[q, k] += features[i, k]
+
+
+@njit(**_JIT)
 def first_hit_features(features, row, weight, ns, dist, d, forward):
     """What a denoiser is guided by, into ``features[row]`` (``render.film``): the first sample's weight, at least 0
     (its mean is the directional albedo; ``Film.features`` clips the mean to [0, 1], not each weight, which made the

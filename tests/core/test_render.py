@@ -1033,6 +1033,21 @@ def test_the_film_keeps_84_bytes_a_pixel_and_its_float32_features_keep_their_mea
     assert np.isfinite(film.stderr().reshape(-1, 3)[pixels]).all()
 
 
+def test_the_film_refuses_pixels_it_does_not_hold():
+    """The film adds in one compiled pass, which checks no index: a pixel outside it, or a run of pixels longer than
+    the rows, is refused before it."""
+    film = Film(4, 3)
+    with pytest.raises(IndexError):
+        film.add(np.array([3, 12]), np.ones((2, 3)))
+    with pytest.raises(ValueError):
+        film.add(slice(10, 14), np.ones((4, 3)))  # two of its pixels beyond the film's 12
+    with pytest.raises(ValueError):
+        film.add(np.array([1, 2]), np.ones((3, 3)))
+    film.add(slice(10, 12), np.ones((2, 3)))
+    film.add(np.array([11]), np.full((1, 3), 3.0))
+    assert film.count.tolist() == [0] * 10 + [1, 2] and film.mean()[2, 3].tolist() == [2.0, 2.0, 2.0]
+
+
 def test_a_pixel_on_an_edge_has_the_depth_of_a_surface_it_shows():
     """The depth was the mean over the pixel's samples, counting those that escaped as 0: a pixel on a plane's edge
     read a depth between the plane's and nothing (2.4 m for a floor 4 m away), which the compositor's depth nodes
