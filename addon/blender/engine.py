@@ -175,11 +175,12 @@ _OPEN_VIEWPORTS: set = set()
 def _write_feature_passes(passes, film, region) -> None:
     """Denoising Albedo / Normal and Depth from the film's first-hit features in ``region`` (``render_region``),
     where the result has those passes."""
-    features = film.features()
-    for name, key in (("Denoising Albedo", "albedo"), ("Denoising Normal", "normal"), ("Depth", "depth")):
-        rp = passes.find(name)
-        if rp >= 0:
-            passes[rp].rect.foreach_set(_region_rows(features[key], region))
+    wanted = {key: i for name, key in _FEATURE_PASSES if (i := passes.find(name)) >= 0}
+    for key, features in film.features(tuple(wanted)).items():  # only what the result has passes for
+        passes[wanted[key]].rect.foreach_set(_region_rows(features, region))
+
+
+_FEATURE_PASSES = (("Denoising Albedo", "albedo"), ("Denoising Normal", "normal"), ("Depth", "depth"))
 
 
 def render_region(scene, width: int, height: int) -> tuple[int, int, int, int]:

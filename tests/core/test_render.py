@@ -1030,6 +1030,8 @@ def test_the_film_keeps_84_bytes_a_pixel_and_its_float32_features_keep_their_mea
     np.testing.assert_allclose(f["depth"].reshape(-1)[pixels], nearest, rtol=1e-7)
     assert np.all(np.delete(f["depth"].reshape(-1), pixels) == Film.NO_DEPTH)
     assert film.count[pixels].tolist() == [4096] * 1000 and film.count.sum() == 4096 * 1000
+    alone = film.features(("depth",))  # what a pass asks for, alone
+    assert list(alone) == ["depth"] and np.array_equal(alone["depth"], f["depth"])
     assert np.isfinite(film.stderr().reshape(-1, 3)[pixels]).all()
 
 
