@@ -527,6 +527,10 @@ def view_camera(region_3d, lens: float, width: int, height: int, clip=(0.0, math
     return Camera(m, width, height, tan, shift, clip)
 
 
+# what a transform that is not finite is said to be (a driver or a constraint can make one)
+_NOT_A_NUMBER = "its location, rotation or scale is not a number (NaN or infinite: a driver or a constraint?)"
+
+
 def _light(ob, matrix: np.ndarray, warnings: list[str]):
     """The core light of a Blender light object, or None for one that sheds no light here (with a warning where the
     user may not expect it). Blender allows what the core lights refuse: a negative power (Cycles subtracts light;
@@ -534,6 +538,9 @@ def _light(ob, matrix: np.ndarray, warnings: list[str]):
     a 180-degree spot, whose float32 angle is just above pi."""
     light = ob.data
     z = -matrix[:3, 2]  # lights point along their local -z
+    if not np.isfinite(matrix).all():
+        warnings.append(f"light {ob.name!r}: {_NOT_A_NUMBER}; skipped")
+        return None
     if light.type not in ("POINT", "SPOT", "SUN", "AREA"):
         warnings.append(f"light {ob.name!r} has unsupported type {light.type}; skipped")
         return None
@@ -753,6 +760,10 @@ def _instance_reader(depsgraph, object_arrays, warnings: list[str]):
                 warnings.append(
                     f"object {ob.name!r} is a {UNRENDERED_TYPES[ob.type]}, which this renderer does not render"
                 )
+            return
+        if not np.isfinite(matrix).all():
+            if first:
+                warnings.append(f"object {ob.name!r}: {_NOT_A_NUMBER}; skipped")
             return
         if first:
             _warn_visibility(ob, holdouts, warnings)

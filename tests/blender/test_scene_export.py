@@ -502,3 +502,20 @@ def test_the_instances_of_a_geometry_are_placed_at_once_as_each_would_be_alone(b
         {"a": (arrays, list(matrices[[0, 3]])), "b": (arrays[:2] + (None,) + arrays[3:], [np.eye(4)])}
     )
     assert mesh.triangle_count == 3 * t and mesh.uvs is not None and not mesh.uvs[2 * t :].any()
+
+
+@pytest.mark.parametrize("kind", ["POINT", "SUN", "AREA"])
+def test_a_light_or_an_object_placed_at_no_number_is_skipped_and_said(bpy_addon, fresh_scene, kind):
+    """A driver or a constraint can place a light or an object at NaN: a point light there failed the whole F12, and
+    any other light or the object vanished without a word."""
+    from addon.blender import scene_export
+
+    scene = fresh_scene.scene
+    light = scene.objects["Light"]
+    light.data.type = kind
+    light.location = (float("nan"), 0.0, 0.0)
+    scene.objects["Cube"].scale = (float("nan"), 1.0, 1.0)
+    core, warnings = scene_export.export_scene(fresh_scene.evaluated_depsgraph_get())
+    assert core.lights == [] and core.mesh.triangle_count == 0
+    assert any("light 'Light'" in w and "not a number" in w for w in warnings)
+    assert any("object 'Cube'" in w and "not a number" in w for w in warnings)
