@@ -51,7 +51,17 @@ def scripted() -> bool:
 
 
 def read_only_problem(mat) -> str | None:
-    """Why ``mat`` cannot be edited (linked from a library: an edit would be lost when the file is saved), or None."""
+    """Why ``mat`` cannot be edited (linked from a library, or a library override of one, whose layer stack Blender
+    does not override: an edit would be lost when the file is saved), or None."""
+    override = getattr(mat, "override_library", None)
+    if override is not None:
+        source = getattr(override.reference, "library", None)
+        where = f" of a material from {source.filepath!r}" if source is not None else ""
+        return (
+            f"Material {mat.name_full!r} is a library override{where}, whose layer stack cannot be overridden: an "
+            "edit would be lost when the file is saved; make it local (Outliner: Library Override > Clear, then "
+            "Make Local) or edit it in its own file"
+        )
     if mat.library is not None or not mat.is_editable:
         where = f" from {mat.library.filepath!r}" if mat.library is not None else ""
         return (

@@ -484,6 +484,15 @@ def test_a_linked_material_is_read_but_never_edited_and_its_texture_found_beside
     # the texture is found beside the library (the empty file is then refused for its content, not as missing)
     state = bake_state.current_texture(mat)[1]
     assert "missing" not in state, state
+    # a library override of it: Blender does not override its layer stack, so an edit there crashed (Add Layer:
+    # "not supported for this collection") or was lost at the next save (a rename, a slider)
+    override = mat.override_create(remap_local_usages=True)
+    ob.material_slots[0].material = override
+    assert override.override_library is not None and override.library is None
+    r = run_operator(bpy.ops.neural_layers.layer_add, layer_type="COATING")
+    assert not r.finished and "library override" in r.error and "lib.blend" in r.error
+    monkeypatch.setattr(operator_base, "scripted", lambda: False)
+    assert not operators.NLM_OT_layer_add.poll(ctx) and operators.NLM_OT_preview_lobe.poll(ctx)
 
 
 def test_values_at_the_ends_of_their_ranges_make_a_valid_stack(material, bpy_addon):
