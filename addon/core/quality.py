@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from . import lobe
+from .reference.walk import stopping
 from .stack import ClampWarning, Stack, clamp_to_trained
 
 DEFAULT_TOLERANCE = 0.2
@@ -377,11 +378,11 @@ def choose_decoder(
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         for s in sizes:
-            if stop is not None and stop():
-                from .render.integrator import Cancelled
-
-                raise Cancelled("the decoder choice was stopped")
-            errors[s] = measured_error(stack, s, res, walks, seed, cache, threads, calibrate, only_cached)
+            _check_stop(stop)
+            # heard inside the measurement too, between the reference walks' events: a thick scattering coat's
+            # walks took minutes between two sizes' checks
+            with stopping(None if stop is None else (lambda: _check_stop(stop))):
+                errors[s] = measured_error(stack, s, res, walks, seed, cache, threads, calibrate, only_cached)
             if errors[s] <= tol or math.isnan(errors[s]):
                 break
     if any(math.isnan(e) for e in errors.values()):
@@ -424,6 +425,14 @@ def choose_decoder(
     )
     warnings.warn(msg, QualityWarning, stacklevel=2)
     return DecoderChoice(best, tol, errors, False, tuple(notes + [msg]), left_out)
+
+
+def _check_stop(stop) -> None:
+    """Raise ``render.Cancelled`` when ``stop()`` (None: never) says stop."""
+    if stop is not None and stop():
+        from .render.integrator import Cancelled
+
+        raise Cancelled("the decoder choice was stopped")
 
 
 def choice_reason(name: str, choice: DecoderChoice) -> str:

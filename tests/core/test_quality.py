@@ -420,6 +420,58 @@ def test_a_stopped_choice_raises_cancelled_before_it_measures(monkeypatch):
         quality.choose_decoder(DEMANDING, 0.15, cache=quality.ErrorCache(), stop=lambda: True)
 
 
+def test_a_choice_hears_its_stop_inside_a_measurement(monkeypatch):
+    """A thick scattering coat's reference walks took minutes, and the stop was heard only before each size: F12's
+    Esc went unheard for 19-108 s. The walks now call the choice's stop between their events."""
+    from addon.core.render import Cancelled
+    from addon.core.stack import Coating, Diffuse, Stack
+
+    thick = Stack(Diffuse((0.8, 0.8, 0.8)), (Coating(roughness=0.3, ior=1.5, albedo=(1.0, 1.0, 1.0), thickness=5.0),))
+    calls = []
+
+    def stop():
+        calls.append(1)
+        return len(calls) > 3  # after the first size's check, inside its measurement
+
+    monkeypatch.setattr(quality, "decoder_lobes", lambda *a, **k: np.zeros((4, 8, 8, 3)))
+    with pytest.raises(Cancelled, match="decoder choice was stopped"):
+        quality.choose_decoder(thick, 0.15, sizes=[SIZES[0]], cache=quality.ErrorCache(), res=8, stop=stop)
+    assert len(calls) == 4  # stopped at the walks' third event, not after the measurement
+
+
+def test_a_reference_render_hears_its_stop_between_the_walks_events(monkeypatch):
+    """A reference-mode render of a thick coat heard Esc only between bounces (50 s at 96 x 64): the chunks' walks
+    now call the render's stop between their events."""
+    import threading
+
+    from addon.core.reference import walk
+    from addon.core.render import Camera, Cancelled, Environment, RenderSettings, Scene, render
+    from addon.core.stack import Coating, Diffuse, Stack
+
+    thick = Stack(Diffuse((0.8, 0.8, 0.8)), (Coating(roughness=0.3, ior=1.5, albedo=(1.0, 1.0, 1.0), thickness=5.0),))
+    cam = Camera.look_at((0, -3, 0), (0, 0, 0), fov_deg=30, width=8, height=8)
+    scene = Scene(cam, shapes.uv_sphere((0, 0, 0), 1.0, 12, 6), [thick], [])
+    scene.environment = Environment((1.0, 1.0, 1.0))
+    events = []
+    run = walk._RandomWalk.run
+
+    def counted(self, alive_per_event=None, step=None):
+        def check():
+            events.append(1)
+            if len(events) == 5:
+                stopped.set()
+            if step is not None:
+                step()
+
+        return run(self, alive_per_event, check)
+
+    stopped = threading.Event()
+    monkeypatch.setattr(walk._RandomWalk, "run", counted)
+    with pytest.raises(Cancelled):
+        render(scene, RenderSettings(samples=4, max_bounces=1, mode="reference", threads=1), stop=stopped.is_set)
+    assert len(events) < 50  # ended within the walks, a few events after the stop
+
+
 def test_the_error_cache_keeps_the_most_recent_entries_and_cleans_a_killed_writers_files(tmp_path, monkeypatch):
     """decoder_errors.json grew for good (one entry a stack, size and setting: the file is written whole at each)
     and a session killed while writing it left its temporary file there."""

@@ -81,6 +81,8 @@ upward is a sample ``wi = w`` with weight ``beta`` (its expectation is
 from __future__ import annotations
 
 import warnings
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 
 import numpy as np
@@ -840,6 +842,23 @@ class _RandomWalk:
         dead[exits] = True
 
 
+# The check the walks call before each event when their caller passes none (``run_walks``' ``step``): set by
+# ``stopping`` on the thread that walks, so that a render's Esc or a decoder choice's stop is heard inside a
+# reference estimate, however deep in the calls (a thick scattering coat's walks took minutes between two checks).
+_STOP: ContextVar = ContextVar("walk_stop", default=None)
+
+
+@contextmanager
+def stopping(check):
+    """Within the block, on this thread, the walks call ``check()`` (None: nothing) before each event; it stops
+    them by raising."""
+    token = _STOP.set(check)
+    try:
+        yield
+    finally:
+        _STOP.reset(token)
+
+
 def run_walks(
     lay: Layers,
     pr,
@@ -862,10 +881,11 @@ def run_walks(
     (for measuring walk lengths).
     ``first_exits`` (analog walk): a list that receives the (m,) flags of the walks that left at their first
     event: with coatings, those the top interface reflected, the paths of the exact top lobe.
-    ``step()`` (optional) is called before each event; raising there stops the walks.
+    ``step()`` (optional) is called before each event; raising there stops the walks. Without one, the check
+    ``stopping`` set on this thread is (a render's Esc, a decoder choice's).
     """
     walk = _RandomWalk(lay, pr, wo, wi, rng, nee)
-    out = walk.run(alive_per_event, step)
+    out = walk.run(alive_per_event, step if step is not None else _STOP.get())
     if first_exits is not None:
         first_exits.append(walk.exit_first & (walk.C > 0))
     return out

@@ -32,6 +32,7 @@ import numpy as np
 from .. import kernels
 from ..neural import session
 from ..neural.calibrate import check_mode as calibrate_mode
+from ..reference.walk import stopping
 from ..threads import submit_in_context, thread_count
 from . import materials as mat
 from .film import Film
@@ -501,7 +502,9 @@ def render(
         pix = pixels[starts[c] : starts[c] + chunk]
         scratch, image = scratches.take(chunk), images.take()
         try:
-            traced = _trace_paths(ctx, pix, start_pass + k, c, halt, scratch, image)
+            # the reference estimates of the chunk hear the stop too, between their walks' events
+            with stopping(None if halt is None else (lambda: _check_stop(halt))):
+                traced = _trace_paths(ctx, pix, start_pass + k, c, halt, scratch, image)
         except BaseException:
             images.give(image)
             raise
