@@ -194,32 +194,41 @@ def sequence_frame(image_user, frame: int) -> int:
 
 
 def frame_path(image, number: int) -> str:
-    """The absolute path of frame ``number`` of an image sequence: the last run of digits in its file's name
-    replaced by the number, at least as many digits (Blender's ``BLI_path_sequence_encode``)."""
+    """The absolute path of frame ``number`` of an image sequence: the last run of digits in its file's name, less
+    its extension, replaced by the number, at least as many digits (Blender's ``BLI_path_sequence_encode``: a
+    JPEG 2000 sequence's ".jp2" is not its frame)."""
     path = bpy.path.abspath(image.filepath, library=image.library)
     folder, name = os.path.split(path)
-    match = re.search(r"(\d+)(?!.*\d)", name)
+    stem, ext = os.path.splitext(name)
+    match = re.search(r"(\d+)(?!.*\d)", stem)
     if match is None:
         return path
     digits = match.group(1)
-    return os.path.join(folder, name[: match.start()] + str(number).zfill(len(digits)) + name[match.end() :])
+    number = max(0, int(number))  # Blender writes no negative frame: 0 for a frame before the first
+    return os.path.join(folder, stem[: match.start()] + str(number).zfill(len(digits)) + stem[match.end() :] + ext)
 
 
 def sequence_pixels(image, image_user, frame: int, associate_alpha: bool = False) -> tuple[np.ndarray | None, str]:
     """``linear_pixels`` of the frame of an image sequence its Image User shows at the scene's ``frame``, read from
     its file (Blender holds the pixels of the frame it last showed, not the frame rendered), and that file's path;
-    None for pixels where the file cannot be read. An 8-bit file is a byte image, as Blender loads it; any other
-    is a float one, scene linear and premultiplied as Blender makes it (an OpenEXR's pixels are premultiplied
-    already)."""
+    None for pixels where the file cannot be read whole. An 8-bit file is a byte image, as Blender loads it: its
+    colour as stored, straight (OpenImageIO's own reading multiplies it by its alpha); any other is a float one,
+    its colour decoded to scene linear and then multiplied by its alpha, as Blender makes it (an OpenEXR's pixels
+    are premultiplied already)."""
     from ..core.textures.latent_texture import oiio_module
 
     path = frame_path(image, sequence_frame(image_user, frame))
     oiio = oiio_module()
-    buf = oiio.ImageBuf(path)
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    buf = oiio.ImageBuf(path, 0, 0, config)
     if buf.has_error or buf.spec().nchannels < 1:
         return None, path
     spec = buf.spec()
-    px = np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float32).reshape(spec.height, spec.width, -1)
+    px = buf.get_pixels(oiio.FLOAT)
+    if buf.has_error or px is None:  # a file cut short: what was read is not the image
+        return None, path
+    px = np.asarray(px, dtype=np.float32).reshape(spec.height, spec.width, -1)
     c = px.shape[2]
     rgba = np.ones(px.shape[:2] + (4,), np.float32)
     rgba[..., :3] = px[..., :3] if c >= 3 else px[..., :1]
@@ -227,9 +236,9 @@ def sequence_pixels(image, image_user, frame: int, associate_alpha: bool = False
         rgba[..., 3] = px[..., c - 1]
     is_float = spec.format != oiio.UINT8
     if is_float and not image.colorspace_settings.is_data:
+        rgba[..., :3] = _to_working_space(image, np.ascontiguousarray(rgba[..., :3]))
         if not path.lower().endswith(".exr") and image.alpha_mode in ("STRAIGHT", "PREMUL"):
             rgba[..., :3] *= rgba[..., 3:4]  # Blender keeps float buffers premultiplied
-        rgba[..., :3] = _to_working_space(image, np.ascontiguousarray(rgba[..., :3]))
     return _decoded(image, rgba, is_float, associate_alpha), path
 
 

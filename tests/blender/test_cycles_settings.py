@@ -686,3 +686,46 @@ def test_a_light_that_casts_no_shadow_renders_as_in_cycles(fresh_scene, tmp_path
     light.data.use_shadow = False
     cycles, ours, _ = _both(ctx, tmp_path, samples=64)
     _assert_blocks_match(cycles, ours, 0.04, n=4)
+
+
+@pytest.mark.parametrize("depth", ["8", "16"])
+def test_a_sequence_frame_reads_as_the_same_file_loaded_as_a_still(fresh_scene, tmp_path, depth):
+    """A frame with straight alpha read 4-10 times too dark (OpenImageIO multiplied it by its alpha as it read, and
+    the colour was multiplied again); a ".jp2" sequence's extension was taken for its frame number; a frame cut
+    short rendered what was left in memory, without a word."""
+    from addon.blender import images
+
+    bpy.utils.expose_bundled_modules()
+    import OpenImageIO as oiio  # noqa: N813
+
+    path = str(tmp_path / "alpha_0001.png")
+    spec = oiio.ImageSpec(4, 4, 4, oiio.UINT8 if depth == "8" else oiio.UINT16)
+    spec.attribute("oiio:UnassociatedAlpha", 1)
+    out = oiio.ImageOutput.create(path)
+    out.open(path, spec)
+    out.write_image(np.tile(np.array([1.0, 0.5, 0.25, 0.5], np.float32), (4, 4, 1)))  # straight, as PNG stores it
+    out.close()
+    del out
+    for associate in (False, True):
+        still = images.linear_pixels(bpy.data.images.load(path, check_existing=False), associate)
+        sequence = bpy.data.images.load(path, check_existing=False)
+        sequence.source = "SEQUENCE"
+        node = bpy.data.materials.new("m").node_tree.nodes.new("ShaderNodeTexImage")
+        node.image, node.image_user.frame_duration = sequence, 1
+        px, read = images.sequence_pixels(sequence, node.image_user, 1, associate)
+        assert read == path
+        np.testing.assert_allclose(px, still, atol=1e-4)
+    sequence.filepath = str(tmp_path / "shot_0001.jp2")
+    assert images.frame_path(sequence, 7) == str(tmp_path / "shot_0007.jp2")
+    assert images.frame_path(sequence, -2) == str(tmp_path / "shot_0000.jp2")  # as Blender names it
+    noise = str(tmp_path / "noise.png")  # a frame whose header reads and whose pixels stop half-way
+    out = oiio.ImageOutput.create(noise)
+    out.open(noise, oiio.ImageSpec(64, 64, 3, oiio.UINT8))
+    out.write_image(np.random.default_rng(1).random((64, 64, 3)).astype(np.float32))
+    out.close()
+    del out
+    whole = open(noise, "rb").read()
+    (tmp_path / "alpha_0002.png").write_bytes(whole[: len(whole) // 2])
+    sequence.filepath = path
+    node.image_user.frame_duration = 2
+    assert images.sequence_pixels(sequence, node.image_user, 2)[0] is None
