@@ -43,6 +43,8 @@ def _compatible_panels():
         "RENDER_PT_encoding",
         "RENDER_PT_stamp",
         "RENDER_PT_stereoscopy",  # each view rendered from its own camera (``render``)
+        "RENDER_PT_output_views",
+        "DATA_PT_camera_stereoscopy",
         "DATA_PT_context_light",  # the light's own settings: render_ui.NLM_PT_light
         "DATA_PT_camera",
         "DATA_PT_lens",

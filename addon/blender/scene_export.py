@@ -430,9 +430,11 @@ def render_views(render) -> list[str]:
 
 
 def stereo_view_camera(engine, scene, width: int, height: int, warnings: list[str]) -> Camera:
-    """The core camera of the view ``engine`` renders (``RenderEngine.active_view_set``): the scene camera moved
-    and shifted as Blender places each eye of a stereo pair (``camera_model_matrix``, ``camera_shift_x``)."""
-    cam_ob, r = scene.camera, scene.render
+    """The core camera of the view ``engine`` renders (``RenderEngine.active_view_set``): the view's camera (a
+    Multi-View view's own, ``camera_override``: the scene camera's name with the view's suffix; else the scene
+    camera) moved and shifted as Blender places each eye of a stereo pair (``camera_model_matrix``,
+    ``camera_shift_x``)."""
+    cam_ob, r = engine.camera_override or scene.camera, scene.render
     if cam_ob is None:
         raise ValueError(f"scene {scene.name!r} has no active camera; add one or set Scene > Camera")
     matrix = np.array(engine.camera_model_matrix(cam_ob), dtype=np.float64)

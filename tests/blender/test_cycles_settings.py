@@ -729,3 +729,35 @@ def test_a_sequence_frame_reads_as_the_same_file_loaded_as_a_still(fresh_scene, 
     sequence.filepath = path
     node.image_user.frame_duration = 2
     assert images.sequence_pixels(sequence, node.image_user, 2)[0] is None
+
+
+def test_multi_view_renders_each_view_from_its_own_camera(fresh_scene, tmp_path):
+    """Multi-View finds each view's camera by the scene camera's name with the view's suffix ("cam_L", "cam_R"):
+    every view rendered from the scene camera, pixel for pixel the same. The camera's Stereoscopy panel and the
+    output's Views panel are drawn for this engine."""
+    from addon.blender import engine
+
+    ctx = fresh_scene
+    s = _empty_scene(ctx, 32, 24)
+    _floor(ctx, size=1.0)  # a bright square on nothing
+    for suffix, x, lens in (("_L", -0.3, 60.0), ("_R", 0.3, 30.0)):
+        cam = bpy.data.objects.new("cam" + suffix, bpy.data.cameras.new("cam" + suffix))
+        cam.location, cam.data.lens = (x, 0.0, 5.0), lens
+        s.collection.objects.link(cam)
+    s.camera = s.objects["cam_L"]
+    _light(ctx, "SUN", energy=3.0, angle=0.0)
+    s.render.use_multiview, s.render.views_format = True, "MULTIVIEW"
+    s.render.image_settings.file_format, s.render.image_settings.views_format = "OPEN_EXR", "INDIVIDUAL"
+    views = {}
+    for name in ("NEURAL_LAYERED", "CYCLES"):
+        s.render.engine = name
+        s.neural_render.samples, s.neural_render.max_bounces = 16, 0
+        s.cycles.device, s.cycles.samples, s.cycles.max_bounces, s.cycles.use_denoising = "CPU", 16, 0, False
+        s.cycles.pixel_filter_type, s.view_settings.view_transform = "BOX", "Standard"
+        s.render.filepath = str(tmp_path / name)
+        bpy.ops.render.render(write_still=True)
+        views[name] = [read_image(tmp_path / f"{name}_{e}.exr")[..., :3].astype(np.float64) for e in "LR"]
+    for ours, cycles in zip(views["NEURAL_LAYERED"], views["CYCLES"], strict=True):
+        _assert_blocks_match(cycles, ours, 0.04, n=4)
+    shown = {p.__name__ for p in engine._panels}
+    assert {"RENDER_PT_stereoscopy", "RENDER_PT_output_views", "DATA_PT_camera_stereoscopy"} <= shown
