@@ -889,6 +889,36 @@ def _instancer_hidden(ob) -> bool:
     return instancing and not getattr(ob, "show_instancer_for_render", True)
 
 
+def _instanced_collection_objects(instancer) -> set:
+    """The ``session_uid`` of every object in the collections ``instancer`` instances as collections: its
+    particle systems' (Render As Collection), and its Geometry Nodes modifiers' (Collection Info nodes, in nested
+    groups too, and the modifiers' Collection inputs)."""
+    collections = []
+    for system in getattr(instancer, "particle_systems", ()):
+        if system.settings.render_type == "COLLECTION" and system.settings.instance_collection is not None:
+            collections.append(system.settings.instance_collection)
+    seen: set = set()
+
+    def walk(tree):
+        if tree is None or tree.session_uid in seen:
+            return
+        seen.add(tree.session_uid)
+        for node in tree.nodes:
+            if node.type == "COLLECTION_INFO":
+                socket = node.inputs.get("Collection")
+                if socket is not None and not socket.is_linked and socket.default_value is not None:
+                    collections.append(socket.default_value)
+            elif node.type == "GROUP":
+                walk(node.node_tree)
+
+    for modifier in getattr(instancer, "modifiers", ()):
+        if modifier.type == "NODES":
+            walk(modifier.node_group)
+            inputs = (modifier.get(k) for k in modifier.keys())
+            collections += [v for v in inputs if hasattr(v, "all_objects")]  # its Collection inputs' values
+    return {ob.session_uid for c in collections for ob in c.all_objects}
+
+
 def _render_visibility(depsgraph):
     """``visible(instance, original)``: whether an instance of the depsgraph renders in F12. A render's depsgraph
     holds only what renders; a viewport's (Render Preview, the viewport's Rendered mode) holds what the viewport
@@ -906,15 +936,25 @@ def _render_visibility(depsgraph):
         users = [c.session_uid for c in getattr(ob, "users_collection", ())] if viewport else []
         return bool(users) and not any(uid in shown for uid in users)
 
+    members: dict = {}  # per instancer, the objects of the collections it instances
+
     def visible(inst, original) -> bool:
         if inst.is_instance:
             if not viewport:  # F12's depsgraph holds the instances that render
                 return True
             parent = inst.parent.original if inst.parent is not None else None
-            # Particles and Geometry Nodes render an object hidden for renders (the usual scatter's source): a
-            # collection, vertex or face instancer leaves it out, as F12's depsgraph does.
-            kept = getattr(parent, "instance_type", "NONE") == "NONE" or not getattr(original, "hide_render", False)
-            return kept and not hidden(parent)
+            if hidden(parent):
+                return False
+            if not getattr(original, "hide_render", False):
+                return True
+            # An object hidden for renders that particles or Geometry Nodes instance by itself (the usual scatter's
+            # source) renders in F12; one instanced as a member of a collection (a collection instance, a particle
+            # system's or Collection Info's collection), or by vertices or faces, does not.
+            if parent is None or getattr(parent, "instance_type", "NONE") != "NONE":
+                return False
+            if parent.session_uid not in members:
+                members[parent.session_uid] = _instanced_collection_objects(parent)
+            return original.original.session_uid not in members[parent.session_uid]
         if getattr(original, "hide_render", False):
             return False
         if not viewport:

@@ -458,6 +458,13 @@ def test_particles_of_an_object_hidden_for_renders_render(bpy_addon, fresh_scene
     ico.hide_render = True
     assert _triangles(fresh_scene.evaluated_depsgraph_get()) == 10 * 20 + 12  # the particles and the emitter
     assert _f12_triangles(bpy, scene, monkeypatch) == 10 * 20 + 12
+    # a collection of it, which the particles render as a collection: its hidden member is left out, in both
+    members = bpy.data.collections.new("Members")
+    members.objects.link(ico)
+    settings.render_type, settings.instance_collection = "COLLECTION", members
+    assert _triangles(fresh_scene.evaluated_depsgraph_get()) == 12
+    assert _f12_triangles(bpy, scene, monkeypatch) == 12
+    settings.render_type = "OBJECT"
     # a collection instance of a collection whose object is hidden for renders: nothing of it, in both
     cube.modifiers.clear()
     source = bpy.data.collections.new("Source")
