@@ -68,9 +68,10 @@ class Film:
     def features(self, names=("albedo", "normal", "depth", "coverage")) -> dict[str, np.ndarray]:
         """Per-pixel means of the first hits' features, (H, W, C) float32 each, row 0 at the top:
         ``albedo`` (3, clipped to [0, 1]: a denoiser's albedo guide), ``normal`` (3, world space, not renormalised),
-        ``depth`` (1, Cycles' Z: the distance along the camera's axis to the nearest surface the pixel's camera rays
-        met, :data:`NO_DEPTH` where they met none; the nearest, not a mean, so that a pixel on an edge reads one
-        surface's depth, not a depth between the two where nothing is) and ``coverage`` (1, the share of the
+        ``depth`` (1, as Cycles' Z measures it: the distance along the camera's axis to the nearest surface the
+        pixel's camera rays met, :data:`NO_DEPTH` where they met none; the nearest, not a mean, so that a pixel on
+        an edge reads one surface's depth, not a depth between the two where nothing is. Cycles keeps its first
+        sample's: on an edge, either surface's, or none, by chance) and ``coverage`` (1, the share of the
         pixel's camera rays that met a surface). Only those ``names`` asks for, each from its own columns in float32
         (all eight divided in float64 held 3.1 GB more at 8K, on every F12, passes or none)."""
         inverse = (1.0 / np.maximum(self.count, 1).astype(np.float32))[:, None]
