@@ -420,6 +420,15 @@ def test_a_stopped_choice_raises_cancelled_before_it_measures(monkeypatch):
         quality.choose_decoder(DEMANDING, 0.15, cache=quality.ErrorCache(), stop=lambda: True)
 
 
+def test_a_reason_says_an_error_below_the_references_noise_as_such():
+    """The measured error is less the reference's noise: a thick coat's noisy walks made it 0, said as "measured
+    error 0", which reads as exact."""
+    choice = quality.DecoderChoice("tiny", 0.2, {"tiny": 0.0}, True)
+    reason = quality.choice_reason("thick", choice)
+    assert "within the reference's own noise" in reason and "error 0" not in reason
+    assert "measured error 0.05" in quality.choice_reason("m", quality.DecoderChoice("tiny", 0.2, {"tiny": 0.05}, True))
+
+
 def test_a_choice_hears_its_stop_inside_a_measurement(monkeypatch):
     """A thick scattering coat's reference walks took minutes, and the stop was heard only before each size: F12's
     Esc went unheard for 19-108 s. The walks now call the choice's stop between their events."""
