@@ -839,6 +839,7 @@ def test_viewport_navigation_moves_the_camera_and_an_edit_or_a_resize_exports_ag
     class Viewport:
         key = None
         session = None
+        settings_key = None
 
         def move_camera(self, camera, key):
             calls.append(("move", camera))
@@ -1105,3 +1106,76 @@ def test_f12_with_a_transparent_film_writes_the_coverage_as_alpha(fresh_scene, t
     alpha = px[..., 3]
     assert alpha.max() == 1.0 and alpha.min() == 0.0  # the cube, and the world around it
     np.testing.assert_array_equal(px[alpha == 0.0][:, :3], 0.0)
+
+
+def test_the_viewport_renders_again_when_the_engines_settings_change(fresh_scene):
+    """Samples, Max Bounces, Seed, the mode and the decoder name no depsgraph update: the viewport went on
+    rendering with the old ones until some other edit. They are read at each draw."""
+    from types import SimpleNamespace
+
+    from addon.blender import engine
+
+    scene = fresh_scene.scene
+    calls = []
+    context = SimpleNamespace(
+        region_data=SimpleNamespace(view_matrix=((1, 0), (0, 1)), window_matrix=((1, 0), (0, 1))),
+        space_data=SimpleNamespace(lens=50.0),
+        region=SimpleNamespace(width=40, height=30),
+    )
+    view = SimpleNamespace(key=engine._view_key(context), session=None, settings_key=engine.settings_key(scene))
+    fake = SimpleNamespace(_viewport=view, view_update=lambda ctx, dg: calls.append("update"))
+    graph = SimpleNamespace(scene=scene)
+    engine.NeuralLayeredRenderEngine.view_draw(fake, context, graph)
+    assert calls == []  # nothing changed: only drawn
+    for name, value in (("max_bounces", 2), ("mode", "reference"), ("decoder_quality", "TINY")):
+        setattr(scene.neural_render, name, value)
+        engine.NeuralLayeredRenderEngine.view_draw(fake, context, graph)
+        assert calls[-1] == "update", name
+        view.settings_key = engine.settings_key(scene)  # as view_update sets it
+
+
+def test_opening_a_file_closes_the_viewports_of_the_last_one(bpy_addon, fresh_scene):
+    """The viewport's timer, the one thing that closes its session once Blender frees the engine, was dropped when
+    a file was opened: the old file's session went on rendering, one more thread and 133 MB of buffers (at 1280 x
+    720) for each file opened."""
+    from types import SimpleNamespace
+
+    from addon.blender import engine, scene_export
+
+    scene = fresh_scene.scene
+    scene.neural_render.samples = 2
+    core_scene, _ = scene_export.export_scene(fresh_scene.evaluated_depsgraph_get(), 24, 18)
+    settings = scene.neural_render.to_core(scene=scene, viewport=True)
+    view = engine._Viewport(SimpleNamespace(tag_redraw=lambda: None, is_preview=False), settings)
+    view.restart(core_scene, settings, ("key",))
+    assert view in engine._OPEN_VIEWPORTS
+    bpy_addon.ops.wm.read_homefile(app_template="")
+    assert view.session is None and view not in engine._OPEN_VIEWPORTS
+    assert not bpy_addon.app.timers.is_registered(view.timer)
+
+
+def test_the_viewport_exports_a_sky_of_an_image_sequence_again_at_each_frame(fresh_scene, tmp_path, monkeypatch):
+    """A sky of an image sequence changes with the frame, which names no update: the viewport kept its first frame's
+    sky (red at frames 1, 2 and 3, where F12 renders red, green, blue)."""
+    from types import SimpleNamespace
+
+    from addon.blender import engine
+    from tests.blender.test_cycles_settings import _sequence
+
+    monkeypatch.setattr(engine, "_view_camera", lambda context: None)  # the scene camera
+    scene = fresh_scene.scene
+    world = scene.world
+    if world.node_tree is None:
+        world.use_nodes = True
+    sky = world.node_tree.nodes.new("ShaderNodeTexEnvironment")
+    sky.image = _sequence(tmp_path, [(1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)])
+    sky.image_user.frame_duration = 3
+    world.node_tree.links.new(sky.outputs["Color"], world.node_tree.nodes["Background"].inputs["Color"])
+    fake = SimpleNamespace(_view_info=set(), report=lambda kind, text: None)
+    context = SimpleNamespace(region=SimpleNamespace(width=16, height=12))
+    colours = []
+    for frame in (1, 2, 3, 3):
+        scene.frame_set(frame)
+        core, _ = engine.NeuralLayeredRenderEngine._view_scene(fake, context, fresh_scene.evaluated_depsgraph_get(), [])
+        colours.append(int(np.argmax(core.environment.image.reshape(-1, 3).mean(axis=0))))
+    assert colours == [0, 1, 2, 2]
