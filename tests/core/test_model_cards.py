@@ -137,3 +137,20 @@ def test_auto_resolves_to_the_default_size_in_one_place(tmp_path):
 def test_the_default_size_runs_at_least_a_million_rgb_evals_per_second_on_its_card():
     card = read_card("decoder", DEFAULT_SIZE)
     assert card["speed_cpu"]["rgb_evals_per_s"] >= 1e6, card["speed_cpu"]
+
+
+def test_a_files_digest_is_read_once_and_again_when_the_file_changes(tmp_path):
+    """Every export checks the models against their cards: the viewport read and hashed 27 MB at each edit. A digest
+    is kept for each version of a file (its inode, size and modification time), and a changed file is read again."""
+    import hashlib
+    import os
+
+    path = tmp_path / "m.onnx"
+    path.write_bytes(b"one")
+    assert file_digest(path) == hashlib.sha256(b"one").hexdigest()
+    path.write_bytes(b"two")
+    os.utime(path, ns=(1, 1))  # a changed file, whatever its clock says
+    assert file_digest(path) == hashlib.sha256(b"two").hexdigest()
+    path.write_bytes(b"three, longer")
+    os.utime(path, ns=(1, 1))  # the same time as before: its size tells it
+    assert file_digest(path) == hashlib.sha256(b"three, longer").hexdigest()

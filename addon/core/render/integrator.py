@@ -247,8 +247,10 @@ def tracer_for(mesh) -> Tracer:
     triangles as they were, and building the structure took 25 ms of the viewport's 50-80 ms first image on the
     demo scene. Found by a digest of the triangles' positions (0.7 ms there), so a scene exported again with the
     same geometry finds it too."""
-    positions = np.ascontiguousarray(mesh.positions, dtype=np.float32)
-    key = (positions.shape, hashlib.blake2b(positions.data, digest_size=20).digest())
+    key = getattr(mesh, "_tracer_key", None)  # a mesh's digest is taken once (its renders share it)
+    if key is None:
+        positions = np.ascontiguousarray(mesh.positions, dtype=np.float32)
+        key = mesh._tracer_key = (positions.shape, hashlib.blake2b(positions.data, digest_size=20).digest())
     with _TRACERS_LOCK:
         tracer = _TRACERS.get(key)
         if tracer is None:
@@ -351,11 +353,16 @@ def material_hits_per_path(scene: Scene, chosen: np.ndarray, max_bounces: int, r
 def _triangle_arrays(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per-triangle geometry in float64, as ``kernels.surface_hits`` reads it: the corners' position,
     normal and uv side by side (T, 3, 8), the face normals (T, 3), the uv scale (T,) and the triangles' part of
-    the offset of the rays leaving them (T,) (``kernels.triangle_offsets``)."""
-    uvs = np.zeros((mesh.triangle_count, 3, 2)) if mesh.uvs is None else mesh.uvs
-    corners = np.ascontiguousarray(np.concatenate([mesh.positions, mesh.normals, uvs], axis=2), dtype=np.float64)
-    face_normals = np.ascontiguousarray(mesh.face_normals, dtype=np.float64)
-    return corners, face_normals, uv_scale(mesh), kernels.triangle_offsets(corners)
+    the offset of the rays leaving them (T,) (``kernels.triangle_offsets``). Made once a mesh and kept by it: the
+    viewport renders one scene several times after each edit or view change (its reduced images, its passes), and
+    each made them again (0.3 s of each render's setup at 1.6 M triangles)."""
+    kept = getattr(mesh, "_surface_arrays", None)
+    if kept is None:
+        uvs = np.zeros((mesh.triangle_count, 3, 2)) if mesh.uvs is None else mesh.uvs
+        corners = np.ascontiguousarray(np.concatenate([mesh.positions, mesh.normals, uvs], axis=2), dtype=np.float64)
+        face_normals = np.ascontiguousarray(mesh.face_normals, dtype=np.float64)
+        kept = mesh._surface_arrays = (corners, face_normals, uv_scale(mesh), kernels.triangle_offsets(corners))
+    return kept
 
 
 class _Context:
