@@ -275,6 +275,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         super().__init__(*args, **kwargs)
         self._viewport = None  # the 3D viewport's progressive session (view_update / view_draw)
         self._view_info: set[str] = set()  # the viewport's decoder-choice lines reported so far
+        self._view_geometry = scene_export.GeometryCache()  # what the viewport's exports keep of the geometry
         self._view_world = None  # (the viewport's last exported environment,), kept while the world is unchanged
 
     def __del__(self):
@@ -433,18 +434,22 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         region = context.region
         kept = getattr(self, "_view_world", None)
         updates = depsgraph.updates if updates is None else updates
-        # an image sequence's sky changes with the frame, which names no update
-        frame = depsgraph.scene.frame_current if _world_reads_a_sequence(depsgraph.scene.world) else None
+        # the world exported (its identity; an image sequence's sky changes with the frame, which names no update)
+        world = depsgraph.scene.world
+        key = (
+            getattr(world, "session_uid", None),
+            depsgraph.scene.frame_current if _world_reads_a_sequence(world) else None,
+        )
         changed = (
-            kept is None
-            or kept[1] != frame
-            or any(isinstance(u.id, (bpy.types.World, bpy.types.Image, bpy.types.Scene)) for u in updates)
+            kept is None or kept[1] != key or any(isinstance(u.id, (bpy.types.World, bpy.types.Image)) for u in updates)
         )
         environment = scene_export.EXPORT_WORLD if changed else kept[0]
+        self._view_geometry.forget(updates)
         core_scene, _ = scene_export.export_scene(
-            depsgraph, region.width, region.height, camera=_view_camera(context), environment=environment
-        )
-        self._view_world = (core_scene.environment, frame)
+            depsgraph, region.width, region.height, camera=_view_camera(context), environment=environment,
+            kept=self._view_geometry,
+        )  # fmt: skip
+        self._view_world = (core_scene.environment, key)
         props = depsgraph.scene.neural_render
         info: list[str] = []
         try:

@@ -932,7 +932,11 @@ def test_the_viewports_auto_choice_reads_measured_errors_and_never_stops_to_meas
 
     monkeypatch.setattr(engine, "_view_camera", lambda context: None)  # the scene camera
     reports = []
-    fake = SimpleNamespace(_view_info=set(), report=lambda kind, text: reports.append((kind, text)))
+    fake = SimpleNamespace(
+        _view_info=set(),
+        _view_geometry=scene_export.GeometryCache(),
+        report=lambda kind, text: reports.append((kind, text)),
+    )
     context = SimpleNamespace(region=SimpleNamespace(width=32, height=24))
     for _ in range(3):
         engine.NeuralLayeredRenderEngine._view_scene(fake, context, fresh_scene.evaluated_depsgraph_get())
@@ -1019,7 +1023,9 @@ def test_the_viewport_exports_the_world_again_only_when_it_changed(fresh_scene, 
     def updates(*ids):  # what the depsgraph reports to view_update after an edit of these
         return [SimpleNamespace(id=i) for i in ids]
 
-    fake = SimpleNamespace(_view_info=set(), report=lambda kind, text: None)
+    fake = SimpleNamespace(
+        _view_info=set(), _view_geometry=scene_export.GeometryCache(), report=lambda kind, text: None
+    )
     context = SimpleNamespace(region=SimpleNamespace(width=16, height=12))
     view_scene = engine.NeuralLayeredRenderEngine._view_scene
     first, _ = view_scene(fake, context, graph, updates())
@@ -1159,7 +1165,7 @@ def test_the_viewport_exports_a_sky_of_an_image_sequence_again_at_each_frame(fre
     sky (red at frames 1, 2 and 3, where F12 renders red, green, blue)."""
     from types import SimpleNamespace
 
-    from addon.blender import engine
+    from addon.blender import engine, scene_export
     from tests.blender.test_cycles_settings import _sequence
 
     monkeypatch.setattr(engine, "_view_camera", lambda context: None)  # the scene camera
@@ -1171,7 +1177,9 @@ def test_the_viewport_exports_a_sky_of_an_image_sequence_again_at_each_frame(fre
     sky.image = _sequence(tmp_path, [(1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)])
     sky.image_user.frame_duration = 3
     world.node_tree.links.new(sky.outputs["Color"], world.node_tree.nodes["Background"].inputs["Color"])
-    fake = SimpleNamespace(_view_info=set(), report=lambda kind, text: None)
+    fake = SimpleNamespace(
+        _view_info=set(), _view_geometry=scene_export.GeometryCache(), report=lambda kind, text: None
+    )
     context = SimpleNamespace(region=SimpleNamespace(width=16, height=12))
     colours = []
     for frame in (1, 2, 3, 3):
