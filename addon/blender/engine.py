@@ -87,6 +87,27 @@ def settings_key(scene) -> tuple:
     )  # fmt: skip
 
 
+def _names_the_scene_alone(update) -> bool:
+    """Whether a depsgraph update names the scene and nothing of it changed (a selection, the active object, a
+    setting of the scene itself: ``_scene_state`` tells those that render)."""
+    return (
+        isinstance(update.id, bpy.types.Scene)
+        and not update.is_updated_transform
+        and not update.is_updated_geometry
+        and not update.is_updated_shading
+    )
+
+
+def _scene_state(depsgraph) -> tuple:
+    """What of the scene itself the viewport renders and an update naming the scene alone may change: the film's
+    transparency, the pixel aspect, the frame (an image sequence's) and the objects the viewport shows (an object
+    hidden there)."""
+    scene = depsgraph.scene
+    r = scene.render
+    shown = frozenset(ob.original.session_uid for ob in depsgraph.objects)
+    return (r.film_transparent, r.pixel_aspect_x, r.pixel_aspect_y, scene.frame_current, shown)
+
+
 def _world_reads_a_sequence(world) -> bool:
     """Whether ``world``'s nodes read an image sequence (its sky is another one at each frame)."""
     tree = getattr(world, "node_tree", None)
@@ -467,7 +488,22 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         return core_scene, props.to_core(scene=depsgraph.scene, viewport=True)
 
     def view_update(self, context, depsgraph):
-        """An edit (stack, objects, lights, world) or the first draw: restart the progressive session."""
+        """An edit (stack, objects, lights, world) or the first draw: restart the progressive session. An update
+        that names the scene alone, changing nothing it renders (a selection, another active object), leaves it
+        rendering: each click threw the accumulated samples away and exported the scene again (1.0-1.4 s with a
+        500,000-triangle mesh under a 4K sky)."""
+        state = _scene_state(depsgraph)
+        vp = self._viewport
+        if (
+            vp is not None
+            and vp.session is not None
+            and vp.key == _view_key(context)
+            and vp.settings_key == settings_key(depsgraph.scene)
+            and getattr(self, "_view_state", None) == state
+            and all(_names_the_scene_alone(u) for u in depsgraph.updates)
+        ):
+            return
+        self._view_state = state
         try:
             core_scene, settings = self._view_scene(context, depsgraph)
         except Exception as e:

@@ -1187,3 +1187,47 @@ def test_the_viewport_exports_a_sky_of_an_image_sequence_again_at_each_frame(fre
         core, _ = engine.NeuralLayeredRenderEngine._view_scene(fake, context, fresh_scene.evaluated_depsgraph_get(), [])
         colours.append(int(np.argmax(core.environment.image.reshape(-1, 3).mean(axis=0))))
     assert colours == [0, 1, 2, 2]
+
+
+def test_a_selection_leaves_the_viewport_rendering(fresh_scene):
+    """A selection or a new active object names the scene alone: each click threw the viewport's samples away and
+    exported the scene again (1.0-1.4 s with a 500,000-triangle mesh under a 4K sky). An update naming the scene
+    alone that changes what renders (a transparent film, an object hidden in the viewport) still restarts it."""
+    from types import SimpleNamespace
+
+    from addon.blender import engine
+
+    scene = fresh_scene.scene
+    context = SimpleNamespace(
+        region_data=SimpleNamespace(view_matrix=((1, 0), (0, 1)), window_matrix=((1, 0), (0, 1))),
+        space_data=SimpleNamespace(lens=50.0),
+        region=SimpleNamespace(width=40, height=30),
+    )
+    exports = []
+
+    def view_scene(ctx, graph):
+        exports.append(1)
+        raise ValueError("stop here")  # the export itself is not what is tested
+
+    view = SimpleNamespace(key=engine._view_key(context), session=object(), settings_key=engine.settings_key(scene))
+    fake = SimpleNamespace(_viewport=view, _view_scene=view_scene, report=lambda kind, text: None)
+
+    def update(*edits):
+        for edit in edits:
+            edit()
+        real = fresh_scene.evaluated_depsgraph_get()
+        scene_alone = SimpleNamespace(
+            id=scene, is_updated_transform=False, is_updated_geometry=False, is_updated_shading=False
+        )
+        graph = SimpleNamespace(updates=[scene_alone], scene=scene, objects=real.objects)
+        engine.NeuralLayeredRenderEngine.view_update(fake, context, graph)
+
+    update()  # the first: the state seen
+    assert exports == [1]
+    update(lambda: scene.objects["Light"].select_set(True))
+    update(lambda: setattr(fresh_scene.view_layer.objects, "active", scene.objects["Light"]))
+    assert exports == [1]  # nothing exported, the session left rendering
+    update(lambda: setattr(scene.render, "film_transparent", True))
+    assert exports == [1, 1]
+    update(lambda: scene.objects["Cube"].hide_set(True))
+    assert exports == [1, 1, 1]
