@@ -643,6 +643,23 @@ def test_an_image_sequence_renders_the_frame_its_node_shows(fresh_scene, tmp_pat
     assert scene_export.images.frame_path(image, 12345) == str(tmp_path / "tex_12345.png")
 
 
+def _both_views(s, tmp_path, views_format: str, samples: int):
+    """(ours, Cycles'): each the left and right views (H, W, 3) F12 writes as individual files of ``s`` with
+    Stereoscopy's ``views_format``, direct light only."""
+    s.render.use_multiview, s.render.views_format = True, views_format
+    s.render.image_settings.file_format, s.render.image_settings.views_format = "OPEN_EXR", "INDIVIDUAL"
+    views = []
+    for engine in ("NEURAL_LAYERED", "CYCLES"):
+        s.render.engine = engine
+        s.neural_render.samples, s.neural_render.max_bounces = samples, 0
+        s.cycles.device, s.cycles.samples, s.cycles.max_bounces, s.cycles.use_denoising = "CPU", samples, 0, False
+        s.cycles.pixel_filter_type, s.view_settings.view_transform = "BOX", "Standard"
+        s.render.filepath = str(tmp_path / engine)
+        bpy.ops.render.render(write_still=True)
+        views.append([read_image(tmp_path / f"{engine}_{e}.exr")[..., :3].astype(np.float64) for e in "LR"])
+    return views
+
+
 @pytest.mark.parametrize("mode", ["OFFAXIS", "TOE"])
 def test_each_eye_of_a_stereo_pair_renders_what_cycles_renders(fresh_scene, tmp_path, mode):
     """Stereoscopy (Stereo 3D, individual views): the left eye was rendered from the camera itself and the right eye
@@ -654,18 +671,7 @@ def test_each_eye_of_a_stereo_pair_renders_what_cycles_renders(fresh_scene, tmp_
     cam = _camera(ctx, location=(0.3, -0.2, 5.0))
     cam.data.stereo.convergence_mode, cam.data.stereo.interocular_distance = mode, 0.4
     _light(ctx, "SUN", energy=3.0, angle=0.0)
-    s.render.use_multiview, s.render.views_format = True, "STEREO_3D"
-    s.render.image_settings.file_format, s.render.image_settings.views_format = "OPEN_EXR", "INDIVIDUAL"
-    eyes = {}
-    for engine in ("NEURAL_LAYERED", "CYCLES"):
-        s.render.engine = engine
-        s.neural_render.samples, s.neural_render.max_bounces = 32, 0
-        s.cycles.device, s.cycles.samples, s.cycles.max_bounces, s.cycles.use_denoising = "CPU", 32, 0, False
-        s.cycles.pixel_filter_type, s.view_settings.view_transform = "BOX", "Standard"
-        s.render.filepath = str(tmp_path / engine)
-        bpy.ops.render.render(write_still=True)
-        eyes[engine] = [read_image(tmp_path / f"{engine}_{e}.exr")[..., :3].astype(np.float64) for e in "LR"]
-    (ours_l, ours_r), (cycles_l, cycles_r) = eyes["NEURAL_LAYERED"], eyes["CYCLES"]
+    (ours_l, ours_r), (cycles_l, cycles_r) = _both_views(s, tmp_path, "STEREO_3D", samples=32)
     assert np.abs(cycles_l - cycles_r).max() > 0.1  # the eyes see the checkers' edges apart
     _assert_blocks_match(cycles_l, ours_l, 0.04, n=4)
     _assert_blocks_match(cycles_r, ours_r, 0.04, n=4)
@@ -746,18 +752,8 @@ def test_multi_view_renders_each_view_from_its_own_camera(fresh_scene, tmp_path)
         s.collection.objects.link(cam)
     s.camera = s.objects["cam_L"]
     _light(ctx, "SUN", energy=3.0, angle=0.0)
-    s.render.use_multiview, s.render.views_format = True, "MULTIVIEW"
-    s.render.image_settings.file_format, s.render.image_settings.views_format = "OPEN_EXR", "INDIVIDUAL"
-    views = {}
-    for name in ("NEURAL_LAYERED", "CYCLES"):
-        s.render.engine = name
-        s.neural_render.samples, s.neural_render.max_bounces = 16, 0
-        s.cycles.device, s.cycles.samples, s.cycles.max_bounces, s.cycles.use_denoising = "CPU", 16, 0, False
-        s.cycles.pixel_filter_type, s.view_settings.view_transform = "BOX", "Standard"
-        s.render.filepath = str(tmp_path / name)
-        bpy.ops.render.render(write_still=True)
-        views[name] = [read_image(tmp_path / f"{name}_{e}.exr")[..., :3].astype(np.float64) for e in "LR"]
-    for ours, cycles in zip(views["NEURAL_LAYERED"], views["CYCLES"], strict=True):
+    our_views, cycles_views = _both_views(s, tmp_path, "MULTIVIEW", samples=16)
+    for ours, cycles in zip(our_views, cycles_views, strict=True):
         _assert_blocks_match(cycles, ours, 0.04, n=4)
     shown = {p.__name__ for p in engine._panels}
     assert {"RENDER_PT_stereoscopy", "RENDER_PT_output_views", "DATA_PT_camera_stereoscopy"} <= shown

@@ -277,19 +277,25 @@ def test_what_renders_is_the_same_in_a_viewports_depsgraph_as_in_f12s(bpy_addon,
     assert _triangles(fresh_scene.evaluated_depsgraph_get()) == 12
 
 
-def test_an_emitter_shown_without_itself_is_not_rendered(bpy_addon, fresh_scene):
-    """A particle emitter with Show Emitter off for renders: its particles render, not its own faces (the export
-    read every row of the depsgraph, the emitter's own too)."""
-    bpy = bpy_addon
-    scene = fresh_scene.scene
+def _cube_emitting_icospheres(bpy, ctx):
+    """The startup cube emitting 10 particles rendered as a small icosphere of 20 triangles (at frame 2): the cube,
+    the icosphere and the particle settings."""
+    scene = ctx.scene
     cube = scene.objects["Cube"]
     bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=1, radius=0.05, location=(5, 5, 5))
-    ico = fresh_scene.object
+    ico = ctx.object
     cube.modifiers.new("particles", "PARTICLE_SYSTEM")
     settings = cube.particle_systems[0].settings
     settings.count, settings.frame_start, settings.frame_end = 10, 1, 1
     settings.render_type, settings.instance_object = "OBJECT", ico
     scene.frame_set(2)
+    return cube, ico, settings
+
+
+def test_an_emitter_shown_without_itself_is_not_rendered(bpy_addon, fresh_scene):
+    """A particle emitter with Show Emitter off for renders: its particles render, not its own faces (the export
+    read every row of the depsgraph, the emitter's own too)."""
+    cube, ico, settings = _cube_emitting_icospheres(bpy_addon, fresh_scene)
     # the render's setting decides, in a viewport's depsgraph too (whose rows follow the viewport's setting)
     for for_render, for_viewport in ((False, True), (False, False), (True, False)):
         cube.show_instancer_for_render, cube.show_instancer_for_viewport = for_render, for_viewport
@@ -447,14 +453,7 @@ def test_particles_of_an_object_hidden_for_renders_render(bpy_addon, fresh_scene
     instance's object hidden for renders is left out, as Cycles leaves it out."""
     bpy = bpy_addon
     scene = fresh_scene.scene
-    cube = scene.objects["Cube"]
-    bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=1, radius=0.05, location=(5, 5, 5))
-    ico = fresh_scene.object
-    cube.modifiers.new("particles", "PARTICLE_SYSTEM")
-    settings = cube.particle_systems[0].settings
-    settings.count, settings.frame_start, settings.frame_end = 10, 1, 1
-    settings.render_type, settings.instance_object = "OBJECT", ico
-    scene.frame_set(2)
+    cube, ico, settings = _cube_emitting_icospheres(bpy, fresh_scene)
     ico.hide_render = True
     assert _triangles(fresh_scene.evaluated_depsgraph_get()) == 10 * 20 + 12  # the particles and the emitter
     assert _f12_triangles(bpy, scene, monkeypatch) == 10 * 20 + 12
