@@ -247,6 +247,18 @@ def _triangles(depsgraph):
     return scene_export.export_scene(depsgraph)[0].mesh.triangle_count
 
 
+def _collection_instance_of(bpy, scene, ob):
+    """An empty in ``scene`` instancing a new collection that holds ``ob`` alone (taken out of its collections)."""
+    source = bpy.data.collections.new("Source")
+    for c in list(ob.users_collection):
+        c.objects.unlink(ob)
+    source.objects.link(ob)
+    instancer = bpy.data.objects.new("Instancer", None)
+    instancer.instance_type, instancer.instance_collection = "COLLECTION", source
+    scene.collection.objects.link(instancer)
+    return instancer
+
+
 def test_what_renders_is_the_same_in_a_viewports_depsgraph_as_in_f12s(bpy_addon, fresh_scene):
     """Render Preview and the viewport export a viewport's depsgraph, which holds what the viewport shows: a
     collection disabled for renders and the instances of an instancer disabled for them rendered there (1,940
@@ -261,15 +273,8 @@ def test_what_renders_is_the_same_in_a_viewports_depsgraph_as_in_f12s(bpy_addon,
     for c in list(monkey.users_collection):
         c.objects.unlink(monkey)
     hidden.objects.link(monkey)
-    source = bpy.data.collections.new("Source")
     bpy.ops.mesh.primitive_uv_sphere_add()
-    sphere = fresh_scene.object
-    for c in list(sphere.users_collection):
-        c.objects.unlink(sphere)
-    source.objects.link(sphere)
-    instancer = bpy.data.objects.new("Instancer", None)
-    instancer.instance_type, instancer.instance_collection = "COLLECTION", source
-    scene.collection.objects.link(instancer)
+    instancer = _collection_instance_of(bpy, scene, fresh_scene.object)
     instancer.hide_render = True
     assert _triangles(fresh_scene.evaluated_depsgraph_get()) == 12  # the cube alone, as F12
     excluded = fresh_scene.view_layer.layer_collection.children["NotForRender"]
@@ -466,13 +471,7 @@ def test_particles_of_an_object_hidden_for_renders_render(bpy_addon, fresh_scene
     settings.render_type = "OBJECT"
     # a collection instance of a collection whose object is hidden for renders: nothing of it, in both
     cube.modifiers.clear()
-    source = bpy.data.collections.new("Source")
-    for c in list(ico.users_collection):
-        c.objects.unlink(ico)
-    source.objects.link(ico)
-    instancer = bpy.data.objects.new("Instancer", None)
-    instancer.instance_type, instancer.instance_collection = "COLLECTION", source
-    scene.collection.objects.link(instancer)
+    _collection_instance_of(bpy, scene, ico)
     assert _triangles(fresh_scene.evaluated_depsgraph_get()) == 12
     assert _f12_triangles(bpy, scene, monkeypatch) == 12
 
