@@ -698,7 +698,8 @@ def test_a_light_that_casts_no_shadow_renders_as_in_cycles(fresh_scene, tmp_path
 def test_a_sequence_frame_reads_as_the_same_file_loaded_as_a_still(fresh_scene, tmp_path, depth):
     """A frame with straight alpha read 4-10 times too dark (OpenImageIO multiplied it by its alpha as it read, and
     the colour was multiplied again); a ".jp2" sequence's extension was taken for its frame number; a frame cut
-    short rendered what was left in memory, without a word."""
+    short rendered what was left in memory, without a word. An 8-bit frame reads as Blender's still of it; a 16-bit
+    one as Cycles reads it (premultiplied, then decoded: decoded first, 1.4-2.1x Cycles' at alpha 0.5)."""
     from addon.blender import images
 
     bpy.utils.expose_bundled_modules()
@@ -720,6 +721,10 @@ def test_a_sequence_frame_reads_as_the_same_file_loaded_as_a_still(fresh_scene, 
         node.image, node.image_user.frame_duration = sequence, 1
         px, read = images.sequence_pixels(sequence, node.image_user, 1, associate)
         assert read == path
+        if depth == "16":  # a float image, premultiplied as stored and then decoded, as Cycles reads it
+            straight = np.full((4, 4, 3), 0.5, np.float32) * np.array([1.0, 0.5, 0.25], np.float32)
+            still = np.concatenate([images._to_working_space(sequence, straight),
+                                    np.full((4, 4, 1), 0.5)], axis=2)  # fmt: skip
         np.testing.assert_allclose(px, still, atol=1e-4)
     sequence.filepath = str(tmp_path / "shot_0001.jp2")
     assert images.frame_path(sequence, 7) == str(tmp_path / "shot_0007.jp2")
