@@ -513,7 +513,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         if not context.region_data.is_perspective and ortho not in self._view_info:  # once, not at every edit
             self._view_info.add(ortho)
             self.report({"WARNING"}, ortho)
-        if self._viewport is None:
+        if self._viewport is None or self._viewport.session is None:  # none yet, or closed (a file's load began)
             self._viewport = _Viewport(self, settings)
         self._viewport.settings_key = settings_key(depsgraph.scene)
         self._viewport.restart(core_scene, settings, _view_key(context))
@@ -522,15 +522,17 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         """Draw the newest image; a moved view (navigation does not call view_update) restarts: from the new
         camera alone when the region kept its size (nothing exported again), else as after an edit."""
         key, vp = _view_key(context), self._viewport
-        if vp is not None and vp.settings_key is not None and vp.settings_key != settings_key(depsgraph.scene):
+        if vp is None or vp.session is None:  # none yet, or closed (a file's load began, and failed)
+            self.view_update(context, depsgraph)
+        elif vp.settings_key is not None and vp.settings_key != settings_key(depsgraph.scene):
             # the engine's own settings (samples, bounces, decoder...) name no depsgraph update: read at each draw
             self.view_update(context, depsgraph)
-        elif vp is not None and vp.key is not None and vp.key != key and vp.key[2:] == key[2:]:
+        elif vp.key is not None and vp.key != key and vp.key[2:] == key[2:]:
             try:
                 vp.move_camera(_view_camera(context), key)
             except Exception as e:
                 self.report({"ERROR"}, _failure(e))
-        elif vp is None or vp.key != key:
+        elif vp.key != key:
             self.view_update(context, depsgraph)
         if self._viewport is not None and self._viewport.session is not None:
             self._viewport.draw(self, depsgraph.scene)

@@ -838,12 +838,15 @@ def test_viewport_navigation_moves_the_camera_and_an_edit_or_a_resize_exports_ag
 
     class Viewport:
         key = None
-        session = None
+        session = "rendering"
         settings_key = None
 
         def move_camera(self, camera, key):
             calls.append(("move", camera))
             self.key = key
+
+        def draw(self, engine, scene):
+            pass
 
     def context(matrix, width=40):
         return SimpleNamespace(
@@ -856,16 +859,20 @@ def test_viewport_navigation_moves_the_camera_and_an_edit_or_a_resize_exports_ag
     fake = SimpleNamespace(_viewport=None, report=lambda kind, text: calls.append(("report", text)))
     fake.view_update = lambda ctx, dg: calls.append(("update", ctx.region.width))
     view_draw = engine.NeuralLayeredRenderEngine.view_draw
-    view_draw(fake, context(((1, 0), (0, 1))), None)
+    graph = SimpleNamespace(scene=None)
+    view_draw(fake, context(((1, 0), (0, 1))), graph)
     assert calls == [("update", 40)]  # no session yet: an export
     fake._viewport = Viewport()
     fake._viewport.key = engine._view_key(context(((1, 0), (0, 1))))
-    view_draw(fake, context(((1, 0), (0, 1))), None)
+    view_draw(fake, context(((1, 0), (0, 1))), graph)
     assert calls == [("update", 40)]  # nothing moved: only drawn
-    view_draw(fake, context(((0, 1), (1, 0))), None)
+    view_draw(fake, context(((0, 1), (1, 0))), graph)
     assert calls[-1] == ("move", ("camera", ((0, 1), (1, 0)), 40, 30))
-    view_draw(fake, context(((0, 1), (1, 0)), width=80), None)
+    view_draw(fake, context(((0, 1), (1, 0)), width=80), graph)
     assert calls[-1] == ("update", 80)  # another size: Auto's decoder choice may change, so export again
+    fake._viewport.session = None  # closed as a file's load began, the load then failed: started again
+    view_draw(fake, context(((0, 1), (1, 0)), width=80), graph)
+    assert calls[-1] == ("update", 80)
 
 
 def _frustum(left, right, bottom, top, near=0.1, far=100.0):
@@ -1128,7 +1135,12 @@ def test_the_viewport_renders_again_when_the_engines_settings_change(fresh_scene
         space_data=SimpleNamespace(lens=50.0),
         region=SimpleNamespace(width=40, height=30),
     )
-    view = SimpleNamespace(key=engine._view_key(context), session=None, settings_key=engine.settings_key(scene))
+    view = SimpleNamespace(
+        key=engine._view_key(context),
+        session="rendering",
+        settings_key=engine.settings_key(scene),
+        draw=lambda e, s: None,
+    )
     fake = SimpleNamespace(_viewport=view, view_update=lambda ctx, dg: calls.append("update"))
     graph = SimpleNamespace(scene=scene)
     engine.NeuralLayeredRenderEngine.view_draw(fake, context, graph)
