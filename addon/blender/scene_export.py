@@ -951,8 +951,9 @@ def _instancer_hidden(ob) -> bool:
 
 def _instanced_collection_objects(instancer) -> set:
     """The ``session_uid`` of every object in the collections ``instancer`` instances as collections: its
-    particle systems' (Render As Collection), and its Geometry Nodes modifiers' (Collection Info nodes, in nested
-    groups too, and the modifiers' Collection inputs)."""
+    particle systems' (Render As Collection), and its Geometry Nodes modifiers' (every collection a node of their
+    trees is given, in nested groups too, and the modifiers' Collection inputs). A collection a tree is given but
+    does not instance leaves its objects out too: the viewport may then leave out an object F12 renders."""
     collections = []
     for system in getattr(instancer, "particle_systems", ()):
         if system.settings.render_type == "COLLECTION" and system.settings.instance_collection is not None:
@@ -964,11 +965,13 @@ def _instanced_collection_objects(instancer) -> set:
             return
         seen.add(tree.session_uid)
         for node in tree.nodes:
-            if node.type == "COLLECTION_INFO":
-                socket = node.inputs.get("Collection")
-                if socket is not None and not socket.is_linked and socket.default_value is not None:
-                    collections.append(socket.default_value)
-            elif node.type == "GROUP":
+            # any collection a node of the tree is given (a Collection Info's own, or a node group's input that a
+            # Collection Info inside it reads: a scatter asset's usual layout), at any depth of groups
+            for socket in node.inputs:
+                value = getattr(socket, "default_value", None) if socket.type == "COLLECTION" else None
+                if value is not None and not socket.is_linked:
+                    collections.append(value)
+            if node.type == "GROUP":
                 walk(node.node_tree)
 
     for modifier in getattr(instancer, "modifiers", ()):

@@ -565,3 +565,47 @@ def test_the_viewports_exports_read_again_only_the_geometry_an_edit_changed(bpy_
     tree = bpy.data.node_groups.new("G", "GeometryNodeTree")
     kept.forget([SimpleNamespace(id=tree, is_updated_geometry=True)])  # anything else's geometry: all read again
     assert kept.arrays == {}
+
+
+def test_a_scatter_groups_collection_member_hidden_for_renders_is_left_out_as_f12_leaves_it(
+    bpy_addon, fresh_scene, monkeypatch
+):
+    """A Geometry Nodes scatter whose Collection Info sits in a node group, the collection set on the group node (a
+    scatter asset's usual layout): the viewport rendered the collection's member hidden for renders (80 triangles),
+    which F12 leaves out."""
+    bpy = bpy_addon
+    scene = fresh_scene.scene
+    bpy.data.objects.remove(scene.objects["Cube"])
+    bpy.ops.mesh.primitive_ico_sphere_add(subdivisions=1, location=(0, 0, -5))
+    ico = fresh_scene.object
+    members = bpy.data.collections.new("Members")
+    scene.collection.children.link(members)
+    for c in list(ico.users_collection):
+        c.objects.unlink(ico)
+    members.objects.link(ico)
+    ico.hide_render = True
+    bpy.ops.mesh.primitive_plane_add(size=2)  # 4 points to scatter on
+    plane = fresh_scene.object
+
+    def tree(name, inputs):
+        t = bpy.data.node_groups.new(name, "GeometryNodeTree")
+        for n, kind in inputs:
+            t.interface.new_socket(n, in_out="INPUT", socket_type=kind)
+        t.interface.new_socket("Geometry", in_out="OUTPUT", socket_type="NodeSocketGeometry")
+        return t, t.nodes.new("NodeGroupInput"), t.nodes.new("NodeGroupOutput")
+
+    inner, gi, go = tree("Scatter", [("Points", "NodeSocketGeometry"), ("Collection", "NodeSocketCollection")])
+    info, scatter = inner.nodes.new("GeometryNodeCollectionInfo"), inner.nodes.new("GeometryNodeInstanceOnPoints")
+    inner.links.new(gi.outputs["Collection"], info.inputs["Collection"])
+    inner.links.new(gi.outputs["Points"], scatter.inputs["Points"])
+    inner.links.new(info.outputs[0], scatter.inputs["Instance"])
+    inner.links.new(scatter.outputs[0], go.inputs[0])
+    outer, ogi, ogo = tree("Outer", [("Geometry", "NodeSocketGeometry")])
+    group = outer.nodes.new("GeometryNodeGroup")
+    group.node_tree = inner
+    group.inputs["Collection"].default_value = members
+    outer.links.new(ogi.outputs[0], group.inputs["Points"])
+    outer.links.new(group.outputs[0], ogo.inputs[0])
+    plane.modifiers.new("GN", "NODES").node_group = outer
+    assert _triangles(fresh_scene.evaluated_depsgraph_get()) == 0  # the plane became its 4 points
+    assert _f12_triangles(bpy, scene, monkeypatch) == 0
