@@ -540,7 +540,10 @@ def _light(ob, matrix: np.ndarray, warnings: list[str]):
     a 180-degree spot, whose float32 angle is just above pi."""
     light = ob.data
     z = -matrix[:3, 2]  # lights point along their local -z
-    if not np.isfinite(matrix).all():
+    # what of its transform each kind reads: a point light its location, a sun its direction, a spot or an area
+    # light the whole (a NaN elsewhere, a sun's location say, leaves it shining, as in Cycles)
+    used = {"POINT": matrix[:3, 3], "SUN": matrix[:3, 2]}.get(light.type, matrix)
+    if not np.isfinite(used).all():
         warnings.append(f"light {ob.name!r}: {_NOT_A_NUMBER}; skipped")
         return None
     if light.type not in ("POINT", "SPOT", "SUN", "AREA"):

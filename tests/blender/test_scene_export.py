@@ -518,12 +518,21 @@ def test_a_light_or_an_object_placed_at_no_number_is_skipped_and_said(bpy_addon,
     scene = fresh_scene.scene
     light = scene.objects["Light"]
     light.data.type = kind
-    light.location = (float("nan"), 0.0, 0.0)
+    light.location, light.rotation_euler = (float("nan"), 0.0, 0.0), (float("nan"), 0.0, 0.0)
     scene.objects["Cube"].scale = (float("nan"), 1.0, 1.0)
     core, warnings = scene_export.export_scene(fresh_scene.evaluated_depsgraph_get())
     assert core.lights == [] and core.mesh.triangle_count == 0
     assert any("light 'Light'" in w and "not a number" in w for w in warnings)
     assert any("object 'Cube'" in w and "not a number" in w for w in warnings)
+    # a NaN in what the light does not read leaves it shining, as in Cycles: a sun's location, a point light's scale
+    if kind != "AREA":
+        light.location, light.rotation_euler = (0.0, 0.0, 3.0), (0.0, 0.0, 0.0)
+        if kind == "SUN":
+            light.location = (float("nan"), 0.0, 0.0)
+        else:
+            light.scale = (float("nan"), 1.0, 1.0)
+        core, warnings = scene_export.export_scene(fresh_scene.evaluated_depsgraph_get())
+        assert len(core.lights) == 1 and not any("'Light'" in w for w in warnings)
 
 
 def test_the_viewports_exports_read_again_only_the_geometry_an_edit_changed(bpy_addon, fresh_scene, monkeypatch):
