@@ -70,6 +70,12 @@ def _image_pixels(image, warnings: list[str], associate_alpha: bool = False, nod
                 warnings.append(f"image {image.name!r}: its frame's file {path!r} cannot be read; using the colour")
                 return None
             return np.ascontiguousarray(px, dtype=np.float32)
+        key = _image_file_key(image, associate_alpha)
+        with _LOCK:
+            held = _IMAGES.get(key) if key is not None else None
+            if held is not None:
+                _IMAGES_USED.add(key)
+                return held[0]
         px = images.linear_pixels(image, associate_alpha)
     except ValueError as e:
         warnings.append(f"{e}; using the colour")
@@ -77,12 +83,66 @@ def _image_pixels(image, warnings: list[str], associate_alpha: bool = False, nod
     if px is None:
         warnings.append(f"image {image.name!r} has no pixels (missing file {image.filepath!r}?); using the colour")
         return None
+    if key is not None:
+        px = np.ascontiguousarray(px, dtype=np.float32)
+        px.setflags(write=False)  # shared by the exports that find it
+        with _LOCK:
+            _IMAGES[key], _ = (px, {}), _IMAGES_USED.add(key)
     if image.source == "MOVIE":
         warnings.append(
             f"image {image.name!r} is a movie, whose frames this renderer does not read: every frame renders the one "
             "Blender last showed (render the movie to an image sequence to animate it)"
         )
     return np.ascontiguousarray(px, dtype=np.float32)
+
+
+# Images read, as the pixels the materials take (``_image_pixels``) and the textures made of them (``_image_texture``),
+# by ``_image_file_key``: the viewport exports the scene again at every edit, and reading, decoding and filtering a 4K
+# texture took 1.4-1.8 s of each.
+_IMAGES: dict[tuple, tuple[np.ndarray, dict]] = {}
+_IMAGES_USED: set[tuple] = set()  # the keys this export read or reused (export_scene keeps only those)
+
+
+def _image_file_key(image, associate_alpha: bool):
+    """What an image's pixels are, where they are its file's: its file's path and identity (inode, size,
+    modification time: an edit outside Blender and Image > Reload give another), its size, colour space, alpha mode
+    and the working space it decodes into. None for an image whose pixels are not its file's (generated, packed,
+    painted and not saved, a movie), which is read at every export."""
+    if image.source != "FILE" or image.packed_file is not None or image.is_dirty:
+        return None
+    try:
+        path = bpy_path_abspath(image)
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return (
+        path, st.st_ino, st.st_size, st.st_mtime_ns, tuple(image.size), image.colorspace_settings.name,
+        image.alpha_mode, images.working_space(), associate_alpha,
+    )  # fmt: skip
+
+
+def _image_texture(image, px: np.ndarray, associate_alpha: bool, uv_map, extension: str) -> ImageTexture:
+    """``ImageTexture(px, uv_map, extension)``, made once for each version of ``image``'s file (``_IMAGES``)."""
+    key = _image_file_key(image, associate_alpha)
+    with _LOCK:
+        held = _IMAGES.get(key) if key is not None else None
+    if held is None or held[0] is not px:  # pixels not kept, or read again since
+        return ImageTexture(px[:, :, :3], uv_map, extension)
+    texture_key = (None if uv_map is None else np.asarray(uv_map, np.float64).tobytes(), extension)
+    with _LOCK:
+        texture = held[1].get(texture_key)
+    if texture is None:
+        texture = ImageTexture(px[:, :, :3], uv_map, extension)
+        with _LOCK:
+            held[1][texture_key] = texture
+    return texture
+
+
+def bpy_path_abspath(image) -> str:
+    """The absolute path of an image's file (relative to its .blend, or its library's)."""
+    import bpy
+
+    return bpy.path.abspath(image.filepath, library=image.library)
 
 
 def _linked_image(socket):
@@ -256,14 +316,12 @@ def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial:
         notes += _image_node_notes(image_node)
         uv_map = _uv_mapping(image_node, notes)
         alpha_out = image_node.outputs.get("Alpha")  # an Environment Texture node has none
-        px = _image_pixels(
-            image, warnings, associate_alpha=alpha_out is not None and not alpha_out.is_linked, node=image_node
-        )
+        associate = alpha_out is not None and not alpha_out.is_linked
+        px = _image_pixels(image, warnings, associate_alpha=associate, node=image_node)
         if px is not None:
             extension = image_node.extension if image_node.type == "TEX_IMAGE" else "REPEAT"
-            texture = ImageTexture(
-                px[:, :, :3], uv_map, extension if extension in ImageTexture.EXTENSIONS else "REPEAT"
-            )
+            extension = extension if extension in ImageTexture.EXTENSIONS else "REPEAT"
+            texture = _image_texture(image, px, associate, uv_map, extension)
     if texture is not None:
         color = (1.0, 1.0, 1.0)
     elif not socket.is_linked or image is not None:
@@ -345,10 +403,13 @@ def _read_texture(path: str):
 
 
 def forget_textures() -> None:
-    """Let go of every latent texture the exports keep (another file was opened, or the add-on is disabled)."""
+    """Let go of every latent texture and image the exports keep (another file was opened, or the add-on is
+    disabled)."""
     with _LOCK:
         _TEXTURES.clear()
         _USED.clear()
+        _IMAGES.clear()
+        _IMAGES_USED.clear()
 
 
 def _refined_latent(mat, stack, info: list[str]):
@@ -1075,6 +1136,7 @@ def _export_scene(depsgraph, scene, width, height, camera, info, environment, ke
     warnings: list[str] = []
     with _LOCK:
         _USED.clear()
+        _IMAGES_USED.clear()
     if width is None or height is None:
         width, height = render_size(scene)
     if camera is None:
@@ -1115,4 +1177,6 @@ def _export_scene(depsgraph, scene, width, height, camera, info, environment, ke
     with _LOCK:
         for path in set(_TEXTURES) - _USED:  # textures no material renders any more: let them go
             del _TEXTURES[path]
+        for key in set(_IMAGES) - _IMAGES_USED:  # and images
+            del _IMAGES[key]
     return out, warnings

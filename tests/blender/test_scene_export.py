@@ -618,3 +618,49 @@ def test_a_scatter_groups_collection_member_hidden_for_renders_is_left_out_as_f1
     plane.modifiers.new("GN", "NODES").node_group = outer
     assert _triangles(fresh_scene.evaluated_depsgraph_get()) == 0  # the plane became its 4 points
     assert _f12_triangles(bpy, scene, monkeypatch) == 0
+
+
+def test_an_image_file_is_read_once_for_each_version_of_it(bpy_addon, fresh_scene, tmp_path, monkeypatch):
+    """Every export read, decoded and filtered each texture again: the viewport exports at every edit, and a 4K
+    texture took 1.4-1.8 s of each. A texture whose pixels are its file's is read (and its mip chain made) once for
+    each version of the file (and of its colour space); one painted and not saved, again at every export."""
+    from addon.blender import images, scene_export
+
+    bpy = bpy_addon
+    reads = []
+    real = images.linear_pixels
+    monkeypatch.setattr(images, "linear_pixels", lambda image, *a: reads.append(image.name) or real(image, *a))
+    path = tmp_path / "tex.png"
+
+    def write(value):
+        img = bpy.data.images.new("w", 4, 4)
+        img.pixels.foreach_set(np.full(64, value, np.float32))
+        img.filepath_raw, img.file_format = str(path), "PNG"
+        img.save()
+        bpy.data.images.remove(img)
+
+    write(1.0)
+    mat = bpy.data.materials["Material"]
+    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
+    tex.image = bpy.data.images.load(str(path))
+    mat.node_tree.links.new(tex.outputs["Color"], mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
+
+    def colour():
+        core, _ = scene_export.export_scene(fresh_scene.evaluated_depsgraph_get(), 8, 6)
+        return float(core.materials[core.material_names.index("Material")].texture.levels[0].mean())
+
+    assert colour() == pytest.approx(1.0, abs=1e-3) and colour() == pytest.approx(1.0, abs=1e-3) and len(reads) == 1
+    textures = [
+        c.materials[c.material_names.index("Material")].texture
+        for c in (scene_export.export_scene(fresh_scene.evaluated_depsgraph_get(), 8, 6)[0] for _ in range(2))
+    ]
+    assert textures[0] is textures[1]  # its mip chain made once too
+    write(0.0)
+    tex.image.reload()  # the file edited elsewhere, and reloaded
+    assert colour() == pytest.approx(0.0, abs=1e-3) and len(reads) == 2
+    tex.image.colorspace_settings.name = "Non-Color"
+    colour()
+    assert len(reads) == 3
+    tex.image.pixels.foreach_set(np.full(64, 0.5, np.float32))  # painted, not saved: its pixels are not its file's
+    assert tex.image.is_dirty
+    assert colour() == pytest.approx(0.5, abs=3e-3) and colour() == pytest.approx(0.5, abs=3e-3) and len(reads) == 5
