@@ -100,12 +100,20 @@ def _names_the_scene_alone(update) -> bool:
 
 def _scene_state(depsgraph) -> tuple:
     """What of the scene itself the viewport renders and an update naming the scene alone may change: the film's
-    transparency, the pixel aspect, the frame (an image sequence's) and the objects the viewport shows (an object
-    hidden there)."""
+    transparency, the pixel aspect, the render's threads (the session's), the frame (an image sequence's) and the
+    objects the viewport shows (an object hidden there)."""
     scene = depsgraph.scene
     r = scene.render
     shown = frozenset(ob.original.session_uid for ob in depsgraph.objects)
-    return (r.film_transparent, r.pixel_aspect_x, r.pixel_aspect_y, scene.frame_current, shown)
+    return (
+        r.film_transparent,
+        r.pixel_aspect_x,
+        r.pixel_aspect_y,
+        r.threads_mode,
+        r.threads,
+        scene.frame_current,
+        shown,
+    )
 
 
 def _world_reads_a_sequence(world) -> bool:

@@ -1243,3 +1243,5 @@ def test_a_selection_leaves_the_viewport_rendering(fresh_scene):
     assert exports == [1, 1]
     update(lambda: scene.objects["Cube"].hide_set(True))
     assert exports == [1, 1, 1]
+    update(lambda: setattr(scene.render, "threads_mode", "FIXED"))  # the session's threads
+    assert exports == [1, 1, 1, 1]
