@@ -340,6 +340,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         # The result of the view layer rendered: Blender calls render() once per view layer, each to its own layer,
         # and each of its views (Stereoscopy's eyes) is rendered into its own result, from its own camera.
         views = [""] if self.is_preview else scene_export.render_views(scene.render)
+        self._said: set[str] = set()  # what this render's views reported
         for view in views:
             if view:
                 self.active_view_set(view)
@@ -394,10 +395,11 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         warnings = warnings + notes
         if props.denoise and not thumbnail and (note := render_properties.denoise_note(scene)) is not None:
             warnings.append(f"Denoise does nothing here: {note}")
-        for line in info + choice_info:
-            self.report({"INFO"}, line)
-        for w in warnings:
-            self.report({"WARNING"}, w)
+        said = self._said if view else set()  # a stereo render's views say the same: once
+        for kind, line in [("INFO", line) for line in info + choice_info] + [("WARNING", w) for w in warnings]:
+            if line not in said:
+                said.add(line)
+                self.report({kind}, line)
         layer = result.layers[0]  # the view layer's own: the result was begun for it alone
         combined = layer.passes["Combined"]
         width, height = core_scene.camera.width, core_scene.camera.height

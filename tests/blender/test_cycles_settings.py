@@ -742,10 +742,10 @@ def test_a_sequence_frame_reads_as_the_same_file_loaded_as_a_still(fresh_scene, 
     assert images.sequence_pixels(sequence, node.image_user, 2)[0] is None
 
 
-def test_multi_view_renders_each_view_from_its_own_camera(fresh_scene, tmp_path):
+def test_multi_view_renders_each_view_from_its_own_camera(fresh_scene, tmp_path, capfd):
     """Multi-View finds each view's camera by the scene camera's name with the view's suffix ("cam_L", "cam_R"):
     every view rendered from the scene camera, pixel for pixel the same. The camera's Stereoscopy panel and the
-    output's Views panel are drawn for this engine."""
+    output's Views panel are drawn for this engine. What the export says is said once, not once a view."""
     from addon.blender import engine
 
     ctx = fresh_scene
@@ -757,8 +757,12 @@ def test_multi_view_renders_each_view_from_its_own_camera(fresh_scene, tmp_path)
         s.collection.objects.link(cam)
     s.camera = s.objects["cam_L"]
     _light(ctx, "SUN", energy=3.0, angle=0.0)
+    s.collection.objects.link(bpy.data.objects.new("hair", bpy.data.hair_curves.new("hair")))  # said, not rendered
+    capfd.readouterr()
     our_views, cycles_views = _both_views(s, tmp_path, "MULTIVIEW", samples=16)
     for ours, cycles in zip(our_views, cycles_views, strict=True):
         _assert_blocks_match(cycles, ours, 0.04, n=4)
+    printed = capfd.readouterr()  # Blender prints a render's reports headless
+    assert (printed.out + printed.err).count("hair curves are not rendered") == 1, printed.out[-2000:]
     shown = {p.__name__ for p in engine._panels}
     assert {"RENDER_PT_stereoscopy", "RENDER_PT_output_views", "DATA_PT_camera_stereoscopy"} <= shown
