@@ -209,26 +209,31 @@ def frame_path(image, number: int) -> str:
 
 
 def sequence_pixels(image, image_user, frame: int, associate_alpha: bool = False) -> tuple[np.ndarray | None, str]:
-    """``linear_pixels`` of the frame of an image sequence its Image User shows at the scene's ``frame``, read from
-    its file (Blender holds the pixels of the frame it last showed, not the frame rendered), and that file's path;
-    None for pixels where the file cannot be read whole. An 8-bit file is a byte image, as Blender loads it: its
-    colour as stored, straight (OpenImageIO's own reading multiplies it by its alpha); any other is a float one,
-    premultiplied: its colour multiplied by its alpha and then decoded to scene linear, as Cycles reads it (an
-    OpenEXR's pixels are premultiplied already; Blender's own float buffer of a 16-bit PNG decodes first, and
-    read so, a frame of alpha 0.5 rendered 1.4-2.1x Cycles')."""
+    """``file_pixels`` of the frame of an image sequence its Image User shows at the scene's ``frame`` (Blender holds
+    the pixels of the frame it last showed, not the frame rendered), and that frame's path."""
+    path = frame_path(image, sequence_frame(image_user, frame))
+    return file_pixels(image, path, associate_alpha), path
+
+
+def file_pixels(image, path: str, associate_alpha: bool = False) -> np.ndarray | None:
+    """``linear_pixels`` of ``image`` (its colour space and alpha mode) as read from the file at ``path``, as Cycles
+    reads an image's file; None where the file cannot be read whole. An 8-bit file is a byte image, as Blender
+    loads it: its colour as stored, straight (OpenImageIO's own reading multiplies it by its alpha); any other is a
+    float one, premultiplied: its colour multiplied by its alpha and then decoded to scene linear, as Cycles reads
+    it (an OpenEXR's pixels are premultiplied already; Blender's own float buffer of a 16-bit PNG decodes first,
+    and read so, a texel of alpha 0.5 rendered 1.4-2.3x Cycles')."""
     from ..core.textures.latent_texture import oiio_module
 
-    path = frame_path(image, sequence_frame(image_user, frame))
     oiio = oiio_module()
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)
     buf = oiio.ImageBuf(path, 0, 0, config)
     if buf.has_error or buf.spec().nchannels < 1:
-        return None, path
+        return None
     spec = buf.spec()
     px = buf.get_pixels(oiio.FLOAT)
     if buf.has_error or px is None:  # a file cut short: what was read is not the image
-        return None, path
+        return None
     px = np.asarray(px, dtype=np.float32).reshape(spec.height, spec.width, -1)
     c = px.shape[2]
     rgba = np.ones(px.shape[:2] + (4,), np.float32)
@@ -240,7 +245,7 @@ def sequence_pixels(image, image_user, frame: int, associate_alpha: bool = False
         if not path.lower().endswith(".exr") and image.alpha_mode in ("STRAIGHT", "PREMUL"):
             rgba[..., :3] *= rgba[..., 3:4]  # premultiplied as it is stored, then decoded: as Cycles reads the file
         rgba[..., :3] = _to_working_space(image, np.ascontiguousarray(rgba[..., :3]))
-    return _decoded(image, rgba, is_float, associate_alpha), path
+    return _decoded(image, rgba, is_float, associate_alpha)
 
 
 def _largest(areas):

@@ -76,7 +76,14 @@ def _image_pixels(image, warnings: list[str], associate_alpha: bool = False, nod
             if held is not None:
                 _IMAGES_USED.add(key)
                 return held[0]
-        px = images.linear_pixels(image, associate_alpha)
+        # an image whose pixels are its file's is read from its file, as Cycles reads it, and kept by the file's
+        # identity: Blender's own buffer is stale after an edit elsewhere until Image > Reload, and kept under the
+        # new file's key it was served after the reload too; Blender's float buffer of a 16-bit PNG is decoded
+        # before it is premultiplied, where Cycles' is premultiplied first
+        px = images.file_pixels(image, key[0], associate_alpha) if key is not None else None
+        if px is None:
+            key = None  # a file OpenImageIO cannot read: Blender's pixels, read at every export
+            px = images.linear_pixels(image, associate_alpha)
     except ValueError as e:
         warnings.append(f"{e}; using the colour")
         return None
@@ -104,10 +111,11 @@ _IMAGES_USED: set[tuple] = set()  # the keys this export read or reused (export_
 
 
 def _image_file_key(image, associate_alpha: bool):
-    """What an image's pixels are, where they are its file's: its file's path and identity (inode, size,
-    modification time: an edit outside Blender and Image > Reload give another), its size, colour space, alpha mode
-    and the working space it decodes into. None for an image whose pixels are not its file's (generated, packed,
-    painted and not saved, a movie), which is read at every export."""
+    """What an image's pixels are, where they are its file's: its file's path (first) and identity (inode, size,
+    modification time: an edit outside Blender gives another), its size, colour space, alpha mode and the working
+    space it decodes into. None for an image whose pixels are not its file's (generated, packed, painted and not
+    saved, a movie, tiles), which is read from Blender at every export. A file rewritten with its inode, size and
+    modification time kept is not told from the one before."""
     if image.source != "FILE" or image.packed_file is not None or image.is_dirty:
         return None
     try:

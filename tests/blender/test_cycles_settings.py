@@ -436,8 +436,9 @@ def test_a_transparent_film_renders_as_cycles_renders_it(fresh_scene, tmp_path):
 
 
 def _image(tmp_path, name, rgba, kind):
-    """A 4 x 4 image of one texel value ``rgba``: "png" (8-bit sRGB), "data" (the same, Non-Color), "exr" (a float
-    OpenEXR file holding ``rgba`` as it is: linear, its colour premultiplied, as EXR files are)."""
+    """A 4 x 4 image of one texel value ``rgba``: "png" (8-bit sRGB), "data" (the same, Non-Color), "png-premul" (the
+    same, its alpha mode Premultiplied), "png16" (16-bit sRGB), "exr" (a float OpenEXR file holding ``rgba`` as it
+    is: linear, its colour premultiplied, as EXR files are)."""
     if kind == "exr":
         bpy.utils.expose_bundled_modules()
         import OpenImageIO as oiio  # noqa: N813
@@ -445,6 +446,19 @@ def _image(tmp_path, name, rgba, kind):
         path = str(tmp_path / (name + ".exr"))
         out = oiio.ImageOutput.create(path)
         out.open(path, oiio.ImageSpec(4, 4, 4, "float"))
+        out.write_image(np.tile(np.asarray(rgba, np.float32), (4, 4, 1)))
+        out.close()
+        del out
+        return bpy.data.images.load(path)
+    if kind == "png16":  # 16 bits a channel, straight alpha as PNG stores it
+        bpy.utils.expose_bundled_modules()
+        import OpenImageIO as oiio  # noqa: N813
+
+        path = str(tmp_path / (name + ".png"))
+        spec = oiio.ImageSpec(4, 4, 4, oiio.UINT16)
+        spec.attribute("oiio:UnassociatedAlpha", 1)
+        out = oiio.ImageOutput.create(path)
+        out.open(path, spec)
         out.write_image(np.tile(np.asarray(rgba, np.float32), (4, 4, 1)))
         out.close()
         del out
@@ -458,6 +472,8 @@ def _image(tmp_path, name, rgba, kind):
     loaded = bpy.data.images.load(str(path))
     if kind == "data":
         loaded.colorspace_settings.name = "Non-Color"
+    if kind == "png-premul":
+        loaded.alpha_mode = "PREMUL"
     return loaded
 
 
@@ -468,11 +484,23 @@ def _image(tmp_path, name, rgba, kind):
         ("png", (1.0, 0.5, 0.25, 1.0), "Linear Rec.709"),
         ("data", (1.0, 0.5, 0.25, 0.25), "Linear Rec.709"),
         ("exr", (0.25, 0.125, 0.0625, 0.25), "Linear Rec.709"),
+        ("png16", (1.0, 0.5, 0.25, 0.5), "Linear Rec.709"),
+        ("png-premul", (1.0, 0.5, 0.25, 0.5), "Linear Rec.709"),
         ("png", (1.0, 0.5, 0.0, 1.0), "ACEScg"),
         ("png", (1.0, 0.5, 0.0, 1.0), "Linear Rec.2020"),
         ("exr", (0.25, 0.125, 0.0, 1.0), "ACEScg"),
     ],
-    ids=["srgb-alpha", "srgb-opaque", "non-color-alpha", "float-alpha", "srgb-acescg", "srgb-rec2020", "float-acescg"],
+    ids=[
+        "srgb-alpha",
+        "srgb-opaque",
+        "non-color-alpha",
+        "float-alpha",
+        "srgb16-alpha",
+        "srgb-premultiplied",
+        "srgb-acescg",
+        "srgb-rec2020",
+        "float-acescg",
+    ],  # fmt: skip
 )
 def test_an_image_textures_colour_is_the_one_cycles_node_gives(fresh_scene, tmp_path, kind, rgba, working_space):
     """Where the node's Alpha output is unused, Cycles multiplies a byte image's colour by its alpha before it

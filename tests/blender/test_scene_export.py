@@ -623,13 +623,16 @@ def test_a_scatter_groups_collection_member_hidden_for_renders_is_left_out_as_f1
 def test_an_image_file_is_read_once_for_each_version_of_it(bpy_addon, fresh_scene, tmp_path, monkeypatch):
     """Every export read, decoded and filtered each texture again: the viewport exports at every edit, and a 4K
     texture took 1.4-1.8 s of each. A texture whose pixels are its file's is read (and its mip chain made) once for
-    each version of the file (and of its colour space); one painted and not saved, again at every export."""
+    each version of the file (and of its colour space), from the file; one painted and not saved, from Blender at
+    every export. Blender's own pixels kept under the file's key went on being served after Image > Reload, where
+    an export had come between the file's edit and the reload."""
     from addon.blender import images, scene_export
 
     bpy = bpy_addon
     reads = []
-    real = images.linear_pixels
-    monkeypatch.setattr(images, "linear_pixels", lambda image, *a: reads.append(image.name) or real(image, *a))
+    for name in ("linear_pixels", "file_pixels"):
+        real = getattr(images, name)
+        monkeypatch.setattr(images, name, lambda image, *a, real=real: reads.append(image.name) or real(image, *a))
     path = tmp_path / "tex.png"
 
     def write(value):
@@ -655,8 +658,9 @@ def test_an_image_file_is_read_once_for_each_version_of_it(bpy_addon, fresh_scen
         for c in (scene_export.export_scene(fresh_scene.evaluated_depsgraph_get(), 8, 6)[0] for _ in range(2))
     ]
     assert textures[0] is textures[1]  # its mip chain made once too
-    write(0.0)
-    tex.image.reload()  # the file edited elsewhere, and reloaded
+    write(0.0)  # the file edited elsewhere: an export before the reload, and one after
+    assert colour() == pytest.approx(0.0, abs=1e-3) and len(reads) == 2
+    tex.image.reload()
     assert colour() == pytest.approx(0.0, abs=1e-3) and len(reads) == 2
     tex.image.colorspace_settings.name = "Non-Color"
     colour()
