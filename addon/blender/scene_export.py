@@ -114,9 +114,12 @@ def _image_file_key(image, associate_alpha: bool):
     """What an image's pixels are, where they are its file's: its file's path (first) and identity (inode, size,
     modification time: an edit outside Blender gives another), its size, colour space, alpha mode and the working
     space it decodes into. None for an image whose pixels are not its file's (generated, packed, painted and not
-    saved, a movie, tiles), which is read from Blender at every export. A file rewritten with its inode, size and
-    modification time kept is not told from the one before."""
+    saved, a movie, tiles), or not its file's first image (a multilayer OpenEXR's layer and pass, a view of a
+    multi-view image, which the node chooses), which is read from Blender at every export. A file rewritten with
+    its inode, size and modification time kept is not told from the one before."""
     if image.source != "FILE" or image.packed_file is not None or image.is_dirty:
+        return None
+    if image.type == "MULTILAYER" or getattr(image, "use_multiview", False):  # the node's layer, pass or view
         return None
     try:
         path = bpy_path_abspath(image)

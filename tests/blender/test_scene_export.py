@@ -665,6 +665,12 @@ def test_an_image_file_is_read_once_for_each_version_of_it(bpy_addon, fresh_scen
     tex.image.colorspace_settings.name = "Non-Color"
     colour()
     assert len(reads) == 3
+    # a multilayer OpenEXR's pass or a multi-view image's view is the node's choice, not the file's first image
+    from types import SimpleNamespace
+
+    for kind, views in (("MULTILAYER", False), ("IMAGE", True)):
+        other = SimpleNamespace(source="FILE", packed_file=None, is_dirty=False, type=kind, use_multiview=views)
+        assert scene_export._image_file_key(other, False) is None
     tex.image.pixels.foreach_set(np.full(64, 0.5, np.float32))  # painted, not saved: its pixels are not its file's
     assert tex.image.is_dirty
     assert colour() == pytest.approx(0.5, abs=3e-3) and colour() == pytest.approx(0.5, abs=3e-3) and len(reads) == 5
