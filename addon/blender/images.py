@@ -193,11 +193,16 @@ def sequence_frame(image_user, frame: int) -> int:
     return min(max(n, 0), length) + int(image_user.frame_offset)
 
 
+def file_path(image) -> str:
+    """The absolute path of an image's file (relative to its .blend, or to its library's)."""
+    return bpy.path.abspath(image.filepath, library=image.library)
+
+
 def frame_path(image, number: int) -> str:
     """The absolute path of frame ``number`` of an image sequence: the last run of digits in its file's name, less
     its extension, replaced by the number, at least as many digits (Blender's ``BLI_path_sequence_encode``: a
     JPEG 2000 sequence's ".jp2" is not its frame)."""
-    path = bpy.path.abspath(image.filepath, library=image.library)
+    path = file_path(image)
     folder, name = os.path.split(path)
     stem, ext = os.path.splitext(name)
     match = re.search(r"(\d+)(?!.*\d)", stem)

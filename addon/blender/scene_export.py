@@ -94,7 +94,8 @@ def _image_pixels(image, warnings: list[str], associate_alpha: bool = False, nod
         px = np.ascontiguousarray(px, dtype=np.float32)
         px.setflags(write=False)  # shared by the exports that find it
         with _LOCK:
-            _IMAGES[key], _ = (px, {}), _IMAGES_USED.add(key)
+            _IMAGES[key] = (px, {})  # the pixels, and the textures made of them (``_image_texture``)
+            _IMAGES_USED.add(key)
     if image.source == "MOVIE":
         warnings.append(
             f"image {image.name!r} is a movie, whose frames this renderer does not read: every frame renders the one "
@@ -122,7 +123,7 @@ def _image_file_key(image, associate_alpha: bool):
     if image.type == "MULTILAYER" or getattr(image, "use_multiview", False):  # the node's layer, pass or view
         return None
     try:
-        path = bpy_path_abspath(image)
+        path = images.file_path(image)
         st = os.stat(path)
     except (OSError, ValueError):
         return None
@@ -147,13 +148,6 @@ def _image_texture(image, px: np.ndarray, associate_alpha: bool, uv_map, extensi
         with _LOCK:
             held[1][texture_key] = texture
     return texture
-
-
-def bpy_path_abspath(image) -> str:
-    """The absolute path of an image's file (relative to its .blend, or its library's)."""
-    import bpy
-
-    return bpy.path.abspath(image.filepath, library=image.library)
 
 
 def _linked_image(socket):
@@ -627,8 +621,7 @@ def _light(ob, matrix: np.ndarray, warnings: list[str]):
     if linked:
         warnings.append(
             f"light {ob.name!r}: its {' and '.join(linked)} {'is' if len(linked) == 1 else 'are'} not rendered here; "
-            "it lights every surface, and "
-            "every surface casts its shadow"
+            "it lights every surface, and every surface casts its shadow"
         )
     hidden_from = [ray for ray in ("diffuse", "glossy", "transmission") if not getattr(ob, f"visible_{ray}", True)]
     if hidden_from:
@@ -993,8 +986,8 @@ def _placed_arrays(arrays, matrices: np.ndarray) -> tuple:
     uv = None if uvs is None else np.broadcast_to(uvs, (k,) + uvs.shape).copy()
     mirrored = det < 0
     if mirrored.any():
-        for a in (world_pos, world_nrm) + ((uv,) if uv is not None else ()):
-            a[mirrored] = a[mirrored][:, :, [0, 2, 1]]
+        for corners in (world_pos, world_nrm) + ((uv,) if uv is not None else ()):
+            corners[mirrored] = corners[mirrored][:, :, [0, 2, 1]]
     slot = np.tile(slots[np.clip(mat_i, 0, len(slots) - 1)], k)
     merge = lambda a: None if a is None else a.reshape((k * t,) + a.shape[2:])  # noqa: E731
     return merge(world_pos), merge(world_nrm), merge(uv), slot

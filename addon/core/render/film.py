@@ -10,7 +10,6 @@ import numpy as np
 from .. import kernels
 
 _NO_ROWS = np.empty(0, np.int64)
-_NO_FEATURES = np.empty((0, 8))
 
 
 class Film:
@@ -106,6 +105,9 @@ class Film:
         else:
             alpha = np.ones(img.shape[:2] + (1,), np.float32)
         return np.concatenate([img, alpha], axis=2)
+
+
+_NO_FEATURES = np.empty((0, Film.FEATURES))  # ``Film.add``'s features where none are given
 
 
 def to_srgb(linear: np.ndarray) -> np.ndarray:
