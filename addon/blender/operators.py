@@ -5,6 +5,9 @@ when given, so scripts need no selection. Problems are reported with ``self.repo
 operator returns ``{'CANCELLED'}``; nothing escapes as a traceback. (When an operator is called
 from Python, Blender turns an ERROR report into a ``RuntimeError`` carrying the message.)
 
+Blender keys a layer's keyframes and drivers by its position in the stack; every operator that inserts, removes,
+moves or replaces layers moves them with their layers (``stack_io.follow_layers``) and says what it removed.
+
 Previews and the comparison are long: invoked from the UI they run on a worker thread with
 progress in the status bar and can be cancelled with Esc; executed (scripts, background mode)
 they run blocking.
@@ -14,19 +17,53 @@ from __future__ import annotations
 
 import math
 import time
+from pathlib import Path
 
 import bpy
 from bl_operators.presets import AddPresetBase
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 
 from ..core import preview
-from ..core.stack import PRESETS, Stack
+from ..core.stack import PRESETS
 from . import bake_state, layer_types, stack_io
 from .layer_types import BASE_LAYER_TYPES
 from .operator_base import LongOperator, MaterialOperator, UserError, fail, guarded
 
 # --------------------------------------------------------------------------------------------
 # Editing the stack
+
+
+def _count(n: int, thing: str) -> str:
+    return f"{n} {thing}" if n == 1 else f"{n} {thing}s"
+
+
+def _report_removed_animation(op, done: stack_io.LayerAnimation, name: str) -> None:
+    """Say how many keyframe curves and drivers went with the removed layer ``name`` (undo brings them back)."""
+    removed = sum(done.removed.values())
+    if removed:
+        op.report({"INFO"}, f"removed {_count(removed, 'animation curve')} (keyframes, drivers) of layer {name!r}")
+
+
+def replace_stack(op, mat, stack, sidebar=None) -> None:
+    """Replace ``mat``'s layers with ``stack`` (a preset, an applied or pasted stack): keyframes and drivers of the old
+    layers stay on the positions the new stack has, where they now animate other layers, and the others are removed;
+    a warning says so, since nothing ties the old layers to the new ones."""
+    old_count = len(mat.neural_layers.layers)
+    stack_io.stack_to_material(stack, mat, sidebar)
+    new_count = len(stack.layers)
+    done = stack_io.follow_layers(mat, [i if i < new_count else None for i in range(old_count)])
+    if done.total:
+        removed = sum(done.removed.values())
+        what = []
+        if done.moved:
+            what.append(f"{done.moved} kept, now animating the new layers at the same positions")
+        if removed:
+            what.append(f"{removed} removed with the positions the new stack does not have")
+        op.report(
+            {"WARNING"},
+            f"material {mat.name!r}: its old layers were animated ({_count(done.total, 'curve')} of keyframes or "
+            f"drivers): {'; '.join(what)}; check them in the Graph Editor and the Drivers editor (Ctrl+Z undoes)",
+        )
 
 
 class NLM_OT_layer_add(MaterialOperator, bpy.types.Operator):
@@ -66,6 +103,8 @@ class NLM_OT_layer_add(MaterialOperator, bpy.types.Operator):
             item.name = stack_io.default_layer_name(self.layer_type, {x.name for x in layers})
             layers.move(len(layers) - 1, position)
             s.active_index = position
+        old_count = len(s.layers) - 1
+        stack_io.follow_layers(mat, [i if i < position else i + 1 for i in range(old_count)])
         return {"FINISHED"}
 
 
@@ -80,7 +119,7 @@ def _active_item(op, context):
 
 
 class NLM_OT_layer_remove(MaterialOperator, bpy.types.Operator):
-    """Remove the active layer"""
+    """Remove the active layer, with its keyframes and drivers"""
 
     poll_needs = "stack"
     bl_idname = "neural_layers.layer_remove"
@@ -92,9 +131,20 @@ class NLM_OT_layer_remove(MaterialOperator, bpy.types.Operator):
 
     def _run(self, context):
         mat, s, i = _active_item(self, context)
+        name, old_count = s.layers[i].name, len(s.layers)
+        base_under_coatings = i == 0 and s.layers[0].layer_type in BASE_LAYER_TYPES and old_count > 1
         with stack_io.bulk_edit(mat):
             s.layers.remove(i)
             s.active_index = min(i, len(s.layers) - 1) if len(s.layers) else 0
+        done = stack_io.follow_layers(mat, [j if j < i else None if j == i else j - 1 for j in range(old_count)])
+        _report_removed_animation(self, done, name)
+        if base_under_coatings:  # allowed, as Blender allows an edit that leaves a half-made state, but said
+            self.report(
+                {"WARNING"},
+                f"material {mat.name!r} has no base layer now: its coatings sit on nothing, so it renders as a plain "
+                "Lambertian of its base colour (its Principled BSDF's Base Color, else its Viewport Display colour) "
+                "and the previews refuse it until you add a base (Add Layer > Diffuse, Conductor or Dielectric)",
+            )
         return {"FINISHED"}
 
 
@@ -128,6 +178,9 @@ class NLM_OT_layer_move(MaterialOperator, bpy.types.Operator):
         with stack_io.bulk_edit(mat):
             s.layers.move(i, j)
             s.active_index = j
+        swapped = list(range(len(s.layers)))
+        swapped[i], swapped[j] = j, i
+        stack_io.follow_layers(mat, swapped)
         return {"FINISHED"}
 
 
@@ -146,7 +199,7 @@ def _copy_properties(src, dst) -> None:
 
 
 class NLM_OT_layer_duplicate(MaterialOperator, bpy.types.Operator):
-    """Duplicate the active coating (placed above it)"""
+    """Duplicate the active coating (placed above it), with its keyframes and drivers"""
 
     poll_needs = "stack"
     bl_idname = "neural_layers.layer_duplicate"
@@ -174,6 +227,15 @@ class NLM_OT_layer_duplicate(MaterialOperator, bpy.types.Operator):
             item.name = stack_io.default_layer_name(src.layer_type, {x.name for x in s.layers})
             s.layers.move(len(s.layers) - 1, i + 1)
             s.active_index = i + 1
+        # the copy animates as its source does: a duplicate is the same layer twice, through time too
+        old_count = len(s.layers) - 1
+        done = stack_io.follow_layers(mat, [j if j <= i else j + 1 for j in range(old_count)], copies={i: i + 1})
+        if done.copied:
+            self.report(
+                {"INFO"},
+                f"{s.layers[i + 1].name!r} animates as {s.layers[i].name!r} does: "
+                f"{_count(done.copied, 'animation curve')} (keyframes, drivers) copied",
+            )
         return {"FINISHED"}
 
 
@@ -224,7 +286,7 @@ class NLM_OT_preset_apply(MaterialOperator, bpy.types.Operator):
 
     def _run(self, context):
         mat = self.target(context)
-        stack_io.stack_to_material(PRESETS[self.preset], mat)
+        replace_stack(self, mat, PRESETS[self.preset])
         # A bundled preset is now the last applied: none of the user's is, so "Remove Preset" has none to remove
         # (it would have removed the user's preset applied before this one).
         bpy.types.NLM_MT_presets.bl_label = PRESETS_MENU_LABEL
@@ -237,7 +299,8 @@ class NLM_OT_preset_file_apply(bpy.types.Operator):
     bl_idname = "neural_layers.preset_file_apply"
     bl_label = "Apply Layer Preset"
     # Blender's own script.execute_preset pushes no undo step, and the operator its file runs is nested in it, whose
-    # push Blender skips: Ctrl+Z after a preset undid the edit before it too. This one runs it and is the step.
+    # push Blender skips: Ctrl+Z after a preset undid the edit before it too. This one runs the file itself (as
+    # execute_preset does, so that a broken file's report says what is wrong in words) and is the step.
     bl_options = {"REGISTER", "UNDO", "INTERNAL"}
 
     filepath: StringProperty(
@@ -248,10 +311,48 @@ class NLM_OT_preset_file_apply(bpy.types.Operator):
     )
 
     def execute(self, context):
-        try:
-            return bpy.ops.script.execute_preset(filepath=self.filepath, menu_idname=self.menu_idname)
-        except RuntimeError as e:  # the preset's own operator reported an error: say it as this one's
-            return fail(self, str(e).removeprefix("Error: ").strip())
+        path = Path(self.filepath)
+        # As execute_preset: the menu's label names the preset applied last, the one its Remove Preset removes (a
+        # broken one too, so that it can be removed).
+        menu = getattr(bpy.types, self.menu_idname, None)
+        if menu is not None:
+            menu.bl_label = bpy.path.display_name(path.name, title_case=False)
+        problem = run_preset_file(path)
+        if problem is not None:
+            return fail(self, f"Preset file {path.name!r} was not applied: {problem}")
+        return {"FINISHED"}
+
+
+def run_preset_file(path: Path) -> str | None:
+    """Run a layer preset file (Python, ``preset_file_text``); None when it ran, else what went wrong, in words."""
+    if path.suffix.lower() != ".py":
+        return "a layer preset is a .py file"
+    try:
+        source = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return f"there is no such file in {str(path.parent)!r} (moved or removed since the menu was drawn)"
+    except (OSError, UnicodeDecodeError) as e:
+        return f"it cannot be read ({getattr(e, 'strerror', None) or e})"
+    if not source.strip():
+        return "the file is empty; save the stack as a preset again (Add Layer Preset, beside the presets menu)"
+    try:
+        code = compile(source, str(path), "exec")
+    except SyntaxError as e:
+        return (
+            f"line {e.lineno} of the file is not valid Python ({e.msg}); save the stack as a preset again, or mend "
+            "the file"
+        )
+    try:
+        exec(code, {"__name__": "__main__", "__file__": str(path)})
+    except RuntimeError as e:
+        if not str(e).lstrip().startswith("Error:"):  # not an operator's report: the file's own code failed
+            return f"running it stopped with an error: {e}"
+        # an operator the file runs reported an error: its message ("Error: ...", a line each)
+        lines = [line.strip().removeprefix("Error:").strip() for line in str(e).splitlines()]
+        return "; ".join(line for line in lines if line)
+    except Exception as e:  # its own code failed: the message, without the exception's Python spelling
+        return f"running it stopped with an error: {e}" if str(e) else "running it stopped with an error"
+    return None
 
 
 class NLM_OT_stack_apply(MaterialOperator, bpy.types.Operator):
@@ -265,18 +366,77 @@ class NLM_OT_stack_apply(MaterialOperator, bpy.types.Operator):
         name="Stack",
         default="",
         options={"SKIP_SAVE"},
-        description="The layer stack as JSON (addon.core.stack.Stack.to_json)",
+        description="The layer stack as JSON with its layers' names (what Add Layer Preset and Copy Layer Stack write)",
     )
 
     def execute(self, context):
         return guarded("applying a layer stack", self, lambda: self._run(context))
 
     def _run(self, context):
+        mat = self.target(context)
         try:
-            stack = Stack.from_json(self.stack)
-        except (ValueError, TypeError, KeyError) as e:
-            raise UserError(f"not a layer stack ({type(e).__name__}: {e}); a preset holds Stack.to_json()") from None
-        stack_io.stack_to_material(stack, self.target(context))
+            stack, sidebar = stack_io.stack_from_text(self.stack)
+        except ValueError as e:
+            raise UserError(f"not a layer stack: {e}") from None
+        replace_stack(self, mat, stack, sidebar)
+        return {"FINISHED"}
+
+
+# Blender without a window (background mode: scripts, the tests) has no system clipboard, where
+# WindowManager.clipboard reads "": the last stack copied in this session is kept too, and pasted when the clipboard
+# holds no text.
+_copied_stack = ""
+
+
+class NLM_OT_stack_copy(MaterialOperator, bpy.types.Operator):
+    """Copy the material's layer stack (its layers, their names and values, as a layer preset holds them) to the
+    clipboard, for Paste Layer Stack on another material: Blender's Copy Material leaves it behind"""
+
+    poll_needs = "stack"
+    edits = False  # reads the stack, writes the clipboard
+    bl_idname = "neural_layers.stack_copy"
+    bl_label = "Copy Layer Stack"
+    bl_options = {"REGISTER"}
+
+    def execute(self, context):
+        return guarded("copying the layer stack", self, lambda: self._run(context))
+
+    def _run(self, context):
+        global _copied_stack
+        mat = self.target(context)
+        text = stack_io.stack_text(mat)
+        _copied_stack = text
+        context.window_manager.clipboard = text
+        maps = sum(len(item.maps) for item in mat.neural_layers.layers)
+        left_out = f"; its {_count(maps, 'parameter map')} (images) stay behind" if maps else ""
+        layers = _count(len(mat.neural_layers.layers), "layer")
+        self.report({"INFO"}, f"copied the layer stack of {mat.name!r} ({layers}){left_out}")
+        return {"FINISHED"}
+
+
+class NLM_OT_stack_paste(MaterialOperator, bpy.types.Operator):
+    """Replace the material's layer stack with the one on the clipboard (Copy Layer Stack, or the JSON of a layer
+    preset)"""
+
+    bl_idname = "neural_layers.stack_paste"
+    bl_label = "Paste Layer Stack"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        return guarded("pasting a layer stack", self, lambda: self._run(context))
+
+    def _run(self, context):
+        mat = self.target(context)
+        text = context.window_manager.clipboard.strip() or _copied_stack
+        if not text:
+            raise UserError("the clipboard is empty: copy a layer stack first (Copy Layer Stack, in the stack's menu)")
+        try:
+            stack, sidebar = stack_io.stack_from_text(text)
+        except ValueError as e:
+            raise UserError(
+                f"the clipboard holds no layer stack: {e}; copy one with Copy Layer Stack (in the stack's menu)"
+            ) from None
+        replace_stack(self, mat, stack, sidebar)
         return {"FINISHED"}
 
 
@@ -286,13 +446,13 @@ PRESET_SUBDIR = "neural_layered_materials/layer_stacks"
 PRESETS_MENU_LABEL = "Layer Presets"
 
 
-def preset_file_text(stack: Stack) -> str:
-    """A layer preset file: Python that Blender's preset menu runs, applying ``stack`` to the
+def preset_file_text(stack_json: str) -> str:
+    """A layer preset file: Python that Blender's preset menu runs, applying a stack (``stack_io.stack_text``) to the
     active material. Plain JSON inside, so presets can be read, shared and edited by hand."""
     return (
         "import bpy\n\n"
         "# A Neural Layered Materials layer stack (bottom to top); applied to the active material.\n"
-        f"bpy.ops.neural_layers.stack_apply(stack={stack.to_json()!r})\n"
+        f"bpy.ops.neural_layers.stack_apply(stack={stack_json!r})\n"
     )
 
 
@@ -320,9 +480,9 @@ class NLM_OT_preset_add(AddPresetBase, MaterialOperator, bpy.types.Operator):
     )
 
     def add(self, context, filepath):  # AddPresetBase's hook: write our own file
-        mat, stack = self.target_stack(context)
+        text = preset_file_text(stack_io.stack_text(self.target(context)))
         with open(filepath, "w", encoding="utf-8") as f:
-            f.write(preset_file_text(stack))
+            f.write(text)
 
     def execute(self, context):
         return guarded(self.bl_label, self, lambda: AddPresetBase.execute(self, context))
@@ -469,6 +629,8 @@ _CLASSES = (
     NLM_OT_preset_apply,
     NLM_OT_preset_file_apply,
     NLM_OT_stack_apply,
+    NLM_OT_stack_copy,
+    NLM_OT_stack_paste,
     NLM_OT_preset_add,
     NLM_OT_evaluate_latent,
     NLM_OT_preview_lobe,

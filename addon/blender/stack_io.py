@@ -3,12 +3,19 @@
 ``stack_from_material(mat)`` is what every consumer (operators, the render engine's scene export)
 calls: it returns the material's ``Stack``, ``None`` when the material has no layer stack, and
 raises ``ValueError`` with a message for the user when the stack is not valid.
+
+``stack_text`` / ``stack_from_text`` are the text a layer preset and the layer stack clipboard hold, and
+``follow_layers`` keeps a material's keyframes and drivers on their layers when the editor reorders them.
 """
 
 from __future__ import annotations
 
+import json
+import re
+from collections import Counter
 from contextlib import contextmanager
-from typing import Optional
+from dataclasses import dataclass, field
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -148,17 +155,206 @@ def bulk_edit(mat):
     on_stack_changed(mat)
 
 
-def stack_to_material(stack: Stack, mat) -> None:
-    """Replace the material's layers with ``stack`` (bottom to top) and refresh its latent."""
+def stack_to_material(stack: Stack, mat, sidebar: Sequence[dict] | None = None) -> None:
+    """Replace the material's layers with ``stack`` (bottom to top) and refresh its latent.
+
+    ``sidebar`` (from ``stack_from_text``): one entry per layer with what the core stack does not hold, its name
+    and, for a conductor given by its colour, that colour; without it the layers get default names."""
     with bulk_edit(mat) as s:
         s.layers.clear()
         names: set[str] = set()
-        for layer in stack.layers:
+        for i, layer in enumerate(stack.layers):
             item = s.layers.add()
             write_layer(item, layer)
-            item.name = default_layer_name(item.layer_type, names)
+            entry = sidebar[i] if sidebar is not None else {}
+            if "f0" in entry:
+                item.conductor_mode = "F0"
+                item.f0 = entry["f0"]
+            item.name = entry.get("name") or default_layer_name(item.layer_type, names)
             names.add(item.name)
         s.active_index = len(s.layers) - 1
+
+
+# --------------------------------------------------------------------------------------------
+# The text of a layer preset and of the layer stack clipboard
+
+# What a preset holds beside ``Stack.to_dict()``: each layer's name and a conductor's F0 colour. ``Stack.from_dict``
+# reads no other top-level key, so the add-on's versions before this one apply such a text too (without the names and
+# colours), and a text without it (a preset saved by them) applies here with default names.
+SIDEBAR_KEY = "sidebar"
+
+
+def stack_text(mat) -> str:
+    """The material's layer stack as a layer preset and the clipboard hold it: ``Stack.to_json()``'s object with a
+    ``"sidebar"`` list, bottom to top, of each layer's ``name`` and, for a conductor given by its colour (Specify:
+    Colour), its ``f0``. Parameter maps (image references) and the latent are left out. ``ValueError`` for a stack
+    that is not valid (``stack_from_material``)."""
+    stack = stack_from_material(mat)
+    if stack is None:
+        raise ValueError(f"material {mat.name!r} has an empty layer stack: add a base layer or pick a preset")
+    sidebar = []
+    for item in mat.neural_layers.layers:
+        entry = {"name": item.name}
+        if item.layer_type == "CONDUCTOR" and item.conductor_mode == "F0":
+            entry["f0"] = [float(v) for v in item.f0]
+        sidebar.append(entry)
+    return json.dumps({**stack.to_dict(), SIDEBAR_KEY: sidebar}, sort_keys=True)
+
+
+def stack_from_text(text: str) -> tuple[Stack, list[dict] | None]:
+    """``(stack, sidebar)`` from a layer preset's or the clipboard's text (``stack_text``; a bare ``Stack.to_json()``
+    too, whose ``sidebar`` is None). ``ValueError`` says in words why a text is not a layer stack (the callers say
+    whose text it was)."""
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"the text is not valid JSON (line {e.lineno}, column {e.colno}: {e.msg.lower()})") from None
+    if not isinstance(data, dict) or "base" not in data:
+        raise ValueError(
+            "the text holds no 'base' layer (a layer stack is a JSON object with a 'base' layer and a list of "
+            "'coatings', as Add Layer Preset and Copy Layer Stack write it)"
+        )
+    _check_layer_order(data)
+    try:
+        stack = Stack.from_dict(data)
+    except (ValueError, TypeError, KeyError) as e:
+        raise ValueError(str(e)) from None
+    sidebar = data.get(SIDEBAR_KEY)
+    return stack, (None if sidebar is None else _checked_sidebar(sidebar, stack))
+
+
+def _check_layer_order(data: dict) -> None:
+    """A coating as the base, or a base above it, said as the sidebar says it (the core's message names its fields)."""
+    bases = {cls.__name__ for cls in (Diffuse, Conductor, Dielectric)}
+    base = data["base"]
+    if isinstance(base, dict) and base.get("type") == "Coating":
+        raise ValueError(
+            "its bottom layer is a Coating; the bottom layer must be a base: Diffuse, Conductor or Dielectric"
+        )
+    coatings = data.get("coatings")
+    for i, layer in enumerate(coatings if isinstance(coatings, list) else []):
+        if isinstance(layer, dict) and layer.get("type") in bases:
+            raise ValueError(
+                f"layer {i + 2} from the bottom is a {layer['type']} above the base; only Coating layers go above it"
+            )
+
+
+def _checked_sidebar(sidebar, stack: Stack) -> list[dict]:
+    """The ``"sidebar"`` entries of a stack's text, checked: a name (text) and, for a conductor, an F0 colour in its
+    valid range. Keys this version does not know are left out (a newer version's)."""
+    n = len(stack.layers)
+    if not isinstance(sidebar, list) or len(sidebar) != n:
+        raise ValueError(f"the '{SIDEBAR_KEY}' entry must list one entry per layer ({n}), bottom to top")
+    checked = []
+    for i, (entry, layer) in enumerate(zip(sidebar, stack.layers, strict=True)):
+        where = "the base" if i == 0 else f"layer {i + 1} from the bottom"
+        if not isinstance(entry, dict):
+            raise ValueError(f"the '{SIDEBAR_KEY}' entry of {where} must be an object with its 'name'")
+        kept = {}
+        name = entry.get("name")
+        if name is not None:
+            if not isinstance(name, str) or not name.strip():
+                raise ValueError(f"the name of {where} must be a text that is not empty, got {name!r}")
+            kept["name"] = name.strip()
+        if "f0" in entry:
+            if not isinstance(layer, Conductor):
+                raise ValueError(f"{where} has an F0 colour but is a {type(layer).__name__}: only a Conductor has one")
+            f0 = entry["f0"]
+            if not isinstance(f0, list) or len(f0) != 3:
+                raise ValueError(f"the F0 colour of {where} must be three numbers (red, green, blue), got {f0!r}")
+            Conductor.from_f0(tuple(f0))  # ValueError naming the channel, the value and the valid range
+            kept["f0"] = tuple(float(v) for v in f0)
+        checked.append(kept)
+    return checked
+
+
+# --------------------------------------------------------------------------------------------
+# Animation of the layers: keyframes and drivers follow their layer
+
+# Blender keys a layer's animation by its position: ``neural_layers.layers[2].thickness``.
+_LAYER_PATH = re.compile(r"^neural_layers\.layers\[(\d+)\](.*)$", re.DOTALL)
+
+
+@dataclass
+class LayerAnimation:
+    """What ``follow_layers`` did to a material's animation of its layers (F-curves and drivers)."""
+
+    moved: int = 0  # curves kept, on their layer's new position (the same position too)
+    removed: Counter = field(default_factory=Counter)  # old layer index -> curves removed with that layer
+    copied: int = 0  # curves copied onto a duplicate
+
+    @property
+    def total(self) -> int:
+        """Curves on the layers before the edit."""
+        return self.moved + sum(self.removed.values())
+
+
+def _curve_collections(anim):
+    """Every collection of F-curves that animates the data-block of ``anim``: the channelbags of its action's slot and
+    of its NLA strips' actions (each once), then its drivers; ``(collection, is_drivers)``."""
+    seen = set()
+
+    def channelbags(action, slot):
+        if action is None or slot is None:
+            return
+        for layer in action.layers:
+            for strip in layer.strips:
+                bag = strip.channelbag(slot)
+                if bag is not None and bag.as_pointer() not in seen:
+                    seen.add(bag.as_pointer())
+                    yield bag.fcurves, False
+
+    def strips(collection):
+        for strip in collection:
+            yield strip
+            yield from strips(strip.strips)  # a meta strip's
+
+    yield from channelbags(anim.action, anim.action_slot)
+    for track in anim.nla_tracks:
+        for strip in strips(track.strips):
+            yield from channelbags(strip.action, strip.action_slot)
+    yield anim.drivers, True
+
+
+def follow_layers(mat, new_index_of: Sequence[int | None], copies: dict[int, int] | None = None) -> LayerAnimation:
+    """Keep ``mat``'s keyframes and drivers on their layers after the layers moved: Blender stores them by position
+    (``neural_layers.layers[i]``), so without this an edit that inserts, removes or moves a layer leaves them on
+    whichever layer takes the position.
+
+    ``new_index_of[i]`` is the new position of the layer that was at ``i``, None when it was removed (its curves are
+    removed); ``copies`` maps an old position to the position of a copy of that layer (Duplicate), which gets copies
+    of its curves. Curves of the action's slot for ``mat``, of its NLA strips' actions and its drivers are followed;
+    curves on positions ``new_index_of`` does not cover (no layer before the edit) and paths that name a layer by its
+    name (``layers["Coat"]``, which follow it anyway) are left as they are. Undo restores it with the edit."""
+    copies = copies or {}
+    done = LayerAnimation()
+    anim = getattr(mat, "animation_data", None)
+    if anim is None:
+        return done
+    for curves, is_drivers in _curve_collections(anim):
+        to_copy = []
+        for curve in list(curves):
+            match = _LAYER_PATH.match(curve.data_path)
+            if match is None or int(match.group(1)) >= len(new_index_of):
+                continue
+            old, rest = int(match.group(1)), match.group(2)
+            new = new_index_of[old]
+            if new is None:
+                curves.remove(curve)
+                done.removed[old] += 1
+                continue
+            if new != old:
+                curve.data_path = f"neural_layers.layers[{new}]{rest}"
+            done.moved += 1
+            if old in copies:
+                to_copy.append((curve, f"neural_layers.layers[{copies[old]}]{rest}"))
+        for curve, path in to_copy:
+            if is_drivers:
+                curves.from_existing(src_driver=curve).data_path = path
+            else:
+                curves.new_from_fcurve(curve, data_path=path)
+            done.copied += 1
+    return done
 
 
 # --------------------------------------------------------------------------------------------

@@ -53,6 +53,18 @@ class NLM_MT_presets(bpy.types.Menu):
                 remove.remove_active = True
 
 
+class NLM_MT_stack_specials(bpy.types.Menu):
+    """More for the layer stack: copy it to another material (Blender's Copy Material leaves it behind)."""
+
+    bl_idname = "NLM_MT_stack_specials"
+    bl_label = "Layer Stack Specials"
+
+    def draw(self, context):
+        layout = self.layout
+        layout.operator("neural_layers.stack_copy", icon="COPYDOWN")
+        layout.operator("neural_layers.stack_paste", icon="PASTEDOWN")
+
+
 def removable_preset() -> str | None:
     """The preset of yours applied last, which Remove Preset removes: Blender's presets keep its name as the menu's
     label. None when a bundled stack came after it, or it is gone: after a removal Blender sets the label to
@@ -88,6 +100,7 @@ def _draw_stack(layout, context):
     col.operator("neural_layers.layer_remove", text="", icon="REMOVE")
     col.separator()
     col.operator("neural_layers.layer_duplicate", text="", icon="DUPLICATE")
+    col.menu("NLM_MT_stack_specials", text="", icon="DOWNARROW_HLT")
     col.separator()
     col.operator("neural_layers.layer_move", text="", icon="TRIA_UP").direction = "UP"
     col.operator("neural_layers.layer_move", text="", icon="TRIA_DOWN").direction = "DOWN"
@@ -289,6 +302,7 @@ class NLM_PT_shader_bake(_BakePanel, bpy.types.Panel):
 _CLASSES = (
     NLM_UL_layers,
     NLM_MT_presets,
+    NLM_MT_stack_specials,
     NLM_PT_view3d_stack,
     NLM_PT_view3d_preview,
     NLM_PT_shader_stack,

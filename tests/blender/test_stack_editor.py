@@ -563,3 +563,189 @@ def test_the_shader_editors_pinned_material_is_the_one_edited(bpy_addon, fresh_s
     assert operator_base.context_material(shader_editor) == pinned
     assert operator_base.context_material(viewport) == material
     assert "'Pinned'" in operator_base.poll_problem(shader_editor, "stack")  # its stack, not the active one's
+
+
+def _printed(capfd, kind):
+    """The reports of ``kind`` ("Warning", "Info") printed since the last call (background Blender prints them)."""
+    out = capfd.readouterr().out
+    return [line.removeprefix(f"{kind}: ") for line in out.splitlines() if line.startswith(f"{kind}: ")]
+
+
+def _assert_same_stack(got, expected):
+    """The same layers with the same values, up to Blender's float32."""
+    assert [type(l) for l in got.layers] == [type(l) for l in expected.layers]
+    for a, b in zip(got.layers, expected.layers, strict=True):
+        for key, value in vars(a).items():
+            assert value == pytest.approx(getattr(b, key), rel=1e-5, abs=1e-6), key
+
+
+def _green_metal_under_a_clear_coat(bpy, mat):
+    """A conductor given by its colour (Specify: Colour) under a coat, both renamed: what a bundled preset is not."""
+    ops = bpy.ops.neural_layers
+    assert run_operator(ops.layer_add, material=mat.name, layer_type="CONDUCTOR").finished
+    assert run_operator(ops.layer_add, material=mat.name, layer_type="COATING").finished
+    layers = mat.neural_layers.layers
+    layers[0].f0 = (0.2, 0.9, 0.3)
+    layers[0].name, layers[1].name = "Green metal", "Clear Coat"
+    layers[1].roughness = 0.25
+    return [(l.name, l.layer_type, l.conductor_mode if l.layer_type == "CONDUCTOR" else "") for l in layers]
+
+
+def test_copy_and_paste_layer_stack_carry_it_to_another_material(bpy_addon, material, monkeypatch):
+    """Blender's Copy Material / Paste Material leave the layer stack behind: Copy Layer Stack and Paste Layer Stack
+    carry it (names and a conductor's colour too) through the clipboard, as a layer preset's JSON."""
+    from addon.blender import operators, stack_io
+
+    bpy = bpy_addon
+    ops = bpy.ops.neural_layers
+    monkeypatch.setattr(operators, "_copied_stack", "")  # headless Blender has no system clipboard: the session's copy
+    bpy.context.window_manager.clipboard = ""
+    r = run_operator(ops.stack_copy)
+    assert r.error and "empty layer stack" in r.error
+    shown = _green_metal_under_a_clear_coat(bpy, material)
+    assert run_operator(ops.stack_copy).finished
+    copied = stack_io.stack_from_material(material)
+
+    target = bpy.data.materials.new("Target")
+    assert run_operator(ops.preset_apply, material="Target", preset="red_car_paint").finished
+    bpy.ops.ed.undo_push(message="before paste")
+    assert run_operator(ops.stack_paste, "EXEC_DEFAULT", True, material="Target").finished
+    target = bpy.data.materials["Target"]
+    got = [
+        (l.name, l.layer_type, l.conductor_mode if l.layer_type == "CONDUCTOR" else "")
+        for l in target.neural_layers.layers
+    ]
+    assert got == shown
+    assert tuple(target.neural_layers.layers[0].f0) == pytest.approx((0.2, 0.9, 0.3))
+    assert stack_io.stack_from_material(target) == copied
+    bpy.ops.ed.undo()  # the paste is one undo step
+    assert len(bpy.data.materials["Target"].neural_layers.layers) == len(PRESETS["red_car_paint"].layers)
+
+    before = _names(bpy.data.materials["Target"])
+    for text, expected in (
+        ("Hello from another application", "the clipboard holds no layer stack: the text is not valid JSON"),
+        ('{"colour": [1, 0, 0]}', "the clipboard holds no layer stack: the text holds no 'base' layer"),
+        ("", "the clipboard is empty"),
+    ):
+        monkeypatch.setattr(operators, "_copied_stack", text)
+        r = run_operator(ops.stack_paste, material="Target")
+        assert r.error and expected in r.error, r.error
+        assert "Copy Layer Stack" in r.error and "JSONDecodeError" not in r.error and "\\n" not in r.error
+        assert _names(bpy.data.materials["Target"]) == before
+
+
+def test_the_layer_stack_panel_has_a_menu_with_copy_and_paste(bpy_addon, fresh_scene):
+    """The stack panel's side column holds the menu, and the menu the two operators (with icons Blender has)."""
+    import types
+
+    from tests.blender.test_sidebar import draw
+
+    bpy = bpy_addon
+    context = types.SimpleNamespace(object=fresh_scene.view_layer.objects.active)
+    assert ("menu", "NLM_MT_stack_specials") in draw(bpy.types.NLM_PT_view3d_stack, context)
+    assert ("menu", "NLM_MT_stack_specials") in draw(bpy.types.NLM_PT_shader_stack, context)
+    assert draw(bpy.types.NLM_MT_stack_specials, context) == [
+        ("operator", "neural_layers.stack_copy"),
+        ("operator", "neural_layers.stack_paste"),
+    ]
+
+
+def test_a_preset_keeps_layer_names_and_a_conductor_given_by_its_colour(bpy_addon, material, tmp_path, monkeypatch):
+    """A preset restored a conductor given by its colour as a complex IOR (its colour lost) and renamed every layer;
+    presets saved before it held names (a bare Stack.to_json()) still apply, with default names."""
+    import os
+
+    from addon.blender import stack_io
+    from addon.blender.operators import PRESET_SUBDIR, preset_file_text
+
+    bpy = bpy_addon
+    monkeypatch.setitem(os.environ, "BLENDER_USER_SCRIPTS", str(tmp_path / "scripts"))
+    shown = _green_metal_under_a_clear_coat(bpy, material)
+    saved = stack_io.stack_from_material(material)
+    assert run_operator(bpy.ops.neural_layers.preset_add, name="Green").finished
+    (preset,) = (tmp_path / "scripts" / "presets" / PRESET_SUBDIR).glob("*.py")
+    other = bpy.data.materials.new("Other")
+    bpy.context.object.active_material = other
+    apply = bpy.ops.neural_layers.preset_file_apply
+    assert run_operator(apply, filepath=str(preset), menu_idname="NLM_MT_presets").finished
+    assert [
+        (l.name, l.layer_type, l.conductor_mode if l.layer_type == "CONDUCTOR" else "")
+        for l in other.neural_layers.layers
+    ] == shown
+    assert tuple(other.neural_layers.layers[0].f0) == pytest.approx((0.2, 0.9, 0.3))
+    assert stack_io.stack_from_material(other) == saved
+
+    old = tmp_path / "old.py"  # as the add-on wrote presets before: the stack alone
+    old.write_text(preset_file_text(PRESETS["coated_gold"].to_json()))
+    assert run_operator(apply, filepath=str(old), menu_idname="NLM_MT_presets").finished
+    assert _names(other) == [("Conductor", "CONDUCTOR"), ("Coating", "COATING")]
+    assert other.neural_layers.layers[0].conductor_mode == "ETA_K"
+    _assert_same_stack(stack_io.stack_from_material(other), PRESETS["coated_gold"])
+
+    import json
+
+    data = json.loads(stack_io.stack_text(material))
+    data["sidebar"][0]["f0"] = [2.0, 0.5, 0.5]
+    r = run_operator(bpy.ops.neural_layers.stack_apply, stack=json.dumps(data))
+    assert r.error and "f0[R] = 2" in r.error and "valid range" in r.error
+    data["sidebar"] = data["sidebar"][:1]
+    r = run_operator(bpy.ops.neural_layers.stack_apply, stack=json.dumps(data))
+    assert r.error and "one entry per layer (2)" in r.error
+    _assert_same_stack(stack_io.stack_from_material(other), PRESETS["coated_gold"])  # neither applied
+
+
+def test_a_broken_preset_file_says_which_file_and_what_is_wrong_in_words(bpy_addon, material, tmp_path):
+    """The reports read "Failed to execute the preset: RuntimeError('Error: not a layer stack (ValueError: ...); a
+    preset holds Stack.to_json()\\n')": a Python repr, a literal \\n and developer wording, without the file."""
+    bpy = bpy_addon
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="coated_gold").finished
+    before = _names(material)
+    stack_apply = "import bpy\nbpy.ops.neural_layers.stack_apply(stack={!r})\n"
+    broken = {
+        "syntax": (
+            "import bpy\nbpy.ops.neural_layers.stack_apply(stack='{\n",
+            "line 2 of the file is not valid Python",
+        ),
+        "not_json": (stack_apply.format("{not json"), "the text is not valid JSON (line 1, column 2"),
+        "a_list": (stack_apply.format("[1, 2]"), "holds no 'base' layer"),
+        "coating_base": (stack_apply.format('{"base": {"type": "Coating"}}'), "bottom layer is a Coating"),
+        "out_of_range": (
+            stack_apply.format('{"base": {"type": "Diffuse", "albedo": [5, 0.5, 0.5]}}'),
+            "albedo[R] = 5 is outside the valid range",
+        ),
+        "raises": ("raise RuntimeError('boom')\n", "running it stopped with an error: boom"),
+        "empty": ("", "the file is empty"),
+    }
+    for name, (text, reason) in broken.items():
+        path = tmp_path / f"bad_{name}.py"
+        path.write_text(text)
+        r = run_operator(bpy.ops.neural_layers.preset_file_apply, filepath=str(path), menu_idname="NLM_MT_presets")
+        assert r.error and f"Preset file 'bad_{name}.py' was not applied: " in r.error and reason in r.error, r.error
+        for developer in ("RuntimeError", "ValueError", "SyntaxError", "Error(", "\\n", "Stack.to_json", "repr"):
+            assert developer not in r.error, (name, r.error)
+        assert r.error.count("\n") <= 1  # one line (Blender ends the message with a newline)
+        assert _names(material) == before
+    r = run_operator(
+        bpy.ops.neural_layers.preset_file_apply, filepath=str(tmp_path / "gone.py"), menu_idname="NLM_MT_presets"
+    )
+    assert r.error and "'gone.py'" in r.error and "no such file" in r.error and "FileNotFoundError" not in r.error
+
+
+def test_removing_the_base_under_coatings_warns_what_renders(bpy_addon, material, capfd):
+    """Removing the base while coatings sit on it left an invalid stack, rendered as a Lambertian, in silence."""
+    from addon.blender import stack_io
+
+    ops = bpy_addon.ops.neural_layers
+    assert run_operator(ops.preset_apply, preset="red_car_paint").finished
+    material.neural_layers.active_index = 2  # a coating: no warning
+    capfd.readouterr()
+    assert run_operator(ops.layer_remove).finished
+    assert _printed(capfd, "Warning") == []
+    material.neural_layers.active_index = 0
+    assert run_operator(ops.layer_remove).finished  # allowed, as Blender allows it, and said
+    (warning,) = _printed(capfd, "Warning")
+    assert "no base layer now" in warning and "Lambertian" in warning and "Add Layer" in warning
+    with pytest.raises(ValueError, match="bottom layer must be a base"):
+        stack_io.stack_from_material(material)
+    assert run_operator(ops.layer_add, layer_type="DIFFUSE").finished  # the way back: a base goes under the coating
+    assert _names(material)[0] == ("Diffuse", "DIFFUSE") and stack_io.stack_from_material(material) is not None
