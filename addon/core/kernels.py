@@ -717,6 +717,89 @@ def is_delta(kind):
     return kind == POINT or kind == SPOT or kind == SUN
 
 
+# An orthogonal rectangle (Blender's square and rectangle lights, unsheared) is sampled by solid angle (Ureña et
+# al., "An Area-Preserving Parametrization for Spherical Rectangles", 2013), as Cycles samples it, from a point
+# within this many of its bounding radius of its centre (its radius at least a third of the distance); by area
+# from farther, where a sample's irradiance (a surface facing the light) varies little that way: its variance
+# over its squared mean is below 0.002 head-on and 0.17 at grazing angles (0.009 and 0.39 at half the distance,
+# 0.1 and 3.6 at the distance). A sample by solid angle costs several times one by area.
+SOLID_ANGLE_WITHIN = 3.0
+
+
+@njit(forceinline=True, **_JIT)
+def _rect_window(params, j, px, py, pz):
+    """Where solid-angle sampling draws rectangle light ``params[j]`` from at point (px, py, pz): ``ok`` (False: a
+    sheared light, a point on its dark side, or a point farther than :data:`SOLID_ANGLE_WITHIN`: sample its
+    area), the light's unit axes x and y, and the window's edges relative to the point, x0 < x1 along x, y0 < y1
+    along y and z0 < 0 along the light's normal. The window is the light, or under a *Spread* the part of it
+    within the cone the point sees it through (Cycles' clamp: beyond it the light sends the point nothing); an
+    empty window has x0 = x1."""
+    ux, uy, uz, vx, vy, vz = params[j, 3], params[j, 4], params[j, 5], params[j, 6], params[j, 7], params[j, 8]
+    uu, vv, uv = ux * ux + uy * uy + uz * uz, vx * vx + vy * vy + vz * vz, ux * vx + uy * vy + uz * vz
+    cx, cy, cz = params[j, 0] - px, params[j, 1] - py, params[j, 2] - pz
+    z0 = cx * params[j, 9] + cy * params[j, 10] + cz * params[j, 11]
+    far = SOLID_ANGLE_WITHIN * SOLID_ANGLE_WITHIN * params[j, 16] < cx * cx + cy * cy + cz * cz
+    if not z0 < 0.0 or far or uv * uv > 1e-10 * uu * vv:  # axes at right angles to 1e-5 (float32 matrices)
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    lu, lv = _sqrt(uu), _sqrt(vv)
+    xx, xy, xz, yx, yy, yz = ux / lu, uy / lu, uz / lu, vx / lv, vy / lv, vz / lv
+    a0, a1, b0, b1 = -lu, lu, -lv, lv
+    ca, cb = cx * xx + cy * xy + cz * xz, cx * yx + cy * yy + cz * yz  # the centre's coordinates from the point
+    tan_half = params[j, 17]
+    if tan_half > 0.0 and not math.isinf(tan_half):
+        r = -z0 * tan_half  # the cone's radius where it meets the light's plane, about the point's foot at -ca, -cb
+        a0, a1, b0, b1 = max(a0, -ca - r), min(a1, -ca + r), max(b0, -cb - r), min(b1, -cb + r)
+        if a0 >= a1 or b0 >= b1:
+            a1, b1 = a0, b0
+    return True, xx, xy, xz, yx, yy, yz, ca + a0, ca + a1, cb + b0, cb + b1, z0
+
+
+@njit(forceinline=True, **_JIT)
+def _rect_solid_angle(x0, x1, y0, y1, z0):
+    """The solid angle of the rectangle [x0, x1] x [y0, y1] at height z0 < 0 below a point: the sum of its two
+    triangles' (Van Oosterom and Strackee: tan(a / 2) of each is its corners' triple product, the same for both,
+    over a sum of their lengths and dot products), as the argument of the product of the two, with no
+    cancellation at small angles and one arc tangent."""
+    z2 = z0 * z0
+    l00, l10 = _sqrt(x0 * x0 + y0 * y0 + z2), _sqrt(x1 * x1 + y0 * y0 + z2)
+    l11, l01 = _sqrt(x1 * x1 + y1 * y1 + z2), _sqrt(x0 * x0 + y1 * y1 + z2)
+    d00_10, d00_11, d00_01 = x0 * x1 + y0 * y0 + z2, x0 * x1 + y0 * y1 + z2, x0 * x0 + y0 * y1 + z2
+    d10_11, d11_01 = x1 * x1 + y0 * y1 + z2, x0 * x1 + y1 * y1 + z2
+    num = -z0 * (x1 - x0) * (y1 - y0)
+    re0 = l00 * l10 * l11 + d00_10 * l11 + d00_11 * l10 + d10_11 * l00
+    re1 = l00 * l11 * l01 + d00_11 * l01 + d00_01 * l11 + d11_01 * l00
+    re, im = re0 * re1 - num * num, num * (re0 + re1)
+    half = math.atan2(im, re)  # in [0, pi): half the solid angle
+    if half < 0.0:  # rounding's sign at either end
+        half = math.pi if re < 0.0 else 0.0
+    return 2.0 * half
+
+
+@njit(forceinline=True, **_JIT)
+def _rect_point(x0, x1, y0, y1, z0, solid, u0, u1):
+    """The point (x, y) of the rectangle of :func:`_rect_solid_angle` whose direction uniforms (u0, u1) give, evenly
+    in solid angle (Ureña et al.: the angle au = u0 S + k fixes x, then y lies evenly in the sine of its
+    elevation). The cosine and sine of k = 2 pi - g2 - g3 (g2, g3 the spherical rectangle's inner angles at
+    its far corners) come from the corners' normals, and au's from turning k by u0 S: no arc cosine."""
+    z2 = z0 * z0
+    n0, n2 = -y0 / _sqrt(z2 + y0 * y0), y1 / _sqrt(z2 + y1 * y1)
+    n3 = -x0 / _sqrt(z2 + x0 * x0)
+    c2, c3 = -n2 * n3, -n3 * n0  # cos g2, cos g3
+    s2, s3 = _sqrt(max(1.0 - c2 * c2, 0.0)), _sqrt(max(1.0 - c3 * c3, 0.0))
+    ck, sk = c2 * c3 - s2 * s3, -(s2 * c3 + c2 * s3)  # e^(i k) = e^(-i (g2 + g3))
+    cs, ss = turn_cos_sin(u0 * solid * (0.5 / math.pi))
+    cu_a, su_a = ck * cs - sk * ss, sk * cs + ck * ss  # cos au, sin au
+    fu = (cu_a * n0 - n2) / su_a
+    # x = -cu z0 / sqrt(1 - cu^2) with cu = sign(fu) / sqrt(fu^2 + b0^2): one root, one division
+    xu = -z0 / _sqrt(max(fu * fu + n0 * n0 - 1.0, 1e-300))
+    xu = min(max(xu if fu > 0.0 else -xu, x0), x1)
+    d2 = xu * xu + z2
+    h0, h1 = y0 / _sqrt(d2 + y0 * y0), y1 / _sqrt(d2 + y1 * y1)
+    hv = h0 + u1 * (h1 - h0)
+    yv = hv * _sqrt(d2 / (1.0 - hv * hv)) if hv * hv < 1.0 else y1
+    return xu, min(max(yv, y0), y1)
+
+
 @njit(forceinline=True, **_JIT)
 def _sample_local_light(kind, params, j, px, py, pz, u0, u1, near):
     """One sample of light ``params[j]`` (a point, a spot, the sun or an area light: any kind but the
@@ -748,6 +831,21 @@ def _sample_local_light(kind, params, j, px, py, pz, u0, u1, near):
     if kind == SUN:
         return params[j, 0], params[j, 1], params[j, 2], inf, params[j, 3], params[j, 4], params[j, 5], 1.0
     # AREA_RECT, AREA_ELLIPSE
+    if kind == AREA_RECT:
+        ok, xx, xy, xz, yx, yy, yz, x0, x1, y0, y1, z0 = _rect_window(params, j, px, py, pz)
+        if ok:  # by solid angle
+            if not x0 < x1:
+                return 0.0, 0.0, 1.0, inf, 0.0, 0.0, 0.0, 0.0
+            solid = _rect_solid_angle(x0, x1, y0, y1, z0)
+            if not solid > 0.0:
+                return 0.0, 0.0, 1.0, inf, 0.0, 0.0, 0.0, 0.0
+            a, b = _rect_point(x0, x1, y0, y1, z0, solid, u0, u1)
+            nx, ny, nz = params[j, 9], params[j, 10], params[j, 11]
+            dx, dy, dz = a * xx + b * yx + z0 * nx, a * xy + b * yy + z0 * ny, a * xz + b * yz + z0 * nz
+            dist = _sqrt(dx * dx + dy * dy + dz * dz)
+            wx, wy, wz = dx / dist, dy / dist, dz / dist
+            g = spread_factor(params, j, -z0 / dist)
+            return wx, wy, wz, dist, params[j, 12] * g, params[j, 13] * g, params[j, 14] * g, 1.0 / solid
     if kind == AREA_ELLIPSE:  # the concentric square-to-disk map (even in area)
         a, b = concentric_disk(u0, u1)
     else:
@@ -949,6 +1047,11 @@ def _intersect_area(params, j, ellipse, ox, oy, oz, dx, dy, dz):
     inside = (a * a + b * b <= 1.0) if ellipse else (abs(a) <= 1.0 and abs(b) <= 1.0)
     if not (inside and t > 1e-6):
         return np.inf, 0.0
+    if not ellipse:
+        ok, xx, xy, xz, yx, yy, yz, x0, x1, y0, y1, z0 = _rect_window(params, j, ox, oy, oz)
+        if ok:  # sampled by solid angle from here (a point outside a spread's window gets nothing from the light)
+            solid = _rect_solid_angle(x0, x1, y0, y1, z0) if x0 < x1 else 0.0
+            return t, (1.0 / solid if solid > 0.0 else 0.0)
     return t, t * t / (-denom * params[j, 15])
 
 
