@@ -123,7 +123,12 @@ class NLM_OT_map_remove(MaterialOperator, bpy.types.Operator):
         item = s.layers[s.active_index]
         if not (0 <= self.index < len(item.maps)):
             raise UserError(f"layer {item.name!r} has {len(item.maps)} map(s); there is no map {self.index}")
+        n = len(item.maps)
         item.maps.remove(self.index)
+        moved = stack_io.follow_maps(mat, s.active_index, [None if j == self.index else j - (j > self.index)
+                                                          for j in range(n)])  # fmt: skip
+        if moved.removed:
+            self.report({"INFO"}, f"removed {sum(moved.removed.values())} animation curve(s) of the map")
         stack_io.tag_changed(mat)  # the texture baked from the maps is now out of date
         return {"FINISHED"}
 

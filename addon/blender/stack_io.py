@@ -272,7 +272,6 @@ def _checked_sidebar(sidebar, stack: Stack) -> list[dict]:
 # Animation of the layers: keyframes and drivers follow their layer
 
 # Blender keys a layer's animation by its position: ``neural_layers.layers[2].thickness``.
-_LAYER_PATH = re.compile(r"^neural_layers\.layers\[(\d+)\](.*)$", re.DOTALL)
 
 
 @dataclass
@@ -326,15 +325,25 @@ def follow_layers(mat, new_index_of: Sequence[int | None], copies: dict[int, int
     of its curves. Curves of the action's slot for ``mat``, of its NLA strips' actions and its drivers are followed;
     curves on positions ``new_index_of`` does not cover (no layer before the edit) and paths that name a layer by its
     name (``layers["Coat"]``, which follow it anyway) are left as they are. Undo restores it with the edit."""
-    copies = copies or {}
+    return _follow(mat, "neural_layers.layers", new_index_of, copies or {})
+
+
+def follow_maps(mat, layer: int, new_index_of: Sequence[int | None]) -> LayerAnimation:
+    """:func:`follow_layers` for the parameter maps of layer ``layer``: Blender keys a map's animation by its position
+    too (``neural_layers.layers[i].maps[j]``), so removing a map handed its keyframes to the next one."""
+    return _follow(mat, f"neural_layers.layers[{layer}].maps", new_index_of, {})
+
+
+def _follow(mat, prefix: str, new_index_of: Sequence[int | None], copies: dict[int, int]) -> LayerAnimation:
+    """Move the curves of the items of collection ``prefix`` (a data path) to their items' new positions, remove those
+    of removed items and copy those of copied ones (:func:`follow_layers`)."""
+    pattern = re.compile(re.escape(prefix) + r"\[(\d+)\](.*)$", re.DOTALL)
     done = LayerAnimation()
     anim = getattr(mat, "animation_data", None)
-    if anim is None:
-        return done
-    for curves, is_drivers in _curve_collections(anim):
+    for curves, is_drivers in _curve_collections(anim) if anim is not None else ():
         to_copy = []
         for curve in list(curves):
-            match = _LAYER_PATH.match(curve.data_path)
+            match = pattern.match(curve.data_path)
             if match is None or int(match.group(1)) >= len(new_index_of):
                 continue
             old, rest = int(match.group(1)), match.group(2)
@@ -344,17 +353,22 @@ def follow_layers(mat, new_index_of: Sequence[int | None], copies: dict[int, int
                 done.removed[old] += 1
                 continue
             if new != old:
-                curve.data_path = f"neural_layers.layers[{new}]{rest}"
+                curve.data_path = f"{prefix}[{new}]{rest}"
             done.moved += 1
             if old in copies:
-                to_copy.append((curve, f"neural_layers.layers[{copies[old]}]{rest}"))
-        for curve, path in to_copy:
-            if is_drivers:
-                curves.from_existing(src_driver=curve).data_path = path
-            else:
-                curves.new_from_fcurve(curve, data_path=path)
-            done.copied += 1
+                to_copy.append((curve, f"{prefix}[{copies[old]}]{rest}"))
+        done.copied += _copy_curves(curves, is_drivers, to_copy)
     return done
+
+
+def _copy_curves(curves, is_drivers: bool, to_copy) -> int:
+    """Copy each (curve, data path) of ``to_copy`` into ``curves`` (F-curves or drivers) at that path."""
+    for curve, path in to_copy:
+        if is_drivers:
+            curves.from_existing(src_driver=curve).data_path = path
+        else:
+            curves.new_from_fcurve(curve, data_path=path)
+    return len(to_copy)
 
 
 # --------------------------------------------------------------------------------------------

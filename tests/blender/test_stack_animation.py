@@ -104,6 +104,25 @@ def test_the_animation_of_a_parameter_map_follows_its_layer(bpy_addon, material)
     assert _paths(material)[0] == ["neural_layers.layers[2].maps[0].low"]
 
 
+def test_removing_a_parameter_map_keeps_the_next_maps_animation_on_it(bpy_addon, material, capfd):
+    """A layer's maps are keyed by position too (``maps[1].low``): removing the first handed the second's keys to
+    the map that took its place; they now follow it, and the removed map's keys go with it."""
+    bpy = bpy_addon
+    ops = bpy.ops.neural_layers
+    assert run_operator(ops.preset_apply, preset="red_car_paint").finished
+    s = material.neural_layers
+    s.active_index = 1
+    for parameter in ("ROUGHNESS", "THICKNESS"):
+        assert run_operator(ops.map_add, parameter=parameter).finished
+    s.layers[1].maps[0].keyframe_insert("low", frame=1)
+    s.layers[1].maps[1].keyframe_insert("high", frame=1)
+    capfd.readouterr()
+    assert run_operator(ops.map_remove, index=0).finished
+    assert s.layers[1].maps[0].parameter == "THICKNESS"
+    assert _paths(material)[0] == ["neural_layers.layers[1].maps[0].high"]
+    assert any("removed 1 animation curve" in line for line in _reports(capfd, "Info"))
+
+
 def test_a_duplicate_animates_as_its_source(bpy_addon, material, capfd):
     """Duplicate copies the layer's keyframes and drivers onto the copy (the same layer twice, through time too)."""
     bpy = bpy_addon
