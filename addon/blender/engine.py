@@ -18,6 +18,7 @@ The render thread setting of the scene (Threads: Auto / Fixed) decides the cores
 
 from __future__ import annotations
 
+import re
 from dataclasses import replace
 
 import bpy
@@ -128,6 +129,25 @@ def _view_key(context) -> tuple:
     r3d, region = context.region_data, context.region
     projection = (tuple(map(tuple, r3d.window_matrix)), context.space_data.lens)
     return (tuple(map(tuple, r3d.view_matrix)), projection, region.width, region.height)
+
+
+def viewport_reports(info: list[str], warnings: list[str], said: set[str]) -> list[tuple[str, str]]:
+    """What the viewport reports of an export and its decoder choice, as ``(kind, line)``: its INFO lines (a stale
+    refined latent, a stack no F12 has measured yet) and its WARNING lines (what the export leaves out of the scene,
+    as F12 reports them), each line that ``said`` (the lines the viewport reported so far) does not hold yet, which
+    it then holds: once, not at every edit. Lines that differ in their numbers alone are one line (a slider dragged
+    over a dark material changes the share its specular warning gives at every tick). A long session of edits (over
+    1000 lines) forgets them and reports again. The viewport threw every warning away, so a material it rendered as
+    a flat Lambertian looked right there and was named only in F12."""
+    reports = []
+    for kind, line in [("INFO", line) for line in info] + [("WARNING", line) for line in warnings]:
+        key = re.sub(r"\d+(\.\d+)?", "#", line)
+        if key not in said:
+            if len(said) > 1000:
+                said.clear()
+            said.add(key)
+            reports.append((kind, line))
+    return reports
 
 
 class _Viewport:
@@ -303,7 +323,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self._viewport = None  # the 3D viewport's progressive session (view_update / view_draw)
-        self._view_info: set[str] = set()  # the viewport's decoder-choice lines reported so far
+        self._view_info: set[str] = set()  # the viewport's lines reported so far (``viewport_reports``)
         self._view_geometry = scene_export.GeometryCache()  # what the viewport's exports keep of the geometry
         self._view_world = None  # (the viewport's last exported environment,), kept while the world is unchanged
 
@@ -476,25 +496,19 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         )
         environment = scene_export.EXPORT_WORLD if changed else kept[0]
         self._view_geometry.forget(updates)
-        core_scene, _ = scene_export.export_scene(
-            depsgraph, region.width, region.height, camera=_view_camera(context), environment=environment,
+        info: list[str] = []
+        core_scene, warnings = scene_export.export_scene(
+            depsgraph, region.width, region.height, camera=_view_camera(context), info=info, environment=environment,
             kept=self._view_geometry,
         )  # fmt: skip
         self._view_world = (core_scene.environment, key)
         props = depsgraph.scene.neural_render
-        info: list[str] = []
         try:
-            props.assign_decoders(core_scene, info=info, viewport=True)
-        except Exception:  # the default decoder, as for F12
-            pass
-        # What the viewport's decoder choice says (a stack no F12 has measured yet: the default decoder), each line
-        # once, not at every edit of a slider drag.
-        for line in info:
-            if line not in self._view_info:
-                if len(self._view_info) > 1000:  # a long session of edits: forget, report again
-                    self._view_info.clear()
-                self._view_info.add(line)
-                self.report({"INFO"}, line)
+            warnings = warnings + props.assign_decoders(core_scene, info=info, viewport=True)
+        except Exception as e:  # the default decoder, as for F12
+            warnings.append(f"decoder choice failed ({_failure(e)}); layered materials use the default decoder")
+        for kind, line in viewport_reports(info, warnings, self._view_info):
+            self.report({kind}, line)
         return core_scene, props.to_core(scene=depsgraph.scene, viewport=True)
 
     def view_update(self, context, depsgraph):

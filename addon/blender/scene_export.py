@@ -150,73 +150,224 @@ def _image_texture(image, px: np.ndarray, associate_alpha: bool, uv_map, extensi
     return texture
 
 
-def _linked_image(socket):
-    """The image of an Image/Environment Texture node feeding ``socket`` directly, else None."""
-    if socket is None or not socket.is_linked:
-        return None
-    node = socket.links[0].from_node
-    if node.type in ("TEX_IMAGE", "TEX_ENVIRONMENT"):
-        return node.image if node.image is not None else False
+def _source(socket):
+    """The output socket whose value reaches the input ``socket``, as Cycles follows the links: past muted, invalid
+    and unavailable links (as if absent), through Reroute nodes and muted nodes (Blender's muting: each output passes
+    on the input its internal link names; a muted BSDF, Emission or Image Texture names none and passes nothing).
+    None where nothing reaches it: the socket keeps its own value (Cycles gives it that too where the chain ends at
+    an unlinked input of a Reroute or muted node: a muted Mix node's A colour was not rendered, Base Color was)."""
+    for _ in range(256):  # a chain of reroutes and muted nodes, never a loop
+        if socket is None or not socket.is_linked:
+            return None
+        link = next((lk for lk in socket.links if _live(lk)), None)
+        if link is None:
+            return None
+        node, out = link.from_node, link.from_socket
+        if node.type != "REROUTE" and not node.mute:
+            return out
+        socket = next((il.from_socket for il in node.internal_links if il.to_socket.identifier == out.identifier), None)
     return None
+
+
+def _live(link) -> bool:
+    """Whether Cycles follows a link: not muted, valid (no loop, no type it refuses) and between available sockets."""
+    return (
+        not getattr(link, "is_muted", False)
+        and getattr(link, "is_valid", True)
+        and getattr(link.from_socket, "enabled", True)
+        and getattr(link.to_socket, "enabled", True)
+    )
+
+
+def _linked_image(socket):
+    """The image of an Image/Environment Texture node feeding ``socket`` (through reroutes, ``_source``), False for
+    such a node without an image, else None."""
+    source = _source(socket)
+    if source is not None and source.node.type in ("TEX_IMAGE", "TEX_ENVIRONMENT"):
+        return source.node.image if source.node.image is not None else False
+    return None
+
+
+def _constant_colour(socket) -> tuple | None:
+    """The colour an input ``socket`` renders with where it is constant: its own value, or a Color (RGB) or Value
+    node's feeding it (a value as grey, as Cycles converts it); None where a node computes it."""
+    source = _source(socket)
+    if source is None:
+        return tuple(socket.default_value[:3])
+    if source.node.type == "RGB":
+        return tuple(source.default_value[:3])
+    if source.node.type == "VALUE":
+        return (float(source.default_value),) * 3
+    return None
+
+
+def _output_node(tree):
+    """The output node Cycles renders ``tree`` with (material or world), or None: Blender's own choice for Cycles
+    (``ShaderNodeTree.get_output_node('CYCLES')``, which Cycles itself calls): an output targeted at Cycles, else one
+    targeted at All, the active one among several; never one targeted at EEVEE alone."""
+    return tree.get_output_node("CYCLES")
+
+
+def _node_title(node) -> str:
+    """A node as its header names it: its label, a group node's node group, else its kind (``bl_label``: "Glossy
+    BSDF", "Color Ramp")."""
+    if node.label:
+        return node.label
+    if node.type == "GROUP" and getattr(node, "node_tree", None) is not None:
+        return node.node_tree.name
+    return node.bl_label
+
+
+def _a_node(node) -> str:
+    """A node as a warning names it: "a Glossy BSDF node", "an Emission node", and with its own name where its
+    header shows one (a label, a node group's): "a Group node 'Wood'"."""
+    kind = node.bl_label
+    title = _node_title(node)
+    return f"{_article(kind)} {kind} node" + (f" {title!r}" if title != kind else "")
+
+
+def _article(word: str) -> str:
+    """ "a" or "an" before ``word``, as it is said ("an Emission", "a UV Map")."""
+    vowel = word[:1].upper() in "AEIOU" and not word.upper().startswith(("UV", "UNI", "USE", "EU", "ONE"))
+    return "an" if vowel else "a"
+
+
+def _listed(names: list[str]) -> str:
+    """ "A", "A and B", "A, B and C"."""
+    return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
 
 
 SURFACE_NODES = ("BSDF_PRINCIPLED", "BSDF_DIFFUSE")  # the surface nodes an unmanaged material is read from
 # Principled BSDF inputs a Lambertian of its base colour leaves out, with the value at which they do nothing.
 _PRINCIPLED_DROPPED = (
     ("Metallic", 0.0), ("Transmission Weight", 0.0), ("Coat Weight", 0.0), ("Subsurface Weight", 0.0),
-    ("Sheen Weight", 0.0), ("Emission Strength", 0.0), ("Alpha", 1.0),
+    ("Sheen Weight", 0.0), ("Emission Strength", 0.0), ("Alpha", 1.0), ("Diffuse Roughness", 0.0),
 )  # fmt: skip
+# The inputs of a Principled BSDF's dielectric specular layer, which the Lambertian leaves out (``_specular_note``).
+_SPECULAR_INPUTS = ("Specular IOR Level", "IOR", "Roughness", "Specular Tint")
+SPECULAR_NOTICEABLE = 0.05  # the share of Cycles' reflected light whose absence a warning names
+_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec.709's, the core's colour space
 
 
 def _surface_node(mat):
-    """The node on the material output's Surface (through Reroute nodes), or None when the output has nothing
-    there (or there is no output): Cycles renders such a material black."""
+    """The node on the Surface of the output Cycles renders (``_output_node``), through Reroute and muted nodes
+    (``_source``), or None when nothing reaches it (or there is no output): Cycles renders such a material black."""
     tree = getattr(mat, "node_tree", None)
     if tree is None:
         return None
-    out = next((n for n in tree.nodes if n.type == "OUTPUT_MATERIAL" and n.is_active_output), None)
-    out = out or next((n for n in tree.nodes if n.type == "OUTPUT_MATERIAL"), None)
-    socket = out.inputs["Surface"] if out is not None else None
-    for _ in range(64):  # a chain of reroutes, never a loop
-        if socket is None or not socket.is_linked:
-            return None
-        node = socket.links[0].from_node
-        if node.type != "REROUTE":
-            return node
-        socket = node.inputs[0]
-    return None
+    out = _output_node(tree)
+    source = _source(out.inputs["Surface"]) if out is not None else None
+    return source.node if source is not None else None
 
 
 def _dropped_inputs(node) -> list[str]:
     """The inputs of a Principled or Diffuse BSDF that change Cycles' image and that a Lambertian of its colour
-    leaves out: set away from their neutral value, or linked."""
+    leaves out: set away from their neutral value, or linked (the specular layer: ``_specular_note``)."""
     if node.type == "BSDF_DIFFUSE":
         rough = node.inputs.get("Roughness")
-        return ["Roughness"] if rough is not None and (rough.is_linked or rough.default_value > 0.0) else []
+        linked = rough is not None and _source(rough) is not None
+        return ["Roughness"] if rough is not None and (linked or rough.default_value > 0.0) else []
     dropped = []
     for name, neutral in _PRINCIPLED_DROPPED:
         socket = node.inputs.get(name)
-        if socket is not None and (socket.is_linked or abs(float(socket.default_value) - neutral) > 1e-6):
+        if socket is None:
+            continue
+        linked = _source(socket) is not None
+        if linked or abs(float(socket.default_value) - neutral) > 1e-6:
+            colour = node.inputs.get("Emission Color")
             if (
                 name == "Emission Strength"
-                and not socket.is_linked
-                and not any(node.inputs["Emission Color"].default_value[:3])
+                and not linked
+                and colour is not None
+                and _source(colour) is None
+                and not any(colour.default_value[:3])
             ):
-                continue
+                continue  # a strength of a black emission: nothing emitted
             dropped.append(name.removesuffix(" Weight").removesuffix(" Strength"))
     return dropped
+
+
+def _fresnel_average(eta: float) -> float:
+    """A smooth dielectric's albedo under uniform light: the cosine-weighted hemispherical average of its exact
+    Fresnel reflectance (``core.bsdf.fresnel_dielectric``), 2 * integral of F(mu) mu over mu in [0, 1], by
+    64-point Gauss-Legendre quadrature (about 0.092 at n = 1.5)."""
+    from ..core.bsdf import fresnel_dielectric
+
+    mu, w = np.polynomial.legendre.leggauss(64)
+    mu, w = 0.5 * (mu + 1.0), 0.5 * w
+    return float(2.0 * np.sum(w * mu * fresnel_dielectric(mu, eta)))
+
+
+def specular_albedo(ior: float, level: float, tint) -> float:
+    """About the share of light a Principled BSDF's dielectric specular layer reflects (its albedo, as luminance),
+    by Cycles' rule for it (``svm_node_closure_bsdf``, Principled: "Apply IOR adjustment" and "Specular
+    component"): Specular IOR Level scales the normal-incidence reflectance F0 = ((n - 1) / (n + 1))^2 by
+    2 x level and sets the index that gives it; Specular Tint tints F0, the Fresnel curve rising from it to 1 at
+    grazing (a generalized Schlick on the exact curve: F0t + (1 - F0t) (F - F0) / (1 - F0), averaged here)."""
+    ior, level = max(float(ior), 1e-5), max(float(level), 0.0)
+    f0 = ((ior - 1.0) / (ior + 1.0)) ** 2 * 2.0 * level
+    if f0 <= 0.0:
+        return 0.0
+    if f0 >= 1.0:
+        return 1.0
+    eta = (1.0 + math.sqrt(f0)) / (1.0 - math.sqrt(f0))
+    eta = 1.0 / eta if ior < 1.0 else eta
+    tinted = f0 * float(np.clip(np.asarray(tint[:3], dtype=np.float64), 0.0, None) @ _LUMINANCE)
+    return tinted + (1.0 - tinted) * (_fresnel_average(eta) - f0) / (1.0 - f0)
+
+
+def specular_share(albedo: float, base: float) -> float:
+    """The share of the light Cycles' Principled BSDF reflects that a Lambertian of its base colour (luminance
+    ``base``) leaves out, with a specular layer of albedo E (``specular_albedo``) over it. Cycles weights the layer
+    under a specular one by 1 - E (``closure_layering_weight``; the albedo-scaling layering of Kulla and Conty,
+    "Revisiting Physically Based Shading at Imageworks", SIGGRAPH 2017), so the surface reflects about
+    E + (1 - E) b where the Lambertian reflects b: E (1 - b) / (b + E (1 - b)) of it is left out. An average over
+    directions: under one light, away from its highlight, less is."""
+    base = min(max(base, 0.0), 1.0)
+    missing = albedo * (1.0 - base)
+    return missing / (base + missing) if base + missing > 0.0 else 0.0
+
+
+def _specular_note(node, base: float) -> str | None:
+    """What a Principled BSDF's specular layer (``_SPECULAR_INPUTS``) changes in Cycles' image that its
+    Lambertian leaves out, or None where that is little: linked inputs, or a layer that reflects more than
+    SPECULAR_NOTICEABLE of the light (``specular_share``) over a base colour of luminance ``base`` (a pale base,
+    the default 0.8: 2%, within 1.5% of Cycles' image; a black one reflects only its specular layer)."""
+    inputs = {name: node.inputs.get(name) for name in _SPECULAR_INPUTS}
+    if any(s is None for s in inputs.values()):
+        return None
+    level = inputs["Specular IOR Level"]
+    if _source(level) is None and level.default_value <= 0.0:
+        return None  # no specular layer at all
+    linked = [name for name, s in inputs.items() if _source(s) is not None]
+    if linked:
+        return (
+            f"its specular reflection is left out (its {_listed(linked)} {'is' if len(linked) == 1 else 'are'} linked)"
+        )
+    ior, tint = inputs["IOR"].default_value, inputs["Specular Tint"].default_value
+    share = specular_share(specular_albedo(ior, level.default_value, tint), base)
+    if share <= SPECULAR_NOTICEABLE:
+        return None
+    return (
+        f"its specular reflection is left out (IOR {ior:.3g}, Specular IOR Level {level.default_value:.3g}: about "
+        f"{share:.0%} of the light Cycles' surface reflects)"
+    )
+
+
+def _luminance(colour) -> float:
+    """The luminance of an RGB colour (its first three values), each channel clipped to [0, 1]: a reflectance's."""
+    return float(np.clip(np.asarray(colour, dtype=np.float64)[:3], 0.0, 1.0) @ _LUMINANCE)
 
 
 def _relief_notes(mat, node) -> list[str]:
     """A bump or normal map on the surface node's Normal, and the material output's Displacement (Blender's default
     displacement is a bump): this renderer shades with the mesh's own normals, where Cycles' image shows the relief."""
     notes = []
-    normal = node.inputs.get("Normal")
-    if normal is not None and normal.is_linked:
-        notes.append(f"its Normal input (a {normal.links[0].from_node.name}: shaded with the mesh's normals)")
-    out = next((n for n in mat.node_tree.nodes if n.type == "OUTPUT_MATERIAL" and n.is_active_output), None)
-    displacement = out.inputs.get("Displacement") if out is not None else None
-    if displacement is not None and displacement.is_linked:
+    normal = _source(node.inputs.get("Normal"))
+    if normal is not None:
+        notes.append(f"its Normal input ({_a_node(normal.node)}: shaded with the mesh's normals)")
+    out = _output_node(mat.node_tree)
+    if out is not None and _source(out.inputs.get("Displacement")) is not None:
         notes.append("its Displacement (not rendered: the surface is shaded flat)")
     return notes
 
@@ -226,7 +377,7 @@ def _image_node_notes(node) -> list[str]:
     the image over the render UV map, filtered linearly with the ray's footprint; a Mapping node: ``_uv_mapping``)."""
     notes = []
     if node.type != "TEX_IMAGE":  # an Environment Texture node: its settings are the sky's
-        return [f"its base colour is a {node.type} node's (looked up with the UV map)"]
+        return [f"its base colour is {_a_node(node)}'s (looked up with the UV map)"]
 
     if node.interpolation == "Closest":
         notes.append("its Closest interpolation (looked up filtered)")
@@ -239,22 +390,22 @@ def _uv_mapping(node, notes: list[str]):
     """The (2, 3) affine uv map of what feeds an Image Texture node's Vector (None: the uv as they are): a Mapping
     node (Point, Texture or Vector) of the UV coordinates, its location, Z rotation and scale in the uv plane, as
     Blender applies them. What it cannot follow (another source, a rotation about X or Y, a Normal mapping, inputs
-    driven by nodes, a UV Map node naming another map) goes into ``notes``."""
-    vector = node.inputs.get("Vector")
-    if vector is None or not vector.is_linked:
+    driven by nodes, a UV Map node naming another map) goes into ``notes``. Reroute and muted nodes pass their
+    input on (``_source``)."""
+    source = _source(node.inputs.get("Vector"))
+    if source is None:
         return None
-    link = vector.links[0]
     mapping = None
-    if link.from_node.type == "MAPPING":
-        mapping, link = link.from_node, (link.from_node.inputs["Vector"].links or [None])[0]
-    if link is None:
+    if source.node.type == "MAPPING":
+        mapping, source = source.node, _source(source.node.inputs["Vector"])
+    if source is None:
         notes.append("its Mapping node maps no coordinates (Cycles looks one point up; the UV map is looked up here)")
-    elif not _is_uv_source(link):
-        notes.append(f"its Vector from a {link.from_node.type} {link.from_socket.name} (looked up with the UV map)")
+    elif not _is_uv_source(source):
+        notes.append(f"its Vector is {_a_node(source.node)}'s {source.name} output (looked up with the UV map)")
     if mapping is None:
         return None
     inputs = [mapping.inputs.get(n) for n in ("Location", "Rotation", "Scale")]  # a Vector mapping has no Location
-    if any(i is not None and i.is_linked for i in inputs) or mapping.vector_type == "NORMAL":
+    if any(i is not None and _source(i) is not None for i in inputs) or mapping.vector_type == "NORMAL":
         notes.append("its Mapping node (driven inputs, or a Normal mapping) is not applied")
         return None
     neutral = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
@@ -274,12 +425,12 @@ def _uv_mapping(node, notes: list[str]):
     return np.hstack([m, t[:, None]])
 
 
-def _is_uv_source(link) -> bool:
-    """Whether a link brings the render UV map's coordinates: Texture Coordinate's UV, or a UV Map node naming no
-    map (or the active one)."""
-    node = link.from_node
+def _is_uv_source(source) -> bool:
+    """Whether an output socket gives the render UV map's coordinates: Texture Coordinate's UV, or a UV Map node
+    naming no map (or the active one)."""
+    node = source.node
     if node.type == "TEX_COORD":
-        return link.from_socket.name == "UV"
+        return source.name == "UV"
     return node.type == "UVMAP" and not node.uv_map
 
 
@@ -296,46 +447,54 @@ def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial:
     notes: list[str] = []
     if node.type not in SURFACE_NODES:
         colour = node.inputs.get("Color")
+        color = _constant_colour(colour) if colour is not None else None
         notes.append(
-            f"its surface is a {node.type} node, which this renderer does not evaluate; rendered as a Lambertian of "
-            + ("its Color" if colour is not None and not colour.is_linked else "the viewport colour")
+            f"its surface is {_a_node(node)}, which this renderer does not evaluate; rendered as a Lambertian of "
+            + ("its Color" if color is not None else "the viewport colour")
             + (" (it emits no light here)" if node.type == "EMISSION" else "")
         )
-        color = tuple(colour.default_value[:3]) if colour is not None and not colour.is_linked else None
         _warn_material(mat, notes, warnings)
         return LambertMaterial(color if color is not None else tuple(mat.diffuse_color[:3]))
     dropped = _dropped_inputs(node)
     if dropped:
-        kind = "Principled BSDF's" if node.type == "BSDF_PRINCIPLED" else "Diffuse BSDF's"
-        notes.append(f"the {kind} {', '.join(dropped)} are left out (a Lambertian of its base colour)")
-    notes += _relief_notes(mat, node)
-    color, texture = tuple(mat.diffuse_color[:3]), None
+        verb = "is" if len(dropped) == 1 else "are"
+        notes.append(f"its {_node_title(node)}'s {_listed(dropped)} {verb} left out (a Lambertian of its base colour)")
+    color, texture, base = tuple(mat.diffuse_color[:3]), None, None
     socket = node.inputs.get("Base Color") or node.inputs.get("Color")
+    source = _source(socket)
     image = _linked_image(socket)
     if image is False:
-        warnings.append(f"material {mat.name!r}: image texture node has no image; using its colour")
+        warnings.append(f"material {mat.name!r}: its {_node_title(source.node)} node has no image; using its colour")
     elif image is not None:
-        image_node = socket.links[0].from_node
-        if socket.links[0].from_socket.name != "Color":
-            notes.append(f"its base colour is the image's {socket.links[0].from_socket.name} (its Color is read)")
+        image_node = source.node
+        if source.name != "Color":
+            notes.append(f"its base colour is the image's {source.name} (its Color is read)")
         notes += _image_node_notes(image_node)
         uv_map = _uv_mapping(image_node, notes)
         alpha_out = image_node.outputs.get("Alpha")  # an Environment Texture node has none
-        associate = alpha_out is not None and not alpha_out.is_linked
+        associate = alpha_out is not None and not any(_live(lk) for lk in alpha_out.links)
         px = _image_pixels(image, warnings, associate_alpha=associate, node=image_node)
         if px is not None:
             extension = image_node.extension if image_node.type == "TEX_IMAGE" else "REPEAT"
             extension = extension if extension in ImageTexture.EXTENSIONS else "REPEAT"
             texture = _image_texture(image, px, associate, uv_map, extension)
+            step = max(1, max(px.shape[:2]) // 256)  # a few thousand texels stand for a 4K image's mean
+            base = _luminance(px[::step, ::step, :3].reshape(-1, 3).mean(axis=0))
     if texture is not None:
         color = (1.0, 1.0, 1.0)
-    elif not socket.is_linked or image is not None:
+    elif image is not None:  # an Image Texture node without an image or its pixels: the socket's own colour
         color = tuple(socket.default_value[:3])
+    elif (constant := _constant_colour(socket)) is not None:
+        color = constant
     else:
         notes.append(
-            f"its {socket.name} comes from a {socket.links[0].from_node.type} node, which this renderer does not "
-            "evaluate (only an Image Texture is); using the viewport colour"
+            f"its {socket.name} comes from {_a_node(source.node)}, which this renderer does not evaluate (only an "
+            "Image Texture, a Color or a Value node is); using the viewport colour"
         )
+    if node.type == "BSDF_PRINCIPLED":
+        specular = _specular_note(node, _luminance(color) if base is None else base)
+        notes += [specular] if specular is not None else []
+    notes += _relief_notes(mat, node)
     _warn_material(mat, notes, warnings)
     return LambertMaterial(color, texture)
 
@@ -674,14 +833,17 @@ def _light_color(light) -> tuple:
 
 
 def _world(world, warnings: list[str]) -> Environment | None:
+    """The world as Cycles lights with it: the Background node on the Surface of the world output Cycles renders
+    (``_output_node``; through Reroute and muted nodes, ``_source``), its colour or sky image times its strength;
+    a world without nodes, its colour. None: a black world (nothing reaches the output)."""
     if world is None:
         return None
     tree = getattr(world, "node_tree", None)
     if tree is not None:
-        out = next((n for n in tree.nodes if n.type == "OUTPUT_WORLD" and n.is_active_output), None)
-        out = out or next((n for n in tree.nodes if n.type == "OUTPUT_WORLD"), None)
-        if out is not None and out.inputs["Surface"].is_linked:
-            bg = out.inputs["Surface"].links[0].from_node
+        out = _output_node(tree)
+        source = _source(out.inputs["Surface"]) if out is not None else None
+        if source is not None:
+            bg = source.node
             if bg.type == "BACKGROUND":
                 strength = float(bg.inputs["Strength"].default_value)
                 if strength < 0.0:
@@ -690,23 +852,29 @@ def _world(world, warnings: list[str]) -> Environment | None:
                     )
                     return None
                 socket = bg.inputs["Color"]
+                colour = _source(socket)
                 image = _linked_image(socket)
                 if image:
-                    px = _image_pixels(image, warnings, node=socket.links[0].from_node)
+                    px = _image_pixels(image, warnings, node=colour.node)
                     if px is not None:
-                        turn = _environment_turn(socket.links[0].from_node, world, warnings)
+                        turn = _environment_turn(colour.node, world, warnings)
                         return Environment(image=turned_image(px[:, :, :3], turn), strength=strength)
                 elif image is False:
-                    warnings.append(f"world {world.name!r}: environment texture node has no image; using its colour")
-                elif socket.is_linked:
                     warnings.append(
-                        f"world {world.name!r}: the Background colour comes from a {socket.links[0].from_node.type} "
-                        f"node, which this renderer does not evaluate (only an Environment or Image Texture is); "
-                        f"lighting with the socket's flat colour {tuple(round(c, 3) for c in socket.default_value[:3])}"
+                        f"world {world.name!r}: its {_node_title(colour.node)} node has no image; using its colour"
+                    )
+                elif (constant := _constant_colour(socket)) is not None:
+                    return Environment(constant, strength=strength)
+                else:
+                    flat = socket.default_value[:3]
+                    warnings.append(
+                        f"world {world.name!r}: the Background colour comes from {_a_node(colour.node)}, which this "
+                        f"renderer does not evaluate (only an Environment or Image Texture, a Color or a Value node "
+                        f"is); lighting with the socket's flat colour {tuple(round(c, 3) for c in flat)}"
                     )
                 return Environment(tuple(socket.default_value[:3]), strength=strength)
             warnings.append(
-                f"world {world.name!r}: surface is a {bg.type} node, not Background; using the world colour"
+                f"world {world.name!r}: its surface is {_a_node(bg)}, not a Background; using the world colour"
             )
         elif out is not None:
             return None  # nothing connected: a black world
@@ -721,22 +889,22 @@ def _environment_turn(node, world, warnings: list[str]) -> float:
     where = f"world {world.name!r}"
     if getattr(node, "projection", "EQUIRECTANGULAR") != "EQUIRECTANGULAR":
         warnings.append(f"{where}: the sky's {node.projection} projection is rendered as equirectangular")
-    vector = node.inputs.get("Vector")
-    if vector is None or not vector.is_linked:
+    vector = _source(node.inputs.get("Vector"))
+    if vector is None:
         return 0.0
-    mapping = vector.links[0].from_node
+    mapping = vector.node
     if mapping.type != "MAPPING":
-        warnings.append(f"{where}: the sky's Vector comes from a {mapping.type} node, which is not evaluated here")
+        warnings.append(f"{where}: the sky's Vector comes from {_a_node(mapping)}, which is not evaluated here")
         return 0.0
-    source = mapping.inputs["Vector"].links[0] if mapping.inputs["Vector"].is_linked else None
-    if source is None or source.from_node.type != "TEX_COORD" or source.from_socket.name not in ("Generated", "Object"):
-        what = "nothing" if source is None else f"{source.from_node.type} {source.from_socket.name}"
+    source = _source(mapping.inputs["Vector"])
+    if source is None or source.node.type != "TEX_COORD" or source.name not in ("Generated", "Object"):
+        what = "nothing" if source is None else f"{_a_node(source.node)}'s {source.name} output"
         warnings.append(
             f"{where}: the sky's Mapping node maps {what}, not the view direction (Texture Coordinate Generated or "
             "Object); rendered as if it did"
         )
     inputs = {name: mapping.inputs.get(name) for name in ("Location", "Rotation", "Scale")}
-    if any(i is not None and i.is_linked for i in inputs.values()):
+    if any(i is not None and _source(i) is not None for i in inputs.values()):
         warnings.append(f"{where}: the sky's Mapping node has linked inputs, which are not evaluated here")
         return 0.0
     rx, ry, rz = (float(v) for v in inputs["Rotation"].default_value)

@@ -32,3 +32,23 @@ def run_operator(op, *args, **kwargs) -> OperatorReport:
             f" failed: {t}" in text for t in ("AttributeError", "TypeError", "KeyError", "IndexError", "NameError")
         ), text
         return OperatorReport(error=text)
+
+
+def viewport_reports(monkeypatch, context, exports: int = 3, size=(16, 12)) -> list[tuple]:
+    """The reports (kind, text) the viewport's Rendered mode makes over ``exports`` exports of ``context``'s scene
+    (edits elsewhere, each exporting again), seen through the scene camera."""
+    from types import SimpleNamespace
+
+    from addon.blender import engine, scene_export
+
+    monkeypatch.setattr(engine, "_view_camera", lambda context: None)  # the scene camera
+    reports = []
+    fake = SimpleNamespace(
+        _view_info=set(),
+        _view_geometry=scene_export.GeometryCache(),
+        report=lambda kind, text: reports.append((kind, text)),
+    )
+    region = SimpleNamespace(region=SimpleNamespace(width=size[0], height=size[1]))
+    for _ in range(exports):
+        engine.NeuralLayeredRenderEngine._view_scene(fake, region, context.evaluated_depsgraph_get(), [])
+    return reports

@@ -645,6 +645,7 @@ def test_an_image_sequence_renders_the_frame_its_node_shows(fresh_scene, tmp_pat
     image = _sequence(tmp_path, colours)
     mat, principled = bpy.data.materials.new("seq"), None
     principled = mat.node_tree.nodes["Principled BSDF"]
+    principled.inputs["Specular IOR Level"].default_value = 0.0  # a Lambertian: no warning of its specular layer
     tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
     tex.image = image
     tex.image_user.frame_duration, tex.image_user.frame_start = 3, 1

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from tests.blender.helpers import run_operator
+from tests.blender.helpers import run_operator, viewport_reports
 
 bpy = pytest.importorskip("bpy")
 
@@ -933,20 +933,7 @@ def test_the_viewports_auto_choice_reads_measured_errors_and_never_stops_to_meas
     scene.neural_render.assign_decoders(core_scene, info=info, viewport=True)
     assert any("not measured yet" in line for line in info), info
     # The viewport says so, once: its edits (a slider dragged) do not repeat the line.
-    from types import SimpleNamespace
-
-    from addon.blender import engine
-
-    monkeypatch.setattr(engine, "_view_camera", lambda context: None)  # the scene camera
-    reports = []
-    fake = SimpleNamespace(
-        _view_info=set(),
-        _view_geometry=scene_export.GeometryCache(),
-        report=lambda kind, text: reports.append((kind, text)),
-    )
-    context = SimpleNamespace(region=SimpleNamespace(width=32, height=24))
-    for _ in range(3):
-        engine.NeuralLayeredRenderEngine._view_scene(fake, context, fresh_scene.evaluated_depsgraph_get())
+    reports = viewport_reports(monkeypatch, fresh_scene, size=(32, 24))
     assert [kind for kind, text in reports if "not measured yet" in text] == [{"INFO"}], reports
 
 

@@ -24,7 +24,7 @@ def test_a_sky_texture_world_warns_that_it_renders_flat(bpy_addon, fresh_scene):
     warnings: list[str] = []
     env = scene_export._world(_world_with(bpy, "ShaderNodeTexSky"), warnings)
     assert env is not None and env.image is None
-    assert any("SKY" in w and "does not evaluate" in w and "flat" in w for w in warnings), warnings
+    assert any("Sky Texture" in w and "does not evaluate" in w and "flat" in w for w in warnings), warnings
 
 
 def test_a_plain_background_colour_exports_without_a_warning(bpy_addon, fresh_scene):
@@ -47,7 +47,7 @@ def test_a_procedural_base_colour_warns(bpy_addon, fresh_scene):
     mat.node_tree.links.new(noise.outputs["Color"], mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
     warnings: list[str] = []
     scene_export.unmanaged_material(mat, warnings)
-    assert any("TEX_NOISE" in w and "does not evaluate" in w for w in warnings), warnings
+    assert any("Noise Texture" in w and "does not evaluate" in w for w in warnings), warnings
 
 
 def test_path_properties_take_blend_relative_paths_without_a_warning(bpy_addon, material, tmp_path):
@@ -368,7 +368,7 @@ def test_what_a_lambertian_leaves_out_of_a_material_is_said(bpy_addon, fresh_sce
     principled.inputs["Transmission Weight"].default_value = 1.0
     warnings = []
     scene_export.unmanaged_material(mat, warnings)
-    assert len(warnings) == 1 and "Metallic, Transmission" in warnings[0]
+    assert len(warnings) == 1 and "Metallic and Transmission" in warnings[0]
     mat, principled = _principled(bpy, "plain")
     warnings = []
     scene_export.unmanaged_material(mat, warnings)
@@ -377,7 +377,7 @@ def test_what_a_lambertian_leaves_out_of_a_material_is_said(bpy_addon, fresh_sce
     out = mat.node_tree.nodes["Material Output"]
     mat.node_tree.links.new(emission.outputs[0], out.inputs["Surface"])
     scene_export.unmanaged_material(mat, warnings)
-    assert len(warnings) == 1 and "EMISSION" in warnings[0] and "emits no light" in warnings[0]
+    assert len(warnings) == 1 and "an Emission node" in warnings[0] and "emits no light" in warnings[0]
     mat.node_tree.links.remove(out.inputs["Surface"].links[0])  # nothing on the output: Cycles renders black
     assert np.array_equal(scene_export.unmanaged_material(mat, []).color, (0.0, 0.0, 0.0))
     mat, principled = _principled(bpy, "tex")

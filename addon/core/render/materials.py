@@ -175,20 +175,27 @@ class ImageTexture:
 
 
 class LambertMaterial:
-    """Lambertian with a constant colour or an image texture (what unmanaged materials become)."""
+    """Lambertian with a constant colour or an image texture (what unmanaged materials become).
+
+    A colour above 1 reflects more light than it receives, as Cycles renders it (a Diffuse BSDF of colour 1.5 was
+    clipped to 1, 0.667 of Cycles' image); the integrator needs no bound on it (Russian roulette's survival
+    probability is clipped to 1). A negative or non-finite channel is 0."""
 
     kind = "analytic"
     has_pdf = True
 
     def __init__(self, color=(0.8, 0.8, 0.8), texture: ImageTexture | None = None):
-        self.color = np.clip(np.broadcast_to(np.asarray(color, dtype=np.float64), (3,)), 0.0, 1.0)
+        color = np.broadcast_to(np.asarray(color, dtype=np.float64), (3,))
+        self.color = np.maximum(np.nan_to_num(color, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
         self.texture = texture
-        self._const = _BoundBSDF(Lambertian(self.color))
+        # of_valid_rows: Lambertian's own check holds an albedo to [0, 1], a physical surface's range
+        self._const = _BoundBSDF(Lambertian.of_valid_rows(self.color[None, :].copy()))
 
     def bind(self, hits: SurfaceHits):
         if self.texture is None:
             return self._const
-        albedo = kernels.tinted_albedo(self.texture.lookup(hits.uv, hits.footprint), self.color)  # in [0, 1]
+        # the texels clipped to [0, 1], times the colour
+        albedo = kernels.tinted_albedo(self.texture.lookup(hits.uv, hits.footprint), self.color)
         return _BoundBSDF(Lambertian.of_valid_rows(albedo))
 
 
