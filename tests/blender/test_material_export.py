@@ -225,6 +225,11 @@ def test_a_lambertian_colour_keeps_what_is_above_1_and_zeroes_what_is_not_a_refl
     assert np.array_equal(LambertMaterial((1.5, 0.25, 3.0)).color, (1.5, 0.25, 3.0))
     assert np.array_equal(LambertMaterial((-0.5, math.nan, math.inf)).color, (0.0, 0.0, 0.0))
     assert np.array_equal(LambertMaterial((-math.inf, 0.5, 1.0)).color, (0.0, 0.5, 1.0))
+    # a texture's texels too (an HDR image on the base colour): kept above 1, a negative one (a filter's ring) 0
+    from addon.core import kernels
+
+    texels = np.array([[1.5, -0.2, 0.5]], np.float32)
+    np.testing.assert_array_equal(kernels.tinted_albedo(texels, np.array([2.0, 2.0, 1.0])), [[3.0, 0.0, 0.5]])
 
 
 # ---------------------------------------------------------------------------------------------- what is said

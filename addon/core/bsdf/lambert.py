@@ -54,9 +54,10 @@ class Lambertian(BSDF):
 
     @classmethod
     def of_valid_rows(cls, albedo: np.ndarray) -> "Lambertian":
-        """A Lambertian over per-row albedos (N, 3) that are float64 and in [0, 1] by construction (the
-        renderer's clipped texture lookups): the same object as ``Lambertian(albedo)`` without its checks,
-        which cost several passes over every hit of every bounce."""
+        """A Lambertian over per-row albedos (N, 3) that are float64, finite and non-negative by construction
+        (the renderer's texture lookups, and a Blender colour above 1, which Cycles renders as it is): the same
+        object as ``Lambertian(albedo)`` without its checks (which hold an albedo to [0, 1], a physical surface's
+        range), which cost several passes over every hit of every bounce."""
         out = object.__new__(cls)
         out.albedo = albedo
         return out
