@@ -5,6 +5,7 @@ Runs as a plain script with the ``bpy`` module, or inside Blender:
     python bake/bake.py --preset varnished_wood --map "coatings[0].roughness=rough.png:0.01:0.4" --out textures/
     python bake/bake.py --preset coated_gold --mix frosted_copper --mask worn.png --out textures/ --name worn_gold
     python bake/bake.py --blend scene.blend --material Wood --material CarPaint --out textures/
+    python bake/bake.py --blend scene.blend --out textures/ --attach
     blender -b --python bake/bake.py -- --blend scene.blend --material Wood --out textures/
 
 Driving images are read by one colour-space rule (``addon.core.textures.colour_maps``): an
@@ -18,18 +19,22 @@ Writes ``<out>/<file>.exr`` (tiled, mip-mapped, half-float latent texture) and
 the material name (or ``--name``) made safe as a file name: a name holding path separators or
 other characters a file name cannot hold gets them replaced and a short hash of the name
 appended, so every output stays inside ``--out`` and different materials never share a file.
+A ``--blend`` material's texture is keyed as the add-on keys its own bake of it (``encoder_model_key``),
+and ``--attach`` points the material at it and saves the .blend (``attach_textures``), so a render
+of the .blend uses it.
 
 Work is split into (material, band of rows) items: ``--shard i/n`` takes every n-th item from
 the i-th, so shards can run anywhere, at the same time too; each finished band is kept as
-``.<file>.bands/<key>_NNNN.npy``, where the key hashes every input, so a band is only ever reused
-for the same inputs (and only if it reads back whole and finite). Whichever shard finds all bands
-present assembles the EXR; when several do at once each publishes the same texels, and bands are
-deleted only after a publish, by the publisher (a shard that finds them gone checks that the
-texture was published). Finished outputs and bands are skipped when the inputs are unchanged, so
-an interrupted bake resumes. Every file is written under a temporary name unique to its process
-and renamed atomically, so nothing half-written sits where a finished file is expected; an
-interrupted bake removes its temporary files, and those of a killed one are removed by the next
-run. Exit codes: 0 done, 1 bake failed, 2 bad input, 130 interrupted (Ctrl-C, SIGINT),
+``.<file>.bands/<key>_<R>rows_NNNN.npy``, where the key hashes every input and R is ``--band-rows``,
+so a band is only ever reused for the same inputs and rows (and only if it reads back whole and
+finite). Whichever shard finds all bands present assembles the EXR; when several do at once each
+publishes the same texels, and bands are deleted only after a publish, by the publisher (a shard
+that finds them gone checks that the texture was published). Finished outputs (whole: the size
+their sidecar recorded) and bands are skipped when the inputs are unchanged, so an interrupted
+bake resumes. Every file is written under a temporary name unique to its process and renamed
+atomically, so nothing half-written sits where a finished file is expected; an interrupted bake
+removes its temporary files, and those of a killed one are removed by the next run.
+Exit codes: 0 done, 1 bake failed, 2 bad input, 130 interrupted (Ctrl-C, SIGINT),
 143 terminated (SIGTERM); finished bands are kept in every case.
 """
 
@@ -44,7 +49,9 @@ import signal
 import sys
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -91,6 +98,9 @@ class Job:
     sources: dict[str, str]  # parameter path -> image description, for the sidecar
     mix: SpatialStack | None = None  # blended in latent space through ``mask``
     mask: np.ndarray | None = None
+    # with --blend: the add-on's ``bake_state.inputs_digest`` of the material at this resolution, for a model key;
+    # recorded in the texture, so the add-on renders it while the material's maps' images cannot be read
+    inputs: Callable[[str], str] | None = None
 
     @property
     def file(self) -> str:
@@ -138,6 +148,8 @@ def _space(name: str | None, what: str) -> str:
 
 def read_map(file: Path, field: str, space: str) -> tuple[np.ndarray, str]:
     """A driving image's values for ``field`` by the colour-space rule, and how they were decoded."""
+    if file.is_dir():  # "image not found" said of a folder that is there
+        raise ValueError(f"{file} is a folder, not an image file")
     pixels, is_float, tag, alpha = read_image_file(file)
     how = colour_maps.decoding(field, space, is_float, tag)
     return colour_maps.decode(pixels, how, alpha), ("sRGB -> linear" if how == "srgb" else "raw")
@@ -207,13 +219,12 @@ def check_mask(mask: np.ndarray, path: Path) -> None:
         )
 
 
-def material_reader(bpy):
-    """``spatial_stack_from_material`` of the add-on whose properties the materials carry.
+def addon_module(bpy, name: str):
+    """The module ``name`` (``bake_inputs``, ``bake_state``) of the add-on whose properties the materials carry.
 
     Inside Blender with the extension enabled that is the enabled extension's (its properties
     are registered); with the plain ``bpy`` module nothing is registered, so this checkout's
-    add-on is registered here. The stack it returns is rebuilt with this checkout's core
-    classes, which the rest of the bake uses.
+    add-on is registered here.
     """
     import importlib
 
@@ -229,7 +240,13 @@ def material_reader(bpy):
         if c.__name__ == prop.fixed_type.identifier and getattr(c, "is_registered", False)
     ]
     package = owners[-1].__module__.rsplit(".", 1)[0] if owners else "addon.blender"
-    read = importlib.import_module(package + ".bake_inputs").spatial_stack_from_material
+    return importlib.import_module(f"{package}.{name}")
+
+
+def material_reader(bpy):
+    """``spatial_stack_from_material`` of the add-on whose properties the materials carry (``addon_module``). The
+    stack it returns is rebuilt with this checkout's core classes, which the rest of the bake uses."""
+    read = addon_module(bpy, "bake_inputs").spatial_stack_from_material
 
     def spatial_stack(mat):
         found = read(mat)
@@ -253,6 +270,7 @@ def blend_jobs(args) -> list[Job]:
         ) from None
 
     spatial_stack_from_material = material_reader(bpy)
+    inputs_digest = addon_module(bpy, "bake_state").inputs_digest
     try:
         bpy.ops.wm.open_mainfile(filepath=str(args.blend))
     except RuntimeError as e:
@@ -275,10 +293,47 @@ def blend_jobs(args) -> list[Job]:
             _, res = spatial.texels(tuple(args.resolution) if args.resolution else None)
         except ValueError as e:
             raise BadInput(f"material {name!r}: {e}") from None
-        jobs.append(Job(name, spatial, res, sources))
+        jobs.append(Job(name, spatial, res, sources, inputs=partial(inputs_digest, mat, res)))
     if not jobs:
         raise BadInput(f"{args.blend.name} has no material with a layer stack")
     return jobs
+
+
+def attach_textures(jobs: list[Job], out: Path, model_id: str, log=print) -> None:
+    """``--attach``: point each material of ``jobs`` in the open .blend at its published texture in ``out``, as the
+    add-on's own bake does (``bake_state.attach_texture``: the path relative to the .blend), and save the .blend, so
+    a render of it uses them. A material is attached only where its texture is published and its own settings
+    (Model Size, Refine (s)) key the bake the command made (``model_id``: --model, --refine, calibrated), so the
+    add-on finds the texture current; BadInput names the others, after the .blend is saved with the rest."""
+    import bpy
+
+    state = addon_module(bpy, "bake_state")
+    user_error = addon_module(bpy, "operator_base").UserError
+    refused, attached = [], []
+    for job in jobs:
+        mat = bpy.data.materials[job.name]
+        key = job.key(model_id)
+        if not _fresh(out, job, key):
+            refused.append(f"{job.name!r} has no published texture yet (attach once every shard is done)")
+            continue
+        try:
+            own = state.bake_model_key(state.bake_size(mat), mat.neural_layers.bake_refine)
+        except user_error as e:  # a model size it cannot resolve, models that are not there
+            refused.append(f"{job.name!r}: {e}")
+            continue
+        if own != model_id:
+            refused.append(
+                f"{job.name!r}: its Model Size and Refine (s) key its bakes {own!r}, this bake is {model_id!r} "
+                "(bake with its --model and --refine, calibrated)"
+            )
+            continue
+        state.attach_texture(mat, str((out / f"{job.file}.exr").resolve()), key, job.resolution)
+        attached.append(job.name)
+    if attached:
+        bpy.ops.wm.save_mainfile()
+        log(f"attached {attached} to their textures in {bpy.data.filepath}")
+    if refused:
+        raise BadInput("--attach: " + "; ".join(refused))
 
 
 def _atomic_save_npy(path: Path, array: np.ndarray) -> None:
@@ -328,6 +383,14 @@ def _check_output_folder(out: Path, jobs: list[Job]) -> None:
 
 def _band_folder(out: Path, job: Job) -> Path:
     return out / f".{job.file}.bands"
+
+
+def _band_path(out: Path, job: Job, key: str, band: int, band_rows: int) -> Path:
+    """Where band ``band`` of bands of ``band_rows`` rows of the material's bake ``key`` is kept: the key, the rows a
+    band holds and its index, all that decides which texels it holds, so a band is only reused for the same rows (a
+    resume with another ``--band-rows`` took the bands of the first run by their index alone, and published them
+    out of place)."""
+    return _band_folder(out, job) / f"{key}_{band_rows}rows_{band:04d}.npy"
 
 
 def _band_rows(job: Job, band: int, band_rows: int) -> int:
@@ -383,6 +446,16 @@ def _bake_band(job: Job, band: int, band_rows: int, encode, dedup: bool, cache: 
     return texels, st
 
 
+def encoder_model_key(encode, model: str, calibrate: bool = True) -> str:
+    """The model part of the bake keys of textures baked with ``encode`` (``textures.bake.model_key``): the size
+    ``model`` and, when the encoder tells it (``encode.metadata``), the decoder file's digest and the refinement
+    budget; calibrated when the textures are (``calibrate``, with an encoder that carries its models:
+    ``neural_encoder``'s), as the add-on keys its own calibrated bakes (``bake_state.bake_model_key``)."""
+    metadata = getattr(encode, "metadata", None) or {}
+    calibrated = calibrate and getattr(encode, "models", None) is not None
+    return model_key(model, metadata.get("model_digest"), metadata.get("refine_s", 0.0), calibrated=calibrated)
+
+
 def run(
     jobs: list[Job],
     out: Path,
@@ -402,9 +475,7 @@ def run(
     textures are calibrated (``calibrate``, with an encoder that carries its models: ``neural_encoder``'s)."""
     model_metadata = getattr(encode, "metadata", None) or {}
     models = getattr(encode, "models", None) if calibrate else None
-    model_id = model_key(
-        model, model_metadata.get("model_digest"), model_metadata.get("refine_s", 0.0), calibrated=models is not None
-    )
+    model_id = encoder_model_key(encode, model, calibrate)
     _check_output_folder(out, jobs)
     files.remove_stale_temps(out)
     items = []
@@ -419,11 +490,12 @@ def run(
     mine = [it for k, it in enumerate(items) if k % shard[1] == shard[0]]
     bar = ProgressBar(len(mine))
     stats = {"bands_baked": 0, "bands_skipped": 0, "texels": 0, "unique": 0, "seconds": 0.0, "assembled": []}
+    stats["model_key"] = model_id
     cache: dict[str, object] = {}
     clamped: set[tuple[str, str]] = set()
     for job, key, band in mine:
         folder = _band_folder(out, job)
-        target = folder / f"{key}_{band:04d}.npy"
+        target = _band_path(out, job, key, band, band_rows)
         rows = _band_rows(job, band, band_rows)
         if _kept_band(target, rows, job.resolution[1], log) or _fresh(out, job, key):
             stats["bands_skipped"] += 1  # kept from an earlier run, or another shard already published
@@ -454,7 +526,10 @@ def run(
         def rebake(band, job=job):
             return _bake_band(job, band, band_rows, encode, dedup, cache, bar)[0]
 
-        if assemble(out, job, job.key(model_id), model, band_rows, stats, rebake, log, model_metadata, models, cache):
+        inputs = job.inputs(model_id) if job.inputs is not None else None
+        if assemble(
+            out, job, job.key(model_id), model, band_rows, stats, rebake, log, model_metadata, models, cache, inputs
+        ):
             stats["assembled"].append(job.name)
             log(f"{job.name}: wrote {out / (job.file + '.exr')} ({job.resolution[1]}x{job.resolution[0]})")
     return stats
@@ -472,6 +547,7 @@ def assemble(
     model_metadata: dict | None = None,
     models=None,
     cache: dict | None = None,
+    inputs: str | None = None,
 ) -> bool:
     """Publish the material's texture if all its bands are present; True if this process published it.
 
@@ -482,12 +558,11 @@ def assemble(
     With ``models`` (the encoder's), a material without a mix gets its albedo calibration
     (``textures.calibration``) from its texels and stacks (``cache``: ``run``'s, holding them when this
     process baked bands of it), and every texture the count of mip levels it may be filtered across
-    (``textures.filtering``).
+    (``textures.filtering``). ``inputs`` (a --blend material's ``Job.inputs``) goes into the texture's header.
     """
-    folder = _band_folder(out, job)
     h, w = job.resolution
     bands = -(-h // band_rows)
-    paths = [folder / f"{key}_{b:04d}.npy" for b in range(bands)]
+    paths = [_band_path(out, job, key, b, band_rows) for b in range(bands)]
     if _fresh(out, job, key) or not all(p.is_file() for p in paths):
         return False
     t0 = time.perf_counter()
@@ -512,6 +587,8 @@ def assemble(
             band = rebake(b)
         chain.write_texels(start, band)  # a latent beyond the half range: a clear error, and the band is kept
     meta = {"stack": job.spatial.stack.to_json(), "model": model, "key": key, **(model_metadata or {})}
+    if inputs is not None:
+        meta["inputs"] = inputs
     calibration_s = None
     if models is not None and job.mix is None:  # a blended texel's latent is no stack's: nothing to walk
         t = time.perf_counter()
@@ -524,6 +601,7 @@ def assemble(
     tex.write_exr(out / f"{job.file}.exr")
     sidecar = {
         "key": key,
+        "exr_bytes": (out / f"{job.file}.exr").stat().st_size,  # a texture cut short later is not fresh (``_fresh``)
         "material": job.name,
         "stack": job.spatial.stack.to_dict(),
         "maps": job.sources,
@@ -555,14 +633,16 @@ def _remove_bands(out: Path, job: Job) -> None:
 
 
 def _fresh(out: Path, job: Job, key: str) -> bool:
-    """Whether the published texture and its sidecar are both of these inputs."""
+    """Whether the published texture and its sidecar are both of these inputs, and the texture is whole: the size
+    its sidecar recorded when it was published (a texture cut short, by a full disk or a copy that stopped, was
+    taken as up to date, and its missing tiles failed only in the render). A sidecar that records no size (written
+    before sidecars did) cannot tell: the texture is baked again."""
     exr = out / f"{job.file}.exr"
-    if not exr.is_file():
-        return False
     try:
-        if json.loads((out / f"{job.file}.json").read_text()).get("key") != key:
+        sidecar = json.loads((out / f"{job.file}.json").read_text())
+        if sidecar.get("key") != key or sidecar.get("exr_bytes") != exr.stat().st_size:
             return False
-    except (OSError, ValueError):
+    except (OSError, ValueError, AttributeError):  # no texture or sidecar, or a sidecar that is not an object
         return False
     return _exr_key(exr) == key
 
@@ -593,6 +673,13 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     src.add_argument("--preset", help=f"bake a preset stack: {', '.join(sorted(PRESETS))}")
     ap.add_argument(
         "--material", action="append", help="material name in --blend (repeatable; default: all with a stack)"
+    )
+    ap.add_argument(
+        "--attach",
+        action="store_true",
+        help="with --blend: point each baked material at its texture (as the sidebar's bake does) and save the "
+        ".blend, so rendering it uses the textures; run it once every shard is done (a rerun skips what is up to "
+        "date). A material is attached where its Model Size and Refine (s) match --model and --refine",
     )
     ap.add_argument(
         "--map",
@@ -646,6 +733,8 @@ def _bake(argv: list[str], encode) -> int:
         raise BadInput(f"--band-rows must be >= 1, got {args.band_rows}")
     if args.preset is None and (args.map or args.mix or args.mask or args.name):
         raise BadInput("--map, --mix, --mask and --name go with --preset; in a .blend they are set on the material")
+    if args.attach and args.blend is None:
+        raise BadInput("--attach goes with --blend: it points the .blend's materials at their textures")
     if not (np.isfinite(args.refine) and args.refine >= 0):
         raise BadInput(f"--refine must be a number of seconds >= 0, got {args.refine}")
     jobs = blend_jobs(args) if args.blend else preset_job(args)
@@ -659,6 +748,8 @@ def _bake(argv: list[str], encode) -> int:
         jobs, args.out, encode, model, shard, args.band_rows, dedup=not args.no_dedup, calibrate=not args.no_calibrate
     )
     print(f"baked {stats['bands_baked']} band(s), kept {stats['bands_skipped']}, assembled {stats['assembled']}")
+    if args.attach:
+        attach_textures(jobs, args.out, stats["model_key"])
     return EXIT_DONE
 
 

@@ -18,10 +18,14 @@ from ..core.render import RenderSettings
 from ..core.textures import files
 from ..core.textures.bake import bake_key, bake_stack, check_bake_memory, neural_encoder
 from . import bake_inputs, stack_io
-from .bake_state import (  # noqa: F401 (baked_texture_state: API)
+from .bake_state import (  # noqa: F401 (baked_texture_state: API; _blend_relative: the tests reach it here)
+    _blend_relative,
+    attach_texture,
     bake_model_key,
     bake_size,
     baked_texture_state,
+    check_bake_folder,
+    inputs_digest,
     texture_output_path,
 )
 from .operator_base import LongOperator, MaterialOperator, UserError, context_material, guarded
@@ -38,17 +42,6 @@ def camera_resolution(context, mat, spatial) -> tuple[int, int]:
     names = list(getattr(scene, "material_names", []))
     footprint = footprints[names.index(mat.name_full)] if mat.name_full in names else float("inf")
     return quality.texture_resolution_for_footprint(footprint, spatial.resolution or (1, 1))
-
-
-def _blend_relative(path: str) -> str:
-    """``path`` relative to the saved .blend file ("//..."), or as it is where it cannot be: no saved file, or
-    another drive than the file's (Windows), where a relative path does not exist."""
-    if not bpy.data.filepath:
-        return path
-    try:
-        return bpy.path.relpath(path)
-    except ValueError:  # os.path.relpath across drives
-        return path
 
 
 _MAP_ITEMS: list = []  # the menu's items, kept alive while Blender shows them (a dynamic enum's rule)
@@ -159,8 +152,11 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
             raise UserError(f"{e}: lower Bake Resolution or turn on Fit to Camera") from None
         size = bake_size(mat)
         path = texture_output_path(mat)
+        check_bake_folder(os.path.dirname(path))  # before the work, not after it
         refine_s = float(f"{s.bake_refine:g}")  # the float32 property's 0.01 is 0.00999999977 in float64
-        key = bake_key(spatial, res, bake_model_key(size, refine_s))  # decoder digest and budget, as bake_state checks
+        model = bake_model_key(size, refine_s)
+        key = bake_key(spatial, res, model)  # decoder digest and budget, as bake_state checks
+        inputs = inputs_digest(mat, res, model)  # what renders the bake while its maps' images cannot be read
         refine_cache = os.path.join(os.path.dirname(path), ".refine")  # as the bake CLI's OUT/.refine
         name = mat.name
         render = context.scene.render
@@ -174,7 +170,7 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
                 encode,
                 resolution=res,
                 progress=progress,
-                metadata={"material": name, "model": size, "key": key},
+                metadata={"material": name, "model": size, "key": key, "inputs": inputs},
                 threads=threads,
             )
             if progress is not None:  # an Esc up to here cancels (raises): from here the file is written, and kept
@@ -188,10 +184,7 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
         def finish(context, result):
             stats, seconds, refined, (filtered, levels) = result
             target = self.again(mat, name)  # an undo during the bake replaced the one read above
-            target.neural_layers.texture_path = _blend_relative(path)
-            target.neural_layers.texture_file = os.path.abspath(path)
-            target.neural_layers.texture_key = key
-            target.neural_layers.texture_size = res
+            attach_texture(target, path, key, res)
             refined = "" if refined is None else f", {refined} refined"
             calibrated = f", calibrated in {stats.clusters} cluster(s)" if stats.clusters else ""
             for note in stats.clamped:  # the networks' trained ranges: what the texture holds is the clamped stack

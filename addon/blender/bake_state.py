@@ -6,6 +6,8 @@ a material's baked texture only while ``baked_texture_state`` says it is current
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import zlib
 from collections import OrderedDict
@@ -14,8 +16,8 @@ import bpy
 import numpy as np
 
 from ..core.neural.models import ModelFileError, load_models, resolve_size
+from ..core.textures import files
 from ..core.textures.bake import bake_key, model_key
-from ..core.textures.files import safe_file_name
 from . import bake_inputs, images, stack_io
 from .operator_base import UserError
 
@@ -35,7 +37,46 @@ def texture_output_path(mat) -> str:
             "save the file first or choose an absolute Bake Folder"
         )
     # the bake CLI's file names: two different material names never share a file ("a/b", "a_b")
-    return os.path.join(bpy.path.abspath(folder), f"{safe_file_name(mat.name)}.exr")
+    return os.path.join(bpy.path.abspath(folder), f"{files.safe_file_name(mat.name)}.exr")
+
+
+def check_bake_folder(folder: str) -> None:
+    """Make the bake folder ``folder`` where it is not there and check a file can be written into it, before the
+    work, as the bake command checks its ``--out``; ``UserError`` saying what is wrong otherwise (a Bake Folder that
+    is a file, or not writable, failed only after the whole bake, with a raw error)."""
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise UserError(f"the Bake Folder {folder!r} is a file, not a folder: choose a folder")
+    try:
+        os.makedirs(folder, exist_ok=True)
+        probe = files.temp_path(os.path.join(folder, "write-test"))  # removed by the next bake if this one is killed
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as e:
+        raise UserError(
+            f"the Bake Folder {folder!r} cannot be written ({e.strerror or e}): choose a folder you can write to"
+        ) from None
+
+
+def attach_texture(mat, path: str, key: str, resolution) -> None:
+    """Point ``mat`` at the texture baked at ``path`` (its bake key ``key``, at ``resolution``: height, width), as
+    the sidebar's bake and the bake command's ``--attach`` do: the renderer uses it while it is current
+    (``current_texture``). The path is kept relative to the saved .blend file ("//...") where it can be."""
+    s = mat.neural_layers
+    s.texture_path = _blend_relative(path)
+    s.texture_file = os.path.abspath(path)
+    s.texture_key = key
+    s.texture_size = tuple(resolution)
+
+
+def _blend_relative(path: str) -> str:
+    """``path`` relative to the saved .blend file ("//..."), or as it is where it cannot be: no saved file, or
+    another drive than the file's (Windows), where a relative path does not exist."""
+    if not bpy.data.filepath:
+        return path
+    try:
+        return bpy.path.relpath(path)
+    except ValueError:  # os.path.relpath across drives
+        return path
 
 
 def bake_size(mat) -> str:
@@ -48,12 +89,46 @@ def bake_size(mat) -> str:
 
 def bake_model_key(size: str, refine_s: float = 0.0) -> str:
     """The model part of the bake key of a bake with decoder ``size`` and refinement budget ``refine_s``:
-    the size, the budget and the shipped decoder file's digest, as the bake CLI keys its textures
-    (``textures.bake.model_key``)."""
+    the size, the budget, the shipped decoder file's digest and the albedo calibration's settings, by the rule the
+    bake command keys its textures by (``textures.bake.model_key``). Calibrated: the sidebar's bake calibrates its
+    texture (``bake_stack``'s default, with ``neural_encoder``'s models), as the bake command does without
+    ``--no-calibrate``, so a texture the bake command made of the material is current for it (it was keyed
+    uncalibrated here, and no bake of the command ever was)."""
     try:
-        return model_key(size, load_models(size).digest, refine_s)
+        return model_key(size, load_models(size).digest, refine_s, calibrated=True)
     except (ValueError, FileNotFoundError, ModelFileError) as e:
         raise UserError(str(e)) from None
+
+
+def inputs_digest(mat, resolution, model: str) -> str:
+    """A short hash of what the key of a bake of ``mat`` at ``resolution`` (height, width) with ``model`` (its
+    ``bake_model_key``) covers besides its maps' pixels: its stack, its maps' settings and images
+    (``bake_inputs.map_settings``) and the working space they decode into. A bake records it in its texture
+    (``inputs``), so it still renders while its maps' images cannot be read and its settings are unchanged
+    (``current_texture``). ValueError for maps that do not apply to their layers."""
+    stack = stack_io.stack_from_material(mat)
+    described = [
+        stack.to_json() if stack is not None else None,
+        bake_inputs.map_settings(mat),
+        images.working_space(),
+        [int(n) for n in resolution],
+        model,
+    ]
+    return hashlib.sha256(json.dumps(described).encode()).hexdigest()[:16]
+
+
+def texture_header(path: str) -> dict:
+    """The bake's entries in a latent texture's header (``nlm:key`` and the rest: ``LatentTexture.write_exr``), read
+    without its texels; empty where the file cannot be opened."""
+    from ..core.textures.latent_texture import oiio_module
+
+    inp = oiio_module().ImageInput.open(path)
+    if inp is None:
+        return {}
+    try:
+        return {a.name[4:]: str(a.value) for a in inp.spec().extra_attribs if a.name.startswith("nlm:")}
+    finally:
+        inp.close()
 
 
 def baked_texture_state(mat) -> tuple[str | None, str]:
@@ -64,7 +139,9 @@ def baked_texture_state(mat) -> tuple[str | None, str]:
 
 def current_texture(mat):
     """``baked_texture_state`` and the material's spatially varying stack the current texture was baked
-    from (``textures.spatial.SpatialStack``, its maps read; None when there is no current texture)."""
+    from (``textures.spatial.SpatialStack``, its maps read; None when there is no current texture). A current
+    texture with no spatial stack is a bake rendered while its maps' images cannot be read
+    (``_bake_of_unreadable_maps``): its state line is a note for the user, saying so."""
     s = mat.neural_layers
     if not s.texture_path:
         return None, "not baked", None
@@ -84,6 +161,8 @@ def current_texture(mat):
     if found is None:
         try:
             spatial = bake_inputs.spatial_stack_from_material(mat)
+        except bake_inputs.MapUnreadable as e:
+            return _bake_of_unreadable_maps(mat, path, res, model, str(e))
         except ValueError as e:
             return None, str(e), None
         if spatial is None:
@@ -100,6 +179,31 @@ def current_texture(mat):
     return path, f"baked: {os.path.basename(path)}", spatial
 
 
+def _bake_of_unreadable_maps(mat, path: str, resolution, model: str, why: str):
+    """``current_texture`` of a material whose maps' images cannot be read (``why``): its bake, as a Cycles bake
+    renders without its sources, where the texture at ``path`` is the material's own (its header's key is the one the
+    material recorded) and made of the material as it is now but the maps' pixels (its ``inputs``: an edit of the
+    stack, a map's range or image, the model or the resolution makes it stale). Reference mode shades the per-texel
+    stacks the maps make, which cannot be read: it shades the constant stack (no spatial stack), and the line says
+    so. A texture without ``inputs`` (made before bakes recorded them) cannot be checked: not rendered."""
+    header = texture_header(path)
+    if header.get("key") != mat.neural_layers.texture_key:
+        return None, f"baked texture is out of date ({why}): bake again", None
+    if "inputs" not in header:
+        return None, f"{why}, and its bake records no settings to check them against: bake again", None
+    try:
+        current = inputs_digest(mat, resolution, model)
+    except ValueError as e:
+        return None, str(e), None
+    if header["inputs"] != current:
+        return None, f"baked texture is out of date ({why}): bake again", None
+    note = (
+        f"baked: {os.path.basename(path)}; {why}: rendering the bake made from its maps, which cannot be checked "
+        "against them (reference mode shades its constant stack)"
+    )
+    return path, note, None
+
+
 # The bake inputs of the last few materials the export checked (``current_texture``): their maps read and the key of
 # their bake, by what they are read from (``_inputs_signature``). Every export checks every baked material, and the
 # viewport exports at every edit: a 4096-pixel map took 0.4-1.2 s to read into a map and hash each time.
@@ -108,19 +212,27 @@ _INPUTS: OrderedDict = OrderedDict()
 
 
 def _image_signature(image):
-    """What an image's pixels are, without turning them into a map: its identity, size, colour space (and the
-    file's working space, which its bytes decode into) and alpha mode, and the CRC-32 of the pixels Blender holds
-    (about 0.1-0.2 s for a 4096-pixel map, of the 0.4-1.2 s its reading into a map and hashing takes). The pixels
-    themselves, not the file's time: a map file edited outside Blender and checked before Image > Reload was kept
-    under the new file's time with the old pixels' key, and after the reload the stale bake still read as current. A
-    checksum of every value: a sum and a sample of them missed a painted patch moved elsewhere."""
+    """What a map's pixels are read from (``bake_inputs.map_pixels``), without turning them into a map: its
+    identity, colour space (and the file's working space, which it decodes into) and alpha mode, and for an image
+    read from its file (``images.pixels_file``) that file's path and identity (inode, size, modification time: a
+    file saved again elsewhere is read again, before any Image > Reload, as the bake would read it), else the size
+    and CRC-32 of the pixels Blender holds (about 0.1-0.2 s for a 4096-pixel map, of the 0.4-1.2 s its reading into
+    a map and hashing takes; a checksum of every value: a sum and a sample of them missed a painted patch moved
+    elsewhere)."""
+    space = (image.colorspace_settings.name, images.working_space(), image.alpha_mode)
+    path = images.pixels_file(image)
+    if path is not None:
+        try:
+            st = os.stat(path)
+            return (image.session_uid, *space, path, st.st_ino, st.st_size, st.st_mtime_ns)
+        except OSError:
+            pass  # gone since: Blender's pixels, as the map is read
     n = int(image.size[0]) * int(image.size[1]) * int(image.channels)
     if n == 0:
         return (image.session_uid, 0)
     pixels = np.empty(n, np.float32)
     image.pixels.foreach_get(pixels)
-    space = (image.colorspace_settings.name, images.working_space())  # byte pixels decode into the working space
-    return (image.session_uid, tuple(image.size), *space, image.alpha_mode, zlib.crc32(pixels))
+    return (image.session_uid, *space, tuple(image.size), zlib.crc32(pixels))
 
 
 def _inputs_signature(mat):

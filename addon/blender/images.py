@@ -220,13 +220,37 @@ def sequence_pixels(image, image_user, frame: int, associate_alpha: bool = False
     return file_pixels(image, path, associate_alpha), path
 
 
-def file_pixels(image, path: str, associate_alpha: bool = False) -> np.ndarray | None:
+def pixels_file(image) -> str | None:
+    """The absolute path of the file whose pixels ``image`` holds, where they are its file's; None for an image whose
+    pixels are not (generated, packed, painted and not saved, a movie, tiles, a sequence), or not its file's first
+    image (a multilayer OpenEXR's layer and pass, a view of a multi-view image), or whose file is not there. Such an
+    image is read from its file (``file_pixels``), as Cycles reads it: Blender's own buffer is stale after an edit
+    elsewhere until Image > Reload, and Blender's float buffer of a 16-bit PNG is premultiplied. The one rule for
+    image textures (the scene export's ``_image_file_key``) and parameter maps."""
+    if image.source != "FILE" or image.packed_file is not None or image.is_dirty:
+        return None
+    if image.type == "MULTILAYER" or getattr(image, "use_multiview", False):
+        return None
+    try:
+        path = file_path(image)
+    except ValueError:
+        return None
+    return path if os.path.isfile(path) else None
+
+
+def file_pixels(image, path: str, associate_alpha: bool = False, straight: bool = False) -> np.ndarray | None:
     """``linear_pixels`` of ``image`` (its colour space and alpha mode) as read from the file at ``path``, as Cycles
     reads an image's file; None where the file cannot be read whole. An 8-bit file is a byte image, as Blender
     loads it: its colour as stored, straight (OpenImageIO's own reading multiplies it by its alpha); any other is a
     float one, premultiplied: its colour multiplied by its alpha and then decoded to scene linear, as Cycles reads
     it (an OpenEXR's pixels are premultiplied already; Blender's own float buffer of a 16-bit PNG decodes first,
-    and read so, a texel of alpha 0.5 rendered 1.4-2.3x Cycles')."""
+    and read so, a texel of alpha 0.5 rendered 1.4-2.3x Cycles').
+
+    ``straight``: the colour apart from its alpha whatever the file's bit depth, decoded to scene linear by its
+    colour space: what a parameter map's values are, as the bake command reads its images (an albedo map of alpha
+    0.5 drove half its albedo from a 16-bit PNG and all of it from an 8-bit one). The colour as the file stores it,
+    but where the image says its colour is premultiplied (Alpha: Premultiplied, a colour image, not an OpenEXR):
+    divided by its alpha there, as Blender loads such a byte image (a Non-Color one it leaves as stored)."""
     from ..core.textures.latent_texture import oiio_module
 
     oiio = oiio_module()
@@ -234,10 +258,12 @@ def file_pixels(image, path: str, associate_alpha: bool = False) -> np.ndarray |
     config.attribute("oiio:UnassociatedAlpha", 1)
     buf = oiio.ImageBuf(path, 0, 0, config)
     if buf.has_error or buf.spec().nchannels < 1:
+        buf.geterror()  # taken: OpenImageIO prints an error never asked for when the buffer goes
         return None
     spec = buf.spec()
     px = buf.get_pixels(oiio.FLOAT)
     if buf.has_error or px is None:  # a file cut short: what was read is not the image
+        buf.geterror()
         return None
     px = np.asarray(px, dtype=np.float32).reshape(spec.height, spec.width, -1)
     c = px.shape[2]
@@ -246,6 +272,13 @@ def file_pixels(image, path: str, associate_alpha: bool = False) -> np.ndarray |
     if c in (2, 4):
         rgba[..., 3] = px[..., c - 1]
     is_float = spec.format != oiio.UINT8
+    if straight:
+        if image.alpha_mode == "PREMUL" and not image.colorspace_settings.is_data and not path.lower().endswith(".exr"):
+            alpha = rgba[..., 3:4]
+            np.divide(rgba[..., :3], alpha, out=rgba[..., :3], where=alpha > 0.0)
+        if not image.colorspace_settings.is_data:
+            rgba[..., :3] = _to_working_space(image, np.ascontiguousarray(rgba[..., :3]))
+        return rgba
     if is_float and not image.colorspace_settings.is_data:
         if not path.lower().endswith(".exr") and image.alpha_mode in ("STRAIGHT", "PREMUL"):
             rgba[..., :3] *= rgba[..., 3:4]  # premultiplied as it is stored, then decoded: as Cycles reads the file

@@ -118,14 +118,12 @@ def _image_file_key(image, associate_alpha: bool):
     saved, a movie, tiles), or not its file's first image (a multilayer OpenEXR's layer and pass, a view of a
     multi-view image, which the node chooses), which is read from Blender at every export. A file rewritten with
     its inode, size and modification time kept is not told from the one before."""
-    if image.source != "FILE" or image.packed_file is not None or image.is_dirty:
-        return None
-    if image.type == "MULTILAYER" or getattr(image, "use_multiview", False):  # the node's layer, pass or view
-        return None
+    path = images.pixels_file(image)
     try:
-        path = images.file_path(image)
-        st = os.stat(path)
-    except (OSError, ValueError):
+        st = os.stat(path) if path is not None else None
+    except OSError:
+        return None
+    if st is None:
         return None
     return (
         path, st.st_ino, st.st_size, st.st_mtime_ns, tuple(image.size), image.colorspace_settings.name,
@@ -538,6 +536,8 @@ def _baked_texture(mat, warnings: list[str]):
             f"): bake again; rendering its constant stack"
         )
         return None, None
+    if spatial is None:  # a bake rendered while its maps' images cannot be read: the state says so
+        warnings.append(f"material {mat.name!r}: {state}")
     return texture, spatial
 
 

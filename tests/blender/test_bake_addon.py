@@ -594,10 +594,11 @@ def test_an_export_reads_a_baked_materials_maps_once_until_they_change(wood, bpy
     assert len(reads) == before + 1
 
 
-def test_a_map_edited_outside_blender_makes_its_bake_stale_once_reloaded(wood, bpy_addon, tmp_path):
+def test_a_map_edited_outside_blender_makes_its_bake_stale(wood, bpy_addon, tmp_path):
     """A map file saved again by another program, checked (a redraw) before Image > Reload: the old pixels were
-    kept under the new file's time, and after the reload the stale bake still read as current. Switching the map
-    to Premultiplied alpha (other pixels) did the same."""
+    kept under the new file's time, and after the reload the stale bake still read as current. A map is read from
+    its file (as a bake reads it), so its bake is stale as soon as the file is another, and stays so after the
+    reload."""
     import time
 
     from addon.blender import bake_state
@@ -615,7 +616,7 @@ def test_a_map_edited_outside_blender_makes_its_bake_stale_once_reloaded(wood, b
     other.pixels.foreach_set(np.full(16 * 8 * 4, 0.25, np.float32))
     other.filepath_raw, other.file_format = str(path), "OPEN_EXR"
     other.save()  # the map's file, written again elsewhere
-    assert bake_state.current_texture(wood)[0] is not None  # Blender still holds the old pixels: current
+    assert bake_state.current_texture(wood)[1] == "baked texture is out of date: bake again"  # before a reload too
     pmap.image.reload()
     pixels = np.empty(16 * 8 * 4, np.float32)
     pmap.image.pixels.foreach_get(pixels)  # an Image Editor showing it: the pixels loaded again before the check
@@ -679,3 +680,147 @@ def test_a_material_driven_by_maps_previews_its_most_common_texel_and_refuses_re
     for item in wood.neural_layers.layers:
         item.maps.clear()
     assert bake_inputs.representative_stack(wood) is None
+
+
+def _map_from_file(bpy, wood, path):
+    """The wood's roughness map saved to ``path`` (a PNG) and loaded from it, as a user's maps are."""
+    pmap = wood.neural_layers.layers[1].maps[0]
+    pmap.image.filepath_raw, pmap.image.file_format = str(path), "PNG"
+    pmap.image.save()
+    pmap.image = bpy.data.images.load(str(path))
+    pmap.image.colorspace_settings.name = "Non-Color"
+    return pmap
+
+
+def test_a_bake_renders_while_its_maps_images_are_missing_until_its_settings_change(wood, bpy_addon, tmp_path):
+    """A bake makes the material independent of its maps' images, as a Cycles bake does: with them missing (not
+    copied to the render machine) it rendered the constant stack. It renders while its texture is the material's
+    own and the material's settings are those it was baked with, and says so; an edit of the stack or a map's range
+    (still readable) makes it stale."""
+    from addon.blender import bake_state, scene_export
+
+    bpy = bpy_addon
+    pmap = _map_from_file(bpy, wood, tmp_path / "maps" / "rough.png")
+    assert run_operator(ops.bake_texture).finished
+    baked = scene_export.export_material(wood, [])
+    assert baked.latent_texture is not None and baked.spatial is not None
+    (tmp_path / "maps" / "rough.png").unlink()
+    pmap.image.reload()  # as a reopened file finds it: no pixels
+    bake_state._INPUTS.clear()
+    path, state, spatial = bake_state.current_texture(wood)
+    assert path is not None and spatial is None, state
+    assert "rough.png' is missing" in state and "cannot be checked against them" in state, state
+    assert "reference mode shades its constant stack" in state
+    warnings = []
+    spec = scene_export.export_material(wood, warnings)
+    assert spec.latent_texture is baked.latent_texture and spec.spatial is None
+    assert warnings == [f"material 'Material': {state}"]  # F12 says so
+    # edits of what is still readable: stale
+    pmap.high += 0.1
+    path, state, _ = bake_state.current_texture(wood)
+    assert path is None and state.startswith("baked texture is out of date") and "is missing" in state, state
+    pmap.high -= 0.1
+    assert bake_state.current_texture(wood)[0] is not None
+    wood.neural_layers.layers[1].thickness = 1.0
+    assert bake_state.current_texture(wood)[0] is None
+    assert scene_export.export_material(wood, []).latent_texture is None
+
+
+def test_a_bake_with_missing_maps_is_not_rendered_where_its_file_is_another_bake(wood, bpy_addon, tmp_path):
+    """Only the material's own bake: the header's key must be the one the material recorded, and a texture that
+    records no settings (``inputs``, made before bakes recorded them) cannot be checked."""
+    from addon.blender import bake_state
+    from addon.core.textures import LatentTexture
+
+    bpy = bpy_addon
+    pmap = _map_from_file(bpy, wood, tmp_path / "maps" / "rough.png")
+    assert run_operator(ops.bake_texture).finished
+    path = bake_state.current_texture(wood)[0]
+    tex = LatentTexture.read_exr(path)
+    (tmp_path / "maps" / "rough.png").unlink()
+    pmap.image.reload()
+    bake_state._INPUTS.clear()
+    assert bake_state.current_texture(wood)[0] == path
+    LatentTexture(tex.levels, {k: v for k, v in tex.metadata.items() if k != "inputs"}).write_exr(path)
+    found, state, _ = bake_state.current_texture(wood)
+    assert found is None and "records no settings" in state, state
+    LatentTexture(tex.levels, {**tex.metadata, "key": "0123456789abcdef"}).write_exr(path)
+    found, state, _ = bake_state.current_texture(wood)
+    assert found is None and "out of date" in state, state
+
+
+def test_a_map_file_that_is_not_an_image_says_so(wood, bpy_addon, tmp_path):
+    bpy = bpy_addon
+    text = tmp_path / "notes.png"
+    text.write_text("not a picture\n")
+    pmap = wood.neural_layers.layers[1].maps[0]
+    pmap.image = bpy.data.images.load(str(text))
+    r = run_operator(ops.bake_texture)
+    assert r.error and "is not an image Blender can read" in r.error and "missing" not in r.error, r.error
+
+
+@pytest.mark.parametrize("bits", ["uint8", "uint16"])
+def test_colour_maps_with_alpha_read_straight_as_the_bake_command_reads_them(bpy_addon, material, tmp_path, bits):
+    """A 16-bit PNG albedo map of alpha 0.5 drove half its albedo (Blender's float buffer is premultiplied), and
+    none at alpha 0, where an 8-bit one and the bake command read the colour as stored: all read it so now."""
+    import sys
+
+    bpy = bpy_addon
+    bpy.utils.expose_bundled_modules()
+    import OpenImageIO as oiio
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bake"))
+    import bake as bake_cli
+    from addon.blender.bake_inputs import spatial_stack_from_material
+
+    rgba = np.zeros((2, 4, 4), np.float32)
+    rgba[..., :3], rgba[:, :2, 3], rgba[:, 2:, 3] = 0.8, 0.5, 0.0
+    path = tmp_path / f"albedo_{bits}.png"
+    spec = oiio.ImageSpec(4, 2, 4, bits)
+    spec.attribute("oiio:UnassociatedAlpha", 1)
+    out = oiio.ImageOutput.create(str(path))
+    out.open(str(path), spec)
+    out.write_image(rgba)
+    out.close()
+    assert run_operator(ops.preset_apply, preset="white_diffuse").finished
+    s = material.neural_layers
+    s.active_index = 0
+    assert run_operator(ops.map_add, parameter="ALBEDO").finished
+    s.layers[0].maps[0].image = bpy.data.images.load(str(path))  # sRGB, Straight: Blender's defaults
+    addon = spatial_stack_from_material(material)[0].maps["base.albedo"]
+    cli = bake_cli.read_map(path, "albedo", "auto")[0][..., :3]
+    np.testing.assert_allclose(addon, cli, rtol=2e-3)
+    np.testing.assert_allclose(addon, 0.6038, rtol=2e-3)  # sRGB 0.8, whatever the alpha
+
+
+def test_a_bake_folder_that_cannot_be_written_is_refused_before_the_work(wood, bpy_addon, tmp_path, monkeypatch):
+    """A Bake Folder that is a file, or not writable, failed only after the whole bake, with a raw error."""
+    import os
+
+    from addon.blender import bake_ops
+
+    started = []
+    monkeypatch.setattr(bake_ops, "bake_stack", lambda *a, **k: started.append(1))
+    a_file = tmp_path / "rough.png"
+    a_file.write_bytes(b"")
+    for folder, said in ((a_file, "is a file, not a folder"), (a_file / "sub", "Not a directory")):
+        wood.neural_layers.bake_directory = str(folder)
+        r = run_operator(ops.bake_texture)
+        assert not r.finished and f"the Bake Folder {str(folder)!r}" in r.error and said in r.error, r.error
+    if os.geteuid() != 0:  # root writes into any folder
+        locked = tmp_path / "locked"
+        locked.mkdir()
+        locked.chmod(0o500)
+        try:
+            wood.neural_layers.bake_directory = str(locked)
+            r = run_operator(ops.bake_texture)
+            assert not r.finished and "cannot be written" in r.error and "Permission denied" in r.error, r.error
+        finally:
+            locked.chmod(0o700)
+    assert not started and wood.neural_layers.texture_path == ""
+    wood.neural_layers.bake_directory = str(tmp_path / "new" / "folder")  # made where it is not there
+    monkeypatch.undo()
+    monkeypatch.setattr(bake_ops, "neural_encoder", stand_in_encoder)
+    assert run_operator(ops.bake_texture).finished
+    assert (tmp_path / "new" / "folder" / "Material.exr").is_file()
+    assert [p.name for p in (tmp_path / "new" / "folder").iterdir()] == ["Material.exr"]  # no probe left

@@ -558,3 +558,103 @@ def test_a_map_from_the_trained_minimum_is_not_clamped(rough_png, tmp_path):
         warnings.simplefilter("always")
         assert bake_cli.main([*argv, "--model", "tiny", "--out", str(tmp_path / "out")]) == 0  # the encoder clamps
     assert not [w for w in caught if issubclass(w.category, ClampWarning)], [str(w.message) for w in caught]
+
+
+# --- bands, published textures and maps checked for what they are ---------------------------------
+
+
+def test_bands_kept_by_a_run_of_other_band_rows_are_not_reused(rough_png, tmp_path):
+    """Band files were named by the key and index alone and checked by shape: a resume with another --band-rows
+    took a kept band of the same shape but other rows (40 rows: band 1 of 24 rows is rows 24-39, of 16 rows 16-31)
+    and published it out of place."""
+    ref, out = tmp_path / "ref", tmp_path / "out"
+    assert bake_cli.main(preset_argv(rough_png, ref), encode=stand_in_encoder()) == 0
+    assert bake_cli.main([*preset_argv(rough_png, out, "--shard", "1/2"), "--band-rows", "24"], stand_in_encoder()) == 0
+    assert len(list((out / ".varnished_wood.bands").glob("*.npy"))) == 1  # band 1: rows 24-39
+    assert bake_cli.main([*preset_argv(rough_png, out), "--band-rows", "16"], encode=stand_in_encoder()) == 0
+    assert_same_texture(ref / "varnished_wood.exr", out / "varnished_wood.exr")
+    assert listing(out) == ["varnished_wood.exr", "varnished_wood.json"]
+
+
+def test_a_texture_cut_short_is_baked_again_not_taken_as_up_to_date(rough_png, tmp_path, capsys):
+    """Only the sidecar's key and the header's were compared: a texture cut short (a full disk, a copy that
+    stopped) with its header whole was skipped as up to date, and failed only when rendered."""
+    out, ref = tmp_path / "out", tmp_path / "ref"
+    assert bake_cli.main(preset_argv(rough_png, ref), encode=stand_in_encoder()) == 0
+    assert bake_cli.main(preset_argv(rough_png, out), encode=stand_in_encoder()) == 0
+    exr = out / "varnished_wood.exr"
+    whole = exr.read_bytes()
+    exr.write_bytes(whole[: len(whole) * 3 // 4])
+    assert bake_cli._exr_key(exr) == texture_bits(ref / "varnished_wood.exr")[1]  # its header still reads
+    capsys.readouterr()
+    assert bake_cli.main(preset_argv(rough_png, out), encode=stand_in_encoder()) == 0
+    assert "up to date" not in capsys.readouterr().out
+    assert_same_texture(ref / "varnished_wood.exr", exr)
+    assert bake_cli.main(preset_argv(rough_png, out), encode=stand_in_encoder()) == 0  # whole again: skipped
+    assert "up to date, skipped" in capsys.readouterr().out
+
+
+def test_a_folder_given_as_a_map_is_said_to_be_a_folder(tmp_path, capsys):
+    folder = tmp_path / "maps"
+    folder.mkdir()
+    argv = ["--preset", "varnished_wood", "--map", f"coatings[0].roughness={folder}", "--out", str(tmp_path / "o")]
+    assert bake_cli.main(argv, encode=stand_in_encoder()) == 2
+    err = capsys.readouterr().err
+    assert "is a folder, not an image" in err and "not found" not in err, err
+
+
+# --- a .blend's bakes attached to its materials ------------------------------------------------------
+
+
+@pytest.fixture()
+def mapped_blend(bpy_addon, material, tmp_path):
+    """A saved .blend whose material "Wood" (varnished wood) has its coat's roughness driven by a PNG beside it."""
+    bpy = bpy_addon
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="varnished_wood").finished
+    material.name = "Wood"
+    s = material.neural_layers
+    s.active_index = 1
+    assert run_operator(bpy.ops.neural_layers.map_add, parameter="ROUGHNESS").finished
+    rough = np.zeros((8, 16))
+    rough[:, 8:] = 1.0
+    image = bpy.data.images.load(str(write_png(tmp_path / "rough.png", rough)))
+    image.colorspace_settings.name = "Non-Color"
+    pmap = s.layers[1].maps[0]
+    pmap.image, pmap.low, pmap.high = image, 0.2, 0.6
+    path = tmp_path / "scene.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(path))
+    bpy.ops.wm.read_homefile(app_template="")
+    return path
+
+
+def test_a_blend_bake_attached_to_its_material_is_current_there(mapped_blend, bpy_addon, tmp_path, capsys):
+    """A --blend bake never matched the material's own key (the add-on keyed its calibrated bakes uncalibrated) and
+    nothing pointed the material at it. ``--attach`` does, and saves the .blend: the material then renders the
+    command's texture, its maps' images present or not, and a bake keyed otherwise than the material's settings
+    is refused by name."""
+    from addon.blender import bake_state
+
+    bpy = bpy_addon
+    out = tmp_path / "textures"
+    argv = ["--blend", str(mapped_blend), "--out", str(out), "--attach"]
+    assert bake_cli.main(argv) == 0, capsys.readouterr()  # the shipped models at the default size, calibrated
+    bpy.ops.wm.open_mainfile(filepath=str(mapped_blend))
+    mat = bpy.data.materials["Wood"]
+    assert mat.neural_layers.texture_path == "//textures/Wood.exr"
+    assert tuple(mat.neural_layers.texture_size) == (8, 16)
+    path, state, spatial = bake_state.current_texture(mat)
+    assert path == str(out / "Wood.exr") and spatial is not None, state
+    (tmp_path / "rough.png").unlink()  # the maps left behind: the bake renders, as the add-on's own would
+    bpy.ops.wm.open_mainfile(filepath=str(mapped_blend))
+    path, state, _ = bake_state.current_texture(bpy.data.materials["Wood"])
+    assert path == str(out / "Wood.exr") and "is missing" in state, state
+    write_png(tmp_path / "rough.png", np.zeros((8, 16)))
+    capsys.readouterr()
+    argv = ["--blend", str(mapped_blend), "--out", str(tmp_path / "other"), "--attach", "--no-calibrate"]
+    assert bake_cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "--attach: 'Wood': its Model Size and Refine (s) key its bakes" in err, err
+    bpy.ops.wm.open_mainfile(filepath=str(mapped_blend))
+    assert bpy.data.materials["Wood"].neural_layers.texture_path == "//textures/Wood.exr"  # left as it was
+    assert bake_cli.main(["--preset", "varnished_wood", "--out", str(tmp_path / "p"), "--attach"]) == 2
+    assert "--attach goes with --blend" in capsys.readouterr().err
