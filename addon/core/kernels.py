@@ -738,8 +738,14 @@ def _rect_window(params, j, px, py, pz):
     uu, vv, uv = ux * ux + uy * uy + uz * uz, vx * vx + vy * vy + vz * vz, ux * vx + uy * vy + uz * vz
     cx, cy, cz = params[j, 0] - px, params[j, 1] - py, params[j, 2] - pz
     z0 = cx * params[j, 9] + cy * params[j, 10] + cz * params[j, 11]
-    far = SOLID_ANGLE_WITHIN * SOLID_ANGLE_WITHIN * params[j, 16] < cx * cx + cy * cy + cz * cz
-    if not z0 < 0.0 or far or uv * uv > 1e-10 * uu * vv:  # axes at right angles to 1e-5 (float32 matrices)
+    radius2 = params[j, 16]
+    far = SOLID_ANGLE_WITHIN * SOLID_ANGLE_WITHIN * radius2 < cx * cx + cy * cy + cz * cz
+    # A point within 1e-6 of the light's size of its plane (Ureña's angles lose their digits there: samples not
+    # even, some not found by the intersection) and a light whose axes' shear moves its short edges by over 1e-5
+    # of their length (a float32 matrix's rounding: 1e-7 of the long side) are sampled by area.
+    flat = z0 * z0 < 1e-12 * radius2
+    sheared = uv * uv > 1e-10 * min(uu, vv) ** 2
+    if not z0 < 0.0 or far or flat or sheared:
         return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     lu, lv = _sqrt(uu), _sqrt(vv)
     xx, xy, xz, yx, yy, yz = ux / lu, uy / lu, uz / lu, vx / lv, vy / lv, vz / lv

@@ -417,6 +417,23 @@ def test_a_rectangle_light_close_by_is_sampled_by_its_solid_angle():
     by_area = ls_far.dist**2 / (light.area * -(ls_far.wi @ light.normal))
     assert ls_far.pdf[0] == pytest.approx(by_area[0], rel=1e-9)
     assert ls_far.pdf[1] == pytest.approx(1.0 / _rectangle_solid_angle(far[1:], light)[0], rel=1e-9)
+
+    # a point in the light's plane to 1e-6 of its size (Ureña's angles lose their digits: samples bunched, 1e-9 of
+    # its size gave NaN directions) and a light whose shear moves its short edges by 1e-4 of their length (a
+    # 1000:1 strip: its window fell off the light) are sampled by area
+    def by_area(light, p, ls):
+        return ls.dist**2 / (light.area * -(ls.wi @ light.normal))
+
+    flat = light.center + np.array([[1.7, 0.0, -1e-7]])
+    ls_flat = light.sample(flat, np.array([[0.0, 0.5]]))
+    assert np.isfinite(ls_flat.wi).all() and ls_flat.pdf[0] == pytest.approx(by_area(light, flat, ls_flat)[0])
+    strip = np.eye(4)
+    strip[:3, 1] = (1e-4, 1.0, 0.0)  # local y leans toward x: the long side's shear of 1e-4 of the short side
+    strip[:3, 3] = (0.0, 0.0, 1.0)
+    long_light = AreaLight(strip, power=10.0, size=10.0, size_y=0.01)
+    under = np.array([[0.5, 0.0, 0.9]])
+    ls_strip = long_light.sample(under, np.array([[0.3, 0.6]]))
+    assert ls_strip.pdf[0] == pytest.approx(by_area(long_light, under, ls_strip)[0], rel=1e-9)
     # the irradiance of a surface facing the light, 1.2 below its centre: its squared coefficient of variation
     p = np.tile(light.center - np.array([0.0, 0.0, 1.2]), (200_000, 1))
     x = light.sample(p, rng.random((len(p), 2)))
