@@ -19,6 +19,7 @@ The render thread setting of the scene (Threads: Auto / Fixed) decides the cores
 from __future__ import annotations
 
 import re
+import time
 from dataclasses import replace
 
 import bpy
@@ -308,6 +309,16 @@ def _region_rows(image: np.ndarray, region: tuple[int, int, int, int]) -> np.nda
     return np.ascontiguousarray(image[height - y1 : height - y0, x0:x1][::-1]).ravel()
 
 
+def render_summary(stats, decoder_seconds: float | None = None) -> str:
+    """F12's last status line: the render's statistics (``RenderStats.summary``) after the seconds the decoder choice
+    took before the render began (``decoder_seconds``; None: none was made, a thumbnail's): Auto's measurements, the
+    encodings and the calibrations of new stacks, 10-70 s on a first render of three new stacks, which the render's
+    own setup (``RenderStats``) does not see and the summary said were 0.00 s."""
+    if decoder_seconds is None:
+        return stats.summary()
+    return f"decoders {decoder_seconds:.2f} s (choice, encodings, calibrations) before the render: {stats.summary()}"
+
+
 def status_line(passes: int, samples: int, remaining: float | None, triangles: int) -> str:
     """F12's status line: the samples done, the time left once known (Blender's own time format), the triangles."""
     left = "" if remaining is None else f" | Remaining:{format_duration(remaining)}"
@@ -411,7 +422,10 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         camera = scene_export.stereo_view_camera(self, scene, *size, camera_warnings) if view else None
         core_scene, warnings = scene_export.export_scene(depsgraph, *size, camera=camera, info=info)
         warnings = camera_warnings + warnings
+        exported = list(core_scene.materials)  # the stacks, before the decoder choice puts them on their decoders
+        choosing = time.perf_counter()
         settings, notes, choice_info = self._settings(core_scene, scene, props, thumbnail)
+        decoder_seconds = None if thumbnail else time.perf_counter() - choosing
         warnings = warnings + notes
         if props.denoise and not thumbnail and (note := render_properties.denoise_note(scene)) is not None:
             warnings.append(f"Denoise does nothing here: {note}")
@@ -464,13 +478,15 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
                 if self.test_break():  # Esc came too: nothing to fall back for
                     self.update_stats("", "Cancelled")
                     return
-                # The neural runtime failed (a broken model file, say): the reference still renders.
+                # The neural runtime failed (a broken model file, say): the reference still renders, from the stacks
+                # as exported (the decoder choice made neural materials of them, which render neural in any mode)
                 self.report({"WARNING"}, f"neural evaluation failed ({_failure(e)}); rendering in reference mode")
                 remaining = RemainingTime(settings.samples)  # the fallback's own passes
+                core_scene.materials = exported
                 film, stats = render(core_scene, replace(settings, mode="reference"), **calls)
         except Cancelled as c:
             film, stats = c.film, c.stats
-        self.update_stats("", stats.summary())
+        self.update_stats("", render_summary(stats, decoder_seconds))
         combined.rect.foreach_set(shown(film))
         if not thumbnail:
             _write_feature_passes(layer.passes, film, region)

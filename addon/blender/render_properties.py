@@ -144,19 +144,21 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
     decoder_quality: EnumProperty(
         name="Decoder",
         items=model_size_items(
-            "Per material, the smallest decoder whose measured error on its stack is under the "
-            "tolerance (measured once per stack and cached; the most accurate one, with a warning, "
-            "when none is)",
+            "Per material, the smallest decoder whose measured error on its stack is shown to be under the "
+            "tolerance, reference noise included (measured once per stack and cached; the most accurate one, with a "
+            "warning, when none is)",
             "Every layered material on the {size} decoder",
         ),
         default="AUTO",
-        description="Neural decoder of layered materials in neural mode",
+        description="Neural decoder of layered materials in neural mode. A material's refined latent or baked latent "
+        "texture keeps the size it was made for, whatever this says (F12's info names it)",
     )
     time_budget: FloatProperty(
         name="Time Budget",
         description="Auto decoder choice: sizes whose predicted decoder time for the frame (the paths' hits on "
-        "layered materials, from a pilot of camera rays, at the size's measured speed) is over this many seconds "
-        "are not considered, so the paper-sized decoder is only chosen for a frame it fits",
+        "layered materials, from a pilot of camera rays, at the size's measured speed, and a fixed cost per batch "
+        "of queries) is over this many seconds are not considered, so the paper-sized decoder is only chosen for a "
+        "frame it fits",
         default=120.0,
         min=1.0,
         soft_max=3600.0,
@@ -234,18 +236,22 @@ class NLM_RenderSettings(bpy.types.PropertyGroup):
             pixels = core_scene.camera.width * core_scene.camera.height
             hits = quality.scene_decoder_hits(core_scene, bounces) if size == "auto" else None
             queries = quality.frame_decoder_queries(pixels, samples, bounces, hits)
+            chosen = sum(quality.auto_spec(m) is not None for m in core_scene.materials)
+            lines: list[str] = []  # the budget's line, and the sizes materials' own latents fix
             core_scene.materials, choices, notes = quality.assign_decoders(
                 core_scene,
                 size,
                 tolerance,
                 budget_seconds=budget,
                 evaluations=queries,
+                batches=quality.frame_decoder_batches(pixels, samples, bounces, chosen),
                 calibrate=calibrate,
                 only_cached=viewport,  # the viewport reads what renders measured, never stops to measure an edit
-                stop=stop,  # F12's Esc, between the measurements (render.Cancelled)
+                stop=stop,  # F12's Esc, in the measurements and the calibrations (render.Cancelled)
+                info=lines,
             )
             if info is not None:
-                info += [quality.choice_reason(name, c) for name, c in choices.items()]
+                info += [quality.choice_reason(name, c) for name, c in choices.items()] + lines
             return notes
 
         return assign

@@ -1232,3 +1232,117 @@ def test_a_selection_leaves_the_viewport_rendering(fresh_scene):
     assert exports == [1, 1, 1]
     update(lambda: setattr(scene.render, "threads_mode", "FIXED"))  # the session's threads
     assert exports == [1, 1, 1, 1]
+
+
+def test_esc_while_a_fixed_decoder_size_calibrates_cancels_the_render_without_a_failure(
+    fresh_scene, tmp_path, monkeypatch
+):
+    """A fixed Decoder size (Calibrate Albedo on) calibrates each new stack before the first pass, a second or two
+    each: the calibrations heard no stop, and F12 returned 14.8 s (tiny) and 22.4 s (paper) after Esc, against
+    1.5 s for Auto. They now hear F12's test_break between their parts: cancelled, not failed, nothing traced and
+    nothing half made kept."""
+    from addon.blender import engine, render_properties, stack_io
+    from addon.core.neural import calibrate as cal
+    from addon.core.neural import encode_stack, load_models
+    from addon.core.stack import Coating, Diffuse, Stack
+
+    scene = fresh_scene.scene
+    small(scene, 16, 12, samples=2)
+    # a stack no other test calibrates (the calibrations are kept on disk for the session)
+    new = Stack(Diffuse((0.31, 0.42, 0.53)), (Coating(roughness=0.37, ior=1.47, thickness=0.3),))
+    stack_io.stack_to_material(new, scene.objects["Cube"].active_material)
+    scene.render.engine = "NEURAL_LAYERED"
+    scene.neural_render.decoder_quality = "TINY"
+    scene.neural_render.calibrate = True
+    real = render_properties.NLM_RenderSettings.assign_decoders
+    checks, traced = [], []
+
+    def esc_during_the_calibration(self, core_scene, **kw):
+        assert "test_break" in repr(kw["stop"])
+
+        def stop():  # the check before the material, then Esc inside its calibration
+            checks.append(1)
+            return len(checks) > 1
+
+        return real(self, core_scene, **{**kw, "stop": stop})
+
+    monkeypatch.setattr(render_properties.NLM_RenderSettings, "assign_decoders", esc_during_the_calibration)
+    monkeypatch.setattr(engine, "render", lambda *a, **k: traced.append(1))
+    scene.render.filepath = str(tmp_path / "frame.png")
+    bpy.ops.render.render(write_still=True)  # an ERROR report would raise here
+    assert len(checks) == 2 and traced == []
+    models = load_models("tiny")
+    assert cal.cached(new, models, encode_stack(new, models)) is None
+
+
+def test_the_reference_fallback_after_a_neural_failure_renders_the_stacks_in_reference_mode(
+    fresh_scene, tmp_path, monkeypatch, capfd
+):
+    """The neural runtime failing in a render (an ONNX Runtime error in a batch) made F12 say "rendering in
+    reference mode" and render the decoder choice's neural materials again, which failed the same way: the fallback
+    now renders the exported stacks. Nothing of the render is stubbed: the sessions fail from its first batch."""
+    from addon.blender import engine, stack_io
+    from addon.core.neural import session
+    from addon.core.render.neural_material import NeuralMaterial
+    from addon.core.stack import PRESETS
+
+    ctx = fresh_scene
+    small(ctx.scene, 12, 8, samples=1)
+    stack_io.stack_to_material(PRESETS["red_car_paint"], ctx.scene.objects["Cube"].active_material)
+    ctx.scene.render.engine = "NEURAL_LAYERED"
+    ctx.scene.neural_render.decoder_quality = "TINY"
+    ctx.scene.neural_render.calibrate = False
+    ctx.scene.neural_render.reference_walks = 1
+    broken, renders = [], []
+    real_run, real_render = session.ChunkedSession.run_once, engine.render
+
+    def run_once(self, *args, **kwargs):
+        if broken:
+            raise RuntimeError("ONNX Runtime: [ONNXRuntimeError] : 6 : RUNTIME_EXCEPTION : simulated failure")
+        return real_run(self, *args, **kwargs)
+
+    def rendered(scene, settings, **kw):
+        broken.append(1)  # after the decoder choice, which encoded the stack: the render's batches fail
+        renders.append((settings.mode, [type(m) for m in scene.materials]))
+        return real_render(scene, settings, **kw)
+
+    monkeypatch.setattr(session.ChunkedSession, "run_once", run_once)
+    monkeypatch.setattr(engine, "render", rendered)
+    ctx.scene.render.filepath = str(tmp_path / "fallback.exr")
+    ctx.scene.render.image_settings.file_format = "OPEN_EXR"
+    capfd.readouterr()
+    bpy.ops.render.render(write_still=True)  # the failure of the fallback was an ERROR, which raises here
+    assert [mode for mode, _ in renders] == ["neural", "reference"]
+    assert NeuralMaterial in renders[0][1] and NeuralMaterial not in renders[1][1]
+    assert "rendering in reference mode" in capfd.readouterr().out
+    px = read_image(tmp_path / "fallback.exr")[..., :3]
+    assert np.isfinite(px).all() and px.max() > 0
+
+
+def test_the_render_summary_counts_the_decoder_choice_before_the_render(fresh_scene, tmp_path, monkeypatch):
+    """The summary's setup said "0.00 s: materials, calibrations, scene" where the decoder choice and the
+    calibrations had taken 10-69 s before the render began: F12's last line now counts them."""
+    import time
+
+    from addon.blender import engine, render_properties
+
+    scene = fresh_scene.scene
+    small(scene, 8, 6, samples=1)
+    scene.render.engine = "NEURAL_LAYERED"
+    real_assign, real_summary = render_properties.NLM_RenderSettings.assign_decoders, engine.render_summary
+    lines = []
+
+    def slow_choice(self, core_scene, **kw):  # as a first render's measurements and calibrations are
+        time.sleep(0.3)
+        return real_assign(self, core_scene, **kw)
+
+    def summary(stats, decoder_seconds=None):
+        lines.append((decoder_seconds, real_summary(stats, decoder_seconds)))
+        return lines[-1][1]
+
+    monkeypatch.setattr(render_properties.NLM_RenderSettings, "assign_decoders", slow_choice)
+    monkeypatch.setattr(engine, "render_summary", summary)
+    scene.render.filepath = str(tmp_path / "frame.png")
+    bpy.ops.render.render(write_still=True)
+    ((seconds, line),) = lines
+    assert seconds >= 0.3 and line.startswith(f"decoders {seconds:.2f} s") and "paths in" in line, line

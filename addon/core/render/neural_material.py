@@ -216,8 +216,9 @@ class NeuralFallbackWarning(UserWarning):
     """A layered material renders with the reference instead of its neural models; the message says why."""
 
 
-def _texture_size(latent_texture) -> tuple[str, str | None]:
-    """The decoder size a latent texture was baked for and the decoder digest it records (or None)."""
+def texture_size(latent_texture) -> tuple[str, str | None]:
+    """The decoder size a latent texture was baked for and the decoder digest it records (or None): what ``make``
+    decodes it with, and what the decoder choice says fixes its size (``quality.assign_decoders``)."""
     from ..neural import SIZES
 
     meta = getattr(latent_texture, "metadata", None)
@@ -285,7 +286,7 @@ def make(stack: Stack, latent_texture=None, size: str | None = None, latent=None
             raise ValueError(f"the given latent belongs to decoder size {size!r}, not {requested!r}")
         digest = None
     elif latent_texture is not None:
-        size, digest = _texture_size(latent_texture)
+        size, digest = texture_size(latent_texture)
         if requested is not None and requested != size:
             raise ValueError(
                 f"the latent texture was baked for decoder size {size!r}, not {requested!r}: a latent "
