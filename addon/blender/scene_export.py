@@ -6,10 +6,11 @@ normals (smooth, flat, auto-smooth and custom normals as Blender shades them) an
 map; one material per triangle. Lights (point, spot, sun, area), the world (colour or
 equirectangular environment image through a Background node) and the camera.
 
-Materials with a layer stack (``stack_io.stack_from_material``) become ``LayeredSpec``; all others
-render as a Lambertian with their base colour (Principled "Base Color", or the colour of a
-Diffuse BSDF, or the viewport colour), textured when an Image Texture node drives it. Problems
-(missing images, invalid stacks, unsupported camera types) become warnings, never failures.
+Materials with a layer stack (``stack_io.stack_from_material``) become ``LayeredSpec``; a Principled BSDF with
+constant Metallic, Roughness, IOR and Specular IOR Level renders its specular layer over its base colour and its
+metal (``PrincipledMaterial``); all others render as a Lambertian with their base colour (Principled "Base Color",
+or the colour of a Diffuse BSDF, or the viewport colour); either is textured when an Image Texture node drives its
+base colour. Problems (missing images, invalid stacks, unsupported camera types) become warnings, never failures.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from ..core.render import (
     LayeredSpec,
     Mesh,
     PointLight,
+    PrincipledMaterial,
     Scene,
     SpotLight,
     SunLight,
@@ -243,6 +245,8 @@ _PRINCIPLED_DROPPED = (
 )  # fmt: skip
 # The inputs of a Principled BSDF's dielectric specular layer, which the Lambertian leaves out (``_specular_note``).
 _SPECULAR_INPUTS = ("Specular IOR Level", "IOR", "Roughness", "Specular Tint")
+# The Principled BSDF inputs ``PrincipledMaterial`` renders when each is a constant (``_principled_layers``).
+_LAYER_INPUTS = ("Metallic", "Roughness", "IOR", "Specular IOR Level")
 SPECULAR_NOTICEABLE = 0.05  # the share of Cycles' reflected light whose absence a warning names
 _LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec.709's, the core's colour space
 
@@ -258,9 +262,10 @@ def _surface_node(mat):
     return source.node if source is not None else None
 
 
-def _dropped_inputs(node) -> list[str]:
+def _dropped_inputs(node, rendered: tuple[str, ...] = ()) -> list[str]:
     """The inputs of a Principled or Diffuse BSDF that change Cycles' image and that a Lambertian of its colour
-    leaves out: set away from their neutral value, or linked (the specular layer: ``_specular_note``)."""
+    leaves out: set away from their neutral value, or linked (the specular layer: ``_specular_note``); those named
+    in ``rendered`` are rendered (a ``PrincipledMaterial``'s Metallic)."""
     if node.type == "BSDF_DIFFUSE":
         rough = node.inputs.get("Roughness")
         linked = rough is not None and _source(rough) is not None
@@ -268,7 +273,7 @@ def _dropped_inputs(node) -> list[str]:
     dropped = []
     for name, neutral in _PRINCIPLED_DROPPED:
         socket = node.inputs.get(name)
-        if socket is None:
+        if socket is None or name in rendered:
             continue
         linked = _source(socket) is not None
         if linked or abs(float(socket.default_value) - neutral) > 1e-6:
@@ -285,33 +290,23 @@ def _dropped_inputs(node) -> list[str]:
     return dropped
 
 
-def _fresnel_average(eta: float) -> float:
-    """A smooth dielectric's albedo under uniform light: the cosine-weighted hemispherical average of its exact
-    Fresnel reflectance (``core.bsdf.fresnel_dielectric``), 2 * integral of F(mu) mu over mu in [0, 1], by
-    64-point Gauss-Legendre quadrature (about 0.092 at n = 1.5)."""
-    from ..core.bsdf import fresnel_dielectric
-
-    mu, w = np.polynomial.legendre.leggauss(64)
-    mu, w = 0.5 * (mu + 1.0), 0.5 * w
-    return float(2.0 * np.sum(w * mu * fresnel_dielectric(mu, eta)))
-
-
 def specular_albedo(ior: float, level: float, tint) -> float:
     """About the share of light a Principled BSDF's dielectric specular layer reflects (its albedo, as luminance),
     by Cycles' rule for it (``svm_node_closure_bsdf``, Principled: "Apply IOR adjustment" and "Specular
-    component"): Specular IOR Level scales the normal-incidence reflectance F0 = ((n - 1) / (n + 1))^2 by
-    2 x level and sets the index that gives it; Specular Tint tints F0, the Fresnel curve rising from it to 1 at
-    grazing (a generalized Schlick on the exact curve: F0t + (1 - F0t) (F - F0) / (1 - F0), averaged here)."""
-    ior, level = max(float(ior), 1e-5), max(float(level), 0.0)
-    f0 = ((ior - 1.0) / (ior + 1.0)) ** 2 * 2.0 * level
-    if f0 <= 0.0:
+    component"): Specular IOR Level sets the layer's index (``core.bsdf.specular_ior``: it scales the
+    normal-incidence reflectance F0 = ((n - 1) / (n + 1))^2 by 2 x level); Specular Tint tints F0, the Fresnel
+    curve rising from it to 1 at grazing (a generalized Schlick on the exact curve: F0t + (1 - F0t) (F - F0) /
+    (1 - F0), averaged here)."""
+    from ..core.bsdf.specular_diffuse import fresnel_dielectric_average, specular_ior
+
+    if float(level) <= 0.0:
         return 0.0
-    if f0 >= 1.0:
+    eta = specular_ior(ior, level)
+    f0 = ((eta - 1.0) / (eta + 1.0)) ** 2
+    if f0 >= 0.999:
         return 1.0
-    eta = (1.0 + math.sqrt(f0)) / (1.0 - math.sqrt(f0))
-    eta = 1.0 / eta if ior < 1.0 else eta
     tinted = f0 * float(np.clip(np.asarray(tint[:3], dtype=np.float64), 0.0, None) @ _LUMINANCE)
-    return tinted + (1.0 - tinted) * (_fresnel_average(eta) - f0) / (1.0 - f0)
+    return tinted + (1.0 - tinted) * (float(fresnel_dielectric_average(eta)) - f0) / (1.0 - f0)
 
 
 def specular_share(albedo: float, base: float) -> float:
@@ -350,6 +345,41 @@ def _specular_note(node, base: float) -> str | None:
         f"its specular reflection is left out (IOR {ior:.3g}, Specular IOR Level {level.default_value:.3g}: about "
         f"{share:.0%} of the light Cycles' surface reflects)"
     )
+
+
+def _principled_layers(node) -> dict | None:
+    """The constant Metallic, Roughness, IOR and Specular IOR Level of a Principled BSDF, as ``PrincipledMaterial``'s
+    arguments, or None where one of them is linked (then the surface renders as a Lambertian of its base colour,
+    and ``_specular_note`` and ``_dropped_inputs`` name what that leaves out)."""
+    sockets = [node.inputs.get(name) for name in _LAYER_INPUTS]
+    if any(s is None or _source(s) is not None for s in sockets):
+        return None
+    metallic, roughness, ior, level = (float(s.default_value) for s in sockets)
+    return {"metallic": metallic, "roughness": roughness, "ior": ior, "specular_level": level}
+
+
+def _tint_note(node, layers: dict) -> str | None:
+    """A Specular Tint away from white on a rendered specular layer or metal, which ``PrincipledMaterial`` leaves
+    out (Cycles tints the layer's normal-incidence reflectance and the metal's edge with it)."""
+    tint = node.inputs.get("Specular Tint")
+    if tint is None or (layers["specular_level"] <= 0.0 and layers["metallic"] <= 0.0):
+        return None
+    if _source(tint) is not None:
+        return "its Specular Tint is left out (it is linked)"
+    if np.allclose(tint.default_value[:3], 1.0, atol=1e-6):
+        return None
+    return "its Specular Tint is left out (an untinted specular reflection)"
+
+
+def _layer_notes(node, layers: dict | None, base: float) -> list[str]:
+    """What a surface node's layers above its base colour (of luminance ``base``) change in Cycles' image that is
+    left out: a rendered Principled BSDF's Specular Tint (``_tint_note``), or a Lambertian's missing specular layer
+    (``_specular_note``)."""
+    if layers is not None:
+        note = _tint_note(node, layers)
+    else:
+        note = _specular_note(node, base) if node.type == "BSDF_PRINCIPLED" else None
+    return [note] if note is not None else []
 
 
 def _luminance(colour) -> float:
@@ -432,9 +462,11 @@ def _is_uv_source(source) -> bool:
     return node.type == "UVMAP" and not node.uv_map
 
 
-def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial:
-    """A Lambertian with the material's base colour (and base-colour texture); what it leaves out that changes
-    Cycles' image is named in one warning. A material whose output has no surface is black, as in Cycles."""
+def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial | PrincipledMaterial:
+    """A Principled BSDF with constant Metallic, Roughness, IOR and Specular IOR Level as a ``PrincipledMaterial``
+    (its specular layer over its base colour, and its metal), any other surface as a Lambertian with the material's
+    base colour; either with its base-colour texture. What it leaves out that changes Cycles' image is named in one
+    warning. A material whose output has no surface is black, as in Cycles."""
     if mat is None:
         return LambertMaterial()
     if getattr(mat, "node_tree", None) is None:
@@ -453,7 +485,8 @@ def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial:
         )
         _warn_material(mat, notes, warnings)
         return LambertMaterial(color if color is not None else tuple(mat.diffuse_color[:3]))
-    dropped = _dropped_inputs(node)
+    layers = _principled_layers(node) if node.type == "BSDF_PRINCIPLED" else None
+    dropped = _dropped_inputs(node, rendered=("Metallic",) if layers is not None else ())
     if dropped:
         verb = "is" if len(dropped) == 1 else "are"
         notes.append(f"its {_node_title(node)}'s {_listed(dropped)} {verb} left out (a Lambertian of its base colour)")
@@ -489,12 +522,25 @@ def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial:
             f"its {socket.name} comes from {_a_node(source.node)}, which this renderer does not evaluate (only an "
             "Image Texture, a Color or a Value node is); using the viewport colour"
         )
-    if node.type == "BSDF_PRINCIPLED":
-        specular = _specular_note(node, _luminance(color) if base is None else base)
-        notes += [specular] if specular is not None else []
+    base = _luminance(color) if base is None else base
+    layered = layers is not None and (layers["metallic"] > 0.0 or _specular_matters(node, layers, base))
+    notes += _layer_notes(node, layers if layered else None, base)
     notes += _relief_notes(mat, node)
     _warn_material(mat, notes, warnings)
-    return LambertMaterial(color, texture)
+    if not layered:  # a Lambertian: no layer above the base that matters (and cheaper), or a layer's input is linked
+        return LambertMaterial(color, texture)
+    return PrincipledMaterial(color, texture=texture, **layers)
+
+
+def _specular_matters(node, layers: dict, base: float) -> bool:
+    """Whether a dielectric Principled BSDF's specular layer reflects more than SPECULAR_NOTICEABLE of what the
+    surface reflects (``specular_share``, over a base of luminance ``base``). Where it does not (a pale base: the
+    default material's 2%), the surface renders as a Lambertian of its base colour, within 2% of Cycles' image in
+    block means, its soft highlights left out: a ``PrincipledMaterial`` shades in numpy, and a scene of default
+    materials rendered 4x as long with it (0.60 s against 0.15 s, a cube on a plane, 240 x 160, 16 spp)."""
+    tint = node.inputs["Specular Tint"].default_value
+    albedo = specular_albedo(layers["ior"], layers["specular_level"], tint)
+    return specular_share(albedo, base) > SPECULAR_NOTICEABLE
 
 
 def _warn_material(mat, notes: list[str], warnings: list[str]) -> None:
@@ -1053,7 +1099,7 @@ def _warn_visibility(ob, holdouts: set, warnings: list[str]) -> None:
 
 def _reads_uvs(material) -> bool:
     """Whether a scene material looks anything up by uv: an image texture, a baked latent texture, parameter maps."""
-    if isinstance(material, LambertMaterial):
+    if isinstance(material, (LambertMaterial, PrincipledMaterial)):
         return material.texture is not None
     return getattr(material, "latent_texture", None) is not None or getattr(material, "spatial", None) is not None
 

@@ -250,23 +250,32 @@ def _default_principled(name="m"):
 
 def test_a_specular_layer_that_changes_the_image_noticeably_is_named(fresh_scene):
     """The Principled BSDF's specular layer was left out without a word: a black plastic (base 0, roughness 0.2)
-    rendered 0.03 of Cycles' object pixels, a dark blue one 0.52. It is named where it reflects more than 5% of
-    the light the surface reflects in Cycles, and where its inputs are linked; a pale base colour (the default
-    0.8, 1.5% off Cycles' image) stays quiet."""
+    rendered 0.03 of Cycles' object pixels, a dark blue one 0.52. It is rendered where its Metallic, Roughness, IOR
+    and Specular IOR Level are constants (``PrincipledMaterial``: test_principled_render.py); where one is linked
+    the surface is a Lambertian, and the layer is named where it reflects more than 5% of the light the surface
+    reflects in Cycles, or where its own inputs are linked; a pale base colour (the default 0.8, 1.5% off Cycles'
+    image) stays quiet."""
     from addon.blender import scene_export
+    from addon.core.render import LambertMaterial, PrincipledMaterial
 
     mat, principled = _default_principled("default")
     assert _warnings_of(mat) == []
     principled.inputs["Base Color"].default_value = (0.0, 0.0, 0.0, 1.0)
     principled.inputs["Roughness"].default_value = 0.2
+    assert _warnings_of(mat) == []  # rendered
+    assert isinstance(scene_export.unmanaged_material(mat, []), PrincipledMaterial)
+    value = mat.node_tree.nodes.new("ShaderNodeValue")
+    value.outputs[0].default_value = 0.0
+    mat.node_tree.links.new(value.outputs[0], principled.inputs["Metallic"])  # a linked Metallic: a Lambertian
+    assert isinstance(scene_export.unmanaged_material(mat, []), LambertMaterial)
     (warning,) = _warnings_of(mat)
-    assert warning.startswith("material 'default': its specular reflection is left out (IOR 1.5,")
+    assert "its specular reflection is left out (IOR 1.5," in warning
     assert "about 100% of the light" in warning
     principled.inputs["Base Color"].default_value = (0.02, 0.04, 0.3, 1.0)  # dark blue
     (warning,) = _warnings_of(mat)
     assert "specular reflection is left out" in warning
     principled.inputs["Specular IOR Level"].default_value = 0.0  # no specular layer: a Lambertian in Cycles too
-    assert _warnings_of(mat) == []
+    assert "specular reflection" not in _warnings_of(mat)[0]
     mat, principled = _default_principled("rough map")
     noise = mat.node_tree.nodes.new("ShaderNodeTexNoise")
     mat.node_tree.links.new(noise.outputs[0], principled.inputs["Roughness"])
@@ -320,7 +329,9 @@ def test_warnings_name_nodes_as_blender_shows_them(fresh_scene):
     assert "its surface is a Group node 'Wood'" in said[-1]
 
     mat, principled = _default_principled("shiny")
-    principled.inputs["Metallic"].default_value = 1.0
+    value = mat.node_tree.nodes.new("ShaderNodeValue")
+    value.outputs[0].default_value = 1.0
+    mat.node_tree.links.new(value.outputs[0], principled.inputs["Metallic"])  # constant Metallic is rendered
     said += _warnings_of(mat)
     assert said[-1] == "material 'shiny': its Principled BSDF's Metallic is left out (a Lambertian of its base colour)"
     principled.inputs["Coat Weight"].default_value = 1.0

@@ -22,6 +22,7 @@ from .fresnel import fresnel_conductor, fresnel_dielectric
 from .ggx import ndf, pdf_visible_normal, sample_visible_normal, smith_g1, smith_g2, smith_lambda
 from .lambert import Lambertian
 from .phase import HenyeyGreenstein
+from .specular_diffuse import SpecularDiffuse, specular_ior
 
 __all__ = [
     "BSDF",
@@ -33,6 +34,7 @@ __all__ = [
     "RoughConductor",
     "RoughDielectric",
     "SMOOTH_ALPHA",
+    "SpecularDiffuse",
     "coordinate_system",
     "cos_theta",
     "frame",
@@ -50,6 +52,7 @@ __all__ = [
     "smith_g1",
     "smith_g2",
     "smith_lambda",
+    "specular_ior",
     "to_local",
     "to_world",
 ]

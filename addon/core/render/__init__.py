@@ -9,7 +9,15 @@ Data comes in as plain arrays (:class:`Scene`), so the core renders without Blen
 from .film import Film, write_exr, write_png
 from .integrator import Cancelled, RenderSettings, RenderStats, render
 from .lights import AreaLight, Environment, PointLight, SpotLight, SunLight
-from .materials import BSDFMaterial, ImageTexture, LambertMaterial, LayeredSpec, ReferenceLayered, SurfaceHits
+from .materials import (
+    BSDFMaterial,
+    ImageTexture,
+    LambertMaterial,
+    LayeredSpec,
+    PrincipledMaterial,
+    ReferenceLayered,
+    SurfaceHits,
+)
 from .scene import Camera, Mesh, Scene
 
 __all__ = [
@@ -24,6 +32,7 @@ __all__ = [
     "LayeredSpec",
     "Mesh",
     "PointLight",
+    "PrincipledMaterial",
     "ReferenceLayered",
     "RenderSettings",
     "RenderStats",

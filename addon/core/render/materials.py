@@ -45,6 +45,7 @@ from .. import kernels
 from ..bsdf import Lambertian, RoughConductor, RoughDielectric
 from ..bsdf.base import SMOOTH_ALPHA, BSDFSample
 from ..bsdf.dielectric import INDEX_MATCHED_TOL, is_smooth
+from ..bsdf.specular_diffuse import SpecularDiffuse, specular_ior
 from ..stack import Conductor, Dielectric, Diffuse, Stack
 from ..textures.mip import build_mip_chain, trilinear_lookup
 from ..threads import map_on_threads
@@ -197,6 +198,36 @@ class LambertMaterial:
         # the texels clipped to [0, 1], times the colour
         albedo = kernels.tinted_albedo(self.texture.lookup(hits.uv, hits.footprint), self.color)
         return _BoundBSDF(Lambertian.of_valid_rows(albedo))
+
+
+class PrincipledMaterial:
+    """Cycles' Principled BSDF without transmission, coat, sheen, subsurface, emission or tints: a GGX dielectric
+    reflection over a Lambertian of the base colour, mixed with a GGX metal of that colour by ``metallic``
+    (``bsdf.SpecularDiffuse``). ``roughness`` is artist roughness (GGX alpha = roughness^2), ``ior`` and
+    ``specular_level`` Blender's IOR and Specular IOR Level (``bsdf.specular_diffuse.specular_ior``; an IOR below 1
+    is read as 1 / IOR, the same interface seen from the other side). The base colour is textured as
+    :class:`LambertMaterial`'s is (the texels times ``base_color``); a channel above 1 is kept, as Cycles keeps it."""
+
+    kind = "analytic"
+    has_pdf = True
+
+    def __init__(self, base_color, metallic=0.0, roughness=0.5, ior=1.5, specular_level=0.5, texture=None):
+        color = np.broadcast_to(np.asarray(base_color, dtype=np.float64), (3,))
+        self.color = np.maximum(np.nan_to_num(color, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
+        self.metallic = float(np.clip(metallic, 0.0, 1.0))
+        self.roughness = float(np.clip(roughness, 0.0, 1.0))
+        eta = specular_ior(ior, specular_level)
+        self.ior = max(eta, 1.0 / eta)
+        self.texture = texture
+        self._const = _BoundBSDF(self._bsdf(self.color[None, :].copy()))
+
+    def _bsdf(self, base: np.ndarray) -> SpecularDiffuse:
+        return SpecularDiffuse(base, self.roughness**2, self.ior, self.metallic)
+
+    def bind(self, hits: SurfaceHits):
+        if self.texture is None:
+            return self._const
+        return _BoundBSDF(self._bsdf(kernels.tinted_albedo(self.texture.lookup(hits.uv, hits.footprint), self.color)))
 
 
 class BSDFMaterial:
