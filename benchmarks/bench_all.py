@@ -633,8 +633,8 @@ def markdown(data: dict, command: str) -> str:
         lines += [
             f"Tolerance {a['tolerance']:g} (relative lobe error), {a['spp']} samples per pixel, against always using "
             f"the largest shipped decoder ({a['largest']}). Per material, `addon.core.quality.choose_decoder` picks "
-            "the smallest decoder whose measured error on that stack is under the tolerance, else the most "
-            "accurate one (with a warning).",
+            "the smallest decoder whose measured error on that stack is shown under the tolerance (its upper "
+            "bound is), else the most accurate one (with a warning).",
             "",
             "| material | chosen | measured error per size tried | within tolerance |",
             "|---|---|---|---|",
