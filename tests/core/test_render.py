@@ -395,12 +395,13 @@ def _rectangle_solid_angle(p, light):
     return total
 
 
-def test_a_rectangle_light_close_by_is_sampled_by_its_solid_angle():
-    """Within three of its bounding radii, a rectangle light is sampled evenly in the solid angle it fills (as
-    Cycles samples it): the density is one over that solid angle, everywhere on the light, and a sample's
-    irradiance varies by its cosine alone. Sampled by area, the irradiance under a light as wide as it is far
-    varied 16 times as much (its squared variation over its mean, head-on) and 100 to 150 times at grazing points.
-    Farther (or sheared), the light is sampled by area."""
+def test_a_rectangle_light_is_sampled_by_its_solid_angle():
+    """A rectangle light is sampled evenly in the solid angle it fills (as Cycles samples it), near or far: the
+    density is one over that solid angle, everywhere on the light, and a sample's irradiance varies by its cosine
+    alone. Sampled by area, the irradiance under a light as wide as it is far varied 16 times as much (its squared
+    variation over its mean, head-on) and 100 to 150 times at grazing points; a lit floor 3-5 of the light's radii
+    away rendered with 14 times the variance. A sheared light, and points in the light's plane, are sampled by
+    area."""
     m = np.eye(4)
     m[:3, 3] = (0.3, -0.2, 2.0)
     light = AreaLight(m, power=100.0, size=2.0, size_y=1.2)
@@ -410,13 +411,10 @@ def test_a_rectangle_light_close_by_is_sampled_by_its_solid_angle():
     lit = ls.pdf > 0
     assert lit.mean() > 0.9
     np.testing.assert_allclose(ls.pdf[lit], 1.0 / _rectangle_solid_angle(near[lit], light), rtol=1e-9)
-    # farther than three bounding radii: by area, the density t^2 / (A cos)
     radius = math.sqrt(light._bounding_radius2())
-    far = light.center + np.array([[0.5, 0.4, -3.2 * radius], [0.0, 0.0, -2.8 * radius]])
+    far = light.center + np.array([[0.5, 0.4, -5.0 * radius], [3.0, 0.0, -40.0 * radius]])
     ls_far = light.sample(far, np.full((2, 2), 0.3))
-    by_area = ls_far.dist**2 / (light.area * -(ls_far.wi @ light.normal))
-    assert ls_far.pdf[0] == pytest.approx(by_area[0], rel=1e-9)
-    assert ls_far.pdf[1] == pytest.approx(1.0 / _rectangle_solid_angle(far[1:], light)[0], rel=1e-9)
+    np.testing.assert_allclose(ls_far.pdf, 1.0 / _rectangle_solid_angle(far, light), rtol=1e-9)
 
     # a point in the light's plane to 1e-6 of its size (Ureña's angles lose their digits: samples bunched, 1e-9 of
     # its size gave NaN directions) and a light whose shear moves its short edges by 1e-4 of their length (a

@@ -8,8 +8,7 @@ Blender's units, converted once here:
 - area: ``power`` in watts leaves one side (the light's local -z) as a Lambertian emitter,
   radiance L = power / (pi * area) (L = power / pi where Blender's *Normalize* is off), shaped by Blender's
   *Spread* (Cycles' soft-box grid, which keeps the power: ``spread_factor``); a rectangle is sampled by the
-  solid angle it fills from points near it (``kernels.SOLID_ANGLE_WITHIN``, within a spread's cone), else
-  evenly in area.
+  solid angle it fills (within a spread's cone: ``kernels._rect_window``), an ellipse evenly in area.
 
 Every ``sample(p, u)`` returns a :class:`LightSample` of world directions *toward* the light,
 the distance to it (inf for the sun and the environment), the arriving radiance (for delta
