@@ -420,20 +420,9 @@ def measure(
     return measured
 
 
-def measured_error(
-    stack: Stack,
-    size: str,
-    res: int = LOBE_RES,
-    walks: int = REFERENCE_WALKS,
-    seed: int = 0,
-    cache: ErrorCache | None = None,
-    threads: int = 2,
-    calibrate=False,
-    only_cached: bool = False,
-    rounds: int = 1,
-) -> float:
-    """The measured lobe error of :func:`measure`, without its bounds."""
-    return measure(stack, size, res, walks, seed, cache, threads, calibrate, only_cached, rounds)[0]
+def measured_error(stack: Stack, size: str, *args, **kwargs) -> float:
+    """The measured lobe error of :func:`measure` (its arguments), without its bounds."""
+    return measure(stack, size, *args, **kwargs)[0]
 
 
 def _checked_tolerance(tolerance, fallback: str) -> float:
