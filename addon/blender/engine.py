@@ -136,13 +136,14 @@ def viewport_reports(info: list[str], warnings: list[str], said: set[str]) -> li
     """What the viewport reports of an export and its decoder choice, as ``(kind, line)``: its INFO lines (a stale
     refined latent, a stack no F12 has measured yet) and its WARNING lines (what the export leaves out of the scene,
     as F12 reports them), each line that ``said`` (the lines the viewport reported so far) does not hold yet, which
-    it then holds: once, not at every edit. Lines that differ in their numbers alone are one line (a slider dragged
-    over a dark material changes the share its specular warning gives at every tick). A long session of edits (over
-    1000 lines) forgets them and reports again. The viewport threw every warning away, so a material it rendered as
-    a flat Lambertian looked right there and was named only in F12."""
+    it then holds: once, not at every edit. Lines that differ in their numbers alone, outside quoted names, are one
+    line (a slider dragged over a dark material changes the share its specular warning gives at every tick). A long
+    session of edits (over 1000 lines) forgets them and reports again. The viewport threw every warning away, so a
+    material it rendered as a flat Lambertian looked right there and was named only in F12."""
     reports = []
     for kind, line in [("INFO", line) for line in info] + [("WARNING", line) for line in warnings]:
-        key = re.sub(r"\d+(\.\d+)?", "#", line)
+        parts = line.split("'")  # names in quotes kept whole: 'Material.001' and 'Material.002' are two lines
+        key = "'".join(part if i % 2 else re.sub(r"\d+(\.\d+)?", "#", part) for i, part in enumerate(parts))
         if key not in said:
             if len(said) > 1000:
                 said.clear()

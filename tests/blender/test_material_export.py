@@ -381,6 +381,9 @@ def test_the_viewport_reports_what_f12_warns_of_once_per_line():
     # a slider dragged: the same warning with another share, said once
     assert engine.viewport_reports([], ["m: about 54% of it"], said) == [("WARNING", "m: about 54% of it")]
     assert engine.viewport_reports([], ["m: about 53% of it", "m: IOR 1.45"], said) == [("WARNING", "m: IOR 1.45")]
+    # two materials whose names differ in a number alone are two lines
+    two = ["material 'Mat.001': a Glossy BSDF", "material 'Mat.002': a Glossy BSDF"]
+    assert engine.viewport_reports([], two, said) == [("WARNING", two[0]), ("WARNING", two[1])]
 
 
 def test_the_viewport_shows_the_exports_warnings(fresh_scene, monkeypatch):
