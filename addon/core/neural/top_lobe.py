@@ -33,6 +33,7 @@ with (clamped to the trained range, ``stack.clamp_to_trained``), its ior the coa
 from __future__ import annotations
 
 import functools
+import threading
 
 import numpy as np
 
@@ -223,9 +224,19 @@ def transmission(top, cos) -> np.ndarray:
     return kernels.transmission_rows(top_table(top, len(c)), c, *transmittance_grids())
 
 
-@functools.lru_cache(maxsize=1)
+_GRIDS_LOCK = threading.Lock()
+
+
 def transmittance_grids() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The table and its cosine, alpha and ior grids as the compiled loops take them (contiguous float64)."""
+    """The table and its cosine, alpha and ior grids as the compiled loops take them (contiguous float64), made once
+    a process: a render that needs them while the add-on's warm-up makes them waits for it, where both had made the
+    table at once (1.2 s alone, 2-4 s side by side, right after Blender starts)."""
+    with _GRIDS_LOCK:
+        return _transmittance_grids()
+
+
+@functools.lru_cache(maxsize=1)
+def _transmittance_grids() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     return tuple(
         kernels.float64_rows(a)
         for a in (transmittance_table(), TRANSMITTANCE_COS, TRANSMITTANCE_ALPHA, TRANSMITTANCE_IOR)
