@@ -321,15 +321,16 @@ def test_the_compiled_lambert_shade_is_the_lambertian_bsdf_and_finish_proposals_
         np.testing.assert_array_equal(a, b_)
 
 
-def test_a_textured_lambertians_albedo_is_the_clipped_texels_times_its_colour():
+def test_a_textured_lambertians_albedo_is_the_non_negative_texels_times_its_colour():
+    """Texels above 1 (an HDR image on a base colour) are kept, as Cycles keeps them; a negative one is 0."""
     rng = np.random.default_rng(4)
     texels = rng.uniform(-0.5, 1.5, (5000, 3)).astype(np.float32)
     texels[:4] = [0.0, 1.0, -0.0], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [2.0, -2.0, 1.0]
     color = np.array([0.8, 0.35, 1.0])
     got = kernels.tinted_albedo(texels, color)
     assert got.dtype == np.float64
-    np.testing.assert_array_equal(got, np.clip(texels, 0.0, 1.0) * color)  # equal to the bit
-    assert got.min() == 0.0 and got.max() == 1.0
+    np.testing.assert_array_equal(got, np.maximum(texels, 0.0) * color)  # equal to the bit
+    assert got.min() == 0.0 and got.max() == 2.0 * 0.8
 
 
 def _unit_rows(rng, n, below=0.1):
