@@ -547,8 +547,9 @@ def first_hit_features(features, row, weight, ns, dist, d, forward):
 # directions (W + 1, 2) and a first guess of the column per even bin of :func:`_pseudo_angle`.
 
 POINT, SPOT, SUN, AREA_RECT, AREA_ELLIPSE, ENVIRONMENT = range(6)  # an environment of one colour is a 1 x 1 image
-N_PARAMS = 21
-NO_SHADOW = 20  # every row's last parameter: 1 for a light that casts no shadow (Blender's Cast Shadow off)
+N_PARAMS = 22
+NO_SHADOW = 20  # every row's: 1 for a light that casts no shadow (Blender's Cast Shadow off)
+BY_AREA = 21  # a rectangle light's: 1 to sample it by area, not by solid angle (a comparison's: ``AreaLight``)
 
 
 @njit(inline="always", **_JIT)
@@ -722,16 +723,16 @@ def is_delta(kind):
 # of its lit side but those in its plane (:func:`_rect_window`). Near or far: a floor under the demo's tilted
 # light, three to five of its radii away, had 14 times the variance sampled by area (the variance of a sample's
 # irradiance over its squared mean, 0.04-0.09 there, against 0.002), which a render's other noise did not hide;
-# a sample costs about 60 ns more, 5% of a demo render.
+# a sample costs about 60 ns more, 3-5% of a demo render (docs/light_sampling.md).
 
 
 @njit(forceinline=True, **_JIT)
 def _rect_window(params, j, px, py, pz):
     """Where solid-angle sampling draws rectangle light ``params[j]`` from at point (px, py, pz): ``ok`` (False: a
-    sheared light, or a point on its dark side or in its plane: sample its area), the light's unit axes x and y,
-    and the window's edges relative to the point, x0 < x1 along x, y0 < y1 along y and z0 < 0 along the light's
-    normal. The window is the light, or under a *Spread* the part of it within the cone the point sees it through
-    (Cycles' clamp: beyond it the light sends the point nothing); an empty window has x0 = x1."""
+    sheared light, one marked :data:`BY_AREA`, or a point on its dark side or in its plane: sample its area), the
+    light's unit axes x and y, and the window's edges relative to the point, x0 < x1 along x, y0 < y1 along y and z0
+    < 0 along the light's normal. The window is the light, or under a *Spread* the part of it within the cone the
+    point sees it through (Cycles' clamp: beyond it the light sends the point nothing); an empty window has x0 = x1."""
     ux, uy, uz, vx, vy, vz = params[j, 3], params[j, 4], params[j, 5], params[j, 6], params[j, 7], params[j, 8]
     uu, vv, uv = ux * ux + uy * uy + uz * uz, vx * vx + vy * vy + vz * vz, ux * vx + uy * vy + uz * vz
     cx, cy, cz = params[j, 0] - px, params[j, 1] - py, params[j, 2] - pz
@@ -742,7 +743,7 @@ def _rect_window(params, j, px, py, pz):
     # of their length (a float32 matrix's rounding: 1e-7 of the long side) are sampled by area.
     flat = z0 * z0 < 1e-12 * radius2
     sheared = uv * uv > 1e-10 * min(uu, vv) ** 2
-    if not z0 < 0.0 or flat or sheared:
+    if not z0 < 0.0 or flat or sheared or params[j, BY_AREA] != 0.0:
         return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     lu, lv = _sqrt(uu), _sqrt(vv)
     xx, xy, xz, yx, yy, yz = ux / lu, uy / lu, uz / lu, vx / lv, vy / lv, vz / lv

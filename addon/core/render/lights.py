@@ -205,12 +205,15 @@ class AreaLight:
     spread: float = math.pi
     camera_visible: bool = True
     casts_shadow: bool = field(default=True, kw_only=True)
+    solid_angle: bool = field(default=True, kw_only=True)
 
     def __post_init__(self):
         """``normalize``: Blender's *Normalize* (the power spread over the light's area; off, the radiance is
         power / pi whatever the size). ``spread``: Blender's *Spread* in radians, [0, pi]: the light leaves within
         that cone of its normal (``spread_factor``). ``camera_visible``: whether camera rays see the light itself
-        (the object's *Camera* ray visibility), as Cycles draws it; it lights the scene either way."""
+        (the object's *Camera* ray visibility), as Cycles draws it; it lights the scene either way. ``solid_angle``:
+        a rectangle is sampled by the solid angle it fills (``kernels._rect_window``); False samples it by area, as
+        before (``benchmarks/bench_light_sampling.py`` compares the two)."""
         m = np.asarray(self.matrix, dtype=np.float64).reshape(4, 4)
         if not np.isfinite(m).all():
             raise ValueError(f"AreaLight.matrix must be finite, got {m.tolist()}")
@@ -241,6 +244,7 @@ class AreaLight:
         row[16] = self._bounding_radius2()
         row[17], row[18] = spread_table(self.spread)
         row[19] = 1.0 if self.camera_visible else 0.0
+        row[kernels.BY_AREA] = 0.0 if self.solid_angle else 1.0
         return (kernels.AREA_ELLIPSE if self.ellipse else kernels.AREA_RECT), _shadowed(row, self)
 
     def _bounding_radius2(self) -> float:
