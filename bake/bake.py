@@ -59,7 +59,13 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from addon.core.stack import PRESETS, Stack, preset  # noqa: E402
+from addon.core.stack import (  # noqa: E402
+    PRESETS,
+    Stack,
+    alpha_from_artist_roughness,
+    artist_roughness_from_alpha,
+    preset,
+)
 from addon.core.textures import colour_maps, files  # noqa: E402
 from addon.core.textures.bake import (  # noqa: E402
     _texels_at,
@@ -127,7 +133,7 @@ _MASK = re.compile(r"^(?P<file>.+?)" + _SPACE + "$")
 
 def parse_map(spec: str) -> tuple[str, Path, float, float, str]:
     """``PATH=FILE[@SPACE][:LO:HI]``: image values in [0, 1], decoded by the colour-space rule
-    (``colour_maps``; SPACE overrides it), are mapped linearly onto [LO, HI]."""
+    (``colour_maps``; SPACE overrides it), are mapped onto [LO, HI] (:func:`map_range`)."""
     m = _MAP.match(spec)
     if not m:
         raise BadInput(f"--map {spec!r} must look like 'coatings[0].roughness=rough.png' or '...=rough.png:0.01:0.5'")
@@ -137,6 +143,21 @@ def parse_map(spec: str) -> tuple[str, Path, float, float, str]:
     except ValueError:
         raise BadInput(f"--map {spec!r}: LO and HI must be numbers, e.g. ':0.01:0.5'") from None
     return m.group("path").strip(), Path(m.group("file")), lo, hi, _space(m.group("space"), f"--map {spec!r}")
+
+
+def map_range(field: str, img: np.ndarray, lo: float, hi: float, what: str) -> np.ndarray:
+    """A driving image's values (0 to 1) as ``field``'s values from LO (at 0) to HI (at 1), in float64 (LO itself,
+    not float32's rounding of it). Linear, except a roughness: LO and HI are GGX alphas (the stack's unit), and the
+    values between them are linear in the artist's roughness (the square root of alpha), as the sidebar's maps and
+    Blender's roughness maps are, so one image gives one material whichever way it is baked (linear in alpha, a
+    grey of 0.5 over 0.01:0.4 had baked 0.205 where the sidebar's same range bakes 0.134)."""
+    t = img.astype(np.float64)
+    if field != "roughness":
+        return lo + (hi - lo) * t
+    if lo < 0.0 or hi < 0.0:
+        raise BadInput(f"{what}: a roughness range must not be negative (GGX alpha), got [{lo}, {hi}]")
+    a, b = artist_roughness_from_alpha(lo), artist_roughness_from_alpha(hi)
+    return alpha_from_artist_roughness(a + (b - a) * t)
 
 
 def _space(name: str | None, what: str) -> str:
@@ -171,10 +192,11 @@ def preset_job(args) -> list[Job]:
     for spec in args.map or []:
         path, file, lo, hi, space = parse_map(spec)
         try:
-            img, how = read_map(file, parse_parameter_path(stack, path)[2], space)
+            field = parse_parameter_path(stack, path)[2]
+            img, how = read_map(file, field, space)
         except (FileNotFoundError, ValueError) as e:
             raise BadInput(f"--map {path}: {e}") from None
-        maps[path] = lo + (hi - lo) * img.astype(np.float64)  # in float64: LO itself, not float32's rounding of it
+        maps[path] = map_range(field, img, lo, hi, f"--map {path}")
         sources[path] = f"{file.name} ({how}) [{lo}, {hi}]"
     try:
         spatial = SpatialStack(stack, maps)
@@ -478,16 +500,19 @@ def run(
     model_id = encoder_model_key(encode, model, calibrate)
     _check_output_folder(out, jobs)
     files.remove_stale_temps(out)
-    items = []
+    # Items are numbered over every job, published or not, so that a shard takes the same items whenever it runs:
+    # numbered over the unpublished ones only, a shard run after another had published a material took items
+    # shifted by that material's bands, and the shards run one after another left materials unbaked.
+    items, fresh = [], set()
     for job in jobs:
         key = job.key(model_id)
         if _fresh(out, job, key):
             log(f"{job.name}: up to date, skipped")
             _remove_bands(out, job)
-            continue
+            fresh.add(id(job))
         bands = -(-job.resolution[0] // band_rows)
         items += [(job, key, b) for b in range(bands)]
-    mine = [it for k, it in enumerate(items) if k % shard[1] == shard[0]]
+    mine = [it for k, it in enumerate(items) if k % shard[1] == shard[0] and id(it[0]) not in fresh]
     bar = ProgressBar(len(mine))
     stats = {"bands_baked": 0, "bands_skipped": 0, "texels": 0, "unique": 0, "seconds": 0.0, "assembled": []}
     stats["model_key"] = model_id
@@ -690,7 +715,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
         "linear; every other parameter and the mask read the values raw (Blender's Non-Color). "
         f"@SPACE overrides it: {', '.join(colour_maps.COLOUR_SPACES)} (e.g. base.albedo=colour.png@linear). "
         "LO:HI are in the stack's own units (addon.core.stack): a roughness is the GGX alpha, the square of the "
-        "roughness Blender's sidebar shows (sidebar 0.5 is 0.25 here)",
+        "roughness Blender's sidebar shows (sidebar 0.5 is 0.25 here); between them a roughness map is linear in "
+        "the sidebar's roughness, as the sidebar's maps are",
     )
     ap.add_argument("--name", help="with --preset: output name (default: the preset's)")
     ap.add_argument("--mix", help="with --preset and --mask: a second preset blended in latent space")

@@ -92,6 +92,37 @@ def test_union_of_shards_equals_the_single_bake_and_resumes(tmp_path, rough_png)
     assert (tmp_path / "single" / "varnished_wood.exr").stat().st_mtime_ns == mtime
 
 
+def test_shards_run_one_after_another_bake_every_material(tmp_path, rough_png):
+    """Items are numbered over every material, published or not: numbered over the unpublished ones, shards 1-3
+    run after shard 0 had published the first material found their items shifted, and the second was never
+    baked (each exited 0 saying "up to date")."""
+    out = tmp_path / "out"
+
+    def shard(i):
+        args = bake_cli.parse_args(["--preset", "varnished_wood", "--out", str(out), "--shard", f"{i}/4"])
+        jobs = bake_cli.preset_job(args)
+        jobs.append(bake_cli.Job("gold", bake_cli.SpatialStack(bake_cli.preset("coated_gold")), (1, 1), {}))
+        bake_cli.run(jobs, out, encoder(), "tiny", bake_cli.parse_shard(f"{i}/4"), 8, log=lambda *a: None)
+
+    for i in range(4):
+        shard(i)
+    assert sorted(p.name for p in out.glob("*.exr")) == ["gold.exr", "varnished_wood.exr"]
+
+
+def test_a_roughness_map_is_linear_in_the_sidebars_roughness(tmp_path):
+    """``--map`` takes a roughness's ends as GGX alphas and goes between them as the sidebar's maps do, linearly in
+    the artist's roughness (sqrt(alpha)): one image gives one material whichever way it is baked."""
+    grey = write_png(tmp_path / "grey.png", np.tile(np.array([0.0, 64.0, 128.0, 191.0, 255.0]) / 255.0, (2, 1)))
+    spec = f"coatings[0].roughness={grey}:0.01:0.4"
+    args = bake_cli.parse_args(["--preset", "varnished_wood", "--map", spec, "--out", str(tmp_path / "o")])
+    alpha = bake_cli.preset_job(args)[0].spatial.maps["coatings[0].roughness"][0].ravel()
+    t = np.array([0.0, 64.0, 128.0, 191.0, 255.0]) / 255.0
+    assert np.allclose(alpha, (0.1 + (np.sqrt(0.4) - 0.1) * t) ** 2, rtol=1e-6)
+    assert alpha[0] == pytest.approx(0.01) and alpha[-1] == pytest.approx(0.4)
+    # a field other than a roughness stays linear
+    assert np.allclose(bake_cli.map_range("albedo", t, 0.2, 0.6, "--map"), 0.2 + 0.4 * t)
+
+
 def test_bad_inputs_exit_with_code_2_and_a_clear_message(tmp_path, rough_png, capsys):
     cases = [
         (["--preset", "velvet", "--out", str(tmp_path)], "unknown preset"),
@@ -125,6 +156,11 @@ def test_bad_inputs_exit_with_code_2_and_a_clear_message(tmp_path, rough_png, ca
             "between 1x1",
         ),
         (["--preset", "varnished_wood", "--shard", "3/3", "--out", str(tmp_path)], "--shard"),
+        (
+            ["--preset", "varnished_wood", "--map", f"coatings[0].roughness={rough_png}:-0.1:0.4"]
+            + ["--out", str(tmp_path)],
+            "must not be negative",
+        ),
         (["--blend", str(tmp_path / "missing.blend"), "--out", str(tmp_path)], "file not found"),
         (["--out", str(tmp_path)], ""),
     ]
