@@ -43,6 +43,58 @@ class NLM_PT_render(_EnginePanel, bpy.types.Panel):
         layout.operator("neural_layers.render_preview", icon="RENDER_STILL")
 
 
+class NLM_PT_film(_EnginePanel, bpy.types.Panel):
+    """Blender's Film > Transparent, which this engine renders (``RenderProperties.settings``). Blender's own Film
+    panels are Cycles', EEVEE's and Workbench's, hidden for this engine."""
+
+    bl_label = "Film"
+    bl_context = "render"
+    bl_parent_id = "NLM_PT_render"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        layout.prop(context.scene.render, "film_transparent", text="Transparent")
+
+
+class NLM_PT_performance(_EnginePanel, bpy.types.Panel):
+    """Blender's Threads setting (Auto: every core, or Fixed), which decides this engine's and the bakes' thread
+    count (``RenderSettings.threads_for``); Blender draws it only in Cycles' Performance panel."""
+
+    bl_label = "Performance"
+    bl_context = "render"
+    bl_parent_id = "NLM_PT_render"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        rd = context.scene.render
+        col = layout.column(align=True)
+        col.prop(rd, "threads_mode")
+        sub = col.column(align=True)
+        sub.enabled = rd.threads_mode == "FIXED"
+        sub.prop(rd, "threads")
+
+
+class NLM_PT_view_layer(_EnginePanel, bpy.types.Panel):
+    """The view layer's settings this engine renders: its Z pass (written as Depth, ``update_render_passes``) and
+    its Material Override. Blender's panels for them belong to Cycles, EEVEE and Workbench; their World Override
+    and Samples are not read here, so this panel leaves them out."""
+
+    bl_label = "Neural Layered"
+    bl_context = "view_layer"
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        view_layer = context.view_layer
+        col = layout.column(heading="Passes")
+        col.prop(view_layer, "use_pass_z")
+        layout.prop(view_layer, "material_override")
+
+
 class NLM_PT_light(_EnginePanel, bpy.types.Panel):
     """A light's settings as this engine renders them (``scene_export._light``): Blender's own light panel
     draws only the type for engines other than its own, and EEVEE's holds settings this engine leaves out."""
@@ -97,7 +149,7 @@ def _menu(self, context):
     self.layout.operator("neural_layers.render_preview", icon="RENDER_STILL")
 
 
-_CLASSES = (NLM_PT_render, NLM_PT_light)
+_CLASSES = (NLM_PT_render, NLM_PT_film, NLM_PT_performance, NLM_PT_view_layer, NLM_PT_light)
 
 
 def register() -> None:

@@ -1,6 +1,7 @@
 """Scene export, the render engine (F12, EXR/PNG output) and the Render Preview operator."""
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -1346,3 +1347,30 @@ def test_the_render_summary_counts_the_decoder_choice_before_the_render(fresh_sc
     bpy.ops.render.render(write_still=True)
     ((seconds, line),) = lines
     assert seconds >= 0.3 and line.startswith(f"decoders {seconds:.2f} s") and "paths in" in line, line
+
+
+def test_the_settings_this_engine_renders_are_drawn_for_it(bpy_addon):
+    """Film > Transparent, Threads, the Z pass and the Material Override render here, and Blender draws them only in
+    other engines' panels: the add-on's panels draw them for this one."""
+    from addon.blender import render_ui
+
+    drawn = []
+
+    class Layout:
+        use_property_split = False
+        enabled = True
+
+        def __getattr__(self, name):
+            return lambda *a, **k: self
+
+        def prop(self, data, name, **kw):
+            drawn.append(name)
+
+    ctx = SimpleNamespace(
+        engine="NEURAL_LAYERED", scene=bpy_addon.context.scene, view_layer=bpy_addon.context.view_layer
+    )
+    for panel in (render_ui.NLM_PT_film, render_ui.NLM_PT_performance, render_ui.NLM_PT_view_layer):
+        assert panel.poll(ctx) and panel.is_registered
+        panel.draw(SimpleNamespace(layout=Layout()), ctx)
+    assert {"film_transparent", "threads_mode", "threads", "use_pass_z", "material_override"} <= set(drawn)
+    assert not render_ui.NLM_PT_film.poll(SimpleNamespace(engine="CYCLES"))
