@@ -2,7 +2,7 @@
 on it, by rendering a tiny scene that holds every light kind, an image texture and both kinds of
 environment.
 
-The first render after installing would otherwise spend about ten seconds compiling (the loops are
+The first render after installing would otherwise spend about twenty seconds compiling (the loops are
 then cached on disk, and a later process loads them in a fraction of a second). The Blender add-on
 calls :func:`warm_up_in_background` when it registers; the compile runs on a daemon thread while the
 user works, and a render that starts meanwhile waits only for what is still compiling.
