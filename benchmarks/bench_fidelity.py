@@ -67,11 +67,21 @@ def render_means(
 
 
 def render_film(
-    scene, mode: str, samples: int, seed: int, size: str | None, calibrate: bool = True, pixels=None
+    scene,
+    mode: str,
+    samples: int,
+    seed: int,
+    size: str | None,
+    calibrate: bool = True,
+    pixels=None,
+    max_bounces: int | None = None,
 ) -> tuple[object, float]:
     """The film of ``scene`` rendered in ``mode`` with default settings but the sample count and seed (and
-    in neural mode the layered objects' decoder ``size``, when given, and the calibration), and its seconds."""
+    in neural mode the layered objects' decoder ``size``, when given, and the calibration; ``max_bounces`` when
+    given), and its seconds."""
     settings = RenderSettings(samples=samples, mode=mode, seed=seed, calibrate=calibrate)
+    if max_bounces is not None:
+        settings.max_bounces = max_bounces
     materials = scene.materials
     if size is not None and mode == "neural":  # the layered objects' neural materials of that size
         from addon.core.render import neural_material
@@ -117,10 +127,12 @@ def object_passes(a, key: dict, cached: dict | None, masks: dict, secs: dict) ->
     return out
 
 
-def reference_key(width: int, height: int, samples: int, seeds: list[int]) -> dict:
+def reference_key(width: int, height: int, samples: int, seeds: list[int], max_bounces: int | None = None) -> dict:
     """What a reference render of the same scene depends on (the key of a reference cache): the image,
-    the samples and seeds, and the renderer's reference settings."""
+    the samples and seeds, and the renderer's reference settings (Max Bounces: ``max_bounces`` when given)."""
     defaults = RenderSettings()
+    if max_bounces is not None:
+        defaults.max_bounces = max_bounces
     return {
         "width": width,
         "height": height,

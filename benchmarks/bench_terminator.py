@@ -100,7 +100,7 @@ def reference_film(scene, pixels, a, key: dict):
         c = np.load(cache, allow_pickle=False)
         if json.loads(str(c["key"])) == key:
             return c["mean"], c["stderr"], float(c["seconds"])
-    film, secs = render_film(scene, "reference", a.samples, a.seed, None, pixels=pixels)
+    film, secs = render_film(scene, "reference", a.samples, a.seed, None, pixels=pixels, max_bounces=a.max_bounces)
     mean, se = film.mean().astype(np.float32), film.stderr().astype(np.float32)  # as the cache keeps them
     if cache is not None:
         cache.parent.mkdir(parents=True, exist_ok=True)
@@ -244,6 +244,13 @@ def main(argv=None):
     )
     ap.add_argument("--lobe-walks", type=int, default=LOBE_WALKS, help="reference walks per pair of that table")
     ap.add_argument("--reference-cache", type=Path, default=None, help="NPZ of the reference render (read or written)")
+    ap.add_argument(
+        "--max-bounces",
+        type=int,
+        default=None,
+        help="Max Bounces of both renders (default: the renderer's); 0 measures the spheres' direct light alone, "
+        "without the floor's bounce light, which both modes render alike and which pulls every ratio towards 1",
+    )
     ap.add_argument("--out", type=Path, default=ROOT / "docs" / "terminator.md")
     a = ap.parse_args(argv)
     if a.samples < 2 or a.width < 8 or a.height < 8 or a.lobe_walks < 2:
@@ -257,7 +264,7 @@ def main(argv=None):
     masks, lows = band_masks(angles)
     pixels = np.flatnonzero(np.any(list(masks.values()), axis=0))  # the spheres' lit sides only
     key = {
-        **reference_key(a.width, a.height, a.samples, [a.seed]),
+        **reference_key(a.width, a.height, a.samples, [a.seed], a.max_bounces),
         "presets": list(TERMINATOR_PRESETS),
         "light": list(TERMINATOR_LIGHT),
     }
@@ -269,7 +276,7 @@ def main(argv=None):
     results, first_image = [], None
     for size in a.sizes:
         for calibrate in calibrations:
-            film, secs = render_film(scene, "neural", a.samples, a.seed, size, calibrate, pixels)
+            film, secs = render_film(scene, "neural", a.samples, a.seed, size, calibrate, pixels, a.max_bounces)
             neural = object_means(film, masks)
             cmp = compare(neural, ref)
             label = (size or "default size") + (", calibrated" if calibrate else ", decoder alone")
@@ -292,7 +299,15 @@ def main(argv=None):
         "",
         f"Made by `{cmd}`: `terminator_scene` (`addon/core/render/demo_scene.py`: coated gold and red car paint "
         f"under one point light nearly level with them, no sky) at {a.width} x {a.height}, {a.samples} samples per "
-        "pixel, only the spheres' lit pixels, default render settings otherwise. Per sphere and band of the angle "
+        "pixel, only the spheres' lit pixels, "
+        + (
+            "default render settings otherwise. "
+            if a.max_bounces is None
+            else f"Max Bounces {a.max_bounces}"
+            + (" (direct light alone: no floor bounce to dilute the ratios)" if a.max_bounces == 0 else "")
+            + ", default render settings otherwise. "
+        )
+        + "Per sphere and band of the angle "
         "between the surface normal and the light: the mean radiance of its pixels, neural / reference, with its "
         "standard error from the per-pixel variance of both renders. A decoder that reflects too much grazing "
         "light shows as ratios over 1 in the bands from 80 degrees: the bright line along the terminator.",
