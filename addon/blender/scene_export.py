@@ -247,7 +247,9 @@ _PRINCIPLED_DROPPED = (
 _SPECULAR_INPUTS = ("Specular IOR Level", "IOR", "Roughness", "Specular Tint")
 # The Principled BSDF inputs ``PrincipledMaterial`` renders when each is a constant (``_principled_layers``).
 _LAYER_INPUTS = ("Metallic", "Roughness", "IOR", "Specular IOR Level")
-SPECULAR_NOTICEABLE = 0.05  # the share of Cycles' reflected light whose absence a warning names
+# the share of Cycles' reflected light whose absence a warning names: a Lambertian Principled BSDF's (one of its
+# ``_LAYER_INPUTS`` linked) missing specular layer (``_specular_note``)
+SPECULAR_NOTICEABLE = 0.05
 _LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec.709's, the core's colour space
 
 
@@ -323,9 +325,10 @@ def specular_share(albedo: float, base: float) -> float:
 
 def _specular_note(node, base: float) -> str | None:
     """What a Principled BSDF's specular layer (``_SPECULAR_INPUTS``) changes in Cycles' image that its
-    Lambertian leaves out, or None where that is little: linked inputs, or a layer that reflects more than
-    SPECULAR_NOTICEABLE of the light (``specular_share``) over a base colour of luminance ``base`` (a pale base,
-    the default 0.8: 2%, within 1.5% of Cycles' image; a black one reflects only its specular layer)."""
+    Lambertian leaves out (the surface is one where an input of ``_LAYER_INPUTS`` is linked: ``_principled_layers``),
+    or None where that is little: linked inputs, or a layer that reflects more than SPECULAR_NOTICEABLE of the light
+    (``specular_share``) over a base colour of luminance ``base`` (a pale base, the default 0.8: 2%, within 1.5% of
+    Cycles' image; a black one reflects only its specular layer)."""
     inputs = {name: node.inputs.get(name) for name in _SPECULAR_INPUTS}
     if any(s is None for s in inputs.values()):
         return None
@@ -523,24 +526,24 @@ def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial | Principled
             "Image Texture, a Color or a Value node is); using the viewport colour"
         )
     base = _luminance(color) if base is None else base
-    layered = layers is not None and (layers["metallic"] > 0.0 or _specular_matters(node, layers, base))
+    layered = layers is not None and _has_layers(layers)
     notes += _layer_notes(node, layers if layered else None, base)
     notes += _relief_notes(mat, node)
     _warn_material(mat, notes, warnings)
-    if not layered:  # a Lambertian: no layer above the base that matters (and cheaper), or a layer's input is linked
+    if not layered:  # a Lambertian: nothing above the base (the exact surface), or a layer's input is linked
         return LambertMaterial(color, texture)
     return PrincipledMaterial(color, texture=texture, **layers)
 
 
-def _specular_matters(node, layers: dict, base: float) -> bool:
-    """Whether a dielectric Principled BSDF's specular layer reflects more than SPECULAR_NOTICEABLE of what the
-    surface reflects (``specular_share``, over a base of luminance ``base``). Where it does not (a pale base: the
-    default material's 2%), the surface renders as a Lambertian of its base colour, within 2% of Cycles' image in
-    block means, its soft highlights left out: a ``PrincipledMaterial`` shades in numpy, and a scene of default
-    materials rendered 4x as long with it (0.60 s against 0.15 s, a cube on a plane, 240 x 160, 16 spp)."""
-    tint = node.inputs["Specular Tint"].default_value
-    albedo = specular_albedo(layers["ior"], layers["specular_level"], tint)
-    return specular_share(albedo, base) > SPECULAR_NOTICEABLE
+def _has_layers(layers: dict) -> bool:
+    """Whether a Principled BSDF of constant ``layers`` (``_principled_layers``) has anything above its base colour:
+    a metal, or a specular layer whose index is not 1 (``core.bsdf.specular_ior``: Specular IOR Level 0, or an IOR
+    of 1, leaves none). Every such surface renders as a ``PrincipledMaterial``, however little its layer reflects
+    (the default material's 2% of its light: its soft highlights), in one compiled pass a bounce; the others are
+    exactly the Lambertian of their base colour, which costs less."""
+    from ..core.bsdf.specular_diffuse import specular_ior
+
+    return layers["metallic"] > 0.0 or specular_ior(layers["ior"], layers["specular_level"]) != 1.0
 
 
 def _warn_material(mat, notes: list[str], warnings: list[str]) -> None:

@@ -108,6 +108,14 @@ def copysign(a, b):
     return namespace(a, b).copysign(a, b)
 
 
+def node_below(x, last):
+    """The integer node of an evenly spaced table at or below ``x`` >= 0 (in node units), at most ``last``; 0 for
+    ``x`` below 0 or nan (elementwise: int64 for numpy or CuPy arrays, whose fancy indexing reads the table; an int
+    inside the compiled loops)."""
+    xp = namespace(x)
+    return xp.where(x >= 0.0, xp.minimum(x, last), 0.0).astype(np.int64)  # x >= 0: truncation is floor
+
+
 # --- the same operations on scalars, inside compiled loops -----------------------------------------
 
 
@@ -208,3 +216,8 @@ def _isfinite_scalar(x):
 @overload(copysign)
 def _copysign_scalar(a, b):
     return lambda a, b: math.copysign(a, b)
+
+
+@overload(node_below)
+def _node_below_scalar(x, last):  # nan fails both tests: node 0, never an index from int(nan)
+    return lambda x, last: last if x >= last else (int(x) if x >= 0.0 else 0)

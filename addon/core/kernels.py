@@ -33,6 +33,7 @@ from .bsdf.dielectric import INDEX_MATCHED_TOL
 from .bsdf.frame import basis, reflected
 from .bsdf.ggx import MIN_ALPHA, visible_normal
 from .bsdf.lambert import concentric_disk, lambert_f, lambert_pdf, lambert_sample
+from .bsdf.specular_diffuse import curve_at, principled_eval, principled_sample, principled_view
 from .formula import quarter_cos_sin, turn_cos_sin
 from .neural.top_formulas import top_reflection, top_share_cos
 
@@ -1324,6 +1325,73 @@ def _lambert_samples(albedo, wo, u):
         x, y, z, p, ok = lambert_sample(wo[i, 2], u[i, 0], u[i, 1])
         _keep_sample(wi, weight, pdf, valid, i, x, y, z, albedo[j, 0], albedo[j, 1], albedo[j, 2], p, ok)
     return wi, weight, pdf, valid
+
+
+@njit(**_JIT)
+def principled_shade(base, k, lobes, e_curve, e1_curve, wo, light_wi, light_rows, u_lobe, u):
+    """A Principled BSDF's answer to a bounce (``bsdf.SpecularDiffuse``, ``render.PrincipledMaterial``): f (V, 3)
+    and the sampler's pdf (V,) at the next-event directions ``light_wi`` of rows ``light_rows``, and one sample per
+    hit (wi, weight, pdf, delta, valid, as ``SpecularDiffuse.sample``; ``u_lobe`` (N,), ``u`` (N, 2)). The
+    material's arrays are ``SpecularDiffuse.shading_arrays``: ``base`` and ``k`` (1, 3) shared or (N, 3) per hit,
+    ``lobes`` (alpha, ior, metallic, Fresnel average, E1_avg), the albedo curves over mu of the layer and of E1.
+    The formulas are ``specular_diffuse``'s (``principled_view``, ``principled_eval``, ``principled_sample``),
+    which SpecularDiffuse runs on columns. Two loops, each compiled on its own, as :func:`lambert_shade`'s."""
+    f, pdf_light = _principled_at_lights(base, k, lobes, e_curve, e1_curve, wo, light_wi, light_rows)
+    wi, weight, pdf, delta, valid = _principled_samples(base, k, lobes, e_curve, e1_curve, wo, u_lobe, u)
+    return f, pdf_light, wi, weight, pdf, delta, valid
+
+
+@njit(**_JIT)
+def _principled_at_lights(base, k, lobes, e_curve, e1_curve, wo, light_wi, light_rows):
+    v = len(light_rows)
+    shared, shared_k = base.shape[0] == 1, k.shape[0] == 1
+    alpha, ior, metallic, f_avg, e1_avg = lobes[0], lobes[1], lobes[2], lobes[3], lobes[4]
+    metal = metallic > 0.0
+    f = np.empty((v, 3))
+    pdf = np.empty(v)
+    for n in range(v):
+        i = light_rows[n]
+        j = 0 if shared else i
+        jk = 0 if shared_k else i
+        s = -1.0 if wo[i, 2] < 0.0 else 1.0  # two-sided: a view from below mirrored above, with its light
+        oz = wo[i, 2] * s
+        b0, b1, b2 = base[j, 0], base[j, 1], base[j, 2]
+        scale, diffuse, s0, s1, s2, p = principled_view(
+            curve_at(e_curve, oz), curve_at(e1_curve, oz), e1_avg, f_avg, metallic, b0, b1, b2, metal
+        )
+        f[n, 0], f[n, 1], f[n, 2], pdf[n] = principled_eval(
+            light_wi[n, 0], light_wi[n, 1], light_wi[n, 2] * s, wo[i, 0], wo[i, 1], oz, alpha, ior, metallic,
+            b0, b1, b2, k[jk, 0], k[jk, 1], k[jk, 2], scale, diffuse, s0, s1, s2, p, metal,
+        )  # fmt: skip
+    return f, pdf
+
+
+@njit(**_JIT)
+def _principled_samples(base, k, lobes, e_curve, e1_curve, wo, u_lobe, u):
+    n = len(wo)
+    shared, shared_k = base.shape[0] == 1, k.shape[0] == 1
+    alpha, ior, metallic, f_avg, e1_avg = lobes[0], lobes[1], lobes[2], lobes[3], lobes[4]
+    metal = metallic > 0.0
+    wi = np.empty((n, 3))
+    weight = np.empty((n, 3))
+    pdf = np.empty(n)
+    delta = np.empty(n, dtype=np.bool_)
+    valid = np.empty(n, dtype=np.bool_)
+    for i in range(n):
+        j = 0 if shared else i
+        jk = 0 if shared_k else i
+        s = -1.0 if wo[i, 2] < 0.0 else 1.0
+        oz = wo[i, 2] * s
+        b0, b1, b2 = base[j, 0], base[j, 1], base[j, 2]
+        scale, diffuse, s0, s1, s2, p = principled_view(
+            curve_at(e_curve, oz), curve_at(e1_curve, oz), e1_avg, f_avg, metallic, b0, b1, b2, metal
+        )
+        x, y, z, w0, w1, w2, q, is_delta, ok = principled_sample(
+            wo[i, 0], wo[i, 1], oz, u_lobe[i], u[i, 0], u[i, 1], alpha, ior, metallic,
+            b0, b1, b2, k[jk, 0], k[jk, 1], k[jk, 2], scale, diffuse, s0, s1, s2, p, metal,
+        )  # fmt: skip
+        delta[i] = _keep_sample(wi, weight, pdf, valid, i, x, y, z * s, w0, w1, w2, q, ok) and is_delta
+    return wi, weight, pdf, delta, valid
 
 
 @njit(**_JIT)

@@ -254,12 +254,14 @@ def test_a_specular_layer_that_changes_the_image_noticeably_is_named(fresh_scene
     and Specular IOR Level are constants (``PrincipledMaterial``: test_principled_render.py); where one is linked
     the surface is a Lambertian, and the layer is named where it reflects more than 5% of the light the surface
     reflects in Cycles, or where its own inputs are linked; a pale base colour (the default 0.8, 1.5% off Cycles'
-    image) stays quiet."""
+    image) stays quiet. The default material itself, its inputs constant, renders its layer."""
     from addon.blender import scene_export
     from addon.core.render import LambertMaterial, PrincipledMaterial
 
     mat, principled = _default_principled("default")
     assert _warnings_of(mat) == []
+    # the default material's layer (2% of its light) is rendered too: it was a Lambertian while numpy shaded it
+    assert isinstance(scene_export.unmanaged_material(mat, []), PrincipledMaterial)
     principled.inputs["Base Color"].default_value = (0.0, 0.0, 0.0, 1.0)
     principled.inputs["Roughness"].default_value = 0.2
     assert _warnings_of(mat) == []  # rendered

@@ -678,11 +678,13 @@ def test_denoising_passes_reach_the_compositor(fresh_scene, tmp_path):
     scene.render.filepath = str(tmp_path / "frame.exr")
     bpy.ops.render.render(write_still=True)
     albedo = read_image(tmp_path / "albedo.exr")[..., :3].reshape(-1, 3)
-    # The startup cube's grey (0.8) where the camera rays hit it, 0 where they escape (edge pixels:
-    # the mean of both over the samples).
+    # The startup cube's directional albedo where the camera rays hit it, 0 where they escape (edge pixels: the
+    # mean of both over the samples): its grey base 0.8 under the specular layer, 0.8 (1 - E) + E for the layer's
+    # albedo E (0.012 at the median pixel, 0.14 at the most grazing), grey, never above 1.
     seen = albedo.max(axis=1) > 0
     assert 0 < seen.sum() < len(seen)
-    assert np.allclose(np.median(albedo[seen], axis=0), 0.8, atol=1e-3) and albedo.max() <= 0.8 + 1e-3
+    median = np.median(albedo[seen], axis=0)
+    assert np.all((median > 0.8) & (median < 0.81)) and np.ptp(median) < 1e-6 and albedo.max() <= 1.0
 
 
 def render_as_material_preview(scene, path, monkeypatch) -> None:

@@ -95,7 +95,7 @@ def test_a_linked_object_and_material_beside_local_ones_of_the_same_names_export
     assert scene.mesh.triangle_count == 12 + triangles
     assert sorted(scene.material_names) == ["Material", "Material [lib.blend]"]
     kinds = dict(zip(scene.material_names, (type(m).__name__ for m in scene.materials), strict=True))
-    assert kinds["Material"] == "LambertMaterial" and kinds["Material [lib.blend]"] == "LayeredSpec"
+    assert kinds["Material"] == "PrincipledMaterial" and kinds["Material [lib.blend]"] == "LayeredSpec"
 
 
 def test_each_geometry_that_geometry_nodes_instance_exports_as_itself(bpy_addon, fresh_scene):

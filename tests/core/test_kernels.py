@@ -48,7 +48,7 @@ def test_the_warm_up_compiles_every_loop_a_render_of_the_demo_scene_runs():
     got = json.loads(run.stdout.strip().splitlines()[-1])
     before, after = got["before"], got["after"]
     loops = ("surface_hits", "sample_lights", "trilinear", "proxy_pdf", "proxy_directions", "scale_by_table")
-    for name in (*loops, "decoded_brdf", "neural_shading"):
+    for name in (*loops, "decoded_brdf", "neural_shading", "principled_shade"):
         assert before[name] >= 1, f"the warm-up did not compile {name}"
     assert before["trilinear"] >= 2, "the warm-up did not compile the taps of a half-float latent texture"
     assert before["halves_to_float32"] >= 1, "the warm-up did not compile the conversion from half floats"

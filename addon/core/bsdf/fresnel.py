@@ -34,6 +34,26 @@ def fresnel_dielectric(cos_i, eta) -> np.ndarray:
         return fresnel_dielectric_cos(xp.asarray(cos_i, dtype=xp.float64), xp.asarray(eta, dtype=xp.float64))
 
 
+@formula
+def fresnel_conductor_cos(cos_i, eta, k):
+    """The formula of :func:`fresnel_conductor` (one cosine, clamped to [0, 1]; one channel's eta and k)."""
+    c = clip(cos_i, 0.0, 1.0)
+    cos2 = c * c
+    sin2 = 1.0 - cos2
+    eta2, k2 = eta * eta, k * k
+    t0 = eta2 - k2 - sin2
+    a2b2 = sqrt(t0 * t0 + 4.0 * eta2 * k2)  # a^2 + b^2 = |n^2 - sin^2|
+    t1 = a2b2 + cos2
+    a = sqrt(maximum(0.0, 0.5 * (a2b2 + t0)))
+    t2 = 2.0 * c * a
+    t3 = cos2 * a2b2 + sin2 * sin2
+    t4 = t2 * sin2
+    rs = (t1 - t2) / (t1 + t2)
+    rp = rs * (t3 - t4) / (t3 + t4)
+    r = 0.5 * (rs + rp)
+    return where(isfinite(r), clip(r, 0.0, 1.0), 1.0)
+
+
 def fresnel_conductor(cos_i, eta, k) -> np.ndarray:
     """Fresnel reflectance of a conductor with complex index ``eta + i k``.
 
@@ -44,21 +64,6 @@ def fresnel_conductor(cos_i, eta, k) -> np.ndarray:
     Returns ``(N, 3)`` float64 in [0, 1].
     """
     xp = namespace(cos_i, eta, k)
-    c = xp.clip(xp.asarray(cos_i, dtype=xp.float64), 0.0, 1.0)[..., None]
-    eta = xp.asarray(eta, dtype=xp.float64)
-    k = xp.asarray(k, dtype=xp.float64)
-    cos2 = c * c
-    sin2 = 1.0 - cos2
-    eta2, k2 = eta * eta, k * k
-    t0 = eta2 - k2 - sin2
-    a2b2 = xp.sqrt(t0 * t0 + 4.0 * eta2 * k2)  # a^2 + b^2 = |n^2 - sin^2|
-    t1 = a2b2 + cos2
-    a = xp.sqrt(xp.maximum(0.0, 0.5 * (a2b2 + t0)))
-    t2 = 2.0 * c * a
-    t3 = cos2 * a2b2 + sin2 * sin2
-    t4 = t2 * sin2
+    c = xp.asarray(cos_i, dtype=xp.float64)[..., None]
     with xp.errstate(invalid="ignore", divide="ignore"):
-        rs = (t1 - t2) / (t1 + t2)
-        rp = rs * (t3 - t4) / (t3 + t4)
-    r = 0.5 * (rs + rp)
-    return xp.where(xp.isfinite(r), xp.clip(r, 0.0, 1.0), 1.0)
+        return fresnel_conductor_cos(c, xp.asarray(eta, dtype=xp.float64), xp.asarray(k, dtype=xp.float64))

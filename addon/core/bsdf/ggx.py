@@ -20,6 +20,7 @@ import numpy as np
 
 from ..formula import clip, formula, isfinite, maximum, sqrt, turn_cos_sin, where
 from ..xp import namespace
+from .base import SMOOTH_ALPHA
 from .frame import dot
 
 MIN_ALPHA = 1e-4
@@ -88,6 +89,26 @@ def visible_normal_pdf(wz, w_dot_m, d, alpha):
     sign = where(wz < 0.0, -1.0, 1.0)
     p = g1_cos(wz, alpha) * maximum(0.0, sign * w_dot_m) * d / abs(wz)
     return where((wz != 0.0) & isfinite(p), p, 0.0)
+
+
+@formula
+def reflection_terms(ix, iy, iz, ox, oy, oz, alpha):
+    """(dg, pdf, wo.m) of the GGX reflection at wi, wo (components) about their half vector m (facing +z), for any
+    Fresnel term F: f = dg F with dg = D(m) G2 / (4 |cos wi cos wo|); ``pdf`` the density of reflecting wo about a
+    visible normal (``visible_normal``); both 0 (and finite) unless wi and wo lie on one side, m exists and alpha
+    >= SMOOTH_ALPHA (a delta mirror below). ``alpha`` as given: clamped to MIN_ALPHA here. The microfacet part of
+    ``RoughConductor`` (its f over F, its pdf) and of the reflection of ``rough_dielectric_eval_pdf``."""
+    hx, hy, hz = ix + ox, iy + oy, iz + oz
+    s = where(hz < 0.0, -1.0, 1.0)
+    hn = sqrt(hx * hx + hy * hy + hz * hz)
+    mx, my, mz = hx * s / hn, hy * s / hn, hz * s / hn
+    dwo = ox * mx + oy * my + oz * mz
+    a = maximum(alpha, MIN_ALPHA)
+    d = ndf_cos(mz, a)
+    dg = d * g2_cos(iz, oz, a) / (4.0 * abs(iz * oz))
+    p = visible_normal_pdf(oz, dwo, d, a) / (4.0 * abs(dwo))
+    ok = (iz * oz > 0.0) & (hn > 0.0) & (alpha >= SMOOTH_ALPHA)
+    return where(ok & isfinite(dg), dg, 0.0), where(ok & isfinite(p), p, 0.0), abs(dwo)
 
 
 # --- over direction arrays ---------------------------------------------------------------------

@@ -28,6 +28,14 @@ Sampling is a mixture: the GGX visible-normal reflection (shared by the dielectr
 about the same microfacets) with a probability from the two lobes' albedos at wo, else a cosine-weighted direction;
 the pdf is the mixture's, and a sample's weight is the whole f times the cosine over that pdf.
 
+Each of these is written once, as a formula (``addon.core.formula``): what the view sets (:func:`principled_view`:
+the multiple-scattering factors, the diffuse base's weight, the lobe probability), f with the sampler's pdf
+(:func:`principled_eval`, over ``ggx.reflection_terms`` and the two Fresnel terms) and a sample
+(:func:`principled_sample`). :class:`SpecularDiffuse` runs them on columns; the renderer runs them on scalars in one
+compiled pass a bounce (``kernels.principled_shade``), the table read at the view cosine from a curve made once for
+the material's alpha and index (:func:`albedo_curve`, :func:`curve_at`, which the numpy lookup of one alpha and index
+reads too).
+
 The surface is opaque and two-sided, as Cycles shades a Principled BSDF without transmission: a view from below is
 mirrored above (both directions' z negated) and light never crosses it.
 """
@@ -39,13 +47,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..formula import clip, formula, maximum, node_below, where
 from ..stack import k_from_f0
 from . import ggx
 from .base import BSDF, RADIANCE, SMOOTH_ALPHA, BSDFSample, as_param, rows
-from .conductor import RoughConductor
-from .dielectric import rough_dielectric_eval_pdf, rough_dielectric_sample
+from .dielectric import INDEX_MATCHED_TOL, rough_dielectric_sample
 from .frame import reflected
-from .fresnel import fresnel_conductor, fresnel_dielectric_cos
+from .fresnel import fresnel_conductor_cos, fresnel_dielectric_cos
 from .lambert import lambert_f, lambert_pdf, lambert_sample
 
 TABLE_PATH = Path(__file__).with_name("ggx_dielectric_albedo.npz")
@@ -135,22 +143,24 @@ def _ggx_average_nodes() -> np.ndarray:
     return np.sum(0.5 * np.diff(mu) * (e1[:, 1:] * mu[1:] + e1[:, :-1] * mu[:-1]), axis=1) * 2.0
 
 
+def ggx_average(alpha) -> np.ndarray:
+    """E1_avg: the cosine-weighted average of :func:`ggx_albedo` over view cosines at GGX ``alpha`` (a number or
+    (N,)), linear in sqrt(alpha) between the table's roughness nodes."""
+    return curve_at(_ggx_average_nodes(), np.sqrt(np.asarray(alpha, dtype=np.float64)))
+
+
 def multiscatter_scale(mu, alpha, fresnel_average) -> np.ndarray:
     """What Cycles' Multiscatter GGX (``microfacet_ggx_preserve_energy``, the default of its Principled BSDF)
-    multiplies a single-scattering GGX reflection by, seen at cosine ``mu`` (N,): 1 + F_ms (1 - E1) / E1, E1 the
-    single-scattering albedo with Fresnel 1 (:func:`ggx_albedo`), so that a white surface reflects all light, and
-    F_ms = F_avg E1_avg / (1 - F_avg (1 - E1_avg)) the Fresnel of the light that bounces more than once (Kulla and
-    Conty 2017, appendix; F_avg ``fresnel_average`` (N,) or (N, 3), E1_avg the cosine-weighted mean of E1).
-    Returns (N,) or (N, 3) as ``fresnel_average``."""
+    multiplies a single-scattering GGX reflection by, seen at cosine ``mu`` (N,): :func:`multiscatter_factor` of
+    the single-scattering albedo with Fresnel 1 there (:func:`ggx_albedo`), its cosine-weighted mean
+    (:func:`ggx_average`) and ``fresnel_average`` (N,) or (N, 3). Returns (N,) or (N, 3) as ``fresnel_average``."""
     mu = np.abs(np.asarray(mu, dtype=np.float64))
     e1 = ggx_albedo(mu, alpha)
-    r = np.clip(np.sqrt(np.broadcast_to(np.asarray(alpha, dtype=np.float64), mu.shape)), 0.0, 1.0)
-    e1_avg = np.interp(r, np.linspace(0.0, 1.0, TABLE_SHAPE[1]), _ggx_average_nodes())
+    e1_avg = np.broadcast_to(ggx_average(alpha), e1.shape)
     f_avg = np.asarray(fresnel_average, dtype=np.float64)
-    extra = (1.0 - e1) / np.maximum(e1, 1e-6)
     if f_avg.ndim == 2:
-        e1_avg, extra = e1_avg[:, None], extra[:, None]
-    return 1.0 + f_avg * e1_avg / (1.0 - f_avg * (1.0 - e1_avg)) * extra
+        e1_avg, e1 = e1_avg[:, None], e1[:, None]
+    return multiscatter_factor(e1, e1_avg, f_avg)
 
 
 def fresnel_dielectric_average(ior) -> np.ndarray:
@@ -166,24 +176,31 @@ def fresnel_dielectric_average(ior) -> np.ndarray:
 
 
 def schlick_average(f0) -> np.ndarray:
-    """The cosine-weighted average of Schlick's Fresnel F0 + (1 - F0)(1 - mu)^5: F0 + (1 - F0) / 21, the average
-    Cycles' metal compensates its multiple scattering with (its Fresnel is Schlick's from the base colour)."""
-    f0 = np.asarray(f0, dtype=np.float64)
-    return f0 + (1.0 - f0) / 21.0
+    """:func:`schlick_mean` of ``f0`` (a number or an array), float64."""
+    return schlick_mean(np.asarray(f0, dtype=np.float64))
+
+
+def albedo_curve(z, alpha) -> np.ndarray:
+    """The table (:func:`albedo_table`) at one (z, sqrt(alpha)), bilinearly, as a curve over its mu nodes
+    (``TABLE_SHAPE[2]``,): what :func:`curve_at` reads at a view cosine, for a material whose z and alpha are one
+    (a tenth of the time of eight lookups a row)."""
+    table = albedo_table()
+    curve = np.zeros(TABLE_SHAPE[2])
+    for zi, wz in _linear_weights(float(z), TABLE_SHAPE[0]):
+        for ri, wr in _linear_weights(float(np.sqrt(alpha)), TABLE_SHAPE[1]):
+            curve += wz * wr * table[zi, ri]
+    return curve
 
 
 def _lookup(z, alpha, mu) -> np.ndarray:
     """The table (:func:`albedo_table`) at (z, sqrt(alpha), |mu|), trilinearly; (N,) as ``mu``. A material's one z
-    and alpha are read once, into a curve over mu (a tenth of the time of eight lookups a row)."""
-    table = albedo_table()
+    and alpha are read once, into a curve over mu (:func:`albedo_curve`, :func:`curve_at`: the renderer's compiled
+    loop reads the same curve)."""
     mu = np.abs(np.asarray(mu, dtype=np.float64))
     coords = [np.asarray(z, dtype=np.float64), np.sqrt(np.asarray(alpha, dtype=np.float64)), mu]
     if coords[0].size == 1 and coords[1].size == 1:
-        curve = np.zeros(TABLE_SHAPE[2])
-        for zi, wz in _linear_weights(float(coords[0].ravel()[0]), TABLE_SHAPE[0]):
-            for ri, wr in _linear_weights(float(coords[1].ravel()[0]), TABLE_SHAPE[1]):
-                curve += wz * wr * table[zi, ri]
-        return np.interp(mu, np.linspace(0.0, 1.0, TABLE_SHAPE[2]), curve)
+        return curve_at(albedo_curve(coords[0].ravel()[0], np.asarray(alpha).ravel()[0]), mu)
+    table = albedo_table()
     lo, frac = [], []
     for c, n in zip(coords, TABLE_SHAPE, strict=True):
         x = np.clip(np.broadcast_to(c, mu.shape), 0.0, 1.0) * (n - 1)
@@ -208,6 +225,126 @@ def _linear_weights(c: float, n: int) -> list[tuple[int, float]]:
     return [(i, 1.0 - (x - i)), (i + 1, x - i)]
 
 
+# --- the formulas (addon.core.formula): SpecularDiffuse runs them on columns, kernels.principled_shade on scalars ---
+
+
+@formula
+def curve_at(curve, x):
+    """The piecewise-linear function through ``curve``'s values at nodes evenly spaced on [0, 1], at |x| (held to
+    [0, 1]): a table's curve (:func:`albedo_curve`) at a view cosine, or the roughness nodes of E1_avg."""
+    last = curve.shape[0] - 1
+    t = clip(abs(x), 0.0, 1.0) * last
+    i = node_below(t, last - 1)
+    t = t - i
+    return curve[i] * (1.0 - t) + curve[i + 1] * t
+
+
+@formula
+def multiscatter_factor(e1, e1_avg, f_avg):
+    """Cycles' Multiscatter GGX factor on a single-scattering reflection (:func:`multiscatter_scale`): 1 + F_ms
+    (1 - E1) / E1, E1 the single-scattering albedo with Fresnel 1 at the view, so that a white surface reflects all
+    light, and F_ms = F_avg E1_avg / (1 - F_avg (1 - E1_avg)) the Fresnel of the light that bounces more than once
+    (Kulla and Conty 2017, appendix; F_avg the Fresnel's cosine-weighted average, E1_avg E1's)."""
+    return 1.0 + f_avg * e1_avg / (1.0 - f_avg * (1.0 - e1_avg)) * ((1.0 - e1) / maximum(e1, 1e-6))
+
+
+@formula
+def schlick_mean(f0):
+    """The cosine-weighted average of Schlick's Fresnel F0 + (1 - F0)(1 - mu)^5: F0 + (1 - F0) / 21, the average
+    Cycles' metal compensates its multiple scattering with (its Fresnel is Schlick's from the base colour)."""
+    return f0 + (1.0 - f0) / 21.0
+
+
+@formula
+def lobe_probability(spec_albedo, colour, metallic):
+    """The chance that a sample reflects about a visible microfacet, from the lobes' albedos at wo: the dielectric's
+    E S (with multiple scattering) and the metal's F0 (``colour``, the mean of the base's channels in [0, 1])
+    against the diffuse base's (1 - E S) colour."""
+    glossy = (1.0 - metallic) * spec_albedo + metallic * colour
+    diffuse = (1.0 - metallic) * (1.0 - spec_albedo) * colour
+    total = glossy + diffuse
+    return where(total > 0.0, glossy / total, 0.5)
+
+
+@formula
+def lobe_mixture_pdf(p, p_glossy, iz, oz):
+    """The sampler's density: the visible-normal reflection's ``p_glossy`` with probability ``p``, else the
+    cosine-weighted direction's."""
+    return p * p_glossy + (1.0 - p) * lambert_pdf(iz, oz)
+
+
+@formula
+def principled_view(e, e1, e1_avg, f_avg, metallic, b0, b1, b2, metal):
+    """What the view sets, from the table at its cosine (the layer's albedo E, the GGX albedo E1) and the
+    material's E1_avg, Fresnel average, metallic and base colour: (S_spec, 1 - E S_spec the diffuse base's weight,
+    the metal's S per channel (S_spec without ``metal``: unused), the lobe probability). ``metal``: whether any
+    row is metallic (a bool for every row)."""
+    spec_scale = multiscatter_factor(e1, e1_avg, f_avg)
+    spec_albedo = e * spec_scale
+    c0, c1, c2 = clip(b0, 0.0, 1.0), clip(b1, 0.0, 1.0), clip(b2, 0.0, 1.0)
+    p = lobe_probability(spec_albedo, (c0 + c1 + c2) / 3.0, metallic)
+    s0 = s1 = s2 = spec_scale
+    if metal:
+        s0 = multiscatter_factor(e1, e1_avg, schlick_mean(c0))
+        s1 = multiscatter_factor(e1, e1_avg, schlick_mean(c1))
+        s2 = multiscatter_factor(e1, e1_avg, schlick_mean(c2))
+    return spec_scale, 1.0 - spec_albedo, s0, s1, s2, p
+
+
+@formula
+def principled_eval(
+    ix, iy, iz, ox, oy, oz, alpha, ior, metallic, b0, b1, b2, k0, k1, k2, spec_scale, diffuse, s0, s1, s2, p, metal
+):
+    """(f R, G, B, the sampler's pdf) of :class:`SpecularDiffuse` at wi, wo (components; wo above the surface) with
+    what its view sets (:func:`principled_view`: S_spec, the diffuse weight, the metal's S, the lobe probability p)
+    and the metal's k per channel (``stack.k_from_f0`` of the base; read only with ``metal``)."""
+    dg, p_glossy, dwo = ggx.reflection_terms(ix, iy, iz, ox, oy, oz, alpha)
+    spec = where(abs(ior - 1.0) < INDEX_MATCHED_TOL, 0.0, dg * fresnel_dielectric_cos(dwo, ior)) * spec_scale
+    dielectric = 1.0 - metallic
+    f0 = dielectric * (spec + lambert_f(iz, oz, b0) * diffuse)
+    f1 = dielectric * (spec + lambert_f(iz, oz, b1) * diffuse)
+    f2 = dielectric * (spec + lambert_f(iz, oz, b2) * diffuse)
+    if metal:  # the conductor of F0 = base (eta 1), about the same facets
+        f0 = f0 + metallic * (dg * fresnel_conductor_cos(dwo, 1.0, k0) * s0)
+        f1 = f1 + metallic * (dg * fresnel_conductor_cos(dwo, 1.0, k1) * s1)
+        f2 = f2 + metallic * (dg * fresnel_conductor_cos(dwo, 1.0, k2) * s2)
+    return f0, f1, f2, lobe_mixture_pdf(p, p_glossy, iz, oz)
+
+
+@formula
+def principled_sample(
+    ox, oy, oz, u_lobe, u0, u1, alpha, ior, metallic, b0, b1, b2, k0, k1, k2, spec_scale, diffuse, s0, s1, s2, p, metal
+):
+    """(x, y, z, weight R, G, B, pdf, delta, valid): one sample of :class:`SpecularDiffuse` seen from wo above the
+    surface (the arguments of :func:`principled_eval`), before ``BSDFSample.build``'s checks: the mirror of wo
+    about a visible normal (the geometric normal where alpha < SMOOTH_ALPHA: a delta event of weight the
+    dielectric's and the metal's Fresnel over its chance p) with probability p, else a cosine-weighted direction,
+    both from the same numbers; weight f |cos| / pdf, pdf the mixture's."""
+    glossy = u_lobe < p
+    smooth = alpha < SMOOTH_ALPHA
+    mx, my, mz = ggx.visible_normal(ox, oy, oz, maximum(alpha, ggx.MIN_ALPHA), u0, u1)
+    mx, my, mz = where(smooth, 0.0, mx), where(smooth, 0.0, my), where(smooth, 1.0, mz)
+    rx, ry, rz = reflected(ox, oy, oz, mx, my, mz)
+    dx, dy, dz, _, ok_diffuse = lambert_sample(oz, u0, u1)
+    ix, iy, iz = where(glossy, rx, dx), where(glossy, ry, dy), where(glossy, rz, dz)
+    f0, f1, f2, pdf = principled_eval(
+        ix, iy, iz, ox, oy, oz, alpha, ior, metallic, b0, b1, b2, k0, k1, k2, spec_scale, diffuse, s0, s1, s2, p, metal
+    )
+    c = abs(iz)
+    delta = glossy & smooth
+    mirror = (1.0 - metallic) * fresnel_dielectric_cos(oz, ior)
+    m0 = m1 = m2 = mirror
+    if metal:
+        m0 = mirror + metallic * fresnel_conductor_cos(oz, 1.0, k0)
+        m1 = mirror + metallic * fresnel_conductor_cos(oz, 1.0, k1)
+        m2 = mirror + metallic * fresnel_conductor_cos(oz, 1.0, k2)
+    w0 = where(delta, m0 / p, f0 * c / pdf)
+    w1 = where(delta, m1 / p, f1 * c / pdf)
+    w2 = where(delta, m2 / p, f2 * c / pdf)
+    valid = (oz > 0.0) & (iz > 0.0) & (glossy | ok_diffuse)
+    return ix, iy, iz, w0, w1, w2, where(delta, p, pdf), delta, valid
+
+
 class SpecularDiffuse(BSDF):
     """Cycles' Principled BSDF without transmission, coat, sheen, subsurface or tints (module docstring).
 
@@ -215,6 +352,9 @@ class SpecularDiffuse(BSDF):
     ``ior`` >= 1 the specular layer's index after Specular IOR Level (:func:`specular_ior`; 1: no layer);
     ``metallic`` in [0, 1]. ``fresnel_average`` is derived: the layer's :func:`fresnel_dielectric_average`, kept
     per stored row of ``ior`` (64 Fresnel evaluations each: per hit, they took most of the time of a bounce).
+
+    ``eval``, ``pdf`` and ``sample`` run the formulas above on columns; the renderer runs the same formulas in one
+    compiled pass a bounce (``kernels.principled_shade``, with :meth:`shading_arrays`).
     """
 
     _params = ("base", "alpha", "ior", "metallic", "fresnel_average")
@@ -225,91 +365,84 @@ class SpecularDiffuse(BSDF):
         self.ior = as_param(ior, "SpecularDiffuse.ior", lo=1.0)
         self.metallic = as_param(metallic, "SpecularDiffuse.metallic", lo=0.0, hi=1.0)
         self.fresnel_average = fresnel_dielectric_average(self.ior)
+        self._lobes = None  # shading_arrays' (lobes, curves), made at first use
+        self._k = None  # k_from_f0 of a shared base, made at first use
+
+    def with_base(self, base: np.ndarray) -> "SpecularDiffuse":
+        """This BSDF over per-row base colours (N, 3) that are float64, finite and non-negative by construction (the
+        renderer's texture lookups, ``kernels.tinted_albedo``): the other parameters and what is made from them
+        kept, without ``as_param``'s checks, which cost passes over every hit of every bounce."""
+        out = object.__new__(type(self))
+        out.__dict__.update(self.__dict__)
+        out.base, out._k = base, None
+        return out
+
+    def shading_arrays(self) -> tuple | None:
+        """What ``kernels.principled_shade`` reads: (base (1 or N, 3), k (1 or N, 3): the metal's
+        ``stack.k_from_f0`` of the base (zeros without a metal), lobes (alpha, ior, metallic, Fresnel average,
+        E1_avg), the layer's albedo curve over mu, E1's), float64 and contiguous; None where alpha, ior or metallic
+        vary by row (then :class:`~addon.core.render.shading.ShadeByParts` answers from eval, pdf, sample)."""
+        if any(getattr(self, p).shape[0] != 1 for p in ("alpha", "ior", "metallic")):
+            return None
+        if self._lobes is None:
+            alpha, ior, metallic = float(self.alpha[0]), float(self.ior[0]), float(self.metallic[0])
+            avg = float(ggx_average(np.asarray(alpha)))
+            lobes = np.array([alpha, ior, metallic, float(self.fresnel_average[0]), avg])
+            self._lobes = lobes, albedo_curve((ior - 1.0) / (ior + 1.0), alpha), albedo_curve(1.0, alpha)
+        base = np.require(self.base, np.float64, ["C"])
+        k = self._k
+        if k is None or len(base) != 1:
+            k = np.ascontiguousarray(k_from_f0(base)) if self.metallic[0] > 0.0 else np.zeros((1, 3))
+            if len(base) == 1:
+                self._k = k
+        return (base, k, *self._lobes)
 
     def _rows(self, n):
         """(base, alpha, ior, metallic, fresnel_average) for a batch of ``n`` rows: a per-row parameter checked to
         have them, a shared one left at its one row, which numpy broadcasts (and :func:`_lookup` reads once)."""
         return tuple(v if v.shape[0] == 1 else rows(v, n, p) for p in self._params for v in [getattr(self, p)])
 
-    # --- the lobes -----------------------------------------------------------------------------------------------
-
-    def _f(self, wi, wo, base, alpha, ior, metallic, fresnel_average):
-        """(f (N, 3), the glossy lobe's pdf (N,)) at upper-hemisphere wo (rough parts only: a delta mirror adds
-        nothing here)."""
-        f_spec, _ = rough_dielectric_eval_pdf(
-            wi[:, 0], wi[:, 1], wi[:, 2], wo[:, 0], wo[:, 1], wo[:, 2], alpha, ior, True, True
-        )  # index-matched rows (ior 1) give 0: no layer
-        spec_scale = multiscatter_scale(wo[:, 2], alpha, fresnel_average)
-        spec_albedo = dielectric_albedo(wo[:, 2], alpha, ior) * spec_scale
-        diffuse = lambert_f(wi[:, 2:3], wo[:, 2:3], base) * (1.0 - spec_albedo)[:, None]
-        f = (1.0 - metallic)[:, None] * ((f_spec * spec_scale)[:, None] + diffuse)
-        pdf_glossy = RoughConductor(alpha, 1.0, 0.0).pdf(wi, wo, check=False)  # the same facets, whatever the index
-        if np.any(metallic > 0.0):
-            metal = RoughConductor(alpha, 1.0, k_from_f0(base)).eval(wi, wo, check=False)
-            metal = metal * multiscatter_scale(wo[:, 2], alpha, schlick_average(np.clip(base, 0.0, 1.0)))
-            f = f + metallic[:, None] * metal
-        return f, pdf_glossy
-
     @staticmethod
-    def _glossy_probability(mu, base, alpha, ior, metallic, fresnel_average):
-        """The chance (N,) that a sample reflects about a visible microfacet, from the lobes' albedos at wo: the
-        dielectric's E (with multiple scattering) and the metal's F0 (its mean over the channels) against the
-        diffuse base's (1 - E) base."""
-        e = dielectric_albedo(mu, alpha, ior) * multiscatter_scale(mu, alpha, fresnel_average)
-        colour = np.clip(base, 0.0, 1.0).mean(axis=1)
-        glossy = (1.0 - metallic) * e + metallic * colour
-        diffuse = (1.0 - metallic) * (1.0 - e) * colour
-        total = glossy + diffuse
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(total > 0.0, glossy / total, 0.5)
+    def _lobe_arguments(mu, base, alpha, ior, metallic, fresnel_average):
+        """The material's arguments to :func:`principled_eval` and :func:`principled_sample` after the directions,
+        on columns, at view cosines ``mu`` (N,)."""
+        metal = bool(np.any(metallic > 0.0))
+        view = principled_view(
+            dielectric_albedo(mu, alpha, ior), ggx_albedo(mu, alpha), ggx_average(alpha), fresnel_average,
+            metallic, base[:, 0], base[:, 1], base[:, 2], metal,
+        )  # fmt: skip
+        k = k_from_f0(base) if metal else np.zeros((1, 3))
+        return (alpha, ior, metallic, base[:, 0], base[:, 1], base[:, 2], k[:, 0], k[:, 1], k[:, 2], *view, metal)
 
     # --- the interface ------------------------------------------------------------------------------------------
 
     def eval(self, wi, wo, mode=RADIANCE, check=True) -> np.ndarray:
         wi, wo, _ = self._inputs(wi, wo, mode, check)
         wi, wo = _above(wi, wo)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return self._f(wi, wo, *self._rows(len(wi)))[0]
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            args = self._lobe_arguments(wo[:, 2], *self._rows(len(wi)))
+            f0, f1, f2, _ = principled_eval(*wi.T, *wo.T, *args)
+        return np.stack(np.broadcast_arrays(f0, f1, f2), axis=-1)
 
     def pdf(self, wi, wo, mode=RADIANCE, check=True) -> np.ndarray:
         wi, wo, _ = self._inputs(wi, wo, mode, check)
         wi, wo = _above(wi, wo)
         params = self._rows(len(wi))
-        p = self._glossy_probability(wo[:, 2], *params)
-        alpha = params[1]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            glossy = RoughConductor(alpha, 1.0, 0.0).pdf(wi, wo, check=False)
-        return p * glossy + (1.0 - p) * lambert_pdf(wi[:, 2], wo[:, 2])
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            p = self._lobe_arguments(wo[:, 2], *params)[-2]
+            _, p_glossy, _ = ggx.reflection_terms(*wi.T, *wo.T, params[1])
+            return lobe_mixture_pdf(p, p_glossy, wi[:, 2], wo[:, 2])
 
     def sample(self, wo, u_lobe, u, mode=RADIANCE, check=True) -> BSDFSample:
         wo, u_lobe, u, _ = self._sample_inputs(wo, u_lobe, u, mode, check)
         below = wo[:, 2] < 0.0
         wo = _mirrored(wo, below)
-        n = len(wo)
-        params = self._rows(n)
-        base, alpha, ior, metallic, _ = params
-        p = self._glossy_probability(wo[:, 2], *params)
-        glossy = u_lobe < p
-        # both candidates from the same numbers: a visible-normal reflection and a cosine-weighted direction
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mx, my, mz = ggx.visible_normal(wo[:, 0], wo[:, 1], wo[:, 2], np.maximum(alpha, ggx.MIN_ALPHA), *u.T)
-            smooth = alpha < SMOOTH_ALPHA  # the mirror about the geometric normal
-            mx, my, mz = np.where(smooth, 0.0, mx), np.where(smooth, 0.0, my), np.where(smooth, 1.0, mz)
-            rx, ry, rz = reflected(wo[:, 0], wo[:, 1], wo[:, 2], mx, my, mz)
-            dx, dy, dz, _, ok_diffuse = lambert_sample(wo[:, 2], u[:, 0], u[:, 1])
-        wi = np.where(glossy[:, None], np.stack([rx, ry, rz], axis=-1), np.stack([dx, dy, dz], axis=-1))
-        delta = glossy & smooth
-        with np.errstate(invalid="ignore", divide="ignore"):
-            f, pdf_glossy = self._f(wi, wo, *params)
-            pdf = p * pdf_glossy + (1.0 - p) * lambert_pdf(wi[:, 2], wo[:, 2])
-            weight = f * np.abs(wi[:, 2:3]) / pdf[:, None]
-            if np.any(delta):  # a smooth surface's mirror: the dielectric's and the metal's Fresnel over its chance
-                mirror = (1.0 - metallic) * fresnel_dielectric_cos(wo[:, 2], ior)
-                mirror = mirror[:, None] + metallic[:, None] * fresnel_conductor(wo[:, 2], 1.0, k_from_f0(base))
-                weight = np.where(delta[:, None], mirror / p[:, None], weight)
-        pdf = np.where(delta, p, pdf)
-        valid = (wo[:, 2] > 0.0) & (wi[:, 2] > 0.0) & np.where(glossy, True, ok_diffuse)
-        false = np.zeros(n, dtype=bool)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            args = self._lobe_arguments(wo[:, 2], *self._rows(len(wo)))
+            x, y, z, w0, w1, w2, pdf, delta, valid = principled_sample(*wo.T, u_lobe, u[:, 0], u[:, 1], *args)
+        wi = np.stack([x, y, z], axis=-1)
+        weight = np.stack(np.broadcast_arrays(w0, w1, w2), axis=-1)
+        false = np.zeros(len(wo), dtype=bool)
         return BSDFSample.build(_mirrored(wi, below), weight, pdf, delta, false, valid)
 
 

@@ -25,13 +25,14 @@ def warm_scene(environment_image: bool):
     a constant colour)."""
     from . import shapes
     from .lights import AreaLight, Environment, PointLight, SpotLight, SunLight
-    from .materials import ImageTexture, LambertMaterial
+    from .materials import ImageTexture, LambertMaterial, PrincipledMaterial
     from .scene import Camera, Mesh, Scene
 
     floor = shapes.quad((0.0, 0.0, 0.0), (2.0, 0.0, 0.0), (0.0, 2.0, 0.0), material=0)
     ball = shapes.uv_sphere((0.0, 0.0, 0.5), 0.5, 8, 4, material=1)
     texture = ImageTexture(np.random.default_rng(0).random((4, 4, 3)))
-    materials = [LambertMaterial((0.8, 0.8, 0.8), texture), LambertMaterial((0.5, 0.5, 0.5))]
+    # the ball a Principled BSDF (a specular layer and half a metal): an ordinary Blender material's loop
+    materials = [LambertMaterial((0.8, 0.8, 0.8), texture), PrincipledMaterial((0.5, 0.5, 0.5), metallic=0.5)]
     rect, disk = np.eye(4), np.eye(4)
     rect[:3, 3], disk[:3, 3] = (0.0, 0.0, 3.0), (1.0, 0.0, 3.0)
     lights = [
