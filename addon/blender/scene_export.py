@@ -55,6 +55,12 @@ def render_size(scene) -> tuple[int, int]:
 _FRAME: contextvars.ContextVar[int | None] = contextvars.ContextVar("frame", default=None)
 
 
+# What Cycles renders for an Image or Environment Texture node without an image, or whose image has no pixels (a
+# missing file): magenta (its TEX_IMAGE_MISSING colour), which an artist knows to look for
+MISSING_IMAGE_COLOUR = (1.0, 0.0, 1.0)
+MISSING_IMAGE = "rendered magenta, as Cycles renders a missing image"
+
+
 def _image_pixels(image, warnings: list[str], associate_alpha: bool = False, node=None) -> np.ndarray | None:
     """(H, W, 4) scene-linear float pixels, row 0 at the top (``images.linear_pixels``); None (with a warning) if
     unavailable. An image sequence gives the frame its ``node``'s Image User shows at the exported frame
@@ -69,7 +75,7 @@ def _image_pixels(image, warnings: list[str], associate_alpha: bool = False, nod
                 image, user, user.frame_current if frame is None else frame, associate_alpha
             )
             if px is None:
-                warnings.append(f"image {image.name!r}: its frame's file {path!r} cannot be read; using the colour")
+                warnings.append(f"image {image.name!r}: its frame's file {path!r} cannot be read; {MISSING_IMAGE}")
                 return None
             return np.ascontiguousarray(px, dtype=np.float32)
         key = _image_file_key(image, associate_alpha)
@@ -87,10 +93,10 @@ def _image_pixels(image, warnings: list[str], associate_alpha: bool = False, nod
             key = None  # a file OpenImageIO cannot read: Blender's pixels, read at every export
             px = images.linear_pixels(image, associate_alpha)
     except ValueError as e:
-        warnings.append(f"{e}; using the colour")
+        warnings.append(f"{e}; {MISSING_IMAGE}")
         return None
     if px is None:
-        warnings.append(f"image {image.name!r} has no pixels (missing file {image.filepath!r}?); using the colour")
+        warnings.append(f"image {image.name!r} has no pixels (missing file {image.filepath!r}?); {MISSING_IMAGE}")
         return None
     if key is not None:
         px = np.ascontiguousarray(px, dtype=np.float32)
@@ -242,6 +248,7 @@ SURFACE_NODES = ("BSDF_PRINCIPLED", "BSDF_DIFFUSE")  # the surface nodes an unma
 _PRINCIPLED_DROPPED = (
     ("Metallic", 0.0), ("Transmission Weight", 0.0), ("Coat Weight", 0.0), ("Subsurface Weight", 0.0),
     ("Sheen Weight", 0.0), ("Emission Strength", 0.0), ("Alpha", 1.0), ("Diffuse Roughness", 0.0),
+    ("Anisotropic", 0.0), ("Thin Film Thickness", 0.0),
 )  # fmt: skip
 # The inputs of a Principled BSDF's dielectric specular layer, which the Lambertian leaves out (``_specular_note``).
 _SPECULAR_INPUTS = ("Specular IOR Level", "IOR", "Roughness", "Specular Tint")
@@ -288,7 +295,7 @@ def _dropped_inputs(node, rendered: tuple[str, ...] = ()) -> list[str]:
                 and not any(colour.default_value[:3])
             ):
                 continue  # a strength of a black emission: nothing emitted
-            dropped.append(name.removesuffix(" Weight").removesuffix(" Strength"))
+            dropped.append(name.removesuffix(" Weight").removesuffix(" Strength").removesuffix(" Thickness"))
     return dropped
 
 
@@ -489,16 +496,18 @@ def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial | Principled
         _warn_material(mat, notes, warnings)
         return LambertMaterial(color if color is not None else tuple(mat.diffuse_color[:3]))
     layers = _principled_layers(node) if node.type == "BSDF_PRINCIPLED" else None
+    layered = layers is not None and _has_layers(layers)
     dropped = _dropped_inputs(node, rendered=("Metallic",) if layers is not None else ())
     if dropped:
         verb = "is" if len(dropped) == 1 else "are"
-        notes.append(f"its {_node_title(node)}'s {_listed(dropped)} {verb} left out (a Lambertian of its base colour)")
+        instead = "" if layered else " (a Lambertian of its base colour)"  # else: the rest of it renders
+        notes.append(f"its {_node_title(node)}'s {_listed(dropped)} {verb} left out{instead}")
     color, texture, base = tuple(mat.diffuse_color[:3]), None, None
     socket = node.inputs.get("Base Color") or node.inputs.get("Color")
     source = _source(socket)
     image = _linked_image(socket)
     if image is False:
-        warnings.append(f"material {mat.name!r}: its {_node_title(source.node)} node has no image; using its colour")
+        warnings.append(f"material {mat.name!r}: its {_node_title(source.node)} node has no image; {MISSING_IMAGE}")
     elif image is not None:
         image_node = source.node
         if source.name != "Color":
@@ -516,8 +525,8 @@ def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial | Principled
             base = _luminance(px[::step, ::step, :3].reshape(-1, 3).mean(axis=0))
     if texture is not None:
         color = (1.0, 1.0, 1.0)
-    elif image is not None:  # an Image Texture node without an image or its pixels: the socket's own colour
-        color = tuple(socket.default_value[:3])
+    elif image is not None:  # an Image Texture node without an image or its pixels: magenta, as in Cycles
+        color = MISSING_IMAGE_COLOUR
     elif (constant := _constant_colour(socket)) is not None:
         color = constant
     else:
@@ -526,7 +535,6 @@ def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial | Principled
             "Image Texture, a Color or a Value node is); using the viewport colour"
         )
     base = _luminance(color) if base is None else base
-    layered = layers is not None and _has_layers(layers)
     notes += _layer_notes(node, layers if layered else None, base)
     notes += _relief_notes(mat, node)
     _warn_material(mat, notes, warnings)
@@ -908,19 +916,19 @@ def _world(world, warnings: list[str]) -> Environment | None:
                     if px is not None:
                         turn = _environment_turn(colour.node, world, warnings)
                         return Environment(image=turned_image(px[:, :, :3], turn), strength=strength)
-                elif image is False:
-                    warnings.append(
-                        f"world {world.name!r}: its {_node_title(colour.node)} node has no image; using its colour"
-                    )
-                elif (constant := _constant_colour(socket)) is not None:
+                if image is not None:  # no image, or no pixels: magenta, as in Cycles
+                    if image is False:
+                        node = _node_title(colour.node)
+                        warnings.append(f"world {world.name!r}: its {node} node has no image; {MISSING_IMAGE}")
+                    return Environment(MISSING_IMAGE_COLOUR, strength=strength)
+                if (constant := _constant_colour(socket)) is not None:
                     return Environment(constant, strength=strength)
-                else:
-                    flat = socket.default_value[:3]
-                    warnings.append(
-                        f"world {world.name!r}: the Background colour comes from {_a_node(colour.node)}, which this "
-                        f"renderer does not evaluate (only an Environment or Image Texture, a Color or a Value node "
-                        f"is); lighting with the socket's flat colour {tuple(round(c, 3) for c in flat)}"
-                    )
+                flat = socket.default_value[:3]
+                warnings.append(
+                    f"world {world.name!r}: the Background colour comes from {_a_node(colour.node)}, which this "
+                    f"renderer does not evaluate (only an Environment or Image Texture, a Color or a Value node "
+                    f"is); lighting with the socket's flat colour {tuple(round(c, 3) for c in flat)}"
+                )
                 return Environment(tuple(socket.default_value[:3]), strength=strength)
             warnings.append(
                 f"world {world.name!r}: its surface is {_a_node(bg)}, not a Background; using the world colour"

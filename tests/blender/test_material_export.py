@@ -219,6 +219,54 @@ def test_a_colour_above_1_renders_as_in_cycles(fresh_scene, tmp_path, kind):
     _assert_channels_match(cycles, ours)
 
 
+@pytest.mark.parametrize("missing", ["no-image", "missing-file"])
+def test_a_missing_image_renders_magenta_as_in_cycles(fresh_scene, tmp_path, missing):
+    """An Image Texture node without an image, or whose image's file is missing, rendered the socket's own colour
+    (grey) where Cycles renders magenta, its sign of a missing image; it renders magenta, with a warning."""
+    ctx = fresh_scene
+    mat, out = _bare_material("missing")
+    node = _diffuse_node(mat, (0.5, 0.5, 0.5))
+    tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
+    if missing == "missing-file":
+        tex.image = bpy.data.images.load(str(_write_png(tmp_path / "gone.png")))
+        (tmp_path / "gone.png").unlink()
+        tex.image.reload()
+    mat.node_tree.links.new(tex.outputs["Color"], node.inputs["Color"])
+    mat.node_tree.links.new(node.outputs[0], out.inputs["Surface"])
+    _half_plane_in_sky(ctx, mat)
+    cycles, ours, warnings = _both(ctx, tmp_path, samples=32)
+    assert len(warnings) == 1 and "rendered magenta" in warnings[0]
+    assert cycles[:, :8, 0].mean() > 0.9 and cycles[:, :8, 1].mean() < 0.05  # magenta in Cycles
+    _assert_channels_match(cycles, ours)
+
+
+def test_a_world_environment_without_an_image_renders_magenta_as_in_cycles(fresh_scene, tmp_path):
+    """An Environment Texture node without an image lit the scene with the Background's own colour where Cycles
+    lights it magenta."""
+    ctx = fresh_scene
+    mat, out = _bare_material("grey")
+    mat.node_tree.links.new(_diffuse_node(mat, (0.5, 0.5, 0.5)).outputs[0], out.inputs["Surface"])
+    world = _half_plane_in_sky(ctx, mat)
+    env = world.node_tree.nodes.new("ShaderNodeTexEnvironment")
+    world.node_tree.links.new(env.outputs["Color"], world.node_tree.nodes["Background"].inputs["Color"])
+    cycles, ours, warnings = _both(ctx, tmp_path, samples=32)
+    assert len(warnings) == 1 and "rendered magenta" in warnings[0]
+    assert cycles[:, 8:, 0].mean() > 0.9 and cycles[:, 8:, 1].mean() < 0.05  # the sky beside the plane
+    assert ours[..., 1].max() < 1e-6  # no green anywhere: the plane is lit by magenta alone
+    for c in (0, 2):
+        _assert_blocks_match(cycles[..., c], ours[..., c], 0.05, n=4)
+
+
+def _write_png(path):
+    image = bpy.data.images.new("written", 2, 2)
+    image.pixels.foreach_set(np.full(16, 0.25, np.float32))
+    image.filepath_raw = str(path)
+    image.file_format = "PNG"
+    image.save()
+    bpy.data.images.remove(image)
+    return path
+
+
 def test_a_lambertian_colour_keeps_what_is_above_1_and_zeroes_what_is_not_a_reflectance():
     from addon.core.render import LambertMaterial
 
@@ -291,13 +339,16 @@ def test_a_specular_layer_that_changes_the_image_noticeably_is_named(fresh_scene
     assert scene_export.specular_albedo(1.5, 0.5, (1.0, 0.0, 0.0)) < albedo  # a tint darkens F0
 
 
-def test_principled_diffuse_roughness_is_named(fresh_scene):
-    """A Diffuse BSDF's Roughness was named, a Principled BSDF's Diffuse Roughness (3.6% off Cycles at 1) was not."""
+def test_principled_diffuse_roughness_anisotropic_and_thin_film_are_named(fresh_scene):
+    """A Diffuse BSDF's Roughness was named, a Principled BSDF's Diffuse Roughness (3.6% off Cycles at 1),
+    Anisotropic (2.7% at 0.5) and Thin Film (3.5%) were not."""
     mat, principled = _default_principled("rough")
     principled.inputs["Diffuse Roughness"].default_value = 1.0
-    assert _warnings_of(mat) == [
-        "material 'rough': its Principled BSDF's Diffuse Roughness is left out (a Lambertian of its base colour)"
-    ]
+    assert _warnings_of(mat) == ["material 'rough': its Principled BSDF's Diffuse Roughness is left out"]
+    principled.inputs["Diffuse Roughness"].default_value = 0.0
+    principled.inputs["Anisotropic"].default_value = 0.5
+    principled.inputs["Thin Film Thickness"].default_value = 300.0
+    assert _warnings_of(mat) == ["material 'rough': its Principled BSDF's Anisotropic and Thin Film are left out"]
 
 
 def test_warnings_name_nodes_as_blender_shows_them(fresh_scene):

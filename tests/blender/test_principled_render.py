@@ -101,7 +101,7 @@ def test_a_rendered_principled_bsdf_names_only_what_it_leaves_out(fresh_scene):
     warnings: list[str] = []
     assert isinstance(scene_export.unmanaged_material(mat, warnings), PrincipledMaterial)
     assert warnings == [
-        "material 'principled': its Principled BSDF's Coat is left out (a Lambertian of its base colour); its "
+        "material 'principled': its Principled BSDF's Coat is left out; its "
         "Specular Tint is left out (an untinted specular reflection)"
     ]
 
