@@ -95,7 +95,7 @@ def texel_errors(models, stack, texel: np.ndarray, table: np.ndarray) -> dict[st
     above = ref.albedo - ref.below_top  # the top lobe's first reflections: exact in every way of decoding
     out = {}
     for name, t in (("decoder", None), ("texture", table), ("own", own)):
-        energy = moments.pairs.sum(axis=2) if t is None else cal.table_energy(moments.pairs, t)
+        energy = moments.pairs.sum(axis=2) if t is None else cal.table_energy(moments, t)
         albedo = energy.sum(axis=1) + above
         out[name] = {
             "albedo": np.abs(albedo / ref.albedo - 1.0).mean(axis=-1),

@@ -1600,7 +1600,8 @@ EVERY_ROW = np.zeros(0, dtype=I8)
 @njit(**_JIT)
 def decoded_brdf(out, wi, wo, calibration, top, transmittance, scale, add_lobe, hit_of_row):
     """A decoder's ``out`` (N, 3) float32 made the material's f, in place, in one pass (``ModelSet.eval_brdf``):
-    times the albedo calibration's factor at the cosines (``calibration`` as ``RowCalibration.arrays`` gives it;
+    times the albedo calibration's factor at the cosines and the relative azimuth (``calibration`` as
+    ``RowCalibration.arrays`` gives it;
     no table: none); then, for a remainder decoder's top coat (``top`` (1, 2) shared or per row; no rows: none),
     with ``scale`` times the transmission factor T(cos theta_i) T(cos theta_o) (``transmission_rows``) and with
     ``add_lobe`` plus the top lobe's f (``top_lobe_eval_pdf``). Returns the top lobe's sampling density (N,)
@@ -1624,7 +1625,8 @@ def decoded_brdf(out, wi, wo, calibration, top, transmittance, scale, add_lobe, 
         h = hit_of_row[i] if indexed else i
         if calibrated:
             x, y = min(max(wi[i, 2], 0.0), 1.0), min(max(wo[i, 2], 0.0), 1.0)
-            _scale_row(out, i, x, y, grid, tables, which[h] if len(which) else 0)
+            cos_phi = _cos_relative_azimuth(wi[i, 0], wi[i, 1], wo[i, 0], wo[i, 1])
+            _scale_row(out, i, x, y, cos_phi, grid, tables, which[h] if len(which) else 0)
         if not coated:
             continue
         j = 0 if shared else h
@@ -1776,25 +1778,76 @@ def _spacing_guess(grid, x, spacing):
 
 
 @njit(**_JIT)
-def scale_by_table(f, x, y, grid, tables, which):
-    """``f`` (N, C) times ``tables[which[n]]`` (T, K, K, C) at (``x``, ``y``) (N,) each, bilinear between
-    the increasing abscissae ``grid`` (K,) on both axes, constant beyond them; in place. An empty
-    ``which`` means table 0 for every row."""
+def scale_by_table(f, x, y, grid, tables, which, cos_phi=None):
+    """``f`` (N, C) times ``tables[which[n]]`` (T, K, K * P, C) at (``x``, ``y``, ``cos_phi``) (N,) each: the cosines
+    of the two elevations, bilinear between the increasing abscissae ``grid`` (K,) on both axes, constant beyond
+    them, and the cosine of the relative azimuth, linear in the azimuth between P nodes (:func:`_scale_row`); in
+    place. An empty ``which`` means table 0 for every row. ``cos_phi`` may be left out for tables of one azimuth
+    node (P = 1: elevation only)."""
+    if cos_phi is None and tables.shape[2] != len(grid):
+        raise ValueError("tables with azimuth nodes need the rows' cos_phi")
     for n in range(len(f)):
-        _scale_row(f, n, x[n], y[n], grid, tables, which[n] if len(which) else 0)
+        c = 1.0 if cos_phi is None else cos_phi[n]
+        _scale_row(f, n, x[n], y[n], c, grid, tables, which[n] if len(which) else 0)
+
+
+@njit(**_JIT)
+def relative_azimuth_cosines(wi, wo):
+    """(N,) the cosine of the relative azimuth of each row's directions ``wi``, ``wo`` (N, 3), as the calibration's
+    tables read it (:func:`_cos_relative_azimuth`)."""
+    out = np.empty(len(wi))
+    for n in range(len(wi)):
+        out[n] = _cos_relative_azimuth(wi[n, 0], wi[n, 1], wo[n, 0], wo[n, 1])
+    return out
 
 
 @njit(forceinline=True, **_JIT)
-def _scale_row(f, n, x, y, grid, tables, m):
-    """``f[n]`` times ``tables[m]`` (K, K, C) at (x, y), bilinear (:func:`scale_by_table`). The table is indexed,
-    not sliced: a slice is an array whose reference count a loop would raise and drop for every row."""
+def _cos_relative_azimuth(ax, ay, bx, by):
+    """cos(phi_a - phi_b) of two directions from their tangent components; 1 where either is along the normal
+    (where the tables do not depend on the azimuth: ``calibrate.solve_azimuth``)."""
+    d = (ax * ax + ay * ay) * (bx * bx + by * by)
+    if not (d > 1e-30):
+        return 1.0
+    return min(max((ax * bx + ay * by) / _sqrt(d), -1.0), 1.0)
+
+
+@njit(forceinline=True, **_JIT)
+def _azimuth_cell(cos_phi, nodes):
+    """Index q and weight w of the relative azimuth phi = acos(``cos_phi``) between nodes q and q + 1 of ``nodes``
+    evenly spaced on [0, pi] (``calibrate.azimuth_hats`` is its numpy form); (0, 0) for one node."""
+    if nodes < 2:
+        return 0, 0.0
+    u = math.acos(min(max(cos_phi, -1.0), 1.0)) * (nodes - 1) / math.pi
+    q = min(int(u), nodes - 2)
+    return q, u - q
+
+
+@njit(forceinline=True, **_JIT)
+def _table_at(tables, m, i, s, j, t, node, c):
+    """``tables[m]``'s channel c, bilinear at the cosines' cells (i, s) and (j, t), at azimuth node ``node`` (the
+    columns j * P + node)."""
+    p = tables.shape[2] // tables.shape[1]
+    a, b = j * p + node, (j + 1) * p + node
+    low = tables[m, i, a, c] * (1.0 - s) + tables[m, i + 1, a, c] * s
+    high = tables[m, i, b, c] * (1.0 - s) + tables[m, i + 1, b, c] * s
+    return low * (1.0 - t) + high * t
+
+
+@njit(forceinline=True, **_JIT)
+def _scale_row(f, n, x, y, cos_phi, grid, tables, m):
+    """``f[n]`` times ``tables[m]`` (K, K * P, C) at (x, y, cos_phi) (:func:`scale_by_table`): bilinear in the two
+    cosines, linear in the relative azimuth between its P nodes (``tables[m, i, j * P + q]``: cosines i and j,
+    azimuth node q). The table is indexed, not sliced: a slice is an array whose reference count a loop would raise
+    and drop for every row."""
     # the calibration's cosines are close to quadratic: guesses within two cells
     i, s = _segment_near(grid, x, _spacing_guess(grid, x, 2))
     j, t = _segment_near(grid, y, _spacing_guess(grid, y, 2))
+    q, w = _azimuth_cell(cos_phi, tables.shape[2] // len(grid))
     for c in range(f.shape[1]):
-        low = tables[m, i, j, c] * (1.0 - s) + tables[m, i + 1, j, c] * s
-        high = tables[m, i, j + 1, c] * (1.0 - s) + tables[m, i + 1, j + 1, c] * s
-        f[n, c] *= low * (1.0 - t) + high * t
+        v = _table_at(tables, m, i, s, j, t, q, c)
+        if w > 0.0:
+            v = v * (1.0 - w) + _table_at(tables, m, i, s, j, t, q + 1, c) * w
+        f[n, c] *= v
 
 
 @njit(fastmath={"reassoc", "contract"}, **_JIT)

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from addon.core import reference
+from addon.core import kernels, reference
 from addon.core.neural import calibrate as cal
 from addon.core.neural import encode_stack, load_models, top_coat
 from addon.core.neural.top_lobe import eval_top, remainder_scale
@@ -141,7 +141,8 @@ def test_the_renderer_evaluates_the_calibrated_lobe(plastic):
     wo = wi[::-1].copy()
     top = top_coat(stack)
     f = neural_material.NeuralMaterial(models, z, proxy, calibration=c, top=top).bind(None).eval(wi, wo)
-    expected = models.eval_brdf(z, wi, wo) * c.factor(wi[:, 2], wo[:, 2])
+    cos_phi = kernels.relative_azimuth_cosines(np.asarray(wi, float), np.asarray(wo, float))
+    expected = models.eval_brdf(z, wi, wo) * c.factor(wi[:, 2], wo[:, 2], cos_phi)
     if models.top_transmission:  # the structural prior of the decoded remainder
         expected = expected * remainder_scale(top, wi, wo)[:, None]
     if models.remainder:  # the factors scale the decoded remainder; the exact top lobe is added as it is

@@ -168,7 +168,7 @@ def test_each_clusters_table_brings_its_texels_albedo_towards_an_independent_ref
         above = ref.albedo - ref.below_top  # the top lobe's light, the same in both
         for name, energy in (
             ("decoder", moments.m.sum(axis=1)),
-            ("texture", cal.table_energy(moments.pairs, table).sum(axis=1)),
+            ("texture", cal.table_energy(moments, table).sum(axis=1)),
         ):
             errors[name].append(np.abs((energy + above) / ref.albedo - 1.0).mean())
     decoder, texture = np.mean(errors["decoder"]), np.mean(errors["texture"])

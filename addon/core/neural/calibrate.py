@@ -12,10 +12,11 @@ under small lights.
 
 The calibration multiplies the decoded f of one material by a reciprocal, per-channel factor
 
-    f_cal(wi, wo) = S(cos theta_i, cos theta_o) * f(wi, wo)
+    f_cal(wi, wo) = S(cos theta_i, cos theta_o, phi) * f(wi, wo)
 
-with ``S`` a symmetric table on the grid :data:`COSINES` x :data:`COSINES`, bilinear between its
-nodes (constant beyond the grid's ends). It is found in two steps, from the same reference walks
+with ``S`` a table on the grid :data:`COSINES` x :data:`COSINES` x :data:`AZIMUTHS` nodes of the relative azimuth
+phi, symmetric in the cosines, bilinear between their nodes (constant beyond the grid's ends), linear in phi.
+It is found in three steps, from the same reference walks
 (the position-free estimator's analog walks, ``reference.albedo_parts``, with their standard errors)
 and the same decoded samples (the decoder itself, integrated by importance sampling with the
 material's own sampling proxy mixed half and half with a cosine lobe: exact pdfs, one-sample MIS):
@@ -35,9 +36,15 @@ material's own sampling proxy mixed half and half with a cosine lobe: exact pdfs
    separable along its diagonal, :data:`DIAGONAL_MISMATCH`) keeps the separable factors where the grid
    is coarse (:data:`COARSE_COS`).
 
-What it does not change: the lobe's azimuthal shape and its shape within a bin (where exactly the light
-goes), only how much of it leaves at each pair of elevations. It keeps f >= 0 and reciprocity (the table
-is symmetric) and adds no network evaluation. It needs one latent per material; a latent texture is
+3. The relative azimuth (:func:`solve_azimuth`): the table gets :data:`AZIMUTHS` nodes in phi = |phi_i - phi_o|,
+   S[m, k, q] = table[m, k] (1 + D[m, k, q]), D found as in step 2 from the same walks and samples binned by exit
+   cosine and relative azimuth; a bin the reference does not pin keeps the elevation table's factor, and the
+   elevation table stands where the azimuth table would miss the albedo by more. It tells backscatter (light and
+   view on the same side of the normal) from forward light, which an elevation-only table cannot.
+
+What it does not change: the lobe's shape within a bin (where exactly the light goes between two cosines or two
+azimuth nodes). It keeps f >= 0 and reciprocity (the table is symmetric in the two cosines) and adds no network
+evaluation. It needs one latent per material; a latent texture is
 calibrated per cluster of its texels (``textures.calibration``, with :func:`calibrate_texels`).
 
 With a remainder decoder (``ModelSet.remainder``) the factors scale only the decoded remainder: the exact
@@ -64,6 +71,7 @@ import numpy as np
 
 from .. import kernels
 from ..bsdf.lambert import sample_cosine_hemisphere
+from ..reference import AlbedoParts
 from ..stack import Stack, StackArrays
 from . import proxy, top_lobe
 
@@ -75,6 +83,11 @@ COSINES = (1.0, 0.85, 0.7, 0.5, 0.35, 0.25, 0.17, 0.11, 0.07, 0.04, 0.02)
 # these counts gave the same render-level fidelity as the full ones (docs/fidelity.md).
 WALKS = (16384, 12288, 8192, 8192, 4096, 4096, 4096, 4096, 4096, 4096, 4096)
 DECODED_SAMPLES = 8192  # importance samples of the decoded lobe per grid angle
+# Nodes of the tables in the relative azimuth phi = |phi_i - phi_o|, evenly spaced on [0, pi] (0, 90, 180 degrees;
+# linear between them): light and view on the same side of the normal (phi = 0, backscatter) apart from
+# the forward light towards the mirror direction (phi = pi). An elevation-only table (one node) rendered a rough coat
+# over copper 1.65-1.89x too bright on a sphere's shadow side under a light near the camera (docs/calibration.md).
+AZIMUTHS = 3
 FACTOR_RANGE = (0.1, 10.0)  # c is kept in this range: a factor outside it means the decoder failed the stack
 ITERATIONS = 60
 # A calibration target moves the factors only by as much as it differs from the decoded albedo beyond this
@@ -120,8 +133,9 @@ STEP_ROWS = 8192
 
 @dataclass(frozen=True)
 class AlbedoCalibration:
-    """The factor ``table`` (K, K, 3) on incident x outgoing cosines ``cosines`` (K,), decreasing, symmetric
-    in its first two axes; ``scale`` (K, 3), the separable factors it starts from (``table`` is their
+    """The factor ``table`` (K, K, P, 3) on incident x outgoing cosines ``cosines`` (K,), decreasing, symmetric
+    in its first two axes, x the P relative azimuth nodes (:data:`AZIMUTHS`; a table (K, K, 3) is one node, elevation
+    only); ``scale`` (K, 3), the separable factors it starts from (``table`` is their
     outer product where the reference says nothing more); and the albedos that set them: ``reference``
     (K, 3) with its standard error ``reference_stderr``, and the decoded albedo before (``decoded``) and
     after (``calibrated``) the factors."""
@@ -135,13 +149,15 @@ class AlbedoCalibration:
     calibrated: np.ndarray
     top: np.ndarray | None = None  # (K, 3) albedo of the exact top lobe (remainder decoders), in both of the above
 
-    def factor(self, cos_i: np.ndarray, cos_o: np.ndarray) -> np.ndarray:
-        """The factor (N, 3) at pairs of cosines (N,): bilinear between the grid's, constant beyond them."""
-        return self.rows().factor(cos_i, cos_o)
+    def factor(self, cos_i: np.ndarray, cos_o: np.ndarray, cos_phi: np.ndarray | None = None) -> np.ndarray:
+        """The factor (N, 3) at pairs of cosines (N,) and cosines of their relative azimuth (N,; may be left out for
+        an elevation-only table): bilinear between the grid's cosines, constant beyond them, linear in the azimuth
+        between its nodes."""
+        return self.rows().factor(cos_i, cos_o, cos_phi)
 
     def apply(self, f: np.ndarray, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
-        """f (N, 3) at local unit directions wi, wo (N, 3) times the factor at (cos theta_i, cos theta_o)
-        (f: the decoded part)."""
+        """f (N, 3) at local unit directions wi, wo (N, 3) times the factor at (cos theta_i, cos theta_o, their
+        relative azimuth) (f: the decoded part)."""
         return self.rows().apply(f, wi, wo)
 
     def rows(self) -> "RowCalibration":
@@ -155,7 +171,8 @@ class AlbedoCalibration:
 
 @dataclass(frozen=True)
 class RowCalibration:
-    """Factor tables (T, K, K, 3) on decreasing ``cosines`` (K,) and, per row, the one that applies
+    """Factor tables (T, K, K, P, 3) (or (T, K, K, 3): one azimuth node) on decreasing ``cosines`` (K,) and
+    :data:`AZIMUTHS`-like relative azimuth nodes, and, per row, the one that applies
     (``which`` (N,); empty: table 0 for every row): a latent texture's calibration at a bounce's hits
     (``textures.calibration``), or one material's (:meth:`AlbedoCalibration.rows`)."""
 
@@ -167,12 +184,17 @@ class RowCalibration:
         """The calibration of the rows ``index``."""
         return self if len(self.which) == 0 else RowCalibration(self.cosines, self.tables, self.which[index])
 
-    def factor(self, cos_i: np.ndarray, cos_o: np.ndarray) -> np.ndarray:
-        """The factor (N, 3) at pairs of cosines (N,): bilinear between the grid's, constant beyond them."""
+    def factor(self, cos_i: np.ndarray, cos_o: np.ndarray, cos_phi: np.ndarray | None = None) -> np.ndarray:
+        """The factor (N, 3) at pairs of cosines (N,) and the cosines of their relative azimuth (N,; may be left
+        out for elevation-only tables): :meth:`AlbedoCalibration.factor`."""
         x = np.clip(np.asarray(cos_i, dtype=np.float64).reshape(-1), 0.0, 1.0)
         y = np.clip(np.asarray(cos_o, dtype=np.float64).reshape(-1), 0.0, 1.0)
         out = np.ones((len(x), 3))
-        kernels.scale_by_table(out, x, y, *self.arrays())
+        if cos_phi is None:
+            kernels.scale_by_table(out, x, y, *self.arrays())
+        else:
+            c = np.ascontiguousarray(np.asarray(cos_phi, dtype=np.float64).reshape(-1))
+            kernels.scale_by_table(out, x, y, *self.arrays(), c)
         return out
 
     def check_rows(self, n: int) -> None:
@@ -184,17 +206,33 @@ class RowCalibration:
         """f (N, 3) at local unit directions wi, wo (N, 3) times each row's factor at (cos theta_i, cos theta_o)."""
         out = np.array(f, dtype=np.float64)
         self.check_rows(len(out))
-        cos_i = np.clip(np.ascontiguousarray(wi[:, 2], dtype=np.float64), 0.0, 1.0)
-        cos_o = np.clip(np.ascontiguousarray(wo[:, 2], dtype=np.float64), 0.0, 1.0)
-        kernels.scale_by_table(out, cos_i, cos_o, *self.arrays())
+        ui, uo = kernels.float64_rows(np.asarray(wi)), kernels.float64_rows(np.asarray(wo))
+        cos_i = np.clip(np.ascontiguousarray(ui[:, 2]), 0.0, 1.0)
+        cos_o = np.clip(np.ascontiguousarray(uo[:, 2]), 0.0, 1.0)
+        cos_phi = kernels.relative_azimuth_cosines(ui, uo)
+        kernels.scale_by_table(out, cos_i, cos_o, *self.arrays(), cos_phi)
         return out.astype(np.asarray(f).dtype, copy=False)
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The calibration as the compiled loops take it (``kernels.scale_by_table``, ``kernels.decoded_brdf``):
-        the grid's cosines increasing, the tables in the same order, and ``which``."""
+        the grid's cosines increasing, the tables in the same order as (T, K, K * P, 3) (each outgoing cosine's
+        P azimuth nodes side by side), and ``which``."""
         grid = np.ascontiguousarray(self.cosines[::-1], dtype=np.float64)
-        tables = np.ascontiguousarray(self.tables[:, ::-1, ::-1], dtype=np.float64)
+        t = with_azimuth(self.tables)
+        tables = np.ascontiguousarray(t[:, ::-1, ::-1], dtype=np.float64).reshape(t.shape[0], t.shape[1], -1, 3)
         return grid, tables, np.ascontiguousarray(self.which, dtype=np.int64)
+
+
+def with_azimuth(tables: np.ndarray, stacked: bool = True) -> np.ndarray:
+    """Factor tables ((T,) K, K, P, 3), ``stacked``: with the leading T axis; those of the elevations only ((T,) K,
+    K, 3) as one azimuth node (a view)."""
+    t = np.asarray(tables)
+    lead = 1 if stacked else 0
+    if t.ndim == 3 + lead and t.shape[-1] == 3:
+        return t[..., None, :]
+    if t.ndim == 4 + lead and t.shape[-1] == 3:
+        return t
+    raise ValueError(f"factor tables must be ({'T, ' if stacked else ''}K, K, [P,] 3), got {t.shape}")
 
 
 # ``RowCalibration.arrays`` of no calibration (no table), for ``kernels.decoded_brdf``
@@ -207,9 +245,23 @@ def grid_directions(cosines=COSINES) -> np.ndarray:
     return np.stack([np.sqrt(np.maximum(1.0 - c * c, 0.0)), np.zeros_like(c), c], axis=1)
 
 
-def reference_parts(stacks, walks=WALKS, seed: int = 0, step=None):
-    """``reference.AlbedoParts`` at the grid's angles (K rows), the parts by exit direction split over the
-    grid's hat functions of the exit cosine ((K, K, 3): outgoing angle, exit cosine), from analog walks.
+@dataclass(frozen=True)
+class ReferenceParts(AlbedoParts):
+    """``reference.AlbedoParts`` at the grid's angles with the parts by exit direction split by relative azimuth
+    too: ``by_azimuth`` and ``below_top_by_azimuth`` (K, K, P, 3) (outgoing angle, exit cosine, azimuth node: the
+    exit bins :func:`exit_cells` weighs), with their standard errors; ``by_exit`` and ``below_top_by_exit`` (K, K,
+    3) are their sums over the azimuth (with their own standard errors, from the same walks)."""
+
+    by_azimuth: np.ndarray | None = None
+    by_azimuth_stderr: np.ndarray | None = None
+    below_top_by_azimuth: np.ndarray | None = None
+    below_top_by_azimuth_stderr: np.ndarray | None = None
+
+
+def reference_parts(stacks, walks=WALKS, seed: int = 0, step=None) -> ReferenceParts:
+    """:class:`ReferenceParts` at the grid's angles (K rows), the parts by exit direction split over the
+    grid's hat functions of the exit cosine ((K, K, 3): outgoing angle, exit cosine) and of the exit cosine and the
+    relative azimuth ((K, K, P, 3)), from analog walks.
 
     ``stacks``: one ``Stack``, or ``StackArrays`` of R rows (a sample of a latent texture's texels): then
     the parts of their mean, each row walked with 1/R of ``walks``, so the mean is about as noisy as one
@@ -223,7 +275,6 @@ def reference_parts(stacks, walks=WALKS, seed: int = 0, step=None):
     if len(arrays) < 1:
         raise ValueError("reference_parts needs at least one stack")
     dirs = grid_directions()
-    grid = np.asarray(COSINES)
     walks = np.asarray(walks, dtype=np.int64)
     if walks.shape != (len(dirs),) or (walks < 1).any():
         raise ValueError(f"walks must give one positive count per grid angle ({len(dirs)}), got {walks.tolist()}")
@@ -237,7 +288,7 @@ def reference_parts(stacks, walks=WALKS, seed: int = 0, step=None):
         np.tile(per_row, (r, 1)),
         samples=max(1, q // r),
         seed=seed,
-        exit_bins=lambda wi: _hats(np.clip(wi[:, 2], 0.0, 1.0), grid),
+        exit_bins=exit_bins,
         step=step,
     )
     angle = np.tile(np.repeat(np.arange(len(dirs)), reps), r)
@@ -254,26 +305,96 @@ def reference_parts(stacks, walks=WALKS, seed: int = 0, step=None):
     out = {}
     for name in fields:
         out[name], out[f"{name}_stderr"] = per_angle(getattr(parts, name), getattr(parts, f"{name}_stderr"))
-    return type(parts)(**out)
+    for name in ("by_exit", "below_top_by_exit"):  # the exit bins' two parts: elevation; elevation and azimuth
+        both = name.replace("exit", "azimuth")
+        out[name], out[both] = split_exit_bins(out[name])
+        out[name + "_stderr"], out[both + "_stderr"] = split_exit_bins(out[name + "_stderr"])
+    return ReferenceParts(**out)
 
 
-def _hats(cos: np.ndarray, grid: np.ndarray) -> np.ndarray:
-    """(N, K) weights of linear interpolation on the decreasing ``grid`` at ``cos`` (rows sum to 1)."""
+def _hat_cells(cos: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The two nodes (N, 2) of the decreasing ``grid`` around each of ``cos`` (N,) and their weights of linear
+    interpolation (N, 2), constant beyond the grid's ends."""
     x = np.clip(cos, grid[-1], grid[0])
     inc = grid[::-1]
     j = np.clip(np.searchsorted(inc, x, side="right") - 1, 0, len(inc) - 2)
     t = (x - inc[j]) / (inc[j + 1] - inc[j])
-    w = np.zeros((len(x), len(grid)))
-    rows = np.arange(len(x))
     k = len(grid) - 1 - j  # index in the decreasing grid
-    w[rows, k] += 1.0 - t
-    w[rows, k - 1] += t
+    return np.stack([k, k - 1], axis=1), np.stack([1.0 - t, t], axis=1)
+
+
+def _hats(cos: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """(N, K) weights of linear interpolation on the decreasing ``grid`` at ``cos`` (rows sum to 1)."""
+    nodes, weights = _hat_cells(cos, grid)
+    w = np.zeros((len(nodes), len(grid)))
+    np.put_along_axis(w, nodes, weights, axis=1)
     return w
+
+
+def _azimuth_cells(cos_phi: np.ndarray, nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """The two azimuth nodes (N, 2) around each relative azimuth acos(``cos_phi``) (N,) of ``nodes`` evenly spaced on
+    [0, pi], and their weights (N, 2): the numpy form of the renderer's ``kernels._azimuth_cell``."""
+    if nodes < 2:
+        return np.zeros((len(cos_phi), 2), dtype=np.int64), np.column_stack(
+            [np.ones(len(cos_phi)), np.zeros(len(cos_phi))]
+        )
+    u = np.arccos(np.clip(cos_phi, -1.0, 1.0)) * (nodes - 1) / np.pi
+    q = np.minimum(u.astype(np.int64), nodes - 2)
+    w = u - q
+    return np.stack([q, q + 1], axis=1), np.stack([1.0 - w, w], axis=1)
+
+
+def azimuth_hats(cos_phi: np.ndarray, nodes: int | None = None) -> np.ndarray:
+    """(N, P) weights of linear interpolation in the relative azimuth between ``nodes`` evenly spaced on [0, pi]."""
+    nodes = AZIMUTHS if nodes is None else nodes
+    q, w = _azimuth_cells(np.asarray(cos_phi, dtype=np.float64).reshape(-1), nodes)
+    out = np.zeros((len(q), nodes))
+    np.add.at(out, (np.arange(len(q))[:, None], q), w)
+    return out
+
+
+def grid_azimuth(w: np.ndarray) -> np.ndarray:
+    """(N,) the cosine of the relative azimuth between directions ``w`` (N, 3) and the grid's (in the xz-plane,
+    towards +x: :func:`grid_directions`), as ``kernels._cos_relative_azimuth`` takes it (1 along the normal)."""
+    r = np.hypot(w[:, 0], w[:, 1])
+    return np.where(r > 1e-15, w[:, 0] / np.maximum(r, 1e-300), 1.0)
+
+
+def exit_cells(cos: np.ndarray, cos_phi: np.ndarray, grid=COSINES) -> tuple[np.ndarray, np.ndarray]:
+    """The four exit bins (N, 4) of directions at cosines ``cos`` and relative azimuth cosines ``cos_phi`` (N,),
+    bin l * P + p for exit cosine node l and azimuth node p, and their weights (N, 4): the products of the hat
+    functions of the two."""
+    (l, wl), (q, wq) = _hat_cells(cos, np.asarray(grid)), _azimuth_cells(cos_phi, AZIMUTHS)
+    return (l[:, :, None] * AZIMUTHS + q[:, None, :]).reshape(-1, 4), (wl[:, :, None] * wq[:, None, :]).reshape(-1, 4)
+
+
+def exit_bins(wi: np.ndarray) -> np.ndarray:
+    """(N, K + K * P) the weights of exit directions ``wi`` (N, 3), seen from a grid direction: in the elevation bins
+    (K: the exit cosine's hat functions), then in the elevation and azimuth bins (:func:`exit_cells`). The
+    reference's ``exit_bins``: both kinds from the same walks, each with its own standard errors (the parts of one
+    walk's weight in neighbouring bins are correlated), at the cost of K (P + 1) columns: the walks' binning costs
+    about in proportion (:func:`split_exit_bins`)."""
+    grid = np.asarray(COSINES)
+    k = len(grid)
+    cos = np.clip(wi[:, 2], 0.0, 1.0)
+    out = np.zeros((len(wi), k * (AZIMUTHS + 1)))
+    out[:, :k] = _hats(cos, grid)
+    cells, weights = exit_cells(cos, grid_azimuth(wi))
+    np.put_along_axis(out, k + cells, weights, axis=1)
+    return out
+
+
+def split_exit_bins(binned: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The elevation bins (K, K, C) and the elevation and azimuth bins (K, K, P, C) of parts binned by
+    :func:`exit_bins` (K, K (P + 1), C), or of their standard errors."""
+    k = binned.shape[0]
+    return binned[:, :k], binned[:, k:].reshape(k, k, AZIMUTHS, -1)
 
 
 def _lobe_samples(models, z, sigma: float, w: float, cosines, samples: int, seed: int, top=None, step=None):
     """Importance samples of the decoded lobe seen from each of ``cosines`` (outgoing): cos(theta_i)
-    (A, S) and f cos(theta_i) / pdf (A, S, 3), incident directions drawn from the material's proxy
+    (A, S), the cosine of the relative azimuth (A, S) and f cos(theta_i) / pdf (A, S, 3), incident directions drawn
+    from the material's proxy
     and a cosine lobe half and half (one-sample MIS, balance heuristic: exact pdfs). ``step()`` (optional)
     is called before each :data:`STEP_ROWS` rows are decoded; it stops the work by raising."""
     rng = np.random.default_rng(seed)
@@ -296,7 +417,7 @@ def _lobe_samples(models, z, sigma: float, w: float, cosines, samples: int, seed
     with np.errstate(divide="ignore", invalid="ignore"):
         v = np.where((pdf > 0)[:, None], f * (cos_i / pdf)[:, None], 0.0)
     a = len(np.atleast_1d(cosines))
-    return cos_i.reshape(a, samples), v.reshape(a, samples, 3)
+    return cos_i.reshape(a, samples), grid_azimuth(wi).reshape(a, samples), v.reshape(a, samples, 3)
 
 
 def decoded_albedo(
@@ -304,11 +425,11 @@ def decoded_albedo(
 ):
     """Directional albedo (A, 3) of the decoded lobe at ``cosines`` (outgoing), with ``calibration``'s
     factors when given, plus the exact top lobe's of a remainder decoder when ``top`` (alpha, ior) is given."""
-    cos_i, v = _lobe_samples(models, z, sigma, w, cosines, samples, seed, top)
+    cos_i, cos_phi, v = _lobe_samples(models, z, sigma, w, cosines, samples, seed, top)
     if calibration is not None:
         a = len(cos_i)
         cos_o = np.repeat(np.asarray(cosines, dtype=np.float64), samples)
-        v = v * calibration.factor(cos_i.reshape(-1), cos_o).reshape(a, samples, 3)
+        v = v * calibration.factor(cos_i.reshape(-1), cos_o, cos_phi.reshape(-1)).reshape(a, samples, 3)
     out = v.mean(axis=1)
     if top is not None and models.remainder:
         out = out + top_lobe.top_albedo(top, cosines, samples, seed)[:, None]
@@ -321,10 +442,16 @@ class DecodedMoments:
     grid's hat functions of cos(theta_i): ``pairs`` (K, K, K, 3), [k, l, m] against hat l times hat m,
     so that with a factor table S the decoded energy in bin l is ``sum_m S[m, k] pairs[k, l, m]``;
     ``m`` (K, K, 3), its sum over l (the separable form: albedo ``c_k (m c)_k``); ``bins_stderr``
-    (K, K, 3), the standard error of its sum over m (the energy in each bin of cos theta_i)."""
+    (K, K, 3), the standard error of its sum over m (the energy in each bin of cos theta_i). The same resolved in
+    the relative azimuth too (P nodes, :data:`AZIMUTHS`): ``azimuth_pairs`` (K, K, P, K, P, 3), [k, l, p, m, q]
+    against exit bin (l, p) (:func:`exit_cells`) times table node (m, q), so that with a table S (K, K, P, 3) the
+    energy in exit bin (l, p) is ``sum_mq S[m, k, q] azimuth_pairs[k, l, p, m, q]`` (``pairs`` is its sum over p
+    and q); ``azimuth_stderr`` (K, K, P, 3), the standard error of each exit bin's energy."""
 
     pairs: np.ndarray
     bins_stderr: np.ndarray
+    azimuth_pairs: np.ndarray | None = None
+    azimuth_stderr: np.ndarray | None = None
 
     @property
     def m(self) -> np.ndarray:
@@ -337,15 +464,30 @@ def decoded_moments(
     """:class:`DecodedMoments` from ``samples`` importance samples per grid angle (``step``: see
     :func:`_lobe_samples`)."""
     grid = np.asarray(COSINES)
-    k = len(grid)
-    cos_i, v = _lobe_samples(models, z, sigma, w, grid, samples, seed, top, step)
-    hats = _hats(cos_i.reshape(-1), grid).reshape(k, samples, k)
-    # [k, l, m, c] = sum_s hats[k, s, l] hats[k, s, m] v[k, s, c], as one batched matrix product
-    weighted = (hats[:, :, :, None] * v[:, :, None, :]).reshape(k, samples, k * 3)
-    pairs = np.matmul(hats.transpose(0, 2, 1), weighted).reshape(k, k, k, 3) / samples
-    second = np.matmul((hats * hats).transpose(0, 2, 1), v * v) / samples
-    var = np.maximum(second - pairs.sum(axis=2) ** 2, 0.0) / samples
-    return DecodedMoments(pairs, np.sqrt(var))
+    k, p = len(grid), AZIMUTHS
+    cos_i, cos_phi, v = _lobe_samples(models, z, sigma, w, grid, samples, seed, top, step)
+    v = v.reshape(-1, 3)
+    angle = np.repeat(np.arange(k), samples)
+    # each sample in its four exit bins (cosine x azimuth) and, for the table, the same four nodes: sixteen
+    # products a sample, summed by bin (sparse: the dense hat functions' products cost 16x more)
+    cells, weights = exit_cells(cos_i.reshape(-1), cos_phi.reshape(-1), grid)
+    b = k * p
+    flat = ((angle[:, None, None] * b + cells[:, :, None]) * b + cells[:, None, :]).reshape(-1)
+    both = (weights[:, :, None] * weights[:, None, :]).reshape(len(v), -1)
+    azimuth_pairs = _binned(flat, both, v, k * b * b).reshape(k, k, p, k, p, 3) / samples
+    second = _binned((angle[:, None] * b + cells).reshape(-1), weights**2, v * v, k * b).reshape(k, k, p, 3)
+    var = np.maximum(second / samples - azimuth_pairs.sum(axis=(3, 4)) ** 2, 0.0) / samples
+    nodes, hats = _hat_cells(cos_i.reshape(-1), grid)
+    second = _binned((angle[:, None] * k + nodes).reshape(-1), hats**2, v * v, k * k).reshape(k, k, 3)
+    pairs = azimuth_pairs.sum(axis=(2, 4))
+    var_bins = np.maximum(second / samples - pairs.sum(axis=2) ** 2, 0.0) / samples
+    return DecodedMoments(pairs, np.sqrt(var_bins), azimuth_pairs, np.sqrt(var))
+
+
+def _binned(index: np.ndarray, weights: np.ndarray, v: np.ndarray, size: int) -> np.ndarray:
+    """(size, 3): per channel, the sum of ``weights`` (N, B) times the samples' values ``v`` (N, 3) by bin
+    ``index`` (N * B,)."""
+    return np.stack([np.bincount(index, (weights * v[:, c, None]).reshape(-1), size) for c in range(3)], axis=-1)
 
 
 def solve_factors(m: np.ndarray, target: np.ndarray, iterations: int = ITERATIONS) -> np.ndarray:
@@ -375,10 +517,75 @@ def shrink_target(target: np.ndarray, decoded: np.ndarray, stderr: np.ndarray, k
     return decoded + gap * keep
 
 
-def table_energy(pairs: np.ndarray, table: np.ndarray) -> np.ndarray:
+def table_energy(pairs, table: np.ndarray) -> np.ndarray:
     """(K, K, 3): the decoded energy at each grid angle k in each bin l of cos theta_i with the factor
-    ``table`` (K, K, 3): ``sum_m table[m, k] pairs[k, l, m]``."""
+    ``table`` (K, K, 3): ``sum_m table[m, k] pairs[k, l, m]``. ``pairs`` may be the :class:`DecodedMoments`, then
+    ``table`` may be one with azimuth nodes (K, K, P, 3) too (its energy summed over the azimuth bins)."""
+    if isinstance(pairs, DecodedMoments):
+        if np.ndim(table) == 4:
+            return azimuth_energy(pairs.azimuth_pairs, table).sum(axis=2)
+        pairs = pairs.pairs
+    if np.ndim(table) != 3:
+        raise ValueError("a table with azimuth nodes needs the DecodedMoments (their azimuth_pairs), not pairs")
     return np.einsum("mkc,klmc->klc", table, pairs)
+
+
+def azimuth_energy(azimuth_pairs: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """(K, K, P, 3): the decoded energy at each grid angle k in each exit bin (l, p) with the factor ``table``
+    (K, K, P, 3) (:class:`DecodedMoments`' ``azimuth_pairs``)."""
+    return np.einsum("mkqc,klpmqc->klpc", table, azimuth_pairs)
+
+
+def solve_azimuth(
+    moments: DecodedMoments,
+    table: np.ndarray,
+    target: np.ndarray,
+    target_stderr: np.ndarray,
+    stderr_floor=0.0,
+    fixed: np.ndarray | None = None,
+    k: float = NOISE_THRESHOLD,
+) -> np.ndarray:
+    """The factor table (K, K, P, 3) that brings the decoded energy of each (outgoing angle, exit bin of cosine and
+    relative azimuth) to ``target`` (K, K, P, 3), the reference's, starting from the elevation-only ``table`` (K, K,
+    3): S[m, k, q] = table[m, k] (1 + D[m, k, q]), D symmetric in m and k, found as :func:`solve_table` finds its
+    own (each target shrunk towards the start's energy by ``k`` standard errors, at least ``stderr_floor``; least
+    squares weighted by the noise, plus ``sum D^2``): an azimuth bin the reference does not pin keeps the elevation
+    table's factor. Where either cosine is the normal's (the grid's first node) the azimuth is undefined: one D for
+    all of its nodes, so that the factor is continuous there. ``fixed`` (K, K) bool: pairs of cosines kept at
+    ``table`` (the separable factors of a narrow lobe, :func:`_solve`)."""
+    kk, p = len(table), moments.azimuth_pairs.shape[2]
+    base = np.repeat(table[:, :, None, :], p, axis=2)
+    e0 = azimuth_energy(moments.azimuth_pairs, base)
+    sigma2 = np.maximum(target_stderr**2 + moments.azimuth_stderr**2, np.square(stderr_floor) + 1e-30)
+    goal = shrink_target(target, e0, np.sqrt(sigma2), k)
+    # the unknowns: D[m, k, q] for m <= k, one for every q where m is the normal's node, none where fixed
+    iu, ju = np.triu_indices(kk)
+    count = np.where(iu == 0, 1, p)
+    if fixed is not None:
+        count = np.where(fixed[iu, ju], 0, count)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    index = np.full((kk, kk, p), -1, dtype=np.int64)
+    node = np.arange(p)[None, :]
+    index[iu, ju] = np.where(count[:, None] == 0, -1, start[:, None] + np.where(count[:, None] == p, node, 0))
+    index[ju, iu] = index[iu, ju]
+    unknowns = int(count.sum())
+    if unknowns == 0:
+        return base.copy()
+    # row (k, l, p) of the energy, column index[m, k, q]: d energy[k, l, p] / d D[m, k, q] = base[m, k, q] pairs[...]
+    column = np.broadcast_to(index.transpose(1, 0, 2)[:, None, None, :, :], moments.azimuth_pairs.shape[:5])
+    row = np.broadcast_to(np.arange(kk * kk * p).reshape(kk, kk, p)[:, :, :, None, None], column.shape)
+    used = column >= 0
+    out = np.empty_like(base)
+    for c in range(3):  # one solve per channel (three of them)
+        grad = base[:, :, :, c].transpose(1, 0, 2)[:, None, None, :, :] * moments.azimuth_pairs[..., c]
+        a = np.zeros((kk * kk * p, unknowns))
+        np.add.at(a, (row[used], column[used]), grad[used])
+        wsqrt = 1.0 / np.sqrt(sigma2[..., c]).reshape(-1)
+        aw = a * wsqrt[:, None]
+        r = (goal[..., c] - e0[..., c]).reshape(-1) * wsqrt
+        d = np.linalg.solve(aw.T @ aw + np.eye(unknowns), aw.T @ r)
+        out[..., c] = base[..., c] * (1.0 + np.where(index >= 0, d[np.maximum(index, 0)], 0.0))
+    return np.clip(out, *FACTOR_RANGE)
 
 
 def solve_table(
@@ -467,7 +674,7 @@ def _from_disk(key: str) -> AlbedoCalibration | None:
     if arrays is None or any(name not in arrays for name in _FIELDS):
         return None
     k = len(COSINES)
-    shapes = {"cosines": (k,), "table": (k, k, 3)}
+    shapes = {"cosines": (k,), "table": (k, k, AZIMUTHS, 3)}
     if any(arrays[n].shape != shapes.get(n, (k, 3)) for n in _FIELDS) or not np.array_equal(
         arrays["cosines"], np.asarray(COSINES, dtype=np.float64)
     ):
@@ -509,7 +716,8 @@ def settings_key() -> str:
     # DECODED_SAMPLES, ITERATIONS and FACTOR_RANGE change a calibration too but are not in this key: adding them
     # now would mark every texture baked with a calibration out of date (their keys hold this one). Whoever changes
     # one of them adds it here.
-    return f"walks{list(WALKS)}-cosines{list(COSINES)}-target-below-top-shrink{NOISE_THRESHOLD:g}-table"
+    key = f"walks{list(WALKS)}-cosines{list(COSINES)}-target-below-top-shrink{NOISE_THRESHOLD:g}-table"
+    return key + f"-azimuths{AZIMUTHS}"  # tables made before the azimuth nodes are not current (textures: rebake)
 
 
 # What the key of a calibration of a clamped top coating adds (``_as_rendered``): the calibrations made before that
@@ -610,7 +818,10 @@ def calibrate_texels(arrays: StackArrays, models, z, proxy_params, tops, seed: i
         decoded_moments(models, z[j], *prox[j], samples=per, seed=seed + j, top=tops[j], step=step) for j in range(r)
     ]
     moments = DecodedMoments(
-        np.mean([m.pairs for m in each], axis=0), np.sqrt(np.sum([m.bins_stderr**2 for m in each], axis=0)) / r
+        np.mean([m.pairs for m in each], axis=0),
+        np.sqrt(np.sum([m.bins_stderr**2 for m in each], axis=0)) / r,
+        np.mean([m.azimuth_pairs for m in each], axis=0),
+        np.sqrt(np.sum([m.azimuth_stderr**2 for m in each], axis=0)) / r,
     )  # a loop over the R sampled materials, not over texels
     top = np.mean([top_lobe.top_albedo(t, COSINES, per, seed) for t in tops], axis=0)
     ref = _as_rendered(reference_parts(arrays, seed=seed, step=step), arrays, seed)
@@ -641,24 +852,22 @@ def _as_rendered(ref, arrays: StackArrays, seed: int):
     if len(clamped) == 0:
         return ref
     grid = np.asarray(COSINES)
-
-    def bins(wi):
-        return _hats(np.clip(wi[:, 2], 0.0, 1.0), grid)
-
+    k = len(grid)
     used, own = top_lobe.top_coats(arrays), top_lobe.own_tops(arrays)
     samples = max(256, DECODED_SAMPLES // len(arrays))
-    d_albedo, d_bins = np.zeros(len(grid)), np.zeros((len(grid), len(grid)))
+    d_albedo, d_bins = np.zeros(k), np.zeros((k, k, AZIMUTHS))
     for j in clamped:  # a loop over the stacks sampled (one, or a texture's few), each vectorised over the grid
-        a_own, b_own = top_lobe.interface_reflection(own[j], grid, bins, samples, seed + int(j))
-        a_used, b_used = top_lobe.interface_reflection(used[j], grid, bins, samples, seed + int(j))
+        a_own, b_own = top_lobe.interface_reflection(own[j], grid, exit_bins, samples, seed + int(j))
+        a_used, b_used = top_lobe.interface_reflection(used[j], grid, exit_bins, samples, seed + int(j))
         d = a_own - a_used  # the same samples for both: their noise mostly cancels
         d_albedo += d / len(arrays)
-        share = b_used / np.maximum(b_used.sum(axis=1, keepdims=True), 1e-300)
-        d_bins += d[:, None] * share / len(arrays)
+        b_used = split_exit_bins(b_used[:, :, None])[1][..., 0]  # (K, K, P)
+        d_bins += d[:, None, None] * b_used / np.maximum(b_used.sum(axis=(1, 2), keepdims=True), 1e-300) / len(arrays)
     return replace(
         ref,
         below_top=np.maximum(ref.below_top + d_albedo[:, None], 0.0),
-        below_top_by_exit=np.maximum(ref.below_top_by_exit + d_bins[:, :, None], 0.0),
+        below_top_by_exit=np.maximum(ref.below_top_by_exit + d_bins.sum(axis=2)[..., None], 0.0),
+        below_top_by_azimuth=np.maximum(ref.below_top_by_azimuth + d_bins[..., None], 0.0),
     )
 
 
@@ -691,21 +900,39 @@ def _solve(
     table = solve_table(moments, scale, bins, bins_se, stderr_floor=one_walk[:, None, :])
     coarse = np.flatnonzero(np.asarray(COSINES) >= COARSE_COS)
     sep = np.clip(scale[:, None, :] * scale[None, :, :], *FACTOR_RANGE)
+    fixed = np.zeros(table.shape[:2], dtype=bool)
     if separable or diagonal_mismatch(table, coarse) > DIAGONAL_MISMATCH:
         table[np.ix_(coarse, coarse)] = sep[np.ix_(coarse, coarse)]
+        fixed[np.ix_(coarse, coarse)] = True  # nor does the azimuth change them there
     # A table that misses its own target at some cosine (its entries held at their bounds) against the separable
     # factors, which meet the albedo by construction: the one nearer the target at its worst cosine.
     miss_table = _target_miss(table_energy(moments.pairs, table).sum(axis=1), target, target_se)
     if miss_table > 0.0 and _target_miss(table_energy(moments.pairs, sep).sum(axis=1), target, target_se) < miss_table:
-        table = sep
+        table, fixed = sep, np.ones_like(fixed)
+        miss_table = _target_miss(table_energy(moments.pairs, table).sum(axis=1), target, target_se)
+    # The relative azimuth (:func:`solve_azimuth`), kept where it would miss the target by more than the elevation
+    # table does.
+    bins_az, bins_az_se = (
+        (ref.below_top_by_azimuth, ref.below_top_by_azimuth_stderr)
+        if remainder
+        else (
+            ref.by_azimuth,
+            ref.by_azimuth_stderr,
+        )
+    )
+    full = solve_azimuth(moments, table, bins_az, bins_az_se, one_walk[:, None, None, :], fixed)
+    energy = azimuth_energy(moments.azimuth_pairs, full).sum(axis=(1, 2))
+    if _target_miss(energy, target, target_se) > miss_table:
+        full = np.repeat(table[:, :, None, :], AZIMUTHS, axis=2)
+        energy = azimuth_energy(moments.azimuth_pairs, full).sum(axis=(1, 2))
     return AlbedoCalibration(
         cosines=np.asarray(COSINES, dtype=np.float64),
         scale=scale,
-        table=table,
+        table=full,
         reference=ref.albedo,
         reference_stderr=ref.albedo_stderr,
         decoded=top + m.sum(axis=1),
-        calibrated=top + table_energy(moments.pairs, table).sum(axis=1),
+        calibrated=top + energy,
         top=top,
     )
 

@@ -85,8 +85,9 @@ def _nearest(x: np.ndarray, sq: np.ndarray, centres: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class TextureCalibration:
-    """Factor tables (T, K, K, 3) on ``cosines`` (K,) and the latent centroids (T, 3 * LATENT) that
-    choose them; ``settings``: ``calibrate.settings_key()`` of the calibrations."""
+    """Factor tables (T, K, K, P, 3) on ``cosines`` (K,) and P relative azimuth nodes (``calibrate.AZIMUTHS``; a
+    texture baked before them holds (T, K, K, 3), not current: :meth:`is_current`) and the latent centroids
+    (T, 3 * LATENT) that choose them; ``settings``: ``calibrate.settings_key()`` of the calibrations."""
 
     cosines: np.ndarray
     centroids: np.ndarray
@@ -126,10 +127,13 @@ class TextureCalibration:
         """The calibration :meth:`to_text` wrote; ValueError for anything else."""
         try:
             d = json.loads(text)
-            t, k, k2, c = (int(v) for v in d["shape"])
+            shape = [int(v) for v in d["shape"]]
+            if len(shape) not in (4, 5):
+                raise ValueError(f"tables of shape {shape}")
+            t, k, k2, c = shape[0], shape[1], shape[2], shape[-1]
             cosines = np.asarray(d["cosines"], dtype=np.float64)
             centroids = np.frombuffer(base64.b64decode(d["centroids"]), dtype="<f4").reshape(t, 3 * LATENT)
-            tables = np.frombuffer(base64.b64decode(d["tables"]), dtype="<f4").reshape(t, k, k2, c)
+            tables = np.frombuffer(base64.b64decode(d["tables"]), dtype="<f4").reshape(shape)
             settings = str(d["settings"])
         except (ValueError, KeyError, TypeError) as e:
             raise ValueError(f"not a latent texture's calibration: {e}") from None
