@@ -14,7 +14,13 @@ import sys
 BUNDLED = ("numba", "llvmlite", "onnxruntime", "embreex")
 
 
+# What the renderer imports of each bundled module: a wheel that is installed but cannot load on this system (a
+# Mac older than the wheels were built for) fails here, not later as a damaged model or an unencodable stack.
+RUNTIMES = ("numba", "llvmlite.binding", "onnxruntime", "embreex.rtcore_scene")
+
+
 def register() -> None:
+    import importlib
     import importlib.util
 
     missing = [name for name in BUNDLED if importlib.util.find_spec(name) is None]
@@ -22,6 +28,20 @@ def register() -> None:
         raise ImportError(
             f"the Neural Layered extension is missing its bundled modules {', '.join(missing)}: install a zip made "
             "by scripts/build_extension.py for your platform (a package built from the source folder has no wheels)"
+        )
+    broken = []
+    for name in RUNTIMES:
+        try:
+            importlib.import_module(name)
+        except Exception as e:  # an ImportError of a native library, an OSError of its loader, ...
+            broken.append(f"{name.split('.')[0]} ({type(e).__name__}: {e})")
+    if broken:
+        import platform
+
+        raise ImportError(
+            f"the Neural Layered extension's bundled {'; '.join(broken)} cannot be loaded on this system "
+            f"({platform.platform()}): on a Mac its zips need macOS 13 or newer (Intel) or 14 or newer (Apple "
+            "silicon); elsewhere, install the zip made for this platform (scripts/build_extension.py)"
         )
     from .addon import blender
 

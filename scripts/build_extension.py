@@ -208,7 +208,9 @@ def collect_wheels(platforms: list[str], cache: Path, log) -> tuple[dict[str, li
 
 def manifest_with_wheels(source: str, wheel_names: list[str], platforms: list[str], notes: list[str] = ()) -> str:
     """The source manifest with ``wheels`` and ``platforms`` added as top-level keys (before any
-    table), and ``notes`` as comments above them."""
+    table), and ``notes`` as comments above them; its source-only comments (lines beginning ``#:``, which say the
+    source lists no wheels) left out."""
+    source = "".join(line for line in source.splitlines(keepends=True) if not line.startswith("#:"))
     if re.search(r"^\s*(wheels|platforms)\s*=", source, re.M):
         raise ValueError(
             "the source blender_manifest.toml already lists wheels/platforms; the build script writes them"
@@ -222,10 +224,21 @@ def manifest_with_wheels(source: str, wheel_names: list[str], platforms: list[st
 
 
 def platform_notes(platform: str, wheels: list[Path]) -> list[str]:
-    """What a user of ``platform`` must know beyond Blender's own requirements."""
+    """What a user of ``platform`` must know beyond Blender's own requirements: the oldest macOS its wheels run on,
+    and each bundled module of another version than the one the tests run against (``download`` takes the newest
+    one with a wheel for the platform where the tested one has none), which the tests have not run."""
+    notes = []
     if platform.startswith("macos") and (mac := _macos_minimum(wheels)):
-        return [f"{platform}: needs macOS {mac} or newer (the bundled wheels are built for it)"]
-    return []
+        notes.append(f"{platform}: needs macOS {mac} or newer (the bundled wheels are built for it)")
+    for w in wheels:
+        dist, version = w.name.split("-")[:2]
+        tested = next((requirement(d) for d in PINNED_FROM_ENV if _norm(d) == _norm(dist)), "")
+        if "==" in tested and tested.split("==")[1] != version:
+            notes.append(
+                f"{platform}: bundles {dist} {version}, not the tested {tested.split('==')[1]} (which has no wheel "
+                "for this platform)"
+            )
+    return notes
 
 
 def assemble(build: Path, platform: str, wheels: list[Path]) -> None:

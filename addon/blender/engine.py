@@ -431,7 +431,12 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         if props.denoise and not thumbnail and (note := render_properties.denoise_note(scene)) is not None:
             warnings.append(f"Denoise does nothing here: {note}")
         said = self._said if view else set()  # a stereo render's views say the same: once
-        for kind, line in [("INFO", line) for line in info + choice_info] + [("WARNING", w) for w in warnings]:
+        # A material thumbnail says nothing: its scene is Blender's preview scene (a warning named its floor's
+        # material, which the user never made), and every thumbnail printed the same lines again.
+        reported = (
+            [] if thumbnail else [("INFO", line) for line in info + choice_info] + [("WARNING", w) for w in warnings]
+        )
+        for kind, line in reported:
             if line not in said:
                 said.add(line)
                 self.report({kind}, line)

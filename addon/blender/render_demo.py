@@ -18,13 +18,16 @@ from ..core.render.principled import principled_inputs
 
 
 def image_from_array(name: str, rgb: np.ndarray):
-    """A float, linear image (rows of ``rgb`` top to bottom)."""
+    """A float, linear image (rows of ``rgb`` top to bottom), packed into the .blend as OpenEXR: Blender saves no
+    pixels written into a generated image, so a saved demo reopened with a black sky and floor."""
     h, w, _ = rgb.shape
     img = bpy.data.images.new(name, w, h, float_buffer=True)
     img.colorspace_settings.name = "Linear Rec.709"  # before the pixels: changing it regenerates them
     rgba = np.concatenate([rgb, np.ones((h, w, 1), np.float32)], axis=2)[::-1]
     img.pixels.foreach_set(np.ascontiguousarray(rgba, dtype=np.float32).ravel())
     img.update()
+    img.file_format = "OPEN_EXR"  # float, unclipped (the sky's sun is 22 times white)
+    img.pack()
     return img
 
 

@@ -357,6 +357,24 @@ def test_awkward_blender_scenes_render_without_errors(fresh_scene, tmp_path):
         export(ctx)
 
 
+def test_the_demo_scene_keeps_its_sky_and_floor_texture_through_a_saved_blend(fresh_scene, tmp_path):
+    """Blender saves no pixels written into a generated image: a saved demo scene reopened with its sky and floor
+    texture black (the sky's maximum 22.46 before, 0 after). Its images are packed as OpenEXR."""
+    from addon.blender import render_demo
+    from addon.core.render.demo_scene import demo_scene
+
+    core = demo_scene(40, 24, ("coated_gold",))
+    render_demo.build_scene(core, fresh_scene)
+    before, _ = export(fresh_scene)
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "demo.blend"))
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "demo.blend"))
+    after, _ = export(bpy.context)
+    assert before.environment.image.max() > 20.0
+    np.testing.assert_allclose(after.environment.image, before.environment.image, rtol=1e-6)
+    floor = next(m for m in after.materials if getattr(m, "texture", None) is not None)
+    assert np.asarray(floor.texture.levels[0]).max() > 0.1
+
+
 def test_core_scene_round_trips_through_blender(fresh_scene):
     """demo scene -> Blender data (render_demo) -> scene export: the same triangles, normals,
     uvs, materials, light, sky and camera."""
@@ -701,7 +719,9 @@ def render_as_material_preview(scene, path, monkeypatch) -> None:
     bpy.ops.render.render(write_still=True)
 
 
-def test_material_thumbnails_render_through_the_engine_with_thumbnail_settings(fresh_scene, tmp_path, monkeypatch):
+def test_material_thumbnails_render_through_the_engine_with_thumbnail_settings(
+    fresh_scene, tmp_path, monkeypatch, capfd
+):
     """Headless Blender renders no material previews, so this renders F12 through the engine's own
     code path, its thumbnail branch taken as Blender's read-only ``is_preview`` would take it."""
     from addon.blender import engine, stack_io
@@ -724,7 +744,16 @@ def test_material_thumbnails_render_through_the_engine_with_thumbnail_settings(f
         return real(scene, settings, **kw)
 
     monkeypatch.setattr(engine, "render", recording)
+    # Blender's preview scene holds materials the user never made ("FloorHidden", its Alpha left out): a
+    # thumbnail reports nothing of them, where every thumbnail printed their warnings
+    bpy.ops.mesh.primitive_plane_add(size=0.5, location=(0.0, 0.0, -2.0))
+    hidden = bpy.data.materials.new("FloorHidden")
+    hidden.node_tree.nodes["Principled BSDF"].inputs["Alpha"].default_value = 0.5
+    ctx.object.data.materials.append(hidden)
+    assert export(ctx)[1] == ["material 'FloorHidden': its Principled BSDF's Alpha is left out"]  # what F12 says
+    capfd.readouterr()
     render_as_material_preview(ctx.scene, tmp_path / "thumb.exr", monkeypatch)
+    assert "FloorHidden" not in capfd.readouterr().out
     ((settings, sizes),) = seen
     expected = thumbnail_settings(24, 24, threads=settings.threads)
     assert settings == expected and settings.samples < 64 and settings.mode == "neural"
