@@ -544,3 +544,32 @@ def test_eval_matches_analog_walk_on_random_stacks(seed):
     a, sa = analog_albedo(stack, wo, n, seed=seed)
     e, se = eval_albedo(stack, wo, n, seed=seed + 100)
     assert np.all(np.abs(a - e) <= 4.5 * np.sqrt(sa**2 + se**2) + 1e-4), (stack, a, e, sa, se)
+
+
+def test_albedo_parts_binned_sparsely_are_the_dense_binnings_numbers():
+    """``albedo_parts``' ``bins``: each walk's bins as (cells, weights) give what the dense (m, B) weights give."""
+    stack = Stack(Diffuse((0.8, 0.5, 0.2)), (Coating(roughness=0.3, ior=1.5, albedo=(0.9, 0.7, 1.0), thickness=0.2),))
+    wo = np.array([[0.0, 0.0, 1.0], [0.8, 0.0, 0.6], [0.6, 0.6, 0.3]])
+    wo /= np.linalg.norm(wo, axis=1, keepdims=True)
+    nodes = 4  # hat functions of the exit cosine on 4 nodes, then one of 3 azimuth sectors whole: 7 bins
+
+    def cells(wi):
+        u = np.clip(wi[:, 2], 0.0, 1.0) * (nodes - 1)
+        j = np.minimum(u.astype(np.int64), nodes - 2)
+        sector = np.minimum((np.arctan2(wi[:, 1], wi[:, 0]) % (2 * np.pi) / (2 * np.pi / 3)).astype(np.int64), 2)
+        t = u - j
+        return np.stack([j, j + 1, nodes + sector], axis=1), np.stack([1.0 - t, t, np.ones_like(t)], axis=1)
+
+    def dense(wi):
+        c, w = cells(wi)
+        out = np.zeros((len(wi), nodes + 3))
+        np.put_along_axis(out, c, w, axis=1)
+        return out
+
+    a = R.albedo_parts(stack, wo, samples=3000, seed=9, exit_bins=dense)
+    b = R.albedo_parts(stack, wo, samples=3000, seed=9, exit_bins=cells, bins=nodes + 3)
+    for name in ("albedo", "below_top", "by_exit", "below_top_by_exit"):
+        for field in (name, f"{name}_stderr"):
+            np.testing.assert_allclose(getattr(b, field), getattr(a, field), rtol=1e-12, atol=1e-15, err_msg=field)
+    assert (a.by_exit[:, nodes:] > 0).sum() > 3  # the sectors hold walks
+    np.testing.assert_allclose(b.by_exit[:, :nodes].sum(axis=1), b.albedo, rtol=1e-12)

@@ -38,9 +38,11 @@ material's own sampling proxy mixed half and half with a cosine lobe: exact pdfs
 
 3. The relative azimuth (:func:`solve_azimuth`): the table gets :data:`AZIMUTHS` nodes in phi = |phi_i - phi_o|,
    S[m, k, q] = table[m, k] (1 + D[m, k, q]), D found as in step 2 from the same walks and samples binned by exit
-   cosine and relative azimuth; a bin the reference does not pin keeps the elevation table's factor, and the
-   elevation table stands where the azimuth table would miss the albedo by more. It tells backscatter (light and
-   view on the same side of the normal) from forward light, which an elevation-only table cannot.
+   cosine and relative azimuth, with each angle's albedo as one more row of the least squares (the bins' targets
+   are shrunk one by one, and the fit to them alone drifted off the albedo); a bin the reference does not pin
+   keeps the elevation table's factor, and the elevation table stands where the azimuth table would miss the albedo
+   by more. It tells backscatter (light and view on the same side of the normal) from forward light, which an
+   elevation-only table cannot.
 
 What it does not change: the lobe's shape within a bin (where exactly the light goes between two cosines or two
 azimuth nodes). It keeps f >= 0 and reciprocity (the table is symmetric in the two cosines) and adds no network
@@ -88,6 +90,7 @@ DECODED_SAMPLES = 8192  # importance samples of the decoded lobe per grid angle
 # the forward light towards the mirror direction (phi = pi). An elevation-only table (one node) rendered a rough coat
 # over copper 1.65-1.89x too bright on a sphere's shadow side under a light near the camera (docs/calibration.md).
 AZIMUTHS = 3
+EXIT_BINS = len(COSINES) * (AZIMUTHS + 1)  # the reference's exit bins: elevation, then elevation and azimuth
 FACTOR_RANGE = (0.1, 10.0)  # c is kept in this range: a factor outside it means the decoder failed the stack
 ITERATIONS = 60
 # A calibration target moves the factors only by as much as it differs from the decoded albedo beyond this
@@ -288,8 +291,9 @@ def reference_parts(stacks, walks=WALKS, seed: int = 0, step=None) -> ReferenceP
         np.tile(per_row, (r, 1)),
         samples=max(1, q // r),
         seed=seed,
-        exit_bins=exit_bins,
+        exit_bins=exit_bin_cells,
         step=step,
+        bins=EXIT_BINS,
     )
     angle = np.tile(np.repeat(np.arange(len(dirs)), reps), r)
     count = reps * r
@@ -370,18 +374,25 @@ def exit_cells(cos: np.ndarray, cos_phi: np.ndarray, grid=COSINES) -> tuple[np.n
 
 def exit_bins(wi: np.ndarray) -> np.ndarray:
     """(N, K + K * P) the weights of exit directions ``wi`` (N, 3), seen from a grid direction: in the elevation bins
-    (K: the exit cosine's hat functions), then in the elevation and azimuth bins (:func:`exit_cells`). The
-    reference's ``exit_bins``: both kinds from the same walks, each with its own standard errors (the parts of one
-    walk's weight in neighbouring bins are correlated), at the cost of K (P + 1) columns: the walks' binning costs
-    about in proportion (:func:`split_exit_bins`)."""
-    grid = np.asarray(COSINES)
-    k = len(grid)
-    cos = np.clip(wi[:, 2], 0.0, 1.0)
-    out = np.zeros((len(wi), k * (AZIMUTHS + 1)))
-    out[:, :k] = _hats(cos, grid)
-    cells, weights = exit_cells(cos, grid_azimuth(wi))
-    np.put_along_axis(out, k + cells, weights, axis=1)
+    (K: the exit cosine's hat functions), then in the elevation and azimuth bins (:func:`exit_cells`); the dense
+    form of :func:`exit_bin_cells` (:func:`split_exit_bins` splits the two kinds)."""
+    cells, weights = exit_bin_cells(wi)
+    out = np.zeros((len(wi), EXIT_BINS))
+    np.put_along_axis(out, cells, weights, axis=1)
     return out
+
+
+def exit_bin_cells(wi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The bins of :func:`exit_bins` (of :data:`EXIT_BINS`) that exit directions ``wi`` (N, 3) fall in, (N, 6),
+    distinct in each row, and their weights (N, 6): two elevation bins, then four elevation and azimuth bins. The
+    reference's ``exit_bins`` in its sparse form (``reference.albedo_parts``' ``bins``): both kinds from the same
+    walks, each with its own standard errors (the parts of one walk's weight in neighbouring bins are correlated),
+    at the cost of six columns a walk, not K (P + 1)."""
+    grid = np.asarray(COSINES)
+    cos = np.clip(wi[:, 2], 0.0, 1.0)
+    nodes, hats = _hat_cells(cos, grid)
+    cells, weights = exit_cells(cos, grid_azimuth(wi))
+    return np.concatenate([nodes, len(grid) + cells], axis=1), np.concatenate([hats, weights], axis=1)
 
 
 def split_exit_bins(binned: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -544,6 +555,8 @@ def solve_azimuth(
     stderr_floor=0.0,
     fixed: np.ndarray | None = None,
     k: float = NOISE_THRESHOLD,
+    albedo: np.ndarray | None = None,
+    albedo_stderr: np.ndarray | None = None,
 ) -> np.ndarray:
     """The factor table (K, K, P, 3) that brings the decoded energy of each (outgoing angle, exit bin of cosine and
     relative azimuth) to ``target`` (K, K, P, 3), the reference's, starting from the elevation-only ``table`` (K, K,
@@ -552,12 +565,24 @@ def solve_azimuth(
     squares weighted by the noise, plus ``sum D^2``): an azimuth bin the reference does not pin keeps the elevation
     table's factor. Where either cosine is the normal's (the grid's first node) the azimuth is undefined: one D for
     all of its nodes, so that the factor is continuous there. ``fixed`` (K, K) bool: pairs of cosines kept at
-    ``table`` (the separable factors of a narrow lobe, :func:`_solve`)."""
+    ``table`` (the separable factors of a narrow lobe, :func:`_solve`).
+
+    ``albedo`` (K, 3), each angle's directional albedo (the target's sum over its bins), with ``albedo_stderr``: one
+    more row per angle, its energy summed over every bin, towards that albedo shrunk the same way. The bins' targets
+    are shrunk one by one, so a clear gap in a few bins moves the fit while the opposite gap spread over many bins,
+    each within its noise, does not: without these rows the fit drifted off the albedo the elevation table meets
+    (coated gold: 3-4% dark at grazing, where :func:`_solve` then kept the elevation table)."""
     kk, p = len(table), moments.azimuth_pairs.shape[2]
     base = np.repeat(table[:, :, None, :], p, axis=2)
     e0 = azimuth_energy(moments.azimuth_pairs, base)
     sigma2 = np.maximum(target_stderr**2 + moments.azimuth_stderr**2, np.square(stderr_floor) + 1e-30)
     goal = shrink_target(target, e0, np.sqrt(sigma2), k)
+    rows_albedo = 0 if albedo is None else kk
+    if albedo is not None:  # each angle's albedo: the same walks' total, as clear as its own standard error
+        a0 = e0.sum(axis=(1, 2))
+        floor = np.broadcast_to(np.square(stderr_floor), target.shape).max(axis=(1, 2))
+        albedo_sigma2 = np.maximum(np.square(albedo_stderr), floor + 1e-30)
+        albedo_goal = shrink_target(albedo, a0, np.sqrt(albedo_sigma2), k)
     # the unknowns: D[m, k, q] for m <= k, one for every q where m is the normal's node, none where fixed
     iu, ju = np.triu_indices(kk)
     count = np.where(iu == 0, 1, p)
@@ -578,12 +603,16 @@ def solve_azimuth(
     out = np.empty_like(base)
     for c in range(3):  # one solve per channel (three of them)
         grad = base[:, :, :, c].transpose(1, 0, 2)[:, None, None, :, :] * moments.azimuth_pairs[..., c]
-        a = np.zeros((kk * kk * p, unknowns))
+        a = np.zeros((kk * kk * p + rows_albedo, unknowns))
         np.add.at(a, (row[used], column[used]), grad[used])
         wsqrt = 1.0 / np.sqrt(sigma2[..., c]).reshape(-1)
+        r = (goal[..., c] - e0[..., c]).reshape(-1)
+        if albedo is not None:  # an angle's albedo row: the sum of its bins' rows
+            a[kk * kk * p :] = a[: kk * kk * p].reshape(kk, kk * p, unknowns).sum(axis=1)
+            wsqrt = np.concatenate([wsqrt, 1.0 / np.sqrt(albedo_sigma2[:, c])])
+            r = np.concatenate([r, albedo_goal[:, c] - a0[:, c]])
         aw = a * wsqrt[:, None]
-        r = (goal[..., c] - e0[..., c]).reshape(-1) * wsqrt
-        d = np.linalg.solve(aw.T @ aw + np.eye(unknowns), aw.T @ r)
+        d = np.linalg.solve(aw.T @ aw + np.eye(unknowns), aw.T @ (r * wsqrt))
         out[..., c] = base[..., c] * (1.0 + np.where(index >= 0, d[np.maximum(index, 0)], 0.0))
     return np.clip(out, *FACTOR_RANGE)
 
@@ -717,7 +746,9 @@ def settings_key() -> str:
     # now would mark every texture baked with a calibration out of date (their keys hold this one). Whoever changes
     # one of them adds it here.
     key = f"walks{list(WALKS)}-cosines{list(COSINES)}-target-below-top-shrink{NOISE_THRESHOLD:g}-table"
-    return key + f"-azimuths{AZIMUTHS}"  # tables made before the azimuth nodes are not current (textures: rebake)
+    # tables made before the azimuth nodes, or before their fit kept each angle's albedo (``solve_azimuth``), are not
+    # current (textures: rebake)
+    return key + f"-azimuths{AZIMUTHS}-albedo"
 
 
 # What the key of a calibration of a clamped top coating adds (``_as_rendered``): the calibrations made before that
@@ -920,7 +951,9 @@ def _solve(
             ref.by_azimuth_stderr,
         )
     )
-    full = solve_azimuth(moments, table, bins_az, bins_az_se, one_walk[:, None, None, :], fixed)
+    full = solve_azimuth(
+        moments, table, bins_az, bins_az_se, one_walk[:, None, None, :], fixed, albedo=target, albedo_stderr=target_se
+    )
     energy = azimuth_energy(moments.azimuth_pairs, full).sum(axis=(1, 2))
     if _target_miss(energy, target, target_se) > miss_table:
         full = np.repeat(table[:, :, None, :], AZIMUTHS, axis=2)

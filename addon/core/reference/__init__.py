@@ -252,10 +252,14 @@ class AlbedoParts:
     below_top_by_exit_stderr: np.ndarray | None = None
 
 
-def albedo_parts(stack, wo, samples: int = 4096, seed: int = 0, exit_bins=None, step=None) -> AlbedoParts:
+def albedo_parts(
+    stack, wo, samples: int = 4096, seed: int = 0, exit_bins=None, step=None, bins: int | None = None
+) -> AlbedoParts:
     """:class:`AlbedoParts` of ``stack`` seen from ``wo`` (N, 3), from ``samples`` analog walks each (the
     same walks for every part). ``exit_bins``: a function of the walks' exit directions (m, 3) giving
-    their (m, B) bin weights, for ``by_exit``. The first reflections at the top interface carry the
+    their (m, B) bin weights, for ``by_exit``; with ``bins`` = B given, their sparse form instead: the bins
+    (m, J) each walk falls in, J of the B and distinct within a walk, and their weights (m, J) (the same
+    numbers; a walk's binning then costs J columns, not B). The first reflections at the top interface carry the
     walks' largest noise under a bright coat; ``below_top`` is free of it. ``step()`` (optional) is called
     before each event of the walks; raising there stops them."""
     wo = as_directions(wo, "wo")
@@ -274,7 +278,11 @@ def albedo_parts(stack, wo, samples: int = 4096, seed: int = 0, exit_bins=None, 
         _accumulate(sums, sq, pair, w)
         w_below = np.where(first[0][:, None], 0.0, w)
         _accumulate(below, below_sq, pair, w_below)
-        if exit_bins is not None:
+        if exit_bins is not None and bins is not None:
+            if binned is None:
+                binned, binned_sq = np.zeros((n, 6 * bins)), np.zeros((n, 6 * bins))
+            _accumulate_cells(binned, binned_sq, pair, *exit_bins(wi), np.stack([w, w_below]), bins)
+        elif exit_bins is not None:
             b = np.asarray(exit_bins(wi), dtype=np.float64)
             est = np.concatenate([b[:, :, None] * w[:, None, :], b[:, :, None] * w_below[:, None, :]], axis=1)
             est = est.reshape(len(pair), -1)
@@ -287,3 +295,19 @@ def albedo_parts(stack, wo, samples: int = 4096, seed: int = 0, exit_bins=None, 
         return AlbedoParts(f, se, f_below, se_below)
     f_bins, se_bins = (np.split(a.reshape(n, -1, 3), 2, axis=1) for a in _finish(binned, binned_sq, k))
     return AlbedoParts(f, se, f_below, se_below, f_bins[0], se_bins[0], f_bins[1], se_bins[1])
+
+
+def _accumulate_cells(sums, sq, pair, cells, weights, parts, bins: int) -> None:
+    """:func:`_accumulate` of the walks' binned parts from their sparse bins: ``parts`` (A, m, 3), A weights per
+    walk (the whole, the light below the top), each split over its ``cells`` (m, J) (distinct within a walk) with
+    ``weights`` (m, J), into ``sums`` and ``sq`` (N, A * bins * 3), laid out as the dense path's (part, bin,
+    channel). One walk's estimate in a bin is one of its products (its cells are distinct), so its square is that
+    product's."""
+    a = len(parts)
+    cells = np.asarray(cells, dtype=np.int64)
+    est = np.asarray(weights, dtype=np.float64)[None, :, :, None] * parts[:, :, None, :]  # (A, m, J, 3)
+    row = (pair[None, :] * a + np.arange(a)[:, None]) * bins  # (A, m): the first bin of each walk's row and part
+    index = ((row[:, :, None] + cells[None]) * 3)[..., None] + np.arange(3)
+    size = sums.size
+    sums.reshape(-1)[:] += np.bincount(index.reshape(-1), est.reshape(-1), size)
+    sq.reshape(-1)[:] += np.bincount(index.reshape(-1), np.square(est).reshape(-1), size)
