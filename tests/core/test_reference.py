@@ -219,15 +219,19 @@ MULTI = {
 }
 
 
-@pytest.mark.parametrize("name", list(MULTI))
-def test_eval_matches_analog_walk_any_number_of_coatings(name):
-    stack = MULTI[name]
+def assert_eval_matches_analog_walk(stack, n: int, sigmas: float) -> None:
+    """eval_brdf integrated over cosine-distributed directions gives the analog walk's non-delta albedo at a 35
+    degree view, within ``sigmas`` standard errors of the two (``n`` walks each, independent seeds)."""
     wo = direction(35, 60)
-    n = 30000
     a, sa = analog_albedo(stack, wo, n, seed=7)
     e, se = eval_albedo(stack, wo, n, seed=8)
-    assert np.all(np.abs(a - e) <= 3.0 * np.sqrt(sa**2 + se**2)), (a, e, sa, se)
+    assert np.all(np.abs(a - e) <= sigmas * np.sqrt(sa**2 + se**2)), (a, e, sa, se)
     assert np.all(a > 0.01)
+
+
+@pytest.mark.parametrize("name", list(MULTI))
+def test_eval_matches_analog_walk_any_number_of_coatings(name):
+    assert_eval_matches_analog_walk(MULTI[name], 30000, 3.0)
 
 
 # --------------------------------------------------------------------------- independent implementation

@@ -11,7 +11,7 @@ import pytest
 from addon.core import reference as R
 from addon.core.bsdf import fresnel_dielectric
 from addon.core.stack import Coating, Conductor, Dielectric, Diffuse, Stack
-from tests.core.test_reference import GOLD, analog_albedo, direction, eval_albedo
+from tests.core.test_reference import GOLD, assert_eval_matches_analog_walk, direction
 
 MILKY = dict(ior=1.5, albedo=0.9, thickness=1.0)  # a milky coat: ior 1.5, albedo 0.9, optical thickness 1
 PAIRS = (
@@ -165,10 +165,4 @@ ROUTES = {
 
 @pytest.mark.parametrize("name", list(ROUTES))
 def test_eval_matches_analog_walk_where_routes_cross_rough_interfaces(name):
-    stack = ROUTES[name]
-    wo = direction(35, 60)
-    n = 20000
-    a, sa = analog_albedo(stack, wo, n, seed=7)
-    e, se = eval_albedo(stack, wo, n, seed=8)
-    assert np.all(np.abs(a - e) <= 4.0 * np.sqrt(sa**2 + se**2)), (a, e, sa, se)
-    assert np.all(a > 0.01)
+    assert_eval_matches_analog_walk(ROUTES[name], 20000, 4.0)
