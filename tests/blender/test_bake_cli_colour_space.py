@@ -37,7 +37,8 @@ def test_srgb_byte_albedo_is_linearised_as_in_the_addon_and_roughness_reads_raw(
     one = write(tmp_path / "one.png", 128 / 255, channels=1)  # the same byte, one channel for a scalar field
     maps = driving(tmp_path, f"base.albedo={png}", f"coatings[0].roughness={one}")
     np.testing.assert_allclose(maps["base.albedo"], 0.2158605, atol=1e-6)
-    np.testing.assert_allclose(maps["coatings[0].roughness"][..., 0], 128 / 255, atol=1e-6)
+    # the image's raw 0.502 as the sidebar's roughness (from 0 to 1): alpha its square (``bake.map_range``)
+    np.testing.assert_allclose(maps["coatings[0].roughness"][..., 0], (128 / 255) ** 2, atol=1e-6)
     from addon.blender import images
 
     image = bpy.data.images.load(str(png))  # Blender's default for a byte PNG: sRGB
@@ -63,7 +64,7 @@ def test_float_and_linear_tagged_albedo_read_raw_and_the_override_wins(tmp_path)
     )
     one = write(tmp_path / "one.png", 128 / 255, channels=1)
     rough = driving(tmp_path, f"coatings[0].roughness={one}@srgb")["coatings[0].roughness"]
-    np.testing.assert_allclose(rough[..., 0], 0.2158605, atol=1e-6)
+    np.testing.assert_allclose(rough[..., 0], 0.2158605**2, atol=1e-6)  # decoded from sRGB, then squared
 
 
 def test_an_unknown_colour_space_exits_2_with_one_line(tmp_path, capsys):
