@@ -87,6 +87,10 @@ def sin(x):
     return namespace(x).sin(x)
 
 
+def arccos(x):
+    return namespace(x).arccos(x)
+
+
 def quarter_cos_sin(a):
     """(cos a, sin a) of an angle |a| <= pi / 4 (compiled: the Taylor series, no call into the C library)."""
     xp = namespace(a)
@@ -157,6 +161,11 @@ def _cos_scalar(x):
 @overload(sin)
 def _sin_scalar(x):
     return lambda x: math.sin(x)
+
+
+@overload(arccos)
+def _arccos_scalar(x):
+    return lambda x: math.acos(x)
 
 
 # The Taylor series of cos and sin to a^16 / 16! and a^15 / 15! (the latter over a): at |a| <= pi / 4 the first

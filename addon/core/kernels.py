@@ -35,6 +35,7 @@ from .bsdf.ggx import MIN_ALPHA, visible_normal
 from .bsdf.lambert import concentric_disk, lambert_f, lambert_pdf, lambert_sample
 from .bsdf.specular_diffuse import curve_at, principled_eval, principled_sample, principled_view
 from .formula import quarter_cos_sin, turn_cos_sin
+from .neural.calibration_formulas import azimuth_cell
 from .neural.top_formulas import top_reflection, top_share_cos
 
 _JIT = dict(nogil=True, cache=True, error_model="numpy")
@@ -1814,12 +1815,11 @@ def _cos_relative_azimuth(ax, ay, bx, by):
 @njit(forceinline=True, **_JIT)
 def _azimuth_cell(cos_phi, nodes):
     """Index q and weight w of the relative azimuth phi = acos(``cos_phi``) between nodes q and q + 1 of ``nodes``
-    evenly spaced on [0, pi] (``calibrate.azimuth_hats`` is its numpy form); (0, 0) for one node."""
+    evenly spaced on [0, pi] (``neural.calibration_formulas.azimuth_cell``, which ``calibrate`` runs on arrays);
+    (0, 0) for one node."""
     if nodes < 2:
         return 0, 0.0
-    u = math.acos(min(max(cos_phi, -1.0), 1.0)) * (nodes - 1) / math.pi
-    q = min(int(u), nodes - 2)
-    return q, u - q
+    return azimuth_cell(cos_phi, nodes)
 
 
 @njit(forceinline=True, **_JIT)
@@ -1923,7 +1923,7 @@ def camera_rays(
 # --- the disk cache and the formulas compiled into the loops -------------------------------------
 
 # The sources of the formulas (``addon.core.formula``) the loops above compile in, relative to this folder.
-FORMULA_SOURCES = ("formula.py", "bsdf/*.py", "neural/top_formulas.py")
+FORMULA_SOURCES = ("formula.py", "bsdf/*.py", "neural/top_formulas.py", "neural/calibration_formulas.py")
 _FORMULA_STAMP = "kernels.formulas"
 
 

@@ -155,6 +155,9 @@ class TorchNamespace:
     def cos(self, x):
         return self.torch.cos(self._t(x))
 
+    def arccos(self, x):
+        return self.torch.arccos(self._t(x))
+
     def isfinite(self, x):
         return self.torch.isfinite(self._t(x))
 

@@ -29,15 +29,16 @@ def _every_operation(x, y):
         fm.where(fm.isfinite(x / y), 1.0, 0.0),
         fm.copysign(1.0, y),
         fm.where(c, 1.0, 0.0),
+        fm.arccos(fm.clip(x, -1.0, 1.0)),
     )
 
 
 @njit(error_model="numpy")
 def _compiled(x, y):
-    out = np.empty((10, len(x)))
+    out = np.empty((11, len(x)))
     for i in range(len(x)):
         r = _every_operation(x[i], y[i])
-        for k in range(10):
+        for k in range(11):
             out[k, i] = r[k]
     return out
 

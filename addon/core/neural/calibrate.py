@@ -76,6 +76,7 @@ from ..bsdf.lambert import sample_cosine_hemisphere
 from ..reference import AlbedoParts
 from ..stack import Stack, StackArrays
 from . import proxy, top_lobe
+from .calibration_formulas import azimuth_cell
 
 # Incident cosines of the grid: normal incidence to 88.9 degrees, denser towards grazing, where the
 # decoders' albedo is furthest off and the reference changes fastest (the coat's Fresnel).
@@ -337,14 +338,12 @@ def _hats(cos: np.ndarray, grid: np.ndarray) -> np.ndarray:
 
 def _azimuth_cells(cos_phi: np.ndarray, nodes: int) -> tuple[np.ndarray, np.ndarray]:
     """The two azimuth nodes (N, 2) around each relative azimuth acos(``cos_phi``) (N,) of ``nodes`` evenly spaced on
-    [0, pi], and their weights (N, 2): the numpy form of the renderer's ``kernels._azimuth_cell``."""
+    [0, pi], and their weights (N, 2): ``calibration_formulas.azimuth_cell``, which the renderer's loops run too."""
     if nodes < 2:
         return np.zeros((len(cos_phi), 2), dtype=np.int64), np.column_stack(
             [np.ones(len(cos_phi)), np.zeros(len(cos_phi))]
         )
-    u = np.arccos(np.clip(cos_phi, -1.0, 1.0)) * (nodes - 1) / np.pi
-    q = np.minimum(u.astype(np.int64), nodes - 2)
-    w = u - q
+    q, w = azimuth_cell(np.asarray(cos_phi, dtype=np.float64), nodes)
     return np.stack([q, q + 1], axis=1), np.stack([1.0 - w, w], axis=1)
 
 
