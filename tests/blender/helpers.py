@@ -52,3 +52,21 @@ def viewport_reports(monkeypatch, context, exports: int = 3, size=(16, 12)) -> l
     for _ in range(exports):
         engine.NeuralLayeredRenderEngine._view_scene(fake, region, context.evaluated_depsgraph_get(), [])
     return reports
+
+
+class DrawnProps:
+    """A stand-in for a panel's ``layout`` that records the names of the properties a ``draw`` puts on it
+    (``drawn``); every other layout call gives the layout back, as Blender's sub-layouts do."""
+
+    use_property_split = False
+    active = True
+    enabled = True
+
+    def __init__(self):
+        self.drawn: list[str] = []
+
+    def __getattr__(self, name):
+        return lambda *a, **k: self
+
+    def prop(self, data, name, **kw):
+        self.drawn.append(name)

@@ -7,6 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from tests.blender.helpers import DrawnProps
 from tests.blender.test_render_engine import export, read_image
 
 bpy = pytest.importorskip("bpy")
@@ -292,18 +293,6 @@ def test_the_light_panel_draws_the_settings_this_engine_renders(bpy_addon):
     draws the power, colour and each kind's settings."""
     from addon.blender import render_ui
 
-    drawn = []
-
-    class Layout:
-        use_property_split = False
-        active = True
-
-        def __getattr__(self, name):
-            return lambda *a, **k: self
-
-        def prop(self, data, name, **kw):
-            drawn.append(name)
-
     class Context:
         engine = "NEURAL_LAYERED"
 
@@ -318,9 +307,9 @@ def test_the_light_panel_draws_the_settings_this_engine_renders(bpy_addon):
         ctx = Context()
         ctx.light, ctx.object = light, ob
         assert render_ui.NLM_PT_light.poll(ctx)
-        drawn.clear()
-        render_ui.NLM_PT_light.draw(SimpleNamespace(layout=Layout()), ctx)
-        assert expected <= set(drawn), (kind, drawn)
+        layout = DrawnProps()
+        render_ui.NLM_PT_light.draw(SimpleNamespace(layout=layout), ctx)
+        assert expected <= set(layout.drawn), (kind, layout.drawn)
 
 
 def test_an_area_light_beyond_clip_end_is_not_seen(fresh_scene, tmp_path):

@@ -6,7 +6,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from tests.blender.helpers import run_operator, viewport_reports
+from tests.blender.helpers import DrawnProps, run_operator, viewport_reports
 
 bpy = pytest.importorskip("bpy")
 
@@ -1385,23 +1385,12 @@ def test_the_settings_this_engine_renders_are_drawn_for_it(bpy_addon):
     other engines' panels: the add-on's panels draw them for this one."""
     from addon.blender import render_ui
 
-    drawn = []
-
-    class Layout:
-        use_property_split = False
-        enabled = True
-
-        def __getattr__(self, name):
-            return lambda *a, **k: self
-
-        def prop(self, data, name, **kw):
-            drawn.append(name)
-
+    layout = DrawnProps()
     ctx = SimpleNamespace(
         engine="NEURAL_LAYERED", scene=bpy_addon.context.scene, view_layer=bpy_addon.context.view_layer
     )
     for panel in (render_ui.NLM_PT_film, render_ui.NLM_PT_performance, render_ui.NLM_PT_view_layer):
         assert panel.poll(ctx) and panel.is_registered
-        panel.draw(SimpleNamespace(layout=Layout()), ctx)
-    assert {"film_transparent", "threads_mode", "threads", "use_pass_z", "material_override"} <= set(drawn)
+        panel.draw(SimpleNamespace(layout=layout), ctx)
+    assert {"film_transparent", "threads_mode", "threads", "use_pass_z", "material_override"} <= set(layout.drawn)
     assert not render_ui.NLM_PT_film.poll(SimpleNamespace(engine="CYCLES"))

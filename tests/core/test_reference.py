@@ -503,6 +503,14 @@ def test_albedo_parts_are_the_albedos_walks_split_without_changing_them():
 MIN_TRANSMISSION_WIDTH = 0.03
 
 
+def coating_iors(rng: np.random.Generator, most: int) -> list[float]:
+    """Air's index, then 1 to ``most`` coatings' from the top down, each 0.1 or more from its neighbour above."""
+    iors = [1.0]
+    for _ in range(rng.integers(1, most + 1)):
+        iors.append(float(rng.choice([x for x in np.arange(1.1, 2.01, 0.05) if abs(x - iors[-1]) >= 0.1])))
+    return iors
+
+
 def random_layered_stack(rng: np.random.Generator) -> Stack:
     """A stack of 1-3 coatings drawn over the valid ranges, half of its surfaces smooth. Neighbouring indices are 0.1
     apart or more, a rough base has alpha >= 0.05 and a rough interface a transmission lobe at least
@@ -518,9 +526,7 @@ def random_layered_stack(rng: np.random.Generator) -> Stack:
         base = Conductor(alpha(), eta=tuple(rng.uniform(0.1, 2.0, 3)), k=tuple(rng.uniform(1.0, 5.0, 3)))
     else:
         base = Dielectric(alpha(), float(rng.uniform(1.2, 2.5)))
-    iors = [1.0]  # air, then the coatings from the top down
-    for _ in range(rng.integers(1, 4)):
-        iors.append(float(rng.choice([x for x in np.arange(1.1, 2.01, 0.05) if abs(x - iors[-1]) >= 0.1])))
+    iors = coating_iors(rng, 3)  # air, then the coatings from the top down
     coats = []
     for j in range(len(iors) - 1, 0, -1):  # bottom to top: coating j under iors[j - 1]
         n, above = iors[j], iors[j - 1]

@@ -11,7 +11,7 @@ import pytest
 from addon.core import reference as R
 from addon.core.bsdf import fresnel_dielectric
 from addon.core.stack import Coating, Conductor, Dielectric, Diffuse, Stack
-from tests.core.test_reference import GOLD, assert_eval_matches_analog_walk, direction
+from tests.core.test_reference import GOLD, assert_eval_matches_analog_walk, coating_iors, direction
 
 MILKY = dict(ior=1.5, albedo=0.9, thickness=1.0)  # a milky coat: ior 1.5, albedo 0.9, optical thickness 1
 PAIRS = (
@@ -101,9 +101,7 @@ def glossy_top_stack(rng: np.random.Generator) -> Stack:
         base = Conductor(0.0, eta=tuple(rng.uniform(0.1, 2.0, 3)), k=tuple(rng.uniform(1.0, 5.0, 3)))
     else:
         base = Dielectric(0.0, float(rng.uniform(1.2, 2.5)))
-    iors = [1.0]  # air, then the coatings from the top down
-    for _ in range(rng.integers(1, 3)):
-        iors.append(float(rng.choice([x for x in np.arange(1.1, 2.01, 0.05) if abs(x - iors[-1]) >= 0.1])))
+    iors = coating_iors(rng, 2)  # air, then the coatings from the top down
     coats = []
     for j in range(len(iors) - 1, 0, -1):  # bottom to top: coating j under iors[j - 1]
         n, above = iors[j], iors[j - 1]
