@@ -281,6 +281,8 @@ class LayerAnimation:
     moved: int = 0  # curves kept, on their layer's new position (the same position too)
     removed: Counter = field(default_factory=Counter)  # old layer index -> curves removed with that layer
     copied: int = 0  # curves copied onto a duplicate
+    # (action, its copy) names: an action whose slot another data-block uses too, copied for this material
+    separated: list = field(default_factory=list)
 
     @property
     def total(self) -> int:
@@ -288,31 +290,86 @@ class LayerAnimation:
         return self.moved + sum(self.removed.values())
 
 
-def _curve_collections(anim):
-    """Every collection of F-curves that animates the data-block of ``anim``: the channelbags of its action's slot and
-    of its NLA strips' actions (each once), then its drivers; ``(collection, is_drivers)``."""
-    seen = set()
+def _channelbags(action, slot):
+    """The channelbags of ``slot`` in ``action``'s layers (none where either is missing)."""
+    if action is None or slot is None:
+        return
+    for layer in action.layers:
+        for strip in layer.strips:
+            bag = strip.channelbag(slot)
+            if bag is not None:
+                yield bag
 
-    def channelbags(action, slot):
-        if action is None or slot is None:
-            return
-        for layer in action.layers:
-            for strip in layer.strips:
-                bag = strip.channelbag(slot)
-                if bag is not None and bag.as_pointer() not in seen:
-                    seen.add(bag.as_pointer())
-                    yield bag.fcurves, False
+
+def _nla_strips(anim):
+    """Every NLA strip of ``anim``, a meta strip's strips too."""
 
     def strips(collection):
         for strip in collection:
             yield strip
-            yield from strips(strip.strips)  # a meta strip's
+            yield from strips(strip.strips)
 
-    yield from channelbags(anim.action, anim.action_slot)
     for track in anim.nla_tracks:
-        for strip in strips(track.strips):
-            yield from channelbags(strip.action, strip.action_slot)
+        yield from strips(track.strips)
+
+
+def _curve_collections(anim):
+    """Every collection of F-curves that animates the data-block of ``anim``: the channelbags of its action's slot and
+    of its NLA strips' actions (each once), then its drivers; ``(collection, is_drivers)``."""
+    seen = set()
+    for action, slot in [(anim.action, anim.action_slot), *((s.action, s.action_slot) for s in _nla_strips(anim))]:
+        for bag in _channelbags(action, slot):
+            if bag.as_pointer() not in seen:
+                seen.add(bag.as_pointer())
+                yield bag.fcurves, False
     yield anim.drivers, True
+
+
+def _separate_shared_actions(owner, anim, edits) -> list[tuple[str, str]]:
+    """Give ``owner`` its own copy of each action (its active one, its NLA strips') whose slot for it another
+    data-block uses too and whose curves of that slot ``edits(fcurves)`` would change, as Blender's "make single
+    user" of an action does: the copy is named as Blender names copies ("Action.001") and ``owner`` keeps its slot in
+    it, so the others keep their animation exactly while ``owner``'s curves follow its layers. A material copied with
+    its action shared (``Material.copy()``, Shift+D with Duplicate Data > Action off, a slot assigned to two) had
+    its layer edits rewrite the other's keyframes. Returns (action, copy) names."""
+
+    def shared(action, slot):
+        return (
+            action is not None
+            and slot is not None
+            and any(user != owner for user in slot.users())
+            and any(edits(bag.fcurves) for bag in _channelbags(action, slot))
+        )
+
+    strips = [strip for strip in _nla_strips(anim) if shared(strip.action, strip.action_slot)]
+    tweaking = anim.use_tweak_mode  # its action is then the tweaked strip's (among the strips)
+    active = not tweaking and shared(anim.action, anim.action_slot)
+    if not (strips or active):
+        return []
+    if tweaking:  # no action can be changed while a strip is tweaked: tweak mode is left and entered again
+        anim.use_tweak_mode = False
+    copies = {}
+
+    def own_copy(action):
+        if action.as_pointer() not in copies:
+            copies[action.as_pointer()] = action.copy()
+        return copies[action.as_pointer()]
+
+    def reassign(holder):  # the AnimData or a strip: its action's copy, with the same slot
+        handle = holder.action_slot.handle
+        copy = own_copy(holder.action)
+        holder.action = copy
+        holder.action_slot = next(slot for slot in copy.slots if slot.handle == handle)
+
+    separated = []
+    for holder in ([anim] if active else []) + strips:
+        name = holder.action.name
+        reassign(holder)
+        if (name, holder.action.name) not in separated:
+            separated.append((name, holder.action.name))
+    if tweaking:
+        anim.use_tweak_mode = True
+    return separated
 
 
 def follow_layers(mat, new_index_of: Sequence[int | None], copies: dict[int, int] | None = None) -> LayerAnimation:
@@ -324,7 +381,9 @@ def follow_layers(mat, new_index_of: Sequence[int | None], copies: dict[int, int
     removed); ``copies`` maps an old position to the position of a copy of that layer (Duplicate), which gets copies
     of its curves. Curves of the action's slot for ``mat``, of its NLA strips' actions and its drivers are followed;
     curves on positions ``new_index_of`` does not cover (no layer before the edit) and paths that name a layer by its
-    name (``layers["Coat"]``, which follow it anyway) are left as they are. Undo restores it with the edit."""
+    name (``layers["Coat"]``, which follow it anyway) are left as they are. Where another data-block uses the same
+    action slot (a copy of the material), ``mat`` first gets its own copy of the action, so the other's animation stays
+    as it was (``_separate_shared_actions``; the result's ``separated``). Undo restores it with the edit."""
     return _follow(mat, "neural_layers.layers", new_index_of, copies or {})
 
 
@@ -340,13 +399,27 @@ def _follow(mat, prefix: str, new_index_of: Sequence[int | None], copies: dict[i
     pattern = re.compile(re.escape(prefix) + r"\[(\d+)\](.*)$", re.DOTALL)
     done = LayerAnimation()
     anim = getattr(mat, "animation_data", None)
-    for curves, is_drivers in _curve_collections(anim) if anim is not None else ():
+    if anim is None:
+        return done
+
+    def followed(curve):  # (old position, rest of the path) of a curve on an item the edit covers, else None
+        match = pattern.match(curve.data_path)
+        if match is None or int(match.group(1)) >= len(new_index_of):
+            return None
+        return int(match.group(1)), match.group(2)
+
+    def edits(curves):  # whether following changes any of ``curves``
+        found = (followed(curve) for curve in curves)
+        return any(f is not None and (new_index_of[f[0]] != f[0] or f[0] in copies) for f in found)
+
+    done.separated = _separate_shared_actions(mat, anim, edits)
+    for curves, is_drivers in _curve_collections(anim):
         to_copy = []
         for curve in list(curves):
-            match = pattern.match(curve.data_path)
-            if match is None or int(match.group(1)) >= len(new_index_of):
+            found = followed(curve)
+            if found is None:
                 continue
-            old, rest = int(match.group(1)), match.group(2)
+            old, rest = found
             new = new_index_of[old]
             if new is None:
                 curves.remove(curve)
