@@ -23,10 +23,11 @@ from .bake_state import (  # noqa: F401 (baked_texture_state: API; _blend_relati
     attach_texture,
     bake_model_key,
     bake_size,
+    bake_target,
     baked_texture_state,
+    blend_file_name,
     check_bake_folder,
     inputs_digest,
-    texture_output_path,
 )
 from .operator_base import LongOperator, MaterialOperator, UserError, context_material, guarded
 from .properties import MAP_PARAMETERS
@@ -151,14 +152,14 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
         except ValueError as e:
             raise UserError(f"{e}: lower Bake Resolution or turn on Fit to Camera") from None
         size = bake_size(mat)
-        path = texture_output_path(mat)
+        path, kept = bake_target(mat)  # never over a file that holds another file's or material's bake
         check_bake_folder(os.path.dirname(path))  # before the work, not after it
         refine_s = float(f"{s.bake_refine:g}")  # the float32 property's 0.01 is 0.00999999977 in float64
         model = bake_model_key(size, refine_s)
         key = bake_key(spatial, res, model)  # decoder digest and budget, as bake_state checks
         inputs = inputs_digest(mat, res, model)  # what renders the bake while its maps' images cannot be read
         refine_cache = os.path.join(os.path.dirname(path), ".refine")  # as the bake CLI's OUT/.refine
-        name = mat.name
+        name, blend = mat.name, blend_file_name()  # whose bake it is, recorded in the texture's header
         render = context.scene.render
         threads = RenderSettings.threads_for(render.threads_mode, render.threads)  # Blender's Threads setting
 
@@ -170,7 +171,7 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
                 encode,
                 resolution=res,
                 progress=progress,
-                metadata={"material": name, "model": size, "key": key, "inputs": inputs},
+                metadata={"material": name, "blend": blend, "model": size, "key": key, "inputs": inputs},
                 threads=threads,
             )
             if progress is not None:  # an Esc up to here cancels (raises): from here the file is written, and kept
@@ -187,6 +188,8 @@ class NLM_OT_bake_texture(LongOperator, bpy.types.Operator):
             attach_texture(target, path, key, res)
             refined = "" if refined is None else f", {refined} refined"
             calibrated = f", calibrated in {stats.clusters} cluster(s)" if stats.clusters else ""
+            if kept is not None:
+                self.report({"INFO"}, f"{name}: {kept}")
             for note in stats.clamped:  # the networks' trained ranges: what the texture holds is the clamped stack
                 self.report({"WARNING"}, f"{name}: {note}; baked clamped")
             self.report(

@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import threading
 import zlib
 from collections import OrderedDict
 
@@ -24,20 +25,118 @@ from .operator_base import UserError
 DEFAULT_BAKE_FOLDER = "//textures/"
 
 
-def texture_output_path(mat) -> str:
-    """Where the bake of ``mat`` goes: its Bake Folder (relative to the .blend file by default).
+def blend_file_name() -> str:
+    """The open .blend file's name ("shot01.blend"; "" while unsaved): what a bake records in its texture's header
+    (``nlm:blend``) beside the material's name, so that a bake of another file is told apart from its own."""
+    return os.path.basename(bpy.data.filepath)
 
-    A folder relative to the .blend file ("//...") needs a saved file; without one Blender would
-    resolve it against the process's working folder, so the bake refuses instead.
+
+def bake_folder(mat) -> str:
+    """The absolute folder a bake of ``mat`` goes to: its Bake Folder, relative to the .blend file where it is not an
+    absolute path ("//textures/" and "textures/" alike: a folder without "//" was resolved against Blender's working
+    folder, wherever Blender was started). The default, ``//textures/``, is one folder per .blend file,
+    ``//textures/<file name without .blend>/``: files in one folder each have a material "Material", and each file's
+    bake overwrote the other's.
+
+    A folder relative to the .blend file needs a saved file; without one it would resolve against the process's
+    working folder, so the bake refuses instead.
     """
-    folder = mat.neural_layers.bake_directory or DEFAULT_BAKE_FOLDER
+    chosen = mat.neural_layers.bake_directory or DEFAULT_BAKE_FOLDER
+    folder = os.path.expanduser(chosen)
+    if not folder.startswith("//") and not os.path.isabs(folder):
+        folder = "//" + folder
     if folder.startswith("//") and not bpy.data.filepath:
         raise UserError(
-            f"the bake folder {folder!r} is relative to the .blend file, which is not saved: "
-            "save the file first or choose an absolute Bake Folder"
+            f"the Bake Folder {chosen!r} is relative to the .blend file, which is not saved: save the file first, "
+            "or choose an absolute Bake Folder"
         )
-    # the bake CLI's file names: two different material names never share a file ("a/b", "a_b")
-    return os.path.join(bpy.path.abspath(folder), f"{files.safe_file_name(mat.name)}.exr")
+    if folder.rstrip("/\\") == DEFAULT_BAKE_FOLDER.rstrip("/"):
+        stem = os.path.splitext(blend_file_name())[0]
+        folder = os.path.join(folder, files.safe_file_name(stem))
+    return bpy.path.abspath(folder)
+
+
+def texture_output_path(mat) -> str:
+    """Where the bake of ``mat`` goes unless another bake holds that file (``bake_target``): ``<material>.exr`` in its
+    Bake Folder (``bake_folder``), named as the bake command names it, so that two different material names never
+    share a file ("a/b", "a_b")."""
+    return os.path.join(bake_folder(mat), f"{files.safe_file_name(mat.name)}.exr")
+
+
+# A bake looks this far for a file name of its own (``bake_target``): "Material.exr", "Material (2).exr", ...
+FREE_NAMES = 1000
+
+
+def bake_target(mat) -> tuple[str, str | None]:
+    """``(path, note)``: the file a bake of ``mat`` writes, and a line for the user when it is a new one that is not
+    the usual one (``texture_output_path``), else None. A file that holds what is not this material's bake is never
+    overwritten (``_held_by_other``: another .blend file's or another material's bake, or a file that is not a latent
+    texture): the bake takes the first name free or its own of ``<material> (2).exr``, ``(3)``, ... (not ".001", the
+    name of a material's copy, whose own bake goes there). Two files in one folder with a material of the same name
+    each overwrote the other's bake."""
+    usual = texture_output_path(mat)
+    stem = usual[: -len(".exr")]
+    held = None
+    for n in range(1, FREE_NAMES + 1):
+        path = usual if n == 1 else f"{stem} ({n}).exr"
+        holder = _held_by_other(mat, path)
+        if holder is None:
+            if n == 1 or _same_file_key(path) == _same_file_key(_rendered_path(mat)):  # its usual file, or its own
+                return path, None
+            return path, (
+                f"{os.path.basename(usual)} holds {held}, which this bake keeps: baked to {os.path.basename(path)}"
+            )
+        held = held or holder
+    raise UserError(
+        f"the Bake Folder {os.path.dirname(usual)!r} holds {FREE_NAMES} files named like {os.path.basename(usual)!r}, "
+        "none of them this material's bake: choose another Bake Folder"
+    )
+
+
+def _held_by_other(mat, path: str) -> str | None:
+    """What the file at ``path`` holds when a bake of ``mat`` must not overwrite it, in words ("the bake of material
+    'Material' in shot01.blend"), else None (no file, or this material's own bake). Its own: no other material of
+    this file renders it, and its header says this material of this .blend file baked it; a header that names no
+    .blend file (a bake in an unsaved file, or by a version that did not record it) where ``mat`` renders that file
+    and its header's key is the one ``mat`` recorded."""
+    if not os.path.lexists(path):
+        return None
+    header = _header(path) if os.path.isfile(path) else {}
+    if "key" not in header:
+        return "a file that is not a latent texture"
+    target = _same_file_key(path)
+    for other in bpy.data.materials:
+        if other != mat and _same_file_key(_rendered_path(other)) == target:
+            return f"the bake that material {other.name!r} of this file renders"
+    if header.get("blend"):
+        own = header["blend"] == blend_file_name() and header.get("material") == mat.name
+    else:
+        own = _same_file_key(_rendered_path(mat)) == target and header["key"] == mat.neural_layers.texture_key
+    return None if own else f"the bake of {_baked_by(header)}"
+
+
+def _baked_by(header: dict) -> str:
+    """Whose bake a texture's header says it holds, in words: "material 'Material' in shot01.blend"."""
+    where = f" in {header['blend']}" if header.get("blend") else ""
+    return f"material {header.get('material', '?')!r}{where}"
+
+
+def _rendered_path(mat) -> str:
+    """The absolute path of the texture ``mat`` points at ("" for none): its Latent Texture resolved against the
+    file that holds the material, or where the bake wrote it when that path leads nowhere (``current_texture``)."""
+    s = mat.neural_layers
+    if not s.texture_path:
+        return ""
+    # "//" is relative to the file that holds the material: a linked one's library, not the open file
+    path = bpy.path.abspath(s.texture_path, library=getattr(mat, "original", mat).library)
+    if not os.path.isfile(path) and s.texture_file and os.path.isfile(s.texture_file):
+        path = s.texture_file  # where the bake wrote it: a linked material made local has lost its library's "//"
+    return path
+
+
+def _same_file_key(path: str):
+    """A key equal for two paths of the same file (a link, "..", a name that differs in case on Windows)."""
+    return os.path.normcase(os.path.realpath(path)) if path else None
 
 
 def check_bake_folder(folder: str) -> None:
@@ -117,6 +216,33 @@ def inputs_digest(mat, resolution, model: str) -> str:
     return hashlib.sha256(json.dumps(described).encode()).hexdigest()[:16]
 
 
+# The headers of the textures the exports checked (``current_texture``): path -> (the file's identity, header). F12
+# exports on Blender's render thread, the viewport on the main one.
+_HEADERS: OrderedDict = OrderedDict()
+_HEADERS_LOCK = threading.Lock()
+HEADERS_KEPT = 64
+
+
+def _header(path: str) -> dict:
+    """``texture_header(path)``, read once per version of the file (its inode, size and modification time)."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return {}
+    identity = (st.st_ino, st.st_size, st.st_mtime_ns)
+    with _HEADERS_LOCK:
+        held = _HEADERS.get(path)
+        if held is not None and held[0] == identity:
+            _HEADERS.move_to_end(path)
+            return held[1]
+    header = texture_header(path)
+    with _HEADERS_LOCK:
+        _HEADERS[path] = (identity, header)
+        while len(_HEADERS) > HEADERS_KEPT:
+            _HEADERS.popitem(last=False)
+    return header
+
+
 def texture_header(path: str) -> dict:
     """The bake's entries in a latent texture's header (``nlm:key`` and the rest: ``LatentTexture.write_exr``), read
     without its texels; empty where the file cannot be opened."""
@@ -145,10 +271,7 @@ def current_texture(mat):
     s = mat.neural_layers
     if not s.texture_path:
         return None, "not baked", None
-    # "//" is relative to the file that holds the material: a linked one's library, not the open file
-    path = bpy.path.abspath(s.texture_path, library=getattr(mat, "original", mat).library)
-    if not os.path.isfile(path) and s.texture_file and os.path.isfile(s.texture_file):
-        path = s.texture_file  # where the bake wrote it: a linked material made local has lost its library's "//"
+    path = _rendered_path(mat)
     if not os.path.isfile(path):
         return None, f"baked texture missing: {path}", None
     res = tuple(s.texture_size)
@@ -176,6 +299,11 @@ def current_texture(mat):
     spatial, key = found
     if key != s.texture_key:
         return None, "baked texture is out of date: bake again", None
+    # The file must hold this material's bake: another can sit at its path while the material's key still matches
+    # its inputs (a file copied over it, an undo after a second bake, a bake by another program or version)
+    header = _header(path)
+    if header.get("key", s.texture_key) != s.texture_key:
+        return None, f"{path} holds another bake (of {_baked_by(header)}): bake again", None
     return path, f"baked: {os.path.basename(path)}", spatial
 
 

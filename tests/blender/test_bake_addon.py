@@ -135,10 +135,15 @@ def test_bake_writes_the_texture_and_the_renderer_uses_it_while_current(wood, bp
     assert run_operator(ops.texture_clear).finished and wood.neural_layers.texture_path == ""
 
 
-def test_a_texture_file_that_holds_another_materials_bake_is_not_rendered(wood, bpy_addon):
-    """A renamed material and a new one of its old name bake to the same file: the first's key still matches its
-    own inputs, but the file holds the second's bake, so the first renders its constant stack and says why (it
-    rendered the other material's texture, silently)."""
+def test_a_bake_keeps_the_file_a_renamed_material_renders_and_a_file_holding_another_bake_is_not_rendered(
+    wood, bpy_addon, capfd
+):
+    """A renamed material and a new one of its old name bake to the same file name: the second's bake went over the
+    first's file, whose key still matched its own inputs, so the first rendered the other's texture. The second now
+    bakes beside it ("Material (2).exr") and says so, and each renders its own. A file that holds another bake all
+    the same (copied over it) is not rendered, and the warning says whose bake it holds."""
+    import shutil
+
     from addon.blender import scene_export
 
     bpy = bpy_addon
@@ -148,13 +153,22 @@ def test_a_texture_file_that_holds_another_materials_bake_is_not_rendered(wood, 
     other.neural_layers.bake_directory = wood.neural_layers.bake_directory
     bpy.context.view_layer.objects.active.active_material = other
     assert run_operator(ops.preset_apply, preset="coated_gold").finished
+    capfd.readouterr()
     assert run_operator(ops.bake_texture).finished
-    assert bpy.path.abspath(other.neural_layers.texture_path) == bpy.path.abspath(wood.neural_layers.texture_path)
+    oak, gold = (Path(bpy.path.abspath(m.neural_layers.texture_path)) for m in (wood, other))
+    assert (oak.name, gold.name) == ("Material.exr", "Material (2).exr") and oak.parent == gold.parent
+    assert any(
+        "Material.exr holds the bake that material 'Oak' of this file renders" in line and "Material (2).exr" in line
+        for line in capfd.readouterr().out.splitlines()
+    )
+    for mat in (wood, other):
+        warnings = []
+        assert scene_export.export_material(mat, warnings).latent_texture is not None and not warnings
+
+    shutil.copyfile(gold, oak)  # the other's bake over Oak's file, as a file manager copies it
     warnings = []
     spec = scene_export.export_material(wood, warnings)
     assert spec.latent_texture is None and any("holds another bake" in w and "'Material'" in w for w in warnings)
-    warnings = []
-    assert scene_export.export_material(other, warnings).latent_texture is not None and not warnings
 
 
 def _evaluated_spec(bpy):
@@ -308,8 +322,8 @@ def test_bake_in_an_unsaved_file_refuses_a_folder_relative_to_it(wood, bpy_addon
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "saved.blend"))
     r = run_operator(ops.bake_texture)
     assert r.finished, r.error
-    assert wood.neural_layers.texture_path == "//textures/Material.exr"
-    assert (tmp_path / "textures" / "Material.exr").is_file()
+    assert wood.neural_layers.texture_path == "//textures/saved/Material.exr"  # the default: a folder per file
+    assert (tmp_path / "textures" / "saved" / "Material.exr").is_file()
 
 
 @pytest.mark.parametrize("colorspace, expected", [("sRGB", 0.2158605), ("Non-Color", 128 / 255)])
@@ -423,15 +437,15 @@ def test_save_as_into_another_folder_keeps_the_baked_texture_and_save_copy_keeps
     wood.neural_layers.bake_directory = "//textures/"
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "one" / "scene.blend"))
     assert run_operator(ops.bake_texture).finished
-    assert wood.neural_layers.texture_path == "//textures/Material.exr"
+    assert wood.neural_layers.texture_path == "//textures/scene/Material.exr"
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "two" / "scene.blend"))
-    assert wood.neural_layers.texture_path == "//../one/textures/Material.exr"
+    assert wood.neural_layers.texture_path == "//../one/textures/scene/Material.exr"
     assert bake_ops.baked_texture_state(wood)[0] is not None
     bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "three" / "deeper" / "copy.blend"), copy=True)
-    assert wood.neural_layers.texture_path == "//../one/textures/Material.exr"  # the open file is still two's
+    assert wood.neural_layers.texture_path == "//../one/textures/scene/Material.exr"  # the open file is still two's
     bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "three" / "deeper" / "copy.blend"))
     copied = bpy.data.materials["Material"]
-    assert copied.neural_layers.texture_path == "//../../one/textures/Material.exr"
+    assert copied.neural_layers.texture_path == "//../../one/textures/scene/Material.exr"
     assert os.path.isfile(bpy.path.abspath(copied.neural_layers.texture_path))
 
 
@@ -473,7 +487,7 @@ def test_a_baked_material_appended_from_another_folder_keeps_its_texture(wood, b
     library = str(tmp_path / "a" / "a.blend")
     bpy.ops.wm.append(directory=library + "/Material/", filename="Material")
     (appended,) = [m for m in bpy.data.materials if m.name != "Material" and m.neural_layers.texture_path]
-    assert appended.neural_layers.texture_path == "//../a/textures/Material.exr"
+    assert appended.neural_layers.texture_path == "//../a/textures/a/Material.exr"
     assert os.path.isfile(bpy.path.abspath(appended.neural_layers.texture_path))
     path, state = bake_ops.baked_texture_state(appended)
     assert path is not None, state
@@ -500,10 +514,10 @@ def test_a_linked_baked_material_made_local_keeps_its_texture(wood, bpy_addon, t
     with bpy.data.libraries.load(str(tmp_path / "a" / "a.blend"), link=True) as (_, linked):
         linked.materials = ["Material"]
     local = linked.materials[0].make_local()
-    assert local.library is None and local.neural_layers.texture_path == "//textures/Material.exr"
+    assert local.library is None and local.neural_layers.texture_path == "//textures/a/Material.exr"
     assert not os.path.isfile(bpy.path.abspath(local.neural_layers.texture_path))
     path, state = bake_ops.baked_texture_state(local)
-    assert path is not None and os.path.samefile(path, tmp_path / "a" / "textures" / "Material.exr"), state
+    assert path is not None and os.path.samefile(path, tmp_path / "a" / "textures" / "a" / "Material.exr"), state
 
 
 def test_a_bake_is_undone_and_offers_no_redo_panel_that_would_run_it_on_blenders_thread(wood, bpy_addon):
