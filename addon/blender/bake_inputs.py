@@ -4,7 +4,8 @@ Each layer may hold parameter maps (``NLM_ParameterMap``): an image whose pixel 
 by its Color Space as Cycles decodes them (set Non-Color for data such as roughness) and read apart
 from their alpha, as the bake command reads them (``map_pixels``), map linearly onto [low, high] in the
 parameter's artist units (roughness as shown in the sidebar; alpha = roughness^2 for the core; F0 colour
-converted to k with eta = 1).
+converted to k with eta = 1). A new map spans its parameter's trained range (``map_range``); one that gives values
+outside the valid range is refused in those units, naming its layer and map (``_checked``).
 """
 
 from __future__ import annotations
@@ -14,7 +15,13 @@ import os
 import numpy as np
 
 from ..core.formula import LUMINANCE
-from ..core.stack import alpha_from_artist_roughness, k_from_f0
+from ..core.stack import (
+    TRAINED_RANGES,
+    VALID_RANGES,
+    alpha_from_artist_roughness,
+    artist_roughness_from_alpha,
+    k_from_f0,
+)
 from ..core.textures.spatial import SpatialStack
 from . import images, stack_io
 
@@ -39,6 +46,20 @@ _RGB = {"ALBEDO", "F0", "ETA", "K", "MEDIUM_ALBEDO"}
 def map_parameters(layer_type: str) -> list[str]:
     """The parameters a layer of ``layer_type`` can have a map of (:data:`MAP_FIELDS`), in the menu's order."""
     return [parameter for parameter, kind in MAP_FIELDS if kind == layer_type]
+
+
+def map_range(parameter: str, layer_type: str, trained: bool = True) -> tuple[float, float]:
+    """The range of ``parameter`` on a layer of ``layer_type`` in a map's units: its field's trained range
+    (``stack.TRAINED_RANGES``: the Low and High Add Parameter Map gives a new map, so that every pixel value from 0 to 1
+    is one the neural models were trained on; a new IOR map at 0 to 1 was an invalid IOR at every texel), or its valid
+    range (``trained=False``: what a bake takes). Roughness in artist units (the square root of alpha); F0 a colour,
+    0 to 1."""
+    if parameter == "F0":  # a colour, made into k (``k_from_f0``)
+        return 0.0, 1.0
+    lo, hi = (TRAINED_RANGES if trained else VALID_RANGES)[MAP_FIELDS[(parameter, layer_type)]]
+    if parameter == "ROUGHNESS":
+        return artist_roughness_from_alpha(lo), artist_roughness_from_alpha(hi)
+    return lo, hi
 
 
 class MapUnreadable(ValueError):
@@ -75,27 +96,75 @@ def _map_values(item, pmap) -> np.ndarray:
     px = map_pixels(pmap.image)
     if px is None:
         raise _unreadable(item, pmap)
-    # a number from a colour image as Blender makes one (its luminance), as the bake command does: a grey map is
-    # its grey, a coloured one no longer its red
-    values = px[..., :3] if pmap.parameter in _RGB else px[..., :3] @ np.array(LUMINANCE)[:, None]
-    values = pmap.low + (pmap.high - pmap.low) * values.astype(np.float64)
-    if pmap.parameter == "ROUGHNESS":
-        values = alpha_from_artist_roughness(np.clip(values, 0.0, None))
-    if pmap.parameter == "F0":
-        if item.conductor_mode != "F0":
-            raise ValueError(f"layer {item.name!r}: an F0 map needs the conductor specified by colour (F0)")
-        values = k_from_f0(values)
-    elif pmap.parameter in ("ETA", "K") and item.conductor_mode != "ETA_K":
+    if pmap.parameter == "F0" and item.conductor_mode != "F0":
+        raise ValueError(f"layer {item.name!r}: an F0 map needs the conductor specified by colour (F0)")
+    if pmap.parameter in ("ETA", "K") and item.conductor_mode != "ETA_K":
         raise ValueError(
             f"layer {item.name!r}: {pmap.parameter.lower()} maps need the conductor specified by complex IOR"
         )
+    # a number from a colour image as Blender makes one (its luminance), as the bake command does: a grey map is
+    # its grey, a coloured one no longer its red
+    pixels = px[..., :3] if pmap.parameter in _RGB else px[..., :3] @ np.array(LUMINANCE)[:, None]
+    values = pmap.low + (pmap.high - pmap.low) * pixels.astype(np.float64)
+    if pmap.parameter == "ROUGHNESS":
+        values = np.clip(values, 0.0, None)
+    values = _checked(item, pmap, pixels, values)
+    if pmap.parameter == "ROUGHNESS":
+        return alpha_from_artist_roughness(values)
+    if pmap.parameter == "F0":
+        return k_from_f0(values)
     return values
+
+
+def _label(pmap) -> str:
+    """The name the sidebar gives a map's parameter ("IOR", "Medium Albedo")."""
+    return pmap.bl_rna.properties["parameter"].enum_items[pmap.parameter].name
+
+
+def _outside(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """(H, W): the texels of ``values`` (H, W, C) with a channel outside [lo, hi] or not a number."""
+    return (~np.isfinite(values) | (values < lo) | (values > hi)).any(axis=2)
+
+
+def _checked(item, pmap, pixels: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``values`` (H, W, C), in the map's units, where they are in its parameter's valid range (``map_range``); else
+    ValueError, naming the layer and the map as the sidebar does and saying what to change: the core's refusal named
+    the stack's path ("image for coatings[0].ior") and the value there. ``pixels``: the image's values the map made
+    them of (0 to 1 in a byte image). A Low or High at an end of the range is a float32's, which can lie just past
+    it (eta's 0.01 is 0.0099999998): values that close to an end are put on it."""
+    lo, hi = map_range(pmap.parameter, item.layer_type, trained=False)
+    bad = _outside(values, lo, hi)
+    if not bad.any():
+        return values
+    for end in (lo, hi):
+        values[np.abs(values - end) <= 2.0 * np.finfo(np.float32).eps * abs(end)] = end
+    bad = _outside(values, lo, hi)
+    if not bad.any():
+        return values
+    row, x = np.argwhere(bad)[0]
+    y = bad.shape[0] - 1 - row  # as Blender counts an image's pixels: from the bottom
+    label = _label(pmap)
+    value = ", ".join(f"{v:.4g}" for v in values[row, x])
+    value = value if values.shape[2] == 1 else f"({value})"
+    mat = item.id_data.name
+    what = (
+        f"material {mat!r}, layer {item.name!r}: its {label} map (image {pmap.image.name!r}, Low {pmap.low:g}, "
+        f"High {pmap.high:g}) gives {int(bad.sum())} of its {bad.size} texel(s) values outside the valid {label} "
+        f"range {lo:g} to {hi:g} (the first: {value} at pixel x={x}, y={y})"
+    )
+    inside = pixels[bad]
+    if np.isfinite(inside).all() and (inside >= 0.0).all() and (inside <= 1.0).all():
+        raise ValueError(f"{what}: set the {label} map's Low and High within {lo:g} to {hi:g}")
+    raise ValueError(
+        f"{what}: its image holds values outside 0 to 1 there (a float image's): edit the image, or choose a Low and "
+        f"High that map its values within {lo:g} to {hi:g}"
+    )
 
 
 def _material_maps(mat):
     """``(layer, map, parameter path)`` of each of the material's maps with an image, in the layers' order. Raises
-    ``ValueError`` for a map that does not apply to its layer, or a parameter driven by two images."""
-    seen = set()
+    ``ValueError`` for a map that does not apply to its layer, or a parameter driven by two maps."""
+    seen = {}
     for index, item in enumerate(mat.neural_layers.layers):
         for pmap in item.maps:
             if pmap.image is None:
@@ -108,8 +177,13 @@ def _material_maps(mat):
                 )
             path = f"base.{field}" if index == 0 else f"coatings[{index - 1}].{field}"
             if path in seen:
-                raise ValueError(f"layer {item.name!r}: {pmap.parameter.lower()} is driven by two images")
-            seen.add(path)
+                first = seen[path]
+                raise ValueError(
+                    f"layer {item.name!r}: two maps drive its {field} (the {_label(first)} map of image "
+                    f"{first.image.name!r} and the {_label(pmap)} map of image {pmap.image.name!r}): remove one of "
+                    "them (its X button)"
+                )
+            seen[path] = pmap
             yield item, pmap, path
 
 

@@ -92,6 +92,8 @@ class NLM_OT_map_add(MaterialOperator, bpy.types.Operator):
             )
         pmap = item.maps.add()
         pmap.parameter = self.parameter
+        # the parameter's trained range, as its slider's: Low 0, High 1 made every texel of a new IOR map an invalid IOR
+        pmap.low, pmap.high = bake_inputs.map_range(self.parameter, item.layer_type)
         stack_io.tag_changed(mat)  # the texture baked from the maps is now out of date
         return {"FINISHED"}
 
