@@ -107,7 +107,9 @@ def _size_description(size: str, text: str) -> str:
 
 
 class NLM_ParameterMap(bpy.types.PropertyGroup):
-    """An image driving one parameter of its layer: value = low + (high - low) * pixel."""
+    """An image driving one parameter of its layer: value = low + (high - low) * pixel. Add Parameter Map sets Low and
+    High to the parameter's trained range (``bake_inputs.map_range``); 0 and 1 are the defaults of a map made
+    otherwise."""
 
     parameter: EnumProperty(
         name="Parameter",
@@ -293,6 +295,15 @@ class NLM_MaterialSettings(bpy.types.PropertyGroup):
         description="Recompute the latent whenever the stack changes (when the neural models are available)",
         default=True,
         update=_on_auto_latent,
+    )
+    refine_budget: FloatProperty(
+        name="Refine Budget",
+        description="Seconds the Refine button may take for this material: the reference walks (about a second), then "
+        "the fit (at most 300 steps). A refinement this budget cut short says so: give it more time",
+        default=8.0,
+        min=0.5,
+        max=600.0,
+        unit="TIME_ABSOLUTE",
     )
     # preview settings
     preview_method: EnumProperty(

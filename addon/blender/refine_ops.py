@@ -127,8 +127,25 @@ class NLM_OT_refine_latent(LongOperator, bpy.types.Operator):
             f"validation loss {rep.validation_loss_before:.4f} -> {rep.validation_loss_after:.4f} (what decides), "
             f"median lobe error {rep.validation_error_before:.3f} -> {rep.validation_error_after:.3f}"
         )
+        # a fit its time budget stopped says so, and what to do: it read "did not improve" where it had made no step
+        walks = f"its reference walks took {rep.reference_s:.1f} s"
+        ran_out = f"its time budget of {rep.budget_s:g} s ran out after {rep.steps} step(s) of the fit ({walks})"
+        more = "give Refine more time (Refine Budget)"
         if rep.kept:
-            self.report({"INFO"}, f"latent of {mat.name!r} refined ({size}, {how}): {figures}")
+            cut = f"; {ran_out}: a larger Refine Budget may refine it further" if rep.stopped == "budget" else ""
+            self.report({"INFO"}, f"latent of {mat.name!r} refined ({size}, {how}): {figures}{cut}")
+        elif rep.stopped == "budget" and rep.steps == 0:
+            self.report(
+                {"WARNING"},
+                f"refining {mat.name!r} ({size}, {how}): its time budget of {rep.budget_s:g} s ran out before the "
+                f"fit made a step ({walks}): the encoded latent is kept; {more}",
+            )
+        elif rep.stopped == "budget":
+            self.report(
+                {"WARNING"},
+                f"refining {mat.name!r} ({size}, {how}): {ran_out}, not yet better on the validation pairs "
+                f"({figures}): the encoded latent is kept; {more}",
+            )
         else:
             self.report(
                 {"WARNING"},

@@ -40,6 +40,58 @@ def test_refine_stores_the_refined_latent_and_its_measurements(bpy_addon, materi
     assert stack_io.latent_is_current(material) and not np.allclose(stack_io.latent_of(material), stored)
 
 
+def _reports(capfd) -> dict:
+    """The reports printed since the last call (background Blender prints them), by kind ("Warning", "Info")."""
+    lines = capfd.readouterr().out.splitlines()
+    return {
+        kind: [ln.removeprefix(f"{kind}: ") for ln in lines if ln.startswith(f"{kind}: ")]
+        for kind in ("Warning", "Info")
+    }
+
+
+@pytest.mark.parametrize("steps, kept", [(0, False), (12, False), (37, True)])
+def test_a_refinement_its_budget_stopped_says_so_and_asks_for_more_time(
+    bpy_addon, material, monkeypatch, capfd, steps, kept
+):
+    """A fit the time budget stopped read "did not improve on the validation pairs", where it had made no step: the
+    reference walks had taken the budget. It says the budget ran out, after how many steps, and what to do."""
+    from addon.blender import stack_io
+    from addon.core.neural import refine
+
+    bpy = bpy_addon
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="coated_gold").finished
+    material.neural_layers.model_size = "TINY"
+    encoded = stack_io.latent_of(material).copy()
+
+    def cut_short(stack, size, budget_s, progress=None):
+        loss_after = 0.1 if kept else 0.2
+        report = refine.RefineReport(
+            size=size, key="0" * 64, kept=kept, validation_error_before=0.3, validation_error_after=0.25,
+            validation_loss_before=0.2, validation_loss_after=loss_after, fit_loss_before=0.2, fit_loss_after=0.15,
+            steps=steps, stopped="budget", budget_s=budget_s, reference_s=1.4, optimise_s=0.0, total_s=1.5,
+        )  # fmt: skip
+        return encoded + (0.1 if kept else 0.0), report
+
+    monkeypatch.setattr(refine, "refine_latent", cut_short)
+    capfd.readouterr()
+    assert run_operator(bpy.ops.neural_layers.refine_latent, budget=1.0).finished
+    reports = _reports(capfd)
+    warnings, infos = reports["Warning"], reports["Info"]
+    if steps == 0:
+        (line,) = warnings
+        assert "its time budget of 1 s ran out before the fit made a step (its reference walks took 1.4 s)" in line
+        assert line.endswith("the encoded latent is kept; give Refine more time (Refine Budget)")
+    elif not kept:
+        (line,) = warnings
+        assert "its time budget of 1 s ran out after 12 step(s) of the fit" in line
+        assert line.endswith("the encoded latent is kept; give Refine more time (Refine Budget)")
+    else:
+        (line,) = [line for line in infos if "refined" in line]
+        assert "ran out after 37 step(s) of the fit" in line and "a larger Refine Budget may refine it further" in line
+    assert "did not improve" not in line
+    assert material.neural_refine.kept == ("yes" if kept else "no")
+
+
 def test_refine_reports_a_missing_material_or_an_empty_stack(bpy_addon, fresh_scene, material):
     bpy = bpy_addon
     r = run_operator(bpy.ops.neural_layers.refine_latent, material="no such material")

@@ -55,7 +55,9 @@ class RecordingLayout:
         module, op = idname.split(".")
         assert hasattr(getattr(__import__("bpy").ops, module), op), idname
         self.log.append(("operator", idname))
-        return types.SimpleNamespace()
+        button = types.SimpleNamespace()  # the properties the panel sets on the button
+        self.log.buttons.append((idname, button))
+        return button
 
     def operator_menu_enum(self, idname, prop, **kwargs):
         self.log.append(("operator_menu_enum", idname, prop))
@@ -77,13 +79,23 @@ class RecordingLayout:
 
     def label(self, text="", **kwargs):
         self.log.append(("label", text))
+        self.log.icons.append((text, kwargs.get("icon", "NONE")))
 
     def separator(self, **kwargs):
         pass
 
 
+class DrawLog(list):
+    """What a ``draw`` put on the layout, a tuple a call; beside it, the buttons ``operator`` gave (idname, the
+    properties the panel set on it) and each label's (text, icon)."""
+
+    def __init__(self):
+        super().__init__()
+        self.buttons, self.icons = [], []
+
+
 def draw(panel_cls, context):
-    log = []
+    log = DrawLog()
     panel_cls.draw(types.SimpleNamespace(layout=RecordingLayout(log)), context)
     return log
 
@@ -159,7 +171,7 @@ def test_list_rows_draw_name_and_type(bpy_addon, fresh_scene, material):
     assert run_operator(bpy.ops.neural_layers.preset_apply, preset="coated_gold").finished
     s = material.neural_layers
     for item in s.layers:
-        log = []
+        log = DrawLog()
         bpy.types.NLM_UL_layers.draw_item(None, fresh_scene, RecordingLayout(log), s, item, 0, s, "active_index", 0)
         assert ("prop", "name") in log
         assert ("label", {"CONDUCTOR": "Conductor", "COATING": "Coating"}[item.layer_type]) in log
@@ -192,3 +204,98 @@ def test_previews_are_shown_in_the_sidebar_panel(bpy_addon, fresh_scene, materia
     px, shown = px.reshape(24, 24, 4), shown.reshape(24, 24, 4)
     np.testing.assert_allclose(shown[..., :3], to_srgb(px[..., :3]), atol=1 / 255)  # previews hold 8 bits
     assert shown[..., :3].max() > 0.1
+
+
+def _texture_lines(bpy, context):
+    """The Latent Texture panel's lines after its Bake button: (text, icon) of each label."""
+    log = draw(bpy.types.NLM_PT_view3d_bake, context)
+    return list(log.icons)
+
+
+def test_the_latent_texture_panel_says_whether_the_baked_texture_is_current(
+    bpy_addon, fresh_scene, material, tmp_path, monkeypatch
+):
+    """It showed the baked file's name whatever its state: out of date or missing, the material renders without it."""
+    import os
+
+    from addon.blender import bake_ops, bake_state
+    from tests.blender.test_bake_addon import stand_in_encoder
+
+    bpy = bpy_addon
+    monkeypatch.setattr(bake_ops, "neural_encoder", stand_in_encoder)
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="varnished_wood").finished
+    material.neural_layers.bake_directory = str(tmp_path)
+    assert run_operator(bpy.ops.neural_layers.bake_texture).finished
+    path = bake_state.baked_texture_state(material)[0]
+    assert path is not None
+    assert _texture_lines(bpy, _ctx(fresh_scene)) == [(f"baked: {os.path.basename(path)}", "TEXTURE")]
+    material.neural_layers.layers[1].thickness = 2.0
+    assert _texture_lines(bpy, _ctx(fresh_scene)) == [("baked texture is out of date: bake again", "ERROR")]
+    material.neural_layers.layers[1].thickness = 0.6  # undone: the bake is the material's again
+    assert _texture_lines(bpy, _ctx(fresh_scene))[0][1] == "TEXTURE"
+    os.remove(path)
+    lines = _texture_lines(bpy, _ctx(fresh_scene))
+    assert lines[0] == ("baked texture missing:", "ERROR") and path.endswith(lines[-1][0])
+
+
+def test_the_latent_texture_panel_reads_the_bake_state_again_only_when_what_it_reads_changed(
+    bpy_addon, fresh_scene, material, tmp_path, monkeypatch
+):
+    """The panel draws at every hover: the state of a material whose maps are painted images hashes their pixels
+    (0.1 s for a 2048-pixel map). It is read again after an edit of the stack or the texture's file, and, for a map
+    whose pixels are Blender's, which no cheap key follows, after ``PAINTED_STATE_S``."""
+    import os
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from addon.blender import bake_state, ui
+
+    bpy = bpy_addon
+    reads = []
+    real = bake_state.baked_texture_state
+    monkeypatch.setattr(bake_state, "baked_texture_state", lambda mat: reads.append(mat.name) or real(mat))
+    clock = [1000.0]
+    monkeypatch.setattr(ui, "time", SimpleNamespace(monotonic=lambda: clock[0]), raising=False)
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="varnished_wood").finished
+    s = material.neural_layers
+    texture = tmp_path / "Material.exr"
+    s.texture_path = str(texture)  # not there
+    ctx = _ctx(fresh_scene)
+    for _ in range(3):
+        assert _texture_lines(bpy, ctx)[0] == ("baked texture missing:", "ERROR")
+    assert len(reads) == 1
+    s.layers[1].roughness = 0.5
+    _texture_lines(bpy, ctx)
+    assert len(reads) == 2
+    texture.write_bytes(b"not a texture")  # the file there now
+    _texture_lines(bpy, ctx)
+    _texture_lines(bpy, ctx)
+    assert len(reads) == 3
+    os.utime(texture, ns=(1, 1))  # written again
+    _texture_lines(bpy, ctx)
+    assert len(reads) == 4
+    s.active_index = 1
+    assert run_operator(bpy.ops.neural_layers.map_add, parameter="ROUGHNESS").finished
+    painted = bpy.data.images.new("painted", width=4, height=4)
+    s.layers[1].maps[0].image = painted
+    _texture_lines(bpy, ctx)
+    assert len(reads) == 5
+    painted.pixels.foreach_set(np.zeros(4 * 4 * 4, np.float32))  # a stroke of paint: no key follows it
+    _texture_lines(bpy, ctx)
+    assert len(reads) == 5
+    clock[0] += ui.PAINTED_STATE_S
+    _texture_lines(bpy, ctx)
+    assert len(reads) == 6
+
+
+def test_the_refine_button_refines_for_the_materials_refine_budget(bpy_addon, fresh_scene, material):
+    """Refine's budget was its operator's default, 8 s, with no way to change it in the sidebar: a refinement that
+    budget cut short could only say so."""
+    bpy = bpy_addon
+    assert run_operator(bpy.ops.neural_layers.preset_apply, preset="coated_gold").finished
+    material.neural_layers.refine_budget = 30.0
+    log = draw(bpy.types.NLM_PT_view3d_preview, _ctx(fresh_scene))
+    assert ("prop", "refine_budget") in log
+    (button,) = [b for idname, b in log.buttons if idname == "neural_layers.refine_latent"]
+    assert button.budget == 30.0

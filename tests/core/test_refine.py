@@ -144,6 +144,54 @@ def test_a_refinement_its_budget_cut_short_is_refined_again_for_a_larger_budget(
     assert again.cached and again.steps == longer.steps  # the finished one serves a smaller budget
 
 
+def test_a_refinement_its_budget_cut_short_is_refined_again_for_the_same_budget(tmp_path):
+    """One the budget stopped served the same budget too: pressing Refine again answered "did not improve" from the
+    cache, where the first had made no step of the fit. A smaller budget, which would stop sooner still, it serves."""
+    rf._MEMORY.clear()
+    _, short = rf.refine_latent(COATED, "tiny", budget_s=0.05, settings=QUICK, threads=1, cache_dir=tmp_path)
+    assert short.stopped == "budget" and short.steps == 0 and not short.cached  # the walks took the budget
+    assert short.fit_loss_after == short.fit_loss_before
+    _, again = rf.refine_latent(COATED, "tiny", budget_s=0.05, settings=QUICK, threads=1, cache_dir=tmp_path)
+    assert not again.cached and again.stopped == "budget"
+    _, smaller = rf.refine_latent(COATED, "tiny", budget_s=0.04, settings=QUICK, threads=1, cache_dir=tmp_path)
+    assert smaller.cached and smaller.budget_s == 0.05
+
+
+def test_a_refinement_refined_again_keeps_the_better_of_the_two_tries():
+    """The same budget buys fewer steps on a busier machine: refined again, a try that went less far replaced the
+    better latent of the one before. The one better on the validation pairs is kept, and returned."""
+    rf._MEMORY.clear()
+    _, first = rf.refine_latent(COATED, "tiny", budget_s=0.05, settings=QUICK, threads=1)
+    assert first.stopped == "budget" and not first.kept
+    better = np.full((3, 32), 0.5, np.float32)  # stands for a try that went further: kept, validation loss 0
+    rf._MEMORY[first.key] = (better, rf.RefineReport(**{**first.to_dict(), "kept": True, "validation_loss_after": 0.0}))
+    seen = []
+    z, again = rf.refine_latent(COATED, "tiny", budget_s=0.05, settings=QUICK, threads=1, progress=seen.append)
+    assert seen  # refined again
+    assert again.cached and again.kept and np.array_equal(z, better)
+    assert np.array_equal(rf._MEMORY[first.key][0], better)  # and it stays the answer
+
+
+def test_what_a_session_makes_once_is_not_counted_in_a_refinements_budget(monkeypatch):
+    """The top lobe's loops compile on their first call (with a remainder decoder's transmission table, 2.5 s in a
+    new session), which came after the reference walks, inside the budget: a first refinement with a budget of a few
+    seconds spent it there and made no step of the fit. Here a first call that takes 3 s stands for it."""
+    rf._MEMORY.clear()
+    real, calls = rf.eval_top, []
+
+    def compiled_on_first_call(*args, **kwargs):
+        if not calls:
+            time.sleep(3.0)
+        calls.append(len(args[1]))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(rf, "eval_top", compiled_on_first_call)
+    _, rep = rf.refine_latent(COATED, "tiny", budget_s=2.5, settings=QUICK, threads=1, use_cache=False)
+    assert calls[0] == 1  # made on one pair, before the budget's clock
+    assert rep.steps > 0 and rep.fit_loss_after < rep.fit_loss_before
+    assert rep.total_s > 3.0 + rep.reference_s + rep.optimise_s - 0.1  # the whole call's time, the 3 s in it
+
+
 def test_a_refinement_reports_its_progress_and_stops_when_asked_caching_nothing(tmp_path):
     """``progress``: the share of the budget spent, after the reference walks and each step (the add-on's Refine
     runs on a worker thread with a bar and Esc; it held Blender's UI for its whole budget)."""
