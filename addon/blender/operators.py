@@ -44,6 +44,19 @@ def _report_removed_animation(op, done: stack_io.LayerAnimation, name: str) -> N
         op.report({"INFO"}, f"removed {_count(removed, 'animation curve')} (keyframes, drivers) of layer {name!r}")
 
 
+def follow_layers(op, mat, new_index_of, copies=None) -> stack_io.LayerAnimation:
+    """``stack_io.follow_layers``, saying when ``mat`` got its own copy of an action it shared with another data-block
+    (so that the edit leaves the other's keyframes as they were)."""
+    done = stack_io.follow_layers(mat, new_index_of, copies)
+    for action, copy in done.separated:
+        op.report(
+            {"INFO"},
+            f"material {mat.name!r} shared the action {action!r} with another data-block: it now has its own copy, "
+            f"{copy!r}, which follows its layers (the other keeps its keyframes)",
+        )
+    return done
+
+
 def replace_stack(op, mat, stack, sidebar=None) -> None:
     """Replace ``mat``'s layers with ``stack`` (a preset, an applied or pasted stack): keyframes and drivers of the old
     layers stay on the positions the new stack has, where they now animate other layers, and the others are removed;
@@ -51,7 +64,7 @@ def replace_stack(op, mat, stack, sidebar=None) -> None:
     old_count = len(mat.neural_layers.layers)
     stack_io.stack_to_material(stack, mat, sidebar)
     new_count = len(stack.layers)
-    done = stack_io.follow_layers(mat, [i if i < new_count else None for i in range(old_count)])
+    done = follow_layers(op, mat, [i if i < new_count else None for i in range(old_count)])
     if done.total:
         removed = sum(done.removed.values())
         what = []
@@ -104,7 +117,7 @@ class NLM_OT_layer_add(MaterialOperator, bpy.types.Operator):
             layers.move(len(layers) - 1, position)
             s.active_index = position
         old_count = len(s.layers) - 1
-        stack_io.follow_layers(mat, [i if i < position else i + 1 for i in range(old_count)])
+        follow_layers(self, mat, [i if i < position else i + 1 for i in range(old_count)])
         return {"FINISHED"}
 
 
@@ -136,7 +149,7 @@ class NLM_OT_layer_remove(MaterialOperator, bpy.types.Operator):
         with stack_io.bulk_edit(mat):
             s.layers.remove(i)
             s.active_index = min(i, len(s.layers) - 1) if len(s.layers) else 0
-        done = stack_io.follow_layers(mat, [j if j < i else None if j == i else j - 1 for j in range(old_count)])
+        done = follow_layers(self, mat, [j if j < i else None if j == i else j - 1 for j in range(old_count)])
         _report_removed_animation(self, done, name)
         if base_under_coatings:  # allowed, as Blender allows an edit that leaves a half-made state, but said
             self.report(
@@ -180,7 +193,7 @@ class NLM_OT_layer_move(MaterialOperator, bpy.types.Operator):
             s.active_index = j
         swapped = list(range(len(s.layers)))
         swapped[i], swapped[j] = j, i
-        stack_io.follow_layers(mat, swapped)
+        follow_layers(self, mat, swapped)
         return {"FINISHED"}
 
 
@@ -229,7 +242,7 @@ class NLM_OT_layer_duplicate(MaterialOperator, bpy.types.Operator):
             s.active_index = i + 1
         # the copy animates as its source does: a duplicate is the same layer twice, through time too
         old_count = len(s.layers) - 1
-        done = stack_io.follow_layers(mat, [j if j <= i else j + 1 for j in range(old_count)], copies={i: i + 1})
+        done = follow_layers(self, mat, [j if j <= i else j + 1 for j in range(old_count)], copies={i: i + 1})
         if done.copied:
             self.report(
                 {"INFO"},

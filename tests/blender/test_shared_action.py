@@ -96,7 +96,11 @@ _AFTER = {
 
 @pytest.mark.parametrize("share", ["copy", "assigned"])
 @pytest.mark.parametrize("edit", ["add", "move", "remove", "duplicate"])
-def test_a_layer_edit_leaves_the_animation_of_a_material_sharing_the_action_as_it_was(bpy_addon, material, share, edit):
+def test_a_layer_edit_leaves_the_animation_of_a_material_sharing_the_action_as_it_was(
+    bpy_addon, material, share, edit, capfd
+):
+    from tests.blender.test_stack_animation import _reports
+
     bpy = bpy_addon
     other = _animated_pair(bpy, material, share)
     before, values_before = _animation(material), _layer_values(bpy, material, 10)
@@ -105,7 +109,10 @@ def test_a_layer_edit_leaves_the_animation_of_a_material_sharing_the_action_as_i
     other_layers = [l.name for l in other.neural_layers.layers]
     assert _layer_values(bpy, other, 10) == values_before  # the same animation
 
+    _reports(capfd, "Info")
     assert _edit(bpy, other, edit).finished
+    # the edit says so: the edited material now has an action of its own
+    assert any(f"'{action.name}'" in r and f"'{action.name}.001'" in r for r in _reports(capfd, "Info"))
     added = round(other.neural_layers.layers[1].thickness, 3), round(other.neural_layers.layers[1].roughness, 3)
     # the original: the same action, the same curves on the same paths with the same keys, the same values
     assert material.animation_data.action == action
