@@ -246,11 +246,17 @@ class _Viewport:
 _OPEN_VIEWPORTS: set = set()
 
 
-def _write_feature_passes(passes, film, region) -> None:
+def _write_feature_passes(passes, film, region, camera) -> None:
     """Denoising Albedo / Normal and Depth from the film's first-hit features in ``region`` (``render_region``),
-    where the result has those passes."""
+    where the result has those passes. The normals in the frame of ``camera`` (the core camera rendered) as Cycles
+    writes them (``film.camera_normals``): they were written in world space, which a denoiser trained on Cycles'
+    passes does not read."""
+    from ..core.render.film import camera_normals
+
     wanted = {key: i for name, key in _FEATURE_PASSES if (i := passes.find(name)) >= 0}
     for key, features in film.features(tuple(wanted)).items():  # only what the result has passes for
+        if key == "normal":
+            features = camera_normals(features, camera.matrix)
         passes[wanted[key]].rect.foreach_set(_region_rows(features, region))
 
 
@@ -324,6 +330,16 @@ def status_line(passes: int, samples: int, remaining: float | None, triangles: i
     """F12's status line: the samples done, the time left once known (Blender's own time format), the triangles."""
     left = "" if remaining is None else f" | Remaining:{format_duration(remaining)}"
     return f"Sample {passes}/{samples}{left} | {triangles} triangles"
+
+
+def _warn_orthographic(engine, context) -> None:
+    """Say, once a viewport session (``engine._view_info``), that an orthographic view renders in perspective
+    (``scene_export.view_camera``): whether the view was orthographic when Rendered mode began or turned so after
+    (Numpad 5, a view from an axis), which moves the camera without an edit and went unsaid."""
+    ortho = "an orthographic view renders in perspective: this engine's camera is a pinhole"
+    if not context.region_data.is_perspective and ortho not in engine._view_info:
+        engine._view_info.add(ortho)
+        engine.report({"WARNING"}, ortho)
 
 
 class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
@@ -495,7 +511,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         self.update_stats("", render_summary(stats, decoder_seconds))
         combined.rect.foreach_set(shown(film))
         if not thumbnail:
-            _write_feature_passes(layer.passes, film, region)
+            _write_feature_passes(layer.passes, film, region, core_scene.camera)
 
     # ------------------------------------------------------------------ 3D viewport (Rendered mode)
 
@@ -555,10 +571,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
         except Exception as e:
             self.report({"ERROR"}, _failure(e))
             return
-        ortho = "an orthographic view renders in perspective: this engine's camera is a pinhole"
-        if not context.region_data.is_perspective and ortho not in self._view_info:  # once, not at every edit
-            self._view_info.add(ortho)
-            self.report({"WARNING"}, ortho)
+        _warn_orthographic(self, context)
         if self._viewport is None or self._viewport.session is None:  # none yet, or closed (a file's load began)
             self._viewport = _Viewport(self, settings)
         self._viewport.settings_key = settings_key(depsgraph.scene)
@@ -574,6 +587,7 @@ class NeuralLayeredRenderEngine(bpy.types.RenderEngine):
             # the engine's own settings (samples, bounces, decoder...) name no depsgraph update: read at each draw
             self.view_update(context, depsgraph)
         elif vp.key is not None and vp.key != key and vp.key[2:] == key[2:]:
+            _warn_orthographic(self, context)  # Numpad 5 in Rendered mode: a moved view, no edit
             try:
                 vp.move_camera(_view_camera(context), key)
             except Exception as e:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import bpy
 
+from . import render_properties
+
 
 class _EnginePanel:
     """A Properties editor panel of this engine's (``bl_context`` set by each)."""
@@ -26,11 +28,16 @@ class NLM_PT_render(_EnginePanel, bpy.types.Panel):
         layout = self.layout
         layout.use_property_split = True
         col = layout.column()
+        # each sample count says what it drives: F12, the viewport's Rendered mode, the Render Preview operator
         col.prop(props, "samples")
+        col.prop(props, "viewport_samples")
         col.prop(props, "preview_samples")
         col.prop(props, "max_bounces")
         col.prop(props, "seed")
         col.prop(props, "denoise")
+        kept = render_properties.denoise_off_note(context.scene)
+        if kept is not None:
+            col.label(text=kept, icon="INFO")
         col.prop(props, "mode")
         if props.mode == "reference":
             col.prop(props, "reference_walks")
@@ -140,9 +147,15 @@ class NLM_PT_light(_EnginePanel, bpy.types.Panel):
             ob = context.object
             if ob is not None and ob.data == light:
                 col.prop(ob, "visible_camera", text="Visible to Camera")
-        if light.type in {"POINT", "SPOT", "SUN"}:
-            col.label(text="Rendered as a point (no radius or angle)" if light.type != "SUN" else
-                      "Rendered as one direction (no angle)", icon="INFO")  # fmt: skip
+        if light.type in {"POINT", "SPOT"}:
+            col.prop(light, "shadow_soft_size", text="Radius")
+            col.prop(light, "use_soft_falloff")
+        elif light.type == "SUN":
+            col.prop(light, "angle")
+        if light.type != "AREA":
+            col.prop(light, "normalize")
+        if getattr(light, "cycles", None) is not None:
+            col.prop(light.cycles, "max_bounces")
 
 
 def _menu(self, context):

@@ -465,11 +465,31 @@ def _uv_mapping(node, notes: list[str]):
 
 def _is_uv_source(source) -> bool:
     """Whether an output socket gives the render UV map's coordinates: Texture Coordinate's UV, or a UV Map node
-    naming no map (or the active one)."""
+    naming no map or the one every mesh object of its material renders with (``_render_uv_names``)."""
     node = source.node
     if node.type == "TEX_COORD":
         return source.name == "UV"
-    return node.type == "UVMAP" and not node.uv_map
+    if node.type != "UVMAP":
+        return False
+    return not node.uv_map or _render_uv_names(node.id_data) == {node.uv_map}
+
+
+def _render_uv_names(tree) -> set[str]:
+    """The names of the UV maps the mesh objects whose materials hold the node tree ``tree`` render with (the one
+    marked for renders, else the active one, as ``_mesh_arrays`` reads them); empty where no mesh object holds it (a
+    node group's tree: its materials are not followed)."""
+    import bpy
+
+    tree = getattr(tree, "original", tree)  # an evaluated material's tree: the one the data's materials hold
+    names = set()
+    for ob in bpy.data.objects:
+        holds = any(s.material is not None and s.material.node_tree == tree for s in ob.material_slots)
+        if ob.type != "MESH" or not holds:
+            continue
+        layers = ob.data.uv_layers
+        layer = next((lay for lay in layers if lay.active_render), layers.active)
+        names.add(layer.name if layer is not None else "")
+    return names
 
 
 def unmanaged_material(mat, warnings: list[str]) -> LambertMaterial | PrincipledMaterial:
@@ -721,16 +741,42 @@ def stereo_view_camera(engine, scene, width: int, height: int, warnings: list[st
         raise ValueError(f"scene {scene.name!r} has no active camera; add one or set Scene > Camera")
     matrix = np.array(engine.camera_model_matrix(cam_ob), dtype=np.float64)
     shift_x = float(engine.camera_shift_x(cam_ob)) if cam_ob.type == "CAMERA" else None
-    return _camera(cam_ob, width, height, warnings, (r.pixel_aspect_x, r.pixel_aspect_y), matrix, shift_x)
+    return _camera(
+        cam_ob,
+        width,
+        height,
+        warnings,
+        (r.pixel_aspect_x, r.pixel_aspect_y),
+        matrix,
+        shift_x,
+        _renders_motion_blur(scene, scene.view_layers),
+    )
+
+
+def _renders_motion_blur(scene, view_layers) -> bool:
+    """Whether Cycles renders ``scene`` with motion blur in one of ``view_layers`` (the one rendered; a stereo view's
+    camera, which knows no view layer: any of the scene's in use): Render Properties > Motion Blur, and the view
+    layer's own Use > Motion Blur."""
+    used = [vl for vl in view_layers if getattr(vl, "use", True)]
+    return bool(scene.render.use_motion_blur) and any(vl.use_motion_blur for vl in used)
 
 
 def _camera(
-    cam_ob, width: int, height: int, warnings: list[str], pixel_aspect=(1.0, 1.0), matrix=None, shift_x=None
+    cam_ob,
+    width: int,
+    height: int,
+    warnings: list[str],
+    pixel_aspect=(1.0, 1.0),
+    matrix=None,
+    shift_x=None,
+    motion_blur: bool = False,
 ) -> Camera:
     """The core camera of a Blender camera for an image of ``width`` x ``height`` pixels of ``pixel_aspect``
     (the render's Aspect X and Y), as Blender frames it (``BKE_camera_params_compute_viewplane``): the sensor fit
     decided on the image's displayed sides, the lens shift in units of the fitted side, and the clipping
-    planes. ``matrix`` and ``shift_x``: a stereo view's, in place of the camera's own (``stereo_view_camera``)."""
+    planes. ``matrix`` and ``shift_x``: a stereo view's, in place of the camera's own (``stereo_view_camera``).
+    What it does not model and Cycles renders is said in ``warnings``: a camera type other than perspective, depth of
+    field, and the render's Motion Blur (``motion_blur``: ``_renders_motion_blur``), which rendered sharp silently."""
     if cam_ob.type != "CAMERA":  # Blender renders an empty or a light set as the camera with a lens of its own
         lens = DEFAULT_LENS
         if cam_ob.type == "LIGHT":  # Cycles frames a light by its spot size (45 degrees stored for other kinds)
@@ -748,6 +794,10 @@ def _camera(
         cam = cam_ob.data
     if cam.type != "PERSP":
         warnings.append(f"camera {cam_ob.name!r} is {cam.type}; rendering it as a perspective camera")
+    if getattr(getattr(cam, "dof", None), "use_dof", False):
+        warnings.append(f"camera {cam_ob.name!r}: Depth of Field is not rendered here; every depth renders sharp")
+    if motion_blur:
+        warnings.append("Motion Blur (Render Properties) is not rendered here; the frame renders as at its own time")
     ax, ay = (float(a) for a in pixel_aspect)
     shown_w, shown_h = width * ax, height * ay  # the image's sides as displayed
     fit = cam.sensor_fit
@@ -815,11 +865,13 @@ def view_camera(region_3d, lens: float, width: int, height: int, clip=(0.0, math
 _NOT_A_NUMBER = "its location, rotation or scale is not a number (NaN or infinite: a driver or a constraint?)"
 
 
-def _light(ob, matrix: np.ndarray, warnings: list[str]):
+def _light(ob, matrix: np.ndarray, warnings: list[str], info: list[str] | None = None):
     """The core light of a Blender light object, or None for one that sheds no light here (with a warning where the
     user may not expect it). Blender allows what the core lights refuse: a negative power (Cycles subtracts light;
     this renderer does not), a light scaled to nothing (an animator's way to hide it), an area light of size 0, and
-    a 180-degree spot, whose float32 angle is just above pi."""
+    a 180-degree spot, whose float32 angle is just above pi. A point or spot light's Radius (with its Soft Falloff),
+    a sun's Angle, Normalize, the object's Camera ray visibility and Cycles' per-light Max Bounces render as in
+    Cycles; an area light that is a Cycles portal emits nothing there, and is left out with a line in ``info``."""
     light = ob.data
     z = -matrix[:3, 2]  # lights point along their local -z
     # what of its transform each kind reads: a point light its location, a sun its direction, a spot or an area
@@ -830,6 +882,14 @@ def _light(ob, matrix: np.ndarray, warnings: list[str]):
         return None
     if light.type not in ("POINT", "SPOT", "SUN", "AREA"):
         warnings.append(f"light {ob.name!r} has unsupported type {light.type}; skipped")
+        return None
+    cycles = getattr(light, "cycles", None)
+    if light.type == "AREA" and getattr(cycles, "is_portal", False):
+        if info is not None:
+            info.append(
+                f"light {ob.name!r} is a portal, which only guides Cycles' sampling of the world through it and emits "
+                "nothing: left out (the world lights the scene as it does in Cycles)"
+            )
         return None
     linking = getattr(ob, "light_linking", None)
     linked = [what for what, collection in (("Light Linking", "receiver_collection"), ("Shadow Linking",
@@ -857,7 +917,7 @@ def _light(ob, matrix: np.ndarray, warnings: list[str]):
     scale = np.linalg.norm(matrix[:3, :3], axis=0)
     if light.type in ("SPOT", "SUN") and not scale[2] > 0.0:
         return None  # its direction scaled to nothing: hidden
-    shadow = dict(casts_shadow=bool(getattr(light, "use_shadow", True)))  # Cast Shadow
+    shadow = _light_settings(ob, light, cycles)
     if light.type == "POINT":
         return PointLight(matrix[:3, 3], power, color, **shadow)
     if light.type == "SPOT":
@@ -878,6 +938,26 @@ def _light(ob, matrix: np.ndarray, warnings: list[str]):
         spread=min(float(getattr(light, "spread", math.pi)), math.pi),
         camera_visible=bool(getattr(ob, "visible_camera", True)), **shadow,
     )  # fmt: skip
+
+
+def _light_settings(ob, light, cycles) -> dict:
+    """The keyword settings of a point, spot or sun light's core light: Cast Shadow and Cycles' per-light Max Bounces
+    (an area light's too), Normalize, the object's Camera ray visibility, and its size: a sun's Angle, a point or spot
+    light's Radius (not scaled with the object, as in Cycles) and Soft Falloff."""
+    settings = dict(
+        casts_shadow=bool(getattr(light, "use_shadow", True)),
+        max_bounces=max(int(getattr(cycles, "max_bounces", 1024)), 0),
+    )
+    if light.type == "AREA":
+        return settings
+    settings["normalize"] = bool(getattr(light, "normalize", True))
+    settings["camera_visible"] = bool(getattr(ob, "visible_camera", True))
+    if light.type == "SUN":
+        settings["angle"] = min(max(float(getattr(light, "angle", 0.0)), 0.0), math.pi)
+    else:
+        settings["radius"] = max(float(getattr(light, "shadow_soft_size", 0.0)), 0.0)
+        settings["soft_falloff"] = bool(getattr(light, "use_soft_falloff", True))
+    return settings
 
 
 def _light_color(light) -> tuple:
@@ -1028,7 +1108,7 @@ def _object_arrays(ob, material_slot, materials, names, warnings: list[str], kep
 UNRENDERED_TYPES = {"POINTCLOUD": "point cloud", "VOLUME": "volume"}  # objects Cycles renders, with no geometry here
 
 
-def _instance_reader(depsgraph, object_arrays, warnings: list[str]):
+def _instance_reader(depsgraph, object_arrays, warnings: list[str], info: list[str] | None = None):
     """``add(instance, placed, lights)``: one instance of the depsgraph into ``placed`` (its geometry's key -> the
     geometry's arrays and the matrices of its instances, for ``_world_mesh``) or into the lights, if it renders
     (``_render_visibility``). An object's geometry is read once (``object_arrays``) however many times it is
@@ -1045,7 +1125,7 @@ def _instance_reader(depsgraph, object_arrays, warnings: list[str]):
             return
         matrix = np.array(inst.matrix_world, dtype=np.float64)
         if ob.type == "LIGHT":
-            light = _light(ob, matrix, warnings)
+            light = _light(ob, matrix, warnings, info)
             if light is not None:
                 lights.append(light)
             return
@@ -1063,6 +1143,7 @@ def _instance_reader(depsgraph, object_arrays, warnings: list[str]):
             return
         if first:
             _warn_visibility(ob, holdouts, warnings)
+            _warn_particle_hair(ob, warnings)
         # The object (its material slots) and its geometry, by identity: a linked object beside a local one of the
         # same name, and the geometries that Geometry Nodes instance (each a temporary object named after its
         # instancer, its mesh named "Mesh"), are each their own.
@@ -1088,6 +1169,19 @@ def _holdout_collections(depsgraph) -> set:
 
     walk(depsgraph.view_layer.layer_collection, False)
     return found
+
+
+def _warn_particle_hair(ob, warnings: list[str]) -> None:
+    """Name the particle systems of an evaluated object that render as hair strands in Cycles (Hair, rendered as
+    Path) and have strands: they are not rendered here, and the object rendered without them, silently. A hair system
+    rendered as objects or a collection renders (its instances are the depsgraph's)."""
+    for system in getattr(ob, "particle_systems", ()):
+        settings = system.settings
+        if settings.type == "HAIR" and settings.render_type == "PATH" and len(system.particles):
+            warnings.append(
+                f"object {ob.name!r}: particle hair {system.name!r} is not rendered here (Cycles renders its "
+                "strands); the object renders without it"
+            )
 
 
 def _warn_visibility(ob, holdouts: set, warnings: list[str]) -> None:
@@ -1373,8 +1467,9 @@ def _export_scene(depsgraph, scene, width, height, camera, info, environment, ke
             raise ValueError(f"scene {scene.name!r} has no active camera; add one or set Scene > Camera")
         r = scene.render
         camera = _camera(
-            scene.camera.evaluated_get(depsgraph), width, height, warnings, (r.pixel_aspect_x, r.pixel_aspect_y)
-        )
+            scene.camera.evaluated_get(depsgraph), width, height, warnings, (r.pixel_aspect_x, r.pixel_aspect_y),
+            motion_blur=_renders_motion_blur(scene, [depsgraph.view_layer]),
+        )  # fmt: skip
 
     material_index: dict[str, int] = {}
     materials: list = []
@@ -1396,7 +1491,10 @@ def _export_scene(depsgraph, scene, width, height, camera, info, environment, ke
     placed: dict = {}
     lights: list = []
     add = _instance_reader(
-        depsgraph, lambda ob, key: _object_arrays(ob, material_slot, materials, names, warnings, kept, key), warnings
+        depsgraph,
+        lambda ob, key: _object_arrays(ob, material_slot, materials, names, warnings, kept, key),
+        warnings,
+        info,
     )
     for inst in depsgraph.object_instances:
         add(inst, placed, lights)

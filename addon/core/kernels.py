@@ -549,9 +549,16 @@ def first_hit_features(features, row, weight, ns, dist, d, forward):
 # directions (W + 1, 2) and a first guess of the column per even bin of :func:`_pseudo_angle`.
 
 POINT, SPOT, SUN, AREA_RECT, AREA_ELLIPSE, ENVIRONMENT = range(6)  # an environment of one colour is a 1 x 1 image
-N_PARAMS = 22
+# A point or spot light of a radius (Blender's Radius): a sphere (Soft Falloff off) or a disk of that radius facing the
+# point it lights (Soft Falloff on, Blender's default), as Cycles' are; and a sun of an angle (Blender's Angle): a disk
+# of the sky, every direction within half the angle of its own. Rays can hit them, as they hit an area light.
+SPHERE, FACING_DISK, SUN_DISK = range(6, 9)
+N_PARAMS = 23
+RADIUS = 17  # a sphere's or a facing disk's radius
+CAMERA_VISIBLE = 19  # a light rays can hit: 1 where camera rays see it (the object's Camera ray visibility)
 NO_SHADOW = 20  # every row's: 1 for a light that casts no shadow (Blender's Cast Shadow off)
 BY_AREA = 21  # a rectangle light's: 1 to sample it by area, not by solid angle (a comparison's: ``AreaLight``)
+MAX_BOUNCES = 22  # every row's: the deepest bounce whose hits sample the light (Cycles' per-light Max Bounces)
 
 
 @njit(inline="always", **_JIT)
@@ -716,7 +723,8 @@ def environment_radiance(env, d):
 
 @njit(**_JIT)
 def is_delta(kind):
-    """Whether lights of ``kind`` are delta lights (a point, a spot, the sun): no area to hit, pdf 1."""
+    """Whether lights of ``kind`` are delta lights (a point, a spot, the sun, of no radius or angle): no area to hit,
+    pdf 1."""
     return kind == POINT or kind == SPOT or kind == SUN
 
 
@@ -808,8 +816,9 @@ def _rect_point(x0, x1, y0, y1, z0, solid, u0, u1):
 
 @njit(forceinline=True, **_JIT)
 def _sample_local_light(kind, params, j, px, py, pz, u0, u1, near):
-    """One sample of light ``params[j]`` (a point, a spot, the sun or an area light: any kind but the
-    environment) from point (px, py, pz): direction toward it (unit), distance (inf for the sun), arriving
+    """One sample of light ``params[j]`` (a point, a spot, the sun, one of a radius or an angle:
+    :func:`_sample_soft_light`, or an area light: any kind but the environment) from point (px, py, pz): direction
+    toward it (unit), distance (inf for the sun), arriving
     radiance (for delta lights the intensity / distance^2 or the irradiance, the distance taken as at least
     ``near``: a point light on the surface lights it finitely) and solid-angle pdf (1 for delta
     lights). The light is indexed, not sliced: a slice passed to a function is an array whose reference count the
@@ -820,22 +829,13 @@ def _sample_local_light(kind, params, j, px, py, pz, u0, u1, near):
         dist = _sqrt(dx * dx + dy * dy + dz * dz)
         safe = max(dist, 1e-9)
         wx, wy, wz = dx / safe, dy / safe, dz / safe
-        mask = 1.0
-        if kind == SPOT:  # Blender's smoothstep over the cone's edge, in the light's own (scaled) frame
-            lx = wx * params[j, 6] + wy * params[j, 7] + wz * params[j, 8]
-            ly = wx * params[j, 9] + wy * params[j, 10] + wz * params[j, 11]
-            lz = wx * params[j, 12] + wy * params[j, 13] + wz * params[j, 14]
-            c = lz / max(_sqrt(lx * lx + ly * ly + lz * lz), 1e-300)  # the cosine from the light's -z to the point
-            cos_edge, smooth = params[j, 15], params[j, 16]
-            if smooth <= 0.0:
-                mask = 1.0 if c > cos_edge else 0.0
-            else:
-                s = min(max((c - cos_edge) / smooth, 0.0), 1.0)
-                mask = s * s * (3.0 - 2.0 * s)
+        mask = _spot_mask(params, j, wx, wy, wz) if kind == SPOT else 1.0
         scale = mask / max(safe, near) ** 2
         return wx, wy, wz, dist, params[j, 3] * scale, params[j, 4] * scale, params[j, 5] * scale, 1.0
     if kind == SUN:
         return params[j, 0], params[j, 1], params[j, 2], inf, params[j, 3], params[j, 4], params[j, 5], 1.0
+    if kind >= SPHERE:
+        return _sample_soft_light(kind, params, j, px, py, pz, u0, u1)
     # AREA_RECT, AREA_ELLIPSE
     if kind == AREA_RECT:
         ok, xx, xy, xz, yx, yy, yz, x0, x1, y0, y1, z0 = _rect_window(params, j, px, py, pz)
@@ -868,6 +868,99 @@ def _sample_local_light(kind, params, j, px, py, pz, u0, u1, near):
         pdf = safe * safe / (cos_l * params[j, 15])
         return wx, wy, wz, dist, params[j, 12] * g, params[j, 13] * g, params[j, 14] * g, pdf
     return wx, wy, wz, dist, 0.0, 0.0, 0.0, 0.0
+
+
+@njit(forceinline=True, **_JIT)
+def _spot_mask(params, j, wx, wy, wz):
+    """The share of spot light ``params[j]``'s light that reaches the point whence the unit direction (wx, wy, wz)
+    leads to the light: Blender's smoothstep over the cone's edge, in the light's own (scaled) frame (the inverse axes
+    in ``params[j, 6:15]``, the cosine of the edge and the blend's width in 15 and 16). The row of a point light of a
+    radius holds the identity and an edge's cosine of -2: 1 everywhere."""
+    lx = wx * params[j, 6] + wy * params[j, 7] + wz * params[j, 8]
+    ly = wx * params[j, 9] + wy * params[j, 10] + wz * params[j, 11]
+    lz = wx * params[j, 12] + wy * params[j, 13] + wz * params[j, 14]
+    c = lz / max(_sqrt(lx * lx + ly * ly + lz * lz), 1e-300)  # the cosine from the light's -z to the point
+    cos_edge, smooth = params[j, 15], params[j, 16]
+    if smooth <= 0.0:
+        return 1.0 if c > cos_edge else 0.0
+    s = min(max((c - cos_edge) / smooth, 0.0), 1.0)
+    return s * s * (3.0 - 2.0 * s)
+
+
+@njit(forceinline=True, **_JIT)
+def _cone_direction(ax, ay, az, one_minus_cos, u0, u1):
+    """A unit direction evenly in solid angle within the cone about the unit axis (ax, ay, az) whose half angle has
+    the cosine 1 - ``one_minus_cos`` (given as that difference: a sun's half a degree keeps its digits), and its
+    cosine to the axis."""
+    w = u0 * one_minus_cos  # 1 - cos theta
+    cos_t = 1.0 - w
+    sin_t = _sqrt(max(w * (2.0 - w), 0.0))
+    c, s = turn_cos_sin(u1)
+    sx, sy, sz, tx, ty, tz = basis(ax, ay, az)
+    x, y = sin_t * c, sin_t * s
+    return x * sx + y * tx + cos_t * ax, x * sy + y * ty + cos_t * ay, x * sz + y * tz + cos_t * az, cos_t
+
+
+@njit(forceinline=True, **_JIT)
+def _sphere_cone(params, j, px, py, pz):
+    """What a sphere light ``params[j]`` looks like from point (px, py, pz): the unit direction to its centre, the
+    distance d to it, and 1 - cos of the half angle of the cone it fills (0 from inside it, d <= its radius),
+    computed as sin^2 / (1 + cos) so that a small or far sphere keeps its digits."""
+    cx, cy, cz = params[j, 0] - px, params[j, 1] - py, params[j, 2] - pz
+    d2 = cx * cx + cy * cy + cz * cz
+    d = max(_sqrt(d2), 1e-300)
+    r = params[j, RADIUS]
+    s2 = r * r / max(d2, 1e-300)
+    one_minus_cos = s2 / (1.0 + _sqrt(1.0 - s2)) if s2 < 1.0 else 0.0
+    return cx / d, cy / d, cz / d, d, one_minus_cos
+
+
+@njit(forceinline=True, **_JIT)
+def _sample_soft_light(kind, params, j, px, py, pz, u0, u1):
+    """:func:`_sample_local_light` of a light of :data:`SPHERE`, :data:`FACING_DISK` or :data:`SUN_DISK`, as Cycles
+    samples them: a sphere and a sun's disk evenly in the solid angle of the cone they fill (from inside a sphere,
+    evenly over every direction), a facing disk evenly in its area. Their radiance (``params[j, 3:6]``) is even over
+    their surface, a spot's cone (:func:`_spot_mask`) taken of the direction each point of it sends the light in (from
+    inside a sphere, none)."""
+    inf = np.inf
+    if kind == SUN_DISK:
+        one_minus_cos = params[j, 7]
+        wx, wy, wz, _ = _cone_direction(params[j, 0], params[j, 1], params[j, 2], one_minus_cos, u0, u1)
+        pdf = 1.0 / (2.0 * math.pi * one_minus_cos)
+        return wx, wy, wz, inf, params[j, 3], params[j, 4], params[j, 5], pdf
+    r = params[j, RADIUS]
+    if kind == SPHERE:
+        ax, ay, az, d, one_minus_cos = _sphere_cone(params, j, px, py, pz)
+        if one_minus_cos > 0.0:  # outside: the near side, the law of cosines
+            wx, wy, wz, cos_t = _cone_direction(ax, ay, az, one_minus_cos, u0, u1)
+            sin2 = max((1.0 - cos_t) * (1.0 + cos_t), 0.0)
+            dist = d * cos_t - _sqrt(max(r * r - d * d * sin2, 0.0))
+            mask = _spot_mask(params, j, wx, wy, wz)
+            pdf = 1.0 / (2.0 * math.pi * one_minus_cos)
+        else:  # inside: every direction meets it, at the far side
+            z = 1.0 - 2.0 * u0
+            rho = _sqrt(max(1.0 - z * z, 0.0))
+            c, s = turn_cos_sin(u1)
+            wx, wy, wz = rho * c, rho * s, z
+            along = wx * ax + wy * ay + wz * az
+            dist = d * along + _sqrt(max(r * r - d * d * (1.0 - along * along), 0.0))
+            mask, pdf = 1.0, 1.0 / (4.0 * math.pi)
+    else:  # FACING_DISK: a point of the disk about the centre, square to the line from the point
+        cx, cy, cz = params[j, 0] - px, params[j, 1] - py, params[j, 2] - pz
+        d = _sqrt(cx * cx + cy * cy + cz * cz)
+        if not d > 0.0:
+            return 0.0, 0.0, 1.0, inf, 0.0, 0.0, 0.0, 0.0
+        ax, ay, az = cx / d, cy / d, cz / d
+        sx, sy, sz, tx, ty, tz = basis(ax, ay, az)
+        a, b = concentric_disk(u0, u1)
+        a, b = a * r, b * r
+        dx, dy, dz = cx + a * sx + b * tx, cy + a * sy + b * ty, cz + a * sz + b * tz
+        dist = _sqrt(dx * dx + dy * dy + dz * dz)
+        wx, wy, wz = dx / dist, dy / dist, dz / dist
+        cos_l = wx * ax + wy * ay + wz * az
+        mask = _spot_mask(params, j, wx, wy, wz)
+        pdf = dist * dist / (cos_l * math.pi * r * r) if cos_l > 0.0 else 0.0
+    return wx, wy, wz, dist, params[j, 3] * mask, params[j, 4] * mask, params[j, 5] * mask, pdf
 
 
 @njit(inline="always", **_JIT)
@@ -978,12 +1071,14 @@ def _unblocked_before(dist, eps):
 
 
 @njit(**_JIT)
-def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps):
+def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps, depth):
     """Next-event estimation's light samples: one light of the table per hit, chosen uniformly by
     u[:, 0] (its remainder is not reused), a point on it from u[:, 1:3]. Returns, per hit, the direction
     in the shading frame (ts, tt, ns), the radiance (N, 3), pdf, delta flag and whether the sample can
-    contribute (``useful``: pdf and radiance non-zero, and the direction on the same side of the geometric
-    normal ``ng`` as of the shading normal, so light never leaks through the surface); and the shadow rays
+    contribute (``useful``: pdf and radiance non-zero, the direction on the same side of the geometric
+    normal ``ng`` as of the shading normal, so light never leaks through the surface, and the hits' bounce
+    ``depth``, 0 for the camera rays' hits, no deeper than the light's :data:`MAX_BOUNCES`, as Cycles skips a light
+    past its Max Bounces; the choice of the light is as likely as ever); and the shadow rays
     of the useful samples of lights that cast shadows (:data:`NO_SHADOW`) only: their rows, origins offset by
     ``eps`` (a row per hit: ``surface_hits``' offset) off the surface on the light's side, world directions and
     lengths (:data:`FAR` to the sun or the sky; else :func:`_unblocked_before` the light), in float32 for embree
@@ -1008,7 +1103,7 @@ def sample_lights(out, kinds, params, env, p, ng, ts, tt, ns, u, eps):
         rad[i, 0], rad[i, 1], rad[i, 2] = r0, r1, r2
         pdf[i], delta[i] = pd, is_delta(kinds[j])
         same_side = (c > 0.0 and lz > 0.0) or (c < 0.0 and lz < 0.0)
-        ok = pd > 0.0 and max(r0, r1, r2) > 0.0 and same_side
+        ok = pd > 0.0 and max(r0, r1, r2) > 0.0 and same_side and depth <= params[j, MAX_BOUNCES]
         useful[i] = ok
         if ok and params[j, NO_SHADOW] == 0.0:  # a light that casts no shadow reaches the surface untested
             off = eps[i] if c > 0.0 else -eps[i]
@@ -1073,6 +1168,76 @@ def intersect_area(prm, ellipse, o, d):
     return t, pdf
 
 
+@njit(inline="always", **_JIT)
+def _intersect_soft(kind, params, j, ox, oy, oz, dx, dy, dz):
+    """Where a unit ray meets light ``params[j]`` of :data:`SPHERE`, :data:`FACING_DISK` or :data:`SUN_DISK`, as
+    Cycles finds them: the distance (inf for a sun's disk), the solid-angle pdf of :func:`_sample_soft_light` choosing
+    that direction from the ray's origin, and the share of the light's radiance sent along the ray (a spot's cone:
+    :func:`_spot_mask`); a share of 0 where the ray misses. A sphere is met once, where the ray enters it (from
+    inside, where it leaves it); a facing disk is the one square to the line from the ray's origin."""
+    inf = np.inf
+    if kind == SUN_DISK:
+        if dx * params[j, 0] + dy * params[j, 1] + dz * params[j, 2] < params[j, 6]:
+            return inf, 0.0, 0.0
+        return inf, 1.0 / (2.0 * math.pi * params[j, 7]), 1.0
+    r = params[j, RADIUS]
+    if kind == SPHERE:
+        ax, ay, az, d, one_minus_cos = _sphere_cone(params, j, ox, oy, oz)
+        along = d * (ax * dx + ay * dy + az * dz)
+        outside = one_minus_cos > 0.0
+        if outside and along < 0.0:
+            return inf, 0.0, 0.0
+        off2 = max(d * d - along * along, 0.0)  # the squared distance from the centre to the ray's line
+        if off2 > r * r:
+            return inf, 0.0, 0.0
+        half = _sqrt(r * r - off2)
+        t = along - half if outside else along + half
+        if not t > 0.0:
+            return inf, 0.0, 0.0
+        if not outside:
+            return t, 1.0 / (4.0 * math.pi), 1.0
+        return t, 1.0 / (2.0 * math.pi * one_minus_cos), _spot_mask(params, j, dx, dy, dz)
+    # FACING_DISK
+    cx, cy, cz = params[j, 0] - ox, params[j, 1] - oy, params[j, 2] - oz
+    d = _sqrt(cx * cx + cy * cy + cz * cz)
+    cos_l = (cx * dx + cy * dy + cz * dz) / max(d, 1e-300)  # the ray's cosine to the disk's normal
+    if not cos_l > 0.0:
+        return inf, 0.0, 0.0
+    t = d / cos_l
+    qx, qy, qz = t * dx - cx, t * dy - cy, t * dz - cz
+    if qx * qx + qy * qy + qz * qz > r * r:
+        return inf, 0.0, 0.0
+    return t, t * t / (cos_l * math.pi * r * r), _spot_mask(params, j, dx, dy, dz)
+
+
+@njit(inline="always", **_JIT)
+def _soft_light_reached(kind, params, j, ox, oy, oz, dx, dy, dz, t, eps, far):
+    """What a ray that meets a surface at ``t`` (inf: none) finds of light ``params[j]`` of :data:`SPHERE`,
+    :data:`FACING_DISK` or :data:`SUN_DISK` (:func:`_intersect_soft`): the share of its radiance (0 where the ray
+    misses it, a surface blocks it as :func:`_unblocked_before` says, or it lies beyond ``far``, the camera's far
+    clipping plane), the pdf, and whether it is a light of the scene (not a sun's disk, found where the ray escapes,
+    as the sky is, whatever the clipping plane)."""
+    tl, pdf_l, g = _intersect_soft(kind, params, j, ox, oy, oz, dx, dy, dz)
+    if math.isinf(tl):
+        return (g if math.isinf(t) else 0.0), pdf_l, False
+    if tl > far or t < _unblocked_before(tl, eps):
+        return 0.0, pdf_l, True
+    return g, pdf_l, True
+
+
+@njit(**_JIT)
+def intersect_soft(kind, prm, o, d):
+    """:func:`_intersect_soft` for rays o, d (N, 3): distances, pdfs and shares of the radiance (N,) each."""
+    n = len(o)
+    t = np.empty(n)
+    pdf = np.empty(n)
+    share = np.empty(n)
+    params = prm.copy().reshape((1, len(prm)))
+    for i in range(n):
+        t[i], pdf[i], share[i] = _intersect_soft(kind, params, 0, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2])
+    return t, pdf, share
+
+
 # --- multiple importance sampling and path bookkeeping ------------------------------------------
 
 MIS, LIGHT_ONLY, BSDF_ONLY = range(3)  # the integrator's strategies, in its STRATEGIES order
@@ -1098,35 +1263,50 @@ def _emission_weight(strategy, p_select, pdf_light, prev_pdf, prev_delta, prev_m
 
 @njit(**_JIT)
 def add_emission(
-    area_params, area_ellipse, has_env, env, strategy, p_select,
-    o, d, t, row, throughput, prev_pdf, prev_delta, prev_mis, L, eps, camera, reach, features,
+    hit_kinds, hit_params, has_env, env, strategy, p_select,
+    o, d, t, row, throughput, prev_pdf, prev_delta, prev_mis, L, eps, camera, reach, features, bounce,
 ):  # fmt: skip
-    """Add to ``L[row]`` the emission rays (o, d) reach before distance ``t``: every area light that no surface
-    blocks (the surface at ``t`` is not nearer than :func:`_unblocked_before` the light, as for the shadow rays, with
-    ``eps`` the offset of each ray's origin: 0 for the camera's), toward the ray as its spread lets it
-    (:func:`spread_factor`), and not when the rays are the camera's (``camera``) and the light is hidden from them
-    (``area_params[j, 19]`` 0) or lies beyond the far clipping plane (``reach``, each camera ray's length to it; empty:
-    none); a camera ray that meets a light covers its pixel (``features[row, 7]``, the film's coverage: 1),
-    and the environment ``env`` where the ray escapes (t = inf; with ``has_env``), each weighted by how the ray
-    was sampled (:func:`_emission_weight`)."""
+    """Add to ``L[row]`` the emission rays (o, d) reach before distance ``t``: every light of the table of lights rays
+    can hit (``hit_kinds``, ``hit_params``: area lights, spheres, facing disks, suns' disks) that no surface blocks
+    (the surface at ``t`` is not nearer than :func:`_unblocked_before` the light, as for the shadow rays, with
+    ``eps`` the offset of each ray's origin: 0 for the camera's; a sun's disk where the ray escapes), toward the ray as
+    its spread or a spot's cone lets it (:func:`spread_factor`, :func:`_spot_mask`), and not when the rays are the
+    camera's (``camera``) and the light is hidden from them (:data:`CAMERA_VISIBLE` 0) or lies beyond the far clipping
+    plane (``reach``, each camera ray's length to it; empty: none); a camera ray that meets a light of the scene covers
+    its pixel (``features[row, 7]``, the film's coverage: 1), and the environment ``env`` where the ray escapes (t =
+    inf; with ``has_env``), each weighted by how the ray was sampled (:func:`_emission_weight`). The rays left hits of
+    bounce ``bounce`` (-1: the camera's): a light's emission counts there as the direct light of those hits, up to the
+    light's :data:`MAX_BOUNCES`, as next-event estimation's does (``sample_lights``), whatever the strategy."""
     image, pixel_pdf, _, _, z_edges, row_of_bin, edges, column_of_bin = env
     for i in range(len(o)):
         ox, oy, oz, dx, dy, dz = o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1], d[i, 2]
         r = row[i]
-        for j in range(len(area_params)):
-            if camera and area_params[j, 19] == 0.0:
+        for j in range(len(hit_params)):
+            if (camera and hit_params[j, CAMERA_VISIBLE] == 0.0) or bounce > hit_params[j, MAX_BOUNCES]:
                 continue
-            tl, pdf_l = _intersect_area(area_params, j, area_ellipse[j], ox, oy, oz, dx, dy, dz)
-            if camera and len(reach) and tl > reach[i]:
+            kind = hit_kinds[j]
+            if kind == AREA_RECT or kind == AREA_ELLIPSE:
+                tl, pdf_l = _intersect_area(hit_params, j, kind == AREA_ELLIPSE, ox, oy, oz, dx, dy, dz)
+                if camera and len(reach) and tl > reach[i]:
+                    continue
+                if not math.isinf(tl) and t[i] >= _unblocked_before(tl, eps[i]):
+                    w = _emission_weight(strategy, p_select, pdf_l, prev_pdf[i], prev_delta[i], prev_mis[i])
+                    cos_l = -(dx * hit_params[j, 9] + dy * hit_params[j, 10] + dz * hit_params[j, 11])
+                    w *= spread_factor(hit_params, j, cos_l)
+                    for k in range(3):
+                        L[r, k] += throughput[i, k] * hit_params[j, 12 + k] * w
+                    if camera:
+                        features[r, 7] = 1.0
                 continue
-            if not math.isinf(tl) and t[i] >= _unblocked_before(tl, eps[i]):
-                w = _emission_weight(strategy, p_select, pdf_l, prev_pdf[i], prev_delta[i], prev_mis[i])
-                cos_l = -(dx * area_params[j, 9] + dy * area_params[j, 10] + dz * area_params[j, 11])
-                w *= spread_factor(area_params, j, cos_l)
-                for k in range(3):
-                    L[r, k] += throughput[i, k] * area_params[j, 12 + k] * w
-                if camera:
-                    features[r, 7] = 1.0
+            far = reach[i] if camera and len(reach) else np.inf
+            g, pdf_l, local = _soft_light_reached(kind, hit_params, j, ox, oy, oz, dx, dy, dz, t[i], eps[i], far)
+            if not g > 0.0:
+                continue
+            if camera and local:
+                features[r, 7] = 1.0
+            w = g * _emission_weight(strategy, p_select, pdf_l, prev_pdf[i], prev_delta[i], prev_mis[i])
+            for k in range(3):
+                L[r, k] += throughput[i, k] * hit_params[j, 3 + k] * w
         if has_env and math.isinf(t[i]):
             r0, r1, r2, pdf_e = _env_lookup(image, pixel_pdf, z_edges, row_of_bin, edges, column_of_bin, dx, dy, dz)
             w = _emission_weight(strategy, p_select, pdf_e, prev_pdf[i], prev_delta[i], prev_mis[i])

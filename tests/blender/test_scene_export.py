@@ -434,6 +434,41 @@ def test_settings_cycles_renders_and_this_renderer_does_not_are_said(bpy_addon, 
     np.testing.assert_allclose(core.materials[0].color, (0.1, 0.2, 0.9), rtol=1e-6)
 
 
+def test_particle_hair_depth_of_field_and_motion_blur_that_cycles_renders_are_said(bpy_addon, fresh_scene):
+    """A mesh's particle hair (rendered as strands, Path), a camera's depth of field and the render's Motion Blur
+    rendered as if unset, silently (hair curves objects were already said): each is said. Hair that renders
+    nothing in Cycles either (Render As None) says nothing, nor does Motion Blur where the view layer renders none
+    (its Use > Motion Blur off), or in a viewport's export (its own camera)."""
+    from addon.blender import scene_export
+
+    scene = fresh_scene.scene
+    cube = scene.objects["Cube"]
+    cube.modifiers.new("fur", "PARTICLE_SYSTEM")
+    settings = cube.particle_systems[0].settings
+    settings.type, settings.count, settings.hair_length = "HAIR", 50, 0.5
+    assert settings.render_type == "PATH"
+    graph = fresh_scene.evaluated_depsgraph_get()
+    _, warnings = scene_export.export_scene(graph)
+    assert [w for w in warnings if "hair" in w] == [
+        "object 'Cube': particle hair 'fur' is not rendered here (Cycles renders its strands); the object renders "
+        "without it"
+    ]
+    settings.render_type = "NONE"  # hair that renders nothing in Cycles either
+    assert scene_export.export_scene(fresh_scene.evaluated_depsgraph_get())[1] == []
+    cube.modifiers.clear()
+    scene.camera.data.dof.use_dof = True
+    scene.render.use_motion_blur = True
+    graph = fresh_scene.evaluated_depsgraph_get()
+    _, warnings = scene_export.export_scene(graph)
+    assert len(warnings) == 2, warnings
+    assert "camera 'Camera': Depth of Field is not rendered here" in warnings[0] and "Motion Blur" in warnings[1]
+    core, _ = scene_export.export_scene(graph)
+    _, viewport = scene_export.export_scene(graph, camera=core.camera)
+    assert not any("Motion Blur" in w for w in viewport)
+    fresh_scene.view_layer.use_motion_blur = False  # the view layer's own Use > Motion Blur: none in Cycles either
+    assert not any("Motion Blur" in w for w in scene_export.export_scene(fresh_scene.evaluated_depsgraph_get())[1])
+
+
 def _f12_triangles(bpy, scene, monkeypatch) -> int:
     """The triangles F12's own depsgraph exports (one small render of this engine)."""
     from addon.blender import scene_export

@@ -1089,10 +1089,50 @@ def test_first_hit_features_are_albedo_normal_and_depth():
     assert np.allclose(f["albedo"], [0.2, 0.5, 0.7], atol=1e-6)
     assert np.allclose(f["normal"], [0.0, 0.0, 1.0], atol=1e-6)
     np.testing.assert_allclose(f["depth"], 2.0, rtol=1e-5)
-    # Rays that escape carry no features, and a depth beyond anything, as Cycles writes it.
-    empty, _ = render(Scene(cam, environment=Environment((1.0, 1.0, 1.0))), RenderSettings(samples=1))
-    assert all(np.all(v == 0) for k, v in empty.features().items() if k != "depth")
+    # Rays that escape carry no normal or coverage, a depth beyond anything and the sky's colour as albedo, as
+    # Cycles writes them (``test_camera_rays_that_escape_read_the_sky_as_their_albedo_as_in_cycles``).
+    empty, _ = render(Scene(cam, environment=Environment((0.3, 0.5, 0.7))), RenderSettings(samples=1))
+    assert all(np.all(v == 0) for k, v in empty.features().items() if k in ("normal", "coverage"))
     assert np.all(empty.features()["depth"] == Film.NO_DEPTH)
+    assert np.allclose(empty.features()["albedo"], [0.3, 0.5, 0.7], atol=1e-6)
+
+
+def test_camera_rays_that_escape_read_the_sky_as_their_albedo_as_in_cycles():
+    """Cycles' Denoising Albedo is the sky's radiance where the camera sees the sky (an opaque film), 0 on a
+    transparent film; it was 0 here wherever the rays escaped. The sky's own colour in each direction (an image: its
+    upper half one colour, its lower half another), clipped to [0, 1] (a denoiser's albedo guide), beside a surface
+    that keeps its own albedo."""
+    cam = Camera.look_at((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), up=(0.0, 0.0, 1.0), fov_deg=30, width=12, height=8)
+    sky = np.empty((2, 4, 3))
+    sky[0], sky[1] = (0.2, 0.9, 2.5), (0.6, 0.1, 0.3)  # above the horizon, below it
+    mesh = shapes.quad((0.5, 5.0, -1.0), (0.5, 0.0, 0.0), (0.0, 0.0, 2.0), material=0)  # a strip at the right
+    scene = Scene(cam, mesh, [LambertMaterial((0.4, 0.4, 0.4))], [], environment=Environment(image=sky))
+    film, _ = render(scene, RenderSettings(samples=4, max_bounces=0))
+    albedo, coverage = film.features()["albedo"], film.features()["coverage"][..., 0]
+    escaped = coverage == 0.0
+    assert escaped[:3].sum() > 20 and escaped[-3:].sum() > 20 and (coverage == 1.0).sum() > 4
+    np.testing.assert_allclose(albedo[:3][escaped[:3]], np.broadcast_to((0.2, 0.9, 1.0), (escaped[:3].sum(), 3)))
+    np.testing.assert_allclose(albedo[-3:][escaped[-3:]], np.broadcast_to((0.6, 0.1, 0.3), (escaped[-3:].sum(), 3)))
+    np.testing.assert_allclose(albedo[coverage == 1.0], 0.4, atol=1e-6)
+    transparent, _ = render(scene, RenderSettings(samples=4, max_bounces=0, transparent=True))
+    assert np.all(transparent.features()["albedo"][escaped] == 0.0)
+    np.testing.assert_allclose(transparent.features()["albedo"][coverage == 1.0], 0.4, atol=1e-6)
+
+
+def test_normals_in_the_cameras_frame_are_cycles_denoising_normals():
+    """Cycles writes its Denoising Normal in its camera's frame: Blender's camera axes (x right, y up) with z away
+    from the camera. A surface facing the camera reads (0, 0, -1); one facing its right, (1, 0, 0); a camera
+    object's scale does not stretch them."""
+    from addon.core.render.film import camera_normals
+
+    cam = Camera.look_at((3.0, -4.0, 2.0), (0.0, 0.0, 0.5), up=(0.0, 0.0, 1.0))
+    right, up, back = cam.matrix[:3, 0], cam.matrix[:3, 1], cam.matrix[:3, 2]
+    world = np.stack([back, right, up, -back])
+    expected = [(0.0, 0.0, -1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)]
+    np.testing.assert_allclose(camera_normals(world, cam.matrix), expected, atol=1e-6)
+    scaled = cam.matrix.copy()
+    scaled[:3, :3] *= (2.0, 0.5, 3.0)  # the object's scale: each column (axis) stretched
+    np.testing.assert_allclose(camera_normals(world.reshape(2, 2, 3), scaled).reshape(4, 3), expected, atol=1e-6)
 
 
 def test_the_albedo_feature_is_the_directional_albedo_of_a_material_whose_sample_weights_exceed_one():
@@ -1290,3 +1330,69 @@ def test_a_meshs_surface_arrays_and_digest_are_made_once_for_its_renders():
     assert integrator._triangle_arrays(other) is not first and integrator.tracer_for(
         other
     ) is not integrator.tracer_for(mesh)
+
+
+def _soft_lights():
+    """A sphere, a spot of a radius (Soft Falloff on: a facing disk) and a sun of an angle, each of which rays hit."""
+    return [
+        PointLight((-1.5, -1.5, 1.8), power=250.0, radius=0.4, soft_falloff=False),
+        SpotLight((1.5, -1.8, 2.5), power=500.0, direction=(-0.5, 0.6, -1.0), spot_size=0.8, blend=0.3, radius=0.5),
+        SunLight((0.3, 0.5, -1.0), strength=0.8, angle=math.radians(20.0)),
+    ]
+
+
+@pytest.mark.parametrize("other", ["light", "bsdf"])
+def test_soft_point_spot_and_sun_lights_converge_for_every_strategy(other):
+    """Light sampling and the rays a BSDF samples reach a sphere, a facing disk and a sun's disk with the same density
+    (the one the intersection reports), so multiple importance sampling weighs them as it weighs an area light and
+    BSDF sampling alone (which only their hits reach) renders the same image; the glossy sphere reflects them."""
+    scene = mixed_scene(lights=_soft_lights(), env=False)
+    a, sa = block_stats(render(scene, RenderSettings(samples=96, max_bounces=2, strategy="mis", seed=1))[0])
+    b, sb = block_stats(render(scene, RenderSettings(samples=96, max_bounces=2, strategy=other, seed=2))[0])
+    assert a.mean() > 0.02
+    z = (a - b) / np.sqrt(sa**2 + sb**2 + 1e-12)
+    assert np.sqrt((z**2).mean()) < 1.6, f"{other} vs MIS: rms z = {np.sqrt((z**2).mean()):.2f}"
+    assert np.abs(z).max() < 6
+
+
+@pytest.mark.parametrize("soft_falloff", [False, True])
+def test_the_camera_sees_a_point_light_of_a_radius_with_its_radiance_unless_hidden_from_it(soft_falloff):
+    """Cycles draws a point light of a radius where camera rays meet it (a sphere, or a disk facing the camera), at
+    its radiance I / (pi r^2), unless the object's Camera ray visibility is off; ours drew nothing of it."""
+    cam = Camera.look_at((0.0, -4.0, 1.0), (0.0, 0.0, 1.0), fov_deg=4.0, width=4, height=4)  # 0.28 m of it seen
+    floor = shapes.quad((-5, -5, 0), (10, 0, 0), (0, 10, 0))
+    for visible in (True, False):
+        light = PointLight((0.0, 0.0, 1.0), 100.0, radius=0.5, soft_falloff=soft_falloff, camera_visible=visible)
+        scene = Scene(cam, floor, [LambertMaterial((0.5, 0.5, 0.5))], [light])
+        img = render(scene, RenderSettings(samples=4, max_bounces=0))[0].mean()
+        want = 100.0 / (4 * math.pi) / (math.pi * 0.25) if visible else 0.0
+        np.testing.assert_allclose(img, want, rtol=1e-6, atol=1e-9)
+
+
+def test_a_sun_of_an_angle_is_seen_where_camera_rays_escape_toward_it():
+    """A sun's disk where the camera looks into it, at its radiance strength / (pi sin^2(angle / 2)), as Cycles draws
+    it: a pixel's mean is that radiance times the share of its rays within the disk."""
+    cam = Camera.look_at((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), up=(0.0, 1.0, 0.0), fov_deg=2.0, width=2, height=2)
+    mesh = shapes.quad((-5, -5, -1), (10, 0, 0), (0, 10, 0))
+    sun = SunLight((0.0, 0.0, -1.0), 3.0, angle=math.radians(10.0))  # the 2-degree view lies within its disk
+    img = render(Scene(cam, mesh, [LambertMaterial()], [sun]), RenderSettings(samples=4, max_bounces=0))[0].mean()
+    np.testing.assert_allclose(img, 3.0 / (math.pi * math.sin(math.radians(5.0)) ** 2), rtol=1e-6)
+
+
+def test_a_lights_max_bounces_keeps_it_to_that_many_bounces_for_every_strategy():
+    """Cycles' per-light Max Bounces 0: the light lights the first hits only (its image at a scene's 3 bounces is its
+    direct light, the image at 0), whichever way the light is reached: next-event estimation stops sampling it past
+    its bounces, and the emission a BSDF's ray finds counts where that sampling would (Cycles' point light at 0 was
+    1.055 times as bright in ours, its indirect light kept)."""
+    m = np.array([[1, 0, 0, 1.0], [0, 1, 0, -0.8], [0, 0, 1, 2.5], [0, 0, 0, 1]])
+    lights = [AreaLight(m, power=150.0, size=1.5, max_bounces=0), PointLight((-2.0, -2.0, 2.0), 200.0, max_bounces=0)]
+    lights.append(PointLight((-1.5, -1.5, 1.8), power=250.0, radius=0.8, max_bounces=0))
+    scene = mixed_scene(lights=lights, env=False)
+    direct, sd = block_stats(render(scene, RenderSettings(samples=128, max_bounces=0, seed=1))[0])
+    for strategy in ("mis", "light", "bsdf"):
+        a, sa = block_stats(render(scene, RenderSettings(samples=128, max_bounces=3, strategy=strategy, seed=2))[0])
+        z = (a - direct) / np.sqrt(sa**2 + sd**2 + 1e-12)
+        assert np.sqrt((z**2).mean()) < 1.6 and np.abs(z).max() < 6, (strategy, np.sqrt((z**2).mean()))
+    lit, _ = block_stats(render(replace(scene, lights=[replace(li, max_bounces=1) for li in lights]),
+                               RenderSettings(samples=128, max_bounces=3, seed=2))[0])  # fmt: skip
+    assert lit.mean() > 1.03 * direct.mean()  # a bounce of it more: the limit is what darkened the first

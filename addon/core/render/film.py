@@ -66,7 +66,8 @@ class Film:
 
     def features(self, names=("albedo", "normal", "depth", "coverage")) -> dict[str, np.ndarray]:
         """Per-pixel means of the first hits' features, (H, W, C) float32 each, row 0 at the top:
-        ``albedo`` (3, clipped to [0, 1]: a denoiser's albedo guide), ``normal`` (3, world space, not renormalised),
+        ``albedo`` (3, clipped to [0, 1]: a denoiser's albedo guide), ``normal`` (3, world space, not renormalised:
+        :func:`camera_normals` turns it into Cycles' Denoising Normal),
         ``depth`` (1, as Cycles' Z measures it: the distance along the camera's axis to the nearest surface the
         pixel's camera rays met, :data:`NO_DEPTH` where they met none; the nearest, not a mean, so that a pixel on
         an edge reads one surface's depth, not a depth between the two where nothing is. Cycles keeps its first
@@ -108,6 +109,17 @@ class Film:
 
 
 _NO_FEATURES = np.empty((0, Film.FEATURES))  # ``Film.add``'s features where none are given
+
+
+def camera_normals(normals: np.ndarray, camera_to_world: np.ndarray) -> np.ndarray:
+    """World-space ``normals`` (..., 3) in a camera's frame as Cycles writes its Denoising Normal pass: by the
+    inverse of the camera's rotation (``camera_to_world``'s 3 x 3, orthonormalised first: a scaled camera object
+    turns them, not stretches them), in Cycles' camera axes: Blender's camera axes (x right, y up) with z negated,
+    pointing away from the camera (Cycles' camera looks down its +z), so that a surface facing the camera reads
+    z < 0. Float32."""
+    u, _, vt = np.linalg.svd(np.asarray(camera_to_world, dtype=np.float64)[:3, :3])
+    to_camera = (u @ vt) * np.array([1.0, 1.0, -1.0])  # columns: the camera's axes in world space, z negated
+    return (np.asarray(normals, dtype=np.float64) @ to_camera).astype(np.float32)
 
 
 def to_srgb(linear: np.ndarray) -> np.ndarray:

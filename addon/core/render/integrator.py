@@ -1,8 +1,8 @@
 """Wavefront path tracer: all live paths advance one bounce at a time.
 
-Per bounce: one embreex call intersects every live path; area lights are intersected
-analytically; misses gather the environment; hits are grouped by material and each material is
-bound and queried once per group (one ONNX batch per neural material); next-event estimation
+Per bounce: one embreex call intersects every live path; area lights, and point, spot and sun lights of a radius
+or an angle, are intersected analytically; misses gather the environment; hits are grouped by material and each
+material is bound and queried once per group (one ONNX batch per neural material); next-event estimation
 picks one light (or the environment) per hit uniformly, traces all shadow rays in one occlusion
 call and is combined with BSDF sampling by the power heuristic. Russian roulette starts at
 ``rr_depth``. Random numbers come from a generator keyed by (seed, pass, chunk, bounce), so a
@@ -36,7 +36,7 @@ from ..reference.walk import stopping
 from ..threads import submit_in_context, thread_count
 from . import materials as mat
 from .film import Film
-from .lights import NO_IMAGE, AreaLight
+from .lights import NO_IMAGE
 from .scene import Scene
 from .scratch import Scratch, ScratchPool
 
@@ -388,21 +388,21 @@ class _Context:
         self.camera_axis = scene.camera.axis
         env = scene.environment
         self.env = env if env is not None and not env.is_black else None
-        self.area = [li for li in scene.lights if isinstance(li, AreaLight) and li.power > 0]
-        delta = [li for li in scene.lights if not isinstance(li, AreaLight) and li.estimated_power() > 0]
+        lit = [(li, li.table_row()) for li in scene.lights if li.estimated_power() > 0]
+        delta = [(li, row) for li, row in lit if kernels.is_delta(row[0])]
+        hit = [(li, row) for li, row in lit if not kernels.is_delta(row[0])]  # area lights, spheres, suns' disks
         # Lights next-event estimation chooses among (uniformly).
         nee = list(delta)
         if settings.strategy != "bsdf":
-            nee += self.area + ([self.env] if self.env is not None else [])
-        self.nee = nee
+            nee += hit + ([(self.env, self.env.table_row())] if self.env is not None else [])
+        self.nee = [li for li, _ in nee]
         self.p_select = 1.0 / len(nee) if nee else 0.0
-        # The light tables the kernels read: next-event estimation's lights, the area lights that
-        # rays can hit, the environment (kind -1: none) and its image arrays.
-        rows = [li.table_row() for li in nee]
-        self.nee_kinds = np.array([k for k, _ in rows], dtype=np.int64)
-        self.nee_params = np.array([r for _, r in rows]).reshape(len(rows), kernels.N_PARAMS)
-        self.area_params = np.array([li.table_row()[1] for li in self.area]).reshape(len(self.area), kernels.N_PARAMS)
-        self.area_ellipse = np.array([li.ellipse for li in self.area], dtype=np.bool_)
+        # The light tables the kernels read: next-event estimation's lights, the lights rays can hit (not the
+        # delta lights), the environment's image arrays.
+        self.nee_kinds = np.array([k for _, (k, _) in nee], dtype=np.int64)
+        self.nee_params = np.array([r for _, (_, r) in nee]).reshape(len(nee), kernels.N_PARAMS)
+        self.hit_kinds = np.array([k for _, (k, _) in hit], dtype=np.int64)
+        self.hit_params = np.array([r for _, (_, r) in hit]).reshape(len(hit), kernels.N_PARAMS)
         self.env_arrays = self.env.image_arrays() if self.env is not None else NO_IMAGE
         self.strategy_code = STRATEGIES.index(settings.strategy)
         m = scene.mesh
@@ -740,20 +740,30 @@ def _add_emission(
     camera: bool,
     reach: np.ndarray | None = None,
     features: np.ndarray | None = None,
+    depth: int = 0,
 ) -> None:
-    """Emission the rays reach: area lights in front of the first surface (distance ``t``; for the camera's rays,
+    """Emission the rays of bounce ``depth`` reach (0: the camera's; a ray of bounce d left a hit of bounce d - 1,
+    whose direct light a light's emission it finds is, and counts where next-event estimation there would: up to the
+    light's Max Bounces): lights rays can hit in front of the first surface (distance ``t``; for the camera's rays,
     ``camera``, only the lights visible to the camera and before the far clipping plane, ``reach``, each one it
     meets covering its pixel in ``features``), the sky where they escape (t = inf), weighted against next-event
-    estimation by how each ray was sampled."""
-    if len(ctx.area_params) == 0 and ctx.env is None:
+    estimation by how each ray was sampled. A camera ray that escapes to a sky it sees (an opaque film) has the sky's
+    radiance, clipped to [0, 1], as its albedo in ``features``, as Cycles' Denoising Albedo has it there (Cycles'
+    unclipped: a denoiser's albedo guide is read in [0, 1]); 0 on a transparent film, as in Cycles."""
+    if len(ctx.hit_params) == 0 and ctx.env is None:
         return
     sky = ctx.env is not None and not (camera and ctx.settings.transparent)  # a transparent film: no sky seen directly
     kernels.add_emission(
-        ctx.area_params, ctx.area_ellipse, sky, ctx.env_arrays,
+        ctx.hit_kinds, ctx.hit_params, sky, ctx.env_arrays,
         ctx.strategy_code, ctx.p_select,
         paths.o, paths.d, t, paths.row, paths.throughput, paths.pdf, paths.delta, paths.mis, L, paths.eps, camera,
-        reach if reach is not None else _NO_REACH, features if features is not None else _NO_FEATURES,
+        reach if reach is not None else _NO_REACH, features if features is not None else _NO_FEATURES, depth - 1,
     )  # fmt: skip
+    if sky and camera and features is not None:
+        escaped = np.flatnonzero(np.isinf(t))
+        if len(escaped):  # the lookup ``add_emission`` made of the same unit directions (0.6 ms a 320x180 pass)
+            radiance = kernels.environment_radiance(ctx.env_arrays, paths.d[escaped])[0]
+            features[paths.row[escaped], :3] = np.clip(radiance, 0.0, 1.0)
 
 
 _NO_REACH = np.empty(0)
@@ -775,11 +785,11 @@ def _surface_hits(ctx: _Context, paths: _HitPaths, hit, t, prim, bu, bv, groups,
 
 
 def _sample_lights(
-    ctx: _Context, hits: _Hits, u_light: np.ndarray, stats: RenderStats, scratch: Scratch
+    ctx: _Context, hits: _Hits, u_light: np.ndarray, stats: RenderStats, scratch: Scratch, depth: int
 ) -> _LightSamples:
-    """Next-event estimation: one light (or the sky) chosen uniformly per hit, a point on it, and
-    one occlusion query for all shadow rays; light reaching the surface through the shading
-    normal's side but not the geometric one's is discarded."""
+    """Next-event estimation at the hits of bounce ``depth`` (0: the camera rays'): one light (or the sky) chosen
+    uniformly per hit, a point on it, and one occlusion query for all shadow rays; light reaching the surface through
+    the shading normal's side but not the geometric one's is discarded, and so is a light's past its Max Bounces."""
     m = len(hits.p)
     if not ctx.nee:
         return _LightSamples(
@@ -788,6 +798,7 @@ def _sample_lights(
     wi, rad, pdf, delta, visible, rows, org, d, tmax = kernels.sample_lights(
         scratch.arrays("lights", m, kernels.LIGHT_SAMPLES_OUT),
         ctx.nee_kinds, ctx.nee_params, ctx.env_arrays, hits.p, hits.ng, hits.ts, hits.tt, hits.ns, u_light, hits.eps,
+        depth,
     )  # fmt: skip
     visible[rows[ctx.tracer.occluded(org, d, tmax, stats, scratch)]] = False
     return _LightSamples(wi, rad, pdf, delta, visible)
@@ -907,7 +918,9 @@ def _trace_paths(
         rng = np.random.default_rng([s.seed, pass_index, chunk_index, depth + 1])
         t, prim, bu, bv = ctx.tracer.intersect(paths.o, paths.d, stats, scratch, tmax if depth == 0 else None)
         with _shading(stats):
-            _add_emission(ctx, paths, t, L, depth == 0, tmax if depth == 0 else None, features if depth == 0 else None)
+            _add_emission(
+                ctx, paths, t, L, depth == 0, tmax if depth == 0 else None, features if depth == 0 else None, depth
+            )
         if depth == last:
             break
         # Sorted by material (stable), so that each material shades one contiguous slice of rows.
@@ -923,7 +936,7 @@ def _trace_paths(
         rng.random(out=u_light)
         with _shading(stats):
             hits = _surface_hits(ctx, paths, hit, t, prim, bu, bv, groups, scratch)
-            lights = _sample_lights(ctx, hits, u_light, stats, scratch)
+            lights = _sample_lights(ctx, hits, u_light, stats, scratch, depth)
         _check_stop(halt)  # the materials' networks next: half of a bounce's time on neural scenes
         rng.random(out=u_lobe)
         rng.random(out=u_dir)

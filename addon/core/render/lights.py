@@ -3,8 +3,14 @@
 Blender's units, converted once here:
 
 - point and spot: ``power`` in watts, radiant intensity I = power / (4 pi) W/sr per colour
-  channel (a spot is a point light masked to its cone, as in Blender);
-- sun: ``strength`` is the irradiance in W/m^2 on a surface facing it;
+  channel (a spot is a point light masked to its cone, as in Blender); of a ``radius`` (Blender's Radius), as in
+  Cycles, a sphere (Soft Falloff off) or a disk facing the point it lights (Soft Falloff on, Blender's default) of
+  radiance L = I / (pi r^2), sampled by the solid angle of the sphere's cone or evenly over the disk's area, a spot's
+  cone applied to the direction each point of it shines in;
+- sun: ``strength`` is the irradiance in W/m^2 on a surface facing it; of an ``angle`` (Blender's Angle) a disk of
+  the sky of that diameter, of radiance strength / (pi sin^2(angle / 2)), sampled evenly in its solid angle;
+- *Normalize* off (point, spot, sun, area): Cycles' power over pi (a point or spot of no radius: intensity power /
+  pi), a sun's strength the radiance of its disk;
 - area: ``power`` in watts leaves one side (the light's local -z) as a Lambertian emitter,
   radiance L = power / (pi * area) (L = power / pi where Blender's *Normalize* is off), shaped by Blender's
   *Spread* (Cycles' soft-box grid, which keeps the power: ``spread_factor``); a rectangle is sampled by the
@@ -13,7 +19,9 @@ Blender's units, converted once here:
 Every ``sample(p, u)`` returns a :class:`LightSample` of world directions *toward* the light,
 the distance to it (inf for the sun and the environment), the arriving radiance (for delta
 lights the irradiance-like quantity that the BRDF and cosine multiply) and the solid-angle
-pdf (1 for delta lights).
+pdf (1 for delta lights). Rays hit the lights that are not delta lights (``kernels.add_emission``), and camera rays
+see them where ``camera_visible``. ``max_bounces`` (Cycles' per-light Max Bounces): the deepest bounce at whose hits
+next-event estimation samples the light (0: the camera rays' hits only), as Cycles' does.
 """
 
 from __future__ import annotations
@@ -83,34 +91,79 @@ def _power(value, name: str) -> float:
 
 
 def _shadowed(row: np.ndarray, light) -> np.ndarray:
-    """``row`` with its :data:`kernels.NO_SHADOW` parameter: 1 where ``light`` casts no shadow."""
+    """``row`` with the parameters of every light's row: :data:`kernels.NO_SHADOW`, 1 where ``light`` casts no shadow,
+    and its :data:`kernels.MAX_BOUNCES`."""
     row[kernels.NO_SHADOW] = 0.0 if light.casts_shadow else 1.0
+    row[kernels.MAX_BOUNCES] = light.max_bounces
     return row
+
+
+def _max_bounces(value, name: str) -> int:
+    if isinstance(value, bool) or int(value) != value or value < 0:
+        raise ValueError(f"{name} must be a whole number >= 0, got {value!r}")
+    return int(value)
+
+
+# Cycles' default per-light Max Bounces (no limit a render reaches)
+MAX_BOUNCES = 1024
 
 
 @dataclass
 class PointLight:
+    """A point light; of a ``radius`` > 0 a sphere (``soft_falloff`` False) or a disk facing each point it lights
+    (``soft_falloff`` True, Blender's default), as Cycles' (the module's notes)."""
+
     position: np.ndarray
     power: float = 1000.0
     color: tuple = (1.0, 1.0, 1.0)
     casts_shadow: bool = field(default=True, kw_only=True)  # Blender's Cast Shadow: off, surfaces do not block it
+    radius: float = field(default=0.0, kw_only=True)
+    soft_falloff: bool = field(default=True, kw_only=True)
+    normalize: bool = field(default=True, kw_only=True)
+    camera_visible: bool = field(default=True, kw_only=True)
+    max_bounces: int = field(default=MAX_BOUNCES, kw_only=True)
 
     def __post_init__(self):
-        self.position = _point(self.position, f"{type(self).__name__}.position")
-        self.power = _power(self.power, "PointLight.power")
-        self.color = _rgb(self.color, "PointLight.color")
+        name = type(self).__name__
+        self.position = _point(self.position, f"{name}.position")
+        self.power = _power(self.power, f"{name}.power")
+        self.color = _rgb(self.color, f"{name}.color")
+        self.radius = _power(self.radius, f"{name}.radius")
+        self.max_bounces = _max_bounces(self.max_bounces, f"{name}.max_bounces")
 
     @property
     def intensity(self) -> np.ndarray:
-        return self.color * self.power / (4 * math.pi)
+        """The radiant intensity (W/sr) of the light of no radius: Cycles' power over pi and the area 4 it gives a
+        point, power / (4 pi); power / pi with *Normalize* off."""
+        return self.color * self.power / (4 * math.pi if self.normalize else math.pi)
+
+    @property
+    def radiance(self) -> np.ndarray:
+        """The radiance of the sphere or disk of a light of a radius: power / (4 pi r^2 pi), Cycles' power over the
+        sphere's area and pi (I / (pi r^2): its irradiance far off is a point's); power / pi, *Normalize* off."""
+        area = 4.0 * math.pi * self.radius**2 if self.normalize else 1.0
+        return self.color * self.power / (area * math.pi)
 
     def table_row(self) -> tuple[int, np.ndarray]:
         row = np.zeros(N_PARAMS)
-        row[0:3], row[3:6] = self.position, self.intensity
-        return kernels.POINT, _shadowed(row, self)
+        row[0:3] = self.position
+        if not self.radius > 0.0:
+            row[3:6] = self.intensity
+            return kernels.POINT, _shadowed(row, self)
+        row[3:6] = self.radiance
+        row[6:15] = np.eye(3).ravel()  # the spot cone's frame and an edge nothing is beyond: no cone
+        row[15] = -2.0
+        row[kernels.RADIUS] = self.radius
+        row[kernels.CAMERA_VISIBLE] = 1.0 if self.camera_visible else 0.0
+        return (kernels.FACING_DISK if self.soft_falloff else kernels.SPHERE), _shadowed(row, self)
 
     def sample(self, p: np.ndarray, u: np.ndarray) -> LightSample:
         return _sample(self, p, u)
+
+    def intersect(self, o: np.ndarray, d: np.ndarray):
+        """Distance (inf where missed), solid-angle pdf and share of the radiance (0: missed) along unit rays of a
+        light of a radius (``kernels.intersect_soft``)."""
+        return _intersect_soft(self, o, d)
 
     def estimated_power(self) -> float:
         return float(self.power * self.color.mean())
@@ -153,31 +206,52 @@ class SpotLight(PointLight):
             raise ValueError(f"SpotLight.blend must be in [0, 1], got {self.blend}")
 
     def table_row(self) -> tuple[int, np.ndarray]:
-        _, row = super().table_row()
+        kind, row = super().table_row()
         cos_edge = math.cos(self.spot_size / 2)
         row[6:15] = np.linalg.inv(self.axes).ravel()  # world -> the light's frame: a direction's local (x, y, z)
         row[15], row[16] = cos_edge, (1 - cos_edge) * self.blend
-        return kernels.SPOT, row
+        return (kernels.SPOT if kind == kernels.POINT else kind), row
 
 
 @dataclass
 class SunLight:
-    """A distant light: ``direction`` is where the light travels, ``strength`` the irradiance."""
+    """A distant light: ``direction`` is where the light travels, ``strength`` the irradiance; of an ``angle`` > 0
+    (radians, the disk's diameter, up to pi) a disk of the sky (the module's notes)."""
 
     direction: np.ndarray
     strength: float = 1.0
     color: tuple = (1.0, 1.0, 1.0)
     casts_shadow: bool = field(default=True, kw_only=True)
+    angle: float = field(default=0.0, kw_only=True)
+    normalize: bool = field(default=True, kw_only=True)
+    camera_visible: bool = field(default=True, kw_only=True)
+    max_bounces: int = field(default=MAX_BOUNCES, kw_only=True)
 
     def __post_init__(self):
         self.direction = _unit(self.direction, "SunLight.direction")
         self.strength = _power(self.strength, "SunLight.strength")
         self.color = _rgb(self.color, "SunLight.color")
+        self.angle = _power(self.angle, "SunLight.angle")
+        if self.angle > math.pi:
+            raise ValueError(f"SunLight.angle must be in [0, pi] radians, got {self.angle!r}")
+        self.max_bounces = _max_bounces(self.max_bounces, "SunLight.max_bounces")
 
     def table_row(self) -> tuple[int, np.ndarray]:
         row = np.zeros(N_PARAMS)
         row[0:3], row[3:6] = -self.direction, self.color * self.strength
-        return kernels.SUN, _shadowed(row, self)
+        if not self.angle > 0.0:
+            return kernels.SUN, _shadowed(row, self)
+        half = self.angle / 2
+        if self.normalize:  # Cycles' strength over the disk's area pi sin^2: the irradiance facing it is the strength
+            row[3:6] /= math.pi * math.sin(half) ** 2
+        row[6], row[7] = math.cos(half), 2.0 * math.sin(half / 2) ** 2  # cos and 1 - cos of the half angle
+        row[kernels.CAMERA_VISIBLE] = 1.0 if self.camera_visible else 0.0
+        return kernels.SUN_DISK, _shadowed(row, self)
+
+    def intersect(self, o: np.ndarray, d: np.ndarray):
+        """Distance (inf), solid-angle pdf and share of the radiance (0: missed) along unit rays of a sun of an
+        angle (``kernels.intersect_soft``)."""
+        return _intersect_soft(self, o, d)
 
     def sample(self, p: np.ndarray, u: np.ndarray) -> LightSample:
         return _sample(self, p, u)
@@ -206,6 +280,7 @@ class AreaLight:
     camera_visible: bool = True
     casts_shadow: bool = field(default=True, kw_only=True)
     solid_angle: bool = field(default=True, kw_only=True)
+    max_bounces: int = field(default=MAX_BOUNCES, kw_only=True)
 
     def __post_init__(self):
         """``normalize``: Blender's *Normalize* (the power spread over the light's area; off, the radiance is
@@ -236,6 +311,7 @@ class AreaLight:
         self.spread = float(self.spread)
         if not 0.0 <= self.spread <= math.pi:
             raise ValueError(f"AreaLight.spread must be in [0, pi] radians, got {self.spread!r}")
+        self.max_bounces = _max_bounces(self.max_bounces, "AreaLight.max_bounces")
 
     def table_row(self) -> tuple[int, np.ndarray]:
         row = np.zeros(N_PARAMS)
@@ -243,7 +319,7 @@ class AreaLight:
         row[9:12], row[12:15], row[15] = self.normal, self.radiance, self.area
         row[16] = self._bounding_radius2()
         row[17], row[18] = spread_table(self.spread)
-        row[19] = 1.0 if self.camera_visible else 0.0
+        row[kernels.CAMERA_VISIBLE] = 1.0 if self.camera_visible else 0.0
         row[kernels.BY_AREA] = 0.0 if self.solid_angle else 1.0
         return (kernels.AREA_ELLIPSE if self.ellipse else kernels.AREA_RECT), _shadowed(row, self)
 
@@ -320,6 +396,14 @@ def _rows(a, columns: int = 3) -> np.ndarray:
     return a
 
 
+def _intersect_soft(light, o: np.ndarray, d: np.ndarray):
+    """``light.intersect`` of a light of a radius or an angle: the kernels' intersection of its row."""
+    kind, row = light.table_row()
+    if kernels.is_delta(kind):
+        raise ValueError(f"{type(light).__name__} of no radius or angle: rays cannot hit it")
+    return kernels.intersect_soft(kind, row, _rows(o), _rows(d))
+
+
 def _sample(light, p: np.ndarray, u: np.ndarray) -> LightSample:
     """``light.sample``: the light table's sampling loop on this one light."""
     kind, row = light.table_row()
@@ -393,8 +477,11 @@ class Environment:
         return not (self.constant > 0).any()
 
     def table_row(self) -> tuple[int, np.ndarray]:
-        """The light table's row: the kind and no parameters (the environment is all in :meth:`image_arrays`)."""
-        return kernels.ENVIRONMENT, np.zeros(N_PARAMS)
+        """The light table's row: the kind and no parameters but no bounce limit (the environment is all in
+        :meth:`image_arrays`)."""
+        row = np.zeros(N_PARAMS)
+        row[kernels.MAX_BOUNCES] = INF
+        return kernels.ENVIRONMENT, row
 
     def image_arrays(self) -> tuple:
         """The ``env`` tuple the kernels read (``kernels``, "lights"): the image (one pixel for a constant colour),

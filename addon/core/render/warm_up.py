@@ -39,6 +39,9 @@ def warm_scene(environment_image: bool):
         PointLight((0.0, 1.0, 2.0), 10.0),
         SpotLight((0.0, -1.0, 2.0), 10.0, direction=(0.0, 0.0, -1.0), spot_size=math.radians(60.0)),
         SunLight((0.3, 0.2, -1.0), 1.0),
+        PointLight((1.0, 1.0, 2.0), 10.0, radius=0.2),  # a sphere's and a facing disk's loops, and a sun's disk's
+        PointLight((-1.0, 1.0, 2.0), 10.0, radius=0.2, soft_falloff=False),
+        SunLight((-0.3, 0.2, -1.0), 1.0, angle=math.radians(5.0)),
         AreaLight(rect, 10.0, size=0.5),
         AreaLight(disk, 10.0, size=0.5, ellipse=True),
     ]
