@@ -12,23 +12,12 @@ import os
 import shutil
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from tests.blender.helpers import run_operator
+from tests.blender.test_bake_addon import stand_in_encoder
 
 ops = pytest.importorskip("bpy").ops.neural_layers
-
-
-def _stand_in_encoder(size, threads=2, refine_s=0.0, refine_cache=None):
-    """A fixed linear map of each texel's parameters in place of the networks (a bake in milliseconds)."""
-    proj = np.random.default_rng(5).normal(size=(64, 98)) * 0.1
-
-    def encode(arrays):
-        v = arrays.to_matrix() @ proj[: arrays.to_matrix().shape[1]]
-        return v[:, :96].reshape(-1, 3, 32), v[:, 96:]
-
-    return encode
 
 
 @pytest.fixture()
@@ -37,7 +26,7 @@ def bake(bpy_addon, monkeypatch):
     Bake Folder ``folder`` (None: the default), baked and saved; returns the material."""
     from addon.blender import bake_ops
 
-    monkeypatch.setattr(bake_ops, "neural_encoder", _stand_in_encoder)
+    monkeypatch.setattr(bake_ops, "neural_encoder", stand_in_encoder)
     bpy = bpy_addon
 
     def made(path, preset, folder=None):
@@ -176,7 +165,7 @@ def test_a_bake_folder_without_double_slash_is_relative_to_the_blend_file(bpy_ad
     folder's); an unsaved file refuses it as it refuses "//"."""
     from addon.blender import bake_ops
 
-    monkeypatch.setattr(bake_ops, "neural_encoder", _stand_in_encoder)
+    monkeypatch.setattr(bake_ops, "neural_encoder", stand_in_encoder)
     bpy = bpy_addon
     elsewhere = tmp_path / "started_here"
     elsewhere.mkdir()

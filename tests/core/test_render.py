@@ -136,6 +136,17 @@ def test_an_area_light_flush_with_the_ceiling_shines_the_same_for_every_strategy
     assert np.sqrt((z**2).mean()) < 1.6, f"{other} vs MIS: rms z = {np.sqrt((z**2).mean()):.2f}"
 
 
+def assert_strategy_agrees_with_mis(scene, other: str) -> None:
+    """Block means of ``scene`` rendered with MIS and with strategy ``other`` (96 spp, 2 bounces, other seeds) agree
+    within their noise."""
+    a, sa = block_stats(render(scene, RenderSettings(samples=96, max_bounces=2, strategy="mis", seed=1))[0])
+    b, sb = block_stats(render(scene, RenderSettings(samples=96, max_bounces=2, strategy=other, seed=2))[0])
+    assert a.mean() > 0.02
+    z = (a - b) / np.sqrt(sa**2 + sb**2 + 1e-12)
+    assert np.sqrt((z**2).mean()) < 1.6, f"{other} vs MIS: rms z = {np.sqrt((z**2).mean()):.2f}"
+    assert np.abs(z).max() < 6
+
+
 @pytest.mark.parametrize("other", ["light", "bsdf"])
 def test_a_spread_area_light_and_a_scaled_spot_converge_for_every_strategy(other):
     """An area light's *Spread* weighs what it emits by direction in both ways to reach it (light sampling and the
@@ -147,12 +158,7 @@ def test_a_spread_area_light_and_a_scaled_spot_converge_for_every_strategy(other
         SpotLight((0.5, -1.0, 3.0), power=400.0, spot_size=0.9, blend=0.2, axes=spot_axes),
     ]
     scene = mixed_scene(lights=lights, env=False)
-    a, sa = block_stats(render(scene, RenderSettings(samples=96, max_bounces=2, strategy="mis", seed=1))[0])
-    b, sb = block_stats(render(scene, RenderSettings(samples=96, max_bounces=2, strategy=other, seed=2))[0])
-    assert a.mean() > 0.02
-    z = (a - b) / np.sqrt(sa**2 + sb**2 + 1e-12)
-    assert np.sqrt((z**2).mean()) < 1.6, f"{other} vs MIS: rms z = {np.sqrt((z**2).mean()):.2f}"
-    assert np.abs(z).max() < 6
+    assert_strategy_agrees_with_mis(scene, other)
 
 
 def test_a_transparent_film_leaves_the_sky_out_of_the_camera_rays_and_keeps_its_light():
@@ -1347,12 +1353,7 @@ def test_soft_point_spot_and_sun_lights_converge_for_every_strategy(other):
     (the one the intersection reports), so multiple importance sampling weighs them as it weighs an area light and
     BSDF sampling alone (which only their hits reach) renders the same image; the glossy sphere reflects them."""
     scene = mixed_scene(lights=_soft_lights(), env=False)
-    a, sa = block_stats(render(scene, RenderSettings(samples=96, max_bounces=2, strategy="mis", seed=1))[0])
-    b, sb = block_stats(render(scene, RenderSettings(samples=96, max_bounces=2, strategy=other, seed=2))[0])
-    assert a.mean() > 0.02
-    z = (a - b) / np.sqrt(sa**2 + sb**2 + 1e-12)
-    assert np.sqrt((z**2).mean()) < 1.6, f"{other} vs MIS: rms z = {np.sqrt((z**2).mean()):.2f}"
-    assert np.abs(z).max() < 6
+    assert_strategy_agrees_with_mis(scene, other)
 
 
 @pytest.mark.parametrize("soft_falloff", [False, True])
